@@ -1,0 +1,384 @@
+"""Hashed block grid and ray traversal shared by the mapper back-ends (numba, no zenoh).
+
+Storage is a voxblox-style block hash: voxels are grouped in cubes of `2**bits` voxels a side;
+an open-addressing table maps a packed block key to a block index, and every per-voxel field is
+a flat struct-of-arrays column indexed by `block * voxels_per_block + local`. Walking a ray then
+costs one hash probe per block crossed instead of one per voxel, which is where the speed over a
+pointer octree comes from.
+
+Kernels here never allocate map storage: when a block or table slot is missing they return a
+status code and the Python owner (`BlockGrid`) grows the arrays and calls them again, resuming at
+the point where they stopped. Every step a kernel takes before such a return is idempotent.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# -- status codes returned by the integration kernels ----------------------------------------------
+DONE = 0
+GROW_BLOCKS = 1
+GROW_TABLE = 2
+GROW_TOUCHED = 3
+
+# -- per-voxel flag bits ---------------------------------------------------------------------------
+OBSERVED = np.uint8(1)  # the voxel received at least one update (unknown otherwise)
+MARK_FREE = np.uint8(2)  # this cloud: a ray passed through (cleared after the cloud)
+MARK_HIT = np.uint8(4)  # this cloud: a point ended in it (cleared after the cloud)
+MARK_ANY = np.uint8(6)
+
+# Block coordinates are packed in 21 bits per axis; OctoMap's key range (+-32768 voxels) is the
+# map's extent anyway, so the packing never overflows.
+_PACK_OFF = 1 << 20
+_PACK_MASK = (1 << 21) - 1
+KEY_LIMIT = 32768  # voxel indices must lie in [-KEY_LIMIT, KEY_LIMIT), as OctoMap's 16-bit keys
+EMPTY = np.int64(-1)
+_FIB = np.uint64(0x9E3779B97F4A7C15)
+
+
+@njit(cache=True)
+def pack_block(bx, by, bz):
+    return ((bx + _PACK_OFF) << 42) | ((by + _PACK_OFF) << 21) | (bz + _PACK_OFF)
+
+
+@njit(cache=True)
+def unpack_block(key):
+    return (
+        ((key >> 42) & _PACK_MASK) - _PACK_OFF,
+        ((key >> 21) & _PACK_MASK) - _PACK_OFF,
+        (key & _PACK_MASK) - _PACK_OFF,
+    )
+
+
+@njit(cache=True)
+def _slot(key, hshift):
+    # Fibonacci hashing: the high bits of key * golden ratio spread neighbouring blocks.
+    return np.int64((np.uint64(key) * _FIB) >> np.uint64(hshift))
+
+
+@njit(cache=True)
+def table_find(h_keys, h_vals, hshift, key):
+    """Block index of `key`, or -1."""
+    mask = h_keys.shape[0] - 1
+    s = _slot(key, hshift)
+    while True:
+        k = h_keys[s]
+        if k == key:
+            return np.int64(h_vals[s])
+        if k == EMPTY:
+            return np.int64(-1)
+        s = (s + 1) & mask
+
+
+@njit(cache=True)
+def table_find_or_insert(h_keys, h_vals, hshift, block_keys, n_blocks, key):
+    """(block index, n_blocks); the index is -GROW_BLOCKS / -GROW_TABLE when storage is full."""
+    mask = h_keys.shape[0] - 1
+    s = _slot(key, hshift)
+    while True:
+        k = h_keys[s]
+        if k == key:
+            return np.int64(h_vals[s]), n_blocks
+        if k == EMPTY:
+            break
+        s = (s + 1) & mask
+    if n_blocks >= block_keys.shape[0]:
+        return np.int64(-GROW_BLOCKS), n_blocks
+    if 2 * (n_blocks + 1) > h_keys.shape[0]:  # keep the load factor <= 1/2
+        return np.int64(-GROW_TABLE), n_blocks
+    h_keys[s] = key
+    h_vals[s] = n_blocks
+    block_keys[n_blocks] = key
+    return np.int64(n_blocks), n_blocks + 1
+
+
+@njit(cache=True)
+def rebuild_table(h_keys, h_vals, hshift, block_keys, n_blocks):
+    h_keys[:] = EMPTY
+    mask = h_keys.shape[0] - 1
+    for b in range(n_blocks):
+        key = block_keys[b]
+        s = _slot(key, hshift)
+        while h_keys[s] != EMPTY:
+            s = (s + 1) & mask
+        h_keys[s] = key
+        h_vals[s] = b
+
+
+@njit(cache=True)
+def voxel_index(ix, iy, iz, bits):
+    """(packed block key, local index inside the block) of voxel (ix, iy, iz)."""
+    bm = (1 << bits) - 1
+    key = pack_block(ix >> bits, iy >> bits, iz >> bits)
+    local = (ix & bm) | ((iy & bm) << bits) | ((iz & bm) << (2 * bits))
+    return key, local
+
+
+@njit(cache=True)
+def lookup_voxels(keys, h_keys, h_vals, hshift, bits):
+    """Global voxel index of each (ix, iy, iz) row of `keys`, -1 where no block holds it."""
+    out = np.empty(keys.shape[0], np.int64)
+    vb = 3 * bits
+    for i in range(keys.shape[0]):
+        bkey, local = voxel_index(keys[i, 0], keys[i, 1], keys[i, 2], bits)
+        b = table_find(h_keys, h_vals, hshift, bkey)
+        out[i] = -1 if b < 0 else (b << vb) | local
+    return out
+
+
+@njit(cache=True)
+def voxel_coords(gidx, block_keys, bits):
+    """(ix, iy, iz) int64 rows of global voxel indices."""
+    out = np.empty((gidx.shape[0], 3), np.int64)
+    vb = 3 * bits
+    bm = (1 << bits) - 1
+    for i in range(gidx.shape[0]):
+        g = gidx[i]
+        bx, by, bz = unpack_block(block_keys[g >> vb])
+        local = g & ((1 << vb) - 1)
+        out[i, 0] = (bx << bits) | (local & bm)
+        out[i, 1] = (by << bits) | ((local >> bits) & bm)
+        out[i, 2] = (bz << bits) | ((local >> (2 * bits)) & bm)
+    return out
+
+
+@njit(cache=True)
+def coord_to_key(c, inv_res):
+    """OctoMap's coordToKey without the 2**15 offset: floor(coord / res), in double."""
+    return np.int64(np.floor(np.float64(c) * inv_res))
+
+
+@njit(cache=True)
+def key_in_range(kx, ky, kz):
+    return (
+        -KEY_LIMIT <= kx < KEY_LIMIT and -KEY_LIMIT <= ky < KEY_LIMIT and -KEY_LIMIT <= kz < KEY_LIMIT
+    )
+
+
+@njit(cache=True)
+def octomap_ray_keys(ox, oy, oz, ex, ey, ez, res, inv_res, out):
+    """OctoMap's computeRayKeys: voxels from the origin's voxel up to, not including, the end's.
+
+    A transcription of OcTreeBaseImpl::computeRayKeys (Amanatides-Woo 3D DDA) keeping its mix of
+    float (point3d) and double (tMax, tDelta) arithmetic, so that both walk the same voxels even
+    when a ray grazes a voxel corner. Coordinates must be float32. Writes keys into `out` (n x 3)
+    and returns how many, or -1 when an end lies outside the key range (OctoMap skips the ray).
+    """
+    kox = coord_to_key(ox, inv_res)
+    koy = coord_to_key(oy, inv_res)
+    koz = coord_to_key(oz, inv_res)
+    kex = coord_to_key(ex, inv_res)
+    key_ = coord_to_key(ey, inv_res)
+    kez = coord_to_key(ez, inv_res)
+    if not (key_in_range(kox, koy, koz) and key_in_range(kex, key_, kez)):
+        return -1
+    if kox == kex and koy == key_ and koz == kez:
+        return 0
+    n_max = out.shape[0]
+    out[0, 0] = kox
+    out[0, 1] = koy
+    out[0, 2] = koz
+    n = 1
+    # float32 direction and length, exactly as point3d computes them
+    dx = np.float32(ex - ox)
+    dy = np.float32(ey - oy)
+    dz = np.float32(ez - oz)
+    nsq = np.float32(np.float32(dx * dx + dy * dy) + dz * dz)
+    length = np.float32(np.sqrt(np.float64(nsq)))
+    dx = np.float32(dx / length)
+    dy = np.float32(dy / length)
+    dz = np.float32(dz / length)
+    half = np.float64(np.float32(res * 0.5))
+    big = np.finfo(np.float64).max
+    cx, cy, cz = kox, koy, koz
+    sx = 1 if dx > 0 else (-1 if dx < 0 else 0)
+    sy = 1 if dy > 0 else (-1 if dy < 0 else 0)
+    sz = 1 if dz > 0 else (-1 if dz < 0 else 0)
+    tmx = tmy = tmz = big
+    tdx = tdy = tdz = big
+    if sx != 0:
+        tmx = ((np.float64(cx) + 0.5) * res + sx * half - np.float64(ox)) / np.float64(dx)
+        tdx = res / abs(np.float64(dx))
+    if sy != 0:
+        tmy = ((np.float64(cy) + 0.5) * res + sy * half - np.float64(oy)) / np.float64(dy)
+        tdy = res / abs(np.float64(dy))
+    if sz != 0:
+        tmz = ((np.float64(cz) + 0.5) * res + sz * half - np.float64(oz)) / np.float64(dz)
+        tdz = res / abs(np.float64(dz))
+    flen = np.float64(length)
+    while True:
+        if tmx < tmy:
+            dim = 0 if tmx < tmz else 2
+        else:
+            dim = 1 if tmy < tmz else 2
+        if dim == 0:
+            cx += sx
+            tmx += tdx
+        elif dim == 1:
+            cy += sy
+            tmy += tdy
+        else:
+            cz += sz
+            tmz += tdz
+        if cx == kex and cy == key_ and cz == kez:
+            break
+        if min(tmx, tmy, tmz) > flen:
+            break
+        if n >= n_max:  # cannot happen for rays within the buffer's design length
+            break
+        out[n, 0] = cx
+        out[n, 1] = cy
+        out[n, 2] = cz
+        n += 1
+    return n
+
+
+@njit(cache=True)
+def voxblox_ray_keys(sx, sy, sz, ex, ey, ez, inv_res, out):
+    """voxblox's RayCaster: voxels from the start's to the end's, both included.
+
+    Works in voxel-scaled coordinates like voxblox; the number of voxels is one more than the
+    Manhattan distance between the end voxels. Axis-parallel components never step (voxblox
+    intends this; its `abs(x) < 0` guard does not achieve it).
+    """
+    ax = sx * inv_res
+    ay = sy * inv_res
+    az = sz * inv_res
+    bx = ex * inv_res
+    by = ey * inv_res
+    bz = ez * inv_res
+    cx = np.int64(np.floor(ax))
+    cy = np.int64(np.floor(ay))
+    cz = np.int64(np.floor(az))
+    n_steps = (
+        abs(np.int64(np.floor(bx)) - cx)
+        + abs(np.int64(np.floor(by)) - cy)
+        + abs(np.int64(np.floor(bz)) - cz)
+    )
+    rx = bx - ax
+    ry = by - ay
+    rz = bz - az
+    sgx = 1 if rx > 0 else (-1 if rx < 0 else 0)
+    sgy = 1 if ry > 0 else (-1 if ry < 0 else 0)
+    sgz = 1 if rz > 0 else (-1 if rz < 0 else 0)
+    inf = np.inf
+    tx = ((max(0, sgx) - (ax - cx)) / rx) if sgx != 0 else inf
+    ty = ((max(0, sgy) - (ay - cy)) / ry) if sgy != 0 else inf
+    tz = ((max(0, sgz) - (az - cz)) / rz) if sgz != 0 else inf
+    stx = (sgx / rx) if sgx != 0 else inf
+    sty = (sgy / ry) if sgy != 0 else inf
+    stz = (sgz / rz) if sgz != 0 else inf
+    n = 0
+    n_max = out.shape[0]
+    for _ in range(n_steps + 1):
+        if n >= n_max:
+            break
+        out[n, 0] = cx
+        out[n, 1] = cy
+        out[n, 2] = cz
+        n += 1
+        if tx <= ty and tx <= tz:
+            cx += sgx
+            tx += stx
+        elif ty <= tz:
+            cy += sgy
+            ty += sty
+        else:
+            cz += sgz
+            tz += stz
+    return n
+
+
+class BlockGrid:
+    """Python owner of the hash table, the block keys and the per-voxel columns.
+
+    `fields` maps a column name to (dtype, trailing shape). Growth multiplies capacity by 1.5,
+    so at most a third of the voxel columns is reserve; `stats()` reports used and reserved bytes.
+    """
+
+    def __init__(self, bits: int, fields: dict[str, tuple[np.dtype, tuple[int, ...]]]):
+        if bits not in (2, 3, 4):
+            raise ValueError(f"block_bits must be 2, 3 or 4 (block side 4, 8 or 16), got {bits}")
+        self.bits = bits
+        self.voxels_per_block = 1 << (3 * bits)
+        self.fields = {k: (np.dtype(v[0]), tuple(v[1])) for k, v in fields.items()}
+        self.n_blocks = 0
+        self.block_keys = np.empty(16, np.int64)
+        self.cols = {
+            k: np.zeros((16 * self.voxels_per_block, *shape), dt)
+            for k, (dt, shape) in self.fields.items()
+        }
+        self._alloc_table(64)
+
+    def _alloc_table(self, size: int) -> None:
+        self.h_keys = np.full(size, -1, np.int64)
+        self.h_vals = np.zeros(size, np.int32)
+        self.hshift = 64 - (size.bit_length() - 1)
+
+    @property
+    def block_capacity(self) -> int:
+        return self.block_keys.shape[0]
+
+    def grow_blocks(self, min_blocks: int | None = None) -> None:
+        cap = max(int(self.block_capacity * 1.5) + 1, min_blocks or 0)
+        keys = np.empty(cap, np.int64)
+        keys[: self.n_blocks] = self.block_keys[: self.n_blocks]
+        self.block_keys = keys
+        n_used = self.n_blocks * self.voxels_per_block
+        for k, col in self.cols.items():
+            new = np.zeros((cap * self.voxels_per_block, *col.shape[1:]), col.dtype)
+            new[:n_used] = col[:n_used]
+            self.cols[k] = new
+
+    def grow_table(self) -> None:
+        size = self.h_keys.shape[0] * 2
+        while size < 4 * (self.n_blocks + 1):
+            size *= 2
+        self._alloc_table(size)
+        rebuild_table(self.h_keys, self.h_vals, self.hshift, self.block_keys, self.n_blocks)
+
+    def handle(self, status: int) -> None:
+        if status == GROW_BLOCKS:
+            self.grow_blocks()
+        elif status == GROW_TABLE:
+            self.grow_table()
+        else:
+            raise RuntimeError(f"unexpected kernel status {status}")
+
+    def restore(self, block_keys: np.ndarray, cols: dict[str, np.ndarray]) -> None:
+        """Replace the content with saved blocks (keys and used voxel columns)."""
+        n = int(block_keys.shape[0])
+        self.n_blocks = 0
+        self.block_keys = np.empty(max(n, 16), np.int64)
+        self.block_keys[:n] = block_keys
+        nv = max(n, 16) * self.voxels_per_block
+        for k, (dt, shape) in self.fields.items():
+            col = np.zeros((nv, *shape), dt)
+            col[: n * self.voxels_per_block] = cols[k]
+            self.cols[k] = col
+        self.n_blocks = n
+        size = 64
+        while size < 4 * max(n, 1):
+            size *= 2
+        self._alloc_table(size)
+        rebuild_table(self.h_keys, self.h_vals, self.hshift, self.block_keys, n)
+
+    def used(self, name: str) -> np.ndarray:
+        return self.cols[name][: self.n_blocks * self.voxels_per_block]
+
+    def lookup(self, keys: np.ndarray) -> np.ndarray:
+        return lookup_voxels(
+            np.ascontiguousarray(keys, np.int64), self.h_keys, self.h_vals, self.hshift, self.bits
+        )
+
+    def coords(self, gidx: np.ndarray) -> np.ndarray:
+        return voxel_coords(np.ascontiguousarray(gidx, np.int64), self.block_keys, self.bits)
+
+    def nbytes(self) -> tuple[int, int]:
+        """(bytes holding allocated blocks, bytes reserved in total), hash table included."""
+        per_voxel = sum(c.dtype.itemsize * int(np.prod(c.shape[1:])) for c in self.cols.values())
+        table = self.h_keys.nbytes + self.h_vals.nbytes
+        used = self.n_blocks * (self.voxels_per_block * per_voxel + 8) + table
+        reserved = sum(c.nbytes for c in self.cols.values()) + self.block_keys.nbytes + table
+        return used, reserved

@@ -1,0 +1,50 @@
+"""The map delta: what one integration changed, in the MapDelta message's field convention."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Delta:
+    """Voxels whose state changed in one integration, one row each (no voxel twice).
+
+    - `keys`: int32 voxel indices (ix, iy, iz) = floor(coordinate / resolution);
+    - `centres`: float32 voxel centres in the world frame;
+    - `labels`, `confidences`: the voxel's fused label (0 = none yet) and its confidence;
+    - `occupied`: octree: log-odds > 0; tsdf: surface voxel (|distance| < resolution, weight > 0);
+    - `values`: octree: occupancy log-odds; tsdf: signed distance in metres.
+    """
+
+    keys: np.ndarray
+    centres: np.ndarray
+    labels: np.ndarray
+    confidences: np.ndarray
+    occupied: np.ndarray
+    values: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.keys.shape[0])
+
+    @classmethod
+    def empty(cls) -> Delta:
+        return cls(
+            np.zeros((0, 3), np.int32),
+            np.zeros((0, 3), np.float32),
+            np.zeros(0, np.uint16),
+            np.zeros(0, np.float32),
+            np.zeros(0, np.uint8),
+            np.zeros(0, np.float32),
+        )
+
+    def subset(self, mask: np.ndarray) -> Delta:
+        return Delta(
+            self.keys[mask],
+            self.centres[mask],
+            self.labels[mask],
+            self.confidences[mask],
+            self.occupied[mask],
+            self.values[mask],
+        )

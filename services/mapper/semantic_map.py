@@ -1,0 +1,286 @@
+"""`SemanticMap`: the mapper's library API (no zenoh), one object for the three back-ends.
+
+    m = SemanticMap(backend="octree-max", resolution_m=0.1, max_range_m=10.0, ray_length_m=1.0)
+    delta = m.integrate(points, labels, confidences, origin)   # what changed, voxel by voxel
+    m.occupied_voxels(box=((0, 0, -1), (5, 5, 2)))
+    m.query(points); m.stats(); m.save("map.npz"); SemanticMap.load("map.npz")
+    m.export_ply("map.ply")
+
+Inputs are checked here, in plain Python, and rejected with a ValueError naming the problem; the
+numba kernels behind (`octree.py`, `tsdf.py`) trust what they get.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from smana.common.classes import ClassTable
+from smana.services.mapper import ply
+from smana.services.mapper.delta import Delta
+from smana.services.mapper.octree import FusionParams, OccupancyParams, OctreeBackend
+from smana.services.mapper.tsdf import TsdfBackend, TsdfParams
+
+BACKENDS = ("octree-max", "octree-bayes", "tsdf")
+FORMAT_VERSION = 1
+
+
+@dataclass
+class QueryResult:
+    """Per query point: `known` (observed voxel), `occupied`, fused `labels`, `confidences`, and
+    `values` (octree: log-odds; tsdf: signed distance in metres; NaN where unknown)."""
+
+    known: np.ndarray
+    occupied: np.ndarray
+    labels: np.ndarray
+    confidences: np.ndarray
+    values: np.ndarray
+
+
+def _semantic_ids(table: ClassTable) -> np.ndarray:
+    """Classes that carry a label worth fusing: not `unknown`, not `ignored`."""
+    return np.array(
+        [c.id for c in table.classes.values() if c.kind in ("traversable", "obstacle")], np.int64
+    )
+
+
+class SemanticMap:
+    """A semantic 3D voxel map fed with labelled point clouds (world frame)."""
+
+    def __init__(
+        self,
+        backend: str = "octree-max",
+        resolution_m: float = 0.1,
+        max_range_m: float = 10.0,
+        ray_length_m: float | None = 1.0,
+        class_table: ClassTable | str | Path = "garden3drms",
+        occupancy: OccupancyParams = OccupancyParams(),
+        fusion: FusionParams = FusionParams(),
+        tsdf: TsdfParams = TsdfParams(),
+        block_bits: int = 3,
+    ):
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if not (np.isfinite(resolution_m) and 0.01 <= resolution_m <= 10.0):
+            raise ValueError(f"resolution_m must be in [0.01, 10], got {resolution_m}")
+        if not (np.isfinite(max_range_m) and max_range_m > 0):
+            raise ValueError(f"max_range_m must be > 0, got {max_range_m}")
+        if ray_length_m is not None and not (np.isfinite(ray_length_m) and ray_length_m > 0):
+            raise ValueError(f"ray_length_m must be > 0 or None (whole ray), got {ray_length_m}")
+        self.backend = backend
+        self.resolution_m = float(resolution_m)
+        self.max_range_m = float(max_range_m)
+        self.ray_length_m = None if ray_length_m is None else float(ray_length_m)
+        self.class_table = (
+            class_table if isinstance(class_table, ClassTable) else ClassTable.load(class_table)
+        )
+        self.occupancy, self.fusion, self.tsdf, self.block_bits = occupancy, fusion, tsdf, block_bits
+        self.class_ids = _semantic_ids(self.class_table)
+        # ignored classes (sky, ...) never reach the map; unknown ids update geometry only
+        self._ignored = np.zeros(65536, bool)
+        self._ignored[: self.class_table.size] = self.class_table.ignored_lut
+        semantic_lut = np.zeros(65536, bool)
+        semantic_lut[self.class_ids] = True
+        if backend == "tsdf":
+            self._core = TsdfBackend(resolution_m, max_range_m, self.class_ids, tsdf, block_bits)
+        else:
+            self._core = OctreeBackend(
+                resolution_m, backend.split("-")[1], max_range_m, self.ray_length_m,
+                semantic_lut, len(self.class_ids), occupancy, fusion, block_bits,
+            )  # fmt: skip
+        self.n_integrations = 0
+        self.n_points = 0
+
+    # -- integration -----------------------------------------------------------------------
+
+    def integrate(
+        self,
+        points: np.ndarray,
+        labels: np.ndarray,
+        confidences: np.ndarray | None = None,
+        origin: np.ndarray | tuple[float, float, float] = (0.0, 0.0, 0.0),
+    ) -> Delta:
+        """Integrate one cloud (world-frame points, sensor origin); returns the changed voxels."""
+        pts = np.asarray(points)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must be N x 3, got shape {pts.shape}")
+        n = pts.shape[0]
+        if not np.issubdtype(pts.dtype, np.floating):
+            raise ValueError(f"points must be floating point, got {pts.dtype}")
+        pts = np.ascontiguousarray(pts, np.float32)
+        if not np.isfinite(pts).all():
+            raise ValueError("points contain NaN or inf (drop them first)")
+        lab = np.asarray(labels)
+        if lab.shape != (n,):
+            raise ValueError(f"labels must have shape ({n},), got {lab.shape}")
+        if n and not np.issubdtype(lab.dtype, np.integer):
+            raise ValueError(f"labels must be integers, got {lab.dtype}")
+        if n and (lab.min() < 0 or lab.max() > 65535):
+            raise ValueError("labels must be in 0..65535")
+        lab = np.ascontiguousarray(lab, np.uint16)
+        if confidences is None:
+            conf = np.ones(n, np.float32)
+        else:
+            conf = np.ascontiguousarray(confidences, np.float32)
+            if conf.shape != (n,):
+                raise ValueError(f"confidences must have shape ({n},), got {conf.shape}")
+            if n and not (np.isfinite(conf).all() and conf.min() >= 0 and conf.max() <= 1):
+                raise ValueError("confidences must be finite and in [0, 1]")
+        org = np.asarray(origin, np.float64)
+        if org.shape != (3,) or not np.isfinite(org).all():
+            raise ValueError(f"origin must be 3 finite numbers, got {origin!r}")
+        keep = ~self._ignored[lab]
+        if not keep.all():
+            pts, lab, conf = pts[keep], lab[keep], conf[keep]
+        self.n_integrations += 1
+        self.n_points += int(pts.shape[0])
+        if pts.shape[0] == 0:
+            return Delta.empty()
+        return self._core.integrate(pts, lab, conf, org.astype(np.float32))
+
+    # -- queries ---------------------------------------------------------------------------
+
+    def occupied_voxels(self, box=None) -> Delta:
+        """Occupied (octree) or surface (tsdf) voxels with labels, optionally inside a box
+        ((xmin, ymin, zmin), (xmax, ymax, zmax)) that contains their centres."""
+        rows = self._core.rows(self._core.occupied_index())
+        if box is None:
+            return rows
+        lo, hi = (np.asarray(b, np.float64) for b in box)
+        if lo.shape != (3,) or hi.shape != (3,) or not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            raise ValueError("box must be ((xmin, ymin, zmin), (xmax, ymax, zmax))")
+        inside = ((rows.centres >= lo) & (rows.centres <= hi)).all(axis=1)
+        return rows.subset(inside)
+
+    def query(self, points: np.ndarray) -> QueryResult:
+        """State of the voxels holding each point."""
+        pts = np.asarray(points, np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3 or not np.isfinite(pts).all():
+            raise ValueError("query points must be a finite N x 3 array")
+        keys = np.floor(pts / self.resolution_m).astype(np.int64)
+        g = self._core.grid.lookup(keys)
+        n = pts.shape[0]
+        known = np.zeros(n, bool)
+        hit = g >= 0
+        known[hit] = self._core.known(g[hit])
+        rows = self._core.rows(g[known])
+        out = QueryResult(
+            known,
+            np.zeros(n, bool),
+            np.zeros(n, np.uint16),
+            np.zeros(n, np.float32),
+            np.full(n, np.nan, np.float32),
+        )
+        out.occupied[known] = rows.occupied.astype(bool)
+        out.labels[known] = rows.labels
+        out.confidences[known] = rows.confidences
+        out.values[known] = rows.values
+        return out
+
+    def stats(self) -> dict:
+        grid = self._core.grid
+        allocated = grid.n_blocks * grid.voxels_per_block
+        observed = int(self._core.observed_index().shape[0])
+        used, reserved = grid.nbytes()
+        return {
+            "backend": self.backend,
+            "resolution_m": self.resolution_m,
+            "integrations": self.n_integrations,
+            "points": self.n_points,
+            "blocks": grid.n_blocks,
+            "voxels_allocated": allocated,
+            "voxels_observed": observed,
+            "voxels_occupied": int(self._core.occupied_index().shape[0]),
+            "bytes_per_voxel_field": self._core.bytes_per_voxel(),
+            "bytes_used": used,
+            "bytes_reserved": reserved,
+            "bytes_per_allocated_voxel": used / allocated if allocated else 0.0,
+            "bytes_per_observed_voxel": used / observed if observed else 0.0,
+        }
+
+    # -- persistence -----------------------------------------------------------------------
+
+    def _meta(self) -> dict:
+        return {
+            "format": FORMAT_VERSION,
+            "backend": self.backend,
+            "resolution_m": self.resolution_m,
+            "max_range_m": self.max_range_m,
+            "ray_length_m": self.ray_length_m,
+            "class_table": self.class_table.name,
+            "class_ids": self.class_ids.tolist(),
+            "occupancy": dataclasses.asdict(self.occupancy),
+            "fusion": dataclasses.asdict(self.fusion),
+            "tsdf": dataclasses.asdict(self.tsdf),
+            "block_bits": self.block_bits,
+            "integrations": self.n_integrations,
+            "points": self.n_points,
+        }
+
+    def save(self, path: str | Path) -> Path:
+        """Write the map to an .npz file atomically (a crash mid-save keeps the old file)."""
+        path = Path(path)
+        grid = self._core.grid
+        arrays = {f"col_{k}": grid.used(k) for k in grid.cols}
+        tmp = path.with_name(path.name + ".tmp")
+        with open(tmp, "wb") as fh:
+            np.savez(
+                fh,
+                meta=np.frombuffer(json.dumps(self._meta()).encode(), np.uint8),
+                block_keys=grid.block_keys[: grid.n_blocks],
+                **arrays,
+            )
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, class_table: ClassTable | str | Path | None = None) -> SemanticMap:
+        """Read a map written by `save`; `class_table` defaults to the bundled one it names."""
+        try:
+            with np.load(Path(path), allow_pickle=False) as z:
+                meta = json.loads(bytes(z["meta"]).decode())
+                block_keys = z["block_keys"]
+                cols = {k[4:]: z[k] for k in z.files if k.startswith("col_")}
+        except (OSError, ValueError, KeyError) as exc:
+            raise ValueError(f"{path}: not a smana map file ({exc})") from exc
+        if meta.get("format") != FORMAT_VERSION:
+            raise ValueError(f"{path}: unsupported map format {meta.get('format')!r}")
+        m = cls(
+            backend=meta["backend"],
+            resolution_m=meta["resolution_m"],
+            max_range_m=meta["max_range_m"],
+            ray_length_m=meta["ray_length_m"],
+            class_table=class_table if class_table is not None else meta["class_table"],
+            occupancy=OccupancyParams(**meta["occupancy"]),
+            fusion=FusionParams(**meta["fusion"]),
+            tsdf=TsdfParams(**meta["tsdf"]),
+            block_bits=meta["block_bits"],
+        )
+        if m.class_ids.tolist() != meta["class_ids"]:
+            raise ValueError(f"{path}: class table does not match the one the map was built with")
+        grid = m._core.grid
+        if set(cols) != set(grid.cols):
+            raise ValueError(f"{path}: columns {sorted(cols)} do not fit backend {m.backend}")
+        grid.restore(block_keys, cols)
+        m.n_integrations = meta["integrations"]
+        m.n_points = meta["points"]
+        return m
+
+    def export_ply(self, path: str | Path, class_table: ClassTable | None = None) -> int:
+        """Occupied voxel centres with colour, label and confidence; returns the vertex count."""
+        table = class_table or self.class_table
+        rows = self.occupied_voxels()
+        lut = table.colour_lut
+        labels = rows.labels.astype(np.int64)
+        colours = np.full((len(rows), 3), 255, np.uint8)
+        inside = labels < lut.shape[0]
+        colours[inside] = lut[labels[inside]]
+        ply.write_ply(path, rows.centres, colours, rows.labels, rows.confidences)
+        return len(rows)
