@@ -1,0 +1,300 @@
+"""Typed configuration: one TOML file, one section per service, validated at load.
+
+    [general]   robot name, class table, run directory, status period
+    [zenoh]     how every process reaches the others (see common/zenoh_config.py)
+    [deploy]    what `smana up` starts and how it restarts it
+    [sim] [mapper] [navgraph] [planner] [explorer] [replay]
+
+Every key is checked: an unknown key, a value of the wrong type or out of range is a `ConfigError`
+that names it (`mapper.resolution_m: expected a number > 0, got -1`). Command-line overrides use
+the same dotted names (`--set mapper.resolution_m=0.3`). The config actually used is written into
+the run directory as `config.toml`, so a run can be repeated exactly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+Backend = Literal["octree-max", "octree-bayes", "tsdf"]
+NoiseLevel = Literal["none", "low", "medium", "high"]
+RestartPolicy = Literal["never", "on-failure", "always"]
+
+
+class ConfigError(ValueError):
+    """A config file, key or value that cannot be used. The message names the key."""
+
+
+def _pos(**kw):
+    """A field whose value must be > 0."""
+    return field(metadata={"min_exclusive": 0.0}, **kw)
+
+
+def _nonneg(**kw):
+    return field(metadata={"min": 0.0}, **kw)
+
+
+@dataclass
+class GeneralConfig:
+    robot: str = "r1"
+    class_table: str = "garden3drms"  # bundled name or path to a TOML class table
+    run_dir: str = ""  # empty: runs/<timestamp> for `smana up`; no files for a lone service
+    status_period_s: float = _pos(default=1.0)
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+
+    def validate(self) -> None:
+        from smana.common.keys import check_robot
+
+        try:
+            check_robot(self.robot)
+        except ValueError as exc:
+            raise ConfigError(f"general.robot: {exc}") from None
+
+
+@dataclass
+class ZenohConfig:
+    # The embedded default: every process is a client of the supervisor's router on loopback.
+    mode: Literal["peer", "client", "router"] = "client"
+    connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    listen: list[str] = field(default_factory=list)
+    multicast_scouting: bool = False
+    gossip: bool = False
+    config_file: str = ""  # a zenoh JSON5 config applied first; the keys above override it
+
+
+@dataclass
+class ServiceDeployConfig:
+    """How the supervisor runs one service (dora's vocabulary)."""
+
+    enabled: bool = True
+    restart: RestartPolicy = "on-failure"
+    restart_delay_s: float = _nonneg(default=0.5)
+    restart_max_delay_s: float = _nonneg(default=10.0)
+    max_restarts: int = _nonneg(default=5)
+    restart_window_s: float = _pos(default=60.0)
+    args: list[str] = field(default_factory=list)  # extra command-line arguments
+
+
+@dataclass
+class DeployConfig:
+    router_listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    health_timeout_s: float = _pos(default=10.0)
+    stop_timeout_s: float = _pos(default=5.0)
+    finish_with: str = "explorer"  # the run ends when this service exits with status 0
+    sim: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
+    mapper: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
+    navgraph: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
+    planner: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
+    explorer: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
+
+
+@dataclass
+class SimConfig:
+    world: str = "garden"  # "garden" (procedural) or a path to a labelled PLY
+    seed: int = 3
+    size_m: float = _pos(default=12.0)
+    noise: NoiseLevel = "none"  # label noise level (paper Table 2)
+    pose_noise_xy_m: float = _nonneg(default=0.0)  # std dev of the published position
+    pose_noise_yaw_rad: float = _nonneg(default=0.0)  # std dev of the published yaw
+    camera_width: int = _pos(default=640)
+    camera_height: int = _pos(default=640)
+    camera_fov_deg: float = _pos(default=57.0)
+    camera_rate_hz: float = _pos(default=2.0)
+    camera_max_range_m: float = _pos(default=8.0)
+    lidar_enabled: bool = False
+    lidar_rate_hz: float = _pos(default=10.0)
+    pose_rate_hz: float = _pos(default=20.0)
+    real_time_factor: float = _pos(default=1.0)
+    lockstep: bool = False
+
+
+@dataclass
+class MapperConfig:
+    backend: Backend = "octree-max"
+    resolution_m: float = _pos(default=0.1)
+    max_range_m: float = _pos(default=10.0)
+    raycast_range_m: float = _nonneg(default=1.0)  # free space carved before a hit; 0 = whole ray
+    inputs: list[str] = field(default_factory=lambda: ["cloud"])  # "cloud" and/or "scan"
+    autosave_period_s: float = _nonneg(default=30.0)  # 0 = only on shutdown
+    load: str = ""  # resume from this map file
+
+
+@dataclass
+class NavgraphConfig:
+    resolution_m: float = _pos(default=0.2)
+    bounds_min_xy: list[float] = field(default_factory=lambda: [-50.0, -50.0])
+    bounds_max_xy: list[float] = field(default_factory=lambda: [50.0, 50.0])
+    robot_radius_m: float = _nonneg(default=0.4)
+
+
+@dataclass
+class PlannerConfig:
+    h_f: float = _nonneg(default=0.1)
+    t_f: float = _nonneg(default=0.8)
+    max_step_m: float = _pos(default=0.3)
+    unknown_cost: float = _nonneg(default=2.0)
+
+
+@dataclass
+class ExplorerConfig:
+    time_budget_s: float = _pos(default=480.0)
+    enabled: bool = True
+
+
+@dataclass
+class SmanaConfig:
+    general: GeneralConfig = field(default_factory=GeneralConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    deploy: DeployConfig = field(default_factory=DeployConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+    mapper: MapperConfig = field(default_factory=MapperConfig)
+    navgraph: NavgraphConfig = field(default_factory=NavgraphConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    explorer: ExplorerConfig = field(default_factory=ExplorerConfig)
+
+    @classmethod
+    def load(cls, path: str | Path | None = None, overrides: list[str] | None = None):
+        """Defaults, then the TOML file (if any), then `section.key=value` overrides."""
+        data: dict[str, Any] = {}
+        if path:
+            p = Path(path)
+            if not p.is_file():
+                raise ConfigError(f"config file not found: {p}")
+            try:
+                data = tomllib.loads(p.read_text())
+            except tomllib.TOMLDecodeError as exc:
+                raise ConfigError(f"{p}: {exc}") from None
+        for item in overrides or []:
+            _apply_override(data, item)
+        return build(cls, data, "")
+
+    def to_toml(self) -> str:
+        return to_toml(self)
+
+    def write(self, path: str | Path) -> Path:
+        p = Path(path)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(self.to_toml())
+        return p
+
+
+# -- building and validating -------------------------------------------------------------------
+
+
+def _apply_override(data: dict, item: str) -> None:
+    if "=" not in item:
+        raise ConfigError(f"override {item!r} must look like section.key=value")
+    dotted, raw = item.split("=", 1)
+    parts = dotted.strip().split(".")
+    if len(parts) < 2 or not all(parts):
+        raise ConfigError(f"override {item!r}: key must be section.key")
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()  # a bare word is a string: --set mapper.backend=tsdf
+    node = data
+    for part in parts[:-1]:
+        node = node.setdefault(part, {})
+        if not isinstance(node, dict):
+            raise ConfigError(f"override {item!r}: {part} is not a section")
+    node[parts[-1]] = value
+
+
+def build(cls, data: dict, where: str):
+    """Make a `cls` dataclass from a dict, checking every key and value."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where or 'config'}: expected a table")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(data) - set(fields)
+    if unknown:
+        known = ", ".join(sorted(fields))
+        name = ", ".join(f"{where}{k}" for k in sorted(unknown))
+        raise ConfigError(f"unknown key {name} (known in [{where.rstrip('.') or 'top'}]: {known})")
+    kwargs = {}
+    for name, value in data.items():
+        key = f"{where}{name}"
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint):
+            kwargs[name] = build(hint, value, key + ".")
+        else:
+            kwargs[name] = _check_value(key, value, hint, fields[name].metadata)
+    obj = cls(**kwargs)
+    check = getattr(obj, "validate", None)
+    if check:
+        check()
+    return obj
+
+
+def _check_value(key, v, hint, meta):
+    origin = typing.get_origin(hint)
+    if origin is Literal:
+        choices = typing.get_args(hint)
+        if v not in choices:
+            raise ConfigError(f"{key}: expected one of {list(choices)}, got {v!r}")
+        return v
+    if isinstance(hint, types.UnionType):  # X | None: None is spelt by leaving the key out
+        hint = next(a for a in typing.get_args(hint) if a is not type(None))
+        origin = typing.get_origin(hint)
+    if origin is list:
+        (item,) = typing.get_args(hint)
+        if not isinstance(v, list):
+            raise ConfigError(f"{key}: expected a list, got {v!r}")
+        return [_check_value(f"{key}[{i}]", x, item, {}) for i, x in enumerate(v)]
+    if hint is bool:
+        if not isinstance(v, bool):
+            raise ConfigError(f"{key}: expected true or false, got {v!r}")
+        return v
+    if hint in (int, float):
+        if isinstance(v, bool) or not isinstance(v, int | float) or (hint is int and v != int(v)):
+            what = "an integer" if hint is int else "a number"
+            raise ConfigError(f"{key}: expected {what}, got {v!r}")
+        v = hint(v)
+        if "min_exclusive" in meta and not v > meta["min_exclusive"]:
+            raise ConfigError(f"{key}: expected a number > {meta['min_exclusive']:g}, got {v!r}")
+        if "min" in meta and not v >= meta["min"]:
+            raise ConfigError(f"{key}: expected a number >= {meta['min']:g}, got {v!r}")
+        return v
+    if hint is str:
+        if not isinstance(v, str):
+            raise ConfigError(f"{key}: expected a string, got {v!r}")
+        return v
+    raise ConfigError(f"{key}: unsupported type {hint}")
+
+
+def to_toml(obj) -> str:
+    """Serialise a config dataclass (sections of scalars and lists) as TOML."""
+    lines: list[str] = []
+    _emit(obj, "", lines)
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def _emit(obj, prefix: str, lines: list[str]) -> None:
+    scalars, tables = [], []
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        (tables if dataclasses.is_dataclass(v) else scalars).append((f.name, v))
+    if prefix and scalars:
+        lines.append(f"\n[{prefix}]")
+    for name, v in scalars:
+        if v is not None:
+            lines.append(f"{name} = {_toml_value(v)}")
+    for name, v in tables:
+        _emit(v, f"{prefix}.{name}" if prefix else name, lines)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise ConfigError(f"cannot write {v!r} as TOML")

@@ -1,0 +1,102 @@
+"""Every key expression smana uses, in one place: `smana/<robot>/<service>/<topic>`.
+
+`robot` is the robot's own interface: whatever drives the robot (the simulator, a dataset replay or
+a real driver) publishes its sensors and pose there and listens to its velocity commands.
+Every other segment names the service that owns the topic.
+A multi-robot deployment differs only in `<robot>`.
+"""
+
+from __future__ import annotations
+
+import re
+
+PREFIX = "smana"
+SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer", "replay", "recorder")
+_NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
+
+
+def check_robot(robot: str) -> str:
+    """Robot names become key segments: no '/', '*', '$', '?' or '#'."""
+    if not _NAME.match(robot or ""):
+        raise ValueError(f"robot name {robot!r} must match [A-Za-z0-9_-]+")
+    return robot
+
+
+def key(robot: str, service: str, topic: str) -> str:
+    return f"{PREFIX}/{check_robot(robot)}/{service}/{topic}"
+
+
+# -- the robot interface (sim, replay or a real driver) --------------------------------------------
+def cloud(robot: str) -> str:
+    """SemanticCloud from the camera, world frame."""
+    return key(robot, "robot", "cloud")
+
+
+def scan(robot: str) -> str:
+    """SemanticCloud from the LiDAR, world frame."""
+    return key(robot, "robot", "scan")
+
+
+def pose(robot: str) -> str:
+    """Pose as localisation gives it (noisy in simulation when pose noise is set)."""
+    return key(robot, "robot", "pose")
+
+
+def pose_truth(robot: str) -> str:
+    """Ground-truth Pose (simulation only, for evaluation)."""
+    return key(robot, "robot", "pose_truth")
+
+
+def cmd_vel(robot: str) -> str:
+    """VelocityCommand to the base."""
+    return key(robot, "robot", "cmd_vel")
+
+
+def clock(robot: str) -> str:
+    """Simulation time (msgpack map {"sim_time_s", "real_time_factor"})."""
+    return key(robot, "robot", "clock")
+
+
+def image(robot: str, kind: str) -> str:
+    """Camera images: kind is "rgb", "depth" or "semantic"."""
+    return key(robot, "robot", f"image/{kind}")
+
+
+# -- services --------------------------------------------------------------------------------------
+def map_delta(robot: str) -> str:
+    return key(robot, "mapper", "delta")
+
+
+def graph_patch(robot: str) -> str:
+    return key(robot, "navgraph", "patch")
+
+
+def path_query(robot: str) -> str:
+    return key(robot, "planner", "path")
+
+
+def explorer_state(robot: str) -> str:
+    return key(robot, "explorer", "state")
+
+
+def status(robot: str, service: str) -> str:
+    """ServiceStatus: published periodically and answered as a query."""
+    return key(robot, service, "status")
+
+
+def query(robot: str, service: str, name: str) -> str:
+    """A service's queryable, e.g. query(r, "mapper", "stats")."""
+    return key(robot, service, name)
+
+
+def alive(robot: str, service: str) -> str:
+    """Liveliness token of a running service."""
+    return f"{PREFIX}/{check_robot(robot)}/alive/{service}"
+
+
+def alive_any(robot: str = "*") -> str:
+    return f"{PREFIX}/{robot}/alive/*"
+
+
+def status_any(robot: str = "*") -> str:
+    return f"{PREFIX}/{robot}/*/status"

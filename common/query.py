@@ -1,0 +1,79 @@
+"""Asking a service over zenoh: `request()` sends a query and returns the decoded reply, or raises
+`QueryError` with a clear reason (nobody answered, the service replied an error, the reply was bad).
+Used by the CLIs (`smana status`, `smana plan`) and by services that query others (explorer ->
+planner)."""
+
+from __future__ import annotations
+
+import json
+
+import msgpack
+
+from smana.common.messages import (
+    REGISTRY,
+    Message,
+    MessageError,
+    decode,
+    encode,
+    from_json,
+    to_json,
+)
+
+
+class QueryError(RuntimeError):
+    """A query that got no usable answer. `kind`: no_reply, error reply kind, or malformed."""
+
+    def __init__(self, kind: str, message: str, body: dict | None = None):
+        super().__init__(message)
+        self.kind = kind
+        self.body = body or {}
+
+
+def request(
+    session,
+    key: str,
+    body: Message | dict | None = None,
+    timeout_s: float = 5.0,
+    as_json: bool = False,
+):
+    """Query `key` once and return the first reply: a Message when the reply is a typed message,
+    else the decoded map."""
+    import zenoh
+
+    kw = {}
+    if body is not None:
+        if isinstance(body, Message):
+            kw["payload"] = to_json(body) if as_json else encode(body)
+        elif as_json:
+            kw["payload"] = json.dumps(body).encode()
+        else:
+            kw["payload"] = msgpack.packb(body, use_bin_type=True)
+        kw["encoding"] = (
+            zenoh.Encoding.APPLICATION_JSON if as_json else zenoh.Encoding("application/msgpack")
+        )
+    replies = list(session.get(key, timeout=timeout_s, **kw))
+    if not replies:
+        raise QueryError("no_reply", f"no service answered {key} (is it running?)")
+    r = replies[0]
+    if r.ok is None:
+        data = _parse(r.err.payload.to_bytes())
+        kind = data.get("error", "error") if isinstance(data, dict) else "error"
+        msg = data.get("message", str(data)) if isinstance(data, dict) else str(data)
+        raise QueryError(kind, f"{key}: {msg}", data if isinstance(data, dict) else None)
+    return _parse(r.ok.payload.to_bytes())
+
+
+def _parse(payload: bytes):
+    """A reply in either encoding: a typed message when it carries `_type`, else a plain map.
+    JSON starts with `{` or `[`, which no msgpack map does (0x7b is a msgpack integer)."""
+    is_json = payload[:1] in (b"{", b"[")
+    try:
+        data = json.loads(payload) if is_json else msgpack.unpackb(payload, strict_map_key=False)
+    except Exception as exc:
+        raise QueryError("malformed", f"reply is neither msgpack nor JSON: {exc}") from None
+    if isinstance(data, dict) and data.get("_type") in REGISTRY:
+        try:
+            return from_json(payload) if is_json else decode(payload)
+        except MessageError as exc:
+            raise QueryError("malformed", f"bad reply: {exc}") from None
+    return data

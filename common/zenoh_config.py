@@ -1,0 +1,79 @@
+"""Zenoh sessions: the shared command-line flags and the one function that turns them into a
+`zenoh.Config` (after zenoh-python's `examples/common/common.py`).
+
+The embedded default is loopback only: every process is a client of the supervisor's router on
+tcp/127.0.0.1:7447, with multicast scouting and gossip off, so nothing leaves the machine and two
+stacks on one machine never meet unless told to (give them different ports or robot names).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+from smana.common.config import ConfigError, ZenohConfig
+
+
+def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
+    """The zenoh flags every smana command shares. They override the [zenoh] config section."""
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("--mode", choices=["peer", "client", "router"], help="zenoh session mode")
+    g.add_argument(
+        "--connect", "-e", action="append", metavar="ENDPOINT",
+        help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )  # fmt: skip
+    g.add_argument(
+        "--listen", "-l", action="append", metavar="ENDPOINT",
+        help="endpoint to listen on (repeatable)",
+    )  # fmt: skip
+    g.add_argument(
+        "--zenoh-config", metavar="FILE",
+        help="zenoh JSON5 config file (TLS, access control, ...); the flags above override it",
+    )  # fmt: skip
+    g.add_argument(
+        "--no-multicast-scouting", dest="multicast_scouting", action="store_false", default=None,
+        help="disable multicast scouting (the default)",
+    )  # fmt: skip
+    g.add_argument(
+        "--multicast-scouting", dest="multicast_scouting", action="store_true",
+        help="enable multicast scouting (find peers on the LAN)",
+    )  # fmt: skip
+
+
+def apply_zenoh_args(zc: ZenohConfig, args: argparse.Namespace) -> ZenohConfig:
+    """The [zenoh] section with the command-line flags applied on top."""
+    changes = {}
+    if getattr(args, "mode", None):
+        changes["mode"] = args.mode
+    if getattr(args, "connect", None):
+        changes["connect"] = list(args.connect)
+    if getattr(args, "listen", None):
+        changes["listen"] = list(args.listen)
+    if getattr(args, "zenoh_config", None):
+        changes["config_file"] = args.zenoh_config
+    if getattr(args, "multicast_scouting", None) is not None:
+        changes["multicast_scouting"] = args.multicast_scouting
+    return dataclasses.replace(zc, **changes)
+
+
+def make_zenoh_config(zc: ZenohConfig):
+    """Build a `zenoh.Config` from the [zenoh] section."""
+    import zenoh  # imported here so that cores and config code never need zenoh
+
+    if zc.config_file:
+        path = Path(zc.config_file)
+        if not path.is_file():
+            raise ConfigError(f"zenoh.config_file not found: {path}")
+        conf = zenoh.Config.from_file(str(path))
+    else:
+        conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(zc.mode))
+    if zc.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(zc.connect))
+    if zc.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(zc.listen))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
+    conf.insert_json5("scouting/gossip/enabled", json.dumps(zc.gossip))
+    return conf

@@ -1,0 +1,92 @@
+"""The `smana` command: one entry point, one subcommand per service and tool.
+
+Subcommands are imported lazily, so `smana --help` is instant and a tool's optional dependencies
+are only needed when that tool runs. Each target is `module:function` taking the remaining argv.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# name -> (module:function, one-line help). Order is the order of `smana --help`.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "up": ("smana.deploy.supervisor:cli", "start the whole stack (the closed-loop demo)"),
+    "status": ("smana.deploy.status:cli", "list live services and their status over zenoh"),
+    "sim": ("smana.services.sim.__main__:cli", "run the PyBullet simulator service"),
+    "mapper": ("smana.services.mapper.__main__:cli", "run the semantic mapper service"),
+    "navgraph": ("smana.services.navgraph.__main__:cli", "run the navigation graph service"),
+    "planner": ("smana.services.planner.__main__:cli", "run the weighted A* planner service"),
+    "explorer": ("smana.services.explorer.__main__:cli", "run the frontier explorer service"),
+    "replay": ("smana.services.replay.__main__:cli", "replay a dataset into the stack"),
+    "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
+    "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
+    "bench": ("smana.deploy.cli:bench", "benchmarks: mapper, navgraph, planner, sim, replay"),
+    "eval": ("smana.deploy.evaluation:cli", "evaluate a run's map against ground truth"),
+    "experiment": ("smana.deploy.experiments:cli", "the paper's experiments: noise, exploration"),
+    "view": ("smana.deploy.view:cli", "open a run's Rerun recording"),
+    "router": ("smana.deploy.router:cli", "run a standalone zenoh router (Python, no zenohd)"),
+}
+
+BENCHES = {
+    "mapper": "smana.services.mapper.bench:cli",
+    "navgraph": "smana.services.navgraph.bench:cli",
+    "planner": "smana.services.planner.bench:cli",
+    "sim": "smana.services.sim.bench:cli",
+    "replay": "smana.services.replay.bench:cli",
+}
+
+
+def _usage() -> str:
+    width = max(len(n) for n in COMMANDS)
+    lines = [
+        "usage: smana <command> [options]",
+        "",
+        "smana: semantic mapping and navigation for ground robots, over Eclipse Zenoh.",
+        "",
+        "commands:",
+    ]
+    lines += [f"  {name:<{width}}  {text}" for name, (_, text) in COMMANDS.items()]
+    lines += ["", "Run `smana <command> --help` for the options of one command."]
+    return "\n".join(lines)
+
+
+def _call(target: str, argv: list[str]) -> int:
+    module, func = target.split(":")
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name and exc.name.startswith("smana"):
+            print(f"smana: {module} is not available in this build ({exc})", file=sys.stderr)
+            return 2
+        raise
+    return int(getattr(mod, func)(argv) or 0)
+
+
+def bench(argv: list[str]) -> int:
+    """`smana bench <name> ...`"""
+    if not argv or argv[0] in ("-h", "--help") or argv[0] not in BENCHES:
+        print("usage: smana bench {" + ",".join(BENCHES) + "} [options]", file=sys.stderr)
+        return 0 if argv and argv[0] in ("-h", "--help") else 2
+    return _call(BENCHES[argv[0]], argv[1:])
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0 if argv else 2
+    if argv[0] == "--version":
+        from importlib.metadata import version
+
+        print(version("smana"))
+        return 0
+    name = argv[0]
+    if name not in COMMANDS:
+        print(f"smana: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    return _call(COMMANDS[name][0], argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,131 @@
+"""Shared fixtures: an isolated zenoh router on a free loopback port (multicast scouting and gossip
+off), services started as subprocesses in their own process groups, and a client session for the
+test to publish and query with. Everything is torn down even when the test fails."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ROBOT = "test"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_port(port: int, timeout_s: float = 15.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"nothing listens on 127.0.0.1:{port} after {timeout_s} s")
+
+
+class ZenohStack:
+    """A router plus the processes a test starts against it."""
+
+    def __init__(self, tmp: Path):
+        self.tmp = tmp
+        self.port = free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.robot = ROBOT
+        self.procs: list[tuple[str, subprocess.Popen]] = []
+        self._session = None
+        self.router = self.start("router", "-m", "smana.deploy.router", "--listen", self.endpoint)
+        wait_port(self.port)
+
+    def zenoh_args(self) -> list[str]:
+        return ["--mode", "client", "--connect", self.endpoint]
+
+    def start(self, name: str, *argv: str, env: dict | None = None) -> subprocess.Popen:
+        """Start `python <argv>` in its own process group; output goes to <tmp>/<name>.log."""
+        log = open(self.tmp / f"{name}.log", "ab")  # noqa: SIM115 - the child owns it
+        full_env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+        proc = subprocess.Popen(
+            [sys.executable, *argv], stdout=log, stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL, start_new_session=True, env=full_env, cwd=self.tmp,
+        )  # fmt: skip
+        log.close()
+        proc.log_name = name
+        self.procs.append((name, proc))
+        return proc
+
+    def service(self, name: str, *args: str, module: str | None = None) -> subprocess.Popen:
+        """Start a smana service connected to this router, robot `test`."""
+        module = module or f"smana.services.{name}"
+        return self.start(name, "-m", module, *self.zenoh_args(), "--robot", self.robot, *args)
+
+    def log(self, proc_or_name) -> str:
+        name = proc_or_name if isinstance(proc_or_name, str) else proc_or_name.log_name
+        p = self.tmp / f"{name}.log"
+        return p.read_text(errors="replace") if p.exists() else ""
+
+    @property
+    def session(self):
+        if self._session is None:
+            import zenoh
+
+            from smana.common.config import ZenohConfig
+            from smana.common.zenoh_config import make_zenoh_config
+
+            zc = ZenohConfig(mode="client", connect=[self.endpoint])
+            self._session = zenoh.open(make_zenoh_config(zc))
+        return self._session
+
+    def wait_alive(self, service: str, timeout_s: float = 30.0, robot: str | None = None) -> None:
+        from smana.common import keys
+
+        key = keys.alive(robot or self.robot, service)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if list(self.session.liveliness().get(key, timeout=1.0)):
+                return
+            for name, p in self.procs:
+                if name == service and p.poll() is not None:
+                    raise RuntimeError(f"{service} exited ({p.returncode}):\n{self.log(service)}")
+            time.sleep(0.1)
+        raise TimeoutError(f"{service} not alive after {timeout_s} s:\n{self.log(service)}")
+
+    def stop(self, proc: subprocess.Popen, sig=signal.SIGINT, timeout_s: float = 5.0) -> int:
+        """Signal a process group; SIGKILL it if it has not exited within `timeout_s`."""
+        if proc.poll() is None:
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                pass
+            try:
+                proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+        return proc.returncode
+
+    def close(self) -> None:
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+        for _, p in reversed(self.procs):
+            self.stop(p, timeout_s=3.0)
+
+
+@pytest.fixture
+def zenoh_stack(tmp_path):
+    stack = ZenohStack(tmp_path)
+    try:
+        yield stack
+    finally:
+        stack.close()

@@ -1,0 +1,67 @@
+"""A minimal service on the lifecycle base, for testing the base itself (tests/test_service.py).
+
+- FIFO input `smana/<robot>/echo/pose` (Pose): counted in `poses`;
+- latest-wins input `smana/<robot>/echo/cloud` (SemanticCloud): takes `--cloud-delay` seconds each;
+- queryable `smana/<robot>/echo/count`: {"poses", "clouds", "points"};
+- publisher `smana/<robot>/echo/out`: re-publishes each pose.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from smana.common import keys
+from smana.common.cli import config_from_args, make_parser, setup_logging
+from smana.common.messages import Pose, SemanticCloud
+from smana.common.service import ReplyError, Service
+
+
+class EchoService(Service):
+    name = "echo"
+
+    def __init__(self, config, cloud_delay_s: float):
+        super().__init__(config)
+        self.cloud_delay_s = cloud_delay_s
+        self.poses = self.clouds = self.points = 0
+
+    def setup(self):
+        self.out = self.publisher(keys.key(self.robot, "echo", "out"))
+        self.subscribe(keys.key(self.robot, "echo", "pose"), self.on_pose, Pose)
+        self.subscribe_latest(
+            keys.key(self.robot, "echo", "cloud"), self.on_cloud, SemanticCloud, drop_nonfinite=True
+        )
+        self.queryable(keys.key(self.robot, "echo", "count"), self.on_count)
+
+    def on_pose(self, pose: Pose):
+        self.poses += 1
+        self.out.put(pose)
+
+    def on_cloud(self, cloud: SemanticCloud):
+        time.sleep(self.cloud_delay_s)
+        self.clouds += 1
+        self.points += len(cloud.points)
+        if cloud.n_dropped_nonfinite:
+            self.count_error("nonfinite_points", f"{cloud.n_dropped_nonfinite} NaN/inf points")
+
+    def on_count(self, req):
+        body = req.body()
+        if body.get("fail"):
+            raise ReplyError("refused", "asked to fail")
+        return {"poses": self.poses, "clouds": self.clouds, "points": self.points}
+
+    def status_details(self):
+        return {"poses": self.poses}
+
+
+def main(config, cloud_delay_s: float = 0.0) -> int:
+    return EchoService(config, cloud_delay_s).run()
+
+
+if __name__ == "__main__":
+    p = make_parser("echo", __doc__)
+    p.add_argument("--cloud-delay", type=float, default=0.0)
+    args = p.parse_args()
+    cfg = config_from_args(args)
+    setup_logging(cfg.general.log_level, "echo")
+    sys.exit(main(cfg, args.cloud_delay))

@@ -1,0 +1,135 @@
+"""The service lifecycle base over a real, isolated zenoh router: status and liveliness, bad input
+counted without losing state, latest-wins drops counted, JSON queries, clean stop on SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import signal
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+
+from smana.common import keys
+from smana.common.messages import Pose, SemanticCloud, ServiceStatus, encode
+from smana.common.query import QueryError, request
+
+pytestmark = pytest.mark.multiprocess
+
+ECHO = str(Path(__file__).parent / "support" / "echo_service.py")
+
+
+def start_echo(stack, *args):
+    proc = stack.start("echo", ECHO, *stack.zenoh_args(), "--robot", stack.robot, *args)
+    stack.wait_alive("echo")
+    return proc
+
+
+def status(stack) -> ServiceStatus:
+    st = request(stack.session, keys.status(stack.robot, "echo"), timeout_s=5)
+    assert isinstance(st, ServiceStatus)
+    return st
+
+
+def count(stack):
+    return request(stack.session, keys.key(stack.robot, "echo", "count"), timeout_s=5)
+
+
+def wait_for(pred, timeout_s=10.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_status_liveliness_and_sigterm(zenoh_stack):
+    proc = start_echo(zenoh_stack)
+    st = status(zenoh_stack)
+    assert st.service == "echo" and st.robot == "test" and st.state == "running"
+    assert st.pid == proc.pid and st.uptime_s > 0
+    # The status is also published periodically.
+    seen = []
+    sub = zenoh_stack.session.declare_subscriber(
+        keys.status(zenoh_stack.robot, "echo"), lambda s: seen.append(s)
+    )
+    assert wait_for(lambda: seen, 5.0)
+    sub.undeclare()
+    t0 = time.monotonic()
+    code = zenoh_stack.stop(proc, signal.SIGTERM, timeout_s=10)
+    assert code == 0, zenoh_stack.log(proc)
+    assert time.monotonic() - t0 < 5.0
+    # Its liveliness token is gone.
+    assert wait_for(
+        lambda: (
+            not list(zenoh_stack.session.liveliness().get(keys.alive("test", "echo"), timeout=1))
+        )
+    )
+
+
+def test_bad_input_is_counted_and_state_kept(zenoh_stack):
+    start_echo(zenoh_stack)
+    s = zenoh_stack.session
+    pose_key = keys.key("test", "echo", "pose")
+    for i in range(3):
+        s.put(pose_key, encode(Pose.from_xyz_yaw(i, 0, 0, 0, seq=i)))
+    assert wait_for(lambda: count(zenoh_stack)["poses"] == 3)
+    bad_pose = Pose()
+    bad_pose.position = np.array([np.nan, 0, 0])
+    s.put(pose_key, b"\x00garbage")
+    s.put(pose_key, encode(SemanticCloud()))  # the wrong type
+    s.put(pose_key, encode(bad_pose))
+    s.put(pose_key, msgpack.packb({"_type": "Pose", "_v": 42}))
+    assert wait_for(lambda: sum(status(zenoh_stack).errors.values()) >= 4)
+    st = status(zenoh_stack)
+    assert st.errors == {"malformed": 1, "type": 1, "nonfinite": 1, "version": 1}
+    assert count(zenoh_stack)["poses"] == 3  # state intact
+    # Still working afterwards.
+    s.put(pose_key, encode(Pose.from_xyz_yaw(9, 0, 0, 0)))
+    assert wait_for(lambda: count(zenoh_stack)["poses"] == 4)
+
+
+def test_nonfinite_points_dropped_and_latest_wins(zenoh_stack):
+    start_echo(zenoh_stack, "--cloud-delay", "0.3")
+    cloud_key = keys.key("test", "echo", "cloud")
+    pts = np.zeros((100, 3), "f4")
+    pts[:7, 0] = np.nan
+    c = SemanticCloud(points=pts, labels=np.ones(100, "u1"), confidences=np.ones(100, "f4"))
+    for i in range(10):
+        c.seq = i
+        zenoh_stack.session.put(cloud_key, encode(c))
+        time.sleep(0.02)
+    assert wait_for(
+        lambda: status(zenoh_stack).queue_drops > 0 and count(zenoh_stack)["clouds"] >= 2
+    )
+    time.sleep(1.0)
+    n = count(zenoh_stack)
+    st = status(zenoh_stack)
+    # Every cloud was either integrated or dropped as stale, none queued up.
+    assert n["clouds"] + st.queue_drops == 10
+    assert n["clouds"] < 10
+    assert n["points"] == 93 * n["clouds"]
+    assert st.errors.get("nonfinite_points") == n["clouds"]
+
+
+def test_json_queries_and_error_replies(zenoh_stack):
+    start_echo(zenoh_stack)
+    s = zenoh_stack.session
+    replies = list(s.get(keys.key("test", "echo", "count") + "?format=json", timeout=5))
+    assert json.loads(replies[0].ok.payload.to_bytes()) == {"poses": 0, "clouds": 0, "points": 0}
+
+
+def test_error_reply_raises(zenoh_stack):
+    start_echo(zenoh_stack)
+    with pytest.raises(QueryError) as info:
+        request(
+            zenoh_stack.session, keys.key("test", "echo", "count"), {"fail": True}, as_json=True
+        )
+    assert info.value.kind == "refused"
+    with pytest.raises(QueryError) as info:
+        request(zenoh_stack.session, keys.key("test", "echo", "nothing"), timeout_s=1)
+    assert info.value.kind == "no_reply"
+    assert status(zenoh_stack).errors == {"refused": 1}

@@ -1,0 +1,119 @@
+"""The supervisor: restart after kill -9 within 3 s, restart caps, health, clean stop; the CLI."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from smana.common.config import ServiceDeployConfig, SmanaConfig
+from smana.deploy.supervisor import Supervisor
+
+pytestmark = pytest.mark.multiprocess
+
+ECHO = str(Path(__file__).parent / "support" / "echo_service.py")
+
+
+def make_supervisor(tmp_path, port, **policy):
+    cfg = SmanaConfig.load(None, [
+        f'deploy.router_listen=["tcp/127.0.0.1:{port}"]', "general.robot=sv",
+        "general.status_period_s=0.5",
+    ])  # fmt: skip
+    sup = Supervisor(cfg, tmp_path / "run", services=[])
+    argv = [sys.executable, ECHO, "--config", str(sup.config_path)]
+    sup.add("echo", argv, ServiceDeployConfig(**policy))
+    return sup
+
+
+def run_in_thread(sup):
+    t = threading.Thread(target=sup.run, kwargs={"progress_period_s": 3600}, daemon=True)
+    t.start()
+    return t
+
+
+def wait_for(pred, timeout_s):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_kill9_is_restarted_within_3s(tmp_path):
+    from tests.conftest import free_port
+
+    sup = make_supervisor(tmp_path, free_port(), restart="on-failure", restart_delay_s=0.2)
+    t = run_in_thread(sup)
+    try:
+        echo = sup.procs["echo"]
+        assert wait_for(lambda: echo.alive, 30), (tmp_path / "run/logs/echo.log").read_text()
+        pid = echo.proc.pid
+        os.kill(pid, signal.SIGKILL)
+        t0 = time.monotonic()
+        assert wait_for(lambda: echo.proc is not None and echo.proc.pid != pid and echo.alive, 10)
+        assert time.monotonic() - t0 < 3.0, "restart took too long"
+        assert echo.exit_codes == [-signal.SIGKILL]
+        assert (tmp_path / "run" / "config.toml").exists()
+    finally:
+        sup.stop()
+        t.join(15)
+    assert not t.is_alive()
+    assert echo.proc is None and echo.exit_codes[-1] == 0  # stopped cleanly by SIGINT
+
+
+def test_restart_cap_and_never_policy(tmp_path):
+    from tests.conftest import free_port
+
+    sup = make_supervisor(tmp_path, free_port(), restart="never")
+    t = run_in_thread(sup)
+    try:
+        echo = sup.procs["echo"]
+        assert wait_for(lambda: echo.alive, 30)
+        os.kill(echo.proc.pid, signal.SIGKILL)
+        assert wait_for(lambda: echo.finished, 5)
+        time.sleep(1.0)
+        assert echo.proc is None and len(echo.exit_codes) == 1
+    finally:
+        sup.stop()
+        t.join(15)
+
+    sup = make_supervisor(tmp_path, free_port(), restart="always", restart_delay_s=0.05,
+                          max_restarts=2, restart_window_s=60)  # fmt: skip
+    t = run_in_thread(sup)
+    try:
+        echo = sup.procs["echo"]
+        for _ in range(3):
+            assert wait_for(lambda: echo.proc is not None and echo.alive, 30)
+            os.kill(echo.proc.pid, signal.SIGKILL)
+            assert wait_for(lambda: echo.proc is None or not echo.alive, 5)
+        assert wait_for(lambda: echo.given_up, 10)
+        assert len(echo.exit_codes) == 3
+    finally:
+        sup.stop()
+        t.join(15)
+
+
+def test_cli_help_lists_every_command():
+    out = subprocess.run([sys.executable, "-m", "smana.deploy", "--help"],
+                         capture_output=True, text=True, check=True).stdout  # fmt: skip
+    for cmd in ("up", "status", "sim", "mapper", "navgraph", "planner", "explorer", "bench"):
+        assert f"\n  {cmd} " in out
+    bad = subprocess.run([sys.executable, "-m", "smana.deploy", "nonsense"],
+                         capture_output=True, text=True)  # fmt: skip
+    assert bad.returncode == 2 and "unknown command" in bad.stderr
+
+
+def test_bad_config_is_a_clear_error(tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[mapper]\nresolution_m = -1\n")
+    r = subprocess.run([sys.executable, "-m", "smana.deploy", "status", "--config", str(cfg)],
+                       capture_output=True, text=True)  # fmt: skip
+    assert r.returncode != 0
+    assert "mapper.resolution_m: expected a number > 0" in r.stderr
