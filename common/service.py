@@ -18,6 +18,8 @@ work in `tick()`. The base class does the rest:
 - stops on SIGINT/SIGTERM: stops the loop, calls `on_stop()` (flush state), undeclares everything,
   closes the session. It exits well within 5 s unless `on_stop` itself takes longer.
 
+A complete minimal example is `tests/support/echo_service.py`.
+
 Query replies use the query's encoding: JSON when the query carries a JSON payload or the selector
 has `?format=json`, msgpack otherwise. So `z_get -s 'smana/r1/mapper/stats?format=json'` works from
 any zenoh tool.
