@@ -1,0 +1,515 @@
+"""The exploration loop without wiring: when to choose a new view, how to get there, when to stop.
+
+`Explorer` holds the latest navigation-grid box, the robot's pose history and the current goal.
+The service feeds it grids and poses, asks `wants_plan` each tick, runs `plan` with a path-cost
+function (the planner over Zenoh) and sends what `control` returns to the robot. Everything here
+is deterministic given its inputs, so a closed loop with a toy world runs in a unit test.
+
+Decisions, in the order they are checked:
+- no goal yet / goal reached (after a short dwell so the map catches up) -> plan;
+- the remaining path crosses a node that became an obstacle or safety zone -> stop, plan;
+- no progress along the path for `stuck_timeout_s` -> forget that goal for a while, plan;
+- the goal's own view gain fell under `min_gain_m2` (seen on the way) -> plan;
+- every `replan_period_s` -> plan, and switch only to a view better by `switch_margin_m2`;
+- no view worth it: spin once on the spot to look around, then give up after
+  `done_after_empty` empty plans; or the time budget is over -> done.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from . import frontier as fr
+from .follower import FollowerConfig, PurePursuit, wrap_angle
+
+# path_cost(start_xy, goal_xy) -> (cost, path (K, 2|3)) or None when there is no path
+PathFn = Callable[[np.ndarray, np.ndarray], "tuple[float, np.ndarray] | None"]
+
+
+@dataclass
+class ExplorationParams:
+    fov_deg: float = 57.0
+    max_range_m: float = 4.0
+    min_range_m: float = 0.3
+    n_yaw: int = 16
+    occlusion: bool = True
+    candidate_spacing_m: float = 0.6
+    min_gain_m2: float = 0.4
+    path_cost_weight: float = 0.05
+    cost_per_m_lower_bound: float = 1.0
+    max_queries: int = 10
+    replan_period_s: float = 3.0
+    switch_margin_m2: float = 1.0
+    dwell_s: float = 0.6
+    time_budget_s: float = 600.0
+    done_after_empty: int = 3
+    empty_retry_s: float = 1.0
+    stuck_timeout_s: float = 8.0
+    blacklist_radius_m: float = 0.5
+    blacklist_s: float = 30.0
+    start_search_radius_m: float = 1.0
+    follower: FollowerConfig = field(default_factory=FollowerConfig)
+
+    def __post_init__(self):
+        positive = (
+            "max_range_m",
+            "candidate_spacing_m",
+            "replan_period_s",
+            "time_budget_s",
+            "stuck_timeout_s",
+            "empty_retry_s",
+        )
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(f"explorer {name} must be > 0, got {getattr(self, name)}")
+        for name in ("min_gain_m2", "path_cost_weight", "switch_margin_m2", "dwell_s"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"explorer {name} must be >= 0, got {getattr(self, name)}")
+        if self.done_after_empty < 1 or self.max_queries < 1:
+            raise ValueError("explorer done_after_empty and max_queries must be >= 1")
+
+
+@dataclass
+class GridBox:
+    """A dense box of the navigation graph, indexed [ix, iy]; node (ix, iy) covers
+    [origin + i * res, origin + (i + 1) * res) on each axis."""
+
+    origin_xy: np.ndarray
+    resolution_m: float
+    labels: np.ndarray
+    flags: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.labels.shape
+
+    def cell_of(self, xy) -> tuple[int, int]:
+        ij = np.floor((np.asarray(xy, float)[:2] - self.origin_xy) / self.resolution_m)
+        return int(ij[0]), int(ij[1])
+
+    def cells_of(self, xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, float).reshape(-1, xy.shape[-1])[:, :2]
+        return np.floor((xy - self.origin_xy) / self.resolution_m).astype(np.int64)
+
+    def centres(self, cells: np.ndarray) -> np.ndarray:
+        return self.origin_xy + (np.asarray(cells, float) + 0.5) * self.resolution_m
+
+    def inside(self, cells: np.ndarray) -> np.ndarray:
+        cells = np.asarray(cells).reshape(-1, 2)
+        return (
+            (cells[:, 0] >= 0)
+            & (cells[:, 1] >= 0)
+            & (cells[:, 0] < self.shape[0])
+            & (cells[:, 1] < self.shape[1])
+        )
+
+
+@dataclass
+class Goal:
+    choice: fr.ViewChoice
+    path_xy: np.ndarray
+    t_set: float
+    path_length_m: float
+
+
+@dataclass
+class PlanOutcome:
+    reason: str
+    chosen: fr.ViewChoice | None
+    switched: bool
+    n_frontier: int
+    n_candidates: int
+    candidates_xy: np.ndarray
+    gains_m2: np.ndarray
+
+
+class Explorer:
+    """Next-best-view exploration state machine (see the module docstring)."""
+
+    def __init__(self, params: ExplorationParams, traversable_lut: np.ndarray, n_labels: int):
+        self.p = params
+        self.traversable_lut = np.asarray(traversable_lut, bool)
+        self.grid: GridBox | None = None
+        self._fov: fr.FovModel | None = None
+        self.follower = PurePursuit(params.follower)
+        self.goal: Goal | None = None
+        self.pose: tuple[float, float, float] | None = None
+        self.t_start: float | None = None
+        self.t_now = 0.0
+        self.distance_m = 0.0
+        self.label_counts = np.zeros(max(n_labels, 1), np.int64)
+        self.trajectory: list[tuple[float, float, float, float]] = []
+        self._last_cell: tuple[int, int] | None = None
+        self._t_last_plan = -math.inf
+        self._t_arrived: float | None = None
+        self._empty_plans = 0
+        self._spin: dict | None = None
+        self._spun_at: list[np.ndarray] = []
+        self._blacklist: list[tuple[np.ndarray, float]] = []
+        self._progress_mark: tuple[float, float] | None = None  # (t, remaining length)
+        self.done_reason: str | None = None
+        self.n_plans = 0
+        self.n_goals = 0
+        self.n_replans_blocked = 0
+        self.n_stuck = 0
+        self.last_outcome: PlanOutcome | None = None
+        self.explored_m2 = 0.0
+        self.frontier_size = 0
+
+    # -- inputs ---------------------------------------------------------------------------------
+
+    def update_grid(self, grid: GridBox) -> None:
+        if self._fov is None or self._fov.resolution_m != grid.resolution_m:
+            self._fov = fr.FovModel.build(
+                grid.resolution_m,
+                self.p.fov_deg,
+                self.p.max_range_m,
+                self.p.min_range_m,
+                self.p.n_yaw,
+            )
+        self.grid = grid
+
+    def update_pose(self, x: float, y: float, yaw: float, t: float) -> None:
+        """Track distance and the labels of the nodes travelled on (once per node entered)."""
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw) and math.isfinite(t)):
+            raise ValueError("pose with non-finite values")
+        if self.t_start is None:
+            self.t_start = t
+        if self.pose is not None:
+            step = math.hypot(x - self.pose[0], y - self.pose[1])
+            # a localisation jump is not travel: cap what one update may add
+            if step < 1.0:
+                self.distance_m += step
+        self.pose = (x, y, yaw)
+        self.t_now = t
+        if not self.trajectory or t - self.trajectory[-1][0] >= 0.1:
+            self.trajectory.append((t, x, y, yaw))
+        if self.grid is not None:
+            cell = self.grid.cell_of((x, y))
+            if cell != self._last_cell and self.grid.inside(np.array(cell)).all():
+                label = int(self.grid.labels[cell]) if self.grid.flags[cell] & fr.KNOWN else 0
+                if label < self.label_counts.size:
+                    self.label_counts[label] += 1
+                self._last_cell = cell
+
+    # -- decisions ------------------------------------------------------------------------------
+
+    @property
+    def done(self) -> bool:
+        return self.done_reason is not None
+
+    def elapsed_s(self) -> float:
+        return 0.0 if self.t_start is None else self.t_now - self.t_start
+
+    def wants_plan(self) -> str | None:
+        """Why a plan is needed now, or None. Also ends the run when the budget is spent."""
+        if self.done or self.pose is None or self.grid is None:
+            return None
+        t = self.t_now
+        if self.elapsed_s() >= self.p.time_budget_s:
+            self._finish("time_budget")
+            return None
+        if self._spin is not None:
+            return None
+        if self.goal is None:
+            if self._empty_plans and t - self._t_last_plan < self.p.empty_retry_s:
+                return None
+            if self._t_arrived is not None and t - self._t_arrived < self.p.dwell_s:
+                return None
+            return "no_goal"
+        if self._path_blocked():
+            self.n_replans_blocked += 1
+            return "blocked"
+        if self._stuck():
+            self.n_stuck += 1
+            self._forget(self.goal.choice.xy)
+            return "stuck"
+        if t - self._t_last_plan >= self.p.replan_period_s:
+            return "periodic"
+        return None
+
+    def plan(self, path_cost: PathFn, reason: str = "no_goal") -> PlanOutcome:
+        """Choose the next view (or keep the current one) and hand its path to the follower.
+
+        `path_cost(start_xy, goal_xy)` returns (cost, path (K, 2|3)) or None when unreachable.
+        """
+        assert self.grid is not None and self.pose is not None
+        self.n_plans += 1
+        self._t_last_plan = self.t_now
+        g = self.grid
+        x, y, _ = self.pose
+        free = fr.traversable_mask(g.labels, g.flags, self.traversable_lut)
+        unknown = fr.unknown_mask(g.flags)
+        comp, reach, starts = self._starts(free, (x, y))
+        here = g.cell_of((x, y))
+        self.explored_m2 = float(free.sum()) * g.resolution_m**2
+        front = fr.frontier_cells(reach, unknown)
+        self.frontier_size = len(front)
+        spacing = max(1, int(round(self.p.candidate_spacing_m / g.resolution_m)))
+        cells = fr.sample_candidates(front, spacing)
+        cells = self._drop_blacklisted(cells)
+        opaque = (g.flags & fr.OBSTACLE).astype(bool) & (g.flags & fr.KNOWN).astype(bool)
+        gains, yaws = fr.view_gains(unknown, opaque if self.p.occlusion else None, cells, self._fov)
+        best_gain = gains.max(axis=1) if len(cells) else np.zeros(0)
+        xy = g.centres(cells) if len(cells) else np.zeros((0, 2))
+
+        def goal_cost(goal_xy):
+            gc = g.cell_of(goal_xy)
+            start = starts[int(comp[gc])]
+            start_xy = np.array([x, y]) if start == here else g.centres(np.array(start))
+            reply = path_cost(start_xy, goal_xy)
+            if reply is None:
+                return None
+            cost, path = reply
+            # the hop from the robot to the start node comes first
+            hop = np.hypot(x - start_xy[0], y - start_xy[1])
+            if hop > 1e-6:
+                path = np.vstack([[x, y], np.asarray(path, float)[:, :2]])
+            return cost + hop, path
+
+        choice = fr.select_view(
+            xy,
+            cells,
+            best_gain,
+            yaws,
+            np.array([x, y]),
+            goal_cost,
+            self.p.path_cost_weight,
+            self.p.min_gain_m2,
+            self.p.cost_per_m_lower_bound,
+            self.p.max_queries,
+        )
+        outcome = PlanOutcome(reason, choice, False, len(front), len(cells), xy, best_gain)
+        self.last_outcome = outcome
+        if choice is None:
+            if reason in ("periodic",) and self.goal is not None and not self._goal_exhausted():
+                return outcome  # nothing new, keep going to the current goal
+            self._set_goal(None)
+            self._empty_plans += 1
+            if self._maybe_spin():
+                return outcome
+            if self._empty_plans >= self.p.done_after_empty:
+                self._finish("no_view_worth_it" if len(cells) else "no_frontier")
+            return outcome
+        self._empty_plans = 0
+        if reason == "periodic" and self.goal is not None and not self._goal_exhausted():
+            if choice.score <= self._current_score() + self.p.switch_margin_m2:
+                return outcome
+        outcome.switched = self.goal is not None
+        self._set_goal(choice)
+        return outcome
+
+    def control(self) -> tuple[float, float]:
+        """Velocity command (v m/s, w rad/s) for the current tick."""
+        if self.done or self.pose is None:
+            return 0.0, 0.0
+        x, y, yaw = self.pose
+        if self._spin is not None:
+            turned = self._spin["turned"] + abs(wrap_angle(yaw - self._spin["last_yaw"]))
+            self._spin.update(turned=turned, last_yaw=yaw)
+            if turned >= 2 * math.pi - 0.2 or self.t_now - self._spin["t0"] > 30.0:
+                self._spin = None
+                self._empty_plans = 0
+                self._t_last_plan = -math.inf
+                return 0.0, 0.0
+            return 0.0, self.p.follower.max_angular_radps * 0.6
+        if self.goal is None:
+            return 0.0, 0.0
+        cmd = self.follower.command(x, y, yaw, self._segment_clear)
+        if cmd.done:
+            self._forget(self.goal.choice.xy, seconds=self.p.dwell_s + 5.0)
+            self._set_goal(None)
+            self._t_arrived = self.t_now
+            return 0.0, 0.0
+        return cmd.linear_mps, cmd.angular_radps
+
+    # -- state ----------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        g = self.goal
+        return {
+            "t_s": self.t_now,
+            "elapsed_s": self.elapsed_s(),
+            "mode": self.mode,
+            "done": self.done,
+            "done_reason": self.done_reason,
+            "goal": None
+            if g is None
+            else {
+                "xy": [float(v) for v in g.choice.xy],
+                "yaw": g.choice.yaw,
+                "gain_m2": g.choice.gain_m2,
+                "path_cost": g.choice.path_cost,
+                "score": g.choice.score,
+            },
+            "path": [] if g is None else np.round(g.path_xy, 3).tolist(),
+            "frontier_size": self.frontier_size,
+            "explored_m2": self.explored_m2,
+            "distance_m": self.distance_m,
+            "label_counts": {str(i): int(c) for i, c in enumerate(self.label_counts) if c},
+            "n_plans": self.n_plans,
+            "n_goals": self.n_goals,
+            "n_blocked": self.n_replans_blocked,
+            "n_stuck": self.n_stuck,
+            "pose": None if self.pose is None else list(self.pose),
+        }
+
+    @property
+    def mode(self) -> str:
+        if self.done:
+            return "done"
+        if self._spin is not None:
+            return "spinning"
+        if self.goal is not None:
+            return "following"
+        return "waiting"
+
+    # -- internals ------------------------------------------------------------------------------
+
+    def _finish(self, reason: str) -> None:
+        self.done_reason = reason
+        self._set_goal(None)
+        self._spin = None
+
+    def _set_goal(self, choice: fr.ViewChoice | None) -> None:
+        if choice is None:
+            self.goal = None
+            self.follower = PurePursuit(self.p.follower)
+            self._progress_mark = None
+            return
+        path = _path_xy(choice.path, choice.xy, self.pose)
+        self.follower.set_path(path, final_yaw=choice.yaw)
+        self.goal = Goal(choice, path, self.t_now, self.follower.remaining_length_m())
+        self._progress_mark = (self.t_now, self.follower.remaining_length_m())
+        self._t_arrived = None
+        self.n_goals += 1
+
+    def _starts(self, free: np.ndarray, xy) -> tuple[np.ndarray, np.ndarray, dict]:
+        """Where paths may start: for every component of free nodes that comes within
+        `start_search_radius_m` of the robot, its node nearest the robot (the robot's own node when
+        free). Returns (component labels, reachable mask, {component id: start node}).
+
+        The nodes right around the robot are often unseen (the camera does not look straight
+        down) or became safety zone, so the robot's own node can be cut off from all it has seen;
+        it then drives a short straight hop to the start node first. Paths never cross unknown
+        space beyond that hop: an unseen obstacle may stand beside the robot, out of view."""
+        g = self.grid
+        comp, _ = ndimage.label(free, structure=np.ones((3, 3), bool))
+        cell = np.array(g.cell_of(xy))
+        r = int(math.ceil(self.p.start_search_radius_m / g.resolution_m))
+        lo = np.maximum(cell - r, 0)
+        hi = np.minimum(cell + r + 1, g.shape)
+        starts: dict[int, tuple[int, int]] = {}
+        if (hi > lo).all():
+            sub = np.argwhere(free[lo[0] : hi[0], lo[1] : hi[1]]) + lo
+            d = np.hypot(*(sub - cell).T) if len(sub) else np.zeros(0)
+            for k in np.argsort(d, kind="stable"):
+                if d[k] > r:
+                    break
+                cid = int(comp[sub[k, 0], sub[k, 1]])
+                starts.setdefault(cid, (int(sub[k, 0]), int(sub[k, 1])))
+        reach = np.isin(comp, list(starts)) if starts else np.zeros(g.shape, bool)
+        return comp, reach, starts
+
+    def _path_blocked(self) -> bool:
+        g = self.grid
+        rem = self.follower.remaining
+        if len(rem) == 0:
+            return False
+        cells = g.cells_of(rem)
+        cells = cells[g.inside(cells)]
+        bad = _blocking(g.flags[cells[:, 0], cells[:, 1]])
+        # skip the node the robot is on: leaving a safety zone it was put in must stay possible
+        here = g.cell_of(self.pose[:2])
+        mine = (cells[:, 0] == here[0]) & (cells[:, 1] == here[1])
+        return bool((bad & ~mine).any())
+
+    def _segment_clear(self, p: np.ndarray, q: np.ndarray) -> bool:
+        """No known obstacle or safety-zone node on the segment p-q (the robot's node excepted)."""
+        g = self.grid
+        if g is None:
+            return True
+        n = max(2, int(math.ceil(np.hypot(*(q - p)) / (0.5 * g.resolution_m))) + 1)
+        pts = p + (q - p) * np.linspace(0.0, 1.0, n)[:, None]
+        cells = g.cells_of(pts)
+        cells = cells[g.inside(cells)]
+        here = np.array(g.cell_of(p))
+        cells = cells[(cells != here).any(axis=1)]
+        f = g.flags[cells[:, 0], cells[:, 1]]
+        return not (
+            (f & fr.KNOWN).astype(bool) & (f & (fr.OBSTACLE | fr.SAFETY_ZONE)).astype(bool)
+        ).any()
+
+    def _stuck(self) -> bool:
+        if self._progress_mark is None:
+            return False
+        t0, rem0 = self._progress_mark
+        rem = self.follower.remaining_length_m()
+        if rem < rem0 - 0.1:
+            self._progress_mark = (self.t_now, rem)
+            return False
+        return self.t_now - t0 > self.p.stuck_timeout_s
+
+    def _goal_exhausted(self) -> bool:
+        return self._goal_gain() < self.p.min_gain_m2
+
+    def _goal_gain(self) -> float:
+        g = self.grid
+        cell = self.goal.choice.cell.reshape(1, 2)
+        opaque = (g.flags & fr.OBSTACLE).astype(bool) & (g.flags & fr.KNOWN).astype(bool)
+        gains, _ = fr.view_gains(
+            fr.unknown_mask(g.flags), opaque if self.p.occlusion else None, cell, self._fov
+        )
+        return float(gains.max()) if gains.size else 0.0
+
+    def _current_score(self) -> float:
+        # the cost left is the planned cost scaled by the share of the path still ahead
+        total = max(self.goal.path_length_m, 1e-6)
+        left = self.goal.choice.path_cost * self.follower.remaining_length_m() / total
+        return self._goal_gain() - self.p.path_cost_weight * left
+
+    def _forget(self, xy, seconds: float | None = None) -> None:
+        until = self.t_now + (self.p.blacklist_s if seconds is None else seconds)
+        self._blacklist.append((np.asarray(xy, float).copy(), until))
+
+    def _drop_blacklisted(self, cells: np.ndarray) -> np.ndarray:
+        self._blacklist = [(c, until) for c, until in self._blacklist if until > self.t_now]
+        if not self._blacklist or len(cells) == 0:
+            return cells
+        xy = self.grid.centres(cells)
+        keep = np.ones(len(cells), bool)
+        for c, _ in self._blacklist:
+            keep &= np.hypot(*(xy - c).T) > self.p.blacklist_radius_m
+        return cells[keep]
+
+    def _maybe_spin(self) -> bool:
+        """Turn once on the spot where nothing was found: the camera sees 57 degrees, and what is
+        behind the robot may hold a frontier. Only once per place."""
+        x, y, yaw = self.pose
+        here = np.array([x, y])
+        if any(np.hypot(*(here - p)) < 1.0 for p in self._spun_at):
+            return False
+        self._spun_at.append(here)
+        self._spin = {"t0": self.t_now, "turned": 0.0, "last_yaw": yaw}
+        return True
+
+
+def _blocking(flags: np.ndarray) -> np.ndarray:
+    """Known nodes the robot must not enter: obstacles and their safety zone."""
+    return ((flags & fr.KNOWN) != 0) & ((flags & (fr.OBSTACLE | fr.SAFETY_ZONE)) != 0)
+
+
+def _path_xy(path, goal_xy: np.ndarray, pose) -> np.ndarray:
+    """The planner's path as (K, 2), ending on the goal; a missing path becomes a straight line."""
+    if path is None or len(path) == 0:
+        pts = np.array([pose[:2], goal_xy], float)
+    else:
+        pts = np.asarray(path, float)[:, :2]
+    if np.hypot(*(pts[-1] - goal_xy)) > 1e-6:
+        pts = np.vstack([pts, goal_xy])
+    return pts

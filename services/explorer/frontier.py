@@ -1,0 +1,330 @@
+"""Next-best-view frontier exploration on the 2.5D navigation grid (paper 4.3, after Achat 2022).
+
+The explorer works on a box of the navigation graph exported as dense arrays indexed `[ix, iy]`
+at the graph resolution: `labels` (class ids), `flags` (bit 1 KNOWN, 2 OBSTACLE, 4 SAFETY_ZONE).
+Three steps, each usable alone:
+
+1. `traversable_mask` / `reachable_mask` / `frontier_cells`: candidate views are known, free,
+   reachable nodes that touch unknown space (the border of the explored traversable area);
+   `sample_candidates` thins them to one per `spacing` block so scoring stays cheap.
+2. `view_gains`: for each candidate and each of `n_yaw` headings, the unknown area (m^2) inside
+   the camera's field-of-view mask (a sector of `fov_deg` and `max_range_m`), optionally cut by
+   line of sight through obstacle nodes. The best heading is the view's yaw.
+3. `select_view`: score = gain - weight * A* path cost. Path costs come from a callable (the
+   planner over Zenoh in the service, a local search in tests); the candidates are queried in
+   order of an optimistic bound so that only a few paths are requested (branch and bound).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from scipy import ndimage
+
+KNOWN, OBSTACLE, SAFETY_ZONE = 1, 2, 4
+
+_EIGHT = np.ones((3, 3), bool)
+
+
+# -- which nodes are free, reachable, on the frontier -----------------------------------------
+
+
+def _check_grid(labels: np.ndarray, flags: np.ndarray) -> None:
+    if labels.ndim != 2 or flags.shape != labels.shape:
+        raise ValueError(
+            f"labels and flags must be 2-D arrays of one shape, got {labels.shape} {flags.shape}"
+        )
+
+
+def traversable_mask(
+    labels: np.ndarray, flags: np.ndarray, traversable_lut: np.ndarray
+) -> np.ndarray:
+    """Known nodes the robot may stand on: a traversable class, no obstacle, not in the safety zone.
+
+    Labels outside the lookup table count as not traversable (a corrupt id must never open a
+    way through an obstacle).
+    """
+    labels = np.asarray(labels)
+    flags = np.asarray(flags)
+    _check_grid(labels, flags)
+    lut = np.asarray(traversable_lut, bool)
+    inside = labels < lut.size
+    trav = np.zeros(labels.shape, bool)
+    trav[inside] = lut[labels[inside]]
+    free = (flags & KNOWN).astype(bool) & ~(flags & (OBSTACLE | SAFETY_ZONE)).astype(bool)
+    return trav & free
+
+
+def reachable_mask(free: np.ndarray, start: tuple[int, int]) -> np.ndarray:
+    """Nodes of `free` 8-connected to `start`; all False when `start` is not free.
+
+    8-connectivity matches the planner's graph, so what is reachable here is reachable there.
+    """
+    ix, iy = start
+    if not (0 <= ix < free.shape[0] and 0 <= iy < free.shape[1]) or not free[ix, iy]:
+        return np.zeros(free.shape, bool)
+    comp, _ = ndimage.label(free, structure=_EIGHT)
+    return comp == comp[ix, iy]
+
+
+def unknown_mask(flags: np.ndarray) -> np.ndarray:
+    return (np.asarray(flags) & KNOWN) == 0
+
+
+def frontier_cells(reachable: np.ndarray, unknown: np.ndarray) -> np.ndarray:
+    """Reachable nodes with at least one unknown 8-neighbour, as an (F, 2) array of (ix, iy).
+
+    Space outside the grid box is not unknown: the graph has fixed bounds and nothing outside them
+    can ever be mapped, so a border node is a frontier only if it touches unknown nodes inside.
+    """
+    near_unknown = ndimage.binary_dilation(unknown, structure=_EIGHT, border_value=0)
+    return np.argwhere(reachable & near_unknown)
+
+
+def sample_candidates(cells: np.ndarray, spacing: int) -> np.ndarray:
+    """One frontier node per `spacing` x `spacing` block: the one nearest the block's centre.
+
+    Deterministic (ties broken by cell order) and vectorised; keeps candidates spread along every
+    frontier while bounding their number by the frontier's extent rather than its node count.
+    """
+    cells = np.asarray(cells, np.int64).reshape(-1, 2)
+    if spacing < 1:
+        raise ValueError(f"spacing must be >= 1 node, got {spacing}")
+    if spacing == 1 or len(cells) == 0:
+        return cells
+    block = cells // spacing
+    centre = block * spacing + (spacing - 1) / 2.0
+    d2 = ((cells - centre) ** 2).sum(axis=1)
+    key = block[:, 0] * (1 << 32) + block[:, 1]
+    order = np.lexsort((d2, key))
+    first = np.ones(len(order), bool)
+    first[1:] = key[order][1:] != key[order][:-1]
+    return cells[np.sort(order[first])]
+
+
+# -- field-of-view gain -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FovModel:
+    """The camera's footprint on the grid: cell offsets inside `max_range_m`, and per heading the
+    offsets that fall inside the horizontal field of view.
+
+    `in_sector[k, o]` is True when offset `o` lies within +-fov/2 of heading `yaws[k]`. Offsets
+    closer than `min_range_m` are left out: a camera a few decimetres above the ground does not
+    see the ground right under its lens.
+    """
+
+    resolution_m: float
+    fov_deg: float
+    max_range_m: float
+    min_range_m: float
+    yaws: np.ndarray  # (K,) radians
+    offsets: np.ndarray  # (O, 2) int64 cell offsets
+    in_sector: np.ndarray  # (K, O) bool
+
+    @classmethod
+    def build(
+        cls,
+        resolution_m: float,
+        fov_deg: float = 57.0,
+        max_range_m: float = 4.0,
+        min_range_m: float = 0.0,
+        n_yaw: int = 16,
+    ) -> FovModel:
+        if not resolution_m > 0:
+            raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
+        if not 0 < fov_deg <= 360:
+            raise ValueError(f"fov_deg must be in (0, 360], got {fov_deg}")
+        if not max_range_m > min_range_m >= 0:
+            raise ValueError(
+                f"need max_range_m > min_range_m >= 0, got {max_range_m}, {min_range_m}"
+            )
+        if n_yaw < 1:
+            raise ValueError(f"n_yaw must be >= 1, got {n_yaw}")
+        r = int(math.ceil(max_range_m / resolution_m))
+        dx, dy = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij")
+        dist = np.hypot(dx, dy) * resolution_m
+        keep = (dist <= max_range_m) & (dist >= min_range_m) & ((dx != 0) | (dy != 0))
+        offsets = np.stack([dx[keep], dy[keep]], axis=1).astype(np.int64)
+        bearing = np.arctan2(offsets[:, 1], offsets[:, 0])
+        yaws = np.arange(n_yaw) * (2 * np.pi / n_yaw)
+        diff = np.angle(np.exp(1j * (bearing[None, :] - yaws[:, None])))
+        # a small epsilon so that offsets exactly on the sector edge count the same on every side
+        in_sector = np.abs(diff) <= math.radians(fov_deg) / 2 + 1e-9
+        return cls(
+            float(resolution_m),
+            float(fov_deg),
+            float(max_range_m),
+            float(min_range_m),
+            yaws,
+            offsets,
+            in_sector,
+        )
+
+
+@numba.njit(cache=True, nogil=True)
+def _visible_unknown_kernel(
+    unknown: np.ndarray,
+    opaque: np.ndarray,
+    cand: np.ndarray,
+    offsets: np.ndarray,
+    occlusion: bool,
+    samples_per_cell: int,
+) -> np.ndarray:
+    """vis[c, o] = 1 when node cand[c] + offsets[o] is inside the grid, unknown, and (with
+    occlusion) the straight segment between the two node centres crosses no opaque node."""
+    nx, ny = unknown.shape
+    n_c, n_o = cand.shape[0], offsets.shape[0]
+    vis = np.zeros((n_c, n_o), np.uint8)
+    for c in range(n_c):
+        cx, cy = cand[c, 0], cand[c, 1]
+        for o in range(n_o):
+            tx, ty = cx + offsets[o, 0], cy + offsets[o, 1]
+            if tx < 0 or ty < 0 or tx >= nx or ty >= ny or not unknown[tx, ty]:
+                continue
+            if occlusion:
+                length = math.sqrt(float(offsets[o, 0] ** 2 + offsets[o, 1] ** 2))
+                n = int(math.ceil(length * samples_per_cell))
+                blocked = False
+                for s in range(1, n):
+                    t = s / n
+                    # node (i, j) spans [i - 0.5, i + 0.5) in node units around its centre
+                    sx = int(math.floor(cx + t * offsets[o, 0] + 0.5))
+                    sy = int(math.floor(cy + t * offsets[o, 1] + 0.5))
+                    if (sx != tx or sy != ty) and opaque[sx, sy]:
+                        blocked = True
+                        break
+                if blocked:
+                    continue
+            vis[c, o] = 1
+    return vis
+
+
+def view_gains(
+    unknown: np.ndarray,
+    opaque: np.ndarray | None,
+    candidates: np.ndarray,
+    fov: FovModel,
+    samples_per_cell: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unknown area (m^2) each candidate would see per heading: (gains (C, K), best yaw (C,)).
+
+    `opaque` marks nodes that block the view (obstacles); None disables occlusion, which is the
+    paper's plain mask intersection. Unknown nodes never block: what is unknown is assumed open,
+    the optimistic choice that keeps exploration going into unseen space.
+    """
+    unknown = np.ascontiguousarray(unknown, dtype=np.bool_)
+    if unknown.ndim != 2:
+        raise ValueError(f"unknown must be 2-D, got shape {unknown.shape}")
+    occlusion = opaque is not None
+    opaque_arr = (
+        np.ascontiguousarray(opaque, dtype=np.bool_) if occlusion else np.zeros((1, 1), np.bool_)
+    )
+    if occlusion and opaque_arr.shape != unknown.shape:
+        raise ValueError(f"opaque shape {opaque_arr.shape} != unknown shape {unknown.shape}")
+    cand = np.ascontiguousarray(np.asarray(candidates, np.int64).reshape(-1, 2))
+    if len(cand) and (
+        cand.min() < 0
+        or cand[:, 0].max() >= unknown.shape[0]
+        or cand[:, 1].max() >= unknown.shape[1]
+    ):
+        raise ValueError("candidate cells outside the grid")
+    if samples_per_cell < 1:
+        raise ValueError(f"samples_per_cell must be >= 1, got {samples_per_cell}")
+    if len(cand) == 0:
+        return np.zeros((0, len(fov.yaws))), np.zeros(0)
+    vis = _visible_unknown_kernel(
+        unknown, opaque_arr, cand, fov.offsets, occlusion, int(samples_per_cell)
+    )
+    counts = vis.astype(np.float32) @ fov.in_sector.T.astype(np.float32)
+    gains = counts.astype(np.float64) * fov.resolution_m**2
+    best = fov.yaws[np.argmax(gains, axis=1)]
+    return gains, best
+
+
+# -- choosing the view ------------------------------------------------------------------------
+
+
+PathCostFn = Callable[[np.ndarray], "tuple[float, object] | None"]
+
+
+@dataclass
+class ViewChoice:
+    cell: np.ndarray  # (2,) node index
+    xy: np.ndarray  # (2,) metres
+    yaw: float
+    gain_m2: float
+    path_cost: float
+    score: float
+    path: object  # whatever the cost function returned with the cost (the planner's reply)
+    n_queries: int
+    n_candidates: int
+
+
+def select_view(
+    candidates_xy: np.ndarray,
+    cells: np.ndarray,
+    gains_m2: np.ndarray,
+    yaws: np.ndarray,
+    robot_xy: np.ndarray,
+    path_cost: PathCostFn,
+    weight: float,
+    min_gain_m2: float,
+    cost_per_m_lower_bound: float = 1.0,
+    max_queries: int = 12,
+) -> ViewChoice | None:
+    """Best view by score = gain - weight * path cost, asking `path_cost` as few times as it can.
+
+    `path_cost(goal_xy)` returns (cost, path) or None when the goal is unreachable. Because every
+    path costs at least `cost_per_m_lower_bound` times the straight-line distance, `gain - weight
+    * bound * distance` is an upper bound on a candidate's score: candidates are queried in order
+    of that bound and the search stops as soon as no remaining bound can beat the best score found
+    (exact), or after `max_queries` (a latency cap; then the best found so far wins).
+    Candidates with a gain below `min_gain_m2` are not worth a trip; None when none is left.
+    """
+    if weight < 0 or cost_per_m_lower_bound < 0:
+        raise ValueError("weight and cost_per_m_lower_bound must be >= 0")
+    candidates_xy = np.asarray(candidates_xy, np.float64).reshape(-1, 2)
+    gains_m2 = np.asarray(gains_m2, np.float64).reshape(-1)
+    worth = np.flatnonzero(gains_m2 >= min_gain_m2)
+    if len(worth) == 0:
+        return None
+    dist = np.hypot(*(candidates_xy[worth] - np.asarray(robot_xy, np.float64)[:2]).T)
+    bound = gains_m2[worth] - weight * cost_per_m_lower_bound * dist
+    order = worth[np.argsort(-bound, kind="stable")]
+    bound_sorted = np.sort(bound)[::-1]
+    best: ViewChoice | None = None
+    n_queries = 0
+    for rank, i in enumerate(order):
+        if best is not None and bound_sorted[rank] <= best.score:
+            break
+        if n_queries >= max_queries:
+            break
+        n_queries += 1
+        reply = path_cost(candidates_xy[i])
+        if reply is None:
+            continue
+        cost, path = reply
+        if not math.isfinite(cost):
+            continue
+        score = float(gains_m2[i] - weight * cost)
+        if best is None or score > best.score:
+            best = ViewChoice(
+                np.asarray(cells[i]),
+                candidates_xy[i].copy(),
+                float(yaws[i]),
+                float(gains_m2[i]),
+                float(cost),
+                score,
+                path,
+                0,
+                len(worth),
+            )
+    if best is not None:
+        best.n_queries = n_queries
+    return best
