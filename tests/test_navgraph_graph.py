@@ -1,0 +1,250 @@
+"""Navigation graph core against a slow, obvious reference: a dict of occupied voxels per node,
+the highest one shown, and a brute-force distance check for the safety zone."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from smana.common.classes import ClassTable
+from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+from smana.services.navgraph.graph import NavGraph
+
+CLASSES = ClassTable.load("garden3drms")
+GRASS, TERRAIN, HEDGE, TREE = 1, 2, 4, 8
+RES, MAP_RES = 0.2, 0.1
+
+
+class ReferenceGraph:
+    """Every occupied voxel by node; a node shows the highest (obstacle first on a tie, then the
+    larger sub-column id), the safety zone is recomputed from scratch by distances."""
+
+    def __init__(self, nx, ny, res, radius, map_res):
+        self.nx, self.ny, self.res, self.radius, self.map_res = nx, ny, res, radius, map_res
+        self.columns: dict[tuple[int, int], dict[tuple[int, int], tuple[int, float]]] = {}
+
+    def apply(self, centres, labels, surface):
+        for (x, y, z), lab, s in zip(centres.tolist(), labels.tolist(), surface.tolist()):
+            ix, iy = math.floor(x / self.res), math.floor(y / self.res)
+            if not (0 <= ix < self.nx and 0 <= iy < self.ny):
+                continue
+            gz = math.floor(np.float32(z) / self.map_res)
+            sub = ((math.floor(x / self.map_res) & 255) << 8) | (math.floor(y / self.map_res) & 255)
+            col = self.columns.setdefault((ix, iy), {})
+            if s:
+                col[(gz, sub)] = (lab, float(np.float32(z)))
+            else:
+                col.pop((gz, sub), None)
+
+    def state(self):
+        labels = np.zeros((self.nx, self.ny), np.uint16)
+        heights = np.full((self.nx, self.ny), np.nan, np.float32)
+        obstacle = np.zeros((self.nx, self.ny), bool)
+        known = np.zeros((self.nx, self.ny), bool)
+        for (ix, iy), col in self.columns.items():
+            if not col:
+                continue
+            (gz, sub), (lab, z) = max(
+                col.items(), key=lambda kv: (kv[0][0], CLASSES.obstacle_lut[kv[1][0]], kv[0][1])
+            )
+            labels[ix, iy], heights[ix, iy], known[ix, iy] = lab, z, True
+            obstacle[ix, iy] = CLASSES.obstacle_lut[lab]
+        safety = np.zeros_like(obstacle)
+        ox, oy = np.nonzero(obstacle)
+        for ix in range(self.nx):
+            for iy in range(self.ny):
+                d = np.hypot(ox - ix, oy - iy) * self.res
+                safety[ix, iy] = (not obstacle[ix, iy]) and bool((d <= self.radius + 1e-9).any())
+        flags = (known * FLAG_KNOWN + obstacle * FLAG_OBSTACLE + safety * FLAG_SAFETY_ZONE).astype(
+            np.uint8
+        )
+        return labels, heights, flags
+
+
+def graph_state(g: NavGraph):
+    return g.grid.box(0, 0, *g.grid.shape)
+
+
+def voxel(ix_map, iy_map, iz, res=MAP_RES):
+    return [(ix_map + 0.5) * res, (iy_map + 0.5) * res, (iz + 0.5) * res]
+
+
+def integrate(g, vox, labels, occupied, **kw):
+    return g.integrate(
+        np.array(vox, np.float32).reshape(-1, 3),
+        np.array(labels, np.uint16),
+        np.array(occupied, np.uint8),
+        **kw,
+    )
+
+
+def test_first_voxel_sets_then_highest_wins():
+    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.0)
+    up = integrate(g, [voxel(10, 10, 3)], [GRASS], [1])
+    assert up.cells.tolist() == [[5, 5]]
+    assert up.labels.tolist() == [GRASS] and up.heights[0] == pytest.approx(0.35)
+    assert up.flags.tolist() == [FLAG_KNOWN]
+    # A lower voxel does not change the node, a higher one does.
+    up = integrate(g, [voxel(11, 10, 1)], [TERRAIN], [1])
+    assert len(up.cells) == 0
+    # At the same level the result does not depend on arrival order.
+    up = integrate(g, [voxel(11, 10, 3)], [TERRAIN], [1])
+    assert up.labels.tolist() == [TERRAIN]  # larger sub-column id
+    up = integrate(g, [voxel(10, 11, 3)], [HEDGE], [1])
+    assert up.labels.tolist() == [HEDGE]  # an obstacle wins a tie
+    up = integrate(g, [voxel(11, 11, 7)], [TREE], [1])
+    assert up.labels.tolist() == [TREE] and up.flags.tolist() == [FLAG_KNOWN | FLAG_OBSTACLE]
+    # The top voxel changing label (fusion changed its mind) relabels the node.
+    up = integrate(g, [voxel(11, 11, 7)], [HEDGE], [1])
+    assert up.labels.tolist() == [HEDGE]
+
+
+def test_clearing_recomputes_from_what_remains():
+    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.4)
+    ground = [voxel(10, 10, 0), voxel(11, 10, 0), voxel(10, 11, 1)]
+    person = [voxel(10, 10, k) for k in range(2, 12)]
+    integrate(g, ground, [GRASS, GRASS, TERRAIN], [1, 1, 1])
+    integrate(g, person, [7] * len(person), [1] * len(person))
+    n = g.node(1.1, 1.1)
+    assert n["obstacle"] and n["label"] == 7 and n["height"] == pytest.approx(1.15)
+    assert g.node(1.5, 1.1)["safety_zone"]  # 2 nodes away = 0.4 m = robot radius
+    # The obstacle walks away: the map clears its voxels.
+    up = integrate(g, person, [7] * len(person), [0] * len(person))
+    n = g.node(1.1, 1.1)
+    assert n["label"] == TERRAIN and n["height"] == pytest.approx(0.15) and not n["obstacle"]
+    assert not g.node(1.5, 1.1)["safety_zone"]
+    changed = {tuple(c) for c in up.cells.tolist()}
+    assert (5, 5) in changed and (7, 5) in changed  # the node and its former safety zone
+    # Clearing everything leaves an unknown node, not a ghost.
+    integrate(g, ground, [GRASS, GRASS, TERRAIN], [0, 0, 0])
+    n = g.node(1.1, 1.1)
+    assert not n["known"] and n["label"] == 0 and math.isnan(n["height"])
+    assert g.n_column_voxels == 0
+
+
+def test_column_capacity_forgets_lowest_level_and_never_guesses():
+    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.0, column_capacity=3)
+    levels = [voxel(10, 10, k) for k in range(5)]
+    up = integrate(g, levels, [GRASS] * 5, [1] * 5)
+    assert g.n_column_voxels == 3 and [c[0] for c in g.column(5, 5)] == [4, 3, 2]
+    # A voxel below the floor is ignored (counted); the list stays exact above it.
+    up = integrate(g, [voxel(11, 11, 0)], [TERRAIN], [1])
+    assert up.n_below_floor == 1 and g.n_column_voxels == 3
+    up = integrate(g, levels[2:], [GRASS] * 3, [0] * 3)
+    assert up.n_columns_lost == 1
+    assert not g.node(1.1, 1.1)["known"]
+
+
+def test_tsdf_band_rule_uses_graph_resolution():
+    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.0)
+    vox = [voxel(10, 10, 0), voxel(10, 10, 1), voxel(10, 10, 2), voxel(10, 10, 3)]
+    dist = [0.15, 0.05, -0.19, -0.25]  # |d| < 0.2 m: the first three are in the band
+    up = g.integrate(
+        np.array(vox, np.float32),
+        np.full(4, GRASS, np.uint16),
+        np.array([0, 1, 0, 0], np.uint8),
+        np.array(dist, np.float32),
+        backend="tsdf",
+        map_resolution_m=MAP_RES,
+    )
+    assert up.heights[0] == pytest.approx(0.25)
+    # The top voxel leaves the band: the node drops to the next one.
+    g.integrate(
+        np.array(vox[2:3], np.float32),
+        np.array([GRASS], np.uint16),
+        np.array([0], np.uint8),
+        np.array([0.3], np.float32),
+        backend="tsdf",
+    )
+    assert g.node(1.1, 1.1)["height"] == pytest.approx(0.15)
+
+
+def test_bad_rows_are_counted_and_bad_arrays_rejected():
+    g = NavGraph(CLASSES, (0, 0), (4, 4), RES)
+    vox = [voxel(10, 10, 0), [np.nan, 1.0, 0.0], [50.0, 1.0, 0.0], voxel(12, 12, 0)]
+    up = integrate(g, vox, [GRASS, GRASS, GRASS, 3], [1, 1, 1, 1])
+    assert up.n_nonfinite == 1 and up.n_out_of_bounds == 1 and up.n_unknown_labels == 1
+    assert g.node(1.25, 1.25)["label"] == 0 and g.node(1.25, 1.25)["known"]
+    with pytest.raises(ValueError, match="centres"):
+        g.integrate(np.zeros((3, 2), np.float32), np.zeros(3, np.uint16), np.ones(3, np.uint8))
+    with pytest.raises(ValueError, match="labels"):
+        g.integrate(np.zeros((3, 3), np.float32), np.zeros(2, np.uint16), np.ones(3, np.uint8))
+    with pytest.raises(ValueError, match="backend"):
+        g.integrate(np.zeros((1, 3)), np.zeros(1, np.uint16), np.ones(1), backend="voxblox")
+    with pytest.raises(ValueError, match="values"):
+        g.integrate(np.zeros((1, 3)), np.zeros(1, np.uint16), np.ones(1), backend="tsdf")
+    with pytest.raises(ValueError, match="robot_radius"):
+        NavGraph(CLASSES, robot_radius_m=-1)
+
+
+def test_memory_follows_the_area_seen_not_the_bounds():
+    small = NavGraph(CLASSES, (0, 0), (10, 10), RES)
+    huge = NavGraph(CLASSES, (-500, -500), (500, 500), RES)
+    patch = [voxel(i, j, 0) for i in range(40) for j in range(40)]
+    for g in (small, huge):
+        integrate(g, patch, [GRASS] * len(patch), [1] * len(patch))
+    assert huge.grid.n_tiles == small.grid.n_tiles == 1
+    # The 1 km bounds cost only their tile map (5000^2 nodes / 32^2 per tile, 4 bytes each).
+    assert huge.nbytes - small.nbytes < 4 * (5000 // 32 + 1) ** 2 + 1024
+
+
+voxel_ops = st.lists(
+    st.lists(
+        st.tuples(
+            # A small graph (6 x 6 nodes of 2 x 2 voxels, 4 levels) so that voxels share
+            # nodes and levels often: ties and clearings are the interesting cases.
+            st.integers(0, 11),
+            st.integers(0, 11),
+            st.integers(0, 3),
+            st.sampled_from([GRASS, TERRAIN, HEDGE, TREE, 0]),
+            st.booleans(),  # occupied / cleared
+        ),
+        min_size=1,
+        max_size=60,
+    ),
+    min_size=1,
+    max_size=6,
+)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(deltas=voxel_ops, radius=st.sampled_from([0.0, 0.2, 0.3, 0.45]))
+def test_random_deltas_match_reference(deltas, radius):
+    g = NavGraph(CLASSES, (0, 0), (1.2, 1.2), RES, robot_radius_m=radius, tile_size=4)
+    ref = ReferenceGraph(6, 6, RES, radius, MAP_RES)
+    before = ref.state()
+    for delta in deltas:
+        vox = np.array([voxel(x, y, z) for x, y, z, _, _ in delta], np.float32)
+        labels = np.array([lab for *_, lab, _ in delta], np.uint16)
+        occ = np.array([o for *_, o in delta], np.uint8)
+        up = g.integrate(vox, labels, occ, map_resolution_m=MAP_RES)
+        ref.apply(vox.astype(np.float64), labels, occ.astype(bool))
+        after = ref.state()
+        got = graph_state(g)
+        np.testing.assert_array_equal(got[0], after[0])
+        np.testing.assert_array_equal(got[1], after[1])
+        np.testing.assert_array_equal(got[2], after[2])
+        # The update lists exactly the nodes whose state differs from before.
+        diff = (before[0] != after[0]) | (before[2] != after[2])
+        diff |= ~((before[1] == after[1]) | (np.isnan(before[1]) & np.isnan(after[1])))
+        assert sorted(map(tuple, up.cells.tolist())) == sorted(zip(*map(list, np.nonzero(diff))))
+        before = after
+
+
+def test_safety_zone_matches_brute_force_on_a_bigger_field():
+    rng = np.random.default_rng(4)
+    g = NavGraph(CLASSES, (0, 0), (8, 8), RES, robot_radius_m=0.55, tile_size=8)
+    ref = ReferenceGraph(40, 40, RES, 0.55, MAP_RES)
+    for _ in range(4):
+        xy = rng.integers(0, 80, size=(400, 2))
+        vox = np.array([voxel(x, y, int(rng.integers(0, 3))) for x, y in xy], np.float32)
+        labels = rng.choice([GRASS, TERRAIN, HEDGE], size=len(vox), p=[0.5, 0.45, 0.05])
+        occ = rng.random(len(vox)) < 0.8
+        g.integrate(vox, labels.astype(np.uint16), occ.astype(np.uint8))
+        ref.apply(vox.astype(np.float64), labels, occ)
+        want = ref.state()
+        np.testing.assert_array_equal(graph_state(g)[2], want[2])
