@@ -1,0 +1,331 @@
+"""Evaluation against ground truth, as the paper measures it (4.2.2 and 4.3).
+
+Map precision: for every point of the produced map, the nearest ground-truth point (a k-d tree
+over the GT cloud). The reconstruction error is the distance to it (mean and standard deviation)
+and the classification ratio the share of map points whose label equals its label; both overall
+and per class, where "class" is either the label the map gave (`per_class`: how right is what
+the map calls hedge) or the true label of the nearest GT point (`per_true_class`: how much of
+the true hedge came out as hedge).
+
+Exploration: the share of the reachable traversable area that the navigation graph came to know,
+the labels of the graph nodes the robot travelled over (terrain vs grass, paper 4.3), and the
+robot's clearance from obstacles along its trajectory.
+
+    smana eval map RUN_DIR [--map FILE] [--gt FILE]
+
+finds the run's final map and the ground truth (the `gt.ply` in the run directory, or the
+simulated world rebuilt from the run's config and exported there), prints the table and writes
+`eval_map.json` into the run directory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+# -- map precision ------------------------------------------------------------------------------
+
+
+def _check_cloud(name: str, points, labels) -> tuple[np.ndarray, np.ndarray]:
+    points = np.asarray(points, np.float64)
+    labels = np.asarray(labels).astype(np.int64).reshape(-1)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{name} points must be (N, 3), got {points.shape}")
+    if len(labels) != len(points):
+        raise ValueError(f"{name}: {len(points)} points but {len(labels)} labels")
+    if not np.isfinite(points).all():
+        raise ValueError(f"{name} points contain NaN or inf")
+    return points, labels
+
+
+def nearest_gt(map_points, gt_points) -> tuple[np.ndarray, np.ndarray]:
+    """(distance, index) of the nearest ground-truth point for every map point."""
+    tree = cKDTree(np.asarray(gt_points, np.float64))
+    dist, idx = tree.query(np.asarray(map_points, np.float64), k=1)
+    return dist, idx
+
+
+def _summary(err: np.ndarray, ok: np.ndarray) -> dict:
+    n = int(len(err))
+    if n == 0:
+        return {"n_points": 0, "error_mean_m": None, "error_std_m": None,
+                "error_median_m": None, "classification_ratio": None}  # fmt: skip
+    return {
+        "n_points": n,
+        "error_mean_m": float(err.mean()),
+        "error_std_m": float(err.std()),
+        "error_median_m": float(np.median(err)),
+        "classification_ratio": float(ok.mean()),
+    }
+
+
+def evaluate_map(
+    map_points,
+    map_labels,
+    gt_points,
+    gt_labels,
+    class_names: dict[int, str] | None = None,
+) -> dict:
+    """Reconstruction error and classification ratio of a labelled map against a labelled GT cloud.
+
+    Returns a dict: `n_points`, `reconstruction_error_mean_m`, `reconstruction_error_std_m`,
+    `reconstruction_error_median_m`, `reconstruction_error_p95_m`, `classification_ratio`, and
+    `per_class` / `per_true_class` (name -> n_points, error_mean_m, error_std_m, error_median_m,
+    classification_ratio).
+    """
+    mp, ml = _check_cloud("map", map_points, map_labels)
+    gp, gl = _check_cloud("ground truth", gt_points, gt_labels)
+    if len(gp) == 0:
+        raise ValueError("the ground-truth cloud is empty")
+    names = class_names or {}
+    if len(mp) == 0:
+        return {
+            "n_points": 0,
+            "reconstruction_error_mean_m": None,
+            "reconstruction_error_std_m": None,
+            "reconstruction_error_median_m": None,
+            "reconstruction_error_p95_m": None,
+            "classification_ratio": None,
+            "per_class": {},
+            "per_true_class": {},
+        }
+    dist, idx = nearest_gt(mp, gp)
+    true = gl[idx]
+    ok = ml == true
+    out = {
+        "n_points": int(len(mp)),
+        "reconstruction_error_mean_m": float(dist.mean()),
+        "reconstruction_error_std_m": float(dist.std()),
+        "reconstruction_error_median_m": float(np.median(dist)),
+        "reconstruction_error_p95_m": float(np.percentile(dist, 95)),
+        "classification_ratio": float(ok.mean()),
+        "per_class": {},
+        "per_true_class": {},
+    }
+    for key, lab in (("per_class", ml), ("per_true_class", true)):
+        for c in np.unique(lab):
+            sel = lab == c
+            out[key][names.get(int(c), str(int(c)))] = _summary(dist[sel], ok[sel])
+    return out
+
+
+# -- exploration --------------------------------------------------------------------------------
+
+
+def sample_grid(grid: dict, xy: np.ndarray, layer: str = "flags") -> np.ndarray:
+    """Values of a saved navigation-grid box at world points; 0 outside the box.
+
+    `grid` holds `origin_xy`, `resolution_m` and dense layers indexed [ix, iy]; node (ix, iy)
+    covers [origin + i * res, origin + (i + 1) * res)."""
+    data = np.asarray(grid[layer])
+    ij = np.floor((np.asarray(xy, float) - np.asarray(grid["origin_xy"], float))
+                  / float(grid["resolution_m"])).astype(np.int64)  # fmt: skip
+    inside = (ij >= 0).all(axis=-1) & (ij[..., 0] < data.shape[0]) & (ij[..., 1] < data.shape[1])
+    out = np.zeros(ij.shape[:-1], data.dtype)
+    out[inside] = data[ij[inside, 0], ij[inside, 1]]
+    return out
+
+
+def reachable_traversable(trav: np.ndarray, start_ij: tuple[int, int]) -> np.ndarray:
+    """Cells of the boolean raster `trav` 8-connected to `start_ij` (empty if it is blocked)."""
+    comp, _ = ndimage.label(trav, structure=np.ones((3, 3), bool))
+    c = comp[start_ij]
+    return comp == c if c > 0 else np.zeros(trav.shape, bool)
+
+
+def exploration_coverage(
+    grid: dict, cell_xy: np.ndarray, reachable: np.ndarray, cell_area_m2: float
+) -> dict:
+    """Share of the reachable traversable area whose graph node is known.
+
+    `cell_xy` (..., 2) are the world centres of the raster cells and `reachable` the GT mask of
+    cells the robot could reach; a cell counts as explored when the graph node over it is KNOWN."""
+    known = (sample_grid(grid, cell_xy) & 1).astype(bool)
+    n_reach = int(reachable.sum())
+    n_seen = int((known & reachable).sum())
+    return {
+        "reachable_area_m2": n_reach * cell_area_m2,
+        "explored_reachable_area_m2": n_seen * cell_area_m2,
+        "coverage": n_seen / n_reach if n_reach else 0.0,
+        "known_area_m2": float((sample_grid(grid, cell_xy) & 1).astype(bool).sum() * cell_area_m2),
+    }
+
+
+def travelled_nodes(traj_xy: np.ndarray, resolution_m: float, origin_xy=(0.0, 0.0)) -> np.ndarray:
+    """The graph nodes a trajectory entered, in order, each time it entered one: (K, 2) cells."""
+    traj_xy = np.asarray(traj_xy, float).reshape(-1, 2)
+    if len(traj_xy) == 0:
+        return np.zeros((0, 2), np.int64)
+    cells = np.floor((traj_xy - np.asarray(origin_xy)) / resolution_m).astype(np.int64)
+    change = np.ones(len(cells), bool)
+    change[1:] = (cells[1:] != cells[:-1]).any(axis=1)
+    return cells[change]
+
+
+def label_shares(labels: np.ndarray, class_names: dict[int, str]) -> dict[str, float]:
+    """Share of each class among `labels` (names as keys), over the classes present."""
+    labels = np.asarray(labels).reshape(-1)
+    if len(labels) == 0:
+        return {}
+    ids, counts = np.unique(labels, return_counts=True)
+    return {class_names.get(int(i), str(int(i))): float(c / len(labels)) for i, c in
+            zip(ids, counts, strict=True)}  # fmt: skip
+
+
+def terrain_share(labels: np.ndarray, terrain_id: int = 2, grass_id: int = 1) -> float | None:
+    """Travelled nodes on terrain over those on terrain or grass (the paper's 60/70/88 %)."""
+    labels = np.asarray(labels)
+    n_t = int((labels == terrain_id).sum())
+    n_g = int((labels == grass_id).sum())
+    return n_t / (n_t + n_g) if n_t + n_g else None
+
+
+def clearance_along(
+    traj_xy: np.ndarray, obstacle: np.ndarray, origin_xy, resolution_m
+) -> np.ndarray:
+    """Distance (m) from each trajectory point to the nearest obstacle cell of a raster whose cell
+    (i, j) is centred at origin + (i, j) * res (the simulator's ground-aligned rasters)."""
+    free_dist = ndimage.distance_transform_edt(~obstacle) * resolution_m
+    ij = np.rint((np.asarray(traj_xy, float) - np.asarray(origin_xy)) / resolution_m).astype(int)
+    ij[:, 0] = np.clip(ij[:, 0], 0, obstacle.shape[0] - 1)
+    ij[:, 1] = np.clip(ij[:, 1], 0, obstacle.shape[1] - 1)
+    # the raster is sampled at cell centres: a point can be half a diagonal closer than its cell
+    return np.maximum(free_dist[ij[:, 0], ij[:, 1]] - resolution_m * np.sqrt(0.5), 0.0)
+
+
+# -- run directories ----------------------------------------------------------------------------
+
+MAP_CANDIDATES = ("map.ply", "mapper/map.ply", "final_map.ply")
+
+
+def find_map(run_dir: Path) -> Path:
+    for name in MAP_CANDIDATES:
+        if (run_dir / name).is_file():
+            return run_dir / name
+    found = sorted(run_dir.rglob("*.ply"), key=lambda p: p.stat().st_mtime, reverse=True)
+    found = [p for p in found if p.name != "gt.ply"]
+    if not found:
+        raise FileNotFoundError(f"no map PLY in {run_dir} (looked for {', '.join(MAP_CANDIDATES)})")
+    return found[0]
+
+
+def load_labelled_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(points (N, 3), labels (N,)) from a labelled PLY or a saved map (.npz)."""
+    path = Path(path)
+    if path.suffix == ".npz":
+        from smana.services.mapper.semantic_map import SemanticMap
+
+        m = SemanticMap.load(path)
+        d = m.occupied_voxels()
+        return np.asarray(d.centres, np.float64), np.asarray(d.labels)
+    from smana.services.sim.ply import read_labelled_ply
+
+    return read_labelled_ply(path)
+
+
+def world_from_config(config):
+    """The simulated world a run used, rebuilt from its config (same seed, same world)."""
+    from smana.common.classes import ClassTable
+    from smana.services.sim.world import GardenWorld
+
+    classes = ClassTable.load(config.general.class_table)
+    world = config.sim.world
+    if world == "garden":
+        return GardenWorld.generate(config.sim.seed, size_m=config.sim.size_m, classes=classes)
+    path = world[4:] if world.startswith("ply:") else world
+    return GardenWorld.from_ply(path, classes)
+
+
+def gt_cloud_for_run(run_dir: Path, config, spacing_m: float = 0.03):
+    """The GT cloud of a run: `<run_dir>/gt.ply`, exported there from the world if missing."""
+    gt = run_dir / "gt.ply"
+    if not gt.is_file():
+        world_from_config(config).export_ply(gt, spacing_m)
+    return load_labelled_cloud(gt)
+
+
+def load_run_config(run_dir: Path):
+    from smana.common.config import SmanaConfig
+
+    path = run_dir / "config.toml"
+    return SmanaConfig.load(path if path.is_file() else None)
+
+
+def format_map_table(scores: dict) -> str:
+    def f(v, fmt):
+        return "-" if v is None else format(v, fmt)
+
+    lines = [
+        f"map points: {scores['n_points']}",
+        f"reconstruction error: mean {f(scores['reconstruction_error_mean_m'], '.4f')} m, "
+        f"std {f(scores['reconstruction_error_std_m'], '.4f')} m, "
+        f"median {f(scores['reconstruction_error_median_m'], '.4f')} m",
+        f"classification ratio: {f(scores['classification_ratio'], '.3f')}",
+        "",
+        f"{'class (map label)':<20} {'points':>8} {'err mean m':>11} {'err std m':>10} "
+        f"{'class. ratio':>12}",
+    ]
+    for name, s in scores["per_class"].items():
+        lines.append(
+            f"{name:<20} {s['n_points']:>8} {f(s['error_mean_m'], '.4f'):>11} "
+            f"{f(s['error_std_m'], '.4f'):>10} {f(s['classification_ratio'], '.3f'):>12}"
+        )
+    lines += ["", f"{'class (true label)':<20} {'points':>8} {'class. ratio':>12}"]
+    for name, s in scores["per_true_class"].items():
+        lines.append(f"{name:<20} {s['n_points']:>8} {f(s['classification_ratio'], '.3f'):>12}")
+    return "\n".join(lines)
+
+
+def eval_map_run(run_dir: Path, map_path: Path | None = None, gt_path: Path | None = None,
+                 spacing_m: float = 0.03) -> dict:  # fmt: skip
+    """Evaluate a run directory's map; writes `eval_map.json` there and returns the scores."""
+    from smana.common.classes import ClassTable
+
+    run_dir = Path(run_dir)
+    config = load_run_config(run_dir)
+    classes = ClassTable.load(config.general.class_table)
+    names = {i: c.name for i, c in classes.classes.items()}
+    map_path = Path(map_path) if map_path else find_map(run_dir)
+    mp, ml = load_labelled_cloud(map_path)
+    if gt_path:
+        gp, gl = load_labelled_cloud(Path(gt_path))
+    else:
+        gp, gl = gt_cloud_for_run(run_dir, config, spacing_m)
+    scores = evaluate_map(mp, ml, gp, gl, names)
+    scores["map"] = str(map_path)
+    scores["gt"] = str(gt_path or run_dir / "gt.ply")
+    (run_dir / "eval_map.json").write_text(json.dumps(scores, indent=2))
+    return scores
+
+
+def cli(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="smana eval", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="what", required=True)
+    m = sub.add_parser("map", help="reconstruction error and classification ratio of a run's map")
+    m.add_argument("run_dir", type=Path)
+    m.add_argument("--map", type=Path, help="map file (PLY or .npz); default: found in RUN_DIR")
+    m.add_argument("--gt", type=Path, help="ground-truth labelled PLY; default: RUN_DIR/gt.ply "
+                   "or exported from the run's simulated world")  # fmt: skip
+    m.add_argument("--spacing", type=float, default=0.03, help="GT sample spacing when exported")
+    m.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    args = p.parse_args(argv)
+    if not args.run_dir.is_dir():
+        print(f"smana eval: {args.run_dir} is not a directory", file=sys.stderr)
+        return 2
+    try:
+        scores = eval_map_run(args.run_dir, args.map, args.gt, args.spacing)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"smana eval: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(scores, indent=2) if args.json else format_map_table(scores))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())
