@@ -142,8 +142,32 @@ class PlannerConfig:
 
 @dataclass
 class ExplorerConfig:
-    time_budget_s: float = _pos(default=480.0)
+    time_budget_s: float = _pos(default=480.0)  # robot (pose stamp) time, and wall time as well
     enabled: bool = True
+    control_rate_hz: float = _pos(default=10.0)
+    # next-best-view scoring (services/explorer/frontier.py)
+    fov_deg: float = _pos(default=57.0)  # the camera's horizontal field of view
+    view_range_m: float = _pos(default=4.0)  # how far a view is assumed to map the ground
+    view_min_range_m: float = _nonneg(default=0.3)
+    n_yaw: int = _pos(default=16)
+    occlusion: bool = True  # obstacle nodes hide what is behind them
+    candidate_spacing_m: float = _pos(default=0.6)
+    min_gain_m2: float = _nonneg(default=0.4)  # a view seeing less unknown area is not worth it
+    path_cost_weight: float = _nonneg(default=0.05)  # m^2 of view gain per unit of A* path cost
+    max_queries: int = _pos(default=10)  # path queries per plan (branch and bound cap)
+    replan_period_s: float = _pos(default=3.0)
+    switch_margin_m2: float = _nonneg(default=1.0)
+    stuck_timeout_s: float = _pos(default=8.0)
+    done_after_empty: int = _pos(default=3)
+    # traversability cost overrides sent with every path request, "grass=4" or "1=4"
+    class_costs: list[str] = field(default_factory=list)
+    planner_timeout_s: float = _pos(default=2.0)
+    # pure pursuit (services/explorer/follower.py)
+    lookahead_m: float = _pos(default=0.4)
+    max_linear_mps: float = _pos(default=0.4)
+    max_angular_radps: float = _pos(default=1.0)
+    goal_tolerance_m: float = _pos(default=0.2)
+    pose_timeout_s: float = _pos(default=1.0)  # no pose for this long: stop the robot
 
 
 @dataclass
