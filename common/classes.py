@@ -30,6 +30,9 @@ class SemanticClass:
     kind: str
     cost: float | None = None
     colour: tuple[int, int, int] = (255, 255, 255)
+    # Ids of a dataset's own numbering that this class stands for (RELLIS-3D, SemanticKITTI):
+    # lets a replayed dataset keep its label files while the stack sees compact table ids.
+    maps_from: tuple[int, ...] = ()
 
     @property
     def traversable(self) -> bool:
@@ -75,6 +78,33 @@ class ClassTable:
             self.colour_lut[c.id] = c.colour
             if c.traversable:
                 self.cost_lut[c.id] = c.cost
+        self._dataset_lut = _dataset_lut(name, classes)
+
+    @property
+    def maps_dataset_ids(self) -> bool:
+        """True when the table translates a dataset's numbering (some class has `maps_from`)."""
+        return self._dataset_lut is not None
+
+    def map_dataset_labels(self, raw: np.ndarray) -> tuple[np.ndarray, int]:
+        """Dataset label ids -> table ids (uint16) through `maps_from`.
+
+        Ids that no class claims become unknown; returns (labels, how many were unclaimed). A
+        table without any `maps_from` takes dataset ids as its own ids (then this is `sanitise`).
+        """
+        raw = np.asarray(raw)
+        if raw.dtype.kind not in "iu":
+            raise ValueError(f"labels must be integers, got {raw.dtype}")
+        if self._dataset_lut is None:
+            labels, n_bad = self.sanitise(raw)
+            return labels.astype(np.uint16, copy=False), n_bad
+        lut = self._dataset_lut
+        inside = (raw >= 0) & (raw < lut.size)
+        out = np.zeros(raw.shape, np.int32)
+        out[inside] = lut[raw[inside]]
+        unclaimed = out < 0
+        unclaimed |= ~inside
+        out[unclaimed] = UNKNOWN_ID
+        return out.astype(np.uint16), int(unclaimed.sum())
 
     # -- loading -------------------------------------------------------------------------------
 
@@ -108,7 +138,7 @@ class ClassTable:
         classes = []
         for i, e in enumerate(entries):
             where = f"{origin}: class #{i}"
-            unknown_keys = set(e) - {"id", "name", "kind", "cost", "colour"}
+            unknown_keys = set(e) - {"id", "name", "kind", "cost", "colour", "maps_from"}
             if unknown_keys:
                 raise ClassTableError(f"{where}: unknown keys {sorted(unknown_keys)}")
             try:
@@ -127,7 +157,12 @@ class ClassTable:
             colour = tuple(int(v) for v in e.get("colour", (255, 255, 255)))
             if len(colour) != 3 or not all(0 <= v <= 255 for v in colour):
                 raise ClassTableError(f"{where}: colour must be three integers 0..255")
-            classes.append(SemanticClass(cid, cname, kind, cost, colour))
+            maps_from = e.get("maps_from", [])
+            if not isinstance(maps_from, list) or not all(
+                isinstance(v, int) and 0 <= v <= MAX_CLASS_ID for v in maps_from
+            ):
+                raise ClassTableError(f"{where}: maps_from must be a list of ids 0..{MAX_CLASS_ID}")
+            classes.append(SemanticClass(cid, cname, kind, cost, colour, tuple(maps_from)))
         return cls(str(data.get("name", origin)), classes)
 
     # -- queries -------------------------------------------------------------------------------
@@ -170,6 +205,19 @@ class ClassTable:
             labels = labels.copy()
             labels[bad] = UNKNOWN_ID
         return labels, n_bad
+
+
+def _dataset_lut(name: str, classes: list[SemanticClass]) -> np.ndarray | None:
+    """Dense dataset id -> table id array (-1 where no class claims the id), or None if unused."""
+    claimed = {v: c.id for c in classes for v in c.maps_from}
+    if not claimed:
+        return None
+    if sum(len(c.maps_from) for c in classes) != len(claimed):
+        raise ClassTableError(f"class table {name!r}: a dataset id is in two classes' maps_from")
+    lut = np.full(max(claimed) + 1, -1, np.int32)
+    for raw_id, cid in claimed.items():
+        lut[raw_id] = cid
+    return lut
 
 
 def bundled_tables() -> list[str]:

@@ -1,0 +1,95 @@
+"""Turn a dataset scan into what the mapper integrates: table labels, world frame, in range.
+
+Dataset ids become class-table ids (`maps_from`), points of ignored classes (sky, void) and
+points outside [min_range_m, max_range_m] from the sensor are dropped, as are non-finite points,
+and the rest is moved to the world frame. Every drop is counted, so a replay can say how much of
+the data it published.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from smana.common.classes import ClassTable
+
+from .readers.base import Scan
+
+
+@dataclass
+class PreparedCloud:
+    points: np.ndarray  # f4[N, 3], world frame
+    labels: np.ndarray  # u2[N], class-table ids
+    confidences: np.ndarray  # f4[N]
+    sensor_position: np.ndarray  # f8[3]
+    sensor_orientation_xyzw: np.ndarray  # f8[4]
+    n_in: int = 0
+    n_nonfinite: int = 0
+    n_out_of_range: int = 0
+    n_ignored: int = 0
+    n_unclaimed: int = 0  # dataset ids no class claims (kept, as unknown)
+
+    @property
+    def n_out(self) -> int:
+        return int(self.points.shape[0])
+
+
+def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
+    """3x3 rotation -> unit quaternion (x, y, z, w), w >= 0 (Shepperd's method, stable)."""
+    r = np.asarray(r, np.float64)
+    tr = np.trace(r)
+    if tr > 0:
+        s = 2.0 * np.sqrt(1.0 + tr)
+        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
+    elif r[1, 1] > r[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def prepare_scan(
+    scan: Scan, table: ClassTable, max_range_m: float, min_range_m: float = 0.0
+) -> PreparedCloud:
+    """Filter and transform one scan (see the module docstring). Raises ValueError on bad input."""
+    if not (0 <= min_range_m < max_range_m):
+        raise ValueError(f"need 0 <= min_range_m < max_range_m, got {min_range_m}, {max_range_m}")
+    pts = np.asarray(scan.points)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"scan {scan.name}: points have shape {pts.shape}, expected (N, 3)")
+    if scan.labels.shape != (pts.shape[0],):
+        raise ValueError(f"scan {scan.name}: {scan.labels.size} labels for {pts.shape[0]} points")
+    pose = np.asarray(scan.pose, np.float64)
+    if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"scan {scan.name}: pose must be a finite 4x4 matrix")
+    conf = scan.confidences
+    conf = np.ones(pts.shape[0], np.float32) if conf is None else np.asarray(conf, np.float32)
+
+    labels, n_unclaimed = table.map_dataset_labels(scan.labels)
+    finite = np.isfinite(pts).all(axis=1) & np.isfinite(conf)
+    r2 = np.einsum("ij,ij->i", pts, pts, dtype=np.float64)
+    # The sensor's "no return" points sit at the origin: min_range_m > 0 drops them as well.
+    in_range = (r2 <= max_range_m**2) & (r2 >= min_range_m**2)
+    kept_class = ~table.ignored_lut[np.minimum(labels, table.size - 1)]
+    keep = finite & in_range & kept_class
+    world = pts[keep].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    return PreparedCloud(
+        points=world.astype(np.float32),
+        labels=labels[keep],
+        confidences=np.clip(conf[keep], 0.0, 1.0),
+        sensor_position=pose[:3, 3].copy(),
+        sensor_orientation_xyzw=matrix_to_quaternion(pose[:3, :3]),
+        n_in=int(pts.shape[0]),
+        n_nonfinite=int((~finite).sum()),
+        n_out_of_range=int((finite & ~in_range).sum()),
+        n_ignored=int((finite & in_range & ~kept_class).sum()),
+        n_unclaimed=n_unclaimed,
+    )

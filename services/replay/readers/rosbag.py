@@ -1,0 +1,361 @@
+"""ROS 1 bags, ROS 2 bags (sqlite3 or MCAP storage) and bare MCAP files, without a ROS install.
+
+Scans come from a sensor_msgs/PointCloud2 topic with float fields x, y, z and an integer label
+field of any width (name configurable, `label` by default); an optional float `confidence` field
+is used when present. Poses come from a nav_msgs/Odometry topic, interpolated at each cloud's
+header stamp (linear in position, slerp in orientation), or from one fixed pose for a static
+sensor. Clouds stamped outside the odometry's time span by more than `max_pose_gap_s` are skipped.
+
+The `rosbags` package is imported lazily: it is an optional dependency
+(`pip install 'smana[replay]'`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .base import DatasetError, DatasetReader, Scan
+
+# sensor_msgs/PointField datatypes -> numpy kinds
+_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+_INT_TYPES = {1, 2, 3, 4, 5, 6}
+_FLOAT_TYPES = {7, 8}
+CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
+ODOM_TYPE = "nav_msgs/msg/Odometry"
+
+
+def _import_rosbags():
+    try:
+        import rosbags  # noqa: F401
+    except ImportError:
+        raise ImportError(
+            "reading ROS bags needs the 'rosbags' package: pip install 'smana[replay]'"
+        ) from None
+
+
+class _BareMcap:
+    """A single .mcap file (no rosbag2 metadata.yaml) behind AnyReader's small interface."""
+
+    def __init__(self, path: Path):
+        from rosbags.rosbag2.storage_mcap import McapReader
+        from rosbags.typesys import Stores, get_typestore
+
+        self._reader = McapReader(path)
+        self._reader.open()
+        self.connections = self._reader.connections
+        # PointCloud2 and Odometry are identical in every ROS 2 distro: the bundled store suffices.
+        self._typestore = get_typestore(Stores.ROS2_HUMBLE)
+
+    def messages(self, connections):
+        return self._reader.messages(connections)
+
+    def deserialize(self, raw, msgtype):
+        return self._typestore.deserialize_cdr(raw, msgtype)
+
+    def close(self):
+        self._reader.close()
+
+
+def _open_bag(path: Path):
+    _import_rosbags()
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.rosbag2.errors import ReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        if path.is_file() and path.suffix == ".mcap":
+            return _BareMcap(path)
+        if not (path.suffix == ".bag" or (path / "metadata.yaml").is_file()):
+            raise DatasetError(path, "not a ROS 1 .bag, a ROS 2 bag folder or an .mcap file")
+        store = Stores.ROS1_NOETIC if path.suffix == ".bag" else Stores.ROS2_HUMBLE
+        reader = AnyReader([path], default_typestore=get_typestore(store))
+        reader.open()
+        return reader
+    except (AnyReaderError, ReaderError, OSError) as exc:
+        raise DatasetError(path, f"cannot open bag: {exc}") from None
+
+
+def _stamp_s(header) -> float:
+    return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
+
+
+def cloud_fields(msg) -> dict[str, tuple[int, int, int]]:
+    """PointCloud2 field name -> (offset, datatype, count)."""
+    return {f.name: (int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields}
+
+
+def check_cloud(msg, label_field: str) -> str | None:
+    """Why this PointCloud2 cannot be read as a labelled scan, or None if it can."""
+    fields = cloud_fields(msg)
+    names = ", ".join(fields) or "none"
+    for axis in "xyz":
+        if axis not in fields:
+            return f"field {axis!r} missing from the PointCloud2 (fields: {names})"
+        if fields[axis][1] not in _FLOAT_TYPES:
+            return f"field {axis!r} is not float32/float64"
+    if label_field not in fields:
+        return f"label field {label_field!r} missing from the PointCloud2 (fields: {names})"
+    if fields[label_field][1] not in _INT_TYPES:
+        return f"label field {label_field!r} is not an integer type"
+    step = int(msg.point_step)
+    for name, (off, dt, count) in fields.items():
+        if dt in _FIELD_TYPES and off + np.dtype(_FIELD_TYPES[dt]).itemsize * max(count, 1) > step:
+            return f"field {name!r} runs past point_step {step}"
+    n = int(msg.width) * int(msg.height)
+    if int(msg.row_step) < int(msg.width) * step:
+        return f"row_step {msg.row_step} < width {msg.width} * point_step {step}"
+    if n and len(msg.data) < (int(msg.height) - 1) * int(msg.row_step) + int(msg.width) * step:
+        return f"data holds {len(msg.data)} bytes, too few for {msg.height}x{msg.width} points"
+    return None
+
+
+def decode_cloud(msg, label_field: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """PointCloud2 -> (points f4[N,3], labels [N], confidences f4[N] or None). Call check first."""
+    fields = cloud_fields(msg)
+    order = ">" if msg.is_bigendian else "<"
+    wanted = ["x", "y", "z", label_field]
+    if "confidence" in fields and fields["confidence"][1] in _FLOAT_TYPES:
+        wanted.append("confidence")
+    dtype = np.dtype(
+        {
+            "names": wanted,
+            "formats": [order + _FIELD_TYPES[fields[n][1]] for n in wanted],
+            "offsets": [fields[n][0] for n in wanted],
+            "itemsize": int(msg.point_step),
+        }
+    )
+    h, w, step, row = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
+    data = np.frombuffer(memoryview(msg.data), np.uint8)
+    if h * w == 0:
+        return np.zeros((0, 3), np.float32), np.zeros(0, np.uint32), None
+    # Rows may carry padding past width * point_step: cut each row before viewing it as points.
+    rows = np.lib.stride_tricks.as_strided(data, (h, w * step), (row, 1))
+    pts = np.ascontiguousarray(rows).view(dtype).reshape(-1)
+    points = np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float32)
+    labels = pts[label_field].astype(np.int64)
+    conf = pts["confidence"].astype(np.float32) if "confidence" in wanted else None
+    return points, labels, conf
+
+
+def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, a: float) -> np.ndarray:
+    d = float(np.dot(q0, q1))
+    if d < 0:  # take the short way round
+        q1, d = -q1, -d
+    if d > 0.9995:
+        q = q0 + a * (q1 - q0)
+    else:
+        th = np.arccos(d)
+        q = (np.sin((1 - a) * th) * q0 + np.sin(a * th) * q1) / np.sin(th)
+    return q / np.linalg.norm(q)
+
+
+class PoseTrack:
+    """Timestamped poses (position + xyzw quaternion) interpolated at any stamp inside the span."""
+
+    def __init__(self, stamps: np.ndarray, positions: np.ndarray, quats: np.ndarray):
+        order = np.argsort(stamps, kind="stable")
+        self.stamps, self.positions, self.quats = stamps[order], positions[order], quats[order]
+
+    def at(self, t: float, max_gap_s: float) -> np.ndarray | None:
+        s = self.stamps
+        if t < s[0] - max_gap_s or t > s[-1] + max_gap_s:
+            return None
+        k = int(np.searchsorted(s, t))
+        if k == 0 or k == s.size:  # just outside the span: hold the end pose
+            k = min(k, s.size - 1)
+            p, q = self.positions[k], self.quats[k]
+        else:
+            a = (t - s[k - 1]) / (s[k] - s[k - 1]) if s[k] > s[k - 1] else 0.0
+            if s[k] - s[k - 1] > 2 * max_gap_s and min(t - s[k - 1], s[k] - t) > max_gap_s:
+                return None  # a hole in the odometry
+            p = (1 - a) * self.positions[k - 1] + a * self.positions[k]
+            q = _slerp(self.quats[k - 1], self.quats[k], a)
+        m = np.eye(4)
+        m[:3, :3] = _quat_to_matrix(np.asarray(q, np.float64))
+        m[:3, 3] = p
+        return m
+
+
+def fixed_pose_matrix(pose) -> np.ndarray:
+    """A 4x4 matrix, or (x, y, z, yaw) -> 4x4."""
+    arr = np.asarray(pose, np.float64)
+    if arr.shape == (4, 4):
+        return arr.copy()
+    if arr.shape == (4,):
+        x, y, z, yaw = arr
+        m = np.eye(4)
+        c, s = np.cos(yaw), np.sin(yaw)
+        m[:2, :2] = [[c, -s], [s, c]]
+        m[:3, 3] = x, y, z
+        return m
+    raise ValueError("fixed pose must be a 4x4 matrix or (x, y, z, yaw)")
+
+
+class RosbagReader(DatasetReader):
+    format = "rosbag"
+    default_class_table = "rellis3d"
+
+    def __init__(
+        self,
+        path,
+        *,
+        cloud_topic: str | None = None,
+        odom_topic: str | None = None,
+        label_field: str = "label",
+        fixed_pose=None,
+        sensor_to_base=None,
+        max_pose_gap_s: float = 0.2,
+        strict: bool = False,
+    ):
+        super().__init__(path, strict=strict)
+        self.label_field = label_field
+        self._bag = _open_bag(self.path)
+        try:
+            self._index(cloud_topic, odom_topic, fixed_pose, sensor_to_base, max_pose_gap_s)
+        except BaseException:
+            self.close()
+            raise
+
+    def _pick_topic(self, topic: str | None, msgtype: str, what: str):
+        conns = [c for c in self._bag.connections if c.msgtype == msgtype]
+        if topic is not None:
+            chosen = [c for c in self._bag.connections if c.topic == topic]
+            if not chosen:
+                known = ", ".join(sorted({c.topic for c in self._bag.connections})) or "none"
+                raise DatasetError(self.path, f"no topic {topic!r} (topics: {known})")
+            if chosen[0].msgtype != msgtype:
+                raise DatasetError(
+                    self.path, f"topic {topic!r} is {chosen[0].msgtype}, expected {msgtype}"
+                )
+            return chosen
+        topics = sorted({c.topic for c in conns})
+        if len(topics) > 1:
+            raise DatasetError(self.path, f"several {what} topics, name one: {', '.join(topics)}")
+        return conns
+
+    def _index(self, cloud_topic, odom_topic, fixed_pose, sensor_to_base, max_gap_s) -> None:
+        clouds = self._pick_topic(cloud_topic, CLOUD_TYPE, "PointCloud2")
+        if not clouds:
+            raise DatasetError(self.path, "no sensor_msgs/PointCloud2 topic")
+        self._clouds = clouds
+        self.cloud_topic = clouds[0].topic
+        self._sensor_to_base = (
+            np.eye(4) if sensor_to_base is None else fixed_pose_matrix(sensor_to_base)
+        )
+        self._fixed = None if fixed_pose is None else fixed_pose_matrix(fixed_pose)
+        self._track: PoseTrack | None = None
+        self._odom_frame = None
+        if self._fixed is None:
+            odoms = self._pick_topic(odom_topic, ODOM_TYPE, "Odometry")
+            if not odoms:
+                raise DatasetError(
+                    self.path, "no nav_msgs/Odometry topic: give a fixed pose for a static sensor"
+                )
+            self._track = self._read_odometry(odoms)
+
+        # One pass over the clouds decides which scans can be replayed; only stamps are kept.
+        self._entries: list[tuple[int, float, np.ndarray]] = []  # (message number, stamp, pose)
+        self._n_messages = 0
+        for k, (_, msg) in enumerate(self._cloud_messages()):
+            self._n_messages += 1
+            name = f"{self.cloud_topic}#{k}"
+            why = check_cloud(msg, self.label_field)
+            if why is not None:
+                self.skip(name, why)
+                continue
+            stamp = _stamp_s(msg.header)
+            pose = self._pose_at(stamp, max_gap_s)
+            if pose is None:
+                self.skip(name, f"no odometry within {max_gap_s} s of stamp {stamp:.3f}")
+                continue
+            self._entries.append((k, stamp, pose))
+        if not self._entries:
+            first = self.skipped[0].reason if self.skipped else "the topic has no messages"
+            raise DatasetError(
+                self.path, f"no scan can be replayed from {self.cloud_topic}: {first}"
+            )
+        self._cursor = None  # (iterator over cloud messages, next message number)
+
+    def _read_odometry(self, conns) -> PoseTrack:
+        stamps, pos, quat = [], [], []
+        for conn, _, raw in self._bag.messages(connections=conns):
+            msg = self._bag.deserialize(raw, conn.msgtype)
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            stamps.append(_stamp_s(msg.header))
+            pos.append((p.x, p.y, p.z))
+            quat.append((q.x, q.y, q.z, q.w))
+            self._odom_frame = msg.header.frame_id
+        if not stamps:
+            raise DatasetError(self.path, f"odometry topic {conns[0].topic} has no messages")
+        quat = np.asarray(quat, np.float64)
+        norms = np.linalg.norm(quat, axis=1)
+        if not np.all(np.isfinite(pos)) or np.any(~np.isfinite(norms) | (norms < 1e-6)):
+            raise DatasetError(self.path, f"{conns[0].topic}: non-finite or zero-norm pose")
+        return PoseTrack(np.asarray(stamps), np.asarray(pos, np.float64), quat / norms[:, None])
+
+    def _pose_at(self, stamp: float, max_gap_s: float) -> np.ndarray | None:
+        if self._fixed is not None:
+            return self._fixed @ self._sensor_to_base
+        base = self._track.at(stamp, max_gap_s)
+        return None if base is None else base @ self._sensor_to_base
+
+    def _cloud_messages(self):
+        for conn, _, raw in self._bag.messages(connections=self._clouds):
+            yield conn, self._bag.deserialize(raw, conn.msgtype)
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    @property
+    def rate_hz(self) -> float:
+        stamps = np.array([e[1] for e in self._entries])
+        if stamps.size < 2:
+            return 10.0
+        dt = float(np.median(np.diff(stamps)))
+        return 1.0 / dt if dt > 0 else 10.0
+
+    def _make_scan(self, i: int, msg) -> Scan:
+        k, stamp, pose = self._entries[i]
+        points, labels, conf = decode_cloud(msg, self.label_field)
+        if self._odom_frame is not None and msg.header.frame_id == self._odom_frame:
+            # The cloud was recorded in the world frame already: bring it back to the sensor's.
+            inv = np.linalg.inv(pose)
+            points = (points.astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]).astype(np.float32)
+        return Scan(i, f"{self.cloud_topic}#{k}", stamp, points, labels, pose.copy(), conf)
+
+    def __iter__(self):
+        wanted = {e[0]: i for i, e in enumerate(self._entries)}
+        for k, (_, msg) in enumerate(self._cloud_messages()):
+            if k in wanted:
+                yield self._make_scan(wanted[k], msg)
+
+    def scan(self, i: int) -> Scan:
+        # Bags are streams: random access walks forward, restarting only when asked to go back.
+        target = self._entries[i][0]
+        if self._cursor is None or self._cursor[1] > target:
+            self._cursor = [iter(self._cloud_messages()), 0]
+        it = self._cursor[0]
+        while True:
+            _, msg = next(it)
+            k = self._cursor[1]
+            self._cursor[1] += 1
+            if k == target:
+                return self._make_scan(i, msg)
+
+    def close(self) -> None:
+        bag, self._bag = getattr(self, "_bag", None), None
+        if bag is not None:
+            bag.close()
