@@ -212,7 +212,7 @@ class Explorer:
             return None
         t = self.t_now
         if self.elapsed_s() >= self.p.time_budget_s:
-            self._finish("time_budget")
+            self.finish("time_budget")
             return None
         if self._spin is not None:
             return None
@@ -294,7 +294,7 @@ class Explorer:
             if self._maybe_spin():
                 return outcome
             if self._empty_plans >= self.p.done_after_empty:
-                self._finish("no_view_worth_it" if len(cells) else "no_frontier")
+                self.finish("no_view_worth_it" if len(cells) else "no_frontier")
             return outcome
         self._empty_plans = 0
         if reason == "periodic" and self.goal is not None and not self._goal_exhausted():
@@ -371,7 +371,7 @@ class Explorer:
 
     # -- internals ------------------------------------------------------------------------------
 
-    def _finish(self, reason: str) -> None:
+    def finish(self, reason: str) -> None:
         self.done_reason = reason
         self._set_goal(None)
         self._spin = None

@@ -1,0 +1,28 @@
+"""`smana explorer`: next-best-view frontier exploration over the navigation graph.
+
+Drives the robot (robot/cmd_vel) toward the view that sees most unknown ground for the least path
+cost, until no view is worth it or `explorer.time_budget_s` is spent; then exits with status 0.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from smana.common.cli import config_from_args, make_parser, setup_logging
+
+
+def cli(argv: list[str] | None = None) -> int:
+    p = make_parser("smana explorer", __doc__.strip().splitlines()[0])
+    p.add_argument("--budget", type=float, metavar="S", help="time budget, seconds")
+    args = p.parse_args(argv)
+    if args.budget is not None:
+        args.overrides.append(f"explorer.time_budget_s={args.budget}")
+    cfg = config_from_args(args)
+    setup_logging(cfg.general.log_level, "explorer")
+    from smana.services.explorer.service import main
+
+    return main(cfg)
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

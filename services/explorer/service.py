@@ -1,0 +1,343 @@
+"""The explorer service: Zenoh wiring around `exploration.Explorer`.
+
+Inputs: `navgraph/patch` (GraphPatch, applied to the explorer's own `NavGrid` copy) and
+`robot/pose`. Each tick (`explorer.control_rate_hz`) it hands the grid around the robot and the
+latest pose to the core, asks the planner (`planner/path`, PathRequest) for the paths the core
+wants costed, and publishes a VelocityCommand on `robot/cmd_vel` and its state on
+`explorer/state` (a msgpack map; also answered as a query on the same key).
+
+When exploration is done (no view worth it, or the time budget spent), it stops the robot, saves
+its final state into `<run_dir>/explorer/` (state.json, trajectory.csv, graph.npz) and exits with
+status 0, which tells `smana up` that the run is over.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from smana.common import keys
+from smana.common.classes import ClassTable
+from smana.common.config import ExplorerConfig, SmanaConfig
+from smana.common.messages import GraphPatch, PathReply, PathRequest, Pose, VelocityCommand
+from smana.common.navgrid import NavGrid
+from smana.common.query import QueryError, request
+from smana.common.service import Service
+
+from .exploration import ExplorationParams, Explorer, GridBox
+from .follower import FollowerConfig
+
+STATE_PERIOD_S = 0.5
+
+
+def params_from_config(cfg: ExplorerConfig) -> ExplorationParams:
+    follower = FollowerConfig(
+        lookahead_m=cfg.lookahead_m,
+        max_linear_mps=cfg.max_linear_mps,
+        max_angular_radps=cfg.max_angular_radps,
+        goal_tolerance_m=cfg.goal_tolerance_m,
+    )
+    return ExplorationParams(
+        fov_deg=cfg.fov_deg,
+        max_range_m=cfg.view_range_m,
+        min_range_m=cfg.view_min_range_m,
+        n_yaw=cfg.n_yaw,
+        occlusion=cfg.occlusion,
+        candidate_spacing_m=cfg.candidate_spacing_m,
+        min_gain_m2=cfg.min_gain_m2,
+        path_cost_weight=cfg.path_cost_weight,
+        max_queries=cfg.max_queries,
+        replan_period_s=cfg.replan_period_s,
+        switch_margin_m2=cfg.switch_margin_m2,
+        stuck_timeout_s=cfg.stuck_timeout_s,
+        done_after_empty=cfg.done_after_empty,
+        time_budget_s=cfg.time_budget_s,
+        follower=follower,
+    )
+
+
+def parse_class_costs(items: list[str], table: ClassTable) -> dict[int, float]:
+    """["grass=4", "2=1.5"] -> {1: 4.0, 2: 1.5}; names or ids of traversable classes."""
+    out: dict[int, float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"explorer.class_costs: {item!r} must look like name=cost")
+        name = name.strip()
+        try:
+            cid = int(name) if name.isdigit() else table.by_name(name).id
+        except KeyError:
+            raise ValueError(f"explorer.class_costs: no class {name!r} in {table.name}") from None
+        cost = float(value)
+        table.costs({cid: cost})  # raises ValueError for an obstacle class or a negative cost
+        out[cid] = cost
+    return out
+
+
+def min_cost_per_m(t_f: float, class_costs: np.ndarray, resolution_m: float) -> float:
+    """A lower bound on path cost per metre of straight-line distance: every transition costs its
+    length plus t_f * T(l), and the longest transition is a diagonal (res * sqrt 2)."""
+    finite = class_costs[np.isfinite(class_costs)]
+    t_min = float(finite.min()) if len(finite) else 0.0
+    return 1.0 + t_f * t_min / (resolution_m * math.sqrt(2.0))
+
+
+class ExplorerService(Service):
+    name = "explorer"
+
+    def __init__(self, config: SmanaConfig):
+        super().__init__(config)
+        self.cfg = config.explorer
+        self.tick_period_s = 1.0 / self.cfg.control_rate_hz
+        self.table = ClassTable.load(config.general.class_table)
+        self.class_costs = parse_class_costs(self.cfg.class_costs, self.table)
+        nav = config.navgraph
+        self.grid = NavGrid.from_bounds(nav.bounds_min_xy, nav.bounds_max_xy, nav.resolution_m)
+        params = params_from_config(self.cfg)
+        params.cost_per_m_lower_bound = min_cost_per_m(
+            config.planner.t_f, self.table.costs(self.class_costs), nav.resolution_m
+        )
+        self.core = Explorer(params, self.table.traversable_lut, self.table.size)
+        self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
+        self._grid_dirty = False
+        self._grid_version_used = -1
+        self._last_pose_wall = -math.inf
+        self._t_wall0 = time.monotonic()
+        self._seq = 0
+        self._next_state = 0.0
+        self._plan_log: list[dict] = []
+        self.n_patches = 0
+        self.n_path_queries = 0
+        self.path_errors: dict[str, int] = {}
+        self.plan_time_ms = 0.0
+        self._saved = False
+
+    # -- wiring -----------------------------------------------------------------------------------
+
+    def setup(self) -> None:
+        r = self.robot
+        self.cmd_pub = self.publisher(keys.cmd_vel(r), express=True)
+        self.state_pub = self.publisher(keys.explorer_state(r))
+        self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
+        self.subscribe(keys.pose(r), self.on_pose, Pose)
+        self.queryable(keys.explorer_state(r), lambda req: self.core.state_dict())
+        self._initial_graph()
+
+    def _initial_graph(self) -> None:
+        """Ask navgraph for what it already has (we may start after it published patches)."""
+        try:
+            reply = request(self.session, keys.query(self.robot, "navgraph", "graph"), None, 2.0)
+        except QueryError as exc:
+            self.log.info("no initial graph from navgraph (%s): starting from patches", exc.kind)
+            return
+        if isinstance(reply, GraphPatch):
+            self.on_patch(reply)
+
+    def on_patch(self, patch: GraphPatch) -> None:
+        if abs(patch.resolution_m - self.grid.resolution_m) > 1e-9 or not np.allclose(
+            patch.origin_xy, self.grid.origin_xy
+        ):
+            raise ValueError(
+                f"graph patch at {patch.resolution_m} m from {patch.origin_xy.tolist()} does not "
+                f"match the explorer's grid ({self.grid.resolution_m} m from "
+                f"{self.grid.origin_xy.tolist()}): check [navgraph] in the config"
+            )
+        n_out = self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
+        if n_out:
+            self.count_error("out_of_bounds", f"{n_out} patch cells outside the graph bounds")
+        self.n_patches += 1
+        self._grid_dirty = True
+
+    def on_pose(self, pose: Pose) -> None:
+        self.core.update_pose(
+            float(pose.position[0]), float(pose.position[1]), pose.yaw, float(pose.stamp_s)
+        )
+        self._last_pose_wall = time.monotonic()
+
+    # -- the control loop -------------------------------------------------------------------------
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        if self.core.done:
+            self._finish()
+            return
+        if now - self._last_pose_wall > self.cfg.pose_timeout_s:
+            self._send(0.0, 0.0)  # no pose, no driving
+            return
+        if now - self._t_wall0 > self.cfg.time_budget_s:
+            self.core.finish("time_budget")
+            return
+        if self._grid_dirty:
+            self._refresh_grid()
+        reason = self.core.wants_plan()
+        if reason is not None and self.core.grid is not None:
+            self._send(*self.core.control())  # keep the last command fresh while we think
+            t0 = time.perf_counter()
+            outcome = self.core.plan(self._path_cost, reason)
+            self.plan_time_ms = (time.perf_counter() - t0) * 1e3
+            if outcome.chosen is not None and (outcome.switched or reason != "periodic"):
+                c = outcome.chosen
+                self._plan_log.append({
+                    "t_s": self.core.t_now, "reason": reason, "goal": c.xy.tolist(),
+                    "yaw": c.yaw, "gain_m2": c.gain_m2, "path_cost": c.path_cost,
+                    "score": c.score, "queries": c.n_queries, "frontier": outcome.n_frontier,
+                })  # fmt: skip
+                self.log.info(
+                    "goal (%.2f, %.2f) yaw %.0f deg: gain %.2f m2, cost %.2f (%s, %d queries, "
+                    "%.0f ms)", c.xy[0], c.xy[1], math.degrees(c.yaw), c.gain_m2, c.path_cost,
+                    reason, c.n_queries, self.plan_time_ms,
+                )  # fmt: skip
+        v, w = self.core.control()
+        self._send(v, w)
+        if now >= self._next_state:
+            self._next_state = now + STATE_PERIOD_S
+            self.state_pub.put(self._state())
+        if self.core.done:
+            self._finish()
+
+    def _refresh_grid(self) -> None:
+        """Hand the core a dense box of the grid: the allocated tiles, padded by the view range
+        (unknown space beyond the tiles is unknown space, and frontiers face it)."""
+        box = self.grid.known_box()
+        if box is None:
+            return
+        pad = int(math.ceil(self.cfg.view_range_m / self.grid.resolution_m)) + 2
+        ix0, iy0, ix1, iy1 = box
+        ix0, iy0 = max(0, ix0 - pad), max(0, iy0 - pad)
+        ix1, iy1 = min(self.grid.shape[0], ix1 + pad), min(self.grid.shape[1], iy1 + pad)
+        labels, flags = self.grid.box(ix0, iy0, ix1, iy1, layers=("labels", "flags"))
+        origin = self.grid.origin_xy + np.array([ix0, iy0]) * self.grid.resolution_m
+        self.core.update_grid(GridBox(origin, self.grid.resolution_m, labels, flags))
+        self._box = (ix0, iy0, ix1, iy1)
+        self._grid_dirty = False
+
+    def _path_cost(self, start_xy: np.ndarray, goal_xy: np.ndarray):
+        self.n_path_queries += 1
+        req = PathRequest(
+            request_id=uuid.uuid4().hex[:12],
+            start=np.asarray(start_xy, np.float64)[:2],
+            goal=np.asarray(goal_xy, np.float64)[:2],
+            class_costs=dict(self.class_costs),
+            allow_unknown=False,
+        )
+        try:
+            reply = request(
+                self.session, keys.path_query(self.robot), req, self.cfg.planner_timeout_s
+            )
+        except QueryError as exc:
+            self._path_error(exc.kind)
+            return None
+        if not isinstance(reply, PathReply):
+            self._path_error("malformed")
+            return None
+        if not reply.ok or len(reply.path) == 0:
+            self._path_error(reply.error or "empty")
+            return None
+        return float(reply.cost_total), np.asarray(reply.path, np.float64)
+
+    def _path_error(self, kind: str) -> None:
+        # an unreachable candidate is ordinary; only a missing planner is worth a warning
+        self.path_errors[kind] = self.path_errors.get(kind, 0) + 1
+        if kind == "no_reply" and self.path_errors[kind] in (1, 10, 100):
+            self.log.warning("the planner does not answer (%d times)", self.path_errors[kind])
+
+    def _send(self, v: float, w: float) -> None:
+        self._seq += 1
+        self.cmd_pub.put(VelocityCommand(time.time(), self._seq, float(v), float(w), "explorer"))
+
+    def _state(self) -> dict:
+        st = self.core.state_dict()
+        out = self.core.last_outcome
+        if out is not None and len(out.candidates_xy):
+            st["candidates"] = np.round(out.candidates_xy, 3).tolist()
+            st["candidate_gains_m2"] = np.round(out.gains_m2, 3).tolist()
+        else:
+            st["candidates"], st["candidate_gains_m2"] = [], []
+        st["label_names"] = {str(i): c.name for i, c in self.table.classes.items()}
+        return st
+
+    def _finish(self) -> None:
+        if self._saved:
+            return
+        self._send(0.0, 0.0)
+        self.log.info(
+            "exploration done (%s): %.1f m2 explored, %.1f m travelled, %d goals, %.0f s",
+            self.core.done_reason, self.core.explored_m2, self.core.distance_m, self.core.n_goals,
+            self.core.elapsed_s(),
+        )  # fmt: skip
+        self.state_pub.put(self._state())
+        self.save()
+        self.stop()
+
+    def on_stop(self) -> None:
+        try:
+            self._send(0.0, 0.0)
+        except Exception:  # the session may already be closing
+            pass
+        self.save()
+
+    def save(self) -> None:
+        """Final state, trajectory and grid into <run_dir>/explorer/ (for the report)."""
+        if self._saved or self.run_dir is None:
+            self._saved = True
+            return
+        self._saved = True
+        out = self.run_dir / "explorer"
+        out.mkdir(parents=True, exist_ok=True)
+        state = self._state()
+        state["plans"] = self._plan_log
+        state["path_queries"] = self.n_path_queries
+        state["path_errors"] = self.path_errors
+        state["wall_time_s"] = time.monotonic() - self._t_wall0
+        (out / "state.json").write_text(json.dumps(state, indent=1, default=_plain))
+        with open(out / "trajectory.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["t_s", "x_m", "y_m", "yaw_rad"])
+            w.writerows(self.core.trajectory)
+        box = self.grid.known_box()
+        if box is not None:
+            labels, heights, flags = self.grid.box(*box)
+            origin = self.grid.origin_xy + np.array(box[:2]) * self.grid.resolution_m
+            np.savez_compressed(
+                out / "graph.npz", origin_xy=origin, resolution_m=self.grid.resolution_m,
+                labels=labels, heights=heights, flags=flags,
+            )  # fmt: skip
+
+    def status_details(self) -> dict:
+        c = self.core
+        goal = c.goal.choice.xy if c.goal is not None else None
+        progress = (
+            f"{c.mode} explored {c.explored_m2:.1f} m2, {c.distance_m:.1f} m, "
+            f"frontier {c.frontier_size}" + (f", goal ({goal[0]:.1f}, {goal[1]:.1f})" if goal
+                                             is not None else "")
+        )  # fmt: skip
+        return {
+            "progress": progress,
+            "mode": c.mode,
+            "explored_m2": c.explored_m2,
+            "distance_m": c.distance_m,
+            "frontier_size": c.frontier_size,
+            "n_goals": c.n_goals,
+            "n_patches": self.n_patches,
+            "path_queries": self.n_path_queries,
+            "path_errors": dict(self.path_errors),
+            "plan_time_ms": self.plan_time_ms,
+        }
+
+
+def _plain(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+def main(config: SmanaConfig) -> int:
+    return ExplorerService(config).run()

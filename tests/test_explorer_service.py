@@ -1,0 +1,165 @@
+"""The explorer service over an isolated zenoh router, with the test standing in for the robot
+(integrates cmd_vel, publishes poses), the navgraph (publishes GraphPatches) and the planner (a
+queryable answering straight-line paths)."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from smana.common import keys
+from smana.common.messages import (
+    GraphPatch,
+    PathReply,
+    PathRequest,
+    Pose,
+    ServiceStatus,
+    VelocityCommand,
+    decode,
+    encode,
+)
+from smana.common.query import request
+
+pytestmark = pytest.mark.multiprocess
+
+RES = 0.2
+BOUNDS = [
+    "--set",
+    "navgraph.bounds_min_xy=[0.0, 0.0]",
+    "--set",
+    "navgraph.bounds_max_xy=[8.0, 8.0]",
+]
+
+
+def wait_for(pred, timeout_s=20.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def patch(x_max_m: float) -> GraphPatch:
+    """Terrain known over x in [0, x_max), the whole width."""
+    nx, ny = int(round(x_max_m / RES)), int(round(8.0 / RES))
+    ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    cells = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.int32)
+    k = len(cells)
+    return GraphPatch(
+        stamp_s=0.0, seq=1, resolution_m=RES, origin_xy=np.zeros(2), cells=cells,
+        labels=np.full(k, 2, np.uint16), heights=np.zeros(k, np.float32),
+        flags=np.ones(k, np.uint8),
+    )  # fmt: skip
+
+
+class StubRobot:
+    """Integrates the last velocity command and publishes poses at 20 Hz."""
+
+    def __init__(self, session, robot):
+        self.x, self.y, self.yaw = 1.0, 4.0, 0.0
+        self.v = self.w = 0.0
+        self.max_v = 0.0
+        self.session = session
+        self.pose_key = keys.pose(robot)
+        self.sub = session.declare_subscriber(keys.cmd_vel(robot), self.on_cmd)
+        self._stop = threading.Event()
+        self.t = 0.0
+        self.thread = threading.Thread(target=self.run, daemon=True)
+        self.thread.start()
+
+    def on_cmd(self, sample):
+        cmd = decode(sample.payload.to_bytes(), VelocityCommand)
+        self.v, self.w = cmd.linear_mps, cmd.angular_radps
+        self.max_v = max(self.max_v, self.v)
+
+    def run(self):
+        dt = 0.05
+        while not self._stop.is_set():
+            self.x += self.v * math.cos(self.yaw) * dt
+            self.y += self.v * math.sin(self.yaw) * dt
+            self.yaw += self.w * dt
+            self.t += dt
+            pose = Pose.from_xyz_yaw(self.x, self.y, 0.0, self.yaw, stamp_s=self.t)
+            self.session.put(self.pose_key, encode(pose))
+            time.sleep(dt)
+
+    def close(self):
+        self._stop.set()
+        self.thread.join()
+        self.sub.undeclare()
+
+
+def stub_planner(session, robot, calls):
+    def on_query(query):
+        req = decode(query.payload.to_bytes(), PathRequest)
+        calls.append(req)
+        a, b = req.start[:2], req.goal[:2]
+        n = max(2, int(np.ceil(np.hypot(*(b - a)) / RES)) + 1)
+        path = np.zeros((n, 3), np.float32)
+        path[:, :2] = a + (b - a) * np.linspace(0, 1, n)[:, None]
+        length = float(np.hypot(*(b - a)))
+        reply = PathReply(request_id=req.request_id, ok=True, path=path,
+                          cost_total=length * 5.0, cost_distance=length)  # fmt: skip
+        query.reply(query.key_expr, encode(reply))
+
+    return session.declare_queryable(keys.path_query(robot), on_query)
+
+
+def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(zenoh_stack, tmp_path):
+    s = zenoh_stack.session
+    robot = zenoh_stack.robot
+    calls = []
+    planner = stub_planner(s, robot, calls)
+    bot = StubRobot(s, robot)
+    run_dir = tmp_path / "run"
+    proc = zenoh_stack.service(
+        "explorer", "--run-dir", str(run_dir), *BOUNDS, "--set", "explorer.done_after_empty=1",
+        "--set", 'explorer.class_costs=["grass=4"]',
+    )  # fmt: skip
+    try:
+        zenoh_stack.wait_alive("explorer")
+        s.put(keys.graph_patch(robot), encode(patch(4.0)))
+        # the frontier is the line x = 4 m: the robot must head there
+        assert wait_for(lambda: bot.x > 2.5, 30), (bot.x, zenoh_stack.log("explorer"))
+        assert calls and calls[0].class_costs == {1: 4.0} and not calls[0].allow_unknown
+        st = request(s, keys.explorer_state(robot), timeout_s=5)
+        assert st["mode"] in ("following", "waiting", "spinning")
+        assert st["distance_m"] > 1.0
+
+        # bad input is counted, not fatal
+        s.put(keys.graph_patch(robot), b"\x00garbage")
+        bad = patch(1.0)
+        bad.resolution_m = 0.5  # a grid that does not match
+        s.put(keys.graph_patch(robot), encode(bad))
+        s.put(keys.pose(robot), encode(Pose()) + b"x")
+
+        def errors():
+            st = request(s, keys.status(robot, "explorer"), timeout_s=5)
+            assert isinstance(st, ServiceStatus)
+            return sum(st.errors.values())
+
+        assert wait_for(lambda: errors() >= 3, 10)
+        assert proc.poll() is None
+
+        # everything known: nothing left to explore, the explorer stops the robot and exits 0
+        s.put(keys.graph_patch(robot), encode(patch(8.0)))
+        proc.wait(timeout=60)
+        assert proc.returncode == 0, zenoh_stack.log("explorer")
+        time.sleep(0.3)
+        assert bot.v == 0.0 and bot.w == 0.0
+        state = json.loads((run_dir / "explorer" / "state.json").read_text())
+        assert state["done_reason"] in ("no_frontier", "no_view_worth_it")
+        assert state["plans"] and state["explored_m2"] > 50
+        traj = np.loadtxt(run_dir / "explorer" / "trajectory.csv", delimiter=",", skiprows=1)
+        assert traj[:, 1].max() > 2.5
+        g = np.load(run_dir / "explorer" / "graph.npz")
+        assert (g["flags"] & 1).sum() == 40 * 40
+    finally:
+        bot.close()
+        planner.undeclare()
