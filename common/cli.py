@@ -26,12 +26,12 @@ def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
     return p
 
 
-def config_from_args(args: argparse.Namespace) -> SmanaConfig:
-    """Load the config file, apply --set, then the dedicated flags. Exits with a clear message on
-    a bad config instead of a traceback."""
+def config_from_args(args: argparse.Namespace, layers=()) -> SmanaConfig:
+    """Load `layers` and the config file, apply --set, then the dedicated flags. Exits with a clear
+    message on a bad config instead of a traceback."""
     overrides = list(args.overrides or [])
     try:
-        cfg = SmanaConfig.load(args.config, overrides)
+        cfg = SmanaConfig.load(args.config, overrides, layers)
     except ConfigError as exc:
         sys.exit(f"config error: {exc}")
     general = cfg.general

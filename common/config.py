@@ -65,6 +65,15 @@ class ZenohConfig:
     multicast_scouting: bool = False
     gossip: bool = False
     config_file: str = ""  # a zenoh JSON5 config applied first; the keys above override it
+    # Security, all from zenoh's own features (`smana deploy init-certs` makes the files):
+    tls_ca: str = ""  # CA certificate that every tls/ link is checked against
+    tls_cert: str = ""  # this host's certificate and key, for listening and connecting (mTLS)
+    tls_key: str = ""
+    mtls: bool = True  # a listener also demands a certificate signed by the CA
+    user: str = ""  # user/password authentication: this session's user name...
+    credentials_file: str = ""  # ...whose password is its `user:password` line in this file;
+    # a router accepts every user of the file
+    acl_file: str = ""  # a router's access-control policy (JSON5 `access_control` block)
 
 
 @dataclass
@@ -82,7 +91,12 @@ class ServiceDeployConfig:
 
 @dataclass
 class DeployConfig:
+    profile: str = "local"  # set by `smana up --profile NAME` (deploy/profiles/NAME.toml)
+    # The supervisor's router. Local services connect to the FIRST listen endpoint; further ones
+    # (e.g. tls/0.0.0.0:7448 on a base station) are for other hosts' routers.
     router_listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    router_connect: list[str] = field(default_factory=list)  # other routers (robot -> base)
+    robots: list[str] = field(default_factory=list)  # multi-robot: one instance per robot name
     health_timeout_s: float = _pos(default=10.0)
     stop_timeout_s: float = _pos(default=5.0)
     finish_with: str = "explorer"  # the run ends when this service exits with status 0
@@ -171,30 +185,6 @@ class ExplorerConfig:
 
 
 @dataclass
-class ReplayConfig:
-    """`smana replay DATASET`: publish a recorded dataset on the robot's keys instead of the sim."""
-
-    dataset: str = ""  # path; `smana replay DATASET` sets it
-    format: str = ""  # semantickitti, rellis3d, rosbag or folder; "" = detect from the layout
-    sequence: str = ""  # SemanticKITTI / RELLIS-3D root holding several sequences: which one
-    class_table: str = ""  # "" = the dataset's own table (rellis3d, semantickitti, ...)
-    mode: Literal["lockstep", "realtime"] = "lockstep"  # lockstep: wait for each scan's MapDelta
-    rate_factor: float = _pos(default=1.0)  # realtime: x N the recorded rate
-    topic: Literal["auto", "scan", "cloud"] = "auto"  # auto: LiDAR -> robot/scan, camera -> cloud
-    max_range_m: float = _pos(default=10.0)  # points farther from the sensor are not published
-    min_range_m: float = _nonneg(default=0.5)  # nor closer ones (the robot itself, no-returns)
-    start: int = _nonneg(default=0)  # first scan replayed
-    count: int = _nonneg(default=0)  # scans replayed; 0 = to the end
-    wait_for: list[str] = field(default_factory=lambda: ["mapper"])  # alive before the 1st scan
-    wait_timeout_s: float = _pos(default=60.0)
-    ack_timeout_s: float = _pos(default=30.0)  # lockstep: resend a scan after this long
-    label_field: str = "label"  # bags / PLY: the integer label field
-    cloud_topic: str = ""  # bags: the PointCloud2 topic ("" = the only one)
-    odom_topic: str = ""  # bags: the nav_msgs/Odometry topic ("" = the only one)
-    fixed_pose: list[float] = field(default_factory=list)  # bags without odometry: x, y, z, yaw
-
-
-@dataclass
 class SmanaConfig:
     general: GeneralConfig = field(default_factory=GeneralConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
@@ -204,20 +194,19 @@ class SmanaConfig:
     navgraph: NavgraphConfig = field(default_factory=NavgraphConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     explorer: ExplorerConfig = field(default_factory=ExplorerConfig)
-    replay: ReplayConfig = field(default_factory=ReplayConfig)
 
     @classmethod
-    def load(cls, path: str | Path | None = None, overrides: list[str] | None = None):
-        """Defaults, then the TOML file (if any), then `section.key=value` overrides."""
+    def load(
+        cls,
+        path: str | Path | None = None,
+        overrides: list[str] | None = None,
+        layers: list[str | Path] = (),
+    ):
+        """Defaults, then `layers` (e.g. a deployment profile), then the TOML file (if any), then
+        `section.key=value` overrides. Later values win, table by table."""
         data: dict[str, Any] = {}
-        if path:
-            p = Path(path)
-            if not p.is_file():
-                raise ConfigError(f"config file not found: {p}")
-            try:
-                data = tomllib.loads(p.read_text())
-            except tomllib.TOMLDecodeError as exc:
-                raise ConfigError(f"{p}: {exc}") from None
+        for p in [*layers, *([path] if path else [])]:
+            _merge(data, _read_toml(Path(p)))
         for item in overrides or []:
             _apply_override(data, item)
         return build(cls, data, "")
@@ -233,6 +222,23 @@ class SmanaConfig:
 
 
 # -- building and validating -------------------------------------------------------------------
+
+
+def _read_toml(p: Path) -> dict:
+    if not p.is_file():
+        raise ConfigError(f"config file not found: {p}")
+    try:
+        return tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: {exc}") from None
+
+
+def _merge(into: dict, new: dict) -> None:
+    for k, v in new.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            _merge(into[k], v)
+        else:
+            into[k] = v
 
 
 def _apply_override(data: dict, item: str) -> None:

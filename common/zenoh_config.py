@@ -76,4 +76,63 @@ def make_zenoh_config(zc: ZenohConfig):
         conf.insert_json5("listen/endpoints", json.dumps(zc.listen))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
     conf.insert_json5("scouting/gossip/enabled", json.dumps(zc.gossip))
+    _apply_security(conf, zc)
     return conf
+
+
+def _require(path: str, what: str) -> str:
+    if not Path(path).is_file():
+        raise ConfigError(f"zenoh.{what}: file not found: {path}")
+    return str(Path(path).resolve())
+
+
+def read_credentials(path: str) -> dict[str, str]:
+    """`user:password` lines (zenoh's usrpwd dictionary format) as a dict."""
+    users = {}
+    for n, line in enumerate(Path(path).read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        user, sep, password = line.partition(":")
+        if not sep or not user or not password:
+            raise ConfigError(f"{path}:{n}: expected user:password")
+        users[user] = password
+    return users
+
+
+def _apply_security(conf, zc: ZenohConfig) -> None:
+    """TLS (mutual when `mtls`), user/password authentication and access control, as zenoh's own
+    config keys (transport/link/tls, transport/auth/usrpwd, access_control)."""
+    if zc.tls_ca or zc.tls_cert or zc.tls_key:
+        if not (zc.tls_ca and zc.tls_cert and zc.tls_key):
+            raise ConfigError("zenoh.tls_ca, tls_cert and tls_key go together")
+        ca, cert, key = (_require(zc.tls_ca, "tls_ca"), _require(zc.tls_cert, "tls_cert"),
+                         _require(zc.tls_key, "tls_key"))  # fmt: skip
+        tls = {
+            "root_ca_certificate": ca,
+            "listen_certificate": cert,
+            "listen_private_key": key,
+            "connect_certificate": cert,
+            "connect_private_key": key,
+            "enable_mtls": zc.mtls,
+            # Hosts are named by their certificates' common names, not by DNS: robots move
+            # between networks and addresses, so the CA signature is what identifies them.
+            "verify_name_on_connect": False,
+        }
+        conf.insert_json5("transport/link/tls", json.dumps(tls))
+    usrpwd = {}
+    if zc.credentials_file:
+        path = _require(zc.credentials_file, "credentials_file")
+        if zc.mode == "router":
+            usrpwd["dictionary_file"] = path
+        if zc.user:
+            users = read_credentials(path)
+            if zc.user not in users:
+                raise ConfigError(f"zenoh.user {zc.user!r} has no line in {path}")
+            usrpwd["user"], usrpwd["password"] = zc.user, users[zc.user]
+    elif zc.user:
+        raise ConfigError("zenoh.user needs zenoh.credentials_file (where its password is)")
+    if usrpwd:
+        conf.insert_json5("transport/auth/usrpwd", json.dumps(usrpwd))
+    if zc.acl_file:
+        conf.insert_json5("access_control", Path(_require(zc.acl_file, "acl_file")).read_text())

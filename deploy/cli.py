@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "experiment": ("smana.deploy.experiments:cli", "the paper's experiments: noise, exploration"),
     "view": ("smana.deploy.view:cli", "open a run's Rerun recording"),
     "router": ("smana.deploy.router:cli", "run a standalone zenoh router (Python, no zenohd)"),
+    "deploy": ("smana.deploy.security:cli", "multi-host set-up: init-certs (TLS, users, ACL)"),
 }
 
 BENCHES = {

@@ -6,6 +6,7 @@ meeting point of a multi-host deployment)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import signal
@@ -17,18 +18,19 @@ from smana.common.zenoh_config import make_zenoh_config
 log = logging.getLogger("smana.router")
 
 
-def router_config(listen: list[str], base: ZenohConfig | None = None):
-    """A router-mode zenoh config listening on `listen`, scouting and gossip off unless `base`
-    (the [zenoh] section, for its config file and scouting choice) says otherwise."""
+def router_config(listen: list[str], base: ZenohConfig | None = None, connect: list[str] = ()):
+    """A router-mode zenoh config listening on `listen` and linking to the routers in `connect`.
+    From `base` (the [zenoh] section) it keeps the config file, scouting choice and security:
+    TLS files, the credentials (it logs in to other routers as user `router` and accepts every
+    user of the file) and the access-control policy."""
     zc = base or ZenohConfig()
     conf = make_zenoh_config(
-        ZenohConfig(
+        dataclasses.replace(
+            zc,
             mode="router",
-            connect=[],
+            connect=list(connect),
             listen=list(listen),
-            multicast_scouting=zc.multicast_scouting,
-            gossip=zc.gossip,
-            config_file=zc.config_file,
+            user="router" if zc.credentials_file else "",
         )
     )
     # A router relays everything; it keeps no storage, so no plugin is needed.
@@ -36,10 +38,10 @@ def router_config(listen: list[str], base: ZenohConfig | None = None):
     return conf
 
 
-def open_router(listen: list[str], base: ZenohConfig | None = None):
+def open_router(listen: list[str], base: ZenohConfig | None = None, connect: list[str] = ()):
     import zenoh
 
-    return zenoh.open(router_config(listen, base))
+    return zenoh.open(router_config(listen, base, connect))
 
 
 def cli(argv: list[str] | None = None) -> int:

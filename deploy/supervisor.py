@@ -45,10 +45,12 @@ SERVICE_ORDER = ("sim", "mapper", "navgraph", "planner", "explorer")
 class Managed:
     """One supervised service process."""
 
-    name: str
+    name: str  # "mapper", or "mapper@r2" when the supervisor runs several robots
     argv: list[str]
     policy: ServiceDeployConfig
     log_path: Path
+    service: str = ""
+    robot: str = ""
     proc: subprocess.Popen | None = None
     started_at: float = 0.0
     alive: bool = False  # its liveliness token is up
@@ -65,33 +67,44 @@ class Supervisor:
         self.config = config
         self.run_dir = Path(run_dir)
         self.robot = config.general.robot
-        names = services or [n for n in SERVICE_ORDER if getattr(config.deploy, n).enabled]
+        self.robots = list(config.deploy.robots) or [self.robot]
+        names = services if services is not None else [
+            n for n in SERVICE_ORDER if getattr(config.deploy, n).enabled
+        ]  # fmt: skip
         self.logs = self.run_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
-        # Every service is a client of our router: rewrite [zenoh] so the config file written
-        # into the run dir is exactly what they run with.
+        # Every service is a client of our router (its first listen endpoint): rewrite [zenoh] so
+        # the config file written into the run dir is exactly what they run with.
         self.service_config = dataclasses.replace(
             config,
             general=dataclasses.replace(config.general, run_dir=str(self.run_dir)),
             zenoh=dataclasses.replace(
-                config.zenoh, mode="client", connect=list(config.deploy.router_listen), listen=[]
+                config.zenoh, mode="client", connect=config.deploy.router_listen[:1], listen=[]
             ),
         )
         self.config_path = self.service_config.write(self.run_dir / "config.toml")
         self.procs: dict[str, Managed] = {}
-        for n in names:
-            argv = [sys.executable, "-m", f"smana.services.{n}", "--config", str(self.config_path)]
-            self.add(n, argv + getattr(config.deploy, n).args, getattr(config.deploy, n))
-        self.statuses: dict[str, ServiceStatus] = {}
+        for robot in self.robots:
+            for n in names:
+                argv = [sys.executable, "-m", f"smana.services.{n}", "--config",
+                        str(self.config_path), "--robot", robot]  # fmt: skip
+                if config.zenoh.credentials_file:
+                    argv += ["--set", f'zenoh.user="{n}"']  # each service logs in as itself
+                name = n if len(self.robots) == 1 else f"{n}@{robot}"
+                policy = getattr(config.deploy, n)
+                self.add(name, argv + policy.args, policy, service=n, robot=robot)
+        self.statuses: dict[tuple[str, str], ServiceStatus] = {}
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.session = None
 
-    def add(self, name: str, argv: list[str], policy: ServiceDeployConfig | None = None) -> None:
+    def add(self, name: str, argv: list[str], policy: ServiceDeployConfig | None = None,
+            service: str = "", robot: str = "") -> None:  # fmt: skip
         """Supervise another command (before `start()`): a sensor driver, a user's own node. It
-        should declare the liveliness token `smana/<robot>/alive/<name>` like smana services do."""
+        should declare the liveliness token `smana/<robot>/alive/<service>` as services do."""
         self.procs[name] = Managed(name, list(argv), policy or ServiceDeployConfig(),
-                                   self.logs / f"{name}.log")  # fmt: skip
+                                   self.logs / f"{name}.log", service or name,
+                                   robot or self.robot)  # fmt: skip
 
     # -- process control ---------------------------------------------------------------------------
 
@@ -167,14 +180,20 @@ class Supervisor:
                 log.warning("%s lost its liveliness token while running: killing it", m.name)
                 self._signal(m, signal.SIGKILL)
 
+    def _find(self, robot: str, service: str) -> Managed | None:
+        for m in self.procs.values():
+            if m.robot == robot and m.service == service:
+                return m
+        return None
+
     def _on_liveliness(self, sample) -> None:
         parts = str(sample.key_expr).split("/")
-        if len(parts) != 4 or parts[1] != self.robot or parts[3] not in self.procs:
+        m = self._find(parts[1], parts[3]) if len(parts) == 4 else None
+        if m is None:
             return
         import zenoh
 
         with self._lock:
-            m = self.procs[parts[3]]
             m.alive = sample.kind == zenoh.SampleKind.PUT
             m.seen_alive = m.seen_alive or m.alive
 
@@ -184,20 +203,23 @@ class Supervisor:
         except MessageError:
             return
         with self._lock:
-            self.statuses[st.service] = st
+            self.statuses[(st.robot, st.service)] = st
 
     # -- running ---------------------------------------------------------------------------------
 
     def start(self) -> None:
         from smana.deploy.router import open_router
 
-        self.session = open_router(self.config.deploy.router_listen, self.config.zenoh)
-        endpoints = ", ".join(self.config.deploy.router_listen)
+        d = self.config.deploy
+        self.session = open_router(d.router_listen, self.config.zenoh, d.router_connect)
+        endpoints = ", ".join(d.router_listen)
         log.info("zenoh router listening on %s; run directory %s", endpoints, self.run_dir)
+        if d.router_connect:
+            log.info("linking to router(s) %s", ", ".join(d.router_connect))
         ll = self.session.liveliness()
         self._subs = [
-            ll.declare_subscriber(keys.alive_any(self.robot), self._on_liveliness, history=True),
-            self.session.declare_subscriber(keys.status_any(self.robot), self._on_status),
+            ll.declare_subscriber(keys.alive_any("*"), self._on_liveliness, history=True),
+            self.session.declare_subscriber(keys.status_any("*"), self._on_status),
         ]
         for m in self.procs.values():
             self._spawn(m)
@@ -242,11 +264,12 @@ class Supervisor:
                 if now >= next_progress:
                     next_progress = now + progress_period_s
                     self.print_progress(now - t0)
-                fin = self.procs.get(finish_with)
-                if fin is not None and fin.finished:
-                    result = 0 if fin.exit_codes and fin.exit_codes[-1] == 0 else 1
+                fin = [m for m in self.procs.values() if m.service == finish_with]
+                if fin and all(m.finished for m in fin):
+                    codes = [m.exit_codes[-1] if m.exit_codes else None for m in fin]
+                    result = 0 if all(c == 0 for c in codes) else 1
                     log.info("%s finished (status %s): stopping the stack", finish_with,
-                             fin.exit_codes[-1] if fin.exit_codes else "?")  # fmt: skip
+                             ", ".join(map(str, codes)))  # fmt: skip
                     break
                 if all(m.finished for m in self.procs.values()):
                     log.error("every service has exited")
@@ -264,7 +287,7 @@ class Supervisor:
             statuses = dict(self.statuses)
         parts = []
         for name, m in self.procs.items():
-            st = statuses.get(name)
+            st = statuses.get((m.robot, m.service))
             mark = "up" if m.alive else ("done" if m.finished else "down")
             extra = ""
             if st is not None:
@@ -275,6 +298,23 @@ class Supervisor:
                     extra += f" {progress}"
             parts.append(f"{name}:{mark}{extra}")
         print(f"[{elapsed_s:6.0f} s] " + " | ".join(parts), flush=True)
+
+
+def profile_path(name: str, parser=None) -> Path:
+    """A bundled profile by name, or a TOML file by path."""
+    if name.endswith(".toml"):
+        return Path(name)
+    from importlib import resources
+
+    res = resources.files("smana.deploy").joinpath("profiles", f"{name}.toml")
+    if not res.is_file():
+        folder = resources.files("smana.deploy").joinpath("profiles")
+        known = sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".toml"))
+        msg = f"unknown profile {name!r}; known: {', '.join(known)}"
+        if parser is not None:
+            parser.error(msg)
+        raise ValueError(msg)
+    return Path(str(res))
 
 
 def default_run_dir() -> Path:
@@ -305,10 +345,13 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
 def cli(argv: list[str] | None = None) -> int:
     p = make_parser("smana up", "Start the smana stack: router, sim, mapper, navgraph, planner, "
                     "explorer; explore until done, then write the run directory.")  # fmt: skip
+    p.add_argument("--profile", default="local",
+                   help="deployment profile: local (default), robot, base, multi-robot, or a "
+                        "TOML file; --config and --set apply on top of it")  # fmt: skip
     p.add_argument("--only", metavar="A,B", help="start only these services, e.g. mapper,planner")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     args = p.parse_args(argv)
-    cfg = config_from_args(args)
+    cfg = config_from_args(args, layers=[profile_path(args.profile, p)])
     setup_logging(cfg.general.log_level, "up")
     services = None
     if args.only:
