@@ -185,6 +185,30 @@ class ExplorerConfig:
 
 
 @dataclass
+class ReplayConfig:
+    """`smana replay DATASET`: publish a recorded dataset on the robot's keys instead of the sim."""
+
+    dataset: str = ""  # path; `smana replay DATASET` sets it
+    format: str = ""  # semantickitti, rellis3d, rosbag or folder; "" = detect from the layout
+    sequence: str = ""  # SemanticKITTI / RELLIS-3D root holding several sequences: which one
+    class_table: str = ""  # "" = the dataset's own table (rellis3d, semantickitti, ...)
+    mode: Literal["lockstep", "realtime"] = "lockstep"  # lockstep: wait for each scan's MapDelta
+    rate_factor: float = _pos(default=1.0)  # realtime: x N the recorded rate
+    topic: Literal["auto", "scan", "cloud"] = "auto"  # auto: LiDAR -> robot/scan, camera -> cloud
+    max_range_m: float = _pos(default=10.0)  # points farther from the sensor are not published
+    min_range_m: float = _nonneg(default=0.5)  # nor closer ones (the robot itself, no-returns)
+    start: int = _nonneg(default=0)  # first scan replayed
+    count: int = _nonneg(default=0)  # scans replayed; 0 = to the end
+    wait_for: list[str] = field(default_factory=lambda: ["mapper"])  # alive before the 1st scan
+    wait_timeout_s: float = _pos(default=60.0)
+    ack_timeout_s: float = _pos(default=30.0)  # lockstep: resend a scan after this long
+    label_field: str = "label"  # bags / PLY: the integer label field
+    cloud_topic: str = ""  # bags: the PointCloud2 topic ("" = the only one)
+    odom_topic: str = ""  # bags: the nav_msgs/Odometry topic ("" = the only one)
+    fixed_pose: list[float] = field(default_factory=list)  # bags without odometry: x, y, z, yaw
+
+
+@dataclass
 class SmanaConfig:
     general: GeneralConfig = field(default_factory=GeneralConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
@@ -194,6 +218,7 @@ class SmanaConfig:
     navgraph: NavgraphConfig = field(default_factory=NavgraphConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     explorer: ExplorerConfig = field(default_factory=ExplorerConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
 
     @classmethod
     def load(
