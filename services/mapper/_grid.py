@@ -26,7 +26,8 @@ GROW_TOUCHED = 3
 OBSERVED = np.uint8(1)  # the voxel received at least one update (unknown otherwise)
 MARK_FREE = np.uint8(2)  # this cloud: a ray passed through (cleared after the cloud)
 MARK_HIT = np.uint8(4)  # this cloud: a point ended in it (cleared after the cloud)
-MARK_ANY = np.uint8(6)
+MARK_SEM = np.uint8(8)  # this cloud: its label or confidence moved (cleared after the cloud)
+MARK_ANY = np.uint8(14)
 
 # Block coordinates are packed in 21 bits per axis; OctoMap's key range (+-32768 voxels) is the
 # map's extent anyway, so the packing never overflows.
@@ -37,12 +38,12 @@ EMPTY = np.int64(-1)
 _FIB = np.uint64(0x9E3779B97F4A7C15)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", inline="always")
 def pack_block(bx, by, bz):
     return ((bx + _PACK_OFF) << 42) | ((by + _PACK_OFF) << 21) | (bz + _PACK_OFF)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def unpack_block(key):
     return (
         ((key >> 42) & _PACK_MASK) - _PACK_OFF,
@@ -51,13 +52,13 @@ def unpack_block(key):
     )
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", inline="always")
 def _slot(key, hshift):
     # Fibonacci hashing: the high bits of key * golden ratio spread neighbouring blocks.
     return np.int64((np.uint64(key) * _FIB) >> np.uint64(hshift))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", inline="always")
 def table_find(h_keys, h_vals, hshift, key):
     """Block index of `key`, or -1."""
     mask = h_keys.shape[0] - 1
@@ -71,7 +72,7 @@ def table_find(h_keys, h_vals, hshift, key):
         s = (s + 1) & mask
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", inline="always")
 def table_find_or_insert(h_keys, h_vals, hshift, block_keys, n_blocks, key):
     """(block index, n_blocks); the index is -GROW_BLOCKS / -GROW_TABLE when storage is full."""
     mask = h_keys.shape[0] - 1
@@ -93,7 +94,7 @@ def table_find_or_insert(h_keys, h_vals, hshift, block_keys, n_blocks, key):
     return np.int64(n_blocks), n_blocks + 1
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def rebuild_table(h_keys, h_vals, hshift, block_keys, n_blocks):
     h_keys[:] = EMPTY
     mask = h_keys.shape[0] - 1
@@ -106,7 +107,7 @@ def rebuild_table(h_keys, h_vals, hshift, block_keys, n_blocks):
         h_vals[s] = b
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", inline="always")
 def voxel_index(ix, iy, iz, bits):
     """(packed block key, local index inside the block) of voxel (ix, iy, iz)."""
     bm = (1 << bits) - 1
@@ -115,7 +116,7 @@ def voxel_index(ix, iy, iz, bits):
     return key, local
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def lookup_voxels(keys, h_keys, h_vals, hshift, bits):
     """Global voxel index of each (ix, iy, iz) row of `keys`, -1 where no block holds it."""
     out = np.empty(keys.shape[0], np.int64)
@@ -127,7 +128,7 @@ def lookup_voxels(keys, h_keys, h_vals, hshift, bits):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def voxel_coords(gidx, block_keys, bits):
     """(ix, iy, iz) int64 rows of global voxel indices."""
     out = np.empty((gidx.shape[0], 3), np.int64)
@@ -143,20 +144,19 @@ def voxel_coords(gidx, block_keys, bits):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", inline="always")
 def coord_to_key(c, inv_res):
     """OctoMap's coordToKey without the 2**15 offset: floor(coord / res), in double."""
     return np.int64(np.floor(np.float64(c) * inv_res))
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy", inline="always")
 def key_in_range(kx, ky, kz):
-    return (
-        -KEY_LIMIT <= kx < KEY_LIMIT and -KEY_LIMIT <= ky < KEY_LIMIT and -KEY_LIMIT <= kz < KEY_LIMIT
-    )
+    lim = KEY_LIMIT
+    return -lim <= kx < lim and -lim <= ky < lim and -lim <= kz < lim
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def octomap_ray_keys(ox, oy, oz, ex, ey, ez, res, inv_res, out):
     """OctoMap's computeRayKeys: voxels from the origin's voxel up to, not including, the end's.
 
@@ -234,7 +234,7 @@ def octomap_ray_keys(ox, oy, oz, ex, ey, ez, res, inv_res, out):
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def voxblox_ray_keys(sx, sy, sz, ex, ey, ez, inv_res, out):
     """voxblox's RayCaster: voxels from the start's to the end's, both included.
 

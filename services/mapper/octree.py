@@ -29,13 +29,13 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from smana.services.mapper import _grid
 from smana.services.mapper._grid import (
     DONE,
     GROW_TOUCHED,
     MARK_ANY,
     MARK_FREE,
     MARK_HIT,
+    MARK_SEM,
     OBSERVED,
     BlockGrid,
     coord_to_key,
@@ -97,7 +97,9 @@ class FusionParams:
         if not 0.0 <= self.max_same_gain <= 1.0:
             raise ValueError(f"max_same_gain must be in [0, 1], got {self.max_same_gain}")
         if not 0.0 < self.max_disagree_factor <= 1.0:
-            raise ValueError(f"max_disagree_factor must be in (0, 1], got {self.max_disagree_factor}")
+            raise ValueError(
+                f"max_disagree_factor must be in (0, 1], got {self.max_disagree_factor}"
+            )
         if not 0.0 < self.bayes_min_confidence < 0.5:
             raise ValueError("bayes_min_confidence must be in (0, 0.5)")
 
@@ -105,24 +107,28 @@ class FusionParams:
 # -- label fusion ------------------------------------------------------------------------------
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _fuse_max(sem_l, sem_p, g, label, conf, gain, penalty):
     cl = sem_l[g, 0]
-    cp = np.float64(sem_p[g, 0])
+    old = sem_p[g, 0]
+    cp = np.float64(old)
     c = np.float64(conf)
     if cl == 0:
         sem_l[g, 0] = label
         sem_p[g, 0] = c
-    elif cl == label:
+        return True
+    if cl == label:
         sem_p[g, 0] = cp + gain * c * (1.0 - cp)
     elif c > cp:
         sem_l[g, 0] = label
         sem_p[g, 0] = penalty * c
+        return True
     else:
         sem_p[g, 0] = penalty * cp
+    return sem_p[g, 0] != old
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _fuse_bayes(sem_l, sem_p, g, label, conf, n_classes, eps):
     c = min(max(np.float64(conf), eps), 1.0 - eps)
     q = (1.0 - c) / (n_classes - 1)
@@ -165,39 +171,26 @@ def _fuse_bayes(sem_l, sem_p, g, label, conf, n_classes, eps):
         elif cp > p2:
             l2, p2 = cl, cp
     z += n_rest * r * q
+    old_l0 = sem_l[g, 0]
+    old_p0 = sem_p[g, 0]
     sem_l[g, 0] = l0
     sem_p[g, 0] = p0 / z
     sem_l[g, 1] = l1
     sem_p[g, 1] = p1 / z if p1 >= 0 else 0.0
     sem_l[g, 2] = l2
     sem_p[g, 2] = p2 / z if p2 >= 0 else 0.0
+    # the map exposes the top class; lower ranks moving alone is not a visible change
+    return sem_l[g, 0] != old_l0 or sem_p[g, 0] != old_p0
 
 
 # -- integration kernels -------------------------------------------------------------------------
 
 
-@njit(cache=True)
-def _visit(g, flags, mark, sem_l, sem_p, touched, n_touched, old_l, old_p):
-    """Mark voxel g for this cloud; returns the new n_touched or -1 when `touched` is full."""
-    f = flags[g]
-    if f & MARK_ANY == 0:
-        if n_touched >= touched.shape[0]:
-            return -1
-        touched[n_touched] = g
-        for s in range(sem_l.shape[1]):
-            old_l[n_touched, s] = sem_l[g, s]
-            old_p[n_touched, s] = sem_p[g, s]
-        n_touched += 1
-    if mark == MARK_HIT or f & MARK_ANY == 0:
-        flags[g] = f | mark
-    return n_touched
-
-
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _octree_collect(
     points, labels, confs, origin, i0, prm, mode, n_classes, sem_ok,
     h_keys, h_vals, hshift, block_keys, n_blocks, bits,
-    flags, sem_l, sem_p, touched, n_touched, old_l, old_p, keybuf,
+    flags, sem_l, sem_p, touched, n_touched, keybuf,
 ):  # fmt: skip
     """Phase 1: walk every ray, mark free / hit voxels, fuse labels. Resumable at point i."""
     res = prm[0]
@@ -211,6 +204,7 @@ def _octree_collect(
     oy = np.float32(origin[1])
     oz = np.float32(origin[2])
     vb = 3 * bits
+    n_cap = touched.shape[0]
     last_key = np.int64(-1)
     last_b = np.int64(-1)
     for i in range(i0, points.shape[0]):
@@ -240,16 +234,21 @@ def _octree_collect(
         for k in range(nk):
             bkey, local = voxel_index(keybuf[k, 0], keybuf[k, 1], keybuf[k, 2], bits)
             if bkey != last_key:
-                b, n_blocks = table_find_or_insert(h_keys, h_vals, hshift, block_keys, n_blocks, bkey)
+                b, n_blocks = table_find_or_insert(
+                    h_keys, h_vals, hshift, block_keys, n_blocks, bkey
+                )
                 if b < 0:
                     return -b, i, n_blocks, n_touched
                 last_key = bkey
                 last_b = b
             g = (last_b << vb) | local
-            nt = _visit(g, flags, MARK_FREE, sem_l, sem_p, touched, n_touched, old_l, old_p)
-            if nt < 0:
-                return GROW_TOUCHED, i, n_blocks, n_touched
-            n_touched = nt
+            f = flags[g]
+            if f & MARK_ANY == 0:  # first time this cloud: remember it for phase 2
+                if n_touched >= n_cap:
+                    return GROW_TOUCHED, i, n_blocks, n_touched
+                flags[g] = f | MARK_FREE
+                touched[n_touched] = g
+                n_touched += 1
         if not hit:
             continue
         kx = coord_to_key(px, inv_res)
@@ -265,24 +264,26 @@ def _octree_collect(
             last_key = bkey
             last_b = b
         g = (last_b << vb) | local
-        nt = _visit(g, flags, MARK_HIT, sem_l, sem_p, touched, n_touched, old_l, old_p)
-        if nt < 0:
-            return GROW_TOUCHED, i, n_blocks, n_touched
-        n_touched = nt
+        f = flags[g]
+        if f & MARK_ANY == 0:
+            if n_touched >= n_cap:
+                return GROW_TOUCHED, i, n_blocks, n_touched
+            touched[n_touched] = g
+            n_touched += 1
+        flags[g] = f | MARK_HIT
         label = labels[i]
         if sem_ok[label]:
             if mode == FUSION_MAX:
-                _fuse_max(sem_l, sem_p, g, label, confs[i], gain, penalty)
+                moved = _fuse_max(sem_l, sem_p, g, label, confs[i], gain, penalty)
             else:
-                _fuse_bayes(sem_l, sem_p, g, label, confs[i], n_classes, eps)
+                moved = _fuse_bayes(sem_l, sem_p, g, label, confs[i], n_classes, eps)
+            if moved:
+                flags[g] |= MARK_SEM
     return DONE, points.shape[0], n_blocks, n_touched
 
 
-@njit(cache=True)
-def _octree_apply(
-    touched, n_touched, flags, logodds_, sem_l, sem_p, old_l, old_p, l_hit, l_miss, c_min, c_max,
-    changed,
-):  # fmt: skip
+@njit(cache=True, error_model="numpy")
+def _octree_apply(touched, n_touched, flags, logodds_, l_hit, l_miss, c_min, c_max, changed):
     """Phase 2: one OctoMap log-odds update per marked voxel (hit wins); list what changed."""
     nc = 0
     for t in range(n_touched):
@@ -298,11 +299,7 @@ def _octree_apply(
                 new = c_min
             elif new > c_max:
                 new = c_max
-        is_changed = new != lo or f & OBSERVED == 0
-        if not is_changed:
-            for s in range(sem_l.shape[1]):
-                if sem_l[g, s] != old_l[t, s] or sem_p[g, s] != old_p[t, s]:
-                    is_changed = True
+        is_changed = new != lo or f & OBSERVED == 0 or f & MARK_SEM != 0
         logodds_[g] = new
         flags[g] = (f & ~MARK_ANY) | OBSERVED
         if is_changed:
@@ -357,8 +354,6 @@ class OctreeBackend:
             },
         )
         self._touched = np.empty(1 << 16, np.int64)
-        self._old_l = np.empty((1 << 16, n_sem), np.uint16)
-        self._old_p = np.empty((1 << 16, n_sem), np.float32)
         self._keybuf = ray_buffer(self.max_range_m, self.resolution_m)
         self._prm = np.array(
             [
@@ -373,12 +368,9 @@ class OctreeBackend:
         )
 
     def _grow_touched(self) -> None:
-        n = self._touched.shape[0] * 2
-        for name in ("_touched", "_old_l", "_old_p"):
-            old = getattr(self, name)
-            new = np.empty((n, *old.shape[1:]), old.dtype)
-            new[: old.shape[0]] = old
-            setattr(self, name, new)
+        new = np.empty(self._touched.shape[0] * 2, np.int64)
+        new[: self._touched.shape[0]] = self._touched
+        self._touched = new
 
     def integrate(self, points, labels, confs, origin) -> Delta:
         grid = self.grid
@@ -390,7 +382,7 @@ class OctreeBackend:
                 points, labels, confs, origin, i, self._prm, mode, self.n_classes,
                 self.semantic_lut, grid.h_keys, grid.h_vals, grid.hshift, grid.block_keys,
                 grid.n_blocks, grid.bits, c["flags"], c["label"], c["prob"], self._touched,
-                n_touched, self._old_l, self._old_p, self._keybuf,
+                n_touched, self._keybuf,
             )  # fmt: skip
             if status == DONE:
                 break
@@ -402,9 +394,8 @@ class OctreeBackend:
         changed = np.empty(n_touched, np.int64)
         c = grid.cols
         nc = _octree_apply(
-            self._touched, n_touched, c["flags"], c["logodds"], c["label"], c["prob"],
-            self._old_l, self._old_p, l_hit, l_miss, c_min, c_max, changed,
-        )  # fmt: skip
+            self._touched, n_touched, c["flags"], c["logodds"], l_hit, l_miss, c_min, c_max, changed
+        )
         return self._rows(changed[:nc])
 
     def _rows(self, g: np.ndarray) -> Delta:
@@ -442,5 +433,3 @@ class OctreeBackend:
         return sum(
             col.dtype.itemsize * int(np.prod(col.shape[1:])) for col in self.grid.cols.values()
         )
-
-

@@ -59,9 +59,9 @@ class SemanticMap:
         max_range_m: float = 10.0,
         ray_length_m: float | None = 1.0,
         class_table: ClassTable | str | Path = "garden3drms",
-        occupancy: OccupancyParams = OccupancyParams(),
-        fusion: FusionParams = FusionParams(),
-        tsdf: TsdfParams = TsdfParams(),
+        occupancy: OccupancyParams | None = None,
+        fusion: FusionParams | None = None,
+        tsdf: TsdfParams | None = None,
         block_bits: int = 3,
     ):
         if backend not in BACKENDS:
@@ -79,7 +79,10 @@ class SemanticMap:
         self.class_table = (
             class_table if isinstance(class_table, ClassTable) else ClassTable.load(class_table)
         )
-        self.occupancy, self.fusion, self.tsdf, self.block_bits = occupancy, fusion, tsdf, block_bits
+        self.occupancy = occupancy or OccupancyParams()
+        self.fusion = fusion or FusionParams()
+        self.tsdf = tsdf or TsdfParams()
+        self.block_bits = block_bits
         self.class_ids = _semantic_ids(self.class_table)
         # ignored classes (sky, ...) never reach the map; unknown ids update geometry only
         self._ignored = np.zeros(65536, bool)
@@ -87,11 +90,13 @@ class SemanticMap:
         semantic_lut = np.zeros(65536, bool)
         semantic_lut[self.class_ids] = True
         if backend == "tsdf":
-            self._core = TsdfBackend(resolution_m, max_range_m, self.class_ids, tsdf, block_bits)
+            self._core = TsdfBackend(
+                resolution_m, max_range_m, self.class_ids, self.tsdf, block_bits
+            )
         else:
             self._core = OctreeBackend(
                 resolution_m, backend.split("-")[1], max_range_m, self.ray_length_m,
-                semantic_lut, len(self.class_ids), occupancy, fusion, block_bits,
+                semantic_lut, len(self.class_ids), self.occupancy, self.fusion, block_bits,
             )  # fmt: skip
         self.n_integrations = 0
         self.n_points = 0
@@ -152,7 +157,7 @@ class SemanticMap:
         if box is None:
             return rows
         lo, hi = (np.asarray(b, np.float64) for b in box)
-        if lo.shape != (3,) or hi.shape != (3,) or not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        if lo.shape != (3,) or hi.shape != (3,) or not np.isfinite([lo, hi]).all():
             raise ValueError("box must be ((xmin, ymin, zmin), (xmax, ymax, zmax))")
         inside = ((rows.centres >= lo) & (rows.centres <= hi)).all(axis=1)
         return rows.subset(inside)
@@ -241,7 +246,9 @@ class SemanticMap:
         return path
 
     @classmethod
-    def load(cls, path: str | Path, class_table: ClassTable | str | Path | None = None) -> SemanticMap:
+    def load(
+        cls, path: str | Path, class_table: ClassTable | str | Path | None = None
+    ) -> SemanticMap:
         """Read a map written by `save`; `class_table` defaults to the bundled one it names."""
         try:
             with np.load(Path(path), allow_pickle=False) as z:

@@ -65,7 +65,7 @@ class TsdfParams:
             raise ValueError("label_probability must be inside (0, 1)")
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _set_insert(keys, key):
     """Insert into an open-addressing set; returns False when the key was already there."""
     mask = keys.shape[0] - 1
@@ -80,7 +80,7 @@ def _set_insert(keys, key):
         s = (s + 1) & mask
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _set_contains(keys, key):
     mask = keys.shape[0] - 1
     s = np.int64((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(40)) & mask
@@ -93,7 +93,7 @@ def _set_contains(keys, key):
         s = (s + 1) & mask
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _tsdf_integrate(
     points, labels, origin, i0, prm, sem_idx, log_ratio,
     h_keys, h_vals, hshift, block_keys, n_blocks, bits,
@@ -158,7 +158,9 @@ def _tsdf_integrate(
         for k in range(nk):
             bkey, local = voxel_index(keybuf[k, 0], keybuf[k, 1], keybuf[k, 2], bits)
             if bkey != last_key:
-                b, n_blocks = table_find_or_insert(h_keys, h_vals, hshift, block_keys, n_blocks, bkey)
+                b, n_blocks = table_find_or_insert(
+                    h_keys, h_vals, hshift, block_keys, n_blocks, bkey
+                )
                 if b < 0:
                     return -b, i, n_blocks, n_touched
                 last_key = bkey
@@ -199,7 +201,7 @@ def _tsdf_integrate(
     return DONE, points.shape[0], n_blocks, n_touched
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _tsdf_finish(touched, n_touched, flags, changed):
     """Clear this cloud's marks; list the voxels that were actually updated."""
     nc = 0
