@@ -1,0 +1,440 @@
+"""The Rerun recorder: a Zenoh subscriber that logs what flows through a run into a `.rrd` file.
+
+    python -m smana.deploy.recording --config run/config.toml --run-dir run   # (smana up runs it)
+    smana view --spawn                                                         # live, in a viewer
+
+Over the `sim_time` timeline (the stamps the messages carry) it logs:
+- `world/robot` (Transform3D from `robot/pose`) and `world/trajectory` (and `world/trajectory_truth`
+  from `robot/pose_truth` when the simulator publishes it);
+- `camera/rgb` and `camera/semantic` (downscaled images; the class colours come from an
+  AnnotationContext built from the class table, so the viewer names each class);
+- `world/map/<block>`: the semantic voxel map rebuilt from `mapper/delta`, in 2 m blocks so that
+  only blocks that changed are logged again;
+- `world/graph/{nodes,obstacles,safety_zone}` from `navgraph/patch`;
+- `world/explorer/{frontier,path,goal}` and `metrics/*` from `explorer/state`.
+
+`RunRecorder` is the part without Zenoh (fed decoded messages, used in tests); `rerun` is imported
+lazily and a missing SDK gives a one-line hint and a recorder that does nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+import msgpack
+import numpy as np
+
+from smana.common import keys
+from smana.common.classes import ClassTable
+from smana.common.config import SmanaConfig
+from smana.common.messages import GraphPatch, MapDelta, Pose
+from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
+from smana.common.service import Service
+
+log = logging.getLogger("smana.recorder")
+
+RRD_NAME = "recording.rrd"
+APP_ID = "smana"
+
+
+def import_rerun():
+    """The rerun module, or None with a one-line hint."""
+    try:
+        import rerun as rr
+    except ImportError:
+        print("smana: rerun-sdk is not installed (pip install rerun-sdk): no recording",
+              file=sys.stderr)  # fmt: skip
+        return None
+    return rr
+
+
+# -- the map, rebuilt from deltas --------------------------------------------------------------
+
+
+class VoxelStore:
+    """The occupied voxels of the map, kept from MapDelta messages (a voxel at most once)."""
+
+    def __init__(self, block_m: float = 2.0):
+        self.block_m = block_m
+        self.keys = np.zeros(0, np.int64)
+        self.centres = np.zeros((0, 3), np.float32)
+        self.labels = np.zeros(0, np.uint16)
+        self.dirty_blocks: set[tuple[int, int]] = set()
+        self.resolution_m = 0.0
+
+    @staticmethod
+    def _keys(centres: np.ndarray, res: float) -> np.ndarray:
+        q = np.floor(centres / res).astype(np.int64) + (1 << 20)
+        return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
+
+    def _blocks(self, centres: np.ndarray) -> np.ndarray:
+        return np.floor(centres[:, :2] / self.block_m).astype(np.int64)
+
+    def apply(self, delta: MapDelta) -> None:
+        if delta.resolution_m != self.resolution_m and len(self.keys):
+            self.__init__(self.block_m)  # the map was restarted at another resolution
+        self.resolution_m = delta.resolution_m
+        c = np.asarray(delta.centres, np.float32)
+        if len(c) == 0:
+            return
+        k = self._keys(c, delta.resolution_m)
+        occ = np.asarray(delta.occupied).astype(bool)
+        # newest wins: stack old then new, keep each key's last row
+        all_k = np.concatenate([self.keys, k])
+        all_c = np.concatenate([self.centres, c])
+        all_l = np.concatenate([self.labels, np.asarray(delta.labels, np.uint16)])
+        all_o = np.concatenate([np.ones(len(self.keys), bool), occ])
+        rev = np.arange(len(all_k))[::-1]
+        _, first = np.unique(all_k[rev], return_index=True)
+        keep = rev[first]
+        keep = keep[all_o[keep]]
+        self.keys, self.centres, self.labels = all_k[keep], all_c[keep], all_l[keep]
+        self.dirty_blocks.update(map(tuple, np.unique(self._blocks(c), axis=0).tolist()))
+
+    def block(self, b: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        if len(self.keys) == 0:
+            return np.zeros((0, 3), np.float32), np.zeros(0, np.uint16)
+        sel = (self._blocks(self.centres) == np.asarray(b)).all(axis=1)
+        return self.centres[sel], self.labels[sel]
+
+
+# -- the recorder core ---------------------------------------------------------------------------
+
+
+def decode_image(payload: bytes) -> tuple[float, np.ndarray]:
+    """(stamp, image array) from a raw image map: {"stamp_s", "data", "shape", "dtype"} or
+    {"stamp_s", "width", "height", "channels"|"encoding", "data"}."""
+    m = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+    if not isinstance(m, dict) or "data" not in m:
+        raise ValueError("image payload is not a map with data")
+    data = m["data"]
+    if isinstance(data, dict):  # an array in the message codec's wire form
+        m = {**m, **{k: data[k] for k in ("shape", "dtype") if k in data}}
+        data = data["data"]
+    if "shape" in m:
+        shape = tuple(int(s) for s in m["shape"])
+        dtype = np.dtype(m.get("dtype", "u1"))
+    else:
+        h, w = int(m["height"]), int(m["width"])
+        enc = str(m.get("encoding", ""))
+        ch = int(m.get("channels", 3 if enc.startswith(("rgb", "bgr")) else 1))
+        dtype = np.dtype("<u2" if "16" in enc else m.get("dtype", "u1"))
+        shape = (h, w, ch) if ch > 1 else (h, w)
+    img = np.frombuffer(data, dtype)
+    if img.size != int(np.prod(shape)):
+        raise ValueError(f"image data holds {img.size} values, shape {shape} needs more")
+    return float(m.get("stamp_s", m.get("stamp", 0.0))), img.reshape(shape)
+
+
+class RunRecorder:
+    """Logs decoded smana messages into a Rerun recording stream (file and/or live viewer)."""
+
+    def __init__(
+        self,
+        classes: ClassTable,
+        rrd_path: Path | None = None,
+        spawn: bool = False,
+        connect: str | None = None,
+        graph_resolution_m: float = 0.2,
+        graph_bounds=((-50.0, -50.0), (50.0, 50.0)),
+        image_scale: float = 0.25,
+        image_period_s: float = 1.0,
+        map_period_s: float = 2.0,
+        graph_period_s: float = 2.0,
+        trajectory_period_s: float = 1.0,
+    ):
+        self.rr = rr = import_rerun()
+        self.classes = classes
+        self.image_scale = image_scale
+        self.periods = {"image": image_period_s, "map": map_period_s, "graph": graph_period_s,
+                        "trajectory": trajectory_period_s}  # fmt: skip
+        self._last: dict[str, float] = {}
+        self.voxels = VoxelStore()
+        self.grid = NavGrid.from_bounds(*graph_bounds, graph_resolution_m)
+        self._graph_version = -1
+        self.trajectory: list[tuple[float, float, float]] = []
+        self.trajectory_truth: list[tuple[float, float, float]] = []
+        self.counts: dict[str, int] = {}
+        self.t = 0.0
+        self.rec = None
+        if rr is None:
+            return
+        self.rec = rr.RecordingStream(APP_ID)
+        sinks = []
+        if rrd_path is not None:
+            Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(str(rrd_path)))
+        if spawn:
+            # start a viewer (it listens on the default gRPC port) and stream to it
+            rr.spawn(connect=False)
+            sinks.append(rr.GrpcSink())
+        if connect:
+            sinks.append(rr.GrpcSink(connect))
+        if sinks:
+            self.rec.set_sinks(*sinks)
+        self._static()
+
+    def _static(self) -> None:
+        rr = self.rr
+        infos = [
+            rr.AnnotationInfo(id=c.id, label=c.name, color=tuple(int(v) for v in c.colour))
+            for c in self.classes.classes.values()
+        ]
+        ctx = rr.AnnotationContext(infos)
+        self.rec.log("world", ctx, static=True)
+        self.rec.log("camera", ctx, static=True)
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.rec.log("world/robot/body", rr.Boxes3D(half_sizes=[[0.28, 0.2, 0.1]],
+                     colors=[[240, 190, 30]]), static=True)  # fmt: skip
+
+    # -- helpers --------------------------------------------------------------------------------
+
+    def _time(self, stamp_s: float) -> None:
+        if math.isfinite(stamp_s) and stamp_s > 0:
+            self.t = stamp_s
+        self.rec.set_time("sim_time", duration=self.t)
+
+    def _due(self, what: str, t: float) -> bool:
+        last = self._last.get(what)
+        if last is None or t - last >= self.periods[what.split(":")[0]] or t < last:
+            self._last[what] = t
+            return True
+        return False
+
+    def _count(self, what: str) -> None:
+        self.counts[what] = self.counts.get(what, 0) + 1
+
+    # -- inputs ---------------------------------------------------------------------------------
+
+    def on_pose(self, pose: Pose, truth: bool = False) -> None:
+        self._count("pose_truth" if truth else "pose")
+        if self.rec is None:
+            return
+        p = np.asarray(pose.position, float)
+        (self.trajectory_truth if truth else self.trajectory).append((p[0], p[1], p[2]))
+        rr = self.rr
+        self._time(pose.stamp_s)
+        if not truth:
+            q = np.asarray(pose.orientation_xyzw, float)
+            self.rec.log("world/robot", rr.Transform3D(translation=p, quaternion=q))
+        if self._due("trajectory", time.monotonic()):
+            self._log_trajectories()
+
+    def _log_trajectories(self) -> None:
+        rr = self.rr
+        if len(self.trajectory) >= 2:
+            self.rec.log("world/trajectory", rr.LineStrips3D([np.array(self.trajectory)],
+                         colors=[[255, 200, 0]], radii=0.03))  # fmt: skip
+        if len(self.trajectory_truth) >= 2:
+            self.rec.log(
+                "world/trajectory_truth",
+                rr.LineStrips3D(
+                    [np.array(self.trajectory_truth)], colors=[[255, 255, 255]], radii=0.015
+                ),
+            )
+
+    def on_image(self, kind: str, payload: bytes) -> None:
+        self._count(f"image/{kind}")
+        if self.rec is None:
+            return
+        stamp, img = decode_image(payload)
+        if not self._due("image:" + kind, stamp if stamp > 0 else time.monotonic()):
+            return
+        import cv2
+
+        rr = self.rr
+        self._time(stamp)
+        s = self.image_scale
+        if kind == "semantic":
+            small = img[:: max(1, round(1 / s)), :: max(1, round(1 / s))]
+            if small.ndim == 3:
+                small = small[..., 0]
+            self.rec.log("camera/semantic", rr.SegmentationImage(np.ascontiguousarray(small)))
+        elif kind == "rgb":
+            small = cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+            self.rec.log("camera/rgb", rr.Image(small))
+        elif kind == "depth":
+            small = img[:: max(1, round(1 / s)), :: max(1, round(1 / s))]
+            self.rec.log("camera/depth", rr.DepthImage(np.ascontiguousarray(small), meter=1.0
+                         if small.dtype.kind == "f" else 1000.0))  # fmt: skip
+
+    def on_delta(self, delta: MapDelta) -> None:
+        self._count("delta")
+        self.voxels.apply(delta)
+        if self.rec is None:
+            return
+        self._time(delta.stamp_s)
+        if self._due("map", self.t):
+            self.flush_map()
+
+    def flush_map(self) -> None:
+        if self.rec is None:
+            return
+        rr = self.rr
+        r = max(self.voxels.resolution_m / 2, 0.01)
+        for b in sorted(self.voxels.dirty_blocks):
+            c, lab = self.voxels.block(b)
+            path = f"world/map/b{b[0]}_{b[1]}".replace("-", "m")
+            if len(c):
+                self.rec.log(path, rr.Points3D(c, class_ids=lab, radii=r))
+            else:
+                self.rec.log(path, rr.Clear(recursive=False))
+        self.voxels.dirty_blocks.clear()
+
+    def on_patch(self, patch: GraphPatch) -> None:
+        self._count("patch")
+        if abs(patch.resolution_m - self.grid.resolution_m) > 1e-9 or not np.allclose(
+            patch.origin_xy, self.grid.origin_xy
+        ):
+            # follow the graph the navgraph actually builds
+            self.grid = NavGrid(patch.origin_xy, self.grid.shape, patch.resolution_m)
+        self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
+        if self.rec is None:
+            return
+        self._time(patch.stamp_s)
+        if self._due("graph", self.t):
+            self.flush_graph()
+
+    def flush_graph(self) -> None:
+        if self.rec is None or self.grid.version == self._graph_version:
+            return
+        self._graph_version = self.grid.version
+        rr = self.rr
+        cells, labels, heights, flags = self.grid.export()
+        xy = self.grid.cell_centre(cells[:, 0], cells[:, 1])
+        z = np.where(np.isfinite(heights), heights, 0.0)
+        pts = np.column_stack([xy, z + 0.02]).astype(np.float32)
+        known = (flags & FLAG_KNOWN) != 0
+        obst = known & ((flags & FLAG_OBSTACLE) != 0)
+        safety = known & ~obst & ((flags & FLAG_SAFETY_ZONE) != 0)
+        free = known & ~obst & ~safety
+        r = self.grid.resolution_m * 0.35
+        self.rec.log("world/graph/nodes", rr.Points3D(pts[free], class_ids=labels[free], radii=r))
+        self.rec.log("world/graph/obstacles", rr.Points3D(pts[obst], class_ids=labels[obst],
+                     radii=r * 1.3))  # fmt: skip
+        self.rec.log("world/graph/safety_zone", rr.Points3D(pts[safety], colors=[255, 140, 0],
+                     radii=r))  # fmt: skip
+
+    def on_explorer_state(self, st: dict) -> None:
+        self._count("explorer_state")
+        if self.rec is None:
+            return
+        rr = self.rr
+        self._time(float(st.get("t_s") or 0.0))
+        cand = np.asarray(st.get("candidates") or [], float).reshape(-1, 2)
+        gains = np.asarray(st.get("candidate_gains_m2") or [], float)
+        if len(cand) and len(gains) == len(cand):
+            g = gains / max(gains.max(), 1e-6)
+            colours = np.column_stack([255 * g, 80 + 100 * (1 - g), 255 * (1 - g)]).astype(np.uint8)
+            pts = np.column_stack([cand, np.full(len(cand), 0.1)])
+            self.rec.log("world/explorer/frontier", rr.Points3D(pts, colors=colours, radii=0.06))
+        else:
+            self.rec.log("world/explorer/frontier", rr.Clear(recursive=False))
+        path = np.asarray(st.get("path") or [], float).reshape(-1, 2)
+        if len(path) >= 2:
+            p3 = np.column_stack([path, np.full(len(path), 0.12)])
+            self.rec.log("world/explorer/path", rr.LineStrips3D([p3], colors=[[255, 0, 200]],
+                         radii=0.025))  # fmt: skip
+        else:
+            self.rec.log("world/explorer/path", rr.Clear(recursive=False))
+        goal = st.get("goal")
+        if goal:
+            gx, gy = goal["xy"]
+            yaw = float(goal.get("yaw", 0.0))
+            self.rec.log("world/explorer/goal", rr.Arrows3D(
+                origins=[[gx, gy, 0.15]], vectors=[[0.5 * math.cos(yaw), 0.5 * math.sin(yaw), 0]],
+                colors=[[255, 0, 200]]))  # fmt: skip
+        else:
+            self.rec.log("world/explorer/goal", rr.Clear(recursive=False))
+        for name in ("explored_m2", "distance_m", "frontier_size"):
+            if st.get(name) is not None:
+                self.rec.log(f"metrics/{name}", rr.Scalars(float(st[name])))
+
+    def close(self) -> None:
+        if self.rec is None:
+            return
+        self.flush_map()
+        self.flush_graph()
+        self._log_trajectories()
+        self.rec.flush()
+        self.rec.disconnect()
+        self.rec = None
+
+
+# -- the Zenoh service -------------------------------------------------------------------------
+
+
+class RecorderService(Service):
+    name = "recorder"
+    tick_period_s = 1.0
+
+    def __init__(self, config: SmanaConfig, rrd_path: Path | None, spawn=False, connect=None):
+        super().__init__(config)
+        nav = config.navgraph
+        self.core = RunRecorder(
+            ClassTable.load(config.general.class_table), rrd_path, spawn, connect,
+            graph_resolution_m=nav.resolution_m,
+            graph_bounds=(tuple(nav.bounds_min_xy), tuple(nav.bounds_max_xy)),
+        )  # fmt: skip
+        self.rrd_path = rrd_path
+
+    def setup(self) -> None:
+        r = self.robot
+        c = self.core
+        self.subscribe(keys.pose(r), c.on_pose, Pose)
+        self.subscribe(keys.pose_truth(r), lambda p: c.on_pose(p, truth=True), Pose)
+        self.subscribe(keys.map_delta(r), c.on_delta, MapDelta)
+        self.subscribe(keys.graph_patch(r), c.on_patch, GraphPatch)
+        self.subscribe(keys.explorer_state(r), self._on_state)
+        for kind in ("rgb", "semantic"):
+            self.subscribe_latest(keys.image(r, kind), lambda b, k=kind: c.on_image(k, b))
+
+    def _on_state(self, payload: bytes) -> None:
+        st = msgpack.unpackb(payload, raw=False, strict_map_key=False)
+        if not isinstance(st, dict):
+            raise ValueError("explorer state is not a map")
+        self.core.on_explorer_state(st)
+
+    def tick(self) -> None:
+        # a quiet stack still gets its map and graph logged
+        if self.core.rec is not None and self.core.voxels.dirty_blocks:
+            self.core.flush_map()
+
+    def on_stop(self) -> None:
+        self.core.close()
+
+    def status_details(self) -> dict:
+        return {"counts": dict(self.core.counts), "rrd": str(self.rrd_path or "")}
+
+
+def main(config: SmanaConfig, rrd_path: Path | None = None, spawn=False, connect=None) -> int:
+    if rrd_path is None and config.general.run_dir:
+        rrd_path = Path(config.general.run_dir) / RRD_NAME
+    return RecorderService(config, rrd_path, spawn, connect).run()
+
+
+def recorder_argv(config_path: str | Path, robot: str) -> list[str]:
+    """The command line `smana up` starts the recorder with (see deploy/supervisor.py)."""
+    return [sys.executable, "-m", "smana.deploy.recording", "--config", str(config_path),
+            "--robot", robot]  # fmt: skip
+
+
+def cli(argv: list[str] | None = None) -> int:
+    from smana.common.cli import config_from_args, make_parser, setup_logging
+
+    p = make_parser("smana recorder", "Record a running smana stack into a Rerun .rrd file.")
+    p.add_argument("--rrd", type=Path, help=f"output file (default RUN_DIR/{RRD_NAME})")
+    p.add_argument("--spawn", action="store_true", help="also stream to a newly spawned viewer")
+    p.add_argument("--viewer-url", metavar="URL", help="also stream to a running viewer (gRPC)")
+    args = p.parse_args(argv)
+    cfg = config_from_args(args)
+    setup_logging(cfg.general.log_level, "recorder")
+    return main(cfg, args.rrd, args.spawn, args.viewer_url)
+
+
+if __name__ == "__main__":
+    sys.exit(cli())
