@@ -1,0 +1,267 @@
+"""Weighted A* on a dense 8-connected 2.5D grid window (paper 3.3.2, eq. 1 and 2). No zenoh here.
+
+Transition cost from node p to its neighbour n (paper eq. 1):
+
+    c(p -> n) = d(p, n) + h_f * |h(n) - h(p)| + t_f * T(l(n))
+
+with d the planar distance between node centres (resolution or resolution * sqrt 2), h the node
+heights and T the traversability cost of n's label. The caller folds `t_f * T(l(n))` into one
+per-node `enter_cost` array (+inf where n may not be entered: obstacle, safety zone, unknown). An
+edge whose height step exceeds `max_step_m` is not traversable. Where a height is unknown (NaN)
+the height term and the step check are skipped.
+
+Eq. 2 as printed folds the heuristic into the accumulated cost; this is the correct A*: g(n) is the
+sum of transition costs and the open set is ordered by f = g + h (ties: larger g first, which
+favours nodes nearer the goal). Both heuristics below are admissible and consistent because every
+transition costs at least its planar distance plus the cheapest enter cost, so the path found costs
+exactly what Dijkstra finds on the same graph:
+
+- "euclidean": h = d(n, goal), the paper's choice;
+- "octile": h = octile distance + min(enter_cost) * Chebyshev steps, a tighter lower bound (every
+  path needs at least that many steps and pays at least the cheapest enter cost on each), which
+  expands far fewer nodes when traversability costs dominate distance.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+HEURISTICS = ("euclidean", "octile")
+SQRT2 = math.sqrt(2.0)
+
+
+@dataclass
+class AStarResult:
+    cost: float  # +inf when the goal is unreachable
+    cells: np.ndarray  # (K, 2) int64 window cells from start to goal; empty when unreachable
+    nodes_expanded: int
+    time_ms: float
+
+    @property
+    def found(self) -> bool:
+        return bool(np.isfinite(self.cost))
+
+
+def astar(
+    enter_cost: np.ndarray,
+    heights: np.ndarray,
+    start: tuple[int, int],
+    goal: tuple[int, int],
+    resolution_m: float,
+    h_f: float = 0.1,
+    max_step_m: float | None = None,
+    heuristic: str = "euclidean",
+) -> AStarResult:
+    """Least-cost 8-connected path from `start` to `goal` (cells of the window arrays).
+
+    `enter_cost[ix, iy]` >= 0 is the cost of entering a node (t_f * T(l)), +inf if it cannot be
+    entered; `heights[ix, iy]` in metres, NaN where unknown. The start node is never entered, so its
+    own enter cost does not matter (the robot is already there).
+    """
+    t0 = time.perf_counter()
+    enter_cost = np.asarray(enter_cost, np.float64)
+    heights = np.asarray(heights, np.float64)
+    if enter_cost.ndim != 2 or heights.shape != enter_cost.shape:
+        raise ValueError(
+            f"enter_cost and heights must be 2-D arrays of one shape, got "
+            f"{enter_cost.shape} and {heights.shape}"
+        )
+    nx, ny = enter_cost.shape
+    if nx * ny == 0 or nx * ny >= 2**31 - 1:
+        raise ValueError(f"window of {nx} x {ny} nodes is empty or too large")
+    if np.isnan(enter_cost).any() or (enter_cost < 0).any():
+        raise ValueError("enter_cost must be >= 0 (+inf for blocked nodes), without NaN")
+    if not (np.isfinite(resolution_m) and resolution_m > 0):
+        raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
+    if not (np.isfinite(h_f) and h_f >= 0):
+        raise ValueError(f"h_f must be >= 0, got {h_f}")
+    step = np.inf if max_step_m is None else float(max_step_m)
+    if not step > 0:
+        raise ValueError(f"max_step_m must be > 0, got {max_step_m}")
+    if heuristic not in HEURISTICS:
+        raise ValueError(f"heuristic must be one of {HEURISTICS}, got {heuristic!r}")
+    sx, sy = (int(v) for v in start)
+    gx, gy = (int(v) for v in goal)
+    for name, (x, y) in (("start", (sx, sy)), ("goal", (gx, gy))):
+        if not (0 <= x < nx and 0 <= y < ny):
+            raise ValueError(f"{name} cell ({x}, {y}) outside the {nx} x {ny} window")
+    finite = enter_cost[np.isfinite(enter_cost)]
+    min_enter = float(finite.min()) if (heuristic == "octile" and finite.size) else 0.0
+    cost, path, expanded = _astar_kernel(
+        np.ascontiguousarray(enter_cost).reshape(-1),
+        np.ascontiguousarray(heights).reshape(-1),
+        nx,
+        ny,
+        sx * ny + sy,
+        gx * ny + gy,
+        float(resolution_m),
+        float(h_f),
+        step,
+        1 if heuristic == "octile" else 0,
+        min_enter,
+    )
+    cells = np.stack([path // ny, path % ny], axis=1)
+    return AStarResult(float(cost), cells, int(expanded), (time.perf_counter() - t0) * 1e3)
+
+
+@numba.njit(cache=True, inline="always")
+def _before(fa, ga, fb, gb):
+    """Heap order: smaller f first; on equal f the larger g (nearer the goal), which matters with
+    a tight heuristic, where every node of an optimal path has the same f."""
+    return fa < fb or (fa == fb and ga > gb)
+
+
+@numba.njit(cache=True)
+def _push(hf, hg, hn, size, f, g, n):
+    if size == len(hf):
+        hf2 = np.empty(2 * size, np.float64)
+        hg2 = np.empty(2 * size, np.float64)
+        hn2 = np.empty(2 * size, np.int32)
+        hf2[:size] = hf
+        hg2[:size] = hg
+        hn2[:size] = hn
+        hf, hg, hn = hf2, hg2, hn2
+    i = size
+    while i > 0:
+        p = (i - 1) >> 1
+        if _before(f, g, hf[p], hg[p]):
+            hf[i] = hf[p]
+            hg[i] = hg[p]
+            hn[i] = hn[p]
+            i = p
+        else:
+            break
+    hf[i] = f
+    hg[i] = g
+    hn[i] = n
+    return hf, hg, hn, size + 1
+
+
+@numba.njit(cache=True, inline="always")
+def _pop(hf, hg, hn, size):
+    """Remove the root; returns the new size (the caller read hn[0] before)."""
+    size -= 1
+    lf = hf[size]
+    lg = hg[size]
+    ln = hn[size]
+    i = 0
+    while True:
+        c = 2 * i + 1
+        if c >= size:
+            break
+        if c + 1 < size and _before(hf[c + 1], hg[c + 1], hf[c], hg[c]):
+            c += 1
+        if _before(hf[c], hg[c], lf, lg):
+            hf[i] = hf[c]
+            hg[i] = hg[c]
+            hn[i] = hn[c]
+            i = c
+        else:
+            break
+    hf[i] = lf
+    hg[i] = lg
+    hn[i] = ln
+    return size
+
+
+@numba.njit(cache=True)
+def _astar_kernel(enter, heights, nx, ny, start, goal, res, h_f, max_step, mode, min_enter):
+    n_nodes = nx * ny
+    g = np.full(n_nodes, np.inf)
+    parent = np.full(n_nodes, -1, np.int32)
+    closed = np.zeros(n_nodes, np.uint8)
+    # A binary heap with lazy deletion: an improved node is pushed again and its stale entries
+    # are skipped when popped (cheaper here than decrease-key's position bookkeeping).
+    hf = np.empty(4096, np.float64)
+    hg = np.empty(4096, np.float64)
+    hn = np.empty(4096, np.int32)
+    dxs = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
+    dys = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
+    dist = np.empty(8)
+    for k in range(8):
+        dist[k] = res * (SQRT2 if dxs[k] != 0 and dys[k] != 0 else 1.0)
+    goal_x = goal // ny
+    goal_y = goal % ny
+    diag_extra = SQRT2 - 1.0
+
+    g[start] = 0.0
+    hf, hg, hn, size = _push(hf, hg, hn, 0, 0.0, 0.0, start)
+    expanded = 0
+    while size > 0:
+        n = hn[0]
+        size = _pop(hf, hg, hn, size)
+        if closed[n]:
+            continue
+        if n == goal:
+            break
+        closed[n] = 1
+        expanded += 1
+        x = n // ny
+        y = n % ny
+        hn_ = heights[n]
+        gn = g[n]
+        for k in range(8):
+            mx = x + dxs[k]
+            my = y + dys[k]
+            if mx < 0 or my < 0 or mx >= nx or my >= ny:
+                continue
+            m = mx * ny + my
+            ec = enter[m]
+            if ec == np.inf or closed[m]:
+                continue
+            dh = abs(heights[m] - hn_)
+            if dh > max_step:
+                continue
+            if dh != dh:  # a height is unknown: no height term, no step check
+                dh = 0.0
+            ng = gn + dist[k] + h_f * dh + ec
+            if ng < g[m]:
+                g[m] = ng
+                parent[m] = n
+                ax = abs(mx - goal_x)
+                ay = abs(my - goal_y)
+                if mode == 0:
+                    h = res * math.sqrt(ax * ax + ay * ay)
+                else:
+                    lo = min(ax, ay)
+                    hi = max(ax, ay)
+                    h = res * (hi + diag_extra * lo) + min_enter * hi
+                hf, hg, hn, size = _push(hf, hg, hn, size, ng + h, ng, m)
+    if not np.isfinite(g[goal]):
+        return np.inf, np.empty(0, np.int64), expanded
+    k = 1
+    n = goal
+    while n != start:
+        n = parent[n]
+        k += 1
+    path = np.empty(k, np.int64)
+    n = goal
+    for i in range(k - 1, -1, -1):
+        path[i] = n
+        n = parent[n]
+    return g[goal], path, expanded
+
+
+def path_costs(
+    cells: np.ndarray,
+    enter_cost: np.ndarray,
+    heights: np.ndarray,
+    resolution_m: float,
+    h_f: float,
+) -> tuple[float, float, float]:
+    """(distance, height, traversability) parts of a path's cost, recomputed edge by edge."""
+    cells = np.asarray(cells, np.int64)
+    if len(cells) < 2:
+        return 0.0, 0.0, 0.0
+    step = np.diff(cells, axis=0)
+    d = resolution_m * np.hypot(step[:, 0], step[:, 1])
+    h = np.asarray(heights, np.float64)[cells[:, 0], cells[:, 1]]
+    dh = np.abs(np.diff(h))
+    dh = np.where(np.isnan(dh), 0.0, dh)
+    trav = np.asarray(enter_cost, np.float64)[cells[1:, 0], cells[1:, 1]]
+    return float(d.sum()), float(h_f * dh.sum()), float(trav.sum())

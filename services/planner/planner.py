@@ -1,0 +1,332 @@
+"""Path queries on a navigation grid: checks, the dense search window, A*, and the answer (path in
+world coordinates, its cost broken down, label shares) or a clear error. No zenoh here.
+
+The planner searches a dense window: the bounding box of the grid's allocated tiles, grown to
+include start and goal (and by one tile more when unknown nodes may be crossed, so that a path to
+a frontier can go round the known area). The window's dense arrays are cached until the grid
+changes. A node can be entered when it is known and traversable (cost t_f * T(l)); an obstacle or
+safety-zone node never; an unknown node only when the request allows it, at `unknown_cost`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from smana.common.classes import ClassTable
+from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
+from smana.services.planner.astar import HEURISTICS, astar, path_costs
+
+# Error codes of PathReply.error
+OUT_OF_BOUNDS = "out_of_bounds"
+START_BLOCKED = "start_blocked"
+GOAL_BLOCKED = "goal_blocked"
+UNREACHABLE = "unreachable"
+NO_GRAPH = "no_graph"
+MALFORMED = "malformed"
+
+
+@dataclass
+class PlannerParams:
+    """Defaults a request may override (config [planner])."""
+
+    h_f: float = 0.1
+    t_f: float = 0.8
+    max_step_m: float | None = 0.3
+    unknown_cost: float = 2.0
+    heuristic: str = "octile"
+
+
+@dataclass
+class PlanResult:
+    ok: bool
+    error: str = ""
+    message: str = ""
+    path: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    cells: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    cost_total: float = 0.0
+    cost_distance: float = 0.0
+    cost_height: float = 0.0
+    cost_traversability: float = 0.0
+    label_share: dict[str, float] = field(default_factory=dict)
+    nodes_expanded: int = 0
+    time_ms: float = 0.0
+    nearest_free: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float64))
+
+
+class PlanError(Exception):
+    def __init__(self, code: str, message: str, nearest_free=None):
+        super().__init__(message)
+        self.code = code
+        self.nearest_free = nearest_free
+
+
+class Planner:
+    """Weighted A* path queries on a NavGrid (navgraph's, or the planner service's copy)."""
+
+    def __init__(self, grid: NavGrid, classes: ClassTable, params: PlannerParams | None = None):
+        self.grid = grid
+        self.classes = classes
+        self.params = params or PlannerParams()
+        self._check_params(self.params)
+        self._cache_key = None
+        self._cache = None
+        names = ["unknown"] * classes.size
+        for cid, c in classes.classes.items():
+            names[cid] = c.name
+        self._names = names
+
+    @staticmethod
+    def _check_params(p: PlannerParams) -> None:
+        for name in ("h_f", "t_f", "unknown_cost"):
+            v = getattr(p, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        if p.max_step_m is not None and not (math.isfinite(p.max_step_m) and p.max_step_m > 0):
+            raise ValueError(f"max_step_m must be > 0, got {p.max_step_m!r}")
+        if p.heuristic not in HEURISTICS:
+            raise ValueError(f"heuristic must be one of {HEURISTICS}, got {p.heuristic!r}")
+
+    # -- the query -----------------------------------------------------------------------------
+
+    def plan_request(self, req) -> PlanResult:
+        """Answer a PathRequest (or anything with its attributes)."""
+        return self.plan(
+            req.start,
+            req.goal,
+            h_f=req.h_f,
+            t_f=req.t_f,
+            class_costs=req.class_costs,
+            allow_unknown=req.allow_unknown,
+            unknown_cost=req.unknown_cost,
+            max_step_m=req.max_step_m,
+        )
+
+    def plan(
+        self,
+        start,
+        goal,
+        *,
+        h_f: float | None = None,
+        t_f: float | None = None,
+        class_costs: dict[int, float] | None = None,
+        allow_unknown: bool = False,
+        unknown_cost: float | None = None,
+        max_step_m: float | None = None,
+        heuristic: str | None = None,
+    ) -> PlanResult:
+        t0 = time.perf_counter()
+        try:
+            result = self._plan(
+                start, goal, h_f, t_f, class_costs, allow_unknown, unknown_cost, max_step_m,
+                heuristic,
+            )  # fmt: skip
+        except PlanError as exc:
+            nf = np.zeros(0) if exc.nearest_free is None else np.asarray(exc.nearest_free, float)
+            result = PlanResult(False, exc.code, str(exc), nearest_free=nf)
+        result.time_ms = (time.perf_counter() - t0) * 1e3
+        return result
+
+    def _params(self, h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic):
+        p = PlannerParams(
+            h_f=self.params.h_f if h_f is None else h_f,
+            t_f=self.params.t_f if t_f is None else t_f,
+            max_step_m=self.params.max_step_m if max_step_m is None else max_step_m,
+            unknown_cost=self.params.unknown_cost if unknown_cost is None else unknown_cost,
+            heuristic=self.params.heuristic if heuristic is None else heuristic,
+        )
+        try:
+            self._check_params(p)
+            lut = self.classes.costs(class_costs or {})
+        except (ValueError, TypeError) as exc:
+            raise PlanError(MALFORMED, str(exc)) from None
+        return p, lut
+
+    def _point(self, name, v) -> np.ndarray:
+        try:
+            a = np.asarray(v, np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise PlanError(MALFORMED, f"{name} must be 2 or 3 numbers, got {v!r}") from None
+        if a.shape not in ((2,), (3,)) or not np.isfinite(a).all():
+            raise PlanError(MALFORMED, f"{name} must be 2 or 3 finite numbers, got {v!r}")
+        return a[:2]
+
+    def _plan(self, start, goal, h_f, t_f, class_costs, allow_unknown, unknown_cost, max_step_m,
+              heuristic) -> PlanResult:  # fmt: skip
+        p, lut = self._params(h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic)
+        s_xy, g_xy = self._point("start", start), self._point("goal", goal)
+        g = self.grid
+        if g.n_tiles == 0:
+            raise PlanError(NO_GRAPH, "no navigation graph yet (no patch received)")
+        cells = []
+        for name, xy in (("start", s_xy), ("goal", g_xy)):
+            ix, iy, ok = g.world_to_cell(xy)
+            if not ok:
+                lo = g.origin_xy
+                hi = lo + np.array(g.shape) * g.resolution_m
+                raise PlanError(
+                    OUT_OF_BOUNDS,
+                    f"{name} ({xy[0]:.2f}, {xy[1]:.2f}) is outside the graph bounds "
+                    f"[{lo[0]:.2f}, {hi[0]:.2f}] x [{lo[1]:.2f}, {hi[1]:.2f}]",
+                )
+            cells.append((int(ix), int(iy)))
+        box = self._window(cells, bool(allow_unknown))
+        labels, heights, flags, known_h = self._dense(box)
+        # Scale the finite costs only: inf * 0 would be NaN when t_f = 0.
+        scaled = np.where(np.isfinite(lut), lut * p.t_f, np.inf)
+        enter = _enter_costs(
+            labels, flags, scaled, bool(allow_unknown), float(p.unknown_cost * p.t_f)
+        )
+        (sx, sy), (gx, gy) = ((c[0] - box[0], c[1] - box[1]) for c in cells)
+        self._check_end("start", sx, sy, flags, enter, box, s_xy, allow_unknown=True)
+        self._check_end("goal", gx, gy, flags, enter, box, g_xy, allow_unknown)
+        res = astar(enter, known_h, (sx, sy), (gx, gy), g.resolution_m, p.h_f, p.max_step_m,
+                    p.heuristic)  # fmt: skip
+        if not res.found:
+            raise PlanError(
+                UNREACHABLE,
+                f"goal ({g_xy[0]:.2f}, {g_xy[1]:.2f}) cannot be reached from start "
+                f"({s_xy[0]:.2f}, {s_xy[1]:.2f}) ({res.nodes_expanded} nodes searched"
+                + ("" if allow_unknown else "; unknown nodes not allowed")
+                + ")",
+            )
+        d, hgt, trav = path_costs(res.cells, enter, known_h, g.resolution_m, p.h_f)
+        gcells = res.cells + np.array([box[0], box[1]])
+        xy = g.cell_centre(gcells[:, 0], gcells[:, 1])
+        z = _fill_heights(known_h[res.cells[:, 0], res.cells[:, 1]])
+        path = np.column_stack([xy, z]).astype(np.float32)
+        on_path = labels[res.cells[:, 0], res.cells[:, 1]]
+        is_known = (flags[res.cells[:, 0], res.cells[:, 1]] & FLAG_KNOWN) != 0
+        names = [self._names[lab] if k and lab < len(self._names) else "unknown"
+                 for lab, k in zip(on_path.tolist(), is_known.tolist(), strict=True)]  # fmt: skip
+        counts: dict[str, int] = {}
+        for n in names:
+            counts[n] = counts.get(n, 0) + 1
+        share = {n: c / len(names) for n, c in counts.items()}
+        return PlanResult(
+            ok=True,
+            message=f"{len(path)} nodes, {d:.2f} m",
+            path=path,
+            cells=gcells,
+            cost_total=res.cost,
+            cost_distance=d,
+            cost_height=hgt,
+            cost_traversability=trav,
+            label_share=share,
+            nodes_expanded=res.nodes_expanded,
+        )
+
+    def _check_end(self, name, ix, iy, flags, enter, box, xy, allow_unknown) -> None:
+        f = int(flags[ix, iy])
+        code = START_BLOCKED if name == "start" else GOAL_BLOCKED
+        if f & FLAG_OBSTACLE:
+            why = "in an obstacle"
+        elif f & FLAG_SAFETY_ZONE:
+            why = "in the safety zone (within the robot radius of an obstacle)"
+        elif name == "goal" and not np.isfinite(enter[ix, iy]):
+            if f & FLAG_KNOWN:
+                why = "on a node whose class is not traversable"
+            else:
+                why = "in unknown space (allow_unknown is off)"
+        else:
+            return
+        free = _nearest_free(enter, ix, iy)
+        where = ""
+        nf = None
+        if free is not None:
+            nf = self.grid.cell_centre(free[0] + box[0], free[1] + box[1])
+            where = f"; nearest free node at ({nf[0]:.2f}, {nf[1]:.2f})"
+        raise PlanError(code, f"{name} ({xy[0]:.2f}, {xy[1]:.2f}) is {why}{where}", nf)
+
+    # -- the window ----------------------------------------------------------------------------
+
+    def _window(self, cells, allow_unknown: bool) -> tuple[int, int, int, int]:
+        g = self.grid
+        x0, y0, x1, y1 = g.known_box()
+        for ix, iy in cells:
+            x0, y0, x1, y1 = min(x0, ix), min(y0, iy), max(x1, ix + 1), max(y1, iy + 1)
+        if allow_unknown:
+            m = g.tile_size
+            x0, y0, x1, y1 = x0 - m, y0 - m, x1 + m, y1 + m
+        return max(0, x0), max(0, y0), min(g.shape[0], x1), min(g.shape[1], y1)
+
+    def _dense(self, box):
+        key = (self.grid.version, box)
+        if self._cache_key != key:
+            labels, heights, flags = self.grid.box(*box)
+            known_h = np.where(flags & FLAG_KNOWN, heights, np.nan).astype(np.float64)
+            self._cache = (labels, heights, flags, known_h)
+            self._cache_key = key
+        return self._cache
+
+
+def _fill_heights(z: np.ndarray) -> np.ndarray:
+    """Path heights with unknown nodes given the last known height before them (or after, at
+    the start), 0 when the whole path is unknown."""
+    z = np.asarray(z, np.float64).copy()
+    known = ~np.isnan(z)
+    if not known.any():
+        return np.zeros_like(z)
+    idx = np.where(known, np.arange(len(z)), 0)
+    np.maximum.accumulate(idx, out=idx)
+    first = int(np.argmax(known))
+    idx[:first] = first
+    return z[idx]
+
+
+@numba.njit(cache=True)
+def _enter_costs(labels, flags, lut, allow_unknown, unknown_cost):
+    """t_f * T(l) per node; +inf for obstacles, safety zones, non-traversable classes, and unknown
+    nodes unless allowed. `lut` is already scaled by t_f (and +inf where not traversable)."""
+    nx, ny = labels.shape
+    out = np.empty((nx, ny))
+    n_lut = len(lut)
+    for i in range(nx):
+        for j in range(ny):
+            f = flags[i, j]
+            if f & 6:  # obstacle or safety zone
+                out[i, j] = np.inf
+            elif f & 1:
+                lab = labels[i, j]
+                c = lut[lab] if lab < n_lut else np.inf
+                if c == np.inf and lab == 0 and allow_unknown:
+                    c = unknown_cost  # a known node of the "unknown" class
+                out[i, j] = c
+            else:
+                out[i, j] = unknown_cost if allow_unknown else np.inf
+    return out
+
+
+@numba.njit(cache=True)
+def _nearest_free_kernel(enter, ix, iy, radius):
+    nx, ny = enter.shape
+    best = -1.0
+    bx = -1
+    by = -1
+    for i in range(max(0, ix - radius), min(nx, ix + radius + 1)):
+        for j in range(max(0, iy - radius), min(ny, iy + radius + 1)):
+            if enter[i, j] < np.inf:
+                d = (i - ix) ** 2 + (j - iy) ** 2
+                if best < 0 or d < best:
+                    best = d
+                    bx = i
+                    by = j
+    return bx, by, best
+
+
+def _nearest_free(enter: np.ndarray, ix: int, iy: int):
+    """The enterable node nearest to (ix, iy) in the window, or None."""
+    r = 8
+    limit = max(enter.shape)
+    while True:
+        bx, by, d2 = _nearest_free_kernel(enter, ix, iy, r)
+        # A node found within the square is the nearest only if no closer one lies outside it.
+        if bx >= 0 and d2 <= r * r:
+            return bx, by
+        if r >= limit:
+            return (bx, by) if bx >= 0 else None
+        r *= 2

@@ -1,0 +1,137 @@
+"""Path queries on a grid: the paper's grass detour, unknown space, cost breakdown, every error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from smana.common.classes import ClassTable
+from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, NavGrid
+from smana.services.navgraph.graph import NavGraph
+from smana.services.planner.planner import Planner, PlannerParams
+from smana.services.planner.reference import dijkstra_cost
+
+CLASSES = ClassTable.load("garden3drms")
+GRASS, TERRAIN, HEDGE = 1, 2, 4
+
+
+def dense_grid(labels, heights=None, known=None, res=0.2, tile=16):
+    nx, ny = labels.shape
+    grid = NavGrid((0.0, 0.0), (nx, ny), res, tile_size=tile)
+    heights = np.zeros((nx, ny)) if heights is None else heights
+    known = np.ones((nx, ny), bool) if known is None else known
+    cells = np.argwhere(known)
+    lab = labels[known]
+    flags = FLAG_KNOWN | (CLASSES.obstacle_lut[lab] * FLAG_OBSTACLE)
+    grid.apply_patch(cells, lab, heights[known], flags.astype(np.uint8))
+    return grid
+
+
+def test_grass_detour_once_grass_costs_more():
+    """Paper 4.3: raising the grass cost makes the planner go round a grass patch on terrain."""
+    labels = np.full((40, 30), TERRAIN, np.uint16)
+    labels[19:21, :14] = GRASS
+    planner = Planner(dense_grid(labels), CLASSES)
+    across = planner.plan((1.0, 0.5), (7.0, 0.5))  # default grass cost 2
+    assert across.ok and across.label_share["grass"] > 0
+    around = planner.plan((1.0, 0.5), (7.0, 0.5), class_costs={GRASS: 4.0})
+    assert around.ok and "grass" not in around.label_share
+    assert around.cost_distance > across.cost_distance  # longer, but cheaper at the new cost
+    assert around.path[:, 1].max() > 2.8
+    # The straight line crosses two grass nodes: at cost 4 it would cost 2 * 0.8 * 2 more.
+    assert around.cost_total < across.cost_total + 2 * 0.8 * 2.0
+    assert around.cost_total > across.cost_total
+
+
+def test_cost_breakdown_adds_up_and_matches_dijkstra():
+    rng = np.random.default_rng(3)
+    labels = rng.choice([GRASS, TERRAIN, HEDGE], size=(30, 25), p=[0.4, 0.5, 0.1]).astype(np.uint16)
+    labels[:2, :2] = labels[-2:, -2:] = TERRAIN
+    # float32 like the grid stores them, so both searches see the same heights.
+    heights = np.cumsum(rng.normal(0, 0.03, size=(30, 25)), axis=0).astype(np.float32)
+    grid = dense_grid(labels, heights)
+    planner = Planner(grid, CLASSES, PlannerParams(h_f=0.5, t_f=0.8, max_step_m=0.1))
+    r = planner.plan((0.1, 0.1), (5.9, 4.9))
+    assert r.ok, r.message
+    parts = r.cost_distance + r.cost_height + r.cost_traversability
+    assert parts == pytest.approx(r.cost_total, rel=1e-9)
+    enter = np.where(labels == HEDGE, np.inf, 0.8 * CLASSES.cost_lut[np.minimum(labels, 8)])
+    want = dijkstra_cost(enter, heights, (0, 0), (29, 24), 0.2, 0.5, 0.1)
+    assert r.cost_total == pytest.approx(want, rel=1e-9)
+    assert sum(r.label_share.values()) == pytest.approx(1.0)
+    np.testing.assert_allclose(r.path[0, :2], [0.1, 0.1], atol=1e-6)
+    np.testing.assert_allclose(r.path[:, 2], heights[r.cells[:, 0], r.cells[:, 1]], atol=1e-6)
+
+
+def test_unknown_space_only_when_asked():
+    labels = np.full((20, 20), TERRAIN, np.uint16)
+    known = np.ones((20, 20), bool)
+    known[8:12, :] = False  # an unseen band across the map
+    planner = Planner(dense_grid(labels, known=known), CLASSES)
+    no = planner.plan((0.5, 2.0), (3.5, 2.0))
+    assert not no.ok and no.error == "unreachable"
+    yes = planner.plan((0.5, 2.0), (3.5, 2.0), allow_unknown=True, unknown_cost=3.0)
+    assert yes.ok and yes.label_share["unknown"] == pytest.approx(4 / 16)
+    # 15 steps of 0.2 m, entering 11 terrain nodes at 0.8 * 1 and 4 unknown at 0.8 * 3.
+    assert yes.cost_traversability == pytest.approx(0.8 * (11 + 4 * 3.0))
+    assert yes.cost_distance == pytest.approx(3.0)
+    goal_unknown = planner.plan((0.5, 2.0), (2.0, 2.0))
+    assert goal_unknown.error == "goal_blocked" and "unknown" in goal_unknown.message
+    assert planner.plan((0.5, 2.0), (2.0, 2.0), allow_unknown=True).ok
+
+
+def obstacle_graph():
+    g = NavGraph(CLASSES, (0, 0), (4, 4), 0.2, robot_radius_m=0.4, tile_size=8)
+    xy = np.stack(np.meshgrid(np.arange(40), np.arange(40), indexing="ij"), -1).reshape(-1, 2)
+    vox = np.column_stack([(xy + 0.5) * 0.1, np.full(len(xy), 0.05)]).astype(np.float32)
+    g.integrate(vox, np.full(len(vox), TERRAIN, np.uint16), np.ones(len(vox), np.uint8))
+    # A hedge across the middle from y = 0 to y = 3 m, one node thick.
+    hedge = np.array([[2.05, 0.05 + 0.1 * k, 0.45] for k in range(30)], np.float32)
+    g.integrate(hedge, np.full(len(hedge), HEDGE, np.uint16), np.ones(len(hedge), np.uint8))
+    return g
+
+
+def test_every_error_reply():
+    g = obstacle_graph()
+    planner = Planner(g.grid, CLASSES)
+    empty = Planner(NavGrid((0, 0), (10, 10), 0.2), CLASSES)
+    cases = {
+        "no_graph": empty.plan((0.5, 0.5), (1.0, 1.0)),
+        "out_of_bounds": planner.plan((0.5, 0.5), (4.5, 1.0)),
+        "start_blocked": planner.plan((2.1, 1.0), (0.5, 0.5)),
+        "goal_blocked": planner.plan((0.5, 0.5), (1.8, 1.0)),
+        "malformed": planner.plan((np.nan, 0.5), (1.0, 1.0)),
+    }
+    for code, r in cases.items():
+        assert not r.ok and r.error == code, (code, r)
+    assert "obstacle" in cases["start_blocked"].message
+    assert "safety zone" in cases["goal_blocked"].message
+    assert "outside the graph bounds" in cases["out_of_bounds"].message
+    for bad in [{"class_costs": {HEDGE: 1.0}}, {"h_f": -1.0}, {"max_step_m": 0.0}]:
+        assert planner.plan((0.5, 0.5), (1.0, 1.0), **bad).error == "malformed"
+    assert planner.plan((0.5, 0.5, 0.0, 1.0), (1.0, 1.0)).error == "malformed"
+    # Nearest free node: brute force over every enterable node.
+    r = cases["goal_blocked"]
+    labels, _, flags = g.grid.box(0, 0, 20, 20)
+    free = np.argwhere(((flags & 6) == 0) & (flags & 1).astype(bool))
+    d = np.hypot(*(free - np.array([9, 5])).T)
+    assert np.hypot(*(g.grid.world_to_cell(r.nearest_free)[:2] - np.array([9, 5]))) == d.min()
+    assert "nearest free node" in r.message
+    # The hedge stops 1 m short of the top: a path goes round it; closing the gap makes the
+    # goal unreachable.
+    ok = planner.plan((0.5, 0.5), (3.5, 0.5))
+    assert ok.ok and ok.path[:, 1].max() > 3.0
+    wall = np.array([[2.05, 3.05 + 0.1 * k, 0.45] for k in range(10)], np.float32)
+    g.integrate(wall, np.full(len(wall), HEDGE, np.uint16), np.ones(len(wall), np.uint8))
+    r = planner.plan((0.5, 0.5), (3.5, 0.5))
+    assert not r.ok and r.error == "unreachable"
+
+
+def test_window_cache_follows_grid_changes():
+    labels = np.full((16, 16), TERRAIN, np.uint16)
+    grid = dense_grid(labels)
+    planner = Planner(grid, CLASSES)
+    assert planner.plan((0.1, 0.1), (3.1, 0.1)).cost_distance == pytest.approx(3.0)
+    grid.apply_patch(np.array([[8, 0], [8, 1]]), [HEDGE, HEDGE], [0, 0], [3, 3])
+    r = planner.plan((0.1, 0.1), (3.1, 0.1))
+    assert r.ok and r.cost_distance > 3.0
