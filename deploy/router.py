@@ -5,7 +5,6 @@ meeting point of a multi-host deployment)."""
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
@@ -41,25 +40,33 @@ def router_config(listen: list[str], base: ZenohConfig | None = None, connect: l
 def open_router(listen: list[str], base: ZenohConfig | None = None, connect: list[str] = ()):
     import zenoh
 
+    zenoh.try_init_log_from_env()  # RUST_LOG=debug shows zenoh's own view of links and auth
     return zenoh.open(router_config(listen, base, connect))
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana router", description=__doc__)
+    from smana.common.cli import config_from_args, make_parser
+    from smana.deploy.supervisor import profile_path
+
+    p = make_parser("smana router", __doc__)
     p.add_argument(
-        "--listen", "-l", action="append", metavar="ENDPOINT",
-        help="endpoint to listen on (default tcp/127.0.0.1:7447; repeatable)",
-    )  # fmt: skip
-    p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5 config (TLS, ACL, ...)")
+        "--profile",
+        default="local",
+        help="take the router's endpoints and security from this deployment profile",
+    )
     args = p.parse_args(argv)
+    cfg = config_from_args(args, layers=[profile_path(args.profile, p)])
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s router: %(message)s")
-    listen = args.listen or ["tcp/127.0.0.1:7447"]
+    # --listen/--connect name the router's own endpoints; otherwise the [deploy] section does.
+    listen = args.listen or cfg.deploy.router_listen
+    connect = args.connect or cfg.deploy.router_connect
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    base = ZenohConfig(config_file=args.zenoh_config or "")
-    with open_router(listen, base) as session:
+    with open_router(listen, cfg.zenoh, connect) as session:
         log.info("zenoh router %s listening on %s", session.zid(), ", ".join(listen))
+        if connect:
+            log.info("linking to %s", ", ".join(connect))
         stop.wait()
     log.info("router stopped")
     return 0

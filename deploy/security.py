@@ -40,11 +40,15 @@ ALL_MESSAGES = [
 ]  # fmt: skip
 
 
-def acl_policy(robot: str = "*") -> dict:
+def acl_policy(robot: str = "*", hosts: list[str] = ()) -> dict:
     """The access-control policy: default deny; everyone may subscribe and query; only the sensor
     roles publish the robot's sensor streams and pose; only the explorer and an operator publish
     velocity commands; each service publishes, serves queries and shows liveliness under its own
-    name only; routers relay everything. `tool` (any external zenoh tool) may read, never write."""
+    name only; routers relay everything. `tool` (any external zenoh tool) may read, never write.
+
+    Routers are known by their user name `router` where they log in, and by their certificate
+    (common name in `hosts`) on the TLS link: user/password only authenticates the side that
+    connects, while mutual TLS authenticates both."""
     r = robot
     sensor_keys = [f"smana/{r}/robot/{t}" for t in ("cloud", "scan", "pose", "pose_truth", "clock")]
     sensor_keys.append(f"smana/{r}/robot/image/**")
@@ -63,12 +67,13 @@ def acl_policy(robot: str = "*") -> dict:
     ]  # fmt: skip
     subjects = [
         {"id": "routers", "usernames": ["router"]},
+        *([{"id": "hosts", "cert_common_names": list(hosts)}] if hosts else []),
         {"id": "everyone", "usernames": list(ROLES)},
         {"id": "sensors", "usernames": list(SENSOR_ROLES)},
         {"id": "commanders", "usernames": list(COMMAND_ROLES)},
     ]
     policies = [
-        {"rules": ["relay"], "subjects": ["routers"]},
+        {"rules": ["relay"], "subjects": ["routers", *(["hosts"] if hosts else [])]},
         {"rules": ["read", "deliver"], "subjects": ["everyone"]},
         {"rules": ["publish-sensors"], "subjects": ["sensors"]},
         {"rules": ["publish-cmd_vel"], "subjects": ["commanders"]},
@@ -196,7 +201,7 @@ def init_certs(out: Path, hosts: list[str], days: int = 825, force: bool = False
     creds.write_text("".join(f"{role}:{secrets.token_urlsafe(18)}\n" for role in ROLES))
     os.chmod(creds, 0o600)
     acl = out / "acl.json5"
-    acl.write_text(json.dumps(acl_policy(), indent=2) + "\n")
+    acl.write_text(json.dumps(acl_policy(hosts=hosts), indent=2) + "\n")
     return [*written, creds, acl]
 
 
@@ -211,9 +216,11 @@ def cli(argv: list[str] | None = None) -> int:
     ic.add_argument("--force", action="store_true", help="replace an existing set")
     acl = sub.add_parser("acl", help="print the access-control policy (JSON5)")
     acl.add_argument("--robot", default="*", help="restrict the policy to one robot name")
+    acl.add_argument("--hosts", default="robot,base", help="host certificates' common names")
     args = p.parse_args(argv)
     if args.cmd == "acl":
-        print(json.dumps(acl_policy(args.robot), indent=2))
+        hosts = [h.strip() for h in args.hosts.split(",") if h.strip()]
+        print(json.dumps(acl_policy(args.robot, hosts), indent=2))
         return 0
     hosts = [h.strip() for h in args.hosts.split(",") if h.strip()]
     if not hosts:

@@ -271,7 +271,7 @@ class Supervisor:
                     log.info("%s finished (status %s): stopping the stack", finish_with,
                              ", ".join(map(str, codes)))  # fmt: skip
                     break
-                if all(m.finished for m in self.procs.values()):
+                if self.procs and all(m.finished for m in self.procs.values()):
                     log.error("every service has exited")
                     result = 1
                     break
