@@ -354,6 +354,7 @@ class OctreeBackend:
             },
         )
         self._touched = np.empty(1 << 16, np.int64)
+        self.last_updates = 0
         self._keybuf = ray_buffer(self.max_range_m, self.resolution_m)
         self._prm = np.array(
             [
@@ -390,6 +391,7 @@ class OctreeBackend:
                 self._grow_touched()
             else:
                 grid.handle(status)
+        self.last_updates = n_touched  # voxel log-odds updates of this cloud
         l_hit, l_miss, c_min, c_max = self.occupancy.logs
         changed = np.empty(n_touched, np.int64)
         c = grid.cols

@@ -248,6 +248,7 @@ class TsdfBackend:
             },
         )
         self._touched = np.empty(1 << 16, np.int64)
+        self.last_updates = 0
         band = 2 * self.trunc_m + self.resolution_m
         n_buf = 3 * int(np.ceil(band / self.resolution_m)) + 16
         self._keybuf = np.empty((n_buf, 3), np.int64)
@@ -290,6 +291,7 @@ class TsdfBackend:
                 grid.handle(status)
         changed = np.empty(n_touched, np.int64)
         nc = _tsdf_finish(self._touched, n_touched, grid.cols["flags"], changed)
+        self.last_updates = nc  # voxels whose distance was fused this cloud
         return self._rows(changed[:nc])
 
     def labels_of(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
