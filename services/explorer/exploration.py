@@ -160,6 +160,8 @@ class Explorer:
         self.last_outcome: PlanOutcome | None = None
         self.explored_m2 = 0.0
         self.frontier_size = 0
+        # (t, explored m^2, frontier nodes, distance m) at every plan: the run's progress curve
+        self.history: list[tuple[float, float, int, float]] = []
 
     # -- inputs ---------------------------------------------------------------------------------
 
@@ -250,6 +252,7 @@ class Explorer:
         self.explored_m2 = float(free.sum()) * g.resolution_m**2
         front = fr.frontier_cells(reach, unknown)
         self.frontier_size = len(front)
+        self.history.append((self.t_now, self.explored_m2, self.frontier_size, self.distance_m))
         spacing = max(1, int(round(self.p.candidate_spacing_m / g.resolution_m)))
         cells = fr.sample_candidates(front, spacing)
         cells = self._drop_blacklisted(cells)

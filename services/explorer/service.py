@@ -292,6 +292,7 @@ class ExplorerService(Service):
         out.mkdir(parents=True, exist_ok=True)
         state = self._state()
         state["plans"] = self._plan_log
+        state["history"] = self.core.history
         state["path_queries"] = self.n_path_queries
         state["path_errors"] = self.path_errors
         state["wall_time_s"] = time.monotonic() - self._t_wall0

@@ -1,0 +1,331 @@
+"""The run report `smana up` writes at the end: `metrics.json`, `report.md` and PNG plots.
+
+`write_report(run_dir, config)` reads what the services left in the run directory:
+- `explorer/state.json`, `explorer/trajectory.csv`, `explorer/graph.npz` (the explorer's copy of
+  the navigation graph, saved on shutdown);
+- the mapper's final map (`map.ply`, or a saved `.npz` map that is exported to `map.ply`);
+- `recording.rrd` (the Rerun recorder) and `logs/`;
+and measures the run against the simulated world's ground truth (rebuilt from the config):
+explored share of the reachable traversable area, travelled labels (terrain vs grass), clearance
+from obstacles along the trajectory, and the map's reconstruction error and classification ratio.
+
+Also a command: `python -m smana.deploy.report RUN_DIR` re-writes the report of a finished run.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from smana.common.classes import ClassTable
+from smana.deploy import evaluation as ev
+from smana.deploy import plots
+
+log = logging.getLogger("smana.report")
+
+CLOSE_CALL_M = 0.30  # clearance under which the base (half-width 0.31 m with wheels) may touch
+
+
+def _load_json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _trajectory(run_dir: Path) -> np.ndarray:
+    path = run_dir / "explorer" / "trajectory.csv"
+    if not path.is_file():
+        return np.zeros((0, 4))
+    try:
+        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError:
+        return np.zeros((0, 4))
+    return data.reshape(-1, 4)
+
+
+def _graph(run_dir: Path) -> dict | None:
+    for path in (run_dir / "explorer" / "graph.npz", run_dir / "graph.npz"):
+        if path.is_file():
+            with np.load(path) as g:
+                return {k: g[k] for k in g.files}
+    return None
+
+
+def _final_map(run_dir: Path, classes: ClassTable) -> Path | None:
+    """The run's map as PLY (exported from a saved .npz map when only that exists)."""
+    try:
+        return ev.find_map(run_dir)
+    except FileNotFoundError:
+        pass
+    maps = [
+        p for p in run_dir.rglob("*.npz") if "explorer" not in p.parts and p.name != "graph.npz"
+    ]
+    for path in sorted(maps, key=lambda p: p.stat().st_mtime, reverse=True):
+        try:
+            from smana.services.mapper.semantic_map import SemanticMap
+
+            SemanticMap.load(path).export_ply(run_dir / "map.ply", classes)
+            return run_dir / "map.ply"
+        except Exception as exc:  # not a map file
+            log.debug("%s is not a saved map: %s", path, exc)
+    return None
+
+
+def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> dict:
+    """Coverage, travelled labels and clearance of a run, against the world's ground truth."""
+    classes = world.classes
+    top = world.top_class()
+    res = top.resolution_m
+    radius = config.navgraph.robot_radius_m
+    trav = world.traversability(radius)
+    xs, ys = trav.cell_centres()
+    cell_xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1)
+    start = traj[0, 1:3] if len(traj) else np.array(world.spawn_pose(radius)[:2])
+    si, sj = trav.index_of(start[0], start[1])
+    reach = ev.reachable_traversable(trav.data, (int(si), int(sj)))
+    out: dict = {"robot_radius_m": radius}
+    if not reach.any():
+        # the start cell itself may sit inside the clearance margin: take the nearest reachable
+        d = np.where(trav.data, np.hypot(cell_xy[..., 0] - start[0], cell_xy[..., 1] - start[1]),
+                     np.inf)  # fmt: skip
+        i, j = np.unravel_index(np.argmin(d), d.shape)
+        reach = ev.reachable_traversable(trav.data, (int(i), int(j)))
+    if graph is not None:
+        out.update(ev.exploration_coverage(graph, cell_xy, reach, res * res))
+    else:
+        out.update({"coverage": 0.0, "reachable_area_m2": float(reach.sum() * res * res)})
+    names = {i: c.name for i, c in classes.classes.items()}
+    gres = config.navgraph.resolution_m
+    if len(traj) >= 2:
+        xy = traj[:, 1:3]
+        out["distance_m"] = float(np.hypot(*np.diff(xy, axis=0).T).sum())
+        nodes = ev.travelled_nodes(xy, gres, config.navgraph.bounds_min_xy)
+        centres = (nodes + 0.5) * gres + np.asarray(config.navgraph.bounds_min_xy)
+        gt_labels = top.at(centres[:, 0], centres[:, 1])
+        out["travelled_nodes"] = int(len(nodes))
+        out["terrain_share"] = ev.terrain_share(gt_labels)
+        out["travelled_label_share"] = ev.label_shares(gt_labels, names)
+        obstacle = ~classes.traversable_lut[top.data]
+        clear = ev.clearance_along(xy, obstacle, top.origin_xy, res)
+        out["min_clearance_m"] = float(clear.min())
+        out["close_calls"] = int((np.diff((clear < CLOSE_CALL_M).astype(int)) == 1).sum()
+                                 + (clear[0] < CLOSE_CALL_M))  # fmt: skip
+        out["duration_robot_s"] = float(traj[-1, 0] - traj[0, 0])
+    return out
+
+
+def _plots(run_dir: Path, world, graph, traj, state) -> dict[str, str]:
+    out_dir = run_dir / "plots"
+    files = {}
+    classes = world.classes
+    top = world.top_class()
+    rgb = classes.colour_lut[top.data]
+    goals = np.array([p["goal"] for p in (state or {}).get("plans", [])]).reshape(-1, 2)
+    tracks = [(traj[:, 1:3], (255, 230, 0))] if len(traj) else []
+    markers = [(goals, (255, 0, 200), 4)]
+    if len(traj):
+        markers.append((traj[:1, 1:3], (255, 255, 255), 7))
+    img = plots.top_down(rgb, top.origin_xy, top.resolution_m, tracks, markers,
+                         "ground truth, trajectory (yellow), goals (magenta)")  # fmt: skip
+    files["map"] = str(plots.save_png(out_dir / "world_trajectory.png", img).relative_to(run_dir))
+    if graph is not None:
+        flags, labels = graph["flags"], graph["labels"]
+        g_rgb = np.full(flags.shape + (3,), 60, np.uint8)
+        known = (flags & 1) != 0
+        g_rgb[known] = classes.colour_lut[np.minimum(labels[known], classes.size - 1)]
+        g_rgb[known & ((flags & 4) != 0)] = (255, 140, 0)
+        g_rgb[known & ((flags & 2) != 0)] = (200, 0, 0)
+        # graph cells are corner-anchored; top_down wants centre-anchored rasters
+        origin = np.asarray(graph["origin_xy"]) + 0.5 * float(graph["resolution_m"])
+        img = plots.top_down(
+            g_rgb,
+            origin,
+            float(graph["resolution_m"]),
+            tracks,
+            markers,
+            "navigation graph: class, obstacle (red), safety zone (orange)",
+        )
+        files["graph"] = str(plots.save_png(out_dir / "graph.png", img).relative_to(run_dir))
+    hist = np.asarray((state or {}).get("history") or [], float).reshape(-1, 4)
+    if len(hist) >= 2:
+        t = hist[:, 0] - hist[0, 0]
+        img = plots.line_plot(
+            [plots.Series("explored area (m2)", t.tolist(), hist[:, 1].tolist()),
+             plots.Series("distance (m)", t.tolist(), hist[:, 3].tolist())],
+            "exploration progress", "time (s)", "m2 / m",
+            xticklabels={float(v): f"{v:g}" for v in plots._nice_ticks(0, t[-1])},
+        )  # fmt: skip
+        files["progress"] = str(plots.save_png(out_dir / "progress.png", img).relative_to(run_dir))
+    return files
+
+
+def write_report(run_dir: str | Path, config) -> Path:
+    """Measure a finished run and write metrics.json, report.md and plots/; returns report.md."""
+    run_dir = Path(run_dir)
+    t0 = time.perf_counter()
+    classes = ClassTable.load(config.general.class_table)
+    names = {i: c.name for i, c in classes.classes.items()}
+    state = _load_json(run_dir / "explorer" / "state.json")
+    traj = _trajectory(run_dir)
+    graph = _graph(run_dir)
+    if graph is not None and not (run_dir / "graph.npz").exists():
+        shutil.copy(run_dir / "explorer" / "graph.npz", run_dir / "graph.npz")
+    metrics: dict = {
+        "run_dir": str(run_dir),
+        "config": {
+            "backend": config.mapper.backend,
+            "map_resolution_m": config.mapper.resolution_m,
+            "graph_resolution_m": config.navgraph.resolution_m,
+            "world": config.sim.world,
+            "seed": config.sim.seed,
+            "label_noise": config.sim.noise,
+            "pose_noise_xy_m": config.sim.pose_noise_xy_m,
+            "pose_noise_yaw_rad": config.sim.pose_noise_yaw_rad,
+            "class_costs": list(config.explorer.class_costs),
+            "time_budget_s": config.explorer.time_budget_s,
+        },
+    }
+    if state is not None:
+        metrics["explorer"] = {k: state.get(k) for k in (
+            "done_reason", "elapsed_s", "wall_time_s", "distance_m", "explored_m2", "n_goals",
+            "n_plans", "n_blocked", "n_stuck", "path_queries", "path_errors")}  # fmt: skip
+        counts = {int(k): v for k, v in (state.get("label_counts") or {}).items()}
+        metrics["explorer"]["map_label_share"] = ev.label_shares(
+            np.repeat(list(counts), list(counts.values())), names)  # fmt: skip
+    world = None
+    try:
+        world = ev.world_from_config(config)
+    except Exception as exc:  # a real robot or a missing world file: no ground truth
+        metrics["ground_truth"] = f"unavailable: {exc}"
+    if world is not None:
+        metrics["exploration"] = exploration_metrics(world, graph, traj, config)
+    map_path = _final_map(run_dir, classes)
+    if map_path is not None and world is not None:
+        try:
+            mp, ml = ev.load_labelled_cloud(map_path)
+            gt = run_dir / "gt.ply"
+            if not gt.is_file():
+                world.export_ply(gt, 0.03)
+            gp, gl = ev.load_labelled_cloud(gt)
+            metrics["map"] = ev.evaluate_map(mp, ml, gp, gl, names)
+            metrics["map"]["file"] = str(map_path.relative_to(run_dir))
+        except (OSError, ValueError) as exc:
+            metrics["map"] = f"evaluation failed: {exc}"
+    rrd = run_dir / "recording.rrd"
+    metrics["files"] = {
+        "recording": str(rrd.relative_to(run_dir)) if rrd.is_file() else None,
+        "recording_bytes": rrd.stat().st_size if rrd.is_file() else 0,
+        "map": str(map_path.relative_to(run_dir)) if map_path else None,
+        "graph": "graph.npz" if (run_dir / "graph.npz").is_file() else None,
+        "logs": sorted(str(p.relative_to(run_dir)) for p in (run_dir / "logs").glob("*.log")),
+    }
+    if world is not None:
+        metrics["files"]["plots"] = _plots(run_dir, world, graph, traj, state)
+    metrics["report_time_s"] = time.perf_counter() - t0
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_plain))
+    report = run_dir / "report.md"
+    report.write_text(render_markdown(metrics))
+    return report
+
+
+def _plain(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o).__name__)
+
+
+def _f(v, fmt=".2f", unit=""):
+    return "-" if v is None else f"{format(v, fmt)}{unit}"
+
+
+def render_markdown(m: dict) -> str:
+    c = m["config"]
+    lines = [
+        f"# smana run: {Path(m['run_dir']).name}",
+        "",
+        f"World `{c['world']}` seed {c['seed']}, map back-end `{c['backend']}` at "
+        f"{c['map_resolution_m']} m, graph {c['graph_resolution_m']} m, label noise "
+        f"`{c['label_noise']}`, pose noise {c['pose_noise_xy_m']} m / {c['pose_noise_yaw_rad']} "
+        f"rad, class costs {c['class_costs'] or 'from the class table'}.",
+        "",
+    ]
+    ex, ee = m.get("exploration") or {}, m.get("explorer") or {}
+    if ex or ee:
+        lines += ["## Exploration", "", "| figure | value |", "|---|---|"]
+        rows = [
+            ("ended because", ee.get("done_reason") or "-"),
+            ("wall time", _f(ee.get("wall_time_s"), ".0f", " s")),
+            ("robot time", _f(ex.get("duration_robot_s"), ".0f", " s")),
+            ("explored share of the reachable traversable area",
+             _f(100 * ex["coverage"] if ex.get("coverage") is not None else None, ".1f", " %")),
+            ("reachable traversable area (ground truth)", _f(ex.get("reachable_area_m2"), ".1f",
+                                                             " m2")),
+            ("known graph area", _f(ex.get("known_area_m2"), ".1f", " m2")),
+            ("distance travelled", _f(ex.get("distance_m"), ".1f", " m")),
+            ("goals", str(ee.get("n_goals", "-"))),
+            ("travelled nodes on terrain (vs grass, ground truth)",
+             _f(100 * ex["terrain_share"] if ex.get("terrain_share") is not None else None,
+                ".0f", " %")),
+            ("minimum clearance from obstacles", _f(ex.get("min_clearance_m"), ".2f", " m")),
+            (f"close calls (clearance < {CLOSE_CALL_M} m)", str(ex.get("close_calls", "-"))),
+        ]  # fmt: skip
+        lines += [f"| {a} | {b} |" for a, b in rows]
+        lines.append("")
+    mp = m.get("map")
+    if isinstance(mp, dict) and mp.get("n_points"):
+        lines += [
+            "## Map against ground truth",
+            "",
+            f"{mp['n_points']} map points (`{mp.get('file')}`): reconstruction error "
+            f"{_f(mp['reconstruction_error_mean_m'], '.3f')} m mean, "
+            f"{_f(mp['reconstruction_error_std_m'], '.3f')} m std; classification ratio "
+            f"{_f(mp['classification_ratio'], '.3f')}.",
+            "",
+            "| class (map label) | points | error mean (m) | classification ratio |",
+            "|---|---|---|---|",
+        ]
+        for name, s in mp["per_class"].items():
+            lines.append(f"| {name} | {s['n_points']} | {_f(s['error_mean_m'], '.3f')} | "
+                         f"{_f(s['classification_ratio'], '.3f')} |")  # fmt: skip
+        lines.append("")
+    elif mp:
+        lines += ["## Map against ground truth", "", str(mp), ""]
+    files = m.get("files") or {}
+    if files.get("plots"):
+        lines += ["## Plots", ""]
+        lines += [f"![{k}]({v})" for k, v in files["plots"].items()]
+        lines.append("")
+    lines += ["## Files", ""]
+    lines.append(
+        f"- Rerun recording: `{files.get('recording')}` "
+        f"({files.get('recording_bytes', 0) / 1e6:.1f} MB; `smana view {m['run_dir']}`)"
+    )
+    lines.append(f"- final map: `{files.get('map')}`, graph: `{files.get('graph')}`")
+    lines.append("- config used: `config.toml`; logs: " + ", ".join(
+        f"`{p}`" for p in files.get("logs", [])))  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def cli(argv: list[str] | None = None) -> int:
+    import argparse
+
+    p = argparse.ArgumentParser(prog="smana report", description="(Re)write a run's report.")
+    p.add_argument("run_dir", type=Path)
+    args = p.parse_args(argv)
+    config = ev.load_run_config(args.run_dir)
+    path = write_report(args.run_dir, config)
+    print(path.read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

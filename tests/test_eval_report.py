@@ -1,0 +1,80 @@
+"""The run report on a hand-made run directory over a small simulated world."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from smana.common.config import SmanaConfig
+from smana.deploy import report
+from smana.deploy.evaluation import world_from_config
+from smana.services.mapper.ply import write_ply
+
+
+@pytest.fixture
+def run(tmp_path):
+    cfg = SmanaConfig.load(None, ["sim.size_m=6.0", "sim.seed=3"])
+    cfg.write(tmp_path / "config.toml")
+    world = world_from_config(cfg)
+    # explorer outputs: a straight drive from the spawn point, and a graph that knows x < 0
+    x0, y0, _ = world.spawn_pose(0.4)
+    t = np.arange(0, 10, 0.1)
+    traj = np.column_stack([t, x0 + 0.0 * t, y0 + 0.0 * t, 0.0 * t])
+    (tmp_path / "explorer").mkdir()
+    np.savetxt(tmp_path / "explorer" / "trajectory.csv", traj, delimiter=",",
+               header="t_s,x_m,y_m,yaw_rad", comments="")  # fmt: skip
+    res = 0.2
+    flags = np.zeros((30, 30), np.uint8)
+    flags[:15] = 1
+    np.savez(tmp_path / "explorer" / "graph.npz", origin_xy=np.array([-3.0, -3.0]),
+             resolution_m=res, labels=np.full((30, 30), 2, np.uint16),
+             heights=np.zeros((30, 30), np.float32), flags=flags)  # fmt: skip
+    state = {"done_reason": "no_frontier", "distance_m": 0.0, "explored_m2": 18.0, "n_goals": 2,
+             "label_counts": {"1": 3, "2": 9}, "wall_time_s": 12.0,
+             "plans": [{"goal": [1.0, 1.0]}, {"goal": [-1.0, 1.0]}],
+             "history": [[0.0, 1.0, 10, 0.0], [5.0, 9.0, 8, 2.0], [9.0, 18.0, 0, 4.0]]}  # fmt: skip
+    (tmp_path / "explorer" / "state.json").write_text(json.dumps(state))
+    # the map: every 20th ground-truth point, raised 2 cm, a tenth of them mislabelled grass
+    gp, gl = world.gt_cloud(0.03)
+    mp = gp[::20] + np.array([0, 0, 0.02], np.float32)
+    ml = gl[::20].astype(np.uint16)
+    wrong = np.arange(len(ml)) % 10 == 0
+    ml[wrong] = np.where(ml[wrong] == 1, 2, 1)
+    n = len(mp)
+    write_ply(tmp_path / "map.ply", mp, np.zeros((n, 3), np.uint8), ml, np.ones(n, np.float32))
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / "sim.log").write_text("ok\n")
+    return tmp_path, cfg, world
+
+
+def test_report_measures_a_run(run):
+    run_dir, cfg, world = run
+    path = report.write_report(run_dir, cfg)
+    m = json.loads((run_dir / "metrics.json").read_text())
+    ex = m["exploration"]
+    # the graph knows x < 0 only: about half the reachable area
+    assert 0.3 < ex["coverage"] < 0.7
+    assert ex["reachable_area_m2"] > 5
+    assert ex["distance_m"] == 0.0 and ex["travelled_nodes"] == 1
+    assert ex["min_clearance_m"] >= 0.35  # the spawn point has 0.4 m clearance (a cell's slack)
+    mp = m["map"]
+    # raised 2 cm: on the ground the nearest GT point is 2 cm away, on walls of objects closer
+    assert 0.008 < mp["reconstruction_error_mean_m"] <= 0.02 + 1e-6
+    assert mp["classification_ratio"] == pytest.approx(0.9, abs=0.02)
+    assert m["explorer"]["map_label_share"] == {"grass": 0.25, "terrain": 0.75}
+    for png in m["files"]["plots"].values():
+        assert (run_dir / png).stat().st_size > 1000
+    text = path.read_text()
+    assert "explored share of the reachable traversable area" in text
+    assert "classification ratio" in text and "![graph](plots/graph.png)" in text
+    assert (run_dir / "graph.npz").is_file() and (run_dir / "gt.ply").is_file()
+
+
+def test_report_of_an_empty_run_dir_still_writes(tmp_path):
+    cfg = SmanaConfig.load(None, ["sim.size_m=6.0"])
+    path = report.write_report(tmp_path, cfg)
+    m = json.loads((tmp_path / "metrics.json").read_text())
+    assert m["exploration"]["coverage"] == 0.0
+    assert "map" not in m and path.is_file()
