@@ -109,22 +109,62 @@ class DeployConfig:
 
 @dataclass
 class SimConfig:
-    world: str = "garden"  # "garden" (procedural) or a path to a labelled PLY
-    seed: int = 3
-    size_m: float = _pos(default=12.0)
-    noise: NoiseLevel = "none"  # label noise level (paper Table 2)
-    pose_noise_xy_m: float = _nonneg(default=0.0)  # std dev of the published position
+    """`smana sim`: the PyBullet simulator (services/sim, its docstrings say more)."""
+
+    world: str = "garden"  # "garden" (procedural), or a labelled PLY: "ply:PATH" or a path
+    seed: int = 3  # world layout; noise streams derive from it too
+    size_m: float = _pos(default=12.0)  # side of the procedural garden
+    ground_resolution_m: float = _pos(default=0.1)  # height field / ground class raster cell
+    voxel_m: float = _pos(default=0.05)  # object voxels of a world built from a PLY
+    # label noise: "off" = true labels, confidence 1; "none".."high" = paper 4.2.1 (SLIC,
+    # confusion redraw with p = 1.0 / 0.9 / 0.8 / 0.7, confidence uniform in [0.33, 1])
+    noise: Literal["off", "none", "low", "medium", "high"] = "none"
+    slic_region_px: int = _pos(default=20)
+    slic_iterations: int = _pos(default=3)
+    pose_noise_xy_m: float = _nonneg(default=0.0)  # std dev of the published x and of y
     pose_noise_yaw_rad: float = _nonneg(default=0.0)  # std dev of the published yaw
+    camera_enabled: bool = True
     camera_width: int = _pos(default=640)
     camera_height: int = _pos(default=640)
     camera_fov_deg: float = _pos(default=57.0)
-    camera_rate_hz: float = _pos(default=2.0)
+    camera_rate_hz: float = _pos(default=2.0)  # simulated time
     camera_max_range_m: float = _pos(default=8.0)
+    camera_stride: int = _pos(default=1)  # keep every n-th pixel row and column in the cloud
+    publish_images: bool = False  # robot/image/{rgb,depth,semantic} with each camera frame
     lidar_enabled: bool = False
     lidar_rate_hz: float = _pos(default=10.0)
+    lidar_channels: int = _pos(default=64)  # Ouster OS1-64: 64 x 2048, 33.2 deg vertical
+    lidar_columns: int = _pos(default=2048)
+    lidar_vfov_deg: float = _pos(default=33.2)
+    lidar_max_range_m: float = _pos(default=20.0)
+    lidar_min_range_m: float = _nonneg(default=0.3)
     pose_rate_hz: float = _pos(default=20.0)
-    real_time_factor: float = _pos(default=1.0)
+    clock_rate_hz: float = _pos(default=10.0)
+    physics_hz: float = _pos(default=240.0)
+    real_time_factor: float = _pos(default=1.0)  # also the upper bound in lockstep
+    # lockstep: after each camera cloud, wait for the mapper's MapDelta with that cloud_seq
+    # (at most lockstep_timeout_s of wall time) before simulating on
     lockstep: bool = False
+    lockstep_timeout_s: float = _pos(default=5.0)
+    cmd_timeout_s: float = _pos(default=0.5)  # the base stops when commands stop this long
+    max_linear_mps: float = _pos(default=1.0)
+    max_angular_radps: float = _pos(default=2.0)
+    spawn: list[float] = field(default_factory=list)  # [x, y, yaw]; empty: free spot near centre
+
+    def validate(self) -> None:
+        if self.spawn and len(self.spawn) != 3:
+            raise ConfigError(f"sim.spawn: expected [x, y, yaw] or [], got {self.spawn!r}")
+        for name in ("camera_width", "camera_height"):
+            if getattr(self, name) > 4096:
+                raise ConfigError(f"sim.{name}: at most 4096, got {getattr(self, name)}")
+        if not self.camera_fov_deg < 170:
+            raise ConfigError(f"sim.camera_fov_deg: below 170, got {self.camera_fov_deg}")
+        if self.slic_region_px < 2:
+            raise ConfigError(f"sim.slic_region_px: at least 2, got {self.slic_region_px}")
+        if self.lidar_min_range_m >= self.lidar_max_range_m:
+            raise ConfigError("sim.lidar_min_range_m: must be below sim.lidar_max_range_m")
+        if self.physics_hz < 50:
+            raise ConfigError(f"sim.physics_hz: at least 50, got {self.physics_hz}")
 
 
 @dataclass
@@ -135,7 +175,39 @@ class MapperConfig:
     raycast_range_m: float = _nonneg(default=1.0)  # free space carved before a hit; 0 = whole ray
     inputs: list[str] = field(default_factory=lambda: ["cloud"])  # "cloud" and/or "scan"
     autosave_period_s: float = _nonneg(default=30.0)  # 0 = only on shutdown
-    load: str = ""  # resume from this map file
+    load: str = ""  # resume from this map file; "auto" = save_path when it exists
+    save_path: str = ""  # "" = <run_dir>/map.npz (no autosave without a run dir)
+    # OctoMap sensor model (its defaults) and Semantic Octomap fusion constants
+    prob_hit: float = 0.7
+    prob_miss: float = 0.4
+    clamp_min: float = 0.1192
+    clamp_max: float = 0.971
+    max_same_gain: float = 0.5  # same label: c += gain * c_obs * (1 - c)
+    max_disagree_factor: float = 0.9  # other label: the winner's confidence times this
+    # TSDF (voxblox fast integrator, Kimera semantics)
+    tsdf_truncation_voxels: float = _pos(default=2.0)
+    tsdf_label_probability: float = 0.9
+    tsdf_max_weight: float = _pos(default=10000.0)
+
+    def validate(self) -> None:
+        for name in self.inputs:
+            if name not in ("cloud", "scan"):
+                raise ConfigError(f"mapper.inputs: 'cloud' and/or 'scan', got {name!r}")
+        if not self.inputs:
+            raise ConfigError("mapper.inputs: at least one of 'cloud', 'scan'")
+        for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max", "tsdf_label_probability"):
+            if not 0.0 < getattr(self, name) < 1.0:
+                raise ConfigError(f"mapper.{name}: expected 0 < p < 1, got {getattr(self, name)}")
+        if not self.prob_miss < 0.5 < self.prob_hit:
+            raise ConfigError("mapper.prob_miss / prob_hit: need prob_miss < 0.5 < prob_hit")
+        if not self.clamp_min < 0.5 < self.clamp_max:
+            raise ConfigError("mapper.clamp_min / clamp_max: need clamp_min < 0.5 < clamp_max")
+        if not 0.0 <= self.max_same_gain <= 1.0:
+            raise ConfigError(f"mapper.max_same_gain: expected 0..1, got {self.max_same_gain}")
+        if not 0.0 < self.max_disagree_factor <= 1.0:
+            raise ConfigError(
+                f"mapper.max_disagree_factor: expected (0, 1], got {self.max_disagree_factor}"
+            )
 
 
 @dataclass
