@@ -278,11 +278,11 @@ def make_npz_folder(root, n=3, n_points=200, with_pose_file=True, tum=False):
         data.append((p, lab, conf))
     if with_pose_file:
         if tum:
-            from smana.services.replay.prepare import matrix_to_quaternion
+            from smana.common.messages import matrix_to_quat
 
             lines = [
                 f"{0.25 * k} {m[0, 3]} {m[1, 3]} {m[2, 3]} "
-                + " ".join(map(str, matrix_to_quaternion(m[:3, :3])))
+                + " ".join(map(str, matrix_to_quat(m[:3, :3])))
                 for k, m in enumerate(poses)
             ]
             (root / "poses.txt").write_text("# t x y z qx qy qz qw\n" + "\n".join(lines) + "\n")

@@ -13,8 +13,9 @@ from rosbags.rosbag2 import StoragePlugin  # noqa: E402
 from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
+from smana.common.messages import matrix_to_quat, quat_to_matrix  # noqa: E402
 from smana.services.replay.readers import DatasetError, detect_format, open_dataset  # noqa: E402
-from smana.services.replay.readers.rosbag import PoseTrack, _quat_to_matrix  # noqa: E402
+from smana.services.replay.readers.rosbag import PoseTrack  # noqa: E402
 
 TS1 = get_typestore(Stores.ROS1_NOETIC)
 TS2 = get_typestore(Stores.ROS2_HUMBLE)
@@ -78,9 +79,7 @@ def make_cloud(ts, t, points, labels, label_field="label", label_dtype="u2", ext
 
 def make_odom(ts, t, ros1=False):
     m = odom_pose(t)
-    from smana.services.replay.prepare import matrix_to_quaternion
-
-    q = matrix_to_quaternion(m[:3, :3])
+    q = matrix_to_quat(m[:3, :3])
     g = ts.types
     pose = g["geometry_msgs/msg/Pose"](
         position=g["geometry_msgs/msg/Point"](x=m[0, 3], y=m[1, 3], z=m[2, 3]),
@@ -256,6 +255,6 @@ def test_pose_track_slerp_matches_constant_rate_rotation():
     track = PoseTrack(stamps, np.zeros((2, 3)), quats)
     assert track.at(0.25, max_gap_s=0.1) is None  # 1 s between samples: a hole in the odometry
     m = track.at(0.25, max_gap_s=0.6)
-    np.testing.assert_allclose(m[:3, :3], _quat_to_matrix(np.array([0, 0, np.sin(0.15),
+    np.testing.assert_allclose(m[:3, :3], quat_to_matrix(np.array([0, 0, np.sin(0.15),
                                                                     np.cos(0.15)])))  # fmt: skip
     assert track.at(1.5, max_gap_s=0.4) is None

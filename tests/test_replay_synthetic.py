@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from smana.common.classes import ClassTable
+from smana.common.messages import quat_to_matrix
 from smana.services.replay import synthetic as syn
-from smana.services.replay.prepare import matrix_to_quaternion, prepare_scan
+from smana.services.replay.prepare import prepare_scan
 from smana.services.replay.readers import Scan, detect_format, open_dataset
-from smana.services.replay.readers.rosbag import _quat_to_matrix
 
 
 @pytest.fixture(scope="module")
@@ -143,16 +143,6 @@ def test_world_keeps_the_trail_clear(world):
 # -- preparing scans --------------------------------------------------------------------------
 
 
-def test_quaternion_round_trip():
-    rng = np.random.default_rng(0)
-    for q in rng.normal(size=(200, 4)):
-        q /= np.linalg.norm(q)
-        r = _quat_to_matrix(q)
-        q2 = matrix_to_quaternion(r)
-        np.testing.assert_allclose(_quat_to_matrix(q2), r, atol=1e-12)
-        np.testing.assert_allclose(abs(q2 @ q), 1.0, atol=1e-12)
-
-
 def prepare_reference(scan, table, max_range, min_range):
     pts, labs, confs = [], [], []
     for p, raw, c in zip(scan.points, scan.labels, scan.confidences, strict=True):
@@ -183,7 +173,7 @@ def test_prepare_scan_matches_per_point_reference():
     conf[60:65] = np.inf
     raw = rng.choice([0, 1, 3, 4, 7, 19, 31, 2, 500], n)
     pose = np.eye(4)
-    pose[:3, :3] = _quat_to_matrix(np.array([0.1, -0.2, 0.3, 0.9]))
+    pose[:3, :3] = quat_to_matrix(np.array([0.1, -0.2, 0.3, 0.9]))
     pose[:3, 3] = (4, -2, 1)
     scan = Scan(0, "s", 0.0, pts, raw, pose, conf)
     table = ClassTable.load("rellis3d")
@@ -196,7 +186,7 @@ def test_prepare_scan_matches_per_point_reference():
     assert out.n_in == n == out.n_out + out.n_nonfinite + out.n_out_of_range + out.n_ignored
     assert out.n_unclaimed == int(np.isin(raw, [2, 500]).sum())
     assert out.labels.dtype == np.uint16 and out.points.dtype == np.float32
-    np.testing.assert_allclose(_quat_to_matrix(out.sensor_orientation_xyzw), pose[:3, :3])
+    np.testing.assert_allclose(quat_to_matrix(out.sensor_orientation_xyzw), pose[:3, :3])
 
 
 def test_prepare_scan_rejects_bad_input():

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from smana.common.classes import ClassTable
+from smana.common.messages import matrix_to_quat
 
 from .readers.base import Scan
 
@@ -29,31 +30,7 @@ class PreparedCloud:
     n_out_of_range: int = 0
     n_ignored: int = 0
     n_unclaimed: int = 0  # dataset ids no class claims (kept, as unknown)
-
-    @property
-    def n_out(self) -> int:
-        return int(self.points.shape[0])
-
-
-def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
-    """3x3 rotation -> unit quaternion (x, y, z, w), w >= 0 (Shepperd's method, stable)."""
-    r = np.asarray(r, np.float64)
-    tr = np.trace(r)
-    if tr > 0:
-        s = 2.0 * np.sqrt(1.0 + tr)
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
-    elif r[1, 1] > r[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
+    n_out: int = 0  # points kept (also when the arrays themselves are not kept)
 
 
 def prepare_scan(
@@ -86,10 +63,11 @@ def prepare_scan(
         labels=labels[keep],
         confidences=np.clip(conf[keep], 0.0, 1.0),
         sensor_position=pose[:3, 3].copy(),
-        sensor_orientation_xyzw=matrix_to_quaternion(pose[:3, :3]),
+        sensor_orientation_xyzw=matrix_to_quat(pose[:3, :3]),
         n_in=int(pts.shape[0]),
         n_nonfinite=int((~finite).sum()),
         n_out_of_range=int((finite & ~in_range).sum()),
         n_ignored=int((finite & in_range & ~kept_class).sum()),
         n_unclaimed=n_unclaimed,
+        n_out=int(keep.sum()),
     )

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from smana.common.messages import quat_to_matrix
+
 from .base import DatasetError, DatasetReader, Scan, check_poses, rate_from_stamps, read_times
 
 _PLY_TYPES = {
@@ -172,12 +174,10 @@ def read_pose_file(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         poses[:, :3, :] = table.reshape(-1, 3, 4)
         return poses, None
     if table.shape[1] == 8:
-        from .rosbag import _quat_to_matrix
-
         q = table[:, 4:8]
         if np.any(np.linalg.norm(q, axis=1) < 1e-6):
             raise DatasetError(path, "zero-norm quaternion")
-        poses[:, :3, :3] = [_quat_to_matrix(qi) for qi in q]
+        poses[:, :3, :3] = [quat_to_matrix(qi) for qi in q]
         poses[:, :3, 3] = table[:, 1:4]
         return poses, table[:, 0].copy()
     raise DatasetError(

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from smana.common.messages import quat_to_matrix
+
 from .base import DatasetError, DatasetReader, Scan
 
 # sensor_msgs/PointField datatypes -> numpy kinds
@@ -139,17 +141,6 @@ def decode_cloud(msg, label_field: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     return points, labels, conf
 
 
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def _slerp(q0: np.ndarray, q1: np.ndarray, a: float) -> np.ndarray:
     d = float(np.dot(q0, q1))
     if d < 0:  # take the short way round
@@ -184,7 +175,7 @@ class PoseTrack:
             p = (1 - a) * self.positions[k - 1] + a * self.positions[k]
             q = _slerp(self.quats[k - 1], self.quats[k], a)
         m = np.eye(4)
-        m[:3, :3] = _quat_to_matrix(np.asarray(q, np.float64))
+        m[:3, :3] = quat_to_matrix(q)
         m[:3, 3] = p
         return m
 

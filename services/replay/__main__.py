@@ -1,0 +1,143 @@
+"""`smana replay DATASET`: replay a recorded dataset into the stack instead of the simulator.
+
+DATASET is a SemanticKITTI or RELLIS-3D sequence (or their root), a ROS 1 .bag, a ROS 2 bag folder,
+an .mcap file, or a folder of labelled PLY/NPZ scans. With --run, the mapper, navgraph and planner
+are started too (no sim), and the run directory gets what `smana up` writes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import signal
+import sys
+import time
+from pathlib import Path
+
+from smana.common.cli import config_from_args, make_parser, setup_logging
+from smana.common.config import SmanaConfig
+
+STACK = ("mapper", "navgraph", "planner")
+
+
+def cli(argv: list[str] | None = None) -> int:
+    p = make_parser("smana replay", __doc__.strip().splitlines()[0])
+    p.add_argument("dataset", nargs="?", help="dataset path (or set replay.dataset)")
+    p.add_argument("--run", action="store_true", help="also start mapper, navgraph and planner")
+    p.add_argument("--info", action="store_true", help="describe the dataset and exit")
+    p.add_argument("--format", choices=["semantickitti", "rellis3d", "rosbag", "folder"])
+    p.add_argument("--sequence", help="sequence to replay when DATASET holds several")
+    p.add_argument("--table", help="class table (default: the dataset's own)")
+    pace = p.add_mutually_exclusive_group()  # (--mode is zenoh's flag)
+    pace.add_argument(
+        "--lockstep",
+        dest="pace",
+        action="store_const",
+        const="lockstep",
+        help="send each scan once the mapper has integrated the last (default)",
+    )
+    pace.add_argument(
+        "--realtime",
+        dest="pace",
+        action="store_const",
+        const="realtime",
+        help="send scans at the recorded rate (times --rate)",
+    )
+    p.add_argument("--rate", type=float, metavar="X", help="realtime mode: x X the recorded rate")
+    p.add_argument("--start", type=int, metavar="N", help="first scan to replay")
+    p.add_argument("--count", type=int, metavar="N", help="number of scans to replay")
+    p.add_argument("--label-field", help="bags and PLY: name of the integer label field")
+    p.add_argument("--cloud-topic", help="bags: the sensor_msgs/PointCloud2 topic")
+    p.add_argument("--odom-topic", help="bags: the nav_msgs/Odometry topic")
+    p.add_argument("--fixed-pose", type=float, nargs=4, metavar=("X", "Y", "Z", "YAW"),
+                   help="bags without odometry: the sensor's fixed pose")  # fmt: skip
+    args = p.parse_args(argv)
+    cfg = config_from_args(args)
+    rc = cfg.replay
+    given = {
+        "dataset": args.dataset, "format": args.format, "sequence": args.sequence,
+        "class_table": args.table, "mode": args.pace, "rate_factor": args.rate,
+        "start": args.start, "count": args.count, "label_field": args.label_field,
+        "cloud_topic": args.cloud_topic, "odom_topic": args.odom_topic,
+        "fixed_pose": list(args.fixed_pose) if args.fixed_pose else None,
+    }  # fmt: skip
+    rc = dataclasses.replace(rc, **{k: v for k, v in given.items() if v is not None})
+    if rc.rate_factor <= 0 or rc.start < 0 or rc.count < 0:
+        p.error("--rate must be > 0, --start and --count >= 0")
+    if rc.dataset:  # services may run elsewhere (the supervisor's cwd is the run dir)
+        rc = dataclasses.replace(rc, dataset=str(Path(rc.dataset).resolve()))
+    cfg = dataclasses.replace(cfg, replay=rc)
+    setup_logging(cfg.general.log_level, "replay")
+
+    from smana.services.replay.readers import DatasetError
+    from smana.services.replay.service import open_reader
+
+    try:
+        reader = open_reader(rc)
+    except (DatasetError, ValueError, ImportError) as exc:
+        print(f"smana replay: {exc}", file=sys.stderr)
+        return 2
+    if args.info:
+        return _info(reader, rc)
+    if args.run:
+        return run_stack(cfg, reader)
+    from smana.services.replay.service import main
+
+    return main(cfg, reader)
+
+
+def _info(reader, rc) -> int:
+    from smana.services.replay.service import table_name, topic_of
+
+    i = reader.info()
+    print(f"{i.path}: {i.format}, {i.n_scans} scans at {i.rate_hz:.2f} Hz")
+    print(f"class table {table_name(rc, reader)}, published on robot/{topic_of(rc, reader)}")
+    reader.report_skipped(sys.stdout, limit=1000)
+    reader.close()
+    return 0
+
+
+def run_stack(cfg: SmanaConfig, reader) -> int:
+    """Supervise mapper, navgraph and planner with the replay in place of the sim; the run ends
+    when the replay has sent its last scan."""
+    from smana.common.config import ServiceDeployConfig
+    from smana.deploy.supervisor import Supervisor
+    from smana.services.replay.service import table_name, topic_of
+
+    rc = cfg.replay
+    table = table_name(rc, reader)
+    if Path(table).suffix == ".toml":
+        table = str(Path(table).resolve())
+    topic = topic_of(rc, reader)
+    reader.close()  # the replay process opens it again
+    g = cfg.general
+    run_dir = Path(g.run_dir) if g.run_dir else Path("runs") / time.strftime("replay-%Y%m%d-%H%M%S")
+    services = [n for n in STACK if getattr(cfg.deploy, n).enabled]
+    cfg = dataclasses.replace(
+        cfg,
+        general=dataclasses.replace(g, class_table=table, run_dir=str(run_dir)),
+        mapper=dataclasses.replace(cfg.mapper, inputs=[topic]),
+        deploy=dataclasses.replace(cfg.deploy, finish_with="replay"),
+        replay=dataclasses.replace(rc, class_table=table, wait_for=services),
+    )
+    sup = Supervisor(cfg, run_dir, services)
+    argv = [sys.executable, "-m", "smana.services.replay", "--config", str(sup.config_path)]
+    sup.add("replay", argv, ServiceDeployConfig(restart="never"))
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: sup.stop())
+    print(f"smana replay: run directory {run_dir}", flush=True)
+    code = sup.run()
+    try:  # the same report `smana up` writes, when that part of the stack exists
+        from smana.deploy import report
+    except ModuleNotFoundError:
+        report = None
+    if report is not None and hasattr(report, "write_report"):
+        try:
+            print(f"smana replay: report written to {report.write_report(run_dir, cfg)}")
+        except Exception as exc:  # noqa: BLE001 - the run's own outcome matters more
+            print(f"smana replay: writing the report failed: {exc}", file=sys.stderr)
+    print(f"smana replay: done, everything is in {run_dir}", flush=True)
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

@@ -1,0 +1,289 @@
+"""The replay's core, without zenoh: scans read ahead on a thread, and the pacing rules.
+
+`ScanFeed` reads, filters and encodes scans on a background thread while the mapper integrates the
+previous one, so reading never adds to the lockstep cycle. `Pacer` decides when the next scan
+goes out and keeps the books:
+
+- lockstep: a scan goes out once the mapper's MapDelta for the previous one (`cloud_seq` = its
+  seq) has arrived; none is lost. A scan unacknowledged after `ack_timeout_s` is sent again
+  (the mapper may have restarted), at most `max_resends` times, then counted lost.
+- realtime: scan k goes out at start + (stamp_k - stamp_0) / rate_factor whether or not the
+  mapper has finished. A scan published more than one period after its due time is
+  `late_published` (the replay itself could not keep up); one whose MapDelta arrives more than
+  one period after publication is `late_integrated`, and one never acknowledged is `unacked`
+  (the mapper's latest-wins input dropped it).
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from smana.common.classes import ClassTable
+from smana.common.messages import Pose, SemanticCloud, encode
+
+from .prepare import PreparedCloud, prepare_scan
+from .readers.base import DatasetReader, Scan
+
+
+@dataclass
+class FeedItem:
+    """One scan ready to go: encoded messages, or why it could not be read."""
+
+    index: int
+    name: str
+    stamp_s: float
+    cloud: bytes | None = None  # None: nothing left after filtering (pose still published)
+    pose: bytes | None = None
+    prepared: PreparedCloud | None = None
+    error: str = ""
+
+
+END = object()
+
+
+class ScanFeed:
+    """Read and prepare scans [start, start + count) on a thread, a few ahead of the publisher."""
+
+    def __init__(
+        self,
+        reader: DatasetReader,
+        table: ClassTable,
+        max_range_m: float,
+        min_range_m: float,
+        source: str,
+        start: int = 0,
+        count: int = 0,
+        ahead: int = 3,
+        keep_prepared: bool = False,
+    ):
+        n = len(reader)
+        if start >= n:
+            raise ValueError(f"start scan {start} is past the end ({n} scans)")
+        self.indices = range(start, n if count <= 0 else min(n, start + count))
+        self.reader, self.table, self.source = reader, table, source
+        self.max_range_m, self.min_range_m = max_range_m, min_range_m
+        self.keep_prepared = keep_prepared
+        self._queue: queue.Queue = queue.Queue(maxsize=ahead)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="replay-feed", daemon=True)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def start(self) -> ScanFeed:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        while True:  # unblock a producer waiting on a full queue
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
+                break
+        self._thread.join(timeout=5)
+
+    def get(self, timeout: float = 0.0):
+        """The next FeedItem, END after the last one, or None if none is ready yet."""
+        try:
+            return self._queue.get(timeout=timeout) if timeout > 0 else self._queue.get_nowait()
+        except queue.Empty:
+            return None
+
+    def _put(self, item) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _iter_scans(self) -> Iterable[tuple[int, Scan | Exception]]:
+        first, last = self.indices.start, self.indices.stop
+        if first == 0 and last == len(self.reader):
+            # Sequential readers (bags) stream faster through __iter__ than by index.
+            it = iter(self.reader)
+            for i in self.indices:
+                try:
+                    yield i, next(it)
+                except StopIteration:
+                    return
+                except Exception as exc:  # noqa: BLE001 - reported as a skipped scan
+                    yield i, exc
+                    it = iter(self.reader)  # a broken stream restarts; skip what was read
+                    for _ in range(i + 1):
+                        next(it, None)
+        else:
+            for i in self.indices:
+                try:
+                    yield i, self.reader.scan(i)
+                except Exception as exc:  # noqa: BLE001 - reported as a skipped scan
+                    yield i, exc
+
+    def _run(self) -> None:
+        seq = 0
+        for i, scan in self._iter_scans():
+            if self._stop.is_set():
+                return
+            if isinstance(scan, Exception):
+                item = FeedItem(i, f"scan {i}", float("nan"), error=f"{scan}")
+            else:
+                try:
+                    seq += 1
+                    item = self._prepare(scan, seq)
+                except ValueError as exc:
+                    item = FeedItem(i, scan.name, scan.stamp_s, error=str(exc))
+            if not self._put(item):
+                return
+        self._put(END)
+
+    def _prepare(self, scan: Scan, seq: int) -> FeedItem:
+        pc = prepare_scan(scan, self.table, self.max_range_m, self.min_range_m)
+        pose = Pose(
+            stamp_s=scan.stamp_s, seq=seq, position=pc.sensor_position,
+            orientation_xyzw=pc.sensor_orientation_xyzw,
+        )  # fmt: skip
+        item = FeedItem(scan.index, scan.name, scan.stamp_s, pose=encode(pose))
+        if pc.n_out:
+            cloud = SemanticCloud(
+                stamp_s=scan.stamp_s, seq=seq, points=pc.points,
+                labels=pc.labels.astype(np.uint16), confidences=pc.confidences,
+                sensor_position=pc.sensor_position,
+                sensor_orientation_xyzw=pc.sensor_orientation_xyzw,
+                source=self.source,
+            )  # fmt: skip
+            item.cloud = encode(cloud)
+        # Counts only (the arrays are in the encoded cloud) unless a caller wants them.
+        item.prepared = pc if self.keep_prepared else _counts_only(pc)
+        return item
+
+
+def _counts_only(pc: PreparedCloud) -> PreparedCloud:
+    empty = np.zeros(0, np.float32)
+    return PreparedCloud(
+        np.zeros((0, 3), np.float32), np.zeros(0, np.uint16), empty, pc.sensor_position,
+        pc.sensor_orientation_xyzw, pc.n_in, pc.n_nonfinite, pc.n_out_of_range, pc.n_ignored,
+        pc.n_unclaimed, pc.n_out,
+    )  # fmt: skip
+
+
+@dataclass
+class InFlight:
+    seq: int
+    index: int
+    sent_at: float
+    payload: bytes
+    resends: int = 0
+
+
+@dataclass
+class Pacer:
+    """Publication timing and acknowledgement books (see the module docstring)."""
+
+    mode: str  # "lockstep" | "realtime"
+    rate_factor: float = 1.0
+    ack_timeout_s: float = 30.0
+    max_resends: int = 3
+    clock: Callable[[], float] = time.monotonic
+    t0_wall: float | None = None
+    t0_stamp: float | None = None
+    in_flight: dict[int, InFlight] = field(default_factory=dict)
+    published: int = 0
+    acked: int = 0
+    lost: int = 0
+    resends: int = 0
+    late_published: int = 0
+    late_integrated: int = 0
+    latencies_s: list[float] = field(default_factory=list)
+    period_s: float = 0.1  # nominal scan period at the replay rate (set from the dataset)
+
+    def __post_init__(self):
+        if self.mode not in ("lockstep", "realtime"):
+            raise ValueError(f"mode must be lockstep or realtime, got {self.mode!r}")
+        if not self.rate_factor > 0:
+            raise ValueError("rate_factor must be > 0")
+
+    def due_at(self, stamp_s: float) -> float:
+        """Wall time (clock) at which a scan stamped `stamp_s` should go out (realtime)."""
+        if self.t0_wall is None:
+            return self.clock()
+        return self.t0_wall + (stamp_s - self.t0_stamp) / self.rate_factor
+
+    def ready(self, stamp_s: float) -> bool:
+        """May the scan stamped `stamp_s` go out now?"""
+        if self.mode == "lockstep":
+            return not self.in_flight
+        return self.t0_wall is None or self.clock() >= self.due_at(stamp_s)
+
+    def start_clock(self, stamp_s: float) -> None:
+        """The first scan out fixes the mapping from recorded stamps to wall time."""
+        if self.t0_wall is None:
+            self.t0_wall, self.t0_stamp = self.clock(), stamp_s
+
+    def on_published(self, seq: int, index: int, stamp_s: float, payload: bytes) -> None:
+        now = self.clock()
+        if self.t0_wall is None:
+            self.start_clock(stamp_s)
+        elif self.mode == "realtime" and now - self.due_at(stamp_s) > self.period_s:
+            self.late_published += 1
+        self.published += 1
+        self.in_flight[seq] = InFlight(seq, index, now, payload)
+
+    def on_ack(self, cloud_seq: int) -> float | None:
+        """A MapDelta for `cloud_seq` arrived: the scan's integration latency, or None if the
+        seq is not waiting (a second delta chunk, or a scan already given up)."""
+        f = self.in_flight.pop(cloud_seq, None)
+        if f is None:
+            return None
+        # The mapper integrates in order: anything older still waiting was dropped by its
+        # latest-wins input (realtime) and will never be acknowledged.
+        for seq in [s for s in self.in_flight if s < cloud_seq]:
+            del self.in_flight[seq]
+            self.lost += 1
+        latency = self.clock() - f.sent_at
+        self.acked += 1
+        self.latencies_s.append(latency)
+        if self.mode == "realtime" and latency > self.period_s:
+            self.late_integrated += 1
+        return latency
+
+    def overdue(self) -> list[InFlight]:
+        """Lockstep: scans to send again (their timers restart); gives up after max_resends."""
+        now = self.clock()
+        out = []
+        for seq, f in list(self.in_flight.items()):
+            if now - f.sent_at < self.ack_timeout_s:
+                continue
+            if self.mode == "realtime" or f.resends >= self.max_resends:
+                del self.in_flight[seq]
+                self.lost += 1
+            else:
+                f.resends += 1
+                f.sent_at = now
+                self.resends += 1
+                out.append(f)
+        return out
+
+    def give_up_waiting(self) -> int:
+        """End of the replay: whatever is still unacknowledged is lost."""
+        n = len(self.in_flight)
+        self.lost += n
+        self.in_flight.clear()
+        return n
+
+    def latency_summary(self) -> dict:
+        lat = np.asarray(self.latencies_s) * 1000.0
+        if lat.size == 0:
+            return {"mean_ms": None, "p95_ms": None, "max_ms": None}
+        return {
+            "mean_ms": float(lat.mean()),
+            "p95_ms": float(np.percentile(lat, 95)),
+            "max_ms": float(lat.max()),
+        }

@@ -1,0 +1,343 @@
+"""The replay service: a recorded dataset on the robot's keys, in place of the simulator.
+
+Per scan it publishes `robot/clock`, `robot/pose` and the filtered, labelled, world-frame cloud on
+`robot/scan` (LiDAR datasets) or `robot/cloud` (camera), then paces the next one as `player.Pacer`
+says: lockstep (after the mapper's MapDelta for this scan) or realtime (at the recorded rate x N).
+Before the first scan it waits for the services in `replay.wait_for` to be alive, so that nothing
+published is lost to a subscriber that is not there yet. When the sequence is done it writes
+`replay.json` (counts, latencies) into the run directory, if there is one, and exits.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from smana.common import keys
+from smana.common.classes import ClassTable
+from smana.common.config import ReplayConfig, SmanaConfig
+from smana.common.messages import MapDelta
+from smana.common.service import Service
+
+from .player import END, FeedItem, Pacer, ScanFeed
+from .readers import DatasetReader, detect_format, open_dataset
+from .readers.rosbag import fixed_pose_matrix
+
+
+def open_reader(rc: ReplayConfig) -> DatasetReader:
+    """The dataset named by the [replay] section, with only the options its format takes."""
+    if not rc.dataset:
+        raise ValueError("no dataset: give `smana replay DATASET` or set replay.dataset")
+    fmt = rc.format or detect_format(rc.dataset)
+    fixed = None
+    if rc.fixed_pose:
+        if len(rc.fixed_pose) == 16:
+            import numpy as np
+
+            fixed = np.asarray(rc.fixed_pose, float).reshape(4, 4)
+        elif len(rc.fixed_pose) == 4:
+            fixed = fixed_pose_matrix(rc.fixed_pose)
+        else:
+            raise ValueError("replay.fixed_pose must be x, y, z, yaw or 16 numbers (4x4)")
+    return open_dataset(
+        rc.dataset, fmt, sequence=rc.sequence or None,
+        label_field=rc.label_field if rc.label_field != "label" else None,
+        cloud_topic=rc.cloud_topic or None, odom_topic=rc.odom_topic or None, fixed_pose=fixed,
+    )  # fmt: skip
+
+
+def table_name(rc: ReplayConfig, reader: DatasetReader) -> str:
+    return rc.class_table or reader.default_class_table
+
+
+def topic_of(rc: ReplayConfig, reader: DatasetReader) -> str:
+    """ "scan" or "cloud": where the clouds go."""
+    if rc.topic != "auto":
+        return rc.topic
+    return "scan" if reader.sensor == "lidar" else "cloud"
+
+
+class Progress:
+    """A progress line on stderr: a redrawn bar on a terminal, a log line every 10 s otherwise."""
+
+    def __init__(self, total: int, stream=None):
+        self.total = total
+        self.stream = stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.t0 = time.monotonic()
+        self._last = 0.0
+
+    def update(self, done: int, extra: str = "", force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._last < (0.25 if self.tty else 10.0):
+            return
+        self._last = now
+        frac = done / self.total if self.total else 1.0
+        rate = done / max(now - self.t0, 1e-9)
+        text = f"{done}/{self.total} scans {100 * frac:5.1f}% {rate:5.1f} scans/s {extra}"
+        if self.tty:
+            bar = "#" * int(30 * frac)
+            self.stream.write(f"\r[{bar:<30}] {text}\033[K")
+            if force:
+                self.stream.write("\n")
+        else:
+            self.stream.write(f"replay: {text}\n")
+        self.stream.flush()
+
+
+class ReplayService(Service):
+    name = "replay"
+    tick_period_s = 0.005  # realtime pacing resolution
+
+    def __init__(self, config: SmanaConfig, reader: DatasetReader | None = None):
+        super().__init__(config)
+        rc = self.rc = config.replay
+        self.reader = reader if reader is not None else open_reader(rc)
+        self.reader.report_skipped()
+        self.table = ClassTable.load(table_name(rc, self.reader))
+        self.topic = topic_of(rc, self.reader)
+        self.feed = ScanFeed(
+            self.reader, self.table, rc.max_range_m, rc.min_range_m,
+            "lidar" if self.topic == "scan" else "camera", rc.start, rc.count,
+        )  # fmt: skip
+        period = 1.0 / (self.reader.rate_hz * rc.rate_factor)
+        self.pacer = Pacer(rc.mode, rc.rate_factor, rc.ack_timeout_s, period_s=period)
+        self.phase = "waiting"  # -> running -> done
+        self.exit_code = 0
+        self._alive: set[str] = set()
+        self._next: FeedItem | object | None = None
+        self._feed_done = False
+        self.done = 0  # scans handled (published or skipped)
+        self.empty = 0
+        self.read_errors: list[tuple[str, str]] = []
+        self.points_in = self.points_out = 0
+        self.points_range = self.points_ignored = self.points_nonfinite = 0
+        self._t_wait = time.monotonic()
+        self._t_run = None
+        self.progress = Progress(len(self.feed))
+        if self.table.name != config.general.class_table:
+            self.log.warning(
+                "replaying with class table %r but general.class_table is %r: run the mapper "
+                "and navgraph with --set general.class_table=%s so labels mean the same",
+                self.table.name, config.general.class_table, self.table.name,
+            )  # fmt: skip
+        if self.topic not in config.mapper.inputs:
+            self.log.warning(
+                "clouds go to robot/%s: the mapper needs --set mapper.inputs='[\"%s\"]'",
+                self.topic, self.topic,
+            )  # fmt: skip
+
+    # -- wiring ----------------------------------------------------------------------------------
+
+    def setup(self) -> None:
+        r = self.robot
+        lockstep = self.rc.mode == "lockstep"
+        cloud_key = keys.scan(r) if self.topic == "scan" else keys.cloud(r)
+        # In lockstep no scan may be lost, so the link blocks instead of dropping.
+        self.cloud_pub = self.publisher(cloud_key, reliable_block=lockstep)
+        self.pose_pub = self.publisher(keys.pose(r))
+        self.clock_pub = self.publisher(keys.clock(r))
+        self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
+        if self.rc.wait_for:
+            self._declared.append(
+                self.session.liveliness().declare_subscriber(
+                    keys.alive_any(r), self._on_alive, history=True
+                )
+            )
+        self.feed.start()
+        self.log.info(
+            "replaying %d scans of %s (%s, %.1f Hz) on %s, %s%s",
+            len(self.feed), self.reader.path, self.reader.format, self.reader.rate_hz, cloud_key,
+            self.rc.mode, f" x{self.rc.rate_factor:g}" if not lockstep else "",
+        )  # fmt: skip
+
+    def _on_alive(self, sample) -> None:
+        # zenoh thread: only record and wake the main loop
+        import zenoh
+
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._alive.add(name)
+        else:
+            self._alive.discard(name)
+        self._wake.set()
+
+    def on_delta(self, delta: MapDelta) -> None:
+        if self.pacer.on_ack(int(delta.cloud_seq)) is not None and self.rc.mode == "lockstep":
+            self._advance()
+
+    # -- the main loop -----------------------------------------------------------------------------
+
+    def tick(self) -> None:
+        if self.phase == "waiting":
+            missing = [s for s in self.rc.wait_for if s not in self._alive]
+            if not missing:
+                self.phase = "running"
+                self._t_run = time.monotonic()
+            elif time.monotonic() - self._t_wait > self.rc.wait_timeout_s:
+                self.log.error(
+                    "%s not alive after %.0f s: nothing to replay into",
+                    ", ".join(missing), self.rc.wait_timeout_s,
+                )  # fmt: skip
+                self.exit_code = 1
+                self.phase = "done"
+                self.stop()
+                return
+            else:
+                return
+        if self.phase != "running":
+            return
+        for f in self.pacer.overdue():
+            self.log.warning("no MapDelta for scan seq %d after %.0f s: sending it again",
+                             f.seq, self.rc.ack_timeout_s)  # fmt: skip
+            self.cloud_pub.put(f.payload)
+        self._advance()
+        self._maybe_finish()
+        self.progress.update(self.done, self._progress_extra())
+
+    def _advance(self) -> None:
+        """Publish every scan that may go out now."""
+        while self.phase == "running":
+            if self._next is None:
+                self._next = self.feed.get()
+                if self._next is None:
+                    return  # the reader is behind; the next tick tries again
+            if self._next is END:
+                self._feed_done = True
+                return
+            item: FeedItem = self._next
+            if item.error:
+                self.read_errors.append((item.name, item.error))
+                self.count_error("dataset", f"{item.name}: {item.error}")
+                self.done += 1
+                self._next = None
+                continue
+            if not self.pacer.ready(item.stamp_s):
+                return
+            self._publish(item)
+            self._next = None
+            if self.rc.mode == "lockstep" and item.cloud is not None:
+                return  # wait for this scan's MapDelta
+
+    def _publish(self, item: FeedItem) -> None:
+        pc = item.prepared
+        self.clock_pub.put({"sim_time_s": item.stamp_s, "real_time_factor": self.rc.rate_factor})
+        self.pose_pub.put(item.pose)
+        if item.cloud is not None:
+            seq = self.pacer.published + 1
+            self.cloud_pub.put(item.cloud)
+            self.pacer.on_published(seq, item.index, item.stamp_s, item.cloud)
+        else:
+            self.pacer.start_clock(item.stamp_s)
+            self.empty += 1
+        self.done += 1
+        self.points_in += pc.n_in
+        self.points_out += pc.n_out
+        self.points_range += pc.n_out_of_range
+        self.points_ignored += pc.n_ignored
+        self.points_nonfinite += pc.n_nonfinite
+
+    def _maybe_finish(self) -> None:
+        if not self._feed_done or self.phase != "running":
+            return
+        if self.pacer.in_flight:
+            if not (self.rc.mode == "realtime" and self.pacer.acked == 0):
+                return  # wait for the last MapDeltas (overdue() bounds the wait)
+            # realtime with nothing acknowledging at all: no mapper, do not wait for one
+        if self.pacer.acked:
+            self.pacer.give_up_waiting()
+        else:
+            self.pacer.in_flight.clear()
+        self.phase = "done"
+        self.progress.update(self.done, self._progress_extra(), force=True)
+        summary = self.summary()
+        self._write_summary(summary)
+        self.log.info("replay done: %s", _one_line(summary))
+        if self.rc.mode == "lockstep" and summary["lost"]:
+            self.exit_code = 1
+        self.stop()
+
+    # -- reporting --------------------------------------------------------------------------------
+
+    def _progress_extra(self) -> str:
+        p = self.pacer
+        lat = p.latency_summary()["mean_ms"]
+        parts = [f"lat {lat:.0f} ms" if lat is not None else "lat -"]
+        if p.lost:
+            parts.append(f"lost {p.lost}")
+        if p.late_published or p.late_integrated:
+            parts.append(f"late {p.late_published}+{p.late_integrated}")
+        return " ".join(parts)
+
+    def summary(self) -> dict:
+        p = self.pacer
+        wall = time.monotonic() - (self._t_run or time.monotonic())
+        return {
+            "dataset": str(self.reader.path),
+            "format": self.reader.format,
+            "class_table": self.table.name,
+            "topic": self.topic,
+            "mode": self.rc.mode,
+            "rate_factor": self.rc.rate_factor,
+            "recorded_rate_hz": self.reader.rate_hz,
+            "scans": len(self.feed),
+            "published": p.published,
+            "empty": self.empty,
+            "skipped_by_reader": [[s.name, s.reason] for s in self.reader.skipped],
+            "read_errors": [list(e) for e in self.read_errors],
+            "acknowledged": p.acked,
+            "lost": p.lost,
+            "resends": p.resends,
+            "late_published": p.late_published,
+            "late_integrated": p.late_integrated,
+            "latency": p.latency_summary(),
+            "points_in": self.points_in,
+            "points_published": self.points_out,
+            "points_out_of_range": self.points_range,
+            "points_ignored_class": self.points_ignored,
+            "points_nonfinite": self.points_nonfinite,
+            "wall_s": wall,
+            "scans_per_s": p.published / wall if wall > 0 else None,
+        }
+
+    def _write_summary(self, summary: dict) -> None:
+        run_dir = self.config.general.run_dir
+        if run_dir:
+            path = Path(run_dir) / "replay.json"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(summary, indent=1))
+            self.log.info("summary written to %s", path)
+
+    def status_details(self) -> dict:
+        p = self.pacer
+        return {
+            "progress": f"{self.done}/{len(self.feed)}",
+            "phase": self.phase,
+            "published": p.published,
+            "acknowledged": p.acked,
+            "lost": p.lost,
+            "late": p.late_published + p.late_integrated,
+        }
+
+    def on_stop(self) -> None:
+        self.feed.stop()
+        self.reader.close()
+
+
+def _one_line(s: dict) -> str:
+    lat = s["latency"]
+    mean = f"{lat['mean_ms']:.0f} ms" if lat["mean_ms"] is not None else "-"
+    return (
+        f"{s['published']}/{s['scans']} scans published ({s['empty']} empty, "
+        f"{len(s['read_errors'])} unreadable), {s['acknowledged']} integrated, {s['lost']} lost, "
+        f"{s['late_published']}+{s['late_integrated']} late, latency mean {mean}, "
+        f"{s['points_published']}/{s['points_in']} points kept"
+    )
+
+
+def main(config: SmanaConfig, reader: DatasetReader | None = None) -> int:
+    service = ReplayService(config, reader)
+    service.run()
+    return service.exit_code

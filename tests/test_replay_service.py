@@ -1,0 +1,211 @@
+"""The replay service as a process on an isolated router, against a stand-in mapper in the test
+process (a liveliness token, a scan subscriber and a MapDelta publisher): lockstep loses nothing
+and publishes exactly what the core prepares; realtime counts what a slow mapper misses."""
+
+from __future__ import annotations
+
+import json
+import queue
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from smana.common import keys
+from smana.common.classes import ClassTable
+from smana.common.messages import MapDelta, Pose, SemanticCloud, decode, encode
+from smana.services.replay import synthetic as syn
+from smana.services.replay.player import Pacer
+from smana.services.replay.prepare import prepare_scan
+from smana.services.replay.readers import open_dataset
+
+N_SCANS = 6
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synthetic")
+    params = syn.SyntheticParams(n_scans=N_SCANS, beams=16, columns=256, noise_m=0.0)
+    syn.write_rellis_sequence(root, params)
+    return root
+
+
+class FakeMapper:
+    """Acknowledges each scan with an empty MapDelta after `delay_s`, like the mapper would."""
+
+    def __init__(self, session, robot, delay_s=0.0, topic="scan"):
+        self.session, self.robot, self.delay_s = session, robot, delay_s
+        self.clouds: list[SemanticCloud] = []
+        self.poses: list[Pose] = []
+        self._q: queue.Queue = queue.Queue()
+        self._pub = session.declare_publisher(keys.map_delta(robot))
+        key = keys.scan(robot) if topic == "scan" else keys.cloud(robot)
+        self._subs = [
+            session.declare_subscriber(key, lambda s: self._q.put(s.payload.to_bytes())),
+            session.declare_subscriber(
+                keys.pose(robot), lambda s: self.poses.append(decode(s.payload.to_bytes(), Pose))
+            ),
+        ]
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._work, daemon=True)
+        self._thread.start()
+        self._token = session.liveliness().declare_token(keys.alive(robot, "mapper"))
+
+    def _work(self):
+        while not self._stop.is_set():
+            try:
+                payload = self._q.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            if self.delay_s and self._q.qsize():  # latest wins, like the real one
+                while self._q.qsize():
+                    payload = self._q.get()
+            cloud = decode(payload, SemanticCloud)
+            self.clouds.append(cloud)
+            time.sleep(self.delay_s)
+            self._pub.put(encode(MapDelta(stamp_s=cloud.stamp_s, seq=len(self.clouds),
+                                          cloud_seq=cloud.seq)))  # fmt: skip
+
+    def close(self):
+        self._stop.set()
+        self._thread.join()
+        self._token.undeclare()
+        for s in self._subs:
+            s.undeclare()
+        self._pub.undeclare()
+
+
+def run_replay(stack, dataset, *extra, timeout_s=60.0):
+    proc = stack.service("replay", str(dataset), "--run-dir", str(stack.tmp / "run"), *extra)
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        stack.stop(proc)
+        raise AssertionError("replay did not finish:\n" + stack.log(proc)) from None
+    summary_path = stack.tmp / "run" / "replay.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
+    return proc.returncode, summary
+
+
+@pytest.mark.multiprocess
+def test_lockstep_publishes_every_scan_as_prepared(zenoh_stack, dataset):
+    mapper = FakeMapper(zenoh_stack.session, zenoh_stack.robot, delay_s=0.05)
+    try:
+        code, summary = run_replay(zenoh_stack, dataset, "--lockstep")
+    finally:
+        mapper.close()
+    assert code == 0, zenoh_stack.log("replay")
+    assert [c.seq for c in mapper.clouds] == list(range(1, N_SCANS + 1))
+    assert summary["published"] == summary["acknowledged"] == N_SCANS
+    assert summary["lost"] == 0 and summary["resends"] == 0
+    assert summary["latency"]["mean_ms"] >= 50  # it did wait for each delta
+    table = ClassTable.load("rellis3d")
+    with open_dataset(dataset) as reader:
+        for cloud, scan in zip(mapper.clouds, reader, strict=True):
+            pc = prepare_scan(scan, table, max_range_m=10.0, min_range_m=0.5)
+            np.testing.assert_array_equal(cloud.points, pc.points)
+            np.testing.assert_array_equal(cloud.labels, pc.labels)
+            np.testing.assert_allclose(cloud.sensor_position, scan.pose[:3, 3])
+            assert cloud.source == "lidar" and cloud.stamp_s == pytest.approx(scan.stamp_s)
+            assert np.linalg.norm(cloud.points - pc.sensor_position, axis=1).max() <= 10.0 + 1e-4
+    assert len(mapper.poses) == N_SCANS
+    assert summary["points_published"] == sum(len(c.points) for c in mapper.clouds)
+
+
+@pytest.mark.multiprocess
+def test_realtime_counts_what_a_slow_mapper_misses(zenoh_stack, dataset):
+    # 10 Hz x 4 = 25 ms between scans, a mapper taking 120 ms per scan
+    mapper = FakeMapper(zenoh_stack.session, zenoh_stack.robot, delay_s=0.12)
+    try:
+        code, summary = run_replay(zenoh_stack, dataset, "--realtime", "--rate", "4")
+    finally:
+        mapper.close()
+    assert code == 0, zenoh_stack.log("replay")
+    assert summary["published"] == N_SCANS
+    assert summary["lost"] + summary["late_integrated"] > 0
+    assert summary["acknowledged"] == len({c.seq for c in mapper.clouds})
+    assert summary["acknowledged"] + summary["lost"] == N_SCANS
+    assert summary["wall_s"] < 2.0  # it did not wait for the mapper between scans
+
+
+@pytest.mark.multiprocess
+def test_waits_for_the_mapper_then_gives_up(zenoh_stack, dataset):
+    code, summary = run_replay(zenoh_stack, dataset, "--set", "replay.wait_timeout_s=1.0")
+    assert code == 1 and summary is None
+    assert "mapper not alive after 1 s" in zenoh_stack.log("replay")
+
+
+def test_bad_dataset_is_a_clear_error(tmp_path):
+    (tmp_path / "velodyne").mkdir()
+    out = subprocess.run(
+        [sys.executable, "-m", "smana.services.replay", str(tmp_path), "--info"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert out.returncode == 2
+    assert "label folder is missing" in out.stderr
+
+
+def test_info_lists_skipped_scans(dataset):
+    lab = dataset / "Rellis-3D" / "00000" / "os1_cloud_node_semantickitti_label_id"
+    data = (lab / "000002.label").read_bytes()
+    (lab / "000002.label").unlink()
+    try:
+        out = subprocess.run(
+            [sys.executable, "-m", "smana.services.replay", str(dataset), "--info"],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+    finally:
+        (lab / "000002.label").write_bytes(data)
+    assert out.returncode == 0, out.stderr
+    assert f"rellis3d, {N_SCANS - 1} scans at 10.00 Hz" in out.stdout
+    assert "000002.bin: no label file" in out.stdout
+    assert "class table rellis3d, published on robot/scan" in out.stdout
+
+
+# -- pacing rules, with a fake clock ------------------------------------------------------------
+
+
+class FakeClock:
+    """Creeps forward by 1 us per reading, as a real clock does between two calls."""
+
+    def __init__(self):
+        self.t = 100.0
+
+    def __call__(self):
+        self.t += 1e-6
+        return self.t
+
+
+def test_pacer_lockstep_waits_resends_and_gives_up():
+    clock = FakeClock()
+    p = Pacer("lockstep", ack_timeout_s=5.0, max_resends=1, clock=clock)
+    assert p.ready(0.0)
+    p.on_published(1, 0, 0.0, b"a")
+    assert not p.ready(0.1)
+    clock.t += 0.2
+    assert p.on_ack(1) == pytest.approx(0.2, abs=1e-4) and p.ready(0.1)
+    p.on_published(2, 1, 0.1, b"b")
+    clock.t += 6
+    assert [f.seq for f in p.overdue()] == [2] and p.resends == 1
+    clock.t += 6
+    assert p.overdue() == [] and p.lost == 1 and p.ready(0.2)
+
+
+def test_pacer_realtime_schedule_and_late_counts():
+    clock = FakeClock()
+    p = Pacer("realtime", rate_factor=2.0, period_s=0.05, clock=clock)
+    assert p.ready(10.0)  # the first scan goes out at once
+    p.on_published(1, 0, 10.0, b"")  # t0: stamp 10.0 at wall 100.0
+    assert not p.ready(10.1)  # due at 100.05
+    clock.t = 100.0501
+    assert p.ready(10.1)
+    p.on_published(2, 1, 10.1, b"")
+    clock.t = 100.2  # stamp 10.2 was due at 100.1: 0.1 s late > one period
+    p.on_published(3, 2, 10.2, b"")
+    assert p.late_published == 1
+    assert p.on_ack(3) == pytest.approx(0.0, abs=1e-4)
+    assert p.lost == 2  # 1 and 2 were overtaken: the mapper dropped them
+    assert p.on_ack(1) is None
