@@ -128,7 +128,7 @@ class Primitive:
             local = _fibonacci_sphere(n) * np.array([a, b, c])
         cs, sn = math.cos(self.yaw), math.sin(self.yaw)
         rot = np.array([[cs, -sn, 0.0], [sn, cs, 0.0], [0.0, 0.0, 1.0]])
-        return local @ rot.T + np.array(self.centre)
+        return np.einsum("ij,kj->ik", local, rot) + np.array(self.centre)
 
 
 def _grid_1d(half: float, spacing: float) -> np.ndarray:
@@ -559,6 +559,23 @@ class GardenWorld:
         ground = _make_ground(spec, rng)
         objects = _walls(ground, spec) + _place_objects(spec, ground, rng)
         return cls(ground, objects, classes, name=f"garden-{seed}", seed=seed, spec=spec)
+
+    @classmethod
+    def from_config(cls, sim_config, classes: ClassTable | None = None) -> GardenWorld:
+        """The world a `[sim]` config section describes: `world = "garden"` (procedural, from
+        `seed`, `size_m`, `ground_resolution_m`) or a labelled PLY (`"ply:PATH"` or a path,
+        with `voxel_m`). The same config always gives the same world."""
+        spec = sim_config.world
+        res = getattr(sim_config, "ground_resolution_m", 0.1)
+        if spec == "garden":
+            return cls.generate(
+                sim_config.seed, size_m=sim_config.size_m, classes=classes, ground_resolution_m=res
+            )
+        path = spec[4:] if spec.startswith("ply:") else spec
+        if not Path(path).is_file():
+            raise WorldError(f"sim.world: {spec!r} is neither 'garden' nor a PLY file")
+        voxel = getattr(sim_config, "voxel_m", 0.05)
+        return cls.from_ply(path, classes, voxel_m=voxel, ground_resolution_m=res)
 
     @classmethod
     def from_ply(

@@ -1,0 +1,232 @@
+"""The semantic RGB-D camera: TinyRenderer (CPU) images turned into a labelled point cloud.
+
+One `getCameraImage` call gives the RGB image, the depth buffer and the segmentation mask (body
+ids). Depth is linearised to metres along the optical axis and unprojected through the pinhole
+model; a pixel's class is its body's class, except on the ground height field, whose class is
+looked up in the world's ground raster at the pixel's (x, y). The default follows the paper:
+640 x 640 pixels, 57 degree field of view.
+
+Frames: the sensor frame follows REP-103 (x forward along the optical axis, y left, z up); the
+OpenGL camera frame TinyRenderer uses (x right, y up, looking down -z) only appears inside
+`view_matrix`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import pybullet as p
+
+from .scene import BulletScene
+from .world import Raster
+
+# OpenGL camera axes (right, up, backward) expressed in the REP-103 sensor frame
+_SENSOR_FROM_GL = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    width: int = 640
+    height: int = 640
+    fov_deg: float = 57.0  # vertical field of view (horizontal too at 640 x 640)
+    near_m: float = 0.05
+    max_range_m: float = 8.0
+    # mount on the robot's base frame: position and downward pitch
+    mount_xyz: tuple[float, float, float] = (0.25, 0.0, 0.20)
+    mount_pitch_deg: float = 15.0
+
+    def validate(self) -> None:
+        if self.width < 8 or self.height < 8 or self.width > 4096 or self.height > 4096:
+            raise ValueError(f"camera size must be within 8..4096, got {self.width}x{self.height}")
+        if not 1.0 <= self.fov_deg <= 170.0:
+            raise ValueError(f"camera fov_deg must be within 1..170, got {self.fov_deg}")
+        if not 0 < self.near_m < self.max_range_m:
+            raise ValueError("camera needs 0 < near_m < max_range_m")
+
+    @property
+    def focal_px(self) -> float:
+        return (self.height / 2) / math.tan(math.radians(self.fov_deg) / 2)
+
+    def mount_matrix(self) -> np.ndarray:
+        """Sensor pose in the robot's base frame (4x4)."""
+        pitch = math.radians(self.mount_pitch_deg)
+        c, s = math.cos(pitch), math.sin(pitch)
+        m = np.eye(4)
+        m[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # x tilts down
+        m[:3, 3] = self.mount_xyz
+        return m
+
+
+def view_matrix(world_from_sensor: np.ndarray) -> list[float]:
+    """OpenGL view matrix (column-major, as PyBullet wants it) for a REP-103 sensor pose."""
+    world_from_gl = np.eye(4)
+    world_from_gl[:3, :3] = world_from_sensor[:3, :3] @ _SENSOR_FROM_GL
+    world_from_gl[:3, 3] = world_from_sensor[:3, 3]
+    return np.linalg.inv(world_from_gl).T.ravel().tolist()
+
+
+def linearise_depth(zbuffer: np.ndarray, near: float, far: float) -> np.ndarray:
+    """OpenGL depth buffer values in [0, 1] -> distance along the optical axis, metres."""
+    z = np.asarray(zbuffer, np.float64)
+    return far * near / (far - (far - near) * z)
+
+
+def unproject(depth_m: np.ndarray, focal_px: float, rows=None, cols=None) -> np.ndarray:
+    """Depth -> points in the sensor frame (pixel centres at +0.5). With `rows`/`cols`, only
+    those pixels of the (H, W) depth image, as (N, 3); otherwise the whole image as (H, W, 3)."""
+    h, w = depth_m.shape
+    if rows is None:
+        rows, cols = (a.ravel() for a in np.mgrid[0:h, 0:w])
+        shape = (h, w, 3)
+    else:
+        shape = (len(rows), 3)
+    d = depth_m[rows, cols].astype(np.float32)
+    pts = np.empty((len(d), 3), np.float32)
+    pts[:, 0] = d
+    pts[:, 1] = -((cols + 0.5 - w / 2) / focal_px) * d  # pixel columns grow to the right
+    pts[:, 2] = -((rows + 0.5 - h / 2) / focal_px) * d  # pixel rows grow downwards
+    return pts.reshape(shape)
+
+
+@numba.njit(cache=True, nogil=True)
+def _label_pixels(zbuf, seg, near, far, focal, max_range, rot, trans, lut, ground_classes,
+                  g_x0, g_y0, g_res, colour_lut, rgba, depth_out, labels_out, rgb_out):  # fmt: skip
+    h, w = zbuf.shape
+    nx, ny = ground_classes.shape
+    n_lut = lut.shape[0]
+    max_r2 = max_range * max_range
+    for r in range(h):
+        v = (r + 0.5 - h / 2) / focal
+        for c in range(w):
+            for k in range(3):
+                rgb_out[r, c, k] = rgba[r, c, k]
+            depth_out[r, c] = np.inf
+            labels_out[r, c] = -1
+            body = seg[r, c]
+            z = zbuf[r, c]
+            if body < 0 or z >= 1.0:
+                continue
+            d = far * near / (far - (far - near) * z)
+            u = (c + 0.5 - w / 2) / focal
+            x, y, zz = d, -u * d, -v * d
+            if x * x + y * y + zz * zz > max_r2:
+                continue
+            label = lut[body] if body < n_lut else -1
+            if label == -2:  # the ground height field: class from the raster under the point
+                wx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * zz + trans[0]
+                wy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * zz + trans[1]
+                ix = min(max(int(np.floor((wx - g_x0) / g_res + 0.5)), 0), nx - 1)
+                iy = min(max(int(np.floor((wy - g_y0) / g_res + 0.5)), 0), ny - 1)
+                label = ground_classes[ix, iy]
+                # the height field renders white, so its grey level is the lighting
+                shade = (rgba[r, c, 0] + rgba[r, c, 1] + rgba[r, c, 2]) / (3.0 * 255.0)
+                for k in range(3):
+                    rgb_out[r, c, k] = min(colour_lut[label, k] * shade, 255.0)
+            if label < 0:
+                continue
+            depth_out[r, c] = d
+            labels_out[r, c] = label
+
+
+def label_pixels(
+    zbuf: np.ndarray,
+    seg: np.ndarray,
+    rgba: np.ndarray,
+    *,
+    near: float,
+    far: float,
+    focal_px: float,
+    max_range_m: float,
+    world_from_sensor: np.ndarray,
+    label_lut: np.ndarray,
+    ground: Raster,
+    colour_lut: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth buffer and segmentation mask -> (depth_m f4[H,W], labels i4[H,W], rgb u1[H,W,3]).
+
+    `labels` is the class id of each pixel, -1 where there is no point (background, beyond
+    `max_range_m`, or a body whose `label_lut` entry is DROP); `label_lut[body] == GROUND` means
+    "class of the ground raster at the pixel's world (x, y)". Ground pixels are coloured by class.
+    """
+    zbuf = np.ascontiguousarray(zbuf, np.float32)
+    seg = np.ascontiguousarray(seg, np.int32)
+    rgba = np.ascontiguousarray(rgba, np.uint8)
+    h, w = zbuf.shape
+    if seg.shape != (h, w) or rgba.shape[:2] != (h, w) or rgba.shape[2] < 3:
+        raise ValueError(f"image shapes disagree: {zbuf.shape}, {seg.shape}, {rgba.shape}")
+    if not 0 < near < far or not focal_px > 0 or not max_range_m > 0:
+        raise ValueError("need 0 < near < far, focal_px > 0 and max_range_m > 0")
+    m = np.asarray(world_from_sensor, np.float64)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ValueError("world_from_sensor must be a finite 4x4 matrix")
+    lut = np.ascontiguousarray(label_lut, np.int32)
+    classes = np.ascontiguousarray(ground.data, np.int32)
+    if classes.size and (classes.min() < 0 or classes.max() >= len(colour_lut)):
+        raise ValueError("ground raster holds ids outside the colour table")
+    depth = np.empty((h, w), np.float32)
+    labels = np.empty((h, w), np.int32)
+    rgb = np.empty((h, w, 3), np.uint8)
+    _label_pixels(
+        zbuf, seg, float(near), float(far), float(focal_px), float(max_range_m),
+        np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]), lut, classes,
+        float(ground.origin_xy[0]), float(ground.origin_xy[1]), float(ground.resolution_m),
+        np.ascontiguousarray(colour_lut, np.float64), rgba, depth, labels, rgb,
+    )  # fmt: skip
+    return depth, labels, rgb
+
+
+@dataclass
+class CameraCapture:
+    """One rendered frame, before any degradation. `labels` is -1 where no point exists."""
+
+    rgb: np.ndarray  # u1[H, W, 3]
+    depth_m: np.ndarray  # f4[H, W], +inf where there is no point
+    labels: np.ndarray  # i4[H, W] class ids, -1 where there is no point
+    world_from_sensor: np.ndarray  # 4x4 true sensor pose used to render
+    focal_px: float
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.labels >= 0
+
+    def points_sensor(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Points (N, 3) of the given pixels, sensor frame."""
+        return unproject(self.depth_m, self.focal_px, rows, cols)
+
+
+class SemanticCamera:
+    def __init__(self, scene: BulletScene, spec: CameraSpec | None = None):
+        self.scene = scene
+        self.spec = spec or CameraSpec()
+        self.spec.validate()
+        s = self.spec
+        # the far plane sits a little past the range, so that every in-range pixel is rendered
+        self._far = s.max_range_m * 1.05
+        self._proj = p.computeProjectionMatrixFOV(
+            s.fov_deg, s.width / s.height, s.near_m, self._far
+        )
+
+    def capture(self, world_from_sensor: np.ndarray) -> CameraCapture:
+        """Render from a sensor pose (4x4, world frame) and label every pixel.
+
+        A pose that puts a ground vertex exactly in the camera's plane (e.g. a camera looking
+        level, exactly above a grid vertex) makes TinyRenderer rasterise a degenerate triangle
+        over the whole screen, 20x slower; poses a moving robot takes never hit it exactly."""
+        s = self.spec
+        _, _, rgba, zbuf, seg = p.getCameraImage(
+            s.width, s.height, view_matrix(world_from_sensor), self._proj,
+            renderer=p.ER_TINY_RENDERER, shadow=0, physicsClientId=self.scene.client,
+        )  # fmt: skip
+        depth, labels, rgb = label_pixels(
+            np.asarray(zbuf, np.float32).reshape(s.height, s.width),
+            np.asarray(seg, np.int32).reshape(s.height, s.width),
+            np.asarray(rgba, np.uint8).reshape(s.height, s.width, 4),
+            near=s.near_m, far=self._far, focal_px=s.focal_px, max_range_m=s.max_range_m,
+            world_from_sensor=world_from_sensor, label_lut=self.scene.label_lut,
+            ground=self.scene.world.ground.class_raster(),
+            colour_lut=self.scene.world.classes.colour_lut,
+        )  # fmt: skip
+        return CameraCapture(rgb, depth, labels, np.array(world_from_sensor, float), s.focal_px)

@@ -1,0 +1,207 @@
+"""Degraded inputs, as the paper makes them (section 4.2.1 and REFERENCE.md).
+
+Labels: SLIC superpixels on the ground-truth semantic image; each superpixel takes the most
+frequent label of its pixels, then that label is redrawn from the row of the confusion matrix
+(paper Table 2, reconstructed in REFERENCE.md) for the noise level; every point gets a
+confidence drawn uniformly in [0.33, 1.0]. Level "off" (not in the paper) skips all of it: true
+labels, confidence 1, for tests and ground-truth runs.
+
+Localisation: Gaussian noise of set standard deviation on the published x, y and yaw.
+
+All randomness comes from the `numpy.random.Generator` passed in, so a seed repeats a run.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+NOISE_LEVELS = {"none": 1.0, "low": 0.9, "medium": 0.8, "high": 0.7}
+LABEL_NOISE_CHOICES = ("off", *NOISE_LEVELS)
+
+# Table 2's structure: the classes a true class may be mistaken for (each with q = (1 - p) / 2).
+# Ids are 3DRMS garden ids; a class not listed here is never confused.
+GARDEN_CONFUSABLE: dict[int, tuple[int, int]] = {
+    1: (2, 4),  # grass -> terrain, hedge
+    2: (1, 4),  # terrain -> grass, hedge
+    4: (5, 6),  # hedge -> topiary, rose
+    5: (4, 6),  # topiary -> hedge, rose
+    6: (5, 7),  # rose -> topiary, obstacle
+    7: (6, 8),  # obstacle -> rose, tree
+    8: (6, 7),  # tree -> rose, obstacle
+}
+GARDEN_IDS = (0, 1, 2, 4, 5, 6, 7, 8)
+
+
+def confusion_matrix(
+    p: float,
+    ids: tuple[int, ...] = GARDEN_IDS,
+    confusable: dict[int, tuple[int, ...]] | None = None,
+) -> np.ndarray:
+    """Row-stochastic matrix M[i, j] = P(given ids[j] | true ids[i]) for probability p."""
+    if not 0.0 <= p <= 1.0:
+        raise ValueError(f"p must be within [0, 1], got {p}")
+    confusable = GARDEN_CONFUSABLE if confusable is None else confusable
+    index = {cid: k for k, cid in enumerate(ids)}
+    m = np.zeros((len(ids), len(ids)))
+    for cid, k in index.items():
+        others = [index[o] for o in confusable.get(cid, ()) if o in index]
+        if not others:
+            m[k, k] = 1.0
+            continue
+        m[k, k] = p
+        for o in others:
+            m[k, o] += (1.0 - p) / len(others)
+    return m
+
+
+def _cumulative_lut(matrix: np.ndarray, ids: tuple[int, ...], size: int) -> np.ndarray:
+    """cum[label] = cumulative confusion row of `label` over `ids`. Labels outside `ids` get a
+    placeholder row; `LabelDegrader.redraw` keeps their label as it is."""
+    cum = np.ones((size, len(ids)))
+    for k, cid in enumerate(ids):
+        if cid < size:
+            cum[cid] = np.cumsum(matrix[k])
+            cum[cid, -1] = 1.0  # guard against rounding: the last bin always closes the row
+    return cum
+
+
+@dataclass
+class DegradedLabels:
+    labels: np.ndarray  # i4[H, W], -1 where the pixel has no point
+    superpixels: np.ndarray | None  # i4[H, W] superpixel index (None for level "off")
+    majority: np.ndarray | None  # i8[S] majority true label per superpixel (-1: no valid pixel)
+    given: np.ndarray | None  # i8[S] label after the redraw
+
+
+class LabelDegrader:
+    """SLIC + majority + confusion redraw + confidences, for one noise level."""
+
+    def __init__(
+        self,
+        level: str,
+        rng: np.random.Generator,
+        colour_lut: np.ndarray,
+        *,
+        region_px: int = 20,
+        ruler: float = 10.0,
+        iterations: int = 3,
+        confidence_range: tuple[float, float] = (0.33, 1.0),
+        ids: tuple[int, ...] = GARDEN_IDS,
+        confusable: dict[int, tuple[int, ...]] | None = None,
+    ):
+        if level not in LABEL_NOISE_CHOICES:
+            raise ValueError(f"label noise must be one of {LABEL_NOISE_CHOICES}, got {level!r}")
+        if region_px < 2 or iterations < 1:
+            raise ValueError("SLIC needs region_px >= 2 and iterations >= 1")
+        lo, hi = confidence_range
+        if not 0.0 <= lo <= hi <= 1.0:
+            raise ValueError(f"confidence range must be within [0, 1], got {confidence_range}")
+        self.level = level
+        self.rng = rng
+        self.colour_lut = np.asarray(colour_lut, np.uint8)
+        self.region_px = int(region_px)
+        self.ruler = float(ruler)
+        self.iterations = int(iterations)
+        self.confidence_range = (float(lo), float(hi))
+        self.ids = tuple(ids)
+        self.size = max(len(self.colour_lut), max(self.ids) + 1)
+        p = NOISE_LEVELS.get(level, 1.0)
+        self.matrix = confusion_matrix(p, self.ids, confusable)
+        self._cum = _cumulative_lut(self.matrix, self.ids, self.size)
+        self._ids = np.array(self.ids, np.int64)
+        self._in_table = np.zeros(self.size, bool)
+        self._in_table[[i for i in self.ids if i < self.size]] = True
+
+    def degrade(self, labels: np.ndarray) -> DegradedLabels:
+        """Degrade a true label image (i4[H, W], -1 where there is no point)."""
+        labels = np.asarray(labels)
+        if labels.ndim != 2:
+            raise ValueError(f"label image must be 2D, got shape {labels.shape}")
+        valid = labels >= 0
+        if valid.any() and labels[valid].max() >= self.size:
+            raise ValueError(f"label ids must be below {self.size}")
+        if self.level == "off":
+            return DegradedLabels(labels.astype(np.int32), None, None, None)
+        sp = self.superpixels(labels)
+        majority = superpixel_majority(sp, labels, self.size)
+        given = self.redraw(majority)
+        out = np.where(valid, given[sp], -1).astype(np.int32)
+        return DegradedLabels(out, sp, majority, given)
+
+    def superpixels(self, labels: np.ndarray) -> np.ndarray:
+        """SLIC superpixels of the label image, coloured by class (no-point pixels black)."""
+        import cv2
+
+        image = self.colour_lut[np.clip(labels, 0, len(self.colour_lut) - 1)]
+        image[labels < 0] = 0
+        slic = cv2.ximgproc.createSuperpixelSLIC(
+            np.ascontiguousarray(image), algorithm=cv2.ximgproc.SLIC,
+            region_size=self.region_px, ruler=self.ruler,
+        )  # fmt: skip
+        slic.iterate(self.iterations)
+        return slic.getLabels().astype(np.int32)
+
+    def redraw(self, majority: np.ndarray) -> np.ndarray:
+        """Draw each superpixel's given label from its majority label's confusion row."""
+        majority = np.asarray(majority, np.int64)
+        out = majority.copy()
+        ok = majority >= 0
+        lab = majority[ok]
+        u = self.rng.random(len(lab))
+        pick = (self._cum[lab] <= u[:, None]).sum(axis=1)
+        drawn = self._ids[np.minimum(pick, len(self._ids) - 1)]
+        # ids outside the confusion table keep their label
+        out[ok] = np.where(self._in_table[lab], drawn, lab)
+        return out
+
+    def confidences(self, n: int) -> np.ndarray:
+        if self.level == "off":
+            return np.ones(n, np.float32)
+        lo, hi = self.confidence_range
+        return self.rng.uniform(lo, hi, n).astype(np.float32)
+
+
+def superpixel_majority(superpixels: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:
+    """Most frequent label of each superpixel's valid (>= 0) pixels; -1 if it has none.
+    Ties go to the smallest id."""
+    sp = np.asarray(superpixels, np.int64).ravel()
+    lab = np.asarray(labels, np.int64).ravel()
+    valid = lab >= 0
+    n_sp = int(sp.max()) + 1 if sp.size else 0
+    votes = np.bincount(sp[valid] * n_labels + lab[valid], minlength=n_sp * n_labels)
+    votes = votes.reshape(n_sp, n_labels)
+    majority = np.argmax(votes, axis=1)
+    majority[votes.sum(axis=1) == 0] = -1
+    return majority
+
+
+class PoseNoise:
+    """Gaussian noise on the published x, y (each with `sigma_xy_m`) and yaw (`sigma_yaw_rad`).
+    Each call draws afresh: white noise, as the paper adds it to every ground-truth pose."""
+
+    def __init__(self, sigma_xy_m: float, sigma_yaw_rad: float, rng: np.random.Generator):
+        if not (sigma_xy_m >= 0 and sigma_yaw_rad >= 0):
+            raise ValueError("pose noise standard deviations must be >= 0")
+        self.sigma_xy_m = float(sigma_xy_m)
+        self.sigma_yaw_rad = float(sigma_yaw_rad)
+        self.rng = rng
+
+    @property
+    def enabled(self) -> bool:
+        return self.sigma_xy_m > 0 or self.sigma_yaw_rad > 0
+
+    def apply(self, world_from_base: np.ndarray) -> np.ndarray:
+        """A noisy copy of a 4x4 pose: shifted in x, y and turned about the world z axis."""
+        m = np.array(world_from_base, float)
+        if not self.enabled:
+            return m
+        dx, dy = self.rng.normal(0.0, self.sigma_xy_m, 2) if self.sigma_xy_m > 0 else (0.0, 0.0)
+        dyaw = self.rng.normal(0.0, self.sigma_yaw_rad) if self.sigma_yaw_rad > 0 else 0.0
+        c, s = math.cos(dyaw), math.sin(dyaw)
+        m[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ m[:3, :3]
+        m[0, 3] += dx
+        m[1, 3] += dy
+        return m

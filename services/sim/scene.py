@@ -1,0 +1,236 @@
+"""A `GardenWorld` turned into PyBullet bodies, in a DIRECT (headless, CPU) physics client.
+
+The ground is one height-field body, so its class cannot come from the body id: sensors ask the
+world's ground-class raster at the hit's (x, y) instead. Every other body has one class.
+`label_lut[body_id]` gives a body's class id, `GROUND` for the height field and `DROP` for bodies
+that sensors must ignore (the robot itself).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pybullet as p
+
+from .world import BOX, CYLINDER, ELLIPSOID, SPHERE, GardenWorld, Primitive, WorldObject
+
+GROUND = -2  # label_lut value: look the class up in the ground raster
+DROP = -1  # label_lut value: not part of the world (the robot); sensors drop these hits
+MAX_MESH_VERTICES = 60_000  # PyBullet refuses meshes above 131,072 vertices; stay well below
+
+
+def transform_points(points: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 rigid transform to (N, 3) points, as float32. einsum, not `@`: a BLAS call
+    with an inner size of 3 is slow, and its threads fight other processes for the cores."""
+    r = np.asarray(m[:3, :3], np.float32)
+    t = np.asarray(m[:3, 3], np.float32)
+    return np.einsum("ij,kj->ik", np.asarray(points, np.float32), r) + t
+
+
+class BulletScene:
+    """Owns one PyBullet client holding the world's bodies."""
+
+    def __init__(self, world: GardenWorld, *, gui: bool = False, gravity: float = 9.81):
+        self.world = world
+        self.client = p.connect(p.GUI if gui else p.DIRECT)
+        self._labels: dict[int, int] = {}
+        self._lut: np.ndarray | None = None
+        p.setGravity(0, 0, -gravity, physicsClientId=self.client)
+        self.ground_body = self._add_ground()
+        self.object_bodies: list[int] = []
+        for obj in world.objects:
+            for body in self._add_object(obj):
+                self.register(body, obj.class_id)
+                self.object_bodies.append(body)
+
+    # -- bodies and their classes ---------------------------------------------------------------
+
+    def register(self, body: int, label: int) -> None:
+        """Give `body` a class id (or GROUND / DROP)."""
+        self._labels[int(body)] = int(label)
+        self._lut = None
+
+    @property
+    def label_lut(self) -> np.ndarray:
+        """int32 array: body id -> class id, GROUND or DROP (DROP for unknown bodies)."""
+        if self._lut is None:
+            lut = np.full(max(self._labels, default=0) + 1, DROP, np.int32)
+            for body, label in self._labels.items():
+                lut[body] = label
+            self._lut = lut
+        return self._lut
+
+    def labels_of(self, bodies: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """Class ids of hits on `bodies` at world `xy` (N,2); -1 where the hit must be dropped
+        (nothing hit, or the robot)."""
+        lut = self.label_lut
+        bodies = np.asarray(bodies)
+        known = (bodies >= 0) & (bodies < len(lut))
+        out = np.full(len(bodies), DROP, np.int64)
+        out[known] = lut[bodies[known]]
+        ground = out == GROUND
+        if ground.any():
+            out[ground] = self.world.ground.class_at(xy[ground, 0], xy[ground, 1])
+        return out
+
+    def close(self) -> None:
+        if self.client is not None and p.isConnected(self.client):
+            p.disconnect(self.client)
+        self.client = None
+
+    def __enter__(self) -> BulletScene:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- building ---------------------------------------------------------------------------------
+
+    def _add_ground(self) -> int:
+        g = self.world.ground
+        nx, ny = g.shape
+        h = g.heights
+        # Bullet wants the data with x varying fastest, and centres the field between its lowest
+        # and highest point, so the body goes at the middle of the extent.
+        shape = p.createCollisionShape(
+            p.GEOM_HEIGHTFIELD,
+            meshScale=[g.resolution_m, g.resolution_m, 1.0],
+            heightfieldData=h.T.ravel().tolist(),
+            numHeightfieldRows=nx,
+            numHeightfieldColumns=ny,
+            physicsClientId=self.client,
+        )
+        x0, y0, x1, y1 = g.extent
+        centre = [(x0 + x1) / 2, (y0 + y1) / 2, (float(h.max()) + float(h.min())) / 2]
+        body = p.createMultiBody(0, shape, basePosition=centre, physicsClientId=self.client)
+        # white, so the rendered grey level is the lighting; sensors colour it from the raster
+        p.changeVisualShape(body, -1, rgbaColor=[1, 1, 1, 1], physicsClientId=self.client)
+        p.changeDynamics(body, -1, lateralFriction=1.0, physicsClientId=self.client)
+        self.register(body, GROUND)
+        return body
+
+    def _rgba(self, class_id: int) -> list[float]:
+        r, g, b = (int(c) for c in self.world.classes.colour_lut[class_id])
+        return [r / 255, g / 255, b / 255, 1.0]
+
+    def _add_object(self, obj: WorldObject) -> list[int]:
+        rgba = self._rgba(obj.class_id)
+        if obj.voxel_centres is not None:
+            return [
+                self._mesh_body(v, i, rgba, concave=True)
+                for v, i in _voxel_surface_chunks(obj.voxel_centres, obj.voxel_m)
+            ]
+        return [self._primitive_body(prim, rgba) for prim in obj.primitives]
+
+    def _primitive_body(self, prim: Primitive, rgba: list[float]) -> int:
+        c = self.client
+        a, b, h = prim.half_extents
+        if prim.shape == BOX:
+            cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=[a, b, h], physicsClientId=c)
+            vs = p.createVisualShape(
+                p.GEOM_BOX, halfExtents=[a, b, h], rgbaColor=rgba, physicsClientId=c
+            )
+        elif prim.shape == SPHERE:
+            cs = p.createCollisionShape(p.GEOM_SPHERE, radius=a, physicsClientId=c)
+            vs = p.createVisualShape(p.GEOM_SPHERE, radius=a, rgbaColor=rgba, physicsClientId=c)
+        elif prim.shape == CYLINDER:
+            cs = p.createCollisionShape(p.GEOM_CYLINDER, radius=a, height=2 * h, physicsClientId=c)
+            vs = p.createVisualShape(
+                p.GEOM_CYLINDER, radius=a, length=2 * h, rgbaColor=rgba, physicsClientId=c
+            )
+        elif prim.shape == ELLIPSOID:
+            verts, idx = _ellipsoid_mesh(a, b, h)
+            cs = p.createCollisionShape(p.GEOM_MESH, vertices=verts, physicsClientId=c)
+            vs = p.createVisualShape(
+                p.GEOM_MESH, vertices=verts, indices=idx, rgbaColor=rgba, physicsClientId=c
+            )
+        else:  # pragma: no cover - Primitive validates its shape
+            raise ValueError(prim.shape)
+        orn = p.getQuaternionFromEuler([0, 0, prim.yaw])
+        return p.createMultiBody(
+            0, cs, vs, basePosition=list(prim.centre), baseOrientation=orn, physicsClientId=c
+        )
+
+    def _mesh_body(self, verts: np.ndarray, idx: np.ndarray, rgba, concave: bool) -> int:
+        c = self.client
+        v, i = verts.tolist(), idx.ravel().tolist()
+        flags = p.GEOM_FORCE_CONCAVE_TRIMESH if concave else 0
+        cs = p.createCollisionShape(
+            p.GEOM_MESH, vertices=v, indices=i, flags=flags, physicsClientId=c
+        )
+        vs = p.createVisualShape(
+            p.GEOM_MESH, vertices=v, indices=i, rgbaColor=rgba, physicsClientId=c
+        )
+        return p.createMultiBody(0, cs, vs, physicsClientId=c)
+
+
+def _ellipsoid_mesh(a: float, b: float, c: float, n_lat: int = 10, n_lon: int = 18):
+    """A UV sphere scaled to the semi-axes: vertices list and triangle indices (outward)."""
+    verts = [[0.0, 0.0, c]]
+    for i in range(1, n_lat):
+        th = math.pi * i / n_lat
+        for j in range(n_lon):
+            ph = 2 * math.pi * j / n_lon
+            verts.append([a * math.sin(th) * math.cos(ph), b * math.sin(th) * math.sin(ph),
+                          c * math.cos(th)])  # fmt: skip
+    verts.append([0.0, 0.0, -c])
+    bottom = len(verts) - 1
+
+    def ring(i, j):
+        return 1 + (i - 1) * n_lon + (j % n_lon)
+
+    idx = []
+    for j in range(n_lon):
+        idx += [0, ring(1, j), ring(1, j + 1)]
+        idx += [bottom, ring(n_lat - 1, j + 1), ring(n_lat - 1, j)]
+    for i in range(1, n_lat - 1):
+        for j in range(n_lon):
+            a0, a1, b0, b1 = ring(i, j), ring(i, j + 1), ring(i + 1, j), ring(i + 1, j + 1)
+            idx += [a0, b0, b1, a0, b1, a1]
+    return verts, idx
+
+
+_FACES = (  # direction, then the 4 corners of that face of a unit cube centred at 0, outward
+    ((1, 0, 0), ((1, -1, -1), (1, 1, -1), (1, 1, 1), (1, -1, 1))),
+    ((-1, 0, 0), ((-1, -1, -1), (-1, -1, 1), (-1, 1, 1), (-1, 1, -1))),
+    ((0, 1, 0), ((-1, 1, -1), (-1, 1, 1), (1, 1, 1), (1, 1, -1))),
+    ((0, -1, 0), ((-1, -1, -1), (1, -1, -1), (1, -1, 1), (-1, -1, 1))),
+    ((0, 0, 1), ((-1, -1, 1), (1, -1, 1), (1, 1, 1), (-1, 1, 1))),
+    ((0, 0, -1), ((-1, -1, -1), (-1, 1, -1), (1, 1, -1), (1, -1, -1))),
+)
+
+
+def _voxel_surface_chunks(centres: np.ndarray, voxel_m: float):
+    """Yield (vertices f8[V,3], triangles i4[T,3]) meshes of the voxels' outer faces, split into
+    chunks that PyBullet accepts. Faces between two occupied voxels are left out."""
+    q = np.floor(centres / voxel_m).astype(np.int64)
+    q = np.unique(q, axis=0)
+    lo = q.min(axis=0) - 1
+    qq = q - lo
+    dims = qq.max(axis=0) + 2
+    keys = np.sort((qq[:, 0] * dims[1] + qq[:, 1]) * dims[2] + qq[:, 2])
+
+    def occupied(cells: np.ndarray) -> np.ndarray:
+        k = (cells[:, 0] * dims[1] + cells[:, 1]) * dims[2] + cells[:, 2]
+        pos = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
+        return keys[pos] == k
+
+    quads = []
+    for direction, corners in _FACES:
+        open_side = ~occupied(qq + np.array(direction))
+        cells = q[open_side]
+        centre = (cells + 0.5) * voxel_m
+        corner = np.array(corners, float) * (voxel_m / 2)
+        quads.append(centre[:, None, :] + corner[None, :, :])
+    quads = np.concatenate(quads)  # [F, 4, 3]
+    # spatially coherent chunks: sort faces along x then y, cut every MAX/4 faces
+    order = np.lexsort((quads[:, 0, 1], quads[:, 0, 0]))
+    quads = quads[order]
+    per_chunk = MAX_MESH_VERTICES // 4
+    tri = np.array([[0, 1, 2], [0, 2, 3]])
+    for s in range(0, len(quads), per_chunk):
+        chunk = quads[s : s + per_chunk]
+        verts = chunk.reshape(-1, 3)
+        base = (np.arange(len(chunk)) * 4)[:, None, None]
+        yield verts, (base + tri[None]).reshape(-1, 3).astype(np.int32)

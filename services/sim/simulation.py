@@ -1,0 +1,236 @@
+"""The simulator core: world, physics, robot, sensors and degradation, without zenoh.
+
+    from smana.common.config import SimConfig
+    from smana.services.sim.simulation import Simulation
+
+    with Simulation(SimConfig(noise="medium", camera_width=320, camera_height=320)) as sim:
+        sim.set_velocity(0.3, 0.2)
+        sim.step(0.5)                      # simulated seconds
+        frame = sim.camera_frame()         # images + labelled cloud (world frame, published pose)
+        cloud = frame.to_cloud()           # as a SemanticCloud message
+        scan = sim.lidar_scan()
+        truth = sim.true_pose()            # 4x4; sim.published_pose() adds the pose noise
+
+Time is simulated time (`sim.time_s`), advanced only by `step`; the service paces it against the
+wall clock. Random streams (label redraws, confidences, pose noise) are separate children of the
+config's seed, so enabling one kind of noise does not change the draws of another.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pybullet as p
+
+from smana.common.classes import ClassTable
+from smana.common.config import SimConfig
+from smana.common.messages import Pose, SemanticCloud, matrix_to_quat
+
+from .camera import CameraCapture, CameraSpec, SemanticCamera
+from .degrade import LabelDegrader, PoseNoise
+from .lidar import Lidar, LidarSpec
+from .robot import DiffDriveRobot, RobotSpec
+from .scene import DROP, BulletScene, transform_points
+from .world import GardenWorld
+
+
+@dataclass
+class CameraFrame:
+    """One camera frame as published. `points` are in the world frame as the robot believes it
+    to be (the published, possibly noisy, pose); `true_world_from_sensor` is the real pose."""
+
+    stamp_s: float
+    seq: int
+    rgb: np.ndarray  # u1[H, W, 3]
+    depth_m: np.ndarray  # f4[H, W], inf where no point
+    semantic_true: np.ndarray  # i4[H, W] true class ids, -1 where no point
+    semantic: np.ndarray  # i4[H, W] labels after degradation, -1 where no point
+    points: np.ndarray  # f4[N, 3] world frame (published pose)
+    labels: np.ndarray  # u2[N]
+    confidences: np.ndarray  # f4[N]
+    rows: np.ndarray  # i8[N] pixel of each point
+    cols: np.ndarray  # i8[N]
+    world_from_sensor: np.ndarray  # 4x4 published sensor pose
+    true_world_from_sensor: np.ndarray  # 4x4
+
+    def to_cloud(self) -> SemanticCloud:
+        m = self.world_from_sensor
+        return SemanticCloud(
+            stamp_s=self.stamp_s, seq=self.seq, points=self.points, labels=self.labels,
+            confidences=self.confidences, sensor_position=m[:3, 3].copy(),
+            sensor_orientation_xyzw=matrix_to_quat(m[:3, :3]), source="camera",
+        )  # fmt: skip
+
+
+@dataclass
+class LidarScan:
+    stamp_s: float
+    seq: int
+    points: np.ndarray  # f4[N, 3] world frame (published pose)
+    labels: np.ndarray  # u2[N]
+    confidences: np.ndarray  # f4[N]
+    world_from_sensor: np.ndarray  # published
+    true_world_from_sensor: np.ndarray
+
+    def to_cloud(self) -> SemanticCloud:
+        m = self.world_from_sensor
+        return SemanticCloud(
+            stamp_s=self.stamp_s, seq=self.seq, points=self.points, labels=self.labels,
+            confidences=self.confidences, sensor_position=m[:3, 3].copy(),
+            sensor_orientation_xyzw=matrix_to_quat(m[:3, :3]), source="lidar",
+        )  # fmt: skip
+
+
+def pose_message(m: np.ndarray, stamp_s: float, seq: int) -> Pose:
+    return Pose(float(stamp_s), int(seq), m[:3, 3].copy(), matrix_to_quat(m[:3, :3]))
+
+
+class Simulation:
+    """A garden world with a robot in it (module docstring)."""
+
+    def __init__(
+        self,
+        config: SimConfig | None = None,
+        *,
+        classes: ClassTable | None = None,
+        world: GardenWorld | None = None,
+    ):
+        self.config = cfg = config or SimConfig()
+        classes = classes or (world.classes if world else ClassTable.load("garden3drms"))
+        self.world = world or GardenWorld.from_config(cfg, classes)
+        self.scene = BulletScene(self.world)
+        self.dt_physics = 1.0 / cfg.physics_hz
+        p.setTimeStep(self.dt_physics, physicsClientId=self.scene.client)
+        robot_spec = RobotSpec(
+            max_linear_mps=cfg.max_linear_mps, max_angular_radps=cfg.max_angular_radps,
+            cmd_timeout_s=cfg.cmd_timeout_s,
+        )  # fmt: skip
+        if cfg.spawn:
+            x, y, yaw = (float(v) for v in cfg.spawn)
+            z = float(self.world.ground.height_at(x, y))
+        else:
+            x, y, z = self.world.spawn_pose(robot_spec.radius_m + 0.05)
+            yaw = 0.0
+        self.robot = DiffDriveRobot(self.scene.client, robot_spec, xy=(x, y), ground_z=z, yaw=yaw)
+        self.scene.register(self.robot.body, DROP)
+        self.camera_spec = CameraSpec(
+            width=cfg.camera_width, height=cfg.camera_height, fov_deg=cfg.camera_fov_deg,
+            max_range_m=cfg.camera_max_range_m,
+        )  # fmt: skip
+        self.camera_spec.validate()
+        self._camera: SemanticCamera | None = None
+        self.lidar_spec = LidarSpec(
+            channels=cfg.lidar_channels, columns=cfg.lidar_columns, vfov_deg=cfg.lidar_vfov_deg,
+            max_range_m=cfg.lidar_max_range_m, min_range_m=cfg.lidar_min_range_m,
+        )  # fmt: skip
+        self.lidar_spec.validate()
+        self._lidar: Lidar | None = None
+        labels_ss, conf_ss, pose_ss = np.random.SeedSequence([int(cfg.seed), 0x51A]).spawn(3)
+        self.degrader = LabelDegrader(
+            cfg.noise, np.random.default_rng(labels_ss), self.world.classes.colour_lut,
+            region_px=cfg.slic_region_px, iterations=cfg.slic_iterations,
+        )  # fmt: skip
+        self._conf_rng = np.random.default_rng(conf_ss)
+        self.pose_noise = PoseNoise(
+            cfg.pose_noise_xy_m, cfg.pose_noise_yaw_rad, np.random.default_rng(pose_ss)
+        )
+        self.time_s = 0.0
+        self.camera_seq = 0
+        self.lidar_seq = 0
+        # let the robot settle on its wheels before anyone looks
+        self.step(0.5)
+        self.time_s = 0.0
+
+    # -- time and motion ----------------------------------------------------------------------
+
+    def step(self, dt_s: float) -> int:
+        """Advance simulated time by about `dt_s` (whole physics steps); returns the step count."""
+        if not dt_s >= 0 or not math.isfinite(dt_s):
+            raise ValueError(f"dt_s must be finite and >= 0, got {dt_s}")
+        n = int(round(dt_s / self.dt_physics))
+        c = self.scene.client
+        for _ in range(n):
+            self.robot.update(self.time_s, self.dt_physics)
+            p.stepSimulation(physicsClientId=c)
+            self.time_s += self.dt_physics
+        return n
+
+    def set_velocity(self, linear_mps: float, angular_radps: float) -> None:
+        """Command the base (clamped to the limits); it stops `cmd_timeout_s` after the last."""
+        self.robot.command(linear_mps, angular_radps, self.time_s)
+
+    def true_pose(self) -> np.ndarray:
+        """4x4 world-from-base pose (ground truth)."""
+        return self.robot.matrix()
+
+    def published_pose(self) -> np.ndarray:
+        """The pose as localisation would give it: the truth with fresh pose noise."""
+        return self.pose_noise.apply(self.robot.matrix())
+
+    # -- sensors ------------------------------------------------------------------------------
+
+    @property
+    def camera(self) -> SemanticCamera:
+        if self._camera is None:
+            self._camera = SemanticCamera(self.scene, self.camera_spec)
+        return self._camera
+
+    @property
+    def lidar(self) -> Lidar:
+        if self._lidar is None:  # builds ~131k rays' lists: only when asked for
+            self._lidar = Lidar(self.scene, self.lidar_spec, parent_body=self.robot.body)
+        return self._lidar
+
+    def camera_frame(self, stride: int | None = None) -> CameraFrame:
+        """Render, label, degrade and unproject one camera frame (see CameraFrame)."""
+        stride = self.config.camera_stride if stride is None else int(stride)
+        if stride < 1:
+            raise ValueError(f"stride must be >= 1, got {stride}")
+        base_true = self.robot.matrix()
+        base_pub = self.pose_noise.apply(base_true)
+        mount = self.camera_spec.mount_matrix()
+        cap: CameraCapture = self.camera.capture(base_true @ mount)
+        degraded = self.degrader.degrade(cap.labels)
+        sem = degraded.labels
+        sel = sem[::stride, ::stride] >= 0
+        rows, cols = np.nonzero(sel)
+        rows, cols = rows * stride, cols * stride
+        pts_sensor = cap.points_sensor(rows, cols)
+        world_from_sensor = base_pub @ mount
+        self.camera_seq += 1
+        return CameraFrame(
+            stamp_s=self.time_s, seq=self.camera_seq, rgb=cap.rgb, depth_m=cap.depth_m,
+            semantic_true=cap.labels, semantic=sem,
+            points=transform_points(pts_sensor, world_from_sensor),
+            labels=sem[rows, cols].astype(np.uint16),
+            confidences=self.degrader.confidences(len(rows)) if len(rows) else np.zeros(0, "f4"),
+            rows=rows, cols=cols, world_from_sensor=world_from_sensor,
+            true_world_from_sensor=cap.world_from_sensor,
+        )  # fmt: skip
+
+    def lidar_scan(self) -> LidarScan:
+        """Cast one LiDAR scan; labels are the hit bodies' true classes (confidence 1)."""
+        base_true = self.robot.matrix()
+        base_pub = self.pose_noise.apply(base_true)
+        hits = self.lidar.scan(base_true)
+        world_from_sensor = base_pub @ self.lidar_spec.mount_matrix()
+        self.lidar_seq += 1
+        return LidarScan(
+            stamp_s=self.time_s, seq=self.lidar_seq,
+            points=transform_points(hits.points_sensor, world_from_sensor),
+            labels=hits.labels.astype(np.uint16), confidences=np.ones(len(hits.labels), "f4"),
+            world_from_sensor=world_from_sensor, true_world_from_sensor=hits.world_from_sensor,
+        )  # fmt: skip
+
+    # -- lifetime -----------------------------------------------------------------------------
+
+    def close(self) -> None:
+        self.scene.close()
+
+    def __enter__(self) -> Simulation:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
