@@ -1,0 +1,35 @@
+"""`smana mapper`: online semantic 3D mapping (octree-max, octree-bayes or tsdf) over zenoh.
+
+Integrates the robot's semantic clouds, publishes a MapDelta per cloud, answers stats, snapshot,
+save and point queries, autosaves, and resumes from a map file with --load.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from smana.common.cli import config_from_args, make_parser, setup_logging
+
+
+def cli(argv: list[str] | None = None) -> int:
+    p = make_parser("smana mapper", __doc__.strip().splitlines()[0])
+    p.add_argument("--load", metavar="FILE", help='resume from a saved map ("auto": save_path)')
+    p.add_argument("--save", metavar="FILE", help="where to autosave the map (mapper.save_path)")
+    args = p.parse_args(argv)
+    if args.load:
+        args.overrides.append(f"mapper.load={args.load}")
+    if args.save:
+        args.overrides.append(f"mapper.save_path={args.save}")
+    cfg = config_from_args(args)
+    setup_logging(cfg.general.log_level, "mapper")
+    from smana.services.mapper.service import main
+
+    try:
+        return main(cfg)
+    except (OSError, ValueError) as exc:  # e.g. an unreadable --load file: say so, no traceback
+        print(f"smana mapper: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

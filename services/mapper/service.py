@@ -1,0 +1,258 @@
+"""The mapper service: zenoh wiring around `SemanticMap` (the algorithm lives in the core modules).
+
+Inputs: `robot/cloud` and/or `robot/scan` (`mapper.inputs`), latest wins: a scan replaced before
+it was integrated is counted in `queue_drops`. Points with NaN/inf are dropped (counted,
+`nonfinite_points`), labels outside the class table become unknown (`unknown_labels`),
+confidences outside [0, 1] are clipped (`confidence_range`); a cloud that is not in the world
+frame is rejected (`frame`). A rejected cloud leaves the map as it was.
+
+Output: one `MapDelta` on `mapper/delta` per integrated cloud (even an empty one, so a lockstep
+simulator can wait for its `cloud_seq`), published reliably with congestion control BLOCK.
+
+Queries (msgpack or JSON, see `common/service.py`):
+- `mapper/stats`: map and service figures;
+- `mapper/snapshot`: occupied voxels as a `MapDelta`; optional box
+  `{"box": [xmin, ymin, zmin, xmax, ymax, zmax]}` (or `?box=...` in the selector);
+- `mapper/save`: save now to `mapper.save_path` (or `{"name": "file.npz"}` beside it);
+- `mapper/point`: `{"points": [[x, y, z], ...]}` -> known, occupied, labels, confidences, values.
+
+The map is saved every `mapper.autosave_period_s` (when it changed) and on shutdown, atomically;
+`mapper.load` (or `--load FILE`) resumes from a file, "auto" from `save_path` when it exists.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from smana.common import keys
+from smana.common.classes import ClassTable
+from smana.common.config import SmanaConfig
+from smana.common.messages import MapDelta, SemanticCloud
+from smana.common.service import ReplyError, Request, Service, run_service
+from smana.services.mapper.delta import Delta
+from smana.services.mapper.octree import FusionParams, OccupancyParams
+from smana.services.mapper.semantic_map import SemanticMap
+from smana.services.mapper.tsdf import TsdfParams
+
+MAX_QUERY_POINTS = 100_000
+
+
+def resolve_save_path(config: SmanaConfig) -> Path | None:
+    mc = config.mapper
+    if mc.save_path:
+        return Path(mc.save_path)
+    if config.general.run_dir:
+        return Path(config.general.run_dir) / "map.npz"
+    return None
+
+
+def build_map(config: SmanaConfig, table: ClassTable, log=None) -> SemanticMap:
+    """The map the config asks for: loaded from `mapper.load`, or new."""
+    mc = config.mapper
+    load = mc.load
+    if load == "auto":
+        save = resolve_save_path(config)
+        load = str(save) if save is not None and save.is_file() else ""
+    if load:
+        m = SemanticMap.load(load, table)
+        if log and (m.backend, m.resolution_m) != (mc.backend, mc.resolution_m):
+            log.warning("map file %s is %s at %g m; config asked for %s at %g m: using the file",
+                        load, m.backend, m.resolution_m, mc.backend, mc.resolution_m)  # fmt: skip
+        if log:
+            log.info("resumed map from %s (%d voxels)", load, m.stats()["voxels_observed"])
+        return m
+    return SemanticMap(
+        backend=mc.backend,
+        resolution_m=mc.resolution_m,
+        max_range_m=mc.max_range_m,
+        ray_length_m=mc.raycast_range_m if mc.raycast_range_m > 0 else None,
+        class_table=table,
+        occupancy=OccupancyParams(mc.prob_hit, mc.prob_miss, mc.clamp_min, mc.clamp_max),
+        fusion=FusionParams(mc.max_same_gain, mc.max_disagree_factor),
+        tsdf=TsdfParams(
+            mc.tsdf_truncation_voxels,
+            mc.tsdf_max_weight,
+            label_probability=mc.tsdf_label_probability,
+        ),  # fmt: skip
+    )
+
+
+class MapperService(Service):
+    name = "mapper"
+    tick_period_s = 0.5
+
+    def __init__(self, config: SmanaConfig):
+        super().__init__(config)
+        self.table = ClassTable.load(config.general.class_table)
+        self.map = build_map(config, self.table, self.log)
+        self.save_path = resolve_save_path(config)
+        self.delta_seq = 0
+        self.last_cloud_seq = -1
+        self.clouds = 0
+        self.points_dropped = 0
+        self.labels_replaced = 0
+        self.times_ms: list[float] = []
+        self.dirty = False
+        self.last_save_s = 0.0
+        self._next_save = time.monotonic() + config.mapper.autosave_period_s
+
+    def setup(self) -> None:
+        r = self.robot
+        self.delta_pub = self.publisher(keys.map_delta(r), reliable_block=True)
+        for name in self.config.mapper.inputs:
+            key = keys.cloud(r) if name == "cloud" else keys.scan(r)
+            self.subscribe_latest(key, self.on_cloud, SemanticCloud, drop_nonfinite=True)
+        self.queryable(keys.query(r, "mapper", "stats"), lambda req: self.stats())
+        self.queryable(keys.query(r, "mapper", "snapshot"), self.on_snapshot)
+        self.queryable(keys.query(r, "mapper", "save"), self.on_save)
+        self.queryable(keys.query(r, "mapper", "point"), self.on_point)
+        if self.save_path is None:
+            self.log.warning("no mapper.save_path and no run dir: the map is not saved")
+
+    # -- the cloud path ----------------------------------------------------------------------
+
+    def on_cloud(self, cloud: SemanticCloud) -> None:
+        if cloud.frame_id != "world":
+            self.count_error("frame", f"cloud {cloud.seq} is in {cloud.frame_id!r}, not world")
+            return
+        if cloud.n_dropped_nonfinite:
+            n = cloud.n_dropped_nonfinite
+            self.points_dropped += n
+            self.count_error("nonfinite_points", f"cloud {cloud.seq}: {n} NaN/inf points dropped")
+        labels, n_bad = self.table.sanitise(cloud.labels)
+        if n_bad:
+            self.labels_replaced += n_bad
+            self.count_error("unknown_labels", f"cloud {cloud.seq}: {n_bad} labels not in the "
+                             f"class table {self.table.name}, mapped to unknown")  # fmt: skip
+        conf = cloud.confidences
+        if conf.size and (conf.min() < 0 or conf.max() > 1):
+            self.count_error("confidence_range", f"cloud {cloud.seq}: confidences outside [0, 1]")
+            conf = np.clip(conf, 0.0, 1.0)
+        t0 = time.perf_counter()
+        delta = self.map.integrate(cloud.points, labels, conf, cloud.sensor_position)
+        self.times_ms.append((time.perf_counter() - t0) * 1e3)
+        del self.times_ms[:-100]
+        self.clouds += 1
+        self.dirty = True
+        self.last_cloud_seq = cloud.seq
+        self.delta_seq += 1
+        self.delta_pub.put(self._message(delta, cloud.stamp_s, cloud.seq, self.delta_seq))
+
+    def _message(self, d: Delta, stamp_s: float, cloud_seq: int, seq: int) -> MapDelta:
+        return MapDelta(
+            stamp_s=stamp_s,
+            seq=seq,
+            cloud_seq=cloud_seq,
+            backend=self.map.backend,
+            resolution_m=self.map.resolution_m,
+            centres=d.centres,
+            labels=d.labels,
+            confidences=d.confidences,
+            occupied=d.occupied,
+            values=d.values,
+        )
+
+    # -- saving ------------------------------------------------------------------------------
+
+    def tick(self) -> None:
+        period = self.config.mapper.autosave_period_s
+        if period > 0 and time.monotonic() >= self._next_save:
+            self._next_save = time.monotonic() + period
+            if self.dirty and self.save_path is not None:
+                self.save(self.save_path)
+
+    def save(self, path: Path) -> dict:
+        t0 = time.perf_counter()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.map.save(path)
+        self.dirty = False
+        self.last_save_s = time.time()
+        ms = (time.perf_counter() - t0) * 1e3
+        self.log.info("map saved to %s (%.0f ms)", path, ms)
+        return {"ok": True, "path": str(path), "bytes": path.stat().st_size, "time_ms": ms}
+
+    def on_stop(self) -> None:
+        if self.save_path is not None and (self.dirty or not self.save_path.exists()):
+            self.save(self.save_path)
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def stats(self) -> dict:
+        t = np.array(self.times_ms) if self.times_ms else np.zeros(1)
+        return {
+            **self.map.stats(),
+            "clouds": self.clouds,
+            "last_cloud_seq": self.last_cloud_seq,
+            "points_dropped_nonfinite": self.points_dropped,
+            "labels_replaced": self.labels_replaced,
+            "integrate_ms_median": float(np.median(t)),
+            "integrate_ms_last": float(t[-1]),
+            "save_path": str(self.save_path) if self.save_path else "",
+            "last_save_s": self.last_save_s,
+        }
+
+    def status_details(self) -> dict:
+        s = self.stats()
+        keep = ("backend", "voxels_observed", "voxels_occupied", "bytes_used", "clouds",
+                "points_dropped_nonfinite", "labels_replaced", "integrate_ms_median")  # fmt: skip
+        return {k: s[k] for k in keep}
+
+    def on_snapshot(self, req: Request) -> MapDelta:
+        body = req.body()
+        box = body.get("box", req.params.get("box"))
+        if box is not None:
+            try:
+                if isinstance(box, str):
+                    box = [float(v) for v in box.split(",")]
+                b = np.asarray(box, np.float64).reshape(2, 3)
+            except (ValueError, TypeError):
+                raise ReplyError(
+                    "value", "box must be 6 numbers: xmin,ymin,zmin,xmax,ymax,zmax"
+                ) from None
+            box = (b[0], b[1])
+        try:
+            rows = self.map.occupied_voxels(box)
+        except ValueError as exc:
+            raise ReplyError("value", str(exc)) from None
+        return self._message(rows, time.time(), self.last_cloud_seq, self.delta_seq)
+
+    def on_save(self, req: Request) -> dict:
+        if self.save_path is None:
+            raise ReplyError("value", "no mapper.save_path and no run dir: nowhere to save")
+        name = req.body().get("name")
+        path = self.save_path
+        if name:
+            # only a plain file name beside the configured path: a query never picks a directory
+            if not isinstance(name, str) or Path(name).name != name or name.startswith("."):
+                raise ReplyError("value", f"name must be a plain file name, got {name!r}")
+            path = self.save_path.parent / name
+        return self.save(path)
+
+    def on_point(self, req: Request) -> dict:
+        pts = req.body().get("points")
+        try:
+            arr = np.asarray(pts, np.float64)
+        except (ValueError, TypeError):
+            raise ReplyError("value", "points must be a list of [x, y, z]") from None
+        if arr.ndim == 1 and arr.shape == (3,):
+            arr = arr[None]
+        if arr.ndim != 2 or arr.shape[1] != 3 or not np.isfinite(arr).all():
+            raise ReplyError("value", "points must be a list of finite [x, y, z]")
+        if arr.shape[0] > MAX_QUERY_POINTS:
+            raise ReplyError("value", f"at most {MAX_QUERY_POINTS} points per query")
+        q = self.map.query(arr)
+        return {
+            "known": q.known.tolist(),
+            "occupied": q.occupied.tolist(),
+            "labels": q.labels.tolist(),
+            "confidences": q.confidences.tolist(),
+            "values": [None if np.isnan(v) else float(v) for v in q.values],
+        }
+
+
+def main(config: SmanaConfig) -> int:
+    """Run the mapper until SIGINT/SIGTERM."""
+    return run_service(MapperService, config)

@@ -1,0 +1,148 @@
+"""The mapper as a process over an isolated loopback zenoh: clouds in, deltas out, queries, bad
+input counted without touching the map, autosave on shutdown and resume with --load."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from smana.common import keys
+from smana.common.messages import MapDelta, SemanticCloud, decode, encode
+from smana.common.query import QueryError, request
+from smana.services.mapper.semantic_map import SemanticMap
+
+pytestmark = pytest.mark.multiprocess
+RES = 0.2
+
+
+def make_cloud(seq: int, n: int = 600) -> SemanticCloud:
+    rng = np.random.default_rng(seq)
+    pts = rng.uniform(-3, 3, (n, 3)).astype(np.float32)
+    pts[:, 2] = rng.uniform(-1, 0.5, n)
+    return SemanticCloud(
+        stamp_s=float(seq), seq=seq, points=pts,
+        labels=rng.choice(np.array([1, 2, 4, 8], np.uint16), n),
+        confidences=rng.uniform(0.3, 1.0, n).astype(np.float32),
+        sensor_position=np.array([0.1 * seq, 0.0, 0.8]),
+    )  # fmt: skip
+
+
+class DeltaInbox:
+    def __init__(self, session, key):
+        self.items: list[MapDelta] = []
+        self.cv = threading.Condition()
+        self.sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, sample):
+        msg = decode(sample.payload.to_bytes(), MapDelta)
+        with self.cv:
+            self.items.append(msg)
+            self.cv.notify_all()
+
+    def wait_for(self, cloud_seq: int, timeout_s: float = 60.0) -> MapDelta:
+        deadline = time.monotonic() + timeout_s
+        with self.cv:
+            while True:
+                for d in self.items:
+                    if d.cloud_seq == cloud_seq:
+                        return d
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError(f"no MapDelta for cloud {cloud_seq}")
+                self.cv.wait(left)
+
+
+def wait_stats(session, robot, pred, timeout_s=20.0):
+    key = keys.query(robot, "mapper", "stats")
+    deadline = time.monotonic() + timeout_s
+    while True:
+        s = request(session, key)
+        if pred(s) or time.monotonic() > deadline:
+            return s
+        time.sleep(0.1)
+
+
+def test_mapper_service_end_to_end(zenoh_stack, tmp_path):
+    st = zenoh_stack
+    map_file = tmp_path / "map.npz"
+    args = ("--set", f"mapper.resolution_m={RES}", "--set", "mapper.autosave_period_s=0",
+            "--save", str(map_file))  # fmt: skip
+    proc = st.service("mapper", *args)
+    st.wait_alive("mapper")
+    s, r = st.session, st.robot
+    inbox = DeltaInbox(s, keys.map_delta(r))
+    time.sleep(0.3)  # let the subscriber's declaration reach the router
+
+    reference = SemanticMap("octree-max", RES, 10.0, 1.0)
+    clouds = [make_cloud(i) for i in range(1, 4)]
+    for c in clouds:
+        s.put(keys.cloud(r), encode(c))
+        got = inbox.wait_for(c.seq)
+        want = reference.integrate(c.points, c.labels, c.confidences, c.sensor_position)
+        assert got.backend == "octree-max" and got.resolution_m == RES
+        assert len(got.centres) == len(want) > 0
+        order_got, order_want = np.lexsort(got.centres.T), np.lexsort(want.centres.T)
+        np.testing.assert_array_equal(got.centres[order_got], want.centres[order_want])
+        np.testing.assert_array_equal(got.values[order_got], want.values[order_want])
+        np.testing.assert_array_equal(got.labels[order_got], want.labels[order_want])
+    before = request(s, keys.query(r, "mapper", "stats"))
+    assert before["clouds"] == 3
+    assert before["voxels_observed"] == reference.stats()["voxels_observed"]
+
+    # bad input: garbage, inconsistent lengths, another frame -> rejected, map untouched
+    s.put(keys.cloud(r), b"\x93garbage")
+    time.sleep(0.2)  # latest wins: give each bad cloud its turn
+    bad = make_cloud(50)
+    bad.labels = bad.labels[:-5]
+    s.put(keys.cloud(r), encode(bad))
+    time.sleep(0.2)
+    other = make_cloud(51)
+    other.frame_id = "camera"
+    s.put(keys.cloud(r), encode(other))
+    time.sleep(0.2)
+    after_bad = wait_stats(s, r, lambda x: x["clouds"] == 3)
+    assert after_bad["voxels_observed"] == before["voxels_observed"]
+    assert after_bad["clouds"] == 3
+
+    # NaN points are dropped and counted, unknown labels become 0 and are counted; the rest maps
+    nan_cloud = make_cloud(60)
+    nan_cloud.points[:7] = np.nan
+    nan_cloud.labels[10:13] = 3  # id 3 is not in the garden table
+    s.put(keys.cloud(r), encode(nan_cloud))
+    d = inbox.wait_for(60)
+    assert len(d.centres) > 0
+    status = request(s, keys.status(r, "mapper"))
+    for kind in ("malformed", "frame", "nonfinite_points", "unknown_labels"):
+        assert status.errors.get(kind, 0) >= 1, (kind, status.errors)
+    assert status.state == "running"
+    stats = request(s, keys.query(r, "mapper", "stats"))
+    assert stats["points_dropped_nonfinite"] == 7 and stats["labels_replaced"] == 3
+
+    # queries: point, snapshot in a box, bad query answered with an error
+    occ = request(s, keys.query(r, "mapper", "snapshot"))
+    assert isinstance(occ, MapDelta) and len(occ.centres) == stats["voxels_occupied"]
+    boxed = request(s, keys.query(r, "mapper", "snapshot"), {"box": [-1, -1, -1, 1, 1, 1]})
+    assert 0 < len(boxed.centres) < len(occ.centres)
+    assert (np.abs(boxed.centres) <= 1).all()
+    q = request(s, keys.query(r, "mapper", "point"), {"points": occ.centres[:5].tolist()})
+    assert all(q["known"]) and all(q["occupied"])
+    with pytest.raises(QueryError) as err:
+        request(s, keys.query(r, "mapper", "point"), {"points": [[1, 2]]})
+    assert err.value.kind == "value"
+    with pytest.raises(QueryError):
+        request(s, keys.query(r, "mapper", "save"), {"name": "../escape.npz"})
+
+    # shutdown saves; a new process resumes from the file with the same map
+    n_voxels = stats["voxels_observed"]
+    assert st.stop(proc) == 0
+    st.procs = [(n, p) for n, p in st.procs if p is not proc]  # wait_alive must not see it
+    assert map_file.is_file()
+    assert SemanticMap.load(map_file).stats()["voxels_observed"] == n_voxels
+    st.service("mapper", *args, "--load", str(map_file))
+    st.wait_alive("mapper")
+    resumed = wait_stats(s, r, lambda x: True)
+    assert resumed["voxels_observed"] == n_voxels
+    inbox.sub.undeclare()
