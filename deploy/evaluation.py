@@ -44,9 +44,10 @@ def _check_cloud(name: str, points, labels) -> tuple[np.ndarray, np.ndarray]:
     return points, labels
 
 
-def nearest_gt(map_points, gt_points) -> tuple[np.ndarray, np.ndarray]:
-    """(distance, index) of the nearest ground-truth point for every map point."""
-    tree = cKDTree(np.asarray(gt_points, np.float64))
+def nearest_gt(map_points, gt_points, tree=None) -> tuple[np.ndarray, np.ndarray]:
+    """(distance, index) of the nearest ground-truth point for every map point (`tree`: a
+    cKDTree of `gt_points` built earlier, reused across maps)."""
+    tree = tree if tree is not None else cKDTree(np.asarray(gt_points, np.float64))
     dist, idx = tree.query(np.asarray(map_points, np.float64), k=1)
     return dist, idx
 
@@ -71,6 +72,7 @@ def evaluate_map(
     gt_points,
     gt_labels,
     class_names: dict[int, str] | None = None,
+    gt_tree=None,
 ) -> dict:
     """Reconstruction error and classification ratio of a labelled map against a labelled GT cloud.
 
@@ -95,7 +97,7 @@ def evaluate_map(
             "per_class": {},
             "per_true_class": {},
         }
-    dist, idx = nearest_gt(mp, gp)
+    dist, idx = nearest_gt(mp, gp, gt_tree)
     true = gl[idx]
     ok = ml == true
     out = {
