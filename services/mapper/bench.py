@@ -42,10 +42,8 @@ def _rss_mb() -> float:
 
 def _load_scans(path: Path):
     with np.load(path) as z:
-        return [
-            (z["points"][i], z["labels"][i], z["confidences"][i], z["origins"][i])
-            for i in range(z["points"].shape[0])
-        ]
+        pts, lab, conf, org = (z[k] for k in ("points", "labels", "confidences", "origins"))
+    return [(pts[i], lab[i], conf[i], org[i]) for i in range(pts.shape[0])]
 
 
 def _make_scans(n_scans: int, n_beams: int, n_cols: int, path: Path) -> None:
@@ -75,24 +73,30 @@ def run_ours(cfg: dict, scans) -> dict:
     warm.integrate(p[:2000], lab[:2000], conf[:2000], org)
     del warm
     rss0 = _rss_mb()
-    m = SemanticMap(cfg["backend"], cfg["res"], MAX_RANGE_M, ray)
-    times, updates, deltas = [], [], []
-    for p, lab, conf, org in scans:
-        t0 = time.perf_counter()
-        d = m.integrate(p, lab, conf, org)
-        times.append(time.perf_counter() - t0)
-        updates.append(m._core.last_updates)
-        deltas.append(len(d))
+    run_medians, times, updates, deltas = [], [], [], []
+    for _ in range(cfg.get("repeats", 1)):  # a fresh map each run, the same scans
+        m = SemanticMap(cfg["backend"], cfg["res"], MAX_RANGE_M, ray)
+        run = []
+        for p, lab, conf, org in scans:
+            t0 = time.perf_counter()
+            d = m.integrate(p, lab, conf, org)
+            run.append(time.perf_counter() - t0)
+            updates.append(m._core.last_updates)
+            deltas.append(len(d))
+        run_medians.append(np.median(run))
+        times += run
     st = m.stats()
     t = np.array(times)
+    med = float(np.median(run_medians))  # median of the runs' medians: robust to a busy run
     n_pts = float(np.mean([s[0].shape[0] for s in scans]))
     return {
         **cfg,
         "scans": len(scans),
         "points_per_scan": n_pts,
-        "median_ms": float(np.median(t) * 1e3),
+        "median_ms": med * 1e3,
+        "run_medians_ms": [float(x * 1e3) for x in run_medians],
         "p95_ms": float(np.percentile(t, 95) * 1e3),
-        "us_per_point": float(np.median(t) * 1e6 / n_pts),
+        "us_per_point": med * 1e6 / n_pts,
         "voxel_updates_per_s": float(np.sum(updates) / np.sum(t)),
         "delta_median": float(np.median(deltas)),
         "peak_rss_mb": _rss_mb(),
@@ -117,22 +121,28 @@ def run_octomap(cfg: dict, scans) -> dict:
         over.append(time.perf_counter() - t0)
     del probe
     rss0 = _rss_mb()
-    tree = pyoctomap.OcTree(cfg["res"])
-    times = []
-    for p, o in clouds:
-        t0 = time.perf_counter()
-        tree.insertPointCloud(p, o, MAX_RANGE_M, True)  # lazy_eval: OctoMap's fastest path
-        times.append(time.perf_counter() - t0)
+    run_medians, times = [], []
+    for _ in range(cfg.get("repeats", 1)):
+        tree = pyoctomap.OcTree(cfg["res"])
+        run = []
+        for p, o in clouds:
+            t0 = time.perf_counter()
+            tree.insertPointCloud(p, o, MAX_RANGE_M, True)  # lazy_eval: OctoMap's fastest path
+            run.append(time.perf_counter() - t0)
+        run_medians.append(np.median(run))
+        times += run
     t, ov = np.array(times), np.array(over)
+    med = float(np.median(run_medians))
     leaves = tree.getNumLeafNodes()
     return {
         **cfg,
         "scans": len(scans),
-        "median_ms": float(np.median(t) * 1e3),
+        "median_ms": med * 1e3,
+        "run_medians_ms": [float(x * 1e3) for x in run_medians],
         "p95_ms": float(np.percentile(t, 95) * 1e3),
         "wrapper_ms": float(np.median(ov) * 1e3),
-        "cpp_median_ms": float((np.median(t) - np.median(ov)) * 1e3),
-        "us_per_point": float(np.median(t) * 1e6 / clouds[0][0].shape[0]),
+        "cpp_median_ms": (med - float(np.median(ov))) * 1e3,
+        "us_per_point": med * 1e6 / clouds[0][0].shape[0],
         "peak_rss_mb": _rss_mb(),
         "map_rss_mb": _rss_mb() - rss0,
         "bytes_per_allocated_voxel": tree.memoryUsage() / max(leaves, 1),
@@ -287,6 +297,7 @@ def cli(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="smana bench mapper", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="tiny scans, 0.3 m only, in-process")
     p.add_argument("--scans", type=int, default=20, help="scans per configuration (default 20)")
+    p.add_argument("--repeats", type=int, default=3, help="runs per configuration (default 3)")
     p.add_argument("--agreement-scans", type=int, default=5)
     p.add_argument("--resolutions", type=float, nargs="+", default=[0.1, 0.3])
     p.add_argument("--backends", nargs="+", default=["octree-max", "octree-bayes", "tsdf"])
@@ -308,6 +319,7 @@ def cli(argv: list[str] | None = None) -> int:
     if args.quick:
         beams, cols, n = 16, 256, 3
         args.resolutions, args.in_process, args.agreement_scans = [0.3], True, 2
+        args.repeats = 1
     have_octomap = not args.no_octomap
     if have_octomap:
         try:
@@ -320,9 +332,11 @@ def cli(argv: list[str] | None = None) -> int:
     for res in args.resolutions:
         for backend in args.backends:
             for ray in [None] if backend == "tsdf" else [1.0, None]:
-                configs.append({"kind": "ours", "backend": backend, "res": res, "ray_m": ray})
+                configs.append({"kind": "ours", "backend": backend, "res": res, "ray_m": ray,
+                                "repeats": args.repeats})  # fmt: skip
         if have_octomap:
-            configs.append({"kind": "octomap", "backend": "octomap", "res": res, "ray_m": None})
+            configs.append({"kind": "octomap", "backend": "octomap", "res": res, "ray_m": None,
+                            "repeats": args.repeats})  # fmt: skip
             configs.append({"kind": "agreement", "backend": "octree-max", "res": res,
                             "ray_m": None, "n_scans": args.agreement_scans})  # fmt: skip
     t_start = time.perf_counter()
