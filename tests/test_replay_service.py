@@ -113,6 +113,10 @@ def test_lockstep_publishes_every_scan_as_prepared(zenoh_stack, dataset):
             assert np.linalg.norm(cloud.points - pc.sensor_position, axis=1).max() <= 10.0 + 1e-4
     assert len(mapper.poses) == N_SCANS
     assert summary["points_published"] == sum(len(c.points) for c in mapper.clouds)
+    per_scan = summary["per_scan"]
+    assert [r[0] for r in per_scan] == list(range(1, N_SCANS + 1))
+    assert [r[4] for r in per_scan] == [len(c.points) for c in mapper.clouds]
+    assert all(r[5] >= 50 for r in per_scan)
 
 
 @pytest.mark.multiprocess

@@ -202,6 +202,7 @@ class Pacer:
     late_published: int = 0
     late_integrated: int = 0
     latencies_s: list[float] = field(default_factory=list)
+    latency_by_seq: dict[int, float] = field(default_factory=dict)
     period_s: float = 0.1  # nominal scan period at the replay rate (set from the dataset)
 
     def __post_init__(self):
@@ -250,6 +251,7 @@ class Pacer:
         latency = self.clock() - f.sent_at
         self.acked += 1
         self.latencies_s.append(latency)
+        self.latency_by_seq[cloud_seq] = latency
         if self.mode == "realtime" and latency > self.period_s:
             self.late_integrated += 1
         return latency

@@ -114,6 +114,7 @@ class ReplayService(Service):
         self.read_errors: list[tuple[str, str]] = []
         self.points_in = self.points_out = 0
         self.points_range = self.points_ignored = self.points_nonfinite = 0
+        self.scan_log: list[tuple[int, int, str, float, int]] = []  # seq, index, name, stamp, n
         self._t_wait = time.monotonic()
         self._t_run = None
         self.progress = Progress(len(self.feed))
@@ -229,6 +230,7 @@ class ReplayService(Service):
             seq = self.pacer.published + 1
             self.cloud_pub.put(item.cloud)
             self.pacer.on_published(seq, item.index, item.stamp_s, item.cloud)
+            self.scan_log.append((seq, item.index, item.name, item.stamp_s, pc.n_out))
         else:
             self.pacer.start_clock(item.stamp_s)
             self.empty += 1
@@ -300,6 +302,11 @@ class ReplayService(Service):
             "points_nonfinite": self.points_nonfinite,
             "wall_s": wall,
             "scans_per_s": p.published / wall if wall > 0 else None,
+            # per published scan: seq, dataset index, name, stamp, points, integration latency
+            "per_scan": [
+                [seq, i, name, stamp, n, _ms(p.latency_by_seq.get(seq))]
+                for seq, i, name, stamp, n in self.scan_log
+            ],
         }
 
     def _write_summary(self, summary: dict) -> None:
@@ -324,6 +331,10 @@ class ReplayService(Service):
     def on_stop(self) -> None:
         self.feed.stop()
         self.reader.close()
+
+
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else round(seconds * 1000.0, 3)
 
 
 def _one_line(s: dict) -> str:

@@ -1,0 +1,561 @@
+"""`smana bench replay [DATASET]`: the paper's resource evaluation (section 5, Figures 11 and 12).
+
+For each mapping back-end and each map/graph resolution pair, a zenoh router (in this process),
+the mapper and the navgraph run as their own processes and the replay service feeds them the whole
+sequence in lockstep. Measured per configuration:
+
+- integration time per point, map and graph separately, mean and standard deviation over the
+  scans: the mapper's own timing of each integration (its `stats` query) and the time from a
+  MapDelta to the GraphPatch it caused, each divided by the scan's published points;
+- CPU use (mean and standard deviation of psutil samples; 100 % = one core) and peak RSS of the
+  mapper and navgraph processes over the sequence.
+
+Then one realtime run (octree-max at 0.1 m / 0.2 m by default) with the planner up checks the
+targets: no scan late or lost at the recorded rate, and path queries answered within 100 ms while
+the map grows. Without a dataset the synthetic RELLIS-3D-layout sequence is written first
+(131,072-point OS1-64-like scans at 10 Hz). Output: a table on stdout and in
+`<out>/replay_bench.md`, the raw figures in `replay_bench.json`, and the plots
+`fig11_cpu_ram.png` and `fig12_time_per_point.png`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+# Paper, RELLIS-3D 00000, C++ on a Xeon W-2123 (8 cores): map + graph seconds per scan.
+PAPER_S_PER_SCAN = {
+    ("octree", 0.1): 0.56, ("tsdf", 0.1): 7.2, ("octree", 0.3): 0.10, ("tsdf", 0.3): 1.4,
+}  # fmt: skip
+PATH_QUERY_TARGET_MS = 100.0
+
+
+@dataclass
+class RunResult:
+    backend: str
+    map_res: float
+    graph_res: float
+    repeat: int
+    scans: int = 0
+    lost: int = 0
+    points_per_scan: float = 0.0
+    map_ms: list[float] = field(default_factory=list)  # per scan, the mapper's own timing
+    graph_ms: list[float] = field(default_factory=list)  # per scan, MapDelta -> GraphPatch
+    map_us_per_point: list[float] = field(default_factory=list)
+    graph_us_per_point: list[float] = field(default_factory=list)
+    latency_ms: list[float] = field(default_factory=list)  # replay: publish -> MapDelta
+    cpu_map: list[float] = field(default_factory=list)  # psutil samples, % of one core
+    cpu_graph: list[float] = field(default_factory=list)
+    rss_map_mb: float = 0.0
+    rss_graph_mb: float = 0.0
+    wall_s: float = 0.0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Stack:
+    """A router in this process, services as child processes (own process groups)."""
+
+    def __init__(self, log_dir: Path, robot: str = "bench"):
+        from smana.common.config import ZenohConfig
+        from smana.deploy.router import open_router
+
+        self.port = _free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.robot = robot
+        self.log_dir = log_dir
+        log_dir.mkdir(parents=True, exist_ok=True)
+        zc = ZenohConfig(mode="router", connect=[], listen=[self.endpoint])
+        self.session = open_router([self.endpoint], zc)
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def start(self, name: str, args: list[str]) -> subprocess.Popen:
+        log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 - the child owns it
+        argv = [sys.executable, "-m", f"smana.services.{name}", "--mode", "client",
+                "--connect", self.endpoint, "--robot", self.robot, *args]  # fmt: skip
+        proc = subprocess.Popen(
+            argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            start_new_session=True, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )  # fmt: skip
+        log.close()
+        self.procs[name] = proc
+        return proc
+
+    def wait_alive(self, names: list[str], timeout_s: float = 60.0) -> None:
+        from smana.common import keys
+
+        deadline = time.monotonic() + timeout_s
+        for name in names:
+            while True:
+                if list(self.session.liveliness().get(keys.alive(self.robot, name), timeout=1.0)):
+                    break
+                if self.procs[name].poll() is not None or time.monotonic() > deadline:
+                    log = (self.log_dir / f"{name}.log").read_text(errors="replace")[-3000:]
+                    raise RuntimeError(f"{name} did not come up:\n{log}")
+                time.sleep(0.1)
+
+    def stop(self, name: str, timeout_s: float = 10.0) -> None:
+        proc = self.procs.pop(name, None)
+        if proc is None or proc.poll() is not None:
+            return
+        os.killpg(proc.pid, signal.SIGINT)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+    def close(self) -> None:
+        for name in list(self.procs):
+            self.stop(name)
+        self.session.close()
+
+
+class Sampler(threading.Thread):
+    """psutil CPU % and RSS of some processes, every `period_s`, while `active` is set."""
+
+    def __init__(self, pids: dict[str, int], period_s: float = 0.25):
+        super().__init__(daemon=True)
+        import psutil
+
+        self.procs = {n: psutil.Process(pid) for n, pid in pids.items()}
+        self.period_s = period_s
+        self.cpu: dict[str, list[float]] = {n: [] for n in pids}
+        self.rss: dict[str, int] = dict.fromkeys(pids, 0)
+        self.active = threading.Event()
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        import psutil
+
+        for p in self.procs.values():
+            p.cpu_percent(None)  # primes the counter: the next call measures from here
+        while not self.done.wait(self.period_s):
+            for n, p in self.procs.items():
+                try:
+                    cpu = p.cpu_percent(None)
+                    rss = p.memory_info().rss
+                except psutil.Error:
+                    continue
+                if self.active.is_set():
+                    self.cpu[n].append(cpu)
+                    self.rss[n] = max(self.rss[n], rss)
+
+
+class Probe:
+    """Listens to MapDeltas and GraphPatches (arrival times) and asks the mapper for its own
+    timing of each integration."""
+
+    def __init__(self, stack: Stack):
+        from smana.common import keys
+
+        self.stack = stack
+        self.deltas: dict[int, tuple[float, float]] = {}  # cloud_seq -> (stamp, arrival)
+        self.patches: list[tuple[float, float]] = []  # (stamp, arrival)
+        self.map_ms: dict[int, float] = {}  # clouds integrated -> integrate_ms_last
+        self.poses: list[tuple[float, float]] = []
+        self._wanted = threading.Event()
+        self._stop = threading.Event()
+        r = stack.robot
+        s = stack.session
+        self._subs = [
+            s.declare_subscriber(keys.map_delta(r), self._on_delta),
+            s.declare_subscriber(keys.graph_patch(r), self._on_patch),
+            s.declare_subscriber(keys.pose(r), self._on_pose),
+        ]
+        self._thread = threading.Thread(target=self._ask_stats, daemon=True)
+        self._thread.start()
+
+    def _on_delta(self, sample) -> None:
+        import msgpack
+
+        now = time.monotonic()
+        head = msgpack.unpackb(sample.payload.to_bytes(), raw=False)  # no need to validate
+        self.deltas.setdefault(int(head["cloud_seq"]), (float(head["stamp_s"]), now))
+        self._wanted.set()
+
+    def _on_patch(self, sample) -> None:
+        import msgpack
+
+        now = time.monotonic()
+        head = msgpack.unpackb(sample.payload.to_bytes(), raw=False)
+        self.patches.append((float(head["stamp_s"]), now))
+
+    def _on_pose(self, sample) -> None:
+        from smana.common.messages import Pose, decode
+
+        p = decode(sample.payload.to_bytes(), Pose)
+        self.poses.append((float(p.position[0]), float(p.position[1])))
+
+    def _ask_stats(self) -> None:
+        from smana.common import keys
+
+        key = keys.query(self.stack.robot, "mapper", "stats")
+        while not self._stop.is_set():
+            if not self._wanted.wait(0.2):
+                continue
+            self._wanted.clear()
+            st = query_map(self.stack.session, key)
+            if st and "clouds" in st and "integrate_ms_last" in st:
+                self.map_ms.setdefault(int(st["clouds"]), float(st["integrate_ms_last"]))
+
+    def graph_ms(self) -> dict[int, float]:
+        return match_patches(self.deltas, self.patches)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        for s in self._subs:
+            s.undeclare()
+
+
+def match_patches(
+    deltas: dict[int, tuple[float, float]], patches: list[tuple[float, float]]
+) -> dict[int, float]:
+    """Per cloud seq, ms from its MapDelta's arrival to its GraphPatch's.
+
+    `deltas`: seq -> (stamp, arrival); `patches`: (stamp, arrival). A patch carrying the stamp of
+    a delta answers that delta. Patches with stamps no delta has are matched by order instead:
+    the first patch after a delta and before the next one. A delta that changed no node may
+    have no patch; it gets no figure.
+    """
+    by_stamp: dict[float, float] = {}
+    for stamp, t in sorted(patches, key=lambda p: p[1]):
+        by_stamp.setdefault(stamp, t)
+    seqs = sorted(deltas)
+    arrivals = [deltas[s][1] for s in seqs] + [float("inf")]
+    stamped = {deltas[s][0] for s in seqs}
+    loose = np.sort([t for stamp, t in patches if stamp not in stamped])
+    out = {}
+    for k, seq in enumerate(seqs):
+        stamp, t = deltas[seq]
+        if stamp in by_stamp and by_stamp[stamp] >= t:
+            out[seq] = (by_stamp[stamp] - t) * 1000.0
+            continue
+        j = int(np.searchsorted(loose, t))
+        if j < loose.size and loose[j] < arrivals[k + 1]:
+            out[seq] = (loose[j] - t) * 1000.0
+    return out
+
+
+def query_map(session, key: str, payload: bytes | None = None, timeout_s: float = 5.0):
+    """A query whose reply is a msgpack map; None when there is no (good) reply."""
+    import msgpack
+
+    for reply in session.get(key, payload=payload, timeout=timeout_s):
+        if reply.ok is not None:
+            try:
+                return msgpack.unpackb(reply.ok.payload.to_bytes(), raw=False)
+            except Exception:  # noqa: BLE001 - a garbled reply is no reply
+                return None
+    return None
+
+
+def stack_settings(backend: str, map_res: float, graph_res: float, table: str) -> list[str]:
+    sets = [
+        f"general.class_table={table}", 'mapper.inputs=["scan"]', f"mapper.backend={backend}",
+        f"mapper.resolution_m={map_res}", "mapper.max_range_m=10.0",
+        "mapper.raycast_range_m=1.0", "mapper.autosave_period_s=0",
+        f"navgraph.resolution_m={graph_res}",
+    ]  # fmt: skip
+    return [a for s in sets for a in ("--set", s)]
+
+
+def run_config(
+    dataset: Path, backend: str, map_res: float, graph_res: float, repeat: int, out: Path,
+    table: str, count: int, realtime: bool = False, probe_paths: bool = False,
+) -> tuple[RunResult, dict]:  # fmt: skip
+    """One pass over the sequence; returns the measurements and the replay's summary."""
+    name = f"{backend}_{map_res:g}_{graph_res:g}" + ("_realtime" if realtime else f"_r{repeat}")
+    run_dir = out / "runs" / name
+    stack = Stack(run_dir / "logs")
+    res = RunResult(backend, map_res, graph_res, repeat)
+    path_times: list[dict] = []
+    try:
+        sets = stack_settings(backend, map_res, graph_res, table)
+        services = ["mapper", "navgraph"] + (["planner"] if probe_paths else [])
+        for s in services:
+            stack.start(s, [*sets, "--run-dir", str(run_dir / s)])
+        stack.wait_alive(services)
+        probe = Probe(stack)
+        sampler = Sampler({s: stack.procs[s].pid for s in ("mapper", "navgraph")})
+        sampler.start()
+        pace = ["--realtime"] if realtime else ["--lockstep"]
+        extra = ["--count", str(count)] if count else []
+        stack.start(
+            "replay",
+            [str(dataset), *pace, *extra, *sets, "--run-dir", str(run_dir / "replay"),
+             "--set", f"replay.wait_for={json.dumps(services)}"],
+        )  # fmt: skip
+        sampler.active.set()
+        prober = None
+        if probe_paths:
+            prober = threading.Thread(
+                target=_probe_paths, args=(stack, probe, path_times, stack.procs["replay"]),
+                daemon=True,
+            )  # fmt: skip
+            prober.start()
+        t0 = time.monotonic()
+        code = stack.procs["replay"].wait()
+        res.wall_s = time.monotonic() - t0
+        time.sleep(0.5)  # the last GraphPatch
+        sampler.active.clear()
+        sampler.done.set()
+        if prober is not None:
+            prober.join(timeout=5)
+        probe.close()
+        summary_path = run_dir / "replay" / "replay.json"
+        if code != 0 or not summary_path.exists():
+            log = (run_dir / "logs" / "replay.log").read_text(errors="replace")[-3000:]
+            raise RuntimeError(f"replay failed ({code}) for {name}:\n{log}")
+        summary = json.loads(summary_path.read_text())
+    finally:
+        stack.close()
+
+    per_scan = summary["per_scan"]
+    points = {row[0]: row[4] for row in per_scan}
+    graph = probe.graph_ms()
+    res.scans = len(per_scan)
+    res.lost = summary["lost"]
+    res.points_per_scan = float(np.mean(list(points.values()))) if points else 0.0
+    res.latency_ms = [row[5] for row in per_scan if row[5] is not None]
+    # The mapper's k-th integration is the k-th published scan (lockstep, nothing lost).
+    for k, ms in sorted(probe.map_ms.items()):
+        if k in points and points[k]:
+            res.map_ms.append(ms)
+            res.map_us_per_point.append(1000.0 * ms / points[k])
+    for seq, ms in sorted(graph.items()):
+        if seq in points and points[seq]:
+            res.graph_ms.append(ms)
+            res.graph_us_per_point.append(1000.0 * ms / points[seq])
+    res.cpu_map, res.cpu_graph = sampler.cpu["mapper"], sampler.cpu["navgraph"]
+    res.rss_map_mb = sampler.rss["mapper"] / 2**20
+    res.rss_graph_mb = sampler.rss["navgraph"] / 2**20
+    summary["path_queries"] = path_times
+    return res, summary
+
+
+def _probe_paths(stack: Stack, probe: Probe, out: list[dict], replay: subprocess.Popen) -> None:
+    """While the replay runs: a path from the first pose to the latest one, twice a second."""
+    from smana.common import keys
+    from smana.common.messages import PathReply, PathRequest, decode, encode
+
+    key = keys.path_query(stack.robot)
+    n = 0
+    while replay.poll() is None:
+        time.sleep(0.5)
+        if len(probe.poses) < 2:
+            continue
+        n += 1
+        req = PathRequest(request_id=f"probe{n}", start=np.array(probe.poses[0]),
+                          goal=np.array(probe.poses[-1]))  # fmt: skip
+        t0 = time.perf_counter()
+        reply = None
+        for r in stack.session.get(key, payload=encode(req), timeout=5.0):
+            if r.ok is not None:
+                reply = decode(r.ok.payload.to_bytes(), PathReply)
+        wall_ms = (time.perf_counter() - t0) * 1000.0
+        out.append({
+            "wall_ms": wall_ms,
+            "planner_ms": reply.time_ms if reply else None,
+            "ok": bool(reply and reply.ok),
+            "error": reply.error if reply else "no reply",
+        })  # fmt: skip
+
+
+# -- reporting ------------------------------------------------------------------------------------
+
+
+def _ms(values: list[float]) -> tuple[float, float]:
+    return (float(np.mean(values)), float(np.std(values))) if values else (float("nan"),) * 2
+
+
+def aggregate(runs: list[RunResult]) -> list[dict]:
+    """Per configuration: the median over repeats of each figure."""
+    groups: dict[tuple, list[RunResult]] = {}
+    for r in runs:
+        groups.setdefault((r.backend, r.map_res, r.graph_res), []).append(r)
+    rows = []
+    for (backend, mres, gres), rs in groups.items():
+
+        def med(f, rs=rs):
+            vals = [f(r) for r in rs]
+            vals = [v for v in vals if v == v]
+            return statistics.median(vals) if vals else float("nan")
+
+        row = {
+            "backend": backend, "map_res": mres, "graph_res": gres, "repeats": len(rs),
+            "scans": rs[0].scans, "points_per_scan": med(lambda r: r.points_per_scan),
+            "lost": max(r.lost for r in rs),
+            "map_us_pt": med(lambda r: _ms(r.map_us_per_point)[0]),
+            "map_us_pt_std": med(lambda r: _ms(r.map_us_per_point)[1]),
+            "graph_us_pt": med(lambda r: _ms(r.graph_us_per_point)[0]),
+            "graph_us_pt_std": med(lambda r: _ms(r.graph_us_per_point)[1]),
+            "map_ms_scan": med(lambda r: _ms(r.map_ms)[0]),
+            "graph_ms_scan": med(lambda r: _ms(r.graph_ms)[0]),
+            "latency_ms": med(lambda r: _ms(r.latency_ms)[0]),
+            "cpu_map": med(lambda r: _ms(r.cpu_map)[0]),
+            "cpu_map_std": med(lambda r: _ms(r.cpu_map)[1]),
+            "cpu_graph": med(lambda r: _ms(r.cpu_graph)[0]),
+            "cpu_graph_std": med(lambda r: _ms(r.cpu_graph)[1]),
+            "rss_map_mb": med(lambda r: r.rss_map_mb),
+            "rss_graph_mb": med(lambda r: r.rss_graph_mb),
+        }  # fmt: skip
+        row["s_per_scan"] = (row["map_ms_scan"] + row["graph_ms_scan"]) / 1000.0
+        family = "tsdf" if backend == "tsdf" else "octree"
+        row["paper_s_per_scan"] = PAPER_S_PER_SCAN.get((family, round(mres, 2)))
+        rows.append(row)
+    return rows
+
+
+def table_markdown(rows: list[dict]) -> str:
+    head = (
+        "| back-end | map / graph res | pts/scan | map µs/pt (±sd) | graph µs/pt (±sd) | "
+        "map+graph s/scan | paper s/scan | CPU map % (±sd) | CPU graph % (±sd) | "
+        "RAM map MB | RAM graph MB | lost |"
+    )
+    lines = [head, "|" + "---|" * 12]
+    for r in rows:
+        paper = f"{r['paper_s_per_scan']:.2f}" if r["paper_s_per_scan"] else "-"
+        lines.append(
+            f"| {r['backend']} | {r['map_res']:g} / {r['graph_res']:g} m | "
+            f"{r['points_per_scan']:.0f} | {r['map_us_pt']:.3f} ± {r['map_us_pt_std']:.3f} | "
+            f"{r['graph_us_pt']:.3f} ± {r['graph_us_pt_std']:.3f} | {r['s_per_scan']:.3f} | "
+            f"{paper} | {r['cpu_map']:.0f} ± {r['cpu_map_std']:.0f} | "
+            f"{r['cpu_graph']:.0f} ± {r['cpu_graph_std']:.0f} | {r['rss_map_mb']:.0f} | "
+            f"{r['rss_graph_mb']:.0f} | {r['lost']} |"
+        )
+    return "\n".join(lines)
+
+
+def realtime_markdown(summary: dict, backend: str, mres: float, gres: float) -> str:
+    lat = summary["latency"]
+    pq = summary.get("path_queries", [])
+    lines = [
+        f"Realtime replay, {backend} {mres:g} / {gres:g} m, {summary['scans']} scans at "
+        f"{summary['recorded_rate_hz']:.1f} Hz x{summary['rate_factor']:g}: "
+        f"{summary['published']} published, {summary['acknowledged']} integrated, "
+        f"{summary['lost']} dropped by the mapper, {summary['late_published']} published late, "
+        f"{summary['late_integrated']} integrated more than one period late; "
+        f"publish -> MapDelta mean {lat['mean_ms']:.0f} ms, p95 {lat['p95_ms']:.0f} ms, "
+        f"max {lat['max_ms']:.0f} ms.",
+    ]
+    if pq:
+        wall = np.array([q["wall_ms"] for q in pq])
+        ok = sum(q["ok"] for q in pq)
+        errors = sorted({q["error"] for q in pq if not q["ok"]})
+        lines.append(
+            f"Path queries during the replay (first pose -> current pose, every 0.5 s): "
+            f"{len(pq)} asked, {ok} paths found, round trip median {np.median(wall):.1f} ms, "
+            f"max {wall.max():.1f} ms (target {PATH_QUERY_TARGET_MS:.0f} ms)"
+            + (f"; errors: {', '.join(errors)}" if errors else "")
+            + "."
+        )
+    return "\n".join(lines)
+
+
+def main(args: argparse.Namespace) -> int:
+    from smana.services.replay import synthetic as syn
+    from smana.services.replay.readers import open_dataset
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.dataset:
+        dataset = Path(args.dataset).resolve()
+    else:
+        params = syn.SyntheticParams(n_scans=args.scans)
+        print(f"writing the synthetic sequence ({args.scans} scans of 131,072 points) ...",
+              file=sys.stderr)  # fmt: skip
+        syn.write_rellis_sequence(out / "synthetic", params,
+                                  progress=lambda k, n: print(f"\r  {k}/{n}", end="",
+                                                              file=sys.stderr))  # fmt: skip
+        print(file=sys.stderr)
+        dataset = (out / "synthetic").resolve()
+    with open_dataset(dataset) as reader:
+        table = args.table or reader.default_class_table
+        n_scans = len(reader)
+    count = args.scans if args.dataset and args.scans else 0
+    pairs = [tuple(float(v) for v in p.split("/")) for p in args.res.split(",")]
+    backends = args.backends.split(",")
+    load = os.getloadavg()[0]
+    runs: list[RunResult] = []
+    for backend in backends:
+        for mres, gres in pairs:
+            for rep in range(args.repeats):
+                print(f"{backend} {mres:g}/{gres:g} m, run {rep + 1}/{args.repeats} ...",
+                      file=sys.stderr)  # fmt: skip
+                r, _ = run_config(dataset, backend, mres, gres, rep, out, table, count)
+                runs.append(r)
+    rows = aggregate(runs)
+    text = [
+        f"# smana bench replay: {dataset} ({count or n_scans} scans, class table {table})",
+        "",
+        f"Machine: {os.cpu_count()} cores, load average {load:.1f} at the start"
+        + (" (busy: figures are pessimistic)" if load > 0.5 else "")
+        + f"; median of {args.repeats} run(s) per configuration. CPU: 100 % = one core.",
+        "",
+        table_markdown(rows),
+    ]
+    realtime_summary = None
+    if not args.no_realtime:
+        backend, mres, gres = args.realtime_backend, *pairs[0]
+        print(f"realtime check: {backend} {mres:g}/{gres:g} m with the planner ...",
+              file=sys.stderr)  # fmt: skip
+        _, realtime_summary = run_config(dataset, backend, mres, gres, 0, out, table, count,
+                                         realtime=True, probe_paths=True)  # fmt: skip
+        text += ["", realtime_markdown(realtime_summary, backend, mres, gres)]
+    report = "\n".join(text) + "\n"
+    print(report)
+    (out / "replay_bench.md").write_text(report)
+    (out / "replay_bench.json").write_text(json.dumps(
+        {"rows": rows, "runs": [asdict(r) for r in runs], "realtime": realtime_summary},
+        indent=1, default=float))  # fmt: skip
+    from smana.services.replay.plots import figure_11, figure_12
+
+    figure_11(rows, out / "fig11_cpu_ram.png")
+    figure_12(rows, out / "fig12_time_per_point.png")
+    print(f"written: {out}/replay_bench.md, replay_bench.json, fig11_cpu_ram.png, "
+          "fig12_time_per_point.png", file=sys.stderr)  # fmt: skip
+    return 0
+
+
+def cli(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="smana bench replay", description=__doc__.splitlines()[0])
+    p.add_argument("dataset", nargs="?", help="a dataset (default: the synthetic sequence)")
+    p.add_argument(
+        "--scans",
+        type=int,
+        default=100,
+        help="synthetic: scans to write; a dataset: scans to replay (0 = all)",
+    )
+    p.add_argument("--backends", default="octree-max,octree-bayes,tsdf")
+    p.add_argument("--res", default="0.1/0.2,0.2/0.4,0.3/0.6", help="map/graph resolution pairs")
+    p.add_argument("--repeats", type=int, default=3, help="runs per configuration (median)")
+    p.add_argument("--table", help="class table (default: the dataset's)")
+    p.add_argument("--out", default="runs/bench-replay")
+    p.add_argument("--no-realtime", action="store_true", help="skip the realtime check")
+    p.add_argument("--realtime-backend", default="octree-max")
+    args = p.parse_args(argv)
+    if args.repeats < 1 or args.scans < 0:
+        p.error("--repeats must be >= 1 and --scans >= 0")
+    return main(args)
+
+
+if __name__ == "__main__":
+    sys.exit(cli())
