@@ -137,8 +137,10 @@ class Simulation:
             cfg.pose_noise_xy_m, cfg.pose_noise_yaw_rad, np.random.default_rng(pose_ss)
         )
         self.time_s = 0.0
-        self.camera_seq = 0
-        self.lidar_seq = 0
+        # one sequence for camera and LiDAR clouds, so that a MapDelta's cloud_seq names one
+        self.cloud_seq = 0
+        self.camera_frames = 0
+        self.lidar_scans = 0
         # let the robot settle on its wheels before anyone looks
         self.step(0.5)
         self.time_s = 0.0
@@ -199,9 +201,10 @@ class Simulation:
         rows, cols = rows * stride, cols * stride
         pts_sensor = cap.points_sensor(rows, cols)
         world_from_sensor = base_pub @ mount
-        self.camera_seq += 1
+        self.cloud_seq += 1
+        self.camera_frames += 1
         return CameraFrame(
-            stamp_s=self.time_s, seq=self.camera_seq, rgb=cap.rgb, depth_m=cap.depth_m,
+            stamp_s=self.time_s, seq=self.cloud_seq, rgb=cap.rgb, depth_m=cap.depth_m,
             semantic_true=cap.labels, semantic=sem,
             points=transform_points(pts_sensor, world_from_sensor),
             labels=sem[rows, cols].astype(np.uint16),
@@ -216,9 +219,10 @@ class Simulation:
         base_pub = self.pose_noise.apply(base_true)
         hits = self.lidar.scan(base_true)
         world_from_sensor = base_pub @ self.lidar_spec.mount_matrix()
-        self.lidar_seq += 1
+        self.cloud_seq += 1
+        self.lidar_scans += 1
         return LidarScan(
-            stamp_s=self.time_s, seq=self.lidar_seq,
+            stamp_s=self.time_s, seq=self.cloud_seq,
             points=transform_points(hits.points_sensor, world_from_sensor),
             labels=hits.labels.astype(np.uint16), confidences=np.ones(len(hits.labels), "f4"),
             world_from_sensor=world_from_sensor, true_world_from_sensor=hits.world_from_sensor,

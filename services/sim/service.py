@@ -1,0 +1,241 @@
+"""The simulator service: the `Simulation` core on the robot's zenoh keys.
+
+Publishes, at rates counted in simulated time:
+- `robot/pose` (with the configured pose noise) and `robot/pose_truth`, at `pose_rate_hz`;
+- `robot/cloud`: one camera `SemanticCloud` per frame at `camera_rate_hz` (and, with
+  `publish_images`, `robot/image/{rgb,depth,semantic}`);
+- `robot/scan`: LiDAR `SemanticCloud`s at `lidar_rate_hz` when `lidar_enabled`;
+- `robot/clock`: `{"sim_time_s", "real_time_factor"}` (the factor actually achieved).
+Subscribes to `robot/cmd_vel`; the base stops `cmd_timeout_s` after the last command.
+
+Pacing: simulated time follows the wall clock times `real_time_factor`. When rendering cannot
+keep up, the debt is dropped rather than caught up in a burst (counted as `lag_resets`), so the
+achieved factor is lower and says so. In lockstep, after each cloud the world waits (up to
+`lockstep_timeout_s` of wall time) for the mapper's `MapDelta` whose `cloud_seq` is that cloud's
+seq, so a slow mapper sees every cloud and the closed loop keeps its timing. Clouds then go out
+with congestion control BLOCK; otherwise DROP (a stale cloud is better lost than queued).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from smana.common import keys
+from smana.common.classes import ClassTable
+from smana.common.config import SmanaConfig
+from smana.common.messages import MapDelta, VelocityCommand
+from smana.common.service import Service, run_service
+
+from .simulation import Simulation, pose_message
+
+MAX_DEBT_S = 0.25  # wall seconds the simulation may lag before the debt is forgiven
+MAX_TICK_S = 0.05  # wall seconds of physics per tick before commands get a turn
+
+
+class SimService(Service):
+    name = "sim"
+    tick_period_s = 0.002
+
+    def __init__(self, config: SmanaConfig, sim: Simulation | None = None):
+        super().__init__(config)
+        self.sc = sc = config.sim
+        if sim is None:
+            classes = ClassTable.load(config.general.class_table)
+            sim = Simulation(sc, classes=classes)
+        self.sim = sim
+        self.pose_seq = 0
+        self.image_seq = 0
+        self.period_pose = 1.0 / sc.pose_rate_hz
+        self.period_camera = 1.0 / sc.camera_rate_hz
+        self.period_lidar = 1.0 / sc.lidar_rate_hz
+        self.period_clock = 1.0 / sc.clock_rate_hz
+        t = sim.time_s
+        self.next_pose = self.next_camera = self.next_lidar = self.next_clock = t
+        self._wall0: float | None = None
+        self._sim0 = t
+        self.awaiting: int | None = None  # lockstep: the cloud seq we wait for
+        self._awaiting_since = 0.0
+        self.lag_resets = 0
+        self.lockstep_timeouts = 0
+        self.commands = 0
+        self.camera_ms: list[float] = []
+        self.lidar_ms: list[float] = []
+        self._rtf_mark = (time.monotonic(), t)
+        self.achieved_rtf = 0.0
+
+    # -- wiring ----------------------------------------------------------------------------------
+
+    def setup(self) -> None:
+        r, sc = self.robot, self.sc
+        block = sc.lockstep  # in lockstep no cloud may be lost
+        self.cloud_pub = self.publisher(keys.cloud(r), reliable_block=block)
+        self.scan_pub = self.publisher(keys.scan(r), reliable_block=block)
+        self.pose_pub = self.publisher(keys.pose(r))
+        self.truth_pub = self.publisher(keys.pose_truth(r))
+        self.clock_pub = self.publisher(keys.clock(r))
+        self.image_pubs = {}
+        if sc.publish_images:
+            for kind in ("rgb", "depth", "semantic"):
+                self.image_pubs[kind] = self.publisher(keys.image(r, kind))
+        self.subscribe(keys.cmd_vel(r), self.on_cmd, VelocityCommand)
+        if sc.lockstep:
+            self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
+        w = self.sim.world
+        self.log.info(
+            "world %s, %.0f x %.0f m, %d objects; camera %dx%d at %.1f Hz, lidar %s; noise %s, "
+            "pose noise %.3g m / %.3g rad; rtf %.2f%s",
+            w.name, *w.size_m, len(w.objects), sc.camera_width, sc.camera_height,
+            sc.camera_rate_hz, f"{sc.lidar_rate_hz:.1f} Hz" if sc.lidar_enabled else "off",
+            sc.noise, sc.pose_noise_xy_m, sc.pose_noise_yaw_rad, sc.real_time_factor,
+            ", lockstep" if sc.lockstep else "",
+        )  # fmt: skip
+
+    def on_cmd(self, cmd: VelocityCommand) -> None:
+        self.commands += 1
+        self.sim.set_velocity(cmd.linear_mps, cmd.angular_radps)  # ValueError -> counted
+
+    def on_delta(self, delta: MapDelta) -> None:
+        if self.awaiting is not None and int(delta.cloud_seq) >= self.awaiting:
+            self.awaiting = None
+
+    def on_stop(self) -> None:
+        self.sim.close()
+
+    # -- the loop --------------------------------------------------------------------------------
+
+    def _anchor(self, now: float) -> None:
+        self._wall0, self._sim0 = now, self.sim.time_s
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        if self._wall0 is None:
+            self._anchor(now)
+        if self.awaiting is not None:
+            if now - self._awaiting_since < self.sc.lockstep_timeout_s:
+                self._anchor(now)  # frozen while waiting: no catching up afterwards
+                return
+            self.lockstep_timeouts += 1
+            self.count_error("lockstep_timeout", f"no MapDelta for cloud {self.awaiting}")
+            self.awaiting = None
+            self._anchor(now)
+        sim, rtf = self.sim, self.sc.real_time_factor
+        target = self._sim0 + (now - self._wall0) * rtf
+        if target - sim.time_s > MAX_DEBT_S * rtf:
+            self.lag_resets += 1
+            self._anchor(now)
+            target = sim.time_s + self.tick_period_s * rtf
+        dt = sim.dt_physics
+        while sim.time_s + dt <= target + 1e-9 and not self.stopping:
+            due = self._next_event()
+            sim.step(max(min(target, due) - sim.time_s, dt))
+            if self._emit() and self.awaiting is not None:
+                return
+            if time.monotonic() - now > MAX_TICK_S:
+                break
+        self._measure_rtf()
+
+    def _next_event(self) -> float:
+        t = [self.next_pose, self.next_clock]
+        if self.sc.camera_enabled:
+            t.append(self.next_camera)
+        if self.sc.lidar_enabled:
+            t.append(self.next_lidar)
+        return min(t)
+
+    def _emit(self) -> bool:
+        """Publish whatever is due at the current simulated time; True if a cloud went out."""
+        sim, sc = self.sim, self.sc
+        t = sim.time_s + 1e-9
+        sent_cloud = False
+        if t >= self.next_pose:
+            self.next_pose = _next(self.next_pose, self.period_pose, sim.time_s)
+            self.pose_seq += 1
+            self.pose_pub.put(pose_message(sim.published_pose(), sim.time_s, self.pose_seq))
+            self.truth_pub.put(pose_message(sim.true_pose(), sim.time_s, self.pose_seq))
+        if t >= self.next_clock:
+            self.next_clock = _next(self.next_clock, self.period_clock, sim.time_s)
+            self.clock_pub.put({"sim_time_s": sim.time_s, "real_time_factor": self.achieved_rtf})
+        if sc.camera_enabled and t >= self.next_camera:
+            self.next_camera = _next(self.next_camera, self.period_camera, sim.time_s)
+            t0 = time.perf_counter()
+            frame = sim.camera_frame()
+            self.cloud_pub.put(frame.to_cloud())
+            if self.image_pubs:
+                self._publish_images(frame)
+            self.camera_ms.append(1000 * (time.perf_counter() - t0))
+            self._sent(frame.seq)
+            sent_cloud = True
+        if sc.lidar_enabled and t >= self.next_lidar:
+            self.next_lidar = _next(self.next_lidar, self.period_lidar, sim.time_s)
+            t0 = time.perf_counter()
+            scan = sim.lidar_scan()
+            self.scan_pub.put(scan.to_cloud())
+            self.lidar_ms.append(1000 * (time.perf_counter() - t0))
+            self._sent(scan.seq)
+            sent_cloud = True
+        return sent_cloud
+
+    def _sent(self, seq: int) -> None:
+        if self.sc.lockstep:
+            self.awaiting = seq
+            self._awaiting_since = time.monotonic()
+
+    def _publish_images(self, frame) -> None:
+        h, w = frame.semantic.shape
+        common = {"stamp_s": frame.stamp_s, "seq": frame.seq, "width": w, "height": h}
+        depth = np.where(np.isfinite(frame.depth_m), frame.depth_m, 0.0).astype("<f4")
+        semantic = np.clip(frame.semantic, 0, None).astype("<u2")  # 0 (unknown): no point
+        for kind, enc, data in (
+            ("rgb", "rgb8", np.ascontiguousarray(frame.rgb)),
+            ("depth", "32FC1", depth),
+            ("semantic", "16UC1", semantic),
+        ):
+            self.image_pubs[kind].put({**common, "encoding": enc, "data": data.tobytes()})
+
+    def _measure_rtf(self) -> None:
+        now = time.monotonic()
+        wall0, sim0 = self._rtf_mark
+        if now - wall0 >= 1.0:
+            self.achieved_rtf = (self.sim.time_s - sim0) / (now - wall0)
+            self._rtf_mark = (now, self.sim.time_s)
+
+    def status_details(self) -> dict:
+        sim = self.sim
+        m = sim.true_pose()
+        return {
+            "sim_time_s": round(sim.time_s, 3),
+            "real_time_factor": round(self.achieved_rtf, 3),
+            "real_time_factor_target": self.sc.real_time_factor,
+            "camera_frames": sim.camera_frames,
+            "camera_ms_mean": _mean(self.camera_ms[-50:]),
+            "lidar_scans": sim.lidar_scans,
+            "lidar_ms_mean": _mean(self.lidar_ms[-20:]),
+            "commands": self.commands,
+            "stopped_no_command": sim.robot.timed_out,
+            "lag_resets": self.lag_resets,
+            "lockstep_timeouts": self.lockstep_timeouts,
+            "awaiting_cloud": self.awaiting,
+            "pose_xy_yaw": [
+                round(m[0, 3], 3),
+                round(m[1, 3], 3),
+                round(math.atan2(m[1, 0], m[0, 0]), 3),
+            ],
+        }
+
+
+def _next(scheduled: float, period: float, now: float) -> float:
+    """The next due time on the period's grid; when behind by more than a period, skip ahead
+    instead of publishing a burst."""
+    nxt = scheduled + period
+    return nxt if nxt > now else now + period
+
+
+def _mean(xs: list[float]) -> float | None:
+    return round(sum(xs) / len(xs), 1) if xs else None
+
+
+def main(config: SmanaConfig) -> int:
+    return run_service(SimService, config)

@@ -1,0 +1,185 @@
+"""The simulator service over an isolated zenoh router: it publishes poses, clouds, scans and its
+clock, drives on cmd_vel and stops without it, survives bad input, and paces itself in lockstep
+with the mapper's MapDeltas."""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from smana.common import keys
+from smana.common.messages import (
+    MapDelta,
+    Pose,
+    SemanticCloud,
+    ServiceStatus,
+    VelocityCommand,
+    decode,
+    encode,
+)
+from smana.common.query import request
+
+pytestmark = pytest.mark.multiprocess
+
+SMALL = [
+    "--size", "6", "--camera", "48x48", "--set", "sim.camera_max_range_m=5.0",
+    "--set", "sim.lidar_channels=8", "--set", "sim.lidar_columns=128",
+]  # fmt: skip
+
+
+class Collector:
+    """Subscribes to keys and keeps what arrives, decoded, with its arrival time."""
+
+    def __init__(self, session):
+        self.session = session
+        self.items: dict[str, list] = {}
+        self.lock = threading.Lock()
+        self.subs = []
+
+    def add(self, key: str, decoder) -> None:
+        self.items[key] = []
+
+        def on_sample(sample, _k=key, _d=decoder):
+            msg = _d(sample.payload.to_bytes())
+            with self.lock:
+                self.items[_k].append((time.monotonic(), msg))
+
+        self.subs.append(self.session.declare_subscriber(key, on_sample))
+
+    def get(self, key: str) -> list:
+        with self.lock:
+            return [m for _, m in self.items[key]]
+
+    def close(self):
+        for s in self.subs:
+            s.undeclare()
+
+
+def wait_for(pred, timeout_s=15.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def sim_status(stack) -> ServiceStatus:
+    st = request(stack.session, keys.status(stack.robot, "sim"), timeout_s=5)
+    assert isinstance(st, ServiceStatus)
+    return st
+
+
+def test_sim_publishes_drives_and_stops(zenoh_stack):
+    stack, r = zenoh_stack, zenoh_stack.robot
+    proc = stack.service(
+        "sim", *SMALL, "--camera-rate", "4", "--lidar", "--lidar-rate", "2", "--noise", "low",
+        "--pose-noise", "0.05,0.01", "--seed", "5",
+    )  # fmt: skip
+    stack.wait_alive("sim")
+    c = Collector(stack.session)
+    c.add(keys.pose(r), lambda b: decode(b, Pose))
+    c.add(keys.pose_truth(r), lambda b: decode(b, Pose))
+    c.add(keys.cloud(r), lambda b: decode(b, SemanticCloud))
+    c.add(keys.scan(r), lambda b: decode(b, SemanticCloud))
+    c.add(keys.clock(r), msgpack.unpackb)
+    try:
+        assert wait_for(lambda: len(c.get(keys.cloud(r))) >= 2 and c.get(keys.scan(r)))
+        cloud = c.get(keys.cloud(r))[-1]
+        assert cloud.source == "camera" and len(cloud.points) > 500
+        assert set(np.unique(cloud.labels)) <= {1, 2, 4, 5, 6, 7, 8}
+        assert cloud.confidences.min() >= 0.33 and cloud.confidences.max() <= 1.0
+        scan = c.get(keys.scan(r))[-1]
+        assert scan.source == "lidar" and len(scan.points) > 100
+        clock = c.get(keys.clock(r))
+        assert clock[-1]["sim_time_s"] > clock[0]["sim_time_s"]
+        seqs = [m.seq for m in c.get(keys.cloud(r)) + c.get(keys.scan(r))]
+        assert len(seqs) == len(set(seqs))  # one cloud sequence for both sensors
+
+        # drive straight at 0.4 m/s for 2 s (commands at 10 Hz), then stop commanding
+        start = c.get(keys.pose_truth(r))[-1]
+        pub = stack.session.declare_publisher(keys.cmd_vel(r))
+        for i in range(20):
+            pub.put(encode(VelocityCommand(stamp_s=0.0, seq=i, linear_mps=0.4, source="test")))
+            time.sleep(0.1)
+        moved = c.get(keys.pose_truth(r))[-1]
+        heading = start.matrix()[:2, 0]
+        travelled = float(heading @ (moved.position[:2] - start.position[:2]))
+        assert 0.3 < travelled < 1.2
+        time.sleep(1.5)  # past the 0.5 s command timeout and the braking
+        a = c.get(keys.pose_truth(r))[-1]
+        time.sleep(0.5)
+        b = c.get(keys.pose_truth(r))[-1]
+        assert b.stamp_s > a.stamp_s
+        assert np.linalg.norm(b.position - a.position) < 0.01
+        # the published pose carries the noise, the truth does not
+        poses = {m.seq: m for m in c.get(keys.pose(r))}
+        diffs = [
+            np.linalg.norm(poses[t.seq].position[:2] - t.position[:2])
+            for t in c.get(keys.pose_truth(r))
+            if t.seq in poses
+        ]
+        assert 0.02 < np.mean(diffs) < 0.15
+
+        # bad commands are counted, and the service keeps running
+        pub.put(b"\x00garbage")
+        pub.put(encode(VelocityCommand(linear_mps=float("nan"))))
+        assert wait_for(lambda: sum(sim_status(stack).errors.values()) >= 2, 5.0)
+        st = sim_status(stack)
+        assert st.details["commands"] >= 20 and st.details["stopped_no_command"]
+        assert st.details["camera_frames"] >= 2 and st.details["lidar_scans"] >= 1
+        pub.undeclare()
+    finally:
+        c.close()
+    assert stack.stop(proc, signal.SIGINT) == 0
+
+
+def test_sim_lockstep_waits_for_map_deltas(zenoh_stack):
+    stack, r = zenoh_stack, zenoh_stack.robot
+    proc = stack.service(
+        "sim", *SMALL, "--camera", "32x32", "--camera-rate", "10", "--rtf", "3", "--lockstep",
+        "--set", "sim.lockstep_timeout_s=0.8",
+    )  # fmt: skip
+    stack.wait_alive("sim")
+    c = Collector(stack.session)
+    c.add(keys.cloud(r), lambda b: decode(b, SemanticCloud))
+    c.add(keys.clock(r), msgpack.unpackb)
+    try:
+        # nobody acknowledges: one cloud per timeout, and simulated time nearly stands still
+        time.sleep(2.5)
+        n_alone = len(c.get(keys.cloud(r)))
+        assert 1 <= n_alone <= 5
+        clock = c.get(keys.clock(r))
+        assert clock[-1]["sim_time_s"] - clock[0]["sim_time_s"] < 0.6
+        assert sim_status(stack).details["lockstep_timeouts"] >= 1
+
+        # a stand-in mapper acknowledges each cloud: they flow at the camera rate x rtf
+        delta_pub = stack.session.declare_publisher(keys.map_delta(r))
+
+        def ack(sample):
+            cloud = decode(sample.payload.to_bytes(), SemanticCloud)
+            delta_pub.put(encode(MapDelta(cloud_seq=cloud.seq)))
+
+        sub = stack.session.declare_subscriber(keys.cloud(r), ack)
+        before = len(c.get(keys.cloud(r)))
+        time.sleep(2.0)
+        n_acked = len(c.get(keys.cloud(r))) - before
+        sub.undeclare()
+        delta_pub.undeclare()
+        assert n_acked >= 10, n_acked
+        seqs = [m.seq for m in c.get(keys.cloud(r))]
+        assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+    finally:
+        c.close()
+    assert stack.stop(proc, signal.SIGINT) == 0
+
+
+def test_sim_refuses_a_bad_world(zenoh_stack, tmp_path):
+    proc = zenoh_stack.service("sim", "--world", str(tmp_path / "missing.ply"))
+    assert proc.wait(timeout=60) == 2
+    assert "neither 'garden' nor a PLY file" in zenoh_stack.log("sim")
