@@ -116,17 +116,10 @@ def _before(fa, ga, fb, gb):
     return fa < fb or (fa == fb and ga > gb)
 
 
-@numba.njit(cache=True)
-def _push(hf, hg, hn, size, f, g, n):
-    if size == len(hf):
-        hf2 = np.empty(2 * size, np.float64)
-        hg2 = np.empty(2 * size, np.float64)
-        hn2 = np.empty(2 * size, np.int32)
-        hf2[:size] = hf
-        hg2[:size] = hg
-        hn2[:size] = hn
-        hf, hg, hn = hf2, hg2, hn2
-    i = size
+@numba.njit(cache=True, inline="always")
+def _sift_up(hf, hg, hn, i, f, g, n):
+    """Place (f, g, n) at slot i and move it up. Inlined: a call that returned the heap arrays
+    would pay numba's reference counting on every push."""
     while i > 0:
         p = (i - 1) >> 1
         if _before(f, g, hf[p], hg[p]):
@@ -139,7 +132,6 @@ def _push(hf, hg, hn, size, f, g, n):
     hf[i] = f
     hg[i] = g
     hn[i] = n
-    return hf, hg, hn, size + 1
 
 
 @numba.njit(cache=True, inline="always")
@@ -169,57 +161,58 @@ def _pop(hf, hg, hn, size):
     return size
 
 
-@numba.njit(cache=True)
-def _astar_kernel(enter, heights, nx, ny, start, goal, res, h_f, max_step, mode, min_enter):
-    n_nodes = nx * ny
-    g = np.full(n_nodes, np.inf)
-    parent = np.full(n_nodes, -1, np.int32)
-    closed = np.zeros(n_nodes, np.uint8)
-    # A binary heap with lazy deletion: an improved node is pushed again and its stale entries
-    # are skipped when popped (cheaper here than decrease-key's position bookkeeping).
-    hf = np.empty(4096, np.float64)
-    hg = np.empty(4096, np.float64)
-    hn = np.empty(4096, np.int32)
-    dxs = np.array([-1, -1, -1, 0, 0, 1, 1, 1])
-    dys = np.array([-1, 0, 1, -1, 1, -1, 0, 1])
-    dist = np.empty(8)
-    for k in range(8):
-        dist[k] = res * (SQRT2 if dxs[k] != 0 and dys[k] != 0 else 1.0)
-    goal_x = goal // ny
-    goal_y = goal % ny
-    diag_extra = SQRT2 - 1.0
+_FOUND, _EXHAUSTED, _HEAP_FULL = 0, 1, 2
+_DX = (-1, -1, -1, 0, 0, 1, 1, 1)
+_DY = (-1, 0, 1, -1, 1, -1, 0, 1)
 
-    g[start] = 0.0
-    hf, hg, hn, size = _push(hf, hg, hn, 0, 0.0, 0.0, start)
-    expanded = 0
+
+@numba.njit(cache=True)
+def _search(enter, heights, nx, ny, goal, res, h_f, max_step, mode, min_enter, g, parent,
+            closed, hf, hg, hn, size, expanded):  # fmt: skip
+    """The A* loop proper. It returns when the goal is popped, the open set is empty, or the heap
+    has no room for one more expansion; the caller then grows the heap and calls again. Keeping
+    the growth out of here matters: an array variable reassigned inside the hot loop costs numba
+    reference counting on every iteration (2.4x slower when measured)."""
+    goal_x = goal // ny
+    goal_y = goal - goal_x * ny
+    diag = res * SQRT2
+    diag_extra = SQRT2 - 1.0
+    cap = len(hf)
     while size > 0:
+        if size + 8 > cap:
+            return _HEAP_FULL, size, expanded
         n = hn[0]
+        gpop = hg[0]
         size = _pop(hf, hg, hn, size)
-        if closed[n]:
-            continue
+        if closed[n] or gpop != g[n]:
+            continue  # stale entry of a node improved since, or already closed
         if n == goal:
-            break
+            return _FOUND, size, expanded
         closed[n] = 1
         expanded += 1
         x = n // ny
-        y = n % ny
-        hn_ = heights[n]
+        y = n - x * ny
+        h_n = heights[n]
         gn = g[n]
         for k in range(8):
-            mx = x + dxs[k]
-            my = y + dys[k]
+            dx = _DX[k]
+            dy = _DY[k]
+            mx = x + dx
+            my = y + dy
             if mx < 0 or my < 0 or mx >= nx or my >= ny:
                 continue
             m = mx * ny + my
-            ec = enter[m]
-            if ec == np.inf or closed[m]:
+            if closed[m]:
                 continue
-            dh = abs(heights[m] - hn_)
+            ec = enter[m]
+            if ec == np.inf:
+                continue
+            dh = abs(heights[m] - h_n)
             if dh > max_step:
                 continue
             if dh != dh:  # a height is unknown: no height term, no step check
                 dh = 0.0
-            ng = gn + dist[k] + h_f * dh + ec
+            ng = gn + (diag if dx != 0 and dy != 0 else res) + h_f * dh + ec
             if ng < g[m]:
                 g[m] = ng
                 parent[m] = n
@@ -231,8 +224,42 @@ def _astar_kernel(enter, heights, nx, ny, start, goal, res, h_f, max_step, mode,
                     lo = min(ax, ay)
                     hi = max(ax, ay)
                     h = res * (hi + diag_extra * lo) + min_enter * hi
-                hf, hg, hn, size = _push(hf, hg, hn, size, ng + h, ng, m)
-    if not np.isfinite(g[goal]):
+                _sift_up(hf, hg, hn, size, ng + h, ng, m)
+                size += 1
+    return _EXHAUSTED, size, expanded
+
+
+@numba.njit(cache=True)
+def _astar_kernel(enter, heights, nx, ny, start, goal, res, h_f, max_step, mode, min_enter):
+    n_nodes = nx * ny
+    g = np.full(n_nodes, np.inf)
+    parent = np.empty(n_nodes, np.int32)
+    closed = np.zeros(n_nodes, np.uint8)
+    # A binary heap with lazy deletion: an improved node is pushed again and its stale entries
+    # are skipped when popped (cheaper here than decrease-key's position bookkeeping).
+    cap = 1 << 14
+    hf = np.empty(cap, np.float64)
+    hg = np.empty(cap, np.float64)
+    hn = np.empty(cap, np.int32)
+    g[start] = 0.0
+    _sift_up(hf, hg, hn, 0, 0.0, 0.0, start)
+    size = 1
+    expanded = 0
+    while True:
+        state, size, expanded = _search(enter, heights, nx, ny, goal, res, h_f, max_step, mode,
+                                        min_enter, g, parent, closed, hf, hg, hn, size,
+                                        expanded)  # fmt: skip
+        if state != _HEAP_FULL:
+            break
+        cap *= 2
+        hf2 = np.empty(cap, np.float64)
+        hg2 = np.empty(cap, np.float64)
+        hn2 = np.empty(cap, np.int32)
+        hf2[:size] = hf[:size]
+        hg2[:size] = hg[:size]
+        hn2[:size] = hn[:size]
+        hf, hg, hn = hf2, hg2, hn2
+    if state != _FOUND:
         return np.inf, np.empty(0, np.int64), expanded
     k = 1
     n = goal
