@@ -22,6 +22,7 @@ import numpy as np
 
 from smana.common.classes import ClassTable
 from smana.services.mapper import ply
+from smana.services.mapper._grid import KEY_LIMIT
 from smana.services.mapper.delta import Delta
 from smana.services.mapper.octree import FusionParams, OccupancyParams, OctreeBackend
 from smana.services.mapper.tsdf import TsdfBackend, TsdfParams
@@ -139,7 +140,14 @@ class SemanticMap:
         org = np.asarray(origin, np.float64)
         if org.shape != (3,) or not np.isfinite(org).all():
             raise ValueError(f"origin must be 3 finite numbers, got {origin!r}")
+        limit = KEY_LIMIT * self.resolution_m  # OctoMap's 16-bit key range, the map's extent
+        if (np.abs(org) >= limit).any():
+            raise ValueError(f"origin {org.tolist()} outside the map extent +-{limit:g} m")
         keep = ~self._ignored[lab]
+        if self.backend == "tsdf":
+            # octrees skip such rays inside the kernel as OctoMap does (a far point beyond the
+            # range still carves up to it); the TSDF keys are only safe inside the extent
+            keep &= (np.abs(pts) < limit).all(axis=1)
         if not keep.all():
             pts, lab, conf = pts[keep], lab[keep], conf[keep]
         self.n_integrations += 1
