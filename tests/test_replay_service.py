@@ -129,7 +129,9 @@ def test_realtime_counts_what_a_slow_mapper_misses(zenoh_stack, dataset):
         mapper.close()
     assert code == 0, zenoh_stack.log("replay")
     assert summary["published"] == N_SCANS
-    assert summary["lost"] + summary["late_integrated"] > 0
+    assert summary["lost"] + summary["late_integrated"] > 0, {
+        k: v for k, v in summary.items() if k != "per_scan"
+    }
     assert summary["acknowledged"] == len({c.seq for c in mapper.clouds})
     assert summary["acknowledged"] + summary["lost"] == N_SCANS
     assert summary["wall_s"] < 2.0  # it did not wait for the mapper between scans

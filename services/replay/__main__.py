@@ -97,8 +97,9 @@ def _info(reader, rc) -> int:
 
 
 def run_stack(cfg: SmanaConfig, reader) -> int:
-    """Supervise mapper, navgraph and planner with the replay in place of the sim; the run ends
-    when the replay has sent its last scan."""
+    """Supervise mapper, navgraph and planner (and the recorder) with the replay in place of the
+    sim; the run ends when the replay has sent its last scan. The run directory gets what
+    `smana up` writes: config, logs, map, recording, report (with a replay section)."""
     from smana.common.config import ServiceDeployConfig
     from smana.deploy.supervisor import Supervisor
     from smana.services.replay.service import table_name, topic_of
@@ -112,31 +113,69 @@ def run_stack(cfg: SmanaConfig, reader) -> int:
     g = cfg.general
     run_dir = Path(g.run_dir) if g.run_dir else Path("runs") / time.strftime("replay-%Y%m%d-%H%M%S")
     services = [n for n in STACK if getattr(cfg.deploy, n).enabled]
+    recorder = _recorder_argv()
     cfg = dataclasses.replace(
         cfg,
         general=dataclasses.replace(g, class_table=table, run_dir=str(run_dir)),
         mapper=dataclasses.replace(cfg.mapper, inputs=[topic]),
         deploy=dataclasses.replace(cfg.deploy, finish_with="replay"),
-        replay=dataclasses.replace(rc, class_table=table, wait_for=services),
+        replay=dataclasses.replace(
+            rc, class_table=table, wait_for=services + (["recorder"] if recorder else [])
+        ),
     )
     sup = Supervisor(cfg, run_dir, services)
+    if recorder:
+        sup.add("recorder", recorder(sup.config_path, cfg.general.robot))
     argv = [sys.executable, "-m", "smana.services.replay", "--config", str(sup.config_path)]
     sup.add("replay", argv, ServiceDeployConfig(restart="never"))
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: sup.stop())
     print(f"smana replay: run directory {run_dir}", flush=True)
     code = sup.run()
-    try:  # the same report `smana up` writes, when that part of the stack exists
-        from smana.deploy import report
-    except ModuleNotFoundError:
-        report = None
-    if report is not None and hasattr(report, "write_report"):
-        try:
-            print(f"smana replay: report written to {report.write_report(run_dir, cfg)}")
-        except Exception as exc:  # noqa: BLE001 - the run's own outcome matters more
-            print(f"smana replay: writing the report failed: {exc}", file=sys.stderr)
+    _write_report(run_dir, sup.service_config)
     print(f"smana replay: done, everything is in {run_dir}", flush=True)
     return code
+
+
+def _recorder_argv():
+    try:
+        from smana.deploy.recording import recorder_argv
+    except ImportError:  # a build without the recorder (rerun-sdk missing)
+        return None
+    return recorder_argv
+
+
+def _write_report(run_dir: Path, cfg: SmanaConfig) -> None:
+    """`smana up`'s report (map export, files, metrics), then the replay's own section. There is
+    no simulated world behind a dataset, so the report's ground-truth part says unavailable."""
+    import json
+
+    summary_path = run_dir / "replay" / "replay.json"
+    if not summary_path.is_file():
+        summary_path = run_dir / "replay.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
+    try:
+        from smana.deploy import report
+
+        no_world = dataclasses.replace(cfg.sim, world=f"ply:{run_dir / 'no-ground-truth.ply'}")
+        path = report.write_report(run_dir, dataclasses.replace(cfg, sim=no_world))
+    except Exception as exc:  # noqa: BLE001 - the run's own outcome matters more
+        print(f"smana replay: the run report failed: {exc}", file=sys.stderr)
+        path = run_dir / "report.md"
+    if summary is None:
+        return
+    metrics_path = run_dir / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    metrics["replay"] = {k: v for k, v in summary.items() if k != "per_scan"}
+    metrics_path.write_text(json.dumps(metrics, indent=2))
+    from smana.services.replay.service import summary_line
+
+    text = path.read_text() if path.is_file() else ""
+    text += (
+        f"\n## Replay\n\n`{summary['dataset']}` ({summary['format']}): {summary_line(summary)}.\n"
+    )
+    path.write_text(text)
+    print(f"smana replay: report written to {path}", flush=True)
 
 
 if __name__ == "__main__":

@@ -141,12 +141,12 @@ class ReplayService(Service):
         self.pose_pub = self.publisher(keys.pose(r))
         self.clock_pub = self.publisher(keys.clock(r))
         self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
-        if self.rc.wait_for:
-            self._declared.append(
-                self.session.liveliness().declare_subscriber(
-                    keys.alive_any(r), self._on_alive, history=True
-                )
+        # Who is alive: for wait_for, and to know whether a MapDelta can still come at the end.
+        self._declared.append(
+            self.session.liveliness().declare_subscriber(
+                keys.alive_any(r), self._on_alive, history=True
             )
+        )
         self.feed.start()
         self.log.info(
             "replaying %d scans of %s (%s, %.1f Hz) on %s, %s%s",
@@ -244,19 +244,18 @@ class ReplayService(Service):
     def _maybe_finish(self) -> None:
         if not self._feed_done or self.phase != "running":
             return
-        if self.pacer.in_flight:
-            if not (self.rc.mode == "realtime" and self.pacer.acked == 0):
-                return  # wait for the last MapDeltas (overdue() bounds the wait)
-            # realtime with nothing acknowledging at all: no mapper, do not wait for one
-        if self.pacer.acked:
+        mapper_alive = "mapper" in self._alive
+        if self.pacer.in_flight and mapper_alive:
+            return  # wait for the last MapDeltas (overdue() bounds the wait)
+        if mapper_alive or self.pacer.acked:
             self.pacer.give_up_waiting()
-        else:
+        else:  # no mapper at all (publishing for a viewer, say): nothing was lost
             self.pacer.in_flight.clear()
         self.phase = "done"
         self.progress.update(self.done, self._progress_extra(), force=True)
         summary = self.summary()
         self._write_summary(summary)
-        self.log.info("replay done: %s", _one_line(summary))
+        self.log.info("replay done: %s", summary_line(summary))
         if self.rc.mode == "lockstep" and summary["lost"]:
             self.exit_code = 1
         self.stop()
@@ -337,7 +336,7 @@ def _ms(seconds: float | None) -> float | None:
     return None if seconds is None else round(seconds * 1000.0, 3)
 
 
-def _one_line(s: dict) -> str:
+def summary_line(s: dict) -> str:
     lat = s["latency"]
     mean = f"{lat['mean_ms']:.0f} ms" if lat["mean_ms"] is not None else "-"
     return (
