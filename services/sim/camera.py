@@ -14,6 +14,7 @@ OpenGL camera frame TinyRenderer uses (x right, y up, looking down -z) only appe
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numba
@@ -209,17 +210,19 @@ class SemanticCamera:
             s.fov_deg, s.width / s.height, s.near_m, self._far
         )
 
-    def capture(self, world_from_sensor: np.ndarray) -> CameraCapture:
+    def capture(self, world_from_sensor: np.ndarray, timings: dict | None = None) -> CameraCapture:
         """Render from a sensor pose (4x4, world frame) and label every pixel.
 
         A pose that puts a ground vertex exactly in the camera's plane (e.g. a camera looking
         level, exactly above a grid vertex) makes TinyRenderer rasterise a degenerate triangle
         over the whole screen, 20x slower; poses a moving robot takes never hit it exactly."""
         s = self.spec
+        t0 = time.perf_counter()
         _, _, rgba, zbuf, seg = p.getCameraImage(
             s.width, s.height, view_matrix(world_from_sensor), self._proj,
             renderer=p.ER_TINY_RENDERER, shadow=0, physicsClientId=self.scene.client,
         )  # fmt: skip
+        t1 = time.perf_counter()
         depth, labels, rgb = label_pixels(
             np.asarray(zbuf, np.float32).reshape(s.height, s.width),
             np.asarray(seg, np.int32).reshape(s.height, s.width),
@@ -229,4 +232,7 @@ class SemanticCamera:
             ground=self.scene.world.ground.class_raster(),
             colour_lut=self.scene.world.classes.colour_lut,
         )  # fmt: skip
+        if timings is not None:
+            timings["render_ms"] = 1e3 * (t1 - t0)
+            timings["label_ms"] = 1e3 * (time.perf_counter() - t1)
         return CameraCapture(rgb, depth, labels, np.array(world_from_sensor, float), s.focal_px)

@@ -13,6 +13,7 @@ lists costs more than Bullet's own casting on 2 threads.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,10 +95,11 @@ class Lidar:
                 for s in range(0, len(self.dirs), BATCH)
             ]
 
-    def scan(self, world_from_base: np.ndarray) -> LidarHits:
+    def scan(self, world_from_base: np.ndarray, timings: dict | None = None) -> LidarHits:
         """Cast every ray. `world_from_base` is the parent body's true pose (or, without a
         parent, the pose of the frame the mount is given in)."""
         c = self.scene.client
+        t0 = time.perf_counter()
         out = []
         if self._chunks is not None:
             for a, b in self._chunks:
@@ -113,6 +115,7 @@ class Lidar:
                     wf[s : s + BATCH].tolist(), wt[s : s + BATCH].tolist(), numThreads=0,
                     physicsClientId=c,
                 )  # fmt: skip
+        t1 = time.perf_counter()
         n = len(out)
         bodies = np.fromiter((h[0] for h in out), np.int64, n)
         frac = np.fromiter((h[2] for h in out), np.float64, n)
@@ -124,6 +127,9 @@ class Lidar:
         world = transform_points(pts_sensor, world_from_sensor)
         labels = self.scene.labels_of(bodies[hit], world[:, :2])
         keep = labels >= 0  # drop hits on the robot itself
+        if timings is not None:
+            timings["cast_ms"] = 1e3 * (t1 - t0)
+            timings["hits_ms"] = 1e3 * (time.perf_counter() - t1)
         return LidarHits(
             pts_sensor[keep].astype(np.float32), labels[keep], hit[keep], world_from_sensor
         )

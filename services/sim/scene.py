@@ -141,7 +141,12 @@ class BulletScene:
             )
         elif prim.shape == ELLIPSOID:
             verts, idx = _ellipsoid_mesh(a, b, h)
-            cs = p.createCollisionShape(p.GEOM_MESH, vertices=verts, physicsClientId=c)
+            # a static triangle mesh, not a convex hull: Bullet ray-tests a hull with GJK, which
+            # made the six ellipsoids of the default garden cost as much as everything else
+            cs = p.createCollisionShape(
+                p.GEOM_MESH, vertices=verts, indices=idx, flags=p.GEOM_FORCE_CONCAVE_TRIMESH,
+                physicsClientId=c,
+            )  # fmt: skip
             vs = p.createVisualShape(
                 p.GEOM_MESH, vertices=verts, indices=idx, rgbaColor=rgba, physicsClientId=c
             )

@@ -19,6 +19,7 @@ config's seed, so enabling one kind of noise does not change the draws of anothe
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -185,16 +186,18 @@ class Simulation:
             self._lidar = Lidar(self.scene, self.lidar_spec, parent_body=self.robot.body)
         return self._lidar
 
-    def camera_frame(self, stride: int | None = None) -> CameraFrame:
-        """Render, label, degrade and unproject one camera frame (see CameraFrame)."""
+    def camera_frame(self, stride: int | None = None, timings: dict | None = None) -> CameraFrame:
+        """Render, label, degrade and unproject one camera frame (see CameraFrame). With
+        `timings`, the time of each stage goes in it (ms): render, label, slic, redraw, cloud."""
         stride = self.config.camera_stride if stride is None else int(stride)
         if stride < 1:
             raise ValueError(f"stride must be >= 1, got {stride}")
         base_true = self.robot.matrix()
         base_pub = self.pose_noise.apply(base_true)
         mount = self.camera_spec.mount_matrix()
-        cap: CameraCapture = self.camera.capture(base_true @ mount)
-        degraded = self.degrader.degrade(cap.labels)
+        cap: CameraCapture = self.camera.capture(base_true @ mount, timings)
+        degraded = self.degrader.degrade(cap.labels, timings)
+        t0 = time.perf_counter()
         sem = degraded.labels
         sel = sem[::stride, ::stride] >= 0
         rows, cols = np.nonzero(sel)
@@ -203,7 +206,7 @@ class Simulation:
         world_from_sensor = base_pub @ mount
         self.cloud_seq += 1
         self.camera_frames += 1
-        return CameraFrame(
+        frame = CameraFrame(
             stamp_s=self.time_s, seq=self.cloud_seq, rgb=cap.rgb, depth_m=cap.depth_m,
             semantic_true=cap.labels, semantic=sem,
             points=transform_points(pts_sensor, world_from_sensor),
@@ -212,12 +215,15 @@ class Simulation:
             rows=rows, cols=cols, world_from_sensor=world_from_sensor,
             true_world_from_sensor=cap.world_from_sensor,
         )  # fmt: skip
+        if timings is not None:
+            timings["cloud_ms"] = 1e3 * (time.perf_counter() - t0)
+        return frame
 
-    def lidar_scan(self) -> LidarScan:
+    def lidar_scan(self, timings: dict | None = None) -> LidarScan:
         """Cast one LiDAR scan; labels are the hit bodies' true classes (confidence 1)."""
         base_true = self.robot.matrix()
         base_pub = self.pose_noise.apply(base_true)
-        hits = self.lidar.scan(base_true)
+        hits = self.lidar.scan(base_true, timings)
         world_from_sensor = base_pub @ self.lidar_spec.mount_matrix()
         self.cloud_seq += 1
         self.lidar_scans += 1
