@@ -201,6 +201,40 @@ def clearance_along(
     return np.maximum(free_dist[ij[:, 0], ij[:, 1]] - resolution_m * np.sqrt(0.5), 0.0)
 
 
+def footprint_contacts(
+    traj_xyyaw: np.ndarray,
+    obstacle: np.ndarray,
+    origin_xy,
+    resolution_m: float,
+    half_extents_m: tuple[float, float] = (0.28, 0.31),
+) -> np.ndarray:
+    """Per trajectory pose, whether the robot's rectangular footprint (half length, half width,
+    wheels included) covers the centre of an obstacle cell of a ground-aligned raster."""
+    traj = np.asarray(traj_xyyaw, float).reshape(-1, 3)
+    cells = np.argwhere(obstacle)
+    out = np.zeros(len(traj), bool)
+    if len(cells) == 0 or len(traj) == 0:
+        return out
+    centres = np.asarray(origin_xy, float) + cells * resolution_m
+    tree = cKDTree(centres)
+    hx, hy = half_extents_m
+    for k, near in enumerate(tree.query_ball_point(traj[:, :2], np.hypot(hx, hy))):
+        if not near:
+            continue
+        d = centres[near] - traj[k, :2]
+        c, s = np.cos(traj[k, 2]), np.sin(traj[k, 2])
+        lx = c * d[:, 0] + s * d[:, 1]
+        ly = -s * d[:, 0] + c * d[:, 1]
+        out[k] = bool(((np.abs(lx) <= hx) & (np.abs(ly) <= hy)).any())
+    return out
+
+
+def count_events(flags: np.ndarray) -> int:
+    """Number of runs of True in a boolean sequence (a contact that lasts is one contact)."""
+    f = np.asarray(flags, bool).astype(np.int8)
+    return int((np.diff(np.concatenate([[0], f])) == 1).sum())
+
+
 # -- run directories ----------------------------------------------------------------------------
 
 MAP_CANDIDATES = ("map.ply", "mapper/map.ply", "final_map.ply")

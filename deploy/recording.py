@@ -122,7 +122,13 @@ def decode_image(payload: bytes) -> tuple[float, np.ndarray]:
         h, w = int(m["height"]), int(m["width"])
         enc = str(m.get("encoding", ""))
         ch = int(m.get("channels", 3 if enc.startswith(("rgb", "bgr")) else 1))
-        dtype = np.dtype("<u2" if "16" in enc else m.get("dtype", "u1"))
+        # ROS-style encodings: rgb8, mono8, 16UC1, 32FC1
+        if "32F" in enc:
+            dtype = np.dtype("<f4")
+        elif "16" in enc:
+            dtype = np.dtype("<u2")
+        else:
+            dtype = np.dtype(m.get("dtype", "u1"))
         shape = (h, w, ch) if ch > 1 else (h, w)
     img = np.frombuffer(data, dtype)
     if img.size != int(np.prod(shape)):
@@ -156,8 +162,9 @@ class RunRecorder:
         self.voxels = VoxelStore()
         self.grid = NavGrid.from_bounds(*graph_bounds, graph_resolution_m)
         self._graph_version = -1
-        self.trajectory: list[tuple[float, float, float]] = []
-        self.trajectory_truth: list[tuple[float, float, float]] = []
+        # (t, x, y, z, yaw) of every pose, as published and true
+        self.trajectory: list[tuple[float, ...]] = []
+        self.trajectory_truth: list[tuple[float, ...]] = []
         self.counts: dict[str, int] = {}
         self.t = 0.0
         self.rec = None
@@ -212,10 +219,12 @@ class RunRecorder:
 
     def on_pose(self, pose: Pose, truth: bool = False) -> None:
         self._count("pose_truth" if truth else "pose")
+        p = np.asarray(pose.position, float)
+        (self.trajectory_truth if truth else self.trajectory).append(
+            (pose.stamp_s, p[0], p[1], p[2], pose.yaw)
+        )
         if self.rec is None:
             return
-        p = np.asarray(pose.position, float)
-        (self.trajectory_truth if truth else self.trajectory).append((p[0], p[1], p[2]))
         rr = self.rr
         self._time(pose.stamp_s)
         if not truth:
@@ -226,16 +235,13 @@ class RunRecorder:
 
     def _log_trajectories(self) -> None:
         rr = self.rr
-        if len(self.trajectory) >= 2:
-            self.rec.log("world/trajectory", rr.LineStrips3D([np.array(self.trajectory)],
-                         colors=[[255, 200, 0]], radii=0.03))  # fmt: skip
-        if len(self.trajectory_truth) >= 2:
-            self.rec.log(
-                "world/trajectory_truth",
-                rr.LineStrips3D(
-                    [np.array(self.trajectory_truth)], colors=[[255, 255, 255]], radii=0.015
-                ),
-            )
+        for path, rows, colour, radius in (
+            ("world/trajectory", self.trajectory, [255, 200, 0], 0.03),
+            ("world/trajectory_truth", self.trajectory_truth, [255, 255, 255], 0.015),
+        ):
+            if len(rows) >= 2:
+                xyz = np.array(rows)[:, 1:4]
+                self.rec.log(path, rr.LineStrips3D([xyz], colors=[colour], radii=radius))
 
     def on_image(self, kind: str, payload: bytes) -> None:
         self._count(f"image/{kind}")
@@ -354,6 +360,15 @@ class RunRecorder:
             if st.get(name) is not None:
                 self.rec.log(f"metrics/{name}", rr.Scalars(float(st[name])))
 
+    def save_trajectories(self, folder: Path) -> None:
+        """trajectory_pose.csv / trajectory_truth.csv (t_s, x_m, y_m, z_m, yaw_rad) for the report:
+        the true trajectory is what collisions and travelled labels are measured on."""
+        for name, rows in (("trajectory_pose.csv", self.trajectory),
+                           ("trajectory_truth.csv", self.trajectory_truth)):  # fmt: skip
+            if rows:
+                np.savetxt(Path(folder) / name, np.array(rows), delimiter=",", fmt="%.4f",
+                           header="t_s,x_m,y_m,z_m,yaw_rad", comments="")  # fmt: skip
+
     def close(self) -> None:
         if self.rec is None:
             return
@@ -381,6 +396,7 @@ class RecorderService(Service):
             graph_bounds=(tuple(nav.bounds_min_xy), tuple(nav.bounds_max_xy)),
         )  # fmt: skip
         self.rrd_path = rrd_path
+        self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
 
     def setup(self) -> None:
         r = self.robot
@@ -405,6 +421,9 @@ class RecorderService(Service):
             self.core.flush_map()
 
     def on_stop(self) -> None:
+        if self.run_dir is not None:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            self.core.save_trajectories(self.run_dir)
         self.core.close()
 
     def status_details(self) -> dict:

@@ -39,15 +39,21 @@ def _load_json(path: Path) -> dict | None:
         return None
 
 
-def _trajectory(run_dir: Path) -> np.ndarray:
-    path = run_dir / "explorer" / "trajectory.csv"
-    if not path.is_file():
-        return np.zeros((0, 4))
-    try:
-        data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
-    except ValueError:
-        return np.zeros((0, 4))
-    return data.reshape(-1, 4)
+def _trajectory(run_dir: Path) -> tuple[np.ndarray, str]:
+    """(t, x, y, yaw) rows of the robot's trajectory and where they come from: the true poses
+    the recorder saved when it ran (simulation), else the poses the explorer drove by."""
+    for path, cols, source in (
+        (run_dir / "trajectory_truth.csv", [0, 1, 2, 4], "ground truth"),
+        (run_dir / "explorer" / "trajectory.csv", [0, 1, 2, 3], "published pose"),
+    ):  # fmt: skip
+        if path.is_file():
+            try:
+                data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+            except ValueError:
+                continue
+            if len(data):
+                return data[:, cols], source
+    return np.zeros((0, 4)), "none"
 
 
 def _graph(run_dir: Path) -> dict | None:
@@ -115,8 +121,10 @@ def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> 
         obstacle = ~classes.traversable_lut[top.data]
         clear = ev.clearance_along(xy, obstacle, top.origin_xy, res)
         out["min_clearance_m"] = float(clear.min())
-        out["close_calls"] = int((np.diff((clear < CLOSE_CALL_M).astype(int)) == 1).sum()
-                                 + (clear[0] < CLOSE_CALL_M))  # fmt: skip
+        out["close_calls"] = ev.count_events(clear < CLOSE_CALL_M)
+        contact = ev.footprint_contacts(traj[:, [1, 2, 3]], obstacle, top.origin_xy, res)
+        out["collisions"] = ev.count_events(contact)
+        out["collision_time_s"] = float(np.sum(np.diff(traj[:, 0])[contact[1:]]))
         out["duration_robot_s"] = float(traj[-1, 0] - traj[0, 0])
     return out
 
@@ -173,7 +181,7 @@ def write_report(run_dir: str | Path, config) -> Path:
     classes = ClassTable.load(config.general.class_table)
     names = {i: c.name for i, c in classes.classes.items()}
     state = _load_json(run_dir / "explorer" / "state.json")
-    traj = _trajectory(run_dir)
+    traj, traj_source = _trajectory(run_dir)
     graph = _graph(run_dir)
     if graph is not None and not (run_dir / "graph.npz").exists():
         shutil.copy(run_dir / "explorer" / "graph.npz", run_dir / "graph.npz")
@@ -206,6 +214,7 @@ def write_report(run_dir: str | Path, config) -> Path:
         metrics["ground_truth"] = f"unavailable: {exc}"
     if world is not None:
         metrics["exploration"] = exploration_metrics(world, graph, traj, config)
+        metrics["exploration"]["trajectory_source"] = traj_source
     map_path = _final_map(run_dir, classes)
     if map_path is not None and world is not None:
         try:
@@ -277,6 +286,8 @@ def render_markdown(m: dict) -> str:
                 ".0f", " %")),
             ("minimum clearance from obstacles", _f(ex.get("min_clearance_m"), ".2f", " m")),
             (f"close calls (clearance < {CLOSE_CALL_M} m)", str(ex.get("close_calls", "-"))),
+            ("collisions (footprint over an obstacle)", str(ex.get("collisions", "-"))),
+            ("trajectory measured from", ex.get("trajectory_source", "-")),
         ]  # fmt: skip
         lines += [f"| {a} | {b} |" for a, b in rows]
         lines.append("")

@@ -127,3 +127,16 @@ def test_travelled_nodes_terrain_share_and_clearance():
     c = ev.clearance_along(np.array([[1.0, 1.5], [0.0, 0.0]]), obstacle, (0.0, 0.0), 0.1)
     assert c[0] == pytest.approx(0.5 - 0.1 * np.sqrt(0.5))
     assert c[1] > 1.3
+
+
+def test_footprint_contacts_follow_the_heading():
+    obstacle = np.zeros((41, 41), bool)
+    obstacle[20, 24] = True  # a post at (2.0, 2.4) on a 0.1 m raster from (0, 0)
+    # robot at (2, 2): 0.4 m from the post, beyond its half width (0.31) sideways...
+    side = np.array([[2.0, 2.0, 0.0]])
+    assert not ev.footprint_contacts(side, obstacle, (0.0, 0.0), 0.1)[0]
+    # ...and 0.35 m away along its length (half length 0.28): clear both ways, but closer
+    # sideways it touches
+    assert ev.footprint_contacts(np.array([[2.0, 2.1, 0.0]]), obstacle, (0.0, 0.0), 0.1)[0]
+    assert not ev.footprint_contacts(np.array([[2.0, 2.1, np.pi / 2]]), obstacle, (0, 0), 0.1)[0]
+    assert ev.count_events(np.array([0, 1, 1, 0, 1, 0, 0, 1], bool)) == 3

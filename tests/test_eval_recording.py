@@ -90,3 +90,6 @@ def test_recording_holds_every_stream(tmp_path):
               "/world/explorer/path", "/world/explorer/goal", "/metrics/explored_m2"):  # fmt: skip
         assert e in ents, (e, sorted(ents))
     assert rec.counts["pose"] == 5 and rec.counts["patch"] == 1
+    rec.save_trajectories(tmp_path)
+    truth = np.loadtxt(tmp_path / "trajectory_truth.csv", delimiter=",", skiprows=1)
+    assert truth.shape == (5, 5) and truth[-1, 1] == pytest.approx(0.4)

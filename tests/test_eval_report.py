@@ -59,6 +59,7 @@ def test_report_measures_a_run(run):
     assert ex["reachable_area_m2"] > 5
     assert ex["distance_m"] == 0.0 and ex["travelled_nodes"] == 1
     assert ex["min_clearance_m"] >= 0.35  # the spawn point has 0.4 m clearance (a cell's slack)
+    assert ex["collisions"] == 0 and ex["trajectory_source"] == "published pose"
     mp = m["map"]
     # raised 2 cm: on the ground the nearest GT point is 2 cm away, on walls of objects closer
     assert 0.008 < mp["reconstruction_error_mean_m"] <= 0.02 + 1e-6
@@ -70,6 +71,20 @@ def test_report_measures_a_run(run):
     assert "explored share of the reachable traversable area" in text
     assert "classification ratio" in text and "![graph](plots/graph.png)" in text
     assert (run_dir / "graph.npz").is_file() and (run_dir / "gt.ply").is_file()
+
+
+def test_report_counts_a_drive_through_a_wall_and_prefers_the_true_trajectory(run):
+    run_dir, cfg, world = run
+    # the recorder's true trajectory: straight west, through the garden's wall at x = -3
+    t = np.arange(0, 6, 0.1)
+    truth = np.column_stack([t, -2.0 - 0.3 * t, 0.0 * t, 0.0 * t, np.pi + 0.0 * t])
+    np.savetxt(run_dir / "trajectory_truth.csv", truth, delimiter=",",
+               header="t_s,x_m,y_m,z_m,yaw_rad", comments="")  # fmt: skip
+    report.write_report(run_dir, cfg)
+    ex = json.loads((run_dir / "metrics.json").read_text())["exploration"]
+    assert ex["trajectory_source"] == "ground truth"
+    assert ex["collisions"] >= 1 and ex["collision_time_s"] > 0.5
+    assert ex["min_clearance_m"] == 0.0
 
 
 def test_report_of_an_empty_run_dir_still_writes(tmp_path):
