@@ -1,0 +1,6 @@
+"""The mapper: online semantic 3D mapping with the paper's three back-ends.
+
+Library use (no zenoh): `smana.services.mapper.semantic_map.SemanticMap`. The back-ends live in
+`octree.py` (octree-max, octree-bayes) and `tsdf.py`, on the hashed block grid of `_grid.py`;
+`service.py` is the zenoh wiring, `bench.py` the benchmark, `scans.py` its synthetic LiDAR scans.
+"""
