@@ -190,35 +190,44 @@ class NavGraph:
         if backend == "tsdf":
             if values is None:
                 raise ValueError("a tsdf delta needs values (signed distances)")
-            values = np.asarray(values, np.float64)
+            values = np.asarray(values)
             if values.shape != (m,):
                 raise ValueError(f"values must have length {m}")
 
-        finite = np.isfinite(centres).all(axis=1)
-        n_nonfinite = int(m - finite.sum())
-        if (labels < 0).any():
-            raise ValueError("labels must be >= 0")
-        labels, n_unknown = self.classes.sanitise(labels)
-        labels = labels.astype(np.uint16, copy=False)
-        surface = occupied != 0
-        if backend == "tsdf":
-            with np.errstate(invalid="ignore"):
-                surface |= np.abs(values) < self.resolution_m
-        # An ignored class (sky, ...) is not ground: treat it as a cleared voxel.
-        surface &= ~self._ignored_lut[labels]
-        surface &= finite
-        cen = np.ascontiguousarray(centres[finite], np.float64)
-        lab = np.ascontiguousarray(labels[finite])
-        surf = np.ascontiguousarray(surface[finite])
+        if labels.dtype != np.uint16:
+            if labels.dtype.kind == "i" and m and labels.min() < 0:
+                raise ValueError("labels must be >= 0")
+            labels = labels.astype(np.int64)
+        if occupied.dtype != np.uint8:
+            occupied = (occupied != 0).view(np.uint8)
+        values = np.zeros(0, np.float32) if values is None else np.asarray(values, np.float32)
 
         g = self.grid
         ox, oy = float(g.origin_xy[0]), float(g.origin_xy[1])
         nx, ny = g.shape
         t = g.tile_size
-        # 1. allocate the tiles of every in-bounds surface voxel.
-        missing = _missing_tiles(cen, surf, ox, oy, g.resolution_m, nx, ny, g.tile_map, t)
+        # 1. classify voxels (surface / cleared / unusable row), clean labels, and allocate the
+        # tiles of every in-bounds surface voxel, all in one pass.
+        cen = centres
+        lab, surf, missing, n_nonfinite, n_unknown, n_surface = _prepare(
+            centres,
+            labels,
+            occupied,
+            values,
+            backend == "tsdf",
+            self.resolution_m,
+            self.classes.valid_lut,
+            self._ignored_lut,
+            ox,
+            oy,
+            g.resolution_m,
+            nx,
+            ny,
+            g.tile_map,
+            t,
+        )
         n_new = g.allocate_tiles(missing // g.tiles_shape[1], missing % g.tiles_shape[1])
-        self._reserve_entries(int(surf.sum()))
+        self._reserve_entries(int(n_surface))
 
         # 2. columns and node heads.
         self._epoch += 1
@@ -338,10 +347,10 @@ class NavGraph:
             heights=n_h[changed],
             flags=n_f[changed],
             n_voxels=m,
-            n_surface=int(surf.sum()),
+            n_surface=int(n_surface),
             n_out_of_bounds=n_oob,
-            n_nonfinite=n_nonfinite,
-            n_unknown_labels=n_unknown,
+            n_nonfinite=int(n_nonfinite),
+            n_unknown_labels=int(n_unknown),
             n_below_floor=n_below,
             n_columns_lost=n_lost,
             n_new_tiles=n_new,
@@ -435,28 +444,57 @@ def _tile_ranges(ix, iy, r, t, nx, ny):
 
 
 @numba.njit(cache=True)
-def _missing_tiles(cen, surf, ox, oy, res, nx, ny, tile_map, t):
-    """Ids (tx * nty + ty) of unallocated tiles under in-bounds surface voxels, each once."""
+def _prepare(cen, labels, occupied, values, is_tsdf, band, valid_lut, ignored_lut, ox, oy, res,
+             nx, ny, tile_map, t):  # fmt: skip
+    """Per voxel: clean label (ids outside the table -> 0), kind (0 cleared, 1 surface, 2 row
+    with a non-finite coordinate), and the ids (tx * nty + ty) of unallocated tiles under
+    in-bounds surface voxels, each once."""
+    m = len(cen)
     nty = tile_map.shape[1]
-    out = np.empty(len(cen), np.int64)
-    n = 0
-    marked = []
-    for i in range(len(cen)):
-        if not surf[i]:
+    n_lut = len(valid_lut)
+    lab = np.empty(m, np.uint16)
+    kind = np.empty(m, np.uint8)
+    missing = np.empty(m, np.int64)
+    n_missing = 0
+    n_nonfinite = 0
+    n_unknown = 0
+    n_surface = 0
+    for i in range(m):
+        x = cen[i, 0]
+        y = cen[i, 1]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(cen[i, 2])):
+            kind[i] = 2
+            lab[i] = 0
+            n_nonfinite += 1
             continue
-        ix = int(np.floor((cen[i, 0] - ox) / res))
-        iy = int(np.floor((cen[i, 1] - oy) / res))
+        lb = labels[i]
+        if lb >= n_lut or not valid_lut[lb]:
+            lb = 0
+            n_unknown += 1
+        lab[i] = lb
+        surface = occupied[i] != 0
+        if is_tsdf and not surface:
+            surface = abs(values[i]) < band  # False for NaN
+        # An ignored class (sky, ...) is not ground: treat it as a cleared voxel.
+        if ignored_lut[lb]:
+            surface = False
+        kind[i] = 1 if surface else 0
+        if not surface:
+            continue
+        n_surface += 1
+        ix = int(np.floor((x - ox) / res))
+        iy = int(np.floor((y - oy) / res))
         if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
             continue
-        tx, ty = ix // t, iy // t
+        tx = ix // t
+        ty = iy // t
         if tile_map[tx, ty] == -1:
             tile_map[tx, ty] = -2  # mark so each tile is reported once
-            out[n] = tx * nty + ty
-            marked.append((tx, ty))
-            n += 1
-    for tx, ty in marked:
-        tile_map[tx, ty] = -1
-    return out[:n]
+            missing[n_missing] = tx * nty + ty
+            n_missing += 1
+    for k in range(n_missing):
+        tile_map[missing[k] // nty, missing[k] % nty] = -1
+    return lab, kind, missing[:n_missing], n_nonfinite, n_unknown, n_surface
 
 
 @numba.njit(cache=True, inline="always")
@@ -517,6 +555,8 @@ def _integrate_kernel(
     top = e_state[1]
     in_use = e_state[2]
     for i in range(len(cen)):
+        if surf[i] == 2:
+            continue
         x = cen[i, 0]
         y = cen[i, 1]
         ix = int(np.floor((x - ox) / res))
@@ -549,7 +589,7 @@ def _integrate_kernel(
                 break
             p2 = e2
             e2 = e_next[e2]
-        if surf[i]:
+        if surf[i] == 1:
             if found >= 0:
                 if e_label[found] == lab[i]:
                     continue  # same voxel, same label: the node cannot change
