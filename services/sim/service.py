@@ -37,7 +37,7 @@ MAX_TICK_S = 0.05  # wall seconds of physics per tick before commands get a turn
 
 class SimService(Service):
     name = "sim"
-    tick_period_s = 0.002
+    tick_period_s = 0.004  # about one physics step (240 Hz) per tick
 
     def __init__(self, config: SmanaConfig, sim: Simulation | None = None):
         super().__init__(config)
