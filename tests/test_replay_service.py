@@ -18,7 +18,7 @@ from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.messages import MapDelta, Pose, SemanticCloud, decode, encode
 from smana.services.replay import synthetic as syn
-from smana.services.replay.player import Pacer
+from smana.services.replay.player import END, Pacer, ScanFeed
 from smana.services.replay.prepare import prepare_scan
 from smana.services.replay.readers import open_dataset
 
@@ -215,3 +215,45 @@ def test_pacer_realtime_schedule_and_late_counts():
     assert p.on_ack(3) == pytest.approx(0.0, abs=1e-4)
     assert p.lost == 2  # 1 and 2 were overtaken: the mapper dropped them
     assert p.on_ack(1) is None
+
+
+# -- the read-ahead feed, in-process ------------------------------------------------------------
+
+
+def drain(feed):
+    items = []
+    while True:
+        item = feed.get(timeout=10.0)
+        assert item is not None, "the feed stalled"
+        if item is END:
+            return items
+        items.append(item)
+
+
+def test_feed_reports_a_scan_broken_after_indexing_and_goes_on(dataset, tmp_path):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    reader = open_dataset(copy)
+    lab = copy / "Rellis-3D" / "00000" / "os1_cloud_node_semantickitti_label_id" / "000003.label"
+    lab.write_bytes(lab.read_bytes()[:-8])  # damaged after the reader indexed it
+    feed = ScanFeed(reader, ClassTable.load("rellis3d"), 10.0, 0.5, "lidar", start=1, count=4)
+    items = drain(feed.start())
+    feed.stop()
+    assert [i.index for i in items] == [1, 2, 3, 4]
+    assert [bool(i.error) for i in items] == [False, False, True, False]
+    assert "000003.label" in items[2].error
+    cloud = decode(items[0].cloud, SemanticCloud)
+    assert (
+        cloud.seq == 1 and cloud.source == "lidar" and len(cloud.points) == items[0].prepared.n_out
+    )
+
+
+def test_feed_stops_while_blocked_on_a_full_queue(dataset):
+    feed = ScanFeed(open_dataset(dataset), ClassTable.load("rellis3d"), 10.0, 0.5, "lidar", ahead=1)
+    feed.start()
+    time.sleep(0.3)  # the thread now waits to put its second scan
+    t0 = time.monotonic()
+    feed.stop()
+    assert time.monotonic() - t0 < 2.0 and not feed._thread.is_alive()

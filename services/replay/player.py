@@ -106,26 +106,25 @@ class ScanFeed:
         return False
 
     def _iter_scans(self) -> Iterable[tuple[int, Scan | Exception]]:
-        first, last = self.indices.start, self.indices.stop
-        if first == 0 and last == len(self.reader):
-            # Sequential readers (bags) stream faster through __iter__ than by index.
-            it = iter(self.reader)
-            for i in self.indices:
-                try:
-                    yield i, next(it)
-                except StopIteration:
-                    return
-                except Exception as exc:  # noqa: BLE001 - reported as a skipped scan
-                    yield i, exc
-                    it = iter(self.reader)  # a broken stream restarts; skip what was read
-                    for _ in range(i + 1):
-                        next(it, None)
-        else:
+        if not self.reader.sequential:
             for i in self.indices:
                 try:
                     yield i, self.reader.scan(i)
                 except Exception as exc:  # noqa: BLE001 - reported as a skipped scan
                     yield i, exc
+            return
+        # Streams (bags) are read forward; a failure ends the generator, so start again and
+        # fast-forward past what was already read.
+        done = self.indices.start
+        while done < self.indices.stop:
+            try:
+                for i in range(done, self.indices.stop):
+                    scan = self.reader.scan(i)
+                    done = i + 1
+                    yield i, scan
+            except Exception as exc:  # noqa: BLE001 - reported as a skipped scan
+                yield done, exc
+                done += 1
 
     def _run(self) -> None:
         seq = 0

@@ -72,6 +72,7 @@ class DatasetReader(ABC):
     format: str = ""
     default_class_table: str = ""
     sensor: str = "lidar"
+    sequential: bool = False  # True: scan(i) is cheap only going forward (a stream)
 
     def __init__(self, path: str | Path, *, strict: bool = False):
         self.path = Path(path)

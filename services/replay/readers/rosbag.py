@@ -198,6 +198,7 @@ def fixed_pose_matrix(pose) -> np.ndarray:
 class RosbagReader(DatasetReader):
     format = "rosbag"
     default_class_table = "rellis3d"
+    sequential = True
 
     def __init__(
         self,
@@ -339,12 +340,21 @@ class RosbagReader(DatasetReader):
         if self._cursor is None or self._cursor[1] > target:
             self._cursor = [iter(self._cloud_messages()), 0]
         it = self._cursor[0]
-        while True:
-            _, msg = next(it)
-            k = self._cursor[1]
-            self._cursor[1] += 1
-            if k == target:
-                return self._make_scan(i, msg)
+        try:
+            while True:
+                _, msg = next(it)
+                k = self._cursor[1]
+                self._cursor[1] += 1
+                if k == target:
+                    return self._make_scan(i, msg)
+        except StopIteration:
+            self._cursor = None
+            raise DatasetError(
+                self.path, f"message {target} of {self.cloud_topic} is gone"
+            ) from None
+        except Exception:
+            self._cursor = None  # a broken stream: the next call starts over
+            raise
 
     def close(self) -> None:
         bag, self._bag = getattr(self, "_bag", None), None
