@@ -126,6 +126,18 @@ def test_clearing_recomputes_from_what_remains():
     assert g.n_column_voxels == 0
 
 
+def test_a_solid_person_leaving_uncovers_the_ground_with_default_capacity():
+    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.4)
+    ground = [voxel(i, j, 0) for i in (10, 11) for j in (10, 11)]
+    person = [voxel(i, j, k) for i in (10, 11) for j in (10, 11) for k in range(1, 18)]
+    integrate(g, ground, [GRASS] * 4, [1] * 4)
+    integrate(g, person, [7] * len(person), [1] * len(person))
+    assert g.node(1.1, 1.1)["obstacle"] and g.n_column_voxels == 4 + 68
+    integrate(g, person, [7] * len(person), [0] * len(person))
+    n = g.node(1.1, 1.1)
+    assert n["known"] and n["label"] == GRASS and not g.node(1.5, 1.1)["safety_zone"]
+
+
 def test_column_capacity_forgets_lowest_level_and_never_guesses():
     g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.0, column_capacity=3)
     levels = [voxel(10, 10, k) for k in range(5)]

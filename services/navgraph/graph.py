@@ -68,7 +68,7 @@ class NavGraph:
         resolution_m: float = 0.2,
         robot_radius_m: float = 0.4,
         tile_size: int = 32,
-        column_capacity: int = 64,
+        column_capacity: int = 256,
     ):
         if not (np.isfinite(robot_radius_m) and robot_radius_m >= 0):
             raise ValueError(f"robot_radius_m must be >= 0, got {robot_radius_m}")

@@ -1,0 +1,213 @@
+"""The navgraph service: zenoh wiring around `NavGraph` (the algorithm lives in `graph.py`).
+
+Input: `mapper/delta` (MapDelta), every one in order (FIFO, never latest-wins: a lost delta is a
+hole in the graph). A gap in the delta sequence is counted (`delta_gap`); labels outside the class
+table are read as unknown and counted (`unknown_labels`); voxels outside the graph bounds are
+counted in the stats (a map may reach further than the graph).
+
+At start the service asks the mapper for a snapshot of its occupied voxels (`mapper/snapshot`),
+so a navgraph started or restarted after the mapper does not miss what was mapped before; deltas
+that the snapshot already covers (sequence number not above the snapshot's) are skipped.
+
+Output: one `GraphPatch` on `navgraph/patch` per delta that changed a node (label, height or
+flags, safety-zone changes included), published reliably (congestion control BLOCK). Heights of
+nodes that are not known travel as 0 (the codec carries finite numbers only).
+
+Queries (msgpack or JSON, see `common/service.py`):
+- `navgraph/graph`: the known nodes as one GraphPatch (seq = the last patch's), optionally in a
+  world box `{"box": [x0, y0, x1, y1]}` or `?box=x0,y0,x1,y1`;
+- `navgraph/node`: `{"x": .., "y": ..}` or `?x=..;y=..` -> the node's state and its column;
+- `navgraph/stats`: graph and service figures.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from smana.common import keys
+from smana.common.classes import ClassTable
+from smana.common.config import SmanaConfig
+from smana.common.messages import FLAG_KNOWN, MAX_PAYLOAD_BYTES, GraphPatch, MapDelta
+from smana.common.query import QueryError, request
+from smana.common.service import ReplyError, Request, Service, run_service
+from smana.services.navgraph.graph import NavGraph
+
+BYTES_PER_PATCH_NODE = 8 + 2 + 4 + 1  # cell, label, height, flags
+
+
+def to_patch(graph: NavGraph, cells, labels, heights, flags, seq: int, stamp_s: float):
+    """A GraphPatch of nodes; unknown heights (NaN) travel as 0."""
+    heights = np.where(np.isnan(heights) | ((flags & FLAG_KNOWN) == 0), 0.0, heights)
+    return GraphPatch(
+        stamp_s=float(stamp_s),
+        seq=int(seq),
+        resolution_m=graph.resolution_m,
+        origin_xy=graph.grid.origin_xy.astype(np.float64),
+        cells=np.ascontiguousarray(cells, np.int32),
+        labels=np.ascontiguousarray(labels, np.uint16),
+        heights=heights.astype(np.float32),
+        flags=np.ascontiguousarray(flags, np.uint8),
+    )
+
+
+def parse_numbers(value, n: int, what: str) -> list[float]:
+    try:
+        if isinstance(value, str):
+            value = value.split(",")
+        out = [float(v) for v in value]
+    except (TypeError, ValueError):
+        raise ReplyError("value", f"{what} must be {n} numbers") from None
+    if len(out) != n or not all(np.isfinite(out)):
+        raise ReplyError("value", f"{what} must be {n} finite numbers, got {value!r}")
+    return out
+
+
+class NavgraphService(Service):
+    name = "navgraph"
+    tick_period_s = 1.0
+
+    def __init__(self, config: SmanaConfig):
+        super().__init__(config)
+        nc = config.navgraph
+        self.classes = ClassTable.load(config.general.class_table)
+        self.graph = NavGraph(
+            self.classes,
+            nc.bounds_min_xy,
+            nc.bounds_max_xy,
+            nc.resolution_m,
+            nc.robot_radius_m,
+            nc.tile_size,
+            nc.column_capacity,
+        )
+        self.patch_seq = 0
+        self.last_delta_seq: int | None = None
+        self.snapshot_seq = -1
+        self.deltas = 0
+        self.deltas_skipped = 0
+        self.voxels_out_of_bounds = 0
+        self.columns_lost = 0
+        self.times_ms: list[float] = []
+
+    def setup(self) -> None:
+        r = self.robot
+        self.patch_pub = self.publisher(keys.graph_patch(r), reliable_block=True)
+        self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
+        self.queryable(keys.query(r, "navgraph", "graph"), self.on_graph)
+        self.queryable(keys.query(r, "navgraph", "node"), self.on_node)
+        self.queryable(keys.query(r, "navgraph", "stats"), lambda req: self.stats())
+        self._initial_map()
+
+    def _initial_map(self) -> None:
+        """Integrate the mapper's current map, if a mapper is already running."""
+        try:
+            snap = request(self.session, keys.query(self.robot, "mapper", "snapshot"), None, 3.0)
+        except QueryError as exc:
+            self.log.info("no map snapshot (%s): starting from deltas", exc.kind)
+            return
+        if not isinstance(snap, MapDelta):
+            self.count_error("malformed", "mapper snapshot is not a MapDelta")
+            return
+        self.snapshot_seq = snap.seq
+        self.log.info("starting from the mapper's snapshot: %d voxels", len(snap.centres))
+        self._integrate(snap)
+
+    # -- the delta path ----------------------------------------------------------------------
+
+    def on_delta(self, delta: MapDelta) -> None:
+        if delta.seq <= self.snapshot_seq:
+            self.deltas_skipped += 1  # already in the snapshot we started from
+            return
+        if self.last_delta_seq is not None:
+            if delta.seq > self.last_delta_seq + 1:
+                missed = delta.seq - self.last_delta_seq - 1
+                self.count_error("delta_gap", f"{missed} map deltas missed before {delta.seq}")
+            elif delta.seq <= self.last_delta_seq:
+                self.log.info("delta seq went back to %d: the mapper restarted", delta.seq)
+        self.last_delta_seq = delta.seq
+        self._integrate(delta)
+
+    def _integrate(self, delta: MapDelta) -> None:
+        try:
+            up = self.graph.integrate_delta(delta)
+        except ValueError as exc:
+            self.count_error("value", f"map delta {delta.seq} rejected: {exc}")
+            return
+        self.deltas += 1
+        self.times_ms.append(up.time_ms)
+        del self.times_ms[:-100]
+        self.voxels_out_of_bounds += up.n_out_of_bounds
+        self.columns_lost += up.n_columns_lost
+        if up.n_unknown_labels:
+            self.count_error(
+                "unknown_labels",
+                f"delta {delta.seq}: {up.n_unknown_labels} labels not in the class table "
+                f"{self.classes.name}, read as unknown",
+            )
+        if len(up.cells):
+            self.patch_seq += 1
+            self.patch_pub.put(
+                to_patch(
+                    self.graph,
+                    up.cells,
+                    up.labels,
+                    up.heights,
+                    up.flags,
+                    self.patch_seq,
+                    delta.stamp_s,
+                )  # fmt: skip
+            )
+
+    # -- queries -----------------------------------------------------------------------------
+
+    def on_graph(self, req: Request) -> GraphPatch:
+        body = req.body()
+        box = body.get("box", req.params.get("box"))
+        if box is not None:
+            box = parse_numbers(box, 4, "box (x0, y0, x1, y1)")
+            if box[2] < box[0] or box[3] < box[1]:
+                raise ReplyError("value", "box needs x0 <= x1 and y0 <= y1")
+        cells, labels, heights, flags = self.graph.export(box)
+        if len(cells) * BYTES_PER_PATCH_NODE > MAX_PAYLOAD_BYTES - 4096:
+            raise ReplyError("value", f"{len(cells)} nodes do not fit one reply: ask for a box")
+        return to_patch(self.graph, cells, labels, heights, flags, self.patch_seq, time.time())
+
+    def on_node(self, req: Request) -> dict:
+        body = req.body()
+        x = body.get("x", req.params.get("x"))
+        y = body.get("y", req.params.get("y"))
+        if x is None or y is None:
+            raise ReplyError("value", "node query needs x and y (metres)")
+        x, y = parse_numbers([x, y], 2, "x, y")
+        node = self.graph.node(x, y)
+        if node is None:
+            raise ReplyError("out_of_bounds", f"({x}, {y}) is outside the graph bounds")
+        ix, iy = node["cell"]
+        node["column"] = [list(c) for c in self.graph.column(ix, iy)]
+        if np.isnan(node["height"]):
+            node["height"] = None  # JSON has no NaN
+        return node
+
+    def stats(self) -> dict:
+        t = np.array(self.times_ms) if self.times_ms else np.zeros(1)
+        return {
+            **self.graph.stats(),
+            "deltas": self.deltas,
+            "deltas_skipped": self.deltas_skipped,
+            "patch_seq": self.patch_seq,
+            "voxels_out_of_bounds": self.voxels_out_of_bounds,
+            "columns_lost": self.columns_lost,
+            "integrate_ms_median": float(np.median(t)),
+            "integrate_ms_last": float(t[-1]),
+        }
+
+    def status_details(self) -> dict:
+        s = self.stats()
+        keep = ("nodes_known", "tiles", "bytes", "deltas", "patch_seq", "integrate_ms_median")
+        return {k: s[k] for k in keep}
+
+
+def main(config: SmanaConfig) -> int:
+    """Run the navgraph service until SIGINT/SIGTERM."""
+    return run_service(NavgraphService, config)

@@ -1,0 +1,128 @@
+"""`smana plan --from X,Y --to X,Y`: ask the running planner for a path and print it.
+
+Exit status: 0 with a path, 1 when the planner answered with an error (unreachable, blocked, ...),
+2 when nobody answered or the arguments are wrong.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import uuid
+
+import numpy as np
+
+from smana.common import keys
+from smana.common.cli import config_from_args, make_parser
+from smana.common.messages import PathReply, PathRequest, to_json
+from smana.common.query import QueryError, request
+from smana.common.zenoh_config import make_zenoh_config
+
+
+def _point(text: str) -> np.ndarray:
+    try:
+        v = np.array([float(x) for x in text.split(",")])
+    except ValueError:
+        raise ValueError(f"expected X,Y in metres, got {text!r}") from None
+    if v.shape not in ((2,), (3,)) or not np.isfinite(v).all():
+        raise ValueError(f"expected X,Y in metres, got {text!r}")
+    return v
+
+
+def _costs(items: list[str]) -> dict[str, float]:
+    out = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise ValueError(f"--cost wants CLASS=COST (name or id), got {item!r}") from None
+    return out
+
+
+def format_reply(reply: PathReply, show_path: bool) -> str:
+    if not reply.ok:
+        lines = [f"no path: {reply.error}: {reply.message}"]
+        if len(reply.nearest_free):
+            lines.append(f"nearest free node: ({reply.nearest_free[0]:.2f}, "
+                         f"{reply.nearest_free[1]:.2f})")  # fmt: skip
+        return "\n".join(lines)
+    p = reply.path
+    shares = ", ".join(f"{k} {v:.0%}" for k, v in sorted(reply.label_share.items()))
+    lines = [
+        f"path: {len(p)} nodes, {reply.cost_distance:.2f} m, from ({p[0, 0]:.2f}, {p[0, 1]:.2f}) "
+        f"to ({p[-1, 0]:.2f}, {p[-1, 1]:.2f})",
+        f"cost {reply.cost_total:.3f} = distance {reply.cost_distance:.3f} + height "
+        f"{reply.cost_height:.3f} + traversability {reply.cost_traversability:.3f}",
+        f"labels: {shares}",
+        f"{reply.nodes_expanded} nodes expanded in {reply.time_ms:.1f} ms",
+    ]
+    if show_path:
+        lines += [f"  {x:8.2f} {y:8.2f} {z:7.2f}" for x, y, z in p.tolist()]
+    return "\n".join(lines)
+
+
+def cli(argv: list[str] | None = None) -> int:
+    p = make_parser("smana plan", __doc__.strip().splitlines()[0])
+    p.add_argument("--from", dest="start", required=True, metavar="X,Y", help="start (m)")
+    p.add_argument("--to", dest="goal", required=True, metavar="X,Y", help="goal (m)")
+    p.add_argument("--h-f", type=float, help="height weight (default: [planner] h_f)")
+    p.add_argument("--t-f", type=float, help="traversability weight (default: [planner] t_f)")
+    p.add_argument("--max-step", type=float, metavar="M", help="maximum step height (m)")
+    p.add_argument("--cost", action="append", default=[], metavar="CLASS=COST",
+                   help="override a class cost, e.g. --cost grass=4 (repeatable)")  # fmt: skip
+    p.add_argument("--allow-unknown", action="store_true", help="cross unknown nodes")
+    p.add_argument("--unknown-cost", type=float, help="cost T of an unknown node")
+    p.add_argument("--path", action="store_true", help="print every path point")
+    p.add_argument("--json", action="store_true", help="print the reply as JSON")
+    p.add_argument("--timeout", type=float, default=10.0, metavar="S")
+    args = p.parse_args(argv)
+    cfg = config_from_args(args)
+    try:
+        start, goal = _point(args.start), _point(args.goal)
+        names = _costs(args.cost)
+    except ValueError as exc:
+        print(f"smana plan: {exc}", file=sys.stderr)
+        return 2
+    from smana.common.classes import ClassTable
+
+    table = ClassTable.load(cfg.general.class_table)
+    class_costs = {}
+    for name, cost in names.items():
+        try:
+            cid = int(name) if name.isdigit() else table.by_name(name).id
+        except KeyError:
+            print(f"smana plan: no class {name!r} in {table.name}", file=sys.stderr)
+            return 2
+        class_costs[cid] = cost
+    req = PathRequest(
+        request_id=uuid.uuid4().hex[:12],
+        start=start,
+        goal=goal,
+        h_f=args.h_f,
+        t_f=args.t_f,
+        class_costs=class_costs,
+        allow_unknown=args.allow_unknown,
+        unknown_cost=cfg.planner.unknown_cost if args.unknown_cost is None else args.unknown_cost,
+        max_step_m=args.max_step,
+    )
+    import zenoh
+
+    with zenoh.open(make_zenoh_config(cfg.zenoh)) as session:
+        try:
+            reply = request(session, keys.path_query(cfg.general.robot), req, args.timeout)
+        except QueryError as exc:
+            print(f"smana plan: {exc}", file=sys.stderr)
+            return 2
+    if not isinstance(reply, PathReply):
+        print(f"smana plan: unexpected reply {reply!r}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(json.loads(to_json(reply)), indent=2))
+    else:
+        print(format_reply(reply, args.path))
+    return 0 if reply.ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

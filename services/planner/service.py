@@ -1,0 +1,228 @@
+"""The planner service: zenoh wiring around `Planner` (the algorithm lives in `planner.py` and
+`astar.py`).
+
+Input: `navgraph/patch` (GraphPatch), applied in order to the planner's own `NavGrid` copy. At
+start, and whenever the patch sequence shows a gap or a navgraph restart, the planner asks
+navgraph for the whole graph (`navgraph/graph`) and skips patches the reply already covers. A
+patch whose resolution or origin differs from `[navgraph]` in the config is rejected (`geometry`).
+
+Query `planner/path`: a PathRequest in msgpack, or JSON from any zenoh tool (only `start` and
+`goal` are required, e.g. `{"start": [0, 0], "goal": [5, 3]}`), or selector parameters
+`?start=x,y;goal=x,y`. The reply is always a PathReply (in the query's encoding): the path, or
+`ok = false` with an error code (`out_of_bounds`, `start_blocked`, `goal_blocked`, `unreachable`,
+`no_graph`, `malformed`) and a message saying what and where (for a blocked start or goal:
+obstacle, safety zone or unknown space, and the nearest free node in `nearest_free`).
+Also `planner/stats`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from smana.common import keys
+from smana.common.classes import ClassTable
+from smana.common.config import SmanaConfig
+from smana.common.messages import GraphPatch, MessageError, PathReply, PathRequest
+from smana.common.navgrid import NavGrid
+from smana.common.query import QueryError, request
+from smana.common.service import Request, Service, run_service
+from smana.services.planner.planner import MALFORMED, Planner, PlannerParams, PlanResult
+
+
+def reply_of(request_id: str, r: PlanResult) -> PathReply:
+    return PathReply(
+        request_id=request_id,
+        ok=r.ok,
+        error=r.error,
+        message=r.message,
+        path=np.ascontiguousarray(r.path, np.float32).reshape(-1, 3),
+        cost_total=float(r.cost_total),
+        cost_distance=float(r.cost_distance),
+        cost_height=float(r.cost_height),
+        cost_traversability=float(r.cost_traversability),
+        label_share={k: float(v) for k, v in r.label_share.items()},
+        nodes_expanded=int(r.nodes_expanded),
+        time_ms=float(r.time_ms),
+        nearest_free=np.asarray(r.nearest_free, np.float64).reshape(-1),
+    )
+
+
+def request_from_params(params: dict[str, str]) -> PathRequest:
+    """A PathRequest from selector parameters (start=x,y;goal=x,y and optional fields)."""
+
+    def point(name):
+        try:
+            return np.array([float(v) for v in params[name].split(",")])
+        except KeyError:
+            raise MessageError("missing_field", f"PathRequest.{name}") from None
+        except ValueError:
+            raise MessageError("value", f"{name} must be numbers separated by commas") from None
+
+    def number(name):
+        try:
+            return float(params[name]) if name in params else None
+        except ValueError:
+            raise MessageError("value", f"{name} must be a number") from None
+
+    allow = params.get("allow_unknown", "false").lower() in ("1", "true", "yes")
+    unknown_cost = number("unknown_cost")
+    return PathRequest(
+        request_id=params.get("request_id", ""),
+        start=point("start"),
+        goal=point("goal"),
+        h_f=number("h_f"),
+        t_f=number("t_f"),
+        allow_unknown=allow,
+        unknown_cost=2.0 if unknown_cost is None else unknown_cost,
+        max_step_m=number("max_step_m"),
+    )
+
+
+class PlannerService(Service):
+    name = "planner"
+    tick_period_s = 1.0
+
+    def __init__(self, config: SmanaConfig):
+        super().__init__(config)
+        nc, pc = config.navgraph, config.planner
+        self.classes = ClassTable.load(config.general.class_table)
+        self.grid = NavGrid.from_bounds(
+            nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.tile_size
+        )
+        params = PlannerParams(pc.h_f, pc.t_f, pc.max_step_m, pc.unknown_cost, pc.heuristic)
+        self.planner = Planner(self.grid, self.classes, params)
+        self.last_patch_seq = 0
+        self.patches = 0
+        self.patches_skipped = 0
+        self.syncs = 0
+        self.queries = 0
+        self.outcomes: dict[str, int] = {}
+        self.times_ms: list[float] = []
+
+    def setup(self) -> None:
+        r = self.robot
+        self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
+        self.queryable(keys.path_query(r), self.on_path)
+        self.queryable(keys.query(r, "planner", "stats"), lambda req: self.stats())
+        self.sync()
+
+    # -- keeping the graph -------------------------------------------------------------------
+
+    def sync(self) -> bool:
+        """Replace the grid by navgraph's whole graph. False when navgraph does not answer."""
+        timeout = self.config.planner.graph_sync_timeout_s
+        try:
+            reply = request(
+                self.session, keys.query(self.robot, "navgraph", "graph"), None, timeout
+            )
+        except QueryError as exc:
+            self.log.info("no graph from navgraph (%s): waiting for patches", exc.kind)
+            return False
+        if not isinstance(reply, GraphPatch):
+            self.count_error("malformed", "navgraph/graph reply is not a GraphPatch")
+            return False
+        if not self._check_geometry(reply):
+            return False
+        self._reset_grid()
+        self._apply(reply)
+        self.last_patch_seq = reply.seq
+        self.syncs += 1
+        self.log.info(
+            "graph synced from navgraph: %d nodes (patch %d)", len(reply.cells), reply.seq
+        )
+        return True
+
+    def _reset_grid(self) -> None:
+        g = self.grid
+        self.grid = NavGrid(g.origin_xy, g.shape, g.resolution_m, g.tile_size)
+        self.planner = Planner(self.grid, self.classes, self.planner.params)
+
+    def _check_geometry(self, patch: GraphPatch) -> bool:
+        g = self.grid
+        if abs(patch.resolution_m - g.resolution_m) > 1e-9 or not np.allclose(
+            patch.origin_xy, g.origin_xy
+        ):
+            self.count_error(
+                "geometry",
+                f"graph patch at {patch.resolution_m} m from {patch.origin_xy.tolist()} does not "
+                f"match the planner's grid ({g.resolution_m} m from {g.origin_xy.tolist()}): "
+                "check [navgraph] in the config",
+            )
+            return False
+        return True
+
+    def _apply(self, patch: GraphPatch) -> None:
+        n_out = self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
+        if n_out:
+            self.count_error("out_of_bounds", f"{n_out} patch cells outside the graph bounds")
+
+    def on_patch(self, patch: GraphPatch) -> None:
+        if not self._check_geometry(patch):
+            return
+        if patch.seq == 1 and self.last_patch_seq > 1:
+            # navgraph restarted: its graph starts again (from the mapper's snapshot)
+            self.log.info("navgraph restarted: dropping the old graph")
+            self._reset_grid()
+            self.last_patch_seq = 0
+        if patch.seq <= self.last_patch_seq:
+            self.patches_skipped += 1  # already in the graph we synced
+            return
+        if self.last_patch_seq and patch.seq > self.last_patch_seq + 1:
+            missed = patch.seq - self.last_patch_seq - 1
+            self.count_error("patch_gap", f"{missed} graph patches missed before {patch.seq}")
+            if self.sync() and patch.seq <= self.last_patch_seq:
+                return
+        self._apply(patch)
+        self.last_patch_seq = patch.seq
+        self.patches += 1
+
+    # -- path queries ------------------------------------------------------------------------
+
+    def on_path(self, req: Request) -> PathReply:
+        self.queries += 1
+        try:
+            if req.payload:
+                msg = req.decode(PathRequest)
+            else:
+                msg = request_from_params(req.params)
+        except MessageError as exc:
+            self.count_error(exc.kind, f"bad path request: {exc}")
+            result = PlanResult(False, MALFORMED, f"malformed request: {exc}")
+            return self._reply("", result)
+        return self._reply(msg.request_id, self.planner.plan_request(msg))
+
+    def _reply(self, request_id: str, result: PlanResult) -> PathReply:
+        key = "ok" if result.ok else result.error
+        self.outcomes[key] = self.outcomes.get(key, 0) + 1
+        self.times_ms.append(result.time_ms)
+        del self.times_ms[:-100]
+        return reply_of(request_id, result)
+
+    def stats(self) -> dict:
+        t = np.array(self.times_ms) if self.times_ms else np.zeros(1)
+        return {
+            "tiles": self.grid.n_tiles,
+            "nodes_known": self.grid.n_known(),
+            "bytes": self.grid.nbytes,
+            "patches": self.patches,
+            "patches_skipped": self.patches_skipped,
+            "last_patch_seq": self.last_patch_seq,
+            "syncs": self.syncs,
+            "queries": self.queries,
+            "outcomes": dict(self.outcomes),
+            "params": dataclasses.asdict(self.planner.params),
+            "plan_ms_median": float(np.median(t)),
+            "plan_ms_last": float(t[-1]),
+        }
+
+    def status_details(self) -> dict:
+        s = self.stats()
+        keep = ("nodes_known", "patches", "last_patch_seq", "queries", "plan_ms_median")
+        return {k: s[k] for k in keep} | {"outcomes": s["outcomes"]}
+
+
+def main(config: SmanaConfig) -> int:
+    """Run the planner until SIGINT/SIGTERM."""
+    return run_service(PlannerService, config)
