@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pybullet as p
 
-from .world import BOX, CYLINDER, ELLIPSOID, SPHERE, GardenWorld, Primitive, WorldObject
+from .world import BOX, CYLINDER, GardenWorld, Primitive, WorldObject
 
 GROUND = -2  # label_lut value: look the class up in the ground raster
 DROP = -1  # label_lut value: not part of the world (the robot); sensors drop these hits
@@ -124,34 +124,19 @@ class BulletScene:
         return [self._primitive_body(prim, rgba) for prim in obj.primitives]
 
     def _primitive_body(self, prim: Primitive, rgba: list[float]) -> int:
+        """One static body per primitive, colliding as a triangle mesh and drawn with the same
+        mesh. Bullet ray-tests every convex shape (box, sphere, hull) with a GJK convex cast;
+        static triangle meshes take an exact ray-triangle test through their BVH instead, which
+        halves the LiDAR's cost. Sharing the mesh also makes camera and LiDAR see one surface."""
         c = self.client
-        a, b, h = prim.half_extents
-        if prim.shape == BOX:
-            cs = p.createCollisionShape(p.GEOM_BOX, halfExtents=[a, b, h], physicsClientId=c)
-            vs = p.createVisualShape(
-                p.GEOM_BOX, halfExtents=[a, b, h], rgbaColor=rgba, physicsClientId=c
-            )
-        elif prim.shape == SPHERE:
-            cs = p.createCollisionShape(p.GEOM_SPHERE, radius=a, physicsClientId=c)
-            vs = p.createVisualShape(p.GEOM_SPHERE, radius=a, rgbaColor=rgba, physicsClientId=c)
-        elif prim.shape == CYLINDER:
-            cs = p.createCollisionShape(p.GEOM_CYLINDER, radius=a, height=2 * h, physicsClientId=c)
-            vs = p.createVisualShape(
-                p.GEOM_CYLINDER, radius=a, length=2 * h, rgbaColor=rgba, physicsClientId=c
-            )
-        elif prim.shape == ELLIPSOID:
-            verts, idx = _ellipsoid_mesh(a, b, h)
-            # a static triangle mesh, not a convex hull: Bullet ray-tests a hull with GJK, which
-            # made the six ellipsoids of the default garden cost as much as everything else
-            cs = p.createCollisionShape(
-                p.GEOM_MESH, vertices=verts, indices=idx, flags=p.GEOM_FORCE_CONCAVE_TRIMESH,
-                physicsClientId=c,
-            )  # fmt: skip
-            vs = p.createVisualShape(
-                p.GEOM_MESH, vertices=verts, indices=idx, rgbaColor=rgba, physicsClientId=c
-            )
-        else:  # pragma: no cover - Primitive validates its shape
-            raise ValueError(prim.shape)
+        verts, idx = primitive_mesh(prim)
+        cs = p.createCollisionShape(
+            p.GEOM_MESH, vertices=verts, indices=idx, flags=p.GEOM_FORCE_CONCAVE_TRIMESH,
+            physicsClientId=c,
+        )  # fmt: skip
+        vs = p.createVisualShape(
+            p.GEOM_MESH, vertices=verts, indices=idx, rgbaColor=rgba, physicsClientId=c
+        )
         orn = p.getQuaternionFromEuler([0, 0, prim.yaw])
         return p.createMultiBody(
             0, cs, vs, basePosition=list(prim.centre), baseOrientation=orn, physicsClientId=c
@@ -170,7 +155,41 @@ class BulletScene:
         return p.createMultiBody(0, cs, vs, physicsClientId=c)
 
 
-def _ellipsoid_mesh(a: float, b: float, c: float, n_lat: int = 10, n_lon: int = 18):
+SAGITTA_M = 0.01  # how far a tessellated curved surface may sink inside the true one
+
+
+def _segments(radius: float, full_turn: bool) -> int:
+    """Segments so that each chord stays within SAGITTA_M of a circle of `radius`."""
+    step = 2 * math.acos(max(1 - SAGITTA_M / max(radius, 1e-6), -1.0))
+    n = math.ceil((2 * math.pi if full_turn else math.pi) / max(step, 1e-3))
+    return max(n, 12 if full_turn else 6)
+
+
+def primitive_mesh(prim: Primitive) -> tuple[list[list[float]], list[int]]:
+    """Vertices and outward triangles of a primitive, in its own frame (centre, yaw)."""
+    a, b, h = prim.half_extents
+    if prim.shape == BOX:
+        v = [[sx * a, sy * b, sz * h] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]
+        quads = ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3))
+        idx = [i for q0, q1, q2, q3 in quads for i in (q0, q1, q2, q0, q2, q3)]
+        return v, idx
+    if prim.shape == CYLINDER:
+        n = _segments(a, True)
+        ring = [
+            (a * math.cos(2 * math.pi * k / n), a * math.sin(2 * math.pi * k / n)) for k in range(n)
+        ]
+        v = [[x, y, z] for z in (-h, h) for x, y in ring] + [[0.0, 0.0, -h], [0.0, 0.0, h]]
+        idx = []
+        for k in range(n):
+            k1 = (k + 1) % n
+            idx += [k, k1, n + k1, k, n + k1, n + k]  # side
+            idx += [2 * n, k1, k, 2 * n + 1, n + k, n + k1]  # bottom, top
+        return v, idx
+    r = max(a, b, h)
+    return _ellipsoid_mesh(a, b, h, _segments(r, False), _segments(r, True))
+
+
+def _ellipsoid_mesh(a: float, b: float, c: float, n_lat: int, n_lon: int):
     """A UV sphere scaled to the semi-axes: vertices list and triangle indices (outward)."""
     verts = [[0.0, 0.0, c]]
     for i in range(1, n_lat):
