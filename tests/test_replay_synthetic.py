@@ -200,3 +200,10 @@ def test_prepare_scan_rejects_bad_input():
     bad = Scan(0, "s", 0.0, np.zeros((3, 3), np.float32), np.zeros(3, int), np.full((4, 4), np.nan))
     with pytest.raises(ValueError, match="finite 4x4"):
         prepare_scan(bad, table, 10.0)
+
+
+def test_tree_crowns_do_not_overhang_the_trail(world):
+    trail = world.trail[::10]
+    trees = world.sphere_labels == syn.TREE
+    for s in world.spheres[trees]:
+        assert np.min(np.hypot(*(trail - s[:2]).T)) > s[3] + 1.6  # beyond the dirt band

@@ -29,6 +29,7 @@ BUILDING, LOG, PERSON, FENCE, BUSH, CONCRETE, BARRIER, PUDDLE, MUD, RUBBLE = (
 )  # fmt: skip
 
 OS1_64_FOV_DEG = (-16.6, 16.6)
+WORLD_VERSION = 2  # bump when make_world changes: sequences on disk are then rewritten
 SENSOR_HEIGHT_M = 1.0
 TERRAIN_MAX_M = 1.0  # bound on |terrain_height|: rays above it going up cannot hit the ground
 TERRAIN_MAX_SLOPE = 0.2  # bound on |grad terrain_height| (0.173 from the coefficients below)
@@ -131,11 +132,14 @@ def make_world(seed: int = 0, extent_m: float = 70.0, res_m: float = 0.1) -> Syn
     def ground_at(p):
         return float(terrain_height(p[0], p[1]))
 
-    for p in place(160, 3.0):  # trees: trunk and crown
+    for _ in range(160):  # trees: trunk and crown; crowns do not overhang the trail, whose
+        # nodes the navigation graph would otherwise label tree (highest voxel wins)
+        crown = rng.uniform(1.5, 3.0)
+        p = place(1, crown + 2.0)[0]
         h, r = rng.uniform(4, 8), rng.uniform(0.12, 0.3)
         z = ground_at(p)
         cyl.append((p[0], p[1], r, z - 0.3, z + h)), cyl_l.append(TREE)
-        sph.append((p[0], p[1], z + h, rng.uniform(1.5, 3.0))), sph_l.append(TREE)
+        sph.append((p[0], p[1], z + h, crown)), sph_l.append(TREE)
     for p in place(220, 2.2):  # bushes
         r = rng.uniform(0.4, 1.1)
         sph.append((p[0], p[1], ground_at(p) + 0.4 * r, r)), sph_l.append(BUSH)
@@ -480,7 +484,8 @@ def write_rellis_sequence(out_dir: str | Path, params: SyntheticParams | None = 
         raise ValueError("need n_scans >= 1, beams >= 2, columns >= 4")
     seq = Path(out_dir) / "Rellis-3D" / "00000"
     manifest = seq / "synthetic.json"
-    if manifest.is_file() and json.loads(manifest.read_text()) == asdict(params):
+    wanted = {**asdict(params), "world_version": WORLD_VERSION}
+    if manifest.is_file() and json.loads(manifest.read_text()) == wanted:
         return seq
     bins, labs = seq / "os1_cloud_node_kitti_bin", seq / "os1_cloud_node_semantickitti_label_id"
     for d in (bins, labs):
@@ -506,5 +511,5 @@ def write_rellis_sequence(out_dir: str | Path, params: SyntheticParams | None = 
     proj = np.array([[500.0, 0, 320, 0], [0, 500, 240, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     lines = [f"P{i}: {_fmt_row(proj)}" for i in range(4)] + [f"Tr: {_fmt_row(tr)}"]
     (seq / "calib.txt").write_text("\n".join(lines) + "\n")
-    manifest.write_text(json.dumps(asdict(params), indent=1))
+    manifest.write_text(json.dumps(wanted, indent=1))
     return seq
