@@ -5,6 +5,8 @@ cleared end to end, and every error reply comes back as a PathReply in the query
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -181,4 +183,18 @@ def test_navgraph_and_planner_over_zenoh(zenoh_stack):
 
     st = stats(stack, "planner")
     assert st["outcomes"]["malformed"] >= 3 and st["outcomes"]["ok"] >= 4
+
+    # `smana plan` prints the path (exit 0), the planner's error (1), or that nobody answered (2).
+    def smana_plan(*args):
+        argv = [sys.executable, "-m", "smana.deploy.cli", "plan", *stack.zenoh_args(),
+                "--robot", stack.robot, *args]  # fmt: skip
+        return subprocess.run(argv, capture_output=True, text=True, timeout=60)
+
+    out = smana_plan("--from", "1,1", "--to", "7,5", "--cost", "grass=4", "--path")
+    assert out.returncode == 0, out.stderr
+    assert "cost" in out.stdout and "traversability" in out.stdout and "terrain" in out.stdout
+    out = smana_plan("--from", "1,1", "--to", "3.85,2")
+    assert out.returncode == 1 and "goal_blocked" in out.stdout and "nearest free" in out.stdout
     assert stack.stop(planner) == 0 and stack.stop(navgraph) == 0
+    out = smana_plan("--from", "1,1", "--to", "2,3", "--timeout", "2")
+    assert out.returncode == 2 and "no service answered" in out.stderr
