@@ -170,6 +170,10 @@ def test_navgraph_and_planner_over_zenoh(zenoh_stack):
     good = json.loads(body)
     assert good["ok"] is True and good["cost_total"] == pytest.approx(ok.cost_total)
     assert plan(stack, (1, 1), (2, 3), as_json=True).ok
+    # ...or selector parameters only, e.g. `z_get -s 'smana/r1/planner/path?start=1,1;goal=2,3'`.
+    replies = list(stack.session.get(f"{key}?start=1,1;goal=2,3;format=json", timeout=10.0))
+    good = json.loads(replies[0].ok.payload.to_bytes())
+    assert good["ok"] is True and good["cost_total"] == pytest.approx(ok.cost_total)
 
     # Graph queries on navgraph.
     g = request(stack.session, keys.query(stack.robot, "navgraph", "graph"), {"box": [3, 0, 5, 2]})
