@@ -257,3 +257,30 @@ def test_feed_stops_while_blocked_on_a_full_queue(dataset):
     t0 = time.monotonic()
     feed.stop()
     assert time.monotonic() - t0 < 2.0 and not feed._thread.is_alive()
+
+
+@pytest.mark.multiprocess
+def test_run_starts_the_stack_and_writes_the_run_dir(dataset, tmp_path):
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    run = tmp_path / "run"
+    out = subprocess.run(
+        [sys.executable, "-m", "smana.services.replay", str(dataset), "--run", "--run-dir",
+         str(run), "--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]'],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout + out.stderr
+    summary = json.loads((run / "replay.json").read_text())
+    assert summary["published"] == summary["acknowledged"] == N_SCANS and summary["lost"] == 0
+    for name in ("config.toml", "map.npz", "graph.npz", "metrics.json", "report.md"):
+        assert (run / name).is_file(), name
+    config = (run / "config.toml").read_text()
+    assert 'class_table = "rellis3d"' in config and 'inputs = ["scan"]' in config
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["replay"]["published"] == N_SCANS
+    with np.load(run / "graph.npz") as g:
+        assert (g["flags"] & 1).sum() > 100  # known nodes
+    assert "## Replay" in (run / "report.md").read_text()

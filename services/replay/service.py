@@ -15,10 +15,12 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import ReplayConfig, SmanaConfig
-from smana.common.messages import MapDelta
+from smana.common.messages import GraphPatch, MapDelta
 from smana.common.service import Service
 
 from .player import END, FeedItem, Pacer, ScanFeed
@@ -34,8 +36,6 @@ def open_reader(rc: ReplayConfig) -> DatasetReader:
     fixed = None
     if rc.fixed_pose:
         if len(rc.fixed_pose) == 16:
-            import numpy as np
-
             fixed = np.asarray(rc.fixed_pose, float).reshape(4, 4)
         elif len(rc.fixed_pose) == 4:
             fixed = fixed_pose_matrix(rc.fixed_pose)
@@ -255,6 +255,7 @@ class ReplayService(Service):
         self.progress.update(self.done, self._progress_extra(), force=True)
         summary = self.summary()
         self._write_summary(summary)
+        self._save_graph()
         self.log.info("replay done: %s", summary_line(summary))
         if self.rc.mode == "lockstep" and summary["lost"]:
             self.exit_code = 1
@@ -315,6 +316,36 @@ class ReplayService(Service):
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(summary, indent=1))
             self.log.info("summary written to %s", path)
+
+    def _save_graph(self) -> None:
+        """The navigation graph as it stands after the last scan, as `<run_dir>/graph.npz` (the
+        explorer's format: dense labels, heights, flags over the allocated box)."""
+        run_dir = self.config.general.run_dir
+        if not run_dir or "navgraph" not in self._alive:
+            return
+        from smana.common.navgrid import NavGrid
+        from smana.common.query import QueryError, request
+
+        try:
+            patch = request(self.session, keys.query(self.robot, "navgraph", "graph"), None, 10.0)
+        except QueryError as exc:
+            self.count_error("graph", f"could not fetch the navigation graph: {exc}")
+            return
+        if not isinstance(patch, GraphPatch):
+            self.count_error("graph", "navgraph/graph did not answer with a GraphPatch")
+            return
+        nav = self.config.navgraph
+        grid = NavGrid.from_bounds(nav.bounds_min_xy, nav.bounds_max_xy, patch.resolution_m)
+        grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
+        box = grid.known_box()
+        if box is None:
+            return
+        labels, heights, flags = grid.box(*box)
+        origin = grid.origin_xy + np.array(box[:2]) * grid.resolution_m
+        path = Path(run_dir) / "graph.npz"
+        np.savez_compressed(path, origin_xy=origin, resolution_m=grid.resolution_m,
+                            labels=labels, heights=heights, flags=flags)  # fmt: skip
+        self.log.info("navigation graph (%d nodes) written to %s", len(patch.cells), path)
 
     def status_details(self) -> dict:
         p = self.pacer
