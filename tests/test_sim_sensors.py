@@ -254,3 +254,25 @@ def test_lidar_pattern_is_an_os1_64():
     el = np.degrees(np.arcsin(d[:, 2]))
     assert el.max() == pytest.approx(16.6) and el.min() == pytest.approx(-16.6)
     assert len(np.unique(np.round(el, 6))) == 64
+
+
+def test_frames_finished_on_a_worker_match_sequential_frames():
+    """The service degrades frames on a worker thread; the draws must not depend on that."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    cfg = SimConfig(size_m=6.0, seed=4, noise="medium", camera_width=64, camera_height=64)
+    with Simulation(cfg) as a, Simulation(cfg) as b:
+        sequential, futures = [], []
+        with ThreadPoolExecutor(1) as worker:
+            for _ in range(3):
+                for s in (a, b):
+                    s.set_velocity(0.3, 0.5)
+                    s.step(0.2)
+                sequential.append(a.camera_frame())
+                futures.append(worker.submit(b.finish_camera, b.capture_camera()))
+            piped = [f.result() for f in futures]
+    for f, g in zip(sequential, piped, strict=True):
+        assert f.seq == g.seq and f.stamp_s == g.stamp_s
+        assert np.array_equal(f.labels, g.labels)
+        assert np.array_equal(f.confidences, g.confidences)
+        assert np.allclose(f.points, g.points)

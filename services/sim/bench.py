@@ -1,11 +1,12 @@
 """`smana bench sim`: camera frames per second and LiDAR scans per second, in-process.
 
-The camera is measured as the service runs it: 640 x 640 TinyRenderer frame, pixel labelling,
-SLIC degradation (noise `medium` by default) and the world-frame cloud, in the default-clutter
-12 m garden while the robot drives. The LiDAR casts 64 x 2048 = 131,072 rays. Each figure is
-the median over `--runs` runs, each run the median over its frames; the stage breakdown says
-what limits it. Wall time on a shared machine is pessimistic, so CPU time per frame is printed
-beside it, with the load average.
+The camera: 640 x 640 TinyRenderer frame, pixel labelling, SLIC degradation (noise `medium` by
+default) and the world-frame cloud, in the default-clutter 12 m garden while the robot drives;
+once frame after frame, once as the service runs it (frame k degraded on a worker thread while
+frame k+1 renders; that figure includes the few ms of physics between frames). The LiDAR casts
+64 x 2048 = 131,072 rays. Each figure is the median over `--runs` runs, each run the median over
+its frames; the stage breakdown says what limits it. Wall time on a shared machine is
+pessimistic, so CPU time per frame is printed beside it, with the load average.
 
     smana bench sim                       # defaults: 5 runs x 6 frames, 5 runs x 3 scans
     smana bench sim --quick               # 3 x 3 frames, 3 x 2 scans, for a smoke test
@@ -65,6 +66,21 @@ def run(args) -> dict:
             stages.append(t)
             points.append(len(f.points))
         cam_runs.append((_median(walls), _median(cpus)))
+    # as the service runs it: degradation of frame k on a worker while frame k+1 renders
+    from concurrent.futures import ThreadPoolExecutor
+
+    piped = []
+    with ThreadPoolExecutor(1) as worker:
+        for _ in range(args.runs):
+            w0, fut = time.perf_counter(), None
+            for _ in range(args.frames):
+                drive()
+                pending = sim.capture_camera()
+                if fut is not None:
+                    fut.result()
+                fut = worker.submit(sim.finish_camera, pending)
+            fut.result()
+            piped.append(args.frames / (time.perf_counter() - w0))
     t1 = time.perf_counter()
     sim.lidar_scan()  # builds the ray lists once
     t_lidar_setup = time.perf_counter() - t1
@@ -108,6 +124,9 @@ def run(args) -> dict:
             "hz_min": min(cam_hz),
             "hz_max": max(cam_hz),
             "cpu_ms_median": 1e3 * _median([c for _, c in cam_runs]),
+            "pipelined_hz_median": _median(piped),
+            "pipelined_hz_min": min(piped),
+            "pipelined_hz_max": max(piped),
             "points_median": _median(points),
             "stages_ms": {
                 k: stage(k, stages)
@@ -150,7 +169,10 @@ def report(r: dict) -> str:
         _row(f"camera {size} + labels + {cam['noise']} noise, Hz", cam["hz_median"], "9.2f",
              (cam["hz_min"], cam["hz_max"]),
              f">= {TARGET_CAMERA_HZ:g} Hz target; paper's Gazebo camera {PAPER_CAMERA_HZ:g} Hz"),
-        _row("  CPU time per frame, ms", cam["cpu_ms_median"],
+        _row("camera, degradation on a worker thread, Hz", cam["pipelined_hz_median"], "9.2f",
+             (cam["pipelined_hz_min"], cam["pipelined_hz_max"]),
+             "as the service runs it (frame k degraded while k+1 renders)"),
+        _row("  CPU time per frame (sequential), ms", cam["cpu_ms_median"],
              ref=f"= {1e3 / cam['cpu_ms_median']:.1f} Hz with a core to itself"),
         _row("  render (TinyRenderer on the CPU), ms", st["render_ms"]),
         _row("  label pixels (numba), ms", st["label_ms"]),

@@ -164,11 +164,12 @@ class LabelDegrader:
         out[ok] = np.where(self._in_table[lab], drawn, lab)
         return out
 
-    def confidences(self, n: int) -> np.ndarray:
+    def confidences(self, n: int, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Per-point confidences: U[lo, hi] (1 for level "off"), from `rng` if given."""
         if self.level == "off":
             return np.ones(n, np.float32)
         lo, hi = self.confidence_range
-        return self.rng.uniform(lo, hi, n).astype(np.float32)
+        return (rng or self.rng).uniform(lo, hi, n).astype(np.float32)
 
 
 def superpixel_majority(superpixels: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:

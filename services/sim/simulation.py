@@ -66,6 +66,16 @@ class CameraFrame:
 
 
 @dataclass
+class PendingFrame:
+    """A rendered frame waiting for `Simulation.finish_camera`."""
+
+    stamp_s: float
+    seq: int
+    capture: CameraCapture
+    world_from_sensor: np.ndarray  # published (possibly noisy) sensor pose
+
+
+@dataclass
 class LidarScan:
     stamp_s: float
     seq: int
@@ -189,30 +199,42 @@ class Simulation:
     def camera_frame(self, stride: int | None = None, timings: dict | None = None) -> CameraFrame:
         """Render, label, degrade and unproject one camera frame (see CameraFrame). With
         `timings`, the time of each stage goes in it (ms): render, label, slic, redraw, cloud."""
-        stride = self.config.camera_stride if stride is None else int(stride)
-        if stride < 1:
-            raise ValueError(f"stride must be >= 1, got {stride}")
+        return self.finish_camera(self.capture_camera(timings), stride, timings)
+
+    def capture_camera(self, timings: dict | None = None) -> PendingFrame:
+        """The first half of `camera_frame`: render and label at the current time (PyBullet, so
+        on the thread that owns the simulation)."""
         base_true = self.robot.matrix()
         base_pub = self.pose_noise.apply(base_true)
         mount = self.camera_spec.mount_matrix()
-        cap: CameraCapture = self.camera.capture(base_true @ mount, timings)
-        degraded = self.degrader.degrade(cap.labels, timings)
-        t0 = time.perf_counter()
-        sem = degraded.labels
-        sel = sem[::stride, ::stride] >= 0
-        rows, cols = np.nonzero(sel)
-        rows, cols = rows * stride, cols * stride
-        pts_sensor = cap.points_sensor(rows, cols)
-        world_from_sensor = base_pub @ mount
+        cap = self.camera.capture(base_true @ mount, timings)
         self.cloud_seq += 1
         self.camera_frames += 1
+        return PendingFrame(self.time_s, self.cloud_seq, cap, base_pub @ mount)
+
+    def finish_camera(
+        self, pending: PendingFrame, stride: int | None = None, timings: dict | None = None
+    ) -> CameraFrame:
+        """The second half: degrade the labels and build the world-frame cloud. It touches no
+        PyBullet state and SLIC releases the GIL, so a worker thread may run it while the next
+        frame renders; frames must be finished in the order they were captured (the label and
+        confidence draws follow that order)."""
+        stride = self.config.camera_stride if stride is None else int(stride)
+        if stride < 1:
+            raise ValueError(f"stride must be >= 1, got {stride}")
+        cap = pending.capture
+        sem = self.degrader.degrade(cap.labels, timings).labels
+        t0 = time.perf_counter()
+        rows, cols = np.nonzero(sem[::stride, ::stride] >= 0)
+        rows, cols = rows * stride, cols * stride
+        pts_sensor = cap.points_sensor(rows, cols)
         frame = CameraFrame(
-            stamp_s=self.time_s, seq=self.cloud_seq, rgb=cap.rgb, depth_m=cap.depth_m,
+            stamp_s=pending.stamp_s, seq=pending.seq, rgb=cap.rgb, depth_m=cap.depth_m,
             semantic_true=cap.labels, semantic=sem,
-            points=transform_points(pts_sensor, world_from_sensor),
+            points=transform_points(pts_sensor, pending.world_from_sensor),
             labels=sem[rows, cols].astype(np.uint16),
-            confidences=self.degrader.confidences(len(rows)) if len(rows) else np.zeros(0, "f4"),
-            rows=rows, cols=cols, world_from_sensor=world_from_sensor,
+            confidences=self.degrader.confidences(len(rows), self._conf_rng),
+            rows=rows, cols=cols, world_from_sensor=pending.world_from_sensor,
             true_world_from_sensor=cap.world_from_sensor,
         )  # fmt: skip
         if timings is not None:
