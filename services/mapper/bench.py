@@ -106,6 +106,7 @@ def run_ours(cfg: dict, scans) -> dict:
         "rss_growth_mb": _rss_mb() - rss0,
         "map_mb": st["bytes_used"] / 2**20,
         "bytes_per_allocated_voxel": st["bytes_per_allocated_voxel"],
+        "bytes_reserved_per_allocated_voxel": st["bytes_reserved_per_allocated_voxel"],
         "bytes_per_observed_voxel": st["bytes_per_observed_voxel"],
         "voxels_observed": st["voxels_observed"],
     }

@@ -213,6 +213,8 @@ class SemanticMap:
             "bytes_used": used,
             "bytes_reserved": reserved,
             "bytes_per_allocated_voxel": used / allocated if allocated else 0.0,
+            # with the growth headroom (columns grow by 1.5x, so at most a third is spare)
+            "bytes_reserved_per_allocated_voxel": reserved / allocated if allocated else 0.0,
             "bytes_per_observed_voxel": used / observed if observed else 0.0,
         }
 
