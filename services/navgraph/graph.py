@@ -172,8 +172,6 @@ class NavGraph:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if not (np.isfinite(map_resolution_m) and map_resolution_m > 0):
             raise ValueError(f"map_resolution_m must be > 0, got {map_resolution_m}")
-        if map_resolution_m > self.resolution_m * 256:
-            raise ValueError("map resolution is coarser than 256 graph nodes")
         if self.resolution_m / map_resolution_m > 255:
             # Sub-column ids pack (gx, gy) modulo 256 each: a node may span at most 255 voxels.
             raise ValueError("graph resolution spans more than 255 map voxels per axis")
@@ -666,7 +664,7 @@ def _integrate_kernel(
         n = dirty[k]
         e = head[n]
         if e < 0:
-            if floor_l[n] != -2147483648 and (old_f[k] & 1):
+            if floor_l[n] != _NO_FLOOR and (old_f[k] & _KNOWN):
                 n_lost += 1
             labels_l[n] = 0
             heights_l[n] = np.nan
@@ -690,12 +688,12 @@ def _integrate_kernel(
             obst = obstacle_lut[e_label[best]]
         f = np.uint8(0)
         if known:
-            f |= 1
+            f |= _KNOWN
         if obst:
-            f |= 2
+            f |= _OBST
         elif count_l[n] > 0:
-            f |= 4
-        was_obst = (old_f[k] & 2) != 0
+            f |= _SAFE
+        was_obst = (old_f[k] & _OBST) != 0
         if obst != was_obst:
             flips[nf] = n
             flip_sign[nf] = 1 if obst else -1
@@ -749,9 +747,9 @@ def _safety_kernel(
             )
             count_l[m] += s
             f = flags_l[m]
-            if count_l[m] > 0 and not (f & 2):
-                f |= 4
+            if count_l[m] > 0 and not (f & _OBST):
+                f |= _SAFE
             else:
-                f &= ~np.uint8(4)
+                f &= ~np.uint8(_SAFE)
             flags_l[m] = f
     return nd
