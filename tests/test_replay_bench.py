@@ -51,6 +51,7 @@ def test_aggregate_takes_the_median_over_repeats():
     assert o["cpu_map"] == pytest.approx(100.0) and o["cpu_map_std"] == pytest.approx(0.0)
     assert o["rss_map_mb"] == pytest.approx(600.0)
     assert o["s_per_scan"] == pytest.approx(0.035)
+    assert o["s_per_131k"] == pytest.approx((30.0 + 5.0) * 131072 / 1e6)
     assert o["paper_s_per_scan"] == 0.56 and rows["tsdf"]["paper_s_per_scan"] == 7.2
     text = table_markdown(list(rows.values()))
     assert "| octree-max | 0.1 / 0.2 m | 1000 | 30.000 ± 0.000 |" in text
