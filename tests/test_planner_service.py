@@ -199,6 +199,18 @@ def test_navgraph_and_planner_over_zenoh(zenoh_stack):
     assert "cost" in out.stdout and "traversability" in out.stdout and "terrain" in out.stdout
     out = smana_plan("--from", "1,1", "--to", "3.85,2")
     assert out.returncode == 1 and "goal_blocked" in out.stdout and "nearest free" in out.stdout
+
+    # navgraph restarts (with no mapper to resume from): the planner drops the old graph...
+    assert stack.stop(navgraph) == 0
+    stack.procs = [(n, p) for n, p in stack.procs if p is not navgraph]
+    navgraph = stack.service("navgraph", *CONFIG)
+    stack.wait_alive("navgraph")
+    assert wait_for(lambda: stats(stack, "planner")["syncs"] == 2)
+    assert plan(stack, (1, 1), (2, 3)).error == "no_graph"
+    # ...and follows the new one from its first patch.
+    pub.put(encode(deltas[0]))
+    assert wait_for(lambda: stats(stack, "planner")["last_patch_seq"] == 1)
+    assert plan(stack, (1, 1), (2, 3)).ok
     assert stack.stop(planner) == 0 and stack.stop(navgraph) == 0
     out = smana_plan("--from", "1,1", "--to", "2,3", "--timeout", "2")
     assert out.returncode == 2 and "no service answered" in out.stderr

@@ -2,8 +2,9 @@
 `astar.py`).
 
 Input: `navgraph/patch` (GraphPatch), applied in order to the planner's own `NavGrid` copy. At
-start, and whenever the patch sequence shows a gap or a navgraph restart, the planner asks
-navgraph for the whole graph (`navgraph/graph`) and skips patches the reply already covers. A
+start, on a gap in the patch sequence, and when navgraph (re)starts (its liveliness token
+appears, or its patches count from 1 again), the planner asks navgraph for the whole graph
+(`navgraph/graph`) and skips the patches that reply already covers. A
 patch whose resolution or origin differs from `[navgraph]` in the config is rejected (`geometry`).
 
 Query `planner/path`: a PathRequest in msgpack, or JSON from any zenoh tool (only `start` and
@@ -82,7 +83,7 @@ def request_from_params(params: dict[str, str]) -> PathRequest:
 
 class PlannerService(Service):
     name = "planner"
-    tick_period_s = 1.0
+    tick_period_s = 0.2
 
     def __init__(self, config: SmanaConfig):
         super().__init__(config)
@@ -100,6 +101,7 @@ class PlannerService(Service):
         self.queries = 0
         self.outcomes: dict[str, int] = {}
         self.times_ms: list[float] = []
+        self._resync = False
 
     def setup(self) -> None:
         r = self.robot
@@ -107,6 +109,25 @@ class PlannerService(Service):
         self.queryable(keys.path_query(r), self.on_path)
         self.queryable(keys.query(r, "planner", "stats"), lambda req: self.stats())
         self.sync()
+        # A navgraph that (re)starts starts a new graph and a new patch sequence: fetch it then.
+        # The callback only raises a flag; tick() does the work on the main loop.
+        self._navgraph_token = self.session.liveliness().declare_subscriber(
+            keys.alive(r, "navgraph"), self._on_navgraph_token
+        )
+
+    def _on_navgraph_token(self, sample) -> None:
+        import zenoh
+
+        if sample.kind == zenoh.SampleKind.PUT:
+            self._resync = True
+
+    def tick(self) -> None:
+        if self._resync:
+            self._resync = False
+            self.sync()
+
+    def on_stop(self) -> None:
+        self._navgraph_token.undeclare()
 
     # -- keeping the graph -------------------------------------------------------------------
 
