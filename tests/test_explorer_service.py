@@ -160,6 +160,17 @@ def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(zenoh_s
         assert traj[:, 1].max() > 2.5
         g = np.load(run_dir / "explorer" / "graph.npz")
         assert (g["flags"] & 1).sum() == 40 * 40
+
+        # restarted in the same run (a supervisor restart): it resumes, sees the run finished,
+        # and exits 0 at once without losing what the first one travelled
+        again = zenoh_stack.service("explorer", "--run-dir", str(run_dir), *BOUNDS)
+        again.wait(timeout=30)
+        assert again.returncode == 0, zenoh_stack.log("explorer")
+        state2 = json.loads((run_dir / "explorer" / "state.json").read_text())
+        assert state2["distance_m"] == pytest.approx(state["distance_m"])
+        assert len(state2["plans"]) == len(state["plans"])
+        traj2 = np.loadtxt(run_dir / "explorer" / "trajectory.csv", delimiter=",", skiprows=1)
+        assert len(traj2) >= len(traj)
     finally:
         bot.close()
         planner.undeclare()

@@ -199,6 +199,22 @@ class Explorer:
                     self.label_counts[label] += 1
                 self._last_cell = cell
 
+    def resume(self, state: dict, trajectory: np.ndarray) -> None:
+        """Carry on from a saved state (a restarted explorer in the same run): the distance,
+        labels travelled, counters, progress history and trajectory so far, and the time budget
+        already spent (measured from the first pose of the trajectory)."""
+        self.distance_m = float(state.get("distance_m") or 0.0)
+        for k, v in (state.get("label_counts") or {}).items():
+            if 0 <= int(k) < self.label_counts.size:
+                self.label_counts[int(k)] = int(v)
+        self.n_goals = int(state.get("n_goals") or 0)
+        self.n_plans = int(state.get("n_plans") or 0)
+        self.history = [tuple(h) for h in state.get("history") or []]
+        traj = np.asarray(trajectory, float).reshape(-1, 4)
+        self.trajectory = [tuple(r) for r in traj]
+        if len(traj):
+            self.t_start = float(traj[0, 0])
+
     # -- decisions ------------------------------------------------------------------------------
 
     @property

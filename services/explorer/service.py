@@ -112,11 +112,35 @@ class ExplorerService(Service):
         self._seq = 0
         self._next_state = 0.0
         self._plan_log: list[dict] = []
+        self._resume()
         self.n_patches = 0
         self.n_path_queries = 0
         self.path_errors: dict[str, int] = {}
         self.plan_time_ms = 0.0
         self._saved = False
+
+    def _resume(self) -> None:
+        """A restart in the same run directory continues the run's exploration (and a run that
+        had finished stays finished: the supervisor may restart us after we exited)."""
+        if self.run_dir is None or not (self.run_dir / "explorer" / "state.json").is_file():
+            return
+        folder = self.run_dir / "explorer"
+        try:
+            state = json.loads((folder / "state.json").read_text())
+            traj = np.zeros((0, 4))
+            if (folder / "trajectory.csv").is_file():
+                traj = np.loadtxt(folder / "trajectory.csv", delimiter=",", skiprows=1, ndmin=2)
+            self.core.resume(state, traj)
+        except (OSError, ValueError, TypeError, KeyError) as exc:
+            self.log.warning("could not resume from %s: %s", folder, exc)
+            return
+        self._plan_log = list(state.get("plans") or [])
+        self._t_wall0 -= float(state.get("wall_time_s") or 0.0)
+        self.log.info("resumed the run's exploration: %.1f m travelled, %d goals",
+                      self.core.distance_m, self.core.n_goals)  # fmt: skip
+        if state.get("done"):
+            self.log.info("exploration had finished in this run (%s)", state.get("done_reason"))
+            self.core.finish(str(state.get("done_reason") or "finished"))
 
     # -- wiring -----------------------------------------------------------------------------------
 
