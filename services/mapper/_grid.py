@@ -9,6 +9,10 @@ pointer octree comes from.
 Kernels here never allocate map storage: when a block or table slot is missing they return a
 status code and the Python owner (`BlockGrid`) grows the arrays and calls them again, resuming at
 the point where they stopped. Every step a kernel takes before such a return is idempotent.
+
+Note for editors: numba's on-disk cache (`cache=True`) keys a kernel on its own file only, so the
+kernels of `octree.py` and `tsdf.py` do not notice a change here. After editing this file, delete
+`services/mapper/__pycache__/*.nbi` and `*.nbc` (or touch those two files).
 """
 
 from __future__ import annotations
