@@ -101,21 +101,26 @@ def test_sim_publishes_drives_and_stops(zenoh_stack):
         seqs = [m.seq for m in c.get(keys.cloud(r)) + c.get(keys.scan(r))]
         assert len(seqs) == len(set(seqs))  # one cloud sequence for both sensors
 
-        # drive straight at 0.4 m/s for 2 s (commands at 10 Hz), then stop commanding
-        start = c.get(keys.pose_truth(r))[-1]
+        # drive straight at 0.4 m/s for 2 s (commands at 10 Hz), then stop commanding. The
+        # checks count simulated time (the stamps), so a busy machine only slows them down.
+        truth = keys.pose_truth(r)
+        start = c.get(truth)[-1]
         pub = stack.session.declare_publisher(keys.cmd_vel(r))
         for i in range(20):
             pub.put(encode(VelocityCommand(stamp_s=0.0, seq=i, linear_mps=0.4, source="test")))
             time.sleep(0.1)
-        moved = c.get(keys.pose_truth(r))[-1]
+        moved = c.get(truth)[-1]
+        driven_s = moved.stamp_s - start.stamp_s
+        assert driven_s > 0.5
         heading = start.matrix()[:2, 0]
         travelled = float(heading @ (moved.position[:2] - start.position[:2]))
-        assert 0.3 < travelled < 1.2
-        time.sleep(1.5)  # past the 0.5 s command timeout and the braking
-        a = c.get(keys.pose_truth(r))[-1]
-        time.sleep(0.5)
-        b = c.get(keys.pose_truth(r))[-1]
-        assert b.stamp_s > a.stamp_s
+        # at most 0.4 m/s; at least that less the acceleration ramp and command latency
+        assert 0.4 * driven_s - 0.25 < travelled < 0.4 * driven_s + 0.05
+        # past the 0.5 s command timeout and the braking, the robot stands still
+        assert wait_for(lambda: c.get(truth)[-1].stamp_s > moved.stamp_s + 1.2)
+        a = c.get(truth)[-1]
+        assert wait_for(lambda: c.get(truth)[-1].stamp_s > a.stamp_s + 0.5)
+        b = c.get(truth)[-1]
         assert np.linalg.norm(b.position - a.position) < 0.01
         # the published pose carries the noise, the truth does not
         poses = {m.seq: m for m in c.get(keys.pose(r))}
@@ -171,7 +176,7 @@ def test_sim_lockstep_waits_for_map_deltas(zenoh_stack):
         n_acked = len(c.get(keys.cloud(r))) - before
         sub.undeclare()
         delta_pub.undeclare()
-        assert n_acked >= 10, n_acked
+        assert n_acked >= 6, n_acked  # without acks: one per 0.8 s timeout
         seqs = [m.seq for m in c.get(keys.cloud(r))]
         assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
     finally:
