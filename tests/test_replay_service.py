@@ -284,3 +284,27 @@ def test_run_starts_the_stack_and_writes_the_run_dir(dataset, tmp_path):
     with np.load(run / "graph.npz") as g:
         assert (g["flags"] & 1).sum() > 100  # known nodes
     assert "## Replay" in (run / "report.md").read_text()
+
+
+def test_pacer_realtime_priming_starts_the_clock_at_the_first_ack():
+    clock = FakeClock()
+    p = Pacer("realtime", period_s=0.1, clock=clock, prime=True)
+    p.on_published(1, 0, 5.0, b"")
+    clock.t += 0.4  # the first integration loads the mapper's kernels
+    assert not p.ready(5.1)
+    assert p.on_ack(1) == pytest.approx(0.4, abs=1e-4)
+    assert p.late_integrated == 0  # the priming scan is not late
+    assert not p.ready(5.1)  # the clock starts now: 5.1 is due one period later
+    clock.t += 0.1001
+    assert p.ready(5.1)
+    p.on_published(2, 1, 5.1, b"")
+    assert p.late_published == 0
+
+
+def test_pacer_priming_gives_up_with_the_ack_timeout():
+    clock = FakeClock()
+    p = Pacer("realtime", period_s=0.1, ack_timeout_s=2.0, clock=clock, prime=True)
+    p.on_published(1, 0, 5.0, b"")
+    clock.t += 3.0
+    p.overdue()
+    assert p.lost == 1 and p.priming_seq is None and p.ready(5.0)

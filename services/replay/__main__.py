@@ -132,9 +132,25 @@ def run_stack(cfg: SmanaConfig, reader) -> int:
         signal.signal(sig, lambda *_: sup.stop())
     print(f"smana replay: run directory {run_dir}", flush=True)
     code = sup.run()
+    if code != 0 and _replay_completed(run_dir):
+        # The replay finished its work (its summary is written) and was only caught exiting:
+        # the supervisor kills a process whose liveliness token went before the process did.
+        print("smana replay: the replay completed; its exit was cut short", file=sys.stderr)
+        code = 0
     _write_report(run_dir, sup.service_config)
     print(f"smana replay: done, everything is in {run_dir}", flush=True)
     return code
+
+
+def _replay_completed(run_dir: Path) -> bool:
+    import json
+
+    path = run_dir / "replay.json"
+    if not path.is_file():
+        return False
+    s = json.loads(path.read_text())
+    handled = s["published"] + s["empty"] + len(s["read_errors"])
+    return handled == s["scans"] and not (s["mode"] == "lockstep" and s["lost"])
 
 
 def _recorder_argv():

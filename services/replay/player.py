@@ -8,10 +8,11 @@ goes out and keeps the books:
   seq) has arrived; none is lost. A scan unacknowledged after `ack_timeout_s` is sent again
   (the mapper may have restarted), at most `max_resends` times, then counted lost.
 - realtime: scan k goes out at start + (stamp_k - stamp_0) / rate_factor whether or not the
-  mapper has finished. A scan published more than one period after its due time is
-  `late_published` (the replay itself could not keep up); one whose MapDelta arrives more than
-  one period after publication is `late_integrated`, and one never acknowledged is `unacked`
-  (the mapper's latest-wins input dropped it).
+  mapper has finished; with `prime`, the clock starts once the first scan's MapDelta is back.
+  A scan published more than one period after its due time is `late_published` (the replay
+  itself could not keep up); one whose MapDelta arrives more than one period after publication
+  is `late_integrated`, and one never acknowledged is `lost` (the mapper's latest-wins input
+  dropped it).
 """
 
 from __future__ import annotations
@@ -203,6 +204,12 @@ class Pacer:
     latencies_s: list[float] = field(default_factory=list)
     latency_by_seq: dict[int, float] = field(default_factory=dict)
     period_s: float = 0.1  # nominal scan period at the replay rate (set from the dataset)
+    # realtime: the first scan primes the stack (kernels load on a process's first integration)
+    # and the recorded clock starts when its MapDelta is back, as on a robot whose stack was up
+    # before it drove off. Needs a mapper to answer; the service turns it on when one is alive.
+    prime: bool = False
+    priming_seq: int | None = None
+    _priming_stamp: float = 0.0
 
     def __post_init__(self):
         if self.mode not in ("lockstep", "realtime"):
@@ -220,6 +227,8 @@ class Pacer:
         """May the scan stamped `stamp_s` go out now?"""
         if self.mode == "lockstep":
             return not self.in_flight
+        if self.priming_seq is not None:
+            return False
         return self.t0_wall is None or self.clock() >= self.due_at(stamp_s)
 
     def start_clock(self, stamp_s: float) -> None:
@@ -229,7 +238,9 @@ class Pacer:
 
     def on_published(self, seq: int, index: int, stamp_s: float, payload: bytes) -> None:
         now = self.clock()
-        if self.t0_wall is None:
+        if self.t0_wall is None and self.mode == "realtime" and self.prime and not self.published:
+            self.priming_seq, self._priming_stamp = seq, stamp_s
+        elif self.t0_wall is None:
             self.start_clock(stamp_s)
         elif self.mode == "realtime" and now - self.due_at(stamp_s) > self.period_s:
             self.late_published += 1
@@ -251,9 +262,15 @@ class Pacer:
         self.acked += 1
         self.latencies_s.append(latency)
         self.latency_by_seq[cloud_seq] = latency
-        if self.mode == "realtime" and latency > self.period_s:
+        if cloud_seq == self.priming_seq:
+            self._end_priming()
+        elif self.mode == "realtime" and latency > self.period_s:
             self.late_integrated += 1
         return latency
+
+    def _end_priming(self) -> None:
+        self.priming_seq = None
+        self.start_clock(self._priming_stamp)
 
     def overdue(self) -> list[InFlight]:
         """Lockstep: scans to send again (their timers restart); gives up after max_resends."""
@@ -265,6 +282,8 @@ class Pacer:
             if self.mode == "realtime" or f.resends >= self.max_resends:
                 del self.in_flight[seq]
                 self.lost += 1
+                if seq == self.priming_seq:
+                    self._end_priming()
             else:
                 f.resends += 1
                 f.sent_at = now

@@ -177,6 +177,7 @@ class ReplayService(Service):
             if not missing:
                 self.phase = "running"
                 self._t_run = time.monotonic()
+                self.pacer.prime = "mapper" in self._alive
             elif time.monotonic() - self._t_wait > self.rc.wait_timeout_s:
                 self.log.error(
                     "%s not alive after %.0f s: nothing to replay into",
