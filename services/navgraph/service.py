@@ -32,7 +32,7 @@ from smana.common.config import SmanaConfig
 from smana.common.messages import FLAG_KNOWN, MAX_PAYLOAD_BYTES, GraphPatch, MapDelta
 from smana.common.query import QueryError, request
 from smana.common.service import ReplyError, Request, Service, run_service
-from smana.services.navgraph.graph import NavGraph
+from smana.services.navgraph.graph import NavGraph, warm_up
 
 BYTES_PER_PATCH_NODE = 8 + 2 + 4 + 1  # cell, label, height, flags
 
@@ -89,6 +89,8 @@ class NavgraphService(Service):
         self.voxels_out_of_bounds = 0
         self.columns_lost = 0
         self.times_ms: list[float] = []
+        # Before the liveliness token: whoever waits for navgraph gets a compiled one.
+        self.log.info("kernels ready in %.1f s", warm_up(self.classes))
 
     def setup(self) -> None:
         r = self.robot

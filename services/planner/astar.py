@@ -64,8 +64,8 @@ def astar(
     own enter cost does not matter (the robot is already there).
     """
     t0 = time.perf_counter()
-    enter_cost = np.asarray(enter_cost, np.float64)
-    heights = np.asarray(heights, np.float64)
+    enter_cost = np.ascontiguousarray(enter_cost, np.float64)
+    heights = np.ascontiguousarray(heights, np.float64)
     if enter_cost.ndim != 2 or heights.shape != enter_cost.shape:
         raise ValueError(
             f"enter_cost and heights must be 2-D arrays of one shape, got "
@@ -91,19 +91,30 @@ def astar(
         if not (0 <= x < nx and 0 <= y < ny):
             raise ValueError(f"{name} cell ({x}, {y}) outside the {nx} x {ny} window")
     finite = enter_cost[np.isfinite(enter_cost)]
-    min_enter = float(finite.min()) if (heuristic == "octile" and finite.size) else 0.0
+    min_enter = float(finite.min()) if finite.size else 0.0
+    return search(enter_cost, heights, (sx, sy), (gx, gy), float(resolution_m), float(h_f),
+                  step, heuristic, min_enter, t0)  # fmt: skip
+
+
+def search(enter_cost, heights, start, goal, resolution_m, h_f, max_step, heuristic, min_enter,
+           t0=None) -> AStarResult:  # fmt: skip
+    """`astar` without the input checks, for a caller that built the arrays itself and knows
+    their smallest finite enter cost (the Planner caches both per graph version): C-contiguous
+    float64 arrays, in-window cells, `max_step` a float (inf for none)."""
+    t0 = time.perf_counter() if t0 is None else t0
+    nx, ny = enter_cost.shape
     cost, path, expanded = _astar_kernel(
-        np.ascontiguousarray(enter_cost).reshape(-1),
-        np.ascontiguousarray(heights).reshape(-1),
+        enter_cost.reshape(-1),
+        heights.reshape(-1),
         nx,
         ny,
-        sx * ny + sy,
-        gx * ny + gy,
-        float(resolution_m),
-        float(h_f),
-        step,
+        start[0] * ny + start[1],
+        goal[0] * ny + goal[1],
+        resolution_m,
+        h_f,
+        max_step,
         1 if heuristic == "octile" else 0,
-        min_enter,
+        min_enter if heuristic == "octile" else 0.0,
     )
     cells = np.stack([path // ny, path % ny], axis=1)
     return AStarResult(float(cost), cells, int(expanded), (time.perf_counter() - t0) * 1e3)

@@ -19,7 +19,7 @@ import numpy as np
 
 from smana.common.classes import ClassTable
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
-from smana.services.planner.astar import HEURISTICS, astar, path_costs
+from smana.services.planner.astar import HEURISTICS, path_costs, search
 
 # Error codes of PathReply.error
 OUT_OF_BOUNDS = "out_of_bounds"
@@ -75,6 +75,8 @@ class Planner:
         self._check_params(self.params)
         self._cache_key = None
         self._cache = None
+        self._enter_key = None
+        self._enter_cache = None
         names = ["unknown"] * classes.size
         for cid, c in classes.classes.items():
             names[cid] = c.name
@@ -176,16 +178,13 @@ class Planner:
             cells.append((int(ix), int(iy)))
         box = self._window(cells, bool(allow_unknown))
         labels, heights, flags, known_h = self._dense(box)
-        # Scale the finite costs only: inf * 0 would be NaN when t_f = 0.
-        scaled = np.where(np.isfinite(lut), lut * p.t_f, np.inf)
-        enter = _enter_costs(
-            labels, flags, scaled, bool(allow_unknown), float(p.unknown_cost * p.t_f)
-        )
+        enter, min_enter = self._enter(box, flags, labels, lut, p, bool(allow_unknown))
         (sx, sy), (gx, gy) = ((c[0] - box[0], c[1] - box[1]) for c in cells)
         self._check_end("start", sx, sy, flags, enter, box, s_xy, allow_unknown=True)
         self._check_end("goal", gx, gy, flags, enter, box, g_xy, allow_unknown)
-        res = astar(enter, known_h, (sx, sy), (gx, gy), g.resolution_m, p.h_f, p.max_step_m,
-                    p.heuristic)  # fmt: skip
+        step = np.inf if p.max_step_m is None else float(p.max_step_m)
+        res = search(enter, known_h, (sx, sy), (gx, gy), g.resolution_m, float(p.h_f), step,
+                     p.heuristic, min_enter)  # fmt: skip
         if not res.found:
             raise PlanError(
                 UNREACHABLE,
@@ -254,6 +253,21 @@ class Planner:
             x0, y0, x1, y1 = x0 - m, y0 - m, x1 + m, y1 + m
         return max(0, x0), max(0, y0), min(g.shape[0], x1), min(g.shape[1], y1)
 
+    def _enter(self, box, flags, labels, lut, p: PlannerParams, allow_unknown: bool):
+        """Per-node enter costs t_f * T(l) of the window and their finite minimum, cached until
+        the grid or the costs change (an explorer asks many paths on one graph version)."""
+        key = (self.grid.version, box, lut.tobytes(), p.t_f, p.unknown_cost, allow_unknown)
+        if self._enter_key != key:
+            # Scale the finite costs only: inf * 0 would be NaN when t_f = 0.
+            scaled = np.where(np.isfinite(lut), lut * p.t_f, np.inf)
+            enter = _enter_costs(
+                labels, flags, scaled, allow_unknown, float(p.unknown_cost * p.t_f)
+            )
+            finite = enter[np.isfinite(enter)]
+            self._enter_cache = (enter, float(finite.min()) if finite.size else 0.0)
+            self._enter_key = key
+        return self._enter_cache
+
     def _dense(self, box):
         key = (self.grid.version, box)
         if self._cache_key != key:
@@ -262,6 +276,22 @@ class Planner:
             self._cache = (labels, heights, flags, known_h)
             self._cache_key = key
         return self._cache
+
+
+def warm_up(classes: ClassTable) -> float:
+    """Compile (or load from numba's cache) the planner's kernels on a tiny grid, so the first
+    real query is not slow. Returns the seconds it took."""
+    t0 = time.perf_counter()
+    grid = NavGrid((0.0, 0.0), (8, 8), 0.2, tile_size=4)
+    cells = np.argwhere(np.ones((8, 8), bool))
+    trav = [c for c in classes.classes.values() if c.traversable]
+    lab = trav[0].id if trav else 0
+    grid.apply_patch(cells, np.full(64, lab), np.zeros(64), np.full(64, FLAG_KNOWN, np.uint8))
+    planner = Planner(grid, classes)
+    for heuristic in HEURISTICS:
+        planner.plan((0.1, 0.1), (1.5, 1.5), heuristic=heuristic)
+    planner.plan((0.1, 0.1), (9.0, 9.0))  # an error path too
+    return time.perf_counter() - t0
 
 
 def _fill_heights(z: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ from smana.common.messages import GraphPatch, MessageError, PathReply, PathReque
 from smana.common.navgrid import NavGrid
 from smana.common.query import QueryError, request
 from smana.common.service import Request, Service, run_service
-from smana.services.planner.planner import MALFORMED, Planner, PlannerParams, PlanResult
+from smana.services.planner.planner import MALFORMED, Planner, PlannerParams, PlanResult, warm_up
 
 
 def reply_of(request_id: str, r: PlanResult) -> PathReply:
@@ -102,6 +102,8 @@ class PlannerService(Service):
         self.outcomes: dict[str, int] = {}
         self.times_ms: list[float] = []
         self._resync = False
+        # Before the liveliness token: whoever waits for the planner gets a compiled one.
+        self.log.info("kernels ready in %.1f s", warm_up(self.classes))
 
     def setup(self) -> None:
         r = self.robot
