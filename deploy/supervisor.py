@@ -55,6 +55,7 @@ class Managed:
     started_at: float = 0.0
     alive: bool = False  # its liveliness token is up
     seen_alive: bool = False  # the token came up at least once since the last start
+    lost_at: float | None = None  # when the token vanished while the process still ran
     restarts: collections.deque = field(default_factory=collections.deque)
     next_start: float = 0.0
     given_up: bool = False
@@ -120,6 +121,7 @@ class Supervisor:
         logf.close()
         m.started_at = time.monotonic()
         m.seen_alive = False
+        m.lost_at = None
         log.info("started %s (pid %d)", m.name, m.proc.pid)
 
     def _signal(self, m: Managed, sig: int) -> None:
@@ -176,9 +178,17 @@ class Supervisor:
             if not seen and age > self.config.deploy.health_timeout_s:
                 log.warning("%s showed no liveliness token after %.0f s: killing it", m.name, age)
                 self._signal(m, signal.SIGKILL)
-            elif seen and not alive and age > 1.0:
-                log.warning("%s lost its liveliness token while running: killing it", m.name)
-                self._signal(m, signal.SIGKILL)
+            elif seen and not alive:
+                # A service that stops on its own undeclares its token first and then flushes
+                # its state: only a process still running well after that is hung.
+                if m.lost_at is None:
+                    m.lost_at = now
+                elif now - m.lost_at > self.config.deploy.stop_timeout_s:
+                    log.warning("%s lost its liveliness token %.0f s ago, still runs: killing it",
+                                m.name, now - m.lost_at)  # fmt: skip
+                    self._signal(m, signal.SIGKILL)
+            else:
+                m.lost_at = None
 
     def _find(self, robot: str, service: str) -> Managed | None:
         for m in self.procs.values():
