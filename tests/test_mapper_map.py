@@ -127,3 +127,14 @@ def test_stats_count_memory_honestly():
     assert s["bytes_per_voxel_field"] == 11  # log-odds f4, label u2, confidence f4, flags u1
     assert s["bytes_used"] >= s["voxels_allocated"] * 11
     assert s["bytes_reserved"] >= s["bytes_used"] - 1
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_running_counts_match_a_full_scan(backend):
+    """stats() reads counters the kernels keep; they must equal a scan of the columns."""
+    m = SemanticMap(backend, 0.2, 3.0, 1.0)
+    for s in range(4):
+        m.integrate(*cloud(s))
+        core = m._core
+        assert core.n_observed == len(core.observed_index())
+        assert core.n_occupied == len(core.occupied_index())

@@ -285,8 +285,11 @@ def _octree_collect(
 
 @njit(cache=True, error_model="numpy")
 def _octree_apply(touched, n_touched, flags, logodds_, l_hit, l_miss, c_min, c_max, changed):
-    """Phase 2: one OctoMap log-odds update per marked voxel (hit wins); list what changed."""
+    """Phase 2: one OctoMap log-odds update per marked voxel (hit wins); list what changed.
+    Returns (changed count, newly observed voxels, change in the occupied count)."""
     nc = 0
+    d_obs = 0
+    d_occ = 0
     for t in range(n_touched):
         g = touched[t]
         f = flags[g]
@@ -301,12 +304,18 @@ def _octree_apply(touched, n_touched, flags, logodds_, l_hit, l_miss, c_min, c_m
             elif new > c_max:
                 new = c_max
         is_changed = new != lo or f & OBSERVED == 0 or f & MARK_SEM != 0
+        if f & OBSERVED == 0:
+            d_obs += 1
+        elif lo > 0:
+            d_occ -= 1
+        if new > 0:
+            d_occ += 1
         logodds_[g] = new
         flags[g] = (f & ~MARK_ANY) | OBSERVED
         if is_changed:
             changed[nc] = g
             nc += 1
-    return nc
+    return nc, d_obs, d_occ
 
 
 @njit(cache=True, error_model="numpy")
@@ -382,6 +391,8 @@ class OctreeBackend:
         )
         self._touched = np.empty(1 << 16, np.int64)
         self.last_updates = 0
+        self.n_observed = 0  # kept up to date by the kernels: stats() never scans the map
+        self.n_occupied = 0
         self._keybuf = ray_buffer(self.max_range_m, self.resolution_m)
         self._prm = np.array(
             [
@@ -422,9 +433,11 @@ class OctreeBackend:
         l_hit, l_miss, c_min, c_max = self.occupancy.logs
         changed = np.empty(n_touched, np.int64)
         c = grid.cols
-        nc = _octree_apply(
+        nc, d_obs, d_occ = _octree_apply(
             self._touched, n_touched, c["flags"], c["logodds"], l_hit, l_miss, c_min, c_max, changed
         )
+        self.n_observed += d_obs
+        self.n_occupied += d_occ
         return self._rows(changed[:nc])
 
     def _rows(self, g: np.ndarray) -> Delta:
@@ -445,6 +458,11 @@ class OctreeBackend:
         return d
 
     # -- queries ---------------------------------------------------------------------------
+
+    def recount(self) -> None:
+        """Recompute the counters from the columns (after a load)."""
+        self.n_observed = int(self.observed_index().shape[0])
+        self.n_occupied = int(self.occupied_index().shape[0])
 
     def observed_index(self) -> np.ndarray:
         return np.flatnonzero(self.grid.used("flags") & OBSERVED)

@@ -198,7 +198,7 @@ class SemanticMap:
     def stats(self) -> dict:
         grid = self._core.grid
         allocated = grid.n_blocks * grid.voxels_per_block
-        observed = int(self._core.observed_index().shape[0])
+        observed = self._core.n_observed
         used, reserved = grid.nbytes()
         return {
             "backend": self.backend,
@@ -208,7 +208,7 @@ class SemanticMap:
             "blocks": grid.n_blocks,
             "voxels_allocated": allocated,
             "voxels_observed": observed,
-            "voxels_occupied": int(self._core.occupied_index().shape[0]),
+            "voxels_occupied": self._core.n_occupied,
             "bytes_per_voxel_field": self._core.bytes_per_voxel(),
             "bytes_used": used,
             "bytes_reserved": reserved,
@@ -286,6 +286,7 @@ class SemanticMap:
         if set(cols) != set(grid.cols):
             raise ValueError(f"{path}: columns {sorted(cols)} do not fit backend {m.backend}")
         grid.restore(block_keys, cols)
+        m._core.recount()
         m.n_integrations = meta["integrations"]
         m.n_points = meta["points"]
         return m

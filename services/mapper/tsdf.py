@@ -97,9 +97,10 @@ def _set_contains(keys, key):
 def _tsdf_integrate(
     points, labels, origin, i0, prm, sem_idx, log_ratio,
     h_keys, h_vals, hshift, block_keys, n_blocks, bits,
-    flags, dist_, weight_, logp, touched, n_touched, startset, keybuf, gbuf,
+    flags, dist_, weight_, logp, touched, n_touched, startset, keybuf, gbuf, counts,
 ):  # fmt: skip
-    """Integrate points i0.. ; resumable: every block is allocated before a ray updates anything."""
+    """Integrate points i0.. ; resumable: every block is allocated before a ray updates anything.
+    `counts` accumulates (newly observed voxels, change in the surface-voxel count)."""
     res = prm[0]
     inv_res = prm[1]
     max_range = prm[2]
@@ -189,8 +190,14 @@ def _tsdf_integrate(
             if w_new < 1e-6:
                 continue
             d_new = (sdf * w + np.float64(dist_[g]) * w_old) / w_new
+            if f & OBSERVED == 0:
+                counts[0] += 1
+            elif abs(dist_[g]) < res and w_old > 0:
+                counts[1] -= 1
             dist_[g] = min(trunc, d_new) if d_new > 0 else max(-trunc, d_new)
             weight_[g] = min(max_weight, w_new)
+            if abs(dist_[g]) < res:
+                counts[1] += 1
             flags[g] = f | MARK_FREE | MARK_HIT | OBSERVED
             if label_idx >= 0:
                 v = logp[g, label_idx] + log_ratio
@@ -249,6 +256,8 @@ class TsdfBackend:
         )
         self._touched = np.empty(1 << 16, np.int64)
         self.last_updates = 0
+        self.n_observed = 0  # kept up to date by the kernel: stats() never scans the map
+        self.n_occupied = 0
         band = 2 * self.trunc_m + self.resolution_m
         n_buf = 3 * int(np.ceil(band / self.resolution_m)) + 16
         self._keybuf = np.empty((n_buf, 3), np.int64)
@@ -272,6 +281,7 @@ class TsdfBackend:
         grid = self.grid
         size = 1 << max(4, int(2 * points.shape[0]).bit_length())
         startset = np.full(size, -1, np.int64)
+        counts = np.zeros(2, np.int64)
         i, n_touched = 0, 0
         while True:
             c = grid.cols
@@ -279,7 +289,7 @@ class TsdfBackend:
                 points, labels, origin, i, self._prm, self.sem_idx, self.log_ratio,
                 grid.h_keys, grid.h_vals, grid.hshift, grid.block_keys, grid.n_blocks, grid.bits,
                 c["flags"], c["distance"], c["weight"], c["logp"], self._touched, n_touched,
-                startset, self._keybuf, self._gbuf,
+                startset, self._keybuf, self._gbuf, counts,
             )  # fmt: skip
             if status == DONE:
                 break
@@ -292,6 +302,8 @@ class TsdfBackend:
         changed = np.empty(n_touched, np.int64)
         nc = _tsdf_finish(self._touched, n_touched, grid.cols["flags"], changed)
         self.last_updates = nc  # voxels whose distance was fused this cloud
+        self.n_observed += int(counts[0])
+        self.n_occupied += int(counts[1])
         return self._rows(changed[:nc])
 
     def labels_of(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -328,6 +340,11 @@ class TsdfBackend:
         )
 
     # -- queries ---------------------------------------------------------------------------
+
+    def recount(self) -> None:
+        """Recompute the counters from the columns (after a load)."""
+        self.n_observed = int(self.observed_index().shape[0])
+        self.n_occupied = int(self.occupied_index().shape[0])
 
     def observed_index(self) -> np.ndarray:
         return np.flatnonzero(self.grid.used("flags") & OBSERVED)
