@@ -201,31 +201,62 @@ def clearance_along(
     return np.maximum(free_dist[ij[:, 0], ij[:, 1]] - resolution_m * np.sqrt(0.5), 0.0)
 
 
+def collision_raster(world, height_m: float = 0.45, step_m: float = 0.1) -> np.ndarray:
+    """Cells of the world's ground raster where an object occupies the band from just above the
+    ground to `height_m` (the robot's height): what the robot's body can hit. A tree's crown
+    over the robot is not an obstacle; its trunk is."""
+    top = world.top_class()
+    xs, ys = top.cell_centres()
+    gx, gy = (a.ravel() for a in np.meshgrid(xs, ys, indexing="ij"))
+    ground = world.ground.height_at(gx, gy)
+    hit = np.zeros(gx.shape, bool)
+    for dz in np.arange(0.05, height_m + 1e-9, step_m):
+        pts = np.column_stack([gx, gy, ground + dz])
+        hit |= world.object_class_at(pts) > 0
+    return hit.reshape(top.data.shape)
+
+
+def robot_footprint() -> list[tuple[float, float, float, float]]:
+    """The simulated robot's footprint as rectangles (centre x, centre y, half x, half y) in its
+    base frame: the chassis and the two wheels (services/sim/robot.py's RobotSpec)."""
+    from smana.services.sim.robot import RobotSpec
+
+    s = RobotSpec()
+    hx, hy, _ = s.chassis_half_extents
+    r, half_track = s.wheel_radius_m, s.track_m / 2
+    return [(0.0, 0.0, hx, hy), (0.0, half_track, r, r), (0.0, -half_track, r, r)]
+
+
 def footprint_contacts(
     traj_xyyaw: np.ndarray,
     obstacle: np.ndarray,
     origin_xy,
     resolution_m: float,
-    half_extents_m: tuple[float, float] = (0.28, 0.31),
+    footprint: list[tuple[float, float, float, float]] | None = None,
 ) -> np.ndarray:
-    """Per trajectory pose, whether the robot's rectangular footprint (half length, half width,
-    wheels included) covers the centre of an obstacle cell of a ground-aligned raster."""
+    """Per trajectory pose, whether the robot's footprint (rectangles in its base frame, default
+    `robot_footprint()`) covers the centre of an obstacle cell of a ground-aligned raster."""
     traj = np.asarray(traj_xyyaw, float).reshape(-1, 3)
+    rects = np.asarray(footprint if footprint is not None else robot_footprint(), float)
     cells = np.argwhere(obstacle)
     out = np.zeros(len(traj), bool)
     if len(cells) == 0 or len(traj) == 0:
         return out
     centres = np.asarray(origin_xy, float) + cells * resolution_m
     tree = cKDTree(centres)
-    hx, hy = half_extents_m
-    for k, near in enumerate(tree.query_ball_point(traj[:, :2], np.hypot(hx, hy))):
+    reach = float(np.max(np.hypot(np.abs(rects[:, 0]) + rects[:, 2],
+                                  np.abs(rects[:, 1]) + rects[:, 3])))  # fmt: skip
+    for k, near in enumerate(tree.query_ball_point(traj[:, :2], reach)):
         if not near:
             continue
         d = centres[near] - traj[k, :2]
         c, s = np.cos(traj[k, 2]), np.sin(traj[k, 2])
         lx = c * d[:, 0] + s * d[:, 1]
         ly = -s * d[:, 0] + c * d[:, 1]
-        out[k] = bool(((np.abs(lx) <= hx) & (np.abs(ly) <= hy)).any())
+        inside = (np.abs(lx[:, None] - rects[:, 0]) <= rects[:, 2]) & (
+            np.abs(ly[:, None] - rects[:, 1]) <= rects[:, 3]
+        )
+        out[k] = bool(inside.any())
     return out
 
 

@@ -132,11 +132,18 @@ def test_travelled_nodes_terrain_share_and_clearance():
 def test_footprint_contacts_follow_the_heading():
     obstacle = np.zeros((41, 41), bool)
     obstacle[20, 24] = True  # a post at (2.0, 2.4) on a 0.1 m raster from (0, 0)
+    box = [(0.0, 0.0, 0.28, 0.31)]
     # robot at (2, 2): 0.4 m from the post, beyond its half width (0.31) sideways...
     side = np.array([[2.0, 2.0, 0.0]])
-    assert not ev.footprint_contacts(side, obstacle, (0.0, 0.0), 0.1)[0]
-    # ...and 0.35 m away along its length (half length 0.28): clear both ways, but closer
-    # sideways it touches
-    assert ev.footprint_contacts(np.array([[2.0, 2.1, 0.0]]), obstacle, (0.0, 0.0), 0.1)[0]
-    assert not ev.footprint_contacts(np.array([[2.0, 2.1, np.pi / 2]]), obstacle, (0, 0), 0.1)[0]
+    assert not ev.footprint_contacts(side, obstacle, (0.0, 0.0), 0.1, box)[0]
+    # ...0.3 m sideways it touches, 0.3 m ahead (half length 0.28) it does not
+    assert ev.footprint_contacts(np.array([[2.0, 2.1, 0.0]]), obstacle, (0, 0), 0.1, box)[0]
+    ahead = np.array([[2.0, 2.1, np.pi / 2]])
+    assert not ev.footprint_contacts(ahead, obstacle, (0, 0), 0.1, box)[0]
+    # the simulated robot: chassis 0.28 x 0.17 and wheels reaching 0.31 sideways at x = 0
+    fp = ev.robot_footprint()
+    assert ev.footprint_contacts(np.array([[2.0, 2.1, 0.0]]), obstacle, (0, 0), 0.1, fp)[0]
+    corner = np.array([[2.0 - 0.25, 2.4 - 0.25, 0.0]])  # the post 0.25 ahead, 0.25 left
+    assert not ev.footprint_contacts(corner, obstacle, (0, 0), 0.1, fp)[0]
+    assert ev.footprint_contacts(corner, obstacle, (0, 0), 0.1, box)[0]
     assert ev.count_events(np.array([0, 1, 1, 0, 1, 0, 0, 1], bool)) == 3

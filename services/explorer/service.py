@@ -112,6 +112,10 @@ class ExplorerService(Service):
         self._seq = 0
         self._next_state = 0.0
         self._plan_log: list[dict] = []
+        self._need_sync = True
+        self._next_sync = 0.0
+        self._sync_failures = 0
+        self._last_patch_seq = 0
         self._resume()
         self.n_patches = 0
         self.n_path_queries = 0
@@ -151,19 +155,35 @@ class ExplorerService(Service):
         self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
         self.subscribe(keys.pose(r), self.on_pose, Pose)
         self.queryable(keys.explorer_state(r), lambda req: self.core.state_dict())
-        self._initial_graph()
+        self._sync_graph()
 
-    def _initial_graph(self) -> None:
-        """Ask navgraph for what it already has (we may start after it published patches)."""
+    def _sync_graph(self) -> None:
+        """Ask navgraph for its whole graph: we may have started after it published patches, or
+        missed some. Retried from `tick` until it answers; not needed when we saw patch 1."""
+        self._next_sync = time.monotonic() + 2.0
         try:
             reply = request(self.session, keys.query(self.robot, "navgraph", "graph"), None, 2.0)
         except QueryError as exc:
-            self.log.info("no initial graph from navgraph (%s): starting from patches", exc.kind)
+            if self._sync_failures == 0:
+                self.log.info("no graph from navgraph yet (%s): will ask again", exc.kind)
+            self._sync_failures += 1
             return
         if isinstance(reply, GraphPatch):
-            self.on_patch(reply)
+            self._apply(reply)
+            self._need_sync = False
+            self._last_patch_seq = max(self._last_patch_seq, int(reply.seq))
+            self.log.info("graph synced from navgraph: %d nodes", len(reply.cells))
 
     def on_patch(self, patch: GraphPatch) -> None:
+        seq = int(patch.seq)
+        if seq == 1:
+            self._need_sync = False  # navgraph's first patch: nothing came before it
+        elif self._last_patch_seq and seq != self._last_patch_seq + 1:
+            self._need_sync = True  # a gap (or navgraph restarted): fetch the whole graph
+        self._last_patch_seq = seq
+        self._apply(patch)
+
+    def _apply(self, patch: GraphPatch) -> None:
         if abs(patch.resolution_m - self.grid.resolution_m) > 1e-9 or not np.allclose(
             patch.origin_xy, self.grid.origin_xy
         ):
@@ -197,6 +217,8 @@ class ExplorerService(Service):
         if now - self._t_wall0 > self.cfg.time_budget_s:
             self.core.finish("time_budget")
             return
+        if self._need_sync and now >= self._next_sync:
+            self._sync_graph()
         if self._grid_dirty:
             self._refresh_grid()
         reason = self.core.wants_plan()
