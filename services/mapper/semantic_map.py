@@ -118,7 +118,9 @@ class SemanticMap:
         n = pts.shape[0]
         if not np.issubdtype(pts.dtype, np.floating):
             raise ValueError(f"points must be floating point, got {pts.dtype}")
-        pts = np.ascontiguousarray(pts, np.float32)
+        # writable and contiguous: decoded messages are read-only views, and numba would compile
+        # (and cache) a second copy of every kernel for read-only arrays
+        pts = np.require(pts, np.float32, ["C", "W"])
         if not np.isfinite(pts).all():
             raise ValueError("points contain NaN or inf (drop them first)")
         lab = np.asarray(labels)
@@ -128,11 +130,11 @@ class SemanticMap:
             raise ValueError(f"labels must be integers, got {lab.dtype}")
         if n and (lab.min() < 0 or lab.max() > 65535):
             raise ValueError("labels must be in 0..65535")
-        lab = np.ascontiguousarray(lab, np.uint16)
+        lab = np.require(lab, np.uint16, ["C", "W"])
         if confidences is None:
             conf = np.ones(n, np.float32)
         else:
-            conf = np.ascontiguousarray(confidences, np.float32)
+            conf = np.require(confidences, np.float32, ["C", "W"])
             if conf.shape != (n,):
                 raise ValueError(f"confidences must have shape ({n},), got {conf.shape}")
             if n and not (np.isfinite(conf).all() and conf.min() >= 0 and conf.max() <= 1):

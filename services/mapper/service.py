@@ -22,6 +22,7 @@ The map is saved every `mapper.autosave_period_s` (when it changed) and on shutd
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -100,6 +101,16 @@ class MapperService(Service):
         self._next_save = time.monotonic() + config.mapper.autosave_period_s
 
     def setup(self) -> None:
+        # Load (or compile) the kernels before the liveliness token says we are ready.
+        t0 = time.perf_counter()
+        warm = build_map(dataclasses.replace(self.config, mapper=dataclasses.replace(
+            self.config.mapper, load="")), self.table)  # fmt: skip
+        pts = np.array([[1.0, 0.1, 0.1], [0.1, 1.0, 0.2], [20.0, 0.1, 0.1]], np.float32)
+        lab = np.array([self.map.class_ids[0], 0, 0], np.uint16)
+        warm.integrate(pts, lab, np.ones(3, np.float32), (0.0, 0.0, 0.0))
+        warm.query(pts.astype(np.float64))
+        warm.occupied_voxels()
+        self.log.info("kernels ready in %.1f s", time.perf_counter() - t0)
         r = self.robot
         self.delta_pub = self.publisher(keys.map_delta(r), reliable_block=True)
         for name in self.config.mapper.inputs:
