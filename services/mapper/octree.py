@@ -8,7 +8,9 @@ float32 and clamped as OctoMap does, so the same rays give the same values.
 
 Two departures from OctoMap, both from the paper's setting:
 - `ray_length_m`: free space is carved only over the last metres before the end point (1 m in
-  the paper); `None` carves the whole ray as OctoMap does.
+  the paper); `None` carves the whole ray as OctoMap does. (Semantic Octomap's own generator
+  instead carves the first metre from the sensor and marks farther end points occupied without a
+  ray; carving next to the surface is what clears moved obstacles, so we carve there.)
 - semantics: every point fuses its label into its end voxel (points labelled 0 or with a label
   outside the semantic classes update occupancy only).
 
