@@ -5,10 +5,7 @@ the robot moved without touching an obstacle, and the recording and metrics are 
 from __future__ import annotations
 
 import json
-import os
 import socket
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +25,7 @@ def _free_port() -> int:
 
 def small_run_overrides(port: int, budget_s: float = BUDGET_S) -> list[str]:
     """A garden of 6 m, a small fast camera, a 10 cm map: a closed loop that fits a test."""
-    sets = [
+    return [
         f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
         "sim.size_m=6.0",
         "sim.seed=3",
@@ -41,21 +38,29 @@ def small_run_overrides(port: int, budget_s: float = BUDGET_S) -> list[str]:
         "navgraph.bounds_max_xy=[4.0, 4.0]",
         f"explorer.time_budget_s={budget_s}",
     ]
-    out = []
-    for s in sets:
-        out += ["--set", s]
-    return out
+
+
+def run_stack(run_dir: Path, overrides: list[str], timeout_s: float) -> int:
+    """What `smana up` does: the supervisor with the recorder, then the report."""
+    from smana.common.config import SmanaConfig
+    from smana.deploy.recording import recorder_argv
+    from smana.deploy.report import write_report
+    from smana.deploy.supervisor import Supervisor
+
+    cfg = SmanaConfig.load(None, [*overrides, f'general.run_dir="{run_dir}"'])
+    sup = Supervisor(cfg, run_dir)
+    if "recorder" not in sup.procs:  # until `smana up` starts it itself
+        sup.add("recorder", recorder_argv(sup.config_path, cfg.general.robot))
+    code = sup.run(duration_s=timeout_s)
+    write_report(run_dir, sup.service_config)
+    return code
 
 
 def test_short_closed_loop_run(tmp_path):
     run_dir = tmp_path / "run"
-    argv = [sys.executable, "-m", "smana.deploy.cli", "up", "--run-dir", str(run_dir),
-            *small_run_overrides(_free_port())]  # fmt: skip
-    proc = subprocess.run(argv, capture_output=True, text=True, timeout=BUDGET_S + 150,
-                          env=dict(os.environ, PYTHONUNBUFFERED="1"), cwd=tmp_path)  # fmt: skip
-    out = proc.stdout + proc.stderr
+    code = run_stack(run_dir, small_run_overrides(_free_port()), BUDGET_S + 90)
     logs = {p.name: p.read_text(errors="replace")[-3000:] for p in (run_dir / "logs").glob("*")}
-    assert proc.returncode == 0, (out[-4000:], logs)
+    assert code == 0, logs
 
     # every service logged, the config used is there
     for name in ("sim", "mapper", "navgraph", "planner", "explorer", "recorder"):
