@@ -385,7 +385,15 @@ class ExplorationSettings:
 
     @classmethod
     def quick(cls) -> ExplorationSettings:
-        return cls(seeds=(3,), cost_factors=(1.0, 4.0), size_m=8.0, budget_s=60.0)
+        # a 6 m garden, a small camera and a 10 cm map: two short closed loops for the test suite
+        small = (
+            "sim.camera_width=160",
+            "sim.camera_height=160",
+            "mapper.resolution_m=0.1",
+            "navgraph.bounds_min_xy=[-4.0, -4.0]",
+            "navgraph.bounds_max_xy=[4.0, 4.0]",
+        )
+        return cls(seeds=(3,), cost_factors=(1.0, 4.0), size_m=6.0, budget_s=20.0, extra=small)
 
 
 def exploration_run(out: Path, seed: int, factor: float, s: ExplorationSettings, log=print):
@@ -548,7 +556,7 @@ def cli(argv: list[str] | None = None) -> int:
             s.seeds = tuple(range(3, 3 + args.seeds))
         if args.budget:
             s.budget_s = args.budget
-        s.extra = tuple(args.extra)
+        s.extra = (*s.extra, *args.extra)
         run_exploration(s, out)
         print(f"results in {out} (exploration_summary.md)")
     return 0
