@@ -402,7 +402,8 @@ def exploration_run(out: Path, seed: int, factor: float, s: ExplorationSettings,
 
     table = ClassTable.load("garden3drms")
     terrain = table.by_name("terrain").cost
-    run_dir = out / f"seed{seed}_grass_x{factor:g}"
+    # absolute: the supervisor starts each service inside the run directory
+    run_dir = (out / f"seed{seed}_grass_x{factor:g}").resolve()
     sets = [
         f"sim.seed={seed}", f"sim.size_m={s.size_m}", f"explorer.time_budget_s={s.budget_s}",
         f'explorer.class_costs=["grass={factor * terrain}"]', *s.extra,
