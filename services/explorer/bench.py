@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 
-from . import frontier as fr
-from .exploration import ExplorationParams, Explorer, GridBox
+from smana.services.explorer import frontier as fr
+from smana.services.explorer.exploration import ExplorationParams, Explorer, GridBox
 
 TRAV = np.zeros(9, bool)
 TRAV[[1, 2]] = True

@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from . import frontier as fr
-from .follower import FollowerConfig, PurePursuit, wrap_angle
+from smana.services.explorer import frontier as fr
+from smana.services.explorer.follower import FollowerConfig, PurePursuit, wrap_angle
 
 # path_cost(start_xy, goal_xy) -> (cost, path (K, 2|3)) or None when there is no path
 PathFn = Callable[[np.ndarray, np.ndarray], "tuple[float, np.ndarray] | None"]

@@ -29,9 +29,8 @@ from smana.common.messages import GraphPatch, PathReply, PathRequest, Pose, Velo
 from smana.common.navgrid import NavGrid
 from smana.common.query import QueryError, request
 from smana.common.service import Service
-
-from .exploration import ExplorationParams, Explorer, GridBox
-from .follower import FollowerConfig
+from smana.services.explorer.exploration import ExplorationParams, Explorer, GridBox
+from smana.services.explorer.follower import FollowerConfig
 
 STATE_PERIOD_S = 0.5
 
@@ -358,12 +357,12 @@ class ExplorerService(Service):
 
     def status_details(self) -> dict:
         c = self.core
-        goal = c.goal.choice.xy if c.goal is not None else None
         progress = (
             f"{c.mode} explored {c.explored_m2:.1f} m2, {c.distance_m:.1f} m, "
-            f"frontier {c.frontier_size}" + (f", goal ({goal[0]:.1f}, {goal[1]:.1f})" if goal
-                                             is not None else "")
-        )  # fmt: skip
+            f"frontier {c.frontier_size}"
+        )
+        if c.goal is not None:
+            progress += f", goal ({c.goal.choice.xy[0]:.1f}, {c.goal.choice.xy[1]:.1f})"
         return {
             "progress": progress,
             "mode": c.mode,
