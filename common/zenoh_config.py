@@ -134,5 +134,7 @@ def _apply_security(conf, zc: ZenohConfig) -> None:
         raise ConfigError("zenoh.user needs zenoh.credentials_file (where its password is)")
     if usrpwd:
         conf.insert_json5("transport/auth/usrpwd", json.dumps(usrpwd))
-    if zc.acl_file:
+    # The policy is enforced where links arrive: routers (and peers, which accept links too). A
+    # client given the policy would apply default-deny to its own traffic.
+    if zc.acl_file and zc.mode != "client":
         conf.insert_json5("access_control", Path(_require(zc.acl_file, "acl_file")).read_text())

@@ -66,7 +66,7 @@ class Managed:
 class Supervisor:
     def __init__(self, config: SmanaConfig, run_dir: Path, services: list[str] | None = None):
         self.config = config
-        self.run_dir = Path(run_dir)
+        self.run_dir = Path(run_dir).resolve()
         self.robot = config.general.robot
         self.robots = list(config.deploy.robots) or [self.robot]
         names = services if services is not None else [
@@ -116,8 +116,10 @@ class Supervisor:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         m.proc = subprocess.Popen(
             m.argv, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True, env=env, cwd=self.run_dir,
+            start_new_session=True, env=env,
         )  # fmt: skip
+        # Children keep the supervisor's working directory, so relative paths in the config
+        # (certificates, maps, worlds) mean the same to every process.
         logf.close()
         m.started_at = time.monotonic()
         m.seen_alive = False

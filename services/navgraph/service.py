@@ -9,6 +9,12 @@ At start the service asks the mapper for a snapshot of its occupied voxels (`map
 so a navgraph started or restarted after the mapper does not miss what was mapped before; deltas
 that the snapshot already covers (sequence number not above the snapshot's) are skipped.
 
+It resynchronises the same way whenever deltas may have been lost: after a gap in the delta
+sequence, and when the mapper's liveliness token comes back after vanishing (the mapper restarted,
+or the link to a robot dropped and returned). The graph is rebuilt from the snapshot and the nodes
+that differ from the old graph go out as one patch, so consumers stay incremental and no voxel is
+lost from the base's view.
+
 Output: one `GraphPatch` on `navgraph/patch` per delta that changed a node (label, height or
 flags, safety-zone changes included), published reliably (congestion control BLOCK). Heights of
 nodes that are not known travel as 0 (the codec carries finite numbers only).
@@ -64,23 +70,35 @@ def parse_numbers(value, n: int, what: str) -> list[float]:
     return out
 
 
+def graph_difference(old, new):
+    """The nodes whose state differs between two exports (cells, labels, heights, flags); nodes
+    only in `old` come out as unknown (flags 0)."""
+    oc, ol, oh, of = old
+    nc, nl, nh, nf = new
+    width = int(max(oc[:, 0].max(initial=0), nc[:, 0].max(initial=0))) + 1
+    okey = oc[:, 1].astype(np.int64) * width + oc[:, 0]
+    nkey = nc[:, 1].astype(np.int64) * width + nc[:, 0]
+    common, oi, ni = np.intersect1d(okey, nkey, assume_unique=True, return_indices=True)
+    same_h = (oh[oi] == nh[ni]) | (np.isnan(oh[oi]) & np.isnan(nh[ni]))
+    changed = ni[~((ol[oi] == nl[ni]) & (of[oi] == nf[ni]) & same_h)]
+    added = np.setdiff1d(np.arange(len(nkey)), ni, assume_unique=True)
+    gone = np.setdiff1d(np.arange(len(okey)), oi, assume_unique=True)
+    take = np.concatenate([changed, added])
+    cells = np.concatenate([nc[take], oc[gone]])
+    labels = np.concatenate([nl[take], np.zeros(len(gone), nl.dtype)])
+    heights = np.concatenate([nh[take], np.zeros(len(gone), nh.dtype)])
+    flags = np.concatenate([nf[take], np.zeros(len(gone), nf.dtype)])
+    return cells, labels, heights, flags
+
+
 class NavgraphService(Service):
     name = "navgraph"
     tick_period_s = 1.0
 
     def __init__(self, config: SmanaConfig):
         super().__init__(config)
-        nc = config.navgraph
         self.classes = ClassTable.load(config.general.class_table)
-        self.graph = NavGraph(
-            self.classes,
-            nc.bounds_min_xy,
-            nc.bounds_max_xy,
-            nc.resolution_m,
-            nc.robot_radius_m,
-            nc.tile_size,
-            nc.column_capacity,
-        )
+        self.graph = self._new_graph()
         self.patch_seq = 0
         self.last_delta_seq: int | None = None
         self.snapshot_seq = -1
@@ -89,8 +107,16 @@ class NavgraphService(Service):
         self.voxels_out_of_bounds = 0
         self.columns_lost = 0
         self.times_ms: list[float] = []
+        self.resyncs = 0
+        self._resync_reason = ""  # set from callbacks and on_delta; done in tick()
+        self._mapper_was_down = False
         # Before the liveliness token: whoever waits for navgraph gets a compiled one.
         self.log.info("kernels ready in %.1f s", warm_up(self.classes))
+
+    def _new_graph(self) -> NavGraph:
+        nc = self.config.navgraph
+        return NavGraph(self.classes, nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m,
+                        nc.robot_radius_m, nc.tile_size, nc.column_capacity)  # fmt: skip
 
     def setup(self) -> None:
         r = self.robot
@@ -100,6 +126,54 @@ class NavgraphService(Service):
         self.queryable(keys.query(r, "navgraph", "node"), self.on_node)
         self.queryable(keys.query(r, "navgraph", "stats"), lambda req: self.stats())
         self._initial_map()
+        self._mapper_token = self.session.liveliness().declare_subscriber(
+            keys.alive(r, "mapper"), self._on_mapper_token
+        )
+
+    def _on_mapper_token(self, sample) -> None:
+        # A zenoh callback: only flags; tick() does the work on the main loop.
+        import zenoh
+
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self._mapper_was_down = True
+        elif self._mapper_was_down:
+            self._mapper_was_down = False
+            self._resync_reason = "the mapper is back (restart or link drop)"
+
+    def tick(self) -> None:
+        if self._resync_reason:
+            reason, self._resync_reason = self._resync_reason, ""
+            self.resync(reason)
+
+    def on_stop(self) -> None:
+        self._mapper_token.undeclare()
+
+    def resync(self, reason: str) -> bool:
+        """Rebuild the graph from the mapper's snapshot; publish the nodes that changed."""
+        try:
+            snap = request(self.session, keys.query(self.robot, "mapper", "snapshot"), None, 5.0)
+        except QueryError as exc:
+            self.log.warning("resync (%s) failed: no snapshot (%s)", reason, exc.kind)
+            return False
+        if not isinstance(snap, MapDelta):
+            self.count_error("malformed", "mapper snapshot is not a MapDelta")
+            return False
+        old = self.graph.export()
+        self.graph = self._new_graph()
+        up = self.graph.integrate_delta(snap)
+        new = self.graph.export()
+        cells, labels, heights, flags = graph_difference(old, new)
+        self.snapshot_seq = self.last_delta_seq = snap.seq
+        self.resyncs += 1
+        self.log.info("resynced from the mapper's snapshot (%s): %d voxels, %d nodes changed",
+                      reason, len(snap.centres), len(cells))  # fmt: skip
+        self.columns_lost += up.n_columns_lost
+        if len(cells):
+            self.patch_seq += 1
+            self.patch_pub.put(
+                to_patch(self.graph, cells, labels, heights, flags, self.patch_seq, snap.stamp_s)
+            )
+        return True
 
     def _initial_map(self) -> None:
         """Integrate the mapper's current map, if a mapper is already running."""
@@ -125,6 +199,7 @@ class NavgraphService(Service):
             if delta.seq > self.last_delta_seq + 1:
                 missed = delta.seq - self.last_delta_seq - 1
                 self.count_error("delta_gap", f"{missed} map deltas missed before {delta.seq}")
+                self._resync_reason = f"{missed} map deltas missed"
             elif delta.seq <= self.last_delta_seq:
                 self.log.info("delta seq went back to %d: the mapper restarted", delta.seq)
         self.last_delta_seq = delta.seq
@@ -197,6 +272,7 @@ class NavgraphService(Service):
             **self.graph.stats(),
             "deltas": self.deltas,
             "deltas_skipped": self.deltas_skipped,
+            "resyncs": self.resyncs,
             "patch_seq": self.patch_seq,
             "voxels_out_of_bounds": self.voxels_out_of_bounds,
             "columns_lost": self.columns_lost,

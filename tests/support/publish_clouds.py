@@ -1,0 +1,61 @@
+"""Publish labelled clouds of a flat terrain patch with an obstacle block, as a sensor would.
+
+    publish_clouds.py ENDPOINT FIRST COUNT [--user U --credentials FILE]
+
+Cloud i covers the 2 m x 2 m patch whose corner is at x = 2*i, y = 0 (terrain, label 2) with a
+0.4 m block of label 7 (obstacle) in its middle, seen from 1 m above the patch centre.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+import zenoh
+
+from smana.common import keys
+from smana.common.config import ZenohConfig
+from smana.common.messages import SemanticCloud, encode
+from smana.common.zenoh_config import make_zenoh_config
+
+
+def patch_cloud(i: int, seq: int) -> SemanticCloud:
+    g = np.arange(0.025, 2.0, 0.05)
+    xx, yy = np.meshgrid(g, g)
+    ground = np.column_stack([xx.ravel() + 2.0 * i, yy.ravel(), np.zeros(xx.size)])
+    b = np.arange(0.825, 1.2, 0.05)
+    bx, by, bz = np.meshgrid(b, b, np.arange(0.05, 0.5, 0.05))
+    block = np.column_stack([bx.ravel() + 2.0 * i, by.ravel(), bz.ravel()])
+    pts = np.vstack([ground, block]).astype(np.float32)
+    labels = np.r_[np.full(len(ground), 2), np.full(len(block), 7)].astype(np.uint8)
+    return SemanticCloud(
+        stamp_s=time.time(), seq=seq, points=pts, labels=labels,
+        confidences=np.full(len(pts), 0.9, np.float32),
+        sensor_position=np.array([2.0 * i + 1.0, 1.0, 1.5]),
+    )  # fmt: skip
+
+
+def main() -> int:
+    p = argparse.ArgumentParser()
+    p.add_argument("endpoint")
+    p.add_argument("first", type=int)
+    p.add_argument("count", type=int)
+    p.add_argument("--robot", default="r1")
+    p.add_argument("--user", default="")
+    p.add_argument("--credentials", default="")
+    args = p.parse_args()
+    zc = ZenohConfig(connect=[args.endpoint], user=args.user, credentials_file=args.credentials)
+    with zenoh.open(make_zenoh_config(zc)) as session:
+        pub = session.declare_publisher(keys.cloud(args.robot))
+        time.sleep(0.5)  # let the route to the mapper settle
+        for i in range(args.first, args.first + args.count):
+            pub.put(encode(patch_cloud(i, i + 1)))
+            time.sleep(0.3)  # the mapper keeps the latest cloud only: give it time for each
+        time.sleep(0.5)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
