@@ -201,7 +201,7 @@ def clearance_along(
     return np.maximum(free_dist[ij[:, 0], ij[:, 1]] - resolution_m * np.sqrt(0.5), 0.0)
 
 
-def collision_raster(world, height_m: float = 0.45, step_m: float = 0.1) -> np.ndarray:
+def collision_raster(world, height_m: float = 0.25, step_m: float = 0.05) -> np.ndarray:
     """Cells of the world's ground raster where an object occupies the band from just above the
     ground to `height_m` (the robot's height): what the robot's body can hit. A tree's crown
     over the robot is not an obstacle; its trunk is."""
@@ -210,7 +210,7 @@ def collision_raster(world, height_m: float = 0.45, step_m: float = 0.1) -> np.n
     gx, gy = (a.ravel() for a in np.meshgrid(xs, ys, indexing="ij"))
     ground = world.ground.height_at(gx, gy)
     hit = np.zeros(gx.shape, bool)
-    for dz in np.arange(0.05, height_m + 1e-9, step_m):
+    for dz in np.arange(0.03, height_m + 1e-9, step_m):
         pts = np.column_stack([gx, gy, ground + dz])
         hit |= world.object_class_at(pts) > 0
     return hit.reshape(top.data.shape)
@@ -225,6 +225,14 @@ def robot_footprint() -> list[tuple[float, float, float, float]]:
     hx, hy, _ = s.chassis_half_extents
     r, half_track = s.wheel_radius_m, s.track_m / 2
     return [(0.0, 0.0, hx, hy), (0.0, half_track, r, r), (0.0, -half_track, r, r)]
+
+
+def robot_height_m() -> float:
+    """Top of the simulated robot's chassis above the ground (what it can pass under)."""
+    from smana.services.sim.robot import RobotSpec
+
+    s = RobotSpec()
+    return s.base_height_m + s.chassis_half_extents[2]
 
 
 def footprint_contacts(

@@ -29,7 +29,6 @@ from smana.deploy import plots
 
 log = logging.getLogger("smana.report")
 
-ROBOT_HEIGHT_M = 0.45  # the simulated base with its camera mast
 CLOSE_CALL_M = 0.30  # clearance under which the base (half-width 0.31 m with wheels) may touch
 
 
@@ -120,7 +119,7 @@ def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> 
         out["terrain_share"] = ev.terrain_share(gt_labels)
         out["travelled_label_share"] = ev.label_shares(gt_labels, names)
         # what the robot's body can hit: objects up to its height (it passes under tree crowns)
-        obstacle = ev.collision_raster(world, ROBOT_HEIGHT_M)
+        obstacle = ev.collision_raster(world, ev.robot_height_m())
         clear = ev.clearance_along(xy, obstacle, top.origin_xy, res)
         out["min_clearance_m"] = float(clear.min())
         out["close_calls"] = ev.count_events(clear < CLOSE_CALL_M)

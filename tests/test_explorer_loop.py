@@ -257,3 +257,26 @@ def test_bad_pose_is_rejected():
         ex.update_pose(float("nan"), 0.0, 0.0, 0.0)
     with pytest.raises(ValueError):
         ExplorationParams(max_range_m=0)
+
+
+def test_a_robot_caught_in_a_safety_zone_backs_out_on_the_open_side():
+    # a wall of obstacle nodes at ix = 10, its safety zone at ix = 9 and 11; free beyond.
+    # The robot stands at ix = 9.6 (inside the zone, next to the wall): the nearest free node
+    # is across the wall (ix = 12, 0.5 m away); the open side (ix = 8) is 0.3 m away too, but
+    # the point is that a hop through the wall is never taken, even when it is shorter.
+    labels = np.full((24, 12), 2, np.uint16)
+    flags = np.full((24, 12), fr.KNOWN, np.uint8)
+    labels[10, :] = 4
+    flags[10, :] |= fr.OBSTACLE
+    flags[[8, 9, 11], :] |= fr.SAFETY_ZONE
+    g = GridBox(np.zeros(2), RES, labels, flags)
+    ex = Explorer(ExplorationParams(start_search_radius_m=1.0), TRAV, 9)
+    ex.update_grid(g)
+    free = fr.traversable_mask(labels, flags, TRAV)
+    x, y = 9.9 * RES, 6.5 * RES  # 2 cm from the wall node's edge, closer to the far side's free
+    comp, reach, starts = ex._starts(free, (x, y))
+    (start,) = [starts[c] for c in starts if comp[starts[c]] == comp[5, 5]]
+    assert start[0] == 7  # the open side, not ix = 12 across the wall
+    # the far side is a separate component with no clear hop: not reachable from here
+    assert not reach[15, 5]
+    assert reach[3, 3]

@@ -53,6 +53,9 @@ class ExplorationParams:
     blacklist_radius_m: float = 0.5
     blacklist_s: float = 30.0
     start_search_radius_m: float = 1.0
+    # speed cap while the robot stands on a safety-zone or obstacle node (it got there because
+    # an obstacle was mapped late): it backs out slowly
+    creep_speed_mps: float = 0.15
     follower: FollowerConfig = field(default_factory=FollowerConfig)
 
     def __post_init__(self):
@@ -345,7 +348,13 @@ class Explorer:
             self._set_goal(None)
             self._t_arrived = self.t_now
             return 0.0, 0.0
-        return cmd.linear_mps, cmd.angular_radps
+        v, w = cmd.linear_mps, cmd.angular_radps
+        if self.grid is not None and v > self.p.creep_speed_mps:
+            here = np.array(self.grid.cell_of((x, y)))
+            if self.grid.inside(here).all() and _blocking(self.grid.flags[here[0], here[1]]):
+                w *= self.p.creep_speed_mps / v  # same arc, slower
+                v = self.p.creep_speed_mps
+        return v, w
 
     # -- state ----------------------------------------------------------------------------------
 
@@ -416,7 +425,9 @@ class Explorer:
         The nodes right around the robot are often unseen (the camera does not look straight
         down) or became safety zone, so the robot's own node can be cut off from all it has seen;
         it then drives a short straight hop to the start node first. Paths never cross unknown
-        space beyond that hop: an unseen obstacle may stand beside the robot, out of view."""
+        space beyond that hop: an unseen obstacle may stand beside the robot, out of view. A hop
+        must not cross an obstacle node: a robot caught in a safety zone that just appeared
+        around it backs out on the open side, not through the obstacle to a nearer node."""
         g = self.grid
         comp, _ = ndimage.label(free, structure=np.ones((3, 3), bool))
         cell = np.array(g.cell_of(xy))
@@ -427,11 +438,16 @@ class Explorer:
         if (hi > lo).all():
             sub = np.argwhere(free[lo[0] : hi[0], lo[1] : hi[1]]) + lo
             d = np.hypot(*(sub - cell).T) if len(sub) else np.zeros(0)
+            p = np.asarray(xy, float)[:2]
             for k in np.argsort(d, kind="stable"):
                 if d[k] > r:
                     break
                 cid = int(comp[sub[k, 0], sub[k, 1]])
-                starts.setdefault(cid, (int(sub[k, 0]), int(sub[k, 1])))
+                if cid in starts:
+                    continue
+                if d[k] > 0 and not self._segment_clear(p, g.centres(sub[k]), OBSTACLE_ONLY):
+                    continue
+                starts[cid] = (int(sub[k, 0]), int(sub[k, 1]))
         reach = np.isin(comp, list(starts)) if starts else np.zeros(g.shape, bool)
         return comp, reach, starts
 
@@ -448,8 +464,9 @@ class Explorer:
         mine = (cells[:, 0] == here[0]) & (cells[:, 1] == here[1])
         return bool((bad & ~mine).any())
 
-    def _segment_clear(self, p: np.ndarray, q: np.ndarray) -> bool:
-        """No known obstacle or safety-zone node on the segment p-q (the robot's node excepted)."""
+    def _segment_clear(self, p: np.ndarray, q: np.ndarray, bits: int | None = None) -> bool:
+        """No known obstacle or safety-zone node (or nodes with `bits`) on the segment p-q, the
+        node of p excepted."""
         g = self.grid
         if g is None:
             return True
@@ -459,10 +476,7 @@ class Explorer:
         cells = cells[g.inside(cells)]
         here = np.array(g.cell_of(p))
         cells = cells[(cells != here).any(axis=1)]
-        f = g.flags[cells[:, 0], cells[:, 1]]
-        return not (
-            (f & fr.KNOWN).astype(bool) & (f & (fr.OBSTACLE | fr.SAFETY_ZONE)).astype(bool)
-        ).any()
+        return not _blocking(g.flags[cells[:, 0], cells[:, 1]], bits).any()
 
     def _stuck(self) -> bool:
         if self._progress_mark is None:
@@ -518,9 +532,13 @@ class Explorer:
         return True
 
 
-def _blocking(flags: np.ndarray) -> np.ndarray:
-    """Known nodes the robot must not enter: obstacles and their safety zone."""
-    return ((flags & fr.KNOWN) != 0) & ((flags & (fr.OBSTACLE | fr.SAFETY_ZONE)) != 0)
+OBSTACLE_ONLY = fr.OBSTACLE
+
+
+def _blocking(flags: np.ndarray, bits: int | None = None) -> np.ndarray:
+    """Known nodes the robot must not enter: obstacles and their safety zone (or `bits`)."""
+    bits = fr.OBSTACLE | fr.SAFETY_ZONE if bits is None else bits
+    return ((flags & fr.KNOWN) != 0) & ((flags & bits) != 0)
 
 
 def _path_xy(path, goal_xy: np.ndarray, pose) -> np.ndarray:
