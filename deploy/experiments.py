@@ -404,7 +404,11 @@ def exploration_run(out: Path, seed: int, factor: float, s: ExplorationSettings,
     terrain = table.by_name("terrain").cost
     # absolute: the supervisor starts each service inside the run directory
     run_dir = (out / f"seed{seed}_grass_x{factor:g}").resolve()
+    # a robot name of its own: stray processes of another stack that reach this router (a reused
+    # port) then talk on other keys
+    robot = f"exp{os.getpid()}-s{seed}-x{factor:g}".replace(".", "_")
     sets = [
+        f'general.robot="{robot}"',
         f"sim.seed={seed}", f"sim.size_m={s.size_m}", f"explorer.time_budget_s={s.budget_s}",
         f'explorer.class_costs=["grass={factor * terrain}"]', *s.extra,
     ]  # fmt: skip

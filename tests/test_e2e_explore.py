@@ -5,6 +5,7 @@ the robot moved without touching an obstacle, and the recording and metrics are 
 from __future__ import annotations
 
 import json
+import os
 import socket
 from pathlib import Path
 
@@ -27,6 +28,8 @@ def small_run_overrides(port: int, budget_s: float = BUDGET_S) -> list[str]:
     """A garden of 6 m, a small fast camera, a 10 cm map: a closed loop that fits a test."""
     return [
         f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
+        # keys of its own: stray processes of an earlier stack that reach a reused port stay apart
+        f'general.robot="e2e{os.getpid()}"',
         "sim.size_m=6.0",
         "sim.seed=3",
         "sim.camera_width=160",
