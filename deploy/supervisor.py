@@ -37,6 +37,22 @@ from smana.common.messages import MessageError, ServiceStatus, decode
 
 log = logging.getLogger("smana.up")
 
+try:  # Linux: a child can ask to be signalled when its parent dies, even by SIGKILL
+    import ctypes
+
+    _LIBC = ctypes.CDLL(None, use_errno=True)
+    _PR_SET_PDEATHSIG = 1
+except OSError:  # pragma: no cover - not Linux
+    _LIBC = None
+
+
+def die_with_parent() -> None:
+    """`preexec_fn` for children: SIGTERM them when the process that started them dies, so a
+    supervisor killed with -9 leaves no stack behind. Async-signal-safe: one system call."""
+    if _LIBC is not None:
+        _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 # Start order follows the data flow: producers first, so consumers find their inputs.
 SERVICE_ORDER = ("sim", "mapper", "navgraph", "planner", "explorer")
 
@@ -116,7 +132,7 @@ class Supervisor:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         m.proc = subprocess.Popen(
             m.argv, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True, env=env,
+            start_new_session=True, env=env, preexec_fn=die_with_parent,
         )  # fmt: skip
         # Children keep the supervisor's working directory, so relative paths in the config
         # (certificates, maps, worlds) mean the same to every process.

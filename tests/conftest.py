@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from smana.deploy.supervisor import die_with_parent
+
 REPO = Path(__file__).resolve().parents[1]
 ROBOT = "test"
 
@@ -58,6 +60,7 @@ class ZenohStack:
         proc = subprocess.Popen(
             [sys.executable, *argv], stdout=log, stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL, start_new_session=True, env=full_env, cwd=self.tmp,
+            preexec_fn=die_with_parent,  # a killed pytest leaves no service behind
         )  # fmt: skip
         log.close()
         proc.log_name = name

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pytest
 
+from smana.deploy.supervisor import die_with_parent
+
 ROBOT_IP, BASE_IP = "10.213.7.1", "10.213.7.2"
 
 
@@ -58,6 +60,7 @@ class TwoHosts:
             ["ip", "netns", "exec", self.ns[host], sys.executable, *argv],
             stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             start_new_session=True, cwd=self.tmp, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+            preexec_fn=die_with_parent,
         )  # fmt: skip
         log.close()
         proc.log_name = name

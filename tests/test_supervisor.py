@@ -117,3 +117,51 @@ def test_bad_config_is_a_clear_error(tmp_path):
                        capture_output=True, text=True)  # fmt: skip
     assert r.returncode != 0
     assert "mapper.resolution_m: expected a number > 0" in r.stderr
+
+
+def test_smana_up_restarts_a_killed_service_and_dies_cleanly(tmp_path):
+    import zenoh
+
+    from smana.common import keys
+    from smana.common.config import ZenohConfig
+    from smana.common.messages import ServiceStatus
+    from smana.common.query import QueryError, request
+    from smana.common.zenoh_config import make_zenoh_config
+    from tests.conftest import free_port
+
+    port = free_port()
+    up = subprocess.Popen(
+        [sys.executable, "-m", "smana.deploy", "up", "--only", "navgraph,planner", "--robot", "up",
+         "--run-dir", str(tmp_path / "run"),
+         "--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
+         "--set", "deploy.planner.restart_delay_s=0.2"],
+        stdout=open(tmp_path / "up.log", "wb"), stderr=subprocess.STDOUT, start_new_session=True,
+    )  # fmt: skip
+
+    def planner_pid(session):
+        try:
+            st = request(session, keys.status("up", "planner"), timeout_s=1)
+        except QueryError:
+            return None
+        return st.pid if isinstance(st, ServiceStatus) else None
+
+    time.sleep(1.0)
+    conf = make_zenoh_config(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        with zenoh.open(conf) as session:
+            assert wait_for(lambda: planner_pid(session), 60), (tmp_path / "up.log").read_text()
+            first = planner_pid(session)
+            os.kill(first, signal.SIGKILL)
+            t0 = time.monotonic()
+            assert wait_for(lambda: planner_pid(session) not in (None, first), 10)
+            assert time.monotonic() - t0 < 3.0
+            second = planner_pid(session)
+            # The supervisor itself killed with -9: its services must not outlive it.
+            os.kill(up.pid, signal.SIGKILL)
+            up.wait()
+            assert wait_for(lambda: not os.path.exists(f"/proc/{second}"), 10)
+    finally:
+        if up.poll() is None:
+            os.killpg(up.pid, signal.SIGKILL)
+    log = (tmp_path / "up.log").read_text()
+    assert "planner exited with status -9; restarting" in log
