@@ -105,6 +105,7 @@ class DeployConfig:
     navgraph: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
     planner: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
     explorer: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
+    recorder: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # Rerun .rrd
 
 
 @dataclass

@@ -34,6 +34,7 @@ BENCHES = {
     "navgraph": "smana.services.navgraph.bench:cli",
     "planner": "smana.services.planner.bench:cli",
     "sim": "smana.services.sim.bench:cli",
+    "explorer": "smana.services.explorer.bench:cli",
     "replay": "smana.services.replay.bench:cli",
 }
 

@@ -349,9 +349,31 @@ def default_run_dir() -> Path:
     return Path("runs") / time.strftime("%Y%m%d-%H%M%S")
 
 
+def add_recorder(sup: Supervisor) -> bool:
+    """Record the run into `<run_dir>/recording.rrd` (one recorder per robot)."""
+    try:
+        from smana.deploy.recording import recorder_argv
+    except ImportError as exc:  # rerun-sdk missing: the run goes on without a recording
+        log.warning("no Rerun recording (%s): pip install rerun-sdk", exc)
+        return False
+    policy = sup.config.deploy.recorder
+    for robot in sup.robots:
+        argv = recorder_argv(sup.config_path, robot) + list(policy.args)
+        if sup.config.zenoh.credentials_file:
+            argv += ["--set", 'zenoh.user="recorder"']
+        name = "recorder" if len(sup.robots) == 1 else f"recorder@{robot}"
+        sup.add(name, argv, policy, service="recorder", robot=robot)
+    return True
+
+
 def main(config: SmanaConfig, duration_s: float | None = None, services=None) -> int:
     run_dir = Path(config.general.run_dir) if config.general.run_dir else default_run_dir()
+    record = config.deploy.recorder.enabled if services is None else "recorder" in services
+    if services is not None:
+        services = [s for s in services if s != "recorder"]
     sup = Supervisor(config, run_dir, services)
+    if record:
+        add_recorder(sup)
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: sup.stop())
     print(f"smana up: run directory {run_dir}", flush=True)
@@ -384,7 +406,8 @@ def cli(argv: list[str] | None = None) -> int:
     services = None
     if args.only:
         services = [s.strip() for s in args.only.split(",") if s.strip()]
-        unknown = [s for s in services if s not in SERVICE_ORDER]
+        known = (*SERVICE_ORDER, "recorder")
+        unknown = [s for s in services if s not in known]
         if unknown:
-            p.error(f"unknown service(s) {unknown}; known: {', '.join(SERVICE_ORDER)}")
+            p.error(f"unknown service(s) {unknown}; known: {', '.join(known)}")
     return main(cfg, args.duration, services)

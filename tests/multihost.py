@@ -9,12 +9,12 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from smana.deploy.supervisor import die_with_parent
+from tests.conftest import wait_for  # noqa: F401 - the multi-host tests import it from here
 
 ROBOT_IP, BASE_IP = "10.213.7.1", "10.213.7.2"
 
@@ -105,11 +105,3 @@ def make_two_hosts(tmp: Path) -> TwoHosts:
         pytest.skip(f"this machine does not allow network namespaces: {exc.stderr.strip()}")
     return hosts
 
-
-def wait_for(pred, timeout_s: float, step_s: float = 0.1) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step_s)
-    return False

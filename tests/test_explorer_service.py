@@ -24,6 +24,7 @@ from smana.common.messages import (
     encode,
 )
 from smana.common.query import request
+from tests.conftest import wait_for
 
 pytestmark = pytest.mark.multiprocess
 
@@ -34,15 +35,6 @@ BOUNDS = [
     "--set",
     "navgraph.bounds_max_xy=[8.0, 8.0]",
 ]
-
-
-def wait_for(pred, timeout_s=20.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def patch(x_max_m: float) -> GraphPatch:

@@ -19,6 +19,7 @@ from smana.common.messages import GraphPatch, MapDelta
 from smana.common.query import request
 from smana.services.navgraph.graph import NavGraph
 from smana.services.navgraph.service import graph_difference
+from tests.conftest import wait_for
 
 pytestmark = pytest.mark.multiprocess
 
@@ -37,15 +38,6 @@ def test_graph_difference_marks_changed_added_and_gone():
     got = {tuple(c): (int(lab), int(f)) for c, lab, f in zip(cells.tolist(), labels, flags)}
     # (1, 0) is unchanged; (2, 3) changed label; (5, 5) is new; (0, 0) is gone -> unknown.
     assert got == {(2, 3): (4, 3), (5, 5): (1, 1), (0, 0): (0, 0)}
-
-
-def wait_for(pred, timeout_s):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.2)
-    return False
 
 
 def graph_nodes(patch: GraphPatch) -> dict:

@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -15,6 +14,7 @@ import pytest
 from smana.common import keys
 from smana.common.messages import GraphPatch, MapDelta, PathReply, PathRequest, decode, encode
 from smana.common.query import QueryError, request
+from tests.conftest import wait_for
 
 pytestmark = pytest.mark.multiprocess
 
@@ -72,15 +72,6 @@ def recorded_deltas():
 
 def stats(stack, service):
     return request(stack.session, keys.query(stack.robot, service, "stats"), timeout_s=5)
-
-
-def wait_for(pred, timeout_s=15.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def plan(stack, start, goal, as_json=False, **kw) -> PathReply:

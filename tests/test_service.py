@@ -15,6 +15,7 @@ import pytest
 from smana.common import keys
 from smana.common.messages import Pose, SemanticCloud, ServiceStatus, encode
 from smana.common.query import QueryError, request
+from tests.conftest import wait_for
 
 pytestmark = pytest.mark.multiprocess
 
@@ -35,15 +36,6 @@ def status(stack) -> ServiceStatus:
 
 def count(stack):
     return request(stack.session, keys.key(stack.robot, "echo", "count"), timeout_s=5)
-
-
-def wait_for(pred, timeout_s=10.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_status_liveliness_and_sigterm(zenoh_stack):

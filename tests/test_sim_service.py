@@ -23,6 +23,7 @@ from smana.common.messages import (
     encode,
 )
 from smana.common.query import request
+from tests.conftest import wait_for
 
 pytestmark = pytest.mark.multiprocess
 
@@ -58,15 +59,6 @@ class Collector:
     def close(self):
         for s in self.subs:
             s.undeclare()
-
-
-def wait_for(pred, timeout_s=15.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def sim_status(stack) -> ServiceStatus:
