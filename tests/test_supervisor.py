@@ -169,3 +169,24 @@ def test_smana_up_restarts_a_killed_service_and_dies_cleanly(tmp_path):
             os.killpg(up.pid, signal.SIGKILL)
     log = (tmp_path / "up.log").read_text()
     assert "planner exited with status -9; restarting" in log
+
+
+def test_one_instance_per_robot(tmp_path):
+    """deploy.robots: the multi-robot base runs each service once per robot namespace."""
+    from tests.conftest import free_port
+
+    cfg = SmanaConfig.load(None, [
+        f'deploy.router_listen=["tcp/127.0.0.1:{free_port()}"]', 'deploy.robots=["ra", "rb"]',
+    ])  # fmt: skip
+    sup = Supervisor(cfg, tmp_path / "run", services=["planner"])
+    assert set(sup.procs) == {"planner@ra", "planner@rb"}
+    t = run_in_thread(sup)
+    try:
+        assert wait_for(lambda: all(m.alive for m in sup.procs.values()), 60), [
+            (tmp_path / "run" / "logs" / f"{n}.log").read_text() for n in sup.procs
+        ]
+        assert {(m.robot, m.service) for m in sup.procs.values()} == {
+            ("ra", "planner"), ("rb", "planner")}  # fmt: skip
+    finally:
+        sup.stop()
+        t.join(15)
