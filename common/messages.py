@@ -294,6 +294,15 @@ def encode(msg: Message) -> bytes:
     return msgpack.packb(out, use_bin_type=True)
 
 
+def json_default(o):
+    """`default=` for json.dumps and msgpack.packb: numpy scalars and arrays as plain values."""
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"cannot encode {type(o).__name__}")
+
+
 def _plain(v):
     """numpy scalars and containers of them to plain Python (msgpack and JSON want these)."""
     if isinstance(v, np.generic):

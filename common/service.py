@@ -50,6 +50,7 @@ from smana.common.messages import (
     decode,
     encode,
     from_json,
+    json_default,
     to_json,
 )
 from smana.common.zenoh_config import make_zenoh_config
@@ -401,28 +402,8 @@ def _reply_bytes(result, as_json: bool) -> bytes:
     if isinstance(result, Message):
         return to_json(result) if as_json else encode(result)
     if as_json:
-        return json.dumps(result, default=_json_default).encode()
-    return msgpack.packb(result, use_bin_type=True, default=_msgpack_default)
-
-
-def _json_default(o):
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"cannot encode {type(o).__name__} as JSON")
-
-
-def _msgpack_default(o):
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"cannot encode {type(o).__name__} as msgpack")
+        return json.dumps(result, default=json_default).encode()
+    return msgpack.packb(result, use_bin_type=True, default=json_default)
 
 
 def run_service(cls: type[Service], config: SmanaConfig) -> int:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from smana.common.classes import ClassTable
+from smana.common.messages import json_default
 from smana.deploy import evaluation as ev
 from smana.deploy import plots
 
@@ -239,18 +240,10 @@ def write_report(run_dir: str | Path, config) -> Path:
     if world is not None:
         metrics["files"]["plots"] = _plots(run_dir, world, graph, traj, state)
     metrics["report_time_s"] = time.perf_counter() - t0
-    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=_plain))
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=json_default))
     report = run_dir / "report.md"
     report.write_text(render_markdown(metrics))
     return report
-
-
-def _plain(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o).__name__)
 
 
 def _f(v, fmt=".2f", unit=""):

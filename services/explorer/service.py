@@ -25,7 +25,14 @@ import numpy as np
 from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import ExplorerConfig, SmanaConfig
-from smana.common.messages import GraphPatch, PathReply, PathRequest, Pose, VelocityCommand
+from smana.common.messages import (
+    GraphPatch,
+    PathReply,
+    PathRequest,
+    Pose,
+    VelocityCommand,
+    json_default,
+)
 from smana.common.navgrid import NavGrid
 from smana.common.query import QueryError, request
 from smana.common.service import Service
@@ -341,7 +348,7 @@ class ExplorerService(Service):
         state["path_queries"] = self.n_path_queries
         state["path_errors"] = self.path_errors
         state["wall_time_s"] = time.monotonic() - self._t_wall0
-        (out / "state.json").write_text(json.dumps(state, indent=1, default=_plain))
+        (out / "state.json").write_text(json.dumps(state, indent=1, default=json_default))
         with open(out / "trajectory.csv", "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["t_s", "x_m", "y_m", "yaw_rad"])
@@ -375,14 +382,6 @@ class ExplorerService(Service):
             "path_errors": dict(self.path_errors),
             "plan_time_ms": self.plan_time_ms,
         }
-
-
-def _plain(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o).__name__)
 
 
 def main(config: SmanaConfig) -> int:
