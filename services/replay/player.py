@@ -236,8 +236,12 @@ class Pacer:
         if self.t0_wall is None:
             self.t0_wall, self.t0_stamp = self.clock(), stamp_s
 
-    def on_published(self, seq: int, index: int, stamp_s: float, payload: bytes) -> None:
-        now = self.clock()
+    def on_published(
+        self, seq: int, index: int, stamp_s: float, payload: bytes, sent_at: float | None = None
+    ) -> None:
+        """A scan went out. `sent_at`: the clock just before the put (the mapper may receive and
+        start integrating while a large put is still returning), else now."""
+        now = self.clock() if sent_at is None else sent_at
         if self.t0_wall is None and self.mode == "realtime" and self.prime and not self.published:
             self.priming_seq, self._priming_stamp = seq, stamp_s
         elif self.t0_wall is None:

@@ -229,8 +229,9 @@ class ReplayService(Service):
         self.pose_pub.put(item.pose)
         if item.cloud is not None:
             seq = self.pacer.published + 1
+            sent_at = self.pacer.clock()
             self.cloud_pub.put(item.cloud)
-            self.pacer.on_published(seq, item.index, item.stamp_s, item.cloud)
+            self.pacer.on_published(seq, item.index, item.stamp_s, item.cloud, sent_at)
             self.scan_log.append((seq, item.index, item.name, item.stamp_s, pc.n_out))
         else:
             self.pacer.start_clock(item.stamp_s)
