@@ -21,7 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("smana.services.replay.__main__:cli", "replay a dataset into the stack"),
     "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
     "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
-    "bench": ("smana.deploy.cli:bench", "benchmarks: mapper, navgraph, planner, sim, replay"),
+    "bench": ("smana.deploy.cli:bench", "benchmarks of each service (smana bench --help)"),
     "eval": ("smana.deploy.evaluation:cli", "evaluate a run's map against ground truth"),
     "experiment": ("smana.deploy.experiments:cli", "the paper's experiments: noise, exploration"),
     "view": ("smana.deploy.view:cli", "open a run's Rerun recording"),
