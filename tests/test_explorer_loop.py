@@ -235,6 +235,28 @@ def test_stops_when_nothing_is_left_and_on_budget():
     assert ex.control() == (0.0, 0.0)
 
 
+def test_the_budget_starts_with_the_first_map_not_the_first_pose():
+    # poses from t=0, but the map only arrives at t=50 (a stack still compiling): the 5 s budget
+    # runs from there
+    ex = Explorer(ExplorationParams(time_budget_s=5.0), TRAV, 9)
+    for t in range(0, 50, 5):
+        ex.update_pose(1.0, 1.0, 0.0, float(t))
+        assert ex.wants_plan() is None and not ex.done
+    world = ToyWorld(_garden(3))
+    world.reveal(1.0, 1.0, 0.0)
+    ex.update_grid(world.grid())
+    ex.update_pose(1.0, 1.0, 0.0, 50.0)
+    ex.update_pose(1.0, 1.0, 0.0, 53.0)
+    assert ex.elapsed_s() == pytest.approx(3.0)
+    assert ex.wants_plan() is not None and not ex.done
+    ex.update_pose(1.0, 1.0, 0.0, 56.0)
+    assert ex.wants_plan() is None and ex.done_reason == "time_budget"
+    # a restarted explorer keeps the budget's start, not the trajectory's
+    again = Explorer(ExplorationParams(time_budget_s=5.0), TRAV, 9)
+    again.resume(ex.state_dict(), np.array(ex.trajectory))
+    assert again.t_start == 50.0
+
+
 def test_a_path_that_becomes_blocked_triggers_a_replan():
     world = ToyWorld(_garden(4))
     world.known[:20, :] = True

@@ -183,7 +183,9 @@ class Explorer:
         """Track distance and the labels of the nodes travelled on (once per node entered)."""
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(yaw) and math.isfinite(t)):
             raise ValueError("pose with non-finite values")
-        if self.t_start is None:
+        if self.t_start is None and self.grid is not None:
+            # the budget runs from the first pose with a map in hand: a stack still starting up
+            # (numba compiling on a cold cache, a late navgraph) does not eat into it
             self.t_start = t
         if self.pose is not None:
             step = math.hypot(x - self.pose[0], y - self.pose[1])
@@ -205,7 +207,7 @@ class Explorer:
     def resume(self, state: dict, trajectory: np.ndarray) -> None:
         """Carry on from a saved state (a restarted explorer in the same run): the distance,
         labels travelled, counters, progress history and trajectory so far, and the time budget
-        already spent (measured from the first pose of the trajectory)."""
+        already spent (measured from when the budget started, else the trajectory's first pose)."""
         self.distance_m = float(state.get("distance_m") or 0.0)
         for k, v in (state.get("label_counts") or {}).items():
             if 0 <= int(k) < self.label_counts.size:
@@ -215,7 +217,9 @@ class Explorer:
         self.history = [tuple(h) for h in state.get("history") or []]
         traj = np.asarray(trajectory, float).reshape(-1, 4)
         self.trajectory = [tuple(r) for r in traj]
-        if len(traj):
+        if state.get("t_start_s") is not None:
+            self.t_start = float(state["t_start_s"])
+        elif len(traj):
             self.t_start = float(traj[0, 0])
 
     # -- decisions ------------------------------------------------------------------------------
@@ -362,6 +366,7 @@ class Explorer:
         g = self.goal
         return {
             "t_s": self.t_now,
+            "t_start_s": self.t_start,
             "elapsed_s": self.elapsed_s(),
             "mode": self.mode,
             "done": self.done,

@@ -40,6 +40,7 @@ from smana.services.explorer.exploration import ExplorationParams, Explorer, Gri
 from smana.services.explorer.follower import FollowerConfig
 
 STATE_PERIOD_S = 0.5
+STARTUP_GRACE_S = 120.0  # how long past the budget to wait for a first graph before giving up
 
 
 def params_from_config(cfg: ExplorerConfig) -> ExplorationParams:
@@ -114,7 +115,11 @@ class ExplorerService(Service):
         self._grid_dirty = False
         self._grid_version_used = -1
         self._last_pose_wall = -math.inf
-        self._t_wall0 = time.monotonic()
+        # wall time already spent on the budget (a resumed run), and when this process started
+        # spending it: at the first tick with a map and a pose, not at start-up
+        self._wall_spent0 = 0.0
+        self._t_wall0: float | None = None
+        self._t_created = time.monotonic()
         self._seq = 0
         self._next_state = 0.0
         self._plan_log: list[dict] = []
@@ -145,7 +150,7 @@ class ExplorerService(Service):
             self.log.warning("could not resume from %s: %s", folder, exc)
             return
         self._plan_log = list(state.get("plans") or [])
-        self._t_wall0 -= float(state.get("wall_time_s") or 0.0)
+        self._wall_spent0 = float(state.get("wall_time_s") or 0.0)
         self.log.info("resumed the run's exploration: %.1f m travelled, %d goals",
                       self.core.distance_m, self.core.n_goals)  # fmt: skip
         if state.get("done"):
@@ -220,8 +225,15 @@ class ExplorerService(Service):
         if now - self._last_pose_wall > self.cfg.pose_timeout_s:
             self._send(0.0, 0.0)  # no pose, no driving
             return
-        if now - self._t_wall0 > self.cfg.time_budget_s:
+        if self._t_wall0 is None and self.core.grid is not None:
+            self._t_wall0 = now
+        if self._wall_spent(now) > self.cfg.time_budget_s:
             self.core.finish("time_budget")
+            return
+        waited = now - self._t_created
+        if self._t_wall0 is None and waited > self.cfg.time_budget_s + STARTUP_GRACE_S:
+            self.log.error("no navigation graph after %.0f s: giving up", waited)
+            self.core.finish("no_graph")
             return
         if self._need_sync and now >= self._next_sync:
             self._sync_graph()
@@ -252,6 +264,11 @@ class ExplorerService(Service):
             self.state_pub.put(self._state())
         if self.core.done:
             self._finish()
+
+    def _wall_spent(self, now: float) -> float:
+        """Wall time spent on the budget: by earlier processes of this run, and by this one since
+        it had a map."""
+        return self._wall_spent0 + (0.0 if self._t_wall0 is None else now - self._t_wall0)
 
     def _refresh_grid(self) -> None:
         """Hand the core a dense box of the grid: the allocated tiles, padded by the view range
@@ -347,7 +364,7 @@ class ExplorerService(Service):
         state["history"] = self.core.history
         state["path_queries"] = self.n_path_queries
         state["path_errors"] = self.path_errors
-        state["wall_time_s"] = time.monotonic() - self._t_wall0
+        state["wall_time_s"] = self._wall_spent(time.monotonic())
         (out / "state.json").write_text(json.dumps(state, indent=1, default=json_default))
         with open(out / "trajectory.csv", "w", newline="") as f:
             w = csv.writer(f)
