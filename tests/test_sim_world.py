@@ -167,7 +167,7 @@ def test_ply_round_trip(tmp_path):
     assert np.array_equal(back.astype(np.float32), pts)
     assert np.array_equal(back_labels, labels)
     header = path.read_bytes()[:300].decode("ascii", "replace")
-    assert "binary_little_endian" in header and "property ushort label" in header
+    assert "binary_little_endian" in header and "property int label" in header
 
 
 def test_ply_reader_ascii_and_errors(tmp_path):
@@ -178,7 +178,7 @@ def test_ply_reader_ascii_and_errors(tmp_path):
     )
     pts, labels = read_labelled_ply(p)
     assert pts.tolist() == [[0, 1, 2], [3, 4, 5]] and labels.tolist() == [4, 6]
-    with pytest.raises(PlyError, match="no vertex property"):
+    with pytest.raises(PlyError, match="vertex property .label. missing"):
         read_labelled_ply(p, label_field="label")
     bad = tmp_path / "b.ply"
     bad.write_bytes(

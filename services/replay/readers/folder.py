@@ -15,126 +15,20 @@ from pathlib import Path
 
 import numpy as np
 
+from smana.common import ply
 from smana.common.messages import quat_to_matrix
 
 from .base import DatasetError, DatasetReader, Scan, check_poses, rate_from_stamps, read_times
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
-
-
-class PlyHeader:
-    """The parts of a PLY header needed to read its vertices."""
-
-    def __init__(self, path: Path):
-        self.path = path
-        with path.open("rb") as f:
-            if f.readline().strip() != b"ply":
-                raise DatasetError(path, "not a PLY file (no 'ply' magic)")
-            self.format = None
-            elements: list[tuple[str, int, list[tuple[str, str | None]]]] = []
-            while True:
-                line = f.readline()
-                if not line:
-                    raise DatasetError(path, "PLY header has no end_header")
-                words = line.decode("ascii", "replace").split()
-                if not words or words[0] in ("comment", "obj_info"):
-                    continue
-                if words[0] == "end_header":
-                    break
-                if words[0] == "format" and len(words) >= 2:
-                    self.format = words[1]
-                elif words[0] == "element" and len(words) == 3:
-                    elements.append((words[1], int(words[2]), []))
-                elif words[0] == "property" and elements:
-                    if words[1] == "list":  # a list (faces): no fixed size
-                        elements[-1][2].append((words[-1], None))
-                    elif words[1] in _PLY_TYPES and len(words) == 3:
-                        elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
-                    else:
-                        raise DatasetError(path, f"PLY property line not understood: {line!r}")
-                else:
-                    raise DatasetError(path, f"PLY header line not understood: {line!r}")
-            self.data_offset = f.tell()
-        if self.format not in ("ascii", "binary_little_endian", "binary_big_endian"):
-            raise DatasetError(path, f"PLY format {self.format!r} not supported")
-        names = [e[0] for e in elements]
-        if "vertex" not in names:
-            raise DatasetError(path, "PLY has no 'vertex' element")
-        k = names.index("vertex")
-        if any(t is None for e in elements[: k + 1] for _, t in e[2]):
-            raise DatasetError(path, "PLY list properties before or in 'vertex' are not supported")
-        self.skip_rows = sum(e[1] for e in elements[:k])  # only for ASCII
-        order = ">" if self.format == "binary_big_endian" else "<"
-        self.skip_bytes = sum(e[1] * np.dtype([(n, order + t) for n, t in e[2]]).itemsize
-                              for e in elements[:k])  # fmt: skip
-        self.n_vertices = elements[k][1]
-        self.properties = dict(elements[k][2])
-        self.dtype = np.dtype([(n, order + t) for n, t in elements[k][2]])
-
-    def problem(self, label_field: str) -> str | None:
-        props = ", ".join(self.properties)
-        for axis in "xyz":
-            if self.properties.get(axis, "")[:1] != "f":
-                return f"vertex property {axis!r} missing or not float (properties: {props})"
-        if self.properties.get(label_field, "")[:1] not in ("i", "u"):
-            return f"integer vertex property {label_field!r} missing (properties: {props})"
-        if self.format != "ascii":
-            need = self.data_offset + self.skip_bytes + self.n_vertices * self.dtype.itemsize
-            size = self.path.stat().st_size
-            if size < need:
-                return f"truncated: {size} bytes, the header announces {need}"
-        return None
-
-    def read(self) -> np.ndarray:
-        if self.format == "ascii":
-            with self.path.open("rb") as f:
-                f.seek(self.data_offset)
-                for _ in range(self.skip_rows):
-                    f.readline()
-                rows = [f.readline() for _ in range(self.n_vertices)]
-            try:
-                table = np.loadtxt(rows, dtype=np.float64, ndmin=2)
-            except ValueError as exc:
-                raise DatasetError(self.path, f"bad ASCII vertex data ({exc})") from None
-            if table.shape != (self.n_vertices, len(self.dtype.names)) and self.n_vertices:
-                raise DatasetError(self.path, "ASCII vertex rows do not match the properties")
-            out = np.zeros(self.n_vertices, self.dtype)
-            for j, n in enumerate(self.dtype.names):
-                out[n] = table[:, j] if self.n_vertices else 0
-            return out
-        return np.fromfile(
-            self.path, self.dtype, count=self.n_vertices,
-            offset=self.data_offset + self.skip_bytes,
-        )  # fmt: skip
 
 
 def write_ply(path: Path, points, labels, confidences=None, binary: bool = True) -> None:
     """Write a labelled PLY (the format this reader takes), e.g. to export scans from elsewhere."""
     points = np.asarray(points, np.float32)
-    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "<u2")]
+    columns = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2],
+               "label": np.asarray(labels)}  # fmt: skip
     if confidences is not None:
-        fields.append(("confidence", "<f4"))
-    arr = np.zeros(points.shape[0], fields)
-    arr["x"], arr["y"], arr["z"] = points.T
-    arr["label"] = labels
-    if confidences is not None:
-        arr["confidence"] = confidences
-    ply_names = {"<f4": "float", "<u2": "ushort"}
-    header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0",
-              f"element vertex {arr.size}"]  # fmt: skip
-    header += [f"property {ply_names[t]} {n}" for n, t in fields] + ["end_header"]
-    with Path(path).open("wb") as f:
-        f.write(("\n".join(header) + "\n").encode())
-        if binary:
-            f.write(arr.tobytes())
-        else:
-            for row in arr:
-                f.write((" ".join(str(v) for v in row) + "\n").encode())
+        columns["confidence"] = np.asarray(confidences, np.float32)
+    ply.write_ply(path, columns, binary=binary)
 
 
 def _npz_shapes(path: Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
@@ -227,13 +121,12 @@ class FolderReader(DatasetReader):
         if not self._items:
             first = self.skipped[0].reason if self.skipped else ""
             raise DatasetError(self.path, f"every scan was skipped: {first}")
-        self._plys: dict[Path, PlyHeader] = {}
 
     def _problem(self, f: Path, has_pose: bool) -> str | None:
         if f.suffix == ".ply":
             try:
-                return PlyHeader(f).problem(self.label_field)
-            except DatasetError as exc:
+                return ply.PlyHeader(f).problem(self.label_field)
+            except ply.PlyError as exc:
                 return exc.problem
         try:
             shapes = _npz_shapes(f)
@@ -270,7 +163,10 @@ class FolderReader(DatasetReader):
         f, pose, stamp = self._items[i]
         conf = None
         if f.suffix == ".ply":
-            v = PlyHeader(f).read()
+            try:
+                v = ply.PlyHeader(f).read()
+            except ply.PlyError as exc:
+                raise DatasetError(f, exc.problem) from None
             points = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
             labels = v[self.label_field].astype(np.int64)
             if "confidence" in v.dtype.names:
