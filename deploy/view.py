@@ -57,6 +57,13 @@ def cli(argv: list[str] | None = None) -> int:
     )
     args = p.parse_args(argv)
 
+    headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+                    or sys.platform in ("darwin", "win32"))  # fmt: skip
+    if args.spawn and headless:
+        print("smana view: no display to spawn a viewer on; start `rerun` on a machine with one "
+              "and stream to it with `smana view --viewer rerun+http://HOST:9876/proxy`",
+              file=sys.stderr)  # fmt: skip
+        return 2
     if args.spawn or args.viewer_url:
         cfg = config_from_args(args)
         setup_logging(cfg.general.log_level, "view")
@@ -78,8 +85,6 @@ def cli(argv: list[str] | None = None) -> int:
               file=sys.stderr)  # fmt: skip
         return 2
     cmd = [*viewer, *(["--web-viewer"] if args.web else []), str(rrd)]
-    headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
-                    or sys.platform in ("darwin", "win32"))  # fmt: skip
     if args.print_only:
         print(" ".join(cmd))
         return 0
