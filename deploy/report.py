@@ -42,10 +42,12 @@ def _load_json(path: Path) -> dict | None:
 
 def _trajectory(run_dir: Path) -> tuple[np.ndarray, str]:
     """(t, x, y, yaw) rows of the robot's trajectory and where they come from: the true poses
-    the recorder saved when it ran (simulation), else the poses the explorer drove by."""
+    the recorder saved when it ran (simulation), else the poses the explorer drove by, else the
+    poses the recorder heard (a replayed dataset)."""
     for path, cols, source in (
         (run_dir / "trajectory_truth.csv", [0, 1, 2, 4], "ground truth"),
         (run_dir / "explorer" / "trajectory.csv", [0, 1, 2, 3], "published pose"),
+        (run_dir / "trajectory_pose.csv", [0, 1, 2, 4], "published pose"),
     ):  # fmt: skip
         if path.is_file():
             try:
@@ -131,20 +133,25 @@ def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> 
     return out
 
 
-def _plots(run_dir: Path, world, graph, traj, state) -> dict[str, str]:
+def _plots(run_dir: Path, classes: ClassTable, world, graph, traj, state,
+           replay: dict | None = None) -> dict[str, str]:  # fmt: skip
+    """Top-down ground truth (simulated runs), the graph, exploration progress and, for a replay,
+    the integration latency per scan."""
     out_dir = run_dir / "plots"
     files = {}
-    classes = world.classes
-    top = world.top_class()
-    rgb = classes.colour_lut[top.data]
     goals = np.array([p["goal"] for p in (state or {}).get("plans", [])]).reshape(-1, 2)
     tracks = [(traj[:, 1:3], (255, 230, 0))] if len(traj) else []
     markers = [(goals, (255, 0, 200), 4)]
     if len(traj):
         markers.append((traj[:1, 1:3], (255, 255, 255), 7))
-    img = plots.top_down(rgb, top.origin_xy, top.resolution_m, tracks, markers,
-                         "ground truth, trajectory (yellow), goals (magenta)")  # fmt: skip
-    files["map"] = str(plots.save_png(out_dir / "world_trajectory.png", img).relative_to(run_dir))
+    if world is not None:
+        top = world.top_class()
+        rgb = classes.colour_lut[top.data]
+        img = plots.top_down(rgb, top.origin_xy, top.resolution_m, tracks, markers,
+                             "ground truth, trajectory (yellow), goals (magenta)")  # fmt: skip
+        files["map"] = str(
+            plots.save_png(out_dir / "world_trajectory.png", img).relative_to(run_dir)
+        )
     if graph is not None:
         flags, labels = graph["flags"], graph["labels"]
         g_rgb = np.full(flags.shape + (3,), 60, np.uint8)
@@ -173,11 +180,56 @@ def _plots(run_dir: Path, world, graph, traj, state) -> dict[str, str]:
             xticklabels={float(v): f"{v:g}" for v in plots._nice_ticks(0, t[-1])},
         )  # fmt: skip
         files["progress"] = str(plots.save_png(out_dir / "progress.png", img).relative_to(run_dir))
+    rows = [r for r in (replay or {}).get("per_scan") or [] if r[5] is not None]
+    if len(rows) >= 2:
+        seq = [float(r[1]) for r in rows]
+        img = plots.line_plot(
+            [plots.Series("scan published -> integrated (ms)", seq, [float(r[5]) for r in rows])],
+            "replay: integration latency per scan", "scan index", "ms",
+            xticklabels={float(v): f"{v:g}" for v in plots._nice_ticks(seq[0], seq[-1])},
+        )  # fmt: skip
+        files["replay_latency"] = str(
+            plots.save_png(out_dir / "replay_latency.png", img).relative_to(run_dir)
+        )
     return files
 
 
-def write_report(run_dir: str | Path, config) -> Path:
-    """Measure a finished run and write metrics.json, report.md and plots/; returns report.md."""
+def map_content(map_path: Path, names: dict[int, str]) -> dict:
+    """What the map holds, per class: needs no ground truth (a replayed dataset has none)."""
+    _, labels = ev.load_labelled_cloud(map_path)
+    ids, counts = np.unique(labels, return_counts=True)
+    n = int(labels.size)
+    per_class = {
+        names.get(int(i), str(int(i))): {"points": int(c), "share": float(c) / n}
+        for i, c in sorted(zip(ids, counts), key=lambda ic: -ic[1])
+    }
+    return {"n_points": n, "per_class": per_class}
+
+
+def replay_metrics(summary: dict, traj: np.ndarray) -> dict:
+    """The replay's own summary (without the per-scan rows) and the distance its poses cover."""
+    out = {k: v for k, v in summary.items() if k != "per_scan"}
+    if len(traj) >= 2:
+        out["distance_m"] = float(np.hypot(*np.diff(traj[:, 1:3], axis=0).T).sum())
+        out["duration_s"] = float(traj[-1, 0] - traj[0, 0])
+    n = summary.get("points_published") or 0
+    lat = (summary.get("latency") or {}).get("mean_ms")
+    per_scan = summary.get("per_scan") or []
+    if lat is not None and per_scan:
+        points = np.array([r[4] for r in per_scan if r[5] is not None], float)
+        if points.size:
+            out["points_per_scan_mean"] = float(points.mean())
+            out["latency_per_point_us"] = 1000.0 * lat / float(points.mean())
+    out["points_kept_share"] = n / summary["points_in"] if summary.get("points_in") else None
+    return out
+
+
+def write_report(run_dir: str | Path, config, replay: dict | None = None) -> Path:
+    """Measure a finished run and write metrics.json, report.md and plots/; returns report.md.
+
+    `replay` is the replay's summary (`RUN_DIR/replay.json`) when the run replayed a dataset: the
+    report then describes the dataset instead of a simulated world, and measures nothing against
+    ground truth (there is none)."""
     run_dir = Path(run_dir)
     t0 = time.perf_counter()
     classes = ClassTable.load(config.general.class_table)
@@ -210,14 +262,24 @@ def write_report(run_dir: str | Path, config) -> Path:
         metrics["explorer"]["map_label_share"] = ev.label_shares(
             np.repeat(list(counts), list(counts.values())), names)  # fmt: skip
     world = None
-    try:
-        world = ev.world_from_config(config)
-    except Exception as exc:  # a real robot or a missing world file: no ground truth
-        metrics["ground_truth"] = f"unavailable: {exc}"
+    if replay is not None:
+        metrics["ground_truth"] = "none: a replayed dataset"
+        metrics["replay"] = replay_metrics(replay, traj)
+        metrics["replay"]["trajectory_source"] = traj_source
+    else:
+        try:
+            world = ev.world_from_config(config)
+        except Exception as exc:  # a real robot or a missing world file: no ground truth
+            metrics["ground_truth"] = f"unavailable: {exc}"
     if world is not None:
         metrics["exploration"] = exploration_metrics(world, graph, traj, config)
         metrics["exploration"]["trajectory_source"] = traj_source
     map_path = _final_map(run_dir, classes)
+    if map_path is not None:
+        try:
+            metrics["map_content"] = map_content(map_path, names)
+        except (OSError, ValueError) as exc:
+            metrics["map_content"] = f"unreadable: {exc}"
     if map_path is not None and world is not None:
         try:
             mp, ml = ev.load_labelled_cloud(map_path)
@@ -237,8 +299,7 @@ def write_report(run_dir: str | Path, config) -> Path:
         "graph": "graph.npz" if (run_dir / "graph.npz").is_file() else None,
         "logs": sorted(str(p.relative_to(run_dir)) for p in (run_dir / "logs").glob("*.log")),
     }
-    if world is not None:
-        metrics["files"]["plots"] = _plots(run_dir, world, graph, traj, state)
+    metrics["files"]["plots"] = _plots(run_dir, classes, world, graph, traj, state, replay)
     metrics["report_time_s"] = time.perf_counter() - t0
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=json_default))
     report = run_dir / "report.md"
@@ -252,15 +313,27 @@ def _f(v, fmt=".2f", unit=""):
 
 def render_markdown(m: dict) -> str:
     c = m["config"]
-    lines = [
-        f"# smana run: {Path(m['run_dir']).name}",
-        "",
-        f"World `{c['world']}` seed {c['seed']}, map back-end `{c['backend']}` at "
-        f"{c['map_resolution_m']} m, graph {c['graph_resolution_m']} m, label noise "
-        f"`{c['label_noise']}`, pose noise {c['pose_noise_xy_m']} m / {c['pose_noise_yaw_rad']} "
-        f"rad, class costs {c['class_costs'] or 'from the class table'}.",
-        "",
-    ]
+    rp = m.get("replay")
+    lines = [f"# smana run: {Path(m['run_dir']).name}", ""]
+    if rp:
+        lines += [
+            f"Replay of `{rp.get('dataset')}` ({rp.get('format')}, class table "
+            f"`{rp.get('class_table')}`), map back-end `{c['backend']}` at "
+            f"{c['map_resolution_m']} m, graph {c['graph_resolution_m']} m. No ground truth: the "
+            "map is described, not measured.",
+            "",
+        ]
+    else:
+        lines += [
+            f"World `{c['world']}` seed {c['seed']}, map back-end `{c['backend']}` at "
+            f"{c['map_resolution_m']} m, graph {c['graph_resolution_m']} m, label noise "
+            f"`{c['label_noise']}`, pose noise {c['pose_noise_xy_m']} m / "
+            f"{c['pose_noise_yaw_rad']} rad, class costs "
+            f"{c['class_costs'] or 'from the class table'}.",
+            "",
+        ]
+    if rp:
+        lines += _replay_lines(rp)
     ex, ee = m.get("exploration") or {}, m.get("explorer") or {}
     if ex or ee:
         lines += ["## Exploration", "", "| figure | value |", "|---|---|"]
@@ -304,6 +377,13 @@ def render_markdown(m: dict) -> str:
         lines.append("")
     elif mp:
         lines += ["## Map against ground truth", "", str(mp), ""]
+    mc = m.get("map_content")
+    if isinstance(mc, dict) and mc.get("n_points"):
+        lines += ["## Map content", "", f"{mc['n_points']} occupied voxels.", "",
+                  "| class | voxels | share |", "|---|---|---|"]  # fmt: skip
+        lines += [f"| {name} | {s['points']} | {100 * s['share']:.1f} % |"
+                  for name, s in mc["per_class"].items()]  # fmt: skip
+        lines.append("")
     files = m.get("files") or {}
     if files.get("plots"):
         lines += ["## Plots", ""]
@@ -318,6 +398,41 @@ def render_markdown(m: dict) -> str:
     lines.append("- config used: `config.toml`; logs: " + ", ".join(
         f"`{p}`" for p in files.get("logs", [])))  # fmt: skip
     return "\n".join(lines) + "\n"
+
+
+def _replay_lines(rp: dict) -> list[str]:
+    lat = rp.get("latency") or {}
+    rate = rp.get("recorded_rate_hz")
+    mode = rp.get("mode", "-")
+    if mode == "realtime" and rp.get("rate_factor"):
+        mode += f" x{rp['rate_factor']:g}"
+    kept = rp.get("points_kept_share")
+    kept = None if kept is None else 100 * kept
+    rows = [
+        ("mode", mode),
+        ("recorded rate", _f(rate, ".1f", " Hz")),
+        ("scans in the dataset (readable)", str(rp.get("scans", "-"))),
+        ("skipped by the reader", str(len(rp.get("skipped_by_reader") or []))),
+        ("published / integrated", f"{rp.get('published', '-')} / {rp.get('acknowledged', '-')}"),
+        ("empty after filtering / unreadable",
+         f"{rp.get('empty', '-')} / {len(rp.get('read_errors') or [])}"),
+        ("lost (lockstep) / resent", f"{rp.get('lost', '-')} / {rp.get('resends', '-')}"),
+        ("late: published / integrated",
+         f"{rp.get('late_published', '-')} / {rp.get('late_integrated', '-')}"),
+        ("integration latency mean / p95 / max",
+         f"{_f(lat.get('mean_ms'), '.0f')} / {_f(lat.get('p95_ms'), '.0f')} / "
+         f"{_f(lat.get('max_ms'), '.0f')} ms"),
+        ("latency per point (mean scan)", _f(rp.get("latency_per_point_us"), ".2f", " us")),
+        ("points kept", f"{rp.get('points_published', '-')} of {rp.get('points_in', '-')} "
+                        f"({_f(kept, '.0f', ' %')})"),
+        ("dropped: out of range / ignored class / non-finite",
+         f"{rp.get('points_out_of_range', '-')} / {rp.get('points_ignored_class', '-')} / "
+         f"{rp.get('points_nonfinite', '-')}"),
+        ("throughput", _f(rp.get("scans_per_s"), ".1f", " scans/s")),
+        ("distance covered by the poses", _f(rp.get("distance_m"), ".1f", " m")),
+    ]  # fmt: skip
+    return ["## Replay", "", "| figure | value |", "|---|---|",
+            *[f"| {a} | {b} |" for a, b in rows], ""]  # fmt: skip
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -283,7 +283,18 @@ def test_run_starts_the_stack_and_writes_the_run_dir(dataset, tmp_path):
     assert metrics["replay"]["published"] == N_SCANS
     with np.load(run / "graph.npz") as g:
         assert (g["flags"] & 1).sum() > 100  # known nodes
-    assert "## Replay" in (run / "report.md").read_text()
+    # the report is the replay's: the dataset and its figures, the map's content, no ground truth
+    report = (run / "report.md").read_text()
+    assert "## Replay" in report and "## Map content" in report and "World `" not in report
+    assert f"| published / integrated | {N_SCANS} / {N_SCANS} |" in report
+    assert metrics["ground_truth"] == "none: a replayed dataset" and "exploration" not in metrics
+    assert metrics["replay"]["distance_m"] > 0 and metrics["replay"]["latency_per_point_us"] > 0
+    content = metrics["map_content"]
+    assert content["n_points"] > 0 and sum(c["share"] for c in content["per_class"].values()) == (
+        pytest.approx(1.0)
+    )
+    for plot in ("graph", "replay_latency"):
+        assert (run / metrics["files"]["plots"][plot]).stat().st_size > 1000, plot
 
 
 def test_pacer_realtime_priming_starts_the_clock_at_the_first_ack():

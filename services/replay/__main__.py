@@ -162,35 +162,22 @@ def _recorder_argv():
 
 
 def _write_report(run_dir: Path, cfg: SmanaConfig) -> None:
-    """`smana up`'s report (map export, files, metrics), then the replay's own section. There is
-    no simulated world behind a dataset, so the report's ground-truth part says unavailable."""
+    """`smana up`'s report (map export, files, metrics, plots), in its replay form: the dataset,
+    the replay's figures and the map's content instead of measures against a simulated world."""
     import json
 
-    summary_path = run_dir / "replay" / "replay.json"
-    if not summary_path.is_file():
-        summary_path = run_dir / "replay.json"
+    summary_path = run_dir / "replay.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
+    if summary is None:
+        print(f"smana replay: no {summary_path} (the replay did not finish); the report has no "
+              "replay section", file=sys.stderr)  # fmt: skip
     try:
         from smana.deploy import report
 
-        no_world = dataclasses.replace(cfg.sim, world=f"ply:{run_dir / 'no-ground-truth.ply'}")
-        path = report.write_report(run_dir, dataclasses.replace(cfg, sim=no_world))
+        path = report.write_report(run_dir, cfg, replay=summary or {})
     except Exception as exc:  # noqa: BLE001 - the run's own outcome matters more
         print(f"smana replay: the run report failed: {exc}", file=sys.stderr)
-        path = run_dir / "report.md"
-    if summary is None:
         return
-    metrics_path = run_dir / "metrics.json"
-    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
-    metrics["replay"] = {k: v for k, v in summary.items() if k != "per_scan"}
-    metrics_path.write_text(json.dumps(metrics, indent=2))
-    from smana.services.replay.service import summary_line
-
-    text = path.read_text() if path.is_file() else ""
-    text += (
-        f"\n## Replay\n\n`{summary['dataset']}` ({summary['format']}): {summary_line(summary)}.\n"
-    )
-    path.write_text(text)
     print(f"smana replay: report written to {path}", flush=True)
 
 
