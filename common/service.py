@@ -16,7 +16,10 @@ work in `tick()`. The base class does the rest:
 - decodes and validates payloads; a bad one is counted by its `MessageError.kind`, logged (rate
   limited) and dropped: a service never dies of bad input, and its state stays as it was;
 - stops on SIGINT/SIGTERM: stops the loop, calls `on_stop()` (flush state), undeclares everything,
-  closes the session. It exits well within 5 s unless `on_stop` itself takes longer.
+  closes the session. It exits well within 5 s unless `on_stop` itself takes longer. A stop that
+  hangs outside `on_stop` (leaving the loop, or closing zenoh) for `STOP_DEADLINE_S` dumps every
+  thread's stack to the log and exits with status 3: with its supervisor gone (killed -9), nobody
+  else would end it.
 
 A complete minimal example is `tests/support/echo_service.py`.
 
@@ -55,6 +58,50 @@ from smana.common.messages import (
 )
 from smana.common.zenoh_config import make_zenoh_config
 
+try:  # Linux: a child can ask to be signalled when its parent dies, even by SIGKILL
+    import ctypes
+
+    _LIBC = ctypes.CDLL(None, use_errno=True)
+    _PR_SET_PDEATHSIG = 1
+except OSError:  # pragma: no cover - not Linux
+    _LIBC = None
+
+
+def on_stop_signals(callback: Callable[[int], Any], signals=(signal.SIGINT, signal.SIGTERM)):
+    """Call `callback(signum)` on a helper thread whenever one of `signals` arrives.
+
+    A Python signal handler runs on the main thread between two bytecodes, possibly while that
+    thread holds a lock (inside `Event.wait`, say). A handler that takes the same lock (`Event.set`
+    does) deadlocks the process for good: a planner once ignored SIGTERM that way. So the handler
+    only writes the signal's number to a pipe; a daemon thread reads it and does the work."""
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+
+    def handler(signum, _frame) -> None:
+        try:
+            os.write(w, bytes([signum]))
+        except OSError:  # the pipe is full: stops are already on their way
+            pass
+
+    def watch() -> None:
+        while data := os.read(r, 64):
+            for signum in data:
+                callback(signum)
+
+    threading.Thread(target=watch, name="stop-signals", daemon=True).start()
+    for sig in signals:
+        signal.signal(sig, handler)
+
+
+def die_with_parent() -> None:
+    """For child processes (a `preexec_fn`, a pool's initializer): SIGTERM them when the process
+    that started them dies, so a parent killed with -9 leaves nothing behind. Async-signal-safe:
+    one system call."""
+    if _LIBC is not None:
+        _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+STOP_DEADLINE_S = 5.0  # after a stop signal: to leave the loop, and to close zenoh after on_stop
 FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones are dropped
 
 
@@ -152,6 +199,8 @@ class Service:
         self.state = "starting"
         self._t0 = time.monotonic()
         self._stop = threading.Event()
+        self._signalled = False  # a stop signal came: the stop watchdog is armed
+        self._watchdog: threading.Timer | None = None
         self._wake = threading.Event()
         self._fifo: collections.deque = collections.deque()
         self._latest: list[tuple[_Latest, Callable]] = []
@@ -254,10 +303,13 @@ class Service:
                 self._loop()
             finally:
                 self.state = "stopping"
+                self._disarm()  # on_stop may take its time (a large map to save)
                 try:
                     self.on_stop()
                 except Exception:
                     self.log.exception("on_stop failed")
+                if self._signalled:
+                    self._arm("undeclaring and closing the zenoh session")
                 for d in reversed(self._declared):
                     try:
                         d.undeclare()
@@ -265,6 +317,7 @@ class Service:
                         pass
                 self._declared.clear()
                 self.session = None
+        self._disarm()
         self.log.info("%s stopped", self.name)
         return 0
 
@@ -279,8 +332,35 @@ class Service:
     def _install_signal_handlers(self) -> None:
         if threading.current_thread() is not threading.main_thread():
             return  # in-process tests run services in threads and call stop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda *_: self.stop())
+        on_stop_signals(lambda _sig: self._on_signal())
+
+    def _on_signal(self) -> None:
+        if not self._signalled:
+            self._signalled = True
+            self._arm("leaving the main loop")
+        self.stop()
+
+    def _arm(self, phase: str) -> None:
+        """Exit hard if `phase` of a signalled stop takes longer than STOP_DEADLINE_S."""
+        self._disarm()
+        self._watchdog = threading.Timer(STOP_DEADLINE_S, self._hung, (phase,))
+        self._watchdog.daemon = True
+        self._watchdog.start()
+
+    def _disarm(self) -> None:
+        if self._watchdog is not None:
+            self._watchdog.cancel()
+            self._watchdog = None
+
+    def _hung(self, phase: str) -> None:
+        import faulthandler
+        import sys
+
+        self.log.error("stopping hung %.0f s %s: exiting (stacks follow)", STOP_DEADLINE_S, phase)
+        for h in logging.getLogger().handlers:
+            h.flush()
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        os._exit(3)
 
     def _push(self, item) -> None:
         if len(self._fifo) >= FIFO_LIMIT:

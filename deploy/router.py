@@ -8,10 +8,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import signal
 import threading
 
 from smana.common.config import ZenohConfig
+from smana.common.service import on_stop_signals
 from smana.common.zenoh_config import make_zenoh_config
 
 log = logging.getLogger("smana.router")
@@ -61,8 +61,7 @@ def cli(argv: list[str] | None = None) -> int:
     listen = args.listen or cfg.deploy.router_listen
     connect = args.connect or cfg.deploy.router_connect
     stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    on_stop_signals(lambda _sig: stop.set())
     with open_router(listen, cfg.zenoh, connect) as session:
         log.info("zenoh router %s listening on %s", session.zid(), ", ".join(listen))
         if connect:

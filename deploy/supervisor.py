@@ -34,24 +34,9 @@ from smana.common import keys
 from smana.common.cli import config_from_args, make_parser, setup_logging
 from smana.common.config import ServiceDeployConfig, SmanaConfig
 from smana.common.messages import MessageError, ServiceStatus, decode
+from smana.common.service import die_with_parent, on_stop_signals
 
 log = logging.getLogger("smana.up")
-
-try:  # Linux: a child can ask to be signalled when its parent dies, even by SIGKILL
-    import ctypes
-
-    _LIBC = ctypes.CDLL(None, use_errno=True)
-    _PR_SET_PDEATHSIG = 1
-except OSError:  # pragma: no cover - not Linux
-    _LIBC = None
-
-
-def die_with_parent() -> None:
-    """`preexec_fn` for children: SIGTERM them when the process that started them dies, so a
-    supervisor killed with -9 leaves no stack behind. Async-signal-safe: one system call."""
-    if _LIBC is not None:
-        _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-
 
 # Start order follows the data flow: producers first, so consumers find their inputs.
 SERVICE_ORDER = ("sim", "mapper", "navgraph", "planner", "explorer")
@@ -374,8 +359,7 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
     sup = Supervisor(config, run_dir, services)
     if record:
         add_recorder(sup)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: sup.stop())
+    on_stop_signals(lambda _sig: sup.stop())
     print(f"smana up: run directory {run_dir}", flush=True)
     code = sup.run(duration_s)
     try:

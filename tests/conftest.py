@@ -99,6 +99,19 @@ class ZenohStack:
             self._session = zenoh.open(make_zenoh_config(zc))
         return self._session
 
+    def publisher(self, key: str, timeout_s: float = 10.0):
+        """A publisher that blocks rather than drops (test messages must all arrive) and has
+        seen a matching subscriber: puts made right after declaring are otherwise lost."""
+        import zenoh
+
+        pub = self.session.declare_publisher(
+            key, congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )  # fmt: skip
+        if not wait_for(lambda: pub.matching_status.matching, timeout_s):
+            raise TimeoutError(f"no subscriber for {key} after {timeout_s} s")
+        return pub
+
     def wait_alive(self, service: str, timeout_s: float = 30.0, robot: str | None = None) -> None:
         from smana.common import keys
 

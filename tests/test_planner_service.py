@@ -102,7 +102,7 @@ def test_navgraph_and_planner_over_zenoh(zenoh_stack):
     r = plan(stack, (1, 1), (2, 3))
     assert not r.ok and r.error == "no_graph"
 
-    pub = stack.session.declare_publisher(keys.map_delta(stack.robot))
+    pub = stack.publisher(keys.map_delta(stack.robot))
     for d in deltas[:3]:
         pub.put(encode(d))
     assert wait_for(lambda: stats(stack, "navgraph")["deltas"] == 3)

@@ -125,3 +125,63 @@ def test_error_reply_raises(zenoh_stack):
         request(zenoh_stack.session, keys.key("test", "echo", "nothing"), timeout_s=1)
     assert info.value.kind == "no_reply"
     assert status(zenoh_stack).errors == {"refused": 1}
+
+
+def test_a_stop_that_hangs_ends_hard_with_the_stacks_logged(zenoh_stack):
+    # a handler stuck for a minute: SIGTERM cannot end the loop, the watchdog ends the process
+    proc = start_echo(zenoh_stack, "--cloud-delay", "60")
+    c = SemanticCloud(points=np.zeros((10, 3), "f4"), labels=np.ones(10, "u1"),
+                      confidences=np.ones(10, "f4"))  # fmt: skip
+
+    def stuck() -> bool:
+        zenoh_stack.session.put(keys.key("test", "echo", "cloud"), encode(c))
+        try:
+            request(zenoh_stack.session, keys.status("test", "echo"), timeout_s=1)
+        except QueryError:
+            return True  # the main loop no longer answers: it is in the handler
+        return False
+
+    assert wait_for(stuck, 20)
+    t0 = time.monotonic()
+    assert zenoh_stack.stop(proc, signal.SIGTERM, timeout_s=15) == 3
+    assert time.monotonic() - t0 < 12
+    log = zenoh_stack.log(proc)
+    assert "stopping hung 5 s leaving the main loop" in log
+    assert "on_cloud" in log  # the stack says where
+
+
+STORM = """
+import signal, threading
+from smana.common.service import on_stop_signals
+wake, seen, done = threading.Event(), [], threading.Event()
+def on_signal(sig):
+    seen.append(sig)
+    if sig == signal.SIGUSR1:
+        done.set()
+    wake.set()
+on_stop_signals(on_signal, (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1))
+print("ready", flush=True)
+while not done.is_set():
+    wake.wait(0.0001)  # the main thread in and out of the Event's lock, as a service loop is
+    wake.clear()
+print(len(seen), flush=True)
+"""
+
+
+def test_stop_signals_never_deadlock_the_main_loop():
+    # A handler that set an Event from the main thread deadlocked when the signal came while
+    # that thread held the Event's lock (a planner ignored SIGTERM for good). Through a storm of
+    # signals on a main thread busy in Event.wait, the loop keeps running and hears the last one.
+    # (The lock is taken by the handler's Event.set: a second signal landing inside it hung.)
+    import subprocess
+    import sys
+
+    n = 300
+    proc = subprocess.Popen([sys.executable, "-c", STORM], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    for i in range(n):  # a burst: with the old handler, 9 runs in 10 hung
+        proc.send_signal(signal.SIGTERM if i % 2 else signal.SIGINT)
+    assert wait_for(lambda: proc.send_signal(signal.SIGUSR1) or proc.poll() is not None, 10, 0.2)
+    out, _ = proc.communicate(timeout=5)
+    assert proc.returncode == 0
+    assert int(out.strip()) >= 3  # the kernel merges signals that arrive together

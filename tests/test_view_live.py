@@ -45,16 +45,17 @@ def test_live_stream_reaches_a_viewer(zenoh_stack, tmp_path):
         view = zenoh_stack.start("view", "-m", "smana.deploy.cli", "view", "--viewer", url,
                                  *zenoh_stack.zenoh_args(), "--robot", "test")  # fmt: skip
         zenoh_stack.wait_alive("recorder")
-        s, r = zenoh_stack.session, zenoh_stack.robot
+        r = zenoh_stack.robot
         delta = MapDelta(
             stamp_s=1.0, seq=1, cloud_seq=1, backend="octree-max", resolution_m=0.1,
             centres=np.array([[1.05, 1.05, 0.05], [1.15, 1.05, 0.05]], np.float32),
             labels=np.array([1, 4], np.uint16), confidences=np.ones(2, np.float32),
             occupied=np.ones(2, np.uint8), values=np.ones(2, np.float32),
         )  # fmt: skip
-        s.put(keys.map_delta(r), encode(delta))
+        zenoh_stack.publisher(keys.map_delta(r)).put(encode(delta))
+        poses = zenoh_stack.publisher(keys.pose(r))
         for i in range(20):
-            s.put(keys.pose(r), encode(Pose.from_xyz_yaw(0.1 * i, 0, 0, 0, stamp_s=0.2 * i)))
+            poses.put(encode(Pose.from_xyz_yaw(0.1 * i, 0, 0, 0, stamp_s=0.2 * i)))
             time.sleep(0.05)
         status = zenoh_stack.session.get(keys.status(r, "recorder") + "?format=json", timeout=3)
         assert any(rep.ok for rep in status)

@@ -8,13 +8,13 @@ are started too (no sim), and the run directory gets what `smana up` writes.
 from __future__ import annotations
 
 import dataclasses
-import signal
 import sys
 import time
 from pathlib import Path
 
 from smana.common.cli import config_from_args, make_parser, setup_logging
 from smana.common.config import SmanaConfig
+from smana.common.service import on_stop_signals
 
 STACK = ("mapper", "navgraph", "planner")
 
@@ -128,8 +128,7 @@ def run_stack(cfg: SmanaConfig, reader) -> int:
         sup.add("recorder", recorder(sup.config_path, cfg.general.robot))
     argv = [sys.executable, "-m", "smana.services.replay", "--config", str(sup.config_path)]
     sup.add("replay", argv, ServiceDeployConfig(restart="never"))
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: sup.stop())
+    on_stop_signals(lambda _sig: sup.stop())
     print(f"smana replay: run directory {run_dir}", flush=True)
     code = sup.run()
     if code != 0 and _replay_completed(run_dir):
