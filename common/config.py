@@ -132,6 +132,9 @@ class SimConfig:
     camera_max_range_m: float = _pos(default=8.0)
     camera_stride: int = _pos(default=1)  # keep every n-th pixel row and column in the cloud
     publish_images: bool = False  # robot/image/{rgb,depth,semantic} with each camera frame
+    # where frames are degraded and encoded while the next renders: "thread", "process" or "off"
+    # (in line); measured in services/sim/finishing.py. Lockstep always finishes in line.
+    camera_worker: Literal["process", "thread", "off"] = "thread"
     lidar_enabled: bool = False
     lidar_rate_hz: float = _pos(default=10.0)
     lidar_channels: int = _pos(default=64)  # Ouster OS1-64: 64 x 2048, 33.2 deg vertical

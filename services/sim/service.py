@@ -21,9 +21,8 @@ from __future__ import annotations
 import collections
 import math
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
-
-import numpy as np
+from concurrent.futures import Future
+from concurrent.futures.process import BrokenProcessPool
 
 from smana.common import keys
 from smana.common.classes import ClassTable
@@ -31,6 +30,7 @@ from smana.common.config import SmanaConfig
 from smana.common.messages import MapDelta, VelocityCommand
 from smana.common.service import Service, run_service
 
+from .finishing import FinishedFrame, finished, make_worker
 from .simulation import Simulation, pose_message
 
 MAX_DEBT_S = 0.25  # wall seconds the simulation may lag before the debt is forgiven
@@ -67,11 +67,14 @@ class SimService(Service):
         self.lidar_ms: list[float] = []
         self._rtf_mark = (time.monotonic(), t)
         self.achieved_rtf = 0.0
-        # Degrading a frame runs on a worker while the loop steps physics and renders the next.
-        # PyBullet holds the GIL while it renders, so only OpenCV's SLIC (which releases it)
-        # really overlaps: ~10-20 % more frames per second. Not in lockstep, where the world
-        # must not move between a cloud and its MapDelta.
-        self._worker = None if sc.lockstep else ThreadPoolExecutor(1, "sim-camera")
+        # Degrading and encoding a frame runs on a worker (`camera_worker`, see finishing.py)
+        # while the loop steps physics and renders the next. Not in lockstep,
+        # where the world must not move between a cloud and its MapDelta.
+        worker = make_worker(
+            "off" if sc.lockstep else sc.camera_worker, sc, sim.finisher,
+            sim.world.classes.colour_lut,
+        )  # fmt: skip
+        self._worker, self._finish = worker if worker is not None else (None, None)
         self._in_flight: collections.deque[tuple[Future, float]] = collections.deque()
 
     # -- wiring ----------------------------------------------------------------------------------
@@ -177,11 +180,11 @@ class SimService(Service):
             t0 = time.perf_counter()
             pending = sim.capture_camera()
             if self._worker is None:
-                self._publish_frame(sim.finish_camera(pending), t0)
+                self._publish_frame(finished(sim.finish_camera(pending), sc.publish_images), t0)
                 sent_cloud = True
             else:
                 self._drain(block=True)  # one frame in flight at most: order, bounded memory
-                self._in_flight.append((self._worker.submit(sim.finish_camera, pending), t0))
+                self._in_flight.append((self._worker.submit(self._finish, pending), t0))
         if sc.lidar_enabled and t >= self.next_lidar:
             self.next_lidar = _next(self.next_lidar, self.period_lidar, sim.time_s)
             t0 = time.perf_counter()
@@ -196,12 +199,22 @@ class SimService(Service):
         """Publish the frames the worker has finished, oldest first."""
         while self._in_flight and (block or self._in_flight[0][0].done()):
             future, t0 = self._in_flight.popleft()
-            self._publish_frame(future.result(), t0)  # a failure is counted by the loop
+            try:
+                frame = future.result()  # any other failure is counted by the loop
+            except BrokenProcessPool:
+                self.log.error("the camera worker process died: finishing frames in line from "
+                               "now on (frame lost)")  # fmt: skip
+                self.count_error("camera_worker", "worker process died")
+                self._worker.shutdown(wait=False, cancel_futures=True)
+                self._worker = None
+                self._in_flight.clear()
+                return
+            self._publish_frame(frame, t0)
 
-    def _publish_frame(self, frame, t0: float) -> None:
-        self.cloud_pub.put(frame.to_cloud())
-        if self.image_pubs:
-            self._publish_images(frame)
+    def _publish_frame(self, frame: FinishedFrame, t0: float) -> None:
+        self.cloud_pub.put(frame.cloud)
+        for kind, payload in frame.images.items():
+            self.image_pubs[kind].put(payload)
         self.camera_ms.append(1000 * (time.perf_counter() - t0))
         self._sent(frame.seq)
 
@@ -209,18 +222,6 @@ class SimService(Service):
         if self.sc.lockstep:
             self.awaiting = seq
             self._awaiting_since = time.monotonic()
-
-    def _publish_images(self, frame) -> None:
-        h, w = frame.semantic.shape
-        common = {"stamp_s": frame.stamp_s, "seq": frame.seq, "width": w, "height": h}
-        depth = np.where(np.isfinite(frame.depth_m), frame.depth_m, 0.0).astype("<f4")
-        semantic = np.clip(frame.semantic, 0, None).astype("<u2")  # 0 (unknown): no point
-        for kind, enc, data in (
-            ("rgb", "rgb8", np.ascontiguousarray(frame.rgb)),
-            ("depth", "32FC1", depth),
-            ("semantic", "16UC1", semantic),
-        ):
-            self.image_pubs[kind].put({**common, "encoding": enc, "data": data.tobytes()})
 
     def _measure_rtf(self) -> None:
         now = time.monotonic()

@@ -98,6 +98,54 @@ def pose_message(m: np.ndarray, stamp_s: float, seq: int) -> Pose:
     return Pose(float(stamp_s), int(seq), m[:3, 3].copy(), matrix_to_quat(m[:3, :3]))
 
 
+def _seed_sequences(seed: int) -> list[np.random.SeedSequence]:
+    """The label, confidence and pose-noise streams of a seed (the same ones in any process)."""
+    return np.random.SeedSequence([int(seed), 0x51A]).spawn(3)
+
+
+class FrameFinisher:
+    """The second half of a camera frame: degrade its labels and build its world-frame cloud.
+
+    It holds the label and confidence random streams, so frames must pass through one finisher in
+    the order they were captured. It touches no PyBullet state: it may run on another thread or in
+    another process (the sim service finishes frames in a worker process while the next renders).
+    """
+
+    def __init__(self, config: SimConfig, colour_lut: np.ndarray):
+        labels_ss, conf_ss, _ = _seed_sequences(config.seed)
+        self.stride = config.camera_stride
+        self.degrader = LabelDegrader(
+            config.noise, np.random.default_rng(labels_ss), colour_lut,
+            region_px=config.slic_region_px, iterations=config.slic_iterations,
+        )  # fmt: skip
+        self._conf_rng = np.random.default_rng(conf_ss)
+
+    def finish(
+        self, pending: PendingFrame, stride: int | None = None, timings: dict | None = None
+    ) -> CameraFrame:
+        stride = self.stride if stride is None else int(stride)
+        if stride < 1:
+            raise ValueError(f"stride must be >= 1, got {stride}")
+        cap = pending.capture
+        sem = self.degrader.degrade(cap.labels, timings).labels
+        t0 = time.perf_counter()
+        rows, cols = np.nonzero(sem[::stride, ::stride] >= 0)
+        rows, cols = rows * stride, cols * stride
+        pts_sensor = cap.points_sensor(rows, cols)
+        frame = CameraFrame(
+            stamp_s=pending.stamp_s, seq=pending.seq, rgb=cap.rgb, depth_m=cap.depth_m,
+            semantic_true=cap.labels, semantic=sem,
+            points=transform_points(pts_sensor, pending.world_from_sensor),
+            labels=sem[rows, cols].astype(np.uint16),
+            confidences=self.degrader.confidences(len(rows), self._conf_rng),
+            rows=rows, cols=cols, world_from_sensor=pending.world_from_sensor,
+            true_world_from_sensor=cap.world_from_sensor,
+        )  # fmt: skip
+        if timings is not None:
+            timings["cloud_ms"] = 1e3 * (time.perf_counter() - t0)
+        return frame
+
+
 class Simulation:
     """A garden world with a robot in it (module docstring)."""
 
@@ -138,12 +186,9 @@ class Simulation:
         )  # fmt: skip
         self.lidar_spec.validate()
         self._lidar: Lidar | None = None
-        labels_ss, conf_ss, pose_ss = np.random.SeedSequence([int(cfg.seed), 0x51A]).spawn(3)
-        self.degrader = LabelDegrader(
-            cfg.noise, np.random.default_rng(labels_ss), self.world.classes.colour_lut,
-            region_px=cfg.slic_region_px, iterations=cfg.slic_iterations,
-        )  # fmt: skip
-        self._conf_rng = np.random.default_rng(conf_ss)
+        self.finisher = FrameFinisher(cfg, self.world.classes.colour_lut)
+        self.degrader = self.finisher.degrader
+        pose_ss = _seed_sequences(cfg.seed)[2]
         self.pose_noise = PoseNoise(
             cfg.pose_noise_xy_m, cfg.pose_noise_yaw_rad, np.random.default_rng(pose_ss)
         )
@@ -215,31 +260,9 @@ class Simulation:
     def finish_camera(
         self, pending: PendingFrame, stride: int | None = None, timings: dict | None = None
     ) -> CameraFrame:
-        """The second half: degrade the labels and build the world-frame cloud. It touches no
-        PyBullet state and SLIC releases the GIL, so a worker thread may run it while the next
-        frame renders; frames must be finished in the order they were captured (the label and
-        confidence draws follow that order)."""
-        stride = self.config.camera_stride if stride is None else int(stride)
-        if stride < 1:
-            raise ValueError(f"stride must be >= 1, got {stride}")
-        cap = pending.capture
-        sem = self.degrader.degrade(cap.labels, timings).labels
-        t0 = time.perf_counter()
-        rows, cols = np.nonzero(sem[::stride, ::stride] >= 0)
-        rows, cols = rows * stride, cols * stride
-        pts_sensor = cap.points_sensor(rows, cols)
-        frame = CameraFrame(
-            stamp_s=pending.stamp_s, seq=pending.seq, rgb=cap.rgb, depth_m=cap.depth_m,
-            semantic_true=cap.labels, semantic=sem,
-            points=transform_points(pts_sensor, pending.world_from_sensor),
-            labels=sem[rows, cols].astype(np.uint16),
-            confidences=self.degrader.confidences(len(rows), self._conf_rng),
-            rows=rows, cols=cols, world_from_sensor=pending.world_from_sensor,
-            true_world_from_sensor=cap.world_from_sensor,
-        )  # fmt: skip
-        if timings is not None:
-            timings["cloud_ms"] = 1e3 * (time.perf_counter() - t0)
-        return frame
+        """The second half: degrade the labels and build the world-frame cloud (`FrameFinisher`).
+        Frames must be finished in the order they were captured."""
+        return self.finisher.finish(pending, stride, timings)
 
     def lidar_scan(self, timings: dict | None = None) -> LidarScan:
         """Cast one LiDAR scan; labels are the hit bodies' true classes (confidence 1)."""
