@@ -256,23 +256,29 @@ def test_lidar_pattern_is_an_os1_64():
     assert len(np.unique(np.round(el, 6))) == 64
 
 
-def test_frames_finished_on_a_worker_match_sequential_frames():
-    """The service degrades frames on a worker thread; the draws must not depend on that."""
-    from concurrent.futures import ThreadPoolExecutor
+@pytest.mark.parametrize("kind", ["thread", "process"])
+def test_frames_finished_on_a_worker_match_sequential_frames(kind):
+    """The service finishes frames on a worker (a process by default): the published bytes, label
+    and confidence draws included, must not depend on where."""
+    from smana.common.messages import SemanticCloud, decode
+    from smana.services.sim.finishing import finished, make_worker
 
-    cfg = SimConfig(size_m=6.0, seed=4, noise="medium", camera_width=64, camera_height=64)
+    cfg = SimConfig(size_m=6.0, seed=4, noise="medium", camera_width=64, camera_height=64,
+                    publish_images=True)  # fmt: skip
     with Simulation(cfg) as a, Simulation(cfg) as b:
         sequential, futures = [], []
-        with ThreadPoolExecutor(1) as worker:
+        executor, finish = make_worker(kind, cfg, b.finisher, b.world.classes.colour_lut)
+        with executor:
             for _ in range(3):
                 for s in (a, b):
                     s.set_velocity(0.3, 0.5)
                     s.step(0.2)
-                sequential.append(a.camera_frame())
-                futures.append(worker.submit(b.finish_camera, b.capture_camera()))
+                sequential.append(finished(a.camera_frame(), images=True))
+                futures.append(executor.submit(finish, b.capture_camera()))
             piped = [f.result() for f in futures]
     for f, g in zip(sequential, piped, strict=True):
-        assert f.seq == g.seq and f.stamp_s == g.stamp_s
-        assert np.array_equal(f.labels, g.labels)
-        assert np.array_equal(f.confidences, g.confidences)
-        assert np.allclose(f.points, g.points)
+        assert f.seq == g.seq
+        assert f.cloud == g.cloud  # the encoded message, to the byte
+        assert f.images == g.images and set(g.images) == {"rgb", "depth", "semantic"}
+        cloud = decode(g.cloud, SemanticCloud)
+        assert len(cloud.points) > 100 and cloud.confidences.min() < 1.0  # noise was applied
