@@ -5,6 +5,8 @@ takes the same gRPC stream a viewer takes and writes what arrived to an .rrd fil
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -14,6 +16,7 @@ import pytest
 
 from smana.common import keys
 from smana.common.messages import MapDelta, Pose, encode
+from smana.common.service import die_with_parent
 from tests.conftest import free_port, wait_for, wait_port
 
 pytestmark = [
@@ -38,6 +41,7 @@ def test_live_stream_reaches_a_viewer(zenoh_stack, tmp_path):
     viewer = subprocess.Popen(
         [sys.executable, "-m", "rerun", "--port", str(port), "--save", str(received)],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        preexec_fn=die_with_parent,
     )  # fmt: skip
     try:
         wait_port(port)
@@ -63,7 +67,8 @@ def test_live_stream_reaches_a_viewer(zenoh_stack, tmp_path):
         # the receiver flushes as data arrives
         assert wait_for(lambda: received.is_file() and "/world/robot" in _entities(received), 10)
     finally:
-        viewer.terminate()
+        # `python -m rerun` runs the viewer binary as its child: end the whole group
+        os.killpg(viewer.pid, signal.SIGTERM)
         viewer.wait(timeout=10)
     ents = _entities(received)
     for e in ("/world/robot", "/world/trajectory", "/world/map/b0_0"):
