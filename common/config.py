@@ -46,6 +46,14 @@ class GeneralConfig:
     run_dir: str = ""  # empty: runs/<timestamp> for `smana up`; no files for a lone service
     status_period_s: float = _pos(default=1.0)
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    # Plausibility of inputs (common/plausibility.py): a stamp more than stamp_window_s behind
+    # its stream's clock, or ahead of where that clock can be (max_time_rate seconds of stream
+    # time per wall second: a simulator's real-time factor, a lockstep replay), is refused; so is
+    # a pose further from the last one than max_speed_mps allows, plus pose_slack_m of noise.
+    stamp_window_s: float = _pos(default=5.0)
+    max_time_rate: float = _pos(default=100.0)
+    max_speed_mps: float = _pos(default=3.0)
+    pose_slack_m: float = _nonneg(default=1.0)
 
     def validate(self) -> None:
         from smana.common.keys import check_robot
@@ -82,7 +90,10 @@ class ServiceDeployConfig:
 
     enabled: bool = True
     restart: RestartPolicy = "on-failure"
-    restart_delay_s: float = _nonneg(default=0.5)
+    # The first restart waits restart_delay_s, each further one in restart_window_s twice as
+    # long, up to restart_max_delay_s. Past max_restarts in the window the service is in a crash
+    # loop: it is still restarted (every restart_max_delay_s) and the run is reported failed.
+    restart_delay_s: float = _nonneg(default=0.1)
     restart_max_delay_s: float = _nonneg(default=10.0)
     max_restarts: int = _nonneg(default=5)
     restart_window_s: float = _pos(default=60.0)
@@ -97,7 +108,11 @@ class DeployConfig:
     router_listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     router_connect: list[str] = field(default_factory=list)  # other routers (robot -> base)
     robots: list[str] = field(default_factory=list)  # multi-robot: one instance per robot name
-    health_timeout_s: float = _pos(default=10.0)
+    # Health: a service shows its `starting` token within health_timeout_s of its start (or it is
+    # killed and restarted), then its `alive` token within startup_timeout_s (loading a map,
+    # compiling numba kernels on a cold cache: minutes on a loaded 2-core machine).
+    health_timeout_s: float = _pos(default=30.0)
+    startup_timeout_s: float = _pos(default=600.0)
     stop_timeout_s: float = _pos(default=5.0)
     finish_with: str = "explorer"  # the run ends when this service exits with status 0
     sim: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)

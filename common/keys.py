@@ -90,12 +90,21 @@ def query(robot: str, service: str, name: str) -> str:
 
 
 def alive(robot: str, service: str) -> str:
-    """Liveliness token of a running service."""
+    """Liveliness token of a running service (ready: warmed up, inputs declared)."""
     return f"{PREFIX}/{check_robot(robot)}/alive/{service}"
 
 
 def alive_any(robot: str = "*") -> str:
     return f"{PREFIX}/{robot}/alive/*"
+
+
+def starting(robot: str, service: str) -> str:
+    """Liveliness token of a service that is up but not yet ready (loading, compiling)."""
+    return f"{PREFIX}/{check_robot(robot)}/starting/{service}"
+
+
+def starting_any(robot: str = "*") -> str:
+    return f"{PREFIX}/{robot}/starting/*"
 
 
 def status_any(robot: str = "*") -> str:

@@ -26,6 +26,14 @@ import numpy as np
 SCHEMA_VERSION = 1
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024  # a 131k-point cloud is ~2.2 MB; 64 MB leaves room for maps
 
+# Bounds on values no robot can produce: refused as `value` by the decoder, so no service ever
+# computes with them. Coordinates: 1000 km from the world origin. Stamps: seconds (simulated,
+# dataset or Unix time) up to the year 2286. Sequence numbers and every integer: int64.
+COORD_LIMIT_M = 1.0e6
+STAMP_LIMIT_S = 1.0e10
+INT_LIMIT = 2**63 - 1
+RESOLUTION_RANGE_M = (1.0e-3, 100.0)
+
 ERROR_KINDS = (
     "oversize",  # payload larger than the limit
     "malformed",  # not msgpack/JSON, or not a map with a type tag
@@ -60,14 +68,17 @@ class ArraySpec:
     group: str | None = None
     finite: bool = True
     shapes: tuple[tuple[int | None, ...], ...] = ()  # alternatives to `shape` (e.g. 2 or 3 coords)
+    limit: float | None = None  # largest magnitude a value may have (coordinates: COORD_LIMIT_M)
 
     def allowed_shapes(self) -> tuple[tuple[int | None, ...], ...]:
         return (self.shape, *self.shapes)
 
 
-def array(dtypes, shape, group=None, finite=True, shapes=(), default=None):
+def array(dtypes, shape, group=None, finite=True, shapes=(), default=None, limit=None):
     """A dataclass field holding a numpy array with the given spec."""
-    spec = ArraySpec(tuple(np.dtype(d).str for d in dtypes), tuple(shape), group, finite, shapes)
+    spec = ArraySpec(
+        tuple(np.dtype(d).str for d in dtypes), tuple(shape), group, finite, shapes, limit
+    )
     if default is None:
 
         def empty():
@@ -96,20 +107,45 @@ class Message:
         cls.TYPE = cls.__name__
         REGISTRY[cls.__name__] = cls
 
+    def check(self) -> None:
+        """Checks across fields, after each field passed its own (raise MessageError)."""
+
+
+def scalar(default, lo=None, hi=None):
+    """A scalar field whose value must lie in [lo, hi] (either end may be open: None)."""
+    return field(default=default, metadata={"range": (lo, hi)})
+
+
+def _stamp_field():
+    return scalar(0.0, 0.0, STAMP_LIMIT_S)
+
+
+def _seq_field():
+    return scalar(0, 0, INT_LIMIT)
+
 
 def _quat_identity():
     return np.array([0.0, 0.0, 0.0, 1.0])
+
+
+def _check_quaternion(where: str, q: np.ndarray) -> None:
+    n = float(np.linalg.norm(q))
+    if not 0.9 <= n <= 1.1:
+        raise MessageError("value", f"{where}: quaternion of norm {n:.3g}, expected a unit one")
 
 
 @dataclass
 class Pose(Message):
     """A rigid pose in `frame_id` (REP-103: x forward, y left, z up; metres)."""
 
-    stamp_s: float = 0.0
-    seq: int = 0
-    position: np.ndarray = array(["f8"], [3])
+    stamp_s: float = _stamp_field()
+    seq: int = _seq_field()
+    position: np.ndarray = array(["f8"], [3], limit=COORD_LIMIT_M)
     orientation_xyzw: np.ndarray = array(["f8"], [4], default=_quat_identity)
     frame_id: str = "world"
+
+    def check(self) -> None:
+        _check_quaternion("Pose.orientation_xyzw", self.orientation_xyzw)
 
     @classmethod
     def from_xyz_yaw(cls, x, y, z, yaw, stamp_s=0.0, seq=0, frame_id="world") -> Pose:
@@ -136,27 +172,30 @@ class SemanticCloud(Message):
     """A labelled point cloud in the world frame, with the pose of the sensor that took it.
     `labels` are class ids of the class table in use; `confidences` in [0, 1]."""
 
-    stamp_s: float = 0.0
-    seq: int = 0
-    points: np.ndarray = array(["f4"], [None, 3], group="n")
+    stamp_s: float = _stamp_field()
+    seq: int = _seq_field()
+    points: np.ndarray = array(["f4"], [None, 3], group="n", limit=COORD_LIMIT_M)
     labels: np.ndarray = array(["u1", "u2"], [None], group="n")
     confidences: np.ndarray = array(["f4"], [None], group="n")
-    sensor_position: np.ndarray = array(["f8"], [3])
+    sensor_position: np.ndarray = array(["f8"], [3], limit=COORD_LIMIT_M)
     sensor_orientation_xyzw: np.ndarray = array(["f8"], [4], default=_quat_identity)
     frame_id: str = "world"
     source: str = "camera"
-    # Set by decode(drop_nonfinite=True); never sent.
+    # Set by decode(drop_nonfinite=True): points with NaN/inf or beyond COORD_LIMIT_M; never sent.
     n_dropped_nonfinite: int = field(default=0, metadata={"local": True})
+
+    def check(self) -> None:
+        _check_quaternion("SemanticCloud.sensor_orientation_xyzw", self.sensor_orientation_xyzw)
 
 
 @dataclass
 class VelocityCommand(Message):
     """A velocity command for a differential-drive base (body frame)."""
 
-    stamp_s: float = 0.0
-    seq: int = 0
-    linear_mps: float = 0.0
-    angular_radps: float = 0.0
+    stamp_s: float = _stamp_field()
+    seq: int = _seq_field()
+    linear_mps: float = scalar(0.0, -100.0, 100.0)
+    angular_radps: float = scalar(0.0, -100.0, 100.0)
     source: str = ""
 
 
@@ -166,18 +205,23 @@ class MapDelta(Message):
 
     Octree back-ends: `values` is the occupancy log-odds and `occupied` is `values > 0`.
     TSDF: `values` is the signed distance in metres and `occupied` marks surface voxels
-    (|distance| < resolution with weight > 0)."""
+    (|distance| < resolution with weight > 0).
 
-    stamp_s: float = 0.0
-    seq: int = 0
-    cloud_seq: int = 0
+    `producer` names the mapper session that numbered the stream (`seq` counts per producer): a
+    consumer follows one producer's sequence and resynchronises from its snapshot when it
+    changes (a restarted mapper) or jumps."""
+
+    stamp_s: float = _stamp_field()
+    seq: int = _seq_field()
+    cloud_seq: int = _seq_field()
     backend: str = "octree-max"
-    resolution_m: float = 0.1
-    centres: np.ndarray = array(["f4"], [None, 3], group="m")
+    resolution_m: float = scalar(0.1, *RESOLUTION_RANGE_M)
+    centres: np.ndarray = array(["f4"], [None, 3], group="m", limit=COORD_LIMIT_M)
     labels: np.ndarray = array(["u2"], [None], group="m")
     confidences: np.ndarray = array(["f4"], [None], group="m")
     occupied: np.ndarray = array(["u1"], [None], group="m")
-    values: np.ndarray = array(["f4"], [None], group="m")
+    values: np.ndarray = array(["f4"], [None], group="m", limit=COORD_LIMIT_M)
+    producer: str = ""
 
 
 # GraphPatch / navgrid flag bits
@@ -189,16 +233,18 @@ FLAG_SAFETY_ZONE = 4
 @dataclass
 class GraphPatch(Message):
     """Navigation-graph nodes that changed: grid indices from `origin_xy` at `resolution_m`, and the
-    nodes' label, height and flags (FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE)."""
+    nodes' label, height and flags (FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE).
+    `producer` names the navgraph session that numbered the stream (see MapDelta)."""
 
-    stamp_s: float = 0.0
-    seq: int = 0
-    resolution_m: float = 0.2
-    origin_xy: np.ndarray = array(["f8"], [2])
+    stamp_s: float = _stamp_field()
+    seq: int = _seq_field()
+    resolution_m: float = scalar(0.2, *RESOLUTION_RANGE_M)
+    origin_xy: np.ndarray = array(["f8"], [2], limit=COORD_LIMIT_M)
     cells: np.ndarray = array(["i4"], [None, 2], group="k")
     labels: np.ndarray = array(["u2"], [None], group="k")
-    heights: np.ndarray = array(["f4"], [None], group="k")
+    heights: np.ndarray = array(["f4"], [None], group="k", limit=COORD_LIMIT_M)
     flags: np.ndarray = array(["u1"], [None], group="k")
+    producer: str = ""
 
 
 @dataclass
@@ -207,14 +253,14 @@ class PathRequest(Message):
     fields left as None take the planner's configured defaults."""
 
     request_id: str = ""
-    start: np.ndarray = array(["f8"], [2], shapes=((3,),))
-    goal: np.ndarray = array(["f8"], [2], shapes=((3,),))
-    h_f: float | None = None
-    t_f: float | None = None
+    start: np.ndarray = array(["f8"], [2], shapes=((3,),), limit=COORD_LIMIT_M)
+    goal: np.ndarray = array(["f8"], [2], shapes=((3,),), limit=COORD_LIMIT_M)
+    h_f: float | None = scalar(None, 0.0, 1e6)
+    t_f: float | None = scalar(None, 0.0, 1e6)
     class_costs: dict = field(default_factory=dict)
     allow_unknown: bool = False
-    unknown_cost: float = 2.0
-    max_step_m: float | None = None
+    unknown_cost: float = scalar(2.0, 0.0, 1e6)
+    max_step_m: float | None = scalar(None, 0.0, 1e6)
 
     def __post_init__(self):
         # JSON object keys are strings: accept {"1": 4.0} as well as {1: 4.0}.
@@ -257,7 +303,13 @@ class PathReply(Message):
 
 @dataclass
 class ServiceStatus(Message):
-    """What a service publishes periodically and answers on its status key."""
+    """What a service publishes periodically and answers on its status key.
+
+    `state`: starting (loading, compiling; `details.startup_step` says what), running,
+    stopping. The books add up: every message received (`msgs_in`) is `accepted`, `dropped` by
+    reason, `rejected` by kind, or still `pending`. `events` counts what is not a message's fate
+    (gaps, points dropped inside accepted clouds, timeouts). A status query counts itself
+    accepted."""
 
     stamp_s: float = 0.0
     seq: int = 0
@@ -268,9 +320,17 @@ class ServiceStatus(Message):
     state: str = "running"
     msgs_in: int = 0
     msgs_out: int = 0
-    errors: dict = field(default_factory=dict)
-    queue_drops: int = 0
+    accepted: int = 0
+    dropped: dict = field(default_factory=dict)
+    rejected: dict = field(default_factory=dict)
+    pending: int = 0
+    events: dict = field(default_factory=dict)
     details: dict = field(default_factory=dict)
+
+    def books_add_up(self) -> bool:
+        """msgs_in == accepted + dropped + rejected + pending."""
+        settled = self.accepted + sum(self.dropped.values()) + sum(self.rejected.values())
+        return self.msgs_in == settled + self.pending
 
 
 # -- codec ----------------------------------------------------------------------------------------
@@ -323,8 +383,9 @@ def decode(
     drop_nonfinite: bool = False,
     max_bytes: int = MAX_PAYLOAD_BYTES,
 ) -> Message:
-    """Parse and validate msgpack bytes. With `drop_nonfinite`, per-point rows holding NaN/inf are
-    removed (a SemanticCloud records how many in `n_dropped_nonfinite`) instead of rejected."""
+    """Parse and validate msgpack bytes. With `drop_nonfinite`, per-point rows holding NaN/inf (or
+    coordinates beyond COORD_LIMIT_M) are removed (a SemanticCloud records how many in
+    `n_dropped_nonfinite`) instead of rejected. Every failure is a MessageError."""
     if len(payload) > max_bytes:
         raise MessageError("oversize", f"{len(payload)} bytes > limit {max_bytes}")
     try:
@@ -351,8 +412,8 @@ def from_json(
         raise MessageError("oversize", f"{len(payload)} bytes > limit {max_bytes}")
     try:
         raw = json.loads(payload)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise MessageError("malformed", f"not JSON: {exc}") from None
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise MessageError("malformed", f"not JSON: {type(exc).__name__}: {exc}") from None
     if isinstance(raw, dict) and isinstance(expect, type):
         raw.setdefault("_type", expect.TYPE)
         raw.setdefault("_v", SCHEMA_VERSION)
@@ -361,6 +422,15 @@ def from_json(
 
 def from_dict(raw, expect=None, *, drop_nonfinite=False, wire=True) -> Message:
     """Validate a decoded map (msgpack wire form, or JSON form with `wire=False`)."""
+    try:
+        return _from_dict(raw, expect, drop_nonfinite, wire)
+    except MessageError:
+        raise
+    except Exception as exc:  # a check this codec lacks: still a rejection, never a crash
+        raise MessageError("malformed", f"{type(exc).__name__}: {exc}") from None
+
+
+def _from_dict(raw, expect, drop_nonfinite: bool, wire: bool) -> Message:
     if not isinstance(raw, dict) or not isinstance(raw.get("_type"), str):
         raise MessageError("malformed", "expected a map with a '_type' field")
     tname = raw["_type"]
@@ -390,9 +460,11 @@ def from_dict(raw, expect=None, *, drop_nonfinite=False, wire=True) -> Message:
         if "array" in f.metadata:
             values[name] = _check_array(tname, name, raw[name], f.metadata["array"], wire)
         else:
-            values[name] = _check_scalar(tname, name, raw[name], hints[name])
+            rng = f.metadata.get("range", (None, None))
+            values[name] = _check_scalar(tname, name, raw[name], hints[name], rng)
     msg = cls(**values)
     _check_groups(tname, msg, drop_nonfinite)
+    msg.check()
     return msg
 
 
@@ -408,12 +480,18 @@ def _check_array(tname, name, v, spec: ArraySpec, wire: bool) -> np.ndarray:
         if dt.str not in spec.dtypes:
             raise MessageError("dtype", f"{where}: dtype {dt.str}, allowed {list(spec.dtypes)}")
         shape = v["shape"]
-        if not isinstance(shape, list) or not all(isinstance(s, int) and s >= 0 for s in shape):
+        # Python integers throughout, before anything is allocated: a product taken in int64
+        # wraps ([2**32, 2**32] is 0) and would let a claimed shape past the length check.
+        if not isinstance(shape, list) or not all(
+            type(s) is int and 0 <= s <= MAX_PAYLOAD_BYTES for s in shape
+        ):
             raise MessageError("shape", f"{where}: shape must be a list of non-negative ints")
+        if len(shape) not in {len(s) for s in spec.allowed_shapes()}:
+            raise MessageError("shape", f"{where}: shape {shape}, expected {_fmt(spec)}")
         data = v["data"]
         if not isinstance(data, bytes | bytearray):
             raise MessageError("malformed", f"{where}: data must be bytes")
-        if len(data) != int(np.prod(shape, dtype=np.int64)) * dt.itemsize:
+        if len(data) != math.prod(shape) * dt.itemsize:
             raise MessageError(
                 "shape", f"{where}: {len(data)} bytes do not hold shape {shape} of {dt.str}"
             )
@@ -427,8 +505,11 @@ def _check_array(tname, name, v, spec: ArraySpec, wire: bool) -> np.ndarray:
             a = a.reshape((0, *spec.shape[1:]))
     if not any(_shape_ok(a.shape, s) for s in spec.allowed_shapes()):
         raise MessageError("shape", f"{where}: shape {list(a.shape)}, expected {_fmt(spec)}")
-    if spec.finite and a.dtype.kind == "f" and spec.group is None and not np.isfinite(a).all():
-        raise MessageError("nonfinite", f"{where}: NaN or inf")
+    if spec.group is None:
+        if spec.finite and a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise MessageError("nonfinite", f"{where}: NaN or inf")
+        if spec.limit is not None and a.size and np.abs(a).max() > spec.limit:
+            raise MessageError("value", f"{where}: a value beyond +-{spec.limit:g}")
     return a
 
 
@@ -443,7 +524,8 @@ def _fmt(spec: ArraySpec) -> str:
 
 
 def _check_groups(tname, msg: Message, drop_nonfinite: bool) -> None:
-    """Arrays of one group must share their first dimension; their float rows must be finite."""
+    """Arrays of one group must share their first dimension; their float rows must be finite and
+    within their limit. With `drop_nonfinite` the bad rows are removed instead."""
     groups: dict[str, list[tuple[str, ArraySpec]]] = {}
     for f in _fields(type(msg)):
         spec = f.metadata.get("array")
@@ -453,20 +535,27 @@ def _check_groups(tname, msg: Message, drop_nonfinite: bool) -> None:
         lengths = {name: len(getattr(msg, name)) for name, _ in members}
         if len(set(lengths.values())) > 1:
             raise MessageError("length", f"{tname}: array lengths disagree {lengths}")
-        bad = None
+        nonfinite = beyond = None
         for name, spec in members:
             a = getattr(msg, name)
-            if spec.finite and a.dtype.kind == "f":
-                rows = (
-                    ~np.isfinite(a).all(axis=tuple(range(1, a.ndim)))
-                    if a.ndim > 1
-                    else ~np.isfinite(a)
-                )
-                bad = rows if bad is None else bad | rows
+            if not (spec.finite and a.dtype.kind == "f") or a.size == 0:
+                continue
+            flat = a.reshape(len(a), -1)
+            rows = ~np.isfinite(flat).all(axis=1)
+            nonfinite = rows if nonfinite is None else nonfinite | rows
+            if spec.limit is not None:
+                with np.errstate(invalid="ignore"):
+                    far = (np.abs(flat) > spec.limit).any(axis=1)
+                beyond = far if beyond is None else beyond | far
+        bad = nonfinite if beyond is None else (beyond if nonfinite is None else nonfinite | beyond)
         if bad is None or not bad.any():
             continue
         if not drop_nonfinite:
-            raise MessageError("nonfinite", f"{tname}: {int(bad.sum())} rows hold NaN or inf")
+            if nonfinite is not None and nonfinite.any():
+                raise MessageError(
+                    "nonfinite", f"{tname}: {int(nonfinite.sum())} rows hold NaN or inf"
+                )
+            raise MessageError("value", f"{tname}: {int(beyond.sum())} rows beyond their limit")
         keep = ~bad
         for name, _ in members:
             setattr(msg, name, getattr(msg, name)[keep])
@@ -477,7 +566,7 @@ def _check_groups(tname, msg: Message, drop_nonfinite: bool) -> None:
 _SCALARS = {float: (int, float), int: (int,), str: (str,), bool: (bool,), dict: (dict,)}
 
 
-def _check_scalar(tname, name, v, hint):
+def _check_scalar(tname, name, v, hint, rng=(None, None)):
     where = f"{tname}.{name}"
     optional = isinstance(hint, types.UnionType) and type(None) in typing.get_args(hint)
     if optional:
@@ -493,6 +582,11 @@ def _check_scalar(tname, name, v, hint):
         v = float(v)
         if not math.isfinite(v):
             raise MessageError("nonfinite", f"{where}: NaN or inf")
+    if hint is int and not -INT_LIMIT <= v <= INT_LIMIT:
+        raise MessageError("value", f"{where}: {v} does not fit int64")
+    lo, hi = rng
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        raise MessageError("value", f"{where}: {v!r} outside [{lo}, {hi}]")
     if hint is dict:
         _check_dict_values(where, v)
     return v

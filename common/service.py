@@ -1,20 +1,31 @@
 """The service lifecycle every smana process shares.
 
-A service subclasses `Service`, declares its inputs and outputs in `setup()` and does its periodic
-work in `tick()`. The base class does the rest:
+A service subclasses `Service`, loads and compiles what it needs in `warm_up()`, declares its
+inputs and outputs in `setup()` and does its periodic work in `tick()`. The base class does the
+rest:
 
-- opens the zenoh session (`with zenoh.open(conf) as session`) and declares the liveliness token
-  `smana/<robot>/alive/<service>`;
-- publishes a `ServiceStatus` every `general.status_period_s` on `smana/<robot>/<service>/status`
-  and answers queries on the same key (uptime, messages in/out, errors by kind, queue drops);
+- opens the zenoh session (`with zenoh.open(conf) as session`) and at once declares the liveliness
+  token `smana/<robot>/starting/<service>` and publishes a `ServiceStatus` in state `starting`
+  every `general.status_period_s` (and answers it as a query), so that a supervisor and `smana
+  status` see a service that is loading a map or compiling numba kernels (seconds to minutes on a
+  cold cache) and never take it for a hung one;
+- when `warm_up()` and `setup()` are done, declares `smana/<robot>/alive/<service>` (ready) and
+  undeclares the starting token;
 - runs every handler on ONE thread, the service's main loop, so service code needs no locks. Zenoh
   callbacks only copy the payload into a queue and return (never block inside a zenoh callback):
     * `subscribe(key, handler)`: FIFO, for light messages (poses, patches, commands);
     * `subscribe_latest(key, handler)`: latest wins, for heavy inputs (point clouds). A scan that
-      arrives while the previous one is still waiting is dropped and counted in `queue_drops`;
+      arrives while the previous one is still waiting is dropped as `stale`;
     * `queryable(key, handler)`: the query waits in the FIFO and is answered from the main loop;
-- decodes and validates payloads; a bad one is counted by its `MessageError.kind`, logged (rate
-  limited) and dropped: a service never dies of bad input, and its state stays as it was;
+- keeps the books (`Books`): every sample and query it receives ends in exactly one counter:
+  `accepted`, `dropped` by reason (`stale`, `queue_full`, `stopping`, `covered`) or `rejected` by
+  kind (a `MessageError` kind, a handler's `Reject` kind, `oversize` before anything is copied,
+  `internal` for a bug), or is still `pending`. The status carries them and adds up:
+  `msgs_in == accepted + sum(dropped) + sum(rejected) + pending`. Things worth counting that are not
+  a message's fate (points dropped inside an accepted cloud, a gap in a sequence) are `events`;
+- a bad message is counted, logged (the first few of a kind, then one in a hundred; the first
+  traceback of each internal error) and dropped: nothing a peer sends ends a service, and its state
+  stays as it was (a handler checks before it changes anything, or raises `Reject`);
 - stops on SIGINT/SIGTERM: stops the loop, calls `on_stop()` (flush state), undeclares everything,
   closes the session. It exits well within 5 s unless `on_stop` itself takes longer. A stop that
   hangs outside `on_stop` (leaving the loop, or closing zenoh) for `STOP_DEADLINE_S` dumps every
@@ -47,6 +58,7 @@ import msgpack
 from smana.common import keys
 from smana.common.config import SmanaConfig
 from smana.common.messages import (
+    MAX_PAYLOAD_BYTES,
     Message,
     MessageError,
     ServiceStatus,
@@ -133,31 +145,62 @@ class Request:
         return data
 
 
-class ReplyError(Exception):
-    """Raise from a query handler to answer with an error reply: `kind` and a message."""
+class Reject(Exception):
+    """Raise from a handler to refuse the message it was given: counted in `rejected[kind]`,
+    logged, and the service's state stays as it was. From a query handler it becomes an error
+    reply `{"ok": false, "error": kind, "message": ...}`, or `reply` (a Message or map) sent as an
+    ordinary reply where the query's schema has its own error form (a PathReply with ok false)."""
 
-    def __init__(self, kind: str, message: str):
+    def __init__(self, kind: str, message: str, reply=None):
         super().__init__(message)
         self.kind = kind
+        self.reply = reply
+
+
+class ReplyError(Reject):
+    """A query handler's refusal (the name query handlers have always used)."""
+
+
+class Books:
+    """Where every message a service received went. Zenoh callbacks (their own threads) and the
+    main loop both write, so every change is made under one lock; `snapshot()` adds up:
+    received == accepted + sum(dropped) + sum(rejected) + pending."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.received = 0
+        self.accepted = 0
+        self.in_flight = 0  # taken off a queue by the main loop, its fate not yet known
+        self.dropped: collections.Counter[str] = collections.Counter()
+        self.rejected: collections.Counter[str] = collections.Counter()
+
+    def settle(self, outcome: str, kind: str = "") -> None:
+        """The fate of a message taken with `Service._take` (in flight): `accepted`,
+        `dropped` (kind = reason) or `rejected` (kind)."""
+        with self.lock:
+            self.in_flight -= 1
+            if outcome == "accepted":
+                self.accepted += 1
+            elif outcome == "dropped":
+                self.dropped[kind] += 1
+            else:
+                self.rejected[kind] += 1
 
 
 class _Latest:
     """A one-slot mailbox: put() replaces what was there (and says so), take() empties it."""
 
     def __init__(self):
-        self._item = None
-        self._lock = threading.Lock()
+        self.item = None
 
     def put(self, item) -> bool:
-        with self._lock:
-            replaced = self._item is not None
-            self._item = item
-            return replaced
+        replaced = self.item is not None
+        self.item = item
+        return replaced
 
     def take(self):
-        with self._lock:
-            item, self._item = self._item, None
-            return item
+        item, self.item = self.item, None
+        return item
 
 
 class Publisher:
@@ -170,7 +213,7 @@ class Publisher:
         if isinstance(msg, Message):
             payload = encode(msg)
         elif isinstance(msg, dict):
-            payload = msgpack.packb(msg, use_bin_type=True)
+            payload = msgpack.packb(msg, use_bin_type=True, default=json_default)
         else:
             payload = msg
         self._zpub.put(payload)
@@ -181,24 +224,29 @@ class Publisher:
 
 
 class Service:
-    """Base of every smana service. Subclasses set `name` and override `setup`, `tick`, `on_stop`
-    and `status_details` as they need."""
+    """Base of every smana service. Subclasses set `name` and override `warm_up`, `setup`,
+    `tick`, `on_stop` and `status_details` as they need."""
 
     name = "service"
     tick_period_s = 0.1  # how often tick() runs
+    drain_on_stop = False  # handle what is still queued when a stop comes (the recorder does)
+    max_payload_bytes = MAX_PAYLOAD_BYTES  # larger samples are rejected as `oversize`, uncopied
 
     def __init__(self, config: SmanaConfig):
         self.config = config
         self.robot = config.general.robot
         self.log = logging.getLogger(f"smana.{self.name}")
         self.session = None
-        self.msgs_in = 0
+        self.producer = ""  # this process's zenoh session id: names the streams it numbers
+        self.books = Books()
         self.msgs_out = 0
-        self.errors: collections.Counter[str] = collections.Counter()
-        self.queue_drops = 0
+        self.events: collections.Counter[str] = collections.Counter()
         self.state = "starting"
+        self.startup_step = "opening the zenoh session"  # what a starting service is doing
+        self.ready_s: float | None = None  # seconds from process start to ready
         self._t0 = time.monotonic()
         self._stop = threading.Event()
+        self._ready = threading.Event()  # warmed up and declared: the starting heartbeat ends
         self._signalled = False  # a stop signal came: the stop watchdog is armed
         self._watchdog: threading.Timer | None = None
         self._wake = threading.Event()
@@ -206,8 +254,14 @@ class Service:
         self._latest: list[tuple[_Latest, Callable]] = []
         self._declared: list[Any] = []
         self._status_seq = 0
+        self._status_lock = threading.Lock()
+        self._tracebacks_logged: set[str] = set()
 
     # -- what subclasses override ----------------------------------------------------------------
+
+    def warm_up(self) -> None:
+        """Load and compile what the service needs (a map, numba kernels, a world) while the
+        supervisor sees it `starting`. The session is open; nothing is declared yet."""
 
     def setup(self) -> None:
         """Declare subscriptions, queryables and publishers (self.session is open)."""
@@ -224,12 +278,25 @@ class Service:
 
     # -- declarations ------------------------------------------------------------------------------
 
+    def _received(self, sample) -> bytes | None:
+        """Count a sample in; None (and rejected `oversize`) when it is too large to copy."""
+        n = len(sample.payload)
+        if n > self.max_payload_bytes:
+            with self.books.lock:
+                self.books.received += 1
+                self.books.rejected["oversize"] += 1
+            self._log_kind("oversize", f"{sample.key_expr}: {n} bytes > {self.max_payload_bytes}")
+            return None
+        return sample.payload.to_bytes()
+
     def subscribe(self, key: str, handler: Callable, expect: type[Message] | None = None) -> None:
         """Light input: every sample is queued (FIFO) and handled in order on the main loop.
         With `expect`, the handler gets a decoded message; without, the raw bytes."""
 
         def on_sample(sample, _h=handler, _e=expect):
-            self._push(("sample", _h, _e, sample.payload.to_bytes(), False))
+            payload = self._received(sample)
+            if payload is not None:
+                self._push(("sample", _h, _e, payload))
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
 
@@ -240,25 +307,30 @@ class Service:
         expect: type[Message] | None = None,
         drop_nonfinite: bool = False,
     ) -> None:
-        """Heavy input: only the newest unhandled sample is kept; older ones are dropped and counted
-        in `queue_drops` (a slow mapper skips stale scans instead of falling behind)."""
+        """Heavy input: only the newest unhandled sample is kept; older ones are dropped as
+        `stale` (a slow mapper skips old scans instead of falling behind)."""
         slot = _Latest()
         self._latest.append((slot, lambda payload: self._handle_payload(
             handler, expect, payload, drop_nonfinite)))  # fmt: skip
 
         def on_sample(sample, _slot=slot):
-            if _slot.put(sample.payload.to_bytes()):
-                self.queue_drops += 1
+            payload = self._received(sample)
+            if payload is None:
+                return
+            with self.books.lock:
+                self.books.received += 1
+                if _slot.put(payload):
+                    self.books.dropped["stale"] += 1
             self._wake.set()
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
 
     def queryable(self, key: str, handler: Callable[[Request], Any]) -> None:
         """Answer queries on `key`. The handler gets a `Request` and returns a Message, a dict (sent
-        as a map) or bytes; raising `ReplyError` or `MessageError` sends an error reply."""
+        as a map) or bytes; raising `Reject`/`ReplyError` or `MessageError` sends an error reply."""
 
-        def on_query(query, _h=handler):
-            self._push(("query", _h, None, query, False))
+        def on_query(query, _h=handler, _k=key):
+            self._push(("query", _h, _k, query))
 
         self._declared.append(self.session.declare_queryable(key, on_query))
 
@@ -273,37 +345,81 @@ class Service:
         self._declared.append(zpub)
         return Publisher(self, zpub, key)
 
-    # -- errors ----------------------------------------------------------------------------------
+    # -- counting ----------------------------------------------------------------------------------
 
-    def count_error(self, kind: str, message: str) -> None:
-        """Count an error by kind and log it: the first few of a kind, then one in a hundred."""
-        self.errors[kind] += 1
-        n = self.errors[kind]
+    def note(self, kind: str, message: str, n: int = 1) -> None:
+        """Count an event that is not a message's fate (points dropped inside an accepted cloud,
+        a gap in a sequence, a timeout) and log it: the first few of a kind, then one in 100."""
+        self.events[kind] += n
+        self._log_kind(kind, message, self.events[kind])
+
+    def _log_kind(self, kind: str, message: str, n: int | None = None) -> None:
+        if n is None:
+            n = self.books.rejected[kind] + self.events[kind]
         if n <= 5 or n % 100 == 0:
             self.log.warning("%s (%s #%d)", message, kind, n)
+
+    def _rejected(self, kind: str, message: str) -> None:
+        """Settle the message in flight as rejected, and log it."""
+        self.books.settle("rejected", kind)
+        self._log_kind(kind, message, self.books.rejected[kind])
+
+    def _internal(self, exc: BaseException, where: str) -> None:
+        """A bug met while handling one message: rejected `internal`; the first traceback of each
+        (exception type, place) is logged whole, later ones as one line."""
+        self.books.settle("rejected", "internal")
+        tb = traceback.extract_tb(exc.__traceback__)
+        place = f"{tb[-1].filename}:{tb[-1].lineno}" if tb else "?"
+        sig = f"{type(exc).__name__}@{place}"
+        if sig not in self._tracebacks_logged and len(self._tracebacks_logged) < 100:
+            self._tracebacks_logged.add(sig)
+            self.log.error("%s: %s, message dropped, service goes on:\n%s", where,
+                           type(exc).__name__, traceback.format_exc())  # fmt: skip
+        else:
+            n = self.books.rejected["internal"]
+            self._log_kind("internal", f"{where}: {type(exc).__name__}: {exc}", n)
 
     # -- the loop ----------------------------------------------------------------------------------
 
     def run(self) -> int:
-        """Open the session, run until SIGINT/SIGTERM (or `stop()`), then shut down cleanly."""
+        """Open the session, warm up, run until SIGINT/SIGTERM (or `stop()`), shut down cleanly."""
         import zenoh
 
         self._install_signal_handlers()
         conf = make_zenoh_config(self.config.zenoh)
         with zenoh.open(conf) as session:
             self.session = session
+            self.producer = str(session.zid())
+            heartbeat = None
             try:
-                self.setup()
-                self._status_pub = self.publisher(keys.status(self.robot, self.name))
-                self.queryable(keys.status(self.robot, self.name), lambda req: self.status())
-                token = session.liveliness().declare_token(keys.alive(self.robot, self.name))
+                r = self.robot
+                self._status_pub = self.publisher(keys.status(r, self.name))
+                self._declared.append(session.declare_queryable(keys.status(r, self.name),
+                                                                self._on_status_query))  # fmt: skip
+                starting = session.liveliness().declare_token(keys.starting(r, self.name))
+                heartbeat = threading.Thread(target=self._heartbeat, name="starting-status",
+                                             daemon=True)  # fmt: skip
+                heartbeat.start()
+                self.startup_step = "warming up"
+                self.warm_up()
+                self.startup_step = "declaring inputs and outputs"
+                if not self.stopping:
+                    self.setup()
+                token = session.liveliness().declare_token(keys.alive(r, self.name))
                 self._declared.append(token)
-                self.state = "running"
-                self.log.info("%s up (robot %s, pid %d)", self.name, self.robot, os.getpid())
+                with self._status_lock:
+                    self.state = "running"
+                    self.ready_s = time.monotonic() - self._t0
+                self._ready.set()  # ends the heartbeat thread
+                starting.undeclare()
+                self.log.info("%s ready in %.1f s (robot %s, pid %d)", self.name, self.ready_s,
+                              r, os.getpid())  # fmt: skip
                 self._loop()
             finally:
-                self.state = "stopping"
+                with self._status_lock:
+                    self.state = "stopping"
                 self._disarm()  # on_stop may take its time (a large map to save)
+                self._settle_leftovers()
                 try:
                     self.on_stop()
                 except Exception:
@@ -324,10 +440,44 @@ class Service:
     def stop(self) -> None:
         self._stop.set()
         self._wake.set()
+        self._ready.set()
 
     @property
     def stopping(self) -> bool:
         return self._stop.is_set()
+
+    def _heartbeat(self) -> None:
+        """While starting: a status every period, from this thread (the main one is busy)."""
+        period = self.config.general.status_period_s
+        while True:
+            with self._status_lock:
+                if self.state != "starting" or self.stopping:
+                    return
+                msg = self.status()
+            try:
+                self._status_pub.put(msg)
+            except Exception:  # the session is closing
+                return
+            self._ready.wait(period)
+
+    def _on_status_query(self, query) -> None:
+        """Status queries: answered right here while starting (the main loop is not running yet;
+        the starting status reads no service state), from the main loop afterwards."""
+        with self._status_lock:
+            starting = self.state == "starting"
+            msg = self.status() if starting else None
+        key = keys.status(self.robot, self.name)
+        if msg is None:
+            self._push(("query", lambda req: self.status(), key, query))
+            return
+        with self.books.lock:
+            self.books.received += 1
+            self.books.accepted += 1
+        try:
+            as_json = _query_form(query)[1]
+            query.reply(key, _reply_bytes(msg, as_json), encoding=_encoding(as_json))
+        except Exception:  # the querier left: nothing to answer
+            pass
 
     def _install_signal_handlers(self) -> None:
         if threading.current_thread() is not threading.main_thread():
@@ -363,11 +513,41 @@ class Service:
         os._exit(3)
 
     def _push(self, item) -> None:
-        if len(self._fifo) >= FIFO_LIMIT:
-            self.queue_drops += 1
-            return
-        self._fifo.append(item)
+        with self.books.lock:
+            self.books.received += 1
+            if len(self._fifo) >= FIFO_LIMIT:
+                self.books.dropped["queue_full"] += 1
+                return
+            self._fifo.append(item)
         self._wake.set()
+
+    def _take(self):
+        """The next queued light item, now in flight (None when the queue is empty)."""
+        with self.books.lock:
+            if not self._fifo:
+                return None
+            self.books.in_flight += 1
+            return self._fifo.popleft()
+
+    def _take_latest(self, slot: _Latest):
+        with self.books.lock:
+            payload = slot.take()
+            if payload is not None:
+                self.books.in_flight += 1
+            return payload
+
+    def pending(self) -> int:
+        """Messages received and not yet settled."""
+        with self.books.lock:
+            return self._pending_locked()
+
+    def _pending_locked(self) -> int:
+        slots = sum(1 for slot, _ in self._latest if slot.item is not None)
+        return len(self._fifo) + slots + self.books.in_flight
+
+    def _drain_fifo(self) -> None:
+        while not self._stop.is_set() and (item := self._take()) is not None:
+            self._dispatch(item)
 
     def _loop(self) -> None:
         next_tick = next_status = time.monotonic()
@@ -380,80 +560,149 @@ class Service:
             self._wake.clear()
             # Light messages first, all of them; then at most one heavy item per input, so that
             # queries and poses are never stuck behind a backlog of scans.
-            while self._fifo and not self._stop.is_set():
-                self._dispatch(self._fifo.popleft())
+            self._drain_fifo()
             for slot, handle in self._latest:
-                payload = slot.take()
+                if self._stop.is_set():
+                    break
+                payload = self._take_latest(slot)
                 if payload is not None:
                     handle(payload)
-                    while self._fifo and not self._stop.is_set():
-                        self._dispatch(self._fifo.popleft())
+                    self._drain_fifo()
             now = time.monotonic()
             if now >= next_tick:
                 next_tick = now + self.tick_period_s
-                self._guard(self.tick)
+                self._guard(self.tick, "tick")
             if now >= next_status:
                 next_status = now + period
-                self._guard(lambda: self._status_pub.put(self.status()))
+                self._guard(lambda: self._status_pub.put(self.status()), "status")
+
+    def _settle_leftovers(self) -> None:
+        """At stop: handle what is queued (`drain_on_stop`) or count it dropped as `stopping`."""
+        if self.drain_on_stop:
+            while (item := self._take()) is not None:
+                self._dispatch(item)
+            for slot, handle in self._latest:
+                if (payload := self._take_latest(slot)) is not None:
+                    handle(payload)
+        with self.books.lock:
+            left = len(self._fifo) + sum(1 for slot, _ in self._latest if slot.item is not None)
+            self._fifo.clear()
+            for slot, _ in self._latest:
+                slot.take()
+            if left:
+                self.books.dropped["stopping"] += left
 
     def _dispatch(self, item) -> None:
-        what, handler, expect, data, _ = item
+        what, handler, expect_or_key, data = item
         if what == "sample":
-            self._handle_payload(handler, expect, data, False)
+            self._handle_payload(handler, expect_or_key, data, False)
         else:
-            # Even a reply that cannot be sent (the querier left) must not stop the loop.
-            self._guard(lambda: self._answer(handler, data))
+            self._answer(handler, data, expect_or_key)
 
     def _handle_payload(self, handler, expect, payload: bytes, drop_nonfinite: bool) -> None:
-        self.msgs_in += 1
-        if expect is None:
-            self._guard(lambda: handler(payload))
+        """Decode, hand over, settle: whatever happens, the message ends in one counter and the
+        loop goes on."""
+        try:
+            msg = payload if expect is None else decode(
+                payload, expect, drop_nonfinite=drop_nonfinite, max_bytes=self.max_payload_bytes
+            )  # fmt: skip
+        except MessageError as exc:
+            self._rejected(exc.kind, f"rejected {expect.TYPE}: {exc}")
+            return
+        except Exception as exc:  # noqa: BLE001 - the decoder's own bug: still one message
+            self._internal(exc, f"decoding {getattr(expect, 'TYPE', 'bytes')}")
             return
         try:
-            msg = decode(payload, expect, drop_nonfinite=drop_nonfinite)
-        except MessageError as exc:
-            self.count_error(exc.kind, f"rejected {expect.TYPE}: {exc}")
-            return
-        self._guard(lambda: handler(msg))
+            outcome = handler(msg)
+        except (Reject, MessageError) as exc:
+            what = getattr(expect, "TYPE", "message")
+            self._rejected(exc.kind, f"rejected {what}: {exc}")
+        except ValueError as exc:
+            self._rejected("value", f"{type(exc).__name__}: {exc}")
+        except Exception as exc:  # noqa: BLE001 - a bug: counted, logged, the service goes on
+            self._internal(exc, f"handling {getattr(expect, 'TYPE', 'a sample')}")
+        else:
+            # A handler may say a message was dropped for a reason of its own (already covered
+            # by a snapshot, say) by returning ("dropped", reason); anything else is accepted.
+            if isinstance(outcome, tuple) and outcome and outcome[0] == "dropped":
+                self.books.settle("dropped", outcome[1])
+            else:
+                self.books.settle("accepted")
 
-    def _guard(self, fn) -> None:
-        """Run service code; bad input is counted, a bug is logged with its traceback, and the
-        service keeps running either way."""
+    def _guard(self, fn, where: str) -> None:
+        """Run periodic service code; a failure is logged and the service keeps running."""
         try:
             fn()
-        except MessageError as exc:
-            self.count_error(exc.kind, str(exc))
-        except ValueError as exc:
-            self.count_error("value", f"{type(exc).__name__}: {exc}")
-        except Exception as exc:
-            self.count_error("internal", f"{type(exc).__name__}: {exc}")
-            self.log.debug("%s", traceback.format_exc())
-            if self.errors["internal"] <= 5:
+        except Exception as exc:  # noqa: BLE001
+            self.note("internal_" + where, f"{where}: {type(exc).__name__}: {exc}")
+            sig = f"{where}:{type(exc).__name__}"
+            if sig not in self._tracebacks_logged:
+                self._tracebacks_logged.add(sig)
                 self.log.error("%s", traceback.format_exc())
 
-    def _answer(self, handler, query) -> None:
-        self.msgs_in += 1
-        payload = query.payload.to_bytes() if query.payload is not None else None
-        params = dict(query.parameters) if query.parameters else {}
-        enc = str(query.encoding) if query.encoding is not None else ""
-        as_json = enc.startswith(("application/json", "text/")) or params.get("format") == "json"
-        req = Request(str(query.key_expr), params, payload, as_json)
+    def _answer(self, handler, query, key: str) -> None:
+        """Answer a query on the main loop. Replies go out on the queryable's own key, which a
+        wider query (`smana/r1/**`) matches and an access-control policy allows."""
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else None
+            if payload is not None and len(payload) > self.max_payload_bytes:
+                raise MessageError("oversize", f"{len(payload)} bytes")
+            params = dict(query.parameters) if query.parameters else {}
+            enc = str(query.encoding) if query.encoding is not None else ""
+            as_json = (
+                enc.startswith(("application/json", "text/")) or params.get("format") == "json"
+            )
+            req = Request(str(query.key_expr), params, payload, as_json)
+        except MessageError as exc:
+            self._rejected(exc.kind, f"query: {exc}")
+            return
+        except Exception as exc:  # noqa: BLE001 - a query zenoh hands us that we cannot read
+            self._internal(exc, "reading a query")
+            return
         try:
             result = handler(req)
-            query.reply(query.key_expr, _reply_bytes(result, as_json), encoding=_encoding(as_json))
+            body = _reply_bytes(result, as_json)
+        except (Reject, MessageError) as exc:
+            self._rejected(exc.kind, f"query {req.key}: {exc}")
+            if getattr(exc, "reply", None) is not None:
+                self._send_reply(query, key, _reply_bytes(exc.reply, as_json), as_json)
+            else:
+                self._reply_err(query, exc.kind, str(exc), as_json)
+            return
+        except Exception as exc:  # noqa: BLE001
+            self._internal(exc, f"query {req.key}")
+            self._reply_err(query, "internal", f"{type(exc).__name__}: {exc}", as_json)
+            return
+        self.books.settle("accepted")
+        self._send_reply(query, key, body, as_json)
+
+    def _send_reply(self, query, key: str, body: bytes, as_json: bool) -> None:
+        try:
+            query.reply(key, body, encoding=_encoding(as_json))
             self.msgs_out += 1
-        except (ReplyError, MessageError) as exc:
-            self.count_error(exc.kind, f"query {req.key}: {exc}")
-            body = {"ok": False, "error": exc.kind, "message": str(exc)}
+        except Exception as exc:  # the querier left: the query was still handled
+            self.note("reply_failed", f"query {key}: reply not sent: {exc}")
+
+    def _reply_err(self, query, kind: str, message: str, as_json: bool) -> None:
+        body = {"ok": False, "error": kind, "message": message}
+        try:
             query.reply_err(_reply_bytes(body, as_json), encoding=_encoding(as_json))
         except Exception as exc:
-            self.count_error("internal", f"query {req.key}: {type(exc).__name__}: {exc}")
-            self.log.error("%s", traceback.format_exc())
-            body = {"ok": False, "error": "internal", "message": f"{type(exc).__name__}: {exc}"}
-            query.reply_err(_reply_bytes(body, as_json), encoding=_encoding(as_json))
+            self.note("reply_failed", f"error reply not sent: {exc}")
 
     def status(self) -> ServiceStatus:
         self._status_seq += 1
+        starting = self.state == "starting"
+        with self.books.lock:
+            # Computed between messages, or while answering a status query: then the one
+            # message in flight is that query, which counts itself accepted.
+            b = self.books
+            queued = self._pending_locked() - b.in_flight
+            books = (b.received, b.accepted + b.in_flight, dict(b.dropped), dict(b.rejected),
+                     queued)  # fmt: skip
+        details = {"startup_step": self.startup_step} if starting else self.status_details()
+        if self.ready_s is not None:
+            details = {**details, "ready_s": round(self.ready_s, 3)}
         return ServiceStatus(
             stamp_s=time.time(),
             seq=self._status_seq,
@@ -462,12 +711,23 @@ class Service:
             pid=os.getpid(),
             uptime_s=time.monotonic() - self._t0,
             state=self.state,
-            msgs_in=self.msgs_in,
+            msgs_in=books[0],
             msgs_out=self.msgs_out,
-            errors=dict(self.errors),
-            queue_drops=self.queue_drops,
-            details=self.status_details(),
+            accepted=books[1],
+            dropped=books[2],
+            rejected=books[3],
+            pending=books[4],
+            events=dict(self.events),
+            details=details,
         )
+
+
+def _query_form(query) -> tuple[dict[str, str], bool]:
+    """A query's selector parameters, and whether it asked in JSON (a JSON or text payload, or
+    `?format=json`)."""
+    params = dict(query.parameters) if query.parameters else {}
+    enc = str(query.encoding) if query.encoding is not None else ""
+    return params, enc.startswith(("application/json", "text/")) or params.get("format") == "json"
 
 
 def _encoding(as_json: bool):

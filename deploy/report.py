@@ -224,12 +224,62 @@ def replay_metrics(summary: dict, traj: np.ndarray) -> dict:
     return out
 
 
-def write_report(run_dir: str | Path, config, replay: dict | None = None) -> Path:
+MOVED_M = 0.1  # a robot that travelled less did not move
+
+
+def run_warnings(metrics: dict, explored: bool) -> list[str]:
+    """What in a finished run's figures says it did not do its job. `explored`: the run was an
+    exploration (the explorer ran), so it should have answered paths and moved the robot."""
+    out = []
+    ee = metrics.get("explorer")
+    if explored and ee is None:
+        out.append("the explorer left no state (explorer/state.json): it never ran to its end")
+    if ee:
+        queries, ok = int(ee.get("path_queries") or 0), int(ee.get("path_ok") or 0)
+        errs = ee.get("path_errors") or {}
+        if queries and not ok:
+            detail = ", ".join(f"{k} x{v}" for k, v in sorted(errs.items())) or "no detail"
+            out.append(f"no path query was ever answered with a path ({queries} asked: {detail})")
+        if ee.get("done_reason") == "no_graph":
+            out.append("the explorer never received a navigation graph (ended `no_graph`)")
+    if explored:
+        ex = metrics.get("exploration") or {}
+        dist = ex.get("distance_m", (ee or {}).get("distance_m"))
+        if dist is None or dist < MOVED_M:
+            out.append(f"the robot did not move ({_f(dist, '.2f', ' m')} travelled)")
+    return out
+
+
+def summary_lines(metrics: dict) -> list[str]:
+    """The few lines `smana up` ends with: the outcome, coverage, distance, collisions, warnings."""
+    ex, ee = metrics.get("exploration") or {}, metrics.get("explorer") or {}
+    warnings = metrics.get("warnings") or []
+    cov = ex.get("coverage")
+    figures = [
+        f"explored {_f(100 * cov if cov is not None else None, '.1f', ' %')} of the reachable "
+        "traversable area"
+        if ex
+        else f"explored {_f(ee.get('explored_m2'), '.1f', ' m2')}",
+        f"{_f(ex.get('distance_m', ee.get('distance_m')), '.1f', ' m')} travelled",
+        f"{ex.get('collisions', '-')} collisions",
+        f"ended because: {ee.get('done_reason') or '-'}",
+    ]
+    head = "FAILED" if warnings else "ok"
+    lines = [f"smana up: {head}: " + ", ".join(figures)]
+    lines += [f"  warning: {w}" for w in warnings]
+    return lines
+
+
+def write_report(
+    run_dir: str | Path, config, replay: dict | None = None, warnings=(), explored: bool = False
+) -> Path:
     """Measure a finished run and write metrics.json, report.md and plots/; returns report.md.
 
     `replay` is the replay's summary (`RUN_DIR/replay.json`) when the run replayed a dataset: the
     report then describes the dataset instead of a simulated world, and measures nothing against
-    ground truth (there is none)."""
+    ground truth (there is none). `warnings` are what the supervisor saw go wrong (services that
+    never became ready, crash loops); `explored` says the run was an exploration, whose figures
+    are checked too (`run_warnings`). Every warning heads report.md and is in metrics.json."""
     run_dir = Path(run_dir)
     t0 = time.perf_counter()
     classes = ClassTable.load(config.general.class_table)
@@ -257,7 +307,8 @@ def write_report(run_dir: str | Path, config, replay: dict | None = None) -> Pat
     if state is not None:
         metrics["explorer"] = {k: state.get(k) for k in (
             "done_reason", "elapsed_s", "wall_time_s", "distance_m", "explored_m2", "n_goals",
-            "n_plans", "n_blocked", "n_stuck", "path_queries", "path_errors")}  # fmt: skip
+            "n_plans", "n_blocked", "n_stuck", "path_queries", "path_ok",
+            "path_errors")}  # fmt: skip
         counts = {int(k): v for k, v in (state.get("label_counts") or {}).items()}
         metrics["explorer"]["map_label_share"] = ev.label_shares(
             np.repeat(list(counts), list(counts.values())), names)  # fmt: skip
@@ -300,6 +351,7 @@ def write_report(run_dir: str | Path, config, replay: dict | None = None) -> Pat
         "logs": sorted(str(p.relative_to(run_dir)) for p in (run_dir / "logs").glob("*.log")),
     }
     metrics["files"]["plots"] = _plots(run_dir, classes, world, graph, traj, state, replay)
+    metrics["warnings"] = list(warnings) + run_warnings(metrics, explored)
     metrics["report_time_s"] = time.perf_counter() - t0
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=json_default))
     report = run_dir / "report.md"
@@ -315,6 +367,10 @@ def render_markdown(m: dict) -> str:
     c = m["config"]
     rp = m.get("replay")
     lines = [f"# smana run: {Path(m['run_dir']).name}", ""]
+    if m.get("warnings"):
+        lines += ["## Warnings", "", "This run did not do its job:", ""]
+        lines += [f"- {w}" for w in m["warnings"]]
+        lines.append("")
     if rp:
         lines += [
             f"Replay of `{rp.get('dataset')}` ({rp.get('format')}, class table "

@@ -6,20 +6,34 @@ service as its own OS process (own process group, log file in `<run_dir>/logs/`)
 connected to that router.
 
 Per service, dora's vocabulary: a restart policy (`never`, `on-failure`, `always`), a restart delay
-that doubles up to a cap, a maximum number of restarts in a window (then the service is given up),
-and health from the liveliness token `smana/<robot>/alive/<service>`: a service that has not shown
-its token `health_timeout_s` after it started, or whose token vanished while its process still
-runs, is killed and restarted.
+that doubles up to a cap, and a maximum number of restarts in a window, past which the service is
+in a crash loop: still restarted, every `restart_max_delay_s`, and the run is reported failed. The
+supervisor never gives a service up silently.
+
+Health comes from two liveliness tokens. `smana/<robot>/starting/<service>` appears as soon as the
+service's session is open: it is loading or compiling (a cold numba cache takes minutes on a busy
+2-core machine), and is left alone up to `startup_timeout_s`. `smana/<robot>/alive/<service>` says
+it is ready. A service that shows neither within `health_timeout_s` of its start, is still
+starting after `startup_timeout_s`, or whose alive token vanished while its process still runs, is
+killed and restarted.
+
+The mapper resumes from its autosave in the run directory (`mapper.load = "auto"` unless the
+config names a file), so a crash loses at most one `mapper.autosave_period_s`; navgraph, planner
+and explorer resync from their producers' snapshots and the explorer from its checkpoint.
 
 The run ends when the service named by `deploy.finish_with` exits with status 0 (the explorer, when
 exploration is done), after `--duration`, or on Ctrl-C; every service then gets SIGINT, and SIGKILL
-after `deploy.stop_timeout_s`.
+after `deploy.stop_timeout_s`. The report then says whether the run did its job: a service that
+never became ready or kept crashing, a needed service that never ran, no path ever answered, a
+robot that did not move each head `report.md` as a warning, end the terminal summary, and make
+`smana up` exit 1.
 """
 
 from __future__ import annotations
 
 import collections
 import dataclasses
+import json
 import logging
 import os
 import signal
@@ -54,13 +68,20 @@ class Managed:
     robot: str = ""
     proc: subprocess.Popen | None = None
     started_at: float = 0.0
-    alive: bool = False  # its liveliness token is up
-    seen_alive: bool = False  # the token came up at least once since the last start
+    alive: bool = False  # its alive token is up (ready)
+    starting: bool = False  # its starting token is up (loading, compiling)
+    seen_alive: bool = False  # the alive token came up at least once since the last start
+    seen_starting: bool = False  # ... the starting token
     lost_at: float | None = None  # when the token vanished while the process still ran
-    restarts: collections.deque = field(default_factory=collections.deque)
+    down_at: float | None = None  # when its last process ended (for the time back)
+    restarts: collections.deque = field(default_factory=collections.deque)  # in the window
+    n_restarts: int = 0
+    crash_looped: bool = False  # restarted more than max_restarts in a window at some point
     next_start: float = 0.0
-    given_up: bool = False
     finished: bool = False  # exited and will not be restarted
+    ever_ready: bool = False
+    ready_s: list[float] = field(default_factory=list)  # start -> alive, each process
+    back_s: list[float] = field(default_factory=list)  # end of a process -> next one alive
     exit_codes: list[int] = field(default_factory=list)
 
 
@@ -76,13 +97,15 @@ class Supervisor:
         self.logs = self.run_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         # Every service is a client of our router (its first listen endpoint): rewrite [zenoh] so
-        # the config file written into the run dir is exactly what they run with.
+        # the config file written into the run dir is exactly what they run with. The mapper
+        # resumes from its autosave in the run dir, so a restart does not lose the map.
         self.service_config = dataclasses.replace(
             config,
             general=dataclasses.replace(config.general, run_dir=str(self.run_dir)),
             zenoh=dataclasses.replace(
                 config.zenoh, mode="client", connect=config.deploy.router_listen[:1], listen=[]
             ),
+            mapper=dataclasses.replace(config.mapper, load=config.mapper.load or "auto"),
         )
         self.config_path = self.service_config.write(self.run_dir / "config.toml")
         self.procs: dict[str, Managed] = {}
@@ -96,6 +119,8 @@ class Supervisor:
                 policy = getattr(config.deploy, n)
                 self.add(name, argv + policy.args, policy, service=n, robot=robot)
         self.statuses: dict[tuple[str, str], ServiceStatus] = {}
+        self.seen_ready: set[tuple[str, str]] = set()  # (robot, service) alive at some point,
+        # here or on another host
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.session = None
@@ -123,7 +148,8 @@ class Supervisor:
         # (certificates, maps, worlds) mean the same to every process.
         logf.close()
         m.started_at = time.monotonic()
-        m.seen_alive = False
+        with self._lock:
+            m.alive = m.starting = m.seen_alive = m.seen_starting = False
         m.lost_at = None
         log.info("started %s (pid %d)", m.name, m.proc.pid)
 
@@ -136,24 +162,28 @@ class Supervisor:
 
     def _schedule_restart(self, m: Managed, why: str) -> None:
         now = time.monotonic()
-        window = m.policy.restart_window_s
-        while m.restarts and now - m.restarts[0] > window:
+        p = m.policy
+        while m.restarts and now - m.restarts[0] > p.restart_window_s:
             m.restarts.popleft()
-        if len(m.restarts) >= m.policy.max_restarts:
-            m.given_up = m.finished = True
-            log.error(
-                "%s %s; %d restarts in %.0f s: giving up on it (see %s)",
-                m.name, why, len(m.restarts), window, m.log_path,
-            )  # fmt: skip
-            return
-        delay = min(m.policy.restart_delay_s * 2 ** len(m.restarts), m.policy.restart_max_delay_s)
+        if len(m.restarts) >= p.max_restarts:
+            # A crash loop: keep trying, slowly, and make sure the run says so.
+            delay = p.restart_max_delay_s
+            if not m.crash_looped:
+                log.error("%s keeps failing (%d restarts in %.0f s): restarting it every %.0f s "
+                          "from now on; the run will be reported failed (see %s)", m.name,
+                          len(m.restarts), p.restart_window_s, delay, m.log_path)  # fmt: skip
+            m.crash_looped = True
+        else:
+            delay = min(p.restart_delay_s * 2 ** len(m.restarts), p.restart_max_delay_s)
         m.restarts.append(now)
+        m.n_restarts += 1
         m.next_start = now + delay
         log.warning("%s %s; restarting in %.1f s (see %s)", m.name, why, delay, m.log_path)
 
     def poll(self) -> None:
         """One supervision step: reap exits, apply restart policies, check health."""
         now = time.monotonic()
+        d = self.config.deploy
         for m in self.procs.values():
             if m.finished:
                 continue
@@ -165,8 +195,9 @@ class Supervisor:
             if code is not None:
                 m.exit_codes.append(code)
                 m.proc = None
+                m.down_at = now
                 with self._lock:
-                    m.alive = False
+                    m.alive = m.starting = False
                 failed = code != 0
                 if m.policy.restart == "always" or (m.policy.restart == "on-failure" and failed):
                     self._schedule_restart(m, f"exited with status {code}")
@@ -176,17 +207,23 @@ class Supervisor:
                     log.log(level, "%s exited with status %d", m.name, code)
                 continue
             with self._lock:
-                alive, seen = m.alive, m.seen_alive
+                alive, seen, sign = m.alive, m.seen_alive, m.seen_starting or m.seen_alive
             age = now - m.started_at
-            if not seen and age > self.config.deploy.health_timeout_s:
-                log.warning("%s showed no liveliness token after %.0f s: killing it", m.name, age)
-                self._signal(m, signal.SIGKILL)
-            elif seen and not alive:
+            if not seen:
+                if not sign and age > d.health_timeout_s:
+                    log.warning("%s showed no sign of life (no starting token) %.0f s after its "
+                                "start: killing it", m.name, age)  # fmt: skip
+                    self._signal(m, signal.SIGKILL)
+                elif age > d.startup_timeout_s:
+                    log.warning("%s still not ready %.0f s after its start "
+                                "(deploy.startup_timeout_s): killing it", m.name, age)  # fmt: skip
+                    self._signal(m, signal.SIGKILL)
+            elif not alive:
                 # A service that stops on its own undeclares its token first and then flushes
                 # its state: only a process still running well after that is hung.
                 if m.lost_at is None:
                     m.lost_at = now
-                elif now - m.lost_at > self.config.deploy.stop_timeout_s:
+                elif now - m.lost_at > d.stop_timeout_s:
                     log.warning("%s lost its liveliness token %.0f s ago, still runs: killing it",
                                 m.name, now - m.lost_at)  # fmt: skip
                     self._signal(m, signal.SIGKILL)
@@ -200,15 +237,32 @@ class Supervisor:
         return None
 
     def _on_liveliness(self, sample) -> None:
-        parts = str(sample.key_expr).split("/")
-        m = self._find(parts[1], parts[3]) if len(parts) == 4 else None
-        if m is None:
-            return
         import zenoh
 
+        parts = str(sample.key_expr).split("/")
+        if len(parts) != 4 or parts[2] not in ("alive", "starting"):
+            return
+        robot, kind, service = parts[1], parts[2], parts[3]
+        up = sample.kind == zenoh.SampleKind.PUT
+        now = time.monotonic()
         with self._lock:
-            m.alive = sample.kind == zenoh.SampleKind.PUT
-            m.seen_alive = m.seen_alive or m.alive
+            if kind == "alive" and up:
+                self.seen_ready.add((robot, service))
+            m = self._find(robot, service)
+            if m is None or m.proc is None:
+                return
+            if kind == "starting":
+                m.starting = up
+                m.seen_starting = m.seen_starting or up
+                return
+            m.alive = up
+            if up and not m.seen_alive:
+                m.seen_alive = m.ever_ready = True
+                m.ready_s.append(now - m.started_at)
+                if m.down_at is not None:
+                    m.back_s.append(now - m.down_at)
+                    log.info("%s is back %.2f s after its last process ended (ready %.2f s "
+                             "after its start)", m.name, m.back_s[-1], m.ready_s[-1])  # fmt: skip
 
     def _on_status(self, sample) -> None:
         try:
@@ -232,6 +286,7 @@ class Supervisor:
         ll = self.session.liveliness()
         self._subs = [
             ll.declare_subscriber(keys.alive_any("*"), self._on_liveliness, history=True),
+            ll.declare_subscriber(keys.starting_any("*"), self._on_liveliness, history=True),
             self.session.declare_subscriber(keys.status_any("*"), self._on_status),
         ]
         for m in self.procs.values():
@@ -295,17 +350,48 @@ class Supervisor:
             self.shutdown()
         return result
 
+    def warnings(self) -> list[str]:
+        """What the supervisor saw go wrong in this run (the report adds what its figures show)."""
+        out = []
+        for m in self.procs.values():
+            log_file = m.log_path.relative_to(self.run_dir) if m.log_path.is_relative_to(
+                self.run_dir) else m.log_path  # fmt: skip
+            if not m.ever_ready:
+                out.append(f"{m.name} never became ready (see {log_file})")
+            if m.crash_looped:
+                codes = ", ".join(str(c) for c in m.exit_codes[-5:])
+                out.append(f"{m.name} kept crashing: restarted {m.n_restarts} times, more than "
+                           f"{m.policy.max_restarts} in {m.policy.restart_window_s:.0f} s (last "
+                           f"exit statuses {codes}; see {log_file})")  # fmt: skip
+            elif m.finished and m.exit_codes and m.exit_codes[-1] not in (0, -signal.SIGINT):
+                out.append(f"{m.name} exited with status {m.exit_codes[-1]} and was not "
+                           f"restarted (restart = {m.policy.restart})")  # fmt: skip
+        if self.config.deploy.finish_with == "explorer":
+            # What exploration needs, here or on another host of the deployment.
+            for m in [m for m in self.procs.values() if m.service == "explorer"]:
+                for need in ("mapper", "navgraph", "planner"):
+                    if (m.robot, need) in self.seen_ready:
+                        continue
+                    why = "see above"
+                    if self._find(m.robot, need) is None:
+                        why = f"disabled in this run (deploy.{need}.enabled = false) and none ran"
+                        why += " elsewhere"
+                    out.append(f"the {need} the explorer of robot {m.robot} needs never came up "
+                               f"({why})")  # fmt: skip
+        return out
+
     def print_progress(self, elapsed_s: float) -> None:
         with self._lock:
             statuses = dict(self.statuses)
         parts = []
         for name, m in self.procs.items():
             st = statuses.get((m.robot, m.service))
-            mark = "up" if m.alive else ("done" if m.finished else "down")
+            mark = ("up" if m.alive else "starting" if m.starting
+                    else "done" if m.finished else "down")  # fmt: skip
             extra = ""
-            if st is not None:
-                errs = sum(st.errors.values())
-                extra = f" in={st.msgs_in} out={st.msgs_out}" + (f" err={errs}" if errs else "")
+            if st is not None and st.pid == (m.proc.pid if m.proc else -1):
+                bad = sum(st.rejected.values())
+                extra = f" in={st.msgs_in} out={st.msgs_out}" + (f" rejected={bad}" if bad else "")
                 progress = st.details.get("progress")
                 if progress:
                     extra += f" {progress}"
@@ -362,18 +448,25 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
     on_stop_signals(lambda _sig: sup.stop())
     print(f"smana up: run directory {run_dir}", flush=True)
     code = sup.run(duration_s)
+    warnings = sup.warnings()
+    explored = any(m.service == "explorer" for m in sup.procs.values())
     try:
         from smana.deploy import report
-    except ModuleNotFoundError:
-        report = None
-    if report is not None and hasattr(report, "write_report"):
-        try:
-            path = report.write_report(run_dir, sup.service_config)
-            print(f"smana up: report written to {path}", flush=True)
-        except Exception as exc:  # a failed report must not hide the run's own outcome
-            log.exception("writing the report failed: %s", exc)
-    print(f"smana up: done, everything is in {run_dir}", flush=True)
-    return code
+
+        path = report.write_report(run_dir, sup.service_config, warnings=warnings,
+                                   explored=explored)  # fmt: skip
+        metrics = json.loads((Path(run_dir) / "metrics.json").read_text())
+        warnings = metrics.get("warnings", warnings)
+        print(f"smana up: report written to {path}", flush=True)
+        summary = report.summary_lines(metrics)
+    except Exception as exc:  # a failed report must not hide the run's own outcome
+        log.exception("writing the report failed: %s", exc)
+        warnings = [*warnings, f"the report could not be written: {exc}"]
+        summary = ["smana up: FAILED"] + [f"  warning: {w}" for w in warnings]
+    print(f"smana up: everything is in {run_dir}", flush=True)
+    for line in summary:
+        print(line, flush=True)
+    return 1 if warnings or code else 0
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -37,14 +37,14 @@ BOUNDS = [
 ]
 
 
-def patch(x_max_m: float) -> GraphPatch:
-    """Terrain known over x in [0, x_max), the whole width."""
+def patch(x_max_m: float, seq: int = 1) -> GraphPatch:
+    """Terrain known over x in [0, x_max), the whole width: patch number `seq` of a navgraph."""
     nx, ny = int(round(x_max_m / RES)), int(round(8.0 / RES))
     ii, jj = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     cells = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.int32)
     k = len(cells)
     return GraphPatch(
-        stamp_s=0.0, seq=1, resolution_m=RES, origin_xy=np.zeros(2), cells=cells,
+        stamp_s=0.0, seq=seq, resolution_m=RES, origin_xy=np.zeros(2), cells=cells,
         labels=np.full(k, 2, np.uint16), heights=np.zeros(k, np.float32),
         flags=np.ones(k, np.uint8),
     )  # fmt: skip
@@ -134,13 +134,14 @@ def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(zenoh_s
         def errors():
             st = request(s, keys.status(robot, "explorer"), timeout_s=5)
             assert isinstance(st, ServiceStatus)
-            return sum(st.errors.values())
+            assert st.books_add_up(), st
+            return sum(st.rejected.values())
 
         assert wait_for(lambda: errors() >= 3, 10)
         assert proc.poll() is None
 
         # everything known: nothing left to explore, the explorer stops the robot and exits 0
-        s.put(keys.graph_patch(robot), encode(patch(8.0)))
+        s.put(keys.graph_patch(robot), encode(patch(8.0, seq=2)))
         proc.wait(timeout=60)
         assert proc.returncode == 0, zenoh_stack.log("explorer")
         time.sleep(0.3)

@@ -115,9 +115,11 @@ def test_mapper_service_end_to_end(zenoh_stack, tmp_path):
     d = inbox.wait_for(60)
     assert len(d.centres) > 0
     status = request(s, keys.status(r, "mapper"))
-    for kind in ("malformed", "frame", "nonfinite_points", "unknown_labels"):
-        assert status.errors.get(kind, 0) >= 1, (kind, status.errors)
-    assert status.state == "running"
+    for kind in ("malformed", "length", "frame"):
+        assert status.rejected.get(kind, 0) >= 1, (kind, status.rejected)
+    for kind in ("nonfinite_points", "unknown_labels"):
+        assert status.events.get(kind, 0) >= 1, (kind, status.events)
+    assert status.state == "running" and status.books_add_up(), status
     stats = request(s, keys.query(r, "mapper", "stats"))
     assert stats["points_dropped_nonfinite"] == 7 and stats["labels_replaced"] == 3
 

@@ -48,8 +48,8 @@ EXAMPLES = [
     m.PathReply("q1", True, path=np.zeros((4, 3), "f4"), cost_total=5.5,
                 label_share={"grass": 0.25, "terrain": 0.75}, nodes_expanded=10,
                 nearest_free=np.array([1.0, 2.0])),  # fmt: skip
-    m.ServiceStatus(1.0, 1, "r1", "mapper", 42, 3.5, "running", 10, 9,
-                    {"nonfinite": 2}, 1, {"voxels": 100}),  # fmt: skip
+    m.ServiceStatus(1.0, 1, "r1", "mapper", 42, 3.5, "running", 10, 9, 6, {"stale": 1},
+                    {"nonfinite": 2}, 1, {"gap": 3}, {"voxels": 100}),  # fmt: skip
 ]
 
 

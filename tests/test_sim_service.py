@@ -126,8 +126,9 @@ def test_sim_publishes_drives_and_stops(zenoh_stack):
         # bad commands are counted, and the service keeps running
         pub.put(b"\x00garbage")
         pub.put(encode(VelocityCommand(linear_mps=float("nan"))))
-        assert wait_for(lambda: sum(sim_status(stack).errors.values()) >= 2, 5.0)
+        assert wait_for(lambda: sum(sim_status(stack).rejected.values()) >= 2, 5.0)
         st = sim_status(stack)
+        assert st.rejected == {"malformed": 1, "nonfinite": 1} and st.books_add_up(), st
         assert st.details["commands"] >= 20 and st.details["stopped_no_command"]
         assert st.details["camera_frames"] >= 2 and st.details["lidar_scans"] >= 1
         pub.undeclare()

@@ -60,7 +60,7 @@ def test_kill9_is_restarted_within_3s(tmp_path):
     assert echo.proc is None and echo.exit_codes[-1] == 0  # stopped cleanly by SIGINT
 
 
-def test_restart_cap_and_never_policy(tmp_path):
+def test_crash_loop_goes_on_and_never_policy_says_so(tmp_path):
     from tests.conftest import free_port
 
     sup = make_supervisor(tmp_path, free_port(), restart="never")
@@ -70,26 +70,30 @@ def test_restart_cap_and_never_policy(tmp_path):
         assert wait_for(lambda: echo.alive, 30)
         os.kill(echo.proc.pid, signal.SIGKILL)
         assert wait_for(lambda: echo.finished, 5)
-        time.sleep(1.0)
         assert echo.proc is None and len(echo.exit_codes) == 1
     finally:
         sup.stop()
         t.join(15)
+    assert any("echo exited with status -9 and was not restarted" in w for w in sup.warnings())
 
+    # Past max_restarts in the window the service is in a crash loop: still restarted (never
+    # given up), and the run says so.
     sup = make_supervisor(tmp_path, free_port(), restart="always", restart_delay_s=0.05,
-                          max_restarts=2, restart_window_s=60)  # fmt: skip
+                          restart_max_delay_s=0.5, max_restarts=2,
+                          restart_window_s=60)  # fmt: skip
     t = run_in_thread(sup)
     try:
         echo = sup.procs["echo"]
-        for _ in range(3):
+        for _ in range(4):
             assert wait_for(lambda: echo.proc is not None and echo.alive, 30)
             os.kill(echo.proc.pid, signal.SIGKILL)
             assert wait_for(lambda: echo.proc is None or not echo.alive, 5)
-        assert wait_for(lambda: echo.given_up, 10)
-        assert len(echo.exit_codes) == 3
+        assert wait_for(lambda: echo.crash_looped and echo.alive, 30)  # back, once more
+        assert len(echo.exit_codes) == 4 and echo.n_restarts == 4
     finally:
         sup.stop()
         t.join(15)
+    assert any("echo kept crashing" in w for w in sup.warnings()), sup.warnings()
 
 
 def test_cli_help_lists_every_command():

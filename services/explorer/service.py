@@ -1,10 +1,15 @@
 """The explorer service: Zenoh wiring around `exploration.Explorer`.
 
-Inputs: `navgraph/patch` (GraphPatch, applied to the explorer's own `NavGrid` copy) and
-`robot/pose`. Each tick (`explorer.control_rate_hz`) it hands the grid around the robot and the
-latest pose to the core, asks the planner (`planner/path`, PathRequest) for the paths the core
-wants costed, and publishes a VelocityCommand on `robot/cmd_vel` and its state on
-`explorer/state` (a msgpack map; also answered as a query on the same key).
+Inputs: `navgraph/patch` (GraphPatch, applied to the explorer's own `NavGrid` copy; the stream is
+followed per producer like the planner's, `common/plausibility.py::SequenceFollower`) and
+`robot/pose`. A pose must fit its stream's clock and may not jump further than the robot can
+travel (`StampGate`, `PoseGate`: refused as `stamp` or `pose_jump`; both take a few poses to
+agree on where and when the robot is, so no single pose sets the explorer's time or place). The
+explorer's robot time runs on across a restarted simulator (the stamps' clock reset), so the time
+budget can neither jump nor restart. Each tick (`explorer.control_rate_hz`) it hands the grid
+around the robot and the latest pose to the core, asks the planner (`planner/path`, PathRequest)
+for the paths the core wants costed, and publishes a VelocityCommand on `robot/cmd_vel` and its
+state on `explorer/state` (a msgpack map; also answered as a query on the same key).
 
 When exploration is done (no view worth it, or the time budget spent), it stops the robot, saves
 its final state into `<run_dir>/explorer/` (state.json, trajectory.csv, graph.npz) and exits with
@@ -34,12 +39,15 @@ from smana.common.messages import (
     json_default,
 )
 from smana.common.navgrid import NavGrid
+from smana.common.plausibility import APPLY, COVERED, PoseGate, SequenceFollower, StampGate
 from smana.common.query import QueryError, request
-from smana.common.service import Service
+from smana.common.service import Reject, Service
+from smana.services.explorer import frontier as fr
 from smana.services.explorer.exploration import ExplorationParams, Explorer, GridBox
 from smana.services.explorer.follower import FollowerConfig
 
 STATE_PERIOD_S = 0.5
+CHECKPOINT_PERIOD_S = 10.0  # state and trajectory saved for a restarted explorer to carry on
 STARTUP_GRACE_S = 120.0  # how long past the budget to wait for a first graph before giving up
 
 
@@ -122,15 +130,24 @@ class ExplorerService(Service):
         self._t_created = time.monotonic()
         self._seq = 0
         self._next_state = 0.0
+        self._next_checkpoint = time.monotonic() + CHECKPOINT_PERIOD_S
         self._plan_log: list[dict] = []
         self._need_sync = True
         self._next_sync = 0.0
         self._sync_failures = 0
-        self._last_patch_seq = 0
-        self._resume()
+        self.patches_in = SequenceFollower()
+        g = config.general
+        self.stamps = StampGate(g.stamp_window_s, g.max_time_rate, accept_while_acquiring=False)
+        self.places = PoseGate(g.max_speed_mps, g.pose_slack_m)
+        # robot time = pose stamp + offset: the offset keeps it running on when the stamps'
+        # clock restarts (a restarted simulator), from the time saved by an earlier process
+        self._t_offset = 0.0
+        self._t_floor: float | None = None
         self.n_patches = 0
         self.n_path_queries = 0
+        self.path_ok = 0
         self.path_errors: dict[str, int] = {}
+        self._resume()
         self.plan_time_ms = 0.0
         self._saved = False
 
@@ -151,6 +168,10 @@ class ExplorerService(Service):
             return
         self._plan_log = list(state.get("plans") or [])
         self._wall_spent0 = float(state.get("wall_time_s") or 0.0)
+        self._t_floor = float(state.get("t_s") or 0.0)
+        self.n_path_queries = int(state.get("path_queries") or 0)
+        self.path_ok = int(state.get("path_ok") or 0)
+        self.path_errors = {str(k): int(v) for k, v in (state.get("path_errors") or {}).items()}
         self.log.info("resumed the run's exploration: %.1f m travelled, %d goals",
                       self.core.distance_m, self.core.n_goals)  # fmt: skip
         if state.get("done"):
@@ -158,6 +179,15 @@ class ExplorerService(Service):
             self.core.finish(str(state.get("done_reason") or "finished"))
 
     # -- wiring -----------------------------------------------------------------------------------
+
+    def warm_up(self) -> None:
+        # The view-gain kernel compiles on a cold numba cache: before the token, not mid-plan.
+        self.startup_step = "loading (or compiling) the numba kernels"
+        t0 = time.perf_counter()
+        unknown = np.ones((8, 8), bool)
+        fov = fr.FovModel.build(self.grid.resolution_m, self.cfg.fov_deg, 1.0, 0.1, 4)
+        fr.view_gains(unknown, ~unknown, np.array([[4, 4]]), fov)
+        self.log.info("kernels ready in %.1f s", time.perf_counter() - t0)
 
     def setup(self) -> None:
         r = self.robot
@@ -169,8 +199,9 @@ class ExplorerService(Service):
         self._sync_graph()
 
     def _sync_graph(self) -> None:
-        """Ask navgraph for its whole graph: we may have started after it published patches, or
-        missed some. Retried from `tick` until it answers; not needed when we saw patch 1."""
+        """Ask navgraph for its whole graph: we may have started after it published patches,
+        missed some, or the patch stream is in doubt (another producer, a jump). Retried from
+        `tick` until it answers."""
         self._next_sync = time.monotonic() + 2.0
         try:
             reply = request(self.session, keys.query(self.robot, "navgraph", "graph"), None, 2.0)
@@ -179,40 +210,67 @@ class ExplorerService(Service):
                 self.log.info("no graph from navgraph yet (%s): will ask again", exc.kind)
             self._sync_failures += 1
             return
-        if isinstance(reply, GraphPatch):
-            self._apply(reply)
-            self._need_sync = False
-            self._last_patch_seq = max(self._last_patch_seq, int(reply.seq))
-            self.log.info("graph synced from navgraph: %d nodes", len(reply.cells))
+        if not isinstance(reply, GraphPatch):
+            self.note("bad_graph_reply", "navgraph/graph did not answer with a GraphPatch")
+            return
+        try:
+            self._check_geometry(reply)
+        except Reject as exc:
+            self.note("geometry", str(exc))
+            return
+        self._apply(reply)
+        self.patches_in.synced(reply.producer, reply.seq)
+        self._need_sync = False
+        self.log.info("graph synced from navgraph: %d nodes", len(reply.cells))
 
-    def on_patch(self, patch: GraphPatch) -> None:
-        seq = int(patch.seq)
-        if seq == 1:
-            self._need_sync = False  # navgraph's first patch: nothing came before it
-        elif self._last_patch_seq and seq != self._last_patch_seq + 1:
-            self._need_sync = True  # a gap (or navgraph restarted): fetch the whole graph
-        self._last_patch_seq = seq
+    def on_patch(self, patch: GraphPatch):
+        self._check_geometry(patch)
+        action, why = self.patches_in.check(patch.producer, patch.seq)
+        if action == COVERED:
+            return ("dropped", "covered")
+        if action != APPLY:
+            raise Reject(action, f"graph patch {patch.seq}: {why}; resync asked")
+        if self.patches_in.want_resync:
+            self._need_sync = True  # a gap, or joined mid-stream: fetch the whole graph
         self._apply(patch)
 
-    def _apply(self, patch: GraphPatch) -> None:
+    def _check_geometry(self, patch: GraphPatch) -> None:
         if abs(patch.resolution_m - self.grid.resolution_m) > 1e-9 or not np.allclose(
             patch.origin_xy, self.grid.origin_xy
         ):
-            raise ValueError(
+            raise Reject(
+                "geometry",
                 f"graph patch at {patch.resolution_m} m from {patch.origin_xy.tolist()} does not "
                 f"match the explorer's grid ({self.grid.resolution_m} m from "
-                f"{self.grid.origin_xy.tolist()}): check [navgraph] in the config"
+                f"{self.grid.origin_xy.tolist()}): check [navgraph] in the config",
             )
+
+    def _apply(self, patch: GraphPatch) -> None:
         n_out = self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
         if n_out:
-            self.count_error("out_of_bounds", f"{n_out} patch cells outside the graph bounds")
+            self.note("out_of_bounds", f"{n_out} patch cells outside the graph bounds")
         self.n_patches += 1
         self._grid_dirty = True
 
     def on_pose(self, pose: Pose) -> None:
-        self.core.update_pose(
-            float(pose.position[0]), float(pose.position[1]), pose.yaw, float(pose.stamp_s)
-        )
+        stamp = float(pose.stamp_s)
+        when = self.stamps.check(stamp)
+        if not when.ok:
+            raise Reject("stamp", f"pose {pose.seq}: {when.reason}")
+        where = self.places.check(stamp, pose.position)
+        if not where.ok:
+            raise Reject("pose_jump", f"pose {pose.seq}: {where.reason}")
+        t = stamp + self._t_offset
+        last = self.core.t_now if self.core.pose is not None else self._t_floor
+        if last is not None and (when.reset or t < last - self.config.general.stamp_window_s):
+            # the stamps' clock restarted (a new simulator): robot time runs on from here
+            self._t_offset += last - t
+            t = last
+            self.note("clock_reset", f"pose stamps restarted at {stamp:.3f} s; robot time runs "
+                      f"on from {last:.3f} s")  # fmt: skip
+        if where.reset:
+            self.note("pose_reset", f"the robot reappeared at {pose.position[:2].tolist()}")
+        self.core.update_pose(float(pose.position[0]), float(pose.position[1]), pose.yaw, t)
         self._last_pose_wall = time.monotonic()
 
     # -- the control loop -------------------------------------------------------------------------
@@ -262,6 +320,9 @@ class ExplorerService(Service):
         if now >= self._next_state:
             self._next_state = now + STATE_PERIOD_S
             self.state_pub.put(self._state())
+        if now >= self._next_checkpoint:
+            self._next_checkpoint = now + CHECKPOINT_PERIOD_S
+            self.save(final=False)
         if self.core.done:
             self._finish()
 
@@ -308,6 +369,7 @@ class ExplorerService(Service):
         if not reply.ok or len(reply.path) == 0:
             self._path_error(reply.error or "empty")
             return None
+        self.path_ok += 1
         return float(reply.cost_total), np.asarray(reply.path, np.float64)
 
     def _path_error(self, kind: str) -> None:
@@ -351,27 +413,35 @@ class ExplorerService(Service):
             pass
         self.save()
 
-    def save(self) -> None:
-        """Final state, trajectory and grid into <run_dir>/explorer/ (for the report)."""
+    def save(self, final: bool = True) -> None:
+        """State, trajectory and (when final) the grid into <run_dir>/explorer/: for the report,
+        and for a restarted explorer to carry on (a checkpoint every CHECKPOINT_PERIOD_S)."""
         if self._saved or self.run_dir is None:
-            self._saved = True
+            self._saved = self._saved or final
             return
-        self._saved = True
+        self._saved = final
         out = self.run_dir / "explorer"
         out.mkdir(parents=True, exist_ok=True)
         state = self._state()
         state["plans"] = self._plan_log
         state["history"] = self.core.history
         state["path_queries"] = self.n_path_queries
+        state["path_ok"] = self.path_ok
         state["path_errors"] = self.path_errors
         state["wall_time_s"] = self._wall_spent(time.monotonic())
-        (out / "state.json").write_text(json.dumps(state, indent=1, default=json_default))
-        with open(out / "trajectory.csv", "w", newline="") as f:
+        # trajectory first, state last, each replaced whole: a kill between them leaves a state
+        # that describes a trajectory at least as long as the one on disk
+        tmp = out / "trajectory.csv.tmp"
+        with open(tmp, "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["t_s", "x_m", "y_m", "yaw_rad"])
             w.writerows(self.core.trajectory)
+        tmp.replace(out / "trajectory.csv")
+        tmp = out / "state.json.tmp"
+        tmp.write_text(json.dumps(state, indent=1, default=json_default))
+        tmp.replace(out / "state.json")
         box = self.grid.known_box()
-        if box is not None:
+        if final and box is not None:
             labels, heights, flags = self.grid.box(*box)
             origin = self.grid.origin_xy + np.array(box[:2]) * self.grid.resolution_m
             np.savez_compressed(
@@ -396,6 +466,7 @@ class ExplorerService(Service):
             "n_goals": c.n_goals,
             "n_patches": self.n_patches,
             "path_queries": self.n_path_queries,
+            "path_ok": self.path_ok,
             "path_errors": dict(self.path_errors),
             "plan_time_ms": self.plan_time_ms,
         }

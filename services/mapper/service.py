@@ -1,10 +1,12 @@
 """The mapper service: zenoh wiring around `SemanticMap` (the algorithm lives in the core modules).
 
 Inputs: `robot/cloud` and/or `robot/scan` (`mapper.inputs`), latest wins: a scan replaced before
-it was integrated is counted in `queue_drops`. Points with NaN/inf are dropped (counted,
-`nonfinite_points`), labels outside the class table become unknown (`unknown_labels`),
+it was integrated is dropped as `stale`. Points with NaN/inf or beyond 1000 km are dropped
+(event `nonfinite_points`), labels outside the class table become unknown (`unknown_labels`),
 confidences outside [0, 1] are clipped (`confidence_range`); a cloud that is not in the world
-frame is rejected (`frame`). A rejected cloud leaves the map as it was.
+frame is rejected (`frame`), and so is one whose stamp does not fit its stream's clock (`stamp`,
+see `common/plausibility.py`). A rejected cloud leaves the map as it was. Clouds the sender
+numbered but that never arrived (a DROP link) are counted as `clouds_lost_upstream`.
 
 Output: one `MapDelta` on `mapper/delta` per integrated cloud (even an empty one, so a lockstep
 simulator can wait for its `cloud_seq`), published reliably with congestion control BLOCK.
@@ -32,7 +34,8 @@ from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
 from smana.common.messages import MapDelta, SemanticCloud
-from smana.common.service import ReplyError, Request, Service, run_service
+from smana.common.plausibility import StampGate
+from smana.common.service import Reject, ReplyError, Request, Service, run_service
 from smana.services.mapper.delta import Delta
 from smana.services.mapper.octree import FusionParams, OccupancyParams
 from smana.services.mapper.semantic_map import SemanticMap
@@ -88,10 +91,15 @@ class MapperService(Service):
     def __init__(self, config: SmanaConfig):
         super().__init__(config)
         self.table = ClassTable.load(config.general.class_table)
-        self.map = build_map(config, self.table, self.log)
+        self.map: SemanticMap | None = None  # built (or loaded) in warm_up
         self.save_path = resolve_save_path(config)
         self.delta_seq = 0
         self.last_cloud_seq = -1
+        self.last_stamp_s = 0.0
+        g = config.general
+        self.gates = {name: StampGate(g.stamp_window_s, g.max_time_rate)
+                      for name in config.mapper.inputs}  # fmt: skip
+        self.input_seq: dict[str, int] = {}
         self.clouds = 0
         self.points_dropped = 0
         self.labels_replaced = 0
@@ -100,8 +108,11 @@ class MapperService(Service):
         self.last_save_s = 0.0
         self._next_save = time.monotonic() + config.mapper.autosave_period_s
 
-    def setup(self) -> None:
-        # Load (or compile) the kernels before the liveliness token says we are ready.
+    def warm_up(self) -> None:
+        # Load the map and (compile or) load the kernels before the token says we are ready.
+        self.startup_step = "loading the map"
+        self.map = build_map(self.config, self.table, self.log)
+        self.startup_step = "loading (or compiling) the numba kernels"
         t0 = time.perf_counter()
         warm = build_map(dataclasses.replace(self.config, mapper=dataclasses.replace(
             self.config.mapper, load="")), self.table)  # fmt: skip
@@ -111,11 +122,14 @@ class MapperService(Service):
         warm.query(pts.astype(np.float64))
         warm.occupied_voxels()
         self.log.info("kernels ready in %.1f s", time.perf_counter() - t0)
+
+    def setup(self) -> None:
         r = self.robot
         self.delta_pub = self.publisher(keys.map_delta(r), reliable_block=True)
         for name in self.config.mapper.inputs:
             key = keys.cloud(r) if name == "cloud" else keys.scan(r)
-            self.subscribe_latest(key, self.on_cloud, SemanticCloud, drop_nonfinite=True)
+            self.subscribe_latest(key, lambda c, n=name: self.on_cloud(c, n), SemanticCloud,
+                                  drop_nonfinite=True)  # fmt: skip
         self.queryable(keys.query(r, "mapper", "stats"), lambda req: self.stats())
         self.queryable(keys.query(r, "mapper", "snapshot"), self.on_snapshot)
         self.queryable(keys.query(r, "mapper", "save"), self.on_save)
@@ -125,22 +139,31 @@ class MapperService(Service):
 
     # -- the cloud path ----------------------------------------------------------------------
 
-    def on_cloud(self, cloud: SemanticCloud) -> None:
+    def on_cloud(self, cloud: SemanticCloud, input_name: str = "cloud") -> None:
+        # Everything that can refuse the cloud comes before anything that changes state.
         if cloud.frame_id != "world":
-            self.count_error("frame", f"cloud {cloud.seq} is in {cloud.frame_id!r}, not world")
-            return
+            raise Reject("frame", f"cloud {cloud.seq} is in {cloud.frame_id!r}, not world")
+        verdict = self.gates[input_name].check(cloud.stamp_s)
+        if not verdict.ok:
+            raise Reject("stamp", f"{input_name} {cloud.seq}: {verdict.reason}")
+        last = self.input_seq.get(input_name)
+        if last is not None and cloud.seq > last + 1:
+            n = cloud.seq - last - 1
+            self.note("clouds_lost_upstream", f"{n} {input_name}s numbered before {cloud.seq} "
+                      "never arrived (dropped on the way)", n)  # fmt: skip
+        self.input_seq[input_name] = cloud.seq
         if cloud.n_dropped_nonfinite:
             n = cloud.n_dropped_nonfinite
             self.points_dropped += n
-            self.count_error("nonfinite_points", f"cloud {cloud.seq}: {n} NaN/inf points dropped")
+            self.note("nonfinite_points", f"cloud {cloud.seq}: {n} NaN/inf or far points dropped")
         labels, n_bad = self.table.sanitise(cloud.labels)
         if n_bad:
             self.labels_replaced += n_bad
-            self.count_error("unknown_labels", f"cloud {cloud.seq}: {n_bad} labels not in the "
-                             f"class table {self.table.name}, mapped to unknown")  # fmt: skip
+            self.note("unknown_labels", f"cloud {cloud.seq}: {n_bad} labels not in the class "
+                      f"table {self.table.name}, mapped to unknown")  # fmt: skip
         conf = cloud.confidences
         if conf.size and (conf.min() < 0 or conf.max() > 1):
-            self.count_error("confidence_range", f"cloud {cloud.seq}: confidences outside [0, 1]")
+            self.note("confidence_range", f"cloud {cloud.seq}: confidences outside [0, 1]")
             conf = np.clip(conf, 0.0, 1.0)
         t0 = time.perf_counter()
         delta = self.map.integrate(cloud.points, labels, conf, cloud.sensor_position)
@@ -149,6 +172,7 @@ class MapperService(Service):
         self.clouds += 1
         self.dirty = True
         self.last_cloud_seq = cloud.seq
+        self.last_stamp_s = cloud.stamp_s
         self.delta_seq += 1
         self.delta_pub.put(self._message(delta, cloud.stamp_s, cloud.seq, self.delta_seq))
 
@@ -164,6 +188,7 @@ class MapperService(Service):
             confidences=d.confidences,
             occupied=d.occupied,
             values=d.values,
+            producer=self.producer,
         )
 
     # -- saving ------------------------------------------------------------------------------
@@ -186,6 +211,8 @@ class MapperService(Service):
         return {"ok": True, "path": str(path), "bytes": path.stat().st_size, "time_ms": ms}
 
     def on_stop(self) -> None:
+        if self.map is None:
+            return  # stopped while warming up: nothing was mapped, an autosave is still there
         if self.save_path is not None and (self.dirty or not self.save_path.exists()):
             self.save(self.save_path)
 
@@ -228,7 +255,7 @@ class MapperService(Service):
             rows = self.map.occupied_voxels(box)
         except ValueError as exc:
             raise ReplyError("value", str(exc)) from None
-        return self._message(rows, time.time(), self.last_cloud_seq, self.delta_seq)
+        return self._message(rows, self.last_stamp_s, self.last_cloud_seq, self.delta_seq)
 
     def on_save(self, req: Request) -> dict:
         if self.save_path is None:

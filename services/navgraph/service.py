@@ -1,19 +1,25 @@
 """The navgraph service: zenoh wiring around `NavGraph` (the algorithm lives in `graph.py`).
 
 Input: `mapper/delta` (MapDelta), every one in order (FIFO, never latest-wins: a lost delta is a
-hole in the graph). A gap in the delta sequence is counted (`delta_gap`); labels outside the class
-table are read as unknown and counted (`unknown_labels`); voxels outside the graph bounds are
-counted in the stats (a map may reach further than the graph).
+hole in the graph). The delta stream is followed per producer (the mapper session that numbered
+it, `common/plausibility.py::SequenceFollower`): a gap is counted (event `delta_gap`) and asks for
+a resync; a delta from another producer (a restarted mapper, or a stranger), one whose number goes
+back or jumps far ahead is refused (`producer`, `sequence`) and asks for a resync, so no number a
+peer sends can freeze or wipe the graph. Deltas whose stamp does not fit the stream's clock are
+refused (`stamp`). Labels outside the class table are read as unknown and counted
+(`unknown_labels`); voxels outside the graph bounds are counted in the stats (a map may reach
+further than the graph).
 
 At start the service asks the mapper for a snapshot of its occupied voxels (`mapper/snapshot`),
 so a navgraph started or restarted after the mapper does not miss what was mapped before; deltas
-that the snapshot already covers (sequence number not above the snapshot's) are skipped.
+that the snapshot already covers (sequence number not above the snapshot's) are dropped as
+`covered`.
 
-It resynchronises the same way whenever deltas may have been lost: after a gap in the delta
-sequence, and when the mapper's liveliness token comes back after vanishing (the mapper restarted,
+It resynchronises the same way whenever deltas may have been lost or the stream is in doubt (see
+above), and when the mapper's liveliness token comes back after vanishing (the mapper restarted,
 or the link to a robot dropped and returned). The graph is rebuilt from the snapshot and the nodes
 that differ from the old graph go out as one patch, so consumers stay incremental and no voxel is
-lost from the base's view.
+lost from the base's view. Resyncs are at most one every `RESYNC_MIN_PERIOD_S`.
 
 Output: one `GraphPatch` on `navgraph/patch` per delta that changed a node (label, height or
 flags, safety-zone changes included), published reliably (congestion control BLOCK). Heights of
@@ -36,14 +42,18 @@ from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
 from smana.common.messages import FLAG_KNOWN, MAX_PAYLOAD_BYTES, GraphPatch, MapDelta
+from smana.common.plausibility import APPLY, COVERED, SequenceFollower, StampGate
 from smana.common.query import QueryError, request
-from smana.common.service import ReplyError, Request, Service, run_service
+from smana.common.service import Reject, ReplyError, Request, Service, run_service
 from smana.services.navgraph.graph import NavGraph, warm_up
 
 BYTES_PER_PATCH_NODE = 8 + 2 + 4 + 1  # cell, label, height, flags
+RESYNC_MIN_PERIOD_S = 1.0  # a stream in doubt asks for snapshots at most this often
 
 
-def to_patch(graph: NavGraph, cells, labels, heights, flags, seq: int, stamp_s: float):
+def to_patch(
+    graph: NavGraph, cells, labels, heights, flags, seq: int, stamp_s: float, producer: str = ""
+):
     """A GraphPatch of nodes; unknown heights (NaN) travel as 0."""
     heights = np.where(np.isnan(heights) | ((flags & FLAG_KNOWN) == 0), 0.0, heights)
     return GraphPatch(
@@ -55,6 +65,7 @@ def to_patch(graph: NavGraph, cells, labels, heights, flags, seq: int, stamp_s: 
         labels=np.ascontiguousarray(labels, np.uint16),
         heights=heights.astype(np.float32),
         flags=np.ascontiguousarray(flags, np.uint8),
+        producer=producer,
     )
 
 
@@ -100,8 +111,11 @@ class NavgraphService(Service):
         self.classes = ClassTable.load(config.general.class_table)
         self.graph = self._new_graph()
         self.patch_seq = 0
-        self.last_delta_seq: int | None = None
-        self.snapshot_seq = -1
+        self.deltas_in = SequenceFollower()
+        g = config.general
+        self.stamps = StampGate(g.stamp_window_s, g.max_time_rate)
+        self.last_stamp_s = 0.0
+        self._next_resync = 0.0
         self.deltas = 0
         self.deltas_skipped = 0
         self.voxels_out_of_bounds = 0
@@ -110,7 +124,10 @@ class NavgraphService(Service):
         self.resyncs = 0
         self._resync_reason = ""  # set from callbacks and on_delta; done in tick()
         self._mapper_was_down = False
+
+    def warm_up(self) -> None:
         # Before the liveliness token: whoever waits for navgraph gets a compiled one.
+        self.startup_step = "loading (or compiling) the numba kernels"
         self.log.info("kernels ready in %.1f s", warm_up(self.classes))
 
     def _new_graph(self) -> NavGraph:
@@ -141,7 +158,10 @@ class NavgraphService(Service):
             self._resync_reason = "the mapper is back (restart or link drop)"
 
     def tick(self) -> None:
-        if self._resync_reason:
+        if self.deltas_in.want_resync and not self._resync_reason:
+            self._resync_reason = self.deltas_in.want_resync
+        if self._resync_reason and time.monotonic() >= self._next_resync:
+            self._next_resync = time.monotonic() + RESYNC_MIN_PERIOD_S
             reason, self._resync_reason = self._resync_reason, ""
             self.resync(reason)
 
@@ -156,24 +176,27 @@ class NavgraphService(Service):
             self.log.warning("resync (%s) failed: no snapshot (%s)", reason, exc.kind)
             return False
         if not isinstance(snap, MapDelta):
-            self.count_error("malformed", "mapper snapshot is not a MapDelta")
+            self.note("bad_snapshot", "mapper snapshot is not a MapDelta")
             return False
         old = self.graph.export()
         self.graph = self._new_graph()
         up = self.graph.integrate_delta(snap)
         new = self.graph.export()
         cells, labels, heights, flags = graph_difference(old, new)
-        self.snapshot_seq = self.last_delta_seq = snap.seq
+        self.deltas_in.synced(snap.producer, snap.seq)
         self.resyncs += 1
         self.log.info("resynced from the mapper's snapshot (%s): %d voxels, %d nodes changed",
                       reason, len(snap.centres), len(cells))  # fmt: skip
         self.columns_lost += up.n_columns_lost
         if len(cells):
-            self.patch_seq += 1
-            self.patch_pub.put(
-                to_patch(self.graph, cells, labels, heights, flags, self.patch_seq, snap.stamp_s)
-            )
+            self._publish(cells, labels, heights, flags, snap.stamp_s)
         return True
+
+    def _publish(self, cells, labels, heights, flags, stamp_s: float) -> None:
+        self.patch_seq += 1
+        self.last_stamp_s = max(self.last_stamp_s, float(stamp_s))
+        self.patch_pub.put(to_patch(self.graph, cells, labels, heights, flags, self.patch_seq,
+                                    stamp_s, self.producer))  # fmt: skip
 
     def _initial_map(self) -> None:
         """Integrate the mapper's current map, if a mapper is already running."""
@@ -183,58 +206,44 @@ class NavgraphService(Service):
             self.log.info("no map snapshot (%s): starting from deltas", exc.kind)
             return
         if not isinstance(snap, MapDelta):
-            self.count_error("malformed", "mapper snapshot is not a MapDelta")
+            self.note("bad_snapshot", "mapper snapshot is not a MapDelta")
             return
-        self.snapshot_seq = snap.seq
+        self.deltas_in.synced(snap.producer, snap.seq)
         self.log.info("starting from the mapper's snapshot: %d voxels", len(snap.centres))
         self._integrate(snap)
 
     # -- the delta path ----------------------------------------------------------------------
 
-    def on_delta(self, delta: MapDelta) -> None:
-        if delta.seq <= self.snapshot_seq:
-            self.deltas_skipped += 1  # already in the snapshot we started from
-            return
-        if self.last_delta_seq is not None:
-            if delta.seq > self.last_delta_seq + 1:
-                missed = delta.seq - self.last_delta_seq - 1
-                self.count_error("delta_gap", f"{missed} map deltas missed before {delta.seq}")
-                self._resync_reason = f"{missed} map deltas missed"
-            elif delta.seq <= self.last_delta_seq:
-                self.log.info("delta seq went back to %d: the mapper restarted", delta.seq)
-        self.last_delta_seq = delta.seq
+    def on_delta(self, delta: MapDelta):
+        # Checks first: a refused delta changes nothing.
+        verdict = self.stamps.check(delta.stamp_s)
+        if not verdict.ok:
+            raise Reject("stamp", f"map delta {delta.seq}: {verdict.reason}")
+        action, why = self.deltas_in.check(delta.producer, delta.seq)
+        if action == COVERED:
+            self.deltas_skipped += 1  # already in the snapshot we synced from
+            return ("dropped", "covered")
+        if action != APPLY:
+            raise Reject(action, f"map delta {delta.seq}: {why}; resync asked")
+        if why:  # applied across a gap; the resync fills it
+            self.note("delta_gap", f"map deltas: {why}")
         self._integrate(delta)
 
     def _integrate(self, delta: MapDelta) -> None:
-        try:
-            up = self.graph.integrate_delta(delta)
-        except ValueError as exc:
-            self.count_error("value", f"map delta {delta.seq} rejected: {exc}")
-            return
+        up = self.graph.integrate_delta(delta)  # checks its input before changing anything
         self.deltas += 1
         self.times_ms.append(up.time_ms)
         del self.times_ms[:-100]
         self.voxels_out_of_bounds += up.n_out_of_bounds
         self.columns_lost += up.n_columns_lost
         if up.n_unknown_labels:
-            self.count_error(
+            self.note(
                 "unknown_labels",
                 f"delta {delta.seq}: {up.n_unknown_labels} labels not in the class table "
                 f"{self.classes.name}, read as unknown",
             )
         if len(up.cells):
-            self.patch_seq += 1
-            self.patch_pub.put(
-                to_patch(
-                    self.graph,
-                    up.cells,
-                    up.labels,
-                    up.heights,
-                    up.flags,
-                    self.patch_seq,
-                    delta.stamp_s,
-                )  # fmt: skip
-            )
+            self._publish(up.cells, up.labels, up.heights, up.flags, delta.stamp_s)
 
     # -- queries -----------------------------------------------------------------------------
 
@@ -248,7 +257,8 @@ class NavgraphService(Service):
         cells, labels, heights, flags = self.graph.export(box)
         if len(cells) * BYTES_PER_PATCH_NODE > MAX_PAYLOAD_BYTES - 4096:
             raise ReplyError("value", f"{len(cells)} nodes do not fit one reply: ask for a box")
-        return to_patch(self.graph, cells, labels, heights, flags, self.patch_seq, time.time())
+        return to_patch(self.graph, cells, labels, heights, flags, self.patch_seq,
+                        self.last_stamp_s, self.producer)  # fmt: skip
 
     def on_node(self, req: Request) -> dict:
         body = req.body()

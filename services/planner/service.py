@@ -1,11 +1,14 @@
 """The planner service: zenoh wiring around `Planner` (the algorithm lives in `planner.py` and
 `astar.py`).
 
-Input: `navgraph/patch` (GraphPatch), applied in order to the planner's own `NavGrid` copy. At
-start, on a gap in the patch sequence, and when navgraph (re)starts (its liveliness token
-appears, or its patches count from 1 again), the planner asks navgraph for the whole graph
-(`navgraph/graph`) and skips the patches that reply already covers. A
-patch whose resolution or origin differs from `[navgraph]` in the config is rejected (`geometry`).
+Input: `navgraph/patch` (GraphPatch), applied in order to the planner's own `NavGrid` copy. The
+patch stream is followed per producer (the navgraph session that numbered it,
+`common/plausibility.py::SequenceFollower`). At start, on a gap in the patch sequence, when a
+patch comes from another producer (navgraph restarted) or its number goes back or jumps far ahead
+(refused: `producer`, `sequence`), and when navgraph's liveliness token appears, the planner asks
+navgraph for the whole graph (`navgraph/graph`) and drops the patches that reply already covers
+(`covered`). A patch whose resolution or origin differs from `[navgraph]` in the config is
+rejected (`geometry`).
 
 Query `planner/path`: a PathRequest in msgpack, or JSON from any zenoh tool (only `start` and
 `goal` are required, e.g. `{"start": [0, 0], "goal": [5, 3]}`), or selector parameters
@@ -19,6 +22,7 @@ Also `planner/stats`.
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 
@@ -27,8 +31,9 @@ from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
 from smana.common.messages import GraphPatch, MessageError, PathReply, PathRequest
 from smana.common.navgrid import NavGrid
+from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
-from smana.common.service import Request, Service, run_service
+from smana.common.service import Reject, Request, Service, run_service
 from smana.services.planner.planner import MALFORMED, Planner, PlannerParams, PlanResult, warm_up
 
 
@@ -94,7 +99,8 @@ class PlannerService(Service):
         )
         params = PlannerParams(pc.h_f, pc.t_f, pc.max_step_m, pc.unknown_cost, pc.heuristic)
         self.planner = Planner(self.grid, self.classes, params)
-        self.last_patch_seq = 0
+        self.patches_in = SequenceFollower()
+        self._next_sync = 0.0
         self.patches = 0
         self.patches_skipped = 0
         self.syncs = 0
@@ -102,7 +108,10 @@ class PlannerService(Service):
         self.outcomes: dict[str, int] = {}
         self.times_ms: list[float] = []
         self._resync = False
+
+    def warm_up(self) -> None:
         # Before the liveliness token: whoever waits for the planner gets a compiled one.
+        self.startup_step = "loading (or compiling) the numba kernels"
         self.log.info("kernels ready in %.1f s", warm_up(self.classes))
 
     def setup(self) -> None:
@@ -124,7 +133,8 @@ class PlannerService(Service):
             self._resync = True
 
     def tick(self) -> None:
-        if self._resync:
+        if (self._resync or self.patches_in.want_resync) and time.monotonic() >= self._next_sync:
+            self._next_sync = time.monotonic() + 1.0  # a stream in doubt: one sync a second
             self._resync = False
             self.sync()
 
@@ -144,13 +154,16 @@ class PlannerService(Service):
             self.log.info("no graph from navgraph (%s): waiting for patches", exc.kind)
             return False
         if not isinstance(reply, GraphPatch):
-            self.count_error("malformed", "navgraph/graph reply is not a GraphPatch")
+            self.note("bad_graph_reply", "navgraph/graph reply is not a GraphPatch")
             return False
-        if not self._check_geometry(reply):
+        try:
+            self._check_geometry(reply)
+        except Reject as exc:
+            self.note("geometry", str(exc))
             return False
         self._reset_grid()
         self._apply(reply)
-        self.last_patch_seq = reply.seq
+        self.patches_in.synced(reply.producer, reply.seq)
         self.syncs += 1
         self.log.info(
             "graph synced from navgraph: %d nodes (patch %d)", len(reply.cells), reply.seq
@@ -162,43 +175,34 @@ class PlannerService(Service):
         self.grid = NavGrid(g.origin_xy, g.shape, g.resolution_m, g.tile_size)
         self.planner = Planner(self.grid, self.classes, self.planner.params)
 
-    def _check_geometry(self, patch: GraphPatch) -> bool:
+    def _check_geometry(self, patch: GraphPatch) -> None:
         g = self.grid
         if abs(patch.resolution_m - g.resolution_m) > 1e-9 or not np.allclose(
             patch.origin_xy, g.origin_xy
         ):
-            self.count_error(
+            raise Reject(
                 "geometry",
                 f"graph patch at {patch.resolution_m} m from {patch.origin_xy.tolist()} does not "
                 f"match the planner's grid ({g.resolution_m} m from {g.origin_xy.tolist()}): "
                 "check [navgraph] in the config",
             )
-            return False
-        return True
 
     def _apply(self, patch: GraphPatch) -> None:
         n_out = self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
         if n_out:
-            self.count_error("out_of_bounds", f"{n_out} patch cells outside the graph bounds")
+            self.note("out_of_bounds", f"{n_out} patch cells outside the graph bounds")
 
-    def on_patch(self, patch: GraphPatch) -> None:
-        if not self._check_geometry(patch):
-            return
-        if patch.seq == 1 and self.last_patch_seq > 1:
-            # navgraph restarted: its graph starts again (from the mapper's snapshot)
-            self.log.info("navgraph restarted: dropping the old graph")
-            self._reset_grid()
-            self.last_patch_seq = 0
-        if patch.seq <= self.last_patch_seq:
+    def on_patch(self, patch: GraphPatch):
+        self._check_geometry(patch)
+        action, why = self.patches_in.check(patch.producer, patch.seq)
+        if action == COVERED:
             self.patches_skipped += 1  # already in the graph we synced
-            return
-        if self.last_patch_seq and patch.seq > self.last_patch_seq + 1:
-            missed = patch.seq - self.last_patch_seq - 1
-            self.count_error("patch_gap", f"{missed} graph patches missed before {patch.seq}")
-            if self.sync() and patch.seq <= self.last_patch_seq:
-                return
+            return ("dropped", "covered")
+        if action != APPLY:
+            raise Reject(action, f"graph patch {patch.seq}: {why}; resync asked")
+        if why:  # applied across a gap; the sync on the next tick fills it
+            self.note("patch_gap", f"graph patches: {why}")
         self._apply(patch)
-        self.last_patch_seq = patch.seq
         self.patches += 1
 
     # -- path queries ------------------------------------------------------------------------
@@ -211,9 +215,9 @@ class PlannerService(Service):
             else:
                 msg = request_from_params(req.params)
         except MessageError as exc:
-            self.count_error(exc.kind, f"bad path request: {exc}")
+            # Still answered as a PathReply (ok false, `malformed`), and counted as rejected.
             result = PlanResult(False, MALFORMED, f"malformed request: {exc}")
-            return self._reply("", result)
+            raise Reject(exc.kind, f"bad path request: {exc}", self._reply("", result)) from None
         return self._reply(msg.request_id, self.planner.plan_request(msg))
 
     def _reply(self, request_id: str, result: PlanResult) -> PathReply:
@@ -231,7 +235,7 @@ class PlannerService(Service):
             "bytes": self.grid.nbytes,
             "patches": self.patches,
             "patches_skipped": self.patches_skipped,
-            "last_patch_seq": self.last_patch_seq,
+            "last_patch_seq": self.patches_in.last or 0,
             "syncs": self.syncs,
             "queries": self.queries,
             "outcomes": dict(self.outcomes),

@@ -212,7 +212,7 @@ class ReplayService(Service):
             item: FeedItem = self._next
             if item.error:
                 self.read_errors.append((item.name, item.error))
-                self.count_error("dataset", f"{item.name}: {item.error}")
+                self.note("dataset", f"{item.name}: {item.error}")
                 self.done += 1
                 self._next = None
                 continue
@@ -331,10 +331,10 @@ class ReplayService(Service):
         try:
             patch = request(self.session, keys.query(self.robot, "navgraph", "graph"), None, 10.0)
         except QueryError as exc:
-            self.count_error("graph", f"could not fetch the navigation graph: {exc}")
+            self.note("graph", f"could not fetch the navigation graph: {exc}")
             return
         if not isinstance(patch, GraphPatch):
-            self.count_error("graph", "navgraph/graph did not answer with a GraphPatch")
+            self.note("graph", "navgraph/graph did not answer with a GraphPatch")
             return
         nav = self.config.navgraph
         grid = NavGrid.from_bounds(nav.bounds_min_xy, nav.bounds_max_xy, patch.resolution_m)

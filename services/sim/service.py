@@ -28,7 +28,8 @@ from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
 from smana.common.messages import MapDelta, VelocityCommand
-from smana.common.service import Service, run_service
+from smana.common.plausibility import StampGate
+from smana.common.service import Reject, Service, run_service
 
 from .finishing import FinishedFrame, finished, make_worker
 from .simulation import Simulation, pose_message
@@ -44,20 +45,17 @@ class SimService(Service):
     def __init__(self, config: SmanaConfig, sim: Simulation | None = None):
         super().__init__(config)
         self.sc = sc = config.sim
-        if sim is None:
-            classes = ClassTable.load(config.general.class_table)
-            sim = Simulation(sc, classes=classes)
-        self.sim = sim
+        self.sim = sim  # built in warm_up when not given
+        g = config.general
+        # commands carry their sender's wall clock (the explorer's), checked like any stream
+        self.cmd_stamps = StampGate(g.stamp_window_s, g.max_time_rate)
         self.pose_seq = 0
         self.image_seq = 0
         self.period_pose = 1.0 / sc.pose_rate_hz
         self.period_camera = 1.0 / sc.camera_rate_hz
         self.period_lidar = 1.0 / sc.lidar_rate_hz
         self.period_clock = 1.0 / sc.clock_rate_hz
-        t = sim.time_s
-        self.next_pose = self.next_camera = self.next_lidar = self.next_clock = t
         self._wall0: float | None = None
-        self._sim0 = t
         self.awaiting: int | None = None  # lockstep: the cloud seq we wait for
         self._awaiting_since = 0.0
         self.lag_resets = 0
@@ -65,8 +63,21 @@ class SimService(Service):
         self.commands = 0
         self.camera_ms: list[float] = []
         self.lidar_ms: list[float] = []
-        self._rtf_mark = (time.monotonic(), t)
         self.achieved_rtf = 0.0
+        self._worker = self._finish = None
+        self._in_flight: collections.deque[tuple[Future, float]] = collections.deque()
+
+    def warm_up(self) -> None:
+        sc = self.sc
+        if self.sim is None:
+            self.startup_step = "building the world"
+            classes = ClassTable.load(self.config.general.class_table)
+            self.sim = Simulation(sc, classes=classes)
+        sim = self.sim
+        t = sim.time_s
+        self.next_pose = self.next_camera = self.next_lidar = self.next_clock = t
+        self._sim0 = t
+        self._rtf_mark = (time.monotonic(), t)
         # Degrading and encoding a frame runs on a worker (`camera_worker`, see finishing.py)
         # while the loop steps physics and renders the next. Not in lockstep,
         # where the world must not move between a cloud and its MapDelta.
@@ -75,7 +86,6 @@ class SimService(Service):
             sim.world.classes.colour_lut,
         )  # fmt: skip
         self._worker, self._finish = worker if worker is not None else (None, None)
-        self._in_flight: collections.deque[tuple[Future, float]] = collections.deque()
 
     # -- wiring ----------------------------------------------------------------------------------
 
@@ -105,14 +115,19 @@ class SimService(Service):
         )  # fmt: skip
 
     def on_cmd(self, cmd: VelocityCommand) -> None:
+        verdict = self.cmd_stamps.check(cmd.stamp_s)
+        if not verdict.ok:
+            raise Reject("stamp", f"velocity command {cmd.seq}: {verdict.reason}")
+        self.sim.set_velocity(cmd.linear_mps, cmd.angular_radps)  # ValueError -> rejected
         self.commands += 1
-        self.sim.set_velocity(cmd.linear_mps, cmd.angular_radps)  # ValueError -> counted
 
     def on_delta(self, delta: MapDelta) -> None:
         if self.awaiting is not None and int(delta.cloud_seq) >= self.awaiting:
             self.awaiting = None
 
     def on_stop(self) -> None:
+        if self.sim is None:
+            return  # stopped while building the world
         try:
             self._drain(block=True)
         finally:
@@ -134,7 +149,7 @@ class SimService(Service):
                 self._anchor(now)  # frozen while waiting: no catching up afterwards
                 return
             self.lockstep_timeouts += 1
-            self.count_error("lockstep_timeout", f"no MapDelta for cloud {self.awaiting}")
+            self.note("lockstep_timeout", f"no MapDelta for cloud {self.awaiting}")
             self.awaiting = None
             self._anchor(now)
         self._drain(block=False)
@@ -204,7 +219,7 @@ class SimService(Service):
             except BrokenProcessPool:
                 self.log.error("the camera worker process died: finishing frames in line from "
                                "now on (frame lost)")  # fmt: skip
-                self.count_error("camera_worker", "worker process died")
+                self.note("camera_worker", "worker process died")
                 self._worker.shutdown(wait=False, cancel_futures=True)
                 self._worker = None
                 self._in_flight.clear()

@@ -1,6 +1,7 @@
 """A minimal service on the lifecycle base, for testing the base itself (tests/test_service.py).
 
-- FIFO input `smana/<robot>/echo/pose` (Pose): counted in `poses`;
+- FIFO input `smana/<robot>/echo/pose` (Pose): counted in `poses` (frame_id "boom" raises, a
+  stand-in for a handler's bug);
 - latest-wins input `smana/<robot>/echo/cloud` (SemanticCloud): takes `--cloud-delay` seconds each;
 - queryable `smana/<robot>/echo/count`: {"poses", "clouds", "points"};
 - publisher `smana/<robot>/echo/out`: re-publishes each pose.
@@ -34,6 +35,8 @@ class EchoService(Service):
         self.queryable(keys.key(self.robot, "echo", "count"), self.on_count)
 
     def on_pose(self, pose: Pose):
+        if pose.frame_id == "boom":
+            raise RuntimeError("a handler bug, for the tests")
         self.poses += 1
         self.out.put(pose)
 
@@ -42,7 +45,7 @@ class EchoService(Service):
         self.clouds += 1
         self.points += len(cloud.points)
         if cloud.n_dropped_nonfinite:
-            self.count_error("nonfinite_points", f"{cloud.n_dropped_nonfinite} NaN/inf points")
+            self.note("nonfinite_points", f"{cloud.n_dropped_nonfinite} NaN/inf points")
 
     def on_count(self, req):
         body = req.body()
