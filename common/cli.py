@@ -1,19 +1,57 @@
 """Command-line plumbing every smana command shares: `--config`, `--set`, `--robot`, `--run-dir`,
-`--log-level` and the zenoh flags, turned into one validated `SmanaConfig`."""
+`--log-level` and the zenoh flags, turned into one validated `SmanaConfig`; argument types that
+refuse impossible values; and `run_command`, which turns a user's mistake into one line.
+
+Exit status of every command: 0 done, 1 it ran and failed (a planner's "no path", a run whose
+explorer failed), 2 misuse (a bad argument or config, a port in use, nothing to connect to): one
+line on stderr, `smana <command>: <what is wrong and what to do>`. A bug still shows its traceback.
+"""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import logging
+import math
+import os
 import sys
+from collections.abc import Callable
+from pathlib import Path
 
 from smana.common.config import ConfigError, SmanaConfig
-from smana.common.zenoh_config import add_zenoh_args, apply_zenoh_args
+from smana.common.zenoh_config import SessionError, add_zenoh_args, apply_zenoh_args
+
+
+class UsageError(ValueError):
+    """A command-line value that cannot work (a run directory that is a file, ...)."""
+
+
+# What `run_command` reports in one line: mistakes of the user's, not of the code's.
+USER_ERRORS = (ConfigError, SessionError, UsageError)
+
+
+def run_command(name: str, cli: Callable[[list[str] | None], int | None], argv=None) -> int:
+    """Run a command's `cli(argv)` and return its exit status. A user error (`USER_ERRORS`) is
+    printed as `smana <name>: <message>` on one line and gives status 2; anything else is a bug and
+    propagates with its traceback. Used by `smana <command>` and by every `python -m` entry."""
+    try:
+        return int(cli(argv) or 0)
+    except USER_ERRORS as exc:
+        print(f"smana {name}: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse with a one-line error, `smana up: argument --duration: expected a number > 0, got
+    '-5' (see smana up --help)`, and status 2: the usage block of a command with the shared flags
+    is seven lines that hide the one that matters. Subcommand parsers inherit it."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 
 def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description=description)
+    p = ArgumentParser(prog=prog, description=description)
     p.add_argument("--config", "-c", metavar="FILE", help="smana TOML config")
     p.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
@@ -27,13 +65,10 @@ def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
 
 
 def config_from_args(args: argparse.Namespace, layers=()) -> SmanaConfig:
-    """Load `layers` and the config file, apply --set, then the dedicated flags. Exits with a clear
-    message on a bad config instead of a traceback."""
+    """Load `layers` and the config file, apply --set, then the dedicated flags. A bad config is a
+    `ConfigError` naming the key (`run_command` prints it in one line)."""
     overrides = list(args.overrides or [])
-    try:
-        cfg = SmanaConfig.load(args.config, overrides, layers)
-    except ConfigError as exc:
-        sys.exit(f"config error: {exc}")
+    cfg = SmanaConfig.load(args.config, overrides, layers)
     general = cfg.general
     if args.robot:
         general = dataclasses.replace(general, robot=args.robot)
@@ -41,11 +76,11 @@ def config_from_args(args: argparse.Namespace, layers=()) -> SmanaConfig:
         general = dataclasses.replace(general, run_dir=args.run_dir)
     if args.log_level:
         general = dataclasses.replace(general, log_level=args.log_level)
+    general.validate()
     try:
-        general.validate()
         return dataclasses.replace(cfg, general=general, zenoh=apply_zenoh_args(cfg.zenoh, args))
-    except (ConfigError, ValueError) as exc:
-        sys.exit(f"config error: {exc}")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
 
 
 def setup_logging(level: str, name: str) -> None:
@@ -54,3 +89,63 @@ def setup_logging(level: str, name: str) -> None:
         format=f"%(asctime)s %(levelname)s {name}: %(message)s",
         stream=sys.stderr,
     )
+
+
+# -- argument types: argparse reports a refused value in one line (ArgumentParser), status 2 ----
+
+
+def _number(kind: type, low: float, inclusive: bool, high: float | None = None):
+    bound = f">= {low:g}" if inclusive else f"> {low:g}"
+    if high is not None:
+        bound += f" and <= {high:g}"
+    what = f"{'an integer' if kind is int else 'a number'} {bound}"
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+        too_high = high is not None and v > high
+        if not math.isfinite(v) or v < low or (v == low and not inclusive) or too_high:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+        return v
+
+    return parse
+
+
+positive_float = _number(float, 0.0, inclusive=False)
+non_negative_float = _number(float, 0.0, inclusive=True)
+positive_int = _number(int, 0, inclusive=False)
+non_negative_int = _number(int, 0, inclusive=True)
+
+
+def int_in(low: int, high: int | None = None):
+    """An argparse type: an integer from `low` (to `high`)."""
+    return _number(int, low, inclusive=True, high=high)
+
+
+def output_dir(path: str | Path, what: str = "run directory", flag: str = "--run-dir") -> Path:
+    """`path` as a directory to write into, created if missing. UsageError, before anything starts,
+    when it is a file or cannot be created or written (`flag` is how to choose another)."""
+    p = Path(path)
+    fix = f"choose another with {flag} DIR"
+    if p.exists() and not p.is_dir():
+        raise UsageError(f"{what} {p} is a file, not a directory; {fix}")
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"{what} {p} cannot be created ({exc.strerror or exc}); {fix}") from None
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise UsageError(f"{what} {p} is not writable; {fix}")
+    return p
+
+
+def output_file(path: str | Path, what: str = "--out") -> Path:
+    """`path` as a file to write: UsageError, before anything starts, when it is a directory or
+    its folder does not exist."""
+    p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"{what} {p} is a directory; give a file name")
+    if not p.parent.is_dir():
+        raise UsageError(f"{what} {p}: folder {p.parent} does not exist")
+    return p

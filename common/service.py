@@ -68,7 +68,7 @@ from smana.common.messages import (
     json_default,
     to_json,
 )
-from smana.common.zenoh_config import make_zenoh_config
+from smana.common.zenoh_config import open_session
 
 try:  # Linux: a child can ask to be signalled when its parent dies, even by SIGKILL
     import ctypes
@@ -383,11 +383,8 @@ class Service:
 
     def run(self) -> int:
         """Open the session, warm up, run until SIGINT/SIGTERM (or `stop()`), shut down cleanly."""
-        import zenoh
-
         self._install_signal_handlers()
-        conf = make_zenoh_config(self.config.zenoh)
-        with zenoh.open(conf) as session:
+        with open_session(self.config.zenoh) as session:
             self.session = session
             self.producer = str(session.zid())
             heartbeat = None

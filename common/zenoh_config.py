@@ -4,6 +4,11 @@
 The embedded default is loopback only: every process is a client of the supervisor's router on
 tcp/127.0.0.1:7447, with multicast scouting and gossip off, so nothing leaves the machine and two
 stacks on one machine never meet unless told to (give them different ports or robot names).
+
+Every session is opened by `open_session`, which turns zenoh's errors (multi-line Rust messages
+with source locations) into one `SessionError` line naming the problem and its fix: an endpoint
+already in use, a router nobody runs, an address this machine does not have. Endpoints and zenoh
+config files are checked before zenoh sees them (`ConfigError`).
 """
 
 from __future__ import annotations
@@ -11,6 +16,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 from smana.common.config import ConfigError, ZenohConfig
@@ -58,17 +64,48 @@ def apply_zenoh_args(zc: ZenohConfig, args: argparse.Namespace) -> ZenohConfig:
     return dataclasses.replace(zc, **changes)
 
 
+class SessionError(ValueError):
+    """A zenoh session that could not be opened for a reason the user can fix (a port in use, no
+    router to connect to, ...). The message is one line: the problem, then what to do."""
+
+
+# How to choose another listen endpoint, with {} standing for a suggested one.
+LISTEN_HINT = "--listen {}"
+
+# zenoh's protocols (zenoh-link); an IP one's address is <host>:<port>
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_PROTOCOLS = (*_IP_PROTOCOLS, "unixsock-stream", "unixpipe", "serial", "vsock")
+_ENDPOINT = re.compile(r"(?P<proto>[A-Za-z0-9-]+)/(?P<addr>[^?#]+)(?P<rest>[?#].*)?")
+_EXAMPLE = "e.g. tcp/127.0.0.1:7447"
+_RUST_SOURCE = re.compile(r"\s*\bat /\S*?\.rs:\d+\.?")  # "... at /root/.cargo/.../tcp.rs:61."
+
+
+def check_endpoint(endpoint: str) -> None:
+    """ConfigError unless `endpoint` reads as <protocol>/<address>, with <host>:<port> for the IP
+    protocols. zenoh would refuse most of these too, but only when the session opens, and a
+    connect endpoint without a port would read as "nobody answers" there."""
+    m = _ENDPOINT.fullmatch(endpoint)
+    if not m:
+        raise ConfigError(f"{endpoint!r} is not a zenoh endpoint: expected <protocol>/<address>, "
+                          f"{_EXAMPLE}")  # fmt: skip
+    proto = m["proto"]
+    if proto not in _PROTOCOLS:
+        raise ConfigError(f"endpoint {endpoint!r}: unknown protocol {proto!r} (zenoh speaks "
+                          f"{', '.join(_PROTOCOLS)}), {_EXAMPLE}")  # fmt: skip
+    if proto in _IP_PROTOCOLS:
+        host, sep, port = m["addr"].rpartition(":")
+        if not (sep and host and port.isdigit() and int(port) <= 65535):
+            raise ConfigError(f"endpoint {endpoint!r}: expected {proto}/<host>:<port> with a port "
+                              f"from 0 to 65535, {_EXAMPLE}")  # fmt: skip
+
+
 def make_zenoh_config(zc: ZenohConfig):
-    """Build a `zenoh.Config` from the [zenoh] section."""
+    """Build a `zenoh.Config` from the [zenoh] section (ConfigError for what cannot work)."""
     import zenoh  # imported here so that cores and config code never need zenoh
 
-    if zc.config_file:
-        path = Path(zc.config_file)
-        if not path.is_file():
-            raise ConfigError(f"zenoh.config_file not found: {path}")
-        conf = zenoh.Config.from_file(str(path))
-    else:
-        conf = zenoh.Config()
+    for endpoint in [*zc.connect, *zc.listen]:
+        check_endpoint(endpoint)
+    conf = _read_zenoh_file(Path(zc.config_file)) if zc.config_file else zenoh.Config()
     conf.insert_json5("mode", json.dumps(zc.mode))
     if zc.connect:
         conf.insert_json5("connect/endpoints", json.dumps(zc.connect))
@@ -78,6 +115,123 @@ def make_zenoh_config(zc: ZenohConfig):
     conf.insert_json5("scouting/gossip/enabled", json.dumps(zc.gossip))
     _apply_security(conf, zc)
     return conf
+
+
+def open_session(source, listen_hint: str = LISTEN_HINT):
+    """Open a zenoh session from a [zenoh] section (`ZenohConfig`) or a built `zenoh.Config`, for
+    `with open_session(...) as session:`. zenoh's errors become a one-line `SessionError`;
+    `listen_hint` says how this command chooses another listen endpoint, for a taken one."""
+    import zenoh
+
+    conf = make_zenoh_config(source) if isinstance(source, ZenohConfig) else source
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as exc:
+        raise SessionError(explain_open_error(str(exc), conf, listen_hint)) from exc
+
+
+def explain_open_error(text: str, conf, listen_hint: str = LISTEN_HINT) -> str:
+    """One line for a zenoh.open() error: what went wrong and what to do. The endpoints come from
+    `conf` (zenoh names them in its own syntax, or not at all)."""
+    listen = _get(conf, "listen/endpoints") or []
+    connect = _get(conf, "connect/endpoints") or []
+    text = _one_line(_RUST_SOURCE.sub("", text))
+
+    def named(endpoints: list[str]) -> list[str]:  # those the message is about, else all
+        return [e for e in endpoints if _address(e) in text] or endpoints
+
+    if listen and ("os error 98" in text or "already in use" in text):
+        ep = named(listen)[0]
+        return (
+            f"{ep} is already in use: another smana stack (or zenohd) is probably running; "
+            f"stop it, or choose another port, e.g. {listen_hint.format(_next_port(ep))}"
+        )
+    if listen and ("os error 99" in text or "Cannot assign requested address" in text):
+        return (
+            f"cannot listen on {', '.join(named(listen))}: no network interface of this "
+            "machine has that address; use 127.0.0.1, 0.0.0.0 or one of its own addresses"
+        )
+    if listen and ("os error 13" in text or "Permission denied" in text):
+        ep = named(listen)[0]
+        return (
+            f"cannot listen on {ep}: permission denied (ports below 1024 need privileges); "
+            f"choose another port, e.g. {listen_hint.format(_next_port(ep, 7448))}"
+        )
+    if listen and "failed to lookup address" in text:
+        return (
+            f"cannot listen on {', '.join(listen)}: unknown host name; use an IP address "
+            "such as 127.0.0.1 or 0.0.0.0"
+        )
+    if "Unable to connect to any of" in text:
+        secured = _get(conf, "transport/auth/usrpwd/user") or any(
+            e.startswith(("tls/", "quic/")) for e in connect
+        )
+        refused = " (or it refused this host's certificate or credentials)" if secured else ""
+        return (
+            f"cannot connect to {', '.join(connect)}: nothing answers there{refused}; is the "
+            "smana stack running? Start it with `smana up`, or point --connect at its "
+            "router"
+        )
+    if "No peer specified" in text:
+        return (
+            f"nothing to connect to: give --connect ENDPOINT ({_EXAMPLE}), or "
+            "--multicast-scouting to find a router on the LAN"
+        )
+    return f"cannot open the zenoh session: {text}"
+
+
+def _get(conf, key: str):
+    try:
+        return json.loads(conf.get_json(key))
+    except Exception:  # a key this zenoh does not have: nothing to say about it
+        return None
+
+
+def _address(endpoint: str) -> str:
+    """tcp/127.0.0.1:7447?iface=lo -> 127.0.0.1:7447"""
+    return re.split(r"[?#]", endpoint.partition("/")[2])[0]
+
+
+def _next_port(endpoint: str, default: int | None = None) -> str:
+    """The same endpoint on the next port (or on `default`): a suggestion to try."""
+    head, sep, port = endpoint.rpartition(":")
+    if not (sep and port.isdigit()):
+        return endpoint
+    n = default if default is not None else (int(port) + 1 if int(port) < 65535 else 7448)
+    return f"{head}:{n}"
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _read_zenoh_file(path: Path):
+    """A zenoh JSON5 / YAML config file as a `zenoh.Config`; ConfigError with the line, column
+    and zenoh's own words when it does not parse or has an unknown key."""
+    import zenoh
+
+    if not path.exists():
+        raise ConfigError(
+            f"zenoh config file not found: {path} (--zenoh-config, zenoh.config_file)"
+        )
+    if not path.is_file():
+        raise ConfigError(f"zenoh config file {path} is not a file")
+    try:
+        return zenoh.Config.from_file(str(path))
+    except zenoh.ZError as exc:
+        raise ConfigError(f"zenoh config file {path}: {_explain_parse_error(str(exc))}") from exc
+
+
+def _explain_parse_error(text: str) -> str:
+    """zenoh's config errors come as serde debug output (`Message { msg: "...", location: Some(
+    Location { line: 1, column: 19 }) }`) or as a pest report (` --> 1:19 ... = expected ...`)."""
+    text = _RUST_SOURCE.sub("", text)
+    where = re.search(r"line: (\d+), column: (\d+)", text) or re.search(r"-->\s*(\d+):(\d+)", text)
+    what = re.search(r'\b(?:msg|message): "((?:[^"\\]|\\.)*)"', text) or re.search(
+        r"^\s*= (.+)$", text, re.MULTILINE
+    )
+    message = what[1] if what else text
+    return _one_line((f"line {where[1]}, column {where[2]}: " if where else "") + message)
 
 
 def _require(path: str, what: str) -> str:
@@ -137,4 +291,10 @@ def _apply_security(conf, zc: ZenohConfig) -> None:
     # The policy is enforced where links arrive: routers (and peers, which accept links too). A
     # client given the policy would apply default-deny to its own traffic.
     if zc.acl_file and zc.mode != "client":
-        conf.insert_json5("access_control", Path(_require(zc.acl_file, "acl_file")).read_text())
+        import zenoh
+
+        path = _require(zc.acl_file, "acl_file")
+        try:
+            conf.insert_json5("access_control", Path(path).read_text())
+        except zenoh.ZError as exc:
+            raise ConfigError(f"zenoh.acl_file {path}: {_explain_parse_error(str(exc))}") from exc

@@ -2,6 +2,10 @@
 
 Subcommands are imported lazily, so `smana --help` is instant and a tool's optional dependencies
 are only needed when that tool runs. Each target is `module:function` taking the remaining argv.
+
+Exit status: 0 done, 1 the command ran and failed, 2 misuse. Misuse (a bad argument or config, a
+port in use, nothing to connect to) is one line on stderr, `smana <command>: <message>`; see
+`common/cli.py::run_command`.
 """
 
 from __future__ import annotations
@@ -53,7 +57,9 @@ def _usage() -> str:
     return "\n".join(lines)
 
 
-def _call(target: str, argv: list[str]) -> int:
+def _call(name: str, target: str, argv: list[str]) -> int:
+    from smana.common.cli import run_command
+
     module, func = target.split(":")
     try:
         mod = importlib.import_module(module)
@@ -62,7 +68,7 @@ def _call(target: str, argv: list[str]) -> int:
             print(f"smana: {module} is not available in this build ({exc})", file=sys.stderr)
             return 2
         raise
-    return int(getattr(mod, func)(argv) or 0)
+    return run_command(name, getattr(mod, func), argv)
 
 
 def bench(argv: list[str]) -> int:
@@ -70,7 +76,7 @@ def bench(argv: list[str]) -> int:
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in BENCHES:
         print("usage: smana bench {" + ",".join(BENCHES) + "} [options]", file=sys.stderr)
         return 0 if argv and argv[0] in ("-h", "--help") else 2
-    return _call(BENCHES[argv[0]], argv[1:])
+    return _call(f"bench {argv[0]}", BENCHES[argv[0]], argv[1:])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -87,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         print(f"smana: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    return _call(COMMANDS[name][0], argv[1:])
+    return _call(name, COMMANDS[name][0], argv[1:])
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ simulated world rebuilt from the run's config and exported there), prints the ta
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -380,14 +379,17 @@ def eval_map_run(run_dir: Path, map_path: Path | None = None, gt_path: Path | No
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana eval", description=__doc__.splitlines()[0])
+    from smana.common.cli import ArgumentParser, positive_float
+
+    p = ArgumentParser(prog="smana eval", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="what", required=True)
     m = sub.add_parser("map", help="reconstruction error and classification ratio of a run's map")
     m.add_argument("run_dir", type=Path)
     m.add_argument("--map", type=Path, help="map file (PLY or .npz); default: found in RUN_DIR")
     m.add_argument("--gt", type=Path, help="ground-truth labelled PLY; default: RUN_DIR/gt.ply "
                    "or exported from the run's simulated world")  # fmt: skip
-    m.add_argument("--spacing", type=float, default=0.03, help="GT sample spacing when exported")
+    m.add_argument("--spacing", type=positive_float, default=0.03,
+                   help="GT sample spacing when exported")  # fmt: skip
     m.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = p.parse_args(argv)
     if not args.run_dir.is_dir():
@@ -403,4 +405,6 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    from smana.common.cli import run_command
+
+    sys.exit(run_command("eval", cli))

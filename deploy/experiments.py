@@ -25,7 +25,6 @@ short budget) that the test suite runs.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
@@ -527,7 +526,10 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationSettings, out: Pat
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana experiment", description=__doc__.splitlines()[0])
+    from smana.common.cli import ArgumentParser, output_dir, positive_float, positive_int
+    from smana.common.config import SmanaConfig
+
+    p = ArgumentParser(prog="smana experiment", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="which", required=True)
     n = sub.add_parser("noise", help="map precision under localisation and label noise")
     n.add_argument("--quick", action="store_true")
@@ -537,13 +539,16 @@ def cli(argv: list[str] | None = None) -> int:
     e = sub.add_parser("exploration", help="terrain share vs grass traversability cost")
     e.add_argument("--quick", action="store_true")
     e.add_argument("--out", type=Path)
-    e.add_argument("--seeds", type=int, help="number of world seeds (3, 4, ...)")
-    e.add_argument("--budget", type=float, help="time budget per run, seconds")
+    e.add_argument("--seeds", type=positive_int, help="number of world seeds (3, 4, ...)")
+    e.add_argument("--budget", type=positive_float, help="time budget per run, seconds")
     e.add_argument("--set", dest="extra", action="append", default=[],
                    help="extra config override for every run")  # fmt: skip
     args = p.parse_args(argv)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     out = args.out or Path("runs") / f"experiment-{args.which}-{stamp}"
+    if args.which == "exploration":
+        SmanaConfig.load(overrides=args.extra)  # a bad --set: ConfigError now, not in every run
+    output_dir(out, "output directory", "--out")
     if args.which == "noise":
         s = NoiseSettings.quick() if args.quick else NoiseSettings()
         if args.backends:
@@ -568,5 +573,7 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from smana.common.cli import run_command
+
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
-    sys.exit(cli())
+    sys.exit(run_command("experiment", cli))

@@ -12,9 +12,12 @@ import threading
 
 from smana.common.config import ZenohConfig
 from smana.common.service import on_stop_signals
-from smana.common.zenoh_config import make_zenoh_config
+from smana.common.zenoh_config import make_zenoh_config, open_session
 
 log = logging.getLogger("smana.router")
+
+# How `smana up` (and `smana router` without --listen) choose another port for the router.
+ROUTER_LISTEN_HINT = "--set 'deploy.router_listen=[\"{}\"]'"
 
 
 def router_config(listen: list[str], base: ZenohConfig | None = None, connect: list[str] = ()):
@@ -37,11 +40,14 @@ def router_config(listen: list[str], base: ZenohConfig | None = None, connect: l
     return conf
 
 
-def open_router(listen: list[str], base: ZenohConfig | None = None, connect: list[str] = ()):
+def open_router(listen: list[str], base: ZenohConfig | None = None, connect: list[str] = (),
+                listen_hint: str = ROUTER_LISTEN_HINT):  # fmt: skip
+    """The router's session; a `SessionError` (one line) when it cannot open, e.g. a port in use.
+    `listen_hint` tells the user how to choose another endpoint ({} is a suggested one)."""
     import zenoh
 
     zenoh.try_init_log_from_env()  # RUST_LOG=debug shows zenoh's own view of links and auth
-    return zenoh.open(router_config(listen, base, connect))
+    return open_session(router_config(listen, base, connect), listen_hint)
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -62,7 +68,8 @@ def cli(argv: list[str] | None = None) -> int:
     connect = args.connect or cfg.deploy.router_connect
     stop = threading.Event()
     on_stop_signals(lambda _sig: stop.set())
-    with open_router(listen, cfg.zenoh, connect) as session:
+    hint = "--listen {}" if args.listen else ROUTER_LISTEN_HINT
+    with open_router(listen, cfg.zenoh, connect, hint) as session:
         log.info("zenoh router %s listening on %s", session.zid(), ", ".join(listen))
         if connect:
             log.info("linking to %s", ", ".join(connect))
@@ -72,4 +79,6 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(cli())
+    from smana.common.cli import run_command
+
+    raise SystemExit(run_command("router", cli))

@@ -6,10 +6,10 @@ import json
 import sys
 
 from smana.common import keys
-from smana.common.cli import config_from_args, make_parser
+from smana.common.cli import config_from_args, make_parser, positive_float
 from smana.common.messages import ServiceStatus, to_json
 from smana.common.query import QueryError, request
-from smana.common.zenoh_config import make_zenoh_config
+from smana.common.zenoh_config import open_session
 
 
 def live_services(session, robot: str = "*", timeout_s: float = 2.0) -> list[tuple[str, str]]:
@@ -41,13 +41,12 @@ def cli(argv: list[str] | None = None) -> int:
     p = make_parser("smana status", __doc__)
     p.add_argument("--all-robots", action="store_true", help="every robot, not only --robot")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    p.add_argument("--timeout", type=float, default=2.0, metavar="S")
+    p.add_argument("--timeout", type=positive_float, default=2.0, metavar="S",
+                   help="how long to wait for answers (default 2)")  # fmt: skip
     args = p.parse_args(argv)
     cfg = config_from_args(args)
     robot = "*" if args.all_robots else cfg.general.robot
-    import zenoh
-
-    with zenoh.open(make_zenoh_config(cfg.zenoh)) as session:
+    with open_session(cfg.zenoh) as session:
         rows = collect(session, robot, args.timeout)
     if args.json:
         print(json.dumps(rows, indent=2))

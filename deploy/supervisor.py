@@ -438,7 +438,17 @@ def add_recorder(sup: Supervisor) -> bool:
 
 
 def main(config: SmanaConfig, duration_s: float | None = None, services=None) -> int:
+    import shutil
+
+    from smana.common.cli import UsageError, output_dir
+    from smana.common.zenoh_config import SessionError
+
+    # Refuse what cannot work before the router starts, not halfway through the run.
+    if duration_s is not None and not 0 < duration_s < float("inf"):
+        raise UsageError(f"--duration must be a number of seconds > 0, got {duration_s:g}")
     run_dir = Path(config.general.run_dir) if config.general.run_dir else default_run_dir()
+    fresh = not run_dir.exists()
+    output_dir(run_dir)
     record = config.deploy.recorder.enabled if services is None else "recorder" in services
     if services is not None:
         services = [s for s in services if s != "recorder"]
@@ -447,7 +457,14 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
         add_recorder(sup)
     on_stop_signals(lambda _sig: sup.stop())
     print(f"smana up: run directory {run_dir}", flush=True)
-    code = sup.run(duration_s)
+    try:
+        code = sup.run(duration_s)
+    except SessionError:
+        # The router did not open (its port is taken, ...): nothing ran, so leave no run
+        # directory behind unless it was there before.
+        if fresh:
+            shutil.rmtree(run_dir, ignore_errors=True)
+        raise
     warnings = sup.warnings()
     explored = any(m.service == "explorer" for m in sup.procs.values())
     try:
@@ -470,13 +487,15 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
 
 
 def cli(argv: list[str] | None = None) -> int:
+    from smana.common.cli import positive_float
+
     p = make_parser("smana up", "Start the smana stack: router, sim, mapper, navgraph, planner, "
                     "explorer; explore until done, then write the run directory.")  # fmt: skip
     p.add_argument("--profile", default="local",
                    help="deployment profile: local (default), robot, base, multi-robot, or a "
                         "TOML file; --config and --set apply on top of it")  # fmt: skip
     p.add_argument("--only", metavar="A,B", help="start only these services, e.g. mapper,planner")
-    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     args = p.parse_args(argv)
     cfg = config_from_args(args, layers=[profile_path(args.profile, p)])
     setup_logging(cfg.general.log_level, "up")

@@ -44,7 +44,7 @@ def find_rrd(run_dir: Path) -> Path:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    from smana.common.cli import config_from_args, make_parser, setup_logging
+    from smana.common.cli import config_from_args, make_parser, output_dir, setup_logging
 
     p = make_parser("smana view", __doc__.strip().splitlines()[0])
     p.add_argument("run_dir", nargs="?", type=Path, help="a run directory or an .rrd file")
@@ -70,6 +70,8 @@ def cli(argv: list[str] | None = None) -> int:
         from smana.deploy.recording import main as record
 
         rrd = args.run_dir / RRD_NAME if args.run_dir else None
+        if rrd is not None:  # the live recording goes there: a file is refused before it starts
+            output_dir(args.run_dir, "run directory", "smana view")
         return record(cfg, rrd, spawn=args.spawn, connect=args.viewer_url)
 
     if args.run_dir is None:
@@ -96,4 +98,6 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    from smana.common.cli import run_command
+
+    sys.exit(run_command("view", cli))

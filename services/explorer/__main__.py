@@ -8,12 +8,18 @@ from __future__ import annotations
 
 import sys
 
-from smana.common.cli import config_from_args, make_parser, setup_logging
+from smana.common.cli import (
+    config_from_args,
+    make_parser,
+    positive_float,
+    run_command,
+    setup_logging,
+)
 
 
 def cli(argv: list[str] | None = None) -> int:
     p = make_parser("smana explorer", __doc__.strip().splitlines()[0])
-    p.add_argument("--budget", type=float, metavar="S", help="time budget, seconds")
+    p.add_argument("--budget", type=positive_float, metavar="S", help="time budget, seconds")
     args = p.parse_args(argv)
     if args.budget is not None:
         args.overrides.append(f"explorer.time_budget_s={args.budget}")
@@ -25,4 +31,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    sys.exit(run_command("explorer", cli))

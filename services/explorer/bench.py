@@ -11,7 +11,6 @@ trees, the western half known. Times (median of `--repeats` runs):
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import statistics
@@ -159,9 +158,11 @@ def run(repeats: int = 5, view_range_m: float = 4.0) -> dict:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana bench explorer", description=__doc__.splitlines()[0])
-    p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--view-range", type=float, default=4.0)
+    from smana.common.cli import ArgumentParser, positive_float, positive_int
+
+    p = ArgumentParser(prog="smana bench explorer", description=__doc__.splitlines()[0])
+    p.add_argument("--repeats", type=positive_int, default=5)
+    p.add_argument("--view-range", type=positive_float, default=4.0)
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     r = run(args.repeats, args.view_range)
@@ -181,4 +182,6 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(cli())
+    from smana.common.cli import run_command
+
+    raise SystemExit(run_command("bench explorer", cli))

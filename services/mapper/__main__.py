@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from smana.common.cli import config_from_args, make_parser, setup_logging
+from smana.common.cli import config_from_args, make_parser, run_command, setup_logging
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -32,4 +32,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    sys.exit(run_command("mapper", cli))

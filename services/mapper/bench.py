@@ -311,13 +311,18 @@ def _summary(results: list[dict]) -> tuple[list[str], dict]:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana bench mapper", description=__doc__.splitlines()[0])
+    from smana.common.cli import ArgumentParser, output_file, positive_float, positive_int
+
+    backends = ["octree-max", "octree-bayes", "tsdf"]
+    p = ArgumentParser(prog="smana bench mapper", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="tiny scans, 0.3 m only, in-process")
-    p.add_argument("--scans", type=int, default=20, help="scans per configuration (default 20)")
-    p.add_argument("--repeats", type=int, default=3, help="runs per configuration (default 3)")
-    p.add_argument("--agreement-scans", type=int, default=5)
-    p.add_argument("--resolutions", type=float, nargs="+", default=[0.1, 0.3])
-    p.add_argument("--backends", nargs="+", default=["octree-max", "octree-bayes", "tsdf"])
+    p.add_argument("--scans", type=positive_int, default=20,
+                   help="scans per configuration (default 20)")  # fmt: skip
+    p.add_argument("--repeats", type=positive_int, default=3,
+                   help="runs per configuration (default 3)")  # fmt: skip
+    p.add_argument("--agreement-scans", type=positive_int, default=5)
+    p.add_argument("--resolutions", type=positive_float, nargs="+", default=[0.1, 0.3])
+    p.add_argument("--backends", nargs="+", choices=backends, default=backends)
     p.add_argument("--no-octomap", action="store_true", help="skip the pyoctomap comparison")
     p.add_argument("--in-process", action="store_true", help="no child processes (RSS shared)")
     p.add_argument("--json", action="store_true", help="print JSON instead of the table")
@@ -325,6 +330,8 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--child", help=argparse.SUPPRESS)
     p.add_argument("--scans-file", type=Path, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.out:
+        output_file(args.out)
 
     if args.child:
         cfg = json.loads(args.child)
@@ -392,4 +399,6 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    from smana.common.cli import run_command
+
+    sys.exit(run_command("bench mapper", cli))

@@ -22,7 +22,6 @@ the same data, against what a dense array over the 2 km bounds would need.
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -210,9 +209,11 @@ def timed(fn, runs):
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana bench navgraph", description=__doc__.split("\n")[0])
+    from smana.common.cli import ArgumentParser, positive_int
+
+    p = ArgumentParser(prog="smana bench navgraph", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="test-sized run (16 x 512 rays, 3 runs)")
-    p.add_argument("--runs", type=int, help="runs per case (median reported)")
+    p.add_argument("--runs", type=positive_int, help="runs per case (median reported)")
     args = p.parse_args(argv)
     runs = args.runs or (3 if args.quick else 9)
     beams, azimuths = (16, 512) if args.quick else (64, 2048)
@@ -318,4 +319,6 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    from smana.common.cli import run_command
+
+    sys.exit(run_command("bench navgraph", cli))

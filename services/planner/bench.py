@@ -10,7 +10,6 @@ A* cost is checked against Dijkstra to 1e-6 relative; a disagreement fails the b
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -149,11 +148,14 @@ def run_size(n: int, runs: int, n_queries: int, classes, with_euclidean: bool) -
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana bench planner", description=__doc__.split("\n")[0])
+    from smana.common.cli import ArgumentParser, int_in, positive_int
+
+    p = ArgumentParser(prog="smana bench planner", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="test-sized run (small graphs, few runs)")
-    p.add_argument("--sizes", type=int, nargs="+", help="graph sizes N (N x N nodes)")
-    p.add_argument("--runs", type=int, help="runs per query (median reported)")
-    p.add_argument("--queries", type=int, default=2, help="queries per graph (1..4)")
+    # below 4 x 4 nodes there are no two free nodes far enough apart to query
+    p.add_argument("--sizes", type=int_in(4), nargs="+", help="graph sizes N (N x N nodes)")
+    p.add_argument("--runs", type=positive_int, help="runs per query (median reported)")
+    p.add_argument("--queries", type=int_in(1, 4), default=2, help="queries per graph (1..4)")
     p.add_argument("--no-euclidean", action="store_true", help="skip the paper's heuristic")
     args = p.parse_args(argv)
     sizes = args.sizes or ([60, 120] if args.quick else [250, 500, 1000])
@@ -174,7 +176,7 @@ def cli(argv: list[str] | None = None) -> int:
     print(hdr)
     failed = False
     for n in sizes:
-        r = run_size(n, runs, max(1, min(4, args.queries)), classes, not args.no_euclidean)
+        r = run_size(n, runs, args.queries, classes, not args.no_euclidean)
         for q in r["queries"]:
             o, e, d = q["octile"], q.get("euclidean"), q["dijkstra"]
             err = max(o["rel_err"], e["rel_err"] if e else 0.0)
@@ -199,4 +201,6 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    from smana.common.cli import run_command
+
+    sys.exit(run_command("bench planner", cli))

@@ -1,7 +1,7 @@
 """`smana plan --from X,Y --to X,Y`: ask the running planner for a path and print it.
 
 Exit status: 0 with a path, 1 when the planner answered with an error (unreachable, blocked, ...),
-2 when nobody answered or the arguments are wrong.
+2 when nobody answered (no stack to connect to, or no planner in it) or the arguments are wrong.
 """
 
 from __future__ import annotations
@@ -13,10 +13,16 @@ import uuid
 import numpy as np
 
 from smana.common import keys
-from smana.common.cli import config_from_args, make_parser
+from smana.common.cli import (
+    config_from_args,
+    make_parser,
+    non_negative_float,
+    positive_float,
+    run_command,
+)
 from smana.common.messages import PathReply, PathRequest, to_json
 from smana.common.query import QueryError, request
-from smana.common.zenoh_config import make_zenoh_config
+from smana.common.zenoh_config import open_session
 
 
 def _point(text: str) -> np.ndarray:
@@ -37,6 +43,8 @@ def _costs(items: list[str]) -> dict[str, float]:
             out[name.strip()] = float(value)
         except ValueError:
             raise ValueError(f"--cost wants CLASS=COST (name or id), got {item!r}") from None
+        if not out[name.strip()] >= 0:  # inf is allowed: the class becomes impassable
+            raise ValueError(f"--cost wants a cost >= 0, got {item!r}")
     return out
 
 
@@ -66,16 +74,18 @@ def cli(argv: list[str] | None = None) -> int:
     p = make_parser("smana plan", __doc__.strip().splitlines()[0])
     p.add_argument("--from", dest="start", required=True, metavar="X,Y", help="start (m)")
     p.add_argument("--to", dest="goal", required=True, metavar="X,Y", help="goal (m)")
-    p.add_argument("--h-f", type=float, help="height weight (default: [planner] h_f)")
-    p.add_argument("--t-f", type=float, help="traversability weight (default: [planner] t_f)")
-    p.add_argument("--max-step", type=float, metavar="M", help="maximum step height (m)")
+    p.add_argument("--h-f", type=non_negative_float, help="height weight (default: [planner] h_f)")
+    p.add_argument("--t-f", type=non_negative_float,
+                   help="traversability weight (default: [planner] t_f)")  # fmt: skip
+    p.add_argument("--max-step", type=positive_float, metavar="M", help="maximum step height (m)")
     p.add_argument("--cost", action="append", default=[], metavar="CLASS=COST",
                    help="override a class cost, e.g. --cost grass=4 (repeatable)")  # fmt: skip
     p.add_argument("--allow-unknown", action="store_true", help="cross unknown nodes")
-    p.add_argument("--unknown-cost", type=float, help="cost T of an unknown node")
+    p.add_argument("--unknown-cost", type=non_negative_float, help="cost T of an unknown node")
     p.add_argument("--path", action="store_true", help="print every path point")
     p.add_argument("--json", action="store_true", help="print the reply as JSON")
-    p.add_argument("--timeout", type=float, default=10.0, metavar="S")
+    p.add_argument("--timeout", type=positive_float, default=10.0, metavar="S",
+                   help="how long to wait for the planner's answer (default 10)")  # fmt: skip
     args = p.parse_args(argv)
     cfg = config_from_args(args)
     try:
@@ -95,6 +105,11 @@ def cli(argv: list[str] | None = None) -> int:
             print(f"smana plan: no class {name!r} in {table.name}", file=sys.stderr)
             return 2
         class_costs[cid] = cost
+    try:
+        table.costs(class_costs)  # a class that is not traversable: refused here, not remotely
+    except ValueError as exc:
+        print(f"smana plan: --cost: {exc}", file=sys.stderr)
+        return 2
     req = PathRequest(
         request_id=uuid.uuid4().hex[:12],
         start=start,
@@ -106,9 +121,7 @@ def cli(argv: list[str] | None = None) -> int:
         unknown_cost=cfg.planner.unknown_cost if args.unknown_cost is None else args.unknown_cost,
         max_step_m=args.max_step,
     )
-    import zenoh
-
-    with zenoh.open(make_zenoh_config(cfg.zenoh)) as session:
+    with open_session(cfg.zenoh) as session:
         try:
             reply = request(session, keys.path_query(cfg.general.robot), req, args.timeout)
         except QueryError as exc:
@@ -125,4 +138,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    sys.exit(run_command("plan", cli))

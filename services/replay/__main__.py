@@ -12,7 +12,15 @@ import sys
 import time
 from pathlib import Path
 
-from smana.common.cli import config_from_args, make_parser, setup_logging
+from smana.common.cli import (
+    config_from_args,
+    make_parser,
+    non_negative_int,
+    output_dir,
+    positive_float,
+    run_command,
+    setup_logging,
+)
 from smana.common.config import SmanaConfig
 from smana.common.service import on_stop_signals
 
@@ -42,9 +50,10 @@ def cli(argv: list[str] | None = None) -> int:
         const="realtime",
         help="send scans at the recorded rate (times --rate)",
     )
-    p.add_argument("--rate", type=float, metavar="X", help="realtime mode: x X the recorded rate")
-    p.add_argument("--start", type=int, metavar="N", help="first scan to replay")
-    p.add_argument("--count", type=int, metavar="N", help="number of scans to replay")
+    p.add_argument("--rate", type=positive_float, metavar="X",
+                   help="realtime mode: x X the recorded rate")  # fmt: skip
+    p.add_argument("--start", type=non_negative_int, metavar="N", help="first scan to replay")
+    p.add_argument("--count", type=non_negative_int, metavar="N", help="number of scans to replay")
     p.add_argument("--label-field", help="bags and PLY: name of the integer label field")
     p.add_argument("--cloud-topic", help="bags: the sensor_msgs/PointCloud2 topic")
     p.add_argument("--odom-topic", help="bags: the nav_msgs/Odometry topic")
@@ -61,8 +70,6 @@ def cli(argv: list[str] | None = None) -> int:
         "fixed_pose": list(args.fixed_pose) if args.fixed_pose else None,
     }  # fmt: skip
     rc = dataclasses.replace(rc, **{k: v for k, v in given.items() if v is not None})
-    if rc.rate_factor <= 0 or rc.start < 0 or rc.count < 0:
-        p.error("--rate must be > 0, --start and --count >= 0")
     if rc.dataset:  # services may run elsewhere (the supervisor's cwd is the run dir)
         rc = dataclasses.replace(rc, dataset=str(Path(rc.dataset).resolve()))
     cfg = dataclasses.replace(cfg, replay=rc)
@@ -112,6 +119,7 @@ def run_stack(cfg: SmanaConfig, reader) -> int:
     reader.close()  # the replay process opens it again
     g = cfg.general
     run_dir = Path(g.run_dir) if g.run_dir else Path("runs") / time.strftime("replay-%Y%m%d-%H%M%S")
+    output_dir(run_dir)  # a file, or a folder that cannot be made: refused before anything starts
     services = [n for n in STACK if getattr(cfg.deploy, n).enabled]
     recorder = _recorder_argv()
     cfg = dataclasses.replace(
@@ -181,4 +189,4 @@ def _write_report(run_dir: Path, cfg: SmanaConfig) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    sys.exit(run_command("replay", cli))

@@ -570,27 +570,61 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
+BACKENDS = ("octree-max", "octree-bayes", "tsdf")
+
+
+def _backends(text: str) -> str:
+    """--backends: a comma-separated subset of BACKENDS (kept as the string main() splits)."""
+    bad = [b for b in text.split(",") if b not in BACKENDS]
+    if bad:
+        raise argparse.ArgumentTypeError(f"unknown back-end(s) {bad}; known: {', '.join(BACKENDS)}")
+    return text
+
+
+def _resolution_pairs(text: str) -> str:
+    """--res: MAP/GRAPH pairs in metres, both > 0, e.g. 0.1/0.2,0.2/0.4."""
+    for pair in text.split(","):
+        try:
+            ok = all(float(v) > 0 for v in pair.split("/")) and pair.count("/") == 1
+        except ValueError:
+            ok = False
+        if not ok:
+            raise argparse.ArgumentTypeError(
+                f"expected MAP/GRAPH resolutions > 0 in metres, e.g. 0.1/0.2,0.2/0.4; got {pair!r}"
+            )
+    return text
+
+
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana bench replay", description=__doc__.splitlines()[0])
+    from smana.common.cli import ArgumentParser, non_negative_int, output_dir, positive_int
+
+    p = ArgumentParser(prog="smana bench replay", description=__doc__.splitlines()[0])
     p.add_argument("dataset", nargs="?", help="a dataset (default: the synthetic sequence)")
     p.add_argument(
         "--scans",
-        type=int,
+        type=non_negative_int,
         default=100,
         help="synthetic: scans to write; a dataset: scans to replay (0 = all)",
     )
-    p.add_argument("--backends", default="octree-max,octree-bayes,tsdf")
-    p.add_argument("--res", default="0.1/0.2,0.2/0.4,0.3/0.6", help="map/graph resolution pairs")
-    p.add_argument("--repeats", type=int, default=3, help="runs per configuration (median)")
+    p.add_argument("--backends", type=_backends, default="octree-max,octree-bayes,tsdf")
+    p.add_argument("--res", type=_resolution_pairs, default="0.1/0.2,0.2/0.4,0.3/0.6",
+                   help="map/graph resolution pairs")  # fmt: skip
+    p.add_argument("--repeats", type=positive_int, default=3,
+                   help="runs per configuration (median)")  # fmt: skip
     p.add_argument("--table", help="class table (default: the dataset's)")
     p.add_argument("--out", default="runs/bench-replay")
     p.add_argument("--no-realtime", action="store_true", help="skip the realtime check")
-    p.add_argument("--realtime-backend", default="octree-max")
+    p.add_argument("--realtime-backend", choices=BACKENDS, default="octree-max")
     args = p.parse_args(argv)
-    if args.repeats < 1 or args.scans < 0:
-        p.error("--repeats must be >= 1 and --scans >= 0")
+    if args.dataset and not Path(args.dataset).exists():
+        p.error(f"dataset {args.dataset} does not exist")
+    if args.scans == 0 and not args.dataset:
+        p.error("--scans 0 means every scan of a dataset; the synthetic sequence needs >= 1")
+    output_dir(args.out, "output directory", "--out")
     return main(args)
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    from smana.common.cli import run_command
+
+    sys.exit(run_command("bench replay", cli))

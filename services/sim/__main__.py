@@ -12,16 +12,14 @@ import dataclasses
 import sys
 from pathlib import Path
 
-from smana.common.cli import config_from_args, make_parser, setup_logging
+from smana.common.cli import UsageError, config_from_args, make_parser, run_command, setup_logging
 
 
 def _pair(text: str, sep: str, name: str) -> tuple[float, float]:
     try:
         a, b = (float(v) for v in text.split(sep))
     except ValueError:
-        raise SystemExit(
-            f"smana sim: {name} wants two numbers joined by {sep!r}, not {text!r}"
-        ) from None
+        raise UsageError(f"{name} wants two numbers joined by {sep!r}, not {text!r}") from None
     return a, b
 
 
@@ -91,4 +89,4 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    sys.exit(run_command("sim", cli))

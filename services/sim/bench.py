@@ -16,7 +16,6 @@ pessimistic, so CPU time per frame is printed beside it, with the load average.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import statistics
@@ -202,20 +201,23 @@ def report(r: dict) -> str:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana bench sim", description=__doc__.splitlines()[0])
-    p.add_argument("--runs", type=int, default=5)
-    p.add_argument("--frames", type=int, default=6, help="camera frames per run")
-    p.add_argument("--scans", type=int, default=3, help="LiDAR scans per run")
+    from smana.common.cli import ArgumentParser, int_in, output_file, positive_int
+
+    p = ArgumentParser(prog="smana bench sim", description=__doc__.splitlines()[0])
+    p.add_argument("--runs", type=positive_int, default=5)
+    p.add_argument("--frames", type=positive_int, default=6, help="camera frames per run")
+    p.add_argument("--scans", type=positive_int, default=3, help="LiDAR scans per run")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--noise", default="medium", choices=["off", "none", "low", "medium", "high"])
-    p.add_argument("--width", type=int, default=640, help="camera side, pixels")
+    p.add_argument("--width", type=int_in(1, 4096), default=640,
+                   help="camera side, pixels")  # fmt: skip
     p.add_argument("--quick", action="store_true", help="3 runs x 3 frames, 3 x 2 scans")
     p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = p.parse_args(argv)
+    if args.json:
+        output_file(args.json, "--json")
     if args.quick:
         args.runs, args.frames, args.scans = 3, 3, 2
-    if min(args.runs, args.frames, args.scans) < 1:
-        p.error("--runs, --frames and --scans must be >= 1")
     result = run(args)
     print(report(result))
     if args.json:
@@ -225,4 +227,6 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(cli())
+    from smana.common.cli import run_command
+
+    sys.exit(run_command("bench sim", cli))

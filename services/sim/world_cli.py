@@ -17,15 +17,20 @@ from pathlib import Path
 
 import numpy as np
 
+from smana.common.cli import ArgumentParser, int_in, output_file, positive_float
+
 from .world import GardenWorld, WorldError
 
 
 def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="procedural garden seed (default 0)")
-    p.add_argument("--size", type=float, default=12.0, help="side of the square world, metres")
-    p.add_argument("--ground-resolution", type=float, default=None, help="height field cell, m")
+    p.add_argument("--size", type=positive_float, default=12.0,
+                   help="side of the square world, metres")  # fmt: skip
+    p.add_argument("--ground-resolution", type=positive_float, default=None,
+                   help="height field cell, m")  # fmt: skip
     p.add_argument("--ply", type=Path, default=None, help="build the world from a labelled PLY")
-    p.add_argument("--voxel", type=float, default=0.05, help="object voxel size for --ply, m")
+    p.add_argument("--voxel", type=positive_float, default=0.05,
+                   help="object voxel size for --ply, m")  # fmt: skip
     p.add_argument("--classes", default="garden3drms", help="class table name or TOML path")
 
 
@@ -41,19 +46,22 @@ def build_world(args: argparse.Namespace) -> GardenWorld:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="smana world", description=__doc__.splitlines()[0])
+    parser = ArgumentParser(prog="smana world", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     exp = sub.add_parser("export", help="write the ground-truth labelled cloud as PLY")
     _world_args(exp)
     exp.add_argument("--out", type=Path, required=True)
-    exp.add_argument("--spacing", type=float, default=0.03, help="sample spacing, m")
+    exp.add_argument("--spacing", type=positive_float, default=0.03, help="sample spacing, m")
     pre = sub.add_parser("preview", help="write a top-down PNG of the classes")
     _world_args(pre)
     pre.add_argument("--out", type=Path, required=True)
-    pre.add_argument("--pixels", type=int, default=768, help="approximate image width")
+    pre.add_argument("--pixels", type=int_in(16, 16384), default=768,
+                     help="approximate image width")  # fmt: skip
     info = sub.add_parser("info", help="print a summary as JSON")
     _world_args(info)
     args = parser.parse_args(argv)
+    if getattr(args, "out", None) is not None:
+        output_file(args.out)  # before the world is built, not after
 
     try:
         world = build_world(args)
@@ -80,4 +88,6 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(cli())
+    from smana.common.cli import run_command
+
+    raise SystemExit(run_command("world", cli))

@@ -1,0 +1,249 @@
+"""Misuse of the command line ends in one line on stderr and exit status 2, never in a traceback.
+
+Each case runs `python -m smana.deploy ...` as the user would. No stack starts: a taken port is
+a plain listening socket, "nobody there" is a free loopback port, and every command gets explicit
+endpoints (never 7447, where a real stack may run) with multicast scouting off.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+
+import pytest
+
+from smana.common.cli import UsageError, run_command
+from smana.common.config import ConfigError
+from tests.conftest import REPO, free_port
+
+NO_SCOUT = "--no-multicast-scouting"
+
+
+def smana(*args: str, cwd=None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "smana.deploy", *args],
+        capture_output=True, text=True, timeout=120, cwd=cwd or REPO, stdin=subprocess.DEVNULL,
+    )  # fmt: skip
+
+
+def one_line_misuse(r: subprocess.CompletedProcess, command: str, *words: str) -> str:
+    """Exit 2, no traceback, stderr one line `smana <command>: ...` holding every word."""
+    assert "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    assert len(lines) == 1, r.stderr
+    # argparse names a subcommand's parser in full (`smana world export: argument ...`)
+    assert lines[0].startswith(f"smana {command}"), lines[0]
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    return lines[0]
+
+
+@pytest.fixture
+def taken_port():
+    """A loopback port something else already listens on."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        yield s.getsockname()[1]
+
+
+# -- zenoh sessions --------------------------------------------------------------------------------
+
+
+def test_up_on_a_taken_port_names_it_and_how_to_move(tmp_path, taken_port):
+    ep = f"tcp/127.0.0.1:{taken_port}"
+    r = smana("up", "--only", "planner", "--run-dir", str(tmp_path / "run"), NO_SCOUT,
+              "--set", f'deploy.router_listen=["{ep}"]')  # fmt: skip
+    line = one_line_misuse(r, "up", f"{ep} is already in use", "another smana stack",
+                           "--set 'deploy.router_listen=[")  # fmt: skip
+    assert f"127.0.0.1:{taken_port + 1}" in line
+    assert not (tmp_path / "run").exists()  # nothing ran: no run directory left behind
+
+
+def test_service_on_a_taken_port_suggests_listen(taken_port):
+    ep = f"tcp/127.0.0.1:{taken_port}"
+    r = smana("planner", "--mode", "peer", "--listen", ep, NO_SCOUT, "--log-level", "WARNING")
+    one_line_misuse(r, "planner", f"{ep} is already in use",
+                    f"--listen tcp/127.0.0.1:{taken_port + 1}")  # fmt: skip
+
+
+def test_router_on_a_taken_port(taken_port):
+    r = smana("router", "--listen", f"tcp/127.0.0.1:{taken_port}", NO_SCOUT)
+    one_line_misuse(r, "router", "already in use", "--listen")
+
+
+@pytest.mark.parametrize(
+    "endpoint, words",
+    [
+        ("nonsense", ["'nonsense' is not a zenoh endpoint", "tcp/127.0.0.1:7447"]),
+        ("tcp/127.0.0.1", ["expected tcp/<host>:<port>"]),
+        ("tcp/127.0.0.1:99999", ["port from 0 to 65535"]),
+        ("foo/127.0.0.1:1", ["unknown protocol 'foo'"]),
+    ],
+)
+def test_bad_endpoint(endpoint, words):
+    one_line_misuse(smana("status", "--connect", endpoint, NO_SCOUT), "status", *words)
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("{ mode: ", ["line 1, column 9", "expected"]),  # JSON5 that does not parse
+        ("{ mode: 'client', nosuch: 1 }", ["line 1, column 19", "unknown field `nosuch`"]),
+        ("{ mode: 'bogus' }", ["unknown variant `bogus`"]),
+    ],
+)
+def test_broken_zenoh_config_file(tmp_path, text, words):
+    f = tmp_path / "zenoh.json5"
+    f.write_text(text)
+    r = smana("status", "--zenoh-config", str(f), "--connect", f"tcp/127.0.0.1:{free_port()}",
+              NO_SCOUT)  # fmt: skip
+    one_line_misuse(r, "status", f"zenoh config file {f}:", *words)
+
+
+def test_missing_zenoh_config_file(tmp_path):
+    r = smana("status", "--zenoh-config", str(tmp_path / "nope.json5"), NO_SCOUT)
+    one_line_misuse(r, "status", "zenoh config file not found", "nope.json5")
+
+
+def test_status_with_nothing_to_connect_to():
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    r = smana("status", "--connect", ep, NO_SCOUT)
+    one_line_misuse(r, "status", f"cannot connect to {ep}", "smana up", "--connect")
+
+
+def test_client_without_any_endpoint():
+    r = smana("status", "--set", "zenoh.connect=[]", NO_SCOUT)
+    one_line_misuse(r, "status", "nothing to connect to", "--connect")
+
+
+def test_plan_with_no_stack():
+    r = smana("plan", "--from", "0,0", "--to", "1,1", "--connect",
+              f"tcp/127.0.0.1:{free_port()}", NO_SCOUT)  # fmt: skip
+    one_line_misuse(r, "plan", "cannot connect to", "smana up")
+
+
+# -- arguments, checked before anything starts ---------------------------------------------------
+
+
+@pytest.mark.parametrize("value", ["-5", "0", "nan", "soon"])
+def test_up_refuses_a_duration_that_is_not_positive(tmp_path, value):
+    r = smana("up", "--duration", value, "--run-dir", str(tmp_path / "run"))
+    one_line_misuse(r, "up", "argument --duration: expected a number > 0", repr(value))
+    assert not (tmp_path / "run").exists()
+
+
+def test_up_refuses_a_run_dir_that_is_a_file(tmp_path):
+    f = tmp_path / "afile"
+    f.write_text("")
+    # the router's port is free: the run directory is refused before it opens
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    r = smana("up", "--only", "planner", "--run-dir", str(f), "--duration", "1", NO_SCOUT,
+              "--set", f'deploy.router_listen=["{ep}"]')  # fmt: skip
+    one_line_misuse(r, "up", f"run directory {f} is a file", "--run-dir")
+    r = smana("up", "--only", "planner", "--run-dir", str(f / "sub"), "--duration", "1", NO_SCOUT,
+              "--set", f'deploy.router_listen=["{ep}"]')  # fmt: skip
+    one_line_misuse(r, "up", "cannot be created", "--run-dir")
+
+
+def test_bad_config_value_is_one_line(tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[mapper]\nresolution_m = -1\n")
+    r = smana("status", "--config", str(cfg))
+    one_line_misuse(r, "status", "mapper.resolution_m: expected a number > 0")
+
+
+@pytest.mark.parametrize(
+    "command, args, words",
+    [
+        ("status", ["--timeout", "0"], ["--timeout", "> 0"]),
+        (
+            "status",
+            [
+                "--set",
+                "zenoh.tls_ca=ca.pem",
+                "--set",
+                "zenoh.tls_cert=c.pem",
+                "--set",
+                "zenoh.tls_key=k.pem",
+            ],
+            ["zenoh.tls_ca: file not found"],
+        ),
+        ("sim", ["--pose-noise", "abc"], ["--pose-noise"]),
+        ("explorer", ["--budget", "0"], ["--budget", "> 0"]),
+        ("plan", ["--from", "0,0", "--to", "1,1", "--max-step", "-1"], ["--max-step"]),
+        ("plan", ["--from", "0,0", "--to", "1,1", "--timeout", "-2"], ["--timeout"]),
+        ("plan", ["--from", "0,0", "--to", "1,1", "--cost", "grass=-1"], ["--cost", ">= 0"]),
+        ("replay", ["--rate", "0", "x"], ["--rate", "> 0"]),
+        ("replay", ["--count", "-1", "x"], ["--count", ">= 0"]),
+        ("bench planner", ["--queries", "9"], ["--queries", "<= 4"]),
+        ("bench sim", ["--runs", "0"], ["--runs", "> 0"]),
+        ("bench replay", ["--res", "0.1/0"], ["--res", "MAP/GRAPH"]),
+        ("experiment exploration", ["--budget", "-1"], ["--budget", "> 0"]),
+        ("experiment exploration", ["--set", "explorer.nope=1"], ["explorer.nope"]),
+        ("eval map", [".", "--spacing", "0"], ["--spacing"]),
+        ("world export", ["--out", "w.ply", "--size", "-1"], ["--size", "> 0"]),
+        ("world export", ["--out", "no/such/dir/w.ply"], ["--out", "does not exist"]),
+    ],
+)
+def test_impossible_values_are_refused_up_front(tmp_path, command, args, words):
+    if command in ("status", "plan"):  # were a value let through, nobody would answer anyway
+        args = [*args, "--connect", f"tcp/127.0.0.1:{free_port()}", NO_SCOUT]
+    r = smana(*command.split(), *args, cwd=tmp_path)
+    one_line_misuse(r, command.split()[0], *words)
+    assert not list(tmp_path.iterdir())  # nothing was written
+
+
+def test_experiment_out_that_is_a_file(tmp_path):
+    f = tmp_path / "afile"
+    f.write_text("")
+    r = smana("experiment", "exploration", "--quick", "--out", str(f))
+    one_line_misuse(r, "experiment", "is a file", "--out")
+
+
+# -- the catching itself -------------------------------------------------------------------------
+
+
+def test_run_command_one_line_for_user_errors_and_tracebacks_for_bugs(capsys):
+    def bad_config(argv):
+        raise ConfigError("mapper.x: expected\na number")
+
+    def bad_usage(argv):
+        raise UsageError("--run-dir x is a file")
+
+    assert run_command("mapper", bad_config) == 2
+    assert capsys.readouterr().err == "smana mapper: mapper.x: expected a number\n"
+    assert run_command("up", bad_usage) == 2
+    assert capsys.readouterr().err == "smana up: --run-dir x is a file\n"
+
+    def bug(argv):
+        return {}["missing"]
+
+    with pytest.raises(KeyError):  # a bug is not misuse: its traceback stays
+        run_command("mapper", bug)
+
+
+def test_explain_open_error_for_messages_not_easily_provoked():
+    import zenoh
+
+    from smana.common.zenoh_config import explain_open_error
+
+    conf = zenoh.Config()
+    conf.insert_json5("listen/endpoints", '["tcp/10.255.255.1:7447", "tls/127.0.0.1:7448"]')
+    conf.insert_json5("connect/endpoints", '["tls/127.0.0.1:7449"]')
+    src = " at /root/.cargo/git/checkouts/zenoh/io/zenoh-link-commons/src/tcp.rs:61."
+    msg = explain_open_error("Can not create a new TCP listener bound to tcp/10.255.255.1:7447: "
+                             f"[10.255.255.1:7447: Cannot assign requested address (os error 99)"
+                             f"{src}]{src}", conf)  # fmt: skip
+    assert msg.startswith("cannot listen on tcp/10.255.255.1:7447: no network interface")
+    msg = explain_open_error(f"Unable to connect to any of [Single(tls/127.0.0.1:7449)]! {src}",
+                             conf)  # fmt: skip
+    assert "tls/127.0.0.1:7449" in msg and "certificate or credentials" in msg
+    msg = explain_open_error("Cannot create a new TLS listener on 127.0.0.1:7448. Invalid TLS "
+                             f"private key file: No such file or directory (os error 2){src}"
+                             f"{src}", conf)  # fmt: skip
+    assert msg == ("cannot open the zenoh session: Cannot create a new TLS listener on "
+                   "127.0.0.1:7448. Invalid TLS private key file: No such file or directory "
+                   "(os error 2)")  # fmt: skip
