@@ -79,8 +79,8 @@ class ZenohConfig:
     tls_key: str = ""
     mtls: bool = True  # a listener also demands a certificate signed by the CA
     user: str = ""  # user/password authentication: this session's user name...
-    credentials_file: str = ""  # ...whose password is its `user:password` line in this file;
-    # a router accepts every user of the file
+    credentials_file: str = ""  # ...whose password is its `user:password` line in this file
+    # (a file of one line also names the user); a router accepts every user of the file
     acl_file: str = ""  # a router's access-control policy (JSON5 `access_control` block)
 
 

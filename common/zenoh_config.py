@@ -276,14 +276,19 @@ def _apply_security(conf, zc: ZenohConfig) -> None:
         conf.insert_json5("transport/link/tls", json.dumps(tls))
     usrpwd = {}
     if zc.credentials_file:
+        # A router's file is its dictionary (every user it accepts, and its own `router` line); a
+        # client's may be one role's file (`credentials/<role>.txt`), whose one line names the user.
         path = _require(zc.credentials_file, "credentials_file")
+        users = read_credentials(path)
+        user = zc.user
         if zc.mode == "router":
             usrpwd["dictionary_file"] = path
-        if zc.user:
-            users = read_credentials(path)
-            if zc.user not in users:
-                raise ConfigError(f"zenoh.user {zc.user!r} has no line in {path}")
-            usrpwd["user"], usrpwd["password"] = zc.user, users[zc.user]
+        elif not user and len(users) == 1:
+            user = next(iter(users))
+        if user:
+            if user not in users:
+                raise ConfigError(f"zenoh.user {user!r} has no line in {path}")
+            usrpwd["user"], usrpwd["password"] = user, users[user]
     elif zc.user:
         raise ConfigError("zenoh.user needs zenoh.credentials_file (where its password is)")
     if usrpwd:

@@ -13,6 +13,7 @@ import threading
 from smana.common.config import ZenohConfig
 from smana.common.service import on_stop_signals
 from smana.common.zenoh_config import make_zenoh_config, open_session
+from smana.deploy.security import uplink_policy
 
 log = logging.getLogger("smana.router")
 
@@ -24,7 +25,8 @@ def router_config(listen: list[str], base: ZenohConfig | None = None, connect: l
     """A router-mode zenoh config listening on `listen` and linking to the routers in `connect`.
     From `base` (the [zenoh] section) it keeps the config file, scouting choice and security:
     TLS files, the credentials (it logs in to other routers as user `router` and accepts every
-    user of the file) and the access-control policy."""
+    user of the file: the dictionary) and the access-control policy, which it extends to the
+    routers it links to over TLS when it has no TLS listener (`_trust_uplinks`)."""
     zc = base or ZenohConfig()
     conf = make_zenoh_config(
         dataclasses.replace(
@@ -37,7 +39,36 @@ def router_config(listen: list[str], base: ZenohConfig | None = None, connect: l
     )
     # A router relays everything; it keeps no storage, so no plugin is needed.
     conf.insert_json5("plugins_loading/enabled", json.dumps(False))
+    _trust_uplinks(conf)
     return conf
+
+
+def _endpoints(conf, key: str) -> list[str]:
+    value = json.loads(conf.get_json(key))
+    return value.get("router", []) if isinstance(value, dict) else value  # per mode, or one list
+
+
+def _carries_certificate(endpoint: str) -> bool:
+    return endpoint.split("/", 1)[0] in ("tls", "quic")
+
+
+def _trust_uplinks(conf) -> None:
+    """Let the routers this one links to over TLS relay through it (`security.uplink_policy`):
+    they cannot log in on a link this router opened, so their certificate is all it knows of them.
+    Only where this router listens on no TLS endpoint: there, no one else can present one."""
+    if not any(_carries_certificate(e) for e in _endpoints(conf, "connect/endpoints")):
+        return
+    acl = json.loads(conf.get_json("access_control"))
+    if not acl.get("enabled"):
+        return
+    if any(_carries_certificate(e) for e in _endpoints(conf, "listen/endpoints")):
+        log.warning(
+            "this router listens on TLS and also links out over TLS: the routers it links to get "
+            "no relay rights here (any TLS client presents a host certificate, so a certificate "
+            "alone cannot name a router); let them link to this one as user `router` instead"
+        )
+        return
+    conf.insert_json5("access_control", json.dumps(uplink_policy(acl)))
 
 
 def open_router(listen: list[str], base: ZenohConfig | None = None, connect: list[str] = (),

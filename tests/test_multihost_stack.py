@@ -24,7 +24,10 @@ pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 SUPPORT = Path(__file__).parent / "support"
 PROBE, PUBLISH = str(SUPPORT / "zenoh_probe.py"), str(SUPPORT / "publish_clouds.py")
 LOCAL = "tcp/127.0.0.1:7447"
-CREDS = ["--credentials", "certs/credentials.txt"]
+
+
+def login(role: str) -> list[str]:
+    return ["--user", role, "--credentials", f"certs/credentials/{role}.txt"]
 
 
 @pytest.fixture
@@ -42,8 +45,8 @@ def ask(hosts, host, key, body=None, name="q"):
     out = hosts.tmp / f"{name}.json"
     out.unlink(missing_ok=True)
     extra = ["--json", json.dumps(body)] if body is not None else []
-    code = hosts.call(host, name, PROBE, "get", LOCAL, key, str(out), "--user", "tool",
-                      *CREDS, *extra)  # fmt: skip
+    code = hosts.call(host, name, PROBE, "get", LOCAL, key, str(out), *login("tool"),
+                      *extra)  # fmt: skip
     if code != 0 or not out.exists():
         return None
     first = json.loads(out.read_text().splitlines()[0])
@@ -94,7 +97,7 @@ def test_base_plans_on_robot_map_and_recovers_from_a_link_drop(hosts):
     assert wait_for(lambda: ask(hosts, "base", "smana/r1/mapper/stats?format=json"), 90, 1), logs()
     assert wait_for(lambda: ask(hosts, "base", "smana/r1/planner/stats?format=json"), 60, 1), logs()
 
-    assert hosts.call("robot", "publish-1", PUBLISH, LOCAL, "0", "3", "--user", "sim", *CREDS) == 0
+    assert hosts.call("robot", "publish-1", PUBLISH, LOCAL, "0", "3", *login("sim")) == 0
     request = {"start": [0.1, 0.1], "goal": [5.9, 1.9]}
 
     def planned():
@@ -108,7 +111,7 @@ def test_base_plans_on_robot_map_and_recovers_from_a_link_drop(hosts):
 
     # Cut the link; the robot keeps mapping new ground meanwhile.
     hosts.set_link(False)
-    assert hosts.call("robot", "publish-2", PUBLISH, LOCAL, "3", "2", "--user", "sim", *CREDS) == 0
+    assert hosts.call("robot", "publish-2", PUBLISH, LOCAL, "3", "2", *login("sim")) == 0
     robot_stats = ask(hosts, "robot", "smana/r1/mapper/stats?format=json", name="rstats")
     assert robot_stats is not None  # the robot side still runs and answers locally
     hosts.set_link(True)

@@ -263,9 +263,11 @@ class MapperService(Service):
         name = req.body().get("name")
         path = self.save_path
         if name:
-            # only a plain file name beside the configured path: a query never picks a directory
-            if not isinstance(name, str) or Path(name).name != name or name.startswith("."):
-                raise ReplyError("value", f"name must be a plain file name, got {name!r}")
+            # only a plain .npz file name beside the configured path: a query never picks a
+            # directory, nor another file of the run directory (config.toml, a report)
+            plain = isinstance(name, str) and Path(name).name == name and not name.startswith(".")
+            if not (plain and name.endswith(".npz")):
+                raise ReplyError("value", f"name must be a plain file name.npz, got {name!r}")
             path = self.save_path.parent / name
         return self.save(path)
 
