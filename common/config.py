@@ -97,6 +97,10 @@ class ServiceDeployConfig:
     restart_max_delay_s: float = _nonneg(default=10.0)
     max_restarts: int = _nonneg(default=5)
     restart_window_s: float = _pos(default=60.0)
+    # A hot spare: once the service is ready, a second process imports and prepares (kernels, a
+    # simulated world) and waits; a crashed service is taken over by it in a fraction of a second
+    # instead of seconds of start-up. Costs that process's memory (~150-300 MB) while it waits.
+    standby: bool = False
     args: list[str] = field(default_factory=list)  # extra command-line arguments
 
 
@@ -115,11 +119,17 @@ class DeployConfig:
     startup_timeout_s: float = _pos(default=600.0)
     stop_timeout_s: float = _pos(default=5.0)
     finish_with: str = "explorer"  # the run ends when this service exits with status 0
-    sim: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
-    mapper: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
-    navgraph: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
-    planner: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
-    explorer: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)
+    sim: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
+    mapper: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
+    navgraph: ServiceDeployConfig = field(
+        default_factory=lambda: ServiceDeployConfig(standby=True)
+    )
+    planner: ServiceDeployConfig = field(
+        default_factory=lambda: ServiceDeployConfig(standby=True)
+    )
+    explorer: ServiceDeployConfig = field(
+        default_factory=lambda: ServiceDeployConfig(standby=True)
+    )
     recorder: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # Rerun .rrd
 
 
@@ -396,8 +406,9 @@ def _apply_override(data: dict, item: str) -> None:
     node[parts[-1]] = value
 
 
-def build(cls, data: dict, where: str):
-    """Make a `cls` dataclass from a dict, checking every key and value."""
+def build(cls, data: dict, where: str, base=None):
+    """Make a `cls` dataclass from a dict, checking every key and value. Keys the dict leaves out
+    keep their value in `base` (a section's own default, e.g. `deploy.mapper.standby = true`)."""
     if not isinstance(data, dict):
         raise ConfigError(f"{where or 'config'}: expected a table")
     hints = typing.get_type_hints(cls)
@@ -407,15 +418,17 @@ def build(cls, data: dict, where: str):
         known = ", ".join(sorted(fields))
         name = ", ".join(f"{where}{k}" for k in sorted(unknown))
         raise ConfigError(f"unknown key {name} (known in [{where.rstrip('.') or 'top'}]: {known})")
+    if base is None:
+        base = cls()
     kwargs = {}
     for name, value in data.items():
         key = f"{where}{name}"
         hint = hints[name]
         if dataclasses.is_dataclass(hint):
-            kwargs[name] = build(hint, value, key + ".")
+            kwargs[name] = build(hint, value, key + ".", getattr(base, name))
         else:
             kwargs[name] = _check_value(key, value, hint, fields[name].metadata)
-    obj = cls(**kwargs)
+    obj = dataclasses.replace(base, **kwargs)
     check = getattr(obj, "validate", None)
     if check:
         check()

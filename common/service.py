@@ -1,8 +1,8 @@
 """The service lifecycle every smana process shares.
 
-A service subclasses `Service`, loads and compiles what it needs in `warm_up()`, declares its
-inputs and outputs in `setup()` and does its periodic work in `tick()`. The base class does the
-rest:
+A service subclasses `Service`, compiles or loads its kernels in `prepare()`, loads the run's
+state in `warm_up()`, declares its inputs and outputs in `setup()` and does its periodic work in
+`tick()`. The base class does the rest:
 
 - opens the zenoh session (`with zenoh.open(conf) as session`) and at once declares the liveliness
   token `smana/<robot>/starting/<service>` and publishes a `ServiceStatus` in state `starting`
@@ -114,6 +114,9 @@ def die_with_parent() -> None:
 
 
 STOP_DEADLINE_S = 5.0  # after a stop signal: to leave the loop, and to close zenoh after on_stop
+# Set by the supervisor for a hot spare (deploy/supervisor.py): prepare, write "ready" to the file
+# descriptor it names, then wait for a line on stdin before starting for real.
+STANDBY_ENV = "SMANA_STANDBY_FD"
 FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones are dropped
 
 
@@ -259,9 +262,13 @@ class Service:
 
     # -- what subclasses override ----------------------------------------------------------------
 
+    def prepare(self) -> None:
+        """What the process needs whatever the run's state: compile or load numba kernels, build
+        a simulated world. No session, no file of the run: a standby process does it ahead."""
+
     def warm_up(self) -> None:
-        """Load and compile what the service needs (a map, numba kernels, a world) while the
-        supervisor sees it `starting`. The session is open; nothing is declared yet."""
+        """Load the run's state (a map, a checkpoint) while the supervisor sees the service
+        `starting`. The session is open; nothing is declared yet."""
 
     def setup(self) -> None:
         """Declare subscriptions, queryables and publishers (self.session is open)."""
@@ -382,8 +389,28 @@ class Service:
     # -- the loop ----------------------------------------------------------------------------------
 
     def run(self) -> int:
-        """Open the session, warm up, run until SIGINT/SIGTERM (or `stop()`), shut down cleanly."""
+        """Open the session, warm up, run until SIGINT/SIGTERM (or `stop()`), shut down cleanly.
+
+        A standby process (`STANDBY_ENV` set by the supervisor) prepares first, with no session
+        and no state of the run, then waits for one line on stdin before it starts for real:
+        a hot spare that takes over a crashed service in a fraction of a second."""
         self._install_signal_handlers()
+        standby_fd = os.environ.pop(STANDBY_ENV, "")
+        standby = bool(standby_fd)
+        if standby:
+            t0 = time.monotonic()
+            self.prepare()
+            self.log.info("standing by (prepared in %.1f s)", time.monotonic() - t0)
+            try:  # tell the supervisor the spare is ready to take over
+                os.write(int(standby_fd), b"ready\n")
+                os.close(int(standby_fd))
+            except (OSError, ValueError):
+                pass
+            if not self._wait_for_go():
+                self.log.info("%s standby stopped", self.name)
+                return 0
+            self._t0 = time.monotonic()  # readiness counts from the take-over
+            self.log.info("%s taking over", self.name)
         with open_session(self.config.zenoh) as session:
             self.session = session
             self.producer = str(session.zid())
@@ -397,8 +424,12 @@ class Service:
                 heartbeat = threading.Thread(target=self._heartbeat, name="starting-status",
                                              daemon=True)  # fmt: skip
                 heartbeat.start()
+                if not standby:
+                    self.startup_step = "preparing (compiling or loading kernels)"
+                    self.prepare()
                 self.startup_step = "warming up"
-                self.warm_up()
+                if not self.stopping:
+                    self.warm_up()
                 self.startup_step = "declaring inputs and outputs"
                 if not self.stopping:
                     self.setup()
@@ -433,6 +464,18 @@ class Service:
         self._disarm()
         self.log.info("%s stopped", self.name)
         return 0
+
+    def _wait_for_go(self) -> bool:
+        """Standby: wait for a line on stdin (go); False when stdin closes (the supervisor is
+        gone) or a stop signal comes."""
+        import select
+        import sys
+
+        while not self.stopping:
+            ready, _, _ = select.select([sys.stdin], [], [], 0.2)
+            if ready:
+                return bool(sys.stdin.readline()) and not self.stopping
+        return False
 
     def stop(self) -> None:
         self._stop.set()

@@ -48,7 +48,7 @@ from smana.common import keys
 from smana.common.cli import config_from_args, make_parser, setup_logging
 from smana.common.config import ServiceDeployConfig, SmanaConfig
 from smana.common.messages import MessageError, ServiceStatus, decode
-from smana.common.service import die_with_parent, on_stop_signals
+from smana.common.service import STANDBY_ENV, die_with_parent, on_stop_signals
 
 log = logging.getLogger("smana.up")
 
@@ -83,6 +83,7 @@ class Managed:
     ready_s: list[float] = field(default_factory=list)  # start -> alive, each process
     back_s: list[float] = field(default_factory=list)  # end of a process -> next one alive
     exit_codes: list[int] = field(default_factory=list)
+    spare: subprocess.Popen | None = None  # the standby process, when the policy asks for one
 
 
 class Supervisor:
@@ -135,23 +136,82 @@ class Supervisor:
 
     # -- process control ---------------------------------------------------------------------------
 
-    def _spawn(self, m: Managed) -> None:
+    def _start_process(self, m: Managed, standby: bool) -> subprocess.Popen:
         logf = open(m.log_path, "ab")  # noqa: SIM115 - the child owns it; closed below
-        logf.write(f"\n--- start {time.strftime('%H:%M:%S')}: {' '.join(m.argv)}\n".encode())
+        what = "standby" if standby else "start"
+        logf.write(f"\n--- {what} {time.strftime('%H:%M:%S')}: {' '.join(m.argv)}\n".encode())
         logf.flush()
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        m.proc = subprocess.Popen(
-            m.argv, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+        ready_r = ready_w = None
+        if standby:  # the spare says "ready" on a pipe of its own once it has prepared
+            ready_r, ready_w = os.pipe()
+            os.set_blocking(ready_r, False)
+            env[STANDBY_ENV] = str(ready_w)
+        proc = subprocess.Popen(
+            m.argv, stdout=logf, stderr=subprocess.STDOUT,
+            stdin=subprocess.PIPE if standby else subprocess.DEVNULL,
             start_new_session=True, env=env, preexec_fn=die_with_parent,
+            pass_fds=(ready_w,) if standby else (),
         )  # fmt: skip
         # Children keep the supervisor's working directory, so relative paths in the config
         # (certificates, maps, worlds) mean the same to every process.
         logf.close()
+        if standby:
+            os.close(ready_w)
+            proc.ready_fd = ready_r
+            proc.prepared = False
+        return proc
+
+    def _spawn(self, m: Managed) -> None:
+        if m.spare is not None and m.spare.poll() is None:
+            # The hot spare has imported and prepared (or is about to): one line, it takes over.
+            proc, m.spare = m.spare, None
+            os.close(proc.ready_fd)
+            try:
+                proc.stdin.write(b"go\n")
+                proc.stdin.close()
+            except OSError:  # it died meanwhile: start afresh
+                proc = self._start_process(m, standby=False)
+            else:
+                log.info("%s: the standby process (pid %d) takes over", m.name, proc.pid)
+        else:
+            proc = self._start_process(m, standby=False)
+            log.info("started %s (pid %d)", m.name, proc.pid)
+        m.proc = proc
         m.started_at = time.monotonic()
         with self._lock:
             m.alive = m.starting = m.seen_alive = m.seen_starting = False
         m.lost_at = None
-        log.info("started %s (pid %d)", m.name, m.proc.pid)
+
+    def _keep_spare(self, m: Managed) -> None:
+        """A ready service with `standby` gets a hot spare (started only once it is ready, so
+        the two never compile the same kernels at once on a cold cache)."""
+        if m.spare is not None and m.spare.poll() is not None:
+            log.warning("%s: its standby process exited with status %d", m.name,
+                        m.spare.returncode)  # fmt: skip
+            self._end_spare(m)
+        if m.spare is None and m.policy.standby and m.seen_alive and not self._stop.is_set():
+            m.spare = self._start_process(m, standby=True)
+        if m.spare is not None and not m.spare.prepared:
+            try:
+                m.spare.prepared = bool(os.read(m.spare.ready_fd, 64))
+            except BlockingIOError:
+                pass
+
+    def spare_ready(self, m: Managed) -> bool:
+        """Whether `m` has a standby process that has prepared and waits to take over."""
+        return m.spare is not None and m.spare.prepared
+
+    def _end_spare(self, m: Managed) -> None:
+        if m.spare is not None:
+            try:
+                m.spare.stdin.close()  # a standby process ends when its stdin closes
+                m.spare.wait(timeout=2.0)
+            except (OSError, subprocess.TimeoutExpired):
+                m.spare.kill()
+                m.spare.wait()
+            os.close(m.spare.ready_fd)
+            m.spare = None
 
     def _signal(self, m: Managed, sig: int) -> None:
         if m.proc is not None and m.proc.poll() is None:
@@ -186,11 +246,13 @@ class Supervisor:
         d = self.config.deploy
         for m in self.procs.values():
             if m.finished:
+                self._end_spare(m)
                 continue
             if m.proc is None:
                 if now >= m.next_start:
                     self._spawn(m)
                 continue
+            self._keep_spare(m)
             code = m.proc.poll()
             if code is not None:
                 m.exit_codes.append(code)
@@ -297,6 +359,8 @@ class Supervisor:
 
     def shutdown(self) -> None:
         """SIGINT every service, wait, SIGKILL what is left, close the router."""
+        for m in self.procs.values():
+            self._end_spare(m)
         running = [m for m in self.procs.values() if m.proc is not None]
         # Stop in reverse data-flow order: the explorer stops driving before the sim goes away.
         for m in reversed(running):

@@ -147,9 +147,11 @@ class ExplorerService(Service):
         self.n_path_queries = 0
         self.path_ok = 0
         self.path_errors: dict[str, int] = {}
-        self._resume()
         self.plan_time_ms = 0.0
         self._saved = False
+
+    def warm_up(self) -> None:
+        self._resume()
 
     def _resume(self) -> None:
         """A restart in the same run directory continues the run's exploration (and a run that
@@ -180,7 +182,7 @@ class ExplorerService(Service):
 
     # -- wiring -----------------------------------------------------------------------------------
 
-    def warm_up(self) -> None:
+    def prepare(self) -> None:
         # The view-gain kernel compiles on a cold numba cache: before the token, not mid-plan.
         self.startup_step = "loading (or compiling) the numba kernels"
         t0 = time.perf_counter()

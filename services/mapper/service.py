@@ -108,20 +108,23 @@ class MapperService(Service):
         self.last_save_s = 0.0
         self._next_save = time.monotonic() + config.mapper.autosave_period_s
 
-    def warm_up(self) -> None:
-        # Load the map and (compile or) load the kernels before the token says we are ready.
-        self.startup_step = "loading the map"
-        self.map = build_map(self.config, self.table, self.log)
+    def prepare(self) -> None:
+        # (Compile or) load the kernels before the token says we are ready.
         self.startup_step = "loading (or compiling) the numba kernels"
         t0 = time.perf_counter()
         warm = build_map(dataclasses.replace(self.config, mapper=dataclasses.replace(
             self.config.mapper, load="")), self.table)  # fmt: skip
         pts = np.array([[1.0, 0.1, 0.1], [0.1, 1.0, 0.2], [20.0, 0.1, 0.1]], np.float32)
-        lab = np.array([self.map.class_ids[0], 0, 0], np.uint16)
+        lab = np.array([warm.class_ids[0], 0, 0], np.uint16)
         warm.integrate(pts, lab, np.ones(3, np.float32), (0.0, 0.0, 0.0))
         warm.query(pts.astype(np.float64))
         warm.occupied_voxels()
         self.log.info("kernels ready in %.1f s", time.perf_counter() - t0)
+
+    def warm_up(self) -> None:
+        # The run's map: resumed from its autosave after a crash (`mapper.load`).
+        self.startup_step = "loading the map"
+        self.map = build_map(self.config, self.table, self.log)
 
     def setup(self) -> None:
         r = self.robot

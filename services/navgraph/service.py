@@ -125,7 +125,7 @@ class NavgraphService(Service):
         self._resync_reason = ""  # set from callbacks and on_delta; done in tick()
         self._mapper_was_down = False
 
-    def warm_up(self) -> None:
+    def prepare(self) -> None:
         # Before the liveliness token: whoever waits for navgraph gets a compiled one.
         self.startup_step = "loading (or compiling) the numba kernels"
         self.log.info("kernels ready in %.1f s", warm_up(self.classes))

@@ -109,7 +109,7 @@ class PlannerService(Service):
         self.times_ms: list[float] = []
         self._resync = False
 
-    def warm_up(self) -> None:
+    def prepare(self) -> None:
         # Before the liveliness token: whoever waits for the planner gets a compiled one.
         self.startup_step = "loading (or compiling) the numba kernels"
         self.log.info("kernels ready in %.1f s", warm_up(self.classes))

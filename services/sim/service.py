@@ -67,7 +67,7 @@ class SimService(Service):
         self._worker = self._finish = None
         self._in_flight: collections.deque[tuple[Future, float]] = collections.deque()
 
-    def warm_up(self) -> None:
+    def prepare(self) -> None:
         sc = self.sc
         if self.sim is None:
             self.startup_step = "building the world"
