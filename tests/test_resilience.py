@@ -1,0 +1,184 @@
+"""`smana up` off the happy path, each stack a real one on an isolated loopback router:
+
+- a first start on a fresh install (an empty numba cache) with both cores busy: no service is
+  killed for warming up, every one becomes ready, and the robot moves;
+- `kill -9` of each service in turn: each is back, the map resumed, and the run completes with a
+  clean report;
+- a run whose planner is disabled says so: a Warnings section heads report.md and `smana up`
+  exits non-zero.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from smana.deploy.supervisor import die_with_parent
+from tests.conftest import free_port, wait_for
+from tests.test_e2e_explore import small_run_overrides
+
+pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer")
+
+
+class Up:
+    """`smana up` as a subprocess, and a zenoh client of its router."""
+
+    def __init__(self, tmp: Path, overrides: list[str], env: dict | None = None):
+        self.port = free_port()
+        self.run_dir = tmp / "run"
+        self.robot = f"res{os.getpid()}"
+        sets = [*small_run_overrides(self.port), f'general.robot="{self.robot}"', *overrides]
+        argv = [sys.executable, "-m", "smana.deploy", "up", "--run-dir", str(self.run_dir)]
+        for s in sets:
+            argv += ["--set", s]
+        self.log_path = tmp / "up.log"
+        self.proc = subprocess.Popen(
+            argv, stdout=open(self.log_path, "wb"), stderr=subprocess.STDOUT,  # noqa: SIM115
+            start_new_session=True, env=dict(os.environ, **(env or {})),
+            preexec_fn=die_with_parent,
+        )  # fmt: skip
+        self._session = None
+
+    @property
+    def session(self):
+        if self._session is None:
+            import zenoh
+
+            from smana.common.config import ZenohConfig
+            from smana.common.zenoh_config import make_zenoh_config
+
+            zc = ZenohConfig(mode="client", connect=[f"tcp/127.0.0.1:{self.port}"])
+            assert wait_for(lambda: self.log().count("zenoh router listening") > 0, 60), self.log()
+            self._session = zenoh.open(make_zenoh_config(zc))
+        return self._session
+
+    def log(self, service: str | None = None) -> str:
+        p = self.log_path if service is None else self.run_dir / "logs" / f"{service}.log"
+        return p.read_text(errors="replace") if p.exists() else ""
+
+    def alive(self, service: str) -> bool:
+        from smana.common import keys
+
+        return bool(list(self.session.liveliness().get(keys.alive(self.robot, service),
+                                                       timeout=1.0)))  # fmt: skip
+
+    def status(self, service: str):
+        from smana.common import keys
+        from smana.common.query import QueryError, request
+
+        try:
+            return request(self.session, keys.status(self.robot, service), timeout_s=2.0)
+        except QueryError:
+            return None
+
+    def query(self, service: str, name: str, body=None):
+        from smana.common import keys
+        from smana.common.query import request
+
+        return request(self.session, keys.query(self.robot, service, name), body, 5.0)
+
+    def close(self) -> None:
+        if self._session is not None:
+            self._session.close()
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGINT)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+
+
+def busy_loops(n: int = 2, seconds: float = 600.0) -> list[subprocess.Popen]:
+    """Bounded busy loops, one per core: the machine of a fresh install that does other work."""
+    code = f"import time\nt = time.time() + {seconds}\nwhile time.time() < t: pass\n"
+    return [subprocess.Popen([sys.executable, "-c", code], preexec_fn=die_with_parent)
+            for _ in range(n)]  # fmt: skip
+
+
+def test_first_start_on_a_cold_cache_and_busy_cores_kills_nothing_and_the_robot_moves(tmp_path):
+    hogs = busy_loops()
+    up = Up(tmp_path, ["explorer.time_budget_s=15", "deploy.recorder.enabled=false"],
+            env={"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")})  # fmt: skip
+    try:
+        ready = wait_for(lambda: all(up.alive(s) for s in SERVICES), 900, 1.0)
+        for h in hogs:
+            h.kill()
+        assert ready, up.log()
+        # The robot moves: the explorer reports distance before its budget ends.
+        assert up.proc.wait(600) == 0, up.log()
+    finally:
+        for h in hogs:
+            h.kill()
+        up.close()
+    log = up.log()
+    assert "killing it" not in log and "restarting" not in log, log
+    for s in SERVICES:
+        assert "ready in" in up.log(s), up.log(s)
+    state = json.loads((up.run_dir / "explorer" / "state.json").read_text())
+    assert state["distance_m"] > 0.2, state
+    assert "## Warnings" not in (up.run_dir / "report.md").read_text()
+
+
+def test_kill9_of_each_service_comes_back_with_the_map_and_the_run_completes(tmp_path):
+    up = Up(tmp_path, ["explorer.time_budget_s=40", "deploy.recorder.enabled=false"])
+    try:
+        assert wait_for(lambda: all(up.alive(s) for s in SERVICES), 600, 0.5), up.log()
+        for service in SERVICES:
+            # a hot spare takes over when it is ready (it says "standing by" in the log)
+            wait_for(lambda s=service: "standing by" in up.log(s), 120, 0.5)
+            st = up.status(service)
+            assert st is not None, up.log()
+            if service == "mapper":
+                assert wait_for(lambda: up.query("mapper", "stats")["voxels_occupied"] > 0, 60)
+                up.query("mapper", "save")
+                before = up.query("mapper", "stats")["voxels_occupied"]
+            t_kill = time.monotonic()
+            os.kill(st.pid, signal.SIGKILL)
+
+            def back(s=service, pid=st.pid):
+                new = up.status(s)
+                return new is not None and new.pid != pid and new.state == "running"
+
+            assert wait_for(back, 120, 0.1), up.log(service)
+            print(f"{service} back in {time.monotonic() - t_kill:.2f} s")
+            if service == "mapper":
+                after = up.query("mapper", "stats")["voxels_occupied"]
+                assert after >= before, (before, after, up.log("mapper"))
+        assert up.proc.wait(600) == 0, up.log()
+    finally:
+        up.close()
+    log = up.log()
+    for service in SERVICES:
+        assert f"{service} exited with status -9; restarting" in log, log
+    report = (up.run_dir / "report.md").read_text()
+    assert "## Warnings" not in report, report
+    metrics = json.loads((up.run_dir / "metrics.json").read_text())
+    assert metrics["explorer"]["distance_m"] > 0.2, metrics["explorer"]
+
+
+def test_a_run_without_its_planner_fails_loudly(tmp_path):
+    sets = ["explorer.time_budget_s=8", "deploy.planner.enabled=false",
+            "deploy.recorder.enabled=false", "explorer.planner_timeout_s=0.5"]  # fmt: skip
+    up = Up(tmp_path, sets)
+    try:
+        code = up.proc.wait(600)
+    finally:
+        up.close()
+    log = up.log()
+    assert code == 1, log
+    report = (up.run_dir / "report.md").read_text()
+    assert report.split("\n")[2] == "## Warnings", report
+    warnings = json.loads((up.run_dir / "metrics.json").read_text())["warnings"]
+    assert any("planner" in w and "never came up" in w for w in warnings), warnings
+    assert any("did not move" in w for w in warnings), warnings
+    assert "smana up: FAILED" in log and "warning: the planner" in log, log
