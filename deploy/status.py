@@ -1,4 +1,6 @@
-"""`smana status`: which services are alive (liveliness tokens) and what they report."""
+"""`smana status`: which services are up (liveliness tokens: `starting` while they load or
+compile, `alive` when ready) and what they report: their state, what they are doing while
+starting, and their books (messages in and out, accepted, dropped by reason, rejected by kind)."""
 
 from __future__ import annotations
 
@@ -12,10 +14,14 @@ from smana.common.query import QueryError, request
 from smana.common.zenoh_config import open_session
 
 
-def live_services(session, robot: str = "*", timeout_s: float = 2.0) -> list[tuple[str, str]]:
-    """(robot, service) for every liveliness token under smana/<robot>/alive/*."""
+def live_services(
+    session, robot: str = "*", timeout_s: float = 2.0, kind: str = "alive"
+) -> list[tuple[str, str]]:
+    """(robot, service) for every liveliness token under smana/<robot>/<kind>/* (kind: alive,
+    or starting)."""
     found = set()
-    for reply in session.liveliness().get(keys.alive_any(robot), timeout=timeout_s):
+    pattern = keys.alive_any(robot) if kind == "alive" else keys.starting_any(robot)
+    for reply in session.liveliness().get(pattern, timeout=timeout_s):
         if reply.ok is not None:
             parts = str(reply.ok.key_expr).split("/")
             if len(parts) == 4:
@@ -25,8 +31,10 @@ def live_services(session, robot: str = "*", timeout_s: float = 2.0) -> list[tup
 
 def collect(session, robot: str = "*", timeout_s: float = 2.0) -> list[dict]:
     rows = []
-    for r, service in live_services(session, robot, timeout_s):
-        row = {"robot": r, "service": service, "alive": True}
+    alive = live_services(session, robot, timeout_s)
+    starting = [x for x in live_services(session, robot, timeout_s, "starting") if x not in alive]
+    for r, service in sorted(alive + starting):
+        row = {"robot": r, "service": service, "alive": (r, service) in alive}
         try:
             st = request(session, keys.status(r, service), timeout_s=timeout_s)
             if isinstance(st, ServiceStatus):
@@ -55,15 +63,19 @@ def cli(argv: list[str] | None = None) -> int:
         print(f"no live smana services for robot {robot!r}: is it running?", file=sys.stderr)
         return 1
     print(f"{'robot':<8} {'service':<10} {'state':<9} {'uptime':>8} {'in':>8} {'out':>8} "
-          f"{'drops':>6}  errors")  # fmt: skip
+          f"{'dropped':>8}  rejected / doing")  # fmt: skip
     for row in rows:
         st = row.get("status")
         if st is None:
-            print(f"{row['robot']:<8} {row['service']:<10} {'?':<9}  {row.get('error', '')}")
+            state = "running" if row["alive"] else "starting"
+            print(f"{row['robot']:<8} {row['service']:<10} {state:<9}  {row.get('error', '')}")
             continue
-        errs = ", ".join(f"{k}={v}" for k, v in sorted(st["errors"].items())) or "-"
+        if st["state"] == "starting":
+            what = (st.get("details") or {}).get("startup_step", "")
+        else:
+            what = ", ".join(f"{k}={v}" for k, v in sorted(st["rejected"].items())) or "-"
         print(
             f"{row['robot']:<8} {row['service']:<10} {st['state']:<9} {st['uptime_s']:>7.0f}s "
-            f"{st['msgs_in']:>8} {st['msgs_out']:>8} {st['queue_drops']:>6}  {errs}"
+            f"{st['msgs_in']:>8} {st['msgs_out']:>8} {sum(st['dropped'].values()):>8}  {what}"
         )
     return 0

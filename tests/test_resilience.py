@@ -109,11 +109,24 @@ def test_first_start_on_a_cold_cache_and_busy_cores_kills_nothing_and_the_robot_
     hogs = busy_loops()
     up = Up(tmp_path, ["explorer.time_budget_s=15", "deploy.recorder.enabled=false"],
             env={"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")})  # fmt: skip
+    seen_starting = set()
+
+    def ready() -> bool:
+        # `smana status` sees the services that are still compiling, and what they are doing
+        from smana.deploy.status import collect
+
+        for row in collect(up.session, up.robot, 1.0):
+            st = row.get("status") or {}
+            if st.get("state") == "starting" and st["details"].get("startup_step"):
+                seen_starting.add(row["service"])
+        return all(up.alive(s) for s in SERVICES)
+
     try:
-        ready = wait_for(lambda: all(up.alive(s) for s in SERVICES), 900, 1.0)
+        all_ready = wait_for(ready, 900, 0.5)
         for h in hogs:
             h.kill()
-        assert ready, up.log()
+        assert all_ready, up.log()
+        assert seen_starting, "no service was ever seen starting"
         # The robot moves: the explorer reports distance before its budget ends.
         assert up.proc.wait(600) == 0, up.log()
     finally:

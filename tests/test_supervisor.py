@@ -159,7 +159,10 @@ def test_smana_up_restarts_a_killed_service_and_dies_cleanly(tmp_path):
         except OSError:
             return True
 
-    time.sleep(1.0)
+    # the router is up when smana up says so (never a fixed wait: at load 10 a second was short)
+    assert wait_for(lambda: "zenoh router listening" in (tmp_path / "up.log").read_text(), 60), (
+        tmp_path / "up.log"
+    ).read_text()
     conf = make_zenoh_config(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
     try:
         with zenoh.open(conf) as session:
@@ -171,12 +174,14 @@ def test_smana_up_restarts_a_killed_service_and_dies_cleanly(tmp_path):
             # ...and is healthy again soon after (imports and kernels take their time).
             assert wait_for(lambda: planner_pid(session) not in (None, first), 20)
             second = planner_pid(session)
-            # The supervisor itself killed with -9: its services must not outlive it.
+            # The supervisor itself killed with -9: its services (and their standby processes)
+            # must not outlive it.
             os.kill(up.pid, signal.SIGKILL)
             up.wait()
             assert wait_for(lambda: gone(second), 10), (
                 tmp_path / "run" / "logs" / "planner.log"
             ).read_text()[-3000:]
+            assert wait_for(lambda: all(gone(p) for p in planner_processes()), 10)
     finally:
         if up.poll() is None:
             os.killpg(up.pid, signal.SIGKILL)
