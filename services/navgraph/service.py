@@ -5,10 +5,10 @@ hole in the graph). The delta stream is followed per producer (the mapper sessio
 it, `common/plausibility.py::SequenceFollower`): a gap is counted (event `delta_gap`) and asks for
 a resync; a delta from another producer (a restarted mapper, or a stranger), one whose number goes
 back or jumps far ahead is refused (`producer`, `sequence`) and asks for a resync, so no number a
-peer sends can freeze or wipe the graph. Deltas whose stamp does not fit the stream's clock are
-refused (`stamp`). Labels outside the class table are read as unknown and counted
-(`unknown_labels`); voxels outside the graph bounds are counted in the stats (a map may reach
-further than the graph).
+peer sends can freeze or wipe the graph. (Stamps are the clouds' and only labels here: the mapper
+checked them, and a delta refused for its stamp would leave a hole.) Labels outside the class
+table are read as unknown and counted (`unknown_labels`); voxels outside the graph bounds are
+counted in the stats (a map may reach further than the graph).
 
 At start the service asks the mapper for a snapshot of its occupied voxels (`mapper/snapshot`),
 so a navgraph started or restarted after the mapper does not miss what was mapped before; deltas
@@ -42,7 +42,7 @@ from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
 from smana.common.messages import FLAG_KNOWN, MAX_PAYLOAD_BYTES, GraphPatch, MapDelta
-from smana.common.plausibility import APPLY, COVERED, SequenceFollower, StampGate
+from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, ReplyError, Request, Service, run_service
 from smana.services.navgraph.graph import NavGraph, warm_up
@@ -112,8 +112,6 @@ class NavgraphService(Service):
         self.graph = self._new_graph()
         self.patch_seq = 0
         self.deltas_in = SequenceFollower()
-        g = config.general
-        self.stamps = StampGate(g.stamp_window_s, g.max_time_rate)
         self.last_stamp_s = 0.0
         self._next_resync = 0.0
         self.deltas = 0
@@ -216,9 +214,6 @@ class NavgraphService(Service):
 
     def on_delta(self, delta: MapDelta):
         # Checks first: a refused delta changes nothing.
-        verdict = self.stamps.check(delta.stamp_s)
-        if not verdict.ok:
-            raise Reject("stamp", f"map delta {delta.seq}: {verdict.reason}")
         action, why = self.deltas_in.check(delta.producer, delta.seq)
         if action == COVERED:
             self.deltas_skipped += 1  # already in the snapshot we synced from
