@@ -36,6 +36,8 @@ class Verdict:
     ok: bool
     reason: str = ""  # why not
     reset: bool = False  # accepted, and the gate moved to a new clock / place with it
+    kind: str = ""  # why not, as the rejection kind services count: `settling` while a clock or
+    # place is being established, `stamp` or `pose_jump` against an established one
 
 
 class StampGate:
@@ -73,7 +75,7 @@ class StampGate:
         now = self._wall()
         item = (float(stamp_s), now)
         if not math.isfinite(item[0]):
-            return Verdict(False, "stamp is not finite")
+            return Verdict(False, "stamp is not finite", kind="stamp")
         if not self.locked:
             self._candidates.append(item)
             recent = list(self._candidates)[-self.agree :]
@@ -84,7 +86,8 @@ class StampGate:
                 return Verdict(True)
             if self.accept_while_acquiring:
                 return Verdict(True)
-            return Verdict(False, f"stream clock not yet established ({len(recent)} stamps)")
+            return Verdict(False, f"stream clock not yet established ({len(recent)} stamps)",
+                           kind="settling")  # fmt: skip
         if self._consistent((self.t, self.t_wall), item):
             if item[0] > self.t:
                 self.t, self.t_wall = item
@@ -102,6 +105,7 @@ class StampGate:
             False,
             f"stamp {item[0]:.6g} s outside [{self.t - self.window_s:.6g}, {expect_hi:.6g}] "
             "around the stream's clock",
+            kind="stamp",
         )
 
 
@@ -141,7 +145,8 @@ class PoseGate:
                 self.locked, self.ref = True, item
                 self._candidates.clear()
                 return Verdict(True)
-            return Verdict(False, f"position not yet established ({len(recent)} poses)")
+            return Verdict(False, f"position not yet established ({len(recent)} poses)",
+                           kind="settling")  # fmt: skip
         if self._consistent(self.ref, item):
             self.ref = item
             self._candidates.clear()
@@ -157,6 +162,7 @@ class PoseGate:
             False,
             f"pose jumped {d:.3g} m in {abs(item[0] - self.ref[0]):.3g} s "
             f"(at most {self.slack_m:g} m + {self.max_speed_mps:g} m/s)",
+            kind="pose_jump",
         )
 
 

@@ -61,7 +61,7 @@ class StubRobot:
         self.pose_key = keys.pose(robot)
         self.sub = session.declare_subscriber(keys.cmd_vel(robot), self.on_cmd)
         self._stop = threading.Event()
-        self.t = 0.0
+        self.t = 1000.0  # robot time: a pose stamped 0.0 is far in its past
         self.thread = threading.Thread(target=self.run, daemon=True)
         self.thread.start()
 
@@ -130,6 +130,9 @@ def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(zenoh_s
         bad.resolution_m = 0.5  # a grid that does not match
         s.put(keys.graph_patch(robot), encode(bad))
         s.put(keys.pose(robot), encode(Pose()) + b"x")
+        # A pose stamped 0.0 once ended the run (the budget looked spent); a 1 km jump was taken.
+        s.put(keys.pose(robot), encode(Pose.from_xyz_yaw(bot.x, bot.y, 0, 0, stamp_s=0.0)))
+        s.put(keys.pose(robot), encode(Pose.from_xyz_yaw(1000.0, 0, 0, 0, stamp_s=bot.t)))
 
         def errors():
             st = request(s, keys.status(robot, "explorer"), timeout_s=5)
@@ -137,8 +140,11 @@ def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(zenoh_s
             assert st.books_add_up(), st
             return sum(st.rejected.values())
 
-        assert wait_for(lambda: errors() >= 3, 10)
+        assert wait_for(lambda: errors() >= 5, 10)
+        st = request(s, keys.status(robot, "explorer"), timeout_s=5)
+        assert st.rejected.get("stamp") == 1 and st.rejected.get("pose_jump") == 1, st.rejected
         assert proc.poll() is None
+        assert request(s, keys.explorer_state(robot), timeout_s=5)["mode"] != "done"
 
         # everything known: nothing left to explore, the explorer stops the robot and exits 0
         s.put(keys.graph_patch(robot), encode(patch(8.0, seq=2)))

@@ -8,6 +8,7 @@ import json
 import subprocess
 import sys
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -205,3 +206,54 @@ def test_navgraph_and_planner_over_zenoh(zenoh_stack):
     assert stack.stop(planner) == 0 and stack.stop(navgraph) == 0
     out = smana_plan("--from", "1,1", "--to", "2,3", "--timeout", "2")
     assert out.returncode == 2 and "no service answered" in out.stderr
+
+
+def test_spoofed_patch_numbers_neither_freeze_nor_wipe_the_planner(zenoh_stack):
+    # Once, one GraphPatch with seq = 2**64-1 froze the planner's graph (every genuine patch
+    # after it looked old) and one with seq = 1 wiped it to a single node.
+    stack = zenoh_stack
+    deltas = recorded_deltas()
+    stack.service("navgraph", *CONFIG)
+    stack.service("planner", *CONFIG)
+    stack.wait_alive("navgraph")
+    stack.wait_alive("planner")
+    pub = stack.publisher(keys.map_delta(stack.robot))
+    for d in deltas[:3]:
+        pub.put(encode(d))
+    assert wait_for(lambda: stats(stack, "planner")["last_patch_seq"] == 3)
+    assert plan(stack, (1, 1), (7, 5)).error == "unreachable"  # the person in the gap
+    real = request(stack.session, keys.query(stack.robot, "navgraph", "graph"))
+    assert isinstance(real, GraphPatch) and real.producer
+
+    one_node = GraphPatch(
+        seq=1, resolution_m=RES * 2, origin_xy=np.zeros(2), cells=np.array([[5, 5]], np.int32),
+        labels=np.array([HEDGE], np.uint16), heights=np.zeros(1, np.float32),
+        flags=np.array([3], np.uint8), producer=real.producer,
+    )  # fmt: skip
+    patches = stack.publisher(keys.graph_patch(stack.robot))
+    for seq, producer in ((2**63 - 1, real.producer), (1, real.producer), (4, "a stranger")):
+        one_node.seq, one_node.producer = seq, producer
+        patches.put(encode(one_node))
+    wrapped = msgpack.unpackb(encode(one_node))
+    wrapped["seq"] = 2**64 - 1  # beyond int64: refused by the codec itself
+    patches.put(msgpack.packb(wrapped))
+    assert wait_for(lambda: sum(status(stack, "planner").rejected.values()) >= 4)
+    st = status(stack, "planner")
+    # far ahead and gone back: `sequence`; a stranger: `producer`; beyond int64: `value`
+    assert st.rejected == {"sequence": 2, "producer": 1, "value": 1}, st
+    assert st.books_add_up(), st
+
+    # Not wiped: the old graph answers as before; not frozen: the genuine next patch (the person
+    # walks away) still gets through.
+    assert plan(stack, (1, 1), (2, 3)).ok
+    pub.put(encode(deltas[3]))
+    assert wait_for(lambda: plan(stack, (1, 1), (7, 5)).ok, 30)
+    assert stats(stack, "planner")["last_patch_seq"] == 4
+
+
+def status(stack, service):
+    from smana.common.messages import ServiceStatus
+
+    st = request(stack.session, keys.status(stack.robot, service), timeout_s=5)
+    assert isinstance(st, ServiceStatus)
+    return st

@@ -258,10 +258,10 @@ class ExplorerService(Service):
         stamp = float(pose.stamp_s)
         when = self.stamps.check(stamp)
         if not when.ok:
-            raise Reject("stamp", f"pose {pose.seq}: {when.reason}")
+            raise Reject(when.kind, f"pose {pose.seq}: {when.reason}")
         where = self.places.check(stamp, pose.position)
         if not where.ok:
-            raise Reject("pose_jump", f"pose {pose.seq}: {where.reason}")
+            raise Reject(where.kind, f"pose {pose.seq}: {where.reason}")
         t = stamp + self._t_offset
         last = self.core.t_now if self.core.pose is not None else self._t_floor
         if last is not None and (when.reset or t < last - self.config.general.stamp_window_s):

@@ -148,7 +148,7 @@ class MapperService(Service):
             raise Reject("frame", f"cloud {cloud.seq} is in {cloud.frame_id!r}, not world")
         verdict = self.gates[input_name].check(cloud.stamp_s)
         if not verdict.ok:
-            raise Reject("stamp", f"{input_name} {cloud.seq}: {verdict.reason}")
+            raise Reject(verdict.kind, f"{input_name} {cloud.seq}: {verdict.reason}")
         last = self.input_seq.get(input_name)
         if last is not None and cloud.seq > last + 1:
             n = cloud.seq - last - 1

@@ -117,7 +117,7 @@ class SimService(Service):
     def on_cmd(self, cmd: VelocityCommand) -> None:
         verdict = self.cmd_stamps.check(cmd.stamp_s)
         if not verdict.ok:
-            raise Reject("stamp", f"velocity command {cmd.seq}: {verdict.reason}")
+            raise Reject(verdict.kind, f"velocity command {cmd.seq}: {verdict.reason}")
         self.sim.set_velocity(cmd.linear_mps, cmd.angular_radps)  # ValueError -> rejected
         self.commands += 1
 
