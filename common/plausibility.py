@@ -40,8 +40,61 @@ class Verdict:
     # place is being established, `stamp` or `pose_jump` against an established one
 
 
-class StampGate:
-    """Plausibility of one stream's stamps (see the module docstring)."""
+class _AgreementGate:
+    """What both gates share: a reference (a stream's clock, a robot's place) set once `agree`
+    consecutive items are consistent with each other, then moved only by `relock` consecutive
+    items consistent with each other and not with it. Subclasses say what consistent means."""
+
+    def __init__(self, agree: int, relock: int, accept_while_acquiring: bool):
+        self.agree, self.relock = agree, relock
+        self.accept_while_acquiring = accept_while_acquiring
+        self.locked = False
+        self.ref: tuple | None = None
+        self._candidates: deque[tuple] = deque(maxlen=max(agree, relock))
+        self.resets = 0
+
+    def _consistent(self, a: tuple, b: tuple) -> bool:
+        raise NotImplementedError
+
+    def _advance(self, item: tuple) -> None:
+        """An accepted item moves the reference (a clock only forward)."""
+        self.ref = item
+
+    def _all_consistent(self, items) -> bool:
+        items = list(items)
+        return all(self._consistent(a, b) for a, b in zip(items, items[1:]))
+
+    def _judge(self, item: tuple, settling: str) -> Verdict | None:
+        """The verdict on `item`, or None for an outlier of an established reference (the
+        subclass says why). `settling` says what is not yet established."""
+        if not self.locked:
+            self._candidates.append(item)
+            recent = list(self._candidates)[-self.agree :]
+            if len(recent) >= self.agree and self._all_consistent(recent):
+                self.locked, self.ref = True, item
+                self._candidates.clear()
+                return Verdict(True)
+            if self.accept_while_acquiring:
+                return Verdict(True)
+            return Verdict(False, f"{settling} not yet established ({len(recent)} messages)",
+                           kind="settling")  # fmt: skip
+        if self._consistent(self.ref, item):
+            self._advance(item)
+            self._candidates.clear()
+            return Verdict(True)
+        # An outlier, or the first items of a new clock or place (a restarted simulator).
+        self._candidates.append(item)
+        if len(self._candidates) >= self.relock and self._all_consistent(self._candidates):
+            self.ref = item
+            self._candidates.clear()
+            self.resets += 1
+            return Verdict(True, reset=True)
+        return None
+
+
+class StampGate(_AgreementGate):
+    """Plausibility of one stream's stamps (see the module docstring). The reference is
+    (newest accepted stamp, the wall time it came)."""
 
     def __init__(
         self,
@@ -52,65 +105,48 @@ class StampGate:
         accept_while_acquiring: bool = True,
         clock=time.monotonic,
     ):
+        super().__init__(agree, relock, accept_while_acquiring)
         self.window_s, self.max_rate = window_s, max_rate
-        self.agree, self.relock = agree, relock
-        self.accept_while_acquiring = accept_while_acquiring
         self._wall = clock
-        self.locked = False
-        self.t: float | None = None  # the stream's clock: newest accepted stamp...
-        self.t_wall = 0.0  # ...and the wall time it came
-        self._candidates: deque[tuple[float, float]] = deque(maxlen=max(agree, relock))
-        self.resets = 0
 
-    def _consistent(self, a: tuple[float, float], b: tuple[float, float]) -> bool:
+    @property
+    def t(self) -> float | None:
+        """The stream's clock."""
+        return None if self.ref is None else self.ref[0]
+
+    @property
+    def t_wall(self) -> float:
+        return 0.0 if self.ref is None else self.ref[1]
+
+    def _consistent(self, a: tuple, b: tuple) -> bool:
         """Could stamp b (at wall time b) follow stamp a on one clock?"""
         (ta, wa), (tb, wb) = a, b
         return ta - self.window_s <= tb <= ta + self.window_s + self.max_rate * max(0.0, wb - wa)
 
-    def _all_consistent(self, items) -> bool:
-        items = list(items)
-        return all(self._consistent(a, b) for a, b in zip(items, items[1:]))
+    def _advance(self, item: tuple) -> None:
+        if item[0] > self.ref[0]:
+            self.ref = item
 
     def check(self, stamp_s: float) -> Verdict:
         now = self._wall()
         item = (float(stamp_s), now)
         if not math.isfinite(item[0]):
             return Verdict(False, "stamp is not finite", kind="stamp")
-        if not self.locked:
-            self._candidates.append(item)
-            recent = list(self._candidates)[-self.agree :]
-            if len(recent) >= self.agree and self._all_consistent(recent):
-                self.locked = True
-                self.t, self.t_wall = max(t for t, _ in recent), now
-                self._candidates.clear()
-                return Verdict(True)
-            if self.accept_while_acquiring:
-                return Verdict(True)
-            return Verdict(False, f"stream clock not yet established ({len(recent)} stamps)",
-                           kind="settling")  # fmt: skip
-        if self._consistent((self.t, self.t_wall), item):
-            if item[0] > self.t:
-                self.t, self.t_wall = item
-            self._candidates.clear()
-            return Verdict(True)
-        # Out of the window: an outlier, or the first stamps of a new clock.
-        self._candidates.append(item)
-        if len(self._candidates) >= self.relock and self._all_consistent(self._candidates):
-            self.t, self.t_wall = item
-            self._candidates.clear()
-            self.resets += 1
-            return Verdict(True, reset=True)
-        expect_hi = self.t + self.window_s + self.max_rate * (now - self.t_wall)
+        verdict = self._judge(item, "stream clock")
+        if verdict is not None:
+            return verdict
+        hi = self.t + self.window_s + self.max_rate * (now - self.t_wall)
         return Verdict(
             False,
-            f"stamp {item[0]:.6g} s outside [{self.t - self.window_s:.6g}, {expect_hi:.6g}] "
+            f"stamp {item[0]:.6g} s outside [{self.t - self.window_s:.6g}, {hi:.6g}] "
             "around the stream's clock",
             kind="stamp",
         )
 
 
-class PoseGate:
-    """Plausibility of one pose stream's positions (see the module docstring)."""
+class PoseGate(_AgreementGate):
+    """Plausibility of one pose stream's positions (see the module docstring). The reference is
+    the last accepted (stamp, x, y, z)."""
 
     def __init__(
         self,
@@ -119,44 +155,18 @@ class PoseGate:
         agree: int = 3,
         relock: int = 5,
     ):
+        super().__init__(agree, relock, accept_while_acquiring=False)
         self.max_speed_mps, self.slack_m = max_speed_mps, slack_m
-        self.agree, self.relock = agree, relock
-        self.locked = False
-        self.ref: tuple[float, float, float, float] | None = None  # t, x, y, z
-        self._candidates: deque[tuple[float, float, float, float]] = deque(
-            maxlen=max(agree, relock)
-        )
-        self.resets = 0
 
-    def _consistent(self, a, b) -> bool:
+    def _consistent(self, a: tuple, b: tuple) -> bool:
         reach = self.slack_m + self.max_speed_mps * abs(b[0] - a[0])
         return math.dist(a[1:], b[1:]) <= reach
 
-    def _all_consistent(self, items) -> bool:
-        items = list(items)
-        return all(self._consistent(a, b) for a, b in zip(items, items[1:]))
-
     def check(self, stamp_s: float, xyz) -> Verdict:
         item = (float(stamp_s), float(xyz[0]), float(xyz[1]), float(xyz[2]))
-        if not self.locked:
-            self._candidates.append(item)
-            recent = list(self._candidates)[-self.agree :]
-            if len(recent) >= self.agree and self._all_consistent(recent):
-                self.locked, self.ref = True, item
-                self._candidates.clear()
-                return Verdict(True)
-            return Verdict(False, f"position not yet established ({len(recent)} poses)",
-                           kind="settling")  # fmt: skip
-        if self._consistent(self.ref, item):
-            self.ref = item
-            self._candidates.clear()
-            return Verdict(True)
-        self._candidates.append(item)
-        if len(self._candidates) >= self.relock and self._all_consistent(self._candidates):
-            self.ref = item
-            self._candidates.clear()
-            self.resets += 1
-            return Verdict(True, reset=True)
+        verdict = self._judge(item, "position")
+        if verdict is not None:
+            return verdict
         d = math.dist(self.ref[1:], item[1:])
         return Verdict(
             False,
