@@ -191,19 +191,23 @@ class Books:
 
 
 class _Latest:
-    """A one-slot mailbox: put() replaces what was there (and says so), take() empties it."""
+    """A one-slot mailbox: put() replaces what was there (and says so), take() empties it and
+    says how many items were replaced since the last take."""
 
     def __init__(self):
         self.item = None
+        self.replaced = 0
 
     def put(self, item) -> bool:
         replaced = self.item is not None
+        self.replaced += replaced
         self.item = item
         return replaced
 
     def take(self):
         item, self.item = self.item, None
-        return item
+        n, self.replaced = self.replaced, 0
+        return item, n
 
 
 class Publisher:
@@ -255,6 +259,10 @@ class Service:
         self._wake = threading.Event()
         self._fifo: collections.deque = collections.deque()
         self._latest: list[tuple[_Latest, Callable]] = []
+        # for a latest-wins handler: how many newer samples of its input were dropped as stale
+        # just before the one it is given (a sender's numbering gap minus these was lost on the
+        # way, before reaching this service)
+        self.stale_before = 0
         self._declared: list[Any] = []
         self._status_seq = 0
         self._status_lock = threading.Lock()
@@ -571,7 +579,7 @@ class Service:
 
     def _take_latest(self, slot: _Latest):
         with self.books.lock:
-            payload = slot.take()
+            payload, self.stale_before = slot.take()
             if payload is not None:
                 self.books.in_flight += 1
             return payload

@@ -150,10 +150,10 @@ class MapperService(Service):
         if not verdict.ok:
             raise Reject(verdict.kind, f"{input_name} {cloud.seq}: {verdict.reason}")
         last = self.input_seq.get(input_name)
-        if last is not None and cloud.seq > last + 1:
-            n = cloud.seq - last - 1
-            self.note("clouds_lost_upstream", f"{n} {input_name}s numbered before {cloud.seq} "
-                      "never arrived (dropped on the way)", n)  # fmt: skip
+        lost = 0 if last is None else cloud.seq - last - 1 - self.stale_before
+        if lost > 0:
+            self.note("clouds_lost_upstream", f"{lost} {input_name}s numbered before "
+                      f"{cloud.seq} never arrived (dropped on the way)", lost)  # fmt: skip
         self.input_seq[input_name] = cloud.seq
         if cloud.n_dropped_nonfinite:
             n = cloud.n_dropped_nonfinite
