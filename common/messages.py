@@ -535,11 +535,14 @@ def _check_groups(tname, msg: Message, drop_nonfinite: bool) -> None:
         lengths = {name: len(getattr(msg, name)) for name, _ in members}
         if len(set(lengths.values())) > 1:
             raise MessageError("length", f"{tname}: array lengths disagree {lengths}")
+        checked = [(name, spec) for name, spec in members
+                   if spec.finite and getattr(msg, name).dtype.kind == "f"
+                   and getattr(msg, name).size]  # fmt: skip
+        if all(_all_within(getattr(msg, name), spec.limit) for name, spec in checked):
+            continue  # the usual case, two reductions per array: no row to drop
         nonfinite = beyond = None
-        for name, spec in members:
+        for name, spec in checked:
             a = getattr(msg, name)
-            if not (spec.finite and a.dtype.kind == "f") or a.size == 0:
-                continue
             flat = a.reshape(len(a), -1)
             rows = ~np.isfinite(flat).all(axis=1)
             nonfinite = rows if nonfinite is None else nonfinite | rows
@@ -561,6 +564,14 @@ def _check_groups(tname, msg: Message, drop_nonfinite: bool) -> None:
             setattr(msg, name, getattr(msg, name)[keep])
         if hasattr(msg, "n_dropped_nonfinite"):
             msg.n_dropped_nonfinite = int(bad.sum())
+
+
+def _all_within(a: np.ndarray, limit: float | None) -> bool:
+    """Every value finite (and within +-limit), from the array's minimum and maximum: NaN
+    propagates into both and fails every comparison, inf fails the bound."""
+    lo, hi = float(a.min()), float(a.max())
+    bound = math.inf if limit is None else limit
+    return -bound <= lo and hi <= bound and math.isfinite(lo) and math.isfinite(hi)
 
 
 _SCALARS = {float: (int, float), int: (int,), str: (str,), bool: (bool,), dict: (dict,)}
