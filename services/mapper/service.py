@@ -211,7 +211,8 @@ class MapperService(Service):
         self.last_save_s = time.time()
         ms = (time.perf_counter() - t0) * 1e3
         self.log.info("map saved to %s (%.0f ms)", path, ms)
-        return {"ok": True, "path": str(path), "bytes": path.stat().st_size, "time_ms": ms}
+        return {"ok": True, "path": str(path), "bytes": path.stat().st_size, "time_ms": ms,
+                "voxels_observed": self.map.stats()["voxels_observed"]}  # fmt: skip
 
     def on_stop(self) -> None:
         if self.map is None:
