@@ -1,11 +1,13 @@
 """The Rerun recorder: messages in, a readable .rrd with the expected entities out, and every pose
-it is sent in its trajectory file, down to the backlog it has when stopped."""
+it is sent in its trajectory file until the stack stops."""
 
 from __future__ import annotations
 
 import json
+import sys
 import threading
 import time
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -13,10 +15,11 @@ import pytest
 
 from smana.common import keys
 from smana.common.classes import ClassTable
-from smana.common.config import SmanaConfig
+from smana.common.config import ServiceDeployConfig, SmanaConfig
 from smana.common.messages import GraphPatch, MapDelta, Pose, encode
 from smana.deploy import recording as recmod
-from tests.conftest import wait_for
+from smana.deploy.supervisor import Supervisor
+from tests.conftest import free_port, wait_for
 
 rr = pytest.importorskip("rerun")
 
@@ -177,3 +180,40 @@ def test_a_recorder_behind_records_its_backlog_when_stopped(zenoh_stack, tmp_pat
     assert summary["recorded"] == {"pose": n, "pose_truth": 0, "delta": n, "patch": 0}
     assert summary["dropped"] == {} and summary["accepted"] == summary["msgs_in"] == 2 * n
 
+
+@pytest.mark.multiprocess
+def test_recorder_records_every_pose_until_the_stack_stops(tmp_path):
+    """A source publishing poses as fast as it can until `smana up` stops it: the recorder is
+    stopped after it, so every pose published is in trajectory_pose.csv and its books add up."""
+    cfg = SmanaConfig.load(None, [
+        f'deploy.router_listen=["tcp/127.0.0.1:{free_port()}"]', "general.robot=rec",
+        "general.status_period_s=0.5",
+    ])  # fmt: skip
+    run = tmp_path / "run"
+    sup = Supervisor(cfg, run, services=[])
+    source = str(Path(__file__).parent / "support" / "pose_source.py")
+    sup.add("sim", [sys.executable, source, "--config", str(sup.config_path)],
+            ServiceDeployConfig(restart="never"))  # fmt: skip
+    sup.add("recorder", recmod.recorder_argv(sup.config_path, "rec"),
+            ServiceDeployConfig(restart="never"))  # fmt: skip
+    t = threading.Thread(target=sup.run, kwargs={"progress_period_s": 3600}, daemon=True)
+    t.start()
+    rows = run / "trajectory_pose.csv"
+
+    def recorded() -> int:
+        return len(rows.read_text().splitlines()) - 1 if rows.is_file() else 0
+
+    try:
+        # Stop once the recorder has recorded poses for a while (counted from its first row).
+        assert wait_for(lambda: recorded() > 0, 120), (run / "logs" / "recorder.log").read_text()
+        assert wait_for(lambda: recorded() > 100, 60)
+    finally:
+        sup.stop()
+        t.join(60)
+    assert not t.is_alive()
+    published = json.loads((run / "pose_source.json").read_text())["published"]
+    summary = json.loads((run / recmod.SUMMARY_NAME).read_text())
+    assert recorded() == published == summary["recorded"]["pose"], summary
+    books = summary["accepted"] + sum(summary["dropped"].values()) + sum(
+        summary["rejected"].values()) + summary["pending"]  # fmt: skip
+    assert summary["msgs_in"] == books and not summary["dropped"] and not summary["rejected"]
