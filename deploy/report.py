@@ -511,8 +511,8 @@ def _replay_lines(rp: dict) -> list[str]:
         losses = ("lost (no MapDelta after 3 resends) / resent",
                   f"{rp.get('lost', '-')} / {rp.get('resends', '-')}")  # fmt: skip
     else:  # the mapper keeps the newest scan only: what it cannot keep up with, it drops
-        losses = ("not integrated: dropped as stale by the mapper (latest wins) / unacknowledged",
-                  f"{rp.get('dropped_stale', '-')} / {rp.get('unacknowledged', '-')}")  # fmt: skip
+        losses = ("not integrated: overtaken by a newer scan / unacknowledged",
+                  f"{rp.get('overtaken', '-')} / {rp.get('unacknowledged', '-')}")  # fmt: skip
     recorded = rp.get("poses_recorded")
     rows = [
         ("mode", mode),
@@ -542,11 +542,12 @@ def _replay_lines(rp: dict) -> list[str]:
     ]  # fmt: skip
     lines = ["## Replay", "", "| figure | value |", "|---|---|",
              *[f"| {a} | {b} |" for a, b in rows], ""]  # fmt: skip
-    if not lockstep and rp.get("dropped_stale"):
-        lines += [f"Realtime: the mapper could not integrate {rp['dropped_stale']} of the "
-                  f"{rp.get('published', '-')} scans in time, and its latest-wins input dropped "
-                  "them as stale, as it does on a robot. Not a failure of the replay: "
-                  "`--lockstep` integrates every scan.", ""]  # fmt: skip
+    if not lockstep and rp.get("overtaken"):
+        lines += [f"Realtime: {rp['overtaken']} of the {rp.get('published', '-')} scans were "
+                  "overtaken by a newer one before the mapper integrated them: dropped as stale "
+                  "by its latest-wins input (or on the way, by the link's DROP congestion "
+                  "control), as on a robot whose mapper is slower than its sensor. Not a failure "
+                  "of the replay: `--lockstep` integrates every scan.", ""]  # fmt: skip
     return lines
 
 

@@ -23,7 +23,7 @@ def summary(mode: str, published: int = N, lost: int = 0, stale: int = 0) -> dic
         "dataset": "/data/seq", "format": "rellis3d", "class_table": "rellis3d", "topic": "scan",
         "mode": mode, "rate_factor": 2.0, "recorded_rate_hz": 10.0, "scans": published,
         "published": published, "empty": 0, "skipped_by_reader": [], "read_errors": [],
-        "acknowledged": published - lost, "lost": lost, "dropped_stale": stale,
+        "acknowledged": published - lost, "lost": lost, "overtaken": stale,
         "unacknowledged": unacked, "resends": 3 * unacked if mode == "lockstep" else 0,
         "late_published": 0, "late_integrated": 0,
         "latency": {"mean_ms": 80.0, "p95_ms": 90.0, "max_ms": 95.0}, "points_in": 1000,
@@ -65,7 +65,7 @@ def test_lockstep_without_loss_is_clean(tmp_path, cfg):
     m, md = run_report(tmp_path, cfg, summary("lockstep"))
     assert m["warnings"] == [] and "## Warnings" not in md
     assert "| lost (no MapDelta after 3 resends) / resent | 0 / 0 |" in md
-    assert "dropped as stale" not in md
+    assert "overtaken" not in md
     assert f"| poses published / recorded by the recorder | {N} / {N} |" in md
 
 
@@ -76,13 +76,13 @@ def test_a_lockstep_loss_is_a_warning_at_the_top(tmp_path, cfg):
     assert "| lost (no MapDelta after 3 resends) / resent | 2 / 6 |" in md
 
 
-def test_realtime_drops_are_reported_as_stale_not_as_lost(tmp_path, cfg):
+def test_realtime_drops_are_reported_as_overtaken_not_as_lost(tmp_path, cfg):
     m, md = run_report(tmp_path, cfg, summary("realtime", lost=3, stale=3))
     assert m["warnings"] == [] and "## Warnings" not in md
-    row = "dropped as stale by the mapper (latest wins) / unacknowledged | 3 / 0 |"
-    assert row in md and "lost (no MapDelta" not in md
-    assert "could not integrate 3 of the 12 scans in time" in md
-    assert m["replay"]["acknowledged"] == N - 3 and m["replay"]["dropped_stale"] == 3
+    assert "| not integrated: overtaken by a newer scan / unacknowledged | 3 / 0 |" in md
+    assert "lost (no MapDelta" not in md
+    assert "Realtime: 3 of the 12 scans were overtaken" in md and "dropped as stale" in md
+    assert m["replay"]["acknowledged"] == N - 3 and m["replay"]["overtaken"] == 3
 
 
 def test_distance_comes_from_the_replay_and_missed_poses_are_a_warning(tmp_path, cfg):

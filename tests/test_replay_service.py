@@ -147,7 +147,7 @@ def test_realtime_counts_what_a_slow_mapper_misses(zenoh_stack, dataset):
     }
     assert summary["acknowledged"] == len({c.seq for c in mapper.clouds})
     assert summary["acknowledged"] + summary["lost"] == N_SCANS
-    assert summary["lost"] == summary["dropped_stale"] + summary["unacknowledged"]
+    assert summary["lost"] == summary["overtaken"] + summary["unacknowledged"]
     assert summary["wall_s"] < 2.0  # it did not wait for the mapper between scans
 
 
@@ -212,7 +212,7 @@ def test_pacer_lockstep_waits_resends_and_gives_up():
     assert [f.seq for f in p.overdue()] == [2] and p.resends == 1
     clock.t += 6
     assert p.overdue() == [] and p.lost == 1 and p.ready(0.2)
-    assert p.unacknowledged == 1 and p.dropped_stale == 0
+    assert p.unacknowledged == 1 and p.overtaken == 0
 
 
 def test_pacer_realtime_schedule_and_late_counts():
@@ -228,7 +228,7 @@ def test_pacer_realtime_schedule_and_late_counts():
     p.on_published(3, 2, 10.2, b"")
     assert p.late_published == 1
     assert p.on_ack(3) == pytest.approx(0.0, abs=1e-4)
-    assert p.lost == p.dropped_stale == 2  # 1 and 2 were overtaken: the mapper dropped them
+    assert p.lost == p.overtaken == 2  # 1 and 2 were overtaken: the mapper dropped them
     assert p.on_ack(1) is None and p.unacknowledged == 0
 
 

@@ -13,11 +13,11 @@ goes out and keeps the books:
   A scan published more than one period after its due time is `late_published` (the replay
   itself could not keep up); one whose MapDelta arrives more than one period after publication
   is `late_integrated`. One the mapper never integrated is lost, by design rather than by
-  failure: `dropped_stale` when a newer scan was integrated first (the mapper's latest-wins
-  input replaced it, its books count it `stale`), `unacknowledged` when no MapDelta came within
-  `ack_timeout_s`.
+  failure: `overtaken` when a newer scan was integrated first (the mapper's latest-wins input
+  replaced it, its books count it `stale`; or the DROP link lost it on the way, which the
+  replay cannot tell apart), `unacknowledged` when no MapDelta came within `ack_timeout_s`.
 
-`lost` = `dropped_stale` + `unacknowledged`, in both modes. Scans are known by the seq their
+`lost` = `overtaken` + `unacknowledged`, in both modes. Scans are known by the seq their
 cloud carries (`FeedItem.seq`), set when the cloud is made: a scan with nothing left to publish
 (its pose still goes out) takes no number, so the MapDelta's `cloud_seq` always names the scan.
 """
@@ -211,8 +211,8 @@ class Pacer:
     in_flight: dict[int, InFlight] = field(default_factory=dict)
     published: int = 0
     acked: int = 0
-    lost: int = 0  # never integrated: dropped_stale + unacknowledged
-    dropped_stale: int = 0  # realtime: a newer scan was integrated first
+    lost: int = 0  # never integrated: overtaken + unacknowledged
+    overtaken: int = 0  # realtime: a newer scan was integrated first
     unacknowledged: int = 0  # no MapDelta within ack_timeout_s (after max_resends in lockstep)
     resends: int = 0
     late_published: int = 0
@@ -278,7 +278,7 @@ class Pacer:
         for seq in [s for s in self.in_flight if s < cloud_seq]:
             del self.in_flight[seq]
             self.lost += 1
-            self.dropped_stale += 1
+            self.overtaken += 1
         latency = self.clock() - f.sent_at
         self.acked += 1
         self.latencies_s.append(latency)

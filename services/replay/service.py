@@ -148,8 +148,13 @@ class ReplayService(Service):
         lockstep = self.rc.mode == "lockstep"
         cloud_key = keys.scan(r) if self.topic == "scan" else keys.cloud(r)
         # In lockstep no scan may be lost, so the link blocks instead of dropping; nor may a
-        # pose (a recorder measures the run on them).
+        # pose (a recorder measures the run on them). In realtime a large scan put on a DROP
+        # link is often lost on the way, which the first and last must not be: the clock starts
+        # at the first one's MapDelta and the replay ends at the last one's, so a lost one
+        # stalled the replay for ack_timeout_s. They go out on a blocking publisher.
         self.cloud_pub = self.publisher(cloud_key, reliable_block=lockstep)
+        self.cloud_pub_sure = self.cloud_pub if lockstep else self.publisher(
+            cloud_key, reliable_block=True)  # fmt: skip
         self.pose_pub = self.publisher(keys.pose(r), reliable_block=lockstep)
         self.clock_pub = self.publisher(keys.clock(r))
         self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
@@ -261,7 +266,8 @@ class ReplayService(Service):
         if item.cloud is not None:
             seq = item.seq  # what the mapper's MapDelta will name it by (cloud_seq)
             sent_at = self.pacer.clock()
-            self.cloud_pub.put(item.cloud)
+            ends = not self.pacer.published or item.index == self.feed.indices[-1]
+            (self.cloud_pub_sure if ends else self.cloud_pub).put(item.cloud)
             self.pacer.on_published(seq, item.index, item.stamp_s, item.cloud, sent_at)
             self.scan_log.append((seq, item.index, item.name, item.stamp_s, pc.n_out))
         else:
@@ -301,8 +307,8 @@ class ReplayService(Service):
         p = self.pacer
         lat = p.latency_summary()["mean_ms"]
         parts = [f"lat {lat:.0f} ms" if lat is not None else "lat -"]
-        if p.dropped_stale:
-            parts.append(f"stale {p.dropped_stale}")
+        if p.overtaken:
+            parts.append(f"overtaken {p.overtaken}")
         if p.unacknowledged:
             parts.append(f"lost {p.unacknowledged}" if self.rc.mode == "lockstep"
                          else f"unacknowledged {p.unacknowledged}")  # fmt: skip
@@ -328,7 +334,7 @@ class ReplayService(Service):
             "read_errors": [list(e) for e in self.read_errors],
             "acknowledged": p.acked,
             "lost": p.lost,
-            "dropped_stale": p.dropped_stale,
+            "overtaken": p.overtaken,
             "unacknowledged": p.unacknowledged,
             "resends": p.resends,
             "late_published": p.late_published,
@@ -404,7 +410,7 @@ class ReplayService(Service):
             "published": p.published,
             "acknowledged": p.acked,
             "lost": p.lost,
-            "dropped_stale": p.dropped_stale,
+            "overtaken": p.overtaken,
             "poses_published": len(self.pose_log),
             "late": p.late_published + p.late_integrated,
         }
@@ -429,7 +435,7 @@ def summary_line(s: dict) -> str:
     if s["mode"] == "lockstep":  # a loss is a failure
         losses = f"{s['lost']} lost"
     else:  # the mapper's latest-wins input drops what it cannot keep up with, by design
-        losses = (f"{s['dropped_stale']} dropped as stale by the mapper, "
+        losses = (f"{s['overtaken']} overtaken (dropped as stale by the mapper, or on the way), "
                   f"{s['unacknowledged']} unacknowledged")  # fmt: skip
     return (
         f"{s['published']}/{s['scans']} scans published ({s['empty']} empty, "
