@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import sys
 import threading
-import time
 from pathlib import Path
 
 import msgpack
@@ -143,21 +142,21 @@ def test_voxel_store_blocks_match_a_mask_per_block():
 
 @pytest.mark.multiprocess
 def test_a_recorder_behind_records_its_backlog_when_stopped(zenoh_stack, tmp_path):
-    """A stop that comes while the recorder is still working through deltas (the mapper's are
-    large) records the poses queued behind them too, and says so in recorder.json."""
+    """A stop that comes while the recorder is still working on a delta (the mapper's are large)
+    records the poses queued behind it too, and says so in recorder.json."""
     robot = zenoh_stack.robot
     cfg = SmanaConfig.load(None, [
         f'zenoh.connect=["{zenoh_stack.endpoint}"]', f'general.robot="{robot}"',
         f'general.run_dir="{tmp_path / "run"}"',
     ])  # fmt: skip
     svc = recmod.RecorderService(cfg, tmp_path / "run" / "recording.rrd")
-    on_delta = svc.core.on_delta
+    on_delta, release = svc.core.on_delta, threading.Event()
 
-    def slow_delta(delta):  # a delta that takes its time, as a large one on a busy machine
-        time.sleep(0.2)
+    def held_delta(delta):  # the first delta holds the recorder until the stop has come
+        release.wait(30)
         on_delta(delta)
 
-    svc.core.on_delta = slow_delta
+    svc.core.on_delta = held_delta
     t = threading.Thread(target=svc.run, daemon=True)
     t.start()
     try:
@@ -169,9 +168,10 @@ def test_a_recorder_behind_records_its_backlog_when_stopped(zenoh_stack, tmp_pat
             deltas.put(encode(_delta([[0.05 * i, 0.05, 0.05]], [1], [1], 0.1 * i)))
             poses.put(encode(Pose.from_xyz_yaw(0.1 * i, 0.0, 0.0, 0.0, stamp_s=0.1 * i)))
         assert wait_for(lambda: svc.books.received >= 2 * n, 30)
-        assert svc.core.counts.get("pose", 0) < n  # still behind when the stop comes
+        assert "pose" not in svc.core.counts  # all of them queued behind the first delta
     finally:
         svc.stop()
+        release.set()
         t.join(30)
     assert not t.is_alive()
     rows = (tmp_path / "run" / "trajectory_pose.csv").read_text().splitlines()
