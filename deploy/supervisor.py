@@ -298,7 +298,7 @@ class Supervisor:
 
     def shutdown(self) -> None:
         """SIGINT every service, wait, SIGKILL what is left, close the router. Recorders stop
-        last, once every service they record has exited, so they record all it sent."""
+        last, once every other service has exited, so that they record everything it sent."""
         running = [m for m in self.procs.values() if m.proc is not None]
         last = [m for m in running if m.service == "recorder"]
         for wave in ([m for m in running if m not in last], last):
