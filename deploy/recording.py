@@ -13,12 +13,17 @@ Over the `sim_time` timeline (the stamps the messages carry) it logs:
 - `world/graph/{nodes,obstacles,safety_zone}` from `navgraph/patch`;
 - `world/explorer/{frontier,path,goal}` and `metrics/*` from `explorer/state`.
 
+Into the run directory it writes every pose as it comes (`trajectory_pose.csv`,
+`trajectory_truth.csv`: what the report measures a simulated run on) and, when it stops,
+`recorder.json`: what it recorded and the books of what it received.
+
 `RunRecorder` is the part without Zenoh (fed decoded messages, used in tests); `rerun` is imported
 lazily and a missing SDK gives a one-line hint and a recorder that does nothing.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import sys
@@ -38,7 +43,10 @@ from smana.common.service import Service
 log = logging.getLogger("smana.recorder")
 
 RRD_NAME = "recording.rrd"
+SUMMARY_NAME = "recorder.json"
 APP_ID = "smana"
+TRAJECTORY_FILES = {"pose": "trajectory_pose.csv", "pose_truth": "trajectory_truth.csv"}
+TRAJECTORY_HEADER = "t_s,x_m,y_m,z_m,yaw_rad"
 
 
 def import_rerun():
@@ -56,53 +64,130 @@ def import_rerun():
 
 
 class VoxelStore:
-    """The occupied voxels of the map, kept from MapDelta messages (a voxel at most once)."""
+    """The occupied voxels of the map, kept from MapDelta messages (a voxel at most once).
+
+    `apply` only queues a delta (cost proportional to the delta): merging into the store, newest
+    state per voxel, waits for the next read (`blocks`, `keys`, ...). Merging on every delta cost
+    the whole store each time: the recorder fell behind the mapper, poses queued behind deltas."""
+
+    MERGE_ROWS = 2_000_000  # queued rows past which a delta merges at once (bounds the memory)
 
     def __init__(self, block_m: float = 2.0):
         self.block_m = block_m
-        self.keys = np.zeros(0, np.int64)
-        self.centres = np.zeros((0, 3), np.float32)
-        self.labels = np.zeros(0, np.uint16)
+        self._keys = np.zeros(0, np.int64)
+        self._centres = np.zeros((0, 3), np.float32)
+        self._labels = np.zeros(0, np.uint16)
+        self._queued: list[tuple[np.ndarray, ...]] = []  # (keys, centres, labels, occupied)
+        self._queued_rows = 0
         self.dirty_blocks: set[tuple[int, int]] = set()
         self.resolution_m = 0.0
 
     @staticmethod
-    def _keys(centres: np.ndarray, res: float) -> np.ndarray:
+    def _keys_of(centres: np.ndarray, res: float) -> np.ndarray:
         q = np.floor(centres / res).astype(np.int64) + (1 << 20)
         return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
 
     def _blocks(self, centres: np.ndarray) -> np.ndarray:
         return np.floor(centres[:, :2] / self.block_m).astype(np.int64)
 
+    @staticmethod
+    def _block_codes(blocks: np.ndarray) -> np.ndarray:
+        """One int64 per block (x in the high half, y in the low half): sortable, and fast to
+        make unique where a row-wise unique of (x, y) pairs is not."""
+        return (blocks[:, 0] << 32) + blocks[:, 1]
+
     def apply(self, delta: MapDelta) -> None:
-        if delta.resolution_m != self.resolution_m and len(self.keys):
+        if delta.resolution_m != self.resolution_m and (len(self._keys) or self._queued):
             self.__init__(self.block_m)  # the map was restarted at another resolution
         self.resolution_m = delta.resolution_m
         c = np.asarray(delta.centres, np.float32)
         if len(c) == 0:
             return
-        k = self._keys(c, delta.resolution_m)
-        occ = np.asarray(delta.occupied).astype(bool)
-        # newest wins: stack old then new, keep each key's last row
-        all_k = np.concatenate([self.keys, k])
-        all_c = np.concatenate([self.centres, c])
-        all_l = np.concatenate([self.labels, np.asarray(delta.labels, np.uint16)])
-        all_o = np.concatenate([np.ones(len(self.keys), bool), occ])
+        labels = np.asarray(delta.labels, np.uint16)
+        occupied = np.asarray(delta.occupied).astype(bool)
+        self._queued.append((self._keys_of(c, delta.resolution_m), c, labels, occupied))
+        self._queued_rows += len(c)
+        b = self._blocks(c)
+        _, first = np.unique(self._block_codes(b), return_index=True)
+        self.dirty_blocks.update(map(tuple, b[first].tolist()))
+        if self._queued_rows > self.MERGE_ROWS:
+            self._merge()
+
+    def _merge(self) -> None:
+        if not self._queued:
+            return
+        # newest wins: stack the store then the deltas in order, keep each key's last row
+        q = self._queued
+        all_k = np.concatenate([self._keys, *(d[0] for d in q)])
+        all_c = np.concatenate([self._centres, *(d[1] for d in q)])
+        all_l = np.concatenate([self._labels, *(d[2] for d in q)])
+        all_o = np.concatenate([np.ones(len(self._keys), bool), *(d[3] for d in q)])
+        self._queued, self._queued_rows = [], 0
         rev = np.arange(len(all_k))[::-1]
         _, first = np.unique(all_k[rev], return_index=True)
         keep = rev[first]
         keep = keep[all_o[keep]]
-        self.keys, self.centres, self.labels = all_k[keep], all_c[keep], all_l[keep]
-        self.dirty_blocks.update(map(tuple, np.unique(self._blocks(c), axis=0).tolist()))
+        self._keys, self._centres, self._labels = all_k[keep], all_c[keep], all_l[keep]
+
+    @property
+    def keys(self) -> np.ndarray:
+        self._merge()
+        return self._keys
+
+    @property
+    def centres(self) -> np.ndarray:
+        self._merge()
+        return self._centres
+
+    @property
+    def labels(self) -> np.ndarray:
+        self._merge()
+        return self._labels
+
+    def blocks(self, wanted) -> list[tuple[tuple[int, int], np.ndarray, np.ndarray]]:
+        """(block, centres, labels) of each block in `wanted`: one sort of the store for all of
+        them (a mask per block cost the whole store per block)."""
+        self._merge()
+        code = self._block_codes(self._blocks(self._centres))
+        order = np.argsort(code, kind="stable")
+        code = code[order]
+        out = []
+        for b in sorted(wanted):
+            k = (int(b[0]) << 32) + int(b[1])
+            lo, hi = np.searchsorted(code, k, "left"), np.searchsorted(code, k, "right")
+            sel = order[lo:hi]
+            out.append((b, self._centres[sel], self._labels[sel]))
+        return out
 
     def block(self, b: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        if len(self.keys) == 0:
-            return np.zeros((0, 3), np.float32), np.zeros(0, np.uint16)
-        sel = (self._blocks(self.centres) == np.asarray(b)).all(axis=1)
-        return self.centres[sel], self.labels[sel]
+        _, c, lab = self.blocks([b])[0]
+        return c, lab
 
 
 # -- the recorder core ---------------------------------------------------------------------------
+
+
+class TrajectoryCsv:
+    """A trajectory file (TRAJECTORY_HEADER columns) written row by row as poses come, flushed
+    each time, so that a recorder killed while stopping keeps every pose it had handled. Each
+    recorder process starts the file anew, as it does its .rrd."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self._file = None
+
+    def write(self, row: tuple[float, ...]) -> None:
+        if self._file is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = open(self.path, "w")  # noqa: SIM115 - kept open across rows
+            self._file.write(TRAJECTORY_HEADER + "\n")
+        self._file.write(",".join(f"{v:.4f}" for v in row) + "\n")
+        self._file.flush()
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
 
 
 def decode_image(payload: bytes) -> tuple[float, np.ndarray]:
@@ -152,6 +237,7 @@ class RunRecorder:
         map_period_s: float = 2.0,
         graph_period_s: float = 2.0,
         trajectory_period_s: float = 1.0,
+        trajectory_dir: Path | None = None,
     ):
         self.rr = rr = import_rerun()
         self.classes = classes
@@ -162,9 +248,14 @@ class RunRecorder:
         self.voxels = VoxelStore()
         self.grid = NavGrid.from_bounds(*graph_bounds, graph_resolution_m)
         self._graph_version = -1
-        # (t, x, y, z, yaw) of every pose, as published and true
+        # (t, x, y, z, yaw) of every pose, as published and true; with `trajectory_dir`, also
+        # written to TRAJECTORY_FILES there as they come
         self.trajectory: list[tuple[float, ...]] = []
         self.trajectory_truth: list[tuple[float, ...]] = []
+        self._files = {} if trajectory_dir is None else {
+            kind: TrajectoryCsv(Path(trajectory_dir) / name)
+            for kind, name in TRAJECTORY_FILES.items()
+        }  # fmt: skip
         self.counts: dict[str, int] = {}
         self.t = 0.0
         self.rec = None
@@ -218,11 +309,15 @@ class RunRecorder:
     # -- inputs ---------------------------------------------------------------------------------
 
     def on_pose(self, pose: Pose, truth: bool = False) -> None:
-        self._count("pose_truth" if truth else "pose")
+        # The row first: the trajectory files are what the report measures, the viewer's
+        # picture comes second.
+        kind = "pose_truth" if truth else "pose"
         p = np.asarray(pose.position, float)
-        (self.trajectory_truth if truth else self.trajectory).append(
-            (pose.stamp_s, p[0], p[1], p[2], pose.yaw)
-        )
+        row = (float(pose.stamp_s), float(p[0]), float(p[1]), float(p[2]), float(pose.yaw))
+        (self.trajectory_truth if truth else self.trajectory).append(row)
+        if kind in self._files:
+            self._files[kind].write(row)
+        self._count(kind)
         if self.rec is None:
             return
         rr = self.rr
@@ -282,8 +377,7 @@ class RunRecorder:
             return
         rr = self.rr
         r = max(self.voxels.resolution_m / 2, 0.01)
-        for b in sorted(self.voxels.dirty_blocks):
-            c, lab = self.voxels.block(b)
+        for b, c, lab in self.voxels.blocks(self.voxels.dirty_blocks):
             path = f"world/map/b{b[0]}_{b[1]}".replace("-", "m")
             if len(c):
                 self.rec.log(path, rr.Points3D(c, class_ids=lab, radii=r))
@@ -362,14 +456,16 @@ class RunRecorder:
 
     def save_trajectories(self, folder: Path) -> None:
         """trajectory_pose.csv / trajectory_truth.csv (t_s, x_m, y_m, z_m, yaw_rad) for the report:
-        the true trajectory is what collisions and travelled labels are measured on."""
-        for name, rows in (("trajectory_pose.csv", self.trajectory),
-                           ("trajectory_truth.csv", self.trajectory_truth)):  # fmt: skip
+        the true trajectory is what collisions and travelled labels are measured on. (A recorder
+        given `trajectory_dir` has written them there already, row by row.)"""
+        for kind, rows in (("pose", self.trajectory), ("pose_truth", self.trajectory_truth)):
             if rows:
-                np.savetxt(Path(folder) / name, np.array(rows), delimiter=",", fmt="%.4f",
-                           header="t_s,x_m,y_m,z_m,yaw_rad", comments="")  # fmt: skip
+                np.savetxt(Path(folder) / TRAJECTORY_FILES[kind], np.array(rows), delimiter=",",
+                           fmt="%.4f", header=TRAJECTORY_HEADER, comments="")  # fmt: skip
 
     def close(self) -> None:
+        for f in self._files.values():
+            f.close()
         if self.rec is None:
             return
         self.flush_map()
@@ -384,19 +480,30 @@ class RunRecorder:
 
 
 class RecorderService(Service):
+    """Records everything it is sent until the stack stops: what is still queued when the stop
+    comes is recorded too (`drain_on_stop`), and `smana up` stops it after every service it
+    records (`Supervisor.shutdown`). Poses are recorded as they come, without the explorer's
+    plausibility gates: the record is the evidence of what was on the wire (a spoofed or jumping
+    pose included), and a gate tuned for a ground robot (`general.max_speed_mps`) would refuse a
+    replayed car's poses. The figures that matter come from trusted sources instead: a replay's
+    distance from the poses the replay itself published (`replay_trajectory.csv`), and a secured
+    deployment lets only the sensor roles publish poses (`deploy/security.py`)."""
+
     name = "recorder"
     tick_period_s = 1.0
+    drain_on_stop = True
 
     def __init__(self, config: SmanaConfig, rrd_path: Path | None, spawn=False, connect=None):
         super().__init__(config)
         nav = config.navgraph
+        self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
         self.core = RunRecorder(
             ClassTable.load(config.general.class_table), rrd_path, spawn, connect,
             graph_resolution_m=nav.resolution_m,
             graph_bounds=(tuple(nav.bounds_min_xy), tuple(nav.bounds_max_xy)),
+            trajectory_dir=self.run_dir,
         )  # fmt: skip
         self.rrd_path = rrd_path
-        self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
 
     def setup(self) -> None:
         r = self.robot
@@ -421,13 +528,48 @@ class RecorderService(Service):
             self.core.flush_map()
 
     def on_stop(self) -> None:
+        # The trajectories are on disk already (row by row); the books are final (the queue was
+        # drained before on_stop): say what was recorded before the slow part, closing the .rrd.
+        summary = self.summary()
+        self.log.info("recorded %s; %d messages in: %d accepted, dropped %s, rejected %s",
+                      _recorded_line(summary["recorded"]), summary["msgs_in"],
+                      summary["accepted"], summary["dropped"] or 0,
+                      summary["rejected"] or 0)  # fmt: skip
         if self.run_dir is not None:
             self.run_dir.mkdir(parents=True, exist_ok=True)
-            self.core.save_trajectories(self.run_dir)
+            (self.run_dir / SUMMARY_NAME).write_text(json.dumps(summary, indent=1))
         self.core.close()
 
+    def recorded(self) -> dict[str, int]:
+        """How many of each stream the recording holds (poses, deltas, patches always named)."""
+        return {"pose": 0, "pose_truth": 0, "delta": 0, "patch": 0, **self.core.counts}
+
+    def summary(self) -> dict:
+        """What `recorder.json` holds: what was recorded, and the books of what was received."""
+        st = self.status()
+        return {
+            "recorded": self.recorded(),
+            "msgs_in": st.msgs_in,
+            "accepted": st.accepted,
+            "dropped": st.dropped,
+            "rejected": st.rejected,
+            "pending": st.pending,
+            "rrd": str(self.rrd_path or ""),
+            "trajectories": {k: v for k, v in TRAJECTORY_FILES.items() if self.core.counts.get(k)},
+        }
+
     def status_details(self) -> dict:
-        return {"counts": dict(self.core.counts), "rrd": str(self.rrd_path or "")}
+        recorded = self.recorded()
+        return {"recorded": recorded, "progress": _recorded_line(recorded),
+                "rrd": str(self.rrd_path or "")}  # fmt: skip
+
+
+def _recorded_line(recorded: dict[str, int]) -> str:
+    parts = [f"{recorded['pose']} poses"]
+    if recorded["pose_truth"]:
+        parts.append(f"{recorded['pose_truth']} true poses")
+    parts += [f"{recorded['delta']} deltas", f"{recorded['patch']} patches"]
+    return ", ".join(parts)
 
 
 def main(config: SmanaConfig, rrd_path: Path | None = None, spawn=False, connect=None) -> int:

@@ -4,7 +4,9 @@
 - `explorer/state.json`, `explorer/trajectory.csv`, `explorer/graph.npz` (the explorer's copy of
   the navigation graph, saved on shutdown);
 - the mapper's final map (`map.ply`, or a saved `.npz` map that is exported to `map.ply`);
-- `recording.rrd` (the Rerun recorder) and `logs/`;
+- `recording.rrd`, `recorder.json`, `trajectory_{pose,truth}.csv` (the Rerun recorder) and `logs/`;
+- for a replayed dataset, `replay.json` (passed in) and `replay_trajectory.csv` (every pose the
+  replay published);
 and measures the run against the simulated world's ground truth (rebuilt from the config):
 explored share of the reachable traversable area, travelled labels (terrain vs grass), clearance
 from obstacles along the trajectory, and the map's reconstruction error and classification ratio.
@@ -40,14 +42,20 @@ def _load_json(path: Path) -> dict | None:
         return None
 
 
+REPLAY_TRAJECTORY = "replay_trajectory.csv"  # services/replay/service.py::TRAJECTORY_NAME
+RECORDED_POSES = "trajectory_pose.csv"  # deploy/recording.py::TRAJECTORY_FILES
+
+
 def _trajectory(run_dir: Path) -> tuple[np.ndarray, str]:
-    """(t, x, y, yaw) rows of the robot's trajectory and where they come from: the true poses
-    the recorder saved when it ran (simulation), else the poses the explorer drove by, else the
-    poses the recorder heard (a replayed dataset)."""
+    """(t, x, y, yaw) rows of the robot's trajectory and where they come from: every pose a
+    replay published (it knows them all, whoever heard them), else the true poses the recorder
+    saved when it ran (simulation), else the poses the explorer drove by, else the poses the
+    recorder heard."""
     for path, cols, source in (
+        (run_dir / REPLAY_TRAJECTORY, [0, 1, 2, 4], "the poses the replay published"),
         (run_dir / "trajectory_truth.csv", [0, 1, 2, 4], "ground truth"),
         (run_dir / "explorer" / "trajectory.csv", [0, 1, 2, 3], "published pose"),
-        (run_dir / "trajectory_pose.csv", [0, 1, 2, 4], "published pose"),
+        (run_dir / RECORDED_POSES, [0, 1, 2, 4], "published pose, as the recorder heard it"),
     ):  # fmt: skip
         if path.is_file():
             try:
@@ -206,12 +214,26 @@ def map_content(map_path: Path, names: dict[int, str]) -> dict:
     return {"n_points": n, "per_class": per_class}
 
 
-def replay_metrics(summary: dict, traj: np.ndarray) -> dict:
-    """The replay's own summary (without the per-scan rows) and the distance its poses cover."""
+def recorded_poses(run_dir: Path) -> int | None:
+    """How many poses the recorder recorded (rows of trajectory_pose.csv); None when no recorder
+    ran (it leaves recording.rrd, and recorder.json when it stops)."""
+    run_dir = Path(run_dir)
+    if not any((run_dir / n).is_file() for n in ("recording.rrd", "recorder.json")):
+        return None
+    path = run_dir / RECORDED_POSES
+    return max(0, len(path.read_text().splitlines()) - 1) if path.is_file() else 0
+
+
+def replay_metrics(summary: dict, traj: np.ndarray, traj_source: str = "") -> dict:
+    """The replay's own summary (without the per-scan rows) and the distance its poses cover,
+    measured on `traj` (from `_trajectory`: the replay's own poses when it wrote them)."""
     out = {k: v for k, v in summary.items() if k != "per_scan"}
     if len(traj) >= 2:
         out["distance_m"] = float(np.hypot(*np.diff(traj[:, 1:3], axis=0).T).sum())
         out["duration_s"] = float(traj[-1, 0] - traj[0, 0])
+        out["distance_source"] = traj_source
+    elif "distance_m" in out:
+        out["distance_source"] = "the replay's summary"
     n = summary.get("points_published") or 0
     lat = (summary.get("latency") or {}).get("mean_ms")
     per_scan = summary.get("per_scan") or []
@@ -247,6 +269,24 @@ def run_warnings(metrics: dict, explored: bool) -> list[str]:
         dist = ex.get("distance_m", (ee or {}).get("distance_m"))
         if dist is None or dist < MOVED_M:
             out.append(f"the robot did not move ({_f(dist, '.2f', ' m')} travelled)")
+    return out + replay_warnings(metrics.get("replay") or {})
+
+
+def replay_warnings(rp: dict) -> list[str]:
+    """What in a replay's figures says it did not do its job: a scan lost in lockstep (where
+    nothing may be lost; realtime drops are by design and only reported), a recorder that
+    missed poses the replay published or did not stop cleanly."""
+    out = []
+    if rp.get("mode") == "lockstep" and rp.get("lost"):
+        out.append(f"{rp['lost']} scan(s) lost in lockstep: no MapDelta even after resending "
+                   "them, so the map misses them (see logs/mapper.log)")  # fmt: skip
+    published, recorded = rp.get("poses_published"), rp.get("poses_recorded")
+    if published is not None and recorded is not None and recorded < published:
+        out.append(f"the recorder recorded {recorded} of the {published} poses the replay "
+                   "published (see logs/recorder.log): its recording is incomplete")  # fmt: skip
+    if recorded is not None and not rp.get("recorder_stopped_cleanly", True):
+        out.append("the recorder did not stop cleanly (no recorder.json): its recording may be "
+                   "incomplete (see logs/recorder.log)")  # fmt: skip
     return out
 
 
@@ -315,8 +355,10 @@ def write_report(
     world = None
     if replay is not None:
         metrics["ground_truth"] = "none: a replayed dataset"
-        metrics["replay"] = replay_metrics(replay, traj)
+        metrics["replay"] = replay_metrics(replay, traj, traj_source)
         metrics["replay"]["trajectory_source"] = traj_source
+        metrics["replay"]["poses_recorded"] = recorded_poses(run_dir)
+        metrics["replay"]["recorder_stopped_cleanly"] = (run_dir / "recorder.json").is_file()
     else:
         try:
             world = ev.world_from_config(config)
@@ -459,11 +501,19 @@ def render_markdown(m: dict) -> str:
 def _replay_lines(rp: dict) -> list[str]:
     lat = rp.get("latency") or {}
     rate = rp.get("recorded_rate_hz")
+    lockstep = rp.get("mode") == "lockstep"
     mode = rp.get("mode", "-")
     if mode == "realtime" and rp.get("rate_factor"):
         mode += f" x{rp['rate_factor']:g}"
     kept = rp.get("points_kept_share")
     kept = None if kept is None else 100 * kept
+    if lockstep:  # nothing may be lost: a loss is a failure (and a warning above)
+        losses = ("lost (no MapDelta after 3 resends) / resent",
+                  f"{rp.get('lost', '-')} / {rp.get('resends', '-')}")  # fmt: skip
+    else:  # the mapper keeps the newest scan only: what it cannot keep up with, it drops
+        losses = ("not integrated: overtaken by a newer scan / unacknowledged",
+                  f"{rp.get('overtaken', '-')} / {rp.get('unacknowledged', '-')}")  # fmt: skip
+    recorded = rp.get("poses_recorded")
     rows = [
         ("mode", mode),
         ("recorded rate", _f(rate, ".1f", " Hz")),
@@ -472,7 +522,7 @@ def _replay_lines(rp: dict) -> list[str]:
         ("published / integrated", f"{rp.get('published', '-')} / {rp.get('acknowledged', '-')}"),
         ("empty after filtering / unreadable",
          f"{rp.get('empty', '-')} / {len(rp.get('read_errors') or [])}"),
-        ("lost (lockstep) / resent", f"{rp.get('lost', '-')} / {rp.get('resends', '-')}"),
+        losses,
         ("late: published / integrated",
          f"{rp.get('late_published', '-')} / {rp.get('late_integrated', '-')}"),
         ("integration latency mean / p95 / max",
@@ -485,10 +535,20 @@ def _replay_lines(rp: dict) -> list[str]:
          f"{rp.get('points_out_of_range', '-')} / {rp.get('points_ignored_class', '-')} / "
          f"{rp.get('points_nonfinite', '-')}"),
         ("throughput", _f(rp.get("scans_per_s"), ".1f", " scans/s")),
-        ("distance covered by the poses", _f(rp.get("distance_m"), ".1f", " m")),
+        ("poses published / recorded by the recorder",
+         f"{rp.get('poses_published', '-')} / {'no recorder' if recorded is None else recorded}"),
+        ("distance covered by the poses", _f(rp.get("distance_m"), ".2f", " m")
+         + (f" (measured on {rp['distance_source']})" if rp.get("distance_source") else "")),
     ]  # fmt: skip
-    return ["## Replay", "", "| figure | value |", "|---|---|",
-            *[f"| {a} | {b} |" for a, b in rows], ""]  # fmt: skip
+    lines = ["## Replay", "", "| figure | value |", "|---|---|",
+             *[f"| {a} | {b} |" for a, b in rows], ""]  # fmt: skip
+    if not lockstep and rp.get("overtaken"):
+        lines += [f"Realtime: {rp['overtaken']} of the {rp.get('published', '-')} scans were "
+                  "overtaken by a newer one before the mapper integrated them: dropped as stale "
+                  "by its latest-wins input (or on the way, by the link's DROP congestion "
+                  "control), as on a robot whose mapper is slower than its sensor. Not a failure "
+                  "of the replay: `--lockstep` integrates every scan.", ""]  # fmt: skip
+    return lines
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -23,7 +23,8 @@ and explorer resync from their producers' snapshots and the explorer from its ch
 
 The run ends when the service named by `deploy.finish_with` exits with status 0 (the explorer, when
 exploration is done), after `--duration`, or on Ctrl-C; every service then gets SIGINT, and SIGKILL
-after `deploy.stop_timeout_s`. The report then says whether the run did its job: a service that
+after `deploy.stop_timeout_s`; the recorder only once the others have exited, so that it records
+everything they sent. The report then says whether the run did its job: a service that
 never became ready or kept crashing, a needed service that never ran, no path ever answered, a
 robot that did not move each head `report.md` as a warning, end the terminal summary, and make
 `smana up` exit 1.
@@ -358,10 +359,21 @@ class Supervisor:
         self._stop.set()
 
     def shutdown(self) -> None:
-        """SIGINT every service, wait, SIGKILL what is left, close the router."""
+        """SIGINT every service, wait, SIGKILL what is left, close the router. Recorders stop
+        last, once every other service has exited, so that they record everything it sent."""
         for m in self.procs.values():
             self._end_spare(m)
         running = [m for m in self.procs.values() if m.proc is not None]
+        last = [m for m in running if m.service == "recorder"]
+        for wave in ([m for m in running if m not in last], last):
+            self._stop_wave(wave)
+        for s in getattr(self, "_subs", []):
+            s.undeclare()
+        if self.session is not None:
+            self.session.close()
+            self.session = None
+
+    def _stop_wave(self, running: list[Managed]) -> None:
         # Stop in reverse data-flow order: the explorer stops driving before the sim goes away.
         for m in reversed(running):
             self._signal(m, signal.SIGINT)
@@ -376,11 +388,6 @@ class Supervisor:
                 m.proc.wait()
             m.exit_codes.append(m.proc.returncode)
             m.proc = None
-        for s in getattr(self, "_subs", []):
-            s.undeclare()
-        if self.session is not None:
-            self.session.close()
-            self.session = None
 
     def run(self, duration_s: float | None = None, progress_period_s: float = 10.0) -> int:
         """Supervise until done; returns 0 when the run finished normally."""

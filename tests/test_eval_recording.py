@@ -1,14 +1,24 @@
-"""The Rerun recorder core: messages in, a readable .rrd with the expected entities out."""
+"""The Rerun recorder: messages in, a readable .rrd with the expected entities out, and every pose
+it is sent in its trajectory file until the stack stops."""
 
 from __future__ import annotations
+
+import json
+import sys
+import threading
+from pathlib import Path
 
 import msgpack
 import numpy as np
 import pytest
 
+from smana.common import keys
 from smana.common.classes import ClassTable
-from smana.common.messages import GraphPatch, MapDelta, Pose
+from smana.common.config import ServiceDeployConfig, SmanaConfig
+from smana.common.messages import GraphPatch, MapDelta, Pose, encode
 from smana.deploy import recording as recmod
+from smana.deploy.supervisor import Supervisor
+from tests.conftest import free_port, wait_for
 
 rr = pytest.importorskip("rerun")
 
@@ -93,3 +103,117 @@ def test_recording_holds_every_stream(tmp_path):
     rec.save_trajectories(tmp_path)
     truth = np.loadtxt(tmp_path / "trajectory_truth.csv", delimiter=",", skiprows=1)
     assert truth.shape == (5, 5) and truth[-1, 1] == pytest.approx(0.4)
+
+
+def test_recorder_core_keeps_every_pose_as_it_comes(tmp_path):
+    """Every pose is a row, whatever it holds (repeated, out of order, a zero stamp, a jump): in
+    memory and in the trajectory file at once, before the recorder is closed or killed."""
+    rec = recmod.RunRecorder(ClassTable.load("garden3drms"), None, trajectory_dir=tmp_path)
+    poses = [(1.0, 0.0), (1.1, 0.1), (1.1, 0.1), (1.05, 0.2), (0.0, 0.3), (1.2, 500.0)]
+    for stamp, x in poses:
+        rec.on_pose(Pose.from_xyz_yaw(x, 1.0, 0.0, 0.5, stamp_s=stamp))
+    rec.on_pose(Pose.from_xyz_yaw(0.0, 1.01, 0.0, 0.5, stamp_s=1.0), truth=True)
+    rows = np.loadtxt(tmp_path / "trajectory_pose.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert rows[:, [0, 1]].tolist() == [list(p) for p in poses]
+    assert rows[:, 4] == pytest.approx(0.5, abs=1e-4) and len(rec.trajectory) == len(poses)
+    assert len(np.loadtxt(tmp_path / "trajectory_truth.csv", delimiter=",", skiprows=1,
+                          ndmin=2)) == 1  # fmt: skip
+    assert rec.counts == {"pose": len(poses), "pose_truth": 1}
+    rec.close()
+    assert len((tmp_path / "trajectory_pose.csv").read_text().splitlines()) == len(poses) + 1
+
+
+def test_voxel_store_blocks_match_a_mask_per_block():
+    rng = np.random.default_rng(1)
+    vs = recmod.VoxelStore(block_m=2.0)
+    for k in range(3):
+        c = (np.floor(rng.uniform(-9, 9, (500, 3)) / 0.1) + 0.5) * 0.1
+        vs.apply(_delta(c, rng.integers(1, 9, 500), rng.random(500) < 0.8, float(k)))
+    wanted = set(vs.dirty_blocks)
+    assert len(wanted) > 20
+    got = vs.blocks(wanted)
+    assert sum(len(c) for _, c, _ in got) == len(vs.keys)
+    blocks = np.floor(vs.centres[:, :2] / 2.0).astype(int)
+    for b, c, lab in got:
+        sel = (blocks == np.asarray(b)).all(axis=1)
+        assert sorted(map(tuple, c.tolist())) == sorted(map(tuple, vs.centres[sel].tolist()))
+        assert sorted(lab.tolist()) == sorted(vs.labels[sel].tolist())
+
+
+@pytest.mark.multiprocess
+def test_a_recorder_behind_records_its_backlog_when_stopped(zenoh_stack, tmp_path):
+    """A stop that comes while the recorder is still working on a delta (the mapper's are large)
+    records the poses queued behind it too, and says so in recorder.json."""
+    robot = zenoh_stack.robot
+    cfg = SmanaConfig.load(None, [
+        f'zenoh.connect=["{zenoh_stack.endpoint}"]', f'general.robot="{robot}"',
+        f'general.run_dir="{tmp_path / "run"}"',
+    ])  # fmt: skip
+    svc = recmod.RecorderService(cfg, tmp_path / "run" / "recording.rrd")
+    on_delta, release = svc.core.on_delta, threading.Event()
+
+    def held_delta(delta):  # the first delta holds the recorder until the stop has come
+        release.wait(30)
+        on_delta(delta)
+
+    svc.core.on_delta = held_delta
+    t = threading.Thread(target=svc.run, daemon=True)
+    t.start()
+    try:
+        zenoh_stack.wait_alive("recorder", timeout_s=60)
+        poses = zenoh_stack.publisher(keys.pose(robot))
+        deltas = zenoh_stack.publisher(keys.map_delta(robot))
+        n = 10
+        for i in range(n):
+            deltas.put(encode(_delta([[0.05 * i, 0.05, 0.05]], [1], [1], 0.1 * i)))
+            poses.put(encode(Pose.from_xyz_yaw(0.1 * i, 0.0, 0.0, 0.0, stamp_s=0.1 * i)))
+        assert wait_for(lambda: svc.books.received >= 2 * n, 30)
+        assert "pose" not in svc.core.counts  # all of them queued behind the first delta
+    finally:
+        svc.stop()
+        release.set()
+        t.join(30)
+    assert not t.is_alive()
+    rows = (tmp_path / "run" / "trajectory_pose.csv").read_text().splitlines()
+    assert len(rows) == n + 1
+    summary = json.loads((tmp_path / "run" / recmod.SUMMARY_NAME).read_text())
+    assert summary["recorded"] == {"pose": n, "pose_truth": 0, "delta": n, "patch": 0}
+    assert summary["dropped"] == {} and summary["accepted"] == summary["msgs_in"] == 2 * n
+
+
+@pytest.mark.multiprocess
+def test_recorder_records_every_pose_until_the_stack_stops(tmp_path):
+    """A source publishing poses as fast as it can until `smana up` stops it: the recorder is
+    stopped after it, so every pose published is in trajectory_pose.csv and its books add up."""
+    cfg = SmanaConfig.load(None, [
+        f'deploy.router_listen=["tcp/127.0.0.1:{free_port()}"]', "general.robot=rec",
+        "general.status_period_s=0.5",
+    ])  # fmt: skip
+    run = tmp_path / "run"
+    sup = Supervisor(cfg, run, services=[])
+    source = str(Path(__file__).parent / "support" / "pose_source.py")
+    sup.add("sim", [sys.executable, source, "--config", str(sup.config_path)],
+            ServiceDeployConfig(restart="never"))  # fmt: skip
+    sup.add("recorder", recmod.recorder_argv(sup.config_path, "rec"),
+            ServiceDeployConfig(restart="never"))  # fmt: skip
+    t = threading.Thread(target=sup.run, kwargs={"progress_period_s": 3600}, daemon=True)
+    t.start()
+    rows = run / "trajectory_pose.csv"
+
+    def recorded() -> int:
+        return len(rows.read_text().splitlines()) - 1 if rows.is_file() else 0
+
+    try:
+        # Stop once the recorder has recorded poses for a while (counted from its first row).
+        assert wait_for(lambda: recorded() > 0, 120), (run / "logs" / "recorder.log").read_text()
+        assert wait_for(lambda: recorded() > 100, 60)
+    finally:
+        sup.stop()
+        t.join(60)
+    assert not t.is_alive()
+    published = json.loads((run / "pose_source.json").read_text())["published"]
+    summary = json.loads((run / recmod.SUMMARY_NAME).read_text())
+    assert recorded() == published == summary["recorded"]["pose"], summary
+    books = summary["accepted"] + sum(summary["dropped"].values()) + sum(
+        summary["rejected"].values()) + summary["pending"]  # fmt: skip
+    assert summary["msgs_in"] == books and not summary["dropped"] and not summary["rejected"]

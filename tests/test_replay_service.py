@@ -23,6 +23,7 @@ from smana.services.replay.prepare import prepare_scan
 from smana.services.replay.readers import open_dataset
 
 N_SCANS = 6
+N_RUN = 12  # the --run sequence: scans large enough that the mapper and recorder have work
 
 
 @pytest.fixture(scope="module")
@@ -30,6 +31,18 @@ def dataset(tmp_path_factory):
     root = tmp_path_factory.mktemp("synthetic")
     params = syn.SyntheticParams(n_scans=N_SCANS, beams=16, columns=256, noise_m=0.0)
     syn.write_rellis_sequence(root, params)
+    return root
+
+
+@pytest.fixture(scope="module")
+def run_params():
+    return syn.SyntheticParams(n_scans=N_RUN, beams=32, columns=1024, noise_m=0.0)
+
+
+@pytest.fixture(scope="module")
+def dataset_12(tmp_path_factory, run_params):
+    root = tmp_path_factory.mktemp("synthetic12")
+    syn.write_rellis_sequence(root, run_params)
     return root
 
 
@@ -134,6 +147,7 @@ def test_realtime_counts_what_a_slow_mapper_misses(zenoh_stack, dataset):
     }
     assert summary["acknowledged"] == len({c.seq for c in mapper.clouds})
     assert summary["acknowledged"] + summary["lost"] == N_SCANS
+    assert summary["lost"] == summary["overtaken"] + summary["unacknowledged"]
     assert summary["wall_s"] < 2.0  # it did not wait for the mapper between scans
 
 
@@ -198,6 +212,7 @@ def test_pacer_lockstep_waits_resends_and_gives_up():
     assert [f.seq for f in p.overdue()] == [2] and p.resends == 1
     clock.t += 6
     assert p.overdue() == [] and p.lost == 1 and p.ready(0.2)
+    assert p.unacknowledged == 1 and p.overtaken == 0
 
 
 def test_pacer_realtime_schedule_and_late_counts():
@@ -213,8 +228,8 @@ def test_pacer_realtime_schedule_and_late_counts():
     p.on_published(3, 2, 10.2, b"")
     assert p.late_published == 1
     assert p.on_ack(3) == pytest.approx(0.0, abs=1e-4)
-    assert p.lost == 2  # 1 and 2 were overtaken: the mapper dropped them
-    assert p.on_ack(1) is None
+    assert p.lost == p.overtaken == 2  # 1 and 2 were overtaken: the mapper dropped them
+    assert p.on_ack(1) is None and p.unacknowledged == 0
 
 
 # -- the read-ahead feed, in-process ------------------------------------------------------------
@@ -260,7 +275,7 @@ def test_feed_stops_while_blocked_on_a_full_queue(dataset):
 
 
 @pytest.mark.multiprocess
-def test_run_starts_the_stack_and_writes_the_run_dir(dataset, tmp_path):
+def test_run_starts_the_stack_and_writes_the_run_dir(dataset_12, run_params, tmp_path):
     import socket
 
     with socket.socket() as sock:
@@ -268,27 +283,45 @@ def test_run_starts_the_stack_and_writes_the_run_dir(dataset, tmp_path):
         port = sock.getsockname()[1]
     run = tmp_path / "run"
     out = subprocess.run(
-        [sys.executable, "-m", "smana.services.replay", str(dataset), "--run", "--run-dir",
+        [sys.executable, "-m", "smana.services.replay", str(dataset_12), "--run", "--run-dir",
          str(run), "--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]'],
-        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+        capture_output=True, text=True, timeout=600, cwd=tmp_path,
     )  # fmt: skip
     assert out.returncode == 0, out.stdout + out.stderr
+    assert "smana replay: ok" in out.stdout
     summary = json.loads((run / "replay.json").read_text())
-    assert summary["published"] == summary["acknowledged"] == N_SCANS and summary["lost"] == 0
+    assert summary["published"] == summary["acknowledged"] == N_RUN and summary["lost"] == 0
+    # Every pose the replay published is in its own trajectory and in the recorder's, and the
+    # distance is the path the synthetic robot drove (1.5 m/s along the trail for 1.1 s).
+    published = np.loadtxt(run / "replay_trajectory.csv", delimiter=",", skiprows=1)
+    recorded = np.loadtxt(run / "trajectory_pose.csv", delimiter=",", skiprows=1)
+    assert summary["poses_published"] == len(published) == len(recorded) == N_RUN
+    np.testing.assert_allclose(recorded, published, atol=2e-4)
+    recorder = json.loads((run / "recorder.json").read_text())
+    assert recorder["recorded"]["pose"] == N_RUN and recorder["dropped"] == {}
+    assert recorder["recorded"]["delta"] >= N_RUN
     for name in ("config.toml", "map.npz", "graph.npz", "metrics.json", "report.md"):
         assert (run / name).is_file(), name
     config = (run / "config.toml").read_text()
     assert 'class_table = "rellis3d"' in config and 'inputs = ["scan"]' in config
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["replay"]["published"] == N_SCANS
+    rp = metrics["replay"]
+    assert rp["published"] == N_RUN and metrics["warnings"] == []
+    true_m = run_params.speed_mps * (N_RUN - 1) / run_params.rate_hz
+    assert rp["distance_m"] == pytest.approx(true_m, rel=0.03)
+    assert rp["distance_source"] == "the poses the replay published"
+    assert rp["poses_recorded"] == N_RUN
     with np.load(run / "graph.npz") as g:
         assert (g["flags"] & 1).sum() > 100  # known nodes
     # the report is the replay's: the dataset and its figures, the map's content, no ground truth
     report = (run / "report.md").read_text()
     assert "## Replay" in report and "## Map content" in report and "World `" not in report
-    assert f"| published / integrated | {N_SCANS} / {N_SCANS} |" in report
+    assert "## Warnings" not in report
+    assert f"| published / integrated | {N_RUN} / {N_RUN} |" in report
+    assert f"| poses published / recorded by the recorder | {N_RUN} / {N_RUN} |" in report
+    assert f"| distance covered by the poses | {rp['distance_m']:.2f} m (measured on the " in report
     assert metrics["ground_truth"] == "none: a replayed dataset" and "exploration" not in metrics
-    assert metrics["replay"]["distance_m"] > 0 and metrics["replay"]["latency_per_point_us"] > 0
+    assert rp["latency_per_point_us"] > 0
     content = metrics["map_content"]
     assert content["n_points"] > 0 and sum(c["share"] for c in content["per_class"].values()) == (
         pytest.approx(1.0)
@@ -319,3 +352,33 @@ def test_pacer_priming_gives_up_with_the_ack_timeout():
     clock.t += 3.0
     p.overdue()
     assert p.lost == 1 and p.priming_seq is None and p.ready(5.0)
+
+
+@pytest.fixture
+def dataset_with_an_empty_scan(dataset, tmp_path):
+    """The synthetic sequence with scan 2 all void (an ignored class): nothing of it is left to
+    publish but its pose."""
+    import shutil
+
+    copy = tmp_path / "empty_scan"
+    shutil.copytree(dataset, copy)
+    lab = copy / "Rellis-3D" / "00000" / "os1_cloud_node_semantickitti_label_id" / "000002.label"
+    lab.write_bytes(np.zeros(lab.stat().st_size // 4, np.uint32).tobytes())
+    return copy
+
+
+@pytest.mark.multiprocess
+def test_lockstep_goes_on_past_an_empty_scan(zenoh_stack, dataset_with_an_empty_scan):
+    # The scans after an empty one are acknowledged by their own numbers: nothing is waited for
+    # in vain (resent after ack_timeout_s) nor counted lost.
+    mapper = FakeMapper(zenoh_stack.session, zenoh_stack.robot)
+    try:
+        code, summary = run_replay(zenoh_stack, dataset_with_an_empty_scan, "--lockstep",
+                                   "--set", "replay.ack_timeout_s=20")  # fmt: skip
+    finally:
+        mapper.close()
+    assert code == 0, zenoh_stack.log("replay")
+    assert summary["empty"] == 1 and summary["published"] == N_SCANS - 1
+    assert summary["acknowledged"] == N_SCANS - 1 and summary["lost"] == summary["resends"] == 0
+    assert [c.seq for c in mapper.clouds] == [r[0] for r in summary["per_scan"]]
+    assert len(mapper.poses) == N_SCANS  # the empty scan's pose too

@@ -106,7 +106,9 @@ def _info(reader, rc) -> int:
 def run_stack(cfg: SmanaConfig, reader) -> int:
     """Supervise mapper, navgraph and planner (and the recorder) with the replay in place of the
     sim; the run ends when the replay has sent its last scan. The run directory gets what
-    `smana up` writes: config, logs, map, recording, report (with a replay section)."""
+    `smana up` writes: config, logs, map, recording, report (with a replay section). What went
+    wrong (a service never ready, a scan lost in lockstep, a recorder that missed poses) heads
+    the report, ends the output and makes the exit status 1."""
     from smana.common.config import ServiceDeployConfig
     from smana.deploy.supervisor import Supervisor
     from smana.services.replay.service import table_name, topic_of
@@ -139,14 +141,22 @@ def run_stack(cfg: SmanaConfig, reader) -> int:
     on_stop_signals(lambda _sig: sup.stop())
     print(f"smana replay: run directory {run_dir}", flush=True)
     code = sup.run()
-    if code != 0 and _replay_completed(run_dir):
+    completed = _replay_completed(run_dir)
+    warnings = sup.warnings()
+    if code != 0 and completed:
         # The replay finished its work (its summary is written) and was only caught exiting:
         # the supervisor kills a process whose liveliness token went before the process did.
         print("smana replay: the replay completed; its exit was cut short", file=sys.stderr)
         code = 0
-    _write_report(run_dir, sup.service_config)
+        warnings = [w for w in warnings if not w.startswith("replay exited with status")]
+    if not (run_dir / "replay.json").is_file():
+        warnings.append("the replay did not finish (no replay.json; see logs/replay.log)")
+    warnings = _write_report(run_dir, sup.service_config, warnings)
     print(f"smana replay: done, everything is in {run_dir}", flush=True)
-    return code
+    print(f"smana replay: {'FAILED' if warnings or code else 'ok'}", flush=True)
+    for w in warnings:
+        print(f"  warning: {w}", flush=True)
+    return 1 if warnings or code else 0
 
 
 def _replay_completed(run_dir: Path) -> bool:
@@ -168,9 +178,10 @@ def _recorder_argv():
     return recorder_argv
 
 
-def _write_report(run_dir: Path, cfg: SmanaConfig) -> None:
+def _write_report(run_dir: Path, cfg: SmanaConfig, warnings: list[str]) -> list[str]:
     """`smana up`'s report (map export, files, metrics, plots), in its replay form: the dataset,
-    the replay's figures and the map's content instead of measures against a simulated world."""
+    the replay's figures and the map's content instead of measures against a simulated world.
+    Returns every warning: `warnings` and what the report found in the figures."""
     import json
 
     summary_path = run_dir / "replay.json"
@@ -181,11 +192,13 @@ def _write_report(run_dir: Path, cfg: SmanaConfig) -> None:
     try:
         from smana.deploy import report
 
-        path = report.write_report(run_dir, cfg, replay=summary or {})
+        path = report.write_report(run_dir, cfg, replay=summary or {}, warnings=warnings)
+        metrics = json.loads((run_dir / "metrics.json").read_text())
     except Exception as exc:  # noqa: BLE001 - the run's own outcome matters more
         print(f"smana replay: the run report failed: {exc}", file=sys.stderr)
-        return
+        return [*warnings, f"the report could not be written: {exc}"]
     print(f"smana replay: report written to {path}", flush=True)
+    return metrics.get("warnings", warnings)
 
 
 if __name__ == "__main__":

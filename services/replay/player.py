@@ -6,13 +6,20 @@ goes out and keeps the books:
 
 - lockstep: a scan goes out once the mapper's MapDelta for the previous one (`cloud_seq` = its
   seq) has arrived; none is lost. A scan unacknowledged after `ack_timeout_s` is sent again
-  (the mapper may have restarted), at most `max_resends` times, then counted lost.
+  (the mapper may have restarted), at most `max_resends` times, then counted lost
+  (`unacknowledged`): a failure of the run.
 - realtime: scan k goes out at start + (stamp_k - stamp_0) / rate_factor whether or not the
   mapper has finished; with `prime`, the clock starts once the first scan's MapDelta is back.
   A scan published more than one period after its due time is `late_published` (the replay
   itself could not keep up); one whose MapDelta arrives more than one period after publication
-  is `late_integrated`, and one never acknowledged is `lost` (the mapper's latest-wins input
-  dropped it).
+  is `late_integrated`. One the mapper never integrated is lost, by design rather than by
+  failure: `overtaken` when a newer scan was integrated first (the mapper's latest-wins input
+  replaced it, its books count it `stale`; or the DROP link lost it on the way, which the
+  replay cannot tell apart), `unacknowledged` when no MapDelta came within `ack_timeout_s`.
+
+`lost` = `overtaken` + `unacknowledged`, in both modes. Scans are known by the seq their
+cloud carries (`FeedItem.seq`), set when the cloud is made: a scan with nothing left to publish
+(its pose still goes out) takes no number, so the MapDelta's `cloud_seq` always names the scan.
 """
 
 from __future__ import annotations
@@ -43,6 +50,8 @@ class FeedItem:
     pose: bytes | None = None
     prepared: PreparedCloud | None = None
     error: str = ""
+    seq: int = 0  # the seq the cloud carries (1, 2, ... over the clouds), 0 without a cloud
+    pose_row: tuple[float, float, float, float, float] | None = None  # t, x, y, z, yaw
 
 
 END = object()
@@ -128,7 +137,7 @@ class ScanFeed:
                 done += 1
 
     def _run(self) -> None:
-        seq = 0
+        poses = clouds = 0  # each stream numbered without gaps: a gap means a loss on the way
         for i, scan in self._iter_scans():
             if self._stop.is_set():
                 return
@@ -136,24 +145,29 @@ class ScanFeed:
                 item = FeedItem(i, f"scan {i}", float("nan"), error=f"{scan}")
             else:
                 try:
-                    seq += 1
-                    item = self._prepare(scan, seq)
+                    item = self._prepare(scan, poses + 1, clouds + 1)
                 except ValueError as exc:
                     item = FeedItem(i, scan.name, scan.stamp_s, error=str(exc))
+                else:
+                    poses += 1
+                    clouds += item.cloud is not None
             if not self._put(item):
                 return
         self._put(END)
 
-    def _prepare(self, scan: Scan, seq: int) -> FeedItem:
+    def _prepare(self, scan: Scan, pose_seq: int, cloud_seq: int) -> FeedItem:
         pc = prepare_scan(scan, self.table, self.max_range_m, self.min_range_m)
         pose = Pose(
-            stamp_s=scan.stamp_s, seq=seq, position=pc.sensor_position,
+            stamp_s=scan.stamp_s, seq=pose_seq, position=pc.sensor_position,
             orientation_xyzw=pc.sensor_orientation_xyzw,
         )  # fmt: skip
         item = FeedItem(scan.index, scan.name, scan.stamp_s, pose=encode(pose))
+        x, y, z = (float(v) for v in pose.position)
+        item.pose_row = (float(scan.stamp_s), x, y, z, float(pose.yaw))
         if pc.n_out:
+            item.seq = cloud_seq
             cloud = SemanticCloud(
-                stamp_s=scan.stamp_s, seq=seq, points=pc.points,
+                stamp_s=scan.stamp_s, seq=cloud_seq, points=pc.points,
                 labels=pc.labels.astype(np.uint16), confidences=pc.confidences,
                 sensor_position=pc.sensor_position,
                 sensor_orientation_xyzw=pc.sensor_orientation_xyzw,
@@ -197,7 +211,9 @@ class Pacer:
     in_flight: dict[int, InFlight] = field(default_factory=dict)
     published: int = 0
     acked: int = 0
-    lost: int = 0
+    lost: int = 0  # never integrated: overtaken + unacknowledged
+    overtaken: int = 0  # realtime: a newer scan was integrated first
+    unacknowledged: int = 0  # no MapDelta within ack_timeout_s (after max_resends in lockstep)
     resends: int = 0
     late_published: int = 0
     late_integrated: int = 0
@@ -262,6 +278,7 @@ class Pacer:
         for seq in [s for s in self.in_flight if s < cloud_seq]:
             del self.in_flight[seq]
             self.lost += 1
+            self.overtaken += 1
         latency = self.clock() - f.sent_at
         self.acked += 1
         self.latencies_s.append(latency)
@@ -286,6 +303,7 @@ class Pacer:
             if self.mode == "realtime" or f.resends >= self.max_resends:
                 del self.in_flight[seq]
                 self.lost += 1
+                self.unacknowledged += 1
                 if seq == self.priming_seq:
                     self._end_priming()
             else:
@@ -299,6 +317,7 @@ class Pacer:
         """End of the replay: whatever is still unacknowledged is lost."""
         n = len(self.in_flight)
         self.lost += n
+        self.unacknowledged += n
         self.in_flight.clear()
         return n
 

@@ -3,14 +3,20 @@
 Per scan it publishes `robot/clock`, `robot/pose` and the filtered, labelled, world-frame cloud on
 `robot/scan` (LiDAR datasets) or `robot/cloud` (camera), then paces the next one as `player.Pacer`
 says: lockstep (after the mapper's MapDelta for this scan) or realtime (at the recorded rate x N).
+In lockstep nothing may be lost, so scans and poses go out on blocking (reliable) publishers.
 Before the first scan it waits for the services in `replay.wait_for` to be alive, so that nothing
-published is lost to a subscriber that is not there yet. When the sequence is done it writes
-`replay.json` (counts, latencies) into the run directory, if there is one, and exits.
+published is lost to a subscriber that is not there yet: up to `replay.wait_timeout_s` for a
+service that shows no sign of life, up to `deploy.startup_timeout_s` for one that shows its
+`starting` token (compiling its kernels on a cold cache takes minutes on a busy machine). When the
+sequence is done it writes into the run directory, if there is one, `replay.json` (counts,
+latencies, the distance its poses cover) and `replay_trajectory.csv` (every pose it published:
+what a run's report measures the distance on, whoever else heard them), and exits.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import sys
 import time
 from pathlib import Path
@@ -26,6 +32,8 @@ from smana.common.service import Service
 from .player import END, FeedItem, Pacer, ScanFeed
 from .readers import DatasetReader, detect_format, open_dataset
 from .readers.rosbag import fixed_pose_matrix
+
+TRAJECTORY_NAME = "replay_trajectory.csv"  # every pose the replay published, in the run dir
 
 
 def open_reader(rc: ReplayConfig) -> DatasetReader:
@@ -107,6 +115,8 @@ class ReplayService(Service):
         self.phase = "waiting"  # -> running -> done
         self.exit_code = 0
         self._alive: set[str] = set()
+        self._starting: set[str] = set()
+        self._last_sign: dict[str, float] = {}  # service -> when it last showed a token
         self._next: FeedItem | object | None = None
         self._feed_done = False
         self.done = 0  # scans handled (published or skipped)
@@ -115,6 +125,7 @@ class ReplayService(Service):
         self.points_in = self.points_out = 0
         self.points_range = self.points_ignored = self.points_nonfinite = 0
         self.scan_log: list[tuple[int, int, str, float, int]] = []  # seq, index, name, stamp, n
+        self.pose_log: list[tuple[float, ...]] = []  # t, x, y, z, yaw of every pose published
         self._t_wait = time.monotonic()
         self._t_run = None
         self.progress = Progress(len(self.feed))
@@ -136,17 +147,23 @@ class ReplayService(Service):
         r = self.robot
         lockstep = self.rc.mode == "lockstep"
         cloud_key = keys.scan(r) if self.topic == "scan" else keys.cloud(r)
-        # In lockstep no scan may be lost, so the link blocks instead of dropping.
+        # In lockstep no scan may be lost, so the link blocks instead of dropping; nor may a
+        # pose (a recorder measures the run on them). In realtime a large scan put on a DROP
+        # link is often lost on the way, which the first and last must not be: the clock starts
+        # at the first one's MapDelta and the replay ends at the last one's, so a lost one
+        # stalled the replay for ack_timeout_s. They go out on a blocking publisher.
         self.cloud_pub = self.publisher(cloud_key, reliable_block=lockstep)
-        self.pose_pub = self.publisher(keys.pose(r))
+        self.cloud_pub_sure = self.cloud_pub if lockstep else self.publisher(
+            cloud_key, reliable_block=True)  # fmt: skip
+        self.pose_pub = self.publisher(keys.pose(r), reliable_block=lockstep)
         self.clock_pub = self.publisher(keys.clock(r))
         self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
-        # Who is alive: for wait_for, and to know whether a MapDelta can still come at the end.
-        self._declared.append(
-            self.session.liveliness().declare_subscriber(
-                keys.alive_any(r), self._on_alive, history=True
+        # Who is alive (or starting): for wait_for, and to know whether a MapDelta can still come
+        # at the end.
+        for key in (keys.alive_any(r), keys.starting_any(r)):
+            self._declared.append(
+                self.session.liveliness().declare_subscriber(key, self._on_token, history=True)
             )
-        )
         self.feed.start()
         self.log.info(
             "replaying %d scans of %s (%s, %.1f Hz) on %s, %s%s",
@@ -154,16 +171,37 @@ class ReplayService(Service):
             self.rc.mode, f" x{self.rc.rate_factor:g}" if not lockstep else "",
         )  # fmt: skip
 
-    def _on_alive(self, sample) -> None:
+    def _on_token(self, sample) -> None:
         # zenoh thread: only record and wake the main loop
         import zenoh
 
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        *_, kind, name = str(sample.key_expr).split("/")
+        where = self._alive if kind == "alive" else self._starting
         if sample.kind == zenoh.SampleKind.PUT:
-            self._alive.add(name)
+            where.add(name)
         else:
-            self._alive.discard(name)
+            where.discard(name)
+        self._last_sign[name] = time.monotonic()
         self._wake.set()
+
+    def _not_ready(self) -> tuple[list[str], str]:
+        """The services of wait_for not alive yet, and why the replay gives up on them ("" while
+        it still waits): one that showed no token for wait_timeout_s, or was still starting
+        after deploy.startup_timeout_s."""
+        missing = [s for s in self.rc.wait_for if s not in self._alive]
+        now = time.monotonic()
+        waited = now - self._t_wait
+        silent = [
+            s for s in missing if s not in self._starting
+            and now - max(self._t_wait, self._last_sign.get(s, 0.0)) > self.rc.wait_timeout_s
+        ]  # fmt: skip
+        if silent:
+            return missing, (f"{', '.join(silent)} not alive after {self.rc.wait_timeout_s:.0f} "
+                             "s: nothing to replay into")  # fmt: skip
+        if missing and waited > max(self.rc.wait_timeout_s, self.config.deploy.startup_timeout_s):
+            return missing, (f"{', '.join(missing)} still starting after {waited:.0f} s "
+                             "(deploy.startup_timeout_s): nothing to replay into")  # fmt: skip
+        return missing, ""
 
     def on_delta(self, delta: MapDelta) -> None:
         if self.pacer.on_ack(int(delta.cloud_seq)) is not None and self.rc.mode == "lockstep":
@@ -173,16 +211,13 @@ class ReplayService(Service):
 
     def tick(self) -> None:
         if self.phase == "waiting":
-            missing = [s for s in self.rc.wait_for if s not in self._alive]
+            missing, give_up = self._not_ready()
             if not missing:
                 self.phase = "running"
                 self._t_run = time.monotonic()
                 self.pacer.prime = "mapper" in self._alive
-            elif time.monotonic() - self._t_wait > self.rc.wait_timeout_s:
-                self.log.error(
-                    "%s not alive after %.0f s: nothing to replay into",
-                    ", ".join(missing), self.rc.wait_timeout_s,
-                )  # fmt: skip
+            elif give_up:
+                self.log.error("%s", give_up)
                 self.exit_code = 1
                 self.phase = "done"
                 self.stop()
@@ -227,10 +262,12 @@ class ReplayService(Service):
         pc = item.prepared
         self.clock_pub.put({"sim_time_s": item.stamp_s, "real_time_factor": self.rc.rate_factor})
         self.pose_pub.put(item.pose)
+        self.pose_log.append(item.pose_row)
         if item.cloud is not None:
-            seq = self.pacer.published + 1
+            seq = item.seq  # what the mapper's MapDelta will name it by (cloud_seq)
             sent_at = self.pacer.clock()
-            self.cloud_pub.put(item.cloud)
+            ends = not self.pacer.published or item.index == self.feed.indices[-1]
+            (self.cloud_pub_sure if ends else self.cloud_pub).put(item.cloud)
             self.pacer.on_published(seq, item.index, item.stamp_s, item.cloud, sent_at)
             self.scan_log.append((seq, item.index, item.name, item.stamp_s, pc.n_out))
         else:
@@ -257,6 +294,7 @@ class ReplayService(Service):
         self.progress.update(self.done, self._progress_extra(), force=True)
         summary = self.summary()
         self._write_summary(summary)
+        self._write_trajectory()
         self._save_graph()
         self.log.info("replay done: %s", summary_line(summary))
         if self.rc.mode == "lockstep" and summary["lost"]:
@@ -269,8 +307,11 @@ class ReplayService(Service):
         p = self.pacer
         lat = p.latency_summary()["mean_ms"]
         parts = [f"lat {lat:.0f} ms" if lat is not None else "lat -"]
-        if p.lost:
-            parts.append(f"lost {p.lost}")
+        if p.overtaken:
+            parts.append(f"overtaken {p.overtaken}")
+        if p.unacknowledged:
+            parts.append(f"lost {p.unacknowledged}" if self.rc.mode == "lockstep"
+                         else f"unacknowledged {p.unacknowledged}")  # fmt: skip
         if p.late_published or p.late_integrated:
             parts.append(f"late {p.late_published}+{p.late_integrated}")
         return " ".join(parts)
@@ -293,6 +334,8 @@ class ReplayService(Service):
             "read_errors": [list(e) for e in self.read_errors],
             "acknowledged": p.acked,
             "lost": p.lost,
+            "overtaken": p.overtaken,
+            "unacknowledged": p.unacknowledged,
             "resends": p.resends,
             "late_published": p.late_published,
             "late_integrated": p.late_integrated,
@@ -304,6 +347,9 @@ class ReplayService(Service):
             "points_nonfinite": self.points_nonfinite,
             "wall_s": wall,
             "scans_per_s": p.published / wall if wall > 0 else None,
+            "poses_published": len(self.pose_log),
+            "distance_m": path_length_m(self.pose_log),
+            "trajectory": TRAJECTORY_NAME,
             # per published scan: seq, dataset index, name, stamp, points, integration latency
             "per_scan": [
                 [seq, i, name, stamp, n, _ms(p.latency_by_seq.get(seq))]
@@ -318,6 +364,13 @@ class ReplayService(Service):
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(summary, indent=1))
             self.log.info("summary written to %s", path)
+
+    def _write_trajectory(self) -> None:
+        run_dir = self.config.general.run_dir
+        if run_dir:
+            rows = np.array(self.pose_log, float).reshape(-1, 5)
+            np.savetxt(Path(run_dir) / TRAJECTORY_NAME, rows, delimiter=",", fmt="%.4f",
+                       header="t_s,x_m,y_m,z_m,yaw_rad", comments="")  # fmt: skip
 
     def _save_graph(self) -> None:
         """The navigation graph as it stands after the last scan, as `<run_dir>/graph.npz` (the
@@ -357,12 +410,19 @@ class ReplayService(Service):
             "published": p.published,
             "acknowledged": p.acked,
             "lost": p.lost,
+            "overtaken": p.overtaken,
+            "poses_published": len(self.pose_log),
             "late": p.late_published + p.late_integrated,
         }
 
     def on_stop(self) -> None:
         self.feed.stop()
         self.reader.close()
+
+
+def path_length_m(rows) -> float:
+    """Horizontal length of the path through (t, x, y, ...) rows, as a run's report measures it."""
+    return sum(math.dist(a[1:3], b[1:3]) for a, b in zip(rows, rows[1:]))
 
 
 def _ms(seconds: float | None) -> float | None:
@@ -372,11 +432,17 @@ def _ms(seconds: float | None) -> float | None:
 def summary_line(s: dict) -> str:
     lat = s["latency"]
     mean = f"{lat['mean_ms']:.0f} ms" if lat["mean_ms"] is not None else "-"
+    if s["mode"] == "lockstep":  # a loss is a failure
+        losses = f"{s['lost']} lost"
+    else:  # the mapper's latest-wins input drops what it cannot keep up with, by design
+        losses = (f"{s['overtaken']} overtaken (dropped as stale by the mapper, or on the way), "
+                  f"{s['unacknowledged']} unacknowledged")  # fmt: skip
     return (
         f"{s['published']}/{s['scans']} scans published ({s['empty']} empty, "
-        f"{len(s['read_errors'])} unreadable), {s['acknowledged']} integrated, {s['lost']} lost, "
+        f"{len(s['read_errors'])} unreadable), {s['acknowledged']} integrated, {losses}, "
         f"{s['late_published']}+{s['late_integrated']} late, latency mean {mean}, "
-        f"{s['points_published']}/{s['points_in']} points kept"
+        f"{s['points_published']}/{s['points_in']} points kept, {s['poses_published']} poses "
+        f"over {s['distance_m']:.1f} m"
     )
 
 
