@@ -455,7 +455,7 @@ class Service:
                 with self._status_lock:
                     self.state = "stopping"
                 self._disarm()  # on_stop may take its time (a large map to save)
-                self._settle_leftovers()
+                self._settle_leftovers(drain=self.drain_on_stop)
                 try:
                     self.on_stop()
                 except Exception:
@@ -468,6 +468,7 @@ class Service:
                     except Exception:  # already gone with a closing session: nothing to do
                         pass
                 self._declared.clear()
+                self._settle_leftovers(drain=False)  # what came in during on_stop
                 self.session = None
         self._disarm()
         self.log.info("%s stopped", self.name)
@@ -624,9 +625,9 @@ class Service:
                 next_status = now + period
                 self._guard(lambda: self._status_pub.put(self.status()), "status")
 
-    def _settle_leftovers(self) -> None:
-        """At stop: handle what is queued (`drain_on_stop`) or count it dropped as `stopping`."""
-        if self.drain_on_stop:
+    def _settle_leftovers(self, drain: bool) -> None:
+        """At stop: handle what is queued (`drain`) or count it dropped as `stopping`."""
+        if drain:
             while (item := self._take()) is not None:
                 self._dispatch(item)
             for slot, handle in self._latest:

@@ -409,6 +409,8 @@ class ExplorerService(Service):
         self.stop()
 
     def on_stop(self) -> None:
+        if self.ready_s is None:
+            return  # stopped before it was ready: the run's checkpoint stays as it was
         try:
             self._send(0.0, 0.0)
         except Exception:  # the session may already be closing

@@ -141,9 +141,9 @@ class NavgraphService(Service):
         self.queryable(keys.query(r, "navgraph", "node"), self.on_node)
         self.queryable(keys.query(r, "navgraph", "stats"), lambda req: self.stats())
         self._initial_map()
-        self._mapper_token = self.session.liveliness().declare_subscriber(
+        self._declared.append(self.session.liveliness().declare_subscriber(
             keys.alive(r, "mapper"), self._on_mapper_token
-        )
+        ))  # fmt: skip
 
     def _on_mapper_token(self, sample) -> None:
         # A zenoh callback: only flags; tick() does the work on the main loop.
@@ -162,9 +162,6 @@ class NavgraphService(Service):
             self._next_resync = time.monotonic() + RESYNC_MIN_PERIOD_S
             reason, self._resync_reason = self._resync_reason, ""
             self.resync(reason)
-
-    def on_stop(self) -> None:
-        self._mapper_token.undeclare()
 
     def resync(self, reason: str) -> bool:
         """Rebuild the graph from the mapper's snapshot; publish the nodes that changed."""

@@ -122,9 +122,9 @@ class PlannerService(Service):
         self.sync()
         # A navgraph that (re)starts starts a new graph and a new patch sequence: fetch it then.
         # The callback only raises a flag; tick() does the work on the main loop.
-        self._navgraph_token = self.session.liveliness().declare_subscriber(
+        self._declared.append(self.session.liveliness().declare_subscriber(
             keys.alive(r, "navgraph"), self._on_navgraph_token
-        )
+        ))  # fmt: skip
 
     def _on_navgraph_token(self, sample) -> None:
         import zenoh
@@ -137,9 +137,6 @@ class PlannerService(Service):
             self._next_sync = time.monotonic() + 1.0  # a stream in doubt: one sync a second
             self._resync = False
             self.sync()
-
-    def on_stop(self) -> None:
-        self._navgraph_token.undeclare()
 
     # -- keeping the graph -------------------------------------------------------------------
 
