@@ -422,16 +422,15 @@ class Service:
         with open_session(self.config.zenoh) as session:
             self.session = session
             self.producer = str(session.zid())
-            heartbeat = None
             try:
                 r = self.robot
                 self._status_pub = self.publisher(keys.status(r, self.name))
                 self._declared.append(session.declare_queryable(keys.status(r, self.name),
                                                                 self._on_status_query))  # fmt: skip
                 starting = session.liveliness().declare_token(keys.starting(r, self.name))
-                heartbeat = threading.Thread(target=self._heartbeat, name="starting-status",
-                                             daemon=True)  # fmt: skip
-                heartbeat.start()
+                self._declared.append(starting)
+                threading.Thread(target=self._heartbeat, name="starting-status",
+                                 daemon=True).start()  # fmt: skip
                 if not standby:
                     self.startup_step = "preparing (compiling or loading kernels)"
                     self.prepare()
@@ -441,16 +440,19 @@ class Service:
                 self.startup_step = "declaring inputs and outputs"
                 if not self.stopping:
                     self.setup()
-                token = session.liveliness().declare_token(keys.alive(r, self.name))
-                self._declared.append(token)
-                with self._status_lock:
-                    self.state = "running"
-                    self.ready_s = time.monotonic() - self._t0
-                self._ready.set()  # ends the heartbeat thread
-                starting.undeclare()
-                self.log.info("%s ready in %.1f s (robot %s, pid %d)", self.name, self.ready_s,
-                              r, os.getpid())  # fmt: skip
-                self._loop()
+                if not self.stopping:  # a stop while starting: never ready, straight to the end
+                    self._declared.append(
+                        session.liveliness().declare_token(keys.alive(r, self.name))
+                    )
+                    with self._status_lock:
+                        self.state = "running"
+                        self.ready_s = time.monotonic() - self._t0
+                    self._ready.set()  # ends the heartbeat thread
+                    self._declared.remove(starting)
+                    starting.undeclare()
+                    self.log.info("%s ready in %.1f s (robot %s, pid %d)", self.name,
+                                  self.ready_s, r, os.getpid())  # fmt: skip
+                    self._loop()
             finally:
                 with self._status_lock:
                     self.state = "stopping"

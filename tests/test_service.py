@@ -201,3 +201,26 @@ def test_stop_signals_never_deadlock_the_main_loop():
     out, _ = proc.communicate(timeout=5)
     assert proc.returncode == 0
     assert int(out.strip()) >= 3  # the kernel merges signals that arrive together
+
+
+def test_a_starting_service_says_so_and_a_stop_while_starting_is_clean(zenoh_stack):
+    proc = zenoh_stack.start("echo", ECHO, *zenoh_stack.zenoh_args(), "--robot",
+                             zenoh_stack.robot, "--warm-up", "60")  # fmt: skip
+
+    def starting():
+        try:
+            st = status(zenoh_stack)
+        except QueryError:
+            return None
+        return st if st.state == "starting" else None
+
+    assert wait_for(starting, 30), zenoh_stack.log("echo")
+    st = starting()
+    assert st.details == {"startup_step": "pretending to compile"} and st.books_add_up()
+    ll = zenoh_stack.session.liveliness()
+    assert list(ll.get(keys.starting("test", "echo"), timeout=2))
+    assert not list(ll.get(keys.alive("test", "echo"), timeout=1))
+    # stopped while starting: out at once, never ready, nothing left declared
+    assert zenoh_stack.stop(proc, timeout_s=10) == 0
+    assert "ready in" not in zenoh_stack.log("echo")
+    assert not list(ll.get(keys.starting("test", "echo"), timeout=1))

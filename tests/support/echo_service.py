@@ -4,7 +4,8 @@
   stand-in for a handler's bug);
 - latest-wins input `smana/<robot>/echo/cloud` (SemanticCloud): takes `--cloud-delay` seconds each;
 - queryable `smana/<robot>/echo/count`: {"poses", "clouds", "points"};
-- publisher `smana/<robot>/echo/out`: re-publishes each pose.
+- publisher `smana/<robot>/echo/out`: re-publishes each pose;
+- `--warm-up S`: warm_up() takes S seconds (a stand-in for compiling kernels).
 """
 
 from __future__ import annotations
@@ -21,9 +22,14 @@ from smana.common.service import ReplyError, Service
 class EchoService(Service):
     name = "echo"
 
-    def __init__(self, config, cloud_delay_s: float):
+    def __init__(self, config, cloud_delay_s: float, warm_up_s: float = 0.0):
         super().__init__(config)
         self.cloud_delay_s = cloud_delay_s
+        self.warm_up_s = warm_up_s
+
+    def warm_up(self):
+        self.startup_step = "pretending to compile"
+        self._stop.wait(self.warm_up_s)
         self.poses = self.clouds = self.points = 0
 
     def setup(self):
@@ -57,14 +63,15 @@ class EchoService(Service):
         return {"poses": self.poses}
 
 
-def main(config, cloud_delay_s: float = 0.0) -> int:
-    return EchoService(config, cloud_delay_s).run()
+def main(config, cloud_delay_s: float = 0.0, warm_up_s: float = 0.0) -> int:
+    return EchoService(config, cloud_delay_s, warm_up_s).run()
 
 
 if __name__ == "__main__":
     p = make_parser("echo", __doc__)
     p.add_argument("--cloud-delay", type=float, default=0.0)
+    p.add_argument("--warm-up", type=float, default=0.0, help="seconds warm_up() takes")
     args = p.parse_args()
     cfg = config_from_args(args)
     setup_logging(cfg.general.log_level, "echo")
-    sys.exit(main(cfg, args.cloud_delay))
+    sys.exit(main(cfg, args.cloud_delay, args.warm_up))
