@@ -99,7 +99,7 @@ class ServiceDeployConfig:
     restart_window_s: float = _pos(default=60.0)
     # A hot spare: once the service is ready, a second process imports and prepares (kernels, a
     # simulated world) and waits; a crashed service is taken over by it in a fraction of a second
-    # instead of seconds of start-up. Costs that process's memory (~150-300 MB) while it waits.
+    # instead of seconds of start-up. Costs that process's memory (~160-180 MB) while it waits.
     standby: bool = False
     args: list[str] = field(default_factory=list)  # extra command-line arguments
 
