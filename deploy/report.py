@@ -290,8 +290,9 @@ def replay_warnings(rp: dict) -> list[str]:
     return out
 
 
-def summary_lines(metrics: dict) -> list[str]:
-    """The few lines `smana up` ends with: the outcome, coverage, distance, collisions, warnings."""
+def summary_lines(metrics: dict, ended: str = "") -> list[str]:
+    """The few lines `smana up` ends with: the outcome, coverage, distance, collisions, why the
+    run ended (the explorer's reason, else `ended`: what stopped the stack), warnings."""
     ex, ee = metrics.get("exploration") or {}, metrics.get("explorer") or {}
     warnings = metrics.get("warnings") or []
     cov = ex.get("coverage")
@@ -302,7 +303,7 @@ def summary_lines(metrics: dict) -> list[str]:
         else f"explored {_f(ee.get('explored_m2'), '.1f', ' m2')}",
         f"{_f(ex.get('distance_m', ee.get('distance_m')), '.1f', ' m')} travelled",
         f"{ex.get('collisions', '-')} collisions",
-        f"ended because: {ee.get('done_reason') or '-'}",
+        f"ended because: {ee.get('done_reason') or ended or '-'}",
     ]
     head = "FAILED" if warnings else "ok"
     lines = [f"smana up: {head}: " + ", ".join(figures)]

@@ -121,6 +121,7 @@ class Supervisor:
                 policy = getattr(config.deploy, n)
                 self.add(name, argv + policy.args, policy, service=n, robot=robot)
         self.statuses: dict[tuple[str, str], ServiceStatus] = {}
+        self.ended = ""  # why the run ended (for the summary)
         self.seen_ready: set[tuple[str, str]] = set()  # (robot, service) alive at some point,
         # here or on another host
         self._lock = threading.Lock()
@@ -396,6 +397,7 @@ class Supervisor:
         next_progress = t0 + progress_period_s
         finish_with = self.config.deploy.finish_with
         result = 0
+        self.ended = "stopped (Ctrl-C or a signal)"
         try:
             while not self._stop.wait(0.1):
                 self.poll()
@@ -409,13 +411,16 @@ class Supervisor:
                     result = 0 if all(c == 0 for c in codes) else 1
                     log.info("%s finished (status %s): stopping the stack", finish_with,
                              ", ".join(map(str, codes)))  # fmt: skip
+                    self.ended = f"{finish_with} finished"
                     break
                 if self.procs and all(m.finished for m in self.procs.values()):
                     log.error("every service has exited")
+                    self.ended = "every service exited"
                     result = 1
                     break
                 if duration_s is not None and now - t0 >= duration_s:
                     log.info("duration of %.0f s reached: stopping the stack", duration_s)
+                    self.ended = f"--duration {duration_s:g} s reached"
                     break
         finally:
             self.shutdown()
@@ -461,7 +466,8 @@ class Supervisor:
                     else "done" if m.finished else "down")  # fmt: skip
             extra = ""
             if st is not None and st.pid == (m.proc.pid if m.proc else -1):
-                bad = sum(st.rejected.values())
+                # a stream's first messages, refused while its clock settles, are no news
+                bad = sum(n for k, n in st.rejected.items() if k != "settling")
                 extra = f" in={st.msgs_in} out={st.msgs_out}" + (f" rejected={bad}" if bad else "")
                 progress = st.details.get("progress")
                 if progress:
@@ -546,7 +552,7 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
         metrics = json.loads((Path(run_dir) / "metrics.json").read_text())
         warnings = metrics.get("warnings", warnings)
         print(f"smana up: report written to {path}", flush=True)
-        summary = report.summary_lines(metrics)
+        summary = report.summary_lines(metrics, sup.ended)
     except Exception as exc:  # a failed report must not hide the run's own outcome
         log.exception("writing the report failed: %s", exc)
         warnings = [*warnings, f"the report could not be written: {exc}"]
