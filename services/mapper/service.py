@@ -42,6 +42,7 @@ from smana.services.mapper.semantic_map import SemanticMap
 from smana.services.mapper.tsdf import TsdfParams
 
 MAX_QUERY_POINTS = 100_000
+MAX_NAME_BYTES = 255  # NAME_MAX of Linux file systems
 
 
 def resolve_save_path(config: SmanaConfig) -> Path | None:
@@ -264,12 +265,17 @@ class MapperService(Service):
         path = self.save_path
         if name:
             # only a plain .npz file name beside the configured path: a query never picks a
-            # directory, nor another file of the run directory (config.toml, a report)
+            # directory, nor another file of the run directory (config.toml, a report); and one
+            # the file system takes, with its ".tmp" twin (no NUL, at most NAME_MAX bytes)
             plain = isinstance(name, str) and Path(name).name == name and not name.startswith(".")
-            if not (plain and name.endswith(".npz")):
+            if not (plain and name.endswith(".npz") and name.isprintable()
+                    and len(f"{name}.tmp".encode()) <= MAX_NAME_BYTES):  # fmt: skip
                 raise ReplyError("value", f"name must be a plain file name.npz, got {name!r}")
             path = self.save_path.parent / name
-        return self.save(path)
+        try:
+            return self.save(path)
+        except OSError as exc:  # disk full, permissions: the query fails, the mapper goes on
+            raise ReplyError("io", f"could not save to {path}: {exc.strerror or exc}") from None
 
     def on_point(self, req: Request) -> dict:
         pts = req.body().get("points")
