@@ -40,6 +40,7 @@ BENCHES = {
     "sim": "smana.services.sim.bench:cli",
     "explorer": "smana.services.explorer.bench:cli",
     "replay": "smana.services.replay.bench:cli",
+    "fuzz": "smana.deploy.fuzz_bench:cli",
 }
 
 
