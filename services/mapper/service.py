@@ -6,7 +6,8 @@ it was integrated is dropped as `stale`. Points with NaN/inf or beyond 1000 km a
 confidences outside [0, 1] are clipped (`confidence_range`); a cloud that is not in the world
 frame is rejected (`frame`), and so is one whose stamp does not fit its stream's clock (`stamp`,
 see `common/plausibility.py`). A rejected cloud leaves the map as it was. Clouds the sender
-numbered but that never arrived (a DROP link) are counted as `clouds_lost_upstream`.
+numbered but that never arrived (a DROP link) are counted as `clouds_lost_upstream`; a jump of more
+than `MAX_SEQ_GAP` numbers is a new numbering (`cloud_seq_jump`), not a loss.
 
 Output: one `MapDelta` on `mapper/delta` per integrated cloud (even an empty one, so a lockstep
 simulator can wait for its `cloud_seq`), published reliably with congestion control BLOCK.
@@ -43,6 +44,7 @@ from smana.services.mapper.tsdf import TsdfParams
 
 MAX_QUERY_POINTS = 100_000
 MAX_NAME_BYTES = 255  # NAME_MAX of Linux file systems
+MAX_SEQ_GAP = 1000  # a larger jump in a sender's cloud numbers is a new numbering, not a loss
 
 
 def resolve_save_path(config: SmanaConfig) -> Path | None:
@@ -148,10 +150,15 @@ class MapperService(Service):
         if not verdict.ok:
             raise Reject("stamp", f"{input_name} {cloud.seq}: {verdict.reason}")
         last = self.input_seq.get(input_name)
-        if last is not None and cloud.seq > last + 1:
+        if last is not None and last + 1 < cloud.seq <= last + MAX_SEQ_GAP:
             n = cloud.seq - last - 1
             self.note("clouds_lost_upstream", f"{n} {input_name}s numbered before {cloud.seq} "
                       "never arrived (dropped on the way)", n)  # fmt: skip
+        elif last is not None and cloud.seq > last + MAX_SEQ_GAP:
+            # a new numbering (a restarted sender), not clouds lost: a peer's number must not
+            # become a count (2**63 twice no longer fits the status message)
+            self.note("cloud_seq_jump", f"{input_name} numbering jumped from {last} to "
+                      f"{cloud.seq}")  # fmt: skip
         self.input_seq[input_name] = cloud.seq
         if cloud.n_dropped_nonfinite:
             n = cloud.n_dropped_nonfinite
