@@ -451,6 +451,30 @@ def _hostile_values(msg: m.Message, d: Draw, ctx: Context, rng: np.random.Genera
             msg.label_share = {str(i): 1e300 for i in range(d.integer(0, 50))}
 
 
+def pose_track(d: Draw, ctx: Context, n: int | None = None) -> list[m.Pose]:
+    """A short, self-consistent run of poses (stamps 0.1 s apart, a few centimetres each) at a
+    hostile place: inside the wall, on the graph's edge, far outside it, at the coordinate
+    limit. Consistent poses pass the stamp and pose gates, so the consumer acts on them (the
+    explorer plans from there); lone wild poses never would."""
+    n = n or d.integer(4, 8)
+    x0, y0, x1, y1 = ctx.area
+    ox, oy = ctx.graph_origin_xy
+    edge_x = ox + ctx.graph_shape[0] * ctx.graph_resolution_m
+    place = d.choice((
+        ((x0 + x1) / 2, (y0 + y1) / 2), (0.0, -1.0), (x0, y0), (x1, y1), (ox, oy),
+        (edge_x - 1e-6, oy + 1.0), (edge_x + 5.0, 0.0), (1e5, -1e5), (COORD_LIMIT_M, 0.0),
+        (-COORD_LIMIT_M, COORD_LIMIT_M),
+    ))  # fmt: skip
+    t0 = d.choice((ctx.stamp_s, ctx.stamp_s + 1.0, 1e9, 0.0))
+    yaw = d.unit() * 2 * math.pi
+    out = []
+    for i in range(n):
+        x = min(max(place[0] + 0.02 * i, -COORD_LIMIT_M), COORD_LIMIT_M)
+        out.append(m.Pose.from_xyz_yaw(x, place[1], 0.1, yaw, stamp_s=t0 + 0.1 * i,
+                                       seq=ctx.seq + 1 + i))  # fmt: skip
+    return out
+
+
 # -- wire-level mutations -------------------------------------------------------------------------
 
 

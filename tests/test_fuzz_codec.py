@@ -25,6 +25,7 @@ SETTINGS = settings(
     max_examples=100, deadline=None, derandomize=True,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )  # fmt: skip
+FEWER = settings(SETTINGS, max_examples=50)
 TYPES = fuzz.MESSAGE_TYPES
 
 
@@ -127,7 +128,7 @@ def test_decode_fuzz(cls, data, drop):
 
 
 @pytest.mark.parametrize("cls", TYPES, ids=lambda c: c.TYPE)
-@SETTINGS
+@FEWER
 @given(data=st.data())
 def test_decode_fuzz_any_type(cls, data):
     """Decoding without an expected type: a payload of any type is judged as what it says."""
@@ -155,7 +156,7 @@ def test_from_json_fuzz(cls, data, drop):
 
 
 @pytest.mark.parametrize("cls", TYPES, ids=lambda c: c.TYPE)
-@SETTINGS
+@FEWER
 @given(data=st.data())
 def test_valid_and_hostile_messages_round_trip(cls, data):
     """What the generators call valid or hostile, the codec must accept unchanged."""
