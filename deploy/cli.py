@@ -41,6 +41,7 @@ BENCHES = {
     "explorer": "smana.services.explorer.bench:cli",
     "replay": "smana.services.replay.bench:cli",
     "restart": "smana.deploy.restart_bench:cli",
+    "fuzz": "smana.deploy.fuzz_bench:cli",
 }
 
 

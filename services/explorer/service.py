@@ -145,6 +145,7 @@ class ExplorerService(Service):
         self._t_floor: float | None = None
         self.n_patches = 0
         self.n_path_queries = 0
+        self.graph_queries = 0  # asked of navgraph (its books count them as received)
         self.path_ok = 0
         self.path_errors: dict[str, int] = {}
         self.plan_time_ms = 0.0
@@ -205,6 +206,7 @@ class ExplorerService(Service):
         missed some, or the patch stream is in doubt (another producer, a jump). Retried from
         `tick` until it answers."""
         self._next_sync = time.monotonic() + 2.0
+        self.graph_queries += 1
         try:
             reply = request(self.session, keys.query(self.robot, "navgraph", "graph"), None, 2.0)
         except QueryError as exc:
@@ -470,6 +472,7 @@ class ExplorerService(Service):
             "n_goals": c.n_goals,
             "n_patches": self.n_patches,
             "path_queries": self.n_path_queries,
+            "graph_queries": self.graph_queries,
             "path_ok": self.path_ok,
             "path_errors": dict(self.path_errors),
             "plan_time_ms": self.plan_time_ms,

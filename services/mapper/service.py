@@ -6,7 +6,8 @@ it was integrated is dropped as `stale`. Points with NaN/inf or beyond 1000 km a
 confidences outside [0, 1] are clipped (`confidence_range`); a cloud that is not in the world
 frame is rejected (`frame`), and so is one whose stamp does not fit its stream's clock (`stamp`,
 see `common/plausibility.py`). A rejected cloud leaves the map as it was. Clouds the sender
-numbered but that never arrived (a DROP link) are counted as `clouds_lost_upstream`.
+numbered but that never arrived (a DROP link) are counted as `clouds_lost_upstream`; a jump of more
+than `MAX_SEQ_GAP` numbers is a new numbering (`cloud_seq_jump`), not a loss.
 
 Output: one `MapDelta` on `mapper/delta` per integrated cloud (even an empty one, so a lockstep
 simulator can wait for its `cloud_seq`), published reliably with congestion control BLOCK.
@@ -42,6 +43,8 @@ from smana.services.mapper.semantic_map import SemanticMap
 from smana.services.mapper.tsdf import TsdfParams
 
 MAX_QUERY_POINTS = 100_000
+MAX_NAME_BYTES = 255  # NAME_MAX of Linux file systems
+MAX_SEQ_GAP = 1000  # a larger jump in a sender's cloud numbers is a new numbering, not a loss
 
 
 def resolve_save_path(config: SmanaConfig) -> Path | None:
@@ -151,7 +154,12 @@ class MapperService(Service):
             raise Reject(verdict.kind, f"{input_name} {cloud.seq}: {verdict.reason}")
         last = self.input_seq.get(input_name)
         lost = 0 if last is None else cloud.seq - last - 1 - self.stale_before
-        if lost > 0:
+        if last is not None and cloud.seq > last + MAX_SEQ_GAP:
+            # a new numbering (a restarted sender), not clouds lost: a peer's number must not
+            # become a count (2**63 twice no longer fits the status message)
+            self.note("cloud_seq_jump", f"{input_name} numbering jumped from {last} to "
+                      f"{cloud.seq}")  # fmt: skip
+        elif lost > 0:
             self.note("clouds_lost_upstream", f"{lost} {input_name}s numbered before "
                       f"{cloud.seq} never arrived (dropped on the way)", lost)  # fmt: skip
         self.input_seq[input_name] = cloud.seq
@@ -268,12 +276,17 @@ class MapperService(Service):
         path = self.save_path
         if name:
             # only a plain .npz file name beside the configured path: a query never picks a
-            # directory, nor another file of the run directory (config.toml, a report)
+            # directory, nor another file of the run directory (config.toml, a report); and one
+            # the file system takes, with its ".tmp" twin (no NUL, at most NAME_MAX bytes)
             plain = isinstance(name, str) and Path(name).name == name and not name.startswith(".")
-            if not (plain and name.endswith(".npz")):
+            if not (plain and name.endswith(".npz") and name.isprintable()
+                    and len(f"{name}.tmp".encode()) <= MAX_NAME_BYTES):  # fmt: skip
                 raise ReplyError("value", f"name must be a plain file name.npz, got {name!r}")
             path = self.save_path.parent / name
-        return self.save(path)
+        try:
+            return self.save(path)
+        except OSError as exc:  # disk full, permissions: the query fails, the mapper goes on
+            raise ReplyError("io", f"could not save to {path}: {exc.strerror or exc}") from None
 
     def on_point(self, req: Request) -> dict:
         pts = req.body().get("points")

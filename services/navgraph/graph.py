@@ -406,12 +406,13 @@ class NavGraph:
             if not all(np.isfinite([x0, y0, x1, y1])) or x1 < x0 or y1 < y0:
                 raise ValueError(f"box must be finite x0, y0, x1, y1 with x0<=x1, y0<=y1: {box_xy}")
             res, o = self.resolution_m, self.grid.origin_xy
-            box = (
-                int(np.floor((x0 - o[0]) / res)),
-                int(np.floor((y0 - o[1]) / res)),
-                int(np.floor((x1 - o[0]) / res)) + 1,
-                int(np.floor((y1 - o[1]) / res)) + 1,
-            )
+            # in cells, clipped to the grid: a finite box far outside (1e308 m) overflows an int
+            with np.errstate(over="ignore"):
+                lo = np.floor((np.array([x0, y0]) - o) / res)
+                hi = np.floor((np.array([x1, y1]) - o) / res) + 1
+            size = np.array(self.grid.shape, np.float64)
+            lo, hi = np.clip(lo, 0, size), np.clip(hi, 0, size)
+            box = (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
         return self.grid.export(box, known_only)
 
     def stats(self) -> dict:

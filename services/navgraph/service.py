@@ -120,6 +120,7 @@ class NavgraphService(Service):
         self.columns_lost = 0
         self.times_ms: list[float] = []
         self.resyncs = 0
+        self.snapshot_queries = 0  # asked of the mapper (its books count them as received)
         self._resync_reason = ""  # set from callbacks and on_delta; done in tick()
         self._mapper_was_down = False
 
@@ -165,6 +166,7 @@ class NavgraphService(Service):
 
     def resync(self, reason: str) -> bool:
         """Rebuild the graph from the mapper's snapshot; publish the nodes that changed."""
+        self.snapshot_queries += 1
         try:
             snap = request(self.session, keys.query(self.robot, "mapper", "snapshot"), None, 5.0)
         except QueryError as exc:
@@ -195,6 +197,7 @@ class NavgraphService(Service):
 
     def _initial_map(self) -> None:
         """Integrate the mapper's current map, if a mapper is already running."""
+        self.snapshot_queries += 1
         try:
             snap = request(self.session, keys.query(self.robot, "mapper", "snapshot"), None, 3.0)
         except QueryError as exc:
@@ -275,6 +278,7 @@ class NavgraphService(Service):
             "deltas": self.deltas,
             "deltas_skipped": self.deltas_skipped,
             "resyncs": self.resyncs,
+            "snapshot_queries": self.snapshot_queries,
             "patch_seq": self.patch_seq,
             "voxels_out_of_bounds": self.voxels_out_of_bounds,
             "columns_lost": self.columns_lost,

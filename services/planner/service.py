@@ -104,6 +104,7 @@ class PlannerService(Service):
         self.patches = 0
         self.patches_skipped = 0
         self.syncs = 0
+        self.graph_queries = 0  # asked of navgraph (its books count them as received)
         self.queries = 0
         self.outcomes: dict[str, int] = {}
         self.times_ms: list[float] = []
@@ -143,6 +144,7 @@ class PlannerService(Service):
     def sync(self) -> bool:
         """Replace the grid by navgraph's whole graph. False when navgraph does not answer."""
         timeout = self.config.planner.graph_sync_timeout_s
+        self.graph_queries += 1
         try:
             reply = request(
                 self.session, keys.query(self.robot, "navgraph", "graph"), None, timeout
@@ -234,6 +236,7 @@ class PlannerService(Service):
             "patches_skipped": self.patches_skipped,
             "last_patch_seq": self.patches_in.last or 0,
             "syncs": self.syncs,
+            "graph_queries": self.graph_queries,
             "queries": self.queries,
             "outcomes": dict(self.outcomes),
             "params": dataclasses.asdict(self.planner.params),

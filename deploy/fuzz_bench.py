@@ -1,0 +1,1232 @@
+"""`smana bench fuzz`: the multi-process fuzz campaign of issue 11 ("Trust").
+
+The real services (mapper, navgraph, planner, explorer and, unless left out, the simulator) run as
+their own processes against a zenoh router in this process, on a free loopback port with
+multicast scouting and gossip off. The campaign:
+
+1. **establishes state**: a few genuine ground clouds (with a wall) go to the mapper; navgraph
+   builds its graph from the deltas; the planner answers a fixed path query round the wall;
+2. **phase `refused`**: inputs every service must refuse, on every key it listens to: payloads
+   the codec refuses (structural mutations, broken bytes, oversize payloads), clouds outside the
+   world frame, deltas and patches from a foreign producer or of another graph geometry; and
+   fuzzed queries to every queryable (queries do not change state);
+   then forces a navgraph resync and a planner sync and checks the state: the mapper's occupied
+   voxels, navgraph's graph and the planner's answer to the fixed query are bit for bit those of
+   step 1;
+3. **phase `hostile`**: everything `deploy/fuzz.py` makes, valid-but-hostile messages included
+   (wild stamps, numbering, producers, coordinates, sizes), which may change state;
+4. **recovery**: genuine clouds again, until the genuine stream reaches navgraph's graph (the
+   stamp gates may have locked onto a hostile clock: bounded by their relock rule);
+5. **final checks**: the mapper's map equals a reference map fed exactly the clouds the mapper
+   accepted (decided per cloud from its books); after a forced resync navgraph's graph equals the
+   navgraph core fed the mapper's snapshot; after a forced sync the planner's answer equals the
+   planner core's on that graph; no file written outside the mapper's save folder;
+6. **books**: per service, settled once the stack is quiet: `msgs_in` grew by exactly the inputs
+   and queries sent to it plus what its peers sent it (counted by the peers: deltas = mapper
+   clouds, patches = navgraph patch numbers, graph/snapshot/path queries); every structural
+   rejection kind (malformed, type, version, shape, ...) equals what the codec predicts for the
+   inputs sent; no `internal` rejection and no `internal_*` event (crashes); same pid (no
+   restart), every query answered, clean exit on SIGINT.
+
+Each input is generated from `--seed`; the same generators drive the in-process hypothesis tests.
+Output: a table, and the raw figures as JSON (`--out`). Exit status 1 when a check fails.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import random
+import resource
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import msgpack
+import numpy as np
+
+from smana.common import keys
+from smana.common import messages as m
+from smana.common.config import SmanaConfig
+from smana.deploy import fuzz
+
+SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim")
+# Rejection kinds only the codec produces: the books must match the prediction exactly. Others
+# ("value", and the handlers' own: stamp, producer, sequence, geometry, frame, pose_jump, ...) may
+# also come from decodable input a handler refuses.
+STRUCTURAL = ("oversize", "malformed", "type", "version", "missing_field", "unknown_field",
+              "dtype", "shape", "length", "nonfinite")  # fmt: skip
+FOREIGN = "fuzz-stranger"  # a producer no service follows
+SETTLE_EVERY = 200  # FIFO inputs to one service before waiting for it to catch up
+RELOCK = 5  # StampGate's default: consecutive consistent stamps that move its clock
+
+# What the campaign configures (every service reads the same file; the references too).
+CONFIG = """\
+[general]
+status_period_s = 1.0
+
+[mapper]
+resolution_m = 0.1
+inputs = ["cloud", "scan"]
+autosave_period_s = 0.0
+save_path = "{save_path}"
+
+[explorer]
+time_budget_s = 1.0e9
+done_after_empty = 1000000000
+
+[sim]
+camera_width = 64
+camera_height = 64
+camera_rate_hz = 2.0
+lockstep = true
+lockstep_timeout_s = 2.0
+"""
+
+
+@dataclass(frozen=True)
+class Target:
+    """A key a service listens to (`latest`: one-slot mailbox, `fifo`: queue) or answers
+    (`query`). `topic` is `<segment>/<name>` under `smana/<robot>/`."""
+
+    service: str
+    topic: str
+    kind: str
+    expect: type[m.Message] | None = None
+    consumers: tuple[str, ...] = ()
+    weight: float = 1.0
+    drop_nonfinite: bool = False
+
+    @property
+    def name(self) -> str:
+        return f"{self.service}:{self.topic}"
+
+    @property
+    def services(self) -> tuple[str, ...]:
+        return self.consumers or (self.service,)
+
+
+TARGETS: tuple[Target, ...] = (
+    Target("mapper", "robot/cloud", "latest", m.SemanticCloud, ("mapper",), 8, True),
+    Target("mapper", "robot/scan", "latest", m.SemanticCloud, ("mapper",), 4, True),
+    Target("mapper", "mapper/stats", "query", weight=1),
+    Target("mapper", "mapper/snapshot", "query", weight=3),
+    Target("mapper", "mapper/save", "query", weight=2),
+    Target("mapper", "mapper/point", "query", weight=3),
+    Target("mapper", "mapper/status", "query", weight=1),
+    Target("navgraph", "mapper/delta", "fifo", m.MapDelta, ("navgraph",), 14),
+    Target("navgraph", "navgraph/graph", "query", weight=3),
+    Target("navgraph", "navgraph/node", "query", weight=3),
+    Target("navgraph", "navgraph/stats", "query", weight=1),
+    Target("navgraph", "navgraph/status", "query", weight=1),
+    Target("planner", "navgraph/patch", "fifo", m.GraphPatch, ("planner", "explorer"), 12),
+    Target("planner", "planner/path", "query", weight=10),
+    Target("planner", "planner/stats", "query", weight=1),
+    Target("planner", "planner/status", "query", weight=1),
+    Target("explorer", "robot/pose", "fifo", m.Pose, ("explorer",), 10),
+    Target("explorer", "explorer/state", "query", weight=2),
+    Target("explorer", "explorer/status", "query", weight=1),
+    Target("sim", "robot/cmd_vel", "fifo", m.VelocityCommand, ("sim",), 6),
+    Target("sim", "mapper/delta", "fifo", m.MapDelta, ("sim",), 3),
+    Target("sim", "sim/status", "query", weight=1),
+)  # fmt: skip
+# Oversize payloads (64 MiB + a little each), in this order, as many as asked.
+OVERSIZE_ORDER = ("mapper:robot/cloud", "navgraph:mapper/delta", "planner:navgraph/patch",
+                  "explorer:robot/pose", "planner:planner/path", "sim:robot/cmd_vel",
+                  "mapper:mapper/point", "navgraph:navgraph/node")  # fmt: skip
+
+# The scene: ground over the area, a hedge wall across it; the fixed query goes round the wall.
+AREA = (-3.0, -3.0, 3.0, 3.0)
+WALL_X, WALL_Y = 0.0, (-3.0, 1.0)
+FIXED_QUERY = ((-2.0, -2.0), (2.0, -2.0))
+RECOVERY_AREA = (4.0, -3.0, 6.0, -1.0)  # genuine clouds after the fuzz land here
+GROUND, GRASS, HEDGE = 2, 1, 4
+
+
+class CampaignError(RuntimeError):
+    """The stack could not be set up or did not answer: the campaign could not run."""
+
+
+# -- results -------------------------------------------------------------------------------------
+
+
+@dataclass
+class KeyFigures:
+    """Per target: inputs sent, what the codec says of them, what came back (queries)."""
+
+    inputs: int = 0
+    codec: Counter = field(default_factory=Counter)  # predicted: "accepted" or a rejection kind
+    handler_refusals: int = 0  # decodable inputs built to be refused by the handler (phase 1)
+    replies: Counter = field(default_factory=Counter)  # queries: "ok" or the error kind
+    cloud_accepted: int = 0  # latest-wins inputs: integrated (per cloud, from the books)
+    not_sent: int = 0  # refused by zenoh in this process (an unusable selector)
+
+
+@dataclass
+class ServiceFigures:
+    pid: int = 0
+    mine: int = 0  # inputs and queries this campaign sent it (status polls included)
+    background: int = 0  # what its peers sent it over the same span
+    msgs_in: int = 0
+    accepted: int = 0
+    dropped: dict = field(default_factory=dict)
+    rejected: dict = field(default_factory=dict)
+    predicted: dict = field(default_factory=dict)  # rejection kinds of the inputs, as predicted
+    events: dict = field(default_factory=dict)
+    exit_code: int | None = None
+    tracebacks: int = 0
+
+
+@dataclass
+class Result:
+    seed: int
+    inputs_requested: int
+    services: list[str]
+    inputs: int = 0
+    keys: dict[str, KeyFigures] = field(default_factory=dict)
+    service_figures: dict[str, ServiceFigures] = field(default_factory=dict)
+    checks: dict[str, bool] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    crashes: int = 0
+    recovery_clouds: int = 0
+    wall_s: float = 0.0
+    cpu_s: float = 0.0
+    cpu_s_services: float = 0.0
+    load_start: tuple = ()
+    load_end: tuple = ()
+    phase_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return self.crashes == 0 and all(self.checks.values()) and bool(self.checks)
+
+    def to_json(self) -> dict:
+        d = _plain(self)
+        d["ok"] = self.ok
+        return d
+
+
+def _plain(obj):
+    """Dataclasses, Counters and tuples as JSON-ready dicts and lists (dataclasses.asdict
+    rebuilds a Counter from its items, which counts the pairs)."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_plain(v) for v in obj]
+    return obj
+
+
+def _check(result: Result, name: str, ok: bool, note: str = "") -> bool:
+    result.checks[name] = bool(result.checks.get(name, True) and ok)
+    if not ok and note:
+        result.notes.append(f"{name}: {note}")
+    return ok
+
+
+# -- fingerprints of state -----------------------------------------------------------------------
+
+
+def _digest(*arrays) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(str((a.dtype.str, a.shape)).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()[:16]
+
+
+def map_fingerprint(centres, labels, confidences, occupied, values) -> str:
+    """Occupied voxels, whatever their order."""
+    order = np.lexsort(np.asarray(centres, np.float64).T[::-1])
+    return _digest(*(np.asarray(a)[order] for a in (centres, labels, confidences, occupied,
+                                                    values)))  # fmt: skip
+
+
+def graph_fingerprint(cells, labels, heights, flags) -> str:
+    cells = np.asarray(cells, np.int32).reshape(-1, 2)
+    order = np.lexsort((cells[:, 1], cells[:, 0]))
+    heights = np.asarray(heights, np.float32)
+    return _digest(cells[order], np.asarray(labels, np.uint16)[order], heights[order],
+                   np.asarray(flags, np.uint8)[order])  # fmt: skip
+
+
+def reply_fingerprint(r: m.PathReply) -> str:
+    """A PathReply without what varies between two answers to one question (id, time)."""
+    scalars = json.dumps([r.ok, r.error, r.message, r.cost_total, r.cost_distance, r.cost_height,
+                          r.cost_traversability, sorted(r.label_share.items()),
+                          r.nodes_expanded])  # fmt: skip
+    return _digest(np.frombuffer(scalars.encode(), np.uint8), r.path, r.nearest_free)
+
+
+# -- genuine input -------------------------------------------------------------------------------
+
+
+def genuine_cloud(seq: int, stamp_s: float, area=AREA, wall: bool = True) -> m.SemanticCloud:
+    """Ground (terrain and a grass strip) over `area`, and a hedge wall, seen from above."""
+    x0, y0, x1, y1 = area
+    xs, ys = np.meshgrid(np.arange(x0 + 0.025, x1, 0.05), np.arange(y0 + 0.025, y1, 0.05))
+    ground = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1)
+    labels = np.where(ground[:, 1] > 2.0, GRASS, GROUND)
+    parts, labs = [ground], [labels]
+    if wall:
+        wy, wz = np.meshgrid(np.arange(WALL_Y[0], WALL_Y[1], 0.05), np.arange(0.05, 1.0, 0.05))
+        w = np.stack([np.full(wy.size, WALL_X), wy.ravel(), wz.ravel()], axis=1)
+        parts.append(w)
+        labs.append(np.full(len(w), HEDGE))
+    pts = np.concatenate(parts).astype(np.float32)
+    lab = np.concatenate(labs).astype(np.uint8)
+    centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 2.0])
+    return m.SemanticCloud(stamp_s, seq, pts, lab, np.full(len(pts), 0.9, np.float32), centre,
+                           np.array([0.0, 0.0, 0.0, 1.0]), "world", "camera")  # fmt: skip
+
+
+def fixed_request() -> m.PathRequest:
+    (sx, sy), (gx, gy) = FIXED_QUERY
+    return m.PathRequest("fixed", np.array([sx, sy]), np.array([gx, gy]))
+
+
+# -- the stack -----------------------------------------------------------------------------------
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Stack:
+    """A router in this process and the services as child processes (own process groups, killed
+    with this process even by SIGKILL)."""
+
+    def __init__(self, out: Path, config_path: Path, robot: str, sim_robot: str):
+        from smana.common.config import ZenohConfig
+        from smana.deploy.router import open_router
+
+        self.out, self.config_path = out, config_path
+        self.robot, self.sim_robot = robot, sim_robot
+        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        zc = ZenohConfig(mode="router", connect=[], listen=[self.endpoint])
+        self.session = open_router([self.endpoint], zc)
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def robot_of(self, service: str) -> str:
+        return self.sim_robot if service == "sim" else self.robot
+
+    def start(self, name: str) -> None:
+        from smana.deploy.supervisor import die_with_parent
+
+        log = open(self.out / f"{name}.log", "ab")  # noqa: SIM115 - the child owns it
+        argv = [sys.executable, "-m", f"smana.services.{name}", "--mode", "client",
+                "--connect", self.endpoint, "--robot", self.robot_of(name),
+                "--config", str(self.config_path)]  # fmt: skip
+        self.procs[name] = subprocess.Popen(
+            argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            start_new_session=True, env=dict(os.environ, PYTHONUNBUFFERED="1"), cwd=self.out,
+            preexec_fn=die_with_parent,
+        )  # fmt: skip
+        log.close()
+
+    def log(self, name: str) -> str:
+        p = self.out / f"{name}.log"
+        return p.read_text(errors="replace") if p.exists() else ""
+
+    def wait_alive(self, names, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        for name in names:
+            key = keys.alive(self.robot_of(name), name)
+            while not list(self.session.liveliness().get(key, timeout=1.0)):
+                if self.procs[name].poll() is not None or time.monotonic() > deadline:
+                    raise CampaignError(f"{name} did not come up:\n{self.log(name)[-3000:]}")
+                time.sleep(0.05)
+
+    def stop_all(self, timeout_s: float = 15.0) -> dict[str, int | None]:
+        codes: dict[str, int | None] = {}
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGINT)
+                except ProcessLookupError:
+                    pass
+        for name, proc in self.procs.items():
+            try:
+                codes[name] = proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+                codes[name] = None  # did not stop on SIGINT
+        return codes
+
+    def close(self) -> None:
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                proc.wait()
+        self.session.close()
+
+
+# -- the campaign --------------------------------------------------------------------------------
+
+
+class Campaign:
+    """One fuzz campaign (see the module docstring). `run()` returns a `Result`; set up failures
+    raise `CampaignError`."""
+
+    def __init__(
+        self,
+        out: Path,
+        inputs: int = 10_000,
+        seed: int = 0,
+        services: tuple[str, ...] = SERVICES,
+        oversize: int = 6,
+        progress: bool = False,
+        startup_timeout_s: float = 600.0,
+        settle_timeout_s: float = 120.0,
+        robot: str = "fuzz",
+        sim_robot: str = "fuzzsim",
+    ):
+        self.out = Path(out)
+        self.n_inputs, self.seed = inputs, seed
+        self.services = tuple(s for s in SERVICES if s in services)
+        self.targets = [
+            dataclasses.replace(t, consumers=tuple(c for c in t.consumers if c in self.services))
+            for t in TARGETS if t.service in self.services
+        ]  # fmt: skip
+        self.oversize = oversize
+        self.progress = progress
+        self.startup_timeout_s, self.settle_timeout_s = startup_timeout_s, settle_timeout_s
+        self.robot, self.sim_robot = robot, sim_robot
+        self.draw = fuzz.RandomDraw(random.Random(seed))
+        self.result = Result(seed, inputs, list(self.services))
+        self.mine: Counter = Counter()  # per service: messages and queries we sent it
+        self.pubs: dict[str, object] = {}
+        self.base: dict[str, m.ServiceStatus] = {}  # books when the campaign's count starts
+        self.base_mine: Counter = Counter()  # self.mine at that moment
+        self.base_counters: dict[str, float] = {}
+        self.sent = 0
+        self.stamp_s = 0.0  # the genuine clock
+        self.cloud_seq = 0
+        self.accepted_clouds: list[m.SemanticCloud] = []  # for the reference map
+        self._t_progress = 0.0
+        self._t_phase = time.monotonic()
+        self._phase_total = 1
+        self._phase_done = 0
+        self._phase = ""
+
+    # -- plumbing ---------------------------------------------------------------------------------
+
+    def key(self, t: Target) -> str:
+        seg, name = t.topic.split("/", 1)
+        return keys.key(self.stack.robot_of(t.service), seg, name)
+
+    def publisher(self, t: Target):
+        import zenoh
+
+        k = self.key(t)
+        if k not in self.pubs:
+            pub = self.stack.session.declare_publisher(
+                k, congestion_control=zenoh.CongestionControl.BLOCK,
+                reliability=zenoh.Reliability.RELIABLE,
+            )  # fmt: skip
+            deadline = time.monotonic() + self.settle_timeout_s
+            while not pub.matching_status.matching:
+                if time.monotonic() > deadline:
+                    raise CampaignError(f"no subscriber for {k}")
+                time.sleep(0.02)
+            self.pubs[k] = pub
+        return self.pubs[k]
+
+    def ask(self, service: str, name: str, payload: bytes | None = None, encoding=None,
+            params: str = "", timeout_s: float | None = None):  # fmt: skip
+        """One query to `smana/<robot>/<service>/<name>`: a list of (ok, bytes) replies, or None
+        when zenoh refused the selector in this process."""
+        import zenoh
+
+        k = keys.query(self.stack.robot_of(service), service, name)
+        sel = f"{k}?{params}" if params else k
+        kw = {}
+        if payload is not None:
+            kw["payload"] = payload
+        if encoding is not None:
+            kw["encoding"] = zenoh.Encoding(encoding)
+        try:
+            replies = self.stack.session.get(sel, timeout=timeout_s or self.settle_timeout_s,
+                                             **kw)  # fmt: skip
+        except Exception:  # noqa: BLE001 - zenoh refuses some selectors before sending them
+            return None
+        self.mine[service] += 1
+        out = []
+        for r in replies:
+            if r.ok is not None:
+                out.append((True, r.ok.payload.to_bytes()))
+            else:
+                out.append((False, r.err.payload.to_bytes()))
+        return out
+
+    def request(self, service: str, name: str, body=None, as_json: bool = False):
+        """A query whose answer must come: the decoded reply (a Message or a map)."""
+        payload = enc = None
+        if isinstance(body, m.Message):
+            payload, enc = m.encode(body), "application/msgpack"
+        elif body is not None:
+            payload, enc = msgpack.packb(body), "application/msgpack"
+        replies = self.ask(service, name, payload, enc)
+        if not replies:
+            raise CampaignError(f"{service}/{name}: no reply")
+        ok, data = replies[0]
+        parsed = _parse(data)
+        if not ok:
+            raise CampaignError(f"{service}/{name}: error reply {parsed}")
+        return parsed
+
+    def status(self, service: str) -> m.ServiceStatus:
+        st = self.request(service, "status")
+        if not isinstance(st, m.ServiceStatus):
+            raise CampaignError(f"{service}/status: not a ServiceStatus")
+        _check(self.result, "books add up in every status", st.books_add_up(), f"{service}: {st}")
+        return st
+
+    def settle(self, service: str) -> m.ServiceStatus:
+        """Wait until every input sent to `service` so far was handled (all received, none
+        pending); timeout counted from the last progress."""
+        deadline = time.monotonic() + self.settle_timeout_s
+        last = None
+        while True:
+            st = self.status(service)
+            want = 0
+            if service in self.base:
+                want = self.base[service].msgs_in + self.mine[service] - self.base_mine[service]
+            if st.pending == 0 and st.msgs_in >= want:
+                return st
+            progress = (st.msgs_in - self.mine[service], st.pending)  # our polls are no progress
+            if progress != last:
+                deadline, last = time.monotonic() + self.settle_timeout_s, progress
+            if time.monotonic() > deadline:
+                raise CampaignError(f"{service} did not settle: {st}")
+            time.sleep(0.002)
+
+    def _tick(self, n: int = 1) -> None:
+        self._phase_done += n
+        now = time.monotonic()
+        if not self.progress or now - self._t_progress < (0.5 if sys.stderr.isatty() else 10.0):
+            return
+        self._t_progress = now
+        done, total = self._phase_done, self._phase_total
+        rate = done / max(now - self._t_phase, 1e-6)
+        eta = (total - done) / rate if rate > 0 else float("nan")
+        line = f"fuzz {self._phase}: {done}/{total} inputs, {rate:.0f}/s, ETA {eta:.0f} s"
+        if sys.stderr.isatty():
+            print(f"\r{line}   ", end="", file=sys.stderr, flush=True)
+        else:
+            print(line, file=sys.stderr, flush=True)
+
+    def _begin(self, phase: str, total: int) -> None:
+        if self.progress and sys.stderr.isatty() and self._phase:
+            print(file=sys.stderr)
+        self._phase, self._phase_total, self._phase_done = phase, max(total, 1), 0
+        self._t_phase = time.monotonic()
+
+    # -- the run ----------------------------------------------------------------------------------
+
+    def run(self) -> Result:
+        r = self.result
+        r.load_start = os.getloadavg()
+        t0, cpu0 = time.monotonic(), resource.getrusage(resource.RUSAGE_SELF)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.save_dir = self.out / "mapper"
+        self.save_dir.mkdir(exist_ok=True)
+        config_path = self.out / "fuzz.toml"
+        config_path.write_text(CONFIG.format(save_path=self.save_dir / "map.npz"))
+        self.config = SmanaConfig.load(config_path)
+        self.files_before = _files(self.out, exclude=self.save_dir)
+        self.stack = Stack(self.out, config_path, self.robot, self.sim_robot)
+        codes: dict[str, int | None] = {}
+        try:
+            for name in self.services:
+                self.stack.start(name)
+            self.stack.wait_alive(self.services, self.startup_timeout_s)
+            r.phase_s["startup"] = time.monotonic() - t0
+            self._timed("establish", self.establish)
+            budget = self.n_inputs
+            n1 = budget * 2 // 5
+            self._timed("refused", lambda: self.phase("refused", n1))
+            self._timed("check_refused", self.check_unchanged)
+            self._timed("hostile", lambda: self.phase("hostile", budget - n1))
+            self._timed("recovery", self.recovery)
+            self._timed("final", self.final_checks)
+            self._timed("books", self.books)
+        finally:
+            for pub in self.pubs.values():
+                pub.undeclare()
+            codes = self.stack.stop_all()
+            self.stack.close()
+        for name, code in codes.items():
+            sf = r.service_figures.setdefault(name, ServiceFigures())
+            sf.exit_code = code
+            sf.tracebacks = self.stack.log(name).count("Traceback")
+            _check(r, "clean exit on SIGINT", code == 0, f"{name} exited {code}")
+        self.check_files()
+        r.crashes = sum(sf.rejected.get("internal", 0)
+                        + sum(v for k, v in sf.events.items() if k.startswith("internal"))
+                        for sf in r.service_figures.values())  # fmt: skip
+        r.inputs = self.sent
+        r.wall_s = time.monotonic() - t0
+        me = resource.getrusage(resource.RUSAGE_SELF)
+        kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+        r.cpu_s = me.ru_utime + me.ru_stime - cpu0.ru_utime - cpu0.ru_stime
+        r.cpu_s_services = kids.ru_utime + kids.ru_stime
+        r.load_end = os.getloadavg()
+        if self.progress and sys.stderr.isatty():
+            print(file=sys.stderr)
+        return r
+
+    def _timed(self, name: str, fn) -> None:
+        t0 = time.monotonic()
+        if self.progress and not sys.stderr.isatty():
+            print(f"fuzz: {name} ...", file=sys.stderr, flush=True)
+        fn()
+        self.result.phase_s[name] = time.monotonic() - t0
+
+    # -- 1. establish -----------------------------------------------------------------------------
+
+    def send_cloud(self, cloud_or_payload, t: Target, genuine: m.SemanticCloud | None = None):
+        """Publish one cloud and wait until the mapper settled it; True if it was integrated.
+        Exact whatever else the mapper receives meanwhile (navgraph's snapshot queries, all
+        accepted): the mapper's clouds + rejected + dropped grow by one, and only by this cloud."""
+        payload = m.encode(cloud_or_payload) if isinstance(cloud_or_payload, m.Message) \
+            else cloud_or_payload  # fmt: skip
+
+        def fates(st):
+            return st.details["clouds"] + sum(st.rejected.values()) + sum(st.dropped.values())
+
+        before = self.status("mapper")
+        self.publisher(t).put(payload)
+        self.mine["mapper"] += 1
+        deadline = time.monotonic() + self.settle_timeout_s
+        while True:
+            st = self.status("mapper")
+            if st.pending == 0 and fates(st) > fates(before):
+                break
+            if time.monotonic() > deadline:
+                raise CampaignError(f"the mapper did not settle a cloud: {st}")
+            time.sleep(0.002)
+        integrated = st.details["clouds"] == before.details["clouds"] + 1
+        _check(self.result, "one cloud, one outcome", fates(st) == fates(before) + 1,
+               f"mapper books moved by {fates(st) - fates(before)} for one cloud")  # fmt: skip
+        if integrated:
+            msg = genuine or m.decode(payload, m.SemanticCloud, drop_nonfinite=True)
+            self.accepted_clouds.append(msg)
+        return integrated
+
+    def genuine(self, area=AREA, wall=True) -> m.SemanticCloud:
+        self.cloud_seq += 1
+        self.stamp_s += 0.5
+        return genuine_cloud(self.cloud_seq, self.stamp_s, area, wall)
+
+    def establish(self) -> None:
+        cloud_t = next(t for t in TARGETS if t.topic == "robot/cloud")
+        for name in self.services:
+            self.base[name] = self.status(name)
+            self.base_mine[name] = self.mine[name]
+        self.stamp_s = 10.0
+        for _ in range(4):
+            c = self.genuine()
+            if not self.send_cloud(c, cloud_t, genuine=c):
+                raise CampaignError("the mapper refused a genuine cloud")
+        self.wait_pipeline()
+        reply = self.request("planner", "path", fixed_request())
+        if not (isinstance(reply, m.PathReply) and reply.ok):
+            raise CampaignError(f"the planner has no path for the fixed query: {reply}")
+        self.s0 = self.fingerprints()
+        self.applied0 = self.applied()
+        snap = self.request("mapper", "snapshot")
+        graph = self.request("navgraph", "graph")
+        self.ctx = fuzz.Context(
+            stamp_s=self.stamp_s, seq=self.cloud_seq,
+            producers={"mapper": snap.producer, "navgraph": graph.producer},
+            map_resolution_m=self.config.mapper.resolution_m,
+            graph_resolution_m=self.config.navgraph.resolution_m,
+            graph_origin_xy=tuple(graph.origin_xy.tolist()), area=AREA,
+        )  # fmt: skip
+        # The books start here: everything after is the campaign's and its echoes.
+        self.base_counters, self.base, self.base_mine = self.quiet()
+
+    def wait_pipeline(self) -> None:
+        """Until navgraph integrated every delta and the planner holds navgraph's last patch."""
+        deadline = time.monotonic() + self.settle_timeout_s
+        while True:
+            ng = self.request("navgraph", "stats")
+            ok = ng["deltas"] >= 1
+            if "planner" in self.services:
+                pl = self.request("planner", "stats")
+                ok = ok and pl["last_patch_seq"] == ng["patch_seq"] and pl["nodes_known"] > 0
+            if ok:
+                return
+            if time.monotonic() > deadline:
+                raise CampaignError(f"the pipeline did not carry the map: navgraph {ng}")
+            time.sleep(0.05)
+
+    def counters(self) -> dict[str, float]:
+        """The peers' own counts of what they sent each other (see `books`)."""
+        c: dict[str, float] = {}
+        if "mapper" in self.services:
+            c["mapper.clouds"] = self.settle("mapper").details["clouds"]
+        if "navgraph" in self.services:
+            ng = self.request("navgraph", "stats")
+            c["navgraph.patch_seq"] = ng["patch_seq"]
+            c["navgraph.snapshot_queries"] = ng["snapshot_queries"]
+        if "planner" in self.services:
+            c["planner.graph_queries"] = self.request("planner", "stats")["graph_queries"]
+        if "explorer" in self.services:
+            d = self.status("explorer").details
+            c["explorer.graph_queries"] = d["graph_queries"]
+            c["explorer.path_queries"] = d["path_queries"]
+        return c
+
+    def quiet(self) -> tuple[dict[str, float], dict[str, m.ServiceStatus], Counter]:
+        """Every service settled while no peer sent anything: the peers' counters, the statuses,
+        and how many messages the campaign had sent each service when its status was taken."""
+        deadline = time.monotonic() + self.settle_timeout_s
+        while True:
+            before = self.counters()
+            sts, mark = {}, Counter()
+            for s in self.services:
+                sts[s] = self.settle(s)
+                mark[s] = self.mine[s]  # the status counts the query that asked for it
+            after = self.counters()
+            if before == after:
+                return after, sts, mark
+            if time.monotonic() > deadline:
+                raise CampaignError(f"the stack does not go quiet: {before} -> {after}")
+
+    def background(self, counters: dict[str, float]) -> dict[str, int]:
+        """What the peers sent each service since the baseline, by their own counts."""
+        d = {k: v - self.base_counters.get(k, 0) for k, v in counters.items()}
+        return {
+            "mapper": d.get("navgraph.snapshot_queries", 0),  # navgraph's resyncs
+            "navgraph": d.get("mapper.clouds", 0)  # one MapDelta per integrated cloud
+            + d.get("planner.graph_queries", 0) + d.get("explorer.graph_queries", 0),
+            "planner": d.get("navgraph.patch_seq", 0) + d.get("explorer.path_queries", 0),
+            "explorer": d.get("navgraph.patch_seq", 0),
+            "sim": 0,  # on its own robot: nothing else talks to it
+        }  # fmt: skip
+
+    # -- fingerprints -----------------------------------------------------------------------------
+
+    def fingerprints(self) -> dict[str, str]:
+        snap = self.request("mapper", "snapshot")
+        graph = self.request("navgraph", "graph")
+        fp = {
+            "mapper": map_fingerprint(
+                snap.centres, snap.labels, snap.confidences, snap.occupied, snap.values
+            ),  # fmt: skip
+            "navgraph": graph_fingerprint(graph.cells, graph.labels, graph.heights, graph.flags),
+        }
+        if "planner" in self.services:
+            fp["planner"] = reply_fingerprint(self.request("planner", "path", fixed_request()))
+        return fp
+
+    # -- 2/3. the phases --------------------------------------------------------------------------
+
+    def plan_inputs(self, n: int) -> list[Target]:
+        """`n` targets drawn by weight (each target at least once), in a random order."""
+        weights = [t.weight for t in self.targets]
+        total = sum(weights)
+        counts = [max(1, int(round(n * w / total))) for w in weights]
+        plan = [t for t, c in zip(self.targets, counts) for _ in range(c)]
+        self.draw.r.shuffle(plan)
+        return plan[:n] if len(plan) > n else plan
+
+    def phase(self, name: str, n: int) -> None:
+        plan = self.plan_inputs(n)
+        self._begin(name, len(plan))
+        if name == "refused":  # the oversize payloads go first, they are refused in any phase
+            by_name = {t.name: t for t in self.targets}
+            big = [by_name[k] for k in OVERSIZE_ORDER if k in by_name][: self.oversize]
+            for t in big:
+                if t.kind == "query":
+                    self.send_query(t, oversize=True)
+                else:
+                    self.send(t, None, oversize=True)
+                self._tick()
+        unsettled: Counter = Counter()
+        for t in plan:
+            if t.kind == "query":
+                self.send_query(t)
+            else:
+                self.send(t, name)
+                if t.kind == "fifo":
+                    for s in t.services:
+                        unsettled[s] += 1
+                        if unsettled[s] >= SETTLE_EVERY:
+                            self.settle(s)
+                            unsettled[s] = 0
+            self._tick()
+        for s in self.services:
+            self.settle(s)
+
+    def refused_input(self, t: Target) -> tuple[bytes, bool]:
+        """A payload `t`'s service must refuse: one the codec refuses, or (some of the time) a
+        decodable one its handler refuses whatever its state. Returns (payload, decodable)."""
+        d, ctx = self.draw, self.ctx
+        certain = t.expect in (m.SemanticCloud, m.GraphPatch) or t.name == "navgraph:mapper/delta"
+        if certain and d.boolean(0.3):
+            msg = fuzz.plausible(t.expect, d, ctx)
+            while not _rows(msg):  # an empty one would change nothing even if it got through
+                msg = fuzz.plausible(t.expect, d, ctx)
+            if t.expect is m.SemanticCloud:
+                msg.frame_id = d.choice(("odom", "", "World", "world ", "map", "\x00"))
+                return m.encode(msg), True
+            if t.expect is m.MapDelta and t.service == "navgraph":
+                msg.producer, msg.stamp_s = FOREIGN, ctx.stamp_s
+                return m.encode(msg), True
+            if t.expect is m.GraphPatch:
+                if d.boolean():
+                    msg.producer = FOREIGN
+                else:
+                    msg.resolution_m = d.choice((0.1, 0.2 + 1e-6, 0.25))
+                return m.encode(msg), True
+        for _ in range(50):
+            mut = fuzz.message_payload(t.expect, d, ctx, mode=d.choice(("wire", "wire", "bytes")))
+            if fuzz.predict(mut.payload, t.expect, drop_nonfinite=t.drop_nonfinite):
+                return mut.payload, False
+        return b"\xc1", False
+
+    def send(self, t: Target, phase: str | None, oversize: bool = False) -> None:
+        kf = self.result.keys.setdefault(t.name, KeyFigures())
+        if oversize:
+            payload, decodable = fuzz.oversize_payload(t.expect, self.draw.integer(1, 4096)), False
+        elif phase == "refused":
+            payload, decodable = self.refused_input(t)
+        elif t.expect is m.Pose and self.draw.boolean(0.15):  # a track the gates lock onto
+            for pose in fuzz.pose_track(self.draw, self.ctx):
+                self._put(t, kf, m.encode(pose), None)
+            return
+        else:
+            payload = fuzz.message_payload(t.expect, self.draw, self.ctx).payload
+            decodable = None
+        self._put(t, kf, payload, decodable)
+
+    def _put(self, t: Target, kf: KeyFigures, payload: bytes, decodable: bool | None) -> None:
+        kind = fuzz.predict(payload, t.expect, drop_nonfinite=t.drop_nonfinite)
+        kf.inputs += 1
+        kf.codec[kind or "accepted"] += 1
+        if decodable:
+            kf.handler_refusals += 1
+        self.sent += 1
+        for s in t.services:
+            sf = self.result.service_figures.setdefault(s, ServiceFigures())
+            if kind:
+                sf.predicted[kind] = sf.predicted.get(kind, 0) + 1
+        if t.kind == "latest":
+            if self.send_cloud(payload, t):
+                kf.cloud_accepted += 1
+            return
+        self.publisher(t).put(payload)
+        for s in t.services:
+            self.mine[s] += 1
+
+    def send_query(self, t: Target, oversize: bool = False) -> None:
+        kf = self.result.keys.setdefault(t.name, KeyFigures())
+        service, name = t.topic.split("/", 1)
+        case = fuzz.query_case(service, name, self.draw, self.ctx)
+        if oversize:
+            case = fuzz.QueryCase("", bytes(m.MAX_PAYLOAD_BYTES + 1), None, "oversize")
+        replies = self.ask(service, name, case.payload, case.encoding, case.params)
+        if replies is None:
+            kf.not_sent += 1
+            return
+        kf.inputs += 1
+        self.sent += 1
+        sf = self.result.service_figures.setdefault(service, ServiceFigures())
+        if not replies:
+            kf.replies["no_reply"] += 1
+            _check(self.result, "every query answered", False, f"{t.name} {case.how}")
+            if case.payload is not None and len(case.payload) > m.MAX_PAYLOAD_BYTES:
+                # counted all the same (common/service.py refuses it before it can answer)
+                sf.predicted["oversize"] = sf.predicted.get("oversize", 0) + 1
+            return
+        ok, data = replies[0]
+        as_json = _asks_json(case.encoding, case.params)
+        try:
+            body = json.loads(data) if as_json else msgpack.unpackb(data, strict_map_key=False)
+        except Exception:  # noqa: BLE001
+            _check(self.result, "replies in the query's encoding", False,
+                   f"{t.name} ({'json' if as_json else 'msgpack'}): {data[:80]!r}")  # fmt: skip
+            body = None
+        kind = None
+        if not ok:
+            kind = body.get("error", "?") if isinstance(body, dict) else "?"
+        elif (service, name) == ("planner", "path"):
+            kind = _path_rejection(case, as_json)
+        kf.replies[kind or "ok"] += 1
+        if kind:
+            sf.predicted[kind] = sf.predicted.get(kind, 0) + 1
+        if kind == "internal":
+            self.result.notes.append(f"internal error on {t.name}: {case.how}: {body}")
+
+    # -- checks -----------------------------------------------------------------------------------
+
+    def force_resync(self) -> None:
+        """navgraph rebuilds its graph from the mapper's snapshot, then the planner fetches it:
+        both refuse a message from a foreign producer and ask their source again."""
+        if "navgraph" in self.services:
+            before = self.request("navgraph", "stats")["resyncs"]
+            t = next(t for t in self.targets if t.name == "navgraph:mapper/delta")
+            delta = fuzz.plausible(m.MapDelta, self.draw, self.ctx)
+            delta.producer, delta.stamp_s, delta.seq = FOREIGN, self.stamp_s, 1
+            self._wait_counter(t, m.encode(delta), "navgraph", "resyncs", before)
+        if "planner" in self.services:
+            before = self.request("planner", "stats")["syncs"]
+            t = next(t for t in self.targets if t.name == "planner:navgraph/patch")
+            patch = fuzz.plausible(m.GraphPatch, self.draw, self.ctx)
+            patch.producer, patch.seq = FOREIGN, 1
+            self._wait_counter(t, m.encode(patch), "planner", "syncs", before)
+
+    def _wait_counter(self, t: Target, payload: bytes, service: str, counter: str, before: int):
+        kf = self.result.keys.setdefault(t.name, KeyFigures())
+        kf.inputs += 1
+        kf.codec["accepted"] += 1
+        kf.handler_refusals += 1
+        self.sent += 1
+        self.publisher(t).put(payload)
+        for s in t.services:
+            self.mine[s] += 1
+        deadline = time.monotonic() + self.settle_timeout_s
+        while self.request(service, "stats")[counter] <= before:
+            if time.monotonic() > deadline:
+                raise CampaignError(f"{service} did not {counter[:-1]} after a foreign message")
+            time.sleep(0.02)
+
+    def applied(self) -> dict[str, int]:
+        """How often each service changed its state from a message: clouds integrated, deltas
+        integrated, patches published, patches applied. A resync repairs a graph that refused
+        input corrupted, so these counts are what can tell."""
+        out = {"mapper.clouds": self.status("mapper").details["clouds"]}
+        if "navgraph" in self.services:
+            ng = self.request("navgraph", "stats")
+            out["navgraph.deltas"], out["navgraph.patch_seq"] = ng["deltas"], ng["patch_seq"]
+        if "planner" in self.services:
+            out["planner.patches"] = self.request("planner", "stats")["patches"]
+        return out
+
+    def check_unchanged(self) -> None:
+        """After the refused phase: nothing was applied anywhere, the map is the same; and after
+        a forced resync and sync, the graph and the planner's answer are the same too."""
+        self.quiet()
+        applied = self.applied()
+        for k, v in self.applied0.items():
+            _check(self.result, f"nothing applied from refused input ({k.split('.')[0]})",
+                   applied[k] == v, f"{k}: {v} -> {applied[k]}")  # fmt: skip
+        s0, s1 = self.s0, self.fingerprints()
+        for k in s0:
+            _check(self.result, f"state unchanged by refused input ({k})", s1[k] == s0[k],
+                   f"{s0[k]} -> {s1[k]}")  # fmt: skip
+        self.force_resync()
+        self.quiet()
+        s2 = self.fingerprints()
+        for k in ("navgraph", "planner"):
+            if k in s0:
+                _check(self.result, f"the same state after a forced resync ({k})",
+                       s2[k] == s0[k], f"{s0[k]} -> {s2[k]}")  # fmt: skip
+
+    def recovery(self) -> None:
+        """Genuine clouds until they reach navgraph's graph. The stream may be in doubt: a stamp
+        gate locked onto a hostile clock lets go after RELOCK consistent stamps; a follower
+        moved by a spoofed sequence number refuses genuine deltas until its resync (a tick
+        later), which the loop waits for."""
+        cloud_t = next(t for t in self.targets if t.name == "mapper:robot/cloud")
+        x0, y0, x1, y1 = RECOVERY_AREA
+        probe = {"x": (x0 + x1) / 2, "y": (y0 + y1) / 2}
+        limit = 2 * RELOCK + 3  # the mapper's gate, then navgraph's, may each need RELOCK
+        t0 = time.monotonic()
+        for n in range(1, limit + 1):
+            resyncs = self.request("navgraph", "stats")["resyncs"]
+            doubt0 = self._doubts()
+            c = self.genuine(RECOVERY_AREA, wall=False)  # the genuine clock goes on
+            self.send_cloud(c, cloud_t, genuine=c)
+            self.quiet()  # the delta (if any) reached navgraph, its patch the planner
+            if self._doubts() > doubt0:  # refused as out of sequence: wait for the resync
+                deadline = time.monotonic() + self.settle_timeout_s
+                while self.request("navgraph", "stats")["resyncs"] <= resyncs:
+                    if time.monotonic() > deadline:
+                        raise CampaignError("navgraph did not resync after a refused delta")
+                    time.sleep(0.02)
+                self.quiet()
+            if self.request("navgraph", "node", probe).get("known"):
+                self.result.recovery_clouds = n
+                break
+        self.result.phase_s["recovery_to_graph"] = time.monotonic() - t0
+        _check(self.result, "genuine input flows again after the fuzz",
+               self.result.recovery_clouds > 0, f"not after {limit} genuine clouds")  # fmt: skip
+
+    def _doubts(self) -> int:
+        """navgraph's refusals that ask for a resync."""
+        rej = self.status("navgraph").rejected
+        return rej.get("sequence", 0) + rej.get("producer", 0)
+
+    def final_checks(self) -> None:
+        from smana.common.classes import ClassTable
+        from smana.services.mapper.service import build_map
+
+        r = self.result
+        table = ClassTable.load(self.config.general.class_table)
+        ref = build_map(self.config, table)
+        for c in self.accepted_clouds:
+            _reference_integrate(ref, table, c)
+        rows = ref.occupied_voxels()
+        snap = self.request("mapper", "snapshot")
+        want = map_fingerprint(rows.centres, rows.labels, rows.confidences, rows.occupied,
+                               rows.values)  # fmt: skip
+        got = map_fingerprint(snap.centres, snap.labels, snap.confidences, snap.occupied,
+                              snap.values)  # fmt: skip
+        _check(r, "mapper map == reference fed the accepted clouds", got == want,
+               f"{len(snap.centres)} voxels vs {len(rows.centres)} in the reference")  # fmt: skip
+        if "navgraph" not in self.services:
+            return
+        self.force_resync()
+        for s in self.services:
+            self.settle(s)
+        graph = self.request("navgraph", "graph")
+        ref_graph = _reference_graph(self.config, table, self.request("mapper", "snapshot"))
+        _check(r, "navgraph graph == core fed the mapper's snapshot",
+               graph_fingerprint(graph.cells, graph.labels, graph.heights, graph.flags)
+               == graph_fingerprint(*ref_graph), f"{len(graph.cells)} nodes vs "
+               f"{len(ref_graph[0])} in the reference")  # fmt: skip
+        if "planner" in self.services:
+            got = self.request("planner", "path", fixed_request())
+            want = _reference_plan(self.config, table, graph, fixed_request())
+            _check(r, "planner answer == core on navgraph's graph",
+                   reply_fingerprint(got) == reply_fingerprint(want),
+                   f"{got.ok} {got.cost_total} vs {want.ok} {want.cost_total}")  # fmt: skip
+
+    def books(self) -> None:
+        """Once the stack is quiet: every service's books against what was sent to it."""
+        r = self.result
+        counters, sts, mark = self.quiet()
+        background = self.background(counters)
+        for s, st in sts.items():
+            b = self.base[s]
+            sf = r.service_figures.setdefault(s, ServiceFigures())
+            sf.pid = st.pid
+            sf.mine, sf.background = mark[s] - self.base_mine[s], int(background[s])
+            sf.msgs_in = st.msgs_in - b.msgs_in
+            sf.accepted = st.accepted - b.accepted
+            sf.dropped = _diff(st.dropped, b.dropped)
+            sf.rejected = _diff(st.rejected, b.rejected)
+            sf.events = _diff(st.events, b.events)
+            _check(r, "same process (no restart)", st.pid == self.stack.procs[s].pid,
+                   f"{s}: pid {st.pid}")  # fmt: skip
+            _check(r, "msgs_in = inputs + queries + peers' messages",
+                   sf.msgs_in == sf.mine + sf.background,
+                   f"{s}: {sf.msgs_in} received, {sf.mine} sent by the campaign + "
+                   f"{sf.background} by its peers")  # fmt: skip
+            settled = sf.accepted + sum(sf.dropped.values()) + sum(sf.rejected.values())
+            _check(r, "every message settled", settled == sf.msgs_in and st.pending == 0,
+                   f"{s}: {settled} settled of {sf.msgs_in}, {st.pending} pending")  # fmt: skip
+            for kind in set(sf.rejected) | set(sf.predicted):
+                got, want = sf.rejected.get(kind, 0), sf.predicted.get(kind, 0)
+                if kind in STRUCTURAL:
+                    _check(r, "structural rejections == codec's prediction", got == want,
+                           f"{s}: {kind} {got} counted, {want} predicted")  # fmt: skip
+                elif kind != "internal":
+                    _check(r, "other rejections >= predicted", got >= want,
+                           f"{s}: {kind} {got} counted, {want} at least predicted")  # fmt: skip
+            if self.stack.procs[s].poll() is not None:
+                _check(r, "alive after the fuzz", False, f"{s} exited")
+
+    def check_files(self) -> None:
+        """A save query writes in the mapper's save folder only."""
+        new = _files(self.out, exclude=self.save_dir) - self.files_before
+        new = {p for p in new if not p.endswith(".log")}
+        _check(self.result, "no file written outside the save folder", not new, str(sorted(new)))
+        names = sorted(p.name for p in self.save_dir.iterdir())
+        self.result.notes.append(f"files in the mapper's save folder: {names}")
+
+
+# -- helpers -------------------------------------------------------------------------------------
+
+
+def _parse(data: bytes):
+    from smana.common.query import QueryError, _parse
+
+    try:
+        return _parse(data)
+    except QueryError as exc:
+        raise CampaignError(str(exc)) from None
+
+
+def _asks_json(encoding: str | None, params: str) -> bool:
+    """As `common/service.py` decides it: a JSON or text encoding, or `format=json`."""
+    enc = encoding or ""
+    pairs = dict(p.split("=", 1) if "=" in p else (p, "") for p in params.split(";") if p)
+    return enc.startswith(("application/json", "text/")) or pairs.get("format") == "json"
+
+
+def _path_rejection(case: fuzz.QueryCase, as_json: bool) -> str | None:
+    """The kind the planner counts a path query under (it answers refused requests with an
+    ordinary PathReply, so the reply does not say): as `PlannerService.on_path` decides."""
+    from smana.services.planner.service import request_from_params
+
+    try:
+        if case.payload:
+            if as_json:
+                m.from_json(case.payload, m.PathRequest)
+            else:
+                m.decode(case.payload, m.PathRequest)
+        else:
+            pairs = dict(p.split("=", 1) for p in case.params.split(";") if "=" in p)
+            request_from_params(pairs)
+    except m.MessageError as exc:
+        return exc.kind
+    return None
+
+
+def _reference_integrate(ref, table, cloud: m.SemanticCloud) -> None:
+    """What `MapperService.on_cloud` does with a cloud it accepts, on the reference map."""
+    labels, _ = table.sanitise(cloud.labels)
+    conf = cloud.confidences
+    if conf.size and (conf.min() < 0 or conf.max() > 1):
+        conf = np.clip(conf, 0.0, 1.0)
+    ref.integrate(cloud.points, labels, conf, cloud.sensor_position)
+
+
+def _reference_graph(config: SmanaConfig, table, snap: m.MapDelta):
+    from smana.services.navgraph.graph import NavGraph
+
+    nc = config.navgraph
+    g = NavGraph(table, nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.robot_radius_m,
+                 nc.tile_size, nc.column_capacity)  # fmt: skip
+    g.integrate_delta(snap)
+    cells, labels, heights, flags = g.export()
+    heights = np.where(np.isnan(heights) | ((flags & m.FLAG_KNOWN) == 0), 0.0, heights)
+    return cells, labels, heights.astype(np.float32), flags
+
+
+def _reference_plan(config: SmanaConfig, table, graph: m.GraphPatch, req) -> m.PathReply:
+    from smana.common.navgrid import NavGrid
+    from smana.services.planner.planner import Planner, PlannerParams
+    from smana.services.planner.service import reply_of
+
+    nc, pc = config.navgraph, config.planner
+    grid = NavGrid.from_bounds(nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.tile_size)
+    grid.apply_patch(graph.cells, graph.labels, graph.heights, graph.flags)
+    params = PlannerParams(pc.h_f, pc.t_f, pc.max_step_m, pc.unknown_cost, pc.heuristic)
+    return reply_of(req.request_id, Planner(grid, table, params).plan_request(req))
+
+
+def _rows(msg: m.Message) -> int:
+    for name in ("points", "centres", "cells"):
+        if hasattr(msg, name):
+            return len(getattr(msg, name))
+    return 1
+
+
+def _diff(now: dict, before: dict) -> dict:
+    out = {k: now.get(k, 0) - before.get(k, 0) for k in set(now) | set(before)}
+    return {k: v for k, v in sorted(out.items()) if v}
+
+
+def _files(root: Path, exclude: Path) -> set[str]:
+    out = set()
+    for dirpath, _dirs, names in os.walk(root):
+        if Path(dirpath).resolve().is_relative_to(exclude.resolve()):
+            continue
+        out |= {str(Path(dirpath, n).relative_to(root)) for n in names}
+    for p in (root.parent / "escape.npz", Path("/tmp/escape.npz")):
+        if p.exists():
+            out.add(str(p))
+    return out
+
+
+# -- the report ----------------------------------------------------------------------------------
+
+
+def table(r: Result) -> str:
+    lines = [f"smana bench fuzz: seed {r.seed}, {r.inputs} inputs over "
+             f"{', '.join(r.services)}", ""]  # fmt: skip
+    lines.append("| service:key | inputs | codec refuses (by kind) | accepted by codec | "
+                 "query replies |")  # fmt: skip
+    lines.append("|---|---:|---|---:|---|")
+    for name, k in sorted(r.keys.items()):
+        refused = ", ".join(f"{kind} {n}" for kind, n in sorted(k.codec.items())
+                            if kind != "accepted")  # fmt: skip
+        replies = ", ".join(f"{kind} {n}" for kind, n in sorted(k.replies.items()))
+        acc = k.codec.get("accepted", 0) if k.codec else "-"
+        if k.cloud_accepted:
+            acc = f"{acc} ({k.cloud_accepted} integrated)"
+        lines.append(f"| {name} | {k.inputs} | {refused or '-'} | {acc} | {replies or '-'} |")
+    lines += ["", "| service | received | sent by fuzz | by peers | accepted | dropped | "
+              "rejected (by kind) | crashes | exit |",
+              "|---|---:|---:|---:|---:|---|---|---:|---:|"]  # fmt: skip
+    for name, s in sorted(r.service_figures.items()):
+        rej = ", ".join(f"{k} {v}" for k, v in sorted(s.rejected.items()))
+        drop = ", ".join(f"{k} {v}" for k, v in sorted(s.dropped.items())) or "0"
+        crashes = s.rejected.get("internal", 0) + sum(
+            v for k, v in s.events.items() if k.startswith("internal"))  # fmt: skip
+        lines.append(f"| {name} | {s.msgs_in} | {s.mine} | {s.background} | {s.accepted} | "
+                     f"{drop} | {rej or '-'} | {crashes} | {s.exit_code} |")  # fmt: skip
+    lines += ["", "| check | result |", "|---|---|"]
+    lines += [f"| {k} | {'pass' if v else 'FAIL'} |" for k, v in r.checks.items()]
+    lines += ["", f"crashes: {r.crashes}; genuine clouds to recover: {r.recovery_clouds}",
+              f"wall {r.wall_s:.1f} s (" + ", ".join(f"{k} {v:.1f}" for k, v in
+                                                    r.phase_s.items()) + ")",
+              f"CPU {r.cpu_s:.1f} s (campaign, with the router) + {r.cpu_s_services:.1f} s "
+              f"(services); load average {_load(r.load_start)} at start, "
+              f"{_load(r.load_end)} at the end"]  # fmt: skip
+    if r.notes:
+        lines += ["", "notes:"] + [f"- {n}" for n in r.notes]
+    lines.append("")
+    lines.append("PASS" if r.ok else "FAIL")
+    return "\n".join(lines)
+
+
+def _load(la) -> str:
+    return "/".join(f"{x:.2f}" for x in la) if la else "?"
+
+
+def cli(argv: list[str] | None = None) -> int:
+    from smana.common.cli import ArgumentParser, non_negative_int, output_dir, positive_int
+
+    p = ArgumentParser(prog="smana bench fuzz", description=__doc__.split("\n\n")[0])
+    p.add_argument("--inputs", type=positive_int, default=10_000,
+                   help="fuzzed inputs (default 10000)")  # fmt: skip
+    p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
+    p.add_argument("--services", default=",".join(SERVICES),
+                   help=f"a subset of {','.join(SERVICES)} (default: all)")  # fmt: skip
+    p.add_argument("--oversize", type=non_negative_int, default=6,
+                   help="payloads over 64 MiB to send (default 6; they cost memory)")  # fmt: skip
+    p.add_argument("--out", default="runs/fuzz", help="folder for logs and fuzz.json")
+    args = p.parse_args(argv)
+    services = tuple(s.strip() for s in args.services.split(",") if s.strip())
+    unknown = set(services) - set(SERVICES)
+    if unknown or not {"mapper", "navgraph"} <= set(services):
+        p.error(f"--services: the mapper and navgraph are needed; known: {','.join(SERVICES)}")
+    run_dir = output_dir(Path(args.out) / time.strftime("%Y%m%d-%H%M%S"), "output folder", "--out")
+    campaign = Campaign(run_dir, args.inputs, args.seed, services, args.oversize, progress=True)
+    try:
+        result = campaign.run()
+    except CampaignError as exc:
+        print(f"smana bench fuzz: the campaign could not run: {exc}", file=sys.stderr)
+        return 1
+    text = table(result)
+    print(text)
+    (run_dir / "fuzz.md").write_text(text + "\n")
+    (run_dir / "fuzz.json").write_text(json.dumps(result.to_json(), indent=1, default=str))
+    print(f"\nwritten: {run_dir / 'fuzz.json'}")
+    return 0 if result.ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

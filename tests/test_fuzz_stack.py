@@ -1,0 +1,57 @@
+"""The fuzz campaign of `smana bench fuzz`, bounded: a few hundred fuzzed inputs over every key the
+mapper, navgraph, planner and explorer listen to and every query they answer, against the real
+services over an isolated loopback zenoh (the campaign's own router on a free port, multicast and
+gossip off). The simulator is left to the bench (PyBullet start-up is heavy).
+
+Checks (see `deploy/fuzz_bench.py`): no crash (`internal` rejection or event), no restart, books
+that add up to exactly what was sent, structural rejections as the codec predicts, state unchanged
+by refused input and equal to references fed exactly the accepted input, clean exit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from smana.common import keys
+from smana.common.messages import MAX_PAYLOAD_BYTES, ServiceStatus
+from smana.common.query import request
+from smana.deploy.fuzz_bench import Campaign, table
+
+pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
+
+
+def test_fuzz_every_key_and_query_of_the_stack(tmp_path):
+    campaign = Campaign(
+        tmp_path / "fuzz", inputs=300, seed=11,
+        services=("mapper", "navgraph", "planner", "explorer"), oversize=1,
+        startup_timeout_s=600.0, settle_timeout_s=120.0,  # counted from readiness / progress
+    )  # fmt: skip
+    result = campaign.run()
+    report = table(result)
+    assert result.crashes == 0, report
+    assert result.ok, report
+    assert set(result.keys) == {t.name for t in campaign.targets}, report
+    assert all(k.inputs > 0 for k in result.keys.values()), report
+    # refused input of several kinds reached every service
+    for name in ("mapper", "navgraph", "planner", "explorer"):
+        assert len(result.service_figures[name].rejected) >= 3, report
+
+
+ECHO = str(Path(__file__).parent / "support" / "echo_service.py")
+
+
+@pytest.mark.xfail(
+    strict=True, reason="found by smana bench fuzz, reported: common/service.py::_answer counts "
+    "an oversize query as rejected and returns without replying: the querier gets no reply at "
+    "all, not the error reply every other refusal gets",
+)  # fmt: skip
+def test_an_oversize_query_gets_an_error_reply(zenoh_stack):
+    st = zenoh_stack
+    st.start("echo", ECHO, *st.zenoh_args(), "--robot", st.robot)
+    st.wait_alive("echo")
+    replies = list(st.session.get(keys.key(st.robot, "echo", "count"),
+                                  payload=bytes(MAX_PAYLOAD_BYTES + 1), timeout=10.0))  # fmt: skip
+    status = request(st.session, keys.status(st.robot, "echo"))
+    assert isinstance(status, ServiceStatus) and status.rejected == {"oversize": 1}
+    assert replies and replies[0].err is not None
