@@ -263,12 +263,21 @@ class PathRequest(Message):
     max_step_m: float | None = scalar(None, 0.0, 1e6)
 
     def __post_init__(self):
-        # JSON object keys are strings: accept {"1": 4.0} as well as {1: 4.0}.
-        try:
-            self.class_costs = {int(k): float(v) for k, v in self.class_costs.items()}
-        except (TypeError, ValueError, AttributeError):
-            msg = "PathRequest.class_costs must map class ids to costs"
-            raise MessageError("value", msg) from None
+        # JSON object keys are strings: accept {"1": 4.0} as well as {1: 4.0}; nothing else
+        # (no "nan" strings, bools, fractional or negative ids).
+        msg = "PathRequest.class_costs must map class ids (>= 0) to finite costs >= 0"
+        if not isinstance(self.class_costs, dict):
+            raise MessageError("value", msg)
+        costs = {}
+        for k, v in self.class_costs.items():
+            if isinstance(k, str) and k.isdigit():
+                k = int(k)
+            if type(k) is not int or k < 0 or k > 65535:
+                raise MessageError("value", f"{msg}: id {k!r}")
+            if type(v) not in (int, float) or not math.isfinite(v) or v < 0:
+                raise MessageError("value", f"{msg}: cost {v!r} for class {k}")
+            costs[k] = float(v)
+        self.class_costs = costs
 
     JSON_OPTIONAL: ClassVar[tuple[str, ...]] = (
         "request_id",
@@ -442,7 +451,7 @@ def _from_dict(raw, expect, drop_nonfinite: bool, wire: bool) -> Message:
         if cls not in allowed:
             names = ", ".join(c.TYPE for c in allowed)
             raise MessageError("type", f"expected {names}, got {tname}")
-    if raw.get("_v") != SCHEMA_VERSION:
+    if type(raw.get("_v")) is not int or raw["_v"] != SCHEMA_VERSION:  # True == 1 == 1.0
         got = raw.get("_v")
         raise MessageError("version", f"{tname} v{got!r}, this build speaks v{SCHEMA_VERSION}")
 

@@ -56,8 +56,15 @@ class _AgreementGate:
     def _consistent(self, a: tuple, b: tuple) -> bool:
         raise NotImplementedError
 
+    def _fits(self, item: tuple) -> bool:
+        """Is `item` consistent with the established reference?"""
+        return self._consistent(self.ref, item)
+
     def _advance(self, item: tuple) -> None:
-        """An accepted item moves the reference (a clock only forward)."""
+        """An accepted item moves the reference."""
+        self.ref = item
+
+    def _lock(self, item: tuple) -> None:
         self.ref = item
 
     def _all_consistent(self, items) -> bool:
@@ -71,21 +78,22 @@ class _AgreementGate:
             self._candidates.append(item)
             recent = list(self._candidates)[-self.agree :]
             if len(recent) >= self.agree and self._all_consistent(recent):
-                self.locked, self.ref = True, item
+                self.locked = True
+                self._lock(item)
                 self._candidates.clear()
                 return Verdict(True)
             if self.accept_while_acquiring:
                 return Verdict(True)
             return Verdict(False, f"{settling} not yet established ({len(recent)} messages)",
                            kind="settling")  # fmt: skip
-        if self._consistent(self.ref, item):
+        if self._fits(item):
             self._advance(item)
             self._candidates.clear()
             return Verdict(True)
         # An outlier, or the first items of a new clock or place (a restarted simulator).
         self._candidates.append(item)
         if len(self._candidates) >= self.relock and self._all_consistent(self._candidates):
-            self.ref = item
+            self._lock(item)
             self._candidates.clear()
             self.resets += 1
             return Verdict(True, reset=True)
@@ -93,8 +101,10 @@ class _AgreementGate:
 
 
 class StampGate(_AgreementGate):
-    """Plausibility of one stream's stamps (see the module docstring). The reference is
-    (newest accepted stamp, the wall time it came)."""
+    """Plausibility of one stream's stamps (see the module docstring). The reference is the
+    newest accepted stamp and the wall time it came; the clock's upper bound rises with wall time
+    at `max_rate` from where the clock was set (locked), so that a burst of stamps each just
+    inside the window cannot walk the clock ahead."""
 
     def __init__(
         self,
@@ -108,6 +118,7 @@ class StampGate(_AgreementGate):
         super().__init__(agree, relock, accept_while_acquiring)
         self.window_s, self.max_rate = window_s, max_rate
         self._wall = clock
+        self._envelope = (0.0, 0.0)  # (stream time, wall time) the upper bound rises from
 
     @property
     def t(self) -> float | None:
@@ -123,6 +134,19 @@ class StampGate(_AgreementGate):
         (ta, wa), (tb, wb) = a, b
         return ta - self.window_s <= tb <= ta + self.window_s + self.max_rate * max(0.0, wb - wa)
 
+    def _high(self, now: float) -> float:
+        """The latest the stream's clock can plausibly be at wall time `now`: it rises at
+        `max_rate` from where it was set, whatever the messages since said."""
+        t0, w0 = self._envelope
+        return t0 + self.max_rate * max(0.0, now - w0)
+
+    def _fits(self, item: tuple) -> bool:
+        t, now = item
+        return self.ref[0] - self.window_s <= t <= self._high(now) + self.window_s
+
+    def _lock(self, item: tuple) -> None:
+        self.ref = self._envelope = item
+
     def _advance(self, item: tuple) -> None:
         if item[0] > self.ref[0]:
             self.ref = item
@@ -135,11 +159,10 @@ class StampGate(_AgreementGate):
         verdict = self._judge(item, "stream clock")
         if verdict is not None:
             return verdict
-        hi = self.t + self.window_s + self.max_rate * (now - self.t_wall)
         return Verdict(
             False,
-            f"stamp {item[0]:.6g} s outside [{self.t - self.window_s:.6g}, {hi:.6g}] "
-            "around the stream's clock",
+            f"stamp {item[0]:.6g} s outside [{self.t - self.window_s:.6g}, "
+            f"{self._high(now) + self.window_s:.6g}] around the stream's clock",
             kind="stamp",
         )
 
@@ -187,8 +210,10 @@ SEQUENCE = "sequence"  # gone back, or jumped more than max_jump ahead
 
 class SequenceFollower:
     """Follows one producer's numbered stream. `check(producer, seq)` says what to do with a
-    message; `want_resync` says why a resync from the producer's snapshot is needed (the caller
-    asks the snapshot and calls `synced` with the snapshot's producer and sequence number)."""
+    message and changes nothing but `want_resync` (why a resync from the producer's snapshot is
+    needed); `advance(producer, seq)` records a message once it was applied, so that one that
+    passes here but is refused by a later check (a bad payload) does not move the stream on. The
+    caller asks the snapshot and calls `synced` with its producer and sequence number."""
 
     def __init__(self, max_jump: int = 1000):
         self.max_jump = max_jump
@@ -215,7 +240,6 @@ class SequenceFollower:
         if self.producer is None:
             # Nothing synced yet (the producer did not answer at start): follow the first
             # producer seen, and ask for its snapshot unless this is the stream's first message.
-            self.producer, self.last = producer, seq
             if seq != 1:
                 self._ask(f"joined {producer[:8]}'s stream at {seq}")
             return APPLY, ""
@@ -230,9 +254,14 @@ class SequenceFollower:
         if seq > self.last + self.max_jump:
             self._ask(f"sequence jumped from {self.last} to {seq}")
             return SEQUENCE, f"sequence number {seq} jumps {seq - self.last} ahead of {self.last}"
-        why = ""
         if seq > self.last + 1:
             why = f"{seq - self.last - 1} messages missed before {seq}"
             self._ask(why)
-        self.last = seq
-        return APPLY, why
+            return APPLY, why
+        return APPLY, ""
+
+    def advance(self, producer: str, seq: int) -> None:
+        """A message `check` said to apply was applied."""
+        if self.producer is None:
+            self.producer = producer
+        self.last = int(seq)

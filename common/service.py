@@ -694,18 +694,17 @@ class Service:
     def _answer(self, handler, query, key: str) -> None:
         """Answer a query on the main loop. Replies go out on the queryable's own key, which a
         wider query (`smana/r1/**`) matches and an access-control policy allows."""
+        as_json = False
         try:
+            params, as_json = _query_form(query)
+            size = len(query.payload) if query.payload is not None else 0
+            if size > self.max_payload_bytes:  # refused before the payload is copied
+                raise MessageError("oversize", f"{size} bytes > {self.max_payload_bytes}")
             payload = query.payload.to_bytes() if query.payload is not None else None
-            if payload is not None and len(payload) > self.max_payload_bytes:
-                raise MessageError("oversize", f"{len(payload)} bytes")
-            params = dict(query.parameters) if query.parameters else {}
-            enc = str(query.encoding) if query.encoding is not None else ""
-            as_json = (
-                enc.startswith(("application/json", "text/")) or params.get("format") == "json"
-            )
             req = Request(str(query.key_expr), params, payload, as_json)
         except MessageError as exc:
             self._rejected(exc.kind, f"query: {exc}")
+            self._reply_err(query, exc.kind, str(exc), as_json)
             return
         except Exception as exc:  # noqa: BLE001 - a query zenoh hands us that we cannot read
             self._internal(exc, "reading a query")

@@ -82,9 +82,21 @@ def test_interleaved_spoofs_never_relock():
     assert gate.resets == 0
 
 
-def reference_window(t_clock, t_wall, stamp, now, window, rate):
-    """The rule as written in the docstring, for a locked gate."""
-    return t_clock - window <= stamp <= t_clock + window + rate * (now - t_wall)
+class ReferenceClock:
+    """The rule of a locked StampGate, written out plainly: a stamp is taken when it is no more
+    than `window` behind the newest one taken, nor more than `window` ahead of where the clock
+    can be: where it was set, plus `rate` times the wall time since."""
+
+    def __init__(self, t, wall, window, rate):
+        self.newest, self.t0, self.wall0 = t, t, wall
+        self.window, self.rate = window, rate
+
+    def take(self, stamp, now) -> bool:
+        high = self.t0 + self.rate * (now - self.wall0)
+        ok = self.newest - self.window <= stamp <= high + self.window
+        if ok:
+            self.newest = max(self.newest, stamp)
+        return ok
 
 
 def test_locked_gate_matches_the_rule_on_random_streams():
@@ -93,11 +105,24 @@ def test_locked_gate_matches_the_rule_on_random_streams():
         clock = FakeClock()
         gate = StampGate(window_s=1.0, max_rate=3.0, relock=10**9, clock=clock)
         fed(gate, clock, [0.0, 0.1, 0.2])
-        for _ in range(200):
+        ref = ReferenceClock(gate.t, gate.t_wall, 1.0, 3.0)
+        for _ in range(300):
             clock.t += rng.uniform(0, 0.5)
-            stamp = gate.t + rng.normal(0, 2.0)
-            expect = reference_window(gate.t, gate.t_wall, stamp, clock.t, 1.0, 3.0)
-            assert gate.check(stamp).ok == expect
+            stamp = gate.t + rng.normal(0.5, 2.0)
+            assert gate.check(stamp).ok == ref.take(stamp, clock.t)
+
+
+def test_a_burst_of_stamps_just_inside_the_window_cannot_walk_the_clock():
+    # each stamp 4.9 s ahead of the last, all at once, the genuine stream in between: this once
+    # walked the clock 490 s ahead in no time
+    clock = FakeClock()
+    gate = StampGate(window_s=5.0, max_rate=1.0, relock=5, clock=clock)
+    fed(gate, clock, [10.0, 10.05, 10.1])
+    for k in range(1, 100):
+        spoof = gate.check(10.1 + 4.9 * k)
+        assert spoof.ok == (k == 1)  # the first is inside the window, the rest beyond it
+        assert gate.check(10.1 + 0.001 * k).ok  # and the genuine stream goes on
+    assert gate.resets == 0
 
 
 def test_pose_gate_refuses_a_jump_and_follows_driving():
@@ -138,31 +163,46 @@ def test_pose_gate_matches_distance_rule():
         assert gate.check(t, p).ok == expect
 
 
+def follow(f: SequenceFollower, producer: str, seq: int) -> tuple[str, str]:
+    """check, and advance when the message is applied (as a service does)."""
+    action, why = f.check(producer, seq)
+    if action == APPLY:
+        f.advance(producer, seq)
+    return action, why
+
+
 def test_sequence_follows_one_producer():
     f = SequenceFollower(max_jump=100)
-    assert f.check("A", 1) == (APPLY, "")
-    assert f.check("A", 2) == (APPLY, "")
-    action, why = f.check("A", 5)  # a gap: applied, resync asked
+    assert follow(f, "A", 1) == (APPLY, "")
+    assert follow(f, "A", 2) == (APPLY, "")
+    action, why = follow(f, "A", 5)  # a gap: applied, resync asked
     assert action == APPLY and "2 messages missed" in why and f.want_resync
     f.synced("A", 7)
-    assert f.check("A", 6)[0] == COVERED  # in the snapshot
-    assert f.check("A", 8)[0] == APPLY and not f.want_resync
+    assert follow(f, "A", 6)[0] == COVERED  # in the snapshot
+    assert follow(f, "A", 8)[0] == APPLY and not f.want_resync
 
 
 def test_spoofed_numbers_neither_freeze_nor_wipe():
     f = SequenceFollower(max_jump=1000)
     f.synced("A", 10)
-    assert f.check("A", 11)[0] == APPLY
-    action, _ = f.check("A", 2**63 - 1)  # far ahead: refused, the stream goes on
+    assert follow(f, "A", 11)[0] == APPLY
+    action, _ = follow(f, "A", 2**63 - 1)  # far ahead: refused, the stream goes on
     assert action == SEQUENCE and f.want_resync
-    assert f.check("A", 12)[0] == APPLY
-    assert f.check("A", 11)[0] == SEQUENCE  # went back (after the snapshot): refused
-    assert f.check("B", 1)[0] == PRODUCER  # a stranger, or a restart: resync decides
+    assert follow(f, "A", 12)[0] == APPLY
+    assert follow(f, "A", 11)[0] == SEQUENCE  # went back (after the snapshot): refused
+    assert follow(f, "B", 1)[0] == PRODUCER  # a stranger, or a restart: resync decides
     f.synced("B", 3)  # the snapshot says B is the producer now (a restarted navgraph)
-    assert f.check("B", 4)[0] == APPLY
-    assert f.check("A", 13)[0] == PRODUCER
+    assert follow(f, "B", 4)[0] == APPLY
+    assert follow(f, "A", 13)[0] == PRODUCER
+
+
+def test_a_message_refused_after_the_sequence_check_does_not_move_the_stream():
+    f = SequenceFollower()
+    f.synced("A", 5)
+    assert f.check("A", 6)[0] == APPLY  # ...then its payload is refused: no advance
+    assert follow(f, "A", 6)[0] == APPLY  # the genuine 6 still applies
 
 
 def test_joining_mid_stream_asks_for_the_snapshot():
     f = SequenceFollower()
-    assert f.check("A", 40)[0] == APPLY and "joined" in f.want_resync
+    assert follow(f, "A", 40)[0] == APPLY and "joined" in f.want_resync

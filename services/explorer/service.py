@@ -234,9 +234,10 @@ class ExplorerService(Service):
             return ("dropped", "covered")
         if action != APPLY:
             raise Reject(action, f"graph patch {patch.seq}: {why}; resync asked")
+        self._apply(patch)
+        self.patches_in.advance(patch.producer, patch.seq)
         if self.patches_in.want_resync:
             self._need_sync = True  # a gap, or joined mid-stream: fetch the whole graph
-        self._apply(patch)
 
     def _check_geometry(self, patch: GraphPatch) -> None:
         if abs(patch.resolution_m - self.grid.resolution_m) > 1e-9 or not np.allclose(

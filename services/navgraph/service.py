@@ -220,9 +220,10 @@ class NavgraphService(Service):
             return ("dropped", "covered")
         if action != APPLY:
             raise Reject(action, f"map delta {delta.seq}: {why}; resync asked")
+        self._integrate(delta)  # checks the delta before it changes anything
+        self.deltas_in.advance(delta.producer, delta.seq)
         if why:  # applied across a gap; the resync fills it
             self.note("delta_gap", f"map deltas: {why}")
-        self._integrate(delta)
 
     def _integrate(self, delta: MapDelta) -> None:
         up = self.graph.integrate_delta(delta)  # checks its input before changing anything

@@ -29,7 +29,14 @@ import numpy as np
 from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
-from smana.common.messages import GraphPatch, MessageError, PathReply, PathRequest
+from smana.common.messages import (
+    SCHEMA_VERSION,
+    GraphPatch,
+    MessageError,
+    PathReply,
+    PathRequest,
+    from_dict,
+)
 from smana.common.navgrid import NavGrid
 from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
@@ -56,34 +63,34 @@ def reply_of(request_id: str, r: PlanResult) -> PathReply:
 
 
 def request_from_params(params: dict[str, str]) -> PathRequest:
-    """A PathRequest from selector parameters (start=x,y;goal=x,y and optional fields)."""
+    """A PathRequest from selector parameters (start=x,y;goal=x,y and optional fields), checked
+    by the codec like any other request."""
 
-    def point(name):
+    def numbers(name):
         try:
-            return np.array([float(v) for v in params[name].split(",")])
-        except KeyError:
-            raise MessageError("missing_field", f"PathRequest.{name}") from None
+            return [float(v) for v in params[name].split(",")]
         except ValueError:
             raise MessageError("value", f"{name} must be numbers separated by commas") from None
 
     def number(name):
         try:
-            return float(params[name]) if name in params else None
+            return float(params[name])
         except ValueError:
             raise MessageError("value", f"{name} must be a number") from None
 
-    allow = params.get("allow_unknown", "false").lower() in ("1", "true", "yes")
-    unknown_cost = number("unknown_cost")
-    return PathRequest(
-        request_id=params.get("request_id", ""),
-        start=point("start"),
-        goal=point("goal"),
-        h_f=number("h_f"),
-        t_f=number("t_f"),
-        allow_unknown=allow,
-        unknown_cost=2.0 if unknown_cost is None else unknown_cost,
-        max_step_m=number("max_step_m"),
-    )
+    raw: dict = {"_type": PathRequest.TYPE, "_v": SCHEMA_VERSION}
+    for name in ("start", "goal"):
+        if name not in params:
+            raise MessageError("missing_field", f"PathRequest.{name}")
+        raw[name] = numbers(name)
+    for name in ("h_f", "t_f", "unknown_cost", "max_step_m"):
+        if name in params:
+            raw[name] = number(name)
+    if "request_id" in params:
+        raw["request_id"] = params["request_id"]
+    if "allow_unknown" in params:
+        raw["allow_unknown"] = params["allow_unknown"].lower() in ("1", "true", "yes")
+    return from_dict(raw, PathRequest, wire=False)
 
 
 class PlannerService(Service):
@@ -199,10 +206,11 @@ class PlannerService(Service):
             return ("dropped", "covered")
         if action != APPLY:
             raise Reject(action, f"graph patch {patch.seq}: {why}; resync asked")
+        self._apply(patch)
+        self.patches_in.advance(patch.producer, patch.seq)
+        self.patches += 1
         if why:  # applied across a gap; the sync on the next tick fills it
             self.note("patch_gap", f"graph patches: {why}")
-        self._apply(patch)
-        self.patches += 1
 
     # -- path queries ------------------------------------------------------------------------
 
