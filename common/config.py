@@ -117,6 +117,10 @@ class DeployConfig:
     # compiling numba kernels on a cold cache: minutes on a loaded 2-core machine).
     health_timeout_s: float = _pos(default=30.0)
     startup_timeout_s: float = _pos(default=600.0)
+    # A service with `standby` gets its hot spare once it has been ready this long: a short run
+    # (a test, a quick experiment) never pays for spares, and the spares' imports never compete
+    # with the stack's own start-up on a 2-core machine.
+    standby_delay_s: float = _nonneg(default=20.0)
     stop_timeout_s: float = _pos(default=5.0)
     finish_with: str = "explorer"  # the run ends when this service exits with status 0
     sim: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
@@ -278,6 +282,9 @@ class PlannerConfig:
 @dataclass
 class ExplorerConfig:
     time_budget_s: float = _pos(default=480.0)  # robot (pose stamp) time, and wall time as well
+    # The budget starts with the first pose once a map and a planner are there; past the budget
+    # plus this, with neither, the explorer gives up (ends `no_graph` or `no_planner`).
+    startup_grace_s: float = _nonneg(default=120.0)
     enabled: bool = True
     control_rate_hz: float = _pos(default=10.0)
     # next-best-view scoring (services/explorer/frontier.py)

@@ -264,6 +264,8 @@ def run_warnings(metrics: dict, explored: bool) -> list[str]:
             out.append(f"no path query was ever answered with a path ({queries} asked: {detail})")
         if ee.get("done_reason") == "no_graph":
             out.append("the explorer never received a navigation graph (ended `no_graph`)")
+        if ee.get("done_reason") == "no_planner":
+            out.append("the explorer never saw a planner (ended `no_planner`)")
     if explored:
         ex = metrics.get("exploration") or {}
         dist = ex.get("distance_m", (ee or {}).get("distance_m"))

@@ -52,6 +52,7 @@ def _config(port: int, standby: bool, overrides: list[str]) -> SmanaConfig:
         "deploy.recorder.enabled=false",
         "explorer.time_budget_s=100000",
         "general.robot=bench",
+        "deploy.standby_delay_s=0",  # spares at once: the kills come every few seconds
         *[f"deploy.{s}.standby={'true' if standby else 'false'}" for s in SERVICES],
         *overrides,
     ]

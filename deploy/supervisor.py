@@ -82,6 +82,7 @@ class Managed:
     finished: bool = False  # exited and will not be restarted
     ever_ready: bool = False
     ready_s: list[float] = field(default_factory=list)  # start -> alive, each process
+    ready_at: float | None = None  # when the current process became ready
     back_s: list[float] = field(default_factory=list)  # end of a process -> next one alive
     exit_codes: list[int] = field(default_factory=list)
     spare: subprocess.Popen | None = None  # the standby process, when the policy asks for one
@@ -183,16 +184,20 @@ class Supervisor:
         m.started_at = time.monotonic()
         with self._lock:
             m.alive = m.starting = m.seen_alive = m.seen_starting = False
+            m.ready_at = None
         m.lost_at = None
 
     def _keep_spare(self, m: Managed) -> None:
-        """A ready service with `standby` gets a hot spare (started only once it is ready, so
-        the two never compile the same kernels at once on a cold cache)."""
+        """A ready service with `standby` gets a hot spare, `deploy.standby_delay_s` after it
+        became ready (so the two never compile the same kernels at once on a cold cache, and a
+        short run never pays for it)."""
         if m.spare is not None and m.spare.poll() is not None:
             log.warning("%s: its standby process exited with status %d", m.name,
                         m.spare.returncode)  # fmt: skip
             self._end_spare(m)
-        if m.spare is None and m.policy.standby and m.seen_alive and not self._stop.is_set():
+        ready_for = time.monotonic() - m.ready_at if m.ready_at is not None else -1.0
+        if (m.spare is None and m.policy.standby and ready_for >= self.config.deploy.standby_delay_s
+                and not self._stop.is_set()):  # fmt: skip
             m.spare = self._start_process(m, standby=True)
         if m.spare is not None and not m.spare.prepared:
             try:
@@ -322,6 +327,7 @@ class Supervisor:
             m.alive = up
             if up and not m.seen_alive:
                 m.seen_alive = m.ever_ready = True
+                m.ready_at = now
                 m.ready_s.append(now - m.started_at)
                 if m.down_at is not None:
                     m.back_s.append(now - m.down_at)

@@ -150,9 +150,10 @@ def test_a_recorder_behind_records_its_backlog_when_stopped(zenoh_stack, tmp_pat
         f'general.run_dir="{tmp_path / "run"}"',
     ])  # fmt: skip
     svc = recmod.RecorderService(cfg, tmp_path / "run" / "recording.rrd")
-    on_delta, release = svc.core.on_delta, threading.Event()
+    on_delta, release, holding = svc.core.on_delta, threading.Event(), threading.Event()
 
     def held_delta(delta):  # the first delta holds the recorder until the stop has come
+        holding.set()
         release.wait(30)
         on_delta(delta)
 
@@ -164,8 +165,13 @@ def test_a_recorder_behind_records_its_backlog_when_stopped(zenoh_stack, tmp_pat
         poses = zenoh_stack.publisher(keys.pose(robot))
         deltas = zenoh_stack.publisher(keys.map_delta(robot))
         n = 10
+        # the first delta first, and held: then everything else queues behind it (the two keys
+        # have no order between them, so the poses wait for the hold)
+        deltas.put(encode(_delta([[0.0, 0.05, 0.05]], [1], [1], 0.0)))
+        assert holding.wait(30)
         for i in range(n):
-            deltas.put(encode(_delta([[0.05 * i, 0.05, 0.05]], [1], [1], 0.1 * i)))
+            if i:
+                deltas.put(encode(_delta([[0.05 * i, 0.05, 0.05]], [1], [1], 0.1 * i)))
             poses.put(encode(Pose.from_xyz_yaw(0.1 * i, 0.0, 0.0, 0.0, stamp_s=0.1 * i)))
         assert wait_for(lambda: svc.books.received >= 2 * n, 30)
         assert "pose" not in svc.core.counts  # all of them queued behind the first delta

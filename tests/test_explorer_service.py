@@ -100,14 +100,16 @@ def stub_planner(session, robot, calls):
                           cost_total=length * 5.0, cost_distance=length)  # fmt: skip
         query.reply(query.key_expr, encode(reply))
 
-    return session.declare_queryable(keys.path_query(robot), on_query)
+    # a planner says it is there with its liveliness token: the explorer waits for one
+    token = session.liveliness().declare_token(keys.alive(robot, "planner"))
+    return session.declare_queryable(keys.path_query(robot), on_query), token
 
 
 def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(zenoh_stack, tmp_path):
     s = zenoh_stack.session
     robot = zenoh_stack.robot
     calls = []
-    planner = stub_planner(s, robot, calls)
+    planner, planner_token = stub_planner(s, robot, calls)
     bot = StubRobot(s, robot)
     run_dir = tmp_path / "run"
     proc = zenoh_stack.service(
@@ -173,3 +175,4 @@ def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(zenoh_s
     finally:
         bot.close()
         planner.undeclare()
+        planner_token.undeclare()

@@ -48,7 +48,6 @@ from smana.services.explorer.follower import FollowerConfig
 
 STATE_PERIOD_S = 0.5
 CHECKPOINT_PERIOD_S = 10.0  # state and trajectory saved for a restarted explorer to carry on
-STARTUP_GRACE_S = 120.0  # how long past the budget to wait for a first graph before giving up
 
 
 def params_from_config(cfg: ExplorerConfig) -> ExplorationParams:
@@ -128,6 +127,7 @@ class ExplorerService(Service):
         self._wall_spent0 = 0.0
         self._t_wall0: float | None = None
         self._t_created = time.monotonic()
+        self._planner_alive = 0  # planners whose liveliness token is up
         self._seq = 0
         self._next_state = 0.0
         self._next_checkpoint = time.monotonic() + CHECKPOINT_PERIOD_S
@@ -199,6 +199,9 @@ class ExplorerService(Service):
         self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
         self.subscribe(keys.pose(r), self.on_pose, Pose)
         self.queryable(keys.explorer_state(r), lambda req: self.core.state_dict())
+        self._declared.append(self.session.liveliness().declare_subscriber(
+            keys.alive(r, "planner"), self._on_planner_token, history=True
+        ))  # fmt: skip
         self._sync_graph()
 
     def _sync_graph(self) -> None:
@@ -226,6 +229,12 @@ class ExplorerService(Service):
         self.patches_in.synced(reply.producer, reply.seq)
         self._need_sync = False
         self.log.info("graph synced from navgraph: %d nodes", len(reply.cells))
+
+    def _on_planner_token(self, sample) -> None:
+        # a zenoh callback: count planners up (one per robot, or one on the base and the robot)
+        import zenoh
+
+        self._planner_alive += 1 if sample.kind == zenoh.SampleKind.PUT else -1
 
     def on_patch(self, patch: GraphPatch):
         self._check_geometry(patch)
@@ -294,13 +303,16 @@ class ExplorerService(Service):
             self.core.finish("time_budget")
             return
         waited = now - self._t_created
-        if self._t_wall0 is None and waited > self.cfg.time_budget_s + STARTUP_GRACE_S:
-            self.log.error("no navigation graph after %.0f s: giving up", waited)
-            self.core.finish("no_graph")
+        if self._t_wall0 is None and waited > self.cfg.time_budget_s + self.cfg.startup_grace_s:
+            missing = "planner" if self._planner_alive == 0 else "navigation graph"
+            self.log.error("no %s after %.0f s: giving up", missing, waited)
+            self.core.finish("no_planner" if self._planner_alive == 0 else "no_graph")
             return
         if self._need_sync and now >= self._next_sync:
             self._sync_graph()
-        if self._grid_dirty:
+        # The core gets a grid, and its budget starts, only once a planner is there to cost
+        # paths: on a cold numba cache the planner may be ready long after the map.
+        if self._grid_dirty and self._planner_alive > 0:
             self._refresh_grid()
         reason = self.core.wants_plan()
         if reason is not None and self.core.grid is not None:
