@@ -237,10 +237,16 @@ def test_spoofed_patch_numbers_neither_freeze_nor_wipe_the_planner(zenoh_stack):
     wrapped = msgpack.unpackb(encode(one_node))
     wrapped["seq"] = 2**64 - 1  # beyond int64: refused by the codec itself
     patches.put(msgpack.packb(wrapped))
-    assert wait_for(lambda: sum(status(stack, "planner").rejected.values()) >= 4)
+
+    def settled(st):
+        return sum(st.rejected.values()) + st.dropped.get("covered", 0)
+
+    assert wait_for(lambda: settled(status(stack, "planner")) >= 4)
     st = status(stack, "planner")
-    # far ahead and gone back: `sequence`; a stranger: `producer`; beyond int64: `value`
-    assert st.rejected == {"sequence": 2, "producer": 1, "value": 1}, st
+    # far ahead: `sequence`; a stranger: `producer`; beyond int64: `value`; gone back: `sequence`,
+    # or `covered` when the resync the first one asked for came before it (then seq 1 is in it)
+    assert st.rejected["producer"] == 1 and st.rejected["value"] == 1, st
+    assert st.rejected["sequence"] + st.dropped.get("covered", 0) == 2, st
     assert st.books_add_up(), st
 
     # Not wiped: the old graph answers as before; not frozen: the genuine next patch (the person
