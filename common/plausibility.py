@@ -226,9 +226,6 @@ class SequenceFollower:
         self.producer, self.last, self.synced_seq = producer, int(seq), int(seq)
         self.want_resync = ""
 
-    def reset(self) -> None:
-        self.producer = self.last = self.synced_seq = None
-
     def _ask(self, why: str) -> None:
         if not self.want_resync:
             self.want_resync = why

@@ -587,11 +587,6 @@ class Service:
                 self.books.in_flight += 1
             return payload
 
-    def pending(self) -> int:
-        """Messages received and not yet settled."""
-        with self.books.lock:
-            return self._pending_locked()
-
     def _pending_locked(self) -> int:
         slots = sum(1 for slot, _ in self._latest if slot.item is not None)
         return len(self._fifo) + slots + self.books.in_flight

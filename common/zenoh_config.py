@@ -99,6 +99,16 @@ def check_endpoint(endpoint: str) -> None:
                               f"from 0 to 65535, {_EXAMPLE}")  # fmt: skip
 
 
+def free_loopback_port() -> int:
+    """A TCP port nobody listens on now, on 127.0.0.1: for a stack of its own (a benchmark, an
+    experiment's runs, a test) that must not meet one already running on 7447."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def make_zenoh_config(zc: ZenohConfig):
     """Build a `zenoh.Config` from the [zenoh] section (ConfigError for what cannot work)."""
     import zenoh  # imported here so that cores and config code never need zenoh

@@ -41,6 +41,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
+from smana.common.zenoh_config import free_loopback_port
 from smana.deploy import evaluation as ev
 from smana.deploy import plots
 
@@ -411,7 +412,7 @@ def exploration_run(out: Path, seed: int, factor: float, s: ExplorationSettings,
         f"sim.seed={seed}", f"sim.size_m={s.size_m}", f"explorer.time_budget_s={s.budget_s}",
         f'explorer.class_costs=["grass={factor * terrain}"]', *s.extra,
     ]  # fmt: skip
-    port = _free_port()
+    port = free_loopback_port()
     argv = [sys.executable, "-m", "smana.deploy.cli", "up", "--run-dir", str(run_dir),
             "--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]']  # fmt: skip
     for item in sets:
@@ -426,14 +427,6 @@ def exploration_run(out: Path, seed: int, factor: float, s: ExplorationSettings,
         metrics = json.loads((run_dir / "metrics.json").read_text())
     log(f"seed {seed} grass x{factor:g}: exit {code}, {time.perf_counter() - t0:.0f} s")
     return code, metrics or {}
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def run_exploration(s: ExplorationSettings, out: Path, log=print) -> list[dict]:

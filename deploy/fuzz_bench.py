@@ -41,7 +41,6 @@ import os
 import random
 import resource
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -55,6 +54,7 @@ import numpy as np
 from smana.common import keys
 from smana.common import messages as m
 from smana.common.config import SmanaConfig
+from smana.common.zenoh_config import free_loopback_port
 from smana.deploy import fuzz
 
 SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim")
@@ -297,12 +297,6 @@ def fixed_request() -> m.PathRequest:
 # -- the stack -----------------------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class Stack:
     """A router in this process and the services as child processes (own process groups, killed
     with this process even by SIGKILL)."""
@@ -313,7 +307,7 @@ class Stack:
 
         self.out, self.config_path = out, config_path
         self.robot, self.sim_robot = robot, sim_robot
-        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
         zc = ZenohConfig(mode="router", connect=[], listen=[self.endpoint])
         self.session = open_router([self.endpoint], zc)
         self.procs: dict[str, subprocess.Popen] = {}

@@ -38,14 +38,6 @@ from smana.common.query import QueryError, request
 SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer")
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _config(port: int, standby: bool, overrides: list[str]) -> SmanaConfig:
     sets = [
         f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
@@ -114,10 +106,10 @@ def run_once(standby: bool, kills: int, settle_s: float, overrides: list[str], o
     import zenoh
 
     from smana.common.config import ZenohConfig
-    from smana.common.zenoh_config import make_zenoh_config
+    from smana.common.zenoh_config import free_loopback_port, make_zenoh_config
     from smana.deploy.supervisor import Supervisor
 
-    port = _free_port()
+    port = free_loopback_port()
     cfg = _config(port, standby, overrides)
     run_dir = out / ("standby" if standby else "respawn")
     sup = Supervisor(cfg, run_dir)
@@ -126,7 +118,7 @@ def run_once(standby: bool, kills: int, settle_s: float, overrides: list[str], o
     result: dict = {"standby": standby, "back_s": {s: [] for s in SERVICES}, "map": []}
     try:
         zc = ZenohConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"])
-        if not _wait(lambda: _port_open(port), 60):
+        if not _wait(lambda: sup.session is not None, 60):
             raise RuntimeError("the stack's router did not open")
         with zenoh.open(make_zenoh_config(zc)) as session:
             w = Watch(session, "bench")
@@ -165,16 +157,6 @@ def run_once(standby: bool, kills: int, settle_s: float, overrides: list[str], o
         sup.stop()
         thread.join(60)
     return result
-
-
-def _port_open(port: int) -> bool:
-    import socket
-
-    try:
-        with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-            return True
-    except OSError:
-        return False
 
 
 def _summary(r: dict) -> dict:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from smana.common.zenoh_config import free_loopback_port
 from smana.deploy.supervisor import die_with_parent
 
 REPO = Path(__file__).resolve().parents[1]
@@ -21,9 +22,7 @@ ROBOT = "test"
 
 
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    return free_loopback_port()
 
 
 def wait_for(pred, timeout_s: float = 20.0, step_s: float = 0.05) -> bool:

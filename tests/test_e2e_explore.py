@@ -6,22 +6,17 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from smana.common.zenoh_config import free_loopback_port
+
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
 REPO = Path(__file__).resolve().parents[1]
 BUDGET_S = 30.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def small_run_overrides(port: int, budget_s: float = BUDGET_S) -> list[str]:
@@ -61,7 +56,7 @@ def run_stack(run_dir: Path, overrides: list[str], timeout_s: float) -> int:
 
 def test_short_closed_loop_run(tmp_path):
     run_dir = tmp_path / "run"
-    code = run_stack(run_dir, small_run_overrides(_free_port()), BUDGET_S + 90)
+    code = run_stack(run_dir, small_run_overrides(free_loopback_port()), BUDGET_S + 90)
     logs = {p.name: p.read_text(errors="replace")[-3000:] for p in (run_dir / "logs").glob("*")}
     assert code == 0, logs
 

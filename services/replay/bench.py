@@ -24,7 +24,6 @@ import argparse
 import json
 import os
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -34,6 +33,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from smana.common.zenoh_config import free_loopback_port
 
 # Paper, RELLIS-3D 00000, C++ on a Xeon W-2123 (8 cores): map + graph seconds per scan.
 PAPER_S_PER_SCAN = {
@@ -66,12 +67,6 @@ class RunResult:
     wall_s: float = 0.0
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class Stack:
     """A router in this process, services as child processes (own process groups)."""
 
@@ -79,7 +74,7 @@ class Stack:
         from smana.common.config import ZenohConfig
         from smana.deploy.router import open_router
 
-        self.port = _free_port()
+        self.port = free_loopback_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.robot = robot
         self.log_dir = log_dir
