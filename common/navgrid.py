@@ -261,6 +261,14 @@ class NavGrid:
         flags[have] = self.flat("flags")[flat[have]]
         return labels, heights, flags
 
+    def geometry_mismatch(self, resolution_m: float, origin_xy) -> str:
+        """Why nodes laid out at `resolution_m` from `origin_xy` (a GraphPatch's) are not this
+        grid's nodes, or "" when they are."""
+        if abs(resolution_m - self.resolution_m) <= 1e-9 and np.allclose(origin_xy, self.origin_xy):
+            return ""
+        return (f"nodes at {resolution_m} m from {np.asarray(origin_xy).tolist()}, the grid's at "
+                f"{self.resolution_m} m from {self.origin_xy.tolist()}")  # fmt: skip
+
     def apply_patch(self, cells, labels, heights, flags) -> int:
         """Write nodes (allocating their tiles). Returns how many cells were out of bounds and
         skipped. A patch lists each node once; if one repeats, the last value wins."""

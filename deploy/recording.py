@@ -387,9 +387,7 @@ class RunRecorder:
 
     def on_patch(self, patch: GraphPatch) -> None:
         self._count("patch")
-        if abs(patch.resolution_m - self.grid.resolution_m) > 1e-9 or not np.allclose(
-            patch.origin_xy, self.grid.origin_xy
-        ):
+        if self.grid.geometry_mismatch(patch.resolution_m, patch.origin_xy):
             # follow the graph the navgraph actually builds
             self.grid = NavGrid(patch.origin_xy, self.grid.shape, patch.resolution_m)
         self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)

@@ -249,15 +249,8 @@ class ExplorerService(Service):
             self._need_sync = True  # a gap, or joined mid-stream: fetch the whole graph
 
     def _check_geometry(self, patch: GraphPatch) -> None:
-        if abs(patch.resolution_m - self.grid.resolution_m) > 1e-9 or not np.allclose(
-            patch.origin_xy, self.grid.origin_xy
-        ):
-            raise Reject(
-                "geometry",
-                f"graph patch at {patch.resolution_m} m from {patch.origin_xy.tolist()} does not "
-                f"match the explorer's grid ({self.grid.resolution_m} m from "
-                f"{self.grid.origin_xy.tolist()}): check [navgraph] in the config",
-            )
+        if why := self.grid.geometry_mismatch(patch.resolution_m, patch.origin_xy):
+            raise Reject("geometry", f"graph patch {patch.seq}: {why}; check [navgraph]")
 
     def _apply(self, patch: GraphPatch) -> None:
         n_out = self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)

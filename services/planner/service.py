@@ -182,16 +182,8 @@ class PlannerService(Service):
         self.planner = Planner(self.grid, self.classes, self.planner.params)
 
     def _check_geometry(self, patch: GraphPatch) -> None:
-        g = self.grid
-        if abs(patch.resolution_m - g.resolution_m) > 1e-9 or not np.allclose(
-            patch.origin_xy, g.origin_xy
-        ):
-            raise Reject(
-                "geometry",
-                f"graph patch at {patch.resolution_m} m from {patch.origin_xy.tolist()} does not "
-                f"match the planner's grid ({g.resolution_m} m from {g.origin_xy.tolist()}): "
-                "check [navgraph] in the config",
-            )
+        if why := self.grid.geometry_mismatch(patch.resolution_m, patch.origin_xy):
+            raise Reject("geometry", f"graph patch {patch.seq}: {why}; check [navgraph]")
 
     def _apply(self, patch: GraphPatch) -> None:
         n_out = self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
