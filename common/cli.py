@@ -54,9 +54,13 @@ def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
     p = ArgumentParser(prog=prog, description=description)
     p.add_argument("--config", "-c", metavar="FILE", help="smana TOML config")
     p.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
         help="override one config value, e.g. --set mapper.resolution_m=0.3 (repeatable)",
-    )  # fmt: skip
+    )
     p.add_argument("--robot", help="robot name, the <robot> segment of every key (default r1)")
     p.add_argument("--run-dir", help="directory for logs, saved state and the config used")
     p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"])

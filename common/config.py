@@ -125,15 +125,9 @@ class DeployConfig:
     finish_with: str = "explorer"  # the run ends when this service exits with status 0
     sim: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
     mapper: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
-    navgraph: ServiceDeployConfig = field(
-        default_factory=lambda: ServiceDeployConfig(standby=True)
-    )
-    planner: ServiceDeployConfig = field(
-        default_factory=lambda: ServiceDeployConfig(standby=True)
-    )
-    explorer: ServiceDeployConfig = field(
-        default_factory=lambda: ServiceDeployConfig(standby=True)
-    )
+    navgraph: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
+    planner: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
+    explorer: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
     recorder: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # Rerun .rrd
 
 

@@ -544,9 +544,11 @@ def _check_groups(tname, msg: Message, drop_nonfinite: bool) -> None:
         lengths = {name: len(getattr(msg, name)) for name, _ in members}
         if len(set(lengths.values())) > 1:
             raise MessageError("length", f"{tname}: array lengths disagree {lengths}")
-        checked = [(name, spec) for name, spec in members
-                   if spec.finite and getattr(msg, name).dtype.kind == "f"
-                   and getattr(msg, name).size]  # fmt: skip
+        checked = [
+            (name, spec)
+            for name, spec in members
+            if spec.finite and getattr(msg, name).dtype.kind == "f" and getattr(msg, name).size
+        ]
         if all(_all_within(getattr(msg, name), spec.limit) for name, spec in checked):
             continue  # the usual case, two reductions per array: no row to drop
         nonfinite = beyond = None

@@ -266,8 +266,10 @@ class NavGrid:
         grid's nodes, or "" when they are."""
         if abs(resolution_m - self.resolution_m) <= 1e-9 and np.allclose(origin_xy, self.origin_xy):
             return ""
-        return (f"nodes at {resolution_m} m from {np.asarray(origin_xy).tolist()}, the grid's at "
-                f"{self.resolution_m} m from {self.origin_xy.tolist()}")  # fmt: skip
+        return (
+            f"nodes at {resolution_m} m from {np.asarray(origin_xy).tolist()}, the grid's at "
+            f"{self.resolution_m} m from {self.origin_xy.tolist()}"
+        )
 
     def apply_patch(self, cells, labels, heights, flags) -> int:
         """Write nodes (allocating their tiles). Returns how many cells were out of bounds and

@@ -84,8 +84,9 @@ class _AgreementGate:
                 return Verdict(True)
             if self.accept_while_acquiring:
                 return Verdict(True)
-            return Verdict(False, f"{settling} not yet established ({len(recent)} messages)",
-                           kind="settling")  # fmt: skip
+            return Verdict(
+                False, f"{settling} not yet established ({len(recent)} messages)", kind="settling"
+            )
         if self._fits(item):
             self._advance(item)
             self._candidates.clear()

@@ -16,17 +16,38 @@ from pathlib import Path
 import numpy as np
 
 PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
+}
 # numpy kind+size -> the PLY type written; unsigned 16/32-bit widen to int (Open3D drops them)
 _WRITE_TYPES = {
-    "i1": ("char", "i1"), "u1": ("uchar", "u1"), "i2": ("int", "i4"), "u2": ("int", "i4"),
-    "i4": ("int", "i4"), "u4": ("int", "i4"), "i8": ("int", "i4"), "u8": ("int", "i4"),
-    "f2": ("float", "f4"), "f4": ("float", "f4"), "f8": ("double", "f8"), "b1": ("uchar", "u1"),
-}  # fmt: skip
+    "i1": ("char", "i1"),
+    "u1": ("uchar", "u1"),
+    "i2": ("int", "i4"),
+    "u2": ("int", "i4"),
+    "i4": ("int", "i4"),
+    "u4": ("int", "i4"),
+    "i8": ("int", "i4"),
+    "u8": ("int", "i4"),
+    "f2": ("float", "f4"),
+    "f4": ("float", "f4"),
+    "f8": ("double", "f8"),
+    "b1": ("uchar", "u1"),
+}
 
 
 class PlyError(ValueError):
@@ -38,8 +59,9 @@ class PlyError(ValueError):
         super().__init__(f"{path}: {problem}")
 
 
-def write_ply(path: str | Path, columns: dict[str, np.ndarray], comment: str = "",
-              binary: bool = True) -> None:  # fmt: skip
+def write_ply(
+    path: str | Path, columns: dict[str, np.ndarray], comment: str = "", binary: bool = True
+) -> None:
     """Write one vertex per row of `columns` (name -> array of N values), in that order.
 
     Integers wider than a byte are written as `int` (values must fit in int32). The file appears
@@ -128,8 +150,9 @@ class PlyHeader:
             raise PlyError(path, "PLY list properties before or in 'vertex' are not supported")
         self.skip_rows = sum(e[1] for e in elements[:k])  # only for ASCII
         order = ">" if self.format == "binary_big_endian" else "<"
-        self.skip_bytes = sum(e[1] * np.dtype([(n, order + t) for n, t in e[2]]).itemsize
-                              for e in elements[:k])  # fmt: skip
+        self.skip_bytes = sum(
+            e[1] * np.dtype([(n, order + t) for n, t in e[2]]).itemsize for e in elements[:k]
+        )
         self.n_vertices = elements[k][1]
         self.properties: dict[str, str] = dict(elements[k][2])
         self.dtype = np.dtype([(n, order + t) for n, t in elements[k][2]])
@@ -177,9 +200,11 @@ class PlyHeader:
         if problem is not None:
             raise PlyError(self.path, problem)
         return np.fromfile(
-            self.path, self.dtype, count=self.n_vertices,
+            self.path,
+            self.dtype,
+            count=self.n_vertices,
             offset=self.data_offset + self.skip_bytes,
-        )  # fmt: skip
+        )
 
 
 def read_ply(path: str | Path) -> np.ndarray:

@@ -325,8 +325,9 @@ class Service:
         """Heavy input: only the newest unhandled sample is kept; older ones are dropped as
         `stale` (a slow mapper skips old scans instead of falling behind)."""
         slot = _Latest()
-        self._latest.append((slot, lambda payload: self._handle_payload(
-            handler, expect, payload, drop_nonfinite)))  # fmt: skip
+        self._latest.append(
+            (slot, lambda payload: self._handle_payload(handler, expect, payload, drop_nonfinite))
+        )
 
         def on_sample(sample, _slot=slot):
             payload = self._received(sample)
@@ -388,8 +389,12 @@ class Service:
         sig = f"{type(exc).__name__}@{place}"
         if sig not in self._tracebacks_logged and len(self._tracebacks_logged) < 100:
             self._tracebacks_logged.add(sig)
-            self.log.error("%s: %s, message dropped, service goes on:\n%s", where,
-                           type(exc).__name__, traceback.format_exc())  # fmt: skip
+            self.log.error(
+                "%s: %s, message dropped, service goes on:\n%s",
+                where,
+                type(exc).__name__,
+                traceback.format_exc(),
+            )
         else:
             n = self.books.rejected["internal"]
             self._log_kind("internal", f"{where}: {type(exc).__name__}: {exc}", n)
@@ -425,12 +430,14 @@ class Service:
             try:
                 r = self.robot
                 self._status_pub = self.publisher(keys.status(r, self.name))
-                self._declared.append(session.declare_queryable(keys.status(r, self.name),
-                                                                self._on_status_query))  # fmt: skip
+                self._declared.append(
+                    session.declare_queryable(keys.status(r, self.name), self._on_status_query)
+                )
                 starting = session.liveliness().declare_token(keys.starting(r, self.name))
                 self._declared.append(starting)
-                threading.Thread(target=self._heartbeat, name="starting-status",
-                                 daemon=True).start()  # fmt: skip
+                threading.Thread(
+                    target=self._heartbeat, name="starting-status", daemon=True
+                ).start()
                 if not standby:
                     self.startup_step = "preparing (compiling or loading kernels)"
                     self.prepare()
@@ -450,8 +457,13 @@ class Service:
                     self._ready.set()  # ends the heartbeat thread
                     self._declared.remove(starting)
                     starting.undeclare()
-                    self.log.info("%s ready in %.1f s (robot %s, pid %d)", self.name,
-                                  self.ready_s, r, os.getpid())  # fmt: skip
+                    self.log.info(
+                        "%s ready in %.1f s (robot %s, pid %d)",
+                        self.name,
+                        self.ready_s,
+                        r,
+                        os.getpid(),
+                    )
                     self._loop()
             finally:
                 with self._status_lock:
@@ -649,9 +661,13 @@ class Service:
         """Decode, hand over, settle: whatever happens, the message ends in one counter and the
         loop goes on."""
         try:
-            msg = payload if expect is None else decode(
-                payload, expect, drop_nonfinite=drop_nonfinite, max_bytes=self.max_payload_bytes
-            )  # fmt: skip
+            msg = (
+                payload
+                if expect is None
+                else decode(
+                    payload, expect, drop_nonfinite=drop_nonfinite, max_bytes=self.max_payload_bytes
+                )
+            )
         except MessageError as exc:
             self._rejected(exc.kind, f"rejected {expect.TYPE}: {exc}")
             return
@@ -743,8 +759,13 @@ class Service:
             # message in flight is that query, which counts itself accepted.
             b = self.books
             queued = self._pending_locked() - b.in_flight
-            books = (b.received, b.accepted + b.in_flight, dict(b.dropped), dict(b.rejected),
-                     queued)  # fmt: skip
+            books = (
+                b.received,
+                b.accepted + b.in_flight,
+                dict(b.dropped),
+                dict(b.rejected),
+                queued,
+            )
         details = {"startup_step": self.startup_step} if starting else self.status_details()
         if self.ready_s is not None:
             details = {**details, "ready_s": round(self.ready_s, 3)}

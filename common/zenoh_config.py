@@ -27,25 +27,37 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("zenoh")
     g.add_argument("--mode", choices=["peer", "client", "router"], help="zenoh session mode")
     g.add_argument(
-        "--connect", "-e", action="append", metavar="ENDPOINT",
+        "--connect",
+        "-e",
+        action="append",
+        metavar="ENDPOINT",
         help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)",
-    )  # fmt: skip
+    )
     g.add_argument(
-        "--listen", "-l", action="append", metavar="ENDPOINT",
+        "--listen",
+        "-l",
+        action="append",
+        metavar="ENDPOINT",
         help="endpoint to listen on (repeatable)",
-    )  # fmt: skip
+    )
     g.add_argument(
-        "--zenoh-config", metavar="FILE",
+        "--zenoh-config",
+        metavar="FILE",
         help="zenoh JSON5 config file (TLS, access control, ...); the flags above override it",
-    )  # fmt: skip
+    )
     g.add_argument(
-        "--no-multicast-scouting", dest="multicast_scouting", action="store_false", default=None,
+        "--no-multicast-scouting",
+        dest="multicast_scouting",
+        action="store_false",
+        default=None,
         help="disable multicast scouting (the default)",
-    )  # fmt: skip
+    )
     g.add_argument(
-        "--multicast-scouting", dest="multicast_scouting", action="store_true",
+        "--multicast-scouting",
+        dest="multicast_scouting",
+        action="store_true",
         help="enable multicast scouting (find peers on the LAN)",
-    )  # fmt: skip
+    )
 
 
 def apply_zenoh_args(zc: ZenohConfig, args: argparse.Namespace) -> ZenohConfig:
@@ -86,17 +98,22 @@ def check_endpoint(endpoint: str) -> None:
     connect endpoint without a port would read as "nobody answers" there."""
     m = _ENDPOINT.fullmatch(endpoint)
     if not m:
-        raise ConfigError(f"{endpoint!r} is not a zenoh endpoint: expected <protocol>/<address>, "
-                          f"{_EXAMPLE}")  # fmt: skip
+        raise ConfigError(
+            f"{endpoint!r} is not a zenoh endpoint: expected <protocol>/<address>, {_EXAMPLE}"
+        )
     proto = m["proto"]
     if proto not in _PROTOCOLS:
-        raise ConfigError(f"endpoint {endpoint!r}: unknown protocol {proto!r} (zenoh speaks "
-                          f"{', '.join(_PROTOCOLS)}), {_EXAMPLE}")  # fmt: skip
+        raise ConfigError(
+            f"endpoint {endpoint!r}: unknown protocol {proto!r} (zenoh speaks "
+            f"{', '.join(_PROTOCOLS)}), {_EXAMPLE}"
+        )
     if proto in _IP_PROTOCOLS:
         host, sep, port = m["addr"].rpartition(":")
         if not (sep and host and port.isdigit() and int(port) <= 65535):
-            raise ConfigError(f"endpoint {endpoint!r}: expected {proto}/<host>:<port> with a port "
-                              f"from 0 to 65535, {_EXAMPLE}")  # fmt: skip
+            raise ConfigError(
+                f"endpoint {endpoint!r}: expected {proto}/<host>:<port> with a port "
+                f"from 0 to 65535, {_EXAMPLE}"
+            )
 
 
 def free_loopback_port() -> int:
@@ -270,8 +287,11 @@ def _apply_security(conf, zc: ZenohConfig) -> None:
     if zc.tls_ca or zc.tls_cert or zc.tls_key:
         if not (zc.tls_ca and zc.tls_cert and zc.tls_key):
             raise ConfigError("zenoh.tls_ca, tls_cert and tls_key go together")
-        ca, cert, key = (_require(zc.tls_ca, "tls_ca"), _require(zc.tls_cert, "tls_cert"),
-                         _require(zc.tls_key, "tls_key"))  # fmt: skip
+        ca, cert, key = (
+            _require(zc.tls_ca, "tls_ca"),
+            _require(zc.tls_cert, "tls_cert"),
+            _require(zc.tls_key, "tls_key"),
+        )
         tls = {
             "root_ca_certificate": ca,
             "listen_certificate": cert,

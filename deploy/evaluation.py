@@ -54,8 +54,13 @@ def nearest_gt(map_points, gt_points, tree=None) -> tuple[np.ndarray, np.ndarray
 def _summary(err: np.ndarray, ok: np.ndarray) -> dict:
     n = int(len(err))
     if n == 0:
-        return {"n_points": 0, "error_mean_m": None, "error_std_m": None,
-                "error_median_m": None, "classification_ratio": None}  # fmt: skip
+        return {
+            "n_points": 0,
+            "error_mean_m": None,
+            "error_std_m": None,
+            "error_median_m": None,
+            "classification_ratio": None,
+        }
     return {
         "n_points": n,
         "error_mean_m": float(err.mean()),
@@ -125,8 +130,9 @@ def sample_grid(grid: dict, xy: np.ndarray, layer: str = "flags") -> np.ndarray:
     `grid` holds `origin_xy`, `resolution_m` and dense layers indexed [ix, iy]; node (ix, iy)
     covers [origin + i * res, origin + (i + 1) * res)."""
     data = np.asarray(grid[layer])
-    ij = np.floor((np.asarray(xy, float) - np.asarray(grid["origin_xy"], float))
-                  / float(grid["resolution_m"])).astype(np.int64)  # fmt: skip
+    ij = np.floor(
+        (np.asarray(xy, float) - np.asarray(grid["origin_xy"], float)) / float(grid["resolution_m"])
+    ).astype(np.int64)
     inside = (ij >= 0).all(axis=-1) & (ij[..., 0] < data.shape[0]) & (ij[..., 1] < data.shape[1])
     out = np.zeros(ij.shape[:-1], data.dtype)
     out[inside] = data[ij[inside, 0], ij[inside, 1]]
@@ -175,8 +181,10 @@ def label_shares(labels: np.ndarray, class_names: dict[int, str]) -> dict[str, f
     if len(labels) == 0:
         return {}
     ids, counts = np.unique(labels, return_counts=True)
-    return {class_names.get(int(i), str(int(i))): float(c / len(labels)) for i, c in
-            zip(ids, counts, strict=True)}  # fmt: skip
+    return {
+        class_names.get(int(i), str(int(i))): float(c / len(labels))
+        for i, c in zip(ids, counts, strict=True)
+    }
 
 
 def terrain_share(labels: np.ndarray, terrain_id: int = 2, grass_id: int = 1) -> float | None:
@@ -251,8 +259,9 @@ def footprint_contacts(
         return out
     centres = np.asarray(origin_xy, float) + cells * resolution_m
     tree = cKDTree(centres)
-    reach = float(np.max(np.hypot(np.abs(rects[:, 0]) + rects[:, 2],
-                                  np.abs(rects[:, 1]) + rects[:, 3])))  # fmt: skip
+    reach = float(
+        np.max(np.hypot(np.abs(rects[:, 0]) + rects[:, 2], np.abs(rects[:, 1]) + rects[:, 3]))
+    )
     for k, near in enumerate(tree.query_ball_point(traj[:, :2], reach)):
         if not near:
             continue
@@ -356,8 +365,12 @@ def format_map_table(scores: dict) -> str:
     return "\n".join(lines)
 
 
-def eval_map_run(run_dir: Path, map_path: Path | None = None, gt_path: Path | None = None,
-                 spacing_m: float = 0.03) -> dict:  # fmt: skip
+def eval_map_run(
+    run_dir: Path,
+    map_path: Path | None = None,
+    gt_path: Path | None = None,
+    spacing_m: float = 0.03,
+) -> dict:
     """Evaluate a run directory's map; writes `eval_map.json` there and returns the scores."""
     from smana.common.classes import ClassTable
 
@@ -386,10 +399,15 @@ def cli(argv: list[str] | None = None) -> int:
     m = sub.add_parser("map", help="reconstruction error and classification ratio of a run's map")
     m.add_argument("run_dir", type=Path)
     m.add_argument("--map", type=Path, help="map file (PLY or .npz); default: found in RUN_DIR")
-    m.add_argument("--gt", type=Path, help="ground-truth labelled PLY; default: RUN_DIR/gt.ply "
-                   "or exported from the run's simulated world")  # fmt: skip
-    m.add_argument("--spacing", type=positive_float, default=0.03,
-                   help="GT sample spacing when exported")  # fmt: skip
+    m.add_argument(
+        "--gt",
+        type=Path,
+        help="ground-truth labelled PLY; default: RUN_DIR/gt.ply "
+        "or exported from the run's simulated world",
+    )
+    m.add_argument(
+        "--spacing", type=positive_float, default=0.03, help="GT sample spacing when exported"
+    )
     m.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = p.parse_args(argv)
     if not args.run_dir.is_dir():

@@ -50,8 +50,12 @@ LEVELS = ("none", "low", "medium", "high")
 # Localisation noise per level: standard deviation of x and y (m) and of yaw (rad), drawn afresh
 # for every frame. The paper's values are not legible in its Figure 6; these span "a good
 # odometry" to "a poor one" at the 5 cm map resolution.
-POSE_NOISE = {"none": (0.0, 0.0), "low": (0.02, 0.005), "medium": (0.05, 0.01),
-              "high": (0.10, 0.02)}  # fmt: skip
+POSE_NOISE = {
+    "none": (0.0, 0.0),
+    "low": (0.02, 0.005),
+    "medium": (0.05, 0.01),
+    "high": (0.10, 0.02),
+}
 PAPER_LABEL_LOSS = {"tsdf": 0.11, "octree-max": 0.30}  # classification loss, lowest -> highest
 PAPER_TERRAIN_SHARE = {1.0: 0.60, 2.0: 0.70, 4.0: 0.88}  # grass cost factor -> terrain share
 
@@ -59,8 +63,13 @@ PAPER_TERRAIN_SHARE = {1.0: 0.60, 2.0: 0.70, 4.0: 0.88}  # grass cost factor -> 
 # -- the fixed trajectory ------------------------------------------------------------------------
 
 
-def fixed_trajectory(world, length_m: float = 44.0, spacing_m: float = 0.25,
-                     clearance_m: float = 0.45, n_waypoints: int = 8) -> np.ndarray:  # fmt: skip
+def fixed_trajectory(
+    world,
+    length_m: float = 44.0,
+    spacing_m: float = 0.25,
+    clearance_m: float = 0.45,
+    n_waypoints: int = 8,
+) -> np.ndarray:
     """(K, 3) poses (x, y, yaw) every `spacing_m` along a collision-free tour of the garden.
 
     Waypoints are spread over the free space reachable from the spawn point (farthest-point
@@ -92,8 +101,9 @@ def fixed_trajectory(world, length_m: float = 44.0, spacing_m: float = 0.25,
         cols.append(idx[b[ok, 0], b[ok, 1]])
         wts.append(np.full(ok.sum(), math.hypot(di, dj) * res))
     n = len(cells)
-    graph = coo_matrix((np.concatenate(wts), (np.concatenate(rows), np.concatenate(cols))),
-                       shape=(n, n)).tocsr()  # fmt: skip
+    graph = coo_matrix(
+        (np.concatenate(wts), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    ).tocsr()
     start = int(idx[si, sj])
     # farthest-point sampling of waypoints, by path distance
     dist = dijkstra(graph, directed=False, indices=start)
@@ -154,8 +164,15 @@ class NoiseSettings:
 
     @classmethod
     def quick(cls) -> NoiseSettings:
-        return cls(size_m=12.0, length_m=6.0, spacing_m=0.6, image_px=160, resolution_m=0.1,
-                   gt_spacing_m=0.04, levels=("none", "high"))  # fmt: skip
+        return cls(
+            size_m=12.0,
+            length_m=6.0,
+            spacing_m=0.6,
+            image_px=160,
+            resolution_m=0.1,
+            gt_spacing_m=0.04,
+            levels=("none", "high"),
+        )
 
 
 def render_frames(world, poses: np.ndarray, image_px: int):
@@ -214,8 +231,9 @@ def run_noise(settings: NoiseSettings, out: Path, log=print) -> list[dict]:
 
     # the inputs of each configuration, shared by every back-end
     def inputs(label_level: str, pose_level: str):
-        rng = np.random.default_rng([settings.noise_seed, LEVELS.index(label_level),
-                                     LEVELS.index(pose_level)])  # fmt: skip
+        rng = np.random.default_rng(
+            [settings.noise_seed, LEVELS.index(label_level), LEVELS.index(pose_level)]
+        )
         deg = LabelDegrader(label_level, rng, classes.colour_lut)
         pn = PoseNoise(*POSE_NOISE[pose_level], rng)
         clouds = []
@@ -241,7 +259,9 @@ def run_noise(settings: NoiseSettings, out: Path, log=print) -> list[dict]:
             vox = m.occupied_voxels()
             scores = ev.evaluate_map(vox.centres, vox.labels, gp, gl, names, gt_tree=tree)
             row = {
-                "backend": backend, "sweep": sweep, "level": level,
+                "backend": backend,
+                "sweep": sweep,
+                "level": level,
                 "label_p": NOISE_LEVELS[label_level],
                 "pose_sigma_xy_m": POSE_NOISE[pose_level][0],
                 "pose_sigma_yaw_rad": POSE_NOISE[pose_level][1],
@@ -250,16 +270,24 @@ def run_noise(settings: NoiseSettings, out: Path, log=print) -> list[dict]:
                 "error_std_m": scores["reconstruction_error_std_m"],
                 "classification_ratio": scores["classification_ratio"],
                 "integrate_ms_per_frame": 1e3 * t_int / max(1, len(clouds)),
-                "per_class_ratio": {k: v["classification_ratio"]
-                                    for k, v in scores["per_true_class"].items()},
-            }  # fmt: skip
+                "per_class_ratio": {
+                    k: v["classification_ratio"] for k, v in scores["per_true_class"].items()
+                },
+            }
             rows.append(row)
-            log(f"{sweep:5s} {level:6s} {backend:12s} points {row['n_points']:7d} "
+            log(
+                f"{sweep:5s} {level:6s} {backend:12s} points {row['n_points']:7d} "
                 f"error {row['error_mean_m']:.4f} +- {row['error_std_m']:.4f} m "
-                f"ratio {row['classification_ratio']:.3f}")  # fmt: skip
+                f"ratio {row['classification_ratio']:.3f}"
+            )
         log(f"  ({time.perf_counter() - t1:.1f} s)")
-    meta = {"settings": asdict(settings), "trajectory_length_m": length, "frames": len(frames),
-            "pose_noise": POSE_NOISE, "seconds": time.perf_counter() - t0}  # fmt: skip
+    meta = {
+        "settings": asdict(settings),
+        "trajectory_length_m": length,
+        "frames": len(frames),
+        "pose_noise": POSE_NOISE,
+        "seconds": time.perf_counter() - t0,
+    }
     write_noise_outputs(rows, meta, out)
     return rows
 
@@ -267,8 +295,11 @@ def run_noise(settings: NoiseSettings, out: Path, log=print) -> list[dict]:
 def _by(rows, sweep, backend):
     sel = [r for r in rows if r["sweep"] == sweep and r["backend"] == backend]
     if sweep == "pose":  # the pose sweep's "none" is the label sweep's "none"
-        sel = [r for r in rows if r["sweep"] == "label" and r["backend"] == backend
-               and r["level"] == "none"] + sel  # fmt: skip
+        sel = [
+            r
+            for r in rows
+            if r["sweep"] == "label" and r["backend"] == backend and r["level"] == "none"
+        ] + sel
     return sorted(sel, key=lambda r: LEVELS.index(r["level"]))
 
 
@@ -280,10 +311,15 @@ def label_losses(rows) -> dict[str, dict]:
         sel = _by(rows, "label", b)
         if len(sel) >= 2:
             lo, hi = sel[0]["classification_ratio"], sel[-1]["classification_ratio"]
-            out[b] = {"from": sel[0]["level"], "to": sel[-1]["level"], "ratio_lowest": lo,
-                      "ratio_highest": hi, "loss_abs": lo - hi,
-                      "loss_rel": (lo - hi) / lo if lo else None,
-                      "paper_loss": PAPER_LABEL_LOSS.get(b)}  # fmt: skip
+            out[b] = {
+                "from": sel[0]["level"],
+                "to": sel[-1]["level"],
+                "ratio_lowest": lo,
+                "ratio_highest": hi,
+                "loss_abs": lo - hi,
+                "loss_rel": (lo - hi) / lo if lo else None,
+                "paper_loss": PAPER_LABEL_LOSS.get(b),
+            }
     return out
 
 
@@ -295,8 +331,9 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
         w.writeheader()
         w.writerows(flat)
     losses = label_losses(rows)
-    (out / "noise_results.json").write_text(json.dumps(
-        {"meta": meta, "rows": rows, "label_loss": losses}, indent=2))  # fmt: skip
+    (out / "noise_results.json").write_text(
+        json.dumps({"meta": meta, "rows": rows, "label_loss": losses}, indent=2)
+    )
     backends = sorted({r["backend"] for r in rows}, key=BACKENDS.index)
     ticks = {i: lv for i, lv in enumerate(LEVELS)}
 
@@ -304,24 +341,47 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
         out_s = []
         for b in backends:
             sel = _by(rows, sweep, b)
-            out_s.append(plots.Series(b, [LEVELS.index(r["level"]) for r in sel],
-                                      [r[key] for r in sel],
-                                      [r[err] for r in sel] if err else None))  # fmt: skip
+            out_s.append(
+                plots.Series(
+                    b,
+                    [LEVELS.index(r["level"]) for r in sel],
+                    [r[key] for r in sel],
+                    [r[err] for r in sel] if err else None,
+                )
+            )
         return out_s
 
     used = {i: t for i, t in ticks.items() if any(LEVELS.index(r["level"]) == i for r in rows)}
-    plots.save_png(out / "fig6_pose_noise_error.png", plots.line_plot(
-        series("pose", "error_mean_m", "error_std_m"),
-        "Reconstruction error vs localisation noise (Fig. 6)", "localisation noise level",
-        "error (m), mean +- std", used))  # fmt: skip
-    plots.save_png(out / "fig6_pose_noise_ratio.png", plots.line_plot(
-        series("pose", "classification_ratio"),
-        "Classification ratio vs localisation noise (Fig. 6)", "localisation noise level",
-        "classification ratio", used))  # fmt: skip
-    plots.save_png(out / "fig7_label_noise_ratio.png", plots.line_plot(
-        series("label", "classification_ratio"),
-        "Classification ratio vs label noise (Fig. 7)", "label noise level (p = 1, .9, .8, .7)",
-        "classification ratio", used))  # fmt: skip
+    plots.save_png(
+        out / "fig6_pose_noise_error.png",
+        plots.line_plot(
+            series("pose", "error_mean_m", "error_std_m"),
+            "Reconstruction error vs localisation noise (Fig. 6)",
+            "localisation noise level",
+            "error (m), mean +- std",
+            used,
+        ),
+    )
+    plots.save_png(
+        out / "fig6_pose_noise_ratio.png",
+        plots.line_plot(
+            series("pose", "classification_ratio"),
+            "Classification ratio vs localisation noise (Fig. 6)",
+            "localisation noise level",
+            "classification ratio",
+            used,
+        ),
+    )
+    plots.save_png(
+        out / "fig7_label_noise_ratio.png",
+        plots.line_plot(
+            series("label", "classification_ratio"),
+            "Classification ratio vs label noise (Fig. 7)",
+            "label noise level (p = 1, .9, .8, .7)",
+            "classification ratio",
+            used,
+        ),
+    )
     lines = [
         "# Noise experiment (paper Figures 6 and 7)",
         "",
@@ -337,12 +397,19 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        lines.append(f"| {r['sweep']} | {r['level']} | {r['backend']} | {r['n_points']} | "
-                     f"{r['error_mean_m']:.4f} | {r['error_std_m']:.4f} | "
-                     f"{r['classification_ratio']:.3f} |")  # fmt: skip
-    lines += ["", "## Classification loss from the lowest to the highest label noise", "",
-              "| back-end | ratio at lowest | ratio at highest | loss (points) | loss (relative) "
-              "| paper |", "|---|---|---|---|---|---|"]  # fmt: skip
+        lines.append(
+            f"| {r['sweep']} | {r['level']} | {r['backend']} | {r['n_points']} | "
+            f"{r['error_mean_m']:.4f} | {r['error_std_m']:.4f} | "
+            f"{r['classification_ratio']:.3f} |"
+        )
+    lines += [
+        "",
+        "## Classification loss from the lowest to the highest label noise",
+        "",
+        "| back-end | ratio at lowest | ratio at highest | loss (points) | loss (relative) "
+        "| paper |",
+        "|---|---|---|---|---|---|",
+    ]
     for b, d in losses.items():
         paper = f"{100 * d['paper_loss']:.0f} %" if d["paper_loss"] is not None else "-"
         lines.append(
@@ -351,24 +418,35 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
         )
     if "tsdf" in losses and "octree-max" in losses:
         more = losses["tsdf"]["loss_abs"] < losses["octree-max"]["loss_abs"]
-        lines += ["", f"Direction of the paper's effect (TSDF loses less than octree-max to label "
-                  f"noise): {'reproduced' if more else 'NOT reproduced'}."]  # fmt: skip
+        lines += [
+            "",
+            f"Direction of the paper's effect (TSDF loses less than octree-max to label "
+            f"noise): {'reproduced' if more else 'NOT reproduced'}.",
+        ]
     pose_growth = {}
     for b in backends:
         sel = _by(rows, "pose", b)
         if len(sel) >= 2:
             pose_growth[b] = sel[-1]["error_mean_m"] - sel[0]["error_mean_m"]
     if pose_growth:
-        lines += ["", "Reconstruction error added from the lowest to the highest localisation "
-                  "noise: " + ", ".join(f"{b} +{1000 * g:.1f} mm" for b, g in pose_growth.items())
-                  + "."]  # fmt: skip
+        lines += [
+            "",
+            "Reconstruction error added from the lowest to the highest localisation "
+            "noise: " + ", ".join(f"{b} +{1000 * g:.1f} mm" for b, g in pose_growth.items()) + ".",
+        ]
         if "tsdf" in pose_growth and "octree-max" in pose_growth:
             ok = pose_growth["tsdf"] < pose_growth["octree-max"]
-            lines.append("Direction of the paper's effect (TSDF more robust to localisation "
-                         f"noise): {'reproduced' if ok else 'NOT reproduced'}.")  # fmt: skip
-    lines += ["", "![fig6 error](fig6_pose_noise_error.png)",
-              "![fig6 ratio](fig6_pose_noise_ratio.png)",
-              "![fig7](fig7_label_noise_ratio.png)", ""]  # fmt: skip
+            lines.append(
+                "Direction of the paper's effect (TSDF more robust to localisation "
+                f"noise): {'reproduced' if ok else 'NOT reproduced'}."
+            )
+    lines += [
+        "",
+        "![fig6 error](fig6_pose_noise_error.png)",
+        "![fig6 ratio](fig6_pose_noise_ratio.png)",
+        "![fig7](fig7_label_noise_ratio.png)",
+        "",
+    ]
     (out / "noise_summary.md").write_text("\n".join(lines))
 
 
@@ -409,19 +487,31 @@ def exploration_run(out: Path, seed: int, factor: float, s: ExplorationSettings,
     robot = f"exp{os.getpid()}-s{seed}-x{factor:g}".replace(".", "_")
     sets = [
         f'general.robot="{robot}"',
-        f"sim.seed={seed}", f"sim.size_m={s.size_m}", f"explorer.time_budget_s={s.budget_s}",
-        f'explorer.class_costs=["grass={factor * terrain}"]', *s.extra,
-    ]  # fmt: skip
+        f"sim.seed={seed}",
+        f"sim.size_m={s.size_m}",
+        f"explorer.time_budget_s={s.budget_s}",
+        f'explorer.class_costs=["grass={factor * terrain}"]',
+        *s.extra,
+    ]
     port = free_loopback_port()
-    argv = [sys.executable, "-m", "smana.deploy.cli", "up", "--run-dir", str(run_dir),
-            "--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]']  # fmt: skip
+    argv = [
+        sys.executable,
+        "-m",
+        "smana.deploy.cli",
+        "up",
+        "--run-dir",
+        str(run_dir),
+        "--set",
+        f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
+    ]
     for item in sets:
         argv += ["--set", item]
     t0 = time.perf_counter()
     run_dir.mkdir(parents=True, exist_ok=True)
     with open(run_dir / "up.log", "w") as f:
-        code = subprocess.call(argv, stdout=f, stderr=subprocess.STDOUT,
-                               timeout=s.budget_s * 3 + 180)  # fmt: skip
+        code = subprocess.call(
+            argv, stdout=f, stderr=subprocess.STDOUT, timeout=s.budget_s * 3 + 180
+        )
     metrics = None
     if (run_dir / "metrics.json").is_file():
         metrics = json.loads((run_dir / "metrics.json").read_text())
@@ -436,14 +526,20 @@ def run_exploration(s: ExplorationSettings, out: Path, log=print) -> list[dict]:
             code, m = exploration_run(out, seed, factor, s, log)
             ex = m.get("exploration") or {}
             ee = m.get("explorer") or {}
-            rows.append({
-                "seed": seed, "grass_cost_factor": factor, "exit_code": code,
-                "terrain_share": ex.get("terrain_share"),
-                "coverage": ex.get("coverage"), "explored_area_m2": ex.get(
-                    "explored_reachable_area_m2"), "distance_m": ex.get("distance_m"),
-                "min_clearance_m": ex.get("min_clearance_m"),
-                "done_reason": ee.get("done_reason"), "wall_time_s": ee.get("wall_time_s"),
-            })  # fmt: skip
+            rows.append(
+                {
+                    "seed": seed,
+                    "grass_cost_factor": factor,
+                    "exit_code": code,
+                    "terrain_share": ex.get("terrain_share"),
+                    "coverage": ex.get("coverage"),
+                    "explored_area_m2": ex.get("explored_reachable_area_m2"),
+                    "distance_m": ex.get("distance_m"),
+                    "min_clearance_m": ex.get("min_clearance_m"),
+                    "done_reason": ee.get("done_reason"),
+                    "wall_time_s": ee.get("wall_time_s"),
+                }
+            )
             log(f"  terrain share {rows[-1]['terrain_share']}, coverage {rows[-1]['coverage']}")
     write_exploration_outputs(rows, s, out)
     return rows
@@ -459,10 +555,19 @@ def summarise_exploration(rows: list[dict]) -> list[dict]:
             return (float(v.mean()), float(v.std())) if len(v) else (None, None)
 
         ts, cov, dist = stat("terrain_share"), stat("coverage"), stat("distance_m")
-        out.append({"grass_cost_factor": f, "runs": len(sel), "terrain_share_mean": ts[0],
-                    "terrain_share_std": ts[1], "coverage_mean": cov[0], "coverage_std": cov[1],
-                    "distance_mean_m": dist[0], "distance_std_m": dist[1],
-                    "paper_terrain_share": PAPER_TERRAIN_SHARE.get(f)})  # fmt: skip
+        out.append(
+            {
+                "grass_cost_factor": f,
+                "runs": len(sel),
+                "terrain_share_mean": ts[0],
+                "terrain_share_std": ts[1],
+                "coverage_mean": cov[0],
+                "coverage_std": cov[1],
+                "distance_mean_m": dist[0],
+                "distance_std_m": dist[1],
+                "paper_terrain_share": PAPER_TERRAIN_SHARE.get(f),
+            }
+        )
     return out
 
 
@@ -473,20 +578,34 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationSettings, out: Pat
         w.writeheader()
         w.writerows(rows)
     summary = summarise_exploration(rows)
-    (out / "exploration_results.json").write_text(json.dumps(
-        {"settings": asdict(s), "runs": rows, "summary": summary}, indent=2))  # fmt: skip
+    (out / "exploration_results.json").write_text(
+        json.dumps({"settings": asdict(s), "runs": rows, "summary": summary}, indent=2)
+    )
     xs = [d["grass_cost_factor"] for d in summary]
     ok = [d for d in summary if d["terrain_share_mean"] is not None]
-    series = [plots.Series("smana (mean +- std over seeds)", [d["grass_cost_factor"] for d in ok],
-                           [d["terrain_share_mean"] for d in ok],
-                           [d["terrain_share_std"] for d in ok])]  # fmt: skip
+    series = [
+        plots.Series(
+            "smana (mean +- std over seeds)",
+            [d["grass_cost_factor"] for d in ok],
+            [d["terrain_share_mean"] for d in ok],
+            [d["terrain_share_std"] for d in ok],
+        )
+    ]
     paper = [(f, v) for f, v in PAPER_TERRAIN_SHARE.items() if f in xs]
     if paper:
-        series.append(plots.Series("paper", [f for f, _ in paper], [v for _, v in paper],
-                                   dashed=True))  # fmt: skip
-    plots.save_png(out / "exploration_terrain_share.png", plots.line_plot(
-        series, "Travelled nodes on terrain vs grass cost", "grass cost factor (x terrain)",
-        "terrain share", {f: f"x{f:g}" for f in xs}))  # fmt: skip
+        series.append(
+            plots.Series("paper", [f for f, _ in paper], [v for _, v in paper], dashed=True)
+        )
+    plots.save_png(
+        out / "exploration_terrain_share.png",
+        plots.line_plot(
+            series,
+            "Travelled nodes on terrain vs grass cost",
+            "grass cost factor (x terrain)",
+            "terrain share",
+            {f: f"x{f:g}" for f in xs},
+        ),
+    )
     lines = [
         "# Exploration experiment (paper 4.3)",
         "",
@@ -501,16 +620,22 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationSettings, out: Pat
 
     for d in summary:
         paper_v = d["paper_terrain_share"]
-        lines.append(f"| x{d['grass_cost_factor']:g} | {d['runs']} | "
-                     f"{pm(d['terrain_share_mean'], d['terrain_share_std'], 100)} % | "
-                     f"{'-' if paper_v is None else f'{100 * paper_v:.0f} %'} | "
-                     f"{pm(d['coverage_mean'], d['coverage_std'], 100)} % | "
-                     f"{pm(d['distance_mean_m'], d['distance_std_m'])} |")  # fmt: skip
+        lines.append(
+            f"| x{d['grass_cost_factor']:g} | {d['runs']} | "
+            f"{pm(d['terrain_share_mean'], d['terrain_share_std'], 100)} % | "
+            f"{'-' if paper_v is None else f'{100 * paper_v:.0f} %'} | "
+            f"{pm(d['coverage_mean'], d['coverage_std'], 100)} % | "
+            f"{pm(d['distance_mean_m'], d['distance_std_m'])} |"
+        )
     shares = [d["terrain_share_mean"] for d in summary if d["terrain_share_mean"] is not None]
     if len(shares) >= 2:
         rising = all(b >= a for a, b in zip(shares[:-1], shares[1:], strict=True))
-        lines += ["", "Direction of the paper's effect (terrain share rises with the grass cost): "
-                  + ("reproduced" if rising else "NOT reproduced") + "."]  # fmt: skip
+        lines += [
+            "",
+            "Direction of the paper's effect (terrain share rises with the grass cost): "
+            + ("reproduced" if rising else "NOT reproduced")
+            + ".",
+        ]
     lines += ["", "![terrain share](exploration_terrain_share.png)", ""]
     (out / "exploration_summary.md").write_text("\n".join(lines))
 
@@ -534,8 +659,13 @@ def cli(argv: list[str] | None = None) -> int:
     e.add_argument("--out", type=Path)
     e.add_argument("--seeds", type=positive_int, help="number of world seeds (3, 4, ...)")
     e.add_argument("--budget", type=positive_float, help="time budget per run, seconds")
-    e.add_argument("--set", dest="extra", action="append", default=[],
-                   help="extra config override for every run")  # fmt: skip
+    e.add_argument(
+        "--set",
+        dest="extra",
+        action="append",
+        default=[],
+        help="extra config override for every run",
+    )
     args = p.parse_args(argv)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     out = args.out or Path("runs") / f"experiment-{args.which}-{stamp}"

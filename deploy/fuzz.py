@@ -58,9 +58,15 @@ from smana.common.messages import (
 )
 
 MESSAGE_TYPES: tuple[type[m.Message], ...] = (
-    m.Pose, m.SemanticCloud, m.VelocityCommand, m.MapDelta, m.GraphPatch, m.PathRequest,
-    m.PathReply, m.ServiceStatus,
-)  # fmt: skip
+    m.Pose,
+    m.SemanticCloud,
+    m.VelocityCommand,
+    m.MapDelta,
+    m.GraphPatch,
+    m.PathRequest,
+    m.PathReply,
+    m.ServiceStatus,
+)
 
 
 # -- sources of choices ---------------------------------------------------------------------------
@@ -132,55 +138,217 @@ NAN, INF = float("nan"), float("inf")
 # Scalars of every sort a field may receive instead of its own (all msgpack- and JSON-packable
 # except where noted in `_packable`).
 WILD_SCALARS: tuple[Any, ...] = (
-    0, 1, -1, 0.0, -0.0, 0.5, 1e-300, 5e-324, 1e300, -1e300, NAN, INF, -INF,
-    2**31 - 1, 2**31, 2**53 + 1, 2**63 - 1, 2**63, 2**64 - 1, -(2**63), -(2**63) - 1,
-    True, False, None, "", "1", "1.0", "nan", "inf", "world", "0x10", " 1 ", "\u00e9\u6f22",
-    b"", b"\x00\xff", [], [1, 2, 3], [NAN], {}, {"a": 1}, {"a": NAN}, {"a": {"b": INF}},
-    {"a": [NAN]}, {1: 2.0}, {"1": "x"}, {"1": "nan"}, {"2": 1e300},
-)  # fmt: skip
+    0,
+    1,
+    -1,
+    0.0,
+    -0.0,
+    0.5,
+    1e-300,
+    5e-324,
+    1e300,
+    -1e300,
+    NAN,
+    INF,
+    -INF,
+    2**31 - 1,
+    2**31,
+    2**53 + 1,
+    2**63 - 1,
+    2**63,
+    2**64 - 1,
+    -(2**63),
+    -(2**63) - 1,
+    True,
+    False,
+    None,
+    "",
+    "1",
+    "1.0",
+    "nan",
+    "inf",
+    "world",
+    "0x10",
+    " 1 ",
+    "\u00e9\u6f22",
+    b"",
+    b"\x00\xff",
+    [],
+    [1, 2, 3],
+    [NAN],
+    {},
+    {"a": 1},
+    {"a": NAN},
+    {"a": {"b": INF}},
+    {"a": [NAN]},
+    {1: 2.0},
+    {"1": "x"},
+    {"1": "nan"},
+    {"2": 1e300},
+)
 
 WILD_STRINGS: tuple[str, ...] = (
-    "", " ", "world ", "World", "odom", "map", "\x00", "world\x00", "../../etc/passwd", "*", "**",
-    "$*", "a/b", "\u202e", "\U0001f916" * 10, "x" * 10_000,
-)  # fmt: skip
+    "",
+    " ",
+    "world ",
+    "World",
+    "odom",
+    "map",
+    "\x00",
+    "world\x00",
+    "../../etc/passwd",
+    "*",
+    "**",
+    "$*",
+    "a/b",
+    "\u202e",
+    "\U0001f916" * 10,
+    "x" * 10_000,
+)
 
 # dtype strings for an array's "dtype": other kinds, other byte orders, aliases (some of them are
 # valid spellings of an allowed dtype: the codec must accept those), nonsense.
 DTYPES: tuple[Any, ...] = (
-    "<f4", ">f4", "=f4", "|f4", "f4", "float32", "single", "<f8", ">f8", "f8", "d", "<f2",
-    "<i4", ">i4", "i4", "<i8", "<u2", ">u2", "u2", "|u1", "u1", "uint8", "|b1", "?", "|i1",
-    "<c8", "<c16", "|O", "O", "object", "<U4", "|S4", "|V4", "V12", "<M8[s]", "<m8[ns]",
-    "", "xyz", "f", "<f3", "<f4 ", "f4,f4", "(3,)f4", "<f16", 5, 4.0, None, True, [], {},
-    [["a", "<f4"]], [["x", "<f4"], ["y", "<f4"], ["z", "<f4"]], {"names": ["a"], "formats": []},
-    b"<f4", "\u00e9",
-)  # fmt: skip
+    "<f4",
+    ">f4",
+    "=f4",
+    "|f4",
+    "f4",
+    "float32",
+    "single",
+    "<f8",
+    ">f8",
+    "f8",
+    "d",
+    "<f2",
+    "<i4",
+    ">i4",
+    "i4",
+    "<i8",
+    "<u2",
+    ">u2",
+    "u2",
+    "|u1",
+    "u1",
+    "uint8",
+    "|b1",
+    "?",
+    "|i1",
+    "<c8",
+    "<c16",
+    "|O",
+    "O",
+    "object",
+    "<U4",
+    "|S4",
+    "|V4",
+    "V12",
+    "<M8[s]",
+    "<m8[ns]",
+    "",
+    "xyz",
+    "f",
+    "<f3",
+    "<f4 ",
+    "f4,f4",
+    "(3,)f4",
+    "<f16",
+    5,
+    4.0,
+    None,
+    True,
+    [],
+    {},
+    [["a", "<f4"]],
+    [["x", "<f4"], ["y", "<f4"], ["z", "<f4"]],
+    {"names": ["a"], "formats": []},
+    b"<f4",
+    "\u00e9",
+)
 
 # Shapes for an array's "shape", some as functions of the true row count n.
 SHAPES: tuple[Callable[[int], Any], ...] = (
-    lambda n: [2**32, 2**32], lambda n: [2**32, 2**32, 0], lambda n: [2**63, 0],
-    lambda n: [2**64 - 1], lambda n: [2**63 - 1, 3], lambda n: [-1, 3], lambda n: [-(2**63)],
-    lambda n: [n, -3], lambda n: [0], lambda n: [0, 3], lambda n: [], lambda n: [n, 3, 1],
-    lambda n: [n + 1, 3], lambda n: [max(n - 1, 0), 3], lambda n: [n, 2], lambda n: [n, 4],
-    lambda n: [n], lambda n: [3 * n], lambda n: [1, n, 3], lambda n: [str(n), 3],
-    lambda n: [float(n), 3.0], lambda n: [True, 3], lambda n: None, lambda n: str(n),
-    lambda n: {}, lambda n: [[n], [3]], lambda n: [MAX_PAYLOAD_BYTES + 1, 0],
-    lambda n: [0, 2**40], lambda n: [2**31, 2**31, 0], lambda n: (n, 3),
-)  # fmt: skip
+    lambda n: [2**32, 2**32],
+    lambda n: [2**32, 2**32, 0],
+    lambda n: [2**63, 0],
+    lambda n: [2**64 - 1],
+    lambda n: [2**63 - 1, 3],
+    lambda n: [-1, 3],
+    lambda n: [-(2**63)],
+    lambda n: [n, -3],
+    lambda n: [0],
+    lambda n: [0, 3],
+    lambda n: [],
+    lambda n: [n, 3, 1],
+    lambda n: [n + 1, 3],
+    lambda n: [max(n - 1, 0), 3],
+    lambda n: [n, 2],
+    lambda n: [n, 4],
+    lambda n: [n],
+    lambda n: [3 * n],
+    lambda n: [1, n, 3],
+    lambda n: [str(n), 3],
+    lambda n: [float(n), 3.0],
+    lambda n: [True, 3],
+    lambda n: None,
+    lambda n: str(n),
+    lambda n: {},
+    lambda n: [[n], [3]],
+    lambda n: [MAX_PAYLOAD_BYTES + 1, 0],
+    lambda n: [0, 2**40],
+    lambda n: [2**31, 2**31, 0],
+    lambda n: (n, 3),
+)
 
 
 # Maps for map-typed fields (class costs, status details): ids and costs as strings, bools,
 # negative and fractional ids, NaN hidden in a string, nested NaN, values of the wrong type.
 WILD_MAPS: tuple[dict, ...] = (
-    {"1": "nan"}, {"1": "inf"}, {"2": "-1e999"}, {True: 1.0}, {1: True}, {-5: 1.0}, {1.5: 2.0},
-    {"x": 1}, {1: None}, {1: [1]}, {1: {"a": NAN}}, {1: NAN}, {1: -INF}, {2**64 - 1: 1.0},
-    {"1": " 2 "}, {"0x1": 1.0}, {INF: 1.0}, {NAN: 1.0}, {b"1": 1.0}, {"": 0}, {"1": 1e300},
+    {"1": "nan"},
+    {"1": "inf"},
+    {"2": "-1e999"},
+    {True: 1.0},
+    {1: True},
+    {-5: 1.0},
+    {1.5: 2.0},
+    {"x": 1},
+    {1: None},
+    {1: [1]},
+    {1: {"a": NAN}},
+    {1: NAN},
+    {1: -INF},
+    {2**64 - 1: 1.0},
+    {"1": " 2 "},
+    {"0x1": 1.0},
+    {INF: 1.0},
+    {NAN: 1.0},
+    {b"1": 1.0},
+    {"": 0},
+    {"1": 1e300},
     {str(i): float(i) for i in range(300)},
-)  # fmt: skip
+)
 
 
 def wild_float(d: Draw) -> float:
-    return d.choice((NAN, INF, -INF, 1e300, -1e300, 3.5e38, -3.5e38, 1e-45, -0.0, 0.0, 1e6,
-                     -1e6, 1e6 + 1.0, COORD_LIMIT_M * 1.0000001, STAMP_LIMIT_S + 1.0))  # fmt: skip
+    return d.choice(
+        (
+            NAN,
+            INF,
+            -INF,
+            1e300,
+            -1e300,
+            3.5e38,
+            -3.5e38,
+            1e-45,
+            -0.0,
+            0.0,
+            1e6,
+            -1e6,
+            1e6 + 1.0,
+            COORD_LIMIT_M * 1.0000001,
+            STAMP_LIMIT_S + 1.0,
+        )
+    )
 
 
 def wild_scalar(d: Draw) -> Any:
@@ -198,8 +366,10 @@ def wild_value(d: Draw, depth: int = 0) -> Any:
         return d.blob(d.choice((0, 1, 7, 300)))
     if k <= 7:
         return [wild_value(d, depth + 1) for _ in range(d.integer(0, 4))]
-    return {d.choice(("a", "box", "name", "x", "y", "points", "_type", 1)): wild_value(d, depth + 1)
-            for _ in range(d.integer(0, 4))}  # fmt: skip
+    return {
+        d.choice(("a", "box", "name", "x", "y", "points", "_type", 1)): wild_value(d, depth + 1)
+        for _ in range(d.integer(0, 4))
+    }
 
 
 def _fields(cls) -> list[dataclasses.Field]:
@@ -236,14 +406,20 @@ def plausible(cls: type[m.Message], d: Draw, ctx: Context) -> m.Message:
         n = d.choice((0, 1, 3, 16, 64, 256, ctx.max_points))
         lab_dt = d.choice((np.uint8, np.uint16))
         return m.SemanticCloud(
-            stamp, seq, _points(rng, ctx, n), rng.choice(np.array(ctx.labels), n).astype(lab_dt),
+            stamp,
+            seq,
+            _points(rng, ctx, n),
+            rng.choice(np.array(ctx.labels), n).astype(lab_dt),
             rng.uniform(0.3, 1.0, n).astype(np.float32),
-            np.array([(x0 + x1) / 2, (y0 + y1) / 2, 1.0]), _yaw_quat(yaw), "world",
+            np.array([(x0 + x1) / 2, (y0 + y1) / 2, 1.0]),
+            _yaw_quat(yaw),
+            "world",
             d.choice(("camera", "lidar")),
-        )  # fmt: skip
+        )
     if cls is m.VelocityCommand:
-        return m.VelocityCommand(stamp, seq, float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)),
-                                 "explorer")  # fmt: skip
+        return m.VelocityCommand(
+            stamp, seq, float(rng.uniform(-1, 1)), float(rng.uniform(-1, 1)), "explorer"
+        )
     if cls is m.MapDelta:
         k = d.choice((0, 1, 8, 64, 512))
         r = ctx.map_resolution_m
@@ -255,10 +431,18 @@ def plausible(cls: type[m.Message], d: Draw, ctx: Context) -> m.Message:
         else:
             values = np.where(occ > 0, 0.85, -0.4).astype(np.float32)
         return m.MapDelta(
-            stamp, seq, seq, backend, r, centres, rng.choice(np.array(ctx.labels), k).astype("u2"),
-            rng.uniform(0.3, 1, k).astype(np.float32), occ, values,
+            stamp,
+            seq,
+            seq,
+            backend,
+            r,
+            centres,
+            rng.choice(np.array(ctx.labels), k).astype("u2"),
+            rng.uniform(0.3, 1, k).astype(np.float32),
+            occ,
+            values,
             ctx.producers.get("mapper", "fuzz-mapper"),
-        )  # fmt: skip
+        )
     if cls is m.GraphPatch:
         k = d.choice((0, 1, 8, 64, 256))
         ox, oy = ctx.graph_origin_xy
@@ -270,35 +454,67 @@ def plausible(cls: type[m.Message], d: Draw, ctx: Context) -> m.Message:
             ((rng.uniform(y0, y1, k) - oy) / res).astype(np.int64), 0, ctx.graph_shape[1] - 1
         )
         return m.GraphPatch(
-            stamp, seq, res, np.array([ox, oy], np.float64),
+            stamp,
+            seq,
+            res,
+            np.array([ox, oy], np.float64),
             np.stack([cx, cy], axis=1).astype(np.int32).reshape(k, 2),
             rng.choice(np.array(ctx.labels), k).astype("u2"),
             rng.uniform(-0.2, 0.5, k).astype(np.float32),
             rng.choice(np.array([0, 1, 3, 5], np.uint8), k),
             ctx.producers.get("navgraph", "fuzz-navgraph"),
-        )  # fmt: skip
+        )
     if cls is m.PathRequest:
         dims = d.choice((2, 3))
         start = rng.uniform([x0, y0, -1], [x1, y1, 1])[:dims]
         goal = rng.uniform([x0, y0, -1], [x1, y1, 1])[:dims]
         costs = {int(c): float(rng.uniform(0, 10)) for c in ctx.traversable if d.boolean(0.3)}
         return m.PathRequest(
-            f"fuzz{seq}", start, goal,
-            d.choice((None, 0.1, 1.0)), d.choice((None, 0.8, 0.0)), costs, d.boolean(),
-            float(rng.uniform(0, 5)), d.choice((None, 0.3, 2.0)),
-        )  # fmt: skip
+            f"fuzz{seq}",
+            start,
+            goal,
+            d.choice((None, 0.1, 1.0)),
+            d.choice((None, 0.8, 0.0)),
+            costs,
+            d.boolean(),
+            float(rng.uniform(0, 5)),
+            d.choice((None, 0.3, 2.0)),
+        )
     if cls is m.PathReply:
         k = d.choice((0, 2, 30))
         return m.PathReply(
-            f"fuzz{seq}", d.boolean(), d.choice(("", "unreachable", "malformed")), "msg",
-            _points(rng, ctx, k), 1.5, 1.0, 0.2, 0.3, {"grass": 0.5, "terrain": 0.5}, 12, 0.4,
+            f"fuzz{seq}",
+            d.boolean(),
+            d.choice(("", "unreachable", "malformed")),
+            "msg",
+            _points(rng, ctx, k),
+            1.5,
+            1.0,
+            0.2,
+            0.3,
+            {"grass": 0.5, "terrain": 0.5},
+            12,
+            0.4,
             np.zeros(d.choice((0, 2))),
-        )  # fmt: skip
+        )
     if cls is m.ServiceStatus:
         return m.ServiceStatus(
-            stamp, seq, "r1", d.choice(("mapper", "sim")), 1234, 5.0, "running", 10, 5, 8,
-            {"stale": 1}, {"shape": 1}, 0, {"gap": 2}, {"voxels": 100, "rate": 0.5},
-        )  # fmt: skip
+            stamp,
+            seq,
+            "r1",
+            d.choice(("mapper", "sim")),
+            1234,
+            5.0,
+            "running",
+            10,
+            5,
+            8,
+            {"stale": 1},
+            {"shape": 1},
+            0,
+            {"gap": 2},
+            {"voxels": 100, "rate": 0.5},
+        )
     raise TypeError(f"no generator for {cls.__name__}")
 
 
@@ -307,16 +523,43 @@ def plausible(cls: type[m.Message], d: Draw, ctx: Context) -> m.Message:
 
 def _hostile_stamp(d: Draw, ctx: Context) -> float:
     w = 5.0  # the default stamp window
-    return max(0.0, d.choice((
-        0.0, STAMP_LIMIT_S, ctx.stamp_s, ctx.stamp_s - w - 0.001, ctx.stamp_s - w + 0.001,
-        ctx.stamp_s + w + 0.001, ctx.stamp_s + 1e6, ctx.stamp_s - 1e3, 1e9, 1e9 + 1.0, 5e-324,
-        ctx.stamp_s + d.unit() * 100,
-    )))  # fmt: skip
+    return max(
+        0.0,
+        d.choice(
+            (
+                0.0,
+                STAMP_LIMIT_S,
+                ctx.stamp_s,
+                ctx.stamp_s - w - 0.001,
+                ctx.stamp_s - w + 0.001,
+                ctx.stamp_s + w + 0.001,
+                ctx.stamp_s + 1e6,
+                ctx.stamp_s - 1e3,
+                1e9,
+                1e9 + 1.0,
+                5e-324,
+                ctx.stamp_s + d.unit() * 100,
+            )
+        ),
+    )
 
 
 def _hostile_seq(d: Draw, ctx: Context) -> int:
-    return d.choice((0, 1, INT_LIMIT, INT_LIMIT - 1, ctx.seq, ctx.seq - 1, ctx.seq + 1,
-                     ctx.seq + 2, ctx.seq + 1000, ctx.seq + 1001, 2**53 + 1))  # fmt: skip
+    return d.choice(
+        (
+            0,
+            1,
+            INT_LIMIT,
+            INT_LIMIT - 1,
+            ctx.seq,
+            ctx.seq - 1,
+            ctx.seq + 1,
+            ctx.seq + 2,
+            ctx.seq + 1000,
+            ctx.seq + 1001,
+            2**53 + 1,
+        )
+    )
 
 
 def _hostile_producer(d: Draw, ctx: Context, who: str) -> str:
@@ -433,8 +676,11 @@ def _hostile_values(msg: m.Message, d: Draw, ctx: Context, rng: np.random.Genera
         elif k == 1:
             msg.goal = msg.start.copy()
         elif k == 2:
-            msg.class_costs = {d.choice((0, 3, 4, 255, 65535, 2**40, -1, 1, 2)):
-                               d.choice((0.0, 1e300, -1.0, 1e-300, 2.0))}  # fmt: skip
+            msg.class_costs = {
+                d.choice((0, 3, 4, 255, 65535, 2**40, -1, 1, 2)): d.choice(
+                    (0.0, 1e300, -1.0, 1e-300, 2.0)
+                )
+            }
         elif k == 3:
             msg.h_f, msg.t_f = d.choice((0.0, 1e6)), d.choice((0.0, 1e6))
         elif k == 4:
@@ -460,18 +706,28 @@ def pose_track(d: Draw, ctx: Context, n: int | None = None) -> list[m.Pose]:
     x0, y0, x1, y1 = ctx.area
     ox, oy = ctx.graph_origin_xy
     edge_x = ox + ctx.graph_shape[0] * ctx.graph_resolution_m
-    place = d.choice((
-        ((x0 + x1) / 2, (y0 + y1) / 2), (0.0, -1.0), (x0, y0), (x1, y1), (ox, oy),
-        (edge_x - 1e-6, oy + 1.0), (edge_x + 5.0, 0.0), (1e5, -1e5), (COORD_LIMIT_M, 0.0),
-        (-COORD_LIMIT_M, COORD_LIMIT_M),
-    ))  # fmt: skip
+    place = d.choice(
+        (
+            ((x0 + x1) / 2, (y0 + y1) / 2),
+            (0.0, -1.0),
+            (x0, y0),
+            (x1, y1),
+            (ox, oy),
+            (edge_x - 1e-6, oy + 1.0),
+            (edge_x + 5.0, 0.0),
+            (1e5, -1e5),
+            (COORD_LIMIT_M, 0.0),
+            (-COORD_LIMIT_M, COORD_LIMIT_M),
+        )
+    )
     t0 = d.choice((ctx.stamp_s, ctx.stamp_s + 1.0, 1e9, 0.0))
     yaw = d.unit() * 2 * math.pi
     out = []
     for i in range(n):
         x = min(max(place[0] + 0.02 * i, -COORD_LIMIT_M), COORD_LIMIT_M)
-        out.append(m.Pose.from_xyz_yaw(x, place[1], 0.1, yaw, stamp_s=t0 + 0.1 * i,
-                                       seq=ctx.seq + 1 + i))  # fmt: skip
+        out.append(
+            m.Pose.from_xyz_yaw(x, place[1], 0.1, yaw, stamp_s=t0 + 0.1 * i, seq=ctx.seq + 1 + i)
+        )
     return out
 
 
@@ -546,8 +802,20 @@ def mutate_array(a: dict, spec: m.ArraySpec, d: Draw, rng: np.random.Generator) 
         return a, f"shape={str(a['shape'])[:40]}"
     pick = rng.random(arr.size) < d.choice((0.01, 0.3, 1.0))
     if arr.dtype.kind == "f":
-        v = d.choice((NAN, INF, -INF, 3.4e38, -3.4e38, 1e-45, -0.0, COORD_LIMIT_M * 1.01,
-                      COORD_LIMIT_M, 1e300))  # fmt: skip
+        v = d.choice(
+            (
+                NAN,
+                INF,
+                -INF,
+                3.4e38,
+                -3.4e38,
+                1e-45,
+                -0.0,
+                COORD_LIMIT_M * 1.01,
+                COORD_LIMIT_M,
+                1e300,
+            )
+        )
         with np.errstate(over="ignore", invalid="ignore"):
             arr[pick] = v
         a["data"] = arr.tobytes()
@@ -564,8 +832,17 @@ def mutate_wire(raw: dict, cls: type[m.Message], d: Draw) -> tuple[Any, str]:
     rng = d.rng()
     k = d.integer(0, 12)
     if k == 0:
-        raw["_type"] = d.choice((*(t.TYPE for t in MESSAGE_TYPES if t is not cls), "Nope", "",
-                                 5, None, ["Pose"], cls.TYPE.lower()))  # fmt: skip
+        raw["_type"] = d.choice(
+            (
+                *(t.TYPE for t in MESSAGE_TYPES if t is not cls),
+                "Nope",
+                "",
+                5,
+                None,
+                ["Pose"],
+                cls.TYPE.lower(),
+            )
+        )
         return raw, f"_type={raw['_type']!r}"
     if k == 1:
         if d.boolean(0.2):
@@ -684,8 +961,18 @@ class Mutant:
 
 
 # valid 10 %, hostile 20 %, structural 55 %, bytes 10 %, nesting 5 %
-MODES = ("valid", "valid", "hostile", "hostile", "hostile", "hostile", *("wire",) * 11,
-         "bytes", "bytes", "nested")  # fmt: skip
+MODES = (
+    "valid",
+    "valid",
+    "hostile",
+    "hostile",
+    "hostile",
+    "hostile",
+    *("wire",) * 11,
+    "bytes",
+    "bytes",
+    "nested",
+)
 
 
 def message_payload(
@@ -725,8 +1012,9 @@ def message_payload(
 
 
 def _json_dumps(obj) -> bytes:
-    return json.dumps(obj, allow_nan=True, default=lambda o: o.hex() if isinstance(o, bytes)
-                      else str(o)).encode()  # fmt: skip
+    return json.dumps(
+        obj, allow_nan=True, default=lambda o: o.hex() if isinstance(o, bytes) else str(o)
+    ).encode()
 
 
 def mutate_json(obj: dict, cls: type[m.Message], d: Draw) -> tuple[Any, str]:
@@ -749,9 +1037,23 @@ def mutate_json(obj: dict, cls: type[m.Message], d: Draw) -> tuple[Any, str]:
     name = d.choice(names)
     v = obj.get(name)
     if k <= 5:
-        obj[name] = d.choice((*WILD_SCALARS[:30], 10**400, 1e400, -1e400, "1,2", [None],
-                              [[1, 2], [3]], [["1", "2", "3"]], [[NAN, 0, 0]], [[1e400] * 3],
-                              [[10**400, 0, 0]], [True, False], [[0, 0, 0]] * 3))  # fmt: skip
+        obj[name] = d.choice(
+            (
+                *WILD_SCALARS[:30],
+                10**400,
+                1e400,
+                -1e400,
+                "1,2",
+                [None],
+                [[1, 2], [3]],
+                [["1", "2", "3"]],
+                [[NAN, 0, 0]],
+                [[1e400] * 3],
+                [[10**400, 0, 0]],
+                [True, False],
+                [[0, 0, 0]] * 3,
+            )
+        )
         return obj, f"{name}=wild"
     if k == 6 and isinstance(v, list) and v:  # one row of another length
         obj[name] = v + [v[0][:-1] if isinstance(v[0], list) else [v[0]]]
@@ -798,8 +1100,9 @@ def json_payload(
         if k == 4:
             return Mutant(text + b" trailing", mode, "trailing")
         if k == 5:
-            return Mutant(d.choice((b"", b"null", b"[]", b"1", b'"x"', b"NaN", b"{")), mode,
-                          "not-an-object")  # fmt: skip
+            return Mutant(
+                d.choice((b"", b"null", b"[]", b"1", b'"x"', b"NaN", b"{")), mode, "not-an-object"
+            )
         if k == 6:
             return Mutant(text.replace(b"0.", b"1e400", 1), mode, "overflow")
         payload, how = byte_mutation(text, d)
@@ -825,8 +1128,9 @@ def json_payload(
 # -- what the codec makes of a payload ------------------------------------------------------------
 
 
-def predict(payload: bytes, expect: type[m.Message], *, drop_nonfinite: bool = False,
-            as_json: bool = False) -> str | None:  # fmt: skip
+def predict(
+    payload: bytes, expect: type[m.Message], *, drop_nonfinite: bool = False, as_json: bool = False
+) -> str | None:
     """None when the codec accepts the payload as a `expect`, else the MessageError kind (what a
     service decoding it must count). Anything else escaping the codec propagates: a bug."""
     try:
@@ -856,25 +1160,92 @@ class QueryCase:
 
 # zenoh 1.10.2 panics in the *sending* process (DidntWrite, then a poisoned transport) when an
 # encoding string exceeds 255 bytes: no smana process sends one, so the fuzz stops at 255.
-ENCODINGS = ("application/json", "application/msgpack", "text/plain", "text/json", "",
-             "application/octet-stream", "zenoh/bytes", "application/json;charset=utf-16",
-             "x" * 255)  # fmt: skip
+ENCODINGS = (
+    "application/json",
+    "application/msgpack",
+    "text/plain",
+    "text/json",
+    "",
+    "application/octet-stream",
+    "zenoh/bytes",
+    "application/json;charset=utf-16",
+    "x" * 255,
+)
 SAVE_NAMES_OK = ("fuzz.npz", "fuzz-2.npz")  # accepted saves overwrite these two only
 SAVE_NAMES_BAD = (
-    "../escape.npz", "/tmp/escape.npz", "sub/dir.npz", ".hidden.npz", "map.npz/", "x.npz\x00.txt",
-    "n" * 300 + ".npz", "..", ".", "", "x.txt", "config.toml", "x.NPZ", " .npz", "\u2215x.npz",
-    "\\escape.npz", "nul.npz\n", "a\x00b.npz", "n" * 248 + ".npz", 5, None, ["a.npz"], {"a": 1},
-)  # fmt: skip
+    "../escape.npz",
+    "/tmp/escape.npz",
+    "sub/dir.npz",
+    ".hidden.npz",
+    "map.npz/",
+    "x.npz\x00.txt",
+    "n" * 300 + ".npz",
+    "..",
+    ".",
+    "",
+    "x.txt",
+    "config.toml",
+    "x.NPZ",
+    " .npz",
+    "\u2215x.npz",
+    "\\escape.npz",
+    "nul.npz\n",
+    "a\x00b.npz",
+    "n" * 248 + ".npz",
+    5,
+    None,
+    ["a.npz"],
+    {"a": 1},
+)
 
 
 def _number_text(d: Draw) -> str:
-    return d.choice(("0", "1.5", "-2", "nan", "inf", "-inf", "1e400", "1e308", "", " ", "x",
-                     "1,2", "0x10", "1_0", str(2**64), "-0", "\u0661"))  # fmt: skip
+    return d.choice(
+        (
+            "0",
+            "1.5",
+            "-2",
+            "nan",
+            "inf",
+            "-inf",
+            "1e400",
+            "1e308",
+            "",
+            " ",
+            "x",
+            "1,2",
+            "0x10",
+            "1_0",
+            str(2**64),
+            "-0",
+            "\u0661",
+        )
+    )
 
 
 def _numbers(d: Draw, n: int) -> list:
-    return [d.choice((0.0, 1.0, -3.5, 2.0, 50.0, -50.0, NAN, INF, 1e300, -1e300, 2**64, "1",
-                      None, True, [1.0])) for _ in range(n)]  # fmt: skip
+    return [
+        d.choice(
+            (
+                0.0,
+                1.0,
+                -3.5,
+                2.0,
+                50.0,
+                -50.0,
+                NAN,
+                INF,
+                1e300,
+                -1e300,
+                2**64,
+                "1",
+                None,
+                True,
+                [1.0],
+            )
+        )
+        for _ in range(n)
+    ]
 
 
 def _sane_numbers(d: Draw, ctx: Context, n: int) -> list[float]:
@@ -909,8 +1280,10 @@ def query_case(service: str, name: str, d: Draw, ctx: Context | None = None) -> 
     ctx = ctx or Context()
     as_json = d.boolean()
     if d.boolean(0.15):  # nothing like what the handler expects
-        params = ";".join(f"{d.choice(('format', 'box', 'x', 'start', 'a'))}={_number_text(d)}"
-                          for _ in range(d.integer(0, 3)))  # fmt: skip
+        params = ";".join(
+            f"{d.choice(('format', 'box', 'x', 'start', 'a'))}={_number_text(d)}"
+            for _ in range(d.integer(0, 3))
+        )
         k = d.integer(0, 3)
         if k == 0:
             payload = None
@@ -964,13 +1337,18 @@ def query_case(service: str, name: str, d: Draw, ctx: Context | None = None) -> 
     elif (service, name) == ("planner", "path"):
         k = d.integer(0, 3)
         if k == 0:
-            params = (f"start={_number_text(d)},{_number_text(d)};"
-                      f"goal={','.join(map(str, _sane_numbers(d, ctx, 2)))}")  # fmt: skip
+            params = (
+                f"start={_number_text(d)},{_number_text(d)};"
+                f"goal={','.join(map(str, _sane_numbers(d, ctx, 2)))}"
+            )
             if d.boolean(0.3):
                 params += f";h_f={_number_text(d)};allow_unknown={d.choice(('1', 'no', 'x'))}"
             return QueryCase(params, None, None, "params")
-        mut = json_payload(m.PathRequest, d, ctx) if as_json else message_payload(
-            m.PathRequest, d, ctx)  # fmt: skip
+        mut = (
+            json_payload(m.PathRequest, d, ctx)
+            if as_json
+            else message_payload(m.PathRequest, d, ctx)
+        )
         enc = "application/json" if as_json else "application/msgpack"
         if as_json and d.boolean(0.2):
             return QueryCase("format=json", mut.payload, None, f"path-json-param:{mut.how}")
@@ -981,7 +1359,8 @@ def query_case(service: str, name: str, d: Draw, ctx: Context | None = None) -> 
             how = "unexpected-body"
     if obj is None:
         enc = "application/json" if as_json else None
-        return QueryCase(params or ("format=json" if as_json and d.boolean() else ""), None, enc,
-                         how)  # fmt: skip
+        return QueryCase(
+            params or ("format=json" if as_json and d.boolean() else ""), None, enc, how
+        )
     payload, enc = _body(d, as_json, obj)
     return QueryCase(params, payload, enc, how)

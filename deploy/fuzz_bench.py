@@ -61,8 +61,18 @@ SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim")
 # Rejection kinds only the codec produces: the books must match the prediction exactly. Others
 # ("value", and the handlers' own: stamp, producer, sequence, geometry, frame, pose_jump, ...) may
 # also come from decodable input a handler refuses.
-STRUCTURAL = ("oversize", "malformed", "type", "version", "missing_field", "unknown_field",
-              "dtype", "shape", "length", "nonfinite")  # fmt: skip
+STRUCTURAL = (
+    "oversize",
+    "malformed",
+    "type",
+    "version",
+    "missing_field",
+    "unknown_field",
+    "dtype",
+    "shape",
+    "length",
+    "nonfinite",
+)
 FOREIGN = "fuzz-stranger"  # a producer no service follows
 SETTLE_EVERY = 200  # FIFO inputs to one service before waiting for it to catch up
 RELOCK = 5  # StampGate's default: consecutive consistent stamps that move its clock
@@ -136,11 +146,18 @@ TARGETS: tuple[Target, ...] = (
     Target("sim", "robot/cmd_vel", "fifo", m.VelocityCommand, ("sim",), 6),
     Target("sim", "mapper/delta", "fifo", m.MapDelta, ("sim",), 3),
     Target("sim", "sim/status", "query", weight=1),
-)  # fmt: skip
+)
 # Oversize payloads (64 MiB + a little each), in this order, as many as asked.
-OVERSIZE_ORDER = ("mapper:robot/cloud", "navgraph:mapper/delta", "planner:navgraph/patch",
-                  "explorer:robot/pose", "planner:planner/path", "sim:robot/cmd_vel",
-                  "mapper:mapper/point", "navgraph:navgraph/node")  # fmt: skip
+OVERSIZE_ORDER = (
+    "mapper:robot/cloud",
+    "navgraph:mapper/delta",
+    "planner:navgraph/patch",
+    "explorer:robot/pose",
+    "planner:planner/path",
+    "sim:robot/cmd_vel",
+    "mapper:mapper/point",
+    "navgraph:navgraph/node",
+)
 
 # The scene: ground over the area, a hedge wall across it; the fixed query goes round the wall.
 AREA = (-3.0, -3.0, 3.0, 3.0)
@@ -247,23 +264,38 @@ def _digest(*arrays) -> str:
 def map_fingerprint(centres, labels, confidences, occupied, values) -> str:
     """Occupied voxels, whatever their order."""
     order = np.lexsort(np.asarray(centres, np.float64).T[::-1])
-    return _digest(*(np.asarray(a)[order] for a in (centres, labels, confidences, occupied,
-                                                    values)))  # fmt: skip
+    return _digest(
+        *(np.asarray(a)[order] for a in (centres, labels, confidences, occupied, values))
+    )
 
 
 def graph_fingerprint(cells, labels, heights, flags) -> str:
     cells = np.asarray(cells, np.int32).reshape(-1, 2)
     order = np.lexsort((cells[:, 1], cells[:, 0]))
     heights = np.asarray(heights, np.float32)
-    return _digest(cells[order], np.asarray(labels, np.uint16)[order], heights[order],
-                   np.asarray(flags, np.uint8)[order])  # fmt: skip
+    return _digest(
+        cells[order],
+        np.asarray(labels, np.uint16)[order],
+        heights[order],
+        np.asarray(flags, np.uint8)[order],
+    )
 
 
 def reply_fingerprint(r: m.PathReply) -> str:
     """A PathReply without what varies between two answers to one question (id, time)."""
-    scalars = json.dumps([r.ok, r.error, r.message, r.cost_total, r.cost_distance, r.cost_height,
-                          r.cost_traversability, sorted(r.label_share.items()),
-                          r.nodes_expanded])  # fmt: skip
+    scalars = json.dumps(
+        [
+            r.ok,
+            r.error,
+            r.message,
+            r.cost_total,
+            r.cost_distance,
+            r.cost_height,
+            r.cost_traversability,
+            sorted(r.label_share.items()),
+            r.nodes_expanded,
+        ]
+    )
     return _digest(np.frombuffer(scalars.encode(), np.uint8), r.path, r.nearest_free)
 
 
@@ -285,8 +317,17 @@ def genuine_cloud(seq: int, stamp_s: float, area=AREA, wall: bool = True) -> m.S
     pts = np.concatenate(parts).astype(np.float32)
     lab = np.concatenate(labs).astype(np.uint8)
     centre = np.array([(x0 + x1) / 2, (y0 + y1) / 2, 2.0])
-    return m.SemanticCloud(stamp_s, seq, pts, lab, np.full(len(pts), 0.9, np.float32), centre,
-                           np.array([0.0, 0.0, 0.0, 1.0]), "world", "camera")  # fmt: skip
+    return m.SemanticCloud(
+        stamp_s,
+        seq,
+        pts,
+        lab,
+        np.full(len(pts), 0.9, np.float32),
+        centre,
+        np.array([0.0, 0.0, 0.0, 1.0]),
+        "world",
+        "camera",
+    )
 
 
 def fixed_request() -> m.PathRequest:
@@ -319,14 +360,29 @@ class Stack:
         from smana.deploy.supervisor import die_with_parent
 
         log = open(self.out / f"{name}.log", "ab")  # noqa: SIM115 - the child owns it
-        argv = [sys.executable, "-m", f"smana.services.{name}", "--mode", "client",
-                "--connect", self.endpoint, "--robot", self.robot_of(name),
-                "--config", str(self.config_path)]  # fmt: skip
+        argv = [
+            sys.executable,
+            "-m",
+            f"smana.services.{name}",
+            "--mode",
+            "client",
+            "--connect",
+            self.endpoint,
+            "--robot",
+            self.robot_of(name),
+            "--config",
+            str(self.config_path),
+        ]
         self.procs[name] = subprocess.Popen(
-            argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True, env=dict(os.environ, PYTHONUNBUFFERED="1"), cwd=self.out,
+            argv,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+            cwd=self.out,
             preexec_fn=die_with_parent,
-        )  # fmt: skip
+        )
         log.close()
 
     def log(self, name: str) -> str:
@@ -395,8 +451,9 @@ class Campaign:
         self.services = tuple(s for s in SERVICES if s in services)
         self.targets = [
             dataclasses.replace(t, consumers=tuple(c for c in t.consumers if c in self.services))
-            for t in TARGETS if t.service in self.services
-        ]  # fmt: skip
+            for t in TARGETS
+            if t.service in self.services
+        ]
         self.oversize = oversize
         self.progress = progress
         self.startup_timeout_s, self.settle_timeout_s = startup_timeout_s, settle_timeout_s
@@ -430,9 +487,10 @@ class Campaign:
         k = self.key(t)
         if k not in self.pubs:
             pub = self.stack.session.declare_publisher(
-                k, congestion_control=zenoh.CongestionControl.BLOCK,
+                k,
+                congestion_control=zenoh.CongestionControl.BLOCK,
                 reliability=zenoh.Reliability.RELIABLE,
-            )  # fmt: skip
+            )
             deadline = time.monotonic() + self.settle_timeout_s
             while not pub.matching_status.matching:
                 if time.monotonic() > deadline:
@@ -441,8 +499,15 @@ class Campaign:
             self.pubs[k] = pub
         return self.pubs[k]
 
-    def ask(self, service: str, name: str, payload: bytes | None = None, encoding=None,
-            params: str = "", timeout_s: float | None = None):  # fmt: skip
+    def ask(
+        self,
+        service: str,
+        name: str,
+        payload: bytes | None = None,
+        encoding=None,
+        params: str = "",
+        timeout_s: float | None = None,
+    ):
         """One query to `smana/<robot>/<service>/<name>`: a list of (ok, bytes) replies, or None
         when zenoh refused the selector in this process."""
         import zenoh
@@ -455,8 +520,7 @@ class Campaign:
         if encoding is not None:
             kw["encoding"] = zenoh.Encoding(encoding)
         try:
-            replies = self.stack.session.get(sel, timeout=timeout_s or self.settle_timeout_s,
-                                             **kw)  # fmt: skip
+            replies = self.stack.session.get(sel, timeout=timeout_s or self.settle_timeout_s, **kw)
         except Exception:  # noqa: BLE001 - zenoh refuses some selectors before sending them
             return None
         self.mine[service] += 1
@@ -571,9 +635,11 @@ class Campaign:
             sf.tracebacks = self.stack.log(name).count("Traceback")
             _check(r, "clean exit on SIGINT", code == 0, f"{name} exited {code}")
         self.check_files()
-        r.crashes = sum(sf.rejected.get("internal", 0)
-                        + sum(v for k, v in sf.events.items() if k.startswith("internal"))
-                        for sf in r.service_figures.values())  # fmt: skip
+        r.crashes = sum(
+            sf.rejected.get("internal", 0)
+            + sum(v for k, v in sf.events.items() if k.startswith("internal"))
+            for sf in r.service_figures.values()
+        )
         r.inputs = self.sent
         r.wall_s = time.monotonic() - t0
         me = resource.getrusage(resource.RUSAGE_SELF)
@@ -598,8 +664,11 @@ class Campaign:
         """Publish one cloud and wait until the mapper settled it; True if it was integrated.
         Exact whatever else the mapper receives meanwhile (navgraph's snapshot queries, all
         accepted): the mapper's clouds + rejected + dropped grow by one, and only by this cloud."""
-        payload = m.encode(cloud_or_payload) if isinstance(cloud_or_payload, m.Message) \
-            else cloud_or_payload  # fmt: skip
+        payload = (
+            m.encode(cloud_or_payload)
+            if isinstance(cloud_or_payload, m.Message)
+            else cloud_or_payload
+        )
 
         def fates(st):
             return st.details["clouds"] + sum(st.rejected.values()) + sum(st.dropped.values())
@@ -616,8 +685,12 @@ class Campaign:
                 raise CampaignError(f"the mapper did not settle a cloud: {st}")
             time.sleep(0.002)
         integrated = st.details["clouds"] == before.details["clouds"] + 1
-        _check(self.result, "one cloud, one outcome", fates(st) == fates(before) + 1,
-               f"mapper books moved by {fates(st) - fates(before)} for one cloud")  # fmt: skip
+        _check(
+            self.result,
+            "one cloud, one outcome",
+            fates(st) == fates(before) + 1,
+            f"mapper books moved by {fates(st) - fates(before)} for one cloud",
+        )
         if integrated:
             msg = genuine or m.decode(payload, m.SemanticCloud, drop_nonfinite=True)
             self.accepted_clouds.append(msg)
@@ -647,12 +720,14 @@ class Campaign:
         snap = self.request("mapper", "snapshot")
         graph = self.request("navgraph", "graph")
         self.ctx = fuzz.Context(
-            stamp_s=self.stamp_s, seq=self.cloud_seq,
+            stamp_s=self.stamp_s,
+            seq=self.cloud_seq,
             producers={"mapper": snap.producer, "navgraph": graph.producer},
             map_resolution_m=self.config.mapper.resolution_m,
             graph_resolution_m=self.config.navgraph.resolution_m,
-            graph_origin_xy=tuple(graph.origin_xy.tolist()), area=AREA,
-        )  # fmt: skip
+            graph_origin_xy=tuple(graph.origin_xy.tolist()),
+            area=AREA,
+        )
         # The books start here: everything after is the campaign's and its echoes.
         self.base_counters, self.base, self.base_mine = self.quiet()
 
@@ -710,11 +785,12 @@ class Campaign:
         return {
             "mapper": d.get("navgraph.snapshot_queries", 0),  # navgraph's resyncs
             "navgraph": d.get("mapper.clouds", 0)  # one MapDelta per integrated cloud
-            + d.get("planner.graph_queries", 0) + d.get("explorer.graph_queries", 0),
+            + d.get("planner.graph_queries", 0)
+            + d.get("explorer.graph_queries", 0),
             "planner": d.get("navgraph.patch_seq", 0) + d.get("explorer.path_queries", 0),
             "explorer": d.get("navgraph.patch_seq", 0),
             "sim": 0,  # on its own robot: nothing else talks to it
-        }  # fmt: skip
+        }
 
     # -- fingerprints -----------------------------------------------------------------------------
 
@@ -724,7 +800,7 @@ class Campaign:
         fp = {
             "mapper": map_fingerprint(
                 snap.centres, snap.labels, snap.confidences, snap.occupied, snap.values
-            ),  # fmt: skip
+            ),
             "navgraph": graph_fingerprint(graph.cells, graph.labels, graph.heights, graph.flags),
         }
         if "planner" in self.services:
@@ -856,8 +932,12 @@ class Campaign:
         try:
             body = json.loads(data) if as_json else msgpack.unpackb(data, strict_map_key=False)
         except Exception:  # noqa: BLE001
-            _check(self.result, "replies in the query's encoding", False,
-                   f"{t.name} ({'json' if as_json else 'msgpack'}): {data[:80]!r}")  # fmt: skip
+            _check(
+                self.result,
+                "replies in the query's encoding",
+                False,
+                f"{t.name} ({'json' if as_json else 'msgpack'}): {data[:80]!r}",
+            )
             body = None
         kind = None
         if not ok:
@@ -921,19 +1001,31 @@ class Campaign:
         self.quiet()
         applied = self.applied()
         for k, v in self.applied0.items():
-            _check(self.result, f"nothing applied from refused input ({k.split('.')[0]})",
-                   applied[k] == v, f"{k}: {v} -> {applied[k]}")  # fmt: skip
+            _check(
+                self.result,
+                f"nothing applied from refused input ({k.split('.')[0]})",
+                applied[k] == v,
+                f"{k}: {v} -> {applied[k]}",
+            )
         s0, s1 = self.s0, self.fingerprints()
         for k in s0:
-            _check(self.result, f"state unchanged by refused input ({k})", s1[k] == s0[k],
-                   f"{s0[k]} -> {s1[k]}")  # fmt: skip
+            _check(
+                self.result,
+                f"state unchanged by refused input ({k})",
+                s1[k] == s0[k],
+                f"{s0[k]} -> {s1[k]}",
+            )
         self.force_resync()
         self.quiet()
         s2 = self.fingerprints()
         for k in ("navgraph", "planner"):
             if k in s0:
-                _check(self.result, f"the same state after a forced resync ({k})",
-                       s2[k] == s0[k], f"{s0[k]} -> {s2[k]}")  # fmt: skip
+                _check(
+                    self.result,
+                    f"the same state after a forced resync ({k})",
+                    s2[k] == s0[k],
+                    f"{s0[k]} -> {s2[k]}",
+                )
 
     def recovery(self) -> None:
         """Genuine clouds until they reach navgraph's graph. The stream may be in doubt: a stamp
@@ -962,8 +1054,12 @@ class Campaign:
                 self.result.recovery_clouds = n
                 break
         self.result.phase_s["recovery_to_graph"] = time.monotonic() - t0
-        _check(self.result, "genuine input flows again after the fuzz",
-               self.result.recovery_clouds > 0, f"not after {limit} genuine clouds")  # fmt: skip
+        _check(
+            self.result,
+            "genuine input flows again after the fuzz",
+            self.result.recovery_clouds > 0,
+            f"not after {limit} genuine clouds",
+        )
 
     def _doubts(self) -> int:
         """navgraph's refusals that ask for a resync."""
@@ -981,12 +1077,18 @@ class Campaign:
             _reference_integrate(ref, table, c)
         rows = ref.occupied_voxels()
         snap = self.request("mapper", "snapshot")
-        want = map_fingerprint(rows.centres, rows.labels, rows.confidences, rows.occupied,
-                               rows.values)  # fmt: skip
-        got = map_fingerprint(snap.centres, snap.labels, snap.confidences, snap.occupied,
-                              snap.values)  # fmt: skip
-        _check(r, "mapper map == reference fed the accepted clouds", got == want,
-               f"{len(snap.centres)} voxels vs {len(rows.centres)} in the reference")  # fmt: skip
+        want = map_fingerprint(
+            rows.centres, rows.labels, rows.confidences, rows.occupied, rows.values
+        )
+        got = map_fingerprint(
+            snap.centres, snap.labels, snap.confidences, snap.occupied, snap.values
+        )
+        _check(
+            r,
+            "mapper map == reference fed the accepted clouds",
+            got == want,
+            f"{len(snap.centres)} voxels vs {len(rows.centres)} in the reference",
+        )
         if "navgraph" not in self.services:
             return
         self.force_resync()
@@ -994,16 +1096,22 @@ class Campaign:
             self.settle(s)
         graph = self.request("navgraph", "graph")
         ref_graph = _reference_graph(self.config, table, self.request("mapper", "snapshot"))
-        _check(r, "navgraph graph == core fed the mapper's snapshot",
-               graph_fingerprint(graph.cells, graph.labels, graph.heights, graph.flags)
-               == graph_fingerprint(*ref_graph), f"{len(graph.cells)} nodes vs "
-               f"{len(ref_graph[0])} in the reference")  # fmt: skip
+        _check(
+            r,
+            "navgraph graph == core fed the mapper's snapshot",
+            graph_fingerprint(graph.cells, graph.labels, graph.heights, graph.flags)
+            == graph_fingerprint(*ref_graph),
+            f"{len(graph.cells)} nodes vs {len(ref_graph[0])} in the reference",
+        )
         if "planner" in self.services:
             got = self.request("planner", "path", fixed_request())
             want = _reference_plan(self.config, table, graph, fixed_request())
-            _check(r, "planner answer == core on navgraph's graph",
-                   reply_fingerprint(got) == reply_fingerprint(want),
-                   f"{got.ok} {got.cost_total} vs {want.ok} {want.cost_total}")  # fmt: skip
+            _check(
+                r,
+                "planner answer == core on navgraph's graph",
+                reply_fingerprint(got) == reply_fingerprint(want),
+                f"{got.ok} {got.cost_total} vs {want.ok} {want.cost_total}",
+            )
 
     def books(self) -> None:
         """Once the stack is quiet: every service's books against what was sent to it."""
@@ -1020,23 +1128,42 @@ class Campaign:
             sf.dropped = _diff(st.dropped, b.dropped)
             sf.rejected = _diff(st.rejected, b.rejected)
             sf.events = _diff(st.events, b.events)
-            _check(r, "same process (no restart)", st.pid == self.stack.procs[s].pid,
-                   f"{s}: pid {st.pid}")  # fmt: skip
-            _check(r, "msgs_in = inputs + queries + peers' messages",
-                   sf.msgs_in == sf.mine + sf.background,
-                   f"{s}: {sf.msgs_in} received, {sf.mine} sent by the campaign + "
-                   f"{sf.background} by its peers")  # fmt: skip
+            _check(
+                r,
+                "same process (no restart)",
+                st.pid == self.stack.procs[s].pid,
+                f"{s}: pid {st.pid}",
+            )
+            _check(
+                r,
+                "msgs_in = inputs + queries + peers' messages",
+                sf.msgs_in == sf.mine + sf.background,
+                f"{s}: {sf.msgs_in} received, {sf.mine} sent by the campaign + "
+                f"{sf.background} by its peers",
+            )
             settled = sf.accepted + sum(sf.dropped.values()) + sum(sf.rejected.values())
-            _check(r, "every message settled", settled == sf.msgs_in and st.pending == 0,
-                   f"{s}: {settled} settled of {sf.msgs_in}, {st.pending} pending")  # fmt: skip
+            _check(
+                r,
+                "every message settled",
+                settled == sf.msgs_in and st.pending == 0,
+                f"{s}: {settled} settled of {sf.msgs_in}, {st.pending} pending",
+            )
             for kind in set(sf.rejected) | set(sf.predicted):
                 got, want = sf.rejected.get(kind, 0), sf.predicted.get(kind, 0)
                 if kind in STRUCTURAL:
-                    _check(r, "structural rejections == codec's prediction", got == want,
-                           f"{s}: {kind} {got} counted, {want} predicted")  # fmt: skip
+                    _check(
+                        r,
+                        "structural rejections == codec's prediction",
+                        got == want,
+                        f"{s}: {kind} {got} counted, {want} predicted",
+                    )
                 elif kind != "internal":
-                    _check(r, "other rejections >= predicted", got >= want,
-                           f"{s}: {kind} {got} counted, {want} at least predicted")  # fmt: skip
+                    _check(
+                        r,
+                        "other rejections >= predicted",
+                        got >= want,
+                        f"{s}: {kind} {got} counted, {want} at least predicted",
+                    )
             if self.stack.procs[s].poll() is not None:
                 _check(r, "alive after the fuzz", False, f"{s} exited")
 
@@ -1100,8 +1227,15 @@ def _reference_graph(config: SmanaConfig, table, snap: m.MapDelta):
     from smana.services.navgraph.graph import NavGraph
 
     nc = config.navgraph
-    g = NavGraph(table, nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.robot_radius_m,
-                 nc.tile_size, nc.column_capacity)  # fmt: skip
+    g = NavGraph(
+        table,
+        nc.bounds_min_xy,
+        nc.bounds_max_xy,
+        nc.resolution_m,
+        nc.robot_radius_m,
+        nc.tile_size,
+        nc.column_capacity,
+    )
     g.integrate_delta(snap)
     cells, labels, heights, flags = g.export()
     heights = np.where(np.isnan(heights) | ((flags & m.FLAG_KNOWN) == 0), 0.0, heights)
@@ -1148,37 +1282,46 @@ def _files(root: Path, exclude: Path) -> set[str]:
 
 
 def table(r: Result) -> str:
-    lines = [f"smana bench fuzz: seed {r.seed}, {r.inputs} inputs over "
-             f"{', '.join(r.services)}", ""]  # fmt: skip
-    lines.append("| service:key | inputs | codec refuses (by kind) | accepted by codec | "
-                 "query replies |")  # fmt: skip
+    lines = [f"smana bench fuzz: seed {r.seed}, {r.inputs} inputs over {', '.join(r.services)}", ""]
+    lines.append(
+        "| service:key | inputs | codec refuses (by kind) | accepted by codec | query replies |"
+    )
     lines.append("|---|---:|---|---:|---|")
     for name, k in sorted(r.keys.items()):
-        refused = ", ".join(f"{kind} {n}" for kind, n in sorted(k.codec.items())
-                            if kind != "accepted")  # fmt: skip
+        refused = ", ".join(
+            f"{kind} {n}" for kind, n in sorted(k.codec.items()) if kind != "accepted"
+        )
         replies = ", ".join(f"{kind} {n}" for kind, n in sorted(k.replies.items()))
         acc = k.codec.get("accepted", 0) if k.codec else "-"
         if k.cloud_accepted:
             acc = f"{acc} ({k.cloud_accepted} integrated)"
         lines.append(f"| {name} | {k.inputs} | {refused or '-'} | {acc} | {replies or '-'} |")
-    lines += ["", "| service | received | sent by fuzz | by peers | accepted | dropped | "
-              "rejected (by kind) | crashes | exit |",
-              "|---|---:|---:|---:|---:|---|---|---:|---:|"]  # fmt: skip
+    lines += [
+        "",
+        "| service | received | sent by fuzz | by peers | accepted | dropped | "
+        "rejected (by kind) | crashes | exit |",
+        "|---|---:|---:|---:|---:|---|---|---:|---:|",
+    ]
     for name, s in sorted(r.service_figures.items()):
         rej = ", ".join(f"{k} {v}" for k, v in sorted(s.rejected.items()))
         drop = ", ".join(f"{k} {v}" for k, v in sorted(s.dropped.items())) or "0"
         crashes = s.rejected.get("internal", 0) + sum(
-            v for k, v in s.events.items() if k.startswith("internal"))  # fmt: skip
-        lines.append(f"| {name} | {s.msgs_in} | {s.mine} | {s.background} | {s.accepted} | "
-                     f"{drop} | {rej or '-'} | {crashes} | {s.exit_code} |")  # fmt: skip
+            v for k, v in s.events.items() if k.startswith("internal")
+        )
+        lines.append(
+            f"| {name} | {s.msgs_in} | {s.mine} | {s.background} | {s.accepted} | "
+            f"{drop} | {rej or '-'} | {crashes} | {s.exit_code} |"
+        )
     lines += ["", "| check | result |", "|---|---|"]
     lines += [f"| {k} | {'pass' if v else 'FAIL'} |" for k, v in r.checks.items()]
-    lines += ["", f"crashes: {r.crashes}; genuine clouds to recover: {r.recovery_clouds}",
-              f"wall {r.wall_s:.1f} s (" + ", ".join(f"{k} {v:.1f}" for k, v in
-                                                    r.phase_s.items()) + ")",
-              f"CPU {r.cpu_s:.1f} s (campaign, with the router) + {r.cpu_s_services:.1f} s "
-              f"(services); load average {_load(r.load_start)} at start, "
-              f"{_load(r.load_end)} at the end"]  # fmt: skip
+    lines += [
+        "",
+        f"crashes: {r.crashes}; genuine clouds to recover: {r.recovery_clouds}",
+        f"wall {r.wall_s:.1f} s (" + ", ".join(f"{k} {v:.1f}" for k, v in r.phase_s.items()) + ")",
+        f"CPU {r.cpu_s:.1f} s (campaign, with the router) + {r.cpu_s_services:.1f} s "
+        f"(services); load average {_load(r.load_start)} at start, "
+        f"{_load(r.load_end)} at the end",
+    ]
     if r.notes:
         lines += ["", "notes:"] + [f"- {n}" for n in r.notes]
     lines.append("")
@@ -1194,13 +1337,21 @@ def cli(argv: list[str] | None = None) -> int:
     from smana.common.cli import ArgumentParser, non_negative_int, output_dir, positive_int
 
     p = ArgumentParser(prog="smana bench fuzz", description=__doc__.split("\n\n")[0])
-    p.add_argument("--inputs", type=positive_int, default=10_000,
-                   help="fuzzed inputs (default 10000)")  # fmt: skip
+    p.add_argument(
+        "--inputs", type=positive_int, default=10_000, help="fuzzed inputs (default 10000)"
+    )
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
-    p.add_argument("--services", default=",".join(SERVICES),
-                   help=f"a subset of {','.join(SERVICES)} (default: all)")  # fmt: skip
-    p.add_argument("--oversize", type=non_negative_int, default=6,
-                   help="payloads over 64 MiB to send (default 6; they cost memory)")  # fmt: skip
+    p.add_argument(
+        "--services",
+        default=",".join(SERVICES),
+        help=f"a subset of {','.join(SERVICES)} (default: all)",
+    )
+    p.add_argument(
+        "--oversize",
+        type=non_negative_int,
+        default=6,
+        help="payloads over 64 MiB to send (default 6; they cost memory)",
+    )
     p.add_argument("--out", default="runs/fuzz", help="folder for logs and fuzz.json")
     args = p.parse_args(argv)
     services = tuple(s.strip() for s in args.services.split(",") if s.strip())

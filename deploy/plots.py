@@ -14,8 +14,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
-           (140, 86, 75), (227, 119, 194), (127, 127, 127)]  # fmt: skip
+PALETTE = [
+    (31, 119, 180),
+    (255, 127, 14),
+    (44, 160, 44),
+    (214, 39, 40),
+    (148, 103, 189),
+    (140, 86, 75),
+    (227, 119, 194),
+    (127, 127, 127),
+]
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
@@ -64,8 +72,13 @@ def line_plot(
     img = np.full((h, w, 3), 255, np.uint8)
     left, right, top, bottom = 80, 20, 40, 90
     xs = [x for s in series for x in s.x]
-    ys = [y + (e or 0) * sgn for s in series for y, e in zip(s.y, s.yerr or [0] * len(s.y),
-          strict=True) if y is not None for sgn in (-1, 1)]  # fmt: skip
+    ys = [
+        y + (e or 0) * sgn
+        for s in series
+        for y, e in zip(s.y, s.yerr or [0] * len(s.y), strict=True)
+        if y is not None
+        for sgn in (-1, 1)
+    ]
     if not xs or not ys:
         _text(img, f"{title}: no data", (w // 2, h // 2), 0.6, anchor="centre")
         return img
@@ -100,8 +113,11 @@ def line_plot(
     lx, ly = left + 8, h - 22
     for k, s in enumerate(series):
         col = s.colour or PALETTE[k % len(PALETTE)]
-        data = [(x, y, e) for x, y, e in zip(s.x, s.y, s.yerr or [None] * len(s.y), strict=True)
-                if y is not None]  # fmt: skip
+        data = [
+            (x, y, e)
+            for x, y, e in zip(s.x, s.y, s.yerr or [None] * len(s.y), strict=True)
+            if y is not None
+        ]
         pts = [px(x, y) for x, y, _ in data]
         for a, b in zip(pts[:-1], pts[1:], strict=True):
             if s.dashed:

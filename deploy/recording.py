@@ -54,8 +54,10 @@ def import_rerun():
     try:
         import rerun as rr
     except ImportError:
-        print("smana: rerun-sdk is not installed (pip install rerun-sdk): no recording",
-              file=sys.stderr)  # fmt: skip
+        print(
+            "smana: rerun-sdk is not installed (pip install rerun-sdk): no recording",
+            file=sys.stderr,
+        )
         return None
     return rr
 
@@ -242,8 +244,12 @@ class RunRecorder:
         self.rr = rr = import_rerun()
         self.classes = classes
         self.image_scale = image_scale
-        self.periods = {"image": image_period_s, "map": map_period_s, "graph": graph_period_s,
-                        "trajectory": trajectory_period_s}  # fmt: skip
+        self.periods = {
+            "image": image_period_s,
+            "map": map_period_s,
+            "graph": graph_period_s,
+            "trajectory": trajectory_period_s,
+        }
         self._last: dict[str, float] = {}
         self.voxels = VoxelStore()
         self.grid = NavGrid.from_bounds(*graph_bounds, graph_resolution_m)
@@ -252,10 +258,14 @@ class RunRecorder:
         # written to TRAJECTORY_FILES there as they come
         self.trajectory: list[tuple[float, ...]] = []
         self.trajectory_truth: list[tuple[float, ...]] = []
-        self._files = {} if trajectory_dir is None else {
-            kind: TrajectoryCsv(Path(trajectory_dir) / name)
-            for kind, name in TRAJECTORY_FILES.items()
-        }  # fmt: skip
+        self._files = (
+            {}
+            if trajectory_dir is None
+            else {
+                kind: TrajectoryCsv(Path(trajectory_dir) / name)
+                for kind, name in TRAJECTORY_FILES.items()
+            }
+        )
         self.counts: dict[str, int] = {}
         self.t = 0.0
         self.rec = None
@@ -286,8 +296,11 @@ class RunRecorder:
         self.rec.log("world", ctx, static=True)
         self.rec.log("camera", ctx, static=True)
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        self.rec.log("world/robot/body", rr.Boxes3D(half_sizes=[[0.28, 0.2, 0.1]],
-                     colors=[[240, 190, 30]]), static=True)  # fmt: skip
+        self.rec.log(
+            "world/robot/body",
+            rr.Boxes3D(half_sizes=[[0.28, 0.2, 0.1]], colors=[[240, 190, 30]]),
+            static=True,
+        )
 
     # -- helpers --------------------------------------------------------------------------------
 
@@ -360,8 +373,12 @@ class RunRecorder:
             self.rec.log("camera/rgb", rr.Image(small))
         elif kind == "depth":
             small = img[:: max(1, round(1 / s)), :: max(1, round(1 / s))]
-            self.rec.log("camera/depth", rr.DepthImage(np.ascontiguousarray(small), meter=1.0
-                         if small.dtype.kind == "f" else 1000.0))  # fmt: skip
+            self.rec.log(
+                "camera/depth",
+                rr.DepthImage(
+                    np.ascontiguousarray(small), meter=1.0 if small.dtype.kind == "f" else 1000.0
+                ),
+            )
 
     def on_delta(self, delta: MapDelta) -> None:
         self._count("delta")
@@ -412,10 +429,12 @@ class RunRecorder:
         free = known & ~obst & ~safety
         r = self.grid.resolution_m * 0.35
         self.rec.log("world/graph/nodes", rr.Points3D(pts[free], class_ids=labels[free], radii=r))
-        self.rec.log("world/graph/obstacles", rr.Points3D(pts[obst], class_ids=labels[obst],
-                     radii=r * 1.3))  # fmt: skip
-        self.rec.log("world/graph/safety_zone", rr.Points3D(pts[safety], colors=[255, 140, 0],
-                     radii=r))  # fmt: skip
+        self.rec.log(
+            "world/graph/obstacles", rr.Points3D(pts[obst], class_ids=labels[obst], radii=r * 1.3)
+        )
+        self.rec.log(
+            "world/graph/safety_zone", rr.Points3D(pts[safety], colors=[255, 140, 0], radii=r)
+        )
 
     def on_explorer_state(self, st: dict) -> None:
         self._count("explorer_state")
@@ -435,17 +454,23 @@ class RunRecorder:
         path = np.asarray(st.get("path") or [], float).reshape(-1, 2)
         if len(path) >= 2:
             p3 = np.column_stack([path, np.full(len(path), 0.12)])
-            self.rec.log("world/explorer/path", rr.LineStrips3D([p3], colors=[[255, 0, 200]],
-                         radii=0.025))  # fmt: skip
+            self.rec.log(
+                "world/explorer/path", rr.LineStrips3D([p3], colors=[[255, 0, 200]], radii=0.025)
+            )
         else:
             self.rec.log("world/explorer/path", rr.Clear(recursive=False))
         goal = st.get("goal")
         if goal:
             gx, gy = goal["xy"]
             yaw = float(goal.get("yaw", 0.0))
-            self.rec.log("world/explorer/goal", rr.Arrows3D(
-                origins=[[gx, gy, 0.15]], vectors=[[0.5 * math.cos(yaw), 0.5 * math.sin(yaw), 0]],
-                colors=[[255, 0, 200]]))  # fmt: skip
+            self.rec.log(
+                "world/explorer/goal",
+                rr.Arrows3D(
+                    origins=[[gx, gy, 0.15]],
+                    vectors=[[0.5 * math.cos(yaw), 0.5 * math.sin(yaw), 0]],
+                    colors=[[255, 0, 200]],
+                ),
+            )
         else:
             self.rec.log("world/explorer/goal", rr.Clear(recursive=False))
         for name in ("explored_m2", "distance_m", "frontier_size"):
@@ -458,8 +483,14 @@ class RunRecorder:
         given `trajectory_dir` has written them there already, row by row.)"""
         for kind, rows in (("pose", self.trajectory), ("pose_truth", self.trajectory_truth)):
             if rows:
-                np.savetxt(Path(folder) / TRAJECTORY_FILES[kind], np.array(rows), delimiter=",",
-                           fmt="%.4f", header=TRAJECTORY_HEADER, comments="")  # fmt: skip
+                np.savetxt(
+                    Path(folder) / TRAJECTORY_FILES[kind],
+                    np.array(rows),
+                    delimiter=",",
+                    fmt="%.4f",
+                    header=TRAJECTORY_HEADER,
+                    comments="",
+                )
 
     def close(self) -> None:
         for f in self._files.values():
@@ -496,11 +527,14 @@ class RecorderService(Service):
         nav = config.navgraph
         self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
         self.core = RunRecorder(
-            ClassTable.load(config.general.class_table), rrd_path, spawn, connect,
+            ClassTable.load(config.general.class_table),
+            rrd_path,
+            spawn,
+            connect,
             graph_resolution_m=nav.resolution_m,
             graph_bounds=(tuple(nav.bounds_min_xy), tuple(nav.bounds_max_xy)),
             trajectory_dir=self.run_dir,
-        )  # fmt: skip
+        )
         self.rrd_path = rrd_path
 
     def setup(self) -> None:
@@ -529,10 +563,14 @@ class RecorderService(Service):
         # The trajectories are on disk already (row by row); the books are final (the queue was
         # drained before on_stop): say what was recorded before the slow part, closing the .rrd.
         summary = self.summary()
-        self.log.info("recorded %s; %d messages in: %d accepted, dropped %s, rejected %s",
-                      _recorded_line(summary["recorded"]), summary["msgs_in"],
-                      summary["accepted"], summary["dropped"] or 0,
-                      summary["rejected"] or 0)  # fmt: skip
+        self.log.info(
+            "recorded %s; %d messages in: %d accepted, dropped %s, rejected %s",
+            _recorded_line(summary["recorded"]),
+            summary["msgs_in"],
+            summary["accepted"],
+            summary["dropped"] or 0,
+            summary["rejected"] or 0,
+        )
         if self.run_dir is not None:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             (self.run_dir / SUMMARY_NAME).write_text(json.dumps(summary, indent=1))
@@ -558,8 +596,11 @@ class RecorderService(Service):
 
     def status_details(self) -> dict:
         recorded = self.recorded()
-        return {"recorded": recorded, "progress": _recorded_line(recorded),
-                "rrd": str(self.rrd_path or "")}  # fmt: skip
+        return {
+            "recorded": recorded,
+            "progress": _recorded_line(recorded),
+            "rrd": str(self.rrd_path or ""),
+        }
 
 
 def _recorded_line(recorded: dict[str, int]) -> str:
@@ -578,8 +619,15 @@ def main(config: SmanaConfig, rrd_path: Path | None = None, spawn=False, connect
 
 def recorder_argv(config_path: str | Path, robot: str) -> list[str]:
     """The command line `smana up` starts the recorder with (see deploy/supervisor.py)."""
-    return [sys.executable, "-m", "smana.deploy.recording", "--config", str(config_path),
-            "--robot", robot]  # fmt: skip
+    return [
+        sys.executable,
+        "-m",
+        "smana.deploy.recording",
+        "--config",
+        str(config_path),
+        "--robot",
+        robot,
+    ]
 
 
 def cli(argv: list[str] | None = None) -> int:

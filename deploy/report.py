@@ -56,7 +56,7 @@ def _trajectory(run_dir: Path) -> tuple[np.ndarray, str]:
         (run_dir / "trajectory_truth.csv", [0, 1, 2, 4], "ground truth"),
         (run_dir / "explorer" / "trajectory.csv", [0, 1, 2, 3], "published pose"),
         (run_dir / RECORDED_POSES, [0, 1, 2, 4], "published pose, as the recorder heard it"),
-    ):  # fmt: skip
+    ):
         if path.is_file():
             try:
                 data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
@@ -110,8 +110,9 @@ def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> 
     out: dict = {"robot_radius_m": radius}
     if not reach.any():
         # the start cell itself may sit inside the clearance margin: take the nearest reachable
-        d = np.where(trav.data, np.hypot(cell_xy[..., 0] - start[0], cell_xy[..., 1] - start[1]),
-                     np.inf)  # fmt: skip
+        d = np.where(
+            trav.data, np.hypot(cell_xy[..., 0] - start[0], cell_xy[..., 1] - start[1]), np.inf
+        )
         i, j = np.unravel_index(np.argmin(d), d.shape)
         reach = ev.reachable_traversable(trav.data, (int(i), int(j)))
     if graph is not None:
@@ -141,8 +142,9 @@ def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> 
     return out
 
 
-def _plots(run_dir: Path, classes: ClassTable, world, graph, traj, state,
-           replay: dict | None = None) -> dict[str, str]:  # fmt: skip
+def _plots(
+    run_dir: Path, classes: ClassTable, world, graph, traj, state, replay: dict | None = None
+) -> dict[str, str]:
     """Top-down ground truth (simulated runs), the graph, exploration progress and, for a replay,
     the integration latency per scan."""
     out_dir = run_dir / "plots"
@@ -155,8 +157,14 @@ def _plots(run_dir: Path, classes: ClassTable, world, graph, traj, state,
     if world is not None:
         top = world.top_class()
         rgb = classes.colour_lut[top.data]
-        img = plots.top_down(rgb, top.origin_xy, top.resolution_m, tracks, markers,
-                             "ground truth, trajectory (yellow), goals (magenta)")  # fmt: skip
+        img = plots.top_down(
+            rgb,
+            top.origin_xy,
+            top.resolution_m,
+            tracks,
+            markers,
+            "ground truth, trajectory (yellow), goals (magenta)",
+        )
         files["map"] = str(
             plots.save_png(out_dir / "world_trajectory.png", img).relative_to(run_dir)
         )
@@ -182,20 +190,26 @@ def _plots(run_dir: Path, classes: ClassTable, world, graph, traj, state,
     if len(hist) >= 2:
         t = hist[:, 0] - hist[0, 0]
         img = plots.line_plot(
-            [plots.Series("explored area (m2)", t.tolist(), hist[:, 1].tolist()),
-             plots.Series("distance (m)", t.tolist(), hist[:, 3].tolist())],
-            "exploration progress", "time (s)", "m2 / m",
+            [
+                plots.Series("explored area (m2)", t.tolist(), hist[:, 1].tolist()),
+                plots.Series("distance (m)", t.tolist(), hist[:, 3].tolist()),
+            ],
+            "exploration progress",
+            "time (s)",
+            "m2 / m",
             xticklabels={float(v): f"{v:g}" for v in plots._nice_ticks(0, t[-1])},
-        )  # fmt: skip
+        )
         files["progress"] = str(plots.save_png(out_dir / "progress.png", img).relative_to(run_dir))
     rows = [r for r in (replay or {}).get("per_scan") or [] if r[5] is not None]
     if len(rows) >= 2:
         seq = [float(r[1]) for r in rows]
         img = plots.line_plot(
             [plots.Series("scan published -> integrated (ms)", seq, [float(r[5]) for r in rows])],
-            "replay: integration latency per scan", "scan index", "ms",
+            "replay: integration latency per scan",
+            "scan index",
+            "ms",
             xticklabels={float(v): f"{v:g}" for v in plots._nice_ticks(seq[0], seq[-1])},
-        )  # fmt: skip
+        )
         files["replay_latency"] = str(
             plots.save_png(out_dir / "replay_latency.png", img).relative_to(run_dir)
         )
@@ -280,15 +294,21 @@ def replay_warnings(rp: dict) -> list[str]:
     missed poses the replay published or did not stop cleanly."""
     out = []
     if rp.get("mode") == "lockstep" and rp.get("lost"):
-        out.append(f"{rp['lost']} scan(s) lost in lockstep: no MapDelta even after resending "
-                   "them, so the map misses them (see logs/mapper.log)")  # fmt: skip
+        out.append(
+            f"{rp['lost']} scan(s) lost in lockstep: no MapDelta even after resending "
+            "them, so the map misses them (see logs/mapper.log)"
+        )
     published, recorded = rp.get("poses_published"), rp.get("poses_recorded")
     if published is not None and recorded is not None and recorded < published:
-        out.append(f"the recorder recorded {recorded} of the {published} poses the replay "
-                   "published (see logs/recorder.log): its recording is incomplete")  # fmt: skip
+        out.append(
+            f"the recorder recorded {recorded} of the {published} poses the replay "
+            "published (see logs/recorder.log): its recording is incomplete"
+        )
     if recorded is not None and not rp.get("recorder_stopped_cleanly", True):
-        out.append("the recorder did not stop cleanly (no recorder.json): its recording may be "
-                   "incomplete (see logs/recorder.log)")  # fmt: skip
+        out.append(
+            "the recorder did not stop cleanly (no recorder.json): its recording may be "
+            "incomplete (see logs/recorder.log)"
+        )
     return out
 
 
@@ -348,13 +368,27 @@ def write_report(
         },
     }
     if state is not None:
-        metrics["explorer"] = {k: state.get(k) for k in (
-            "done_reason", "elapsed_s", "wall_time_s", "distance_m", "explored_m2", "n_goals",
-            "n_plans", "n_blocked", "n_stuck", "path_queries", "path_ok",
-            "path_errors")}  # fmt: skip
+        metrics["explorer"] = {
+            k: state.get(k)
+            for k in (
+                "done_reason",
+                "elapsed_s",
+                "wall_time_s",
+                "distance_m",
+                "explored_m2",
+                "n_goals",
+                "n_plans",
+                "n_blocked",
+                "n_stuck",
+                "path_queries",
+                "path_ok",
+                "path_errors",
+            )
+        }
         counts = {int(k): v for k, v in (state.get("label_counts") or {}).items()}
         metrics["explorer"]["map_label_share"] = ev.label_shares(
-            np.repeat(list(counts), list(counts.values())), names)  # fmt: skip
+            np.repeat(list(counts), list(counts.values())), names
+        )
     world = None
     if replay is not None:
         metrics["ground_truth"] = "none: a replayed dataset"
@@ -442,21 +476,30 @@ def render_markdown(m: dict) -> str:
             ("ended because", ee.get("done_reason") or "-"),
             ("wall time", _f(ee.get("wall_time_s"), ".0f", " s")),
             ("robot time", _f(ex.get("duration_robot_s"), ".0f", " s")),
-            ("explored share of the reachable traversable area",
-             _f(100 * ex["coverage"] if ex.get("coverage") is not None else None, ".1f", " %")),
-            ("reachable traversable area (ground truth)", _f(ex.get("reachable_area_m2"), ".1f",
-                                                             " m2")),
+            (
+                "explored share of the reachable traversable area",
+                _f(100 * ex["coverage"] if ex.get("coverage") is not None else None, ".1f", " %"),
+            ),
+            (
+                "reachable traversable area (ground truth)",
+                _f(ex.get("reachable_area_m2"), ".1f", " m2"),
+            ),
             ("known graph area", _f(ex.get("known_area_m2"), ".1f", " m2")),
             ("distance travelled", _f(ex.get("distance_m"), ".1f", " m")),
             ("goals", str(ee.get("n_goals", "-"))),
-            ("travelled nodes on terrain (vs grass, ground truth)",
-             _f(100 * ex["terrain_share"] if ex.get("terrain_share") is not None else None,
-                ".0f", " %")),
+            (
+                "travelled nodes on terrain (vs grass, ground truth)",
+                _f(
+                    100 * ex["terrain_share"] if ex.get("terrain_share") is not None else None,
+                    ".0f",
+                    " %",
+                ),
+            ),
             ("minimum clearance from obstacles", _f(ex.get("min_clearance_m"), ".2f", " m")),
             (f"close calls (clearance < {CLOSE_CALL_M} m)", str(ex.get("close_calls", "-"))),
             ("collisions (footprint over an obstacle)", str(ex.get("collisions", "-"))),
             ("trajectory measured from", ex.get("trajectory_source", "-")),
-        ]  # fmt: skip
+        ]
         lines += [f"| {a} | {b} |" for a, b in rows]
         lines.append("")
     mp = m.get("map")
@@ -473,17 +516,27 @@ def render_markdown(m: dict) -> str:
             "|---|---|---|---|",
         ]
         for name, s in mp["per_class"].items():
-            lines.append(f"| {name} | {s['n_points']} | {_f(s['error_mean_m'], '.3f')} | "
-                         f"{_f(s['classification_ratio'], '.3f')} |")  # fmt: skip
+            lines.append(
+                f"| {name} | {s['n_points']} | {_f(s['error_mean_m'], '.3f')} | "
+                f"{_f(s['classification_ratio'], '.3f')} |"
+            )
         lines.append("")
     elif mp:
         lines += ["## Map against ground truth", "", str(mp), ""]
     mc = m.get("map_content")
     if isinstance(mc, dict) and mc.get("n_points"):
-        lines += ["## Map content", "", f"{mc['n_points']} occupied voxels.", "",
-                  "| class | voxels | share |", "|---|---|---|"]  # fmt: skip
-        lines += [f"| {name} | {s['points']} | {100 * s['share']:.1f} % |"
-                  for name, s in mc["per_class"].items()]  # fmt: skip
+        lines += [
+            "## Map content",
+            "",
+            f"{mc['n_points']} occupied voxels.",
+            "",
+            "| class | voxels | share |",
+            "|---|---|---|",
+        ]
+        lines += [
+            f"| {name} | {s['points']} | {100 * s['share']:.1f} % |"
+            for name, s in mc["per_class"].items()
+        ]
         lines.append("")
     files = m.get("files") or {}
     if files.get("plots"):
@@ -496,8 +549,9 @@ def render_markdown(m: dict) -> str:
         f"({files.get('recording_bytes', 0) / 1e6:.1f} MB; `smana view {m['run_dir']}`)"
     )
     lines.append(f"- final map: `{files.get('map')}`, graph: `{files.get('graph')}`")
-    lines.append("- config used: `config.toml`; logs: " + ", ".join(
-        f"`{p}`" for p in files.get("logs", [])))  # fmt: skip
+    lines.append(
+        "- config used: `config.toml`; logs: " + ", ".join(f"`{p}`" for p in files.get("logs", []))
+    )
     return "\n".join(lines) + "\n"
 
 
@@ -511,11 +565,15 @@ def _replay_lines(rp: dict) -> list[str]:
     kept = rp.get("points_kept_share")
     kept = None if kept is None else 100 * kept
     if lockstep:  # nothing may be lost: a loss is a failure (and a warning above)
-        losses = ("lost (no MapDelta after 3 resends) / resent",
-                  f"{rp.get('lost', '-')} / {rp.get('resends', '-')}")  # fmt: skip
+        losses = (
+            "lost (no MapDelta after 3 resends) / resent",
+            f"{rp.get('lost', '-')} / {rp.get('resends', '-')}",
+        )
     else:  # the mapper keeps the newest scan only: what it cannot keep up with, it drops
-        losses = ("not integrated: overtaken by a newer scan / unacknowledged",
-                  f"{rp.get('overtaken', '-')} / {rp.get('unacknowledged', '-')}")  # fmt: skip
+        losses = (
+            "not integrated: overtaken by a newer scan / unacknowledged",
+            f"{rp.get('overtaken', '-')} / {rp.get('unacknowledged', '-')}",
+        )
     recorded = rp.get("poses_recorded")
     rows = [
         ("mode", mode),
@@ -523,34 +581,59 @@ def _replay_lines(rp: dict) -> list[str]:
         ("scans in the dataset (readable)", str(rp.get("scans", "-"))),
         ("skipped by the reader", str(len(rp.get("skipped_by_reader") or []))),
         ("published / integrated", f"{rp.get('published', '-')} / {rp.get('acknowledged', '-')}"),
-        ("empty after filtering / unreadable",
-         f"{rp.get('empty', '-')} / {len(rp.get('read_errors') or [])}"),
+        (
+            "empty after filtering / unreadable",
+            f"{rp.get('empty', '-')} / {len(rp.get('read_errors') or [])}",
+        ),
         losses,
-        ("late: published / integrated",
-         f"{rp.get('late_published', '-')} / {rp.get('late_integrated', '-')}"),
-        ("integration latency mean / p95 / max",
-         f"{_f(lat.get('mean_ms'), '.0f')} / {_f(lat.get('p95_ms'), '.0f')} / "
-         f"{_f(lat.get('max_ms'), '.0f')} ms"),
+        (
+            "late: published / integrated",
+            f"{rp.get('late_published', '-')} / {rp.get('late_integrated', '-')}",
+        ),
+        (
+            "integration latency mean / p95 / max",
+            f"{_f(lat.get('mean_ms'), '.0f')} / {_f(lat.get('p95_ms'), '.0f')} / "
+            f"{_f(lat.get('max_ms'), '.0f')} ms",
+        ),
         ("latency per point (mean scan)", _f(rp.get("latency_per_point_us"), ".2f", " us")),
-        ("points kept", f"{rp.get('points_published', '-')} of {rp.get('points_in', '-')} "
-                        f"({_f(kept, '.0f', ' %')})"),
-        ("dropped: out of range / ignored class / non-finite",
-         f"{rp.get('points_out_of_range', '-')} / {rp.get('points_ignored_class', '-')} / "
-         f"{rp.get('points_nonfinite', '-')}"),
+        (
+            "points kept",
+            f"{rp.get('points_published', '-')} of {rp.get('points_in', '-')} "
+            f"({_f(kept, '.0f', ' %')})",
+        ),
+        (
+            "dropped: out of range / ignored class / non-finite",
+            f"{rp.get('points_out_of_range', '-')} / {rp.get('points_ignored_class', '-')} / "
+            f"{rp.get('points_nonfinite', '-')}",
+        ),
         ("throughput", _f(rp.get("scans_per_s"), ".1f", " scans/s")),
-        ("poses published / recorded by the recorder",
-         f"{rp.get('poses_published', '-')} / {'no recorder' if recorded is None else recorded}"),
-        ("distance covered by the poses", _f(rp.get("distance_m"), ".2f", " m")
-         + (f" (measured on {rp['distance_source']})" if rp.get("distance_source") else "")),
-    ]  # fmt: skip
-    lines = ["## Replay", "", "| figure | value |", "|---|---|",
-             *[f"| {a} | {b} |" for a, b in rows], ""]  # fmt: skip
+        (
+            "poses published / recorded by the recorder",
+            f"{rp.get('poses_published', '-')} / {'no recorder' if recorded is None else recorded}",
+        ),
+        (
+            "distance covered by the poses",
+            _f(rp.get("distance_m"), ".2f", " m")
+            + (f" (measured on {rp['distance_source']})" if rp.get("distance_source") else ""),
+        ),
+    ]
+    lines = [
+        "## Replay",
+        "",
+        "| figure | value |",
+        "|---|---|",
+        *[f"| {a} | {b} |" for a, b in rows],
+        "",
+    ]
     if not lockstep and rp.get("overtaken"):
-        lines += [f"Realtime: {rp['overtaken']} of the {rp.get('published', '-')} scans were "
-                  "overtaken by a newer one before the mapper integrated them: dropped as stale "
-                  "by its latest-wins input (or on the way, by the link's DROP congestion "
-                  "control), as on a robot whose mapper is slower than its sensor. Not a failure "
-                  "of the replay: `--lockstep` integrates every scan.", ""]  # fmt: skip
+        lines += [
+            f"Realtime: {rp['overtaken']} of the {rp.get('published', '-')} scans were "
+            "overtaken by a newer one before the mapper integrated them: dropped as stale "
+            "by its latest-wins input (or on the way, by the link's DROP congestion "
+            "control), as on a robot whose mapper is slower than its sensor. Not a failure "
+            "of the replay: `--lockstep` integrates every scan.",
+            "",
+        ]
     return lines
 
 

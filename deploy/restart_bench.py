@@ -100,8 +100,9 @@ def _wait(pred, timeout_s: float, step_s: float = 0.01) -> bool:
     return False
 
 
-def run_once(standby: bool, kills: int, settle_s: float, overrides: list[str], out: Path,
-             progress) -> dict:  # fmt: skip
+def run_once(
+    standby: bool, kills: int, settle_s: float, overrides: list[str], out: Path, progress
+) -> dict:
     """One stack, every service killed `kills` times; the times back and the map checks."""
     import zenoh
 
@@ -124,8 +125,9 @@ def run_once(standby: bool, kills: int, settle_s: float, overrides: list[str], o
             w = Watch(session, "bench")
             if not _wait(lambda: all(w.alive_since(s) for s in SERVICES), 600):
                 raise RuntimeError(f"the stack did not come up: {sorted(w.up)}")
-            if standby and not _wait(lambda: all(
-                    sup.spare_ready(m) for m in sup.procs.values()), 300):  # fmt: skip
+            if standby and not _wait(
+                lambda: all(sup.spare_ready(m) for m in sup.procs.values()), 300
+            ):
                 raise RuntimeError("the standby processes did not get ready")
             time.sleep(settle_s)  # let the map grow a little
             for k in range(kills):
@@ -144,10 +146,12 @@ def run_once(standby: bool, kills: int, settle_s: float, overrides: list[str], o
                     result["back_s"][service].append(w.alive_since(service) - t_kill)
                     if service == "mapper":
                         after = w.query("mapper", "stats") or {}
-                        result["map"].append({
-                            "voxels_before": before.get("voxels_observed"),
-                            "voxels_after": after.get("voxels_observed"),
-                        })  # fmt: skip
+                        result["map"].append(
+                            {
+                                "voxels_before": before.get("voxels_observed"),
+                                "voxels_after": after.get("voxels_observed"),
+                            }
+                        )
                     progress(standby, k, service, result["back_s"][service][-1])
                     # the next kill finds the stack whole again (a spare ready, when used)
                     _wait(lambda m=m: not standby or sup.spare_ready(m), 120)
@@ -167,14 +171,28 @@ def _summary(r: dict) -> dict:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = ArgumentParser(prog="smana bench restart", description=__doc__.strip().splitlines()[0],
-                       formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    p = ArgumentParser(
+        prog="smana bench restart",
+        description=__doc__.strip().splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--kills", type=positive_int, default=5, help="kills per service")
-    p.add_argument("--settle", type=positive_float, default=3.0, metavar="S",
-                   help="seconds between kills (the stack works meanwhile)")  # fmt: skip
+    p.add_argument(
+        "--settle",
+        type=positive_float,
+        default=3.0,
+        metavar="S",
+        help="seconds between kills (the stack works meanwhile)",
+    )
     p.add_argument("--only", choices=["standby", "respawn"], help="run one variant only")
-    p.add_argument("--set", dest="overrides", action="append", default=[],
-                   metavar="SECTION.KEY=VALUE", help="config override for the stack")  # fmt: skip
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="config override for the stack",
+    )
     p.add_argument("--out", type=Path, help="JSON result file (default: a temporary folder)")
     args = p.parse_args(argv)
     variants = [True, False] if args.only is None else [args.only == "standby"]
@@ -188,24 +206,41 @@ def cli(argv: list[str] | None = None) -> int:
     def progress(standby, k, service, back_s):
         done[0] += 1
         eta = (time.monotonic() - t0) / done[0] * (total - done[0])
-        print(f"[{done[0]:3d}/{total}] {'standby' if standby else 'respawn':<8} kill {k + 1} "
-              f"{service:<9} back in {back_s:5.2f} s   (ETA {eta:4.0f} s)", flush=True)  # fmt: skip
+        print(
+            f"[{done[0]:3d}/{total}] {'standby' if standby else 'respawn':<8} kill {k + 1} "
+            f"{service:<9} back in {back_s:5.2f} s   (ETA {eta:4.0f} s)",
+            flush=True,
+        )
 
-    print(f"smana bench restart: {args.kills} kills per service, load average "
-          f"{os.getloadavg()[0]:.2f} at start; run dirs in {out}", flush=True)  # fmt: skip
-    results = [run_once(v, args.kills, args.settle, args.overrides, out, progress)
-               for v in variants]  # fmt: skip
+    print(
+        f"smana bench restart: {args.kills} kills per service, load average "
+        f"{os.getloadavg()[0]:.2f} at start; run dirs in {out}",
+        flush=True,
+    )
+    results = [
+        run_once(v, args.kills, args.settle, args.overrides, out, progress) for v in variants
+    ]
     wall = time.monotonic() - t0
     cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     self1 = resource.getrusage(resource.RUSAGE_SELF)
-    cpu = (cpu1.ru_utime + cpu1.ru_stime - cpu0.ru_utime - cpu0.ru_stime
-           + self1.ru_utime + self1.ru_stime - self0.ru_utime - self0.ru_stime)  # fmt: skip
+    cpu = (
+        cpu1.ru_utime
+        + cpu1.ru_stime
+        - cpu0.ru_utime
+        - cpu0.ru_stime
+        + self1.ru_utime
+        + self1.ru_stime
+        - self0.ru_utime
+        - self0.ru_stime
+    )
     load = os.getloadavg()
     summaries = {("standby" if r["standby"] else "respawn"): _summary(r) for r in results}
     print()
-    print(f"{'service':<10}" + "".join(f"{v + ' median':>16}{v + ' max':>14}"
-                                        for v in summaries) + (
-        f"{'ratio':>8}" if len(summaries) == 2 else ""))  # fmt: skip
+    print(
+        f"{'service':<10}"
+        + "".join(f"{v + ' median':>16}{v + ' max':>14}" for v in summaries)
+        + (f"{'ratio':>8}" if len(summaries) == 2 else "")
+    )
     failed = False
     for s in SERVICES:
         row = f"{s:<10}"
@@ -222,13 +257,24 @@ def cli(argv: list[str] | None = None) -> int:
             lost = (mp["voxels_before"] or 0) - (mp["voxels_after"] or 0)
             ok = mp["voxels_after"] is not None and lost <= 0
             failed |= not ok
-            print(f"map {'standby' if r['standby'] else 'respawn'} kill {i + 1}: "
-                  f"{mp['voxels_before']} observed voxels saved before, {mp['voxels_after']} after"
-                  f"{'' if ok else '  LOST'}")  # fmt: skip
-    print(f"\nwall {wall:.0f} s, CPU {cpu:.0f} s (all processes), load average "
-          f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}", flush=True)  # fmt: skip
-    doc = {"kills": args.kills, "results": results, "summary": summaries, "wall_s": wall,
-           "cpu_s": cpu, "loadavg": load}  # fmt: skip
+            print(
+                f"map {'standby' if r['standby'] else 'respawn'} kill {i + 1}: "
+                f"{mp['voxels_before']} observed voxels saved before, {mp['voxels_after']} after"
+                f"{'' if ok else '  LOST'}"
+            )
+    print(
+        f"\nwall {wall:.0f} s, CPU {cpu:.0f} s (all processes), load average "
+        f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}",
+        flush=True,
+    )
+    doc = {
+        "kills": args.kills,
+        "results": results,
+        "summary": summaries,
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "loadavg": load,
+    }
     path = args.out or out / "restart.json"
     Path(path).write_text(json.dumps(doc, indent=1))
     print(f"results: {path}")

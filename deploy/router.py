@@ -71,8 +71,12 @@ def _trust_uplinks(conf) -> None:
     conf.insert_json5("access_control", json.dumps(uplink_policy(acl)))
 
 
-def open_router(listen: list[str], base: ZenohConfig | None = None, connect: list[str] = (),
-                listen_hint: str = ROUTER_LISTEN_HINT):  # fmt: skip
+def open_router(
+    listen: list[str],
+    base: ZenohConfig | None = None,
+    connect: list[str] = (),
+    listen_hint: str = ROUTER_LISTEN_HINT,
+):
     """The router's session; a `SessionError` (one line) when it cannot open, e.g. a port in use.
     `listen_hint` tells the user how to choose another endpoint ({} is a suggested one)."""
     import zenoh

@@ -44,15 +44,28 @@ SENSOR_TOPICS = ("cloud", "scan", "pose", "pose_truth", "clock", "image/**")
 READ = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
 OWN = ["put", "delete", "declare_queryable", "reply"]
 ALL_MESSAGES = [
-    "put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
-    "liveliness_token", "declare_liveliness_subscriber", "liveliness_query",
-]  # fmt: skip
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "reply",
+    "declare_queryable",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+]
 
 
-def _rule(id_: str, flows: list[str], messages: list[str], key_exprs: list[str],
-          permission: str = "allow") -> dict:  # fmt: skip
-    return {"id": id_, "permission": permission, "flows": flows, "messages": messages,
-            "key_exprs": key_exprs}  # fmt: skip
+def _rule(
+    id_: str, flows: list[str], messages: list[str], key_exprs: list[str], permission: str = "allow"
+) -> dict:
+    return {
+        "id": id_,
+        "permission": permission,
+        "flows": flows,
+        "messages": messages,
+        "key_exprs": key_exprs,
+    }
 
 
 def acl_policy(robot: str = "*", hosts: list[str] = ()) -> dict:
@@ -84,17 +97,24 @@ def acl_policy(robot: str = "*", hosts: list[str] = ()) -> dict:
     subjects = [{"id": role, "usernames": [role]} for role in READERS]
     subjects.append({"id": "routers-tcp", "usernames": ["router"], "link_protocols": ["tcp"]})
     if hosts:
-        subjects.append({"id": "routers-tls", "usernames": ["router"],
-                         "cert_common_names": list(hosts)})  # fmt: skip
+        subjects.append(
+            {"id": "routers-tls", "usernames": ["router"], "cert_common_names": list(hosts)}
+        )
     policies = [
         {"id": "read", "rules": ["read", "deliver"], "subjects": list(READERS)},
-        {"id": "no-save", "rules": ["no-save"],
-         "subjects": [role for role in READERS if role not in SAVE_ROLES]},
+        {
+            "id": "no-save",
+            "rules": ["no-save"],
+            "subjects": [role for role in READERS if role not in SAVE_ROLES],
+        },
         {"id": "sensors", "rules": ["publish-sensors"], "subjects": list(SENSOR_ROLES)},
         {"id": "commanders", "rules": ["publish-cmd_vel"], "subjects": list(COMMAND_ROLES)},
-        {"id": "routers", "rules": ["relay"],
-         "subjects": ["routers-tcp", *(["routers-tls"] if hosts else [])]},
-    ]  # fmt: skip
+        {
+            "id": "routers",
+            "rules": ["relay"],
+            "subjects": ["routers-tcp", *(["routers-tls"] if hosts else [])],
+        },
+    ]
     # Each owner's key space: its topics, status and queryables; its liveliness token alone (the
     # supervisor's health check trusts it). Whatever drives the robot also shows `alive/robot`.
     for owner in OWNERS:
@@ -105,8 +125,9 @@ def acl_policy(robot: str = "*", hosts: list[str] = ()) -> dict:
             _rule(f"own-{owner}", ["ingress"], OWN, [f"smana/{r}/{owner}/**"]),
             _rule(f"alive-{owner}", ["ingress"], ["liveliness_token"], alive),
         ]
-        policies.append({"id": f"own-{owner}", "rules": [f"own-{owner}", f"alive-{owner}"],
-                         "subjects": [owner]})  # fmt: skip
+        policies.append(
+            {"id": f"own-{owner}", "rules": [f"own-{owner}", f"alive-{owner}"], "subjects": [owner]}
+        )
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -128,8 +149,10 @@ def uplink_policy(policy: dict) -> dict:
     twins = {}
     for s in policy.get("subjects") or []:
         if "router" in (s.get("usernames") or []) and s.get("cert_common_names"):
-            twins[s["id"]] = {"id": f"{s['id']}-uplink",
-                              "cert_common_names": list(s["cert_common_names"])}  # fmt: skip
+            twins[s["id"]] = {
+                "id": f"{s['id']}-uplink",
+                "cert_common_names": list(s["cert_common_names"]),
+            }
     if not twins:
         return policy
     policy["subjects"] = [*policy["subjects"], *twins.values()]
@@ -204,7 +227,7 @@ def init_certs(out: Path, hosts: list[str], days: int = 825, force: bool = False
                 decipher_only=False,
             ),
             critical=True,
-        )  # fmt: skip
+        )
         .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), False)
         .sign(ca_key, hashes.SHA256())
     )
@@ -215,8 +238,11 @@ def init_certs(out: Path, hosts: list[str], days: int = 825, force: bool = False
         key = _key()
         # The common name identifies the host; the names and loopback address let the
         # certificate also pass a name check where a user turns that on.
-        alt = [x509.DNSName(host), x509.DNSName("localhost"),
-               x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]  # fmt: skip
+        alt = [
+            x509.DNSName(host),
+            x509.DNSName("localhost"),
+            x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
+        ]
         cert = (
             x509.CertificateBuilder()
             .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, host)]))
@@ -261,8 +287,11 @@ def init_certs(out: Path, hosts: list[str], days: int = 825, force: bool = False
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="smana deploy", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    p = argparse.ArgumentParser(
+        prog="smana deploy",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     sub = p.add_subparsers(dest="cmd", required=True)
     ic = sub.add_parser("init-certs", help="create a CA, host certificates, credentials and ACL")
     ic.add_argument("--out", default="certs", help="folder to write into (default ./certs)")

@@ -49,8 +49,13 @@ def cli(argv: list[str] | None = None) -> int:
     p = make_parser("smana status", __doc__)
     p.add_argument("--all-robots", action="store_true", help="every robot, not only --robot")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    p.add_argument("--timeout", type=positive_float, default=2.0, metavar="S",
-                   help="how long to wait for answers (default 2)")  # fmt: skip
+    p.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=2.0,
+        metavar="S",
+        help="how long to wait for answers (default 2)",
+    )
     args = p.parse_args(argv)
     cfg = config_from_args(args)
     robot = "*" if args.all_robots else cfg.general.robot
@@ -62,8 +67,10 @@ def cli(argv: list[str] | None = None) -> int:
     if not rows:
         print(f"no live smana services for robot {robot!r}: is it running?", file=sys.stderr)
         return 1
-    print(f"{'robot':<8} {'service':<10} {'state':<9} {'uptime':>8} {'in':>8} {'out':>8} "
-          f"{'dropped':>8}  rejected / doing")  # fmt: skip
+    print(
+        f"{'robot':<8} {'service':<10} {'state':<9} {'uptime':>8} {'in':>8} {'out':>8} "
+        f"{'dropped':>8}  rejected / doing"
+    )
     for row in rows:
         st = row.get("status")
         if st is None:

@@ -94,9 +94,11 @@ class Supervisor:
         self.run_dir = Path(run_dir).resolve()
         self.robot = config.general.robot
         self.robots = list(config.deploy.robots) or [self.robot]
-        names = services if services is not None else [
-            n for n in SERVICE_ORDER if getattr(config.deploy, n).enabled
-        ]  # fmt: skip
+        names = (
+            services
+            if services is not None
+            else [n for n in SERVICE_ORDER if getattr(config.deploy, n).enabled]
+        )
         self.logs = self.run_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         # Every service is a client of our router (its first listen endpoint): rewrite [zenoh] so
@@ -114,8 +116,15 @@ class Supervisor:
         self.procs: dict[str, Managed] = {}
         for robot in self.robots:
             for n in names:
-                argv = [sys.executable, "-m", f"smana.services.{n}", "--config",
-                        str(self.config_path), "--robot", robot]  # fmt: skip
+                argv = [
+                    sys.executable,
+                    "-m",
+                    f"smana.services.{n}",
+                    "--config",
+                    str(self.config_path),
+                    "--robot",
+                    robot,
+                ]
                 if config.zenoh.credentials_file:
                     argv += ["--set", f'zenoh.user="{n}"']  # each service logs in as itself
                 name = n if len(self.robots) == 1 else f"{n}@{robot}"
@@ -129,13 +138,24 @@ class Supervisor:
         self._stop = threading.Event()
         self.session = None
 
-    def add(self, name: str, argv: list[str], policy: ServiceDeployConfig | None = None,
-            service: str = "", robot: str = "") -> None:  # fmt: skip
+    def add(
+        self,
+        name: str,
+        argv: list[str],
+        policy: ServiceDeployConfig | None = None,
+        service: str = "",
+        robot: str = "",
+    ) -> None:
         """Supervise another command (before `start()`): a sensor driver, a user's own node. It
         should declare the liveliness token `smana/<robot>/alive/<service>` as services do."""
-        self.procs[name] = Managed(name, list(argv), policy or ServiceDeployConfig(),
-                                   self.logs / f"{name}.log", service or name,
-                                   robot or self.robot)  # fmt: skip
+        self.procs[name] = Managed(
+            name,
+            list(argv),
+            policy or ServiceDeployConfig(),
+            self.logs / f"{name}.log",
+            service or name,
+            robot or self.robot,
+        )
 
     # -- process control ---------------------------------------------------------------------------
 
@@ -151,11 +171,15 @@ class Supervisor:
             os.set_blocking(ready_r, False)
             env[STANDBY_ENV] = str(ready_w)
         proc = subprocess.Popen(
-            m.argv, stdout=logf, stderr=subprocess.STDOUT,
+            m.argv,
+            stdout=logf,
+            stderr=subprocess.STDOUT,
             stdin=subprocess.PIPE if standby else subprocess.DEVNULL,
-            start_new_session=True, env=env, preexec_fn=die_with_parent,
+            start_new_session=True,
+            env=env,
+            preexec_fn=die_with_parent,
             pass_fds=(ready_w,) if standby else (),
-        )  # fmt: skip
+        )
         # Children keep the supervisor's working directory, so relative paths in the config
         # (certificates, maps, worlds) mean the same to every process.
         logf.close()
@@ -192,12 +216,15 @@ class Supervisor:
         became ready (so the two never compile the same kernels at once on a cold cache, and a
         short run never pays for it)."""
         if m.spare is not None and m.spare.poll() is not None:
-            log.warning("%s: its standby process exited with status %d", m.name,
-                        m.spare.returncode)  # fmt: skip
+            log.warning("%s: its standby process exited with status %d", m.name, m.spare.returncode)
             self._end_spare(m)
         ready_for = time.monotonic() - m.ready_at if m.ready_at is not None else -1.0
-        if (m.spare is None and m.policy.standby and ready_for >= self.config.deploy.standby_delay_s
-                and not self._stop.is_set()):  # fmt: skip
+        if (
+            m.spare is None
+            and m.policy.standby
+            and ready_for >= self.config.deploy.standby_delay_s
+            and not self._stop.is_set()
+        ):
             m.spare = self._start_process(m, standby=True)
         if m.spare is not None and not m.spare.prepared:
             try:
@@ -236,9 +263,15 @@ class Supervisor:
             # A crash loop: keep trying, slowly, and make sure the run says so.
             delay = p.restart_max_delay_s
             if not m.crash_looped:
-                log.error("%s keeps failing (%d restarts in %.0f s): restarting it every %.0f s "
-                          "from now on; the run will be reported failed (see %s)", m.name,
-                          len(m.restarts), p.restart_window_s, delay, m.log_path)  # fmt: skip
+                log.error(
+                    "%s keeps failing (%d restarts in %.0f s): restarting it every %.0f s "
+                    "from now on; the run will be reported failed (see %s)",
+                    m.name,
+                    len(m.restarts),
+                    p.restart_window_s,
+                    delay,
+                    m.log_path,
+                )
             m.crash_looped = True
         else:
             delay = min(p.restart_delay_s * 2 ** len(m.restarts), p.restart_max_delay_s)
@@ -280,12 +313,20 @@ class Supervisor:
             age = now - m.started_at
             if not seen:
                 if not sign and age > d.health_timeout_s:
-                    log.warning("%s showed no sign of life (no starting token) %.0f s after its "
-                                "start: killing it", m.name, age)  # fmt: skip
+                    log.warning(
+                        "%s showed no sign of life (no starting token) %.0f s after its "
+                        "start: killing it",
+                        m.name,
+                        age,
+                    )
                     self._signal(m, signal.SIGKILL)
                 elif age > d.startup_timeout_s:
-                    log.warning("%s still not ready %.0f s after its start "
-                                "(deploy.startup_timeout_s): killing it", m.name, age)  # fmt: skip
+                    log.warning(
+                        "%s still not ready %.0f s after its start "
+                        "(deploy.startup_timeout_s): killing it",
+                        m.name,
+                        age,
+                    )
                     self._signal(m, signal.SIGKILL)
             elif not alive:
                 # A service that stops on its own undeclares its token first and then flushes
@@ -293,8 +334,11 @@ class Supervisor:
                 if m.lost_at is None:
                     m.lost_at = now
                 elif now - m.lost_at > d.stop_timeout_s:
-                    log.warning("%s lost its liveliness token %.0f s ago, still runs: killing it",
-                                m.name, now - m.lost_at)  # fmt: skip
+                    log.warning(
+                        "%s lost its liveliness token %.0f s ago, still runs: killing it",
+                        m.name,
+                        now - m.lost_at,
+                    )
                     self._signal(m, signal.SIGKILL)
             else:
                 m.lost_at = None
@@ -331,8 +375,13 @@ class Supervisor:
                 m.ready_s.append(now - m.started_at)
                 if m.down_at is not None:
                     m.back_s.append(now - m.down_at)
-                    log.info("%s is back %.2f s after its last process ended (ready %.2f s "
-                             "after its start)", m.name, m.back_s[-1], m.ready_s[-1])  # fmt: skip
+                    log.info(
+                        "%s is back %.2f s after its last process ended (ready %.2f s "
+                        "after its start)",
+                        m.name,
+                        m.back_s[-1],
+                        m.ready_s[-1],
+                    )
 
     def _on_status(self, sample) -> None:
         try:
@@ -389,8 +438,11 @@ class Supervisor:
             try:
                 m.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                log.warning("%s did not stop within %.0f s: killing it", m.name,
-                            self.config.deploy.stop_timeout_s)  # fmt: skip
+                log.warning(
+                    "%s did not stop within %.0f s: killing it",
+                    m.name,
+                    self.config.deploy.stop_timeout_s,
+                )
                 self._signal(m, signal.SIGKILL)
                 m.proc.wait()
             m.exit_codes.append(m.proc.returncode)
@@ -415,8 +467,11 @@ class Supervisor:
                 if fin and all(m.finished for m in fin):
                     codes = [m.exit_codes[-1] if m.exit_codes else None for m in fin]
                     result = 0 if all(c == 0 for c in codes) else 1
-                    log.info("%s finished (status %s): stopping the stack", finish_with,
-                             ", ".join(map(str, codes)))  # fmt: skip
+                    log.info(
+                        "%s finished (status %s): stopping the stack",
+                        finish_with,
+                        ", ".join(map(str, codes)),
+                    )
                     self.ended = f"{finish_with} finished"
                     break
                 if self.procs and all(m.finished for m in self.procs.values()):
@@ -436,18 +491,25 @@ class Supervisor:
         """What the supervisor saw go wrong in this run (the report adds what its figures show)."""
         out = []
         for m in self.procs.values():
-            log_file = m.log_path.relative_to(self.run_dir) if m.log_path.is_relative_to(
-                self.run_dir) else m.log_path  # fmt: skip
+            log_file = (
+                m.log_path.relative_to(self.run_dir)
+                if m.log_path.is_relative_to(self.run_dir)
+                else m.log_path
+            )
             if not m.ever_ready:
                 out.append(f"{m.name} never became ready (see {log_file})")
             if m.crash_looped:
                 codes = ", ".join(str(c) for c in m.exit_codes[-5:])
-                out.append(f"{m.name} kept crashing: restarted {m.n_restarts} times, more than "
-                           f"{m.policy.max_restarts} in {m.policy.restart_window_s:.0f} s (last "
-                           f"exit statuses {codes}; see {log_file})")  # fmt: skip
+                out.append(
+                    f"{m.name} kept crashing: restarted {m.n_restarts} times, more than "
+                    f"{m.policy.max_restarts} in {m.policy.restart_window_s:.0f} s (last "
+                    f"exit statuses {codes}; see {log_file})"
+                )
             elif m.finished and m.exit_codes and m.exit_codes[-1] not in (0, -signal.SIGINT):
-                out.append(f"{m.name} exited with status {m.exit_codes[-1]} and was not "
-                           f"restarted (restart = {m.policy.restart})")  # fmt: skip
+                out.append(
+                    f"{m.name} exited with status {m.exit_codes[-1]} and was not "
+                    f"restarted (restart = {m.policy.restart})"
+                )
         if self.config.deploy.finish_with == "explorer":
             # What exploration needs, here or on another host of the deployment.
             for m in [m for m in self.procs.values() if m.service == "explorer"]:
@@ -458,8 +520,9 @@ class Supervisor:
                     if self._find(m.robot, need) is None:
                         why = f"disabled in this run (deploy.{need}.enabled = false) and none ran"
                         why += " elsewhere"
-                    out.append(f"the {need} the explorer of robot {m.robot} needs never came up "
-                               f"({why})")  # fmt: skip
+                    out.append(
+                        f"the {need} the explorer of robot {m.robot} needs never came up ({why})"
+                    )
         return out
 
     def print_progress(self, elapsed_s: float) -> None:
@@ -468,8 +531,9 @@ class Supervisor:
         parts = []
         for name, m in self.procs.items():
             st = statuses.get((m.robot, m.service))
-            mark = ("up" if m.alive else "starting" if m.starting
-                    else "done" if m.finished else "down")  # fmt: skip
+            mark = (
+                "up" if m.alive else "starting" if m.starting else "done" if m.finished else "down"
+            )
             extra = ""
             if st is not None and st.pid == (m.proc.pid if m.proc else -1):
                 # a stream's first messages, refused while its clock settles, are no news
@@ -553,8 +617,9 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
     try:
         from smana.deploy import report
 
-        path = report.write_report(run_dir, sup.service_config, warnings=warnings,
-                                   explored=explored)  # fmt: skip
+        path = report.write_report(
+            run_dir, sup.service_config, warnings=warnings, explored=explored
+        )
         metrics = json.loads((Path(run_dir) / "metrics.json").read_text())
         warnings = metrics.get("warnings", warnings)
         print(f"smana up: report written to {path}", flush=True)
@@ -572,11 +637,17 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
 def cli(argv: list[str] | None = None) -> int:
     from smana.common.cli import positive_float
 
-    p = make_parser("smana up", "Start the smana stack: router, sim, mapper, navgraph, planner, "
-                    "explorer; explore until done, then write the run directory.")  # fmt: skip
-    p.add_argument("--profile", default="local",
-                   help="deployment profile: local (default), robot, base, multi-robot, or a "
-                        "TOML file; --config and --set apply on top of it")  # fmt: skip
+    p = make_parser(
+        "smana up",
+        "Start the smana stack: router, sim, mapper, navgraph, planner, "
+        "explorer; explore until done, then write the run directory.",
+    )
+    p.add_argument(
+        "--profile",
+        default="local",
+        help="deployment profile: local (default), robot, base, multi-robot, or a "
+        "TOML file; --config and --set apply on top of it",
+    )
     p.add_argument("--only", metavar="A,B", help="start only these services, e.g. mapper,planner")
     p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     args = p.parse_args(argv)

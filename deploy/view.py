@@ -50,19 +50,29 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("run_dir", nargs="?", type=Path, help="a run directory or an .rrd file")
     p.add_argument("--web", action="store_true", help="serve the web viewer instead")
     p.add_argument("--spawn", action="store_true", help="live: record the stack into a new viewer")
-    p.add_argument("--connect-viewer", "--viewer", dest="viewer_url", metavar="URL",
-                   help="live: stream to a viewer (rerun+http://HOST:9876/proxy)")  # fmt: skip
+    p.add_argument(
+        "--connect-viewer",
+        "--viewer",
+        dest="viewer_url",
+        metavar="URL",
+        help="live: stream to a viewer (rerun+http://HOST:9876/proxy)",
+    )
     p.add_argument(
         "--print-only", action="store_true", help="print the viewer command, run nothing"
     )
     args = p.parse_args(argv)
 
-    headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
-                    or sys.platform in ("darwin", "win32"))  # fmt: skip
+    headless = not (
+        os.environ.get("DISPLAY")
+        or os.environ.get("WAYLAND_DISPLAY")
+        or sys.platform in ("darwin", "win32")
+    )
     if args.spawn and headless:
-        print("smana view: no display to spawn a viewer on; start `rerun` on a machine with one "
-              "and stream to it with `smana view --viewer rerun+http://HOST:9876/proxy`",
-              file=sys.stderr)  # fmt: skip
+        print(
+            "smana view: no display to spawn a viewer on; start `rerun` on a machine with one "
+            "and stream to it with `smana view --viewer rerun+http://HOST:9876/proxy`",
+            file=sys.stderr,
+        )
         return 2
     if args.spawn or args.viewer_url:
         cfg = config_from_args(args)
@@ -83,16 +93,21 @@ def cli(argv: list[str] | None = None) -> int:
         return 2
     viewer = _viewer_cmd()
     if viewer is None:
-        print(f"smana view: no Rerun viewer here (pip install rerun-sdk); the recording is {rrd}",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"smana view: no Rerun viewer here (pip install rerun-sdk); the recording is {rrd}",
+            file=sys.stderr,
+        )
         return 2
     cmd = [*viewer, *(["--web-viewer"] if args.web else []), str(rrd)]
     if args.print_only:
         print(" ".join(cmd))
         return 0
     if headless and not args.web:
-        print(f"smana view: no display; use `smana view {args.run_dir} --web` or copy {rrd} to a "
-              "machine with a viewer (`rerun FILE.rrd`)", file=sys.stderr)  # fmt: skip
+        print(
+            f"smana view: no display; use `smana view {args.run_dir} --web` or copy {rrd} to a "
+            "machine with a viewer (`rerun FILE.rrd`)",
+            file=sys.stderr,
+        )
         return 2
     return subprocess.call(cmd)
 

@@ -67,10 +67,15 @@ class ZenohStack:
         log = open(self.tmp / f"{name}.log", "ab")  # noqa: SIM115 - the child owns it
         full_env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
         proc = subprocess.Popen(
-            [sys.executable, *argv], stdout=log, stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL, start_new_session=True, env=full_env, cwd=self.tmp,
+            [sys.executable, *argv],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+            env=full_env,
+            cwd=self.tmp,
             preexec_fn=die_with_parent,  # a killed pytest leaves no service behind
-        )  # fmt: skip
+        )
         log.close()
         proc.log_name = name
         self.procs.append((name, proc))
@@ -104,9 +109,10 @@ class ZenohStack:
         import zenoh
 
         pub = self.session.declare_publisher(
-            key, congestion_control=zenoh.CongestionControl.BLOCK,
+            key,
+            congestion_control=zenoh.CongestionControl.BLOCK,
             reliability=zenoh.Reliability.RELIABLE,
-        )  # fmt: skip
+        )
         if not wait_for(lambda: pub.matching_status.matching, timeout_s):
             raise TimeoutError(f"no subscriber for {key} after {timeout_s} s")
         return pub

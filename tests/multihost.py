@@ -58,10 +58,14 @@ class TwoHosts:
         log = open(self.tmp / f"{name}.log", "ab")  # noqa: SIM115 - the child owns it
         proc = subprocess.Popen(
             ["ip", "netns", "exec", self.ns[host], sys.executable, *argv],
-            stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True, cwd=self.tmp, env=dict(os.environ, PYTHONUNBUFFERED="1"),
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+            cwd=self.tmp,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
             preexec_fn=die_with_parent,
-        )  # fmt: skip
+        )
         log.close()
         proc.log_name = name
         self.procs.append((name, proc))
@@ -104,4 +108,3 @@ def make_two_hosts(tmp: Path) -> TwoHosts:
         hosts.down()
         pytest.skip(f"this machine does not allow network namespaces: {exc.stderr.strip()}")
     return hosts
-

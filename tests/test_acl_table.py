@@ -37,8 +37,14 @@ pytestmark = pytest.mark.multiprocess
 # Key families, after `smana/<robot>/`. p: put; d: delete; r: declare a queryable and reply; t:
 # liveliness token. A role a row does not name may do none of them there; `router` may do all of
 # them on every row.
-SENSORS = ("robot/cloud", "robot/scan", "robot/pose", "robot/pose_truth", "robot/clock",
-           "robot/image/rgb")  # fmt: skip
+SENSORS = (
+    "robot/cloud",
+    "robot/scan",
+    "robot/pose",
+    "robot/pose_truth",
+    "robot/clock",
+    "robot/image/rgb",
+)
 OWNERS = ("sim", "replay", "driver", "mapper", "navgraph", "planner", "explorer", "recorder")
 TABLE = {
     **{family: {"sim": "p", "replay": "p", "driver": "p"} for family in SENSORS},
@@ -84,15 +90,23 @@ class Router:
     def config(self, role: str, link: str, credentials: Path | None = None):
         """A client session of `role` over `link`; a router's own login is in the dictionary."""
         if credentials is None:
-            credentials = (self.dictionary if role == "router"
-                           else self.certs / "credentials" / f"{role}.txt")  # fmt: skip
-        zc = ZenohConfig(mode="client", connect=[self.endpoints[link]], user=role,
-                         credentials_file=str(credentials))  # fmt: skip
+            credentials = (
+                self.dictionary if role == "router" else self.certs / "credentials" / f"{role}.txt"
+            )
+        zc = ZenohConfig(
+            mode="client",
+            connect=[self.endpoints[link]],
+            user=role,
+            credentials_file=str(credentials),
+        )
         host = LINKS[link]
         if host:
-            zc = dataclasses.replace(zc, tls_ca=str(self.certs / "ca.pem"),
-                                     tls_cert=str(self.certs / f"{host}.pem"),
-                                     tls_key=str(self.certs / f"{host}.key"))  # fmt: skip
+            zc = dataclasses.replace(
+                zc,
+                tls_ca=str(self.certs / "ca.pem"),
+                tls_cert=str(self.certs / f"{host}.pem"),
+                tls_key=str(self.certs / f"{host}.key"),
+            )
         return make_zenoh_config(zc)
 
 
@@ -109,20 +123,37 @@ def router(tmp_path_factory):
     tls = free_port()
     while tls == tcp:
         tls = free_port()
-    zenoh_section = {"tls_ca": certs / "ca.pem", "tls_cert": certs / "base.pem",
-                     "tls_key": certs / "base.key", "credentials_file": dictionary,
-                     "acl_file": certs / "acl.json5"}  # fmt: skip
+    zenoh_section = {
+        "tls_ca": certs / "ca.pem",
+        "tls_cert": certs / "base.pem",
+        "tls_key": certs / "base.key",
+        "credentials_file": dictionary,
+        "acl_file": certs / "acl.json5",
+    }
     config = tmp / "router.toml"
     config.write_text("[zenoh]\n" + "".join(f'{k} = "{v}"\n' for k, v in zenoh_section.items()))
     endpoints = {"tcp": f"tcp/127.0.0.1:{tcp}"}
     endpoints |= {link: f"tls/127.0.0.1:{tls}" for link in LINKS if link != "tcp"}
     log = open(tmp / "router.log", "ab")  # noqa: SIM115 - the child owns it
     proc = subprocess.Popen(
-        [sys.executable, "-m", "smana.deploy.router", "--config", str(config),
-         "--listen", endpoints["tcp"], "--listen", endpoints["tls-robot"]],
-        stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, start_new_session=True,
-        env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=die_with_parent,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "smana.deploy.router",
+            "--config",
+            str(config),
+            "--listen",
+            endpoints["tcp"],
+            "--listen",
+            endpoints["tls-robot"],
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        start_new_session=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        preexec_fn=die_with_parent,
+    )
     log.close()
     try:
         for port in (tcp, tls):
@@ -244,8 +275,9 @@ def test_every_role_over_every_listener_gets_exactly_its_row(router):
 
     def ready_publisher(p: Probe):
         # Matches the probe's last subscriber only: not the observer's own `smana/**`.
-        return obs_session.declare_publisher(f"smana/{p.robot}/ready",
-                                             allowed_destination=zenoh.Locality.REMOTE)  # fmt: skip
+        return obs_session.declare_publisher(
+            f"smana/{p.robot}/ready", allowed_destination=zenoh.Locality.REMOTE
+        )
 
     try:
         probes = [Probe(router, role, link) for role in ROLES for link in LINKS]
@@ -257,26 +289,37 @@ def test_every_role_over_every_listener_gets_exactly_its_row(router):
             if p.role not in READERS:
                 continue  # a visitor may not even subscribe: nothing of it can become visible
             pub = ready_publisher(p)
-            ok = wait_for(lambda pub=pub: pub.matching_status.matching,
-                          max(1.0, deadline - time.monotonic()))  # fmt: skip
+            ok = wait_for(
+                lambda pub=pub: pub.matching_status.matching, max(1.0, deadline - time.monotonic())
+            )
             pub.undeclare()
             assert ok, f"{p.robot}: its subscriber never reached the router"
         replies = obs_session.get(
-            "smana/**", target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE,
-            allowed_destination=zenoh.Locality.REMOTE, timeout=60.0,
-        )  # fmt: skip
+            "smana/**",
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            allowed_destination=zenoh.Locality.REMOTE,
+            timeout=60.0,
+        )
         replied = set()
         for r in replies:
             assert r.ok, r.err.payload.to_string()
             _, robot, family = str(r.ok.key_expr).split("/", 2)
             assert r.ok.payload.to_string() == robot
             replied.add((robot, family))
-        tokens = {tuple(str(r.ok.key_expr).split("/", 2)[1:])
-                  for r in obs_session.liveliness().get("smana/**", timeout=60.0)}  # fmt: skip
+        tokens = {
+            tuple(str(r.ok.key_expr).split("/", 2)[1:])
+            for r in obs_session.liveliness().get("smana/**", timeout=60.0)
+        }
 
         # 2. Puts and deletes: repeat until every allowed one has come through at least once...
-        expected_samples = {(p.robot, f, kind) for p in probes for f in TABLE
-                            for kind in "pd" if kind in allowed(p.role, f)}  # fmt: skip
+        expected_samples = {
+            (p.robot, f, kind)
+            for p in probes
+            for f in TABLE
+            for kind in "pd"
+            if kind in allowed(p.role, f)
+        }
         rounds = 0
 
         def all_allowed_samples_arrived() -> bool:
@@ -295,8 +338,9 @@ def test_every_role_over_every_listener_gets_exactly_its_row(router):
             p.put_all("last")
         pending = {p.robot: p.session.get(f"smana/{p.robot}/ready", timeout=60.0) for p in probes}
         may_read = {robot: any(r.ok for r in answers) for robot, answers in pending.items()}
-        saves = {p.robot: p.session.get(f"smana/{p.robot}/mapper/save", timeout=60.0)
-                 for p in probes}  # fmt: skip
+        saves = {
+            p.robot: p.session.get(f"smana/{p.robot}/mapper/save", timeout=60.0) for p in probes
+        }
         may_save = {robot: any(r.ok for r in answers) for robot, answers in saves.items()}
         samples = observer.seen()
         assert not observer.strays, observer.strays
@@ -306,10 +350,12 @@ def test_every_role_over_every_listener_gets_exactly_its_row(router):
         for p in probes:
             row = actual[p.role, p.link] = {}
             for family in TABLE:
-                row[family] = cell = (("p" if (p.robot, family, "p") in samples else "")
-                                      + ("d" if (p.robot, family, "d") in samples else "")
-                                      + ("r" if (p.robot, family) in replied else "")
-                                      + ("t" if (p.robot, family) in tokens else ""))  # fmt: skip
+                row[family] = cell = (
+                    ("p" if (p.robot, family, "p") in samples else "")
+                    + ("d" if (p.robot, family, "d") in samples else "")
+                    + ("r" if (p.robot, family) in replied else "")
+                    + ("t" if (p.robot, family) in tokens else "")
+                )
                 if cell != allowed(p.role, family):
                     want = allowed(p.role, family)
                     wrong.append(f"{p.role}@{p.link} {family}: got {cell!r}, want {want!r}")
@@ -327,8 +373,10 @@ def test_every_role_over_every_listener_gets_exactly_its_row(router):
                 assert not pub.matching_status.matching, f"{p.robot} may subscribe"
                 pub.undeclare()
         total_s = time.monotonic() - t0
-        print(f"{len(probes)} sessions open in {ready_s:.1f} s; table checked in {total_s:.1f} s "
-              f"({rounds} round(s) of puts and deletes)")  # fmt: skip
+        print(
+            f"{len(probes)} sessions open in {ready_s:.1f} s; table checked in {total_s:.1f} s "
+            f"({rounds} round(s) of puts and deletes)"
+        )
     finally:
         for p in probes:
             p.close()

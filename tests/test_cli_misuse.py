@@ -23,8 +23,12 @@ NO_SCOUT = "--no-multicast-scouting"
 def smana(*args: str, cwd=None) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, "-m", "smana.deploy", *args],
-        capture_output=True, text=True, timeout=120, cwd=cwd or REPO, stdin=subprocess.DEVNULL,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=cwd or REPO,
+        stdin=subprocess.DEVNULL,
+    )
 
 
 def one_line_misuse(r: subprocess.CompletedProcess, command: str, *words: str) -> str:
@@ -54,10 +58,19 @@ def taken_port():
 
 def test_up_on_a_taken_port_names_it_and_how_to_move(tmp_path, taken_port):
     ep = f"tcp/127.0.0.1:{taken_port}"
-    r = smana("up", "--only", "planner", "--run-dir", str(tmp_path / "run"), NO_SCOUT,
-              "--set", f'deploy.router_listen=["{ep}"]')  # fmt: skip
-    line = one_line_misuse(r, "up", f"{ep} is already in use", "another smana stack",
-                           "--set 'deploy.router_listen=[")  # fmt: skip
+    r = smana(
+        "up",
+        "--only",
+        "planner",
+        "--run-dir",
+        str(tmp_path / "run"),
+        NO_SCOUT,
+        "--set",
+        f'deploy.router_listen=["{ep}"]',
+    )
+    line = one_line_misuse(
+        r, "up", f"{ep} is already in use", "another smana stack", "--set 'deploy.router_listen=["
+    )
     assert f"127.0.0.1:{taken_port + 1}" in line
     assert not (tmp_path / "run").exists()  # nothing ran: no run directory left behind
 
@@ -65,8 +78,9 @@ def test_up_on_a_taken_port_names_it_and_how_to_move(tmp_path, taken_port):
 def test_service_on_a_taken_port_suggests_listen(taken_port):
     ep = f"tcp/127.0.0.1:{taken_port}"
     r = smana("planner", "--mode", "peer", "--listen", ep, NO_SCOUT, "--log-level", "WARNING")
-    one_line_misuse(r, "planner", f"{ep} is already in use",
-                    f"--listen tcp/127.0.0.1:{taken_port + 1}")  # fmt: skip
+    one_line_misuse(
+        r, "planner", f"{ep} is already in use", f"--listen tcp/127.0.0.1:{taken_port + 1}"
+    )
 
 
 def test_router_on_a_taken_port(taken_port):
@@ -98,8 +112,9 @@ def test_bad_endpoint(endpoint, words):
 def test_broken_zenoh_config_file(tmp_path, text, words):
     f = tmp_path / "zenoh.json5"
     f.write_text(text)
-    r = smana("status", "--zenoh-config", str(f), "--connect", f"tcp/127.0.0.1:{free_port()}",
-              NO_SCOUT)  # fmt: skip
+    r = smana(
+        "status", "--zenoh-config", str(f), "--connect", f"tcp/127.0.0.1:{free_port()}", NO_SCOUT
+    )
     one_line_misuse(r, "status", f"zenoh config file {f}:", *words)
 
 
@@ -120,8 +135,16 @@ def test_client_without_any_endpoint():
 
 
 def test_plan_with_no_stack():
-    r = smana("plan", "--from", "0,0", "--to", "1,1", "--connect",
-              f"tcp/127.0.0.1:{free_port()}", NO_SCOUT)  # fmt: skip
+    r = smana(
+        "plan",
+        "--from",
+        "0,0",
+        "--to",
+        "1,1",
+        "--connect",
+        f"tcp/127.0.0.1:{free_port()}",
+        NO_SCOUT,
+    )
     one_line_misuse(r, "plan", "cannot connect to", "smana up")
 
 
@@ -140,11 +163,31 @@ def test_up_refuses_a_run_dir_that_is_a_file(tmp_path):
     f.write_text("")
     # the router's port is free: the run directory is refused before it opens
     ep = f"tcp/127.0.0.1:{free_port()}"
-    r = smana("up", "--only", "planner", "--run-dir", str(f), "--duration", "1", NO_SCOUT,
-              "--set", f'deploy.router_listen=["{ep}"]')  # fmt: skip
+    r = smana(
+        "up",
+        "--only",
+        "planner",
+        "--run-dir",
+        str(f),
+        "--duration",
+        "1",
+        NO_SCOUT,
+        "--set",
+        f'deploy.router_listen=["{ep}"]',
+    )
     one_line_misuse(r, "up", f"run directory {f} is a file", "--run-dir")
-    r = smana("up", "--only", "planner", "--run-dir", str(f / "sub"), "--duration", "1", NO_SCOUT,
-              "--set", f'deploy.router_listen=["{ep}"]')  # fmt: skip
+    r = smana(
+        "up",
+        "--only",
+        "planner",
+        "--run-dir",
+        str(f / "sub"),
+        "--duration",
+        "1",
+        NO_SCOUT,
+        "--set",
+        f'deploy.router_listen=["{ep}"]',
+    )
     one_line_misuse(r, "up", "cannot be created", "--run-dir")
 
 
@@ -234,16 +277,25 @@ def test_explain_open_error_for_messages_not_easily_provoked():
     conf.insert_json5("listen/endpoints", '["tcp/10.255.255.1:7447", "tls/127.0.0.1:7448"]')
     conf.insert_json5("connect/endpoints", '["tls/127.0.0.1:7449"]')
     src = " at /root/.cargo/git/checkouts/zenoh/io/zenoh-link-commons/src/tcp.rs:61."
-    msg = explain_open_error("Can not create a new TCP listener bound to tcp/10.255.255.1:7447: "
-                             f"[10.255.255.1:7447: Cannot assign requested address (os error 99)"
-                             f"{src}]{src}", conf)  # fmt: skip
+    msg = explain_open_error(
+        "Can not create a new TCP listener bound to tcp/10.255.255.1:7447: "
+        f"[10.255.255.1:7447: Cannot assign requested address (os error 99)"
+        f"{src}]{src}",
+        conf,
+    )
     assert msg.startswith("cannot listen on tcp/10.255.255.1:7447: no network interface")
-    msg = explain_open_error(f"Unable to connect to any of [Single(tls/127.0.0.1:7449)]! {src}",
-                             conf)  # fmt: skip
+    msg = explain_open_error(
+        f"Unable to connect to any of [Single(tls/127.0.0.1:7449)]! {src}", conf
+    )
     assert "tls/127.0.0.1:7449" in msg and "certificate or credentials" in msg
-    msg = explain_open_error("Cannot create a new TLS listener on 127.0.0.1:7448. Invalid TLS "
-                             f"private key file: No such file or directory (os error 2){src}"
-                             f"{src}", conf)  # fmt: skip
-    assert msg == ("cannot open the zenoh session: Cannot create a new TLS listener on "
-                   "127.0.0.1:7448. Invalid TLS private key file: No such file or directory "
-                   "(os error 2)")  # fmt: skip
+    msg = explain_open_error(
+        "Cannot create a new TLS listener on 127.0.0.1:7448. Invalid TLS "
+        f"private key file: No such file or directory (os error 2){src}"
+        f"{src}",
+        conf,
+    )
+    assert msg == (
+        "cannot open the zenoh session: Cannot create a new TLS listener on "
+        "127.0.0.1:7448. Invalid TLS private key file: No such file or directory "
+        "(os error 2)"
+    )

@@ -45,8 +45,13 @@ def test_noise_quick(tmp_path):
         )
         assert by[("pose", "high")]["error_mean_m"] > by[("label", "none")]["error_mean_m"]
     assert set(data["label_loss"]) == set(exp.BACKENDS)
-    for name in ("noise_results.csv", "noise_summary.md", "fig6_pose_noise_error.png",
-                 "fig6_pose_noise_ratio.png", "fig7_label_noise_ratio.png"):  # fmt: skip
+    for name in (
+        "noise_results.csv",
+        "noise_summary.md",
+        "fig6_pose_noise_error.png",
+        "fig6_pose_noise_ratio.png",
+        "fig7_label_noise_ratio.png",
+    ):
         assert (tmp_path / name).stat().st_size > 100
     assert "Classification loss" in (tmp_path / "noise_summary.md").read_text()
 
@@ -55,11 +60,20 @@ def test_exploration_outputs_from_rows(tmp_path):
     rows = []
     for seed in (3, 4):
         for f, share in ((1.0, 0.55), (2.0, 0.7), (4.0, 0.85)):
-            rows.append({"seed": seed, "grass_cost_factor": f, "exit_code": 0,
-                         "terrain_share": share + 0.01 * seed, "coverage": 0.95,
-                         "explored_area_m2": 50.0, "distance_m": 40.0 + seed,
-                         "min_clearance_m": 0.4, "done_reason": "no_frontier",
-                         "wall_time_s": 200.0})  # fmt: skip
+            rows.append(
+                {
+                    "seed": seed,
+                    "grass_cost_factor": f,
+                    "exit_code": 0,
+                    "terrain_share": share + 0.01 * seed,
+                    "coverage": 0.95,
+                    "explored_area_m2": 50.0,
+                    "distance_m": 40.0 + seed,
+                    "min_clearance_m": 0.4,
+                    "done_reason": "no_frontier",
+                    "wall_time_s": 200.0,
+                }
+            )
     rows.append({**rows[0], "seed": 5, "terrain_share": None, "exit_code": 1})
     exp.write_exploration_outputs(rows, exp.ExplorationSettings(seeds=(3, 4, 5)), tmp_path)
     summary = json.loads((tmp_path / "exploration_results.json").read_text())["summary"]

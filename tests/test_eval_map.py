@@ -83,8 +83,13 @@ def test_cli_on_a_run_directory(tmp_path, capsys):
     ml = gl.copy()
     ml[-25:] = 1  # 25 hedge points called grass
     n = len(mp)
-    write_ply(tmp_path / "map.ply", mp.astype(np.float32), np.zeros((n, 3), np.uint8),
-              ml.astype(np.uint16), np.ones(n, np.float32))  # fmt: skip
+    write_ply(
+        tmp_path / "map.ply",
+        mp.astype(np.float32),
+        np.zeros((n, 3), np.uint8),
+        ml.astype(np.uint16),
+        np.ones(n, np.float32),
+    )
     assert ev.cli(["map", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "classification ratio: 0.750" in out

@@ -35,11 +35,17 @@ def _entities(path) -> dict[str, int]:
 def _delta(centres, labels, occupied, stamp):
     n = len(centres)
     return MapDelta(
-        stamp_s=stamp, seq=1, cloud_seq=1, backend="octree-max", resolution_m=0.1,
-        centres=np.asarray(centres, np.float32), labels=np.asarray(labels, np.uint16),
-        confidences=np.ones(n, np.float32), occupied=np.asarray(occupied, np.uint8),
+        stamp_s=stamp,
+        seq=1,
+        cloud_seq=1,
+        backend="octree-max",
+        resolution_m=0.1,
+        centres=np.asarray(centres, np.float32),
+        labels=np.asarray(labels, np.uint16),
+        confidences=np.ones(n, np.float32),
+        occupied=np.asarray(occupied, np.uint8),
         values=np.ones(n, np.float32),
-    )  # fmt: skip
+    )
 
 
 def test_voxel_store_keeps_the_newest_state_per_voxel():
@@ -58,8 +64,9 @@ def test_decode_image_forms():
     a = msgpack.packb({"stamp_s": 1.5, "data": img.tobytes(), "shape": [2, 2, 3], "dtype": "u1"})
     t, out = recmod.decode_image(a)
     assert t == 1.5 and np.array_equal(out, img)
-    b = msgpack.packb({"stamp_s": 2.0, "width": 2, "height": 2, "encoding": "rgb8",
-                       "data": img.tobytes()})  # fmt: skip
+    b = msgpack.packb(
+        {"stamp_s": 2.0, "width": 2, "height": 2, "encoding": "rgb8", "data": img.tobytes()}
+    )
     assert np.array_equal(recmod.decode_image(b)[1], img)
     with pytest.raises(ValueError):
         recmod.decode_image(msgpack.packb({"data": b"123", "shape": [2, 2]}))
@@ -69,35 +76,65 @@ def test_decode_image_forms():
 
 def test_recording_holds_every_stream(tmp_path):
     rrd = tmp_path / "run.rrd"
-    rec = recmod.RunRecorder(ClassTable.load("garden3drms"), rrd, graph_resolution_m=0.2,
-                             graph_bounds=((0.0, 0.0), (8.0, 8.0)))  # fmt: skip
+    rec = recmod.RunRecorder(
+        ClassTable.load("garden3drms"),
+        rrd,
+        graph_resolution_m=0.2,
+        graph_bounds=((0.0, 0.0), (8.0, 8.0)),
+    )
     for i in range(5):
         rec.on_pose(Pose.from_xyz_yaw(0.1 * i, 0.0, 0.0, 0.0, stamp_s=0.5 * i + 0.1))
         rec.on_pose(Pose.from_xyz_yaw(0.1 * i, 0.01, 0.0, 0.0, stamp_s=0.5 * i + 0.1), truth=True)
     rec.on_delta(_delta([[1.05, 1.05, 0.05], [1.15, 1.05, 0.05]], [1, 4], [1, 1], 1.0))
     cells = np.array([[5, 5], [5, 6], [6, 6]], np.int32)
-    rec.on_patch(GraphPatch(
-        stamp_s=1.2, seq=1, resolution_m=0.2, origin_xy=np.zeros(2), cells=cells,
-        labels=np.array([2, 4, 1], np.uint16), heights=np.zeros(3, np.float32),
-        flags=np.array([1, 3, 5], np.uint8),
-    ))  # fmt: skip
+    rec.on_patch(
+        GraphPatch(
+            stamp_s=1.2,
+            seq=1,
+            resolution_m=0.2,
+            origin_xy=np.zeros(2),
+            cells=cells,
+            labels=np.array([2, 4, 1], np.uint16),
+            heights=np.zeros(3, np.float32),
+            flags=np.array([1, 3, 5], np.uint8),
+        )
+    )
     rgb = np.zeros((64, 64, 3), np.uint8)
     sem = np.full((64, 64), 2, np.uint8)
     for kind, img in (("rgb", rgb), ("semantic", sem)):
-        payload = msgpack.packb({"stamp_s": 1.3, "data": img.tobytes(), "shape": list(img.shape),
-                                 "dtype": "u1"})  # fmt: skip
+        payload = msgpack.packb(
+            {"stamp_s": 1.3, "data": img.tobytes(), "shape": list(img.shape), "dtype": "u1"}
+        )
         rec.on_image(kind, payload)
-    rec.on_explorer_state({
-        "t_s": 2.0, "candidates": [[1.0, 1.0], [2.0, 2.0]], "candidate_gains_m2": [1.0, 3.0],
-        "path": [[0.0, 0.0], [1.0, 1.0]], "goal": {"xy": [1.0, 1.0], "yaw": 0.5},
-        "explored_m2": 4.0, "distance_m": 0.4, "frontier_size": 12,
-    })  # fmt: skip
+    rec.on_explorer_state(
+        {
+            "t_s": 2.0,
+            "candidates": [[1.0, 1.0], [2.0, 2.0]],
+            "candidate_gains_m2": [1.0, 3.0],
+            "path": [[0.0, 0.0], [1.0, 1.0]],
+            "goal": {"xy": [1.0, 1.0], "yaw": 0.5},
+            "explored_m2": 4.0,
+            "distance_m": 0.4,
+            "frontier_size": 12,
+        }
+    )
     rec.close()
     ents = _entities(rrd)
-    for e in ("/world/robot", "/world/trajectory", "/world/trajectory_truth", "/camera/rgb",
-              "/camera/semantic", "/world/map/b0_0", "/world/graph/nodes",
-              "/world/graph/obstacles", "/world/graph/safety_zone", "/world/explorer/frontier",
-              "/world/explorer/path", "/world/explorer/goal", "/metrics/explored_m2"):  # fmt: skip
+    for e in (
+        "/world/robot",
+        "/world/trajectory",
+        "/world/trajectory_truth",
+        "/camera/rgb",
+        "/camera/semantic",
+        "/world/map/b0_0",
+        "/world/graph/nodes",
+        "/world/graph/obstacles",
+        "/world/graph/safety_zone",
+        "/world/explorer/frontier",
+        "/world/explorer/path",
+        "/world/explorer/goal",
+        "/metrics/explored_m2",
+    ):
         assert e in ents, (e, sorted(ents))
     assert rec.counts["pose"] == 5 and rec.counts["patch"] == 1
     rec.save_trajectories(tmp_path)
@@ -116,8 +153,9 @@ def test_recorder_core_keeps_every_pose_as_it_comes(tmp_path):
     rows = np.loadtxt(tmp_path / "trajectory_pose.csv", delimiter=",", skiprows=1, ndmin=2)
     assert rows[:, [0, 1]].tolist() == [list(p) for p in poses]
     assert rows[:, 4] == pytest.approx(0.5, abs=1e-4) and len(rec.trajectory) == len(poses)
-    assert len(np.loadtxt(tmp_path / "trajectory_truth.csv", delimiter=",", skiprows=1,
-                          ndmin=2)) == 1  # fmt: skip
+    assert (
+        len(np.loadtxt(tmp_path / "trajectory_truth.csv", delimiter=",", skiprows=1, ndmin=2)) == 1
+    )
     assert rec.counts == {"pose": len(poses), "pose_truth": 1}
     rec.close()
     assert len((tmp_path / "trajectory_pose.csv").read_text().splitlines()) == len(poses) + 1
@@ -145,10 +183,14 @@ def test_a_recorder_behind_records_its_backlog_when_stopped(zenoh_stack, tmp_pat
     """A stop that comes while the recorder is still working on a delta (the mapper's are large)
     records the poses queued behind it too, and says so in recorder.json."""
     robot = zenoh_stack.robot
-    cfg = SmanaConfig.load(None, [
-        f'zenoh.connect=["{zenoh_stack.endpoint}"]', f'general.robot="{robot}"',
-        f'general.run_dir="{tmp_path / "run"}"',
-    ])  # fmt: skip
+    cfg = SmanaConfig.load(
+        None,
+        [
+            f'zenoh.connect=["{zenoh_stack.endpoint}"]',
+            f'general.robot="{robot}"',
+            f'general.run_dir="{tmp_path / "run"}"',
+        ],
+    )
     svc = recmod.RecorderService(cfg, tmp_path / "run" / "recording.rrd")
     on_delta, release, holding = svc.core.on_delta, threading.Event(), threading.Event()
 
@@ -191,17 +233,27 @@ def test_a_recorder_behind_records_its_backlog_when_stopped(zenoh_stack, tmp_pat
 def test_recorder_records_every_pose_until_the_stack_stops(tmp_path):
     """A source publishing poses as fast as it can until `smana up` stops it: the recorder is
     stopped after it, so every pose published is in trajectory_pose.csv and its books add up."""
-    cfg = SmanaConfig.load(None, [
-        f'deploy.router_listen=["tcp/127.0.0.1:{free_port()}"]', "general.robot=rec",
-        "general.status_period_s=0.5",
-    ])  # fmt: skip
+    cfg = SmanaConfig.load(
+        None,
+        [
+            f'deploy.router_listen=["tcp/127.0.0.1:{free_port()}"]',
+            "general.robot=rec",
+            "general.status_period_s=0.5",
+        ],
+    )
     run = tmp_path / "run"
     sup = Supervisor(cfg, run, services=[])
     source = str(Path(__file__).parent / "support" / "pose_source.py")
-    sup.add("sim", [sys.executable, source, "--config", str(sup.config_path)],
-            ServiceDeployConfig(restart="never"))  # fmt: skip
-    sup.add("recorder", recmod.recorder_argv(sup.config_path, "rec"),
-            ServiceDeployConfig(restart="never"))  # fmt: skip
+    sup.add(
+        "sim",
+        [sys.executable, source, "--config", str(sup.config_path)],
+        ServiceDeployConfig(restart="never"),
+    )
+    sup.add(
+        "recorder",
+        recmod.recorder_argv(sup.config_path, "rec"),
+        ServiceDeployConfig(restart="never"),
+    )
     t = threading.Thread(target=sup.run, kwargs={"progress_period_s": 3600}, daemon=True)
     t.start()
     rows = run / "trajectory_pose.csv"
@@ -220,6 +272,10 @@ def test_recorder_records_every_pose_until_the_stack_stops(tmp_path):
     published = json.loads((run / "pose_source.json").read_text())["published"]
     summary = json.loads((run / recmod.SUMMARY_NAME).read_text())
     assert recorded() == published == summary["recorded"]["pose"], summary
-    books = summary["accepted"] + sum(summary["dropped"].values()) + sum(
-        summary["rejected"].values()) + summary["pending"]  # fmt: skip
+    books = (
+        summary["accepted"]
+        + sum(summary["dropped"].values())
+        + sum(summary["rejected"].values())
+        + summary["pending"]
+    )
     assert summary["msgs_in"] == books and not summary["dropped"] and not summary["rejected"]

@@ -23,18 +23,34 @@ def run(tmp_path):
     t = np.arange(0, 10, 0.1)
     traj = np.column_stack([t, x0 + 0.0 * t, y0 + 0.0 * t, 0.0 * t])
     (tmp_path / "explorer").mkdir()
-    np.savetxt(tmp_path / "explorer" / "trajectory.csv", traj, delimiter=",",
-               header="t_s,x_m,y_m,yaw_rad", comments="")  # fmt: skip
+    np.savetxt(
+        tmp_path / "explorer" / "trajectory.csv",
+        traj,
+        delimiter=",",
+        header="t_s,x_m,y_m,yaw_rad",
+        comments="",
+    )
     res = 0.2
     flags = np.zeros((30, 30), np.uint8)
     flags[:15] = 1
-    np.savez(tmp_path / "explorer" / "graph.npz", origin_xy=np.array([-3.0, -3.0]),
-             resolution_m=res, labels=np.full((30, 30), 2, np.uint16),
-             heights=np.zeros((30, 30), np.float32), flags=flags)  # fmt: skip
-    state = {"done_reason": "no_frontier", "distance_m": 0.0, "explored_m2": 18.0, "n_goals": 2,
-             "label_counts": {"1": 3, "2": 9}, "wall_time_s": 12.0,
-             "plans": [{"goal": [1.0, 1.0]}, {"goal": [-1.0, 1.0]}],
-             "history": [[0.0, 1.0, 10, 0.0], [5.0, 9.0, 8, 2.0], [9.0, 18.0, 0, 4.0]]}  # fmt: skip
+    np.savez(
+        tmp_path / "explorer" / "graph.npz",
+        origin_xy=np.array([-3.0, -3.0]),
+        resolution_m=res,
+        labels=np.full((30, 30), 2, np.uint16),
+        heights=np.zeros((30, 30), np.float32),
+        flags=flags,
+    )
+    state = {
+        "done_reason": "no_frontier",
+        "distance_m": 0.0,
+        "explored_m2": 18.0,
+        "n_goals": 2,
+        "label_counts": {"1": 3, "2": 9},
+        "wall_time_s": 12.0,
+        "plans": [{"goal": [1.0, 1.0]}, {"goal": [-1.0, 1.0]}],
+        "history": [[0.0, 1.0, 10, 0.0], [5.0, 9.0, 8, 2.0], [9.0, 18.0, 0, 4.0]],
+    }
     (tmp_path / "explorer" / "state.json").write_text(json.dumps(state))
     # the map: every 20th ground-truth point, raised 2 cm, a tenth of them mislabelled grass
     gp, gl = world.gt_cloud(0.03)
@@ -78,8 +94,13 @@ def test_report_counts_a_drive_through_a_wall_and_prefers_the_true_trajectory(ru
     # the recorder's true trajectory: straight west, through the garden's wall at x = -3
     t = np.arange(0, 6, 0.1)
     truth = np.column_stack([t, -2.0 - 0.3 * t, 0.0 * t, 0.0 * t, np.pi + 0.0 * t])
-    np.savetxt(run_dir / "trajectory_truth.csv", truth, delimiter=",",
-               header="t_s,x_m,y_m,z_m,yaw_rad", comments="")  # fmt: skip
+    np.savetxt(
+        run_dir / "trajectory_truth.csv",
+        truth,
+        delimiter=",",
+        header="t_s,x_m,y_m,z_m,yaw_rad",
+        comments="",
+    )
     report.write_report(run_dir, cfg)
     ex = json.loads((run_dir / "metrics.json").read_text())["exploration"]
     assert ex["trajectory_source"] == "ground truth"

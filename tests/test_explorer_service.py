@@ -44,10 +44,15 @@ def patch(x_max_m: float, seq: int = 1) -> GraphPatch:
     cells = np.stack([ii.ravel(), jj.ravel()], axis=1).astype(np.int32)
     k = len(cells)
     return GraphPatch(
-        stamp_s=0.0, seq=seq, resolution_m=RES, origin_xy=np.zeros(2), cells=cells,
-        labels=np.full(k, 2, np.uint16), heights=np.zeros(k, np.float32),
+        stamp_s=0.0,
+        seq=seq,
+        resolution_m=RES,
+        origin_xy=np.zeros(2),
+        cells=cells,
+        labels=np.full(k, 2, np.uint16),
+        heights=np.zeros(k, np.float32),
         flags=np.ones(k, np.uint8),
-    )  # fmt: skip
+    )
 
 
 class StubRobot:
@@ -96,8 +101,13 @@ def stub_planner(session, robot, calls):
         path = np.zeros((n, 3), np.float32)
         path[:, :2] = a + (b - a) * np.linspace(0, 1, n)[:, None]
         length = float(np.hypot(*(b - a)))
-        reply = PathReply(request_id=req.request_id, ok=True, path=path,
-                          cost_total=length * 5.0, cost_distance=length)  # fmt: skip
+        reply = PathReply(
+            request_id=req.request_id,
+            ok=True,
+            path=path,
+            cost_total=length * 5.0,
+            cost_distance=length,
+        )
         query.reply(query.key_expr, encode(reply))
 
     # a planner says it is there with its liveliness token: the explorer waits for one
@@ -113,9 +123,15 @@ def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(zenoh_s
     bot = StubRobot(s, robot)
     run_dir = tmp_path / "run"
     proc = zenoh_stack.service(
-        "explorer", "--run-dir", str(run_dir), *BOUNDS, "--set", "explorer.done_after_empty=1",
-        "--set", 'explorer.class_costs=["grass=4"]',
-    )  # fmt: skip
+        "explorer",
+        "--run-dir",
+        str(run_dir),
+        *BOUNDS,
+        "--set",
+        "explorer.done_after_empty=1",
+        "--set",
+        'explorer.class_costs=["grass=4"]',
+    )
     try:
         zenoh_stack.wait_alive("explorer")
         s.put(keys.graph_patch(robot), encode(patch(4.0)))

@@ -22,9 +22,11 @@ from tests.support import schema_oracle as oracle
 # Small "large" clouds: the suite runs many examples; the bench sends the big ones.
 CTX = fuzz.Context(big_points=20_000)
 SETTINGS = settings(
-    max_examples=100, deadline=None, derandomize=True,
+    max_examples=100,
+    deadline=None,
+    derandomize=True,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
-)  # fmt: skip
+)
 FEWER = settings(SETTINGS, max_examples=50)
 TYPES = fuzz.MESSAGE_TYPES
 
@@ -184,9 +186,16 @@ def test_wrapping_and_negative_shapes(shape):
 def test_query_cases_are_sendable():
     """Every query case the bench sends is well-formed enough to leave this process."""
     d = fuzz.RandomDraw(3)
-    for service, name in [("mapper", "snapshot"), ("mapper", "save"), ("mapper", "point"),
-                          ("navgraph", "graph"), ("navgraph", "node"), ("planner", "path"),
-                          ("planner", "stats"), ("explorer", "state")]:  # fmt: skip
+    for service, name in [
+        ("mapper", "snapshot"),
+        ("mapper", "save"),
+        ("mapper", "point"),
+        ("navgraph", "graph"),
+        ("navgraph", "node"),
+        ("planner", "path"),
+        ("planner", "stats"),
+        ("explorer", "state"),
+    ]:
         for _ in range(50):
             case = fuzz.query_case(service, name, d)
             assert case.payload is None or isinstance(case.payload, bytes)

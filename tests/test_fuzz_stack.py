@@ -23,10 +23,14 @@ pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
 def test_fuzz_every_key_and_query_of_the_stack(tmp_path):
     campaign = Campaign(
-        tmp_path / "fuzz", inputs=300, seed=11,
-        services=("mapper", "navgraph", "planner", "explorer"), oversize=1,
-        startup_timeout_s=600.0, settle_timeout_s=120.0,  # counted from readiness / progress
-    )  # fmt: skip
+        tmp_path / "fuzz",
+        inputs=300,
+        seed=11,
+        services=("mapper", "navgraph", "planner", "explorer"),
+        oversize=1,
+        startup_timeout_s=600.0,
+        settle_timeout_s=120.0,  # counted from readiness / progress
+    )
     result = campaign.run()
     report = table(result)
     assert result.crashes == 0, report
@@ -46,8 +50,11 @@ def test_an_oversize_query_gets_an_error_reply(zenoh_stack):
     st = zenoh_stack
     st.start("echo", ECHO, *st.zenoh_args(), "--robot", st.robot)
     st.wait_alive("echo")
-    replies = list(st.session.get(keys.key(st.robot, "echo", "count"),
-                                  payload=bytes(MAX_PAYLOAD_BYTES + 1), timeout=10.0))  # fmt: skip
+    replies = list(
+        st.session.get(
+            keys.key(st.robot, "echo", "count"), payload=bytes(MAX_PAYLOAD_BYTES + 1), timeout=10.0
+        )
+    )
     status = request(st.session, keys.status(st.robot, "echo"))
     assert isinstance(status, ServiceStatus) and status.rejected == {"oversize": 1}
     assert replies and replies[0].err is not None

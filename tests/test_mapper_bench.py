@@ -14,9 +14,12 @@ def test_quick_bench_reports_all_backends(capsys):
     report = json.loads(capsys.readouterr().out)
     ours = [r for r in report["results"] if r["kind"] == "ours"]
     assert {(r["backend"], r["ray_m"]) for r in ours} == {
-        ("octree-max", 1.0), ("octree-max", None), ("octree-bayes", 1.0),
-        ("octree-bayes", None), ("tsdf", None),
-    }  # fmt: skip
+        ("octree-max", 1.0),
+        ("octree-max", None),
+        ("octree-bayes", 1.0),
+        ("octree-bayes", None),
+        ("tsdf", None),
+    }
     for r in ours:
         assert "error" not in r, r
         assert r["median_ms"] > 0 and r["p95_ms"] >= r["median_ms"] * 0.5

@@ -38,8 +38,7 @@ def test_save_load_round_trip_is_exact(backend, tmp_path):
         m.integrate(*cloud(s))
     path = m.save(tmp_path / "map.npz")
     n = SemanticMap.load(path)
-    assert (n.backend, n.resolution_m, n.max_range_m, n.ray_length_m) == (
-        backend, 0.2, 4.0, 1.0)  # fmt: skip
+    assert (n.backend, n.resolution_m, n.max_range_m, n.ray_length_m) == (backend, 0.2, 4.0, 1.0)
     a, b = columns(m), columns(n)
     assert a.keys() == b.keys()
     for k in a:
@@ -63,10 +62,15 @@ def test_load_rejects_other_files(tmp_path):
     m = SemanticMap("octree-max", 0.2)
     m.integrate(*cloud(1))
     path = m.save(tmp_path / "m.npz")
-    other = ClassTable.from_dict({"name": "two", "class": [
-        {"id": 0, "name": "unknown", "kind": "unknown"},
-        {"id": 1, "name": "ground", "kind": "traversable", "cost": 1.0},
-    ]})  # fmt: skip
+    other = ClassTable.from_dict(
+        {
+            "name": "two",
+            "class": [
+                {"id": 0, "name": "unknown", "kind": "unknown"},
+                {"id": 1, "name": "ground", "kind": "traversable", "cost": 1.0},
+            ],
+        }
+    )
     with pytest.raises(ValueError, match="class table"):
         SemanticMap.load(path, other)
 
@@ -104,12 +108,17 @@ def test_query_and_box():
 
 
 def test_ignored_classes_never_reach_the_map():
-    table = ClassTable.from_dict({"name": "sky", "class": [
-        {"id": 0, "name": "unknown", "kind": "unknown"},
-        {"id": 1, "name": "ground", "kind": "traversable", "cost": 1.0},
-        {"id": 2, "name": "wall", "kind": "obstacle"},
-        {"id": 9, "name": "sky", "kind": "ignored"},
-    ]})  # fmt: skip
+    table = ClassTable.from_dict(
+        {
+            "name": "sky",
+            "class": [
+                {"id": 0, "name": "unknown", "kind": "unknown"},
+                {"id": 1, "name": "ground", "kind": "traversable", "cost": 1.0},
+                {"id": 2, "name": "wall", "kind": "obstacle"},
+                {"id": 9, "name": "sky", "kind": "ignored"},
+            ],
+        }
+    )
     m = SemanticMap("octree-bayes", 0.2, 10.0, None, class_table=table)
     pts = np.array([[1.0, 0.1, 0.1], [0.1, 1.0, 0.1]], np.float32)
     m.integrate(pts, np.array([9, 2]), None, (0.1, 0.1, 0.1))

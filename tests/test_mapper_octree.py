@@ -205,8 +205,9 @@ def test_octree_full_rays_equal_octomap():
     for _ in range(3):
         pts, labels, conf, origin = random_cloud(rng, 1500, spread=5.0)
         m.integrate(pts, labels, conf, origin)
-        tree.insertPointCloud(pts.astype(np.float64), origin.astype(np.float32).astype(float),
-                              max_range, True)  # fmt: skip
+        tree.insertPointCloud(
+            pts.astype(np.float64), origin.astype(np.float32).astype(float), max_range, True
+        )
     rows = m._core.rows(m._core.observed_index())
     assert len(rows) == tree.getNumLeafNodes()  # lazy_eval: no pruning, one leaf per voxel
     for k, v in zip(rows.keys.tolist(), rows.values, strict=True):

@@ -23,11 +23,13 @@ def make_cloud(seq: int, n: int = 600) -> SemanticCloud:
     pts = rng.uniform(-3, 3, (n, 3)).astype(np.float32)
     pts[:, 2] = rng.uniform(-1, 0.5, n)
     return SemanticCloud(
-        stamp_s=float(seq), seq=seq, points=pts,
+        stamp_s=float(seq),
+        seq=seq,
+        points=pts,
         labels=rng.choice(np.array([1, 2, 4, 8], np.uint16), n),
         confidences=rng.uniform(0.3, 1.0, n).astype(np.float32),
         sensor_position=np.array([0.1 * seq, 0.0, 0.8]),
-    )  # fmt: skip
+    )
 
 
 class DeltaInbox:
@@ -68,8 +70,14 @@ def wait_stats(session, robot, pred, timeout_s=20.0):
 def test_mapper_service_end_to_end(zenoh_stack, tmp_path):
     st = zenoh_stack
     map_file = tmp_path / "map.npz"
-    args = ("--set", f"mapper.resolution_m={RES}", "--set", "mapper.autosave_period_s=0",
-            "--save", str(map_file))  # fmt: skip
+    args = (
+        "--set",
+        f"mapper.resolution_m={RES}",
+        "--set",
+        "mapper.autosave_period_s=0",
+        "--save",
+        str(map_file),
+    )
     proc = st.service("mapper", *args)
     st.wait_alive("mapper")
     s, r = st.session, st.robot

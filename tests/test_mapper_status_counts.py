@@ -24,8 +24,13 @@ def mapper() -> MapperService:
 
 
 def cloud(stamp: float, seq: int) -> SemanticCloud:
-    return SemanticCloud(stamp_s=stamp, seq=seq, points=np.zeros((1, 3), "f4"),
-                         labels=np.ones(1, "u1"), confidences=np.ones(1, "f4"))  # fmt: skip
+    return SemanticCloud(
+        stamp_s=stamp,
+        seq=seq,
+        points=np.zeros((1, 3), "f4"),
+        labels=np.ones(1, "u1"),
+        confidences=np.ones(1, "f4"),
+    )
 
 
 def test_huge_jumps_in_cloud_numbers_keep_the_status_encodable():

@@ -46,8 +46,9 @@ class RefTsdf:
             if s in starts:
                 continue
             starts.add(s)
-            for key in sampled_ray(end + u * self.trunc if not clearing else end,
-                                   end - u * self.trunc, self.res):  # fmt: skip
+            for key in sampled_ray(
+                end + u * self.trunc if not clearing else end, end - u * self.trunc, self.res
+            ):
                 if key in updated:
                     break  # the fast integrator drops the rest of the ray
                 updated.add(key)

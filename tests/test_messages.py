@@ -17,14 +17,15 @@ rng = np.random.default_rng(0)
 
 def cloud(n=50, label_dtype="u1"):
     return m.SemanticCloud(
-        stamp_s=12.5, seq=7,
+        stamp_s=12.5,
+        seq=7,
         points=rng.normal(size=(n, 3)).astype("f4"),
         labels=rng.integers(0, 9, n).astype(label_dtype),
         confidences=rng.uniform(0.33, 1, n).astype("f4"),
         sensor_position=np.array([1.0, 2.0, 0.5]),
         sensor_orientation_xyzw=np.array([0, 0, 0.38268343, 0.92387953]),
         source="lidar",
-    )  # fmt: skip
+    )
 
 
 EXAMPLES = [
@@ -33,23 +34,61 @@ EXAMPLES = [
     m.Pose.from_xyz_yaw(1.0, -2.0, 0.3, 0.7, stamp_s=3.0, seq=4),
     m.VelocityCommand(1.0, 2, 0.5, -0.2, "explorer"),
     m.MapDelta(
-        1.0, 2, 3, "tsdf", 0.1,
-        centres=rng.normal(size=(5, 3)).astype("f4"), labels=np.arange(5, dtype="u2"),
-        confidences=np.ones(5, "f4"), occupied=np.array([1, 0, 1, 1, 0], "u1"),
+        1.0,
+        2,
+        3,
+        "tsdf",
+        0.1,
+        centres=rng.normal(size=(5, 3)).astype("f4"),
+        labels=np.arange(5, dtype="u2"),
+        confidences=np.ones(5, "f4"),
+        occupied=np.array([1, 0, 1, 1, 0], "u1"),
         values=np.zeros(5, "f4"),
-    ),  # fmt: skip
+    ),
     m.GraphPatch(
-        1.0, 2, 0.2, np.array([-5.0, -5.0]), cells=np.array([[1, 2], [3, 4]], "i4"),
-        labels=np.array([1, 2], "u2"), heights=np.array([0.1, 0.2], "f4"),
+        1.0,
+        2,
+        0.2,
+        np.array([-5.0, -5.0]),
+        cells=np.array([[1, 2], [3, 4]], "i4"),
+        labels=np.array([1, 2], "u2"),
+        heights=np.array([0.1, 0.2], "f4"),
         flags=np.array([m.FLAG_KNOWN, m.FLAG_KNOWN | m.FLAG_OBSTACLE], "u1"),
-    ),  # fmt: skip
-    m.PathRequest("q1", np.array([0.0, 0.0]), np.array([4.0, 3.0, 0.1]), h_f=0.2,
-                  class_costs={1: 4.0}, allow_unknown=True),  # fmt: skip
-    m.PathReply("q1", True, path=np.zeros((4, 3), "f4"), cost_total=5.5,
-                label_share={"grass": 0.25, "terrain": 0.75}, nodes_expanded=10,
-                nearest_free=np.array([1.0, 2.0])),  # fmt: skip
-    m.ServiceStatus(1.0, 1, "r1", "mapper", 42, 3.5, "running", 10, 9, 6, {"stale": 1},
-                    {"nonfinite": 2}, 1, {"gap": 3}, {"voxels": 100}),  # fmt: skip
+    ),
+    m.PathRequest(
+        "q1",
+        np.array([0.0, 0.0]),
+        np.array([4.0, 3.0, 0.1]),
+        h_f=0.2,
+        class_costs={1: 4.0},
+        allow_unknown=True,
+    ),
+    m.PathReply(
+        "q1",
+        True,
+        path=np.zeros((4, 3), "f4"),
+        cost_total=5.5,
+        label_share={"grass": 0.25, "terrain": 0.75},
+        nodes_expanded=10,
+        nearest_free=np.array([1.0, 2.0]),
+    ),
+    m.ServiceStatus(
+        1.0,
+        1,
+        "r1",
+        "mapper",
+        42,
+        3.5,
+        "running",
+        10,
+        9,
+        6,
+        {"stale": 1},
+        {"nonfinite": 2},
+        1,
+        {"gap": 3},
+        {"voxels": 100},
+    ),
 ]
 
 

@@ -33,42 +33,94 @@ def hosts(tmp_path):
 
 def start_routers(hosts):
     hosts.run("base", "router-base", "-m", "smana.deploy.router", "--profile", "base")
-    hosts.run("robot", "router-robot", "-m", "smana.deploy.router", "--profile", "robot",
-              "--set", f'deploy.router_connect=["tls/{BASE_IP}:7448"]')  # fmt: skip
+    hosts.run(
+        "robot",
+        "router-robot",
+        "-m",
+        "smana.deploy.router",
+        "--profile",
+        "robot",
+        "--set",
+        f'deploy.router_connect=["tls/{BASE_IP}:7448"]',
+    )
     # The base's router is reachable from the robot's namespace only through the TLS link: a
     # client on the robot that can query the base's liveliness proves the link is up.
-    ok = wait_for(lambda: hosts.call("robot", "probe-open", PROBE, "open", LOCAL,
-                                     *login("tool")) == 0, 30)  # fmt: skip
+    ok = wait_for(
+        lambda: hosts.call("robot", "probe-open", PROBE, "open", LOCAL, *login("tool")) == 0, 30
+    )
     assert ok, hosts.log("router-robot") + hosts.log("router-base")
 
 
 def test_only_authorised_roles_publish_velocity_commands(hosts):
     start_routers(hosts)
     out = hosts.tmp / "cmd_vel.txt"
-    hosts.run("robot", "sub", PROBE, "sub", LOCAL, "smana/r1/robot/cmd_vel", str(out),
-              *login("sim"))  # fmt: skip
+    hosts.run(
+        "robot", "sub", PROBE, "sub", LOCAL, "smana/r1/robot/cmd_vel", str(out), *login("sim")
+    )
     assert wait_for(lambda: "subscribed" in hosts.log("sub"), 20), hosts.log("sub")
 
     def sent_through():
-        hosts.call("base", "pub-explorer", PROBE, "pub", LOCAL, "smana/r1/robot/cmd_vel",
-                   "from-explorer", *login("explorer"))  # fmt: skip
+        hosts.call(
+            "base",
+            "pub-explorer",
+            PROBE,
+            "pub",
+            LOCAL,
+            "smana/r1/robot/cmd_vel",
+            "from-explorer",
+            *login("explorer"),
+        )
         return out.exists() and "from-explorer" in out.read_text()
 
     # Routes take a moment to propagate across the TLS link.
     assert wait_for(sent_through, 30, 0.5), hosts.log("router-base")
     for role in ("tool", "mapper", "sim"):
-        hosts.call("base", f"pub-{role}", PROBE, "pub", LOCAL, "smana/r1/robot/cmd_vel",
-                   f"from-{role}", *login(role))  # fmt: skip
+        hosts.call(
+            "base",
+            f"pub-{role}",
+            PROBE,
+            "pub",
+            LOCAL,
+            "smana/r1/robot/cmd_vel",
+            f"from-{role}",
+            *login(role),
+        )
     # From the robot, straight to the base's TLS port with the robot's certificate (issue 11):
     # the certificate identifies the link and grants nothing, so the roles' rights are the same.
     robot_cert = ["--tls-dir", "certs", "--host", "robot"]
     for role in ("tool", "mapper"):
-        hosts.call("robot", f"pub-{role}-tls", PROBE, "pub", TLS, "smana/r1/robot/cmd_vel",
-                   f"from-{role}-tls", *login(role), *robot_cert)  # fmt: skip
-    hosts.call("robot", "pub-explorer-tls", PROBE, "pub", TLS, "smana/r1/robot/cmd_vel",
-               "explorer-tls", *login("explorer"), *robot_cert)  # fmt: skip
-    hosts.call("base", "pub-explorer2", PROBE, "pub", LOCAL, "smana/r1/robot/cmd_vel",
-               "explorer-again", *login("explorer"))  # fmt: skip
+        hosts.call(
+            "robot",
+            f"pub-{role}-tls",
+            PROBE,
+            "pub",
+            TLS,
+            "smana/r1/robot/cmd_vel",
+            f"from-{role}-tls",
+            *login(role),
+            *robot_cert,
+        )
+    hosts.call(
+        "robot",
+        "pub-explorer-tls",
+        PROBE,
+        "pub",
+        TLS,
+        "smana/r1/robot/cmd_vel",
+        "explorer-tls",
+        *login("explorer"),
+        *robot_cert,
+    )
+    hosts.call(
+        "base",
+        "pub-explorer2",
+        PROBE,
+        "pub",
+        LOCAL,
+        "smana/r1/robot/cmd_vel",
+        "explorer-again",
+        *login("explorer"),
+    )
     assert wait_for(lambda: {"explorer-tls", "explorer-again"} <= set(out.read_text().split()), 10)
     received = set(out.read_text().split())
     assert received == {"from-explorer", "explorer-tls", "explorer-again"}
@@ -78,15 +130,53 @@ def test_wrong_password_or_certificate_gets_no_link(hosts):
     start_routers(hosts)
     bad = hosts.tmp / "bad-credentials.txt"
     bad.write_text("explorer:not-the-password\n")
-    assert hosts.call("base", "probe-badpw", PROBE, "open", LOCAL, "--user", "explorer",
-                      "--credentials", str(bad)) == 3  # fmt: skip
+    assert (
+        hosts.call(
+            "base",
+            "probe-badpw",
+            PROBE,
+            "open",
+            LOCAL,
+            "--user",
+            "explorer",
+            "--credentials",
+            str(bad),
+        )
+        == 3
+    )
     assert hosts.call("base", "probe-nopw", PROBE, "open", LOCAL) == 3
     good = login("tool")
     # The right certificate and password get a link to the base over TLS...
-    assert hosts.call("robot", "probe-tls-ok", PROBE, "open", TLS, *good,
-                      "--tls-dir", "certs", "--host", "robot") == 0  # fmt: skip
+    assert (
+        hosts.call(
+            "robot",
+            "probe-tls-ok",
+            PROBE,
+            "open",
+            TLS,
+            *good,
+            "--tls-dir",
+            "certs",
+            "--host",
+            "robot",
+        )
+        == 0
+    )
     # ...a certificate from another CA does not, password or not.
-    assert hosts.call("robot", "probe-tls-foreign", PROBE, "open", TLS, *good,
-                      "--tls-dir", "foreign", "--host", "robot") == 3  # fmt: skip
+    assert (
+        hosts.call(
+            "robot",
+            "probe-tls-foreign",
+            PROBE,
+            "open",
+            TLS,
+            *good,
+            "--tls-dir",
+            "foreign",
+            "--host",
+            "robot",
+        )
+        == 3
+    )
     # Nor does a plain TCP connection to the TLS port.
     assert hosts.call("robot", "probe-plain", PROBE, "open", f"tcp/{BASE_IP}:7448", *good) == 3

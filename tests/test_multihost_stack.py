@@ -45,8 +45,7 @@ def ask(hosts, host, key, body=None, name="q"):
     out = hosts.tmp / f"{name}.json"
     out.unlink(missing_ok=True)
     extra = ["--json", json.dumps(body)] if body is not None else []
-    code = hosts.call(host, name, PROBE, "get", LOCAL, key, str(out), *login("tool"),
-                      *extra)  # fmt: skip
+    code = hosts.call(host, name, PROBE, "get", LOCAL, key, str(out), *login("tool"), *extra)
     if code != 0 or not out.exists():
         return None
     first = json.loads(out.read_text().splitlines()[0])
@@ -64,8 +63,15 @@ def graph_of_robot_map(hosts):
     if snap is None:
         return None
     nc = SmanaConfig().navgraph
-    g = NavGraph(ClassTable.load("garden3drms"), nc.bounds_min_xy, nc.bounds_max_xy,
-                 nc.resolution_m, nc.robot_radius_m, nc.tile_size, nc.column_capacity)  # fmt: skip
+    g = NavGraph(
+        ClassTable.load("garden3drms"),
+        nc.bounds_min_xy,
+        nc.bounds_max_xy,
+        nc.resolution_m,
+        nc.robot_radius_m,
+        nc.tile_size,
+        nc.column_capacity,
+    )
     g.integrate_delta(from_json(json.dumps(snap), MapDelta))
     return g.export()
 
@@ -81,11 +87,34 @@ def same_graph(patch: GraphPatch, export) -> bool:
 
 
 def test_base_plans_on_robot_map_and_recovers_from_a_link_drop(hosts):
-    hosts.run("robot", "up-robot", "-m", "smana.deploy", "up", "--profile", "robot",
-              "--only", "mapper", "--run-dir", "robot_run",
-              "--set", f'deploy.router_connect=["tls/{BASE_IP}:7448"]')  # fmt: skip
-    hosts.run("base", "up-base", "-m", "smana.deploy", "up", "--profile", "base",
-              "--only", "navgraph,planner", "--run-dir", "base_run")  # fmt: skip
+    hosts.run(
+        "robot",
+        "up-robot",
+        "-m",
+        "smana.deploy",
+        "up",
+        "--profile",
+        "robot",
+        "--only",
+        "mapper",
+        "--run-dir",
+        "robot_run",
+        "--set",
+        f'deploy.router_connect=["tls/{BASE_IP}:7448"]',
+    )
+    hosts.run(
+        "base",
+        "up-base",
+        "-m",
+        "smana.deploy",
+        "up",
+        "--profile",
+        "base",
+        "--only",
+        "navgraph,planner",
+        "--run-dir",
+        "base_run",
+    )
 
     def logs():
         runs = (("robot_run", "mapper"), ("base_run", "navgraph"), ("base_run", "planner"))

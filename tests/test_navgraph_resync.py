@@ -30,10 +30,18 @@ from smana.common.messages import encode  # noqa: E402
 
 
 def test_graph_difference_marks_changed_added_and_gone():
-    old = (np.array([[0, 0], [1, 0], [2, 3]], np.int32), np.array([1, 2, 1], np.uint16),
-           np.array([0.1, 0.2, 0.3], np.float32), np.array([1, 1, 3], np.uint8))  # fmt: skip
-    new = (np.array([[1, 0], [2, 3], [5, 5]], np.int32), np.array([2, 4, 1], np.uint16),
-           np.array([0.2, 0.3, 0.0], np.float32), np.array([1, 3, 1], np.uint8))  # fmt: skip
+    old = (
+        np.array([[0, 0], [1, 0], [2, 3]], np.int32),
+        np.array([1, 2, 1], np.uint16),
+        np.array([0.1, 0.2, 0.3], np.float32),
+        np.array([1, 1, 3], np.uint8),
+    )
+    new = (
+        np.array([[1, 0], [2, 3], [5, 5]], np.int32),
+        np.array([2, 4, 1], np.uint16),
+        np.array([0.2, 0.3, 0.0], np.float32),
+        np.array([1, 3, 1], np.uint8),
+    )
     cells, labels, heights, flags = graph_difference(old, new)
     got = {tuple(c): (int(lab), int(f)) for c, lab, f in zip(cells.tolist(), labels, flags)}
     # (1, 0) is unchanged; (2, 3) changed label; (5, 5) is new; (0, 0) is gone -> unknown.
@@ -41,14 +49,22 @@ def test_graph_difference_marks_changed_added_and_gone():
 
 
 def graph_nodes(patch: GraphPatch) -> dict:
-    return {tuple(c): (int(lab), int(f))
-            for c, lab, f in zip(patch.cells.tolist(), patch.labels, patch.flags)}  # fmt: skip
+    return {
+        tuple(c): (int(lab), int(f))
+        for c, lab, f in zip(patch.cells.tolist(), patch.labels, patch.flags)
+    }
 
 
 def test_resync_after_the_mapper_comes_back_empty(zenoh_stack, tmp_path):
     s = zenoh_stack
-    args = ["--set", "mapper.autosave_period_s=0", "--set", f'mapper.save_path="{tmp_path}/m.npz"',
-            "--set", 'mapper.load=""']  # fmt: skip
+    args = [
+        "--set",
+        "mapper.autosave_period_s=0",
+        "--set",
+        f'mapper.save_path="{tmp_path}/m.npz"',
+        "--set",
+        'mapper.load=""',
+    ]
     mapper = s.service("mapper", *args)
     s.service("navgraph")
     s.wait_alive("mapper")
@@ -80,9 +96,15 @@ def test_resync_after_the_mapper_comes_back_empty(zenoh_stack, tmp_path):
 
     def matches_mapper():
         nc = SmanaConfig().navgraph
-        ref = NavGraph(ClassTable.load("garden3drms"), nc.bounds_min_xy, nc.bounds_max_xy,
-                       nc.resolution_m, nc.robot_radius_m, nc.tile_size,
-                       nc.column_capacity)  # fmt: skip
+        ref = NavGraph(
+            ClassTable.load("garden3drms"),
+            nc.bounds_min_xy,
+            nc.bounds_max_xy,
+            nc.resolution_m,
+            nc.robot_radius_m,
+            nc.tile_size,
+            nc.column_capacity,
+        )
         ref.integrate_delta(request(s.session, keys.query(s.robot, "mapper", "snapshot")))
         cells, labels, _, flags = ref.export()
         want = {tuple(c): (int(lab), int(f)) for c, lab, f in zip(cells.tolist(), labels, flags)}

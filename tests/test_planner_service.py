@@ -22,11 +22,15 @@ pytestmark = pytest.mark.multiprocess
 RES = 0.1
 TERRAIN, GRASS, HEDGE, OBSTACLE = 2, 1, 4, 7
 CONFIG = [
-    "--set", "navgraph.bounds_min_xy=[0.0, 0.0]",
-    "--set", "navgraph.bounds_max_xy=[10.0, 10.0]",
-    "--set", "navgraph.robot_radius_m=0.4",
-    "--set", "planner.graph_sync_timeout_s=3.0",
-]  # fmt: skip
+    "--set",
+    "navgraph.bounds_min_xy=[0.0, 0.0]",
+    "--set",
+    "navgraph.bounds_max_xy=[10.0, 10.0]",
+    "--set",
+    "navgraph.robot_radius_m=0.4",
+    "--set",
+    "planner.graph_sync_timeout_s=3.0",
+]
 
 
 def vox(ix, iy, iz):
@@ -55,8 +59,9 @@ def recorded_deltas():
     x = 4 m from y = 0 to 6 m; a closed hedge ring round (6.5, 2.5); a person standing in the gap
     at x = 4 m, y 6..8 m; then the map clearing the person's voxels (it walked away)."""
     ground = [vox(i, j, 0) for i in range(80) for j in range(80)]
-    ground_lab = [GRASS if 10 <= i < 30 and 10 <= j < 30 else TERRAIN for i in range(80)
-                  for j in range(80)]  # fmt: skip
+    ground_lab = [
+        GRASS if 10 <= i < 30 and 10 <= j < 30 else TERRAIN for i in range(80) for j in range(80)
+    ]
     hedge = [vox(40, j, k) for j in range(60) for k in range(1, 8)]
     ring = []
     for a in np.linspace(0, 2 * np.pi, 120, endpoint=False):
@@ -76,8 +81,9 @@ def stats(stack, service):
 
 
 def plan(stack, start, goal, as_json=False, **kw) -> PathReply:
-    req = PathRequest(request_id="t", start=np.array(start, float), goal=np.array(goal, float),
-                      **kw)  # fmt: skip
+    req = PathRequest(
+        request_id="t", start=np.array(start, float), goal=np.array(goal, float), **kw
+    )
     reply = request(stack.session, keys.path_query(stack.robot), req, 10.0, as_json=as_json)
     assert isinstance(reply, PathReply), reply
     return reply
@@ -157,8 +163,9 @@ def test_navgraph_and_planner_over_zenoh(zenoh_stack):
     assert bad["ok"] is False and bad["error"] == "malformed"
 
     # JSON from any zenoh tool: only start and goal, and a JSON reply.
-    body = raw_query(stack, key, b'{"start": [1, 1], "goal": [2, 3]}',
-                     zenoh.Encoding.APPLICATION_JSON)  # fmt: skip
+    body = raw_query(
+        stack, key, b'{"start": [1, 1], "goal": [2, 3]}', zenoh.Encoding.APPLICATION_JSON
+    )
     good = json.loads(body)
     assert good["ok"] is True and good["cost_total"] == pytest.approx(ok.cost_total)
     assert plan(stack, (1, 1), (2, 3), as_json=True).ok
@@ -182,8 +189,16 @@ def test_navgraph_and_planner_over_zenoh(zenoh_stack):
 
     # `smana plan` prints the path (exit 0), the planner's error (1), or that nobody answered (2).
     def smana_plan(*args):
-        argv = [sys.executable, "-m", "smana.deploy.cli", "plan", *stack.zenoh_args(),
-                "--robot", stack.robot, *args]  # fmt: skip
+        argv = [
+            sys.executable,
+            "-m",
+            "smana.deploy.cli",
+            "plan",
+            *stack.zenoh_args(),
+            "--robot",
+            stack.robot,
+            *args,
+        ]
         return subprocess.run(argv, capture_output=True, text=True, timeout=60)
 
     out = smana_plan("--from", "1,1", "--to", "7,5", "--cost", "grass=4", "--path")
@@ -230,10 +245,15 @@ def test_spoofed_patch_numbers_neither_freeze_nor_wipe_the_planner(zenoh_stack):
     assert not base.rejected, base
 
     one_node = GraphPatch(
-        seq=1, resolution_m=RES * 2, origin_xy=np.zeros(2), cells=np.array([[5, 5]], np.int32),
-        labels=np.array([HEDGE], np.uint16), heights=np.zeros(1, np.float32),
-        flags=np.array([3], np.uint8), producer=real.producer,
-    )  # fmt: skip
+        seq=1,
+        resolution_m=RES * 2,
+        origin_xy=np.zeros(2),
+        cells=np.array([[5, 5]], np.int32),
+        labels=np.array([HEDGE], np.uint16),
+        heights=np.zeros(1, np.float32),
+        flags=np.array([3], np.uint8),
+        producer=real.producer,
+    )
     patches = stack.publisher(keys.graph_patch(stack.robot))
     for seq, producer in ((2**63 - 1, real.producer), (1, real.producer), (4, "a stranger")):
         one_node.seq, one_node.producer = seq, producer

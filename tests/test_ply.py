@@ -68,8 +68,15 @@ def test_reads_big_endian_with_an_element_before_the_vertices(tmp_path):
 
 def test_problems_are_named(tmp_path):
     path = tmp_path / "c.ply"
-    write_ply(path, {"x": np.zeros(4, np.float32), "y": np.zeros(4, np.float32),
-                     "z": np.zeros(4, np.float32), "cls": np.zeros(4, np.float32)})  # fmt: skip
+    write_ply(
+        path,
+        {
+            "x": np.zeros(4, np.float32),
+            "y": np.zeros(4, np.float32),
+            "z": np.zeros(4, np.float32),
+            "cls": np.zeros(4, np.float32),
+        },
+    )
     h = PlyHeader(path)
     assert (
         h.problem("label") == "integer vertex property 'label' missing (properties: x, y, z, cls)"

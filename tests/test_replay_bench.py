@@ -58,8 +58,9 @@ def test_aggregate_takes_the_median_over_repeats():
 
 
 def test_figures_are_written(tmp_path):
-    rows = aggregate([run("octree-max", 0, [10.0], [100.0], 300.0),
-                      run("tsdf", 0, [5.0], [60.0], 100.0)])  # fmt: skip
+    rows = aggregate(
+        [run("octree-max", 0, [10.0], [100.0], 300.0), run("tsdf", 0, [5.0], [60.0], 100.0)]
+    )
     for f, name in ((figure_11, "f11.png"), (figure_12, "f12.png")):
         img = cv2.imread(str(f(rows, tmp_path / name)))
         assert img is not None and img.shape[0] > 400

@@ -37,9 +37,12 @@ def sorted_rows(d):
 @pytest.mark.parametrize("backend", ["octree-max", "tsdf"])
 def test_lockstep_replay_builds_the_in_process_map(zenoh_stack, dataset, backend):
     settings = [
-        "general.class_table=rellis3d", 'mapper.inputs=["scan"]', f"mapper.backend={backend}",
-        "mapper.resolution_m=0.2", "mapper.autosave_period_s=0",
-    ]  # fmt: skip
+        "general.class_table=rellis3d",
+        'mapper.inputs=["scan"]',
+        f"mapper.backend={backend}",
+        "mapper.resolution_m=0.2",
+        "mapper.autosave_period_s=0",
+    ]
     sets = [a for s in settings for a in ("--set", s)]
     run = zenoh_stack.tmp / "mapper_run"
     mapper = zenoh_stack.service("mapper", "--run-dir", str(run), *sets)

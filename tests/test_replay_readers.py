@@ -66,23 +66,51 @@ def test_dataset_tables_map_their_ids():
     raw = np.array([0, 1, 3, 4, 7, 10, 23, 31, 33, 2, 99])
     labels, n_unclaimed = rellis.map_dataset_labels(raw)
     names = [rellis[int(i)].name for i in labels]
-    assert names == ["void", "dirt", "grass", "tree", "sky", "asphalt", "concrete", "puddle",
-                     "mud", "unknown", "unknown"]  # fmt: skip
+    assert names == [
+        "void",
+        "dirt",
+        "grass",
+        "tree",
+        "sky",
+        "asphalt",
+        "concrete",
+        "puddle",
+        "mud",
+        "unknown",
+        "unknown",
+    ]
     assert n_unclaimed == 2
     for name in ("dirt", "asphalt", "concrete"):
         assert rellis.by_name(name).cost < rellis.by_name("grass").cost
     for name in ("grass", "mud", "puddle"):
         assert rellis.by_name(name).traversable and rellis.by_name(name).cost > 1
-    for name in ("tree", "bush", "fence", "building", "pole", "person", "vehicle", "barrier",
-                 "log", "rubble", "water"):  # fmt: skip
+    for name in (
+        "tree",
+        "bush",
+        "fence",
+        "building",
+        "pole",
+        "person",
+        "vehicle",
+        "barrier",
+        "log",
+        "rubble",
+        "water",
+    ):
         assert rellis.by_name(name).obstacle
     assert rellis.by_name("sky").kind == rellis.by_name("void").kind == "ignored"
 
     kitti = ClassTable.load("semantickitti")
     labels, _ = kitti.map_dataset_labels(np.array([10, 252, 40, 60, 72, 0, 1]))
     assert [kitti[int(i)].name for i in labels] == [
-        "car", "car", "road", "road", "terrain", "unlabeled", "unlabeled",
-    ]  # fmt: skip
+        "car",
+        "car",
+        "road",
+        "road",
+        "terrain",
+        "unlabeled",
+        "unlabeled",
+    ]
 
 
 def test_table_without_maps_from_keeps_ids():
@@ -108,8 +136,12 @@ def test_maps_from_is_validated(maps_from, match):
 
 
 def test_maps_from_claimed_twice_is_an_error():
-    data = {"class": [{"id": 0, "name": "unknown", "kind": "unknown", "maps_from": [5]},
-                      {"id": 1, "name": "a", "kind": "obstacle", "maps_from": [5]}]}  # fmt: skip
+    data = {
+        "class": [
+            {"id": 0, "name": "unknown", "kind": "unknown", "maps_from": [5]},
+            {"id": 1, "name": "a", "kind": "obstacle", "maps_from": [5]},
+        ]
+    }
     with pytest.raises(ClassTableError, match="two classes"):
         ClassTable.from_dict(data)
 
@@ -139,8 +171,11 @@ def test_semantickitti_times_txt_sets_stamps(tmp_path):
 
 
 def test_rellis_layout_is_detected_under_its_root(tmp_path):
-    make_kitti(tmp_path / "Rellis-3D" / "00003", cloud_dir="os1_cloud_node_kitti_bin",
-               label_dir="os1_cloud_node_semantickitti_label_id")  # fmt: skip
+    make_kitti(
+        tmp_path / "Rellis-3D" / "00003",
+        cloud_dir="os1_cloud_node_kitti_bin",
+        label_dir="os1_cloud_node_semantickitti_label_id",
+    )
     assert detect_format(tmp_path) == "rellis3d"
     reader = open_dataset(tmp_path)
     assert reader.format == "rellis3d" and len(reader) == 3
@@ -148,8 +183,11 @@ def test_rellis_layout_is_detected_under_its_root(tmp_path):
 
 
 def test_rellis_without_calib_takes_poses_as_lidar_poses(tmp_path):
-    seq, poses, *_ = make_kitti(tmp_path, cloud_dir="os1_cloud_node_kitti_bin",
-                                label_dir="os1_cloud_node_semantickitti_label_id")  # fmt: skip
+    seq, poses, *_ = make_kitti(
+        tmp_path,
+        cloud_dir="os1_cloud_node_kitti_bin",
+        label_dir="os1_cloud_node_semantickitti_label_id",
+    )
     (seq / "calib.txt").unlink()
     (seq / "poses.txt").write_text("".join(row(m) + "\n" for m in poses))
     reader = open_dataset(seq, "rellis3d")
@@ -308,8 +346,7 @@ def test_npz_folder_with_pose_file(tmp_path, tum):
 
 def test_npz_carrying_its_own_pose(tmp_path):
     m = pose_xyz_yaw(1, 2, 3, 0.4)
-    np.savez(tmp_path / "a.npz", points=np.zeros((5, 3)), labels=np.arange(5), pose=m,
-             stamp_s=12.5)  # fmt: skip
+    np.savez(tmp_path / "a.npz", points=np.zeros((5, 3)), labels=np.arange(5), pose=m, stamp_s=12.5)
     scan = open_dataset(tmp_path).scan(0)
     np.testing.assert_allclose(scan.pose, m)
     assert scan.stamp_s == 12.5

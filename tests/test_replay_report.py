@@ -20,26 +20,45 @@ def summary(mode: str, published: int = N, lost: int = 0, stale: int = 0) -> dic
     """replay.json as the replay writes it (the figures the report reads)."""
     unacked = lost - stale
     return {
-        "dataset": "/data/seq", "format": "rellis3d", "class_table": "rellis3d", "topic": "scan",
-        "mode": mode, "rate_factor": 2.0, "recorded_rate_hz": 10.0, "scans": published,
-        "published": published, "empty": 0, "skipped_by_reader": [], "read_errors": [],
-        "acknowledged": published - lost, "lost": lost, "overtaken": stale,
-        "unacknowledged": unacked, "resends": 3 * unacked if mode == "lockstep" else 0,
-        "late_published": 0, "late_integrated": 0,
-        "latency": {"mean_ms": 80.0, "p95_ms": 90.0, "max_ms": 95.0}, "points_in": 1000,
-        "points_published": 600, "points_out_of_range": 400, "points_ignored_class": 0,
-        "points_nonfinite": 0, "wall_s": 2.0, "scans_per_s": 6.0, "poses_published": published,
-        "distance_m": 1.1, "trajectory": "replay_trajectory.csv",
+        "dataset": "/data/seq",
+        "format": "rellis3d",
+        "class_table": "rellis3d",
+        "topic": "scan",
+        "mode": mode,
+        "rate_factor": 2.0,
+        "recorded_rate_hz": 10.0,
+        "scans": published,
+        "published": published,
+        "empty": 0,
+        "skipped_by_reader": [],
+        "read_errors": [],
+        "acknowledged": published - lost,
+        "lost": lost,
+        "overtaken": stale,
+        "unacknowledged": unacked,
+        "resends": 3 * unacked if mode == "lockstep" else 0,
+        "late_published": 0,
+        "late_integrated": 0,
+        "latency": {"mean_ms": 80.0, "p95_ms": 90.0, "max_ms": 95.0},
+        "points_in": 1000,
+        "points_published": 600,
+        "points_out_of_range": 400,
+        "points_ignored_class": 0,
+        "points_nonfinite": 0,
+        "wall_s": 2.0,
+        "scans_per_s": 6.0,
+        "poses_published": published,
+        "distance_m": 1.1,
+        "trajectory": "replay_trajectory.csv",
         "per_scan": [[k + 1, k, f"{k:06d}", 0.1 * k, 50, 80.0] for k in range(published)],
-    }  # fmt: skip
+    }
 
 
 def write_poses(path, n: int) -> None:
     """n poses 0.1 m apart along x, one every 0.1 s."""
     t = 0.1 * np.arange(n)
     rows = np.column_stack([t, 0.1 * np.arange(n), np.zeros(n), np.ones(n), np.zeros(n)])
-    np.savetxt(path, rows, delimiter=",", fmt="%.4f", header="t_s,x_m,y_m,z_m,yaw_rad",
-               comments="")  # fmt: skip
+    np.savetxt(path, rows, delimiter=",", fmt="%.4f", header="t_s,x_m,y_m,z_m,yaw_rad", comments="")
 
 
 @pytest.fixture
@@ -92,8 +111,10 @@ def test_distance_comes_from_the_replay_and_missed_poses_are_a_warning(tmp_path,
     assert rp["distance_m"] == pytest.approx(0.1 * (N - 1))
     assert rp["distance_source"] == "the poses the replay published"
     assert rp["poses_recorded"] == 5
-    assert m["warnings"] == [f"the recorder recorded 5 of the {N} poses the replay published "
-                             "(see logs/recorder.log): its recording is incomplete"]  # fmt: skip
+    assert m["warnings"] == [
+        f"the recorder recorded 5 of the {N} poses the replay published "
+        "(see logs/recorder.log): its recording is incomplete"
+    ]
     assert "| distance covered by the poses | 1.10 m (measured on the poses the replay " in md
 
 

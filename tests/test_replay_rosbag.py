@@ -43,8 +43,19 @@ def header(ts, t, frame, ros1):
     return h(stamp=stamp(ts, t), frame_id=frame)
 
 
-def make_cloud(ts, t, points, labels, label_field="label", label_dtype="u2", extra_pad=0,
-               frame="os1", ros1=False, big_endian=False, conf=None):  # fmt: skip
+def make_cloud(
+    ts,
+    t,
+    points,
+    labels,
+    label_field="label",
+    label_dtype="u2",
+    extra_pad=0,
+    frame="os1",
+    ros1=False,
+    big_endian=False,
+    conf=None,
+):
     """A PointCloud2 with x, y, z (f4), intensity, the label field, padding at row ends."""
     order = ">" if big_endian else "<"
     names = ["x", "y", "z", "intensity", label_field]
@@ -72,9 +83,16 @@ def make_cloud(ts, t, points, labels, label_field="label", label_dtype="u2", ext
         for n, f in zip(names, formats, strict=True)
     ]
     return ts.types["sensor_msgs/msg/PointCloud2"](
-        header=header(ts, t, frame, ros1), height=height, width=width, fields=fields,
-        is_bigendian=big_endian, point_step=dt.itemsize, row_step=row, data=data, is_dense=True,
-    )  # fmt: skip
+        header=header(ts, t, frame, ros1),
+        height=height,
+        width=width,
+        fields=fields,
+        is_bigendian=big_endian,
+        point_step=dt.itemsize,
+        row_step=row,
+        data=data,
+        is_dense=True,
+    )
 
 
 def make_odom(ts, t, ros1=False):
@@ -90,10 +108,11 @@ def make_odom(ts, t, ros1=False):
         angular=g["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
     )
     return g["nav_msgs/msg/Odometry"](
-        header=header(ts, t, "odom", ros1), child_frame_id="base_link",
+        header=header(ts, t, "odom", ros1),
+        child_frame_id="base_link",
         pose=g["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
         twist=g["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
-    )  # fmt: skip
+    )
 
 
 def scan_data(seed=0):
@@ -255,6 +274,7 @@ def test_pose_track_slerp_matches_constant_rate_rotation():
     track = PoseTrack(stamps, np.zeros((2, 3)), quats)
     assert track.at(0.25, max_gap_s=0.1) is None  # 1 s between samples: a hole in the odometry
     m = track.at(0.25, max_gap_s=0.6)
-    np.testing.assert_allclose(m[:3, :3], quat_to_matrix(np.array([0, 0, np.sin(0.15),
-                                                                    np.cos(0.15)])))  # fmt: skip
+    np.testing.assert_allclose(
+        m[:3, :3], quat_to_matrix(np.array([0, 0, np.sin(0.15), np.cos(0.15)]))
+    )
     assert track.at(1.5, max_gap_s=0.4) is None

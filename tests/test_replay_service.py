@@ -79,8 +79,9 @@ class FakeMapper:
             cloud = decode(payload, SemanticCloud)
             self.clouds.append(cloud)
             time.sleep(self.delay_s)
-            self._pub.put(encode(MapDelta(stamp_s=cloud.stamp_s, seq=len(self.clouds),
-                                          cloud_seq=cloud.seq)))  # fmt: skip
+            self._pub.put(
+                encode(MapDelta(stamp_s=cloud.stamp_s, seq=len(self.clouds), cloud_seq=cloud.seq))
+            )
 
     def close(self):
         self._stop.set()
@@ -162,8 +163,10 @@ def test_bad_dataset_is_a_clear_error(tmp_path):
     (tmp_path / "velodyne").mkdir()
     out = subprocess.run(
         [sys.executable, "-m", "smana.services.replay", str(tmp_path), "--info"],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert out.returncode == 2
     assert "label folder is missing" in out.stderr
 
@@ -175,8 +178,10 @@ def test_info_lists_skipped_scans(dataset):
     try:
         out = subprocess.run(
             [sys.executable, "-m", "smana.services.replay", str(dataset), "--info"],
-            capture_output=True, text=True, timeout=60,
-        )  # fmt: skip
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
     finally:
         (lab / "000002.label").write_bytes(data)
     assert out.returncode == 0, out.stderr
@@ -283,10 +288,22 @@ def test_run_starts_the_stack_and_writes_the_run_dir(dataset_12, run_params, tmp
         port = sock.getsockname()[1]
     run = tmp_path / "run"
     out = subprocess.run(
-        [sys.executable, "-m", "smana.services.replay", str(dataset_12), "--run", "--run-dir",
-         str(run), "--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]'],
-        capture_output=True, text=True, timeout=600, cwd=tmp_path,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "smana.services.replay",
+            str(dataset_12),
+            "--run",
+            "--run-dir",
+            str(run),
+            "--set",
+            f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+    )
     assert out.returncode == 0, out.stdout + out.stderr
     assert "smana replay: ok" in out.stdout
     summary = json.loads((run / "replay.json").read_text())
@@ -373,8 +390,13 @@ def test_lockstep_goes_on_past_an_empty_scan(zenoh_stack, dataset_with_an_empty_
     # in vain (resent after ack_timeout_s) nor counted lost.
     mapper = FakeMapper(zenoh_stack.session, zenoh_stack.robot)
     try:
-        code, summary = run_replay(zenoh_stack, dataset_with_an_empty_scan, "--lockstep",
-                                   "--set", "replay.ack_timeout_s=20")  # fmt: skip
+        code, summary = run_replay(
+            zenoh_stack,
+            dataset_with_an_empty_scan,
+            "--lockstep",
+            "--set",
+            "replay.ack_timeout_s=20",
+        )
     finally:
         mapper.close()
     assert code == 0, zenoh_stack.log("replay")

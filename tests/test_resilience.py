@@ -42,10 +42,13 @@ class Up:
             argv += ["--set", s]
         self.log_path = tmp / "up.log"
         self.proc = subprocess.Popen(
-            argv, stdout=open(self.log_path, "wb"), stderr=subprocess.STDOUT,  # noqa: SIM115
-            start_new_session=True, env=dict(os.environ, **(env or {})),
+            argv,
+            stdout=open(self.log_path, "wb"),
+            stderr=subprocess.STDOUT,  # noqa: SIM115
+            start_new_session=True,
+            env=dict(os.environ, **(env or {})),
             preexec_fn=die_with_parent,
-        )  # fmt: skip
+        )
         self._session = None
 
     @property
@@ -68,8 +71,9 @@ class Up:
     def alive(self, service: str) -> bool:
         from smana.common import keys
 
-        return bool(list(self.session.liveliness().get(keys.alive(self.robot, service),
-                                                       timeout=1.0)))  # fmt: skip
+        return bool(
+            list(self.session.liveliness().get(keys.alive(self.robot, service), timeout=1.0))
+        )
 
     def status(self, service: str):
         from smana.common import keys
@@ -101,14 +105,18 @@ class Up:
 def busy_loops(n: int = 2, seconds: float = 600.0) -> list[subprocess.Popen]:
     """Bounded busy loops, one per core: the machine of a fresh install that does other work."""
     code = f"import time\nt = time.time() + {seconds}\nwhile time.time() < t: pass\n"
-    return [subprocess.Popen([sys.executable, "-c", code], preexec_fn=die_with_parent)
-            for _ in range(n)]  # fmt: skip
+    return [
+        subprocess.Popen([sys.executable, "-c", code], preexec_fn=die_with_parent) for _ in range(n)
+    ]
 
 
 def test_first_start_on_a_cold_cache_and_busy_cores_kills_nothing_and_the_robot_moves(tmp_path):
     hogs = busy_loops()
-    up = Up(tmp_path, ["explorer.time_budget_s=6", "deploy.recorder.enabled=false"],
-            env={"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")})  # fmt: skip
+    up = Up(
+        tmp_path,
+        ["explorer.time_budget_s=6", "deploy.recorder.enabled=false"],
+        env={"NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")},
+    )
     seen_starting = set()
 
     def ready() -> bool:
@@ -145,8 +153,10 @@ def test_first_start_on_a_cold_cache_and_busy_cores_kills_nothing_and_the_robot_
 
 def test_kill9_of_each_service_comes_back_with_the_map_and_the_run_completes(tmp_path):
     # spares at once (their default wait of 20 s keeps them out of short runs)
-    up = Up(tmp_path, ["explorer.time_budget_s=20", "deploy.recorder.enabled=false",
-                       "deploy.standby_delay_s=0"])  # fmt: skip
+    up = Up(
+        tmp_path,
+        ["explorer.time_budget_s=20", "deploy.recorder.enabled=false", "deploy.standby_delay_s=0"],
+    )
     try:
         assert wait_for(lambda: all(up.alive(s) for s in SERVICES), 600, 0.5), up.log()
         for service in SERVICES:
@@ -183,8 +193,12 @@ def test_kill9_of_each_service_comes_back_with_the_map_and_the_run_completes(tmp
 
 
 def test_a_run_without_its_planner_fails_loudly(tmp_path):
-    sets = ["explorer.time_budget_s=2", "deploy.planner.enabled=false",
-            "deploy.recorder.enabled=false", "explorer.startup_grace_s=3"]  # fmt: skip
+    sets = [
+        "explorer.time_budget_s=2",
+        "deploy.planner.enabled=false",
+        "deploy.recorder.enabled=false",
+        "explorer.startup_grace_s=3",
+    ]
     up = Up(tmp_path, sets)
     try:
         code = up.proc.wait(600)

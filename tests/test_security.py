@@ -73,8 +73,10 @@ def test_a_router_needs_the_dictionary(certs):
     assert auth["user"] == "router" and auth["dictionary_file"].endswith("dictionary.txt")
     # A host that got only a role's file cannot run a router that links to others.
     with pytest.raises(ConfigError, match="'router' has no line"):
-        router_config(["tcp/127.0.0.1:0"], dataclasses.replace(
-            zc, credentials_file=str(certs / "credentials" / "tool.txt")))  # fmt: skip
+        router_config(
+            ["tcp/127.0.0.1:0"],
+            dataclasses.replace(zc, credentials_file=str(certs / "credentials" / "tool.txt")),
+        )
 
 
 def test_no_certificate_alone_names_a_subject():
@@ -85,10 +87,12 @@ def test_no_certificate_alone_names_a_subject():
 
 def enforced(certs, listen, connect) -> dict:
     zc = ZenohConfig(
-        tls_ca=str(certs / "ca.pem"), tls_cert=str(certs / "robot.pem"),
-        tls_key=str(certs / "robot.key"), credentials_file=str(certs / "dictionary.txt"),
+        tls_ca=str(certs / "ca.pem"),
+        tls_cert=str(certs / "robot.pem"),
+        tls_key=str(certs / "robot.key"),
+        credentials_file=str(certs / "dictionary.txt"),
         acl_file=str(certs / "acl.json5"),
-    )  # fmt: skip
+    )
     return json.loads(router_config(listen, zc, connect).get_json("access_control"))
 
 

@@ -84,8 +84,13 @@ def test_bad_input_is_counted_and_state_kept(zenoh_stack):
     assert wait_for(lambda: sum(status(zenoh_stack).rejected.values()) >= 6)
     st = status(zenoh_stack)
     assert st.rejected == {
-        "malformed": 1, "type": 1, "nonfinite": 1, "version": 1, "shape": 1, "internal": 1
-    }  # fmt: skip
+        "malformed": 1,
+        "type": 1,
+        "nonfinite": 1,
+        "version": 1,
+        "shape": 1,
+        "internal": 1,
+    }
     assert count(zenoh_stack)["poses"] == 3  # state intact
     # Still working afterwards, and the books add up.
     s.put(pose_key, encode(Pose.from_xyz_yaw(9, 0, 0, 0)))
@@ -106,8 +111,9 @@ def test_nonfinite_points_dropped_and_latest_wins(zenoh_stack):
         zenoh_stack.session.put(cloud_key, encode(c))
         time.sleep(0.02)
     assert wait_for(
-        lambda: status(zenoh_stack).dropped.get("stale", 0) > 0
-        and count(zenoh_stack)["clouds"] >= 2
+        lambda: (
+            status(zenoh_stack).dropped.get("stale", 0) > 0 and count(zenoh_stack)["clouds"] >= 2
+        )
     )
     # Every cloud ends integrated or dropped as stale, none queued up.
     assert wait_for(lambda: (st := status(zenoh_stack)).pending == 0 and st.msgs_in >= 10 + 3)
@@ -143,8 +149,9 @@ def test_error_reply_raises(zenoh_stack):
 def test_a_stop_that_hangs_ends_hard_with_the_stacks_logged(zenoh_stack):
     # a handler stuck for a minute: SIGTERM cannot end the loop, the watchdog ends the process
     proc = start_echo(zenoh_stack, "--cloud-delay", "60")
-    c = SemanticCloud(points=np.zeros((10, 3), "f4"), labels=np.ones(10, "u1"),
-                      confidences=np.ones(10, "f4"))  # fmt: skip
+    c = SemanticCloud(
+        points=np.zeros((10, 3), "f4"), labels=np.ones(10, "u1"), confidences=np.ones(10, "f4")
+    )
 
     def stuck() -> bool:
         zenoh_stack.session.put(keys.key("test", "echo", "cloud"), encode(c))
@@ -204,8 +211,9 @@ def test_stop_signals_never_deadlock_the_main_loop():
 
 
 def test_a_starting_service_says_so_and_a_stop_while_starting_is_clean(zenoh_stack):
-    proc = zenoh_stack.start("echo", ECHO, *zenoh_stack.zenoh_args(), "--robot",
-                             zenoh_stack.robot, "--warm-up", "60")  # fmt: skip
+    proc = zenoh_stack.start(
+        "echo", ECHO, *zenoh_stack.zenoh_args(), "--robot", zenoh_stack.robot, "--warm-up", "60"
+    )
 
     def starting():
         try:

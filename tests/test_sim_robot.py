@@ -26,9 +26,10 @@ def test_height_field_agrees_with_the_ground_model():
         rng = np.random.default_rng(0)
         xy = rng.uniform(-2.3, 2.3, (300, 2))
         hits = p.rayTestBatch(
-            [[x, y, 5.0] for x, y in xy], [[x, y, -5.0] for x, y in xy],
+            [[x, y, 5.0] for x, y in xy],
+            [[x, y, -5.0] for x, y in xy],
             physicsClientId=scene.client,
-        )  # fmt: skip
+        )
         ground = np.array([h[0] == scene.ground_body for h in hits])
         z = np.array([h[3][2] for h in hits])
         model = world.ground.height_at(xy[:, 0], xy[:, 1])

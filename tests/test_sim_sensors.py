@@ -21,9 +21,14 @@ GROUND_IDS = (1, 2)
 @pytest.fixture(scope="module")
 def sim():
     cfg = SimConfig(
-        size_m=7.0, seed=4, noise="off", camera_width=160, camera_height=160,
-        lidar_channels=16, lidar_columns=512,
-    )  # fmt: skip
+        size_m=7.0,
+        seed=4,
+        noise="off",
+        camera_width=160,
+        camera_height=160,
+        lidar_channels=16,
+        lidar_columns=512,
+    )
     with Simulation(cfg) as s:
         yield s
 
@@ -95,9 +100,14 @@ def test_lidar_scan_lands_on_ground_truth(sim, gt):
 
 def test_pose_noise_moves_the_published_cloud_rigidly():
     cfg = SimConfig(
-        size_m=6.0, seed=4, noise="off", camera_width=64, camera_height=64,
-        pose_noise_xy_m=0.2, pose_noise_yaw_rad=0.05,
-    )  # fmt: skip
+        size_m=6.0,
+        seed=4,
+        noise="off",
+        camera_width=64,
+        camera_height=64,
+        pose_noise_xy_m=0.2,
+        pose_noise_yaw_rad=0.05,
+    )
     with Simulation(cfg) as sim:
         f = sim.camera_frame()
         delta = f.world_from_sensor @ np.linalg.inv(f.true_world_from_sensor)
@@ -234,17 +244,31 @@ def test_label_pixels_matches_a_slow_reference():
     m[:3, 3] = [0.2, -0.1, 0.5]
     args = dict(near=0.1, far=6.0, focal_px=9.0, max_range_m=4.0)
     got = label_pixels(
-        zbuf, seg, rgba, world_from_sensor=m, label_lut=lut, ground=ground, colour_lut=colours,
+        zbuf,
+        seg,
+        rgba,
+        world_from_sensor=m,
+        label_lut=lut,
+        ground=ground,
+        colour_lut=colours,
         **args,
-    )  # fmt: skip
+    )
     ref = _label_pixels_reference(zbuf, seg, rgba, 0.1, 6.0, 9.0, 4.0, m, lut, ground, colours)
     assert np.array_equal(got[1], ref[1])
     assert np.allclose(got[0], ref[0], rtol=1e-5)
     assert np.abs(got[2].astype(int) - ref[2].astype(int)).max() <= 1
     assert (got[1] >= 0).sum() > 20 and (got[1] == -1).sum() > 20
     with pytest.raises(ValueError, match="shapes"):
-        label_pixels(zbuf, seg[:5], rgba, world_from_sensor=m, label_lut=lut, ground=ground,
-                     colour_lut=colours, **args)  # fmt: skip
+        label_pixels(
+            zbuf,
+            seg[:5],
+            rgba,
+            world_from_sensor=m,
+            label_lut=lut,
+            ground=ground,
+            colour_lut=colours,
+            **args,
+        )
 
 
 def test_lidar_pattern_is_an_os1_64():
@@ -263,8 +287,9 @@ def test_frames_finished_on_a_worker_match_sequential_frames(kind):
     from smana.common.messages import SemanticCloud, decode
     from smana.services.sim.finishing import finished, make_worker
 
-    cfg = SimConfig(size_m=6.0, seed=4, noise="medium", camera_width=64, camera_height=64,
-                    publish_images=True)  # fmt: skip
+    cfg = SimConfig(
+        size_m=6.0, seed=4, noise="medium", camera_width=64, camera_height=64, publish_images=True
+    )
     with Simulation(cfg) as a, Simulation(cfg) as b:
         sequential, futures = [], []
         executor, finish = make_worker(kind, cfg, b.finisher, b.world.classes.colour_lut)

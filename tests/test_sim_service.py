@@ -28,9 +28,17 @@ from tests.conftest import wait_for
 pytestmark = pytest.mark.multiprocess
 
 SMALL = [
-    "--size", "6", "--camera", "48x48", "--set", "sim.camera_max_range_m=5.0",
-    "--set", "sim.lidar_channels=8", "--set", "sim.lidar_columns=128",
-]  # fmt: skip
+    "--size",
+    "6",
+    "--camera",
+    "48x48",
+    "--set",
+    "sim.camera_max_range_m=5.0",
+    "--set",
+    "sim.lidar_channels=8",
+    "--set",
+    "sim.lidar_columns=128",
+]
 
 
 class Collector:
@@ -70,9 +78,20 @@ def sim_status(stack) -> ServiceStatus:
 def test_sim_publishes_drives_and_stops(zenoh_stack):
     stack, r = zenoh_stack, zenoh_stack.robot
     proc = stack.service(
-        "sim", *SMALL, "--camera-rate", "4", "--lidar", "--lidar-rate", "2", "--noise", "low",
-        "--pose-noise", "0.05,0.01", "--seed", "5",
-    )  # fmt: skip
+        "sim",
+        *SMALL,
+        "--camera-rate",
+        "4",
+        "--lidar",
+        "--lidar-rate",
+        "2",
+        "--noise",
+        "low",
+        "--pose-noise",
+        "0.05,0.01",
+        "--seed",
+        "5",
+    )
     stack.wait_alive("sim")
     c = Collector(stack.session)
     c.add(keys.pose(r), lambda b: decode(b, Pose))
@@ -140,9 +159,18 @@ def test_sim_publishes_drives_and_stops(zenoh_stack):
 def test_sim_lockstep_waits_for_map_deltas(zenoh_stack):
     stack, r = zenoh_stack, zenoh_stack.robot
     proc = stack.service(
-        "sim", *SMALL, "--camera", "32x32", "--camera-rate", "10", "--rtf", "3", "--lockstep",
-        "--set", "sim.lockstep_timeout_s=0.8",
-    )  # fmt: skip
+        "sim",
+        *SMALL,
+        "--camera",
+        "32x32",
+        "--camera-rate",
+        "10",
+        "--rtf",
+        "3",
+        "--lockstep",
+        "--set",
+        "sim.lockstep_timeout_s=0.8",
+    )
     stack.wait_alive("sim")
     c = Collector(stack.session)
     c.add(keys.cloud(r), lambda b: decode(b, SemanticCloud))

@@ -22,10 +22,14 @@ ECHO = str(Path(__file__).parent / "support" / "echo_service.py")
 
 
 def make_supervisor(tmp_path, port, **policy):
-    cfg = SmanaConfig.load(None, [
-        f'deploy.router_listen=["tcp/127.0.0.1:{port}"]', "general.robot=sv",
-        "general.status_period_s=0.5",
-    ])  # fmt: skip
+    cfg = SmanaConfig.load(
+        None,
+        [
+            f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
+            "general.robot=sv",
+            "general.status_period_s=0.5",
+        ],
+    )
     sup = Supervisor(cfg, tmp_path / "run", services=[])
     argv = [sys.executable, ECHO, "--config", str(sup.config_path)]
     sup.add("echo", argv, ServiceDeployConfig(**policy))
@@ -78,9 +82,15 @@ def test_crash_loop_goes_on_and_never_policy_says_so(tmp_path):
 
     # Past max_restarts in the window the service is in a crash loop: still restarted (never
     # given up), and the run says so.
-    sup = make_supervisor(tmp_path, free_port(), restart="always", restart_delay_s=0.05,
-                          restart_max_delay_s=0.5, max_restarts=2,
-                          restart_window_s=60)  # fmt: skip
+    sup = make_supervisor(
+        tmp_path,
+        free_port(),
+        restart="always",
+        restart_delay_s=0.05,
+        restart_max_delay_s=0.5,
+        max_restarts=2,
+        restart_window_s=60,
+    )
     t = run_in_thread(sup)
     try:
         echo = sup.procs["echo"]
@@ -97,20 +107,25 @@ def test_crash_loop_goes_on_and_never_policy_says_so(tmp_path):
 
 
 def test_cli_help_lists_every_command():
-    out = subprocess.run([sys.executable, "-m", "smana.deploy", "--help"],
-                         capture_output=True, text=True, check=True).stdout  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-m", "smana.deploy", "--help"], capture_output=True, text=True, check=True
+    ).stdout
     for cmd in ("up", "status", "sim", "mapper", "navgraph", "planner", "explorer", "bench"):
         assert f"\n  {cmd} " in out
-    bad = subprocess.run([sys.executable, "-m", "smana.deploy", "nonsense"],
-                         capture_output=True, text=True)  # fmt: skip
+    bad = subprocess.run(
+        [sys.executable, "-m", "smana.deploy", "nonsense"], capture_output=True, text=True
+    )
     assert bad.returncode == 2 and "unknown command" in bad.stderr
 
 
 def test_bad_config_is_a_clear_error(tmp_path):
     cfg = tmp_path / "bad.toml"
     cfg.write_text("[mapper]\nresolution_m = -1\n")
-    r = subprocess.run([sys.executable, "-m", "smana.deploy", "status", "--config", str(cfg)],
-                       capture_output=True, text=True)  # fmt: skip
+    r = subprocess.run(
+        [sys.executable, "-m", "smana.deploy", "status", "--config", str(cfg)],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode != 0
     assert "mapper.resolution_m: expected a number > 0" in r.stderr
 
@@ -127,12 +142,26 @@ def test_smana_up_restarts_a_killed_service_and_dies_cleanly(tmp_path):
 
     port = free_port()
     up = subprocess.Popen(
-        [sys.executable, "-m", "smana.deploy", "up", "--only", "navgraph,planner", "--robot", "up",
-         "--run-dir", str(tmp_path / "run"),
-         "--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
-         "--set", "deploy.planner.restart_delay_s=0.2"],
-        stdout=open(tmp_path / "up.log", "wb"), stderr=subprocess.STDOUT, start_new_session=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "smana.deploy",
+            "up",
+            "--only",
+            "navgraph,planner",
+            "--robot",
+            "up",
+            "--run-dir",
+            str(tmp_path / "run"),
+            "--set",
+            f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
+            "--set",
+            "deploy.planner.restart_delay_s=0.2",
+        ],
+        stdout=open(tmp_path / "up.log", "wb"),
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+    )
 
     def planner_pid(session):
         try:
@@ -193,9 +222,13 @@ def test_one_instance_per_robot(tmp_path):
     """deploy.robots: the multi-robot base runs each service once per robot namespace."""
     from tests.conftest import free_port
 
-    cfg = SmanaConfig.load(None, [
-        f'deploy.router_listen=["tcp/127.0.0.1:{free_port()}"]', 'deploy.robots=["ra", "rb"]',
-    ])  # fmt: skip
+    cfg = SmanaConfig.load(
+        None,
+        [
+            f'deploy.router_listen=["tcp/127.0.0.1:{free_port()}"]',
+            'deploy.robots=["ra", "rb"]',
+        ],
+    )
     sup = Supervisor(cfg, tmp_path / "run", services=["planner"])
     assert set(sup.procs) == {"planner@ra", "planner@rb"}
     t = run_in_thread(sup)
@@ -204,7 +237,9 @@ def test_one_instance_per_robot(tmp_path):
             (tmp_path / "run" / "logs" / f"{n}.log").read_text() for n in sup.procs
         ]
         assert {(m.robot, m.service) for m in sup.procs.values()} == {
-            ("ra", "planner"), ("rb", "planner")}  # fmt: skip
+            ("ra", "planner"),
+            ("rb", "planner"),
+        }
     finally:
         sup.stop()
         t.join(15)

@@ -40,22 +40,39 @@ def test_live_stream_reaches_a_viewer(zenoh_stack, tmp_path):
     received = tmp_path / "received.rrd"
     viewer = subprocess.Popen(
         [sys.executable, "-m", "rerun", "--port", str(port), "--save", str(received)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
         preexec_fn=die_with_parent,
-    )  # fmt: skip
+    )
     try:
         wait_port(port)
         url = f"rerun+http://127.0.0.1:{port}/proxy"
-        view = zenoh_stack.start("view", "-m", "smana.deploy.cli", "view", "--viewer", url,
-                                 *zenoh_stack.zenoh_args(), "--robot", "test")  # fmt: skip
+        view = zenoh_stack.start(
+            "view",
+            "-m",
+            "smana.deploy.cli",
+            "view",
+            "--viewer",
+            url,
+            *zenoh_stack.zenoh_args(),
+            "--robot",
+            "test",
+        )
         zenoh_stack.wait_alive("recorder")
         r = zenoh_stack.robot
         delta = MapDelta(
-            stamp_s=1.0, seq=1, cloud_seq=1, backend="octree-max", resolution_m=0.1,
+            stamp_s=1.0,
+            seq=1,
+            cloud_seq=1,
+            backend="octree-max",
+            resolution_m=0.1,
             centres=np.array([[1.05, 1.05, 0.05], [1.15, 1.05, 0.05]], np.float32),
-            labels=np.array([1, 4], np.uint16), confidences=np.ones(2, np.float32),
-            occupied=np.ones(2, np.uint8), values=np.ones(2, np.float32),
-        )  # fmt: skip
+            labels=np.array([1, 4], np.uint16),
+            confidences=np.ones(2, np.float32),
+            occupied=np.ones(2, np.uint8),
+            values=np.ones(2, np.float32),
+        )
         zenoh_stack.publisher(keys.map_delta(r)).put(encode(delta))
         poses = zenoh_stack.publisher(keys.pose(r))
         for i in range(20):

@@ -169,15 +169,19 @@ def cli(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(r, indent=2))
         return 0
-    print(f"grid {r['grid_nodes']} nodes, {r['frontier_nodes']} frontier nodes, "
-          f"{r['candidates']} candidates x 16 headings x {r['offsets_per_view']} cells; "
-          f"results agree with both references: {r['agree_with_references']}")  # fmt: skip
+    print(
+        f"grid {r['grid_nodes']} nodes, {r['frontier_nodes']} frontier nodes, "
+        f"{r['candidates']} candidates x 16 headings x {r['offsets_per_view']} cells; "
+        f"results agree with both references: {r['agree_with_references']}"
+    )
     print(f"{'view gains, occlusion on':<34} {'median ms':>10}")
     print(f"{'  smana (numba kernel)':<34} {r['view_gains_numba_ms']:>10.2f}")
     print(f"{'  numpy vectorised reference':<34} {r['view_gains_numpy_ms']:>10.2f}")
     print(f"{'  pure Python reference (scaled)':<34} {r['view_gains_python_ms_scaled']:>10.0f}")
-    print(f"{'whole Explorer.plan (free paths)':<34} {r['plan_ms']:>10.2f}"
-          f"   ({r['queries_per_plan']} path queries)")  # fmt: skip
+    print(
+        f"{'whole Explorer.plan (free paths)':<34} {r['plan_ms']:>10.2f}"
+        f"   ({r['queries_per_plan']} path queries)"
+    )
     return 0
 
 

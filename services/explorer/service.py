@@ -175,8 +175,11 @@ class ExplorerService(Service):
         self.n_path_queries = int(state.get("path_queries") or 0)
         self.path_ok = int(state.get("path_ok") or 0)
         self.path_errors = {str(k): int(v) for k, v in (state.get("path_errors") or {}).items()}
-        self.log.info("resumed the run's exploration: %.1f m travelled, %d goals",
-                      self.core.distance_m, self.core.n_goals)  # fmt: skip
+        self.log.info(
+            "resumed the run's exploration: %.1f m travelled, %d goals",
+            self.core.distance_m,
+            self.core.n_goals,
+        )
         if state.get("done"):
             self.log.info("exploration had finished in this run (%s)", state.get("done_reason"))
             self.core.finish(str(state.get("done_reason") or "finished"))
@@ -199,9 +202,11 @@ class ExplorerService(Service):
         self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
         self.subscribe(keys.pose(r), self.on_pose, Pose)
         self.queryable(keys.explorer_state(r), lambda req: self.core.state_dict())
-        self._declared.append(self.session.liveliness().declare_subscriber(
-            keys.alive(r, "planner"), self._on_planner_token, history=True
-        ))  # fmt: skip
+        self._declared.append(
+            self.session.liveliness().declare_subscriber(
+                keys.alive(r, "planner"), self._on_planner_token, history=True
+            )
+        )
         self._sync_graph()
 
     def _sync_graph(self) -> None:
@@ -273,8 +278,10 @@ class ExplorerService(Service):
             # the stamps' clock restarted (a new simulator): robot time runs on from here
             self._t_offset += last - t
             t = last
-            self.note("clock_reset", f"pose stamps restarted at {stamp:.3f} s; robot time runs "
-                      f"on from {last:.3f} s")  # fmt: skip
+            self.note(
+                "clock_reset",
+                f"pose stamps restarted at {stamp:.3f} s; robot time runs on from {last:.3f} s",
+            )
         if where.reset:
             self.note("pose_reset", f"the robot reappeared at {pose.position[:2].tolist()}")
         self.core.update_pose(float(pose.position[0]), float(pose.position[1]), pose.yaw, t)
@@ -315,16 +322,31 @@ class ExplorerService(Service):
             self.plan_time_ms = (time.perf_counter() - t0) * 1e3
             if outcome.chosen is not None and (outcome.switched or reason != "periodic"):
                 c = outcome.chosen
-                self._plan_log.append({
-                    "t_s": self.core.t_now, "reason": reason, "goal": c.xy.tolist(),
-                    "yaw": c.yaw, "gain_m2": c.gain_m2, "path_cost": c.path_cost,
-                    "score": c.score, "queries": c.n_queries, "frontier": outcome.n_frontier,
-                })  # fmt: skip
+                self._plan_log.append(
+                    {
+                        "t_s": self.core.t_now,
+                        "reason": reason,
+                        "goal": c.xy.tolist(),
+                        "yaw": c.yaw,
+                        "gain_m2": c.gain_m2,
+                        "path_cost": c.path_cost,
+                        "score": c.score,
+                        "queries": c.n_queries,
+                        "frontier": outcome.n_frontier,
+                    }
+                )
                 self.log.info(
                     "goal (%.2f, %.2f) yaw %.0f deg: gain %.2f m2, cost %.2f (%s, %d queries, "
-                    "%.0f ms)", c.xy[0], c.xy[1], math.degrees(c.yaw), c.gain_m2, c.path_cost,
-                    reason, c.n_queries, self.plan_time_ms,
-                )  # fmt: skip
+                    "%.0f ms)",
+                    c.xy[0],
+                    c.xy[1],
+                    math.degrees(c.yaw),
+                    c.gain_m2,
+                    c.path_cost,
+                    reason,
+                    c.n_queries,
+                    self.plan_time_ms,
+                )
         v, w = self.core.control()
         self._send(v, w)
         if now >= self._next_state:
@@ -409,9 +431,12 @@ class ExplorerService(Service):
         self._send(0.0, 0.0)
         self.log.info(
             "exploration done (%s): %.1f m2 explored, %.1f m travelled, %d goals, %.0f s",
-            self.core.done_reason, self.core.explored_m2, self.core.distance_m, self.core.n_goals,
+            self.core.done_reason,
+            self.core.explored_m2,
+            self.core.distance_m,
+            self.core.n_goals,
             self.core.elapsed_s(),
-        )  # fmt: skip
+        )
         self.state_pub.put(self._state())
         self.save()
         self.stop()
@@ -457,9 +482,13 @@ class ExplorerService(Service):
             labels, heights, flags = self.grid.box(*box)
             origin = self.grid.origin_xy + np.array(box[:2]) * self.grid.resolution_m
             np.savez_compressed(
-                out / "graph.npz", origin_xy=origin, resolution_m=self.grid.resolution_m,
-                labels=labels, heights=heights, flags=flags,
-            )  # fmt: skip
+                out / "graph.npz",
+                origin_xy=origin,
+                resolution_m=self.grid.resolution_m,
+                labels=labels,
+                heights=heights,
+                flags=flags,
+            )
 
     def status_details(self) -> dict:
         c = self.core

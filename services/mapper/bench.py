@@ -172,8 +172,9 @@ def run_agreement(cfg: dict, scans) -> dict:
     tree = pyoctomap.OcTree(res)
     for p, lab, conf, org in scans:
         m.integrate(p, lab, conf, org)
-        tree.insertPointCloud(p.astype(np.float64), org.astype(np.float32).astype(np.float64),
-                              MAX_RANGE_M, True)  # fmt: skip
+        tree.insertPointCloud(
+            p.astype(np.float64), org.astype(np.float32).astype(np.float64), MAX_RANGE_M, True
+        )
     ours = m._core.rows(m._core.observed_index())
     mine = dict(zip(map(tuple, ours.keys.tolist()), ours.values.tolist(), strict=True))
     theirs = {}
@@ -207,8 +208,15 @@ def _run(cfg: dict, scans_path: Path, in_process: bool) -> dict:
     if in_process:
         scans = _load_scans(scans_path)[: cfg.get("n_scans")]
         return RUNNERS[cfg["kind"]](cfg, scans)
-    cmd = [sys.executable, "-m", "smana.services.mapper.bench", "--child", json.dumps(cfg),
-           "--scans-file", str(scans_path)]  # fmt: skip
+    cmd = [
+        sys.executable,
+        "-m",
+        "smana.services.mapper.bench",
+        "--child",
+        json.dumps(cfg),
+        "--scans-file",
+        str(scans_path),
+    ]
     out = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if out.returncode != 0:
         return {**cfg, "error": out.stderr.strip().splitlines()[-1:] or ["failed"]}
@@ -293,8 +301,11 @@ def _summary(results: list[dict]) -> tuple[list[str], dict]:
     if r:
         checks["tsdf_0.1_ms"] = r["median_ms"]
         checks["tsdf_0.1_ms_cpu"] = r["cpu_median_ms"]
-    octs = [r["bytes_per_allocated_voxel"] for r in results
-            if r["kind"] == "ours" and "error" not in r and r["backend"] != "tsdf"]  # fmt: skip
+    octs = [
+        r["bytes_per_allocated_voxel"]
+        for r in results
+        if r["kind"] == "ours" and "error" not in r and r["backend"] != "tsdf"
+    ]
     if octs:
         checks["octree_bytes_per_voxel"] = max(octs)
     for name, got in checks.items():
@@ -316,10 +327,12 @@ def cli(argv: list[str] | None = None) -> int:
     backends = ["octree-max", "octree-bayes", "tsdf"]
     p = ArgumentParser(prog="smana bench mapper", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="tiny scans, 0.3 m only, in-process")
-    p.add_argument("--scans", type=positive_int, default=20,
-                   help="scans per configuration (default 20)")  # fmt: skip
-    p.add_argument("--repeats", type=positive_int, default=3,
-                   help="runs per configuration (default 3)")  # fmt: skip
+    p.add_argument(
+        "--scans", type=positive_int, default=20, help="scans per configuration (default 20)"
+    )
+    p.add_argument(
+        "--repeats", type=positive_int, default=3, help="runs per configuration (default 3)"
+    )
     p.add_argument("--agreement-scans", type=positive_int, default=5)
     p.add_argument("--resolutions", type=positive_float, nargs="+", default=[0.1, 0.3])
     p.add_argument("--backends", nargs="+", choices=backends, default=backends)
@@ -349,20 +362,43 @@ def cli(argv: list[str] | None = None) -> int:
         try:
             import pyoctomap  # noqa: F401
         except ImportError:
-            print("pyoctomap not installed (pip install 'smana[bench]'): no OctoMap comparison",
-                  file=sys.stderr)  # fmt: skip
+            print(
+                "pyoctomap not installed (pip install 'smana[bench]'): no OctoMap comparison",
+                file=sys.stderr,
+            )
             have_octomap = False
     configs = []
     for res in args.resolutions:
         for backend in args.backends:
             for ray in [None] if backend == "tsdf" else [1.0, None]:
-                configs.append({"kind": "ours", "backend": backend, "res": res, "ray_m": ray,
-                                "repeats": args.repeats})  # fmt: skip
+                configs.append(
+                    {
+                        "kind": "ours",
+                        "backend": backend,
+                        "res": res,
+                        "ray_m": ray,
+                        "repeats": args.repeats,
+                    }
+                )
         if have_octomap:
-            configs.append({"kind": "octomap", "backend": "octomap", "res": res, "ray_m": None,
-                            "repeats": args.repeats})  # fmt: skip
-            configs.append({"kind": "agreement", "backend": "octree-max", "res": res,
-                            "ray_m": None, "n_scans": args.agreement_scans})  # fmt: skip
+            configs.append(
+                {
+                    "kind": "octomap",
+                    "backend": "octomap",
+                    "res": res,
+                    "ray_m": None,
+                    "repeats": args.repeats,
+                }
+            )
+            configs.append(
+                {
+                    "kind": "agreement",
+                    "backend": "octree-max",
+                    "res": res,
+                    "ray_m": None,
+                    "n_scans": args.agreement_scans,
+                }
+            )
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="smana-bench-") as tmp:
         scans_path = Path(tmp) / "scans.npz"
@@ -370,8 +406,11 @@ def cli(argv: list[str] | None = None) -> int:
         results = []
         for cfg in configs:
             if not args.json:
-                print(f"running {cfg['kind']} {cfg['backend']} {cfg['res']:g} m "
-                      f"{_ray(cfg)} ...", file=sys.stderr, flush=True)  # fmt: skip
+                print(
+                    f"running {cfg['kind']} {cfg['backend']} {cfg['res']:g} m {_ray(cfg)} ...",
+                    file=sys.stderr,
+                    flush=True,
+                )
             results.append(_run(cfg, scans_path, args.in_process))
     lines, checks = _summary(results)
     report = {
@@ -390,8 +429,10 @@ def cli(argv: list[str] | None = None) -> int:
         print(json.dumps(report, indent=1))
     else:
         load = report["machine"]["load_avg_1m"]
-        print(f"{n} scans of {beams} x {cols} points, max range {MAX_RANGE_M:g} m, "
-              f"load average {load:.2f} on {os.cpu_count()} cpus")  # fmt: skip
+        print(
+            f"{n} scans of {beams} x {cols} points, max range {MAX_RANGE_M:g} m, "
+            f"load average {load:.2f} on {os.cpu_count()} cpus"
+        )
         print(_table(results))
         print("\n".join(lines))
         print(f"wall time {report['wall_s']:.0f} s")

@@ -191,10 +191,28 @@ def _fuse_bayes(sem_l, sem_p, g, label, conf, n_classes, eps):
 
 @njit(cache=True, error_model="numpy")
 def _octree_collect(
-    points, labels, confs, origin, i0, prm, mode, n_classes, sem_ok,
-    h_keys, h_vals, hshift, block_keys, n_blocks, bits,
-    flags, sem_l, sem_p, touched, n_touched, keybuf,
-):  # fmt: skip
+    points,
+    labels,
+    confs,
+    origin,
+    i0,
+    prm,
+    mode,
+    n_classes,
+    sem_ok,
+    h_keys,
+    h_vals,
+    hshift,
+    block_keys,
+    n_blocks,
+    bits,
+    flags,
+    sem_l,
+    sem_p,
+    touched,
+    n_touched,
+    keybuf,
+):
     """Phase 1: walk every ray, mark free / hit voxels, fuse labels. Resumable at point i."""
     res = prm[0]
     inv_res = prm[1]
@@ -321,8 +339,9 @@ def _octree_apply(touched, n_touched, flags, logodds_, l_hit, l_miss, c_min, c_m
 
 
 @njit(cache=True, error_model="numpy")
-def _delta_rows(g, block_keys, bits, res, logodds_, sem_l, sem_p, keys, centres, labels, confs,
-                occupied, values):  # fmt: skip
+def _delta_rows(
+    g, block_keys, bits, res, logodds_, sem_l, sem_p, keys, centres, labels, confs, occupied, values
+):
     """Fill the Delta columns of voxels g in one pass (cheaper than numpy fancy indexing)."""
     vb = 3 * bits
     bm = (1 << bits) - 1
@@ -420,11 +439,28 @@ class OctreeBackend:
         while True:
             c = grid.cols
             status, i, grid.n_blocks, n_touched = _octree_collect(
-                points, labels, confs, origin, i, self._prm, mode, self.n_classes,
-                self.semantic_lut, grid.h_keys, grid.h_vals, grid.hshift, grid.block_keys,
-                grid.n_blocks, grid.bits, c["flags"], c["label"], c["prob"], self._touched,
-                n_touched, self._keybuf,
-            )  # fmt: skip
+                points,
+                labels,
+                confs,
+                origin,
+                i,
+                self._prm,
+                mode,
+                self.n_classes,
+                self.semantic_lut,
+                grid.h_keys,
+                grid.h_vals,
+                grid.hshift,
+                grid.block_keys,
+                grid.n_blocks,
+                grid.bits,
+                c["flags"],
+                c["label"],
+                c["prob"],
+                self._touched,
+                n_touched,
+                self._keybuf,
+            )
             if status == DONE:
                 break
             if status == GROW_TOUCHED:
@@ -454,9 +490,20 @@ class OctreeBackend:
         )
         c, grid = self.grid.cols, self.grid
         _delta_rows(
-            g, grid.block_keys, grid.bits, self.resolution_m, c["logodds"], c["label"], c["prob"],
-            d.keys, d.centres, d.labels, d.confidences, d.occupied, d.values,
-        )  # fmt: skip
+            g,
+            grid.block_keys,
+            grid.bits,
+            self.resolution_m,
+            c["logodds"],
+            c["label"],
+            c["prob"],
+            d.keys,
+            d.centres,
+            d.labels,
+            d.confidences,
+            d.occupied,
+            d.values,
+        )
         return d
 
     # -- queries ---------------------------------------------------------------------------

@@ -15,9 +15,17 @@ __all__ = ["read_ply", "write_ply"]
 def write_ply(path, points, colours, labels, confidences) -> None:
     points = np.asarray(points, np.float32)
     colours = np.asarray(colours, np.uint8)
-    _write(path, {
-        "x": points[:, 0], "y": points[:, 1], "z": points[:, 2],
-        "red": colours[:, 0], "green": colours[:, 1], "blue": colours[:, 2],
-        "label": np.asarray(labels, np.int32),
-        "confidence": np.asarray(confidences, np.float32),
-    }, comment="smana semantic map")  # fmt: skip
+    _write(
+        path,
+        {
+            "x": points[:, 0],
+            "y": points[:, 1],
+            "z": points[:, 2],
+            "red": colours[:, 0],
+            "green": colours[:, 1],
+            "blue": colours[:, 2],
+            "label": np.asarray(labels, np.int32),
+            "confidence": np.asarray(confidences, np.float32),
+        },
+        comment="smana semantic map",
+    )

@@ -211,9 +211,19 @@ class GardenWorld:
         n = self.n_beams * self.n_cols
         noise = rng.normal(0.0, 0.01, n)
         pts, labels = _scan(
-            origin[0], origin[1], origin[2], yaw, self.elev, self.n_cols,
-            self.cyl, self.sph, self.box, 20.0, 0.0, noise,
-        )  # fmt: skip
+            origin[0],
+            origin[1],
+            origin[2],
+            yaw,
+            self.elev,
+            self.n_cols,
+            self.cyl,
+            self.sph,
+            self.box,
+            20.0,
+            0.0,
+            noise,
+        )
         conf = rng.uniform(0.33, 1.0, n).astype(np.float32)
         flip = rng.random(n) < label_flip
         labels[flip] = rng.choice(np.array([1, 2, 4, 5, 6, 7, 8], np.uint16), int(flip.sum()))

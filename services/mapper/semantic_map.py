@@ -96,9 +96,16 @@ class SemanticMap:
             )
         else:
             self._core = OctreeBackend(
-                resolution_m, backend.split("-")[1], max_range_m, self.ray_length_m,
-                semantic_lut, len(self.class_ids), self.occupancy, self.fusion, block_bits,
-            )  # fmt: skip
+                resolution_m,
+                backend.split("-")[1],
+                max_range_m,
+                self.ray_length_m,
+                semantic_lut,
+                len(self.class_ids),
+                self.occupancy,
+                self.fusion,
+                block_bits,
+            )
         self.n_integrations = 0
         self.n_points = 0
 

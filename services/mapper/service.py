@@ -66,8 +66,14 @@ def build_map(config: SmanaConfig, table: ClassTable, log=None) -> SemanticMap:
     if load:
         m = SemanticMap.load(load, table)
         if log and (m.backend, m.resolution_m) != (mc.backend, mc.resolution_m):
-            log.warning("map file %s is %s at %g m; config asked for %s at %g m: using the file",
-                        load, m.backend, m.resolution_m, mc.backend, mc.resolution_m)  # fmt: skip
+            log.warning(
+                "map file %s is %s at %g m; config asked for %s at %g m: using the file",
+                load,
+                m.backend,
+                m.resolution_m,
+                mc.backend,
+                mc.resolution_m,
+            )
         if log:
             log.info("resumed map from %s (%d voxels)", load, m.stats()["voxels_observed"])
         return m
@@ -83,7 +89,7 @@ def build_map(config: SmanaConfig, table: ClassTable, log=None) -> SemanticMap:
             mc.tsdf_truncation_voxels,
             mc.tsdf_max_weight,
             label_probability=mc.tsdf_label_probability,
-        ),  # fmt: skip
+        ),
     )
 
 
@@ -100,8 +106,9 @@ class MapperService(Service):
         self.last_cloud_seq = -1
         self.last_stamp_s = 0.0
         g = config.general
-        self.gates = {name: StampGate(g.stamp_window_s, g.max_time_rate)
-                      for name in config.mapper.inputs}  # fmt: skip
+        self.gates = {
+            name: StampGate(g.stamp_window_s, g.max_time_rate) for name in config.mapper.inputs
+        }
         self.input_seq: dict[str, int] = {}
         self.clouds = 0
         self.points_dropped = 0
@@ -115,8 +122,12 @@ class MapperService(Service):
         # (Compile or) load the kernels before the token says we are ready.
         self.startup_step = "loading (or compiling) the numba kernels"
         t0 = time.perf_counter()
-        warm = build_map(dataclasses.replace(self.config, mapper=dataclasses.replace(
-            self.config.mapper, load="")), self.table)  # fmt: skip
+        warm = build_map(
+            dataclasses.replace(
+                self.config, mapper=dataclasses.replace(self.config.mapper, load="")
+            ),
+            self.table,
+        )
         pts = np.array([[1.0, 0.1, 0.1], [0.1, 1.0, 0.2], [20.0, 0.1, 0.1]], np.float32)
         lab = np.array([warm.class_ids[0], 0, 0], np.uint16)
         warm.integrate(pts, lab, np.ones(3, np.float32), (0.0, 0.0, 0.0))
@@ -134,8 +145,9 @@ class MapperService(Service):
         self.delta_pub = self.publisher(keys.map_delta(r), reliable_block=True)
         for name in self.config.mapper.inputs:
             key = keys.cloud(r) if name == "cloud" else keys.scan(r)
-            self.subscribe_latest(key, lambda c, n=name: self.on_cloud(c, n), SemanticCloud,
-                                  drop_nonfinite=True)  # fmt: skip
+            self.subscribe_latest(
+                key, lambda c, n=name: self.on_cloud(c, n), SemanticCloud, drop_nonfinite=True
+            )
         self.queryable(keys.query(r, "mapper", "stats"), lambda req: self.stats())
         self.queryable(keys.query(r, "mapper", "snapshot"), self.on_snapshot)
         self.queryable(keys.query(r, "mapper", "save"), self.on_save)
@@ -157,11 +169,14 @@ class MapperService(Service):
         if last is not None and cloud.seq > last + MAX_SEQ_GAP:
             # a new numbering (a restarted sender), not clouds lost: a peer's number must not
             # become a count (2**63 twice no longer fits the status message)
-            self.note("cloud_seq_jump", f"{input_name} numbering jumped from {last} to "
-                      f"{cloud.seq}")  # fmt: skip
+            self.note("cloud_seq_jump", f"{input_name} numbering jumped from {last} to {cloud.seq}")
         elif lost > 0:
-            self.note("clouds_lost_upstream", f"{lost} {input_name}s numbered before "
-                      f"{cloud.seq} never arrived (dropped on the way)", lost)  # fmt: skip
+            self.note(
+                "clouds_lost_upstream",
+                f"{lost} {input_name}s numbered before "
+                f"{cloud.seq} never arrived (dropped on the way)",
+                lost,
+            )
         self.input_seq[input_name] = cloud.seq
         if cloud.n_dropped_nonfinite:
             n = cloud.n_dropped_nonfinite
@@ -170,8 +185,11 @@ class MapperService(Service):
         labels, n_bad = self.table.sanitise(cloud.labels)
         if n_bad:
             self.labels_replaced += n_bad
-            self.note("unknown_labels", f"cloud {cloud.seq}: {n_bad} labels not in the class "
-                      f"table {self.table.name}, mapped to unknown")  # fmt: skip
+            self.note(
+                "unknown_labels",
+                f"cloud {cloud.seq}: {n_bad} labels not in the class "
+                f"table {self.table.name}, mapped to unknown",
+            )
         conf = cloud.confidences
         if conf.size and (conf.min() < 0 or conf.max() > 1):
             self.note("confidence_range", f"cloud {cloud.seq}: confidences outside [0, 1]")
@@ -219,8 +237,13 @@ class MapperService(Service):
         self.last_save_s = time.time()
         ms = (time.perf_counter() - t0) * 1e3
         self.log.info("map saved to %s (%.0f ms)", path, ms)
-        return {"ok": True, "path": str(path), "bytes": path.stat().st_size, "time_ms": ms,
-                "voxels_observed": self.map.stats()["voxels_observed"]}  # fmt: skip
+        return {
+            "ok": True,
+            "path": str(path),
+            "bytes": path.stat().st_size,
+            "time_ms": ms,
+            "voxels_observed": self.map.stats()["voxels_observed"],
+        }
 
     def on_stop(self) -> None:
         if self.map is None:
@@ -246,8 +269,16 @@ class MapperService(Service):
 
     def status_details(self) -> dict:
         s = self.stats()
-        keep = ("backend", "voxels_observed", "voxels_occupied", "bytes_used", "clouds",
-                "points_dropped_nonfinite", "labels_replaced", "integrate_ms_median")  # fmt: skip
+        keep = (
+            "backend",
+            "voxels_observed",
+            "voxels_occupied",
+            "bytes_used",
+            "clouds",
+            "points_dropped_nonfinite",
+            "labels_replaced",
+            "integrate_ms_median",
+        )
         return {k: s[k] for k in keep}
 
     def on_snapshot(self, req: Request) -> MapDelta:
@@ -279,8 +310,12 @@ class MapperService(Service):
             # directory, nor another file of the run directory (config.toml, a report); and one
             # the file system takes, with its ".tmp" twin (no NUL, at most NAME_MAX bytes)
             plain = isinstance(name, str) and Path(name).name == name and not name.startswith(".")
-            if not (plain and name.endswith(".npz") and name.isprintable()
-                    and len(f"{name}.tmp".encode()) <= MAX_NAME_BYTES):  # fmt: skip
+            if not (
+                plain
+                and name.endswith(".npz")
+                and name.isprintable()
+                and len(f"{name}.tmp".encode()) <= MAX_NAME_BYTES
+            ):
                 raise ReplyError("value", f"name must be a plain file name.npz, got {name!r}")
             path = self.save_path.parent / name
         try:

@@ -95,10 +95,30 @@ def _set_contains(keys, key):
 
 @njit(cache=True, error_model="numpy")
 def _tsdf_integrate(
-    points, labels, origin, i0, prm, sem_idx, log_ratio,
-    h_keys, h_vals, hshift, block_keys, n_blocks, bits,
-    flags, dist_, weight_, logp, touched, n_touched, startset, keybuf, gbuf, counts,
-):  # fmt: skip
+    points,
+    labels,
+    origin,
+    i0,
+    prm,
+    sem_idx,
+    log_ratio,
+    h_keys,
+    h_vals,
+    hshift,
+    block_keys,
+    n_blocks,
+    bits,
+    flags,
+    dist_,
+    weight_,
+    logp,
+    touched,
+    n_touched,
+    startset,
+    keybuf,
+    gbuf,
+    counts,
+):
     """Integrate points i0.. ; resumable: every block is allocated before a ray updates anything.
     `counts` accumulates (newly observed voxels, change in the surface-voxel count)."""
     res = prm[0]
@@ -286,11 +306,30 @@ class TsdfBackend:
         while True:
             c = grid.cols
             status, i, grid.n_blocks, n_touched = _tsdf_integrate(
-                points, labels, origin, i, self._prm, self.sem_idx, self.log_ratio,
-                grid.h_keys, grid.h_vals, grid.hshift, grid.block_keys, grid.n_blocks, grid.bits,
-                c["flags"], c["distance"], c["weight"], c["logp"], self._touched, n_touched,
-                startset, self._keybuf, self._gbuf, counts,
-            )  # fmt: skip
+                points,
+                labels,
+                origin,
+                i,
+                self._prm,
+                self.sem_idx,
+                self.log_ratio,
+                grid.h_keys,
+                grid.h_vals,
+                grid.hshift,
+                grid.block_keys,
+                grid.n_blocks,
+                grid.bits,
+                c["flags"],
+                c["distance"],
+                c["weight"],
+                c["logp"],
+                self._touched,
+                n_touched,
+                startset,
+                self._keybuf,
+                self._gbuf,
+                counts,
+            )
             if status == DONE:
                 break
             if status == GROW_TOUCHED:

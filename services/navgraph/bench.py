@@ -274,7 +274,7 @@ def cli(argv: list[str] | None = None) -> int:
     ref_ms, ref = timed(
         lambda: numpy_highest(
             deltas[0][0], deltas[0][1], deltas[0][2], classes, bounds[0], GRAPH_RES
-        ),  # fmt: skip
+        ),
         runs,
     )
     # Node-for-node agreement with the reference on the first scan.

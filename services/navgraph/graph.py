@@ -468,8 +468,23 @@ def _tile_ranges(ix, iy, r, t, nx, ny):
 
 
 @numba.njit(cache=True)
-def _prepare(cen, labels, occupied, values, is_tsdf, band, valid_lut, ignored_lut, ox, oy, res,
-             nx, ny, tile_map, t):  # fmt: skip
+def _prepare(
+    cen,
+    labels,
+    occupied,
+    values,
+    is_tsdf,
+    band,
+    valid_lut,
+    ignored_lut,
+    ox,
+    oy,
+    res,
+    nx,
+    ny,
+    tile_map,
+    t,
+):
     """Per voxel: clean label (ids outside the table -> 0), kind (0 cleared, 1 surface, 2 row
     with a non-finite coordinate), and the ids (tx * nty + ty) of unallocated tiles under
     in-bounds surface voxels, each once."""

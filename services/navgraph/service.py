@@ -131,8 +131,15 @@ class NavgraphService(Service):
 
     def _new_graph(self) -> NavGraph:
         nc = self.config.navgraph
-        return NavGraph(self.classes, nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m,
-                        nc.robot_radius_m, nc.tile_size, nc.column_capacity)  # fmt: skip
+        return NavGraph(
+            self.classes,
+            nc.bounds_min_xy,
+            nc.bounds_max_xy,
+            nc.resolution_m,
+            nc.robot_radius_m,
+            nc.tile_size,
+            nc.column_capacity,
+        )
 
     def setup(self) -> None:
         r = self.robot
@@ -142,9 +149,11 @@ class NavgraphService(Service):
         self.queryable(keys.query(r, "navgraph", "node"), self.on_node)
         self.queryable(keys.query(r, "navgraph", "stats"), lambda req: self.stats())
         self._initial_map()
-        self._declared.append(self.session.liveliness().declare_subscriber(
-            keys.alive(r, "mapper"), self._on_mapper_token
-        ))  # fmt: skip
+        self._declared.append(
+            self.session.liveliness().declare_subscriber(
+                keys.alive(r, "mapper"), self._on_mapper_token
+            )
+        )
 
     def _on_mapper_token(self, sample) -> None:
         # A zenoh callback: only flags; tick() does the work on the main loop.
@@ -182,8 +191,12 @@ class NavgraphService(Service):
         cells, labels, heights, flags = graph_difference(old, new)
         self.deltas_in.synced(snap.producer, snap.seq)
         self.resyncs += 1
-        self.log.info("resynced from the mapper's snapshot (%s): %d voxels, %d nodes changed",
-                      reason, len(snap.centres), len(cells))  # fmt: skip
+        self.log.info(
+            "resynced from the mapper's snapshot (%s): %d voxels, %d nodes changed",
+            reason,
+            len(snap.centres),
+            len(cells),
+        )
         self.columns_lost += up.n_columns_lost
         if len(cells):
             self._publish(cells, labels, heights, flags, snap.stamp_s)
@@ -192,8 +205,11 @@ class NavgraphService(Service):
     def _publish(self, cells, labels, heights, flags, stamp_s: float) -> None:
         self.patch_seq += 1
         self.last_stamp_s = max(self.last_stamp_s, float(stamp_s))
-        self.patch_pub.put(to_patch(self.graph, cells, labels, heights, flags, self.patch_seq,
-                                    stamp_s, self.producer))  # fmt: skip
+        self.patch_pub.put(
+            to_patch(
+                self.graph, cells, labels, heights, flags, self.patch_seq, stamp_s, self.producer
+            )
+        )
 
     def _initial_map(self) -> None:
         """Integrate the mapper's current map, if a mapper is already running."""
@@ -253,8 +269,16 @@ class NavgraphService(Service):
         cells, labels, heights, flags = self.graph.export(box)
         if len(cells) * BYTES_PER_PATCH_NODE > MAX_PAYLOAD_BYTES - 4096:
             raise ReplyError("value", f"{len(cells)} nodes do not fit one reply: ask for a box")
-        return to_patch(self.graph, cells, labels, heights, flags, self.patch_seq,
-                        self.last_stamp_s, self.producer)  # fmt: skip
+        return to_patch(
+            self.graph,
+            cells,
+            labels,
+            heights,
+            flags,
+            self.patch_seq,
+            self.last_stamp_s,
+            self.producer,
+        )
 
     def on_node(self, req: Request) -> dict:
         body = req.body()

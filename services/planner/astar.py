@@ -92,12 +92,23 @@ def astar(
             raise ValueError(f"{name} cell ({x}, {y}) outside the {nx} x {ny} window")
     finite = enter_cost[np.isfinite(enter_cost)]
     min_enter = float(finite.min()) if finite.size else 0.0
-    return search(enter_cost, heights, (sx, sy), (gx, gy), float(resolution_m), float(h_f),
-                  step, heuristic, min_enter, t0)  # fmt: skip
+    return search(
+        enter_cost,
+        heights,
+        (sx, sy),
+        (gx, gy),
+        float(resolution_m),
+        float(h_f),
+        step,
+        heuristic,
+        min_enter,
+        t0,
+    )
 
 
-def search(enter_cost, heights, start, goal, resolution_m, h_f, max_step, heuristic, min_enter,
-           t0=None) -> AStarResult:  # fmt: skip
+def search(
+    enter_cost, heights, start, goal, resolution_m, h_f, max_step, heuristic, min_enter, t0=None
+) -> AStarResult:
     """`astar` without the input checks, for a caller that built the arrays itself and knows
     their smallest finite enter cost (the Planner caches both per graph version): C-contiguous
     float64 arrays, in-window cells, `max_step` a float (inf for none)."""
@@ -178,8 +189,26 @@ _DY = (-1, 0, 1, -1, 1, -1, 0, 1)
 
 
 @numba.njit(cache=True)
-def _search(enter, heights, nx, ny, goal, res, h_f, max_step, mode, min_enter, g, parent,
-            closed, hf, hg, hn, size, expanded):  # fmt: skip
+def _search(
+    enter,
+    heights,
+    nx,
+    ny,
+    goal,
+    res,
+    h_f,
+    max_step,
+    mode,
+    min_enter,
+    g,
+    parent,
+    closed,
+    hf,
+    hg,
+    hn,
+    size,
+    expanded,
+):
     """The A* loop proper. It returns when the goal is popped, the open set is empty, or the heap
     has no room for one more expansion; the caller then grows the heap and calls again. Keeping
     the growth out of here matters: an array variable reassigned inside the hot loop costs numba
@@ -257,9 +286,26 @@ def _astar_kernel(enter, heights, nx, ny, start, goal, res, h_f, max_step, mode,
     size = 1
     expanded = 0
     while True:
-        state, size, expanded = _search(enter, heights, nx, ny, goal, res, h_f, max_step, mode,
-                                        min_enter, g, parent, closed, hf, hg, hn, size,
-                                        expanded)  # fmt: skip
+        state, size, expanded = _search(
+            enter,
+            heights,
+            nx,
+            ny,
+            goal,
+            res,
+            h_f,
+            max_step,
+            mode,
+            min_enter,
+            g,
+            parent,
+            closed,
+            hf,
+            hg,
+            hn,
+            size,
+            expanded,
+        )
         if state != _HEAP_FULL:
             break
         cap *= 2

@@ -52,8 +52,9 @@ def format_reply(reply: PathReply, show_path: bool) -> str:
     if not reply.ok:
         lines = [f"no path: {reply.error}: {reply.message}"]
         if len(reply.nearest_free):
-            lines.append(f"nearest free node: ({reply.nearest_free[0]:.2f}, "
-                         f"{reply.nearest_free[1]:.2f})")  # fmt: skip
+            lines.append(
+                f"nearest free node: ({reply.nearest_free[0]:.2f}, {reply.nearest_free[1]:.2f})"
+            )
         return "\n".join(lines)
     p = reply.path
     shares = ", ".join(f"{k} {v:.0%}" for k, v in sorted(reply.label_share.items()))
@@ -75,17 +76,28 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--from", dest="start", required=True, metavar="X,Y", help="start (m)")
     p.add_argument("--to", dest="goal", required=True, metavar="X,Y", help="goal (m)")
     p.add_argument("--h-f", type=non_negative_float, help="height weight (default: [planner] h_f)")
-    p.add_argument("--t-f", type=non_negative_float,
-                   help="traversability weight (default: [planner] t_f)")  # fmt: skip
+    p.add_argument(
+        "--t-f", type=non_negative_float, help="traversability weight (default: [planner] t_f)"
+    )
     p.add_argument("--max-step", type=positive_float, metavar="M", help="maximum step height (m)")
-    p.add_argument("--cost", action="append", default=[], metavar="CLASS=COST",
-                   help="override a class cost, e.g. --cost grass=4 (repeatable)")  # fmt: skip
+    p.add_argument(
+        "--cost",
+        action="append",
+        default=[],
+        metavar="CLASS=COST",
+        help="override a class cost, e.g. --cost grass=4 (repeatable)",
+    )
     p.add_argument("--allow-unknown", action="store_true", help="cross unknown nodes")
     p.add_argument("--unknown-cost", type=non_negative_float, help="cost T of an unknown node")
     p.add_argument("--path", action="store_true", help="print every path point")
     p.add_argument("--json", action="store_true", help="print the reply as JSON")
-    p.add_argument("--timeout", type=positive_float, default=10.0, metavar="S",
-                   help="how long to wait for the planner's answer (default 10)")  # fmt: skip
+    p.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=10.0,
+        metavar="S",
+        help="how long to wait for the planner's answer (default 10)",
+    )
     args = p.parse_args(argv)
     cfg = config_from_args(args)
     try:

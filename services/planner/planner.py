@@ -124,9 +124,16 @@ class Planner:
         t0 = time.perf_counter()
         try:
             result = self._plan(
-                start, goal, h_f, t_f, class_costs, allow_unknown, unknown_cost, max_step_m,
+                start,
+                goal,
+                h_f,
+                t_f,
+                class_costs,
+                allow_unknown,
+                unknown_cost,
+                max_step_m,
                 heuristic,
-            )  # fmt: skip
+            )
         except PlanError as exc:
             nf = np.zeros(0) if exc.nearest_free is None else np.asarray(exc.nearest_free, float)
             result = PlanResult(False, exc.code, str(exc), nearest_free=nf)
@@ -157,8 +164,9 @@ class Planner:
             raise PlanError(MALFORMED, f"{name} must be 2 or 3 finite numbers, got {v!r}")
         return a[:2]
 
-    def _plan(self, start, goal, h_f, t_f, class_costs, allow_unknown, unknown_cost, max_step_m,
-              heuristic) -> PlanResult:  # fmt: skip
+    def _plan(
+        self, start, goal, h_f, t_f, class_costs, allow_unknown, unknown_cost, max_step_m, heuristic
+    ) -> PlanResult:
         p, lut = self._params(h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic)
         s_xy, g_xy = self._point("start", start), self._point("goal", goal)
         g = self.grid
@@ -183,8 +191,17 @@ class Planner:
         self._check_end("start", sx, sy, flags, enter, box, s_xy, allow_unknown=True)
         self._check_end("goal", gx, gy, flags, enter, box, g_xy, allow_unknown)
         step = np.inf if p.max_step_m is None else float(p.max_step_m)
-        res = search(enter, known_h, (sx, sy), (gx, gy), g.resolution_m, float(p.h_f), step,
-                     p.heuristic, min_enter)  # fmt: skip
+        res = search(
+            enter,
+            known_h,
+            (sx, sy),
+            (gx, gy),
+            g.resolution_m,
+            float(p.h_f),
+            step,
+            p.heuristic,
+            min_enter,
+        )
         if not res.found:
             raise PlanError(
                 UNREACHABLE,
@@ -200,8 +217,10 @@ class Planner:
         path = np.column_stack([xy, z]).astype(np.float32)
         on_path = labels[res.cells[:, 0], res.cells[:, 1]]
         is_known = (flags[res.cells[:, 0], res.cells[:, 1]] & FLAG_KNOWN) != 0
-        names = [self._names[lab] if k and lab < len(self._names) else "unknown"
-                 for lab, k in zip(on_path.tolist(), is_known.tolist(), strict=True)]  # fmt: skip
+        names = [
+            self._names[lab] if k and lab < len(self._names) else "unknown"
+            for lab, k in zip(on_path.tolist(), is_known.tolist(), strict=True)
+        ]
         counts: dict[str, int] = {}
         for n in names:
             counts[n] = counts.get(n, 0) + 1

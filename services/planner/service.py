@@ -130,9 +130,11 @@ class PlannerService(Service):
         self.sync()
         # A navgraph that (re)starts starts a new graph and a new patch sequence: fetch it then.
         # The callback only raises a flag; tick() does the work on the main loop.
-        self._declared.append(self.session.liveliness().declare_subscriber(
-            keys.alive(r, "navgraph"), self._on_navgraph_token
-        ))  # fmt: skip
+        self._declared.append(
+            self.session.liveliness().declare_subscriber(
+                keys.alive(r, "navgraph"), self._on_navgraph_token
+            )
+        )
 
     def _on_navgraph_token(self, sample) -> None:
         import zenoh

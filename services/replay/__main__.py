@@ -50,25 +50,38 @@ def cli(argv: list[str] | None = None) -> int:
         const="realtime",
         help="send scans at the recorded rate (times --rate)",
     )
-    p.add_argument("--rate", type=positive_float, metavar="X",
-                   help="realtime mode: x X the recorded rate")  # fmt: skip
+    p.add_argument(
+        "--rate", type=positive_float, metavar="X", help="realtime mode: x X the recorded rate"
+    )
     p.add_argument("--start", type=non_negative_int, metavar="N", help="first scan to replay")
     p.add_argument("--count", type=non_negative_int, metavar="N", help="number of scans to replay")
     p.add_argument("--label-field", help="bags and PLY: name of the integer label field")
     p.add_argument("--cloud-topic", help="bags: the sensor_msgs/PointCloud2 topic")
     p.add_argument("--odom-topic", help="bags: the nav_msgs/Odometry topic")
-    p.add_argument("--fixed-pose", type=float, nargs=4, metavar=("X", "Y", "Z", "YAW"),
-                   help="bags without odometry: the sensor's fixed pose")  # fmt: skip
+    p.add_argument(
+        "--fixed-pose",
+        type=float,
+        nargs=4,
+        metavar=("X", "Y", "Z", "YAW"),
+        help="bags without odometry: the sensor's fixed pose",
+    )
     args = p.parse_args(argv)
     cfg = config_from_args(args)
     rc = cfg.replay
     given = {
-        "dataset": args.dataset, "format": args.format, "sequence": args.sequence,
-        "class_table": args.table, "mode": args.pace, "rate_factor": args.rate,
-        "start": args.start, "count": args.count, "label_field": args.label_field,
-        "cloud_topic": args.cloud_topic, "odom_topic": args.odom_topic,
+        "dataset": args.dataset,
+        "format": args.format,
+        "sequence": args.sequence,
+        "class_table": args.table,
+        "mode": args.pace,
+        "rate_factor": args.rate,
+        "start": args.start,
+        "count": args.count,
+        "label_field": args.label_field,
+        "cloud_topic": args.cloud_topic,
+        "odom_topic": args.odom_topic,
         "fixed_pose": list(args.fixed_pose) if args.fixed_pose else None,
-    }  # fmt: skip
+    }
     rc = dataclasses.replace(rc, **{k: v for k, v in given.items() if v is not None})
     if rc.dataset:  # services may run elsewhere (the supervisor's cwd is the run dir)
         rc = dataclasses.replace(rc, dataset=str(Path(rc.dataset).resolve()))
@@ -187,8 +200,11 @@ def _write_report(run_dir: Path, cfg: SmanaConfig, warnings: list[str]) -> list[
     summary_path = run_dir / "replay.json"
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
     if summary is None:
-        print(f"smana replay: no {summary_path} (the replay did not finish); the report has no "
-              "replay section", file=sys.stderr)  # fmt: skip
+        print(
+            f"smana replay: no {summary_path} (the replay did not finish); the report has no "
+            "replay section",
+            file=sys.stderr,
+        )
     try:
         from smana.deploy import report
 

@@ -38,8 +38,11 @@ from smana.common.zenoh_config import free_loopback_port
 
 # Paper, RELLIS-3D 00000, C++ on a Xeon W-2123 (8 cores): map + graph seconds per scan.
 PAPER_S_PER_SCAN = {
-    ("octree", 0.1): 0.56, ("tsdf", 0.1): 7.2, ("octree", 0.3): 0.10, ("tsdf", 0.3): 1.4,
-}  # fmt: skip
+    ("octree", 0.1): 0.56,
+    ("tsdf", 0.1): 7.2,
+    ("octree", 0.3): 0.10,
+    ("tsdf", 0.3): 1.4,
+}
 PATH_QUERY_TARGET_MS = 100.0
 WARMUP_S = 1.0
 OS1_POINTS = 131_072
@@ -85,12 +88,26 @@ class Stack:
 
     def start(self, name: str, args: list[str]) -> subprocess.Popen:
         log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 - the child owns it
-        argv = [sys.executable, "-m", f"smana.services.{name}", "--mode", "client",
-                "--connect", self.endpoint, "--robot", self.robot, *args]  # fmt: skip
+        argv = [
+            sys.executable,
+            "-m",
+            f"smana.services.{name}",
+            "--mode",
+            "client",
+            "--connect",
+            self.endpoint,
+            "--robot",
+            self.robot,
+            *args,
+        ]
         proc = subprocess.Popen(
-            argv, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True, env=dict(os.environ, PYTHONUNBUFFERED="1"),
-        )  # fmt: skip
+            argv,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        )
         log.close()
         self.procs[name] = proc
         return proc
@@ -218,8 +235,9 @@ class Probe:
             if not self._wanted.wait(0.2):
                 continue
             self._wanted.clear()
-            for key, base, (store, counter) in zip(self._stats_keys, self._base, targets,
-                                                   strict=True):  # fmt: skip
+            for key, base, (store, counter) in zip(
+                self._stats_keys, self._base, targets, strict=True
+            ):
                 st = query_map(self.stack.session, key)
                 if st and counter in st and "integrate_ms_last" in st and st[counter] > base:
                     store.setdefault(int(st[counter]) - base, float(st["integrate_ms_last"]))
@@ -278,18 +296,30 @@ def query_map(session, key: str, payload: bytes | None = None, timeout_s: float 
 
 def stack_settings(backend: str, map_res: float, graph_res: float, table: str) -> list[str]:
     sets = [
-        f"general.class_table={table}", 'mapper.inputs=["scan"]', f"mapper.backend={backend}",
-        f"mapper.resolution_m={map_res}", "mapper.max_range_m=10.0",
-        "mapper.raycast_range_m=1.0", "mapper.autosave_period_s=0",
+        f"general.class_table={table}",
+        'mapper.inputs=["scan"]',
+        f"mapper.backend={backend}",
+        f"mapper.resolution_m={map_res}",
+        "mapper.max_range_m=10.0",
+        "mapper.raycast_range_m=1.0",
+        "mapper.autosave_period_s=0",
         f"navgraph.resolution_m={graph_res}",
-    ]  # fmt: skip
+    ]
     return [a for s in sets for a in ("--set", s)]
 
 
 def run_config(
-    dataset: Path, backend: str, map_res: float, graph_res: float, repeat: int, out: Path,
-    table: str, count: int, realtime: bool = False, probe_paths: bool = False,
-) -> tuple[RunResult, dict]:  # fmt: skip
+    dataset: Path,
+    backend: str,
+    map_res: float,
+    graph_res: float,
+    repeat: int,
+    out: Path,
+    table: str,
+    count: int,
+    realtime: bool = False,
+    probe_paths: bool = False,
+) -> tuple[RunResult, dict]:
     """One pass over the sequence; returns the measurements and the replay's summary."""
     name = f"{backend}_{map_res:g}_{graph_res:g}" + ("_realtime" if realtime else f"_r{repeat}")
     run_dir = out / "runs" / name
@@ -309,16 +339,25 @@ def run_config(
         extra = ["--count", str(count)] if count else []
         stack.start(
             "replay",
-            [str(dataset), *pace, *extra, *sets, "--run-dir", str(run_dir / "replay"),
-             "--set", f"replay.wait_for={json.dumps(services)}"],
-        )  # fmt: skip
+            [
+                str(dataset),
+                *pace,
+                *extra,
+                *sets,
+                "--run-dir",
+                str(run_dir / "replay"),
+                "--set",
+                f"replay.wait_for={json.dumps(services)}",
+            ],
+        )
         sampler.active.set()
         prober = None
         if probe_paths:
             prober = threading.Thread(
-                target=_probe_paths, args=(stack, probe, path_times, stack.procs["replay"]),
+                target=_probe_paths,
+                args=(stack, probe, path_times, stack.procs["replay"]),
                 daemon=True,
-            )  # fmt: skip
+            )
             prober.start()
         t0 = time.monotonic()
         code = stack.procs["replay"].wait()
@@ -376,20 +415,23 @@ def _probe_paths(stack: Stack, probe: Probe, out: list[dict], replay: subprocess
         if len(probe.poses) < 2 or np.hypot(*np.subtract(probe.poses[-1], probe.poses[0])) < 4.0:
             continue
         n += 1
-        req = PathRequest(request_id=f"probe{n}", start=np.array(probe.poses[0]),
-                          goal=np.array(probe.poses[-1]))  # fmt: skip
+        req = PathRequest(
+            request_id=f"probe{n}", start=np.array(probe.poses[0]), goal=np.array(probe.poses[-1])
+        )
         t0 = time.perf_counter()
         reply = None
         for r in stack.session.get(key, payload=encode(req), timeout=5.0):
             if r.ok is not None:
                 reply = decode(r.ok.payload.to_bytes(), PathReply)
         wall_ms = (time.perf_counter() - t0) * 1000.0
-        out.append({
-            "wall_ms": wall_ms,
-            "planner_ms": reply.time_ms if reply else None,
-            "ok": bool(reply and reply.ok),
-            "error": reply.error if reply else "no reply",
-        })  # fmt: skip
+        out.append(
+            {
+                "wall_ms": wall_ms,
+                "planner_ms": reply.time_ms if reply else None,
+                "ok": bool(reply and reply.ok),
+                "error": reply.error if reply else "no reply",
+            }
+        )
 
 
 # -- reporting ------------------------------------------------------------------------------------
@@ -413,8 +455,12 @@ def aggregate(runs: list[RunResult]) -> list[dict]:
             return statistics.median(vals) if vals else float("nan")
 
         row = {
-            "backend": backend, "map_res": mres, "graph_res": gres, "repeats": len(rs),
-            "scans": rs[0].scans, "points_per_scan": med(lambda r: r.points_per_scan),
+            "backend": backend,
+            "map_res": mres,
+            "graph_res": gres,
+            "repeats": len(rs),
+            "scans": rs[0].scans,
+            "points_per_scan": med(lambda r: r.points_per_scan),
             "lost": max(r.lost for r in rs),
             "map_us_pt": med(lambda r: _ms(r.map_us_per_point)[0]),
             "map_us_pt_std": med(lambda r: _ms(r.map_us_per_point)[1]),
@@ -430,7 +476,7 @@ def aggregate(runs: list[RunResult]) -> list[dict]:
             "cpu_graph_std": med(lambda r: _ms(r.cpu_graph)[1]),
             "rss_map_mb": med(lambda r: r.rss_map_mb),
             "rss_graph_mb": med(lambda r: r.rss_graph_mb),
-        }  # fmt: skip
+        }
         row["s_per_scan"] = (row["map_ms_scan"] + row["graph_ms_scan"]) / 1000.0
         # The paper's own arithmetic: time per point times a whole 131k-point scan.
         row["s_per_131k"] = (row["map_us_pt"] + row["graph_us_pt"]) * OS1_POINTS / 1e6
@@ -492,11 +538,14 @@ def realtime_markdown(summary: dict, backend: str, mres: float, gres: float) -> 
             f"{len(pq)} asked, {ok} paths found; round trip median {np.median(wall):.1f} ms, "
             f"max {wall.max():.1f} ms{rest}, {within}/{len(pq)} within "
             f"{PATH_QUERY_TARGET_MS:.0f} ms"
-            + (f"; planner's own time median {np.median(plan):.1f} ms, max {plan.max():.1f} ms"
-               if plan.size else "")
+            + (
+                f"; planner's own time median {np.median(plan):.1f} ms, max {plan.max():.1f} ms"
+                if plan.size
+                else ""
+            )
             + (f"; errors: {', '.join(errors)}" if errors else "")
             + "."
-        )  # fmt: skip
+        )
     return "\n".join(lines)
 
 
@@ -510,11 +559,15 @@ def main(args: argparse.Namespace) -> int:
         dataset = Path(args.dataset).resolve()
     else:
         params = syn.SyntheticParams(n_scans=args.scans)
-        print(f"writing the synthetic sequence ({args.scans} scans of 131,072 points) ...",
-              file=sys.stderr)  # fmt: skip
-        syn.write_rellis_sequence(out / "synthetic", params,
-                                  progress=lambda k, n: print(f"\r  {k}/{n}", end="",
-                                                              file=sys.stderr))  # fmt: skip
+        print(
+            f"writing the synthetic sequence ({args.scans} scans of 131,072 points) ...",
+            file=sys.stderr,
+        )
+        syn.write_rellis_sequence(
+            out / "synthetic",
+            params,
+            progress=lambda k, n: print(f"\r  {k}/{n}", end="", file=sys.stderr),
+        )
         print(file=sys.stderr)
         dataset = (out / "synthetic").resolve()
     with open_dataset(dataset) as reader:
@@ -528,8 +581,10 @@ def main(args: argparse.Namespace) -> int:
     for backend in backends:
         for mres, gres in pairs:
             for rep in range(args.repeats):
-                print(f"{backend} {mres:g}/{gres:g} m, run {rep + 1}/{args.repeats} ...",
-                      file=sys.stderr)  # fmt: skip
+                print(
+                    f"{backend} {mres:g}/{gres:g} m, run {rep + 1}/{args.repeats} ...",
+                    file=sys.stderr,
+                )
                 r, _ = run_config(dataset, backend, mres, gres, rep, out, table, count)
                 runs.append(r)
     rows = aggregate(runs)
@@ -545,23 +600,32 @@ def main(args: argparse.Namespace) -> int:
     realtime_summary = None
     if not args.no_realtime:
         backend, mres, gres = args.realtime_backend, *pairs[0]
-        print(f"realtime check: {backend} {mres:g}/{gres:g} m with the planner ...",
-              file=sys.stderr)  # fmt: skip
-        _, realtime_summary = run_config(dataset, backend, mres, gres, 0, out, table, count,
-                                         realtime=True, probe_paths=True)  # fmt: skip
+        print(
+            f"realtime check: {backend} {mres:g}/{gres:g} m with the planner ...", file=sys.stderr
+        )
+        _, realtime_summary = run_config(
+            dataset, backend, mres, gres, 0, out, table, count, realtime=True, probe_paths=True
+        )
         text += ["", realtime_markdown(realtime_summary, backend, mres, gres)]
     report = "\n".join(text) + "\n"
     print(report)
     (out / "replay_bench.md").write_text(report)
-    (out / "replay_bench.json").write_text(json.dumps(
-        {"rows": rows, "runs": [asdict(r) for r in runs], "realtime": realtime_summary},
-        indent=1, default=float))  # fmt: skip
+    (out / "replay_bench.json").write_text(
+        json.dumps(
+            {"rows": rows, "runs": [asdict(r) for r in runs], "realtime": realtime_summary},
+            indent=1,
+            default=float,
+        )
+    )
     from smana.services.replay.plots import figure_11, figure_12
 
     figure_11(rows, out / "fig11_cpu_ram.png")
     figure_12(rows, out / "fig12_time_per_point.png")
-    print(f"written: {out}/replay_bench.md, replay_bench.json, fig11_cpu_ram.png, "
-          "fig12_time_per_point.png", file=sys.stderr)  # fmt: skip
+    print(
+        f"written: {out}/replay_bench.md, replay_bench.json, fig11_cpu_ram.png, "
+        "fig12_time_per_point.png",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -602,10 +666,15 @@ def cli(argv: list[str] | None = None) -> int:
         help="synthetic: scans to write; a dataset: scans to replay (0 = all)",
     )
     p.add_argument("--backends", type=_backends, default="octree-max,octree-bayes,tsdf")
-    p.add_argument("--res", type=_resolution_pairs, default="0.1/0.2,0.2/0.4,0.3/0.6",
-                   help="map/graph resolution pairs")  # fmt: skip
-    p.add_argument("--repeats", type=positive_int, default=3,
-                   help="runs per configuration (median)")  # fmt: skip
+    p.add_argument(
+        "--res",
+        type=_resolution_pairs,
+        default="0.1/0.2,0.2/0.4,0.3/0.6",
+        help="map/graph resolution pairs",
+    )
+    p.add_argument(
+        "--repeats", type=positive_int, default=3, help="runs per configuration (median)"
+    )
     p.add_argument("--table", help="class table (default: the dataset's)")
     p.add_argument("--out", default="runs/bench-replay")
     p.add_argument("--no-realtime", action="store_true", help="skip the realtime check")

@@ -158,21 +158,26 @@ class ScanFeed:
     def _prepare(self, scan: Scan, pose_seq: int, cloud_seq: int) -> FeedItem:
         pc = prepare_scan(scan, self.table, self.max_range_m, self.min_range_m)
         pose = Pose(
-            stamp_s=scan.stamp_s, seq=pose_seq, position=pc.sensor_position,
+            stamp_s=scan.stamp_s,
+            seq=pose_seq,
+            position=pc.sensor_position,
             orientation_xyzw=pc.sensor_orientation_xyzw,
-        )  # fmt: skip
+        )
         item = FeedItem(scan.index, scan.name, scan.stamp_s, pose=encode(pose))
         x, y, z = (float(v) for v in pose.position)
         item.pose_row = (float(scan.stamp_s), x, y, z, float(pose.yaw))
         if pc.n_out:
             item.seq = cloud_seq
             cloud = SemanticCloud(
-                stamp_s=scan.stamp_s, seq=cloud_seq, points=pc.points,
-                labels=pc.labels.astype(np.uint16), confidences=pc.confidences,
+                stamp_s=scan.stamp_s,
+                seq=cloud_seq,
+                points=pc.points,
+                labels=pc.labels.astype(np.uint16),
+                confidences=pc.confidences,
                 sensor_position=pc.sensor_position,
                 sensor_orientation_xyzw=pc.sensor_orientation_xyzw,
                 source=self.source,
-            )  # fmt: skip
+            )
             item.cloud = encode(cloud)
         # Counts only (the arrays are in the encoded cloud) unless a caller wants them.
         item.prepared = pc if self.keep_prepared else _counts_only(pc)
@@ -182,10 +187,18 @@ class ScanFeed:
 def _counts_only(pc: PreparedCloud) -> PreparedCloud:
     empty = np.zeros(0, np.float32)
     return PreparedCloud(
-        np.zeros((0, 3), np.float32), np.zeros(0, np.uint16), empty, pc.sensor_position,
-        pc.sensor_orientation_xyzw, pc.n_in, pc.n_nonfinite, pc.n_out_of_range, pc.n_ignored,
-        pc.n_unclaimed, pc.n_out,
-    )  # fmt: skip
+        np.zeros((0, 3), np.float32),
+        np.zeros(0, np.uint16),
+        empty,
+        pc.sensor_position,
+        pc.sensor_orientation_xyzw,
+        pc.n_in,
+        pc.n_nonfinite,
+        pc.n_out_of_range,
+        pc.n_ignored,
+        pc.n_unclaimed,
+        pc.n_out,
+    )
 
 
 @dataclass

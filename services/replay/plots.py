@@ -116,16 +116,26 @@ def figure_11(rows: list[dict], path: str | Path) -> Path:
     img = np.full((900, w, 3), 255, np.uint8)
     g = _groups(rows)
     bar_panel(
-        img, (0, 0, w, 450), g, ["map", "graph"],
+        img,
+        (0, 0, w, 450),
+        g,
+        ["map", "graph"],
         [[r["cpu_map"] for r in rows], [r["cpu_graph"] for r in rows]],
         [[r["cpu_map_std"] for r in rows], [r["cpu_graph_std"] for r in rows]],
-        "Average CPU use with standard deviation (100 % = one core)", "CPU %", log=True,
-    )  # fmt: skip
+        "Average CPU use with standard deviation (100 % = one core)",
+        "CPU %",
+        log=True,
+    )
     bar_panel(
-        img, (0, 450, w, 900), g, ["map", "graph"],
+        img,
+        (0, 450, w, 900),
+        g,
+        ["map", "graph"],
         [[r["rss_map_mb"] for r in rows], [r["rss_graph_mb"] for r in rows]],
-        [[0] * len(rows), [0] * len(rows)], "Peak RAM (RSS)", "MB",
-    )  # fmt: skip
+        [[0] * len(rows), [0] * len(rows)],
+        "Peak RAM (RSS)",
+        "MB",
+    )
     cv2.imwrite(str(path), img)
     return Path(path)
 
@@ -135,10 +145,15 @@ def figure_12(rows: list[dict], path: str | Path) -> Path:
     w = max(900, 130 * len(rows) + 120)
     img = np.full((480, w, 3), 255, np.uint8)
     bar_panel(
-        img, (0, 0, w, 480), _groups(rows), ["map", "graph"],
+        img,
+        (0, 0, w, 480),
+        _groups(rows),
+        ["map", "graph"],
         [[r["map_us_pt"] for r in rows], [r["graph_us_pt"] for r in rows]],
         [[r["map_us_pt_std"] for r in rows], [r["graph_us_pt_std"] for r in rows]],
-        "Average integration time per point with standard deviation", "us / point", log=True,
-    )  # fmt: skip
+        "Average integration time per point with standard deviation",
+        "us / point",
+        log=True,
+    )
     cv2.imwrite(str(path), img)
     return Path(path)

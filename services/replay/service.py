@@ -50,10 +50,14 @@ def open_reader(rc: ReplayConfig) -> DatasetReader:
         else:
             raise ValueError("replay.fixed_pose must be x, y, z, yaw or 16 numbers (4x4)")
     return open_dataset(
-        rc.dataset, fmt, sequence=rc.sequence or None,
+        rc.dataset,
+        fmt,
+        sequence=rc.sequence or None,
         label_field=rc.label_field if rc.label_field != "label" else None,
-        cloud_topic=rc.cloud_topic or None, odom_topic=rc.odom_topic or None, fixed_pose=fixed,
-    )  # fmt: skip
+        cloud_topic=rc.cloud_topic or None,
+        odom_topic=rc.odom_topic or None,
+        fixed_pose=fixed,
+    )
 
 
 def table_name(rc: ReplayConfig, reader: DatasetReader) -> str:
@@ -107,9 +111,14 @@ class ReplayService(Service):
         self.table = ClassTable.load(table_name(rc, self.reader))
         self.topic = topic_of(rc, self.reader)
         self.feed = ScanFeed(
-            self.reader, self.table, rc.max_range_m, rc.min_range_m,
-            "lidar" if self.topic == "scan" else "camera", rc.start, rc.count,
-        )  # fmt: skip
+            self.reader,
+            self.table,
+            rc.max_range_m,
+            rc.min_range_m,
+            "lidar" if self.topic == "scan" else "camera",
+            rc.start,
+            rc.count,
+        )
         period = 1.0 / (self.reader.rate_hz * rc.rate_factor)
         self.pacer = Pacer(rc.mode, rc.rate_factor, rc.ack_timeout_s, period_s=period)
         self.phase = "waiting"  # -> running -> done
@@ -133,13 +142,16 @@ class ReplayService(Service):
             self.log.warning(
                 "replaying with class table %r but general.class_table is %r: run the mapper "
                 "and navgraph with --set general.class_table=%s so labels mean the same",
-                self.table.name, config.general.class_table, self.table.name,
-            )  # fmt: skip
+                self.table.name,
+                config.general.class_table,
+                self.table.name,
+            )
         if self.topic not in config.mapper.inputs:
             self.log.warning(
                 "clouds go to robot/%s: the mapper needs --set mapper.inputs='[\"%s\"]'",
-                self.topic, self.topic,
-            )  # fmt: skip
+                self.topic,
+                self.topic,
+            )
 
     # -- wiring ----------------------------------------------------------------------------------
 
@@ -153,8 +165,9 @@ class ReplayService(Service):
         # at the first one's MapDelta and the replay ends at the last one's, so a lost one
         # stalled the replay for ack_timeout_s. They go out on a blocking publisher.
         self.cloud_pub = self.publisher(cloud_key, reliable_block=lockstep)
-        self.cloud_pub_sure = self.cloud_pub if lockstep else self.publisher(
-            cloud_key, reliable_block=True)  # fmt: skip
+        self.cloud_pub_sure = (
+            self.cloud_pub if lockstep else self.publisher(cloud_key, reliable_block=True)
+        )
         self.pose_pub = self.publisher(keys.pose(r), reliable_block=lockstep)
         self.clock_pub = self.publisher(keys.clock(r))
         self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
@@ -167,9 +180,14 @@ class ReplayService(Service):
         self.feed.start()
         self.log.info(
             "replaying %d scans of %s (%s, %.1f Hz) on %s, %s%s",
-            len(self.feed), self.reader.path, self.reader.format, self.reader.rate_hz, cloud_key,
-            self.rc.mode, f" x{self.rc.rate_factor:g}" if not lockstep else "",
-        )  # fmt: skip
+            len(self.feed),
+            self.reader.path,
+            self.reader.format,
+            self.reader.rate_hz,
+            cloud_key,
+            self.rc.mode,
+            f" x{self.rc.rate_factor:g}" if not lockstep else "",
+        )
 
     def _on_token(self, sample) -> None:
         # zenoh thread: only record and wake the main loop
@@ -192,15 +210,21 @@ class ReplayService(Service):
         now = time.monotonic()
         waited = now - self._t_wait
         silent = [
-            s for s in missing if s not in self._starting
+            s
+            for s in missing
+            if s not in self._starting
             and now - max(self._t_wait, self._last_sign.get(s, 0.0)) > self.rc.wait_timeout_s
-        ]  # fmt: skip
+        ]
         if silent:
-            return missing, (f"{', '.join(silent)} not alive after {self.rc.wait_timeout_s:.0f} "
-                             "s: nothing to replay into")  # fmt: skip
+            return missing, (
+                f"{', '.join(silent)} not alive after {self.rc.wait_timeout_s:.0f} "
+                "s: nothing to replay into"
+            )
         if missing and waited > max(self.rc.wait_timeout_s, self.config.deploy.startup_timeout_s):
-            return missing, (f"{', '.join(missing)} still starting after {waited:.0f} s "
-                             "(deploy.startup_timeout_s): nothing to replay into")  # fmt: skip
+            return missing, (
+                f"{', '.join(missing)} still starting after {waited:.0f} s "
+                "(deploy.startup_timeout_s): nothing to replay into"
+            )
         return missing, ""
 
     def on_delta(self, delta: MapDelta) -> None:
@@ -227,8 +251,11 @@ class ReplayService(Service):
         if self.phase != "running":
             return
         for f in self.pacer.overdue():
-            self.log.warning("no MapDelta for scan seq %d after %.0f s: sending it again",
-                             f.seq, self.rc.ack_timeout_s)  # fmt: skip
+            self.log.warning(
+                "no MapDelta for scan seq %d after %.0f s: sending it again",
+                f.seq,
+                self.rc.ack_timeout_s,
+            )
             self.cloud_pub.put(f.payload)
         self._advance()
         self._maybe_finish()
@@ -310,8 +337,11 @@ class ReplayService(Service):
         if p.overtaken:
             parts.append(f"overtaken {p.overtaken}")
         if p.unacknowledged:
-            parts.append(f"lost {p.unacknowledged}" if self.rc.mode == "lockstep"
-                         else f"unacknowledged {p.unacknowledged}")  # fmt: skip
+            parts.append(
+                f"lost {p.unacknowledged}"
+                if self.rc.mode == "lockstep"
+                else f"unacknowledged {p.unacknowledged}"
+            )
         if p.late_published or p.late_integrated:
             parts.append(f"late {p.late_published}+{p.late_integrated}")
         return " ".join(parts)
@@ -369,8 +399,14 @@ class ReplayService(Service):
         run_dir = self.config.general.run_dir
         if run_dir:
             rows = np.array(self.pose_log, float).reshape(-1, 5)
-            np.savetxt(Path(run_dir) / TRAJECTORY_NAME, rows, delimiter=",", fmt="%.4f",
-                       header="t_s,x_m,y_m,z_m,yaw_rad", comments="")  # fmt: skip
+            np.savetxt(
+                Path(run_dir) / TRAJECTORY_NAME,
+                rows,
+                delimiter=",",
+                fmt="%.4f",
+                header="t_s,x_m,y_m,z_m,yaw_rad",
+                comments="",
+            )
 
     def _save_graph(self) -> None:
         """The navigation graph as it stands after the last scan, as `<run_dir>/graph.npz` (the
@@ -398,8 +434,14 @@ class ReplayService(Service):
         labels, heights, flags = grid.box(*box)
         origin = grid.origin_xy + np.array(box[:2]) * grid.resolution_m
         path = Path(run_dir) / "graph.npz"
-        np.savez_compressed(path, origin_xy=origin, resolution_m=grid.resolution_m,
-                            labels=labels, heights=heights, flags=flags)  # fmt: skip
+        np.savez_compressed(
+            path,
+            origin_xy=origin,
+            resolution_m=grid.resolution_m,
+            labels=labels,
+            heights=heights,
+            flags=flags,
+        )
         self.log.info("navigation graph (%d nodes) written to %s", len(patch.cells), path)
 
     def status_details(self) -> dict:
@@ -435,8 +477,10 @@ def summary_line(s: dict) -> str:
     if s["mode"] == "lockstep":  # a loss is a failure
         losses = f"{s['lost']} lost"
     else:  # the mapper's latest-wins input drops what it cannot keep up with, by design
-        losses = (f"{s['overtaken']} overtaken (dropped as stale by the mapper, or on the way), "
-                  f"{s['unacknowledged']} unacknowledged")  # fmt: skip
+        losses = (
+            f"{s['overtaken']} overtaken (dropped as stale by the mapper, or on the way), "
+            f"{s['unacknowledged']} unacknowledged"
+        )
     return (
         f"{s['published']}/{s['scans']} scans published ({s['empty']} empty, "
         f"{len(s['read_errors'])} unreadable), {s['acknowledged']} integrated, {losses}, "

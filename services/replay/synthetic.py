@@ -25,8 +25,17 @@ from scipy import ndimage
 # RELLIS-3D label ids used by the synthetic world
 VOID, DIRT, GRASS, TREE, POLE, WATER, VEHICLE, OBJECT, ASPHALT = 0, 1, 3, 4, 5, 6, 8, 9, 10
 BUILDING, LOG, PERSON, FENCE, BUSH, CONCRETE, BARRIER, PUDDLE, MUD, RUBBLE = (
-    12, 15, 17, 18, 19, 23, 27, 31, 33, 34,
-)  # fmt: skip
+    12,
+    15,
+    17,
+    18,
+    19,
+    23,
+    27,
+    31,
+    33,
+    34,
+)
 
 OS1_64_FOV_DEG = (-16.6, 16.6)
 WORLD_VERSION = 2  # bump when make_world changes: sequences on disk are then rewritten
@@ -178,15 +187,26 @@ def make_world(seed: int = 0, extent_m: float = 70.0, res_m: float = 0.1) -> Syn
         return np.asarray(rows, np.float64).reshape(-1, width)
 
     return SyntheticWorld(
-        arr(cyl, 5), np.asarray(cyl_l, np.int32), arr(sph, 4), np.asarray(sph_l, np.int32),
-        arr(box, 6), np.asarray(box_l, np.int32), ground, origin, res_m, trail,
-    )  # fmt: skip
+        arr(cyl, 5),
+        np.asarray(cyl_l, np.int32),
+        arr(sph, 4),
+        np.asarray(sph_l, np.int32),
+        arr(box, 6),
+        np.asarray(box_l, np.int32),
+        ground,
+        origin,
+        res_m,
+        trail,
+    )
 
 
 def trajectory_poses(
-    world: SyntheticWorld, n_scans: int, rate_hz: float = 10.0, speed_mps: float = 1.5,
+    world: SyntheticWorld,
+    n_scans: int,
+    rate_hz: float = 10.0,
+    speed_mps: float = 1.5,
     start_m: float = 0.0,
-) -> np.ndarray:  # fmt: skip
+) -> np.ndarray:
     """LiDAR poses (f8[n, 4, 4]) driving the trail; the sensor tilts with the ground."""
     trail = world.trail
     seg = np.diff(np.vstack([trail, trail[:1]]), axis=0)
@@ -327,8 +347,21 @@ def _wrap(a):
 
 
 @numba.njit(cache=True)
-def _cast_rays(origin, dirs, columns, max_range, cyl, sph, box, bounds, ground, g_origin, g_res,
-               kinds, labels_of):  # fmt: skip
+def _cast_rays(
+    origin,
+    dirs,
+    columns,
+    max_range,
+    cyl,
+    sph,
+    box,
+    bounds,
+    ground,
+    g_origin,
+    g_res,
+    kinds,
+    labels_of,
+):
     """Nearest hit per ray: (t or inf, label). Rays are beam-major in `columns` columns.
 
     Objects are culled per column: an object is tested only against columns whose world azimuth
@@ -397,26 +430,34 @@ def _cast_rays(origin, dirs, columns, max_range, cyl, sph, box, bounds, ground, 
 def _object_tables(world: SyntheticWorld):
     """Flat per-object arrays for the kernel: kind/index, label and xy bounding circle."""
     c, s, b = world.cylinders, world.spheres, world.boxes
-    kinds = np.concatenate([
-        np.stack([np.zeros(len(c)), np.arange(len(c))], 1),
-        np.stack([np.ones(len(s)), np.arange(len(s))], 1),
-        np.stack([np.full(len(b), 2), np.arange(len(b))], 1),
-    ]).astype(np.int64)  # fmt: skip
+    kinds = np.concatenate(
+        [
+            np.stack([np.zeros(len(c)), np.arange(len(c))], 1),
+            np.stack([np.ones(len(s)), np.arange(len(s))], 1),
+            np.stack([np.full(len(b), 2), np.arange(len(b))], 1),
+        ]
+    ).astype(np.int64)
     half = 0.5 * (b[:, 3:5] - b[:, 0:2])
-    bounds = np.concatenate([
-        c[:, [0, 1, 2]],
-        s[:, [0, 1, 3]],
-        np.column_stack([0.5 * (b[:, 0] + b[:, 3]), 0.5 * (b[:, 1] + b[:, 4]),
-                         np.linalg.norm(half, axis=1)]),
-    ])  # fmt: skip
+    bounds = np.concatenate(
+        [
+            c[:, [0, 1, 2]],
+            s[:, [0, 1, 3]],
+            np.column_stack(
+                [0.5 * (b[:, 0] + b[:, 3]), 0.5 * (b[:, 1] + b[:, 4]), np.linalg.norm(half, axis=1)]
+            ),
+        ]
+    )
     labels = np.concatenate([world.cylinder_labels, world.sphere_labels, world.box_labels])
     return kinds, bounds, labels.astype(np.int32)
 
 
 def cast_rays(
-    world: SyntheticWorld, origin: np.ndarray, dirs: np.ndarray, columns: int,
+    world: SyntheticWorld,
+    origin: np.ndarray,
+    dirs: np.ndarray,
+    columns: int,
     max_range_m: float = 100.0,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+) -> tuple[np.ndarray, np.ndarray]:
     """Distance to the first surface along each world-frame ray (inf: none) and its label."""
     origin = np.asarray(origin, np.float64)
     dirs = np.ascontiguousarray(dirs, np.float64)
@@ -428,15 +469,31 @@ def cast_rays(
         raise ValueError("ray directions must be unit vectors")
     kinds, bounds, labels = _object_tables(world)
     return _cast_rays(
-        origin, dirs, columns, float(max_range_m), world.cylinders, world.spheres, world.boxes,
-        bounds, world.ground_labels, world.ground_origin, world.ground_res_m, kinds, labels,
-    )  # fmt: skip
+        origin,
+        dirs,
+        columns,
+        float(max_range_m),
+        world.cylinders,
+        world.spheres,
+        world.boxes,
+        bounds,
+        world.ground_labels,
+        world.ground_origin,
+        world.ground_res_m,
+        kinds,
+        labels,
+    )
 
 
 def simulate_scan(
-    world: SyntheticWorld, pose: np.ndarray, beams: int = 64, columns: int = 2048,
-    max_range_m: float = 100.0, noise_m: float = 0.0, rng: np.random.Generator | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    world: SyntheticWorld,
+    pose: np.ndarray,
+    beams: int = 64,
+    columns: int = 2048,
+    max_range_m: float = 100.0,
+    noise_m: float = 0.0,
+    rng: np.random.Generator | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One OS1-like scan: points f4[beams*columns, 3] in the sensor frame, RELLIS-3D labels
     u4[...] and remission f4[...]. Rays without a return are (0, 0, 0) with label void, as in
     the dataset's files."""
@@ -473,8 +530,9 @@ def _fmt_row(m: np.ndarray) -> str:
     return " ".join(f"{v:.9e}" for v in m[:3, :4].reshape(-1))
 
 
-def write_rellis_sequence(out_dir: str | Path, params: SyntheticParams | None = None,
-                          progress=None) -> Path:  # fmt: skip
+def write_rellis_sequence(
+    out_dir: str | Path, params: SyntheticParams | None = None, progress=None
+) -> Path:
     """Write a synthetic sequence; returns the sequence folder (`.../Rellis-3D/00000`).
 
     An existing sequence with the same parameters is reused (its `synthetic.json` matches).

@@ -29,8 +29,11 @@ def cli(argv: list[str] | None = None) -> int:
     g.add_argument("--world", help="'garden' (procedural) or ply:PATH (a labelled cloud)")
     g.add_argument("--seed", type=int, help="world and noise seed")
     g.add_argument("--size", type=float, help="side of the procedural garden, m")
-    g.add_argument("--noise", choices=["off", "none", "low", "medium", "high"],
-                   help="label noise level (paper Table 2)")  # fmt: skip
+    g.add_argument(
+        "--noise",
+        choices=["off", "none", "low", "medium", "high"],
+        help="label noise level (paper Table 2)",
+    )
     g.add_argument("--pose-noise", metavar="XY,YAW", help="std devs: metres, radians")
     g.add_argument("--camera", metavar="WxH", help="camera resolution, e.g. 320x320")
     g.add_argument("--camera-rate", type=float, metavar="HZ")
@@ -51,9 +54,15 @@ def cli(argv: list[str] | None = None) -> int:
             path = world[4:] if world.startswith("ply:") else world
             world = "ply:" + str(Path(path).resolve())  # the supervisor runs us elsewhere
         changes["world"] = world
-    for flag, key in (("seed", "seed"), ("size", "size_m"), ("noise", "noise"),
-                      ("camera_rate", "camera_rate_hz"), ("stride", "camera_stride"),
-                      ("lidar_rate", "lidar_rate_hz"), ("rtf", "real_time_factor")):  # fmt: skip
+    for flag, key in (
+        ("seed", "seed"),
+        ("size", "size_m"),
+        ("noise", "noise"),
+        ("camera_rate", "camera_rate_hz"),
+        ("stride", "camera_stride"),
+        ("lidar_rate", "lidar_rate_hz"),
+        ("rtf", "real_time_factor"),
+    ):
         if getattr(args, flag) is not None:
             changes[key] = getattr(args, flag)
     if args.pose_noise:
@@ -63,9 +72,12 @@ def cli(argv: list[str] | None = None) -> int:
     if args.camera:
         w, h = _pair(args.camera.lower(), "x", "--camera")
         changes["camera_width"], changes["camera_height"] = int(w), int(h)
-    for flag, key, value in (("no_camera", "camera_enabled", False),
-                             ("images", "publish_images", True), ("lidar", "lidar_enabled", True),
-                             ("lockstep", "lockstep", True)):  # fmt: skip
+    for flag, key, value in (
+        ("no_camera", "camera_enabled", False),
+        ("images", "publish_images", True),
+        ("lidar", "lidar_enabled", True),
+        ("lockstep", "lockstep", True),
+    ):
         if getattr(args, flag):
             changes[key] = value
     sc = dataclasses.replace(sc, **changes)

@@ -39,9 +39,13 @@ def run(args) -> dict:
     from smana.services.sim.simulation import Simulation
 
     cfg = SimConfig(
-        seed=args.seed, noise=args.noise, camera_width=args.width, camera_height=args.width,
-        lidar_channels=64, lidar_columns=2048,
-    )  # fmt: skip
+        seed=args.seed,
+        noise=args.noise,
+        camera_width=args.width,
+        camera_height=args.width,
+        lidar_channels=64,
+        lidar_columns=2048,
+    )
     load0 = os.getloadavg()
     t0 = time.perf_counter()
     sim = Simulation(cfg)
@@ -119,7 +123,7 @@ def run(args) -> dict:
             "bodies": n_bodies,
             "free_fraction": world.free_fraction(),
             "init_s": t_init,
-        },  # fmt: skip
+        },
         "camera": {
             "width": args.width,
             "height": args.width,
@@ -139,7 +143,7 @@ def run(args) -> dict:
                 k: stage(k, stages)
                 for k in ("render_ms", "label_ms", "slic_ms", "redraw_ms", "cloud_ms")
             },
-        },  # fmt: skip
+        },
         "lidar": {
             "rays": 64 * 2048,
             "hz_median": _median(lid_hz),
@@ -149,7 +153,7 @@ def run(args) -> dict:
             "points_median": _median(lpoints),
             "setup_s": t_lidar_setup,
             "stages_ms": {k: stage(k, lstages) for k in ("cast_ms", "hits_ms")},
-        },  # fmt: skip
+        },
         "runs": args.runs,
         "frames_per_run": args.frames,
         "scans_per_run": args.scans,
@@ -165,39 +169,60 @@ def report(r: dict) -> str:
     cam, lid, m, w = r["camera"], r["lidar"], r["machine"], r["world"]
     st, ls = cam["stages_ms"], lid["stages_ms"]
     size = f"{cam['width']}x{cam['height']}"
-    return "\n".join([
-        f"smana bench sim: {w['name']}, {w['objects']} objects ({w['bodies']} bodies), "
-        f"{r['runs']} runs x {r['frames_per_run']} frames, {r['runs']} runs x "
-        f"{r['scans_per_run']} scans",
-        f"machine: {m['cpus']} CPUs, load average {m['load_before'][0]:.1f} before and "
-        f"{m['load_after'][0]:.1f} after (any load makes the wall-time figures pessimistic)",
-        "",
-        f"{'measure':<44} {'median':>9} {'[min .. max]':>16}   reference",
-        _row(f"camera {size} + labels + {cam['noise']} noise, Hz", cam["hz_median"], "9.2f",
-             (cam["hz_min"], cam["hz_max"]),
-             f">= {TARGET_CAMERA_HZ:g} Hz target; paper's Gazebo camera {PAPER_CAMERA_HZ:g} Hz"),
-        _row("camera, finished on a worker thread, Hz", cam["thread_hz_median"], "9.2f",
-             (cam["thread_hz_min"], cam["thread_hz_max"]),
-             "as the service runs it (frame k finished while k+1 renders)"),
-        _row("camera, finished in a worker process, Hz", cam["process_hz_median"], "9.2f",
-             (cam["process_hz_min"], cam["process_hz_max"]),
-             "sim.camera_worker = \"process\""),
-        _row("  CPU time per frame (sequential), ms", cam["cpu_ms_median"],
-             ref=f"= {1e3 / cam['cpu_ms_median']:.1f} Hz with a core to itself"),
-        _row("  render (TinyRenderer on the CPU), ms", st["render_ms"]),
-        _row("  label pixels (numba), ms", st["label_ms"]),
-        _row("  SLIC superpixels (OpenCV), ms", st["slic_ms"]),
-        _row("  majority vote + confusion redraw, ms", st["redraw_ms"]),
-        _row("  world-frame cloud, ms", st["cloud_ms"]),
-        _row("  points per frame", cam["points_median"], "9.0f"),
-        _row("LiDAR 64 x 2048 = 131,072 rays, scans/s", lid["hz_median"], "9.2f",
-             (lid["hz_min"], lid["hz_max"]),
-             f">= {TARGET_LIDAR_HZ:g} Hz target; OS1-64 {OS1_HZ:g} Hz"),
-        _row("  CPU time per scan (2 threads), ms", lid["cpu_ms_median"]),
-        _row("  Bullet rayTestBatch, ms", ls["cast_ms"]),
-        _row("  hits -> labelled points, ms", ls["hits_ms"]),
-        _row("  points per scan", lid["points_median"], "9.0f"),
-    ])  # fmt: skip
+    return "\n".join(
+        [
+            f"smana bench sim: {w['name']}, {w['objects']} objects ({w['bodies']} bodies), "
+            f"{r['runs']} runs x {r['frames_per_run']} frames, {r['runs']} runs x "
+            f"{r['scans_per_run']} scans",
+            f"machine: {m['cpus']} CPUs, load average {m['load_before'][0]:.1f} before and "
+            f"{m['load_after'][0]:.1f} after (any load makes the wall-time figures pessimistic)",
+            "",
+            f"{'measure':<44} {'median':>9} {'[min .. max]':>16}   reference",
+            _row(
+                f"camera {size} + labels + {cam['noise']} noise, Hz",
+                cam["hz_median"],
+                "9.2f",
+                (cam["hz_min"], cam["hz_max"]),
+                f">= {TARGET_CAMERA_HZ:g} Hz target; paper's Gazebo camera {PAPER_CAMERA_HZ:g} Hz",
+            ),
+            _row(
+                "camera, finished on a worker thread, Hz",
+                cam["thread_hz_median"],
+                "9.2f",
+                (cam["thread_hz_min"], cam["thread_hz_max"]),
+                "as the service runs it (frame k finished while k+1 renders)",
+            ),
+            _row(
+                "camera, finished in a worker process, Hz",
+                cam["process_hz_median"],
+                "9.2f",
+                (cam["process_hz_min"], cam["process_hz_max"]),
+                'sim.camera_worker = "process"',
+            ),
+            _row(
+                "  CPU time per frame (sequential), ms",
+                cam["cpu_ms_median"],
+                ref=f"= {1e3 / cam['cpu_ms_median']:.1f} Hz with a core to itself",
+            ),
+            _row("  render (TinyRenderer on the CPU), ms", st["render_ms"]),
+            _row("  label pixels (numba), ms", st["label_ms"]),
+            _row("  SLIC superpixels (OpenCV), ms", st["slic_ms"]),
+            _row("  majority vote + confusion redraw, ms", st["redraw_ms"]),
+            _row("  world-frame cloud, ms", st["cloud_ms"]),
+            _row("  points per frame", cam["points_median"], "9.0f"),
+            _row(
+                "LiDAR 64 x 2048 = 131,072 rays, scans/s",
+                lid["hz_median"],
+                "9.2f",
+                (lid["hz_min"], lid["hz_max"]),
+                f">= {TARGET_LIDAR_HZ:g} Hz target; OS1-64 {OS1_HZ:g} Hz",
+            ),
+            _row("  CPU time per scan (2 threads), ms", lid["cpu_ms_median"]),
+            _row("  Bullet rayTestBatch, ms", ls["cast_ms"]),
+            _row("  hits -> labelled points, ms", ls["hits_ms"]),
+            _row("  points per scan", lid["points_median"], "9.0f"),
+        ]
+    )
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -209,8 +234,7 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--scans", type=positive_int, default=3, help="LiDAR scans per run")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--noise", default="medium", choices=["off", "none", "low", "medium", "high"])
-    p.add_argument("--width", type=int_in(1, 4096), default=640,
-                   help="camera side, pixels")  # fmt: skip
+    p.add_argument("--width", type=int_in(1, 4096), default=640, help="camera side, pixels")
     p.add_argument("--quick", action="store_true", help="3 runs x 3 frames, 3 x 2 scans")
     p.add_argument("--json", metavar="PATH", help="also write the figures as JSON")
     args = p.parse_args(argv)

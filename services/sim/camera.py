@@ -93,8 +93,26 @@ def unproject(depth_m: np.ndarray, focal_px: float, rows=None, cols=None) -> np.
 
 
 @numba.njit(cache=True, nogil=True)
-def _label_pixels(zbuf, seg, near, far, focal, max_range, rot, trans, lut, ground_classes,
-                  g_x0, g_y0, g_res, colour_lut, rgba, depth_out, labels_out, rgb_out):  # fmt: skip
+def _label_pixels(
+    zbuf,
+    seg,
+    near,
+    far,
+    focal,
+    max_range,
+    rot,
+    trans,
+    lut,
+    ground_classes,
+    g_x0,
+    g_y0,
+    g_res,
+    colour_lut,
+    rgba,
+    depth_out,
+    labels_out,
+    rgb_out,
+):
     h, w = zbuf.shape
     nx, ny = ground_classes.shape
     n_lut = lut.shape[0]
@@ -171,11 +189,25 @@ def label_pixels(
     labels = np.empty((h, w), np.int32)
     rgb = np.empty((h, w, 3), np.uint8)
     _label_pixels(
-        zbuf, seg, float(near), float(far), float(focal_px), float(max_range_m),
-        np.ascontiguousarray(m[:3, :3]), np.ascontiguousarray(m[:3, 3]), lut, classes,
-        float(ground.origin_xy[0]), float(ground.origin_xy[1]), float(ground.resolution_m),
-        np.ascontiguousarray(colour_lut, np.float64), rgba, depth, labels, rgb,
-    )  # fmt: skip
+        zbuf,
+        seg,
+        float(near),
+        float(far),
+        float(focal_px),
+        float(max_range_m),
+        np.ascontiguousarray(m[:3, :3]),
+        np.ascontiguousarray(m[:3, 3]),
+        lut,
+        classes,
+        float(ground.origin_xy[0]),
+        float(ground.origin_xy[1]),
+        float(ground.resolution_m),
+        np.ascontiguousarray(colour_lut, np.float64),
+        rgba,
+        depth,
+        labels,
+        rgb,
+    )
     return depth, labels, rgb
 
 
@@ -219,19 +251,28 @@ class SemanticCamera:
         s = self.spec
         t0 = time.perf_counter()
         _, _, rgba, zbuf, seg = p.getCameraImage(
-            s.width, s.height, view_matrix(world_from_sensor), self._proj,
-            renderer=p.ER_TINY_RENDERER, shadow=0, physicsClientId=self.scene.client,
-        )  # fmt: skip
+            s.width,
+            s.height,
+            view_matrix(world_from_sensor),
+            self._proj,
+            renderer=p.ER_TINY_RENDERER,
+            shadow=0,
+            physicsClientId=self.scene.client,
+        )
         t1 = time.perf_counter()
         depth, labels, rgb = label_pixels(
             np.asarray(zbuf, np.float32).reshape(s.height, s.width),
             np.asarray(seg, np.int32).reshape(s.height, s.width),
             np.asarray(rgba, np.uint8).reshape(s.height, s.width, 4),
-            near=s.near_m, far=self._far, focal_px=s.focal_px, max_range_m=s.max_range_m,
-            world_from_sensor=world_from_sensor, label_lut=self.scene.label_lut,
+            near=s.near_m,
+            far=self._far,
+            focal_px=s.focal_px,
+            max_range_m=s.max_range_m,
+            world_from_sensor=world_from_sensor,
+            label_lut=self.scene.label_lut,
             ground=self.scene.world.ground.class_raster(),
             colour_lut=self.scene.world.classes.colour_lut,
-        )  # fmt: skip
+        )
         if timings is not None:
             timings["render_ms"] = 1e3 * (t1 - t0)
             timings["label_ms"] = 1e3 * (time.perf_counter() - t1)

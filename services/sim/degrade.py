@@ -145,9 +145,11 @@ class LabelDegrader:
         image = self.colour_lut[np.clip(labels, 0, len(self.colour_lut) - 1)]
         image[labels < 0] = 0
         slic = cv2.ximgproc.createSuperpixelSLIC(
-            np.ascontiguousarray(image), algorithm=cv2.ximgproc.SLIC,
-            region_size=self.region_px, ruler=self.ruler,
-        )  # fmt: skip
+            np.ascontiguousarray(image),
+            algorithm=cv2.ximgproc.SLIC,
+            region_size=self.region_px,
+            ruler=self.ruler,
+        )
         slic.iterate(self.iterations)
         return slic.getLabels().astype(np.int32)
 

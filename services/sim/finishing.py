@@ -89,9 +89,11 @@ def make_worker(
     images = config.publish_images
     if kind == "process":
         pool = ProcessPoolExecutor(
-            1, mp_context=multiprocessing.get_context("spawn"), initializer=_process_init,
+            1,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=_process_init,
             initargs=(config, colour_lut, images),
-        )  # fmt: skip
+        )
         return pool, _process_finish
     if kind == "thread":
         return ThreadPoolExecutor(1, "sim-camera"), lambda p: finished(finisher.finish(p), images)

@@ -104,17 +104,23 @@ class Lidar:
         if self._chunks is not None:
             for a, b in self._chunks:
                 out += p.rayTestBatch(
-                    a, b, numThreads=0, parentObjectUniqueId=self.parent, parentLinkIndex=-1,
+                    a,
+                    b,
+                    numThreads=0,
+                    parentObjectUniqueId=self.parent,
+                    parentLinkIndex=-1,
                     physicsClientId=c,
-                )  # fmt: skip
+                )
         else:
             wf = transform_points(self._from, world_from_base)
             wt = transform_points(self._to, world_from_base)
             for s in range(0, len(wf), BATCH):
                 out += p.rayTestBatch(
-                    wf[s : s + BATCH].tolist(), wt[s : s + BATCH].tolist(), numThreads=0,
+                    wf[s : s + BATCH].tolist(),
+                    wt[s : s + BATCH].tolist(),
+                    numThreads=0,
                     physicsClientId=c,
-                )  # fmt: skip
+                )
         t1 = time.perf_counter()
         n = len(out)
         bodies = np.fromiter((h[0] for h in out), np.int64, n)

@@ -33,10 +33,19 @@ def write_labelled_ply(
         )
     if labels.dtype.kind not in "iu":
         raise ValueError(f"labels must be integers, not {labels.dtype}")
-    write_ply(path, {
-        "x": points[:, 0], "y": points[:, 1], "z": points[:, 2], "label": labels,
-        "red": colours[:, 0], "green": colours[:, 1], "blue": colours[:, 2],
-    }, comment="smana ground truth")  # fmt: skip
+    write_ply(
+        path,
+        {
+            "x": points[:, 0],
+            "y": points[:, 1],
+            "z": points[:, 2],
+            "label": labels,
+            "red": colours[:, 0],
+            "green": colours[:, 1],
+            "blue": colours[:, 2],
+        },
+        comment="smana ground truth",
+    )
 
 
 def read_labelled_ply(path: str | Path, label_field: str | None = None) -> tuple[np.ndarray, ...]:

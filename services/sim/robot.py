@@ -86,9 +86,13 @@ class DiffDriveRobot:
         # whereas a cylinder rides on its inner rim and shrinks the effective track by ~10 %.
         wheel = p.createCollisionShape(p.GEOM_SPHERE, radius=s.wheel_radius_m, physicsClientId=c)
         wheel_vis = p.createVisualShape(
-            p.GEOM_CYLINDER, radius=s.wheel_radius_m, length=s.wheel_width_m,
-            visualFrameOrientation=axle_rot, rgbaColor=[0.1, 0.1, 0.1, 1], physicsClientId=c,
-        )  # fmt: skip
+            p.GEOM_CYLINDER,
+            radius=s.wheel_radius_m,
+            length=s.wheel_width_m,
+            visualFrameOrientation=axle_rot,
+            rgbaColor=[0.1, 0.1, 0.1, 1],
+            physicsClientId=c,
+        )
         caster = p.createCollisionShape(p.GEOM_SPHERE, radius=s.caster_radius_m, physicsClientId=c)
         self.body = p.createMultiBody(
             baseMass=s.chassis_mass_kg,
@@ -116,14 +120,22 @@ class DiffDriveRobot:
         self.left_wheel, self.right_wheel = 0, 1
         for link in (self.left_wheel, self.right_wheel):
             p.changeDynamics(
-                self.body, link, lateralFriction=1.2, rollingFriction=0.0, spinningFriction=0.0,
+                self.body,
+                link,
+                lateralFriction=1.2,
+                rollingFriction=0.0,
+                spinningFriction=0.0,
                 physicsClientId=c,
-            )  # fmt: skip
+            )
         for link in (-1, 2, 3):  # chassis and casters slide: only the wheels grip
             p.changeDynamics(
-                self.body, link, lateralFriction=0.0, rollingFriction=0.0, spinningFriction=0.0,
+                self.body,
+                link,
+                lateralFriction=0.0,
+                rollingFriction=0.0,
+                spinningFriction=0.0,
                 physicsClientId=c,
-            )  # fmt: skip
+            )
         self.target = (0.0, 0.0)  # commanded (v, w), clamped
         self.applied = (0.0, 0.0)  # after rate limits
         self.last_command_s = -math.inf
@@ -158,10 +170,13 @@ class DiffDriveRobot:
         left = (v - w * half) / s.wheel_radius_m
         right = (v + w * half) / s.wheel_radius_m
         p.setJointMotorControlArray(
-            self.body, [self.left_wheel, self.right_wheel], p.VELOCITY_CONTROL,
-            targetVelocities=[left, right], forces=[s.max_wheel_torque_nm] * 2,
+            self.body,
+            [self.left_wheel, self.right_wheel],
+            p.VELOCITY_CONTROL,
+            targetVelocities=[left, right],
+            forces=[s.max_wheel_torque_nm] * 2,
             physicsClientId=self.client,
-        )  # fmt: skip
+        )
 
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
         """(position f8[3], orientation xyzw f8[4]) of the base frame, world frame."""

@@ -131,9 +131,12 @@ class BulletScene:
         c = self.client
         verts, idx = primitive_mesh(prim)
         cs = p.createCollisionShape(
-            p.GEOM_MESH, vertices=verts, indices=idx, flags=p.GEOM_FORCE_CONCAVE_TRIMESH,
+            p.GEOM_MESH,
+            vertices=verts,
+            indices=idx,
+            flags=p.GEOM_FORCE_CONCAVE_TRIMESH,
             physicsClientId=c,
-        )  # fmt: skip
+        )
         vs = p.createVisualShape(
             p.GEOM_MESH, vertices=verts, indices=idx, rgbaColor=rgba, physicsClientId=c
         )
@@ -196,8 +199,9 @@ def _ellipsoid_mesh(a: float, b: float, c: float, n_lat: int, n_lon: int):
         th = math.pi * i / n_lat
         for j in range(n_lon):
             ph = 2 * math.pi * j / n_lon
-            verts.append([a * math.sin(th) * math.cos(ph), b * math.sin(th) * math.sin(ph),
-                          c * math.cos(th)])  # fmt: skip
+            verts.append(
+                [a * math.sin(th) * math.cos(ph), b * math.sin(th) * math.sin(ph), c * math.cos(th)]
+            )
     verts.append([0.0, 0.0, -c])
     bottom = len(verts) - 1
 

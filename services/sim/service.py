@@ -82,9 +82,11 @@ class SimService(Service):
         # while the loop steps physics and renders the next. Not in lockstep,
         # where the world must not move between a cloud and its MapDelta.
         worker = make_worker(
-            "off" if sc.lockstep else sc.camera_worker, sc, sim.finisher,
+            "off" if sc.lockstep else sc.camera_worker,
+            sc,
+            sim.finisher,
             sim.world.classes.colour_lut,
-        )  # fmt: skip
+        )
         self._worker, self._finish = worker if worker is not None else (None, None)
 
     # -- wiring ----------------------------------------------------------------------------------
@@ -108,11 +110,19 @@ class SimService(Service):
         self.log.info(
             "world %s, %.0f x %.0f m, %d objects; camera %dx%d at %.1f Hz, lidar %s; noise %s, "
             "pose noise %.3g m / %.3g rad; rtf %.2f%s",
-            w.name, *w.size_m, len(w.objects), sc.camera_width, sc.camera_height,
-            sc.camera_rate_hz, f"{sc.lidar_rate_hz:.1f} Hz" if sc.lidar_enabled else "off",
-            sc.noise, sc.pose_noise_xy_m, sc.pose_noise_yaw_rad, sc.real_time_factor,
+            w.name,
+            *w.size_m,
+            len(w.objects),
+            sc.camera_width,
+            sc.camera_height,
+            sc.camera_rate_hz,
+            f"{sc.lidar_rate_hz:.1f} Hz" if sc.lidar_enabled else "off",
+            sc.noise,
+            sc.pose_noise_xy_m,
+            sc.pose_noise_yaw_rad,
+            sc.real_time_factor,
             ", lockstep" if sc.lockstep else "",
-        )  # fmt: skip
+        )
 
     def on_cmd(self, cmd: VelocityCommand) -> None:
         verdict = self.cmd_stamps.check(cmd.stamp_s)
@@ -217,8 +227,10 @@ class SimService(Service):
             try:
                 frame = future.result()  # any other failure is counted by the loop
             except BrokenProcessPool:
-                self.log.error("the camera worker process died: finishing frames in line from "
-                               "now on (frame lost)")  # fmt: skip
+                self.log.error(
+                    "the camera worker process died: finishing frames in line from "
+                    "now on (frame lost)"
+                )
                 self.note("camera_worker", "worker process died")
                 self._worker.shutdown(wait=False, cancel_futures=True)
                 self._worker = None

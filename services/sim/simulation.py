@@ -59,10 +59,15 @@ class CameraFrame:
     def to_cloud(self) -> SemanticCloud:
         m = self.world_from_sensor
         return SemanticCloud(
-            stamp_s=self.stamp_s, seq=self.seq, points=self.points, labels=self.labels,
-            confidences=self.confidences, sensor_position=m[:3, 3].copy(),
-            sensor_orientation_xyzw=matrix_to_quat(m[:3, :3]), source="camera",
-        )  # fmt: skip
+            stamp_s=self.stamp_s,
+            seq=self.seq,
+            points=self.points,
+            labels=self.labels,
+            confidences=self.confidences,
+            sensor_position=m[:3, 3].copy(),
+            sensor_orientation_xyzw=matrix_to_quat(m[:3, :3]),
+            source="camera",
+        )
 
 
 @dataclass
@@ -88,10 +93,15 @@ class LidarScan:
     def to_cloud(self) -> SemanticCloud:
         m = self.world_from_sensor
         return SemanticCloud(
-            stamp_s=self.stamp_s, seq=self.seq, points=self.points, labels=self.labels,
-            confidences=self.confidences, sensor_position=m[:3, 3].copy(),
-            sensor_orientation_xyzw=matrix_to_quat(m[:3, :3]), source="lidar",
-        )  # fmt: skip
+            stamp_s=self.stamp_s,
+            seq=self.seq,
+            points=self.points,
+            labels=self.labels,
+            confidences=self.confidences,
+            sensor_position=m[:3, 3].copy(),
+            sensor_orientation_xyzw=matrix_to_quat(m[:3, :3]),
+            source="lidar",
+        )
 
 
 def pose_message(m: np.ndarray, stamp_s: float, seq: int) -> Pose:
@@ -115,9 +125,12 @@ class FrameFinisher:
         labels_ss, conf_ss, _ = _seed_sequences(config.seed)
         self.stride = config.camera_stride
         self.degrader = LabelDegrader(
-            config.noise, np.random.default_rng(labels_ss), colour_lut,
-            region_px=config.slic_region_px, iterations=config.slic_iterations,
-        )  # fmt: skip
+            config.noise,
+            np.random.default_rng(labels_ss),
+            colour_lut,
+            region_px=config.slic_region_px,
+            iterations=config.slic_iterations,
+        )
         self._conf_rng = np.random.default_rng(conf_ss)
 
     def finish(
@@ -133,14 +146,20 @@ class FrameFinisher:
         rows, cols = rows * stride, cols * stride
         pts_sensor = cap.points_sensor(rows, cols)
         frame = CameraFrame(
-            stamp_s=pending.stamp_s, seq=pending.seq, rgb=cap.rgb, depth_m=cap.depth_m,
-            semantic_true=cap.labels, semantic=sem,
+            stamp_s=pending.stamp_s,
+            seq=pending.seq,
+            rgb=cap.rgb,
+            depth_m=cap.depth_m,
+            semantic_true=cap.labels,
+            semantic=sem,
             points=transform_points(pts_sensor, pending.world_from_sensor),
             labels=sem[rows, cols].astype(np.uint16),
             confidences=self.degrader.confidences(len(rows), self._conf_rng),
-            rows=rows, cols=cols, world_from_sensor=pending.world_from_sensor,
+            rows=rows,
+            cols=cols,
+            world_from_sensor=pending.world_from_sensor,
             true_world_from_sensor=cap.world_from_sensor,
-        )  # fmt: skip
+        )
         if timings is not None:
             timings["cloud_ms"] = 1e3 * (time.perf_counter() - t0)
         return frame
@@ -163,9 +182,10 @@ class Simulation:
         self.dt_physics = 1.0 / cfg.physics_hz
         p.setTimeStep(self.dt_physics, physicsClientId=self.scene.client)
         robot_spec = RobotSpec(
-            max_linear_mps=cfg.max_linear_mps, max_angular_radps=cfg.max_angular_radps,
+            max_linear_mps=cfg.max_linear_mps,
+            max_angular_radps=cfg.max_angular_radps,
             cmd_timeout_s=cfg.cmd_timeout_s,
-        )  # fmt: skip
+        )
         if cfg.spawn:
             x, y, yaw = (float(v) for v in cfg.spawn)
             z = float(self.world.ground.height_at(x, y))
@@ -175,15 +195,20 @@ class Simulation:
         self.robot = DiffDriveRobot(self.scene.client, robot_spec, xy=(x, y), ground_z=z, yaw=yaw)
         self.scene.register(self.robot.body, DROP)
         self.camera_spec = CameraSpec(
-            width=cfg.camera_width, height=cfg.camera_height, fov_deg=cfg.camera_fov_deg,
+            width=cfg.camera_width,
+            height=cfg.camera_height,
+            fov_deg=cfg.camera_fov_deg,
             max_range_m=cfg.camera_max_range_m,
-        )  # fmt: skip
+        )
         self.camera_spec.validate()
         self._camera: SemanticCamera | None = None
         self.lidar_spec = LidarSpec(
-            channels=cfg.lidar_channels, columns=cfg.lidar_columns, vfov_deg=cfg.lidar_vfov_deg,
-            max_range_m=cfg.lidar_max_range_m, min_range_m=cfg.lidar_min_range_m,
-        )  # fmt: skip
+            channels=cfg.lidar_channels,
+            columns=cfg.lidar_columns,
+            vfov_deg=cfg.lidar_vfov_deg,
+            max_range_m=cfg.lidar_max_range_m,
+            min_range_m=cfg.lidar_min_range_m,
+        )
         self.lidar_spec.validate()
         self._lidar: Lidar | None = None
         self.finisher = FrameFinisher(cfg, self.world.classes.colour_lut)
@@ -273,11 +298,14 @@ class Simulation:
         self.cloud_seq += 1
         self.lidar_scans += 1
         return LidarScan(
-            stamp_s=self.time_s, seq=self.cloud_seq,
+            stamp_s=self.time_s,
+            seq=self.cloud_seq,
             points=transform_points(hits.points_sensor, world_from_sensor),
-            labels=hits.labels.astype(np.uint16), confidences=np.ones(len(hits.labels), "f4"),
-            world_from_sensor=world_from_sensor, true_world_from_sensor=hits.world_from_sensor,
-        )  # fmt: skip
+            labels=hits.labels.astype(np.uint16),
+            confidences=np.ones(len(hits.labels), "f4"),
+            world_from_sensor=world_from_sensor,
+            true_world_from_sensor=hits.world_from_sensor,
+        )
 
     # -- lifetime -----------------------------------------------------------------------------
 

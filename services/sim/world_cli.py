@@ -24,13 +24,16 @@ from .world import GardenWorld, WorldError
 
 def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="procedural garden seed (default 0)")
-    p.add_argument("--size", type=positive_float, default=12.0,
-                   help="side of the square world, metres")  # fmt: skip
-    p.add_argument("--ground-resolution", type=positive_float, default=None,
-                   help="height field cell, m")  # fmt: skip
+    p.add_argument(
+        "--size", type=positive_float, default=12.0, help="side of the square world, metres"
+    )
+    p.add_argument(
+        "--ground-resolution", type=positive_float, default=None, help="height field cell, m"
+    )
     p.add_argument("--ply", type=Path, default=None, help="build the world from a labelled PLY")
-    p.add_argument("--voxel", type=positive_float, default=0.05,
-                   help="object voxel size for --ply, m")  # fmt: skip
+    p.add_argument(
+        "--voxel", type=positive_float, default=0.05, help="object voxel size for --ply, m"
+    )
     p.add_argument("--classes", default="garden3drms", help="class table name or TOML path")
 
 
@@ -55,8 +58,9 @@ def cli(argv: list[str] | None = None) -> int:
     pre = sub.add_parser("preview", help="write a top-down PNG of the classes")
     _world_args(pre)
     pre.add_argument("--out", type=Path, required=True)
-    pre.add_argument("--pixels", type=int_in(16, 16384), default=768,
-                     help="approximate image width")  # fmt: skip
+    pre.add_argument(
+        "--pixels", type=int_in(16, 16384), default=768, help="approximate image width"
+    )
     info = sub.add_parser("info", help="print a summary as JSON")
     _world_args(info)
     args = parser.parse_args(argv)

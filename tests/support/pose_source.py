@@ -26,8 +26,11 @@ class PoseSource(Service):
 
     def setup(self):
         self.pub = self.publisher(keys.pose(self.robot), reliable_block=True)
-        self._declared.append(self.session.liveliness().declare_subscriber(
-            keys.alive(self.robot, "recorder"), self._on_alive, history=True))  # fmt: skip
+        self._declared.append(
+            self.session.liveliness().declare_subscriber(
+                keys.alive(self.robot, "recorder"), self._on_alive, history=True
+            )
+        )
 
     def _on_alive(self, sample):
         self.recorder_alive = True  # a zenoh thread: only a flag

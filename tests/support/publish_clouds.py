@@ -31,10 +31,13 @@ def patch_cloud(i: int, seq: int) -> SemanticCloud:
     pts = np.vstack([ground, block]).astype(np.float32)
     labels = np.r_[np.full(len(ground), 2), np.full(len(block), 7)].astype(np.uint8)
     return SemanticCloud(
-        stamp_s=time.time(), seq=seq, points=pts, labels=labels,
+        stamp_s=time.time(),
+        seq=seq,
+        points=pts,
+        labels=labels,
         confidences=np.full(len(pts), 0.9, np.float32),
         sensor_position=np.array([2.0 * i + 1.0, 1.0, 1.5]),
-    )  # fmt: skip
+    )
 
 
 def main() -> int:

@@ -66,51 +66,98 @@ F4, F8, U1, U2, I4 = "<f4", "<f8", "|u1", "<u2", "<i4"
 
 SCHEMA: dict[str, dict[str, object]] = {
     "Pose": {
-        "stamp_s": STAMP_S, "seq": SEQ, "position": Arr((F8,), ((3,),), limit=COORD),
-        "orientation_xyzw": Arr((F8,), ((4,),)), "frame_id": Str(),
+        "stamp_s": STAMP_S,
+        "seq": SEQ,
+        "position": Arr((F8,), ((3,),), limit=COORD),
+        "orientation_xyzw": Arr((F8,), ((4,),)),
+        "frame_id": Str(),
     },
     "SemanticCloud": {
-        "stamp_s": STAMP_S, "seq": SEQ,
-        "points": Arr((F4,), ((None, 3),), "n", COORD), "labels": Arr((U1, U2), ((None,),), "n"),
+        "stamp_s": STAMP_S,
+        "seq": SEQ,
+        "points": Arr((F4,), ((None, 3),), "n", COORD),
+        "labels": Arr((U1, U2), ((None,),), "n"),
         "confidences": Arr((F4,), ((None,),), "n"),
         "sensor_position": Arr((F8,), ((3,),), limit=COORD),
-        "sensor_orientation_xyzw": Arr((F8,), ((4,),)), "frame_id": Str(), "source": Str(),
+        "sensor_orientation_xyzw": Arr((F8,), ((4,),)),
+        "frame_id": Str(),
+        "source": Str(),
     },
     "VelocityCommand": {
-        "stamp_s": STAMP_S, "seq": SEQ, "linear_mps": Num(-100, 100),
-        "angular_radps": Num(-100, 100), "source": Str(),
+        "stamp_s": STAMP_S,
+        "seq": SEQ,
+        "linear_mps": Num(-100, 100),
+        "angular_radps": Num(-100, 100),
+        "source": Str(),
     },
     "MapDelta": {
-        "stamp_s": STAMP_S, "seq": SEQ, "cloud_seq": SEQ, "backend": Str(),
-        "resolution_m": Num(1e-3, 100), "centres": Arr((F4,), ((None, 3),), "m", COORD),
-        "labels": Arr((U2,), ((None,),), "m"), "confidences": Arr((F4,), ((None,),), "m"),
-        "occupied": Arr((U1,), ((None,),), "m"), "values": Arr((F4,), ((None,),), "m", COORD),
+        "stamp_s": STAMP_S,
+        "seq": SEQ,
+        "cloud_seq": SEQ,
+        "backend": Str(),
+        "resolution_m": Num(1e-3, 100),
+        "centres": Arr((F4,), ((None, 3),), "m", COORD),
+        "labels": Arr((U2,), ((None,),), "m"),
+        "confidences": Arr((F4,), ((None,),), "m"),
+        "occupied": Arr((U1,), ((None,),), "m"),
+        "values": Arr((F4,), ((None,),), "m", COORD),
         "producer": Str(),
     },
     "GraphPatch": {
-        "stamp_s": STAMP_S, "seq": SEQ, "resolution_m": Num(1e-3, 100),
-        "origin_xy": Arr((F8,), ((2,),), limit=COORD), "cells": Arr((I4,), ((None, 2),), "k"),
-        "labels": Arr((U2,), ((None,),), "k"), "heights": Arr((F4,), ((None,),), "k", COORD),
-        "flags": Arr((U1,), ((None,),), "k"), "producer": Str(),
+        "stamp_s": STAMP_S,
+        "seq": SEQ,
+        "resolution_m": Num(1e-3, 100),
+        "origin_xy": Arr((F8,), ((2,),), limit=COORD),
+        "cells": Arr((I4,), ((None, 2),), "k"),
+        "labels": Arr((U2,), ((None,),), "k"),
+        "heights": Arr((F4,), ((None,),), "k", COORD),
+        "flags": Arr((U1,), ((None,),), "k"),
+        "producer": Str(),
     },
     "PathRequest": {
-        "request_id": Str(), "start": Arr((F8,), ((2,), (3,)), limit=COORD),
-        "goal": Arr((F8,), ((2,), (3,)), limit=COORD), "h_f": Num(0, 1e6, True),
-        "t_f": Num(0, 1e6, True), "class_costs": Costs(), "allow_unknown": Bool(),
-        "unknown_cost": Num(0, 1e6), "max_step_m": Num(0, 1e6, True),
+        "request_id": Str(),
+        "start": Arr((F8,), ((2,), (3,)), limit=COORD),
+        "goal": Arr((F8,), ((2,), (3,)), limit=COORD),
+        "h_f": Num(0, 1e6, True),
+        "t_f": Num(0, 1e6, True),
+        "class_costs": Costs(),
+        "allow_unknown": Bool(),
+        "unknown_cost": Num(0, 1e6),
+        "max_step_m": Num(0, 1e6, True),
     },
     "PathReply": {
-        "request_id": Str(), "ok": Bool(), "error": Str(), "message": Str(),
-        "path": Arr((F4,), ((None, 3),)), "cost_total": Num(), "cost_distance": Num(),
-        "cost_height": Num(), "cost_traversability": Num(), "label_share": Map(),
-        "nodes_expanded": Int(), "time_ms": Num(), "nearest_free": Arr((F8,), ((None,),)),
+        "request_id": Str(),
+        "ok": Bool(),
+        "error": Str(),
+        "message": Str(),
+        "path": Arr((F4,), ((None, 3),)),
+        "cost_total": Num(),
+        "cost_distance": Num(),
+        "cost_height": Num(),
+        "cost_traversability": Num(),
+        "label_share": Map(),
+        "nodes_expanded": Int(),
+        "time_ms": Num(),
+        "nearest_free": Arr((F8,), ((None,),)),
     },
     "ServiceStatus": {
-        "stamp_s": Num(), "seq": Int(), "robot": Str(), "service": Str(), "pid": Int(),
-        "uptime_s": Num(), "state": Str(), "msgs_in": Int(), "msgs_out": Int(), "accepted": Int(),
-        "dropped": Map(), "rejected": Map(), "pending": Int(), "events": Map(), "details": Map(),
+        "stamp_s": Num(),
+        "seq": Int(),
+        "robot": Str(),
+        "service": Str(),
+        "pid": Int(),
+        "uptime_s": Num(),
+        "state": Str(),
+        "msgs_in": Int(),
+        "msgs_out": Int(),
+        "accepted": Int(),
+        "dropped": Map(),
+        "rejected": Map(),
+        "pending": Int(),
+        "events": Map(),
+        "details": Map(),
     },
-}  # fmt: skip
+}
 QUATERNIONS = {"Pose": "orientation_xyzw", "SemanticCloud": "sensor_orientation_xyzw"}
 
 
@@ -189,8 +236,11 @@ def _array(rule: Arr, v) -> tuple[set[str], np.ndarray | None]:
         size *= s
     if size * dt.itemsize != len(data):
         return {"shape"}, None
-    if not any(all(w is None or s == w for s, w in zip(shape, want)) for want in rule.shapes
-               if len(want) == len(shape)):  # fmt: skip
+    if not any(
+        all(w is None or s == w for s, w in zip(shape, want))
+        for want in rule.shapes
+        if len(want) == len(shape)
+    ):
         return {"shape"}, None
     return set(), np.frombuffer(data, dt).reshape(shape)
 
@@ -202,8 +252,14 @@ def _bad_rows(rule: Arr, a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return z, z
     rows = a.reshape(len(a), -1)
     nonfinite = np.array([any(not math.isfinite(float(x)) for x in r) for r in rows], bool)
-    beyond = np.array([rule.limit is not None and any(math.isfinite(float(x)) and
-                       abs(float(x)) > rule.limit for x in r) for r in rows], bool)  # fmt: skip
+    beyond = np.array(
+        [
+            rule.limit is not None
+            and any(math.isfinite(float(x)) and abs(float(x)) > rule.limit for x in r)
+            for r in rows
+        ],
+        bool,
+    )
     return nonfinite, beyond
 
 
@@ -288,8 +344,10 @@ def check_decoded(msg, drop_nonfinite: bool = False) -> list[str]:
                 continue
             if v.dtype.str not in rule.dtypes:
                 problems.append(f"{name}: dtype {v.dtype.str}")
-            if not any(len(w) == v.ndim and all(x is None or s == x for s, x in zip(v.shape, w))
-                       for w in rule.shapes):  # fmt: skip
+            if not any(
+                len(w) == v.ndim and all(x is None or s == x for s, x in zip(v.shape, w))
+                for w in rule.shapes
+            ):
                 problems.append(f"{name}: shape {v.shape}")
             if v.dtype.kind == "f" and v.size:
                 flat = [float(x) for x in v.reshape(-1)]

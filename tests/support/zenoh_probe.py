@@ -24,8 +24,12 @@ from smana.common.zenoh_config import make_zenoh_config
 
 
 def config(args) -> zenoh.Config:
-    zc = ZenohConfig(mode="client", connect=[args.endpoint], user=args.user or "",
-                     credentials_file=args.credentials or "")  # fmt: skip
+    zc = ZenohConfig(
+        mode="client",
+        connect=[args.endpoint],
+        user=args.user or "",
+        credentials_file=args.credentials or "",
+    )
     if args.tls_dir:
         d = args.tls_dir
         zc.tls_ca, zc.tls_cert, zc.tls_key = (

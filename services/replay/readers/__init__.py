@@ -21,9 +21,16 @@ READERS = {
 }
 
 __all__ = [
-    "READERS", "DatasetError", "DatasetInfo", "DatasetReader", "Scan", "SkippedScan",
-    "detect_format", "open_dataset", "reader_class",
-]  # fmt: skip
+    "READERS",
+    "DatasetError",
+    "DatasetInfo",
+    "DatasetReader",
+    "Scan",
+    "SkippedScan",
+    "detect_format",
+    "open_dataset",
+    "reader_class",
+]
 
 
 def reader_class(fmt: str) -> type[DatasetReader]:

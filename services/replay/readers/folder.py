@@ -24,8 +24,7 @@ from .base import DatasetError, DatasetReader, Scan, check_poses, rate_from_stam
 def write_ply(path: Path, points, labels, confidences=None, binary: bool = True) -> None:
     """Write a labelled PLY (the format this reader takes), e.g. to export scans from elsewhere."""
     points = np.asarray(points, np.float32)
-    columns = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2],
-               "label": np.asarray(labels)}  # fmt: skip
+    columns = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], "label": np.asarray(labels)}
     if confidences is not None:
         columns["confidence"] = np.asarray(confidences, np.float32)
     ply.write_ply(path, columns, binary=binary)
@@ -83,8 +82,9 @@ class FolderReader(DatasetReader):
     format = "folder"
     default_class_table = "garden3drms"
 
-    def __init__(self, path, *, label_field: str = "label", rate_hz: float = 10.0,
-                 strict: bool = False):  # fmt: skip
+    def __init__(
+        self, path, *, label_field: str = "label", rate_hz: float = 10.0, strict: bool = False
+    ):
         super().__init__(path, strict=strict)
         if not self.path.is_dir():
             raise DatasetError(self.path, "expected a folder of .ply or .npz scans")
@@ -115,9 +115,12 @@ class FolderReader(DatasetReader):
                 self.skip(str(f), why)
             else:
                 self._items.append(
-                    (f, None if poses is None else poses[k],
-                     None if stamps is None else float(stamps[k]))
-                )  # fmt: skip
+                    (
+                        f,
+                        None if poses is None else poses[k],
+                        None if stamps is None else float(stamps[k]),
+                    )
+                )
         if not self._items:
             first = self.skipped[0].reason if self.skipped else ""
             raise DatasetError(self.path, f"every scan was skipped: {first}")

@@ -101,9 +101,12 @@ class KittiLayoutReader(DatasetReader):
                     return base / sequence
             raise DatasetError(path / sequence, f"not a {self.format} sequence")
         found = [
-            c for b in bases if b.is_dir() for c in sorted(b.iterdir())
+            c
+            for b in bases
+            if b.is_dir()
+            for c in sorted(b.iterdir())
             if (c / self.cloud_dir).is_dir()
-        ]  # fmt: skip
+        ]
         if len(found) == 1:
             return found[0]
         if found:
