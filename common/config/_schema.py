@@ -1,0 +1,186 @@
+"""The one typed-config mechanism: a `Section` is a dataclass whose fields carry their own limits,
+and one generic validator checks every field from its type and limits.
+
+    @dataclass
+    class FollowerConfig(Section, section="explorer.follower"):
+        lookahead_m: float = param(0.4, gt=0)
+        mode: Literal["a", "b"] = "a"
+
+A section is validated whenever it is made, from a TOML table (`build`) or in Python
+(`FollowerConfig(lookahead_m=0)`), and the error is one line naming the dotted key:
+`explorer.follower.lookahead_m: expected a number > 0, got 0`. Checks that relate two fields live
+in the section's `validate()`. Cores receive their section as it is: no copies, no renaming.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import numbers
+import types
+import typing
+from dataclasses import field
+from typing import Any, ClassVar, Literal
+
+
+class ConfigError(ValueError):
+    """A config file, key or value that cannot be used. The message names the key."""
+
+
+def param(default: Any = dataclasses.MISSING, *, gt=None, ge=None, lt=None, le=None, **kw):
+    """A field with limits on its value (numbers, or the items of a list of numbers)."""
+    limits = {k: v for k, v in (("gt", gt), ("ge", ge), ("lt", lt), ("le", le)) if v is not None}
+    if isinstance(default, list | dict):
+        value = default
+        kw["default_factory"] = lambda: type(value)(value)
+        default = dataclasses.MISSING
+    return field(default=default, metadata=limits, **kw)
+
+
+def table(cls, **values):
+    """A sub-section field: `follower: FollowerConfig = table(FollowerConfig)`."""
+    return field(default_factory=lambda: cls(**values))
+
+
+class Section:
+    """Base of every config section: validation on construction (see the module docstring)."""
+
+    section: ClassVar[str] = ""
+
+    def __init_subclass__(cls, section: str = "", **kw):
+        super().__init_subclass__(**kw)
+        cls.section = section
+
+    def __post_init__(self) -> None:
+        where = f"{self.section}." if self.section else ""
+        hints = _hints(type(self))
+        for f in dataclasses.fields(self):
+            if not f.init:
+                continue
+            hint = hints[f.name]
+            value = getattr(self, f.name)
+            if dataclasses.is_dataclass(hint):
+                if not isinstance(value, hint):
+                    raise ConfigError(f"{where}{f.name}: expected a [{where}{f.name}] table")
+                continue
+            object.__setattr__(self, f.name, check_value(where + f.name, value, hint, f.metadata))
+        self.validate()
+
+    def validate(self) -> None:
+        """Checks between fields; override in a section that has some."""
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls) -> dict[str, Any]:
+    if cls not in _HINTS:
+        _HINTS[cls] = typing.get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def build(cls, data: dict, where: str = "", base=None):
+    """Make a `cls` section from a TOML table, checking every key and value. Keys the table leaves
+    out keep their value in `base` (a section's own default, e.g. `deploy.mapper.standby`)."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where.rstrip('.') or 'config'}: expected a table, got {data!r}")
+    hints = _hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = set(data) - set(fields)
+    if unknown:
+        known = ", ".join(sorted(fields))
+        name = ", ".join(f"{where}{k}" for k in sorted(unknown))
+        raise ConfigError(f"unknown key {name} (known in [{where.rstrip('.') or 'top'}]: {known})")
+    if base is None:
+        base = cls()
+    kwargs = {}
+    for name, value in data.items():
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint):
+            kwargs[name] = build(hint, value, f"{where}{name}.", getattr(base, name))
+        else:
+            kwargs[name] = check_value(f"{where}{name}", value, hint, fields[name].metadata)
+    return dataclasses.replace(base, **kwargs)
+
+
+def check_value(key: str, v, hint, meta) -> Any:
+    """`v` checked against a field's type and limits; returns it in the field's own type."""
+    origin = typing.get_origin(hint)
+    if origin is Literal:
+        choices = typing.get_args(hint)
+        if v not in choices:
+            raise ConfigError(f"{key}: expected one of {list(choices)}, got {v!r}")
+        return v
+    if isinstance(hint, types.UnionType):  # X | None: None is spelt by leaving the key out
+        if v is None:
+            return None
+        hint = next(a for a in typing.get_args(hint) if a is not type(None))
+        origin = typing.get_origin(hint)
+    if origin is list:
+        (item,) = typing.get_args(hint)
+        if not isinstance(v, list | tuple):
+            raise ConfigError(f"{key}: expected a list, got {v!r}")
+        return [check_value(f"{key}[{i}]", x, item, meta) for i, x in enumerate(v)]
+    if hint is bool:
+        if not isinstance(v, bool):
+            raise ConfigError(f"{key}: expected true or false, got {v!r}")
+        return v
+    if hint in (int, float):
+        ok = isinstance(v, numbers.Real) and not isinstance(v, bool)
+        if not ok or (hint is int and v != int(v)):
+            what = "an integer" if hint is int else "a number"
+            raise ConfigError(f"{key}: expected {what}, got {v!r}")
+        raw, v = v, hint(v)
+        if v != v:
+            raise ConfigError(f"{key}: expected a number, got nan")
+        for op, bound in meta.items():
+            if op in _OPS and not _OPS[op][0](v, bound):
+                raise ConfigError(f"{key}: expected a number {_OPS[op][1]} {bound:g}, got {raw!r}")
+        return v
+    if hint is str:
+        if not isinstance(v, str):
+            raise ConfigError(f"{key}: expected a string, got {v!r}")
+        return v
+    raise ConfigError(f"{key}: unsupported type {hint}")
+
+
+_OPS = {
+    "gt": (lambda v, b: v > b, ">"),
+    "ge": (lambda v, b: v >= b, ">="),
+    "lt": (lambda v, b: v < b, "<"),
+    "le": (lambda v, b: v <= b, "<="),
+}
+
+
+def to_toml(obj) -> str:
+    """Serialise a config (sections of scalars and lists, nested tables) as TOML."""
+    lines: list[str] = []
+    _emit(obj, "", lines)
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def _emit(obj, prefix: str, lines: list[str]) -> None:
+    scalars, tables = [], []
+    for f in dataclasses.fields(obj):
+        if not f.init:
+            continue
+        v = getattr(obj, f.name)
+        (tables if dataclasses.is_dataclass(v) else scalars).append((f.name, v))
+    if prefix and scalars:
+        lines.append(f"\n[{prefix}]")
+    for name, v in scalars:
+        if v is not None:
+            lines.append(f"{name} = {_toml_value(v)}")
+    for name, v in tables:
+        _emit(v, f"{prefix}.{name}" if prefix else name, lines)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise ConfigError(f"cannot write {v!r} as TOML")

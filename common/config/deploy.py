@@ -1,0 +1,57 @@
+"""[deploy] config section."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from smana.common.config._schema import Section, param
+
+RestartPolicy = Literal["never", "on-failure", "always"]
+
+
+@dataclass
+class ServiceDeployConfig(Section):
+    """How the supervisor runs one service (dora's vocabulary)."""
+
+    enabled: bool = True
+    restart: RestartPolicy = "on-failure"
+    # The first restart waits restart_delay_s, each further one in restart_window_s twice as
+    # long, up to restart_max_delay_s. Past max_restarts in the window the service is in a crash
+    # loop: it is still restarted (every restart_max_delay_s) and the run is reported failed.
+    restart_delay_s: float = param(0.1, ge=0)
+    restart_max_delay_s: float = param(10.0, ge=0)
+    max_restarts: int = param(5, ge=0)
+    restart_window_s: float = param(60.0, gt=0)
+    # A hot spare: once the service is ready, a second process imports and prepares (kernels, a
+    # simulated world) and waits; a crashed service is taken over by it in a fraction of a second
+    # instead of seconds of start-up. Costs that process's memory (~160-180 MB) while it waits.
+    standby: bool = False
+    args: list[str] = param([])  # extra command-line arguments
+
+
+@dataclass
+class DeployConfig(Section, section="deploy"):
+    profile: str = "local"  # set by `smana up --profile NAME` (deploy/profiles/NAME.toml)
+    # The supervisor's router. Local services connect to the FIRST listen endpoint; further ones
+    # (e.g. tls/0.0.0.0:7448 on a base station) are for other hosts' routers.
+    router_listen: list[str] = param(["tcp/127.0.0.1:7447"])
+    router_connect: list[str] = param([])  # other routers (robot -> base)
+    robots: list[str] = param([])  # multi-robot: one instance per robot name
+    # Health: a service shows its `starting` token within health_timeout_s of its start (or it is
+    # killed and restarted), then its `alive` token within startup_timeout_s (loading a map,
+    # compiling numba kernels on a cold cache: minutes on a loaded 2-core machine).
+    health_timeout_s: float = param(30.0, gt=0)
+    startup_timeout_s: float = param(600.0, gt=0)
+    # A service with `standby` gets its hot spare once it has been ready this long: a short run
+    # (a test, a quick experiment) never pays for spares, and the spares' imports never compete
+    # with the stack's own start-up on a 2-core machine.
+    standby_delay_s: float = param(20.0, ge=0)
+    stop_timeout_s: float = param(5.0, gt=0)
+    finish_with: str = "explorer"  # the run ends when this service exits with status 0
+    sim: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
+    mapper: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
+    navgraph: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
+    planner: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
+    explorer: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
+    recorder: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # Rerun .rrd
