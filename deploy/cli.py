@@ -26,22 +26,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
     "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
     "bench": ("smana.deploy.cli:bench", "benchmarks of each service (smana bench --help)"),
-    "eval": ("smana.deploy.evaluation:cli", "evaluate a run's map against ground truth"),
-    "experiment": ("smana.deploy.experiments:cli", "the paper's experiments: noise, exploration"),
+    "eval": ("smana.lab.evaluation:cli", "evaluate a run's map against ground truth"),
+    "experiment": ("smana.lab.experiments:cli", "the paper's experiments: noise, exploration"),
     "view": ("smana.deploy.view:cli", "open a run's Rerun recording"),
     "router": ("smana.deploy.router:cli", "run a standalone zenoh router (Python, no zenohd)"),
     "deploy": ("smana.deploy.security:cli", "multi-host set-up: init-certs (TLS, users, ACL)"),
 }
 
 BENCHES = {
-    "mapper": "smana.services.mapper.bench:cli",
-    "navgraph": "smana.services.navgraph.bench:cli",
-    "planner": "smana.services.planner.bench:cli",
-    "sim": "smana.services.sim.bench:cli",
-    "explorer": "smana.services.explorer.bench:cli",
-    "replay": "smana.services.replay.bench:cli",
-    "restart": "smana.deploy.restart_bench:cli",
-    "fuzz": "smana.deploy.fuzz_bench:cli",
+    "mapper": "smana.lab.bench.mapper:cli",
+    "navgraph": "smana.lab.bench.navgraph:cli",
+    "planner": "smana.lab.bench.planner:cli",
+    "sim": "smana.lab.bench.sim:cli",
+    "explorer": "smana.lab.bench.explorer:cli",
+    "replay": "smana.lab.bench.replay:cli",
+    "restart": "smana.lab.bench.restart:cli",
+    "fuzz": "smana.lab.bench.fuzz:cli",
 }
 
 

@@ -615,7 +615,7 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
     warnings = sup.warnings()
     explored = any(m.service == "explorer" for m in sup.procs.values())
     try:
-        from smana.deploy import report
+        from smana.lab import report
 
         path = report.write_report(
             run_dir, sup.service_config, warnings=warnings, explored=explored

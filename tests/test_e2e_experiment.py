@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from smana.deploy import experiments as exp
+from smana.lab import experiments as exp
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 

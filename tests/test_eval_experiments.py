@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from smana.deploy import evaluation as ev
-from smana.deploy import experiments as exp
+from smana.lab import evaluation as ev
+from smana.lab import experiments as exp
 
 
 def test_fixed_trajectory_is_long_smooth_and_clear_of_obstacles():

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from smana.deploy import evaluation as ev
+from smana.lab import evaluation as ev
 from smana.services.mapper.ply import write_ply
 from smana.services.sim.ply import write_labelled_ply
 

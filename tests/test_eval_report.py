@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from smana.common.config import SmanaConfig
-from smana.deploy import report
-from smana.deploy.evaluation import world_from_config
+from smana.lab import report
+from smana.lab.evaluation import world_from_config
 from smana.services.mapper.ply import write_ply
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from smana.services.explorer import bench
+from smana.lab.bench import explorer as bench
 
 
 def test_bench_runs_and_agrees(capsys):

@@ -1,4 +1,4 @@
-"""In-process fuzz of the codec (issue 11): hypothesis drives the generators of `deploy/fuzz.py`
+"""In-process fuzz of the codec (issue 11): hypothesis drives the generators of `lab/fuzz.py`
 over every message type, in msgpack and JSON. Whatever the payload, `decode` and `from_json` raise
 nothing but `MessageError`; a naive second statement of the schemas (`support/schema_oracle.py`)
 says which error kinds a payload deserves, and checks every message the codec lets through."""
@@ -16,7 +16,7 @@ from hypothesis import strategies as st
 
 from smana.common import messages as m
 from smana.common.messages import MessageError, decode, encode, from_json
-from smana.deploy import fuzz
+from smana.lab import fuzz
 from tests.support import schema_oracle as oracle
 
 # Small "large" clouds: the suite runs many examples; the bench sends the big ones.

@@ -3,7 +3,7 @@ mapper, navgraph, planner and explorer listen to and every query they answer, ag
 services over an isolated loopback zenoh (the campaign's own router on a free port, multicast and
 gossip off). The simulator is left to the bench (PyBullet start-up is heavy).
 
-Checks (see `deploy/fuzz_bench.py`): no crash (`internal` rejection or event), no restart, books
+Checks (see `lab/bench/fuzz.py`): no crash (`internal` rejection or event), no restart, books
 that add up to exactly what was sent, structural rejections as the codec predicts, state unchanged
 by refused input and equal to references fed exactly the accepted input, clean exit."""
 
@@ -16,7 +16,7 @@ import pytest
 from smana.common import keys
 from smana.common.messages import MAX_PAYLOAD_BYTES, ServiceStatus
 from smana.common.query import request
-from smana.deploy.fuzz_bench import Campaign, table
+from smana.lab.bench.fuzz import Campaign, table
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from smana.services.mapper import bench
+from smana.lab.bench import mapper as bench
 
 
 def test_quick_bench_reports_all_backends(capsys):

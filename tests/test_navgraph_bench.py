@@ -1,6 +1,6 @@
 """`smana bench navgraph --quick` runs and the graph agrees with the numpy one-shot reference."""
 
-from smana.services.navgraph.bench import cli
+from smana.lab.bench.navgraph import cli
 
 
 def test_quick_bench_agrees_with_reference(capsys):

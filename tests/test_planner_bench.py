@@ -1,6 +1,6 @@
 """`smana bench planner --quick` runs and its A* costs agree with scipy's Dijkstra."""
 
-from smana.services.planner.bench import cli
+from smana.lab.bench.planner import cli
 
 
 def test_quick_bench_agrees_with_dijkstra(capsys):

@@ -10,7 +10,7 @@ import pytest
 
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
-from smana.services.replay import synthetic as syn
+from smana.lab.data import synthetic as syn
 from smana.services.replay.prepare import prepare_scan
 from smana.services.replay.readers import open_dataset
 

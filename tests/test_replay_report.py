@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from smana.common.config import SmanaConfig
-from smana.deploy import report
+from smana.lab import report
 
 N = 12
 

@@ -17,7 +17,7 @@ import pytest
 from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.messages import MapDelta, Pose, SemanticCloud, decode, encode
-from smana.services.replay import synthetic as syn
+from smana.lab.data import synthetic as syn
 from smana.services.replay.player import END, Pacer, ScanFeed
 from smana.services.replay.prepare import prepare_scan
 from smana.services.replay.readers import open_dataset

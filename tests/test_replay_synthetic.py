@@ -8,7 +8,7 @@ import pytest
 
 from smana.common.classes import ClassTable
 from smana.common.messages import quat_to_matrix
-from smana.services.replay import synthetic as syn
+from smana.lab.data import synthetic as syn
 from smana.services.replay.prepare import prepare_scan
 from smana.services.replay.readers import Scan, detect_format, open_dataset
 

@@ -2,5 +2,5 @@
 
 Library use (no zenoh): `smana.services.mapper.semantic_map.SemanticMap`. The back-ends live in
 `octree.py` (octree-max, octree-bayes) and `tsdf.py`, on the hashed block grid of `_grid.py`;
-`service.py` is the zenoh wiring, `bench.py` the benchmark, `scans.py` its synthetic LiDAR scans.
+`service.py` is the zenoh wiring; the benchmark is `lab/bench/mapper.py` (`smana bench mapper`).
 """

@@ -206,7 +206,7 @@ def _write_report(run_dir: Path, cfg: SmanaConfig, warnings: list[str]) -> list[
             file=sys.stderr,
         )
     try:
-        from smana.deploy import report
+        from smana.lab import report
 
         path = report.write_report(run_dir, cfg, replay=summary or {}, warnings=warnings)
         metrics = json.loads((run_dir / "metrics.json").read_text())

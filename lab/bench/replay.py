@@ -550,7 +550,7 @@ def realtime_markdown(summary: dict, backend: str, mres: float, gres: float) -> 
 
 
 def main(args: argparse.Namespace) -> int:
-    from smana.services.replay import synthetic as syn
+    from smana.lab.data import synthetic as syn
     from smana.services.replay.readers import open_dataset
 
     out = Path(args.out)
@@ -617,7 +617,7 @@ def main(args: argparse.Namespace) -> int:
             default=float,
         )
     )
-    from smana.services.replay.plots import figure_11, figure_12
+    from smana.lab.replay_plots import figure_11, figure_12
 
     figure_11(rows, out / "fig11_cpu_ram.png")
     figure_12(rows, out / "fig12_time_per_point.png")

@@ -42,8 +42,8 @@ from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
 from smana.common.zenoh_config import free_loopback_port
-from smana.deploy import evaluation as ev
-from smana.deploy import plots
+from smana.lab import evaluation as ev
+from smana.lab import plots
 
 BACKENDS = ("octree-max", "octree-bayes", "tsdf")
 LEVELS = ("none", "low", "medium", "high")

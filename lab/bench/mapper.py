@@ -47,7 +47,7 @@ def _load_scans(path: Path):
 
 
 def _make_scans(n_scans: int, n_beams: int, n_cols: int, path: Path) -> None:
-    from smana.services.mapper.scans import GardenWorld
+    from smana.lab.data.scans import GardenWorld
 
     world = GardenWorld(n_beams=n_beams, n_cols=n_cols)
     scans = [world.scan(k) for k in range(n_scans)]
@@ -211,7 +211,7 @@ def _run(cfg: dict, scans_path: Path, in_process: bool) -> dict:
     cmd = [
         sys.executable,
         "-m",
-        "smana.services.mapper.bench",
+        "smana.lab.bench.mapper",
         "--child",
         json.dumps(cfg),
         "--scans-file",

@@ -11,7 +11,7 @@ and measures the run against the simulated world's ground truth (rebuilt from th
 explored share of the reachable traversable area, travelled labels (terrain vs grass), clearance
 from obstacles along the trajectory, and the map's reconstruction error and classification ratio.
 
-Also a command: `python -m smana.deploy.report RUN_DIR` re-writes the report of a finished run.
+Also a command: `python -m smana.lab.report RUN_DIR` re-writes the report of a finished run.
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ import numpy as np
 
 from smana.common.classes import ClassTable
 from smana.common.messages import json_default
-from smana.deploy import evaluation as ev
-from smana.deploy import plots
+from smana.lab import evaluation as ev
+from smana.lab import plots
 
 log = logging.getLogger("smana.report")
 

@@ -26,7 +26,7 @@ Queries (`query_case`): for each queryable, plausible bodies with wild values in
 in the payload or as selector parameters, and random payloads, encodings and parameters.
 
 `predict` says what the codec makes of a payload (None: accepted, else the MessageError kind), as a
-service would decode it: the multi-process campaign (`deploy/fuzz_bench.py`) compares the
+service would decode it: the multi-process campaign (`lab/bench/fuzz.py`) compares the
 services' books with it.
 """
 

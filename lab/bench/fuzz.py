@@ -55,7 +55,7 @@ from smana.common import keys
 from smana.common import messages as m
 from smana.common.config import SmanaConfig
 from smana.common.zenoh_config import free_loopback_port
-from smana.deploy import fuzz
+from smana.lab import fuzz
 
 SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim")
 # Rejection kinds only the codec produces: the books must match the prediction exactly. Others
