@@ -199,13 +199,18 @@ class VelocityCommand(Message):
     source: str = ""
 
 
+# what MapDelta.values holds
+VALUES_KINDS = ("log_odds", "signed_distance")
+
+
 @dataclass
 class MapDelta(Message):
     """The voxels whose state changed in one integration (one voxel at most once).
 
-    Octree back-ends: `values` is the occupancy log-odds and `occupied` is `values > 0`.
-    TSDF: `values` is the signed distance in metres and `occupied` marks surface voxels
-    (|distance| < resolution with weight > 0).
+    `values_kind` says what `values` holds, so that a consumer needs no back-end names:
+    "log_odds" (occupancy back-ends; `occupied` is `values > 0`) or "signed_distance" (metres;
+    `occupied` marks surface voxels, |distance| < resolution with weight > 0). `backend` names
+    the back-end for people and files.
 
     `producer` names the mapper session that numbered the stream (`seq` counts per producer): a
     consumer follows one producer's sequence and resynchronises from its snapshot when it
@@ -222,6 +227,14 @@ class MapDelta(Message):
     occupied: np.ndarray = array(["u1"], [None], group="m")
     values: np.ndarray = array(["f4"], [None], group="m", limit=COORD_LIMIT_M)
     producer: str = ""
+    values_kind: str = "log_odds"
+
+    def check(self) -> None:
+        if self.values_kind not in VALUES_KINDS:
+            raise MessageError(
+                "value",
+                f"MapDelta.values_kind: one of {list(VALUES_KINDS)}, got {self.values_kind!r}",
+            )
 
 
 # GraphPatch / navgrid flag bits

@@ -218,6 +218,7 @@ class MapperService(Service):
             occupied=d.occupied,
             values=d.values,
             producer=self.producer,
+            values_kind="signed_distance" if self.map.backend == "tsdf" else "log_odds",
         )
 
     # -- saving ------------------------------------------------------------------------------

@@ -39,6 +39,11 @@ class Str:
 
 
 @dataclass(frozen=True)
+class OneOf:
+    choices: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class Bool:
     pass
 
@@ -102,6 +107,7 @@ SCHEMA: dict[str, dict[str, object]] = {
         "occupied": Arr((U1,), ((None,),), "m"),
         "values": Arr((F4,), ((None,),), "m", COORD),
         "producer": Str(),
+        "values_kind": OneOf(("log_odds", "signed_distance")),
     },
     "GraphPatch": {
         "stamp_s": STAMP_S,
@@ -189,6 +195,8 @@ def _scalar(rule, v) -> set[str]:
         return set() if type(v) is int and rule.lo <= v <= rule.hi else {"value"}
     if isinstance(rule, Str):
         return set() if type(v) is str else {"value"}
+    if isinstance(rule, OneOf):
+        return set() if type(v) is str and v in rule.choices else {"value"}
     if isinstance(rule, Bool):
         return set() if type(v) is bool else {"value"}
     if isinstance(rule, Map):
