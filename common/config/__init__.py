@@ -91,45 +91,6 @@ class SmanaConfig:
         return p
 
 
-# -- building and validating -------------------------------------------------------------------
-
-
-def _read_toml(p: Path) -> dict:
-    if not p.is_file():
-        raise ConfigError(f"config file not found: {p}")
-    try:
-        return tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: {exc}") from None
-
-
-def _merge(into: dict, new: dict) -> None:
-    for k, v in new.items():
-        if isinstance(v, dict) and isinstance(into.get(k), dict):
-            _merge(into[k], v)
-        else:
-            into[k] = v
-
-
-def _apply_override(data: dict, item: str) -> None:
-    if "=" not in item:
-        raise ConfigError(f"override {item!r} must look like section.key=value")
-    dotted, raw = item.split("=", 1)
-    parts = dotted.strip().split(".")
-    if len(parts) < 2 or not all(parts):
-        raise ConfigError(f"override {item!r}: key must be section.key")
-    try:
-        value = tomllib.loads(f"v = {raw.strip()}")["v"]
-    except tomllib.TOMLDecodeError:
-        value = raw.strip()  # a bare word is a string: --set mapper.backend=tsdf
-    node = data
-    for part in parts[:-1]:
-        node = node.setdefault(part, {})
-        if not isinstance(node, dict):
-            raise ConfigError(f"override {item!r}: {part} is not a section")
-    node[parts[-1]] = value
-
-
 # -- reading ---------------------------------------------------------------------------------
 
 
