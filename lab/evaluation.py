@@ -225,10 +225,10 @@ def collision_raster(world, height_m: float = 0.25, step_m: float = 0.05) -> np.
 
 def robot_footprint() -> list[tuple[float, float, float, float]]:
     """The simulated robot's footprint as rectangles (centre x, centre y, half x, half y) in its
-    base frame: the chassis and the two wheels (services/sim/robot.py's RobotSpec)."""
-    from smana.services.sim.robot import RobotSpec
+    base frame: the chassis and the two wheels (`[sim.robot]`, RobotConfig)."""
+    from smana.common.config.sim import RobotConfig
 
-    s = RobotSpec()
+    s = RobotConfig()
     hx, hy, _ = s.chassis_half_extents
     r, half_track = s.wheel_radius_m, s.track_m / 2
     return [(0.0, 0.0, hx, hy), (0.0, half_track, r, r), (0.0, -half_track, r, r)]
@@ -236,9 +236,9 @@ def robot_footprint() -> list[tuple[float, float, float, float]]:
 
 def robot_height_m() -> float:
     """Top of the simulated robot's chassis above the ground (what it can pass under)."""
-    from smana.services.sim.robot import RobotSpec
+    from smana.common.config.sim import RobotConfig
 
-    s = RobotSpec()
+    s = RobotConfig()
     return s.base_height_m + s.chassis_half_extents[2]
 
 
@@ -315,14 +315,9 @@ def load_labelled_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def world_from_config(config):
     """The simulated world a run used, rebuilt from its config (same seed, same world)."""
     from smana.common.classes import ClassTable
-    from smana.services.sim.world import GardenWorld
+    from smana.services.sim.worlds import build_world
 
-    classes = ClassTable.load(config.general.class_table)
-    world = config.sim.world
-    if world == "garden":
-        return GardenWorld.generate(config.sim.seed, size_m=config.sim.size_m, classes=classes)
-    path = world[4:] if world.startswith("ply:") else world
-    return GardenWorld.from_ply(path, classes)
+    return build_world(config.sim, ClassTable.load(config.general.class_table))
 
 
 def gt_cloud_for_run(run_dir: Path, config, spacing_m: float = 0.03):

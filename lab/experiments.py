@@ -177,21 +177,21 @@ class NoiseSettings:
 
 def render_frames(world, poses: np.ndarray, image_px: int):
     """Render the camera along the trajectory once: [(world_from_sensor, CameraCapture)]."""
-    from smana.services.sim.camera import CameraSpec, SemanticCamera
-    from smana.services.sim.robot import RobotSpec
+    from smana.common.config.sim import CameraConfig, RobotConfig
+    from smana.services.sim.camera import SemanticCamera
     from smana.services.sim.scene import BulletScene
 
-    spec = CameraSpec(width=image_px, height=image_px)
-    base_h = RobotSpec().base_height_m
+    camera = CameraConfig(width=image_px, height=image_px)
+    base_h = RobotConfig().base_height_m
     frames = []
     with BulletScene(world) as scene:
-        cam = SemanticCamera(scene, spec)
+        cam = SemanticCamera(scene, camera)
         for x, y, yaw in poses:
             base = np.eye(4)
             c, s = math.cos(yaw), math.sin(yaw)
             base[:2, :2] = [[c, -s], [s, c]]
             base[:3, 3] = [x, y, float(world.ground.height_at(x, y)) + base_h]
-            frames.append((base, cam.capture(base @ spec.mount_matrix()), spec.mount_matrix()))
+            frames.append((base, cam.capture(base @ camera.mount_matrix()), camera.mount_matrix()))
     return frames
 
 
@@ -216,11 +216,11 @@ def run_noise(settings: NoiseSettings, out: Path, log=print) -> list[dict]:
     from smana.common.classes import ClassTable
     from smana.services.mapper.semantic_map import SemanticMap
     from smana.services.sim.degrade import NOISE_LEVELS, LabelDegrader, PoseNoise
-    from smana.services.sim.world import GardenWorld
+    from smana.services.sim.worlds.garden import generate
 
     classes = ClassTable.load("garden3drms")
     names = {i: c.name for i, c in classes.classes.items()}
-    world = GardenWorld.generate(settings.world_seed, size_m=settings.size_m, classes=classes)
+    world = generate(settings.world_seed, size_m=settings.size_m, classes=classes)
     poses = fixed_trajectory(world, settings.length_m, settings.spacing_m)
     length = float(np.hypot(*np.diff(poses[:, :2], axis=0).T).sum())
     t0 = time.perf_counter()
@@ -465,8 +465,8 @@ class ExplorationSettings:
     def quick(cls) -> ExplorationSettings:
         # a 6 m garden, a small camera and a 10 cm map: two short closed loops for the test suite
         small = (
-            "sim.camera_width=160",
-            "sim.camera_height=160",
+            "sim.camera.width=160",
+            "sim.camera.height=160",
             "mapper.resolution_m=0.1",
             "navgraph.bounds_min_xy=[-4.0, -4.0]",
             "navgraph.bounds_max_xy=[4.0, 4.0]",
@@ -488,7 +488,7 @@ def exploration_run(out: Path, seed: int, factor: float, s: ExplorationSettings,
     sets = [
         f'general.robot="{robot}"',
         f"sim.seed={seed}",
-        f"sim.size_m={s.size_m}",
+        f"sim.garden.size_m={s.size_m}",
         f"explorer.time_budget_s={s.budget_s}",
         f'explorer.class_costs=["grass={factor * terrain}"]',
         *s.extra,

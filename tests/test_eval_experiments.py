@@ -13,9 +13,9 @@ from smana.lab import experiments as exp
 
 
 def test_fixed_trajectory_is_long_smooth_and_clear_of_obstacles():
-    from smana.services.sim.world import GardenWorld
+    from smana.services.sim.worlds.garden import generate
 
-    world = GardenWorld.generate(3, size_m=12.0)
+    world = generate(3, size_m=12.0)
     poses = exp.fixed_trajectory(world, length_m=44.0, spacing_m=0.25)
     steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
     assert steps.sum() == pytest.approx(44.0, abs=0.5)

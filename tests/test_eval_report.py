@@ -15,7 +15,7 @@ from smana.services.mapper.ply import write_ply
 
 @pytest.fixture
 def run(tmp_path):
-    cfg = SmanaConfig.load(None, ["sim.size_m=6.0", "sim.seed=3"])
+    cfg = SmanaConfig.load(None, ["sim.garden.size_m=6.0", "sim.seed=3"])
     cfg.write(tmp_path / "config.toml")
     world = world_from_config(cfg)
     # explorer outputs: a straight drive from the spawn point, and a graph that knows x < 0
@@ -109,7 +109,7 @@ def test_report_counts_a_drive_through_a_wall_and_prefers_the_true_trajectory(ru
 
 
 def test_report_of_an_empty_run_dir_still_writes(tmp_path):
-    cfg = SmanaConfig.load(None, ["sim.size_m=6.0"])
+    cfg = SmanaConfig.load(None, ["sim.garden.size_m=6.0"])
     path = report.write_report(tmp_path, cfg)
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert m["exploration"]["coverage"] == 0.0

@@ -8,20 +8,28 @@ import numpy as np
 import pybullet as p
 import pytest
 
-from smana.common.config import SimConfig
+from smana.common.config.sim import CameraConfig, GardenConfig, SimConfig
 from smana.services.sim.scene import DROP, GROUND, BulletScene
 from smana.services.sim.simulation import Simulation
-from smana.services.sim.world import GardenWorld
+from smana.services.sim.worlds.cloud import from_cloud
+from smana.services.sim.worlds.garden import generate
 
 
 @pytest.fixture(scope="module")
 def sim():
-    with Simulation(SimConfig(size_m=8.0, seed=2, camera_enabled=False, noise="off")) as s:
+    with Simulation(
+        SimConfig(
+            garden=GardenConfig(size_m=8.0),
+            seed=2,
+            camera=CameraConfig(enabled=False),
+            noise="off",
+        )
+    ) as s:
         yield s
 
 
 def test_height_field_agrees_with_the_ground_model():
-    world = GardenWorld.generate(seed=11, size_m=5.0)
+    world = generate(seed=11, size_m=5.0)
     with BulletScene(world) as scene:
         rng = np.random.default_rng(0)
         xy = rng.uniform(-2.3, 2.3, (300, 2))
@@ -54,7 +62,7 @@ def test_voxel_world_bodies_are_closed_meshes(tmp_path):
     gx, gy = (a.ravel() for a in np.meshgrid(g, g, indexing="ij"))
     pts = np.concatenate([np.column_stack([gx, gy, np.zeros_like(gx)]), box])
     labels = np.concatenate([np.full(len(gx), 2), np.full(len(box), 5)])
-    world = GardenWorld.from_cloud(pts, labels, voxel_m=0.1)
+    world = from_cloud(pts, labels, voxel_m=0.1)
     with BulletScene(world) as scene:
         hit = p.rayTest([-1.0, 0.05, 0.5], [1.0, 0.05, 0.5], physicsClientId=scene.client)[0]
         assert scene.label_lut[hit[0]] == 5

@@ -9,11 +9,11 @@ import pybullet as p
 import pytest
 from scipy.spatial import cKDTree
 
-from smana.common.config import SimConfig
+from smana.common.config.sim import CameraConfig, GardenConfig, LidarConfig, SimConfig
 from smana.services.sim.camera import label_pixels, linearise_depth, unproject, view_matrix
-from smana.services.sim.lidar import LidarSpec
 from smana.services.sim.simulation import Simulation
-from smana.services.sim.world import BOX, SPHERE, GardenWorld, Primitive, Raster
+from smana.services.sim.worlds import BOX, SPHERE, Primitive, Raster, World
+from smana.services.sim.worlds.cloud import from_cloud
 
 GROUND_IDS = (1, 2)
 
@@ -21,13 +21,11 @@ GROUND_IDS = (1, 2)
 @pytest.fixture(scope="module")
 def sim():
     cfg = SimConfig(
-        size_m=7.0,
+        garden=GardenConfig(size_m=7.0),
         seed=4,
         noise="off",
-        camera_width=160,
-        camera_height=160,
-        lidar_channels=16,
-        lidar_columns=512,
+        camera=CameraConfig(width=160, height=160),
+        lidar=LidarConfig(channels=16, columns=512),
     )
     with Simulation(cfg) as s:
         yield s
@@ -49,7 +47,7 @@ def _poses(sim, n=4):
         yield k
 
 
-def _check_cloud(world: GardenWorld, tree, gt_labels, pts, labels):
+def _check_cloud(world: World, tree, gt_labels, pts, labels):
     d, idx = tree.query(pts)
     # GT samples are 2 cm apart (1.4 cm to the nearest at worst); TinyRenderer draws spheres
     # as polygons with chords ~3 cm inside the true sphere
@@ -76,7 +74,7 @@ def test_camera_cloud_lands_on_ground_truth(sim, gt):
         assert np.array_equal(f.semantic, f.semantic_true)
         assert np.allclose(f.world_from_sensor, f.true_world_from_sensor)
         rng = np.linalg.norm(f.points - f.world_from_sensor[:3, 3], axis=1)
-        assert rng.max() <= sim.camera_spec.max_range_m + 1e-3
+        assert rng.max() <= sim.config.camera.max_range_m + 1e-3
         _check_cloud(sim.world, tree, gt_labels, f.points, f.labels)
         seen |= set(np.unique(f.labels).tolist())
     assert len(seen - set(GROUND_IDS)) >= 2  # objects of several classes were seen
@@ -94,17 +92,16 @@ def test_lidar_scan_lands_on_ground_truth(sim, gt):
             # rays attached to the robot give the same hits as rays cast in the world frame
             from smana.services.sim.lidar import Lidar
 
-            free = Lidar(sim.scene, sim.lidar_spec, parent_body=-1).scan(sim.true_pose())
+            free = Lidar(sim.scene, sim.config.lidar, parent_body=-1).scan(sim.true_pose())
             assert np.allclose(free.points_world, s.points, atol=1e-3)
 
 
 def test_pose_noise_moves_the_published_cloud_rigidly():
     cfg = SimConfig(
-        size_m=6.0,
+        garden=GardenConfig(size_m=6.0),
         seed=4,
         noise="off",
-        camera_width=64,
-        camera_height=64,
+        camera=CameraConfig(width=64, height=64),
         pose_noise_xy_m=0.2,
         pose_noise_yaw_rad=0.05,
     )
@@ -120,7 +117,12 @@ def test_pose_noise_moves_the_published_cloud_rigidly():
 
 
 def test_degraded_frames_change_labels_not_geometry():
-    cfg = SimConfig(size_m=6.0, seed=4, noise="high", camera_width=96, camera_height=96)
+    cfg = SimConfig(
+        garden=GardenConfig(size_m=6.0),
+        seed=4,
+        noise="high",
+        camera=CameraConfig(width=96, height=96),
+    )
     with Simulation(cfg) as sim:
         f = sim.camera_frame()
         assert np.array_equal(f.semantic >= 0, f.semantic_true >= 0)
@@ -141,11 +143,11 @@ def test_world_from_a_labelled_cloud_is_seen_with_its_classes(tmp_path):
     from tests.test_sim_world import _toy_cloud
 
     pts, labels = _toy_cloud(0.03)
-    world = GardenWorld.from_cloud(pts, labels, voxel_m=0.05)
+    world = from_cloud(pts, labels, voxel_m=0.05)
     hedge = Primitive(BOX, (-1.0, 0.5, 0.5), (0.6 + 0.08, 0.25 + 0.08, 0.5 + 0.08))
     rose = Primitive(SPHERE, (1.0, -1.0, 0.3), (0.33, 0.33, 0.33))
     x0, y0, x1, y1 = world.bounds
-    cfg = SimConfig(noise="off", camera_width=128, camera_height=128, spawn=[0.0, -0.2, 2.6])
+    cfg = SimConfig(noise="off", camera=CameraConfig(width=128, height=128), spawn=[0.0, -0.2, 2.6])
     with Simulation(cfg, world=world) as sim:
         seen = set()
         for yaw in (2.6, 1.8, -0.6):
@@ -272,7 +274,7 @@ def test_label_pixels_matches_a_slow_reference():
 
 
 def test_lidar_pattern_is_an_os1_64():
-    spec = LidarSpec()
+    spec = LidarConfig()
     d = spec.directions()
     assert d.shape == (131072, 3) and np.allclose(np.linalg.norm(d, axis=1), 1.0)
     el = np.degrees(np.arcsin(d[:, 2]))
@@ -288,7 +290,10 @@ def test_frames_finished_on_a_worker_match_sequential_frames(kind):
     from smana.services.sim.finishing import finished, make_worker
 
     cfg = SimConfig(
-        size_m=6.0, seed=4, noise="medium", camera_width=64, camera_height=64, publish_images=True
+        garden=GardenConfig(size_m=6.0),
+        seed=4,
+        noise="medium",
+        camera=CameraConfig(width=64, height=64, publish_images=True),
     )
     with Simulation(cfg) as a, Simulation(cfg) as b:
         sequential, futures = [], []

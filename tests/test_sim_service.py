@@ -33,11 +33,11 @@ SMALL = [
     "--camera",
     "48x48",
     "--set",
-    "sim.camera_max_range_m=5.0",
+    "sim.camera.max_range_m=5.0",
     "--set",
-    "sim.lidar_channels=8",
+    "sim.lidar.channels=8",
     "--set",
-    "sim.lidar_columns=128",
+    "sim.lidar.columns=128",
 ]
 
 

@@ -7,35 +7,30 @@ import pytest
 from scipy import ndimage
 
 from smana.services.sim.ply import PlyError, read_labelled_ply, write_labelled_ply
-from smana.services.sim.world import (
-    BOX,
-    SPHERE,
-    GardenWorld,
-    GroundModel,
-    Primitive,
-    WorldError,
-)
 from smana.services.sim.world_cli import cli as world_cli
+from smana.services.sim.worlds import BOX, SPHERE, GroundModel, Primitive, World, WorldError
+from smana.services.sim.worlds.cloud import from_cloud, from_ply
+from smana.services.sim.worlds.garden import generate
 
 GROUND_IDS = (1, 2)
 
 
 @pytest.fixture(scope="module")
-def world() -> GardenWorld:
-    return GardenWorld.generate(seed=3)
+def world() -> World:
+    return generate(seed=3)
 
 
 @pytest.fixture(scope="module")
-def small_world() -> GardenWorld:
-    return GardenWorld.generate(seed=5, size_m=6.0)
+def small_world() -> World:
+    return generate(seed=5, size_m=6.0)
 
 
 def test_same_seed_same_world_other_seed_other_world(world):
-    again = GardenWorld.generate(seed=3)
+    again = generate(seed=3)
     assert np.array_equal(again.ground.heights, world.ground.heights)
     assert np.array_equal(again.ground.classes, world.ground.classes)
     assert [o.primitives for o in again.objects] == [o.primitives for o in world.objects]
-    other = GardenWorld.generate(seed=4)
+    other = generate(seed=4)
     assert not np.array_equal(other.ground.heights, world.ground.heights)
 
 
@@ -66,7 +61,7 @@ def test_spawn_pose_is_free(world):
 
 
 def test_bigger_worlds_scale(world):
-    big = GardenWorld.generate(seed=1, size_m=30.0, ground_resolution_m=0.2)
+    big = generate(seed=1, size_m=30.0, ground_resolution_m=0.2)
     assert big.bounds == pytest.approx((-15.0, -15.0, 15.0, 15.0))
     n_big = sum(o.kind != "wall" for o in big.objects)
     n_small = sum(o.kind != "wall" for o in world.objects)
@@ -75,9 +70,9 @@ def test_bigger_worlds_scale(world):
 
 def test_bad_spec_is_refused():
     with pytest.raises(WorldError, match="clutter"):
-        GardenWorld.generate(seed=0, clutter=1.5)
+        generate(seed=0, clutter=1.5)
     with pytest.raises(WorldError, match="size_m"):
-        GardenWorld.generate(seed=0, size_m=0.5)
+        generate(seed=0, size_m=0.5)
 
 
 def test_ground_interpolation_is_exact_on_vertices_and_planes():
@@ -150,7 +145,7 @@ def test_top_class_matches_a_column_march(small_world):
 
 
 def test_traversability_with_radius_is_a_subset():
-    w = GardenWorld.generate(seed=7, size_m=8.0)
+    w = generate(seed=7, size_m=8.0)
     t0, t3 = w.traversability(0.0).data, w.traversability(0.3).data
     assert np.all(t0[t3]) and t3.sum() < t0.sum()
     assert not t0[w.top_class().data == 8].any()  # under a tree crown is not traversable
@@ -210,7 +205,7 @@ def test_world_from_cloud_reproduces_classes(tmp_path):
     path = tmp_path / "toy.ply"
     colours = np.zeros((len(pts), 3), np.uint8)
     write_labelled_ply(path, pts, labels.astype(np.uint16), colours)
-    w = GardenWorld.from_ply(path, voxel_m=0.05)
+    w = from_ply(path, voxel_m=0.05)
     assert sorted(o.class_id for o in w.objects if o.kind == "voxels") == [4, 6]
     assert w.ground.class_at(-1.5, -1.5) == 1 and w.ground.class_at(1.5, 1.5) == 2
     assert w.ground.height_at(1.0, 0.0) == pytest.approx(0.02, abs=0.01)
@@ -224,7 +219,7 @@ def test_world_from_cloud_reproduces_classes(tmp_path):
     gt_pts, gt_labels = w.gt_cloud()
     assert np.isin([1, 2, 4, 6, 7], gt_labels).all()  # the source cloud plus the walls
     with pytest.raises(WorldError, match="traversable"):
-        GardenWorld.from_cloud(pts[labels == 4], labels[labels == 4])
+        from_cloud(pts[labels == 4], labels[labels == 4])
 
 
 def test_world_cli_export_and_preview(tmp_path, capsys):

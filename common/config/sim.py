@@ -1,71 +1,225 @@
-"""[sim] config section."""
+"""[sim] config section, and its parts: [sim.camera], [sim.lidar], [sim.robot], [sim.garden],
+[sim.ply]. Each part is what its core receives as it is (`SemanticCamera(scene, config.camera)`,
+`DiffDriveRobot(client, config.robot)`, the procedural garden `config.garden`)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
-from smana.common.config._schema import ConfigError, Section, param
+import numpy as np
+
+from smana.common.config._schema import ConfigError, Section, param, table
+
+
+def _check_xyz(key: str, xyz: list[float]) -> None:
+    if len(xyz) != 3:
+        raise ConfigError(f"{key}: expected [x, y, z], got {xyz!r}")
+
+
+@dataclass
+class CameraConfig(Section, section="sim.camera"):
+    """The semantic RGB-D camera (services/sim/camera.py). The default follows the paper: 640 x
+    640 pixels, 57 degree field of view."""
+
+    enabled: bool = True
+    width: int = param(640, ge=8, le=4096)
+    height: int = param(640, ge=8, le=4096)
+    fov_deg: float = param(57.0, ge=1, lt=170)  # vertical (horizontal too when square)
+    near_m: float = param(0.05, gt=0)
+    max_range_m: float = param(8.0, gt=0)
+    rate_hz: float = param(2.0, gt=0)  # simulated time
+    stride: int = param(1, gt=0)  # keep every n-th pixel row and column in the cloud
+    # mount on the robot's base frame: position and downward pitch
+    mount_xyz: list[float] = param([0.25, 0.0, 0.20])
+    mount_pitch_deg: float = 15.0
+    publish_images: bool = False  # robot/image/{rgb,depth,semantic} with each camera frame
+    # where frames are degraded and encoded while the next renders: "thread", "process" or "off"
+    # (in line); measured in services/sim/finishing.py. Lockstep always finishes in line.
+    worker: Literal["process", "thread", "off"] = "thread"
+
+    def validate(self) -> None:
+        _check_xyz("sim.camera.mount_xyz", self.mount_xyz)
+        if not self.near_m < self.max_range_m:
+            raise ConfigError("sim.camera.near_m: must be below sim.camera.max_range_m")
+
+    @property
+    def focal_px(self) -> float:
+        return (self.height / 2) / math.tan(math.radians(self.fov_deg) / 2)
+
+    def mount_matrix(self) -> np.ndarray:
+        """Sensor pose in the robot's base frame (4x4)."""
+        pitch = math.radians(self.mount_pitch_deg)
+        c, s = math.cos(pitch), math.sin(pitch)
+        m = np.eye(4)
+        m[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # x tilts down
+        m[:3, 3] = self.mount_xyz
+        return m
+
+
+@dataclass
+class LidarConfig(Section, section="sim.lidar"):
+    """A spinning LiDAR (services/sim/lidar.py); the default is an Ouster OS1-64: 64 x 2048 rays,
+    33.2 deg vertical."""
+
+    enabled: bool = False
+    rate_hz: float = param(10.0, gt=0)
+    channels: int = param(64, gt=0)
+    columns: int = param(2048, gt=0)
+    vfov_deg: float = param(33.2, gt=0, lt=180)
+    max_range_m: float = param(20.0, gt=0)
+    min_range_m: float = param(0.3, ge=0)
+    mount_xyz: list[float] = param([0.0, 0.0, 0.30])  # on the base frame, level
+
+    def validate(self) -> None:
+        _check_xyz("sim.lidar.mount_xyz", self.mount_xyz)
+        if self.min_range_m >= self.max_range_m:
+            raise ConfigError("sim.lidar.min_range_m: must be below sim.lidar.max_range_m")
+        if self.channels * self.columns > 4_000_000:
+            raise ConfigError("sim.lidar: channels x columns must be at most 4M rays")
+
+    @property
+    def n_rays(self) -> int:
+        return self.channels * self.columns
+
+    def directions(self) -> np.ndarray:
+        """Unit ray directions (channels * columns, 3) in the sensor frame, channel-major: top
+        channel first, azimuth from -pi (behind) counter-clockwise."""
+        half = math.radians(self.vfov_deg) / 2
+        el = np.linspace(half, -half, self.channels) if self.channels > 1 else np.zeros(1)
+        az = -math.pi + np.arange(self.columns) * (2 * math.pi / self.columns)
+        e, a = np.meshgrid(el, az, indexing="ij")
+        return np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(
+            -1, 3
+        )
+
+    def mount_matrix(self) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, 3] = self.mount_xyz
+        return m
+
+
+@dataclass
+class RobotConfig(Section, section="sim.robot"):
+    """The simulated differential-drive base (services/sim/robot.py)."""
+
+    chassis_half_extents: list[float] = param([0.28, 0.17, 0.07], gt=0)
+    chassis_mass_kg: float = param(12.0, gt=0)
+    wheel_radius_m: float = param(0.11, gt=0)
+    wheel_width_m: float = param(0.05, gt=0)
+    track_m: float = param(0.40, gt=0)  # between the wheels' mid-planes
+    wheel_mass_kg: float = param(1.0, gt=0)
+    caster_radius_m: float = param(0.04, gt=0)
+    caster_offset_m: float = param(0.22, ge=0)  # ahead and behind the axle
+    max_wheel_torque_nm: float = param(20.0, gt=0)
+    max_linear_mps: float = param(1.0, gt=0)
+    max_angular_radps: float = param(2.0, gt=0)
+    max_linear_accel_mps2: float = param(1.5, gt=0)
+    max_angular_accel_radps2: float = param(4.0, gt=0)
+    cmd_timeout_s: float = param(0.5, gt=0)  # the base stops when commands stop this long
+    colour: list[float] = param([0.95, 0.75, 0.1, 1.0], ge=0, le=1)  # RGBA
+
+    def validate(self) -> None:
+        _check_xyz("sim.robot.chassis_half_extents", self.chassis_half_extents)
+        if len(self.colour) != 4:
+            raise ConfigError(f"sim.robot.colour: expected [r, g, b, a], got {self.colour!r}")
+
+    @property
+    def radius_m(self) -> float:
+        """Circumscribed radius of the footprint (for clearance checks)."""
+        hx, hy, _ = self.chassis_half_extents
+        half_width = max(hy, self.track_m / 2 + self.wheel_radius_m)  # ball-shaped wheels
+        return math.hypot(max(hx, self.caster_offset_m), half_width)
+
+    @property
+    def base_height_m(self) -> float:
+        """Height of the base frame (chassis centre) above flat ground at rest."""
+        return self.wheel_radius_m + self.chassis_half_extents[2] * 0.6
+
+
+@dataclass
+class GardenConfig(Section, section="sim.garden"):
+    """Knobs of the procedural garden (`sim.world = "garden"`, services/sim/worlds/garden.py).
+    The defaults give a world like the paper's 3DRMS garden: 12 m x 12 m, terrain and grass in
+    about equal parts, and objects covering enough of it that about half of the ground is free
+    and traversable once the robot's radius is accounted for."""
+
+    size_m: float = param(12.0, ge=2, le=1000)  # side of the square garden
+    ground_resolution_m: float = param(0.1, ge=0.01)  # height field / ground class raster cell
+    terrain_fraction: float = param(0.5, ge=0, le=0.9)  # of the ground, terrain rather than grass
+    height_amplitude_m: float = param(0.25, ge=0)
+    max_slope: float = param(0.15, ge=0)  # rise over run
+    # share of the area inside the walls to cover with objects, seen from above; the gap between
+    # objects caps what random placement reaches at about 0.2 (the default world is ~80 % free,
+    # ~55 % free once grown by a 0.3 m robot radius)
+    clutter: float = param(0.35, ge=0, le=0.9)
+    min_gap_m: float = param(0.7, ge=0)  # between objects, so the free space stays connected
+    spawn_clearance_m: float = param(1.2, ge=0)  # free disk kept around the centre (the start)
+    wall_height_m: float = 1.0
+    wall_thickness_m: float = 0.2
+    # relative frequencies of the object kinds
+    hedges: float = param(0.25, ge=0)
+    topiaries: float = param(0.2, ge=0)
+    roses: float = param(0.2, ge=0)
+    obstacles: float = param(0.2, ge=0)
+    trees: float = param(0.15, ge=0)
+
+    def validate(self) -> None:
+        if self.ground_resolution_m > self.size_m / 4:
+            got = self.ground_resolution_m
+            raise ConfigError(f"sim.garden.ground_resolution_m: at most size_m / 4, got {got}")
+        if self.size_m / self.ground_resolution_m > 4000:
+            raise ConfigError(
+                "sim.garden.ground_resolution_m: the ground grid would exceed 4000 x 4000"
+            )
+        if self.hedges + self.topiaries + self.roses + self.obstacles + self.trees <= 0:
+            raise ConfigError("sim.garden: object frequencies (hedges .. trees) are all 0")
+
+
+@dataclass
+class PlyConfig(Section, section="sim.ply"):
+    """A world built from a labelled point cloud (`sim.world = "ply:PATH"`,
+    services/sim/worlds/cloud.py): ground from the traversable classes, voxels for the rest."""
+
+    voxel_m: float = param(0.05, gt=0)  # object voxels
+    ground_resolution_m: float = param(0.1, gt=0)  # height field / ground class raster cell
+    label_field: str = ""  # the PLY vertex property holding labels; "" finds a usual name
+    walls: bool = True  # add walls around the cloud's extent
+    wall_height_m: float = 1.0
+    wall_thickness_m: float = 0.2
 
 
 @dataclass
 class SimConfig(Section, section="sim"):
     """`smana sim`: the PyBullet simulator (services/sim, its docstrings say more)."""
 
-    world: str = "garden"  # "garden" (procedural), or a labelled PLY: "ply:PATH" or a path
+    # "garden" (procedural), "ply:PATH" or a path to a labelled PLY, a world registered in
+    # services/sim/worlds/__init__.py ("NAME" or "NAME:ARG"), or an out-of-tree "module:Class"
+    world: str = "garden"
     seed: int = 3  # world layout; noise streams derive from it too
-    size_m: float = param(12.0, gt=0)  # side of the procedural garden
-    ground_resolution_m: float = param(0.1, gt=0)  # height field / ground class raster cell
-    voxel_m: float = param(0.05, gt=0)  # object voxels of a world built from a PLY
     # label noise: "off" = true labels, confidence 1; "none".."high" = paper 4.2.1 (SLIC,
     # confusion redraw with p = 1.0 / 0.9 / 0.8 / 0.7, confidence uniform in [0.33, 1])
     noise: Literal["off", "none", "low", "medium", "high"] = "none"
-    slic_region_px: int = param(20, gt=0)
+    slic_region_px: int = param(20, ge=2)
     slic_iterations: int = param(3, gt=0)
     pose_noise_xy_m: float = param(0.0, ge=0)  # std dev of the published x and of y
     pose_noise_yaw_rad: float = param(0.0, ge=0)  # std dev of the published yaw
-    camera_enabled: bool = True
-    camera_width: int = param(640, gt=0)
-    camera_height: int = param(640, gt=0)
-    camera_fov_deg: float = param(57.0, gt=0)
-    camera_rate_hz: float = param(2.0, gt=0)  # simulated time
-    camera_max_range_m: float = param(8.0, gt=0)
-    camera_stride: int = param(1, gt=0)  # keep every n-th pixel row and column in the cloud
-    publish_images: bool = False  # robot/image/{rgb,depth,semantic} with each camera frame
-    # where frames are degraded and encoded while the next renders: "thread", "process" or "off"
-    # (in line); measured in services/sim/finishing.py. Lockstep always finishes in line.
-    camera_worker: Literal["process", "thread", "off"] = "thread"
-    lidar_enabled: bool = False
-    lidar_rate_hz: float = param(10.0, gt=0)
-    lidar_channels: int = param(64, gt=0)  # Ouster OS1-64: 64 x 2048, 33.2 deg vertical
-    lidar_columns: int = param(2048, gt=0)
-    lidar_vfov_deg: float = param(33.2, gt=0)
-    lidar_max_range_m: float = param(20.0, gt=0)
-    lidar_min_range_m: float = param(0.3, ge=0)
     pose_rate_hz: float = param(20.0, gt=0)
     clock_rate_hz: float = param(10.0, gt=0)
-    physics_hz: float = param(240.0, gt=0)
+    physics_hz: float = param(240.0, ge=50)
     real_time_factor: float = param(1.0, gt=0)  # also the upper bound in lockstep
     # lockstep: after each camera cloud, wait for the mapper's MapDelta with that cloud_seq
     # (at most lockstep_timeout_s of wall time) before simulating on
     lockstep: bool = False
     lockstep_timeout_s: float = param(5.0, gt=0)
-    cmd_timeout_s: float = param(0.5, gt=0)  # the base stops when commands stop this long
-    max_linear_mps: float = param(1.0, gt=0)
-    max_angular_radps: float = param(2.0, gt=0)
     spawn: list[float] = param([])  # [x, y, yaw]; empty: free spot near centre
+    camera: CameraConfig = table(CameraConfig)
+    lidar: LidarConfig = table(LidarConfig)
+    robot: RobotConfig = table(RobotConfig)
+    garden: GardenConfig = table(GardenConfig)
+    ply: PlyConfig = table(PlyConfig)
 
     def validate(self) -> None:
         if self.spawn and len(self.spawn) != 3:
             raise ConfigError(f"sim.spawn: expected [x, y, yaw] or [], got {self.spawn!r}")
-        for name in ("camera_width", "camera_height"):
-            if getattr(self, name) > 4096:
-                raise ConfigError(f"sim.{name}: at most 4096, got {getattr(self, name)}")
-        if not self.camera_fov_deg < 170:
-            raise ConfigError(f"sim.camera_fov_deg: below 170, got {self.camera_fov_deg}")
-        if self.slic_region_px < 2:
-            raise ConfigError(f"sim.slic_region_px: at least 2, got {self.slic_region_px}")
-        if self.lidar_min_range_m >= self.lidar_max_range_m:
-            raise ConfigError("sim.lidar_min_range_m: must be below sim.lidar_max_range_m")
-        if self.physics_hz < 50:
-            raise ConfigError(f"sim.physics_hz: at least 50, got {self.physics_hz}")

@@ -93,11 +93,13 @@ time_budget_s = 1.0e9
 done_after_empty = 1000000000
 
 [sim]
-camera_width = 64
-camera_height = 64
-camera_rate_hz = 2.0
 lockstep = true
 lockstep_timeout_s = 2.0
+
+[sim.camera]
+width = 64
+height = 64
+rate_hz = 2.0
 """
 
 

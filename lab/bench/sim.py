@@ -35,16 +35,14 @@ def _median(xs):
 def run(args) -> dict:
     import numpy as np
 
-    from smana.common.config import SimConfig
+    from smana.common.config.sim import CameraConfig, LidarConfig, SimConfig
     from smana.services.sim.simulation import Simulation
 
     cfg = SimConfig(
         seed=args.seed,
         noise=args.noise,
-        camera_width=args.width,
-        camera_height=args.width,
-        lidar_channels=64,
-        lidar_columns=2048,
+        camera=CameraConfig(width=args.width, height=args.width),
+        lidar=LidarConfig(channels=64, columns=2048),
     )
     load0 = os.getloadavg()
     t0 = time.perf_counter()
@@ -197,7 +195,7 @@ def report(r: dict) -> str:
                 cam["process_hz_median"],
                 "9.2f",
                 (cam["process_hz_min"], cam["process_hz_max"]),
-                'sim.camera_worker = "process"',
+                'sim.camera.worker = "process"',
             ),
             _row(
                 "  CPU time per frame (sequential), ms",

@@ -1,6 +1,7 @@
 """The simulator: a PyBullet garden world standing in for the paper's Ignition Gazebo one.
 
-Core (no zenoh): `world.GardenWorld` (worlds and their ground truth), `simulation.Simulation`
-(physics, robot, camera, LiDAR, degradation). Service: `service.SimService` (`smana sim`).
-Tools: `smana world ...` (`world_cli`), `smana bench sim` (`bench`).
+Core (no zenoh): `worlds` (kinds of world behind a registry, and the `World` they build, with its
+ground truth), `simulation.Simulation` (physics, robot, camera, LiDAR, degradation). Service:
+`service.SimService` (`smana sim`). Tool: `smana world ...` (`world_cli`). The benchmark is
+`smana bench sim` (lab/bench/sim.py).
 """

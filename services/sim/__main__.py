@@ -3,12 +3,13 @@
     smana sim --world garden --seed 3 --noise medium --pose-noise 0.1,0.02
     smana sim --world ply:garden.ply --camera 320x320 --camera-rate 5 --lidar --rtf 2
 
-Every flag is a shortcut for a `[sim]` config key (`--set sim.KEY=VALUE` reaches the others).
+Every flag is a shortcut for a `[sim]` config key (`--set sim.KEY=VALUE` or
+`--set sim.camera.KEY=VALUE` reaches the others).
 """
 
 from __future__ import annotations
 
-import dataclasses
+import json
 import sys
 from pathlib import Path
 
@@ -23,10 +24,34 @@ def _pair(text: str, sep: str, name: str) -> tuple[float, float]:
     return a, b
 
 
+def _absolute_world(spec: str) -> str:
+    """A PLY world's path made absolute (the supervisor runs us elsewhere); others as they are."""
+    from smana.services.sim.worlds import world_source
+    from smana.services.sim.worlds.cloud import PlyWorld
+
+    try:
+        source = world_source(spec)
+    except ValueError:
+        return spec  # the service reports it, in one line
+    if isinstance(source, PlyWorld) and source.arg:
+        return "ply:" + str(Path(source.arg).resolve())
+    return spec
+
+
+def _toml(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return json.dumps(v)  # a TOML basic string
+    return repr(v)
+
+
 def cli(argv: list[str] | None = None) -> int:
     p = make_parser("smana sim", __doc__.strip().splitlines()[0])
     g = p.add_argument_group("simulation")
-    g.add_argument("--world", help="'garden' (procedural) or ply:PATH (a labelled cloud)")
+    g.add_argument(
+        "--world", help="'garden' (procedural), ply:PATH (a labelled cloud) or module:Class"
+    )
     g.add_argument("--seed", type=int, help="world and noise seed")
     g.add_argument("--size", type=float, help="side of the procedural garden, m")
     g.add_argument(
@@ -45,53 +70,41 @@ def cli(argv: list[str] | None = None) -> int:
     g.add_argument("--rtf", type=float, metavar="X", help="real-time factor")
     g.add_argument("--lockstep", action="store_true", help="wait for each cloud's MapDelta")
     args = p.parse_args(argv)
-    cfg = config_from_args(args)
-    sc = cfg.sim
-    changes: dict = {}
+    # each flag is a `--set` override, applied after the user's: the same checks and messages
+    sets: dict[str, object] = {}
     if args.world:
-        world = args.world
-        if world != "garden":
-            path = world[4:] if world.startswith("ply:") else world
-            world = "ply:" + str(Path(path).resolve())  # the supervisor runs us elsewhere
-        changes["world"] = world
+        sets["world"] = _absolute_world(args.world)
     for flag, key in (
         ("seed", "seed"),
-        ("size", "size_m"),
+        ("size", "garden.size_m"),
         ("noise", "noise"),
-        ("camera_rate", "camera_rate_hz"),
-        ("stride", "camera_stride"),
-        ("lidar_rate", "lidar_rate_hz"),
+        ("camera_rate", "camera.rate_hz"),
+        ("stride", "camera.stride"),
+        ("lidar_rate", "lidar.rate_hz"),
         ("rtf", "real_time_factor"),
     ):
         if getattr(args, flag) is not None:
-            changes[key] = getattr(args, flag)
+            sets[key] = getattr(args, flag)
     if args.pose_noise:
-        changes["pose_noise_xy_m"], changes["pose_noise_yaw_rad"] = _pair(
+        sets["pose_noise_xy_m"], sets["pose_noise_yaw_rad"] = _pair(
             args.pose_noise, ",", "--pose-noise"
         )
     if args.camera:
         w, h = _pair(args.camera.lower(), "x", "--camera")
-        changes["camera_width"], changes["camera_height"] = int(w), int(h)
+        sets["camera.width"], sets["camera.height"] = int(w), int(h)
     for flag, key, value in (
-        ("no_camera", "camera_enabled", False),
-        ("images", "publish_images", True),
-        ("lidar", "lidar_enabled", True),
+        ("no_camera", "camera.enabled", False),
+        ("images", "camera.publish_images", True),
+        ("lidar", "lidar.enabled", True),
         ("lockstep", "lockstep", True),
     ):
         if getattr(args, flag):
-            changes[key] = value
-    sc = dataclasses.replace(sc, **changes)
-    from smana.common.config import ConfigError, SimConfig, build
-
-    try:  # the flags go through the same checks as the config file
-        sc = build(SimConfig, {f.name: getattr(sc, f.name) for f in dataclasses.fields(sc)}, "sim.")
-    except ConfigError as exc:
-        print(f"smana sim: {exc}", file=sys.stderr)
-        return 2
-    cfg = dataclasses.replace(cfg, sim=sc)
+            sets[key] = value
+    args.overrides = [*(args.overrides or []), *(f"sim.{k}={_toml(v)}" for k, v in sets.items())]
+    cfg = config_from_args(args)
     setup_logging(cfg.general.log_level, "sim")
     from smana.services.sim.service import main
-    from smana.services.sim.world import WorldError
+    from smana.services.sim.worlds import WorldError
 
     try:
         return main(cfg)

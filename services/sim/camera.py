@@ -3,8 +3,8 @@
 One `getCameraImage` call gives the RGB image, the depth buffer and the segmentation mask (body
 ids). Depth is linearised to metres along the optical axis and unprojected through the pinhole
 model; a pixel's class is its body's class, except on the ground height field, whose class is
-looked up in the world's ground raster at the pixel's (x, y). The default follows the paper:
-640 x 640 pixels, 57 degree field of view.
+looked up in the world's ground raster at the pixel's (x, y). Its parameters are `[sim.camera]`
+(`CameraConfig`); the default follows the paper: 640 x 640 pixels, 57 degree field of view.
 
 Frames: the sensor frame follows REP-103 (x forward along the optical axis, y left, z up); the
 OpenGL camera frame TinyRenderer uses (x right, y up, looking down -z) only appears inside
@@ -13,7 +13,6 @@ OpenGL camera frame TinyRenderer uses (x right, y up, looking down -z) only appe
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 
@@ -21,44 +20,13 @@ import numba
 import numpy as np
 import pybullet as p
 
+from smana.common.config.sim import CameraConfig
+
 from .scene import BulletScene
-from .world import Raster
+from .worlds import Raster
 
 # OpenGL camera axes (right, up, backward) expressed in the REP-103 sensor frame
 _SENSOR_FROM_GL = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-
-
-@dataclass(frozen=True)
-class CameraSpec:
-    width: int = 640
-    height: int = 640
-    fov_deg: float = 57.0  # vertical field of view (horizontal too at 640 x 640)
-    near_m: float = 0.05
-    max_range_m: float = 8.0
-    # mount on the robot's base frame: position and downward pitch
-    mount_xyz: tuple[float, float, float] = (0.25, 0.0, 0.20)
-    mount_pitch_deg: float = 15.0
-
-    def validate(self) -> None:
-        if self.width < 8 or self.height < 8 or self.width > 4096 or self.height > 4096:
-            raise ValueError(f"camera size must be within 8..4096, got {self.width}x{self.height}")
-        if not 1.0 <= self.fov_deg <= 170.0:
-            raise ValueError(f"camera fov_deg must be within 1..170, got {self.fov_deg}")
-        if not 0 < self.near_m < self.max_range_m:
-            raise ValueError("camera needs 0 < near_m < max_range_m")
-
-    @property
-    def focal_px(self) -> float:
-        return (self.height / 2) / math.tan(math.radians(self.fov_deg) / 2)
-
-    def mount_matrix(self) -> np.ndarray:
-        """Sensor pose in the robot's base frame (4x4)."""
-        pitch = math.radians(self.mount_pitch_deg)
-        c, s = math.cos(pitch), math.sin(pitch)
-        m = np.eye(4)
-        m[:3, :3] = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])  # x tilts down
-        m[:3, 3] = self.mount_xyz
-        return m
 
 
 def view_matrix(world_from_sensor: np.ndarray) -> list[float]:
@@ -231,11 +199,9 @@ class CameraCapture:
 
 
 class SemanticCamera:
-    def __init__(self, scene: BulletScene, spec: CameraSpec | None = None):
+    def __init__(self, scene: BulletScene, config: CameraConfig | None = None):
         self.scene = scene
-        self.spec = spec or CameraSpec()
-        self.spec.validate()
-        s = self.spec
+        self.config = s = config or CameraConfig()
         # the far plane sits a little past the range, so that every in-range pixel is rendered
         self._far = s.max_range_m * 1.05
         self._proj = p.computeProjectionMatrixFOV(
@@ -248,7 +214,7 @@ class SemanticCamera:
         A pose that puts a ground vertex exactly in the camera's plane (e.g. a camera looking
         level, exactly above a grid vertex) makes TinyRenderer rasterise a degenerate triangle
         over the whole screen, 20x slower; poses a moving robot takes never hit it exactly."""
-        s = self.spec
+        s = self.config
         t0 = time.perf_counter()
         _, _, rgba, zbuf, seg = p.getCameraImage(
             s.width,

@@ -1,7 +1,7 @@
 """Finishing camera frames beside the simulation loop: on a worker thread or in a worker process.
 
 Rendering holds PyBullet, and PyBullet holds the GIL while it renders, so a worker *thread* (the
-default, `camera_worker = "thread"`) only overlaps the part of finishing that releases the GIL
+default, `camera.worker = "thread"`) only overlaps the part of finishing that releases the GIL
 (OpenCV's SLIC) and contends for the rest. A worker *process* (`"process"`) degrades the labels,
 builds the cloud and encodes the messages on another core and hands back bytes ready to put, but
 the ~4 MB rendered frame and ~10 MB of messages cross a pipe through the pool's feeder threads,
@@ -86,7 +86,7 @@ def make_worker(
 ) -> tuple[Executor, Callable[[PendingFrame], FinishedFrame]] | None:
     """An executor and the function to submit to it, for `kind` "process" or "thread"; None for
     "off" (finish in line)."""
-    images = config.publish_images
+    images = config.camera.publish_images
     if kind == "process":
         pool = ProcessPoolExecutor(
             1,

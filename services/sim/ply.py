@@ -1,4 +1,4 @@
-"""Labelled point clouds in PLY: the ground-truth export and the input of `GardenWorld.from_ply`.
+"""Labelled point clouds in PLY: the ground-truth export and the input of a `ply:PATH` world.
 
 Writes binary little-endian PLY with the vertex fields `x y z label red green blue`, which Open3D,
 CloudCompare and MeshLab open (`common/ply.py`). Reads binary (either endianness) and ASCII PLY

@@ -7,49 +7,18 @@ robot: two driven wheels on one axle, a free caster front and back (frictionless
 the commanded arc is the one driven (a four-wheel skid-steer slips by an amount that depends on
 the ground). Wheels are velocity-controlled by Bullet's motors with a torque limit; commands are
 clamped and rate limited, and the base stops when no command has arrived for `cmd_timeout_s`
-(simulated time).
+(simulated time). Parameters: `[sim.robot]` (`RobotConfig`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import pybullet as p
 
+from smana.common.config.sim import RobotConfig
 from smana.common.messages import matrix_to_quat, quat_to_matrix
-
-
-@dataclass(frozen=True)
-class RobotSpec:
-    chassis_half_extents: tuple[float, float, float] = (0.28, 0.17, 0.07)
-    chassis_mass_kg: float = 12.0
-    wheel_radius_m: float = 0.11
-    wheel_width_m: float = 0.05
-    track_m: float = 0.40  # between the wheels' mid-planes
-    wheel_mass_kg: float = 1.0
-    caster_radius_m: float = 0.04
-    caster_offset_m: float = 0.22  # ahead and behind the axle
-    max_wheel_torque_nm: float = 20.0
-    max_linear_mps: float = 1.0
-    max_angular_radps: float = 2.0
-    max_linear_accel_mps2: float = 1.5
-    max_angular_accel_radps2: float = 4.0
-    cmd_timeout_s: float = 0.5
-    colour: tuple[float, float, float, float] = (0.95, 0.75, 0.1, 1.0)
-
-    @property
-    def radius_m(self) -> float:
-        """Circumscribed radius of the footprint (for clearance checks)."""
-        hx, hy, _ = self.chassis_half_extents
-        half_width = max(hy, self.track_m / 2 + self.wheel_radius_m)  # ball-shaped wheels
-        return math.hypot(max(hx, self.caster_offset_m), half_width)
-
-    @property
-    def base_height_m(self) -> float:
-        """Height of the base frame (chassis centre) above flat ground at rest."""
-        return self.wheel_radius_m + self.chassis_half_extents[2] * 0.6
 
 
 class DiffDriveRobot:
@@ -63,14 +32,14 @@ class DiffDriveRobot:
     def __init__(
         self,
         client: int,
-        spec: RobotSpec | None = None,
+        config: RobotConfig | None = None,
         *,
         xy: tuple[float, float] = (0.0, 0.0),
         ground_z: float = 0.0,
         yaw: float = 0.0,
     ):
         self.client = client
-        self.spec = s = spec or RobotSpec()
+        self.config = s = config or RobotConfig()
         hx, hy, hz = s.chassis_half_extents
         axle_z = s.wheel_radius_m - s.base_height_m  # axle height in the base frame
         caster_z = s.caster_radius_m - s.base_height_m + 0.005  # a hair above the ground
@@ -142,12 +111,12 @@ class DiffDriveRobot:
         self.timed_out = True
 
     def command(self, linear_mps: float, angular_radps: float, now_s: float) -> None:
-        """Set the target twist (clamped to the spec's limits). Non-finite values are refused."""
+        """Set the target twist (clamped to the config's limits). Non-finite values are refused."""
         if not (math.isfinite(linear_mps) and math.isfinite(angular_radps)):
             raise ValueError(
                 f"velocity command must be finite, got ({linear_mps}, {angular_radps})"
             )
-        s = self.spec
+        s = self.config
         v = min(max(float(linear_mps), -s.max_linear_mps), s.max_linear_mps)
         w = min(max(float(angular_radps), -s.max_angular_radps), s.max_angular_radps)
         self.target = (v, w)
@@ -156,7 +125,7 @@ class DiffDriveRobot:
 
     def update(self, now_s: float, dt_s: float) -> None:
         """Apply the command timeout and rate limits, then set the wheel motors."""
-        s = self.spec
+        s = self.config
         if now_s - self.last_command_s > s.cmd_timeout_s:
             self.target = (0.0, 0.0)
             self.timed_out = True
@@ -201,7 +170,7 @@ class DiffDriveRobot:
         return float(r[:, 0] @ np.array(lin)), float(np.array(ang)[2])
 
     def reset(self, xy: tuple[float, float], ground_z: float, yaw: float) -> None:
-        pos = [xy[0], xy[1], ground_z + self.spec.base_height_m + 0.01]
+        pos = [xy[0], xy[1], ground_z + self.config.base_height_m + 0.01]
         orn = matrix_to_quat(_rot_z(yaw))
         p.resetBasePositionAndOrientation(self.body, pos, orn, physicsClientId=self.client)
         p.resetBaseVelocity(self.body, [0, 0, 0], [0, 0, 0], physicsClientId=self.client)

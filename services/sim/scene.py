@@ -1,4 +1,4 @@
-"""A `GardenWorld` turned into PyBullet bodies, in a DIRECT (headless, CPU) physics client.
+"""A `World` turned into PyBullet bodies, in a DIRECT (headless, CPU) physics client.
 
 The ground is one height-field body, so its class cannot come from the body id: sensors ask the
 world's ground-class raster at the hit's (x, y) instead. Every other body has one class.
@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pybullet as p
 
-from .world import BOX, CYLINDER, GardenWorld, Primitive, WorldObject
+from .worlds import BOX, CYLINDER, Primitive, World, WorldObject
 
 GROUND = -2  # label_lut value: look the class up in the ground raster
 DROP = -1  # label_lut value: not part of the world (the robot); sensors drop these hits
@@ -31,7 +31,7 @@ def transform_points(points: np.ndarray, m: np.ndarray) -> np.ndarray:
 class BulletScene:
     """Owns one PyBullet client holding the world's bodies."""
 
-    def __init__(self, world: GardenWorld, *, gui: bool = False, gravity: float = 9.81):
+    def __init__(self, world: World, *, gui: bool = False, gravity: float = 9.81):
         self.world = world
         self.client = p.connect(p.GUI if gui else p.DIRECT)
         self._labels: dict[int, int] = {}

@@ -2,11 +2,11 @@
 
 Publishes, at rates counted in simulated time:
 - `robot/pose` (with the configured pose noise) and `robot/pose_truth`, at `pose_rate_hz`;
-- `robot/cloud`: one camera `SemanticCloud` per frame at `camera_rate_hz` (and, with
-  `publish_images`, `robot/image/{rgb,depth,semantic}`);
-- `robot/scan`: LiDAR `SemanticCloud`s at `lidar_rate_hz` when `lidar_enabled`;
+- `robot/cloud`: one camera `SemanticCloud` per frame at `camera.rate_hz` (and, with
+  `camera.publish_images`, `robot/image/{rgb,depth,semantic}`);
+- `robot/scan`: LiDAR `SemanticCloud`s at `lidar.rate_hz` when `lidar.enabled`;
 - `robot/clock`: `{"sim_time_s", "real_time_factor"}` (the factor actually achieved).
-Subscribes to `robot/cmd_vel`; the base stops `cmd_timeout_s` after the last command.
+Subscribes to `robot/cmd_vel`; the base stops `robot.cmd_timeout_s` after the last command.
 
 Pacing: simulated time follows the wall clock times `real_time_factor`. When rendering cannot
 keep up, the debt is dropped rather than caught up in a burst (counted as `lag_resets`), so the
@@ -52,8 +52,8 @@ class SimService(Service):
         self.pose_seq = 0
         self.image_seq = 0
         self.period_pose = 1.0 / sc.pose_rate_hz
-        self.period_camera = 1.0 / sc.camera_rate_hz
-        self.period_lidar = 1.0 / sc.lidar_rate_hz
+        self.period_camera = 1.0 / sc.camera.rate_hz
+        self.period_lidar = 1.0 / sc.lidar.rate_hz
         self.period_clock = 1.0 / sc.clock_rate_hz
         self._wall0: float | None = None
         self.awaiting: int | None = None  # lockstep: the cloud seq we wait for
@@ -78,11 +78,11 @@ class SimService(Service):
         self.next_pose = self.next_camera = self.next_lidar = self.next_clock = t
         self._sim0 = t
         self._rtf_mark = (time.monotonic(), t)
-        # Degrading and encoding a frame runs on a worker (`camera_worker`, see finishing.py)
+        # Degrading and encoding a frame runs on a worker (`camera.worker`, see finishing.py)
         # while the loop steps physics and renders the next. Not in lockstep,
         # where the world must not move between a cloud and its MapDelta.
         worker = make_worker(
-            "off" if sc.lockstep else sc.camera_worker,
+            "off" if sc.lockstep else sc.camera.worker,
             sc,
             sim.finisher,
             sim.world.classes.colour_lut,
@@ -100,7 +100,7 @@ class SimService(Service):
         self.truth_pub = self.publisher(keys.pose_truth(r))
         self.clock_pub = self.publisher(keys.clock(r))
         self.image_pubs = {}
-        if sc.publish_images:
+        if sc.camera.publish_images:
             for kind in ("rgb", "depth", "semantic"):
                 self.image_pubs[kind] = self.publisher(keys.image(r, kind))
         self.subscribe(keys.cmd_vel(r), self.on_cmd, VelocityCommand)
@@ -113,10 +113,10 @@ class SimService(Service):
             w.name,
             *w.size_m,
             len(w.objects),
-            sc.camera_width,
-            sc.camera_height,
-            sc.camera_rate_hz,
-            f"{sc.lidar_rate_hz:.1f} Hz" if sc.lidar_enabled else "off",
+            sc.camera.width,
+            sc.camera.height,
+            sc.camera.rate_hz,
+            f"{sc.lidar.rate_hz:.1f} Hz" if sc.lidar.enabled else "off",
             sc.noise,
             sc.pose_noise_xy_m,
             sc.pose_noise_yaw_rad,
@@ -181,9 +181,9 @@ class SimService(Service):
 
     def _next_event(self) -> float:
         t = [self.next_pose, self.next_clock]
-        if self.sc.camera_enabled:
+        if self.sc.camera.enabled:
             t.append(self.next_camera)
-        if self.sc.lidar_enabled:
+        if self.sc.lidar.enabled:
             t.append(self.next_lidar)
         return min(t)
 
@@ -200,17 +200,19 @@ class SimService(Service):
         if t >= self.next_clock:
             self.next_clock = _next(self.next_clock, self.period_clock, sim.time_s)
             self.clock_pub.put({"sim_time_s": sim.time_s, "real_time_factor": self.achieved_rtf})
-        if sc.camera_enabled and t >= self.next_camera:
+        if sc.camera.enabled and t >= self.next_camera:
             self.next_camera = _next(self.next_camera, self.period_camera, sim.time_s)
             t0 = time.perf_counter()
             pending = sim.capture_camera()
             if self._worker is None:
-                self._publish_frame(finished(sim.finish_camera(pending), sc.publish_images), t0)
+                self._publish_frame(
+                    finished(sim.finish_camera(pending), sc.camera.publish_images), t0
+                )
                 sent_cloud = True
             else:
                 self._drain(block=True)  # one frame in flight at most: order, bounded memory
                 self._in_flight.append((self._worker.submit(self._finish, pending), t0))
-        if sc.lidar_enabled and t >= self.next_lidar:
+        if sc.lidar.enabled and t >= self.next_lidar:
             self.next_lidar = _next(self.next_lidar, self.period_lidar, sim.time_s)
             t0 = time.perf_counter()
             scan = sim.lidar_scan()

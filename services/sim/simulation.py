@@ -1,9 +1,9 @@
 """The simulator core: world, physics, robot, sensors and degradation, without zenoh.
 
-    from smana.common.config import SimConfig
+    from smana.common.config.sim import CameraConfig, SimConfig
     from smana.services.sim.simulation import Simulation
 
-    with Simulation(SimConfig(noise="medium", camera_width=320, camera_height=320)) as sim:
+    with Simulation(SimConfig(noise="medium", camera=CameraConfig(width=320, height=320))) as sim:
         sim.set_velocity(0.3, 0.2)
         sim.step(0.5)                      # simulated seconds
         frame = sim.camera_frame()         # images + labelled cloud (world frame, published pose)
@@ -13,7 +13,9 @@
 
 Time is simulated time (`sim.time_s`), advanced only by `step`; the service paces it against the
 wall clock. Random streams (label redraws, confidences, pose noise) are separate children of the
-config's seed, so enabling one kind of noise does not change the draws of another.
+config's seed, so enabling one kind of noise does not change the draws of another. The parts
+receive their sections of the config as they are: the world `sim.world` (services/sim/worlds),
+the robot `[sim.robot]`, the camera `[sim.camera]`, the LiDAR `[sim.lidar]`.
 """
 
 from __future__ import annotations
@@ -29,12 +31,12 @@ from smana.common.classes import ClassTable
 from smana.common.config import SimConfig
 from smana.common.messages import Pose, SemanticCloud, matrix_to_quat
 
-from .camera import CameraCapture, CameraSpec, SemanticCamera
+from .camera import CameraCapture, SemanticCamera
 from .degrade import LabelDegrader, PoseNoise
-from .lidar import Lidar, LidarSpec
-from .robot import DiffDriveRobot, RobotSpec
+from .lidar import Lidar
+from .robot import DiffDriveRobot
 from .scene import DROP, BulletScene, transform_points
-from .world import GardenWorld
+from .worlds import World, build_world
 
 
 @dataclass
@@ -123,7 +125,7 @@ class FrameFinisher:
 
     def __init__(self, config: SimConfig, colour_lut: np.ndarray):
         labels_ss, conf_ss, _ = _seed_sequences(config.seed)
-        self.stride = config.camera_stride
+        self.stride = config.camera.stride
         self.degrader = LabelDegrader(
             config.noise,
             np.random.default_rng(labels_ss),
@@ -173,43 +175,23 @@ class Simulation:
         config: SimConfig | None = None,
         *,
         classes: ClassTable | None = None,
-        world: GardenWorld | None = None,
+        world: World | None = None,
     ):
         self.config = cfg = config or SimConfig()
         classes = classes or (world.classes if world else ClassTable.load("garden3drms"))
-        self.world = world or GardenWorld.from_config(cfg, classes)
+        self.world = world or build_world(cfg, classes)
         self.scene = BulletScene(self.world)
         self.dt_physics = 1.0 / cfg.physics_hz
         p.setTimeStep(self.dt_physics, physicsClientId=self.scene.client)
-        robot_spec = RobotSpec(
-            max_linear_mps=cfg.max_linear_mps,
-            max_angular_radps=cfg.max_angular_radps,
-            cmd_timeout_s=cfg.cmd_timeout_s,
-        )
         if cfg.spawn:
             x, y, yaw = (float(v) for v in cfg.spawn)
             z = float(self.world.ground.height_at(x, y))
         else:
-            x, y, z = self.world.spawn_pose(robot_spec.radius_m + 0.05)
+            x, y, z = self.world.spawn_pose(cfg.robot.radius_m + 0.05)
             yaw = 0.0
-        self.robot = DiffDriveRobot(self.scene.client, robot_spec, xy=(x, y), ground_z=z, yaw=yaw)
+        self.robot = DiffDriveRobot(self.scene.client, cfg.robot, xy=(x, y), ground_z=z, yaw=yaw)
         self.scene.register(self.robot.body, DROP)
-        self.camera_spec = CameraSpec(
-            width=cfg.camera_width,
-            height=cfg.camera_height,
-            fov_deg=cfg.camera_fov_deg,
-            max_range_m=cfg.camera_max_range_m,
-        )
-        self.camera_spec.validate()
         self._camera: SemanticCamera | None = None
-        self.lidar_spec = LidarSpec(
-            channels=cfg.lidar_channels,
-            columns=cfg.lidar_columns,
-            vfov_deg=cfg.lidar_vfov_deg,
-            max_range_m=cfg.lidar_max_range_m,
-            min_range_m=cfg.lidar_min_range_m,
-        )
-        self.lidar_spec.validate()
         self._lidar: Lidar | None = None
         self.finisher = FrameFinisher(cfg, self.world.classes.colour_lut)
         self.degrader = self.finisher.degrader
@@ -257,13 +239,13 @@ class Simulation:
     @property
     def camera(self) -> SemanticCamera:
         if self._camera is None:
-            self._camera = SemanticCamera(self.scene, self.camera_spec)
+            self._camera = SemanticCamera(self.scene, self.config.camera)
         return self._camera
 
     @property
     def lidar(self) -> Lidar:
         if self._lidar is None:  # builds ~131k rays' lists: only when asked for
-            self._lidar = Lidar(self.scene, self.lidar_spec, parent_body=self.robot.body)
+            self._lidar = Lidar(self.scene, self.config.lidar, parent_body=self.robot.body)
         return self._lidar
 
     def camera_frame(self, stride: int | None = None, timings: dict | None = None) -> CameraFrame:
@@ -276,7 +258,7 @@ class Simulation:
         on the thread that owns the simulation)."""
         base_true = self.robot.matrix()
         base_pub = self.pose_noise.apply(base_true)
-        mount = self.camera_spec.mount_matrix()
+        mount = self.config.camera.mount_matrix()
         cap = self.camera.capture(base_true @ mount, timings)
         self.cloud_seq += 1
         self.camera_frames += 1
@@ -294,7 +276,7 @@ class Simulation:
         base_true = self.robot.matrix()
         base_pub = self.pose_noise.apply(base_true)
         hits = self.lidar.scan(base_true, timings)
-        world_from_sensor = base_pub @ self.lidar_spec.mount_matrix()
+        world_from_sensor = base_pub @ self.config.lidar.mount_matrix()
         self.cloud_seq += 1
         self.lidar_scans += 1
         return LidarScan(

@@ -3,9 +3,11 @@
     smana world export  --seed 3 --out gt.ply          # labelled ground-truth cloud (PLY)
     smana world preview --seed 3 --out world.png       # top-down picture of the classes
     smana world info    --seed 3                       # object counts, free share (JSON)
+    smana world preview --world ply:garden.ply --out world.png
 
-Every subcommand takes either `--seed/--size` (procedural garden) or `--ply` (a world built from
-a labelled cloud, as `smana sim --world ply:PATH` would build it).
+Every subcommand takes `--world` as `sim.world` does (resolved by the registry in
+services/sim/worlds: `garden`, the default, with `--seed/--size`; `ply:PATH`, or `--ply PATH`,
+with `--voxel`; an out-of-tree `module:Class`), and builds the world `smana sim` would build.
 """
 
 from __future__ import annotations
@@ -19,33 +21,44 @@ import numpy as np
 
 from smana.common.cli import ArgumentParser, int_in, output_file, positive_float
 
-from .world import GardenWorld, WorldError
+from .worlds import World, WorldError, build_world
 
 
 def _world_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=int, default=0, help="procedural garden seed (default 0)")
     p.add_argument(
-        "--size", type=positive_float, default=12.0, help="side of the square world, metres"
+        "--world", default=None, help="a sim.world value: garden (default), ply:PATH, module:Class"
+    )
+    p.add_argument("--seed", type=int, default=0, help="world seed (default 0)")
+    p.add_argument(
+        "--size", type=positive_float, default=None, help="side of the procedural garden, m"
     )
     p.add_argument(
         "--ground-resolution", type=positive_float, default=None, help="height field cell, m"
     )
-    p.add_argument("--ply", type=Path, default=None, help="build the world from a labelled PLY")
+    p.add_argument("--ply", type=Path, default=None, help="the same as --world ply:PATH")
     p.add_argument(
-        "--voxel", type=positive_float, default=0.05, help="object voxel size for --ply, m"
+        "--voxel", type=positive_float, default=None, help="object voxel size for a PLY, m"
     )
     p.add_argument("--classes", default="garden3drms", help="class table name or TOML path")
 
 
-def build_world(args: argparse.Namespace) -> GardenWorld:
+def world_from_args(args: argparse.Namespace) -> World:
+    """The world the flags describe, built through the registry as `smana sim` would build it."""
     from smana.common.classes import ClassTable
+    from smana.common.config.sim import GardenConfig, PlyConfig, SimConfig
 
-    classes = ClassTable.load(args.classes)
-    if args.ply is not None:
-        kw = {"ground_resolution_m": args.ground_resolution} if args.ground_resolution else {}
-        return GardenWorld.from_ply(args.ply, classes, voxel_m=args.voxel, **kw)
-    kw = {"ground_resolution_m": args.ground_resolution} if args.ground_resolution else {}
-    return GardenWorld.generate(args.seed, size_m=args.size, classes=classes, **kw)
+    garden, ply = {}, {}
+    if args.size is not None:
+        garden["size_m"] = args.size
+    if args.ground_resolution is not None:
+        garden["ground_resolution_m"] = ply["ground_resolution_m"] = args.ground_resolution
+    if args.voxel is not None:
+        ply["voxel_m"] = args.voxel
+    world = args.world or (f"ply:{args.ply}" if args.ply is not None else "garden")
+    config = SimConfig(
+        world=world, seed=args.seed, garden=GardenConfig(**garden), ply=PlyConfig(**ply)
+    )
+    return build_world(config, ClassTable.load(args.classes))
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -68,7 +81,7 @@ def cli(argv: list[str] | None = None) -> int:
         output_file(args.out)  # before the world is built, not after
 
     try:
-        world = build_world(args)
+        world = world_from_args(args)
         if args.command == "export":
             n = world.export_ply(args.out, args.spacing)
             print(f"wrote {n} points to {args.out}")
