@@ -129,7 +129,10 @@ class Planner:
             "unknown_cost": unknown_cost,
             "heuristic": heuristic,
         }
-        overrides = {k: v for k, v in given.items() if v is not None}
+        # a PathRequest always carries unknown_cost: values equal to the config's need no check
+        overrides = {
+            k: v for k, v in given.items() if v is not None and v != getattr(self.config, k)
+        }
         try:
             p = dataclasses.replace(self.config, **overrides) if overrides else self.config
             lut = self.classes.costs(class_costs or {})
