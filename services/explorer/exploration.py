@@ -241,7 +241,7 @@ class Explorer:
         spacing = max(1, int(round(self.config.candidate_spacing_m / g.resolution_m)))
         cells = fr.sample_candidates(front, spacing)
         cells = self._drop_blacklisted(cells)
-        opaque = (g.flags & fr.OBSTACLE).astype(bool) & (g.flags & fr.KNOWN).astype(bool)
+        opaque = fr.opaque_mask(g.flags)
         gains, yaws = fr.view_gains(
             unknown, opaque if self.config.view.occlusion else None, cells, self._fov
         )
@@ -398,7 +398,7 @@ class Explorer:
         must not cross an obstacle node: a robot caught in a safety zone that just appeared
         around it backs out on the open side, not through the obstacle to a nearer node."""
         g = self.grid
-        comp, _ = ndimage.label(free, structure=np.ones((3, 3), bool))
+        comp, _ = ndimage.label(free, structure=fr.EIGHT_CONNECTED)
         cell = np.array(g.cell_of(xy))
         r = int(math.ceil(self.config.start_search_radius_m / g.resolution_m))
         lo = np.maximum(cell - r, 0)
@@ -463,7 +463,7 @@ class Explorer:
     def _goal_gain(self) -> float:
         g = self.grid
         cell = self.goal.choice.cell.reshape(1, 2)
-        opaque = (g.flags & fr.OBSTACLE).astype(bool) & (g.flags & fr.KNOWN).astype(bool)
+        opaque = fr.opaque_mask(g.flags)
         gains, _ = fr.view_gains(
             fr.unknown_mask(g.flags),
             opaque if self.config.view.occlusion else None,

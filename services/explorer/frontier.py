@@ -31,7 +31,7 @@ from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 # the navigation graph's node flags, under the short names this module has always used
 KNOWN, OBSTACLE, SAFETY_ZONE = FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 
-_EIGHT = np.ones((3, 3), bool)
+EIGHT_CONNECTED = np.ones((3, 3), bool)  # the planner's graph: what is reachable here is there
 
 
 # -- which nodes are free, reachable, on the frontier -----------------------------------------
@@ -71,12 +71,18 @@ def reachable_mask(free: np.ndarray, start: tuple[int, int]) -> np.ndarray:
     ix, iy = start
     if not (0 <= ix < free.shape[0] and 0 <= iy < free.shape[1]) or not free[ix, iy]:
         return np.zeros(free.shape, bool)
-    comp, _ = ndimage.label(free, structure=_EIGHT)
+    comp, _ = ndimage.label(free, structure=EIGHT_CONNECTED)
     return comp == comp[ix, iy]
 
 
 def unknown_mask(flags: np.ndarray) -> np.ndarray:
     return (np.asarray(flags) & KNOWN) == 0
+
+
+def opaque_mask(flags: np.ndarray) -> np.ndarray:
+    """Known obstacle nodes: what hides the view behind it (`view_gains`' `opaque`)."""
+    flags = np.asarray(flags)
+    return ((flags & KNOWN) != 0) & ((flags & OBSTACLE) != 0)
 
 
 def frontier_cells(reachable: np.ndarray, unknown: np.ndarray) -> np.ndarray:
@@ -85,7 +91,7 @@ def frontier_cells(reachable: np.ndarray, unknown: np.ndarray) -> np.ndarray:
     Space outside the grid box is not unknown: the graph has fixed bounds and nothing outside them
     can ever be mapped, so a border node is a frontier only if it touches unknown nodes inside.
     """
-    near_unknown = ndimage.binary_dilation(unknown, structure=_EIGHT, border_value=0)
+    near_unknown = ndimage.binary_dilation(unknown, structure=EIGHT_CONNECTED, border_value=0)
     return np.argwhere(reachable & near_unknown)
 
 
