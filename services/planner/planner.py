@@ -6,6 +6,9 @@ include start and goal (and by one tile more when unknown nodes may be crossed, 
 a frontier can go round the known area). The window's dense arrays are cached until the grid
 changes. A node can be entered when it is known and traversable (cost t_f * T(l)); an obstacle or
 safety-zone node never; an unknown node only when the request allows it, at `unknown_cost`.
+
+Its parameters are the [planner] config section as it is (`PlannerConfig`): the defaults of every
+query, which a request may override one by one (h_f, t_f, max_step_m, unknown_cost, heuristic).
 """
 
 from __future__ import annotations
