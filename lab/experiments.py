@@ -148,7 +148,9 @@ def fixed_trajectory(
 
 
 @dataclass
-class NoiseSettings:
+class NoiseExperimentConfig:
+    """What `smana experiment noise` renders and sweeps: world, trajectory, camera, map."""
+
     world_seed: int = 3
     size_m: float = 12.0
     length_m: float = 44.0
@@ -163,7 +165,7 @@ class NoiseSettings:
     levels: tuple[str, ...] = LEVELS
 
     @classmethod
-    def quick(cls) -> NoiseSettings:
+    def quick(cls) -> NoiseExperimentConfig:
         return cls(
             size_m=12.0,
             length_m=6.0,
@@ -211,7 +213,7 @@ def _cloud(frame, labels_img, base_used, stride):
     return pts, labels_img[rows, cols].astype(np.uint16), sensor[:3, 3]
 
 
-def run_noise(settings: NoiseSettings, out: Path, log=print) -> list[dict]:
+def run_noise(settings: NoiseExperimentConfig, out: Path, log=print) -> list[dict]:
     """Both sweeps for every back-end; returns one row per (back-end, sweep, level)."""
     from smana.common.classes import ClassTable
     from smana.services.mapper.semantic_map import SemanticMap
@@ -454,7 +456,9 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
 
 
 @dataclass
-class ExplorationSettings:
+class ExplorationExperimentConfig:
+    """What `smana experiment exploration` runs: one `smana up` per seed and grass cost factor."""
+
     seeds: tuple[int, ...] = (3, 4, 5)
     cost_factors: tuple[float, ...] = (1.0, 2.0, 4.0)
     size_m: float = 12.0
@@ -462,7 +466,7 @@ class ExplorationSettings:
     extra: tuple[str, ...] = ()  # more --set overrides for every run
 
     @classmethod
-    def quick(cls) -> ExplorationSettings:
+    def quick(cls) -> ExplorationExperimentConfig:
         # a 6 m garden, a small camera and a 10 cm map: two short closed loops for the test suite
         small = (
             "sim.camera.width=160",
@@ -474,7 +478,7 @@ class ExplorationSettings:
         return cls(seeds=(3,), cost_factors=(1.0, 4.0), size_m=6.0, budget_s=20.0, extra=small)
 
 
-def exploration_run(out: Path, seed: int, factor: float, s: ExplorationSettings, log=print):
+def exploration_run(out: Path, seed: int, factor: float, s: ExplorationExperimentConfig, log=print):
     """One `smana up` run with grass at `factor` times terrain's cost; returns its metrics."""
     from smana.common.classes import ClassTable
 
@@ -519,7 +523,7 @@ def exploration_run(out: Path, seed: int, factor: float, s: ExplorationSettings,
     return code, metrics or {}
 
 
-def run_exploration(s: ExplorationSettings, out: Path, log=print) -> list[dict]:
+def run_exploration(s: ExplorationExperimentConfig, out: Path, log=print) -> list[dict]:
     rows = []
     for seed in s.seeds:
         for factor in s.cost_factors:
@@ -571,7 +575,7 @@ def summarise_exploration(rows: list[dict]) -> list[dict]:
     return out
 
 
-def write_exploration_outputs(rows: list[dict], s: ExplorationSettings, out: Path) -> None:
+def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "exploration_results.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -673,7 +677,7 @@ def cli(argv: list[str] | None = None) -> int:
         SmanaConfig.load(overrides=args.extra)  # a bad --set: ConfigError now, not in every run
     output_dir(out, "output directory", "--out")
     if args.which == "noise":
-        s = NoiseSettings.quick() if args.quick else NoiseSettings()
+        s = NoiseExperimentConfig.quick() if args.quick else NoiseExperimentConfig()
         if args.backends:
             s.backends = tuple(b.strip() for b in args.backends.split(",") if b.strip())
             bad = [b for b in s.backends if b not in BACKENDS]
@@ -684,7 +688,7 @@ def cli(argv: list[str] | None = None) -> int:
         run_noise(s, out)
         print(f"results in {out} (noise_summary.md)")
     else:
-        s = ExplorationSettings.quick() if args.quick else ExplorationSettings()
+        s = ExplorationExperimentConfig.quick() if args.quick else ExplorationExperimentConfig()
         if args.seeds:
             s.seeds = tuple(range(3, 3 + args.seeds))
         if args.budget:

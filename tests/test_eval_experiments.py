@@ -75,7 +75,7 @@ def test_exploration_outputs_from_rows(tmp_path):
                 }
             )
     rows.append({**rows[0], "seed": 5, "terrain_share": None, "exit_code": 1})
-    exp.write_exploration_outputs(rows, exp.ExplorationSettings(seeds=(3, 4, 5)), tmp_path)
+    exp.write_exploration_outputs(rows, exp.ExplorationExperimentConfig(seeds=(3, 4, 5)), tmp_path)
     summary = json.loads((tmp_path / "exploration_results.json").read_text())["summary"]
     x1 = summary[0]
     assert x1["runs"] == 3 and x1["terrain_share_mean"] == pytest.approx(0.585)

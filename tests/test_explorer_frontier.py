@@ -7,7 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from smana.common.config.explorer import ViewConfig
 from smana.services.explorer import frontier as fr
+from smana.services.explorer.reference import view_gains_reference
 
 TRAV = np.zeros(9, bool)
 TRAV[[1, 2]] = True  # garden: grass, terrain
@@ -100,51 +102,21 @@ def test_sample_candidates_one_per_block_nearest_centre():
 # -- gains --------------------------------------------------------------------------------------
 
 
-def _gain_reference(unknown, opaque, cand, res, fov_deg, rmax, rmin, yaw, spc=2):
-    """Count unknown cells in the sector, one cell at a time, with the same line-of-sight rule."""
-    nx, ny = unknown.shape
-    cx, cy = cand
-    n = 0
-    for i in range(nx):
-        for j in range(ny):
-            dx, dy = i - cx, j - cy
-            if (dx, dy) == (0, 0) or not unknown[i, j]:
-                continue
-            d = math.hypot(dx, dy) * res
-            if d > rmax or d < rmin:
-                continue
-            diff = (math.atan2(dy, dx) - yaw + math.pi) % (2 * math.pi) - math.pi
-            if abs(diff) > math.radians(fov_deg) / 2 + 1e-9:
-                continue
-            if opaque is not None:
-                steps = math.ceil(math.hypot(dx, dy) * spc)
-                hit = False
-                for s in range(1, steps):
-                    px = math.floor(cx + s / steps * dx + 0.5)
-                    py = math.floor(cy + s / steps * dy + 0.5)
-                    if (px, py) != (i, j) and opaque[px, py]:
-                        hit = True
-                        break
-                if hit:
-                    continue
-            n += 1
-    return n * res * res
-
-
 @pytest.mark.parametrize("occlusion", [False, True])
 def test_view_gains_match_reference(occlusion):
     rng = np.random.default_rng(7)
     unknown = rng.random((24, 20)) < 0.5
     opaque = (~unknown) & (rng.random((24, 20)) < 0.2)
-    fov = fr.FovModel.build(0.2, 57.0, 2.0, 0.3, n_yaw=8)
+    fov = fr.FovModel.build(
+        0.2, ViewConfig(fov_deg=57.0, max_range_m=2.0, min_range_m=0.3, n_yaw=8)
+    )
     cands = np.array([[5, 5], [12, 10], [0, 0], [23, 19], [20, 3]])
     gains, best = fr.view_gains(unknown, opaque if occlusion else None, cands, fov)
     assert gains.shape == (5, 8)
+    ref = view_gains_reference(unknown, opaque if occlusion else None, cands, 0.2, fov.view)
     for c, cand in enumerate(cands):
         for k, yaw in enumerate(fov.yaws):
-            want = _gain_reference(
-                unknown, opaque if occlusion else None, cand, 0.2, 57.0, 2.0, 0.3, yaw
-            )
+            want = ref[c, k]
             assert gains[c, k] == pytest.approx(want), (cand, yaw)
         assert best[c] == fov.yaws[np.argmax(gains[c])]
 
@@ -154,7 +126,9 @@ def test_a_wall_hides_what_is_behind_it():
     unknown[20:, :] = True  # unknown beyond x = 20
     opaque = np.zeros((30, 30), bool)
     opaque[18, :] = True  # a hedge across the view
-    fov = fr.FovModel.build(0.1, 57.0, 2.5, 0.0, n_yaw=4)
+    fov = fr.FovModel.build(
+        0.1, ViewConfig(fov_deg=57.0, max_range_m=2.5, min_range_m=0.0, n_yaw=4)
+    )
     g_open, _ = fr.view_gains(unknown, None, [[10, 15]], fov)
     g_wall, _ = fr.view_gains(unknown, opaque, [[10, 15]], fov)
     assert g_open[0, 0] > 1.0  # facing +x sees the unknown strip without the wall
@@ -163,22 +137,24 @@ def test_a_wall_hides_what_is_behind_it():
 
 
 def test_full_disc_area_with_a_360_degree_fov():
-    fov = fr.FovModel.build(0.05, 360.0, 1.0, 0.0, n_yaw=1)
+    fov = fr.FovModel.build(
+        0.05, ViewConfig(fov_deg=360.0, max_range_m=1.0, min_range_m=0.0, n_yaw=1)
+    )
     unknown = np.ones((60, 60), bool)
     gains, _ = fr.view_gains(unknown, None, [[30, 30]], fov)
     assert gains[0, 0] == pytest.approx(math.pi, rel=0.03)
 
 
 def test_view_gains_rejects_bad_input():
-    fov = fr.FovModel.build(0.2)
+    fov = fr.FovModel.build(0.2, ViewConfig(min_range_m=0.0))
     with pytest.raises(ValueError):
         fr.view_gains(np.zeros((5, 5), bool), None, [[5, 0]], fov)
     with pytest.raises(ValueError):
         fr.view_gains(np.zeros((5, 5), bool), np.zeros((4, 5), bool), [[0, 0]], fov)
     with pytest.raises(ValueError):
-        fr.FovModel.build(0.2, fov_deg=0)
+        fr.FovModel.build(0.2, ViewConfig(fov_deg=0))
     with pytest.raises(ValueError):
-        fr.FovModel.build(0.2, max_range_m=1.0, min_range_m=2.0)
+        fr.FovModel.build(0.2, ViewConfig(max_range_m=1.0, min_range_m=2.0))
     g, b = fr.view_gains(np.zeros((5, 5), bool), None, np.zeros((0, 2)), fov)
     assert g.shape == (0, 16) and b.shape == (0,)
 
@@ -232,7 +208,10 @@ def test_select_view_none_when_nothing_is_worth_it_and_honours_query_cap():
         calls.append(goal)
         return None
 
-    assert fr.select_view(xy, xy, [0.1, 0.2, 0.3], [0, 0, 0], [0, 0], cost, 1.0, 0.5) is None
+    assert (
+        fr.select_view(xy, xy, [0.1, 0.2, 0.3], [0, 0, 0], [0, 0], cost, 1.0, 0.5, max_queries=12)
+        is None
+    )
     assert calls == []
     assert (
         fr.select_view(xy, xy, [5, 5, 5], [0, 0, 0], [0, 0], cost, 1.0, 0.5, max_queries=2) is None

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from smana.common.config.explorer import ExplorerConfig, FollowerConfig, ViewConfig
 from smana.services.explorer import frontier as fr
-from smana.services.explorer.exploration import ExplorationParams, Explorer, GridBox
-from smana.services.explorer.follower import FollowerConfig, wrap_angle
+from smana.services.explorer.exploration import Explorer, GridBox
+from smana.services.explorer.follower import wrap_angle
 
 RES = 0.2
 COST = np.array([np.inf, 2.0, 1.0, np.inf, np.inf, np.inf, np.inf, np.inf, np.inf])
@@ -49,7 +50,9 @@ class ToyWorld:
         self.disc = disc
         self.gt_safety = ndimage.binary_dilation(self.obstacle, disc) & ~self.obstacle
         self.known = np.zeros(labels.shape, bool)
-        self.fov = fr.FovModel.build(RES, 57.0, 3.0, 0.3, n_yaw=1)
+        self.fov = fr.FovModel.build(
+            RES, ViewConfig(fov_deg=57.0, max_range_m=3.0, min_range_m=0.3, n_yaw=1)
+        )
 
     def reveal(self, x, y, yaw):
         """Mark nodes the camera sees: in the sector, within range, line of sight not through a
@@ -128,11 +131,20 @@ class ToyWorld:
         return fr.reachable_mask(free, (int(start_xy[0] / RES), int(start_xy[1] / RES)))
 
 
+def _params(max_range_m=4.0, follower=None, **kw) -> ExplorerConfig:
+    """The explorer as these tests were written for it: the core's own defaults of the time
+    (budget 600 s, a 4 m view, the follower at 0.5 m/s, 1.2 rad/s, 0.15 m), now the config's."""
+    old = {"max_linear_mps": 0.5, "max_angular_radps": 1.2, "goal_tolerance_m": 0.15}
+    follower = FollowerConfig(**{**old, **(follower or {})})
+    kw.setdefault("time_budget_s", 600.0)
+    return ExplorerConfig(view=ViewConfig(max_range_m=max_range_m), follower=follower, **kw)
+
+
 def wrap_angle_arr(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
-def _run(world: ToyWorld, params: ExplorationParams, start=(1.0, 1.0, 0.0), dt=0.1, t_max=400.0):
+def _run(world: ToyWorld, params: ExplorerConfig, start=(1.0, 1.0, 0.0), dt=0.1, t_max=400.0):
     ex = Explorer(params, TRAV, 9)
     x, y, yaw = start
     clearance = math.inf
@@ -160,9 +172,9 @@ def _run(world: ToyWorld, params: ExplorationParams, start=(1.0, 1.0, 0.0), dt=0
 @pytest.mark.slow
 def test_explores_a_toy_garden_without_touching_obstacles():
     world = ToyWorld(_garden(1))
-    params = ExplorationParams(
+    params = _params(
         max_range_m=3.0,
-        follower=FollowerConfig(lookahead_m=0.3, max_linear_mps=0.5),
+        follower={"lookahead_m": 0.3, "max_linear_mps": 0.5},
         max_queries=6,
         time_budget_s=400,
     )
@@ -188,7 +200,7 @@ def test_grass_cost_shifts_travel_onto_terrain():
         world = ToyWorld(_garden(2))
         cost = COST.copy()
         cost[1] = grass_cost
-        params = ExplorationParams(max_range_m=3.0, max_queries=6, time_budget_s=150)
+        params = _params(max_range_m=3.0, max_queries=6, time_budget_s=150)
         ex = Explorer(params, TRAV, 9)
         x, y, yaw, t, dt = 1.0, 1.0, 0.0, 0.0, 0.1
         while t < 150 and not ex.done:
@@ -211,7 +223,7 @@ def test_grass_cost_shifts_travel_onto_terrain():
 def test_stops_when_nothing_is_left_and_on_budget():
     world = ToyWorld(_garden(3))
     world.known[:] = True  # everything already mapped: nothing to explore
-    ex = Explorer(ExplorationParams(empty_retry_s=0.2), TRAV, 9)
+    ex = Explorer(_params(empty_retry_s=0.2), TRAV, 9)
     ex.update_grid(world.grid())
     t = 0.0
     x, y, yaw = 1.0, 1.0, 0.0
@@ -225,7 +237,7 @@ def test_stops_when_nothing_is_left_and_on_budget():
     assert ex.done_reason == "no_frontier"
     assert t < 20  # one spin (about 9 s) and a few retries
 
-    ex = Explorer(ExplorationParams(time_budget_s=5.0), TRAV, 9)
+    ex = Explorer(_params(time_budget_s=5.0), TRAV, 9)
     world = ToyWorld(_garden(3))
     world.reveal(1.0, 1.0, 0.0)
     ex.update_grid(world.grid())
@@ -238,7 +250,7 @@ def test_stops_when_nothing_is_left_and_on_budget():
 def test_the_budget_starts_with_the_first_map_not_the_first_pose():
     # poses from t=0, but the map only arrives at t=50 (a stack still compiling): the 5 s budget
     # runs from there
-    ex = Explorer(ExplorationParams(time_budget_s=5.0), TRAV, 9)
+    ex = Explorer(_params(time_budget_s=5.0), TRAV, 9)
     for t in range(0, 50, 5):
         ex.update_pose(1.0, 1.0, 0.0, float(t))
         assert ex.wants_plan() is None and not ex.done
@@ -252,7 +264,7 @@ def test_the_budget_starts_with_the_first_map_not_the_first_pose():
     ex.update_pose(1.0, 1.0, 0.0, 56.0)
     assert ex.wants_plan() is None and ex.done_reason == "time_budget"
     # a restarted explorer keeps the budget's start, not the trajectory's
-    again = Explorer(ExplorationParams(time_budget_s=5.0), TRAV, 9)
+    again = Explorer(_params(time_budget_s=5.0), TRAV, 9)
     again.resume(ex.state_dict(), np.array(ex.trajectory))
     assert again.t_start == 50.0
 
@@ -260,7 +272,7 @@ def test_the_budget_starts_with_the_first_map_not_the_first_pose():
 def test_a_path_that_becomes_blocked_triggers_a_replan():
     world = ToyWorld(_garden(4))
     world.known[:20, :] = True
-    ex = Explorer(ExplorationParams(), TRAV, 9)
+    ex = Explorer(_params(), TRAV, 9)
     ex.update_grid(world.grid())
     ex.update_pose(1.0, 1.0, 0.0, 0.0)
     out = ex.plan(world.path_cost(ex.grid))
@@ -274,11 +286,11 @@ def test_a_path_that_becomes_blocked_triggers_a_replan():
 
 
 def test_bad_pose_is_rejected():
-    ex = Explorer(ExplorationParams(), TRAV, 9)
+    ex = Explorer(_params(), TRAV, 9)
     with pytest.raises(ValueError):
         ex.update_pose(float("nan"), 0.0, 0.0, 0.0)
     with pytest.raises(ValueError):
-        ExplorationParams(max_range_m=0)
+        _params(max_range_m=0)
 
 
 def test_a_robot_caught_in_a_safety_zone_backs_out_on_the_open_side():
@@ -292,7 +304,7 @@ def test_a_robot_caught_in_a_safety_zone_backs_out_on_the_open_side():
     flags[10, :] |= fr.OBSTACLE
     flags[[8, 9, 11], :] |= fr.SAFETY_ZONE
     g = GridBox(np.zeros(2), RES, labels, flags)
-    ex = Explorer(ExplorationParams(start_search_radius_m=1.0), TRAV, 9)
+    ex = Explorer(_params(start_search_radius_m=1.0), TRAV, 9)
     ex.update_grid(g)
     free = fr.traversable_mask(labels, flags, TRAV)
     x, y = 9.9 * RES, 6.5 * RES  # 2 cm from the wall node's edge, closer to the far side's free

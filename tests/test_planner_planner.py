@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from smana.common.classes import ClassTable
+from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, NavGrid
 from smana.services.navgraph.graph import NavGraph
-from smana.services.planner.planner import Planner, PlannerParams
+from smana.services.planner.planner import Planner
 from smana.services.planner.reference import dijkstra_cost
 
 CLASSES = ClassTable.load("garden3drms")
@@ -50,7 +51,7 @@ def test_cost_breakdown_adds_up_and_matches_dijkstra():
     # float32 like the grid stores them, so both searches see the same heights.
     heights = np.cumsum(rng.normal(0, 0.03, size=(30, 25)), axis=0).astype(np.float32)
     grid = dense_grid(labels, heights)
-    planner = Planner(grid, CLASSES, PlannerParams(h_f=0.5, t_f=0.8, max_step_m=0.1))
+    planner = Planner(grid, CLASSES, PlannerConfig(h_f=0.5, t_f=0.8, max_step_m=0.1))
     r = planner.plan((0.1, 0.1), (5.9, 4.9))
     assert r.ok, r.message
     parts = r.cost_distance + r.cost_height + r.cost_traversability

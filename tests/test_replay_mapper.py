@@ -23,7 +23,7 @@ N_SCANS = 5
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     root = tmp_path_factory.mktemp("synthetic")
-    params = syn.SyntheticParams(n_scans=N_SCANS, beams=16, columns=512, seed=1, noise_m=0.01)
+    params = syn.SyntheticConfig(n_scans=N_SCANS, beams=16, columns=512, seed=1, noise_m=0.01)
     syn.write_rellis_sequence(root, params)
     return root
 

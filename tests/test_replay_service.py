@@ -29,14 +29,14 @@ N_RUN = 12  # the --run sequence: scans large enough that the mapper and recorde
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     root = tmp_path_factory.mktemp("synthetic")
-    params = syn.SyntheticParams(n_scans=N_SCANS, beams=16, columns=256, noise_m=0.0)
+    params = syn.SyntheticConfig(n_scans=N_SCANS, beams=16, columns=256, noise_m=0.0)
     syn.write_rellis_sequence(root, params)
     return root
 
 
 @pytest.fixture(scope="module")
 def run_params():
-    return syn.SyntheticParams(n_scans=N_RUN, beams=32, columns=1024, noise_m=0.0)
+    return syn.SyntheticConfig(n_scans=N_RUN, beams=32, columns=1024, noise_m=0.0)
 
 
 @pytest.fixture(scope="module")

@@ -106,7 +106,7 @@ def test_full_os1_scan_shape():
 
 
 def test_written_sequence_reads_back_on_its_surfaces(tmp_path, world):
-    params = syn.SyntheticParams(n_scans=3, beams=16, columns=256, seed=3, noise_m=0.0)
+    params = syn.SyntheticConfig(n_scans=3, beams=16, columns=256, seed=3, noise_m=0.0)
     seq = syn.write_rellis_sequence(tmp_path, params)
     assert detect_format(tmp_path) == "rellis3d"
     truth = syn.trajectory_poses(world, 3, params.rate_hz, params.speed_mps)

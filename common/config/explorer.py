@@ -1,10 +1,53 @@
-"""[explorer] config section."""
+"""[explorer] config section: what `Explorer` (services/explorer/exploration.py) receives as it is.
+
+    [explorer]           the exploration loop: budget, candidates, scoring, replanning, giving up
+    [explorer.view]      the camera footprint a candidate view is scored with (`FovModel`)
+    [explorer.follower]  pure pursuit toward the chosen view (`PurePursuit`)
+
+The service-only keys (control rate, timeouts, class cost overrides) live in [explorer] too.
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
-from smana.common.config._schema import Section, param
+from smana.common.config._schema import ConfigError, Section, param, table
+
+
+@dataclass
+class ViewConfig(Section, section="explorer.view"):
+    """A candidate view: a sector of `fov_deg` from `min_range_m` to `max_range_m` around the
+    candidate node, tried at `n_yaw` headings (services/explorer/frontier.py)."""
+
+    fov_deg: float = param(57.0, gt=0, le=360)  # the camera's horizontal field of view
+    max_range_m: float = param(4.0, gt=0)  # how far a view is assumed to map the ground
+    # a camera a few decimetres above the ground does not see the ground right under its lens
+    min_range_m: float = param(0.3, ge=0)
+    n_yaw: int = param(16, gt=0)
+    occlusion: bool = True  # obstacle nodes hide what is behind them
+
+    def validate(self) -> None:
+        if self.min_range_m >= self.max_range_m:
+            raise ConfigError(
+                f"explorer.view.min_range_m: must be below explorer.view.max_range_m "
+                f"({self.max_range_m:g}), got {self.min_range_m:g}"
+            )
+
+
+@dataclass
+class FollowerConfig(Section, section="explorer.follower"):
+    """Pure pursuit with turn-in-place (services/explorer/follower.py)."""
+
+    lookahead_m: float = param(0.4, gt=0)
+    max_linear_mps: float = param(0.4, gt=0)
+    max_angular_radps: float = param(1.0, gt=0)
+    goal_tolerance_m: float = param(0.2, gt=0)
+    # heading error above which the robot stops and turns in place
+    turn_in_place_rad: float = param(math.radians(30), gt=0)
+    # heading error at which the forward speed has fallen to zero (linear taper up to there)
+    slow_down_rad: float = param(math.radians(45), gt=0)
+    final_yaw_tolerance_rad: float = param(math.radians(10), ge=0)
 
 
 @dataclass
@@ -15,26 +58,29 @@ class ExplorerConfig(Section, section="explorer"):
     startup_grace_s: float = param(120.0, ge=0)
     enabled: bool = True
     control_rate_hz: float = param(10.0, gt=0)
-    # next-best-view scoring (services/explorer/frontier.py)
-    fov_deg: float = param(57.0, gt=0)  # the camera's horizontal field of view
-    view_range_m: float = param(4.0, gt=0)  # how far a view is assumed to map the ground
-    view_min_range_m: float = param(0.3, ge=0)
-    n_yaw: int = param(16, gt=0)
-    occlusion: bool = True  # obstacle nodes hide what is behind them
-    candidate_spacing_m: float = param(0.6, gt=0)
+    # next-best-view choice (services/explorer/frontier.py::select_view)
+    candidate_spacing_m: float = param(0.6, gt=0)  # one candidate per block of this side
     min_gain_m2: float = param(0.4, ge=0)  # a view seeing less unknown area is not worth it
     path_cost_weight: float = param(0.05, ge=0)  # m^2 of view gain per unit of A* path cost
     max_queries: int = param(10, gt=0)  # path queries per plan (branch and bound cap)
+    # when to choose again
     replan_period_s: float = param(3.0, gt=0)
-    switch_margin_m2: float = param(1.0, ge=0)
-    stuck_timeout_s: float = param(8.0, gt=0)
-    done_after_empty: int = param(3, gt=0)
+    switch_margin_m2: float = param(1.0, ge=0)  # a periodic plan switches only for this much more
+    dwell_s: float = param(0.6, ge=0)  # pause at a reached view so the map catches up
+    stuck_timeout_s: float = param(8.0, gt=0)  # no progress along the path: give that goal up
+    # a given-up goal is left out of the candidates within this radius, for this long
+    blacklist_radius_m: float = param(0.5, ge=0)
+    blacklist_s: float = param(30.0, ge=0)
+    # paths start from the nearest free node within this radius of the robot
+    start_search_radius_m: float = param(1.0, ge=0)
+    # speed cap while the robot stands on a safety-zone or obstacle node (it got there because
+    # an obstacle was mapped late): it backs out slowly
+    creep_speed_mps: float = param(0.15, gt=0)
+    done_after_empty: int = param(3, gt=0)  # plans finding no view before it is done
+    empty_retry_s: float = param(1.0, gt=0)  # wait between plans that found no view
     # traversability cost overrides sent with every path request, "grass=4" or "1=4"
     class_costs: list[str] = param([])
     planner_timeout_s: float = param(2.0, gt=0)
-    # pure pursuit (services/explorer/follower.py)
-    lookahead_m: float = param(0.4, gt=0)
-    max_linear_mps: float = param(0.4, gt=0)
-    max_angular_radps: float = param(1.0, gt=0)
-    goal_tolerance_m: float = param(0.2, gt=0)
     pose_timeout_s: float = param(1.0, gt=0)  # no pose for this long: stop the robot
+    view: ViewConfig = table(ViewConfig)
+    follower: FollowerConfig = table(FollowerConfig)

@@ -3,8 +3,8 @@
 Grid: a 12 x 12 m garden-like box at 0.2 m (60 x 60 nodes, padded by the view range), hedges and
 trees, the western half known. Times (median of `--repeats` runs):
 - `view_gains` (numba kernel) for every frontier candidate, 16 headings, occlusion on, against
-  a vectorised numpy version of the same rule and the pure-Python per-cell reference (timed on a
-  few candidates and scaled);
+  a vectorised numpy version of the same rule and the pure-Python per-cell reference the tests
+  use (`services/explorer/reference.py`, timed on a few candidates and scaled);
 - one whole `Explorer.plan` with a free path-cost function (what the explorer adds on top of the
   planner's own query time).
 """
@@ -12,14 +12,15 @@ trees, the western half known. Times (median of `--repeats` runs):
 from __future__ import annotations
 
 import json
-import math
 import statistics
 import time
 
 import numpy as np
 
+from smana.common.config.explorer import ExplorerConfig, ViewConfig
 from smana.services.explorer import frontier as fr
-from smana.services.explorer.exploration import ExplorationParams, Explorer, GridBox
+from smana.services.explorer.exploration import Explorer, GridBox
+from smana.services.explorer.reference import view_gains_reference
 
 TRAV = np.zeros(9, bool)
 TRAV[[1, 2]] = True
@@ -78,29 +79,6 @@ def gains_numpy(unknown, opaque, cand, fov: fr.FovModel, spc: int = 2) -> np.nda
     return out
 
 
-def gains_python(unknown, opaque, cand, fov: fr.FovModel, spc: int = 2) -> np.ndarray:
-    """The per-cell pure-Python reference (as in the tests)."""
-    nx, ny = unknown.shape
-    out = np.zeros((len(cand), len(fov.yaws)))
-    for c, (cx, cy) in enumerate(cand):
-        vis = np.zeros(len(fov.offsets), bool)
-        for o, (dx, dy) in enumerate(fov.offsets):
-            tx, ty = cx + dx, cy + dy
-            if not (0 <= tx < nx and 0 <= ty < ny) or not unknown[tx, ty]:
-                continue
-            steps = math.ceil(math.hypot(dx, dy) * spc)
-            blocked = False
-            for s in range(1, steps):
-                px = math.floor(cx + s / steps * dx + 0.5)
-                py = math.floor(cy + s / steps * dy + 0.5)
-                if (px, py) != (tx, ty) and opaque[px, py]:
-                    blocked = True
-                    break
-            vis[o] = not blocked
-        out[c] = fov.in_sector.astype(float) @ vis * fov.resolution_m**2
-    return out
-
-
 def _median_ms(fn, repeats: int) -> float:
     times = []
     for _ in range(repeats):
@@ -118,18 +96,20 @@ def run(repeats: int = 5, view_range_m: float = 4.0) -> dict:
     start = tuple(int(v) for v in np.argwhere(free)[len(np.argwhere(free)) // 2])
     reach = fr.reachable_mask(free, start)
     cells = fr.sample_candidates(fr.frontier_cells(reach, unknown), 3)
-    fov = fr.FovModel.build(g.resolution_m, 57.0, view_range_m, 0.3, 16)
+    view = ViewConfig(fov_deg=57.0, max_range_m=view_range_m, min_range_m=0.3, n_yaw=16)
+    fov = fr.FovModel.build(g.resolution_m, view)
     fr.view_gains(unknown, opaque, cells[:1], fov)  # JIT outside the timing
     ours = fr.view_gains(unknown, opaque, cells, fov)[0]
     ref_np = gains_numpy(unknown, opaque, cells, fov)
     few = cells[:3]
-    ref_py = gains_python(unknown, opaque, few, fov)
+    ref_py = view_gains_reference(unknown, opaque, few, g.resolution_m, view)
     agree = bool(np.allclose(ours, ref_np) and np.allclose(ours[:3], ref_py))
     t_numba = _median_ms(lambda: fr.view_gains(unknown, opaque, cells, fov), repeats)
     t_numpy = _median_ms(lambda: gains_numpy(unknown, opaque, cells, fov), max(1, repeats // 2))
-    t_py = _median_ms(lambda: gains_python(unknown, opaque, few, fov), 1) * len(cells) / len(few)
+    t_py = _median_ms(lambda: view_gains_reference(unknown, opaque, few, g.resolution_m, view), 1)
+    t_py *= len(cells) / len(few)
 
-    ex = Explorer(ExplorationParams(max_range_m=view_range_m), TRAV, 9)
+    ex = Explorer(ExplorerConfig(view=view), TRAV, 9)
     ex.update_grid(g)
     xy = g.centres(np.array(start))
     ex.update_pose(float(xy[0]), float(xy[1]), 0.0, 0.0)

@@ -1246,14 +1246,13 @@ def _reference_graph(config: SmanaConfig, table, snap: m.MapDelta):
 
 def _reference_plan(config: SmanaConfig, table, graph: m.GraphPatch, req) -> m.PathReply:
     from smana.common.navgrid import NavGrid
-    from smana.services.planner.planner import Planner, PlannerParams
+    from smana.services.planner.planner import Planner
     from smana.services.planner.service import reply_of
 
-    nc, pc = config.navgraph, config.planner
+    nc = config.navgraph
     grid = NavGrid.from_bounds(nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.tile_size)
     grid.apply_patch(graph.cells, graph.labels, graph.heights, graph.flags)
-    params = PlannerParams(pc.h_f, pc.t_f, pc.max_step_m, pc.unknown_cost, pc.heuristic)
-    return reply_of(req.request_id, Planner(grid, table, params).plan_request(req))
+    return reply_of(req.request_id, Planner(grid, table, config.planner).plan_request(req))
 
 
 def _rows(msg: m.Message) -> int:

@@ -19,8 +19,9 @@ from scipy import ndimage
 from scipy.sparse import csgraph
 
 from smana.common.classes import ClassTable
+from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
-from smana.services.planner.planner import Planner, PlannerParams
+from smana.services.planner.planner import Planner
 from smana.services.planner.reference import build_graph
 
 RES = 0.2
@@ -97,10 +98,10 @@ def far_free_pairs(flags, graph_csr, n_queries: int):
 def run_size(n: int, runs: int, n_queries: int, classes, with_euclidean: bool) -> dict:
     labels, heights, flags = make_graph(n, seed=n, classes=classes)
     grid = grid_from_dense(labels, heights, flags)
-    params = PlannerParams(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile")
+    params = PlannerConfig(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile")
     planner = Planner(grid, classes, params)
     lut = classes.cost_lut
-    enter = np.where((flags & 6) != 0, np.inf, 0.8 * lut[labels])
+    enter = np.where((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0, np.inf, 0.8 * lut[labels])
     t = time.perf_counter()
     csr = build_graph(enter, heights, RES, params.h_f, params.max_step_m)
     build_ms = (time.perf_counter() - t) * 1e3

@@ -558,7 +558,7 @@ def main(args: argparse.Namespace) -> int:
     if args.dataset:
         dataset = Path(args.dataset).resolve()
     else:
-        params = syn.SyntheticParams(n_scans=args.scans)
+        params = syn.SyntheticConfig(n_scans=args.scans)
         print(
             f"writing the synthetic sequence ({args.scans} scans of 131,072 points) ...",
             file=sys.stderr,

@@ -515,7 +515,9 @@ def simulate_scan(
 
 
 @dataclass
-class SyntheticParams:
+class SyntheticConfig:
+    """A synthetic sequence: how many scans, the LiDAR's beams and columns, the motion, noise."""
+
     n_scans: int = 100
     beams: int = 64
     columns: int = 2048
@@ -531,13 +533,13 @@ def _fmt_row(m: np.ndarray) -> str:
 
 
 def write_rellis_sequence(
-    out_dir: str | Path, params: SyntheticParams | None = None, progress=None
+    out_dir: str | Path, params: SyntheticConfig | None = None, progress=None
 ) -> Path:
     """Write a synthetic sequence; returns the sequence folder (`.../Rellis-3D/00000`).
 
     An existing sequence with the same parameters is reused (its `synthetic.json` matches).
     """
-    params = params or SyntheticParams()
+    params = params or SyntheticConfig()
     if params.n_scans < 1 or params.beams < 2 or params.columns < 4:
         raise ValueError("need n_scans >= 1, beams >= 2, columns >= 4")
     seq = Path(out_dir) / "Rellis-3D" / "00000"

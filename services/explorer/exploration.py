@@ -13,68 +13,26 @@ Decisions, in the order they are checked:
 - every `replan_period_s` -> plan, and switch only to a view better by `switch_margin_m2`;
 - no view worth it: spin once on the spot to look around, then give up after
   `done_after_empty` empty plans; or the time budget is over -> done.
+
+Its parameters are the [explorer] config section as it is (`ExplorerConfig`, with its
+[explorer.view] and [explorer.follower] tables); the names above are its keys.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
 
+from smana.common.config.explorer import ExplorerConfig
 from smana.services.explorer import frontier as fr
-from smana.services.explorer.follower import FollowerConfig, PurePursuit, wrap_angle
+from smana.services.explorer.follower import PurePursuit, wrap_angle
 
 # path_cost(start_xy, goal_xy) -> (cost, path (K, 2|3)) or None when there is no path
 PathFn = Callable[[np.ndarray, np.ndarray], "tuple[float, np.ndarray] | None"]
-
-
-@dataclass
-class ExplorationParams:
-    fov_deg: float = 57.0
-    max_range_m: float = 4.0
-    min_range_m: float = 0.3
-    n_yaw: int = 16
-    occlusion: bool = True
-    candidate_spacing_m: float = 0.6
-    min_gain_m2: float = 0.4
-    path_cost_weight: float = 0.05
-    cost_per_m_lower_bound: float = 1.0
-    max_queries: int = 10
-    replan_period_s: float = 3.0
-    switch_margin_m2: float = 1.0
-    dwell_s: float = 0.6
-    time_budget_s: float = 600.0
-    done_after_empty: int = 3
-    empty_retry_s: float = 1.0
-    stuck_timeout_s: float = 8.0
-    blacklist_radius_m: float = 0.5
-    blacklist_s: float = 30.0
-    start_search_radius_m: float = 1.0
-    # speed cap while the robot stands on a safety-zone or obstacle node (it got there because
-    # an obstacle was mapped late): it backs out slowly
-    creep_speed_mps: float = 0.15
-    follower: FollowerConfig = field(default_factory=FollowerConfig)
-
-    def __post_init__(self):
-        positive = (
-            "max_range_m",
-            "candidate_spacing_m",
-            "replan_period_s",
-            "time_budget_s",
-            "stuck_timeout_s",
-            "empty_retry_s",
-        )
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"explorer {name} must be > 0, got {getattr(self, name)}")
-        for name in ("min_gain_m2", "path_cost_weight", "switch_margin_m2", "dwell_s"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"explorer {name} must be >= 0, got {getattr(self, name)}")
-        if self.done_after_empty < 1 or self.max_queries < 1:
-            raise ValueError("explorer done_after_empty and max_queries must be >= 1")
 
 
 @dataclass
@@ -134,12 +92,22 @@ class PlanOutcome:
 class Explorer:
     """Next-best-view exploration state machine (see the module docstring)."""
 
-    def __init__(self, params: ExplorationParams, traversable_lut: np.ndarray, n_labels: int):
-        self.p = params
+    def __init__(
+        self,
+        config: ExplorerConfig,
+        traversable_lut: np.ndarray,
+        n_labels: int,
+        cost_per_m_lower_bound: float = 1.0,
+    ):
+        """`config` is the [explorer] section as it is. `cost_per_m_lower_bound`: every path costs
+        at least this much per metre of straight-line distance (from the planner's t_f and the
+        class costs; 1.0 is always safe): it lets `select_view` skip hopeless path queries."""
+        self.config = config
+        self.cost_per_m_lower_bound = float(cost_per_m_lower_bound)
         self.traversable_lut = np.asarray(traversable_lut, bool)
         self.grid: GridBox | None = None
         self._fov: fr.FovModel | None = None
-        self.follower = PurePursuit(params.follower)
+        self.follower = PurePursuit(config.follower)
         self.goal: Goal | None = None
         self.pose: tuple[float, float, float] | None = None
         self.t_start: float | None = None
@@ -170,13 +138,7 @@ class Explorer:
 
     def update_grid(self, grid: GridBox) -> None:
         if self._fov is None or self._fov.resolution_m != grid.resolution_m:
-            self._fov = fr.FovModel.build(
-                grid.resolution_m,
-                self.p.fov_deg,
-                self.p.max_range_m,
-                self.p.min_range_m,
-                self.p.n_yaw,
-            )
+            self._fov = fr.FovModel.build(grid.resolution_m, self.config.view)
         self.grid = grid
 
     def update_pose(self, x: float, y: float, yaw: float, t: float) -> None:
@@ -236,15 +198,15 @@ class Explorer:
         if self.done or self.pose is None or self.grid is None:
             return None
         t = self.t_now
-        if self.elapsed_s() >= self.p.time_budget_s:
+        if self.elapsed_s() >= self.config.time_budget_s:
             self.finish("time_budget")
             return None
         if self._spin is not None:
             return None
         if self.goal is None:
-            if self._empty_plans and t - self._t_last_plan < self.p.empty_retry_s:
+            if self._empty_plans and t - self._t_last_plan < self.config.empty_retry_s:
                 return None
-            if self._t_arrived is not None and t - self._t_arrived < self.p.dwell_s:
+            if self._t_arrived is not None and t - self._t_arrived < self.config.dwell_s:
                 return None
             return "no_goal"
         if self._path_blocked():
@@ -254,7 +216,7 @@ class Explorer:
             self.n_stuck += 1
             self._forget(self.goal.choice.xy)
             return "stuck"
-        if t - self._t_last_plan >= self.p.replan_period_s:
+        if t - self._t_last_plan >= self.config.replan_period_s:
             return "periodic"
         return None
 
@@ -276,11 +238,13 @@ class Explorer:
         front = fr.frontier_cells(reach, unknown)
         self.frontier_size = len(front)
         self.history.append((self.t_now, self.explored_m2, self.frontier_size, self.distance_m))
-        spacing = max(1, int(round(self.p.candidate_spacing_m / g.resolution_m)))
+        spacing = max(1, int(round(self.config.candidate_spacing_m / g.resolution_m)))
         cells = fr.sample_candidates(front, spacing)
         cells = self._drop_blacklisted(cells)
-        opaque = (g.flags & fr.OBSTACLE).astype(bool) & (g.flags & fr.KNOWN).astype(bool)
-        gains, yaws = fr.view_gains(unknown, opaque if self.p.occlusion else None, cells, self._fov)
+        opaque = fr.opaque_mask(g.flags)
+        gains, yaws = fr.view_gains(
+            unknown, opaque if self.config.view.occlusion else None, cells, self._fov
+        )
         best_gain = gains.max(axis=1) if len(cells) else np.zeros(0)
         xy = g.centres(cells) if len(cells) else np.zeros((0, 2))
 
@@ -305,10 +269,10 @@ class Explorer:
             yaws,
             np.array([x, y]),
             goal_cost,
-            self.p.path_cost_weight,
-            self.p.min_gain_m2,
-            self.p.cost_per_m_lower_bound,
-            self.p.max_queries,
+            self.config.path_cost_weight,
+            self.config.min_gain_m2,
+            self.cost_per_m_lower_bound,
+            max_queries=self.config.max_queries,
         )
         outcome = PlanOutcome(reason, choice, False, len(front), len(cells), xy, best_gain)
         self.last_outcome = outcome
@@ -319,12 +283,12 @@ class Explorer:
             self._empty_plans += 1
             if self._maybe_spin():
                 return outcome
-            if self._empty_plans >= self.p.done_after_empty:
+            if self._empty_plans >= self.config.done_after_empty:
                 self.finish("no_view_worth_it" if len(cells) else "no_frontier")
             return outcome
         self._empty_plans = 0
         if reason == "periodic" and self.goal is not None and not self._goal_exhausted():
-            if choice.score <= self._current_score() + self.p.switch_margin_m2:
+            if choice.score <= self._current_score() + self.config.switch_margin_m2:
                 return outcome
         outcome.switched = self.goal is not None
         self._set_goal(choice)
@@ -343,21 +307,21 @@ class Explorer:
                 self._empty_plans = 0
                 self._t_last_plan = -math.inf
                 return 0.0, 0.0
-            return 0.0, self.p.follower.max_angular_radps * 0.6
+            return 0.0, self.config.follower.max_angular_radps * 0.6
         if self.goal is None:
             return 0.0, 0.0
         cmd = self.follower.command(x, y, yaw, self._segment_clear)
         if cmd.done:
-            self._forget(self.goal.choice.xy, seconds=self.p.dwell_s + 5.0)
+            self._forget(self.goal.choice.xy, seconds=self.config.dwell_s + 5.0)
             self._set_goal(None)
             self._t_arrived = self.t_now
             return 0.0, 0.0
         v, w = cmd.linear_mps, cmd.angular_radps
-        if self.grid is not None and v > self.p.creep_speed_mps:
+        if self.grid is not None and v > self.config.creep_speed_mps:
             here = np.array(self.grid.cell_of((x, y)))
             if self.grid.inside(here).all() and _blocking(self.grid.flags[here[0], here[1]]):
-                w *= self.p.creep_speed_mps / v  # same arc, slower
-                v = self.p.creep_speed_mps
+                w *= self.config.creep_speed_mps / v  # same arc, slower
+                v = self.config.creep_speed_mps
         return v, w
 
     # -- state ----------------------------------------------------------------------------------
@@ -412,7 +376,7 @@ class Explorer:
     def _set_goal(self, choice: fr.ViewChoice | None) -> None:
         if choice is None:
             self.goal = None
-            self.follower = PurePursuit(self.p.follower)
+            self.follower = PurePursuit(self.config.follower)
             self._progress_mark = None
             return
         path = _path_xy(choice.path, choice.xy, self.pose)
@@ -434,9 +398,9 @@ class Explorer:
         must not cross an obstacle node: a robot caught in a safety zone that just appeared
         around it backs out on the open side, not through the obstacle to a nearer node."""
         g = self.grid
-        comp, _ = ndimage.label(free, structure=np.ones((3, 3), bool))
+        comp, _ = ndimage.label(free, structure=fr.EIGHT_CONNECTED)
         cell = np.array(g.cell_of(xy))
-        r = int(math.ceil(self.p.start_search_radius_m / g.resolution_m))
+        r = int(math.ceil(self.config.start_search_radius_m / g.resolution_m))
         lo = np.maximum(cell - r, 0)
         hi = np.minimum(cell + r + 1, g.shape)
         starts: dict[int, tuple[int, int]] = {}
@@ -491,17 +455,20 @@ class Explorer:
         if rem < rem0 - 0.1:
             self._progress_mark = (self.t_now, rem)
             return False
-        return self.t_now - t0 > self.p.stuck_timeout_s
+        return self.t_now - t0 > self.config.stuck_timeout_s
 
     def _goal_exhausted(self) -> bool:
-        return self._goal_gain() < self.p.min_gain_m2
+        return self._goal_gain() < self.config.min_gain_m2
 
     def _goal_gain(self) -> float:
         g = self.grid
         cell = self.goal.choice.cell.reshape(1, 2)
-        opaque = (g.flags & fr.OBSTACLE).astype(bool) & (g.flags & fr.KNOWN).astype(bool)
+        opaque = fr.opaque_mask(g.flags)
         gains, _ = fr.view_gains(
-            fr.unknown_mask(g.flags), opaque if self.p.occlusion else None, cell, self._fov
+            fr.unknown_mask(g.flags),
+            opaque if self.config.view.occlusion else None,
+            cell,
+            self._fov,
         )
         return float(gains.max()) if gains.size else 0.0
 
@@ -509,10 +476,10 @@ class Explorer:
         # the cost left is the planned cost scaled by the share of the path still ahead
         total = max(self.goal.path_length_m, 1e-6)
         left = self.goal.choice.path_cost * self.follower.remaining_length_m() / total
-        return self._goal_gain() - self.p.path_cost_weight * left
+        return self._goal_gain() - self.config.path_cost_weight * left
 
     def _forget(self, xy, seconds: float | None = None) -> None:
-        until = self.t_now + (self.p.blacklist_s if seconds is None else seconds)
+        until = self.t_now + (self.config.blacklist_s if seconds is None else seconds)
         self._blacklist.append((np.asarray(xy, float).copy(), until))
 
     def _drop_blacklisted(self, cells: np.ndarray) -> np.ndarray:
@@ -522,7 +489,7 @@ class Explorer:
         xy = self.grid.centres(cells)
         keep = np.ones(len(cells), bool)
         for c, _ in self._blacklist:
-            keep &= np.hypot(*(xy - c).T) > self.p.blacklist_radius_m
+            keep &= np.hypot(*(xy - c).T) > self.config.blacklist_radius_m
         return cells[keep]
 
     def _maybe_spin(self) -> bool:

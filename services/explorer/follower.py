@@ -6,6 +6,8 @@ suit a cluttered garden: when the lookahead point is far off the heading the rob
 instead of sweeping a wide arc (the planner's path keeps clear of obstacles, a wide arc does not),
 and speed falls with the heading error so corners are taken slowly. The lookahead point is
 searched only ahead of the progress made so far, so a path that doubles back is not short-cut.
+
+Its parameters are the config section [explorer.follower] (`FollowerConfig`), received as it is.
 """
 
 from __future__ import annotations
@@ -16,27 +18,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from smana.common.config.explorer import FollowerConfig
+
 
 def wrap_angle(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-@dataclass
-class FollowerConfig:
-    lookahead_m: float = 0.4
-    max_linear_mps: float = 0.5
-    max_angular_radps: float = 1.2
-    goal_tolerance_m: float = 0.15
-    # heading error above which the robot stops and turns in place
-    turn_in_place_rad: float = math.radians(30)
-    # heading error at which the forward speed has fallen to zero (linear taper up to there)
-    slow_down_rad: float = math.radians(45)
-    final_yaw_tolerance_rad: float = math.radians(10)
-
-    def __post_init__(self):
-        for name in ("lookahead_m", "max_linear_mps", "max_angular_radps", "goal_tolerance_m"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"follower {name} must be > 0, got {getattr(self, name)}")
 
 
 @dataclass

@@ -8,8 +8,8 @@ Three steps, each usable alone:
    reachable nodes that touch unknown space (the border of the explored traversable area);
    `sample_candidates` thins them to one per `spacing` block so scoring stays cheap.
 2. `view_gains`: for each candidate and each of `n_yaw` headings, the unknown area (m^2) inside
-   the camera's field-of-view mask (a sector of `fov_deg` and `max_range_m`), optionally cut by
-   line of sight through obstacle nodes. The best heading is the view's yaw.
+   the camera's field-of-view mask (a sector of `fov_deg` and `max_range_m`: [explorer.view]),
+   optionally cut by line of sight through obstacle nodes. The best heading is the view's yaw.
 3. `select_view`: score = gain - weight * A* path cost. Path costs come from a callable (the
    planner over Zenoh in the service, a local search in tests); the candidates are queried in
    order of an optimistic bound so that only a few paths are requested (branch and bound).
@@ -25,9 +25,13 @@ import numba
 import numpy as np
 from scipy import ndimage
 
-KNOWN, OBSTACLE, SAFETY_ZONE = 1, 2, 4
+from smana.common.config.explorer import ViewConfig
+from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 
-_EIGHT = np.ones((3, 3), bool)
+# the navigation graph's node flags, under the short names this module has always used
+KNOWN, OBSTACLE, SAFETY_ZONE = FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+
+EIGHT_CONNECTED = np.ones((3, 3), bool)  # the planner's graph: what is reachable here is there
 
 
 # -- which nodes are free, reachable, on the frontier -----------------------------------------
@@ -67,12 +71,18 @@ def reachable_mask(free: np.ndarray, start: tuple[int, int]) -> np.ndarray:
     ix, iy = start
     if not (0 <= ix < free.shape[0] and 0 <= iy < free.shape[1]) or not free[ix, iy]:
         return np.zeros(free.shape, bool)
-    comp, _ = ndimage.label(free, structure=_EIGHT)
+    comp, _ = ndimage.label(free, structure=EIGHT_CONNECTED)
     return comp == comp[ix, iy]
 
 
 def unknown_mask(flags: np.ndarray) -> np.ndarray:
     return (np.asarray(flags) & KNOWN) == 0
+
+
+def opaque_mask(flags: np.ndarray) -> np.ndarray:
+    """Known obstacle nodes: what hides the view behind it (`view_gains`' `opaque`)."""
+    flags = np.asarray(flags)
+    return ((flags & KNOWN) != 0) & ((flags & OBSTACLE) != 0)
 
 
 def frontier_cells(reachable: np.ndarray, unknown: np.ndarray) -> np.ndarray:
@@ -81,7 +91,7 @@ def frontier_cells(reachable: np.ndarray, unknown: np.ndarray) -> np.ndarray:
     Space outside the grid box is not unknown: the graph has fixed bounds and nothing outside them
     can ever be mapped, so a border node is a frontier only if it touches unknown nodes inside.
     """
-    near_unknown = ndimage.binary_dilation(unknown, structure=_EIGHT, border_value=0)
+    near_unknown = ndimage.binary_dilation(unknown, structure=EIGHT_CONNECTED, border_value=0)
     return np.argwhere(reachable & near_unknown)
 
 
@@ -111,60 +121,38 @@ def sample_candidates(cells: np.ndarray, spacing: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class FovModel:
-    """The camera's footprint on the grid: cell offsets inside `max_range_m`, and per heading the
-    offsets that fall inside the horizontal field of view.
+    """The camera's footprint on the grid: cell offsets inside `view.max_range_m`, and per heading
+    the offsets that fall inside the horizontal field of view.
 
     `in_sector[k, o]` is True when offset `o` lies within +-fov/2 of heading `yaws[k]`. Offsets
-    closer than `min_range_m` are left out: a camera a few decimetres above the ground does not
-    see the ground right under its lens.
+    closer than `view.min_range_m` are left out: a camera a few decimetres above the ground does
+    not see the ground right under its lens.
     """
 
     resolution_m: float
-    fov_deg: float
-    max_range_m: float
-    min_range_m: float
+    view: ViewConfig
     yaws: np.ndarray  # (K,) radians
     offsets: np.ndarray  # (O, 2) int64 cell offsets
     in_sector: np.ndarray  # (K, O) bool
 
     @classmethod
-    def build(
-        cls,
-        resolution_m: float,
-        fov_deg: float = 57.0,
-        max_range_m: float = 4.0,
-        min_range_m: float = 0.0,
-        n_yaw: int = 16,
-    ) -> FovModel:
+    def build(cls, resolution_m: float, view: ViewConfig) -> FovModel:
+        """The footprint of `view` (the [explorer.view] section, already checked) on a grid of
+        `resolution_m`."""
         if not resolution_m > 0:
             raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
-        if not 0 < fov_deg <= 360:
-            raise ValueError(f"fov_deg must be in (0, 360], got {fov_deg}")
-        if not max_range_m > min_range_m >= 0:
-            raise ValueError(
-                f"need max_range_m > min_range_m >= 0, got {max_range_m}, {min_range_m}"
-            )
-        if n_yaw < 1:
-            raise ValueError(f"n_yaw must be >= 1, got {n_yaw}")
+        fov_deg, max_range_m, min_range_m = view.fov_deg, view.max_range_m, view.min_range_m
         r = int(math.ceil(max_range_m / resolution_m))
         dx, dy = np.meshgrid(np.arange(-r, r + 1), np.arange(-r, r + 1), indexing="ij")
         dist = np.hypot(dx, dy) * resolution_m
         keep = (dist <= max_range_m) & (dist >= min_range_m) & ((dx != 0) | (dy != 0))
         offsets = np.stack([dx[keep], dy[keep]], axis=1).astype(np.int64)
         bearing = np.arctan2(offsets[:, 1], offsets[:, 0])
-        yaws = np.arange(n_yaw) * (2 * np.pi / n_yaw)
+        yaws = np.arange(view.n_yaw) * (2 * np.pi / view.n_yaw)
         diff = np.angle(np.exp(1j * (bearing[None, :] - yaws[:, None])))
         # a small epsilon so that offsets exactly on the sector edge count the same on every side
         in_sector = np.abs(diff) <= math.radians(fov_deg) / 2 + 1e-9
-        return cls(
-            float(resolution_m),
-            float(fov_deg),
-            float(max_range_m),
-            float(min_range_m),
-            yaws,
-            offsets,
-            in_sector,
-        )
+        return cls(float(resolution_m), view, yaws, offsets, in_sector)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -276,7 +264,8 @@ def select_view(
     weight: float,
     min_gain_m2: float,
     cost_per_m_lower_bound: float = 1.0,
-    max_queries: int = 12,
+    *,
+    max_queries: int,
 ) -> ViewChoice | None:
     """Best view by score = gain - weight * path cost, asking `path_cost` as few times as it can.
 

@@ -19,6 +19,7 @@ status 0, which tells `smana up` that the run is over.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import time
@@ -29,7 +30,7 @@ import numpy as np
 
 from smana.common import keys
 from smana.common.classes import ClassTable
-from smana.common.config import ExplorerConfig, SmanaConfig
+from smana.common.config import SmanaConfig
 from smana.common.messages import (
     GraphPatch,
     PathReply,
@@ -43,37 +44,10 @@ from smana.common.plausibility import APPLY, COVERED, PoseGate, SequenceFollower
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, Service
 from smana.services.explorer import frontier as fr
-from smana.services.explorer.exploration import ExplorationParams, Explorer, GridBox
-from smana.services.explorer.follower import FollowerConfig
+from smana.services.explorer.exploration import Explorer, GridBox
 
 STATE_PERIOD_S = 0.5
 CHECKPOINT_PERIOD_S = 10.0  # state and trajectory saved for a restarted explorer to carry on
-
-
-def params_from_config(cfg: ExplorerConfig) -> ExplorationParams:
-    follower = FollowerConfig(
-        lookahead_m=cfg.lookahead_m,
-        max_linear_mps=cfg.max_linear_mps,
-        max_angular_radps=cfg.max_angular_radps,
-        goal_tolerance_m=cfg.goal_tolerance_m,
-    )
-    return ExplorationParams(
-        fov_deg=cfg.fov_deg,
-        max_range_m=cfg.view_range_m,
-        min_range_m=cfg.view_min_range_m,
-        n_yaw=cfg.n_yaw,
-        occlusion=cfg.occlusion,
-        candidate_spacing_m=cfg.candidate_spacing_m,
-        min_gain_m2=cfg.min_gain_m2,
-        path_cost_weight=cfg.path_cost_weight,
-        max_queries=cfg.max_queries,
-        replan_period_s=cfg.replan_period_s,
-        switch_margin_m2=cfg.switch_margin_m2,
-        stuck_timeout_s=cfg.stuck_timeout_s,
-        done_after_empty=cfg.done_after_empty,
-        time_budget_s=cfg.time_budget_s,
-        follower=follower,
-    )
 
 
 def parse_class_costs(items: list[str], table: ClassTable) -> dict[int, float]:
@@ -113,11 +87,10 @@ class ExplorerService(Service):
         self.class_costs = parse_class_costs(self.cfg.class_costs, self.table)
         nav = config.navgraph
         self.grid = NavGrid.from_bounds(nav.bounds_min_xy, nav.bounds_max_xy, nav.resolution_m)
-        params = params_from_config(self.cfg)
-        params.cost_per_m_lower_bound = min_cost_per_m(
+        bound = min_cost_per_m(
             config.planner.t_f, self.table.costs(self.class_costs), nav.resolution_m
         )
-        self.core = Explorer(params, self.table.traversable_lut, self.table.size)
+        self.core = Explorer(self.cfg, self.table.traversable_lut, self.table.size, bound)
         self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
         self._grid_dirty = False
         self._grid_version_used = -1
@@ -191,7 +164,8 @@ class ExplorerService(Service):
         self.startup_step = "loading (or compiling) the numba kernels"
         t0 = time.perf_counter()
         unknown = np.ones((8, 8), bool)
-        fov = fr.FovModel.build(self.grid.resolution_m, self.cfg.fov_deg, 1.0, 0.1, 4)
+        tiny = dataclasses.replace(self.cfg.view, max_range_m=1.0, min_range_m=0.1, n_yaw=4)
+        fov = fr.FovModel.build(self.grid.resolution_m, tiny)
         fr.view_gains(unknown, ~unknown, np.array([[4, 4]]), fov)
         self.log.info("kernels ready in %.1f s", time.perf_counter() - t0)
 
@@ -369,7 +343,7 @@ class ExplorerService(Service):
         box = self.grid.known_box()
         if box is None:
             return
-        pad = int(math.ceil(self.cfg.view_range_m / self.grid.resolution_m)) + 2
+        pad = int(math.ceil(self.cfg.view.max_range_m / self.grid.resolution_m)) + 2
         ix0, iy0, ix1, iy1 = box
         ix0, iy0 = max(0, ix0 - pad), max(0, iy0 - pad)
         ix1, iy1 = min(self.grid.shape[0], ix1 + pad), min(self.grid.shape[1], iy1 + pad)

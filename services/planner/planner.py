@@ -6,11 +6,14 @@ include start and goal (and by one tile more when unknown nodes may be crossed, 
 a frontier can go round the known area). The window's dense arrays are cached until the grid
 changes. A node can be entered when it is known and traversable (cost t_f * T(l)); an obstacle or
 safety-zone node never; an unknown node only when the request allows it, at `unknown_cost`.
+
+Its parameters are the [planner] config section as it is (`PlannerConfig`): the defaults of every
+query, which a request may override one by one (h_f, t_f, max_step_m, unknown_cost, heuristic).
 """
 
 from __future__ import annotations
 
-import math
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -18,6 +21,7 @@ import numba
 import numpy as np
 
 from smana.common.classes import ClassTable
+from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
 from smana.services.planner.astar import HEURISTICS, path_costs, search
 
@@ -28,17 +32,6 @@ GOAL_BLOCKED = "goal_blocked"
 UNREACHABLE = "unreachable"
 NO_GRAPH = "no_graph"
 MALFORMED = "malformed"
-
-
-@dataclass
-class PlannerParams:
-    """Defaults a request may override (config [planner])."""
-
-    h_f: float = 0.1
-    t_f: float = 0.8
-    max_step_m: float | None = 0.3
-    unknown_cost: float = 2.0
-    heuristic: str = "octile"
 
 
 @dataclass
@@ -68,11 +61,12 @@ class PlanError(Exception):
 class Planner:
     """Weighted A* path queries on a NavGrid (navgraph's, or the planner service's copy)."""
 
-    def __init__(self, grid: NavGrid, classes: ClassTable, params: PlannerParams | None = None):
+    def __init__(self, grid: NavGrid, classes: ClassTable, config: PlannerConfig | None = None):
+        """`config` is the [planner] section as it is (its defaults when None): the defaults of
+        every query, which a query may override one by one."""
         self.grid = grid
         self.classes = classes
-        self.params = params or PlannerParams()
-        self._check_params(self.params)
+        self.config = PlannerConfig() if config is None else config
         self._cache_key = None
         self._cache = None
         self._enter_key = None
@@ -81,17 +75,6 @@ class Planner:
         for cid, c in classes.classes.items():
             names[cid] = c.name
         self._names = names
-
-    @staticmethod
-    def _check_params(p: PlannerParams) -> None:
-        for name in ("h_f", "t_f", "unknown_cost"):
-            v = getattr(p, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-        if p.max_step_m is not None and not (math.isfinite(p.max_step_m) and p.max_step_m > 0):
-            raise ValueError(f"max_step_m must be > 0, got {p.max_step_m!r}")
-        if p.heuristic not in HEURISTICS:
-            raise ValueError(f"heuristic must be one of {HEURISTICS}, got {p.heuristic!r}")
 
     # -- the query -----------------------------------------------------------------------------
 
@@ -141,17 +124,22 @@ class Planner:
         return result
 
     def _params(self, h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic):
-        p = PlannerParams(
-            h_f=self.params.h_f if h_f is None else h_f,
-            t_f=self.params.t_f if t_f is None else t_f,
-            max_step_m=self.params.max_step_m if max_step_m is None else max_step_m,
-            unknown_cost=self.params.unknown_cost if unknown_cost is None else unknown_cost,
-            heuristic=self.params.heuristic if heuristic is None else heuristic,
-        )
+        """The config with this query's overrides, checked by the section's own limits."""
+        given = {
+            "h_f": h_f,
+            "t_f": t_f,
+            "max_step_m": max_step_m,
+            "unknown_cost": unknown_cost,
+            "heuristic": heuristic,
+        }
+        # a PathRequest always carries unknown_cost: values equal to the config's need no check
+        overrides = {
+            k: v for k, v in given.items() if v is not None and v != getattr(self.config, k)
+        }
         try:
-            self._check_params(p)
+            p = dataclasses.replace(self.config, **overrides) if overrides else self.config
             lut = self.classes.costs(class_costs or {})
-        except (ValueError, TypeError) as exc:
+        except (ValueError, TypeError) as exc:  # ConfigError is a ValueError
             raise PlanError(MALFORMED, str(exc)) from None
         return p, lut
 
@@ -190,7 +178,7 @@ class Planner:
         (sx, sy), (gx, gy) = ((c[0] - box[0], c[1] - box[1]) for c in cells)
         self._check_end("start", sx, sy, flags, enter, box, s_xy, allow_unknown=True)
         self._check_end("goal", gx, gy, flags, enter, box, g_xy, allow_unknown)
-        step = np.inf if p.max_step_m is None else float(p.max_step_m)
+        step = float(p.max_step_m)
         res = search(
             enter,
             known_h,
@@ -272,7 +260,7 @@ class Planner:
             x0, y0, x1, y1 = x0 - m, y0 - m, x1 + m, y1 + m
         return max(0, x0), max(0, y0), min(g.shape[0], x1), min(g.shape[1], y1)
 
-    def _enter(self, box, flags, labels, lut, p: PlannerParams, allow_unknown: bool):
+    def _enter(self, box, flags, labels, lut, p: PlannerConfig, allow_unknown: bool):
         """Per-node enter costs t_f * T(l) of the window and their finite minimum, cached until
         the grid or the costs change (an explorer asks many paths on one graph version)."""
         key = (self.grid.version, box, lut.tobytes(), p.t_f, p.unknown_cost, allow_unknown)
@@ -337,9 +325,9 @@ def _enter_costs(labels, flags, lut, allow_unknown, unknown_cost):
     for i in range(nx):
         for j in range(ny):
             f = flags[i, j]
-            if f & 6:  # obstacle or safety zone
+            if f & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
                 out[i, j] = np.inf
-            elif f & 1:
+            elif f & FLAG_KNOWN:
                 lab = labels[i, j]
                 c = lut[lab] if lab < n_lut else np.inf
                 if c == np.inf and lab == 0 and allow_unknown:

@@ -41,7 +41,7 @@ from smana.common.navgrid import NavGrid
 from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, Request, Service, run_service
-from smana.services.planner.planner import MALFORMED, Planner, PlannerParams, PlanResult, warm_up
+from smana.services.planner.planner import MALFORMED, Planner, PlanResult, warm_up
 
 
 def reply_of(request_id: str, r: PlanResult) -> PathReply:
@@ -99,13 +99,12 @@ class PlannerService(Service):
 
     def __init__(self, config: SmanaConfig):
         super().__init__(config)
-        nc, pc = config.navgraph, config.planner
+        nc = config.navgraph
         self.classes = ClassTable.load(config.general.class_table)
         self.grid = NavGrid.from_bounds(
             nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.tile_size
         )
-        params = PlannerParams(pc.h_f, pc.t_f, pc.max_step_m, pc.unknown_cost, pc.heuristic)
-        self.planner = Planner(self.grid, self.classes, params)
+        self.planner = Planner(self.grid, self.classes, config.planner)
         self.patches_in = SequenceFollower()
         self._next_sync = 0.0
         self.patches = 0
@@ -181,7 +180,7 @@ class PlannerService(Service):
     def _reset_grid(self) -> None:
         g = self.grid
         self.grid = NavGrid(g.origin_xy, g.shape, g.resolution_m, g.tile_size)
-        self.planner = Planner(self.grid, self.classes, self.planner.params)
+        self.planner = Planner(self.grid, self.classes, self.planner.config)
 
     def _check_geometry(self, patch: GraphPatch) -> None:
         if why := self.grid.geometry_mismatch(patch.resolution_m, patch.origin_xy):
@@ -241,7 +240,7 @@ class PlannerService(Service):
             "graph_queries": self.graph_queries,
             "queries": self.queries,
             "outcomes": dict(self.outcomes),
-            "params": dataclasses.asdict(self.planner.params),
+            "params": dataclasses.asdict(self.planner.config),
             "plan_ms_median": float(np.median(t)),
             "plan_ms_last": float(t[-1]),
         }
