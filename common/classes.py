@@ -194,6 +194,28 @@ class ClassTable:
             lut[cid] = cost
         return lut
 
+    def cost_overrides(self, items: list[str]) -> dict[int, float]:
+        """Traversability-cost overrides written as text (`explorer.class_costs`, `smana plan
+        --cost`): ["grass=4", "2=1.5"] -> {1: 4.0, 2: 1.5}. A class by name or id, a cost >= 0
+        (inf makes the class impassable); anything else is a ValueError naming the item."""
+        out: dict[int, float] = {}
+        for item in items:
+            name, sep, value = item.partition("=")
+            name = name.strip()
+            try:
+                if not sep:
+                    raise ValueError
+                cost = float(value)
+            except ValueError:
+                raise ValueError(f"{item!r} must look like CLASS=COST (a name or an id)") from None
+            try:
+                cid = int(name) if name.isdigit() else self.by_name(name).id
+            except KeyError:
+                raise ValueError(f"no class {name!r} in {self.name}") from None
+            self.costs({cid: cost})  # an obstacle class, or a cost below 0 (or NaN): refused
+            out[cid] = cost
+        return out
+
     def sanitise(self, labels: np.ndarray) -> tuple[np.ndarray, int]:
         """Map ids outside the table to unknown; returns (labels, how many were replaced)."""
         labels = np.asarray(labels)

@@ -11,6 +11,9 @@ from typing import Literal
 
 from smana.common.config._schema import Section, param
 
+# the A* heuristics (services/planner/astar.py implements each)
+Heuristic = Literal["octile", "euclidean"]
+
 
 @dataclass
 class PlannerConfig(Section, section="planner"):
@@ -21,5 +24,5 @@ class PlannerConfig(Section, section="planner"):
     unknown_cost: float = param(2.0, ge=0, lt=math.inf)
     # Both are exact (admissible and consistent). "euclidean" is the paper's d(n, g); "octile"
     # (octile distance + cheapest enter cost per step) expands 3-5x fewer nodes.
-    heuristic: Literal["octile", "euclidean"] = "octile"
+    heuristic: Heuristic = "octile"
     graph_sync_timeout_s: float = param(5.0, gt=0)  # asking navgraph for the graph at start

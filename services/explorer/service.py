@@ -30,7 +30,7 @@ import numpy as np
 
 from smana.common import keys
 from smana.common.classes import ClassTable
-from smana.common.config import SmanaConfig
+from smana.common.config import ConfigError, SmanaConfig
 from smana.common.messages import (
     GraphPatch,
     PathReply,
@@ -50,24 +50,6 @@ STATE_PERIOD_S = 0.5
 CHECKPOINT_PERIOD_S = 10.0  # state and trajectory saved for a restarted explorer to carry on
 
 
-def parse_class_costs(items: list[str], table: ClassTable) -> dict[int, float]:
-    """["grass=4", "2=1.5"] -> {1: 4.0, 2: 1.5}; names or ids of traversable classes."""
-    out: dict[int, float] = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        if not sep:
-            raise ValueError(f"explorer.class_costs: {item!r} must look like name=cost")
-        name = name.strip()
-        try:
-            cid = int(name) if name.isdigit() else table.by_name(name).id
-        except KeyError:
-            raise ValueError(f"explorer.class_costs: no class {name!r} in {table.name}") from None
-        cost = float(value)
-        table.costs({cid: cost})  # raises ValueError for an obstacle class or a negative cost
-        out[cid] = cost
-    return out
-
-
 def min_cost_per_m(t_f: float, class_costs: np.ndarray, resolution_m: float) -> float:
     """A lower bound on path cost per metre of straight-line distance: every transition costs its
     length plus t_f * T(l), and the longest transition is a diagonal (res * sqrt 2)."""
@@ -84,7 +66,7 @@ class ExplorerService(Service):
         self.cfg = config.explorer
         self.tick_period_s = 1.0 / self.cfg.control_rate_hz
         self.table = ClassTable.load(config.general.class_table)
-        self.class_costs = parse_class_costs(self.cfg.class_costs, self.table)
+        self.class_costs = self._class_costs()
         nav = config.navgraph
         self.grid = NavGrid.from_bounds(nav.bounds_min_xy, nav.bounds_max_xy, nav.resolution_m)
         bound = min_cost_per_m(
@@ -123,6 +105,12 @@ class ExplorerService(Service):
         self.path_errors: dict[str, int] = {}
         self.plan_time_ms = 0.0
         self._saved = False
+
+    def _class_costs(self) -> dict[int, float]:
+        try:
+            return self.table.cost_overrides(self.cfg.class_costs)
+        except ValueError as exc:
+            raise ConfigError(f"explorer.class_costs: {exc}") from None
 
     def warm_up(self) -> None:
         self._resume()

@@ -26,12 +26,15 @@ from __future__ import annotations
 
 import math
 import time
+import typing
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
-HEURISTICS = ("euclidean", "octile")
+from smana.common.config.planner import Heuristic
+
+HEURISTICS = typing.get_args(Heuristic)
 SQRT2 = math.sqrt(2.0)
 
 

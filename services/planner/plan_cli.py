@@ -35,19 +35,6 @@ def _point(text: str) -> np.ndarray:
     return v
 
 
-def _costs(items: list[str]) -> dict[str, float]:
-    out = {}
-    for item in items:
-        name, _, value = item.partition("=")
-        try:
-            out[name.strip()] = float(value)
-        except ValueError:
-            raise ValueError(f"--cost wants CLASS=COST (name or id), got {item!r}") from None
-        if not out[name.strip()] >= 0:  # inf is allowed: the class becomes impassable
-            raise ValueError(f"--cost wants a cost >= 0, got {item!r}")
-    return out
-
-
 def format_reply(reply: PathReply, show_path: bool) -> str:
     if not reply.ok:
         lines = [f"no path: {reply.error}: {reply.message}"]
@@ -102,23 +89,14 @@ def cli(argv: list[str] | None = None) -> int:
     cfg = config_from_args(args)
     try:
         start, goal = _point(args.start), _point(args.goal)
-        names = _costs(args.cost)
     except ValueError as exc:
         print(f"smana plan: {exc}", file=sys.stderr)
         return 2
     from smana.common.classes import ClassTable
 
     table = ClassTable.load(cfg.general.class_table)
-    class_costs = {}
-    for name, cost in names.items():
-        try:
-            cid = int(name) if name.isdigit() else table.by_name(name).id
-        except KeyError:
-            print(f"smana plan: no class {name!r} in {table.name}", file=sys.stderr)
-            return 2
-        class_costs[cid] = cost
     try:
-        table.costs(class_costs)  # a class that is not traversable: refused here, not remotely
+        class_costs = table.cost_overrides(args.cost)  # refused here, not by the planner
     except ValueError as exc:
         print(f"smana plan: --cost: {exc}", file=sys.stderr)
         return 2
