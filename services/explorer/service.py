@@ -31,6 +31,7 @@ import numpy as np
 from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import ConfigError, SmanaConfig
+from smana.common.graph_copy import GraphCopy
 from smana.common.messages import (
     GraphPatch,
     PathReply,
@@ -40,7 +41,7 @@ from smana.common.messages import (
     json_default,
 )
 from smana.common.navgrid import NavGrid
-from smana.common.plausibility import APPLY, COVERED, PoseGate, SequenceFollower, StampGate
+from smana.common.plausibility import PoseGate, StampGate
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, Service
 from smana.services.explorer import frontier as fr
@@ -90,7 +91,7 @@ class ExplorerService(Service):
         self._need_sync = True
         self._next_sync = 0.0
         self._sync_failures = 0
-        self.patches_in = SequenceFollower()
+        self.graph = GraphCopy(self.grid, self.note)
         g = config.general
         self.stamps = StampGate(g.stamp_window_s, g.max_time_rate, accept_while_acquiring=False)
         self.places = PoseGate(g.max_speed_mps, g.pose_slack_m)
@@ -184,16 +185,10 @@ class ExplorerService(Service):
                 self.log.info("no graph from navgraph yet (%s): will ask again", exc.kind)
             self._sync_failures += 1
             return
-        if not isinstance(reply, GraphPatch):
-            self.note("bad_graph_reply", "navgraph/graph did not answer with a GraphPatch")
+        if not self.graph.usable_snapshot(reply):
             return
-        try:
-            self._check_geometry(reply)
-        except Reject as exc:
-            self.note("geometry", str(exc))
-            return
-        self._apply(reply)
-        self.patches_in.synced(reply.producer, reply.seq)
+        self.graph.adopt(reply)
+        self._patched()
         self._need_sync = False
         self.log.info("graph synced from navgraph: %d nodes", len(reply.cells))
 
@@ -204,25 +199,13 @@ class ExplorerService(Service):
         self._planner_alive += 1 if sample.kind == zenoh.SampleKind.PUT else -1
 
     def on_patch(self, patch: GraphPatch):
-        self._check_geometry(patch)
-        action, why = self.patches_in.check(patch.producer, patch.seq)
-        if action == COVERED:
+        if self.graph.receive(patch) is None:
             return ("dropped", "covered")
-        if action != APPLY:
-            raise Reject(action, f"graph patch {patch.seq}: {why}; resync asked")
-        self._apply(patch)
-        self.patches_in.advance(patch.producer, patch.seq)
-        if self.patches_in.want_resync:
+        self._patched()
+        if self.graph.want_resync:
             self._need_sync = True  # a gap, or joined mid-stream: fetch the whole graph
 
-    def _check_geometry(self, patch: GraphPatch) -> None:
-        if why := self.grid.geometry_mismatch(patch.resolution_m, patch.origin_xy):
-            raise Reject("geometry", f"graph patch {patch.seq}: {why}; check [navgraph]")
-
-    def _apply(self, patch: GraphPatch) -> None:
-        n_out = self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
-        if n_out:
-            self.note("out_of_bounds", f"{n_out} patch cells outside the graph bounds")
+    def _patched(self) -> None:
         self.n_patches += 1
         self._grid_dirty = True
 

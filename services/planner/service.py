@@ -29,6 +29,7 @@ import numpy as np
 from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
+from smana.common.graph_copy import GraphCopy
 from smana.common.messages import (
     SCHEMA_VERSION,
     GraphPatch,
@@ -38,7 +39,6 @@ from smana.common.messages import (
     from_dict,
 )
 from smana.common.navgrid import NavGrid
-from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, Request, Service, run_service
 from smana.services.planner.planner import MALFORMED, Planner, PlanResult, warm_up
@@ -105,7 +105,7 @@ class PlannerService(Service):
             nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.tile_size
         )
         self.planner = Planner(self.grid, self.classes, config.planner)
-        self.patches_in = SequenceFollower()
+        self.graph = GraphCopy(self.grid, self.note)
         self._next_sync = 0.0
         self.patches = 0
         self.patches_skipped = 0
@@ -142,7 +142,7 @@ class PlannerService(Service):
             self._resync = True
 
     def tick(self) -> None:
-        if (self._resync or self.patches_in.want_resync) and time.monotonic() >= self._next_sync:
+        if (self._resync or self.graph.want_resync) and time.monotonic() >= self._next_sync:
             self._next_sync = time.monotonic() + 1.0  # a stream in doubt: one sync a second
             self._resync = False
             self.sync()
@@ -160,17 +160,10 @@ class PlannerService(Service):
         except QueryError as exc:
             self.log.info("no graph from navgraph (%s): waiting for patches", exc.kind)
             return False
-        if not isinstance(reply, GraphPatch):
-            self.note("bad_graph_reply", "navgraph/graph reply is not a GraphPatch")
-            return False
-        try:
-            self._check_geometry(reply)
-        except Reject as exc:
-            self.note("geometry", str(exc))
+        if not self.graph.usable_snapshot(reply):
             return False
         self._reset_grid()
-        self._apply(reply)
-        self.patches_in.synced(reply.producer, reply.seq)
+        self.graph.adopt(reply)
         self.syncs += 1
         self.log.info(
             "graph synced from navgraph: %d nodes (patch %d)", len(reply.cells), reply.seq
@@ -179,28 +172,14 @@ class PlannerService(Service):
 
     def _reset_grid(self) -> None:
         g = self.grid
-        self.grid = NavGrid(g.origin_xy, g.shape, g.resolution_m, g.tile_size)
+        self.grid = self.graph.grid = NavGrid(g.origin_xy, g.shape, g.resolution_m, g.tile_size)
         self.planner = Planner(self.grid, self.classes, self.planner.config)
 
-    def _check_geometry(self, patch: GraphPatch) -> None:
-        if why := self.grid.geometry_mismatch(patch.resolution_m, patch.origin_xy):
-            raise Reject("geometry", f"graph patch {patch.seq}: {why}; check [navgraph]")
-
-    def _apply(self, patch: GraphPatch) -> None:
-        n_out = self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
-        if n_out:
-            self.note("out_of_bounds", f"{n_out} patch cells outside the graph bounds")
-
     def on_patch(self, patch: GraphPatch):
-        self._check_geometry(patch)
-        action, why = self.patches_in.check(patch.producer, patch.seq)
-        if action == COVERED:
+        why = self.graph.receive(patch)
+        if why is None:
             self.patches_skipped += 1  # already in the graph we synced
             return ("dropped", "covered")
-        if action != APPLY:
-            raise Reject(action, f"graph patch {patch.seq}: {why}; resync asked")
-        self._apply(patch)
-        self.patches_in.advance(patch.producer, patch.seq)
         self.patches += 1
         if why:  # applied across a gap; the sync on the next tick fills it
             self.note("patch_gap", f"graph patches: {why}")
@@ -235,7 +214,7 @@ class PlannerService(Service):
             "bytes": self.grid.nbytes,
             "patches": self.patches,
             "patches_skipped": self.patches_skipped,
-            "last_patch_seq": self.patches_in.last or 0,
+            "last_patch_seq": self.graph.last_seq or 0,
             "syncs": self.syncs,
             "graph_queries": self.graph_queries,
             "queries": self.queries,
