@@ -113,6 +113,16 @@ def die_with_parent() -> None:
         _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+def open_service_session(service: Service):
+    """The zenoh session a service runs on: one opened from its [zenoh] section."""
+    return open_session(service.config.zenoh)
+
+
+# How `Service.run` opens its session. In-process tests put a fake zenoh's here
+# (tests/support/fake_zenoh.py), so that a service runs its real lifecycle and handlers with no
+# router and no process of its own.
+session_factory: Callable[[Service], Any] = open_service_session
+
 STOP_DEADLINE_S = 5.0  # after a stop signal: to leave the loop, and to close zenoh after on_stop
 # Set by the supervisor for a hot spare (deploy/supervisor.py): prepare, write "ready" to the file
 # descriptor it names, then wait for a line on stdin before starting for real.
@@ -424,7 +434,7 @@ class Service:
                 return 0
             self._t0 = time.monotonic()  # readiness counts from the take-over
             self.log.info("%s taking over", self.name)
-        with open_session(self.config.zenoh) as session:
+        with session_factory(self) as session:
             self.session = session
             self.producer = str(session.zid())
             try:
