@@ -33,6 +33,7 @@ import itertools
 import logging
 import os
 import signal
+import sys
 import threading
 import time
 import uuid
@@ -617,19 +618,40 @@ class ServiceRun:
 
 
 class _ThreadLog(logging.Handler):
-    """Collects a service's log lines (its own logger, and anything logged on its thread)."""
+    """A service's log, as its process's log file would hold it: its logger's lines, anything
+    logged on its thread, and what its thread writes to stderr (`smana sim: ...` errors)."""
 
     def __init__(self, name: str, thread_name: str):
         super().__init__(logging.DEBUG)
         self.name_, self.thread_name = name, thread_name
-        self.lines: list[str] = []
+        self.chunks: list[str] = []
         self.setFormatter(logging.Formatter(f"%(levelname)s {name}: %(message)s"))
 
     def filter(self, record) -> bool:
         return record.threadName == self.thread_name or record.name == f"smana.{self.name_}"
 
     def emit(self, record) -> None:
-        self.lines.append(self.format(record))
+        self.chunks.append(self.format(record) + "\n")
+
+
+class _StderrByThread:
+    """sys.stderr while a FakeStack lives: a service thread's writes go to its log."""
+
+    def __init__(self, original, logs: dict[str, _ThreadLog]):
+        self.original, self.logs = original, logs
+
+    def write(self, text: str) -> int:
+        h = self.logs.get(threading.current_thread().name)
+        if h is None:
+            return self.original.write(text)
+        h.chunks.append(text)
+        return len(text)
+
+    def flush(self) -> None:
+        self.original.flush()
+
+    def __getattr__(self, name):
+        return getattr(self.original, name)
 
 
 class FakeStack:
@@ -654,6 +676,7 @@ class FakeStack:
         self._smana_log = logging.getLogger("smana")
         self._saved_level = self._smana_log.level
         self._smana_log.setLevel(logging.INFO)
+        self._by_thread_name: dict[str, _ThreadLog] = {}
 
     # ZenohStack compatibility: the processes a test started
     @property
@@ -699,6 +722,9 @@ class FakeStack:
         thread_name = f"{name}-{next(self._count)}"
         handler = _ThreadLog(name, thread_name)
         self._logs[name].append(handler)
+        self._by_thread_name[thread_name] = handler
+        if not isinstance(sys.stderr, _StderrByThread):  # (pytest swaps it between phases)
+            sys.stderr = _StderrByThread(sys.stderr, self._by_thread_name)
         logging.getLogger().addHandler(handler)
 
         def body() -> None:
@@ -762,7 +788,7 @@ class FakeStack:
 
     def log(self, run_or_name) -> str:
         name = run_or_name if isinstance(run_or_name, str) else run_or_name.log_name
-        return "\n".join(line for h in self._logs.get(name, []) for line in h.lines)
+        return "".join(chunk for h in self._logs.get(name, []) for chunk in h.chunks)
 
     # -- reading a service
     def running(self, name: str):
@@ -799,3 +825,5 @@ class FakeStack:
                 logging.getLogger().removeHandler(h)
         self._service_module.session_factory = self._saved_factory
         self._smana_log.setLevel(self._saved_level)
+        if isinstance(sys.stderr, _StderrByThread):
+            sys.stderr = sys.stderr.original
