@@ -33,6 +33,7 @@ import itertools
 import logging
 import os
 import signal
+import subprocess
 import sys
 import threading
 import time
@@ -613,7 +614,7 @@ class ServiceRun:
     def wait(self, timeout: float | None = None) -> int | None:
         self.thread.join(timeout)
         if self.thread.is_alive():
-            raise TimeoutError(f"{self.log_name} still running after {timeout} s")
+            raise subprocess.TimeoutExpired(self.log_name, timeout)
         return self.returncode
 
 
