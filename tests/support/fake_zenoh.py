@@ -665,6 +665,9 @@ class FakeStack:
         from smana.common import service as service_module
 
         self.tmp = Path(tmp)
+        # what a [zenoh] section may name (as ZenohStack's router): nothing listens there, every
+        # session of the stack is a fake one
+        self.endpoint = "tcp/127.0.0.1:7447"
         self.network = FakeNetwork()
         self.runs: list[ServiceRun] = []
         self._session: FakeSession | None = None
