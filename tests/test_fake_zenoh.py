@@ -141,3 +141,21 @@ def test_a_ring_channel_keeps_the_latest():
             got.append(s.payload.to_bytes()[0])
         assert got == ([3, 4] if isinstance(handler, RingChannel) else [4])
         sub.undeclare()
+
+
+def test_a_service_on_the_fake_stack_is_fed_queried_and_read(fake_stack):
+    from smana.common import keys
+    from smana.common.messages import Pose
+    from tests.support import echo_service
+
+    fake_stack.start("echo", echo_service.cli, "--robot", fake_stack.robot)
+    fake_stack.wait_alive("echo")
+    for i in range(3):
+        fake_stack.publish(keys.key("test", "echo", "pose"), Pose.from_xyz_yaw(i, 0, 0, 0))
+    fake_stack.publish(keys.key("test", "echo", "pose"), b"garbage")
+    assert fake_stack.drained("echo")
+    assert fake_stack.query("echo", "count") == {"poses": 3, "clouds": 0, "points": 0}
+    books = fake_stack.books("echo")
+    assert books.accepted >= 3 and books.rejected == {"malformed": 1}
+    st = fake_stack.status("echo")
+    assert st.state == "running" and st.books_add_up()

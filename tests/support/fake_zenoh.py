@@ -802,6 +802,36 @@ class FakeStack:
                 return r.service
         raise LookupError(f"no service {name} started")
 
+    def publish(self, key: str, msg) -> None:
+        """Put a Message (encoded), a map (msgpack) or bytes on `key` from the test's session:
+        when this returns, every subscribed service has it queued."""
+        import msgpack
+
+        from smana.common.messages import Message, encode
+
+        if isinstance(msg, Message):
+            msg = encode(msg)
+        elif isinstance(msg, dict):
+            msg = msgpack.packb(msg, use_bin_type=True)
+        self.session.put(key, msg)
+
+    def books(self, name: str):
+        """The service's `Books` (received, accepted, dropped, rejected, in flight)."""
+        return self.running(name).books
+
+    def drained(self, name: str, timeout_s: float = 10.0) -> bool:
+        """Wait until the service has handled everything it was sent (nothing queued, nothing
+        in flight); False after `timeout_s`."""
+        from tests.conftest import wait_for
+
+        svc = self.running(name)
+
+        def idle() -> bool:
+            with svc.books.lock:
+                return svc._pending_locked() == 0
+
+        return wait_for(idle, timeout_s, 0.005)
+
     def status(self, name: str):
         """The service's ServiceStatus, as a status query answers it."""
         from smana.common import keys
