@@ -117,12 +117,13 @@ class Reply:
 
 
 class FifoChannel:
-    """A bounded FIFO (zenoh's FifoChannel blocks the sender when full; here the oldest item
-    waits and the newest is dropped, as nothing may block a synchronous delivery)."""
+    """A FIFO of `capacity` items (None: unbounded, the default handler). zenoh's FifoChannel
+    blocks the sender when full; here the newest item is dropped instead, as nothing may block a
+    synchronous delivery."""
 
     ring = False
 
-    def __init__(self, capacity: int = 256):
+    def __init__(self, capacity: int | None = 256):
         self.capacity = capacity
 
 
@@ -167,7 +168,7 @@ class _Channel:
         with self.cv:
             while not self.items:
                 if self.closed:
-                    raise StopIteration  # zenoh raises ZError on a closed channel
+                    raise zenoh.ZError("fake zenoh: channel closed")
                 left = None if self.deadline is None else self.deadline - time.monotonic()
                 if left is not None and left <= 0:
                     self.closed = True
@@ -179,13 +180,16 @@ class _Channel:
         return self
 
     def __next__(self):
-        return self.recv()
+        try:
+            return self.recv()
+        except zenoh.ZError:
+            raise StopIteration from None
 
 
 def _handler(handler) -> tuple[Callable[[Any], None], Callable[[], None], _Channel | None]:
     """(deliver, drop, channel) for what zenoh accepts as a handler."""
     if handler is None:
-        handler = FifoChannel()
+        handler = FifoChannel(None)  # zenoh's default handler loses nothing either
     if isinstance(handler, zenoh.handlers.RingChannel):
         handler = RingChannel(1)  # zenoh's channels do not say their capacity; smana uses 1
     elif isinstance(handler, zenoh.handlers.FifoChannel | zenoh.handlers.DefaultHandler):
@@ -218,7 +222,8 @@ class _Entity:
         self.key_expr = key_expr(key)
         self.deliver, self._drop, self.handler = _handler(handler)
         self.undeclared = False
-        session._entities.append(self)
+        with session.network.lock:
+            session._entities.append(self)
 
     def matches(self, key: zenoh.KeyExpr) -> bool:
         return not self.undeclared and self.key_expr.intersects(key)
@@ -262,15 +267,17 @@ class Queryable(_Entity):
 class LivelinessToken:
     def __init__(self, session: FakeSession, key):
         self.session, self.key_expr, self.undeclared = session, key_expr(key), False
-        session._tokens.append(self)
+        with session.network.lock:
+            session._tokens.append(self)
         session.network._liveliness(self.key_expr, zenoh.SampleKind.PUT)
 
     def undeclare(self) -> None:
         if self.undeclared:
             return
         self.undeclared = True
-        if self in self.session._tokens:
-            self.session._tokens.remove(self)
+        with self.session.network.lock:
+            if self in self.session._tokens:
+                self.session._tokens.remove(self)
         self.session.network._liveliness(self.key_expr, zenoh.SampleKind.DELETE)
 
     def __enter__(self):
@@ -316,10 +323,11 @@ class Publisher:
 
 
 class _GetState:
-    """One `get`: how many queries are still open; the reply channel closes when none is."""
+    """One `get`: how many queries are still open; the reply handler is dropped (a channel
+    closes) when none is."""
 
-    def __init__(self, channel: _Channel | None, deliver, drop, n: int):
-        self.channel, self.deliver, self.drop = channel, deliver, drop
+    def __init__(self, deliver, drop, n: int):
+        self.deliver, self.drop = deliver, drop
         self.open = n
         self.lock = threading.Lock()
         if n == 0:
@@ -509,7 +517,7 @@ class FakeSession:
         if channel is not None:
             channel.deadline = time.monotonic() + (GET_TIMEOUT_S if timeout is None else timeout)
         targets = self.network._queryables(sel.key_expr)
-        state = _GetState(channel, deliver, drop, len(targets))
+        state = _GetState(deliver, drop, len(targets))
         for q in targets:
             query = Query(sel, payload, encoding, attachment, state)
             _call(q.deliver, query)
