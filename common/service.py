@@ -32,7 +32,8 @@ state in `warm_up()`, declares its inputs and outputs in `setup()` and does its 
   thread's stack to the log and exits with status 3: with its supervisor gone (killed -9), nobody
   else would end it.
 
-A complete minimal example is `tests/support/echo_service.py`.
+A complete minimal example is `tests/support/echo_service.py`. Tests run services in-process on a
+fake zenoh (`tests/support/fake_zenoh.py`), handed to `run` through `session_factory`.
 
 Query replies use the query's encoding: JSON when the query carries a JSON payload or the selector
 has `?format=json`, msgpack otherwise. So `z_get -s 'smana/r1/mapper/stats?format=json'` works from
