@@ -32,7 +32,8 @@ state in `warm_up()`, declares its inputs and outputs in `setup()` and does its 
   thread's stack to the log and exits with status 3: with its supervisor gone (killed -9), nobody
   else would end it.
 
-A complete minimal example is `tests/support/echo_service.py`.
+A complete minimal example is `tests/support/echo_service.py`. Tests run services in-process on a
+fake zenoh (`tests/support/fake_zenoh.py`), handed to `run` through `session_factory`.
 
 Query replies use the query's encoding: JSON when the query carries a JSON payload or the selector
 has `?format=json`, msgpack otherwise. So `z_get -s 'smana/r1/mapper/stats?format=json'` works from
@@ -112,6 +113,16 @@ def die_with_parent() -> None:
     if _LIBC is not None:
         _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
+
+def open_service_session(service: Service):
+    """The zenoh session a service runs on: one opened from its [zenoh] section."""
+    return open_session(service.config.zenoh)
+
+
+# How `Service.run` opens its session. In-process tests put a fake zenoh's here
+# (tests/support/fake_zenoh.py), so that a service runs its real lifecycle and handlers with no
+# router and no process of its own.
+session_factory: Callable[[Service], Any] = open_service_session
 
 STOP_DEADLINE_S = 5.0  # after a stop signal: to leave the loop, and to close zenoh after on_stop
 # Set by the supervisor for a hot spare (deploy/supervisor.py): prepare, write "ready" to the file
@@ -424,7 +435,7 @@ class Service:
                 return 0
             self._t0 = time.monotonic()  # readiness counts from the take-over
             self.log.info("%s taking over", self.name)
-        with open_session(self.config.zenoh) as session:
+        with session_factory(self) as session:
             self.session = session
             self.producer = str(session.zid())
             try:

@@ -1,6 +1,8 @@
 """Shared fixtures: an isolated zenoh router on a free loopback port (multicast scouting and gossip
 off), services started as subprocesses in their own process groups, and a client session for the
-test to publish and query with. Everything is torn down even when the test fails."""
+test to publish and query with (`zenoh_stack`, for lifecycle and transport tests); or the same
+services on threads of the test's process over a fake zenoh (`fake_stack`, for handler logic:
+tests/support/fake_zenoh.py). Everything is torn down even when the test fails."""
 
 from __future__ import annotations
 
@@ -156,6 +158,20 @@ class ZenohStack:
 @pytest.fixture
 def zenoh_stack(tmp_path):
     stack = ZenohStack(tmp_path)
+    try:
+        yield stack
+    finally:
+        stack.close()
+
+
+@pytest.fixture
+def fake_stack(tmp_path, monkeypatch):
+    """Services in this process on a fake zenoh, with `zenoh_stack`'s API; the working directory
+    is the test's folder, as it is for `zenoh_stack`'s processes."""
+    from tests.support.fake_zenoh import FakeStack
+
+    monkeypatch.chdir(tmp_path)
+    stack = FakeStack(tmp_path)
     try:
         yield stack
     finally:

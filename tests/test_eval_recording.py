@@ -178,10 +178,11 @@ def test_voxel_store_blocks_match_a_mask_per_block():
         assert sorted(lab.tolist()) == sorted(vs.labels[sel].tolist())
 
 
-@pytest.mark.multiprocess
-def test_a_recorder_behind_records_its_backlog_when_stopped(zenoh_stack, tmp_path):
+def test_a_recorder_behind_records_its_backlog_when_stopped(fake_stack, tmp_path):
     """A stop that comes while the recorder is still working on a delta (the mapper's are large)
-    records the poses queued behind it too, and says so in recorder.json."""
+    records the poses queued behind it too, and says so in recorder.json. In-process on the fake
+    zenoh (tests/support/fake_zenoh.py)."""
+    zenoh_stack = fake_stack
     robot = zenoh_stack.robot
     cfg = SmanaConfig.load(
         None,

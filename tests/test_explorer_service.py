@@ -1,6 +1,7 @@
-"""The explorer service over an isolated zenoh router, with the test standing in for the robot
-(integrates cmd_vel, publishes poses), the navgraph (publishes GraphPatches) and the planner (a
-queryable answering straight-line paths)."""
+"""The explorer service in-process on the fake zenoh (tests/support/fake_zenoh.py), with the test
+standing in for the robot (integrates cmd_vel, publishes poses), the navgraph (publishes
+GraphPatches) and the planner (a queryable answering straight-line paths). The explorer's real
+process runs in the end-to-end tests (test_e2e_explore.py, test_resilience.py)."""
 
 from __future__ import annotations
 
@@ -25,8 +26,6 @@ from smana.common.messages import (
 )
 from smana.common.query import request
 from tests.conftest import wait_for
-
-pytestmark = pytest.mark.multiprocess
 
 RES = 0.2
 BOUNDS = [
@@ -115,7 +114,8 @@ def stub_planner(session, robot, calls):
     return session.declare_queryable(keys.path_query(robot), on_query), token
 
 
-def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(zenoh_stack, tmp_path):
+def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(fake_stack, tmp_path):
+    zenoh_stack = fake_stack
     s = zenoh_stack.session
     robot = zenoh_stack.robot
     calls = []

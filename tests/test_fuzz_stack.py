@@ -9,18 +9,17 @@ by refused input and equal to references fed exactly the accepted input, clean e
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from smana.common import keys
 from smana.common.messages import MAX_PAYLOAD_BYTES, ServiceStatus
 from smana.common.query import request
 from smana.lab.bench.fuzz import Campaign, table
+from tests.support import echo_service
 
-pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
 
-
+@pytest.mark.multiprocess
+@pytest.mark.slow
 def test_fuzz_every_key_and_query_of_the_stack(tmp_path):
     campaign = Campaign(
         tmp_path / "fuzz",
@@ -42,13 +41,11 @@ def test_fuzz_every_key_and_query_of_the_stack(tmp_path):
         assert len(result.service_figures[name].rejected) >= 3, report
 
 
-ECHO = str(Path(__file__).parent / "support" / "echo_service.py")
-
-
-def test_an_oversize_query_gets_an_error_reply(zenoh_stack):
+def test_an_oversize_query_gets_an_error_reply(fake_stack):
     # found by smana bench fuzz: an oversize query was counted and left without any reply
-    st = zenoh_stack
-    st.start("echo", ECHO, *st.zenoh_args(), "--robot", st.robot)
+    # (in-process on the fake zenoh: tests/support/fake_zenoh.py)
+    st = fake_stack
+    st.start("echo", echo_service.cli, "--robot", st.robot)
     st.wait_alive("echo")
     replies = list(
         st.session.get(

@@ -1,5 +1,6 @@
-"""The mapper as a process over an isolated loopback zenoh: clouds in, deltas out, queries, bad
-input counted without touching the map, autosave on shutdown and resume with --load."""
+"""The mapper service. In-process on the fake zenoh (tests/support/fake_zenoh.py): clouds in,
+deltas out, queries, bad input counted without touching the map. As a process over an isolated
+loopback zenoh: the map saved on shutdown, and a new process resuming from it with --load."""
 
 from __future__ import annotations
 
@@ -14,7 +15,6 @@ from smana.common.messages import MapDelta, SemanticCloud, decode, encode
 from smana.common.query import QueryError, request
 from smana.services.mapper.semantic_map import SemanticMap
 
-pytestmark = pytest.mark.multiprocess
 RES = 0.2
 
 
@@ -67,10 +67,8 @@ def wait_stats(session, robot, pred, timeout_s=20.0):
         time.sleep(0.1)
 
 
-def test_mapper_service_end_to_end(zenoh_stack, tmp_path):
-    st = zenoh_stack
-    map_file = tmp_path / "map.npz"
-    args = (
+def mapper_args(map_file):
+    return (
         "--set",
         f"mapper.resolution_m={RES}",
         "--set",
@@ -78,6 +76,12 @@ def test_mapper_service_end_to_end(zenoh_stack, tmp_path):
         "--save",
         str(map_file),
     )
+
+
+def test_mapper_service_end_to_end(fake_stack, tmp_path):
+    st = fake_stack
+    map_file = tmp_path / "map.npz"
+    args = mapper_args(map_file)
     proc = st.service("mapper", *args)
     st.wait_alive("mapper")
     s, r = st.session, st.robot
@@ -145,6 +149,25 @@ def test_mapper_service_end_to_end(zenoh_stack, tmp_path):
     for name in ("../escape.npz", "config.toml"):  # nor a file of the run dir but a map
         with pytest.raises(QueryError):
             request(s, keys.query(r, "mapper", "save"), {"name": name})
+
+    inbox.sub.undeclare()
+    assert st.stop(proc) == 0
+
+
+@pytest.mark.multiprocess
+def test_mapper_saves_on_shutdown_and_resumes(zenoh_stack, tmp_path):
+    st = zenoh_stack
+    map_file = tmp_path / "map.npz"
+    args = mapper_args(map_file)
+    proc = st.service("mapper", *args)
+    st.wait_alive("mapper")
+    s, r = st.session, st.robot
+    inbox = DeltaInbox(s, keys.map_delta(r))
+    time.sleep(0.3)  # let the subscriber's declaration reach the router
+    for c in [make_cloud(i) for i in range(1, 4)]:
+        s.put(keys.cloud(r), encode(c))
+        inbox.wait_for(c.seq)
+    stats = request(s, keys.query(r, "mapper", "stats"))
 
     # shutdown saves; a new process resumes from the file with the same map
     n_voxels = stats["voxels_observed"]

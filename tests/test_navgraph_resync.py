@@ -1,6 +1,7 @@
 """navgraph resynchronises from the mapper's snapshot when deltas may have been lost: here the
 mapper dies without saving and comes back empty, so every node from before is a ghost that the
-resync must remove; afterwards the graph equals the graph of the mapper's whole map."""
+resync must remove; afterwards the graph equals the graph of the mapper's whole map. Both run
+in-process on the fake zenoh (the crash: the mapper's session vanishes, nothing saved)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from smana.common import keys
 from smana.common.classes import ClassTable
@@ -20,8 +20,6 @@ from smana.common.query import request
 from smana.services.navgraph.graph import NavGraph
 from smana.services.navgraph.service import graph_difference
 from tests.conftest import wait_for
-
-pytestmark = pytest.mark.multiprocess
 
 sys.path.insert(0, str(Path(__file__).parent / "support"))
 from publish_clouds import patch_cloud  # noqa: E402
@@ -55,8 +53,8 @@ def graph_nodes(patch: GraphPatch) -> dict:
     }
 
 
-def test_resync_after_the_mapper_comes_back_empty(zenoh_stack, tmp_path):
-    s = zenoh_stack
+def test_resync_after_the_mapper_comes_back_empty(fake_stack, tmp_path):
+    s = fake_stack
     args = [
         "--set",
         "mapper.autosave_period_s=0",

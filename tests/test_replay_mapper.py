@@ -1,5 +1,6 @@
-"""Lockstep replay into the real mapper service gives the same map as integrating the same scans
-in-process: no scan lost, none integrated twice, nothing altered on the way."""
+"""Lockstep replay into the real mapper service (both in-process on the fake zenoh,
+tests/support/fake_zenoh.py) gives the same map as integrating the same scans with the core: no
+scan lost, none integrated twice, nothing altered on the way."""
 
 from __future__ import annotations
 
@@ -33,9 +34,9 @@ def sorted_rows(d):
     return d.subset(order)
 
 
-@pytest.mark.multiprocess
 @pytest.mark.parametrize("backend", ["octree-max", "tsdf"])
-def test_lockstep_replay_builds_the_in_process_map(zenoh_stack, dataset, backend):
+def test_lockstep_replay_builds_the_in_process_map(fake_stack, dataset, backend):
+    zenoh_stack = fake_stack
     settings = [
         "general.class_table=rellis3d",
         'mapper.inputs=["scan"]',

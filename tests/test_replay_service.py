@@ -1,6 +1,7 @@
-"""The replay service as a process on an isolated router, against a stand-in mapper in the test
-process (a liveliness token, a scan subscriber and a MapDelta publisher): lockstep loses nothing
-and publishes exactly what the core prepares; realtime counts what a slow mapper misses."""
+"""The replay service in-process on the fake zenoh (tests/support/fake_zenoh.py), against a
+stand-in mapper in the test (a liveliness token, a scan subscriber and a MapDelta publisher):
+lockstep loses nothing and publishes exactly what the core prepares; realtime counts what a slow
+mapper misses. `smana replay --run` still starts the real stack as processes."""
 
 from __future__ import annotations
 
@@ -104,8 +105,8 @@ def run_replay(stack, dataset, *extra, timeout_s=60.0):
     return proc.returncode, summary
 
 
-@pytest.mark.multiprocess
-def test_lockstep_publishes_every_scan_as_prepared(zenoh_stack, dataset):
+def test_lockstep_publishes_every_scan_as_prepared(fake_stack, dataset):
+    zenoh_stack = fake_stack
     mapper = FakeMapper(zenoh_stack.session, zenoh_stack.robot, delay_s=0.05)
     try:
         code, summary = run_replay(zenoh_stack, dataset, "--lockstep")
@@ -133,8 +134,8 @@ def test_lockstep_publishes_every_scan_as_prepared(zenoh_stack, dataset):
     assert all(r[5] >= 50 for r in per_scan)
 
 
-@pytest.mark.multiprocess
-def test_realtime_counts_what_a_slow_mapper_misses(zenoh_stack, dataset):
+def test_realtime_counts_what_a_slow_mapper_misses(fake_stack, dataset):
+    zenoh_stack = fake_stack
     # 10 Hz x 4 = 25 ms between scans, a mapper taking 120 ms per scan
     mapper = FakeMapper(zenoh_stack.session, zenoh_stack.robot, delay_s=0.12)
     try:
@@ -152,8 +153,8 @@ def test_realtime_counts_what_a_slow_mapper_misses(zenoh_stack, dataset):
     assert summary["wall_s"] < 2.0  # it did not wait for the mapper between scans
 
 
-@pytest.mark.multiprocess
-def test_waits_for_the_mapper_then_gives_up(zenoh_stack, dataset):
+def test_waits_for_the_mapper_then_gives_up(fake_stack, dataset):
+    zenoh_stack = fake_stack
     code, summary = run_replay(zenoh_stack, dataset, "--set", "replay.wait_timeout_s=1.0")
     assert code == 1 and summary is None
     assert "mapper not alive after 1 s" in zenoh_stack.log("replay")
@@ -384,8 +385,8 @@ def dataset_with_an_empty_scan(dataset, tmp_path):
     return copy
 
 
-@pytest.mark.multiprocess
-def test_lockstep_goes_on_past_an_empty_scan(zenoh_stack, dataset_with_an_empty_scan):
+def test_lockstep_goes_on_past_an_empty_scan(fake_stack, dataset_with_an_empty_scan):
+    zenoh_stack = fake_stack
     # The scans after an empty one are acknowledged by their own numbers: nothing is waited for
     # in vain (resent after ack_timeout_s) nor counted lost.
     mapper = FakeMapper(zenoh_stack.session, zenoh_stack.robot)

@@ -1,5 +1,7 @@
-"""The service lifecycle base over a real, isolated zenoh router: status and liveliness, bad input
-counted without losing state, latest-wins drops counted, JSON queries, clean stop on SIGTERM."""
+"""The service lifecycle base: over a real, isolated zenoh router, status and liveliness, a clean
+stop on SIGTERM, a hung stop ended hard, a stop while starting; in-process on the fake zenoh
+(tests/support/fake_zenoh.py), bad input counted without losing state, latest-wins drops counted,
+JSON queries and error replies."""
 
 from __future__ import annotations
 
@@ -16,14 +18,17 @@ from smana.common import keys
 from smana.common.messages import Pose, SemanticCloud, ServiceStatus, encode
 from smana.common.query import QueryError, request
 from tests.conftest import wait_for
-
-pytestmark = pytest.mark.multiprocess
+from tests.support import echo_service
+from tests.support.fake_zenoh import FakeStack
 
 ECHO = str(Path(__file__).parent / "support" / "echo_service.py")
 
 
 def start_echo(stack, *args):
-    proc = stack.start("echo", ECHO, *stack.zenoh_args(), "--robot", stack.robot, *args)
+    if isinstance(stack, FakeStack):
+        proc = stack.start("echo", echo_service.cli, "--robot", stack.robot, *args)
+    else:
+        proc = stack.start("echo", ECHO, *stack.zenoh_args(), "--robot", stack.robot, *args)
     stack.wait_alive("echo")
     return proc
 
@@ -38,6 +43,7 @@ def count(stack):
     return request(stack.session, keys.key(stack.robot, "echo", "count"), timeout_s=5)
 
 
+@pytest.mark.multiprocess
 def test_status_liveliness_and_sigterm(zenoh_stack):
     proc = start_echo(zenoh_stack)
     st = status(zenoh_stack)
@@ -62,13 +68,13 @@ def test_status_liveliness_and_sigterm(zenoh_stack):
     )
 
 
-def test_bad_input_is_counted_and_state_kept(zenoh_stack):
-    start_echo(zenoh_stack)
-    s = zenoh_stack.session
+def test_bad_input_is_counted_and_state_kept(fake_stack):
+    start_echo(fake_stack)
+    s = fake_stack.session
     pose_key = keys.key("test", "echo", "pose")
     for i in range(3):
         s.put(pose_key, encode(Pose.from_xyz_yaw(i, 0, 0, 0, seq=i)))
-    assert wait_for(lambda: count(zenoh_stack)["poses"] == 3)
+    assert wait_for(lambda: count(fake_stack)["poses"] == 3)
     bad_pose = Pose()
     bad_pose.position = np.array([np.nan, 0, 0])
     s.put(pose_key, b"\x00garbage")
@@ -81,8 +87,8 @@ def test_bad_input_is_counted_and_state_kept(zenoh_stack):
     wrapped["position"] = {"dtype": "<f8", "shape": [2**32, 2**32], "data": b""}
     s.put(pose_key, msgpack.packb(wrapped))
     s.put(pose_key, encode(Pose.from_xyz_yaw(1, 0, 0, 0, frame_id="boom")))  # a handler bug
-    assert wait_for(lambda: sum(status(zenoh_stack).rejected.values()) >= 6)
-    st = status(zenoh_stack)
+    assert wait_for(lambda: sum(status(fake_stack).rejected.values()) >= 6)
+    st = status(fake_stack)
     assert st.rejected == {
         "malformed": 1,
         "type": 1,
@@ -91,34 +97,32 @@ def test_bad_input_is_counted_and_state_kept(zenoh_stack):
         "shape": 1,
         "internal": 1,
     }
-    assert count(zenoh_stack)["poses"] == 3  # state intact
+    assert count(fake_stack)["poses"] == 3  # state intact
     # Still working afterwards, and the books add up.
     s.put(pose_key, encode(Pose.from_xyz_yaw(9, 0, 0, 0)))
-    assert wait_for(lambda: count(zenoh_stack)["poses"] == 4)
-    st = status(zenoh_stack)
+    assert wait_for(lambda: count(fake_stack)["poses"] == 4)
+    st = status(fake_stack)
     assert st.books_add_up(), st
-    assert "RuntimeError" in zenoh_stack.log("echo") and "Traceback" in zenoh_stack.log("echo")
+    assert "RuntimeError" in fake_stack.log("echo") and "Traceback" in fake_stack.log("echo")
 
 
-def test_nonfinite_points_dropped_and_latest_wins(zenoh_stack):
-    start_echo(zenoh_stack, "--cloud-delay", "0.3")
+def test_nonfinite_points_dropped_and_latest_wins(fake_stack):
+    start_echo(fake_stack, "--cloud-delay", "0.3")
     cloud_key = keys.key("test", "echo", "cloud")
     pts = np.zeros((100, 3), "f4")
     pts[:7, 0] = np.nan
     c = SemanticCloud(points=pts, labels=np.ones(100, "u1"), confidences=np.ones(100, "f4"))
     for i in range(10):
         c.seq = i
-        zenoh_stack.session.put(cloud_key, encode(c))
+        fake_stack.session.put(cloud_key, encode(c))
         time.sleep(0.02)
     assert wait_for(
-        lambda: (
-            status(zenoh_stack).dropped.get("stale", 0) > 0 and count(zenoh_stack)["clouds"] >= 2
-        )
+        lambda: status(fake_stack).dropped.get("stale", 0) > 0 and count(fake_stack)["clouds"] >= 2
     )
     # Every cloud ends integrated or dropped as stale, none queued up.
-    assert wait_for(lambda: (st := status(zenoh_stack)).pending == 0 and st.msgs_in >= 10 + 3)
-    n = count(zenoh_stack)
-    st = status(zenoh_stack)
+    assert wait_for(lambda: (st := status(fake_stack)).pending == 0 and st.msgs_in >= 10 + 3)
+    n = count(fake_stack)
+    st = status(fake_stack)
     assert n["clouds"] + st.dropped["stale"] == 10
     assert n["clouds"] < 10
     assert n["points"] == 93 * n["clouds"]
@@ -126,26 +130,25 @@ def test_nonfinite_points_dropped_and_latest_wins(zenoh_stack):
     assert st.books_add_up(), st
 
 
-def test_json_queries_and_error_replies(zenoh_stack):
-    start_echo(zenoh_stack)
-    s = zenoh_stack.session
+def test_json_queries_and_error_replies(fake_stack):
+    start_echo(fake_stack)
+    s = fake_stack.session
     replies = list(s.get(keys.key("test", "echo", "count") + "?format=json", timeout=5))
     assert json.loads(replies[0].ok.payload.to_bytes()) == {"poses": 0, "clouds": 0, "points": 0}
 
 
-def test_error_reply_raises(zenoh_stack):
-    start_echo(zenoh_stack)
+def test_error_reply_raises(fake_stack):
+    start_echo(fake_stack)
     with pytest.raises(QueryError) as info:
-        request(
-            zenoh_stack.session, keys.key("test", "echo", "count"), {"fail": True}, as_json=True
-        )
+        request(fake_stack.session, keys.key("test", "echo", "count"), {"fail": True}, as_json=True)
     assert info.value.kind == "refused"
     with pytest.raises(QueryError) as info:
-        request(zenoh_stack.session, keys.key("test", "echo", "nothing"), timeout_s=1)
+        request(fake_stack.session, keys.key("test", "echo", "nothing"), timeout_s=1)
     assert info.value.kind == "no_reply"
-    assert status(zenoh_stack).rejected == {"refused": 1}
+    assert status(fake_stack).rejected == {"refused": 1}
 
 
+@pytest.mark.multiprocess
 def test_a_stop_that_hangs_ends_hard_with_the_stacks_logged(zenoh_stack):
     # a handler stuck for a minute: SIGTERM cannot end the loop, the watchdog ends the process
     proc = start_echo(zenoh_stack, "--cloud-delay", "60")
@@ -191,6 +194,7 @@ print(len(seen), flush=True)
 """
 
 
+@pytest.mark.multiprocess
 def test_stop_signals_never_deadlock_the_main_loop():
     # A handler that set an Event from the main thread deadlocked when the signal came while
     # that thread held the Event's lock (a planner ignored SIGTERM for good). Through a storm of
@@ -210,6 +214,7 @@ def test_stop_signals_never_deadlock_the_main_loop():
     assert int(out.strip()) >= 3  # the kernel merges signals that arrive together
 
 
+@pytest.mark.multiprocess
 def test_a_starting_service_says_so_and_a_stop_while_starting_is_clean(zenoh_stack):
     proc = zenoh_stack.start(
         "echo", ECHO, *zenoh_stack.zenoh_args(), "--robot", zenoh_stack.robot, "--warm-up", "60"

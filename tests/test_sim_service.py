@@ -1,6 +1,7 @@
-"""The simulator service over an isolated zenoh router: it publishes poses, clouds, scans and its
-clock, drives on cmd_vel and stops without it, survives bad input, and paces itself in lockstep
-with the mapper's MapDeltas."""
+"""The simulator service: over an isolated zenoh router, it publishes poses, clouds, scans and its
+clock, drives on cmd_vel and stops without it, and survives bad input; in-process on the fake
+zenoh (tests/support/fake_zenoh.py), it paces itself in lockstep with the mapper's MapDeltas and
+refuses a bad world."""
 
 from __future__ import annotations
 
@@ -24,8 +25,6 @@ from smana.common.messages import (
 )
 from smana.common.query import request
 from tests.conftest import wait_for
-
-pytestmark = pytest.mark.multiprocess
 
 SMALL = [
     "--size",
@@ -75,6 +74,7 @@ def sim_status(stack) -> ServiceStatus:
     return st
 
 
+@pytest.mark.multiprocess
 def test_sim_publishes_drives_and_stops(zenoh_stack):
     stack, r = zenoh_stack, zenoh_stack.robot
     proc = stack.service(
@@ -156,8 +156,8 @@ def test_sim_publishes_drives_and_stops(zenoh_stack):
     assert stack.stop(proc, signal.SIGINT) == 0
 
 
-def test_sim_lockstep_waits_for_map_deltas(zenoh_stack):
-    stack, r = zenoh_stack, zenoh_stack.robot
+def test_sim_lockstep_waits_for_map_deltas(fake_stack):
+    stack, r = fake_stack, fake_stack.robot
     proc = stack.service(
         "sim",
         *SMALL,
@@ -205,7 +205,8 @@ def test_sim_lockstep_waits_for_map_deltas(zenoh_stack):
     assert stack.stop(proc, signal.SIGINT) == 0
 
 
-def test_sim_refuses_a_bad_world(zenoh_stack, tmp_path):
+def test_sim_refuses_a_bad_world(fake_stack, tmp_path):
+    zenoh_stack = fake_stack
     proc = zenoh_stack.service("sim", "--world", str(tmp_path / "missing.ply"))
     assert proc.wait(timeout=60) == 2
     assert "neither 'garden' nor a PLY file" in zenoh_stack.log("sim")

@@ -67,11 +67,15 @@ def main(config, cloud_delay_s: float = 0.0, warm_up_s: float = 0.0) -> int:
     return EchoService(config, cloud_delay_s, warm_up_s).run()
 
 
-if __name__ == "__main__":
+def cli(argv: list[str] | None = None) -> int:
     p = make_parser("echo", __doc__)
     p.add_argument("--cloud-delay", type=float, default=0.0)
     p.add_argument("--warm-up", type=float, default=0.0, help="seconds warm_up() takes")
-    args = p.parse_args()
+    args = p.parse_args(argv)
     cfg = config_from_args(args)
     setup_logging(cfg.general.log_level, "echo")
-    sys.exit(main(cfg, args.cloud_delay, args.warm_up))
+    return main(cfg, args.cloud_delay, args.warm_up)
+
+
+if __name__ == "__main__":
+    sys.exit(cli())

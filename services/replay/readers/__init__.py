@@ -2,6 +2,10 @@
 
 Reader modules are imported only when their format is used, so that a missing optional package
 (`rosbags` for bags) only matters to whoever replays a bag.
+
+Adding a reader: one module with a `DatasetReader` subclass, plus one line in `READERS` (in this
+package), or `register("name", "package.module:Class")` from outside smana. A format may also be
+given as the spec itself: `--set replay.format=my_pkg.my_reader:MyReader`.
 """
 
 from __future__ import annotations
@@ -12,12 +16,12 @@ from pathlib import Path
 
 from .base import DatasetError, DatasetInfo, DatasetReader, Scan, SkippedScan
 
-# format name -> (module, class)
+# format name -> (module, class); a module starting with "." is one of this package's
 READERS = {
-    "semantickitti": ("semantickitti", "SemanticKittiReader"),
-    "rellis3d": ("rellis3d", "Rellis3dReader"),
-    "rosbag": ("rosbag", "RosbagReader"),
-    "folder": ("folder", "FolderReader"),
+    "semantickitti": (".semantickitti", "SemanticKittiReader"),
+    "rellis3d": (".rellis3d", "Rellis3dReader"),
+    "rosbag": (".rosbag", "RosbagReader"),
+    "folder": (".folder", "FolderReader"),
 }
 
 __all__ = [
@@ -30,14 +34,35 @@ __all__ = [
     "detect_format",
     "open_dataset",
     "reader_class",
+    "register",
 ]
 
 
+def _spec(spec: str) -> tuple[str, str]:
+    module, sep, cls = spec.partition(":")
+    if not (sep and module and cls):
+        raise ValueError(f"reader {spec!r}: expected package.module:Class")
+    return module, cls
+
+
+def register(fmt: str, spec: str) -> None:
+    """Add (or replace) the reader of format `fmt`, a `DatasetReader` subclass named as
+    "package.module:Class": imported when a dataset of that format is opened."""
+    READERS[fmt] = _spec(spec)
+
+
 def reader_class(fmt: str) -> type[DatasetReader]:
-    if fmt not in READERS:
+    """The reader of a format name, or of a "package.module:Class" spec."""
+    if fmt in READERS:
+        module, name = READERS[fmt]
+    elif ":" in fmt:
+        module, name = _spec(fmt)
+    else:
         raise ValueError(f"unknown dataset format {fmt!r} (known: {', '.join(READERS)})")
-    module, cls = READERS[fmt]
-    return getattr(importlib.import_module(f"{__name__}.{module}"), cls)
+    cls = getattr(importlib.import_module(module, __name__), name, None)
+    if not (isinstance(cls, type) and issubclass(cls, DatasetReader)):
+        raise ValueError(f"dataset format {fmt!r}: {module}:{name} is not a DatasetReader")
+    return cls
 
 
 def detect_format(path: str | Path) -> str:
