@@ -28,11 +28,16 @@ STACK = ("mapper", "navgraph", "planner")
 
 
 def cli(argv: list[str] | None = None) -> int:
+    from smana.services.replay.readers import READERS
+
     p = make_parser("smana replay", __doc__.strip().splitlines()[0])
     p.add_argument("dataset", nargs="?", help="dataset path (or set replay.dataset)")
     p.add_argument("--run", action="store_true", help="also start mapper, navgraph and planner")
     p.add_argument("--info", action="store_true", help="describe the dataset and exit")
-    p.add_argument("--format", choices=["semantickitti", "rellis3d", "rosbag", "folder"])
+    p.add_argument(
+        "--format",
+        help=f"one of {', '.join(READERS)}, or a reader's package.module:Class (default: detect)",
+    )
     p.add_argument("--sequence", help="sequence to replay when DATASET holds several")
     p.add_argument("--table", help="class table (default: the dataset's own)")
     pace = p.add_mutually_exclusive_group()  # (--mode is zenoh's flag)

@@ -11,6 +11,7 @@ given as the spec itself: `--set replay.format=my_pkg.my_reader:MyReader`.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import inspect
 from pathlib import Path
 
@@ -59,7 +60,14 @@ def reader_class(fmt: str) -> type[DatasetReader]:
         module, name = _spec(fmt)
     else:
         raise ValueError(f"unknown dataset format {fmt!r} (known: {', '.join(READERS)})")
-    cls = getattr(importlib.import_module(module, __name__), name, None)
+    try:
+        mod = importlib.import_module(module, __name__)
+    except ModuleNotFoundError as exc:
+        absolute = importlib.util.resolve_name(module, __name__)
+        if exc.name and (absolute == exc.name or absolute.startswith(exc.name + ".")):
+            raise ValueError(f"dataset format {fmt!r}: no module {module!r}") from None
+        raise  # the reader's own optional dependency: its message says what to install
+    cls = getattr(mod, name, None)
     if not (isinstance(cls, type) and issubclass(cls, DatasetReader)):
         raise ValueError(f"dataset format {fmt!r}: {module}:{name} is not a DatasetReader")
     return cls
