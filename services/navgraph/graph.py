@@ -184,6 +184,7 @@ class NavGraph:
         self._stencil_dy = dy[inside].astype(np.int64)
         self._stencil_reach = r_cells
         self.n_integrations = 0
+        self._kernel_view: tuple[int, GridGeometry, NodeLayers] | None = None
 
     @property
     def resolution_m(self) -> float:
@@ -222,22 +223,24 @@ class NavGraph:
             next=grown(c.next, -1),
         )
 
-    def _geometry(self) -> GridGeometry:
+    def _kernel_state(self) -> tuple[GridGeometry, NodeLayers]:
+        """The grid as the kernels see it. Growing the tile pool replaces the layer arrays and
+        `tile_coords`, so the tuples are re-made when the pool's capacity has changed."""
         g = self.grid
-        return GridGeometry(
-            float(g.origin_xy[0]),
-            float(g.origin_xy[1]),
-            float(g.resolution_m),
-            int(g.shape[0]),
-            int(g.shape[1]),
-            int(g.tile_size),
-            g.tile_map,
-            g.tile_coords,
-        )
-
-    def _layers(self) -> NodeLayers:
-        """The node layers as they are now (re-made after allocating tiles: the pool may grow)."""
-        return NodeLayers(*(self.grid.flat(name) for name in NodeLayers._fields))
+        if self._kernel_view is None or self._kernel_view[0] != g.capacity:
+            geometry = GridGeometry(
+                float(g.origin_xy[0]),
+                float(g.origin_xy[1]),
+                float(g.resolution_m),
+                int(g.shape[0]),
+                int(g.shape[1]),
+                int(g.tile_size),
+                g.tile_map,
+                g.tile_coords,
+            )
+            layers = NodeLayers(*(g.flat(name) for name in NodeLayers._fields))
+            self._kernel_view = (g.capacity, geometry, layers)
+        return self._kernel_view[1], self._kernel_view[2]
 
     # -- integration ---------------------------------------------------------------------------
 
@@ -314,7 +317,7 @@ class NavGraph:
             self.resolution_m,
             self.classes.valid_lut,
             self._ignored_lut,
-            self._geometry(),
+            self._kernel_state()[0],
             lab,
             kind,
             missing,
@@ -332,14 +335,15 @@ class NavGraph:
         changes = NodeChanges.empty(m)
         flips = np.empty(m, np.int64)
         flip_sign = np.empty(m, np.int32)
+        geometry, layers = self._kernel_state()  # after allocating: the pool may have grown
         counts = _integrate_kernel(
             centres,
             lab,
             kind,
-            self._geometry(),
+            geometry,
             float(map_resolution_m),
             self.config.column_capacity,
-            self._layers(),
+            layers,
             epoch,
             self.columns,
             self._obstacle_lut,
@@ -355,13 +359,14 @@ class NavGraph:
         if n_flips:
             n_new += self._allocate_discs(flips[flip_sign > 0])
             zone_changes = NodeChanges.empty(n_flips * len(self._stencil_dx))
+            geometry, layers = self._kernel_state()
             n_zone = _safety_zone_kernel(
                 flips,
                 flip_sign,
                 self._stencil_dx,
                 self._stencil_dy,
-                self._geometry(),
-                self._layers(),
+                geometry,
+                layers,
                 epoch,
                 zone_changes,
             )
