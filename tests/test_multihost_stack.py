@@ -63,15 +63,7 @@ def graph_of_robot_map(hosts):
     if snap is None:
         return None
     nc = SmanaConfig().navgraph
-    g = NavGraph(
-        ClassTable.load("garden3drms"),
-        nc.bounds_min_xy,
-        nc.bounds_max_xy,
-        nc.resolution_m,
-        nc.robot_radius_m,
-        nc.tile_size,
-        nc.column_capacity,
-    )
+    g = NavGraph(ClassTable.load("garden3drms"), nc)
     g.integrate_delta(from_json(json.dumps(snap), MapDelta))
     return g.export()
 

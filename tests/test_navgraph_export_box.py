@@ -7,16 +7,17 @@ import numpy as np
 import pytest
 
 from smana.common.classes import ClassTable
+from smana.common.config.navgraph import NavgraphConfig
 from smana.services.navgraph.graph import NavGraph
 
 
 @pytest.fixture(scope="module")
 def graph():
-    g = NavGraph(ClassTable.load("garden3drms"), [-50, -50], [50, 50], 0.2, 0.4, 32, 256)
+    g = NavGraph(ClassTable.load("garden3drms"), NavgraphConfig())
     xs, ys = np.meshgrid(np.arange(-2, 2, 0.1) + 0.05, np.arange(-2, 2, 0.1) + 0.05)
     centres = np.stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)], axis=1).astype(np.float32)
     n = len(centres)
-    g.integrate(centres, np.full(n, 2, np.uint16), np.ones(n, np.uint8), np.ones(n, np.float32))
+    g.integrate(centres, np.full(n, 2, np.uint16), np.ones(n, np.uint8))
     return g
 
 

@@ -4,6 +4,7 @@ the highest one shown, and a brute-force distance check for the safety zone."""
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from smana.common.classes import ClassTable
+from smana.common.config.navgraph import NavgraphConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 from smana.services.navgraph.graph import NavGraph
 
@@ -65,6 +67,13 @@ class ReferenceGraph:
         return labels, heights, flags
 
 
+def graph(bounds_min_xy, bounds_max_xy, **kw) -> NavGraph:
+    config = NavgraphConfig(
+        bounds_min_xy=bounds_min_xy, bounds_max_xy=bounds_max_xy, resolution_m=RES, **kw
+    )
+    return NavGraph(CLASSES, config)
+
+
 def graph_state(g: NavGraph):
     return g.grid.box(0, 0, *g.grid.shape)
 
@@ -83,7 +92,7 @@ def integrate(g, vox, labels, occupied, **kw):
 
 
 def test_first_voxel_sets_then_highest_wins():
-    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.0)
+    g = graph((0, 0), (4, 4), robot_radius_m=0.0)
     up = integrate(g, [voxel(10, 10, 3)], [GRASS], [1])
     assert up.cells.tolist() == [[5, 5]]
     assert up.labels.tolist() == [GRASS] and up.heights[0] == pytest.approx(0.35)
@@ -104,7 +113,7 @@ def test_first_voxel_sets_then_highest_wins():
 
 
 def test_clearing_recomputes_from_what_remains():
-    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.4)
+    g = graph((0, 0), (4, 4), robot_radius_m=0.4)
     ground = [voxel(10, 10, 0), voxel(11, 10, 0), voxel(10, 11, 1)]
     person = [voxel(10, 10, k) for k in range(2, 12)]
     integrate(g, ground, [GRASS, GRASS, TERRAIN], [1, 1, 1])
@@ -127,7 +136,7 @@ def test_clearing_recomputes_from_what_remains():
 
 
 def test_a_solid_person_leaving_uncovers_the_ground_with_default_capacity():
-    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.4)
+    g = graph((0, 0), (4, 4), robot_radius_m=0.4)
     ground = [voxel(i, j, 0) for i in (10, 11) for j in (10, 11)]
     person = [voxel(i, j, k) for i in (10, 11) for j in (10, 11) for k in range(1, 18)]
     integrate(g, ground, [GRASS] * 4, [1] * 4)
@@ -139,7 +148,7 @@ def test_a_solid_person_leaving_uncovers_the_ground_with_default_capacity():
 
 
 def test_column_capacity_forgets_lowest_level_and_never_guesses():
-    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.0, column_capacity=3)
+    g = graph((0, 0), (4, 4), robot_radius_m=0.0, column_capacity=3)
     levels = [voxel(10, 10, k) for k in range(5)]
     up = integrate(g, levels, [GRASS] * 5, [1] * 5)
     assert g.n_column_voxels == 3 and [c[0] for c in g.column(5, 5)] == [4, 3, 2]
@@ -152,15 +161,14 @@ def test_column_capacity_forgets_lowest_level_and_never_guesses():
 
 
 def test_tsdf_band_rule_uses_graph_resolution():
-    g = NavGraph(CLASSES, (0, 0), (4, 4), RES, robot_radius_m=0.0)
+    g = graph((0, 0), (4, 4), robot_radius_m=0.0)
     vox = [voxel(10, 10, 0), voxel(10, 10, 1), voxel(10, 10, 2), voxel(10, 10, 3)]
     dist = [0.15, 0.05, -0.19, -0.25]  # |d| < 0.2 m: the first three are in the band
     up = g.integrate(
         np.array(vox, np.float32),
         np.full(4, GRASS, np.uint16),
         np.array([0, 1, 0, 0], np.uint8),
-        np.array(dist, np.float32),
-        backend="tsdf",
+        distances=np.array(dist, np.float32),
         map_resolution_m=MAP_RES,
     )
     assert up.heights[0] == pytest.approx(0.25)
@@ -169,14 +177,13 @@ def test_tsdf_band_rule_uses_graph_resolution():
         np.array(vox[2:3], np.float32),
         np.array([GRASS], np.uint16),
         np.array([0], np.uint8),
-        np.array([0.3], np.float32),
-        backend="tsdf",
+        distances=np.array([0.3], np.float32),
     )
     assert g.node(1.1, 1.1)["height"] == pytest.approx(0.15)
 
 
 def test_bad_rows_are_counted_and_bad_arrays_rejected():
-    g = NavGraph(CLASSES, (0, 0), (4, 4), RES)
+    g = graph((0, 0), (4, 4))
     vox = [voxel(10, 10, 0), [np.nan, 1.0, 0.0], [50.0, 1.0, 0.0], voxel(12, 12, 0)]
     up = integrate(g, vox, [GRASS, GRASS, GRASS, 3], [1, 1, 1, 1])
     assert up.n_nonfinite == 1 and up.n_out_of_bounds == 1 and up.n_unknown_labels == 1
@@ -185,17 +192,17 @@ def test_bad_rows_are_counted_and_bad_arrays_rejected():
         g.integrate(np.zeros((3, 2), np.float32), np.zeros(3, np.uint16), np.ones(3, np.uint8))
     with pytest.raises(ValueError, match="labels"):
         g.integrate(np.zeros((3, 3), np.float32), np.zeros(2, np.uint16), np.ones(3, np.uint8))
-    with pytest.raises(ValueError, match="backend"):
-        g.integrate(np.zeros((1, 3)), np.zeros(1, np.uint16), np.ones(1), backend="voxblox")
-    with pytest.raises(ValueError, match="values"):
-        g.integrate(np.zeros((1, 3)), np.zeros(1, np.uint16), np.ones(1), backend="tsdf")
+    with pytest.raises(ValueError, match="values_kind"):
+        g.integrate_delta(SimpleNamespace(values_kind="voxblox_esdf"))
+    with pytest.raises(ValueError, match="distances"):
+        g.integrate(np.zeros((1, 3)), np.zeros(1, np.uint16), np.ones(1), distances=np.zeros(2))
     with pytest.raises(ValueError, match="robot_radius"):
-        NavGraph(CLASSES, robot_radius_m=-1)
+        NavGraph(CLASSES, NavgraphConfig(robot_radius_m=-1))
 
 
 def test_memory_follows_the_area_seen_not_the_bounds():
-    small = NavGraph(CLASSES, (0, 0), (10, 10), RES)
-    huge = NavGraph(CLASSES, (-500, -500), (500, 500), RES)
+    small = graph((0, 0), (10, 10))
+    huge = graph((-500, -500), (500, 500))
     patch = [voxel(i, j, 0) for i in range(40) for j in range(40)]
     for g in (small, huge):
         integrate(g, patch, [GRASS] * len(patch), [1] * len(patch))
@@ -226,7 +233,7 @@ voxel_ops = st.lists(
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(deltas=voxel_ops, radius=st.sampled_from([0.0, 0.2, 0.3, 0.45]))
 def test_random_deltas_match_reference(deltas, radius):
-    g = NavGraph(CLASSES, (0, 0), (1.2, 1.2), RES, robot_radius_m=radius, tile_size=4)
+    g = graph((0, 0), (1.2, 1.2), robot_radius_m=radius, tile_size=4)
     ref = ReferenceGraph(6, 6, RES, radius, MAP_RES)
     before = ref.state()
     for delta in deltas:
@@ -249,7 +256,7 @@ def test_random_deltas_match_reference(deltas, radius):
 
 def test_safety_zone_matches_brute_force_on_a_bigger_field():
     rng = np.random.default_rng(4)
-    g = NavGraph(CLASSES, (0, 0), (8, 8), RES, robot_radius_m=0.55, tile_size=8)
+    g = graph((0, 0), (8, 8), robot_radius_m=0.55, tile_size=8)
     ref = ReferenceGraph(40, 40, RES, 0.55, MAP_RES)
     for _ in range(4):
         xy = rng.integers(0, 80, size=(400, 2))

@@ -94,15 +94,7 @@ def test_resync_after_the_mapper_comes_back_empty(fake_stack, tmp_path):
 
     def matches_mapper():
         nc = SmanaConfig().navgraph
-        ref = NavGraph(
-            ClassTable.load("garden3drms"),
-            nc.bounds_min_xy,
-            nc.bounds_max_xy,
-            nc.resolution_m,
-            nc.robot_radius_m,
-            nc.tile_size,
-            nc.column_capacity,
-        )
+        ref = NavGraph(ClassTable.load("garden3drms"), nc)
         ref.integrate_delta(request(s.session, keys.query(s.robot, "mapper", "snapshot")))
         cells, labels, _, flags = ref.export()
         want = {tuple(c): (int(lab), int(f)) for c, lab, f in zip(cells.tolist(), labels, flags)}

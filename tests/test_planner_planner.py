@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from smana.common.classes import ClassTable
+from smana.common.config.navgraph import NavgraphConfig
 from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, NavGrid
 from smana.services.navgraph.graph import NavGraph
@@ -82,7 +83,16 @@ def test_unknown_space_only_when_asked():
 
 
 def obstacle_graph():
-    g = NavGraph(CLASSES, (0, 0), (4, 4), 0.2, robot_radius_m=0.4, tile_size=8)
+    g = NavGraph(
+        CLASSES,
+        NavgraphConfig(
+            bounds_min_xy=[0, 0],
+            bounds_max_xy=[4, 4],
+            resolution_m=0.2,
+            robot_radius_m=0.4,
+            tile_size=8,
+        ),
+    )
     xy = np.stack(np.meshgrid(np.arange(40), np.arange(40), indexing="ij"), -1).reshape(-1, 2)
     vox = np.column_stack([(xy + 0.5) * 0.1, np.full(len(xy), 0.05)]).astype(np.float32)
     g.integrate(vox, np.full(len(vox), TERRAIN, np.uint16), np.ones(len(vox), np.uint8))

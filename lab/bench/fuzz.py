@@ -1229,15 +1229,7 @@ def _reference_graph(config: SmanaConfig, table, snap: m.MapDelta):
     from smana.services.navgraph.graph import NavGraph
 
     nc = config.navgraph
-    g = NavGraph(
-        table,
-        nc.bounds_min_xy,
-        nc.bounds_max_xy,
-        nc.resolution_m,
-        nc.robot_radius_m,
-        nc.tile_size,
-        nc.column_capacity,
-    )
+    g = NavGraph(table, nc)
     g.integrate_delta(snap)
     cells, labels, heights, flags = g.export()
     heights = np.where(np.isnan(heights) | ((flags & m.FLAG_KNOWN) == 0), 0.0, heights)

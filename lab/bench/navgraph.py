@@ -29,6 +29,7 @@ import time
 import numpy as np
 
 from smana.common.classes import ClassTable
+from smana.common.config.navgraph import NavgraphConfig
 from smana.services.navgraph.graph import NavGraph
 
 MAP_RES = 0.1
@@ -233,34 +234,40 @@ def cli(argv: list[str] | None = None) -> int:
     bounds = ((-50.0, -50.0), (50.0, 50.0))
 
     def fresh(b=bounds):
-        return NavGraph(classes, *b, resolution_m=GRAPH_RES, robot_radius_m=0.4)
+        config = NavgraphConfig(
+            bounds_min_xy=list(b[0]),
+            bounds_max_xy=list(b[1]),
+            resolution_m=GRAPH_RES,
+            robot_radius_m=0.4,
+        )
+        return NavGraph(classes, config)
 
     warm_up = fresh()
-    warm_up.integrate(*deltas[0][:3], deltas[0][3], map_resolution_m=MAP_RES)
+    warm_up.integrate(*deltas[0][:3], map_resolution_m=MAP_RES)
 
     def first_timed():
         g = fresh()  # construction is not part of an update
         t0 = time.perf_counter()
-        up = g.integrate(*deltas[0][:3], deltas[0][3], map_resolution_m=MAP_RES)
+        up = g.integrate(*deltas[0][:3], map_resolution_m=MAP_RES)
         return (time.perf_counter() - t0) * 1e3, g, up
 
     def next_timed():
         g = fresh()
-        g.integrate(*deltas[0][:3], deltas[0][3], map_resolution_m=MAP_RES)
+        g.integrate(*deltas[0][:3], map_resolution_m=MAP_RES)
         t0 = time.perf_counter()
-        up = g.integrate(*deltas[1][:3], deltas[1][3], map_resolution_m=MAP_RES)
+        up = g.integrate(*deltas[1][:3], map_resolution_m=MAP_RES)
         return (time.perf_counter() - t0) * 1e3, g, up
 
     def tsdf_timed():
         g = fresh()
         t0 = time.perf_counter()
-        up = g.integrate(*tsdf[:3], tsdf[3], backend="tsdf", map_resolution_m=MAP_RES)
+        up = g.integrate(*tsdf[:3], distances=tsdf[3], map_resolution_m=MAP_RES)
         return (time.perf_counter() - t0) * 1e3, g, up
 
     def walled_timed():
         g = fresh()
         t0 = time.perf_counter()
-        up = g.integrate(*walled[:3], walled[3], map_resolution_m=MAP_RES)
+        up = g.integrate(*walled[:3], map_resolution_m=MAP_RES)
         return (time.perf_counter() - t0) * 1e3, g, up
 
     def median_of(fn):
@@ -286,7 +293,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     big_bounds = ((-1000.0, -1000.0), (1000.0, 1000.0))
     g_big = fresh(big_bounds)
-    g_big.integrate(*deltas[0][:3], deltas[0][3], map_resolution_m=MAP_RES)
+    g_big.integrate(*deltas[0][:3], map_resolution_m=MAP_RES)
     dense_nodes = g_big.grid.shape[0] * g_big.grid.shape[1]
     per_node = sum(a.itemsize for a in (np.uint16(0), np.float32(0), np.uint8(0))) + 5 * 4
 

@@ -4,9 +4,14 @@ Each map voxel is projected to the 2.5D node under it. A node shows the highest 
 its column (the first voxel sets label and height, afterwards the highest wins), obstacle classes
 come from the class table, and the safety zone marks nodes within `robot_radius_m` of an obstacle.
 
+A voxel is a surface voxel when the map says it is occupied; a map that carries signed distances
+(`MapDelta.values_kind == "signed_distance"`) also makes every voxel with |distance| below the
+graph resolution a surface voxel (the paper's rule). The graph reads what a delta holds, never
+which back-end made it.
+
 To recompute a node when the map clears a voxel (an obstacle that moved away) the node must know
 what remains below, so every node keeps its column: a linked list of the occupied voxels projected
-to it, sorted from the highest down, in a shared entry pool. The list is bounded by
+to it, sorted from the highest down, in a shared entry pool (`ColumnStore`). The list is bounded by
 `column_capacity`: when a column overflows, its lowest level is forgotten and the node remembers
 that level as its `floor`; voxels at or below the floor are then ignored. The list is therefore
 always exactly "every occupied voxel above the floor", and a column that loses all its tracked
@@ -17,25 +22,38 @@ robot radius (itself included); when a node becomes or stops being an obstacle, 
 nodes of a disc stencil around it change by one. A node is in the safety zone when its count is
 positive and it is not an obstacle itself. Tiles within the radius of an obstacle are allocated so
 that the zone also covers nodes not seen yet.
+
+The kernels take their state as named tuples of arrays (`GridGeometry`, `NodeLayers`,
+`ColumnStore`, `NodeChanges`): numba unpacks them at no cost, and a helper (the node under a
+point, a column look-up, the safety-zone bit) is written once for every kernel that needs it.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
 
 from smana.common.classes import ClassTable
+from smana.common.config.navgraph import NavgraphConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
 
-BACKENDS = ("octree-max", "octree-bayes", "tsdf")
-NO_FLOOR = np.iinfo(np.int32).min
-_NO_FLOOR = int(NO_FLOOR)
-_KNOWN = FLAG_KNOWN
-_OBST = FLAG_OBSTACLE
-_SAFE = FLAG_SAFETY_ZONE
+NO_FLOOR = int(np.iinfo(np.int32).min)  # col_floor of a column that never overflowed
+
+# What `integrate_delta` reads from each kind of MapDelta.values (common/messages.py VALUES_KINDS):
+# occupancy maps say everything with `occupied`; signed distances also widen the surface.
+SURFACE_INPUTS = {
+    "log_odds": lambda delta: {},
+    "signed_distance": lambda delta: {"distances": delta.values},
+}
+
+# Voxel kinds after `_prepare`.
+CLEARED, SURFACE, UNUSABLE = 0, 1, 2
+# What one voxel did to its column (`_column_update`).
+COLUMN_UNCHANGED, COLUMN_CHANGED, COLUMN_BELOW_FLOOR = 0, 1, 2
 
 
 @dataclass
@@ -57,28 +75,88 @@ class GraphUpdate:
     time_ms: float = 0.0
 
 
-class NavGraph:
-    """A 2.5D semantic navigation graph inside fixed bounds, built from map deltas."""
+# -- kernel state ----------------------------------------------------------------------------------
 
-    def __init__(
-        self,
-        classes: ClassTable,
-        bounds_min_xy=(-50.0, -50.0),
-        bounds_max_xy=(50.0, 50.0),
-        resolution_m: float = 0.2,
-        robot_radius_m: float = 0.4,
-        tile_size: int = 32,
-        column_capacity: int = 256,
-    ):
-        if not (np.isfinite(robot_radius_m) and robot_radius_m >= 0):
-            raise ValueError(f"robot_radius_m must be >= 0, got {robot_radius_m}")
-        if not 1 <= int(column_capacity) <= 4096:
-            raise ValueError(f"column_capacity must be 1..4096, got {column_capacity}")
+
+class GridGeometry(NamedTuple):
+    """Where the nodes are: the NavGrid's layout as the kernels read it (build it after allocating
+    tiles: `tile_coords` is replaced when the tile pool grows)."""
+
+    origin_x: float
+    origin_y: float
+    resolution_m: float
+    nx: int
+    ny: int
+    tile_size: int
+    tile_map: np.ndarray  # (ntx, nty) int32: slot of each tile, < 0 where not allocated
+    tile_coords: np.ndarray  # (capacity, 2) int32: tile (tx, ty) of each slot
+
+
+class NodeLayers(NamedTuple):
+    """The graph grid's per-node state, each layer flat by node index (`NavGrid.flat`)."""
+
+    labels: np.ndarray  # u2, as published
+    heights: np.ndarray  # f4, as published (NaN where unknown)
+    flags: np.ndarray  # u1, as published: FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE
+    col_head: np.ndarray  # i4: the column's highest entry, -1 when empty
+    col_len: np.ndarray  # i4: entries in the column
+    col_floor: np.ndarray  # i4: highest level forgotten on overflow, NO_FLOOR if none
+    obstacle_count: np.ndarray  # i4: obstacle nodes within the robot radius, itself included
+    epoch: np.ndarray  # u4: the integration that last touched the node (see NodeChanges)
+
+
+class ColumnStore(NamedTuple):
+    """The entry pool every column lives in: one linked list per node, highest level first; freed
+    entries form a free list through `next`."""
+
+    level: np.ndarray  # i4: the voxel's map z index
+    sub: np.ndarray  # u2: sub-column id, (gx mod 256) << 8 | (gy mod 256)
+    label: np.ndarray  # u2
+    z: np.ndarray  # f4: the voxel centre's height
+    next: np.ndarray  # i4: the next entry down the column (or the free list), -1 at the end
+    state: np.ndarray  # i8[3]: free-list head, high-water mark, entries in use
+
+
+class NodeChanges(NamedTuple):
+    """The nodes one integration touched, each once (stamped with the epoch), with their state
+    from before, so that only the nodes that really differ are reported."""
+
+    node: np.ndarray  # i8 flat node index
+    label: np.ndarray  # u2
+    height: np.ndarray  # f4
+    flags: np.ndarray  # u1
+
+    @classmethod
+    def empty(cls, n: int) -> NodeChanges:
+        return cls(
+            np.empty(n, np.int64),
+            np.empty(n, np.uint16),
+            np.empty(n, np.float32),
+            np.empty(n, np.uint8),
+        )
+
+    def head(self, n: int) -> NodeChanges:
+        return NodeChanges(*(a[:n] for a in self))
+
+
+def same_nodes(label_a, height_a, flags_a, label_b, height_b, flags_b) -> np.ndarray:
+    """Where two node states are equal (two unknown heights, NaN, are equal)."""
+    same_h = (height_a == height_b) | (np.isnan(height_a) & np.isnan(height_b))
+    return (label_a == label_b) & (flags_a == flags_b) & same_h
+
+
+class NavGraph:
+    """A 2.5D semantic navigation graph inside fixed bounds, built from map deltas.
+
+    `config` is the `[navgraph]` section as it is (bounds, resolution, robot radius, tile size,
+    column capacity); it is validated when it is made."""
+
+    def __init__(self, classes: ClassTable, config: NavgraphConfig | None = None):
+        self.config = config = NavgraphConfig() if config is None else config
         self.classes = classes
-        self.grid = NavGrid.from_bounds(bounds_min_xy, bounds_max_xy, resolution_m, tile_size)
-        self.resolution_m = self.grid.resolution_m
-        self.robot_radius_m = float(robot_radius_m)
-        self.column_capacity = int(column_capacity)
+        self.grid = NavGrid.from_bounds(
+            config.bounds_min_xy, config.bounds_max_xy, config.resolution_m, config.tile_size
+        )
         g = self.grid
         g.add_layer("col_head", np.int32, -1)
         g.add_layer("col_len", np.int32, 0)
@@ -86,41 +164,47 @@ class NavGraph:
         g.add_layer("obstacle_count", np.int32, 0)
         g.add_layer("epoch", np.uint32, 0)
         self._epoch = 0
-        # Entry pool of column voxels: level (z index), sub-column id, label, centre height, next.
         cap = 1024
-        self._e_vz = np.zeros(cap, np.int32)
-        self._e_sub = np.zeros(cap, np.uint16)
-        self._e_label = np.zeros(cap, np.uint16)
-        self._e_z = np.zeros(cap, np.float32)
-        self._e_next = np.full(cap, -1, np.int32)
-        self._e_state = np.array([-1, 0, 0], np.int64)  # free-list head, high-water mark, in use
+        self.columns = ColumnStore(
+            level=np.zeros(cap, np.int32),
+            sub=np.zeros(cap, np.uint16),
+            label=np.zeros(cap, np.uint16),
+            z=np.zeros(cap, np.float32),
+            next=np.full(cap, -1, np.int32),
+            state=np.array([-1, 0, 0], np.int64),
+        )
         self._obstacle_lut = classes.obstacle_lut.copy()
         self._ignored_lut = classes.ignored_lut.copy()
-        r_cells = int(np.floor(self.robot_radius_m / self.resolution_m + 1e-9))
+        res, radius = self.resolution_m, config.robot_radius_m
+        r_cells = int(np.floor(radius / res + 1e-9))
         dx, dy = np.meshgrid(np.arange(-r_cells, r_cells + 1), np.arange(-r_cells, r_cells + 1))
         # Centre-to-centre distance; the small slack keeps nodes at exactly the radius inside.
-        inside = np.hypot(dx, dy) * self.resolution_m <= self.robot_radius_m + 1e-9
+        inside = np.hypot(dx, dy) * res <= radius + 1e-9
         self._stencil_dx = dx[inside].astype(np.int64)
         self._stencil_dy = dy[inside].astype(np.int64)
         self._stencil_reach = r_cells
         self.n_integrations = 0
+        self._kernel_view: tuple[int, GridGeometry, NodeLayers] | None = None
+
+    @property
+    def resolution_m(self) -> float:
+        return self.grid.resolution_m
 
     # -- memory --------------------------------------------------------------------------------
 
     @property
     def nbytes(self) -> int:
-        entries = sum(
-            a.nbytes for a in (self._e_vz, self._e_sub, self._e_label, self._e_z, self._e_next)
-        )
-        return self.grid.nbytes + entries
+        c = self.columns
+        return self.grid.nbytes + sum(a.nbytes for a in (c.level, c.sub, c.label, c.z, c.next))
 
     @property
     def n_column_voxels(self) -> int:
-        return int(self._e_state[2])
+        return int(self.columns.state[2])
 
     def _reserve_entries(self, n: int) -> None:
-        need = int(self._e_state[1]) + n
-        cap = len(self._e_vz)
+        c = self.columns
+        need = int(c.state[1]) + n
+        cap = len(c.level)
         if need <= cap:
             return
         while cap < need:
@@ -131,45 +215,62 @@ class NavGraph:
             out[: len(a)] = a
             return out
 
-        self._e_vz = grown(self._e_vz, 0)
-        self._e_sub = grown(self._e_sub, 0)
-        self._e_label = grown(self._e_label, 0)
-        self._e_z = grown(self._e_z, 0)
-        self._e_next = grown(self._e_next, -1)
+        self.columns = c._replace(
+            level=grown(c.level, 0),
+            sub=grown(c.sub, 0),
+            label=grown(c.label, 0),
+            z=grown(c.z, 0),
+            next=grown(c.next, -1),
+        )
+
+    def _kernel_state(self) -> tuple[GridGeometry, NodeLayers]:
+        """The grid as the kernels see it. Growing the tile pool replaces the layer arrays and
+        `tile_coords`, so the tuples are re-made when the pool's capacity has changed."""
+        g = self.grid
+        if self._kernel_view is None or self._kernel_view[0] != g.capacity:
+            geometry = GridGeometry(
+                float(g.origin_xy[0]),
+                float(g.origin_xy[1]),
+                float(g.resolution_m),
+                int(g.shape[0]),
+                int(g.shape[1]),
+                int(g.tile_size),
+                g.tile_map,
+                g.tile_coords,
+            )
+            layers = NodeLayers(*(g.flat(name) for name in NodeLayers._fields))
+            self._kernel_view = (g.capacity, geometry, layers)
+        return self._kernel_view[1], self._kernel_view[2]
 
     # -- integration ---------------------------------------------------------------------------
 
     def integrate_delta(self, delta) -> GraphUpdate:
-        """Integrate a MapDelta (or anything with the same attributes)."""
+        """Integrate a MapDelta (or anything with the same attributes), read by its
+        `values_kind`; a kind this graph cannot read is refused with a ValueError."""
+        read = SURFACE_INPUTS.get(delta.values_kind)
+        if read is None:
+            raise ValueError(
+                f"values_kind must be one of {list(SURFACE_INPUTS)}, got {delta.values_kind!r}"
+            )
         return self.integrate(
             delta.centres,
             delta.labels,
             delta.occupied,
-            delta.values,
-            backend=delta.backend,
             map_resolution_m=delta.resolution_m,
+            **read(delta),
         )
 
     def integrate(
-        self,
-        centres,
-        labels,
-        occupied,
-        values=None,
-        *,
-        backend: str = "octree-max",
-        map_resolution_m: float = 0.1,
+        self, centres, labels, occupied, *, distances=None, map_resolution_m: float = 0.1
     ) -> GraphUpdate:
         """Integrate the voxels of one map update and return the nodes that changed.
 
-        Octree back-ends: a voxel with `occupied` set is added to (or relabels) its column, one
-        without is removed from it. TSDF: a voxel is a surface voxel when `occupied` is set or
-        its |distance| (`values`) is below the graph resolution (the paper's rule); a voxel that
+        A voxel with `occupied` set is added to (or relabels) its column, one without is removed
+        from it. With `distances` (signed, metres: a distance-field map) a voxel is also a surface
+        voxel when its |distance| is below the graph resolution (the paper's rule); a voxel that
         leaves the band is removed. Rows with non-finite centres are dropped and counted.
         """
         t0 = time.perf_counter()
-        if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         if not (np.isfinite(map_resolution_m) and map_resolution_m > 0):
             raise ValueError(f"map_resolution_m must be > 0, got {map_resolution_m}")
         if self.resolution_m / map_resolution_m > 255:
@@ -185,12 +286,10 @@ class NavGraph:
             raise ValueError(f"labels must be an integer array of length {m}")
         if occupied.shape != (m,):
             raise ValueError(f"occupied must have length {m}")
-        if backend == "tsdf":
-            if values is None:
-                raise ValueError("a tsdf delta needs values (signed distances)")
-            values = np.asarray(values)
-            if values.shape != (m,):
-                raise ValueError(f"values must have length {m}")
+        if distances is not None:
+            distances = np.asarray(distances)
+            if distances.shape != (m,):
+                raise ValueError(f"distances must have length {m}")
 
         if labels.dtype != np.uint16:
             if labels.dtype.kind == "i" and m and labels.min() < 0:
@@ -198,32 +297,32 @@ class NavGraph:
             labels = labels.astype(np.int64)
         if occupied.dtype != np.uint8:
             occupied = (occupied != 0).view(np.uint8)
-        values = np.zeros(0, np.float32) if values is None else np.asarray(values, np.float32)
+        has_distances = distances is not None
+        distances = (
+            np.zeros(0, np.float32) if distances is None else np.asarray(distances, np.float32)
+        )
 
         g = self.grid
-        ox, oy = float(g.origin_xy[0]), float(g.origin_xy[1])
-        nx, ny = g.shape
-        t = g.tile_size
         # 1. classify voxels (surface / cleared / unusable row), clean labels, and allocate the
         # tiles of every in-bounds surface voxel, all in one pass.
-        cen = centres
-        lab, surf, missing, n_nonfinite, n_unknown, n_surface = _prepare(
+        lab = np.empty(m, np.uint16)
+        kind = np.empty(m, np.uint8)
+        missing = np.empty(m, np.int64)
+        n_missing, n_nonfinite, n_unknown, n_surface = _prepare(
             centres,
             labels,
             occupied,
-            values,
-            backend == "tsdf",
+            distances,
+            has_distances,
             self.resolution_m,
             self.classes.valid_lut,
             self._ignored_lut,
-            ox,
-            oy,
-            g.resolution_m,
-            nx,
-            ny,
-            g.tile_map,
-            t,
+            self._kernel_state()[0],
+            lab,
+            kind,
+            missing,
         )
+        missing = missing[:n_missing]
         n_new = g.allocate_tiles(missing // g.tiles_shape[1], missing % g.tiles_shape[1])
         self._reserve_entries(int(n_surface))
 
@@ -232,109 +331,56 @@ class NavGraph:
         if self._epoch >= np.iinfo(np.uint32).max:  # wrap: clear stamps so none looks current
             g.flat("epoch")[:] = 0
             self._epoch = 1
-        n_in = len(cen)
-        dirty = np.empty(n_in, np.int64)
-        old_lab = np.empty(n_in, np.uint16)
-        old_h = np.empty(n_in, np.float32)
-        old_f = np.empty(n_in, np.uint8)
-        flips = np.empty(n_in, np.int64)
-        flip_sign = np.empty(n_in, np.int32)
+        epoch = np.uint32(self._epoch)
+        changes = NodeChanges.empty(m)
+        flips = np.empty(m, np.int64)
+        flip_sign = np.empty(m, np.int32)
+        geometry, layers = self._kernel_state()  # after allocating: the pool may have grown
         counts = _integrate_kernel(
-            cen,
+            centres,
             lab,
-            surf,
-            ox,
-            oy,
-            g.resolution_m,
-            nx,
-            ny,
+            kind,
+            geometry,
             float(map_resolution_m),
-            g.tile_map,
-            t,
-            self.column_capacity,
-            g.flat("labels"),
-            g.flat("heights"),
-            g.flat("flags"),
-            g.flat("col_head"),
-            g.flat("col_len"),
-            g.flat("col_floor"),
-            g.flat("obstacle_count"),
-            g.flat("epoch"),
-            np.uint32(self._epoch),
-            self._e_vz,
-            self._e_sub,
-            self._e_label,
-            self._e_z,
-            self._e_next,
-            self._e_state,
+            self.config.column_capacity,
+            layers,
+            epoch,
+            self.columns,
             self._obstacle_lut,
-            dirty,
-            old_lab,
-            old_h,
-            old_f,
+            changes,
             flips,
             flip_sign,
         )
-        n_dirty, n_flips, n_oob, n_below, n_lost = (int(c) for c in counts)
+        n_touched, n_flips, n_oob, n_below, n_lost = (int(c) for c in counts)
+        changes = changes.head(n_touched)
         flips, flip_sign = flips[:n_flips], flip_sign[:n_flips]
 
         # 3. safety zone: allocate the tiles a new obstacle's disc reaches, then update counts.
-        dirty2 = np.empty(0, np.int64)
-        old2 = (np.empty(0, np.uint16), np.empty(0, np.float32), np.empty(0, np.uint8))
         if n_flips:
-            new_obst = flips[flip_sign > 0]
-            if len(new_obst):
-                ix, iy = g.cells_of_flat(new_obst)
-                r = self._stencil_reach
-                txs, tys = [], []
-                for ddx in (-r, r):
-                    for ddy in (-r, r):
-                        jx = np.clip(ix + ddx, 0, nx - 1)
-                        jy = np.clip(iy + ddy, 0, ny - 1)
-                        txs.append(jx // t)
-                        tys.append(jy // t)
-                # While the disc spans at most two tiles per axis its four corners name them all.
-                if 2 * r >= t:
-                    txs, tys = _tile_ranges(ix, iy, r, t, nx, ny)
-                else:
-                    txs, tys = np.concatenate(txs), np.concatenate(tys)
-                n_new += g.allocate_tiles(txs, tys)
-            cap2 = n_flips * len(self._stencil_dx)
-            dirty2 = np.empty(cap2, np.int64)
-            old2 = (np.empty(cap2, np.uint16), np.empty(cap2, np.float32), np.empty(cap2, np.uint8))
-            n2 = _safety_kernel(
+            n_new += self._allocate_discs(flips[flip_sign > 0])
+            zone_changes = NodeChanges.empty(n_flips * len(self._stencil_dx))
+            geometry, layers = self._kernel_state()
+            n_zone = _safety_zone_kernel(
                 flips,
                 flip_sign,
                 self._stencil_dx,
                 self._stencil_dy,
-                g.tile_coords,
-                g.tile_map,
-                t,
-                nx,
-                ny,
-                g.flat("obstacle_count"),
-                g.flat("labels"),
-                g.flat("heights"),
-                g.flat("flags"),
-                g.flat("epoch"),
-                np.uint32(self._epoch),
-                dirty2,
-                *old2,
+                geometry,
+                layers,
+                epoch,
+                zone_changes,
             )
-            dirty2 = dirty2[:n2]
-            old2 = tuple(a[:n2] for a in old2)
+            changes = NodeChanges(
+                *(np.concatenate([a, b]) for a, b in zip(changes, zone_changes.head(n_zone)))
+            )
 
         # 4. the nodes that actually differ now.
-        all_dirty = np.concatenate([dirty[:n_dirty], dirty2])
-        o_lab = np.concatenate([old_lab[:n_dirty], old2[0]])
-        o_h = np.concatenate([old_h[:n_dirty], old2[1]])
-        o_f = np.concatenate([old_f[:n_dirty], old2[2]])
-        n_lab = g.flat("labels")[all_dirty]
-        n_h = g.flat("heights")[all_dirty]
-        n_f = g.flat("flags")[all_dirty]
-        same_h = (n_h == o_h) | (np.isnan(n_h) & np.isnan(o_h))
-        changed = (n_lab != o_lab) | (n_f != o_f) | ~same_h
-        sel = all_dirty[changed]
+        touched = changes.node
+        n_lab = g.flat("labels")[touched]
+        n_h = g.flat("heights")[touched]
+        n_f = g.flat("flags")[touched]
+        changed = ~same_nodes(n_lab, n_h, n_f, changes.label, changes.height, changes.flags)
+        sel = touched[changed]
         ix, iy = g.cells_of_flat(sel)
         if len(sel):
             g.version += 1
@@ -354,6 +400,27 @@ class NavGraph:
             n_new_tiles=n_new,
             time_ms=(time.perf_counter() - t0) * 1e3,
         )
+
+    def _allocate_discs(self, new_obstacles: np.ndarray) -> int:
+        """Allocate every tile the safety-zone disc of a new obstacle node reaches."""
+        if not len(new_obstacles):
+            return 0
+        g = self.grid
+        nx, ny = g.shape
+        t = g.tile_size
+        ix, iy = g.cells_of_flat(new_obstacles)
+        r = self._stencil_reach
+        if 2 * r >= t:
+            txs, tys = _tile_ranges(ix, iy, r, t, nx, ny)
+        else:
+            # While the disc spans at most two tiles per axis its four corners name them all.
+            txs, tys = [], []
+            for ddx in (-r, r):
+                for ddy in (-r, r):
+                    txs.append(np.clip(ix + ddx, 0, nx - 1) // t)
+                    tys.append(np.clip(iy + ddy, 0, ny - 1) // t)
+            txs, tys = np.concatenate(txs), np.concatenate(tys)
+        return g.allocate_tiles(txs, tys)
 
     # -- reading -------------------------------------------------------------------------------
 
@@ -384,18 +451,12 @@ class NavGraph:
         flat = int(self.grid.flat_index(np.array([ix]), np.array([iy]))[0])
         if flat < 0:
             return []
+        c = self.columns
         out = []
         e = int(self.grid.flat("col_head")[flat])
         while e >= 0:
-            out.append(
-                (
-                    int(self._e_vz[e]),
-                    int(self._e_sub[e]),
-                    int(self._e_label[e]),
-                    float(self._e_z[e]),
-                )
-            )
-            e = int(self._e_next[e])
+            out.append((int(c.level[e]), int(c.sub[e]), int(c.label[e]), float(c.z[e])))
+            e = int(c.next[e])
         return out
 
     def export(self, box_xy: tuple[float, float, float, float] | None = None, known_only=True):
@@ -431,7 +492,10 @@ def warm_up(classes: ClassTable) -> float:
     """Compile (or load from numba's cache) the kernels for the array types a decoded MapDelta
     has (read-only views), so the first real delta is not slow. Returns the seconds it took."""
     t0 = time.perf_counter()
-    g = NavGraph(classes, (0.0, 0.0), (2.0, 2.0), 0.2, robot_radius_m=0.2, tile_size=4)
+    config = NavgraphConfig(
+        bounds_min_xy=[0.0, 0.0], bounds_max_xy=[2.0, 2.0], robot_radius_m=0.2, tile_size=4
+    )
+    g = NavGraph(classes, config)
 
     def ro(a):
         a.flags.writeable = False
@@ -439,14 +503,13 @@ def warm_up(classes: ClassTable) -> float:
 
     ok = classes.obstacle_lut.nonzero()[0]
     lab = int(ok[0]) if len(ok) else 0
-    for backend in ("octree-max", "tsdf"):
+    for distances in (None, ro(np.array([0.0, 0.05], np.float32))):
         for occ in (1, 0):
             g.integrate(
                 ro(np.array([[0.55, 0.55, 0.05], [0.65, 0.55, 0.15]], np.float32)),
                 ro(np.array([lab, 0], np.uint16)),
                 ro(np.array([occ, occ], np.uint8)),
-                ro(np.array([0.0, 0.05], np.float32)),
-                backend=backend,
+                distances=distances,
                 map_resolution_m=0.1,
             )
     return time.perf_counter() - t0
@@ -465,35 +528,104 @@ def _tile_ranges(ix, iy, r, t, nx, ny):
 
 
 # -- kernels ---------------------------------------------------------------------------------------
+# Each kernel is a loop over voxels or nodes; the steps of the paper's update are the helpers
+# below it, each written once and inlined (inline="always") into the kernels that use it.
+#
+# The kernels are compiled without numba's reference counting (`_nrt=False`): every array they
+# touch is owned by the caller, and with the state passed as named tuples, counted references
+# cost an atomic increment and decrement per helper call and tuple field read in the hot loops
+# (numba cannot prune them across branches, numba/numba#2350), which made the column update four
+# times slower. Without it the structures are free; a kernel that tried to allocate an array
+# would fail to compile, so the callers allocate every output.
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, inline="always")
+def _cell_of(geo, x, y):
+    """The graph cell (ix, iy) under a world point (may be out of bounds)."""
+    ix = int(np.floor((x - geo.origin_x) / geo.resolution_m))
+    iy = int(np.floor((y - geo.origin_y) / geo.resolution_m))
+    return ix, iy
+
+
+@numba.njit(cache=True, inline="always")
+def _in_bounds(geo, ix, iy):
+    return 0 <= ix < geo.nx and 0 <= iy < geo.ny
+
+
+@numba.njit(cache=True, inline="always")
+def _node_index(geo, ix, iy):
+    """The flat node index of an in-bounds cell, -1 where its tile is not allocated."""
+    t = geo.tile_size
+    slot = geo.tile_map[ix // t, iy // t]
+    if slot < 0:
+        return -1
+    return slot * t * t + (ix % t) * t + (iy % t)
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_of_node(geo, n):
+    """The cell (ix, iy) of a flat node index (`NavGrid.cells_of_flat`)."""
+    t = geo.tile_size
+    slot = n // (t * t)
+    local = n % (t * t)
+    return geo.tile_coords[slot, 0] * t + local // t, geo.tile_coords[slot, 1] * t + local % t
+
+
+@numba.njit(cache=True, inline="always")
+def _voxel_key(geo, map_res, x, y, z):
+    """A map voxel's place in its column: level (map z index) and sub-column id."""
+    gz = np.int32(np.floor(z / map_res))
+    gx = int(np.floor((x - geo.origin_x) / map_res))
+    gy = int(np.floor((y - geo.origin_y) / map_res))
+    return gz, np.uint16(((gx & 255) << 8) | (gy & 255))
+
+
+@numba.njit(cache=True, inline="always")
+def _with_safety_zone(flags, obstacle_count):
+    """A node is in the safety zone when an obstacle is within the robot radius (its count is
+    positive) and it is not an obstacle itself."""
+    if obstacle_count > 0 and not (flags & FLAG_OBSTACLE):
+        return flags | np.uint8(FLAG_SAFETY_ZONE)
+    return flags & ~np.uint8(FLAG_SAFETY_ZONE)
+
+
+@numba.njit(cache=True, inline="always")
+def _touch(nodes, epoch, changes, nd, n):
+    """Record node n's state before this integration changes it, once per integration."""
+    if nodes.epoch[n] != epoch:
+        nodes.epoch[n] = epoch
+        changes.node[nd] = n
+        changes.label[nd] = nodes.labels[n]
+        changes.height[nd] = nodes.heights[n]
+        changes.flags[nd] = nodes.flags[n]
+        return nd + 1
+    return nd
+
+
+@numba.njit(cache=True, _nrt=False)
 def _prepare(
     cen,
     labels,
     occupied,
-    values,
-    is_tsdf,
+    distances,
+    has_distances,
     band,
     valid_lut,
     ignored_lut,
-    ox,
-    oy,
-    res,
-    nx,
-    ny,
-    tile_map,
-    t,
+    geo,
+    lab,
+    kind,
+    missing,
 ):
-    """Per voxel: clean label (ids outside the table -> 0), kind (0 cleared, 1 surface, 2 row
-    with a non-finite coordinate), and the ids (tx * nty + ty) of unallocated tiles under
-    in-bounds surface voxels, each once."""
+    """Per voxel: clean label `lab` (ids outside the table -> 0), `kind` (CLEARED, SURFACE, or
+    UNUSABLE: a non-finite coordinate), and the ids (tx * nty + ty) of unallocated tiles under
+    in-bounds surface voxels, each once, in `missing`. Returns the counts (missing tiles,
+    non-finite rows, unknown labels, surface voxels)."""
     m = len(cen)
+    tile_map = geo.tile_map
+    t = geo.tile_size
     nty = tile_map.shape[1]
     n_lut = len(valid_lut)
-    lab = np.empty(m, np.uint16)
-    kind = np.empty(m, np.uint8)
-    missing = np.empty(m, np.int64)
     n_missing = 0
     n_nonfinite = 0
     n_unknown = 0
@@ -502,7 +634,7 @@ def _prepare(
         x = cen[i, 0]
         y = cen[i, 1]
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(cen[i, 2])):
-            kind[i] = 2
+            kind[i] = UNUSABLE
             lab[i] = 0
             n_nonfinite += 1
             continue
@@ -512,18 +644,17 @@ def _prepare(
             n_unknown += 1
         lab[i] = lb
         surface = occupied[i] != 0
-        if is_tsdf and not surface:
-            surface = abs(values[i]) < band  # False for NaN
+        if has_distances and not surface:
+            surface = abs(distances[i]) < band  # False for NaN
         # An ignored class (sky, ...) is not ground: treat it as a cleared voxel.
         if ignored_lut[lb]:
             surface = False
-        kind[i] = 1 if surface else 0
+        kind[i] = SURFACE if surface else CLEARED
         if not surface:
             continue
         n_surface += 1
-        ix = int(np.floor((x - ox) / res))
-        iy = int(np.floor((y - oy) / res))
-        if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+        ix, iy = _cell_of(geo, x, y)
+        if not _in_bounds(geo, ix, iy):
             continue
         tx = ix // t
         ty = iy // t
@@ -533,264 +664,218 @@ def _prepare(
             n_missing += 1
     for k in range(n_missing):
         tile_map[missing[k] // nty, missing[k] % nty] = -1
-    return lab, kind, missing[:n_missing], n_nonfinite, n_unknown, n_surface
+    return n_missing, n_nonfinite, n_unknown, n_surface
 
 
-@numba.njit(cache=True, inline="always")
-def _mark_dirty(n, epoch_l, epoch, labels_l, heights_l, flags_l, dirty, old_lab, old_h, old_f, nd):
-    if epoch_l[n] != epoch:
-        epoch_l[n] = epoch
-        dirty[nd] = n
-        old_lab[nd] = labels_l[n]
-        old_h[nd] = heights_l[n]
-        old_f[nd] = flags_l[n]
-        return nd + 1
-    return nd
-
-
-@numba.njit(cache=True)
+@numba.njit(cache=True, _nrt=False)
 def _integrate_kernel(
-    cen,
-    lab,
-    surf,
-    ox,
-    oy,
-    res,
-    nx,
-    ny,
-    map_res,
-    tile_map,
-    t,
-    cap_col,
-    labels_l,
-    heights_l,
-    flags_l,
-    head,
-    clen,
-    floor_l,
-    count_l,
-    epoch_l,
-    epoch,
-    e_vz,
-    e_sub,
-    e_label,
-    e_z,
-    e_next,
-    e_state,
-    obstacle_lut,
-    dirty,
-    old_lab,
-    old_h,
-    old_f,
-    flips,
-    flip_sign,
+    cen, lab, kind, geo, map_res, capacity, nodes, epoch, cols, obstacle_lut, changes, flips, sign
 ):
-    tt = t * t
+    """Column update for every usable voxel, then node head recompute for every touched node.
+    Returns the counts (touched nodes, obstacle flips, out of bounds, below floor, columns lost);
+    the flips (node, +1 became an obstacle / -1 stopped) are for the safety-zone kernel."""
     nd = 0
     n_oob = 0
     n_below = 0
-    n_lost = 0
-    free_head = e_state[0]
-    top = e_state[1]
-    in_use = e_state[2]
     for i in range(len(cen)):
-        if surf[i] == 2:
+        if kind[i] == UNUSABLE:
             continue
         x = cen[i, 0]
         y = cen[i, 1]
-        ix = int(np.floor((x - ox) / res))
-        iy = int(np.floor((y - oy) / res))
-        if ix < 0 or iy < 0 or ix >= nx or iy >= ny:
+        ix, iy = _cell_of(geo, x, y)
+        if not _in_bounds(geo, ix, iy):
             n_oob += 1
             continue
-        slot = tile_map[ix // t, iy // t]
-        if slot < 0:
+        n = _node_index(geo, ix, iy)
+        if n < 0:
             continue  # a cleared voxel over a region never seen: nothing to recompute
-        n = slot * tt + (ix % t) * t + (iy % t)
-        gz = np.int32(np.floor(cen[i, 2] / map_res))
-        gx = int(np.floor((x - ox) / map_res))
-        gy = int(np.floor((y - oy) / map_res))
-        sub = np.uint16(((gx & 255) << 8) | (gy & 255))
-        # Find the voxel in the column (sorted by level, highest first).
-        prev = -1
-        e = head[n]
-        while e >= 0 and e_vz[e] > gz:
-            prev = e
-            e = e_next[e]
-        found = -1
-        found_prev = -1
-        p2 = prev
-        e2 = e
-        while e2 >= 0 and e_vz[e2] == gz:
-            if e_sub[e2] == sub:
-                found = e2
-                found_prev = p2
-                break
-            p2 = e2
-            e2 = e_next[e2]
-        if surf[i] == 1:
-            if found >= 0:
-                if e_label[found] == lab[i]:
-                    continue  # same voxel, same label: the node cannot change
-                e_label[found] = lab[i]
-                e_z[found] = cen[i, 2]
-            else:
-                if gz <= floor_l[n]:
-                    n_below += 1
-                    continue
-                if free_head >= 0:
-                    new = free_head
-                    free_head = e_next[new]
-                else:
-                    new = top
-                    top += 1
-                in_use += 1
-                e_vz[new] = gz
-                e_sub[new] = sub
-                e_label[new] = lab[i]
-                e_z[new] = cen[i, 2]
-                # Insert before the first entry of a lower level (after `prev`).
-                if prev < 0:
-                    e_next[new] = head[n]
-                    head[n] = new
-                else:
-                    e_next[new] = e_next[prev]
-                    e_next[prev] = new
-                clen[n] += 1
-                if clen[n] > cap_col:
-                    # Forget the lowest level whole, so the list stays exact above the floor.
-                    lowest = e_vz[head[n]]
-                    cur = head[n]
-                    while cur >= 0:
-                        lowest = e_vz[cur]
-                        cur = e_next[cur]
-                    cut_prev = -1
-                    cur = head[n]
-                    while cur >= 0 and e_vz[cur] > lowest:
-                        cut_prev = cur
-                        cur = e_next[cur]
-                    if cut_prev < 0:
-                        head[n] = -1
-                    else:
-                        e_next[cut_prev] = -1
-                    while cur >= 0:
-                        nxt = e_next[cur]
-                        e_next[cur] = free_head
-                        free_head = cur
-                        in_use -= 1
-                        clen[n] -= 1
-                        cur = nxt
-                    floor_l[n] = lowest
-        else:
-            if found < 0:
-                continue  # free voxel that was never in the column
-            if found_prev < 0:
-                head[n] = e_next[found]
-            else:
-                e_next[found_prev] = e_next[found]
-            e_next[found] = free_head
-            free_head = found
-            in_use -= 1
-            clen[n] -= 1
-        nd = _mark_dirty(
-            n, epoch_l, epoch, labels_l, heights_l, flags_l, dirty, old_lab, old_h, old_f, nd
-        )
-    e_state[0] = free_head
-    e_state[1] = top
-    e_state[2] = in_use
+        gz, sub = _voxel_key(geo, map_res, x, y, cen[i, 2])
+        done = _column_update(cols, nodes, n, gz, sub, lab[i], cen[i, 2], kind[i], capacity)
+        if done == COLUMN_BELOW_FLOOR:
+            n_below += 1
+        elif done == COLUMN_CHANGED:
+            nd = _touch(nodes, epoch, changes, nd, n)
 
-    # Recompute each touched node from its column.
     nf = 0
+    n_lost = 0
     for k in range(nd):
-        n = dirty[k]
-        e = head[n]
-        if e < 0:
-            if floor_l[n] != _NO_FLOOR and (old_f[k] & _KNOWN):
-                n_lost += 1
-            labels_l[n] = 0
-            heights_l[n] = np.nan
-            known = False
-            obst = False
-        else:
-            # Highest level; among voxels of that level an obstacle wins (the conservative
-            # choice), then the larger sub-column id, so the result does not depend on order.
-            best = e
-            lvl = e_vz[e]
-            cur = e_next[e]
-            while cur >= 0 and e_vz[cur] == lvl:
-                ob_c = obstacle_lut[e_label[cur]]
-                ob_b = obstacle_lut[e_label[best]]
-                if (ob_c and not ob_b) or (ob_c == ob_b and e_sub[cur] > e_sub[best]):
-                    best = cur
-                cur = e_next[cur]
-            labels_l[n] = e_label[best]
-            heights_l[n] = e_z[best]
-            known = True
-            obst = obstacle_lut[e_label[best]]
-        f = np.uint8(0)
-        if known:
-            f |= _KNOWN
-        if obst:
-            f |= _OBST
-        elif count_l[n] > 0:
-            f |= _SAFE
-        was_obst = (old_f[k] & _OBST) != 0
-        if obst != was_obst:
+        n = changes.node[k]
+        was_known = (changes.flags[k] & FLAG_KNOWN) != 0
+        if nodes.col_head[n] < 0 and nodes.col_floor[n] != NO_FLOOR and was_known:
+            n_lost += 1
+        obstacle = _node_head_recompute(cols, nodes, obstacle_lut, n)
+        was_obstacle = (changes.flags[k] & FLAG_OBSTACLE) != 0
+        if obstacle != was_obstacle:
             flips[nf] = n
-            flip_sign[nf] = 1 if obst else -1
+            sign[nf] = 1 if obstacle else -1
             nf += 1
-        flags_l[n] = f
     return nd, nf, n_oob, n_below, n_lost
 
 
-@numba.njit(cache=True)
-def _safety_kernel(
-    flips,
-    flip_sign,
-    sdx,
-    sdy,
-    tile_coords,
-    tile_map,
-    t,
-    nx,
-    ny,
-    count_l,
-    labels_l,
-    heights_l,
-    flags_l,
-    epoch_l,
-    epoch,
-    dirty,
-    old_lab,
-    old_h,
-    old_f,
-):
-    tt = t * t
+@numba.njit(cache=True, inline="always")
+def _column_update(cols, nodes, n, gz, sub, label, z, kind, capacity):
+    """Apply one voxel to node n's column: a surface voxel is added or relabelled, a cleared one
+    removed. Returns COLUMN_CHANGED, COLUMN_UNCHANGED or COLUMN_BELOW_FLOOR."""
+    prev, found, found_prev = _column_find(cols, nodes.col_head[n], gz, sub)
+    if kind == SURFACE:
+        if found >= 0:
+            if cols.label[found] == label:
+                return COLUMN_UNCHANGED  # same voxel, same label: the node cannot change
+            cols.label[found] = label
+            cols.z[found] = z
+        else:
+            if gz <= nodes.col_floor[n]:
+                return COLUMN_BELOW_FLOOR
+            _column_insert(cols, nodes, n, prev, gz, sub, label, z)
+            if nodes.col_len[n] > capacity:
+                _column_forget_lowest(cols, nodes, n)
+    else:
+        if found < 0:
+            return COLUMN_UNCHANGED  # free voxel that was never in the column
+        _column_unlink(cols, nodes, n, found, found_prev)
+        _entry_free(cols, found)
+        nodes.col_len[n] -= 1
+    return COLUMN_CHANGED
+
+
+@numba.njit(cache=True, inline="always")
+def _column_find(cols, head, gz, sub):
+    """Walk a column (highest level first) to level gz: returns the last entry above it (-1 for
+    none: insert at the head), and the entry of sub-column `sub` at that level with the entry
+    before it (-1, -1 when the voxel is not in the column)."""
+    prev = -1
+    e = head
+    while e >= 0 and cols.level[e] > gz:
+        prev = e
+        e = cols.next[e]
+    before = prev
+    while e >= 0 and cols.level[e] == gz:
+        if cols.sub[e] == sub:
+            return prev, e, before
+        before = e
+        e = cols.next[e]
+    return prev, -1, -1
+
+
+@numba.njit(cache=True, inline="always")
+def _entry_new(cols):
+    """An entry from the free list, or past the high-water mark."""
+    state = cols.state
+    if state[0] >= 0:
+        e = state[0]
+        state[0] = cols.next[e]
+    else:
+        e = state[1]
+        state[1] += 1
+    state[2] += 1
+    return e
+
+
+@numba.njit(cache=True, inline="always")
+def _entry_free(cols, e):
+    cols.next[e] = cols.state[0]
+    cols.state[0] = e
+    cols.state[2] -= 1
+
+
+@numba.njit(cache=True, inline="always")
+def _column_insert(cols, nodes, n, prev, gz, sub, label, z):
+    """A new entry after `prev` (before the first entry of a lower level)."""
+    e = _entry_new(cols)
+    cols.level[e] = gz
+    cols.sub[e] = sub
+    cols.label[e] = label
+    cols.z[e] = z
+    if prev < 0:
+        cols.next[e] = nodes.col_head[n]
+        nodes.col_head[n] = e
+    else:
+        cols.next[e] = cols.next[prev]
+        cols.next[prev] = e
+    nodes.col_len[n] += 1
+
+
+@numba.njit(cache=True, inline="always")
+def _column_unlink(cols, nodes, n, e, before):
+    if before < 0:
+        nodes.col_head[n] = cols.next[e]
+    else:
+        cols.next[before] = cols.next[e]
+
+
+@numba.njit(cache=True, inline="always")
+def _column_forget_lowest(cols, nodes, n):
+    """An overflowing column forgets its lowest level whole, so that the list stays exact above
+    the floor it now remembers."""
+    cur = nodes.col_head[n]
+    lowest = cols.level[cur]
+    while cur >= 0:
+        lowest = cols.level[cur]
+        cur = cols.next[cur]
+    cut = -1
+    cur = nodes.col_head[n]
+    while cur >= 0 and cols.level[cur] > lowest:
+        cut = cur
+        cur = cols.next[cur]
+    if cut < 0:
+        nodes.col_head[n] = -1
+    else:
+        cols.next[cut] = -1
+    while cur >= 0:
+        after = cols.next[cur]
+        _entry_free(cols, cur)
+        nodes.col_len[n] -= 1
+        cur = after
+    nodes.col_floor[n] = lowest
+
+
+@numba.njit(cache=True, inline="always")
+def _node_head_recompute(cols, nodes, obstacle_lut, n):
+    """Node n shows its column's head: label, height and flags from the highest level (among
+    voxels of that level an obstacle wins, the conservative choice, then the larger sub-column
+    id, so the result does not depend on arrival order); an empty column is unknown. Returns
+    whether the node is an obstacle now."""
+    e = nodes.col_head[n]
+    flags = np.uint8(0)
+    obstacle = False
+    if e < 0:
+        nodes.labels[n] = 0
+        nodes.heights[n] = np.nan
+    else:
+        best = e
+        cur = cols.next[e]
+        while cur >= 0 and cols.level[cur] == cols.level[e]:
+            ob_c = obstacle_lut[cols.label[cur]]
+            ob_b = obstacle_lut[cols.label[best]]
+            if (ob_c and not ob_b) or (ob_c == ob_b and cols.sub[cur] > cols.sub[best]):
+                best = cur
+            cur = cols.next[cur]
+        nodes.labels[n] = cols.label[best]
+        nodes.heights[n] = cols.z[best]
+        obstacle = obstacle_lut[cols.label[best]]
+        flags |= np.uint8(FLAG_KNOWN)
+        if obstacle:
+            flags |= np.uint8(FLAG_OBSTACLE)
+    nodes.flags[n] = _with_safety_zone(flags, nodes.obstacle_count[n])
+    return obstacle
+
+
+@numba.njit(cache=True, _nrt=False)
+def _safety_zone_kernel(flips, sign, stencil_dx, stencil_dy, geo, nodes, epoch, changes):
+    """Safety-zone update: each obstacle flip changes the obstacle count of the nodes of its disc
+    by one, and their safety-zone bit with it. Returns how many nodes it touched."""
     nd = 0
     for k in range(len(flips)):
-        n = flips[k]
-        slot = n // tt
-        local = n % tt
-        ix = tile_coords[slot, 0] * t + local // t
-        iy = tile_coords[slot, 1] * t + local % t
-        s = flip_sign[k]
-        for j in range(len(sdx)):
-            jx = ix + sdx[j]
-            jy = iy + sdy[j]
-            if jx < 0 or jy < 0 or jx >= nx or jy >= ny:
+        ix, iy = _cell_of_node(geo, flips[k])
+        for j in range(len(stencil_dx)):
+            jx = ix + stencil_dx[j]
+            jy = iy + stencil_dy[j]
+            if not _in_bounds(geo, jx, jy):
                 continue
-            sl = tile_map[jx // t, jy // t]
-            if sl < 0:
+            m = _node_index(geo, jx, jy)
+            if m < 0:
                 continue  # only when removing an obstacle whose disc was never allocated
-            m = sl * tt + (jx % t) * t + (jy % t)
-            nd = _mark_dirty(
-                m, epoch_l, epoch, labels_l, heights_l, flags_l, dirty, old_lab, old_h, old_f, nd
-            )
-            count_l[m] += s
-            f = flags_l[m]
-            if count_l[m] > 0 and not (f & _OBST):
-                f |= _SAFE
-            else:
-                f &= ~np.uint8(_SAFE)
-            flags_l[m] = f
+            nd = _touch(nodes, epoch, changes, nd, m)
+            nodes.obstacle_count[m] += sign[k]
+            nodes.flags[m] = _with_safety_zone(nodes.flags[m], nodes.obstacle_count[m])
     return nd

@@ -9,6 +9,9 @@ peer sends can freeze or wipe the graph. (Stamps are the clouds' and only labels
 checked them, and a delta refused for its stamp would leave a hole.) Labels outside the class
 table are read as unknown and counted (`unknown_labels`); voxels outside the graph bounds are
 counted in the stats (a map may reach further than the graph).
+A delta is read by what its values hold (`MapDelta.values_kind`), not by the back-end that made it;
+one whose kind the graph cannot read is refused as `value` (by the codec, or by
+`NavGraph.integrate_delta`) before it changes anything.
 
 At start the service asks the mapper for a snapshot of its occupied voxels (`mapper/snapshot`),
 so a navgraph started or restarted after the mapper does not miss what was mapped before; deltas
@@ -45,7 +48,7 @@ from smana.common.messages import FLAG_KNOWN, MAX_PAYLOAD_BYTES, GraphPatch, Map
 from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, ReplyError, Request, Service, run_service
-from smana.services.navgraph.graph import NavGraph, warm_up
+from smana.services.navgraph.graph import NavGraph, same_nodes, warm_up
 
 BYTES_PER_PATCH_NODE = 8 + 2 + 4 + 1  # cell, label, height, flags
 RESYNC_MIN_PERIOD_S = 1.0  # a stream in doubt asks for snapshots at most this often
@@ -90,8 +93,7 @@ def graph_difference(old, new):
     okey = oc[:, 1].astype(np.int64) * width + oc[:, 0]
     nkey = nc[:, 1].astype(np.int64) * width + nc[:, 0]
     common, oi, ni = np.intersect1d(okey, nkey, assume_unique=True, return_indices=True)
-    same_h = (oh[oi] == nh[ni]) | (np.isnan(oh[oi]) & np.isnan(nh[ni]))
-    changed = ni[~((ol[oi] == nl[ni]) & (of[oi] == nf[ni]) & same_h)]
+    changed = ni[~same_nodes(ol[oi], oh[oi], of[oi], nl[ni], nh[ni], nf[ni])]
     added = np.setdiff1d(np.arange(len(nkey)), ni, assume_unique=True)
     gone = np.setdiff1d(np.arange(len(okey)), oi, assume_unique=True)
     take = np.concatenate([changed, added])
@@ -130,16 +132,7 @@ class NavgraphService(Service):
         self.log.info("kernels ready in %.1f s", warm_up(self.classes))
 
     def _new_graph(self) -> NavGraph:
-        nc = self.config.navgraph
-        return NavGraph(
-            self.classes,
-            nc.bounds_min_xy,
-            nc.bounds_max_xy,
-            nc.resolution_m,
-            nc.robot_radius_m,
-            nc.tile_size,
-            nc.column_capacity,
-        )
+        return NavGraph(self.classes, self.config.navgraph)
 
     def setup(self) -> None:
         r = self.robot
@@ -175,14 +168,12 @@ class NavgraphService(Service):
 
     def resync(self, reason: str) -> bool:
         """Rebuild the graph from the mapper's snapshot; publish the nodes that changed."""
-        self.snapshot_queries += 1
         try:
-            snap = request(self.session, keys.query(self.robot, "mapper", "snapshot"), None, 5.0)
+            snap = self._snapshot(5.0)
         except QueryError as exc:
             self.log.warning("resync (%s) failed: no snapshot (%s)", reason, exc.kind)
             return False
-        if not isinstance(snap, MapDelta):
-            self.note("bad_snapshot", "mapper snapshot is not a MapDelta")
+        if snap is None:
             return False
         old = self.graph.export()
         self.graph = self._new_graph()
@@ -211,16 +202,24 @@ class NavgraphService(Service):
             )
         )
 
+    def _snapshot(self, timeout_s: float) -> MapDelta | None:
+        """The mapper's snapshot, or None when its reply is not one (noted); QueryError when
+        there is no reply."""
+        self.snapshot_queries += 1
+        snap = request(self.session, keys.query(self.robot, "mapper", "snapshot"), None, timeout_s)
+        if not isinstance(snap, MapDelta):
+            self.note("bad_snapshot", "mapper snapshot is not a MapDelta")
+            return None
+        return snap
+
     def _initial_map(self) -> None:
         """Integrate the mapper's current map, if a mapper is already running."""
-        self.snapshot_queries += 1
         try:
-            snap = request(self.session, keys.query(self.robot, "mapper", "snapshot"), None, 3.0)
+            snap = self._snapshot(3.0)
         except QueryError as exc:
             self.log.info("no map snapshot (%s): starting from deltas", exc.kind)
             return
-        if not isinstance(snap, MapDelta):
-            self.note("bad_snapshot", "mapper snapshot is not a MapDelta")
+        if snap is None:
             return
         self.deltas_in.synced(snap.producer, snap.seq)
         self.log.info("starting from the mapper's snapshot: %d voxels", len(snap.centres))
