@@ -237,12 +237,6 @@ class MapDelta(Message):
             )
 
 
-# GraphPatch / navgrid flag bits
-FLAG_KNOWN = 1
-FLAG_OBSTACLE = 2
-FLAG_SAFETY_ZONE = 4
-
-
 @dataclass
 class GraphPatch(Message):
     """Navigation-graph nodes that changed: grid indices from `origin_xy` at `resolution_m`, and the

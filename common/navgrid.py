@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-# Same bits as smana.common.messages.GraphPatch.flags; repeated so this module stays importable
-# without the codec (the navgraph core and the planner core must not need it).
+# Node flags: bits of a node's `flags` layer, and of GraphPatch.flags on the wire. This module
+# needs no codec, so the navgraph and planner cores import them from here.
 FLAG_KNOWN = 1
 FLAG_OBSTACLE = 2
 FLAG_SAFETY_ZONE = 4

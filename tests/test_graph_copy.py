@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from smana.common.graph_copy import GraphCopy
-from smana.common.messages import FLAG_KNOWN, GraphPatch
-from smana.common.navgrid import NavGrid
+from smana.common.messages import GraphPatch
+from smana.common.navgrid import FLAG_KNOWN, NavGrid
 from smana.common.service import Reject
 
 

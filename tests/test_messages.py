@@ -11,6 +11,7 @@ import pytest
 
 from smana.common import messages as m
 from smana.common.messages import MessageError, decode, encode, from_json, to_json
+from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE
 
 rng = np.random.default_rng(0)
 
@@ -53,7 +54,7 @@ EXAMPLES = [
         cells=np.array([[1, 2], [3, 4]], "i4"),
         labels=np.array([1, 2], "u2"),
         heights=np.array([0.1, 0.2], "f4"),
-        flags=np.array([m.FLAG_KNOWN, m.FLAG_KNOWN | m.FLAG_OBSTACLE], "u1"),
+        flags=np.array([FLAG_KNOWN, FLAG_KNOWN | FLAG_OBSTACLE], "u1"),
     ),
     m.PathRequest(
         "q1",

@@ -44,7 +44,8 @@ import numpy as np
 from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
-from smana.common.messages import FLAG_KNOWN, MAX_PAYLOAD_BYTES, GraphPatch, MapDelta
+from smana.common.messages import MAX_PAYLOAD_BYTES, GraphPatch, MapDelta
+from smana.common.navgrid import FLAG_KNOWN
 from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, ReplyError, Request, Service, run_service
