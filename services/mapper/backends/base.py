@@ -30,6 +30,7 @@ class MapBackend(ABC):
     # drop points outside the map's key range before `integrate` (a back-end whose kernel does
     # not skip such rays itself)
     clip_to_extent: ClassVar[bool] = False
+    uses_ray_length: ClassVar[bool] = False  # carves free space over `ray_length_m` before a hit
 
     def __init__(
         self,

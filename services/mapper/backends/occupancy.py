@@ -347,6 +347,7 @@ class OccupancyBackend(MapBackend):
     values_kind = "log_odds"
     config_key = "octree"
     config_class = OctreeConfig
+    uses_ray_length = True
     fusion: ClassVar[int]
     n_top: ClassVar[int]
 
