@@ -26,7 +26,9 @@ class MapBackend(ABC):
     name: ClassVar[str]
     values_kind: ClassVar[str]  # "log_odds" | "signed_distance"
     config_key: ClassVar[str | None] = None  # its sub-section of MapperConfig, e.g. "octree"
-    config_class: ClassVar[type | None] = None  # that section's class (None: no parameters)
+    # that section's class, a dataclass (a config `Section`): saved maps store it; None: no
+    # parameters
+    config_class: ClassVar[type | None] = None
     # drop points outside the map's key range before `integrate` (a back-end whose kernel does
     # not skip such rays itself)
     clip_to_extent: ClassVar[bool] = False
