@@ -652,6 +652,9 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     args = p.parse_args(argv)
     cfg = config_from_args(args, layers=[profile_path(args.profile, p)])
+    from smana.services.mapper.backends import check_backend
+
+    check_backend(cfg.mapper.backend)  # the composition root checks what only a service knows
     setup_logging(cfg.general.log_level, "up")
     services = None
     if args.only:

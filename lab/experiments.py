@@ -44,8 +44,9 @@ from scipy.spatial import cKDTree
 from smana.common.zenoh_config import free_loopback_port
 from smana.lab import evaluation as ev
 from smana.lab import plots
+from smana.services.mapper.backends import BACKENDS as _REGISTRY
 
-BACKENDS = ("octree-max", "octree-bayes", "tsdf")
+BACKENDS = tuple(_REGISTRY)  # the mapper's registry: every back-end it knows
 LEVELS = ("none", "low", "medium", "high")
 # Localisation noise per level: standard deviation of x and y (m) and of yaw (rad), drawn afresh
 # for every frame. The paper's values are not legible in its Figure 6; these span "a good

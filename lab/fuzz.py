@@ -56,6 +56,7 @@ from smana.common.messages import (
     from_json,
     to_json,
 )
+from smana.services.mapper.backends import BACKENDS, backend_class
 
 MESSAGE_TYPES: tuple[type[m.Message], ...] = (
     m.Pose,
@@ -424,9 +425,10 @@ def plausible(cls: type[m.Message], d: Draw, ctx: Context) -> m.Message:
         k = d.choice((0, 1, 8, 64, 512))
         r = ctx.map_resolution_m
         centres = ((np.floor(_points(rng, ctx, k) / r) + 0.5) * r).astype(np.float32)
-        backend = d.choice(("octree-max", "octree-bayes", "tsdf"))
+        backend = d.choice(tuple(BACKENDS))
+        kind = backend_class(backend).values_kind
         occ = rng.integers(0, 2, k).astype(np.uint8)
-        if backend == "tsdf":
+        if kind == "signed_distance":
             values = rng.uniform(-0.3, 0.3, k).astype(np.float32)
         else:
             values = np.where(occ > 0, 0.85, -0.4).astype(np.float32)
@@ -442,6 +444,7 @@ def plausible(cls: type[m.Message], d: Draw, ctx: Context) -> m.Message:
             occ,
             values,
             ctx.producers.get("mapper", "fuzz-mapper"),
+            values_kind=kind,
         )
     if cls is m.GraphPatch:
         k = d.choice((0, 1, 8, 64, 256))

@@ -31,7 +31,6 @@ def test_round_trip(tmp_path):
         ("mapper.resolution_m=0", "mapper.resolution_m: expected a number > 0"),
         ("mapper.voxel=1", "unknown key mapper.voxel"),
         ("nosuch.key=1", "unknown key nosuch"),
-        ("mapper.backend=octomap", "mapper.backend: expected one of"),
         ("sim.seed=2.5", "sim.seed: expected an integer"),
         ("sim.lockstep=1", "sim.lockstep: expected true or false"),
         ("zenoh.connect=3", "zenoh.connect: expected a list"),

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 from smana.common.classes import ClassTable
+from smana.services.mapper.backends import BACKENDS
 from smana.services.mapper.ply import read_ply
-from smana.services.mapper.semantic_map import BACKENDS, SemanticMap
+from smana.services.mapper.semantic_map import SemanticMap
 
 
 def cloud(seed, n=800):

@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from smana.services.mapper.octree import FusionParams, OccupancyParams, logodds
+from smana.common.config.mapper import OctreeConfig
+from smana.services.mapper.backends.occupancy import logodds, sensor_model
 from smana.services.mapper.semantic_map import SemanticMap
 
 SEM_IDS = (1, 2, 4, 5, 6, 7, 8)  # garden3drms classes that carry a label
@@ -60,8 +61,8 @@ class RefOctree:
 
     def __init__(self, res, max_range, ray_m, fusion):
         self.res, self.max_range, self.ray_m, self.fusion = res, max_range, ray_m, fusion
-        self.l_hit, self.l_miss, self.c_min, self.c_max = OccupancyParams().logs
-        self.fp = FusionParams()
+        self.l_hit, self.l_miss, self.c_min, self.c_max = sensor_model(OctreeConfig())
+        self.fp = OctreeConfig()
         self.logodds: dict[tuple, np.float32] = {}
         self.sem: dict[tuple, list] = {}  # key -> [[label, prob], ...] best first
 

@@ -226,8 +226,15 @@ def _run(cfg: dict, scans_path: Path, in_process: bool) -> dict:
 # -- report ----------------------------------------------------------------------------------
 
 
+def _carves(backend: str) -> bool:
+    """Whether `ray_length_m` matters to a back-end (the octrees carve free space before a hit)."""
+    from smana.services.mapper.backends import backend_class
+
+    return backend_class(backend).uses_ray_length
+
+
 def _ray(r: dict) -> str:
-    if r["backend"] == "tsdf":
+    if r["kind"] == "ours" and not _carves(r["backend"]):
         return "band"
     return "full" if r.get("ray_m") is None else f"{r['ray_m']:g} m"
 
@@ -304,7 +311,7 @@ def _summary(results: list[dict]) -> tuple[list[str], dict]:
     octs = [
         r["bytes_per_allocated_voxel"]
         for r in results
-        if r["kind"] == "ours" and "error" not in r and r["backend"] != "tsdf"
+        if r["kind"] == "ours" and "error" not in r and _carves(r["backend"])
     ]
     if octs:
         checks["octree_bytes_per_voxel"] = max(octs)
@@ -323,8 +330,9 @@ def _summary(results: list[dict]) -> tuple[list[str], dict]:
 
 def cli(argv: list[str] | None = None) -> int:
     from smana.common.cli import ArgumentParser, output_file, positive_float, positive_int
+    from smana.services.mapper.backends import BACKENDS
 
-    backends = ["octree-max", "octree-bayes", "tsdf"]
+    backends = list(BACKENDS)
     p = ArgumentParser(prog="smana bench mapper", description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="tiny scans, 0.3 m only, in-process")
     p.add_argument(
@@ -370,7 +378,8 @@ def cli(argv: list[str] | None = None) -> int:
     configs = []
     for res in args.resolutions:
         for backend in args.backends:
-            for ray in [None] if backend == "tsdf" else [1.0, None]:
+            # a back-end without ray carving (the TSDF's band) runs once
+            for ray in [1.0, None] if _carves(backend) else [None]:
                 configs.append(
                     {
                         "kind": "ours",

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from smana.common.zenoh_config import free_loopback_port
+from smana.services.mapper.backends import BACKENDS as _REGISTRY
 
 # Paper, RELLIS-3D 00000, C++ on a Xeon W-2123 (8 cores): map + graph seconds per scan.
 PAPER_S_PER_SCAN = {
@@ -629,7 +630,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-BACKENDS = ("octree-max", "octree-bayes", "tsdf")
+BACKENDS = tuple(_REGISTRY)  # the mapper's registry: every back-end it knows
 
 
 def _backends(text: str) -> str:
@@ -665,7 +666,7 @@ def cli(argv: list[str] | None = None) -> int:
         default=100,
         help="synthetic: scans to write; a dataset: scans to replay (0 = all)",
     )
-    p.add_argument("--backends", type=_backends, default="octree-max,octree-bayes,tsdf")
+    p.add_argument("--backends", type=_backends, default=",".join(BACKENDS))
     p.add_argument(
         "--res",
         type=_resolution_pairs,

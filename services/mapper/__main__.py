@@ -1,4 +1,4 @@
-"""`smana mapper`: online semantic 3D mapping (octree-max, octree-bayes or tsdf) over zenoh.
+"""`smana mapper`: online semantic 3D mapping (octree-max, octree-bayes, tsdf, ...) over zenoh.
 
 Integrates the robot's semantic clouds, publishes a MapDelta per cloud, answers stats, snapshot,
 save and point queries, autosaves, and resumes from a map file with --load.
@@ -21,6 +21,9 @@ def cli(argv: list[str] | None = None) -> int:
     if args.save:
         args.overrides.append(f"mapper.save_path={args.save}")
     cfg = config_from_args(args)
+    from smana.services.mapper.backends import check_backend
+
+    check_backend(cfg.mapper.backend)  # an unknown back-end stops here, in one line
     setup_logging(cfg.general.log_level, "mapper")
     from smana.services.mapper.service import main
 

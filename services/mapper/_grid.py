@@ -6,16 +6,22 @@ a flat struct-of-arrays column indexed by `block * voxels_per_block + local`. Wa
 costs one hash probe per block crossed instead of one per voxel, which is where the speed over a
 pointer octree comes from.
 
+Kernels take the block hash as one structure, `Grid` (a named tuple of arrays: numba passes it
+at the cost of its fields, see docs/benchmarks.md), and find a voxel's block through `voxel_slot`,
+the one copy of the look-up with its last-block cache that every back-end kernel uses.
+
 Kernels here never allocate map storage: when a block or table slot is missing they return a
 status code and the Python owner (`BlockGrid`) grows the arrays and calls them again, resuming at
 the point where they stopped. Every step a kernel takes before such a return is idempotent.
 
 Note for editors: numba's on-disk cache (`cache=True`) keys a kernel on its own file only, so the
-kernels of `octree.py` and `tsdf.py` do not notice a change here. After editing this file, delete
-`services/mapper/__pycache__/*.nbi` and `*.nbc` (or touch those two files).
+kernels of `backends/*.py` do not notice a change here. After editing this file, delete
+`services/mapper/backends/__pycache__/*.nbi` and `*.nbc` (or touch those files).
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -42,6 +48,17 @@ EMPTY = np.int64(-1)
 _FIB = np.uint64(0x9E3779B97F4A7C15)
 
 
+class Grid(NamedTuple):
+    """The block hash as kernels see it (rebuilt by `BlockGrid.state()` after every growth)."""
+
+    h_keys: np.ndarray  # int64 [2**k]: packed block key per slot, EMPTY where free
+    h_vals: np.ndarray  # int32 [2**k]: block index per slot
+    block_keys: np.ndarray  # int64 [capacity]: packed key of each allocated block
+    n_blocks: np.ndarray  # int64 [1]: blocks in use; kernels append
+    hshift: int  # 64 - log2(table size), for Fibonacci hashing
+    bits: int  # log2 of the block side
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def pack_block(bx, by, bz):
     return ((bx + _PACK_OFF) << 42) | ((by + _PACK_OFF) << 21) | (bz + _PACK_OFF)
@@ -63,52 +80,74 @@ def _slot(key, hshift):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def table_find(h_keys, h_vals, hshift, key):
+def table_find(grid, key):
     """Block index of `key`, or -1."""
+    h_keys = grid.h_keys
     mask = h_keys.shape[0] - 1
-    s = _slot(key, hshift)
+    s = _slot(key, grid.hshift)
     while True:
         k = h_keys[s]
         if k == key:
-            return np.int64(h_vals[s])
+            return np.int64(grid.h_vals[s])
         if k == EMPTY:
             return np.int64(-1)
         s = (s + 1) & mask
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def table_find_or_insert(h_keys, h_vals, hshift, block_keys, n_blocks, key):
-    """(block index, n_blocks); the index is -GROW_BLOCKS / -GROW_TABLE when storage is full."""
+def table_find_or_insert(grid, key):
+    """Block index of `key`, allocated when missing; -GROW_BLOCKS / -GROW_TABLE when storage is
+    full (nothing was changed then)."""
+    h_keys = grid.h_keys
     mask = h_keys.shape[0] - 1
-    s = _slot(key, hshift)
+    s = _slot(key, grid.hshift)
     while True:
         k = h_keys[s]
         if k == key:
-            return np.int64(h_vals[s]), n_blocks
+            return np.int64(grid.h_vals[s])
         if k == EMPTY:
             break
         s = (s + 1) & mask
-    if n_blocks >= block_keys.shape[0]:
-        return np.int64(-GROW_BLOCKS), n_blocks
+    n_blocks = grid.n_blocks[0]
+    if n_blocks >= grid.block_keys.shape[0]:
+        return np.int64(-GROW_BLOCKS)
     if 2 * (n_blocks + 1) > h_keys.shape[0]:  # keep the load factor <= 1/2
-        return np.int64(-GROW_TABLE), n_blocks
+        return np.int64(-GROW_TABLE)
     h_keys[s] = key
-    h_vals[s] = n_blocks
-    block_keys[n_blocks] = key
-    return np.int64(n_blocks), n_blocks + 1
+    grid.h_vals[s] = n_blocks
+    grid.block_keys[n_blocks] = key
+    grid.n_blocks[0] = n_blocks + 1
+    return np.int64(n_blocks)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def voxel_slot(grid, ix, iy, iz, last_key, last_b):
+    """Global voxel index of voxel (ix, iy, iz), its block allocated when missing, through a
+    one-entry cache of the last block: a ray's voxels come in order, so most share the previous
+    one's block and skip the hash probe. Returns (index, last_key, last_b) to carry to the next
+    call (start with -1, -1); a negative index is -GROW_BLOCKS / -GROW_TABLE."""
+    bkey, local = voxel_index(ix, iy, iz, grid.bits)
+    if bkey != last_key:
+        b = table_find_or_insert(grid, bkey)
+        if b < 0:
+            return b, last_key, last_b
+        last_key = bkey
+        last_b = b
+    return (last_b << (3 * grid.bits)) | local, last_key, last_b
 
 
 @njit(cache=True, error_model="numpy")
-def rebuild_table(h_keys, h_vals, hshift, block_keys, n_blocks):
+def rebuild_table(grid):
+    h_keys = grid.h_keys
     h_keys[:] = EMPTY
     mask = h_keys.shape[0] - 1
-    for b in range(n_blocks):
-        key = block_keys[b]
-        s = _slot(key, hshift)
+    for b in range(grid.n_blocks[0]):
+        key = grid.block_keys[b]
+        s = _slot(key, grid.hshift)
         while h_keys[s] != EMPTY:
             s = (s + 1) & mask
         h_keys[s] = key
-        h_vals[s] = b
+        grid.h_vals[s] = b
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -121,26 +160,42 @@ def voxel_index(ix, iy, iz, bits):
 
 
 @njit(cache=True, error_model="numpy")
-def lookup_voxels(keys, h_keys, h_vals, hshift, bits):
+def lookup_voxels(keys, grid):
     """Global voxel index of each (ix, iy, iz) row of `keys`, -1 where no block holds it."""
     out = np.empty(keys.shape[0], np.int64)
+    bits = grid.bits
     vb = 3 * bits
     for i in range(keys.shape[0]):
         bkey, local = voxel_index(keys[i, 0], keys[i, 1], keys[i, 2], bits)
-        b = table_find(h_keys, h_vals, hshift, bkey)
+        b = table_find(grid, bkey)
         out[i] = -1 if b < 0 else (b << vb) | local
     return out
 
 
 @njit(cache=True, error_model="numpy")
-def voxel_coords(gidx, block_keys, bits):
+def insert_voxels(keys, grid, out, i0):
+    """Global voxel index of each (ix, iy, iz) row of `keys` from row i0 on, allocating blocks;
+    returns (status, row to resume at)."""
+    last_key = np.int64(-1)
+    last_b = np.int64(-1)
+    for i in range(i0, keys.shape[0]):
+        g, last_key, last_b = voxel_slot(grid, keys[i, 0], keys[i, 1], keys[i, 2], last_key, last_b)
+        if g < 0:
+            return -g, i
+        out[i] = g
+    return DONE, keys.shape[0]
+
+
+@njit(cache=True, error_model="numpy")
+def voxel_coords(gidx, grid):
     """(ix, iy, iz) int64 rows of global voxel indices."""
     out = np.empty((gidx.shape[0], 3), np.int64)
+    bits = grid.bits
     vb = 3 * bits
     bm = (1 << bits) - 1
     for i in range(gidx.shape[0]):
         g = gidx[i]
-        bx, by, bz = unpack_block(block_keys[g >> vb])
+        bx, by, bz = unpack_block(grid.block_keys[g >> vb])
         local = g & ((1 << vb) - 1)
         out[i, 0] = (bx << bits) | (local & bm)
         out[i, 1] = (by << bits) | ((local >> bits) & bm)
@@ -307,7 +362,7 @@ class BlockGrid:
         self.bits = bits
         self.voxels_per_block = 1 << (3 * bits)
         self.fields = {k: (np.dtype(v[0]), tuple(v[1])) for k, v in fields.items()}
-        self.n_blocks = 0
+        self._n_blocks = np.zeros(1, np.int64)  # shared with the kernels through state()
         self.block_keys = np.empty(16, np.int64)
         self.cols = {
             k: np.zeros((16 * self.voxels_per_block, *shape), dt)
@@ -319,6 +374,20 @@ class BlockGrid:
         self.h_keys = np.full(size, -1, np.int64)
         self.h_vals = np.zeros(size, np.int32)
         self.hshift = 64 - (size.bit_length() - 1)
+
+    @property
+    def n_blocks(self) -> int:
+        return int(self._n_blocks[0])
+
+    @n_blocks.setter
+    def n_blocks(self, n: int) -> None:
+        self._n_blocks[0] = n
+
+    def state(self) -> Grid:
+        """The hash for a kernel; valid until the next growth."""
+        return Grid(
+            self.h_keys, self.h_vals, self.block_keys, self._n_blocks, self.hshift, self.bits
+        )
 
     @property
     def block_capacity(self) -> int:
@@ -340,7 +409,7 @@ class BlockGrid:
         while size < 4 * (self.n_blocks + 1):
             size *= 2
         self._alloc_table(size)
-        rebuild_table(self.h_keys, self.h_vals, self.hshift, self.block_keys, self.n_blocks)
+        rebuild_table(self.state())
 
     def handle(self, status: int) -> None:
         if status == GROW_BLOCKS:
@@ -366,18 +435,28 @@ class BlockGrid:
         while size < 4 * max(n, 1):
             size *= 2
         self._alloc_table(size)
-        rebuild_table(self.h_keys, self.h_vals, self.hshift, self.block_keys, n)
+        rebuild_table(self.state())
 
     def used(self, name: str) -> np.ndarray:
         return self.cols[name][: self.n_blocks * self.voxels_per_block]
 
     def lookup(self, keys: np.ndarray) -> np.ndarray:
-        return lookup_voxels(
-            np.ascontiguousarray(keys, np.int64), self.h_keys, self.h_vals, self.hshift, self.bits
-        )
+        """Global voxel index of each (ix, iy, iz) row, -1 where no block holds it."""
+        return lookup_voxels(np.ascontiguousarray(keys, np.int64), self.state())
+
+    def insert(self, keys: np.ndarray) -> np.ndarray:
+        """Global voxel index of each (ix, iy, iz) row (in the key range), allocating blocks."""
+        keys = np.ascontiguousarray(keys, np.int64)
+        out = np.empty(keys.shape[0], np.int64)
+        i = 0
+        while True:
+            status, i = insert_voxels(keys, self.state(), out, i)
+            if status == DONE:
+                return out
+            self.handle(status)
 
     def coords(self, gidx: np.ndarray) -> np.ndarray:
-        return voxel_coords(np.ascontiguousarray(gidx, np.int64), self.block_keys, self.bits)
+        return voxel_coords(np.ascontiguousarray(gidx, np.int64), self.state())
 
     def nbytes(self) -> tuple[int, int]:
         """(bytes holding allocated blocks, bytes reserved in total), hash table included."""

@@ -1,13 +1,16 @@
-"""`SemanticMap`: the mapper's library API (no zenoh), one object for the three back-ends.
+"""`SemanticMap`: the mapper's library API (no zenoh), one object for every back-end.
 
     m = SemanticMap(backend="octree-max", resolution_m=0.1, max_range_m=10.0, ray_length_m=1.0)
+    m = SemanticMap.from_config(config.mapper)   # the same from the [mapper] section
     delta = m.integrate(points, labels, confidences, origin)   # what changed, voxel by voxel
     m.occupied_voxels(box=((0, 0, -1), (5, 5, 2)))
     m.query(points); m.stats(); m.save("map.npz"); SemanticMap.load("map.npz")
     m.export_ply("map.ply")
 
 Inputs are checked here, in plain Python, and rejected with a ValueError naming the problem; the
-numba kernels behind (`octree.py`, `tsdf.py`) trust what they get.
+back-ends behind (`backends/`, found by name in its registry) and their numba kernels trust what
+they get. A back-end takes its own config sub-section (`config`: `[mapper.octree]` for the
+octrees, `[mapper.tsdf]` for the TSDF), as it is; left out, that section's defaults.
 """
 
 from __future__ import annotations
@@ -17,18 +20,21 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from smana.common.classes import ClassTable
+from smana.common.config.mapper import MapperConfig
 from smana.services.mapper import ply
 from smana.services.mapper._grid import KEY_LIMIT
+from smana.services.mapper.backends import backend_class
 from smana.services.mapper.delta import Delta
-from smana.services.mapper.octree import FusionParams, OccupancyParams, OctreeBackend
-from smana.services.mapper.tsdf import TsdfBackend, TsdfParams
 
-BACKENDS = ("octree-max", "octree-bayes", "tsdf")
-FORMAT_VERSION = 1
+# 2: the back-end's config section under "config"; 1 (still read): the octrees' under
+# "occupancy" and "fusion", the TSDF's under "tsdf"
+FORMAT_VERSION = 2
+_DEFAULT = MapperConfig()  # the library's defaults are the config's, declared once there
 
 
 @dataclass
@@ -55,59 +61,67 @@ class SemanticMap:
 
     def __init__(
         self,
-        backend: str = "octree-max",
-        resolution_m: float = 0.1,
-        max_range_m: float = 10.0,
-        ray_length_m: float | None = 1.0,
+        backend: str = _DEFAULT.backend,
+        resolution_m: float = _DEFAULT.resolution_m,
+        max_range_m: float = _DEFAULT.max_range_m,
+        ray_length_m: float | None = _DEFAULT.raycast_range_m or None,
         class_table: ClassTable | str | Path = "garden3drms",
-        occupancy: OccupancyParams | None = None,
-        fusion: FusionParams | None = None,
-        tsdf: TsdfParams | None = None,
+        config: Any = None,
         block_bits: int = 3,
     ):
-        if backend not in BACKENDS:
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        cls = backend_class(backend)  # a ValueError naming the known back-ends
         if not (np.isfinite(resolution_m) and 0.01 <= resolution_m <= 10.0):
             raise ValueError(f"resolution_m must be in [0.01, 10], got {resolution_m}")
         if not (np.isfinite(max_range_m) and max_range_m > 0):
             raise ValueError(f"max_range_m must be > 0, got {max_range_m}")
         if ray_length_m is not None and not (np.isfinite(ray_length_m) and ray_length_m > 0):
             raise ValueError(f"ray_length_m must be > 0 or None (whole ray), got {ray_length_m}")
+        if config is None:
+            config = cls.default_config()
+        elif cls.config_class is not None and not isinstance(config, cls.config_class):
+            want, got = cls.config_class.__name__, type(config).__name__
+            raise ValueError(f"back-end {backend} takes a {want}, got {got}")
         self.backend = backend
+        self.values_kind = cls.values_kind  # what the deltas' values hold (MapDelta.values_kind)
         self.resolution_m = float(resolution_m)
         self.max_range_m = float(max_range_m)
         self.ray_length_m = None if ray_length_m is None else float(ray_length_m)
         self.class_table = (
             class_table if isinstance(class_table, ClassTable) else ClassTable.load(class_table)
         )
-        self.occupancy = occupancy or OccupancyParams()
-        self.fusion = fusion or FusionParams()
-        self.tsdf = tsdf or TsdfParams()
+        self.config = config
         self.block_bits = block_bits
         self.class_ids = _semantic_ids(self.class_table)
         # ignored classes (sky, ...) never reach the map; unknown ids update geometry only
         self._ignored = np.zeros(65536, bool)
         self._ignored[: self.class_table.size] = self.class_table.ignored_lut
-        semantic_lut = np.zeros(65536, bool)
-        semantic_lut[self.class_ids] = True
-        if backend == "tsdf":
-            self._core = TsdfBackend(
-                resolution_m, max_range_m, self.class_ids, self.tsdf, block_bits
-            )
-        else:
-            self._core = OctreeBackend(
-                resolution_m,
-                backend.split("-")[1],
-                max_range_m,
-                self.ray_length_m,
-                semantic_lut,
-                len(self.class_ids),
-                self.occupancy,
-                self.fusion,
-                block_bits,
-            )
+        self._clip = cls.clip_to_extent
+        self._core = cls(
+            config,
+            resolution_m=self.resolution_m,
+            max_range_m=self.max_range_m,
+            ray_length_m=self.ray_length_m,
+            class_ids=self.class_ids,
+            block_bits=block_bits,
+        )
         self.n_integrations = 0
         self.n_points = 0
+
+    @classmethod
+    def from_config(
+        cls, config: MapperConfig, class_table: ClassTable | str | Path = "garden3drms"
+    ) -> SemanticMap:
+        """The map a [mapper] section asks for; the back-end gets its sub-section as it is."""
+        backend = backend_class(config.backend)
+        key = backend.config_key
+        return cls(
+            backend=config.backend,
+            resolution_m=config.resolution_m,
+            max_range_m=config.max_range_m,
+            ray_length_m=config.raycast_range_m if config.raycast_range_m > 0 else None,
+            class_table=class_table,
+            config=getattr(config, key) if key is not None else None,
+        )
 
     # -- integration -----------------------------------------------------------------------
 
@@ -153,9 +167,9 @@ class SemanticMap:
         if (np.abs(org) >= limit).any():
             raise ValueError(f"origin {org.tolist()} outside the map extent +-{limit:g} m")
         keep = ~self._ignored[lab]
-        if self.backend == "tsdf":
+        if self._clip:
             # octrees skip such rays inside the kernel as OctoMap does (a far point beyond the
-            # range still carves up to it); the TSDF keys are only safe inside the extent
+            # range still carves up to it); other back-ends' keys are only safe inside the extent
             keep &= (np.abs(pts) < limit).all(axis=1)
         if not keep.all():
             pts, lab, conf = pts[keep], lab[keep], conf[keep]
@@ -238,9 +252,7 @@ class SemanticMap:
             "ray_length_m": self.ray_length_m,
             "class_table": self.class_table.name,
             "class_ids": self.class_ids.tolist(),
-            "occupancy": dataclasses.asdict(self.occupancy),
-            "fusion": dataclasses.asdict(self.fusion),
-            "tsdf": dataclasses.asdict(self.tsdf),
+            "config": dataclasses.asdict(self.config) if self.config is not None else None,
             "block_bits": self.block_bits,
             "integrations": self.n_integrations,
             "points": self.n_points,
@@ -276,17 +288,21 @@ class SemanticMap:
                 cols = {k[4:]: z[k] for k in z.files if k.startswith("col_")}
         except (OSError, ValueError, KeyError) as exc:
             raise ValueError(f"{path}: not a smana map file ({exc})") from exc
-        if meta.get("format") != FORMAT_VERSION:
+        if meta.get("format") not in (1, FORMAT_VERSION):
             raise ValueError(f"{path}: unsupported map format {meta.get('format')!r}")
+        backend = backend_class(meta["backend"])
+        if meta["format"] == 1:  # the octrees' section was two tables, the TSDF's its own
+            octree = {**meta["occupancy"], **meta["fusion"]}
+            saved = meta["tsdf"] if backend.config_key == "tsdf" else octree
+        else:
+            saved = meta["config"]
         m = cls(
             backend=meta["backend"],
             resolution_m=meta["resolution_m"],
             max_range_m=meta["max_range_m"],
             ray_length_m=meta["ray_length_m"],
             class_table=class_table if class_table is not None else meta["class_table"],
-            occupancy=OccupancyParams(**meta["occupancy"]),
-            fusion=FusionParams(**meta["fusion"]),
-            tsdf=TsdfParams(**meta["tsdf"]),
+            config=backend.config_class(**saved) if backend.config_class is not None else None,
             block_bits=meta["block_bits"],
         )
         if m.class_ids.tolist() != meta["class_ids"]:

@@ -38,9 +38,7 @@ from smana.common.messages import MapDelta, SemanticCloud
 from smana.common.plausibility import StampGate
 from smana.common.service import Reject, ReplyError, Request, Service, run_service
 from smana.services.mapper.delta import Delta
-from smana.services.mapper.octree import FusionParams, OccupancyParams
 from smana.services.mapper.semantic_map import SemanticMap
-from smana.services.mapper.tsdf import TsdfParams
 
 MAX_QUERY_POINTS = 100_000
 MAX_NAME_BYTES = 255  # NAME_MAX of Linux file systems
@@ -77,20 +75,7 @@ def build_map(config: SmanaConfig, table: ClassTable, log=None) -> SemanticMap:
         if log:
             log.info("resumed map from %s (%d voxels)", load, m.stats()["voxels_observed"])
         return m
-    return SemanticMap(
-        backend=mc.backend,
-        resolution_m=mc.resolution_m,
-        max_range_m=mc.max_range_m,
-        ray_length_m=mc.raycast_range_m if mc.raycast_range_m > 0 else None,
-        class_table=table,
-        occupancy=OccupancyParams(mc.prob_hit, mc.prob_miss, mc.clamp_min, mc.clamp_max),
-        fusion=FusionParams(mc.max_same_gain, mc.max_disagree_factor),
-        tsdf=TsdfParams(
-            mc.tsdf_truncation_voxels,
-            mc.tsdf_max_weight,
-            label_probability=mc.tsdf_label_probability,
-        ),
-    )
+    return SemanticMap.from_config(mc, table)
 
 
 class MapperService(Service):
@@ -218,7 +203,7 @@ class MapperService(Service):
             occupied=d.occupied,
             values=d.values,
             producer=self.producer,
-            values_kind="signed_distance" if self.map.backend == "tsdf" else "log_odds",
+            values_kind=self.map.values_kind,
         )
 
     # -- saving ------------------------------------------------------------------------------

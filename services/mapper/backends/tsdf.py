@@ -20,11 +20,12 @@ an update is O(1) instead of O(K). The voxel label is the most probable class.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
+from smana.common.config.mapper import TsdfConfig
 from smana.services.mapper._grid import (
     DONE,
     GROW_TOUCHED,
@@ -32,37 +33,44 @@ from smana.services.mapper._grid import (
     MARK_FREE,
     MARK_HIT,
     OBSERVED,
-    BlockGrid,
+    Grid,
     pack_block,
-    table_find_or_insert,
     voxblox_ray_keys,
-    voxel_index,
+    voxel_slot,
 )
+from smana.services.mapper.backends.base import MapBackend
 from smana.services.mapper.delta import Delta
 
 _RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this
 
 
-@dataclass(frozen=True)
-class TsdfParams:
-    truncation_voxels: float = 2.0
-    max_weight: float = 10000.0
-    min_range_m: float = 0.1
-    start_voxel_subsampling: float = 2.0  # voxblox default; 0 disables it
-    use_weight_dropoff: bool = True
-    label_probability: float = 0.9  # Kimera's measurement probability for the measured label
+class TsdfState(NamedTuple):
+    """The map as the kernel sees it: the block hash, the voxel columns and scratch buffers."""
 
-    def __post_init__(self):
-        if not self.truncation_voxels > 0:
-            raise ValueError("truncation_voxels must be > 0")
-        if not self.max_weight > 0:
-            raise ValueError("max_weight must be > 0")
-        if not self.min_range_m >= 0:
-            raise ValueError("min_range_m must be >= 0")
-        if not self.start_voxel_subsampling >= 0:
-            raise ValueError("start_voxel_subsampling must be >= 0")
-        if not 0.0 < self.label_probability < 1.0:
-            raise ValueError("label_probability must be inside (0, 1)")
+    grid: Grid
+    flags: np.ndarray  # u1 [voxels]: OBSERVED and this cloud's marks
+    distance: np.ndarray  # f4 [voxels], metres
+    weight: np.ndarray  # f4 [voxels]
+    logp: np.ndarray  # f4 [voxels, K]: log-probability per semantic class
+    touched: np.ndarray  # i8: voxels marked this cloud, in order
+    keybuf: np.ndarray  # i8 [n, 3]: one ray's voxel keys
+    gbuf: np.ndarray  # i8 [n]: their global indices
+    sem_idx: np.ndarray  # i2 [65536]: label -> class column, -1 for none
+    counts: np.ndarray  # i8 [2]: newly observed voxels, change in the surface-voxel count
+
+
+class TsdfConsts(NamedTuple):
+    """Per-map constants of the kernel."""
+
+    res: float
+    inv_res: float
+    max_range: float
+    trunc: float  # metres
+    max_weight: float
+    min_range: float
+    sub_inv: float  # 1 / start-voxel subsampling cell, 0: off
+    dropoff: bool
+    log_ratio: float  # log(p / q) added to the measured class
 
 
 @njit(cache=True, error_model="numpy")
@@ -94,45 +102,29 @@ def _set_contains(keys, key):
 
 
 @njit(cache=True, error_model="numpy")
-def _tsdf_integrate(
-    points,
-    labels,
-    origin,
-    i0,
-    prm,
-    sem_idx,
-    log_ratio,
-    h_keys,
-    h_vals,
-    hshift,
-    block_keys,
-    n_blocks,
-    bits,
-    flags,
-    dist_,
-    weight_,
-    logp,
-    touched,
-    n_touched,
-    startset,
-    keybuf,
-    gbuf,
-    counts,
-):
+def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
     """Integrate points i0.. ; resumable: every block is allocated before a ray updates anything.
-    `counts` accumulates (newly observed voxels, change in the surface-voxel count)."""
-    res = prm[0]
-    inv_res = prm[1]
-    max_range = prm[2]
-    trunc = prm[3]
-    max_weight = prm[4]
-    min_range = prm[5]
-    sub_inv = prm[6]
-    dropoff = prm[7] > 0
+    Returns (status, i, n_touched); `st.counts` accumulates the counters."""
+    res = k.res
+    inv_res = k.inv_res
+    max_range = k.max_range
+    trunc = k.trunc
+    max_weight = k.max_weight
+    min_range = k.min_range
+    sub_inv = k.sub_inv
+    dropoff = k.dropoff
+    grid = st.grid
+    flags = st.flags
+    dist_ = st.distance
+    weight_ = st.weight
+    logp = st.logp
+    touched = st.touched
+    keybuf = st.keybuf
+    gbuf = st.gbuf
+    counts = st.counts
     ox = np.float64(origin[0])
     oy = np.float64(origin[1])
     oz = np.float64(origin[2])
-    vb = 3 * bits
     last_key = np.int64(-1)
     last_b = np.int64(-1)
     for i in range(i0, points.shape[0]):
@@ -175,32 +167,28 @@ def _tsdf_integrate(
         # cast from behind the surface towards the sensor, as voxblox does
         nk = voxblox_ray_keys(ex, ey, ez, sx, sy, sz, inv_res, keybuf)
         if n_touched + nk > touched.shape[0]:
-            return GROW_TOUCHED, i, n_blocks, n_touched
-        for k in range(nk):
-            bkey, local = voxel_index(keybuf[k, 0], keybuf[k, 1], keybuf[k, 2], bits)
-            if bkey != last_key:
-                b, n_blocks = table_find_or_insert(
-                    h_keys, h_vals, hshift, block_keys, n_blocks, bkey
-                )
-                if b < 0:
-                    return -b, i, n_blocks, n_touched
-                last_key = bkey
-                last_b = b
-            gbuf[k] = (last_b << vb) | local
+            return GROW_TOUCHED, i, n_touched
+        for j in range(nk):
+            g, last_key, last_b = voxel_slot(
+                grid, keybuf[j, 0], keybuf[j, 1], keybuf[j, 2], last_key, last_b
+            )
+            if g < 0:
+                return -g, i, n_touched
+            gbuf[j] = g
         if sub_inv > 0:
             _set_insert(startset, skey)
-        label_idx = -1 if clearing else sem_idx[labels[i]]
-        for k in range(nk):
-            g = gbuf[k]
+        label_idx = -1 if clearing else st.sem_idx[labels[i]]
+        for j in range(nk):
+            g = gbuf[j]
             f = flags[g]
             if f & MARK_ANY:  # the fast integrator drops the rest of this ray
                 break
             flags[g] = f | MARK_FREE
             touched[n_touched] = g
             n_touched += 1
-            cx = (np.float64(keybuf[k, 0]) + 0.5) * res
-            cy = (np.float64(keybuf[k, 1]) + 0.5) * res
-            cz = (np.float64(keybuf[k, 2]) + 0.5) * res
+            cx = (np.float64(keybuf[j, 0]) + 0.5) * res
+            cy = (np.float64(keybuf[j, 1]) + 0.5) * res
+            cz = (np.float64(keybuf[j, 2]) + 0.5) * res
             sdf = dist - ((cx - ox) * dx + (cy - oy) * dy + (cz - oz) * dz) / dist
             w = 1.0
             if dropoff and sdf < -res:
@@ -220,12 +208,12 @@ def _tsdf_integrate(
                 counts[1] += 1
             flags[g] = f | MARK_FREE | MARK_HIT | OBSERVED
             if label_idx >= 0:
-                v = logp[g, label_idx] + log_ratio
+                v = logp[g, label_idx] + k.log_ratio
                 logp[g, label_idx] = v
                 if v > _RENORM_AT:
                     for j in range(logp.shape[1]):
                         logp[g, j] -= v
-    return DONE, points.shape[0], n_blocks, n_touched
+    return DONE, points.shape[0], n_touched
 
 
 @njit(cache=True, error_model="numpy")
@@ -242,58 +230,63 @@ def _tsdf_finish(touched, n_touched, flags, changed):
     return nc
 
 
-class TsdfBackend:
+class Tsdf(MapBackend):
     """Semantic TSDF voxel map; `integrate` returns the Delta of one cloud."""
 
-    def __init__(
-        self,
-        resolution_m: float,
-        max_range_m: float,
-        class_ids: np.ndarray,
-        params: TsdfParams = TsdfParams(),
-        block_bits: int = 3,
-    ):
-        self.resolution_m = float(resolution_m)
-        self.max_range_m = float(max_range_m)
-        self.params = params
-        self.class_ids = np.asarray(class_ids, np.uint16)
-        k = len(self.class_ids)
-        if k < 2:
+    name = "tsdf"
+    values_kind = "signed_distance"
+    config_key = "tsdf"
+    config_class = TsdfConfig
+    clip_to_extent = True  # the TSDF keys are only safe inside the extent
+
+    def __init__(self, config: TsdfConfig, **geometry):
+        if len(geometry["class_ids"]) < 2:
             raise ValueError("tsdf needs at least 2 semantic classes")
+        super().__init__(config, **geometry)
+        k = len(self.class_ids)
         self.sem_idx = np.full(65536, -1, np.int16)
         self.sem_idx[self.class_ids] = np.arange(k)
-        p = params.label_probability
-        self.log_ratio = float(np.log(p / ((1.0 - p) / (k - 1))))
-        self.trunc_m = params.truncation_voxels * self.resolution_m
-        self.grid = BlockGrid(
-            block_bits,
-            {
-                "distance": (np.float32, ()),
-                "weight": (np.float32, ()),
-                "logp": (np.float32, (k,)),
-                "flags": (np.uint8, ()),
-            },
-        )
+        p = config.label_probability
+        self.trunc_m = config.truncation_voxels * self.resolution_m
         self._touched = np.empty(1 << 16, np.int64)
-        self.last_updates = 0
-        self.n_observed = 0  # kept up to date by the kernel: stats() never scans the map
-        self.n_occupied = 0
         band = 2 * self.trunc_m + self.resolution_m
         n_buf = 3 * int(np.ceil(band / self.resolution_m)) + 16
         self._keybuf = np.empty((n_buf, 3), np.int64)
         self._gbuf = np.empty(n_buf, np.int64)
-        sub = params.start_voxel_subsampling
-        self._prm = np.array(
-            [
-                self.resolution_m,
-                1.0 / self.resolution_m,
-                self.max_range_m,
-                self.trunc_m,
-                params.max_weight,
-                params.min_range_m,
-                sub / self.resolution_m if sub > 0 else 0.0,
-                1.0 if params.use_weight_dropoff else 0.0,
-            ]
+        sub = config.start_voxel_subsampling
+        self._consts = TsdfConsts(
+            self.resolution_m,
+            1.0 / self.resolution_m,
+            self.max_range_m,
+            self.trunc_m,
+            float(config.max_weight),
+            float(config.min_range_m),
+            sub / self.resolution_m if sub > 0 else 0.0,
+            bool(config.use_weight_dropoff),
+            float(np.log(p / ((1.0 - p) / (k - 1)))),
+        )
+
+    def fields(self):
+        return {
+            "distance": (np.float32, ()),
+            "weight": (np.float32, ()),
+            "logp": (np.float32, (len(self.class_ids),)),
+            "flags": (np.uint8, ()),
+        }
+
+    def _state(self, counts: np.ndarray) -> TsdfState:
+        c = self.grid.cols
+        return TsdfState(
+            self.grid.state(),
+            c["flags"],
+            c["distance"],
+            c["weight"],
+            c["logp"],
+            self._touched,
+            self._keybuf,
+            self._gbuf,
+            self.sem_idx,
+            counts,
         )
 
     def integrate(self, points, labels, confs, origin) -> Delta:
@@ -304,31 +297,8 @@ class TsdfBackend:
         counts = np.zeros(2, np.int64)
         i, n_touched = 0, 0
         while True:
-            c = grid.cols
-            status, i, grid.n_blocks, n_touched = _tsdf_integrate(
-                points,
-                labels,
-                origin,
-                i,
-                self._prm,
-                self.sem_idx,
-                self.log_ratio,
-                grid.h_keys,
-                grid.h_vals,
-                grid.hshift,
-                grid.block_keys,
-                grid.n_blocks,
-                grid.bits,
-                c["flags"],
-                c["distance"],
-                c["weight"],
-                c["logp"],
-                self._touched,
-                n_touched,
-                startset,
-                self._keybuf,
-                self._gbuf,
-                counts,
+            status, i, n_touched = _tsdf_integrate(
+                points, labels, origin, self._state(counts), self._consts, startset, i, n_touched
             )
             if status == DONE:
                 break
@@ -343,7 +313,7 @@ class TsdfBackend:
         self.last_updates = nc  # voxels whose distance was fused this cloud
         self.n_observed += int(counts[0])
         self.n_occupied += int(counts[1])
-        return self._rows(changed[:nc])
+        return self.rows(changed[:nc])
 
     def labels_of(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(label, probability of that label) from the log-probability vectors."""
@@ -363,7 +333,8 @@ class TsdfBackend:
         e = np.exp(lp - lp.max(axis=1, keepdims=True))
         return e / e.sum(axis=1, keepdims=True)
 
-    def _rows(self, g: np.ndarray) -> Delta:
+    def rows(self, g: np.ndarray) -> Delta:
+        g = np.asarray(g, np.int64)
         c = self.grid.cols
         keys = self.grid.coords(g)
         d = c["distance"][g]
@@ -380,26 +351,7 @@ class TsdfBackend:
 
     # -- queries ---------------------------------------------------------------------------
 
-    def recount(self) -> None:
-        """Recompute the counters from the columns (after a load)."""
-        self.n_observed = int(self.observed_index().shape[0])
-        self.n_occupied = int(self.occupied_index().shape[0])
-
-    def observed_index(self) -> np.ndarray:
-        return np.flatnonzero(self.grid.used("flags") & OBSERVED)
-
     def occupied_index(self) -> np.ndarray:
         used = self.grid.used
         surf = (np.abs(used("distance")) < self.resolution_m) & (used("weight") > 0)
         return np.flatnonzero(surf & (used("flags") & OBSERVED).astype(bool))
-
-    def rows(self, g: np.ndarray) -> Delta:
-        return self._rows(np.asarray(g, np.int64))
-
-    def known(self, g: np.ndarray) -> np.ndarray:
-        return (self.grid.cols["flags"][g] & OBSERVED).astype(bool)
-
-    def bytes_per_voxel(self) -> int:
-        return sum(
-            col.dtype.itemsize * int(np.prod(col.shape[1:])) for col in self.grid.cols.values()
-        )

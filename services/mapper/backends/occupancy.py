@@ -1,5 +1,6 @@
-"""Occupancy back-ends `octree-max` and `octree-bayes`: OctoMap's occupancy with Semantic Octomap's
-label fusion, stored in a hashed block grid (see `_grid.py`) instead of a pointer octree.
+"""What `octree-max` and `octree-bayes` share: OctoMap's occupancy with Semantic Octomap's label
+fusion, stored in a hashed block grid (see `_grid.py`) instead of a pointer octree. The two
+back-ends (`octree_max.py`, `octree_bayes.py`) differ only in their fusion rule.
 
 Occupancy follows OctoMap's `insertPointCloud` exactly: for one cloud every ray's voxels are
 collected first; a voxel is updated at most once as free and at most once as occupied, and a
@@ -26,11 +27,12 @@ equal share of the remaining mass. A point (label l, confidence c) is the likeli
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 from numba import njit
 
+from smana.common.config.mapper import OctreeConfig
 from smana.services.mapper._grid import (
     DONE,
     GROW_TOUCHED,
@@ -39,19 +41,18 @@ from smana.services.mapper._grid import (
     MARK_HIT,
     MARK_SEM,
     OBSERVED,
-    BlockGrid,
+    Grid,
     coord_to_key,
     key_in_range,
     octomap_ray_keys,
-    table_find_or_insert,
     unpack_block,
-    voxel_index,
+    voxel_slot,
 )
+from smana.services.mapper.backends.base import MapBackend
 from smana.services.mapper.delta import Delta
 
 FUSION_MAX = 0
 FUSION_BAYES = 1
-FUSIONS = {"max": FUSION_MAX, "bayes": FUSION_BAYES}
 
 
 def logodds(p: float) -> np.float32:
@@ -59,52 +60,45 @@ def logodds(p: float) -> np.float32:
     return np.float32(np.log(p / (1.0 - p)))
 
 
-@dataclass(frozen=True)
-class OccupancyParams:
-    """OctoMap's sensor model; the defaults are OctoMap's own (clamping 0.1192 / 0.971)."""
-
-    prob_hit: float = 0.7
-    prob_miss: float = 0.4
-    clamp_min: float = 0.1192
-    clamp_max: float = 0.971
-
-    def __post_init__(self):
-        for name in ("prob_hit", "prob_miss", "clamp_min", "clamp_max"):
-            v = getattr(self, name)
-            if not 0.0 < v < 1.0:
-                raise ValueError(f"{name} must be inside (0, 1), got {v}")
-        if not self.prob_miss < 0.5 < self.prob_hit:
-            raise ValueError("need prob_miss < 0.5 < prob_hit")
-        if not self.clamp_min < 0.5 < self.clamp_max:
-            raise ValueError("need clamp_min < 0.5 < clamp_max")
-
-    @property
-    def logs(self) -> tuple[np.float32, np.float32, np.float32, np.float32]:
-        return (
-            logodds(self.prob_hit),
-            logodds(self.prob_miss),
-            logodds(self.clamp_min),
-            logodds(self.clamp_max),
-        )
+def sensor_model(config: OctreeConfig) -> tuple[np.float32, np.float32, np.float32, np.float32]:
+    """(hit, miss, clamp min, clamp max) as float32 log-odds, as OctoMap stores them."""
+    return (
+        logodds(config.prob_hit),
+        logodds(config.prob_miss),
+        logodds(config.clamp_min),
+        logodds(config.clamp_max),
+    )
 
 
-@dataclass(frozen=True)
-class FusionParams:
-    """Label fusion constants (see the module docstring)."""
+class OccupancyState(NamedTuple):
+    """The map as the kernels see it: the block hash, the voxel columns and scratch buffers."""
 
-    max_same_gain: float = 0.5
-    max_disagree_factor: float = 0.9
-    bayes_min_confidence: float = 1e-3  # keeps c in [eps, 1 - eps] so no class reaches 0 or 1
+    grid: Grid
+    flags: np.ndarray  # u1 [voxels]: OBSERVED and this cloud's marks
+    logodds: np.ndarray  # f4 [voxels]
+    label: np.ndarray  # u2 [voxels, 1 or 3]: the top classes
+    prob: np.ndarray  # f4 [voxels, 1 or 3]: their confidence or probability
+    touched: np.ndarray  # i8: voxels marked this cloud, in order
+    keybuf: np.ndarray  # i8 [n, 3]: one ray's voxel keys
+    semantic: np.ndarray  # bool [65536]: labels worth fusing
 
-    def __post_init__(self):
-        if not 0.0 <= self.max_same_gain <= 1.0:
-            raise ValueError(f"max_same_gain must be in [0, 1], got {self.max_same_gain}")
-        if not 0.0 < self.max_disagree_factor <= 1.0:
-            raise ValueError(
-                f"max_disagree_factor must be in (0, 1], got {self.max_disagree_factor}"
-            )
-        if not 0.0 < self.bayes_min_confidence < 0.5:
-            raise ValueError("bayes_min_confidence must be in (0, 0.5)")
+
+class OccupancyConsts(NamedTuple):
+    """Per-map constants of the kernels."""
+
+    res: float
+    inv_res: float
+    max_range: float  # < 0: no limit
+    ray_m: float  # < 0: carve the whole ray
+    gain: float
+    penalty: float
+    eps: float
+    mode: int  # FUSION_MAX | FUSION_BAYES
+    n_classes: int
+    l_hit: np.float32
+    l_miss: np.float32
+    c_min: np.float32
+    c_max: np.float32
 
 
 # -- label fusion ------------------------------------------------------------------------------
@@ -190,41 +184,20 @@ def _fuse_bayes(sem_l, sem_p, g, label, conf, n_classes, eps):
 
 
 @njit(cache=True, error_model="numpy")
-def _octree_collect(
-    points,
-    labels,
-    confs,
-    origin,
-    i0,
-    prm,
-    mode,
-    n_classes,
-    sem_ok,
-    h_keys,
-    h_vals,
-    hshift,
-    block_keys,
-    n_blocks,
-    bits,
-    flags,
-    sem_l,
-    sem_p,
-    touched,
-    n_touched,
-    keybuf,
-):
-    """Phase 1: walk every ray, mark free / hit voxels, fuse labels. Resumable at point i."""
-    res = prm[0]
-    inv_res = prm[1]
-    max_range = prm[2]
-    ray_m = prm[3]
-    gain = prm[4]
-    penalty = prm[5]
-    eps = prm[6]
+def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
+    """Phase 1: walk every ray, mark free / hit voxels, fuse labels. Resumable at point i.
+    Returns (status, i, n_touched)."""
+    res = k.res
+    inv_res = k.inv_res
+    max_range = k.max_range
+    ray_m = k.ray_m
+    grid = st.grid
+    flags = st.flags
+    touched = st.touched
+    keybuf = st.keybuf
     ox = np.float32(origin[0])
     oy = np.float32(origin[1])
     oz = np.float32(origin[2])
-    vb = 3 * bits
     n_cap = touched.shape[0]
     last_key = np.int64(-1)
     last_b = np.int64(-1)
@@ -252,21 +225,16 @@ def _octree_collect(
             sy = np.float32(ey - np.float32(np.float32(dy / ln) * rm))
             sz = np.float32(ez - np.float32(np.float32(dz / ln) * rm))
         nk = octomap_ray_keys(sx, sy, sz, ex, ey, ez, res, inv_res, keybuf)
-        for k in range(nk):
-            bkey, local = voxel_index(keybuf[k, 0], keybuf[k, 1], keybuf[k, 2], bits)
-            if bkey != last_key:
-                b, n_blocks = table_find_or_insert(
-                    h_keys, h_vals, hshift, block_keys, n_blocks, bkey
-                )
-                if b < 0:
-                    return -b, i, n_blocks, n_touched
-                last_key = bkey
-                last_b = b
-            g = (last_b << vb) | local
+        for j in range(nk):
+            g, last_key, last_b = voxel_slot(
+                grid, keybuf[j, 0], keybuf[j, 1], keybuf[j, 2], last_key, last_b
+            )
+            if g < 0:
+                return -g, i, n_touched
             f = flags[g]
             if f & MARK_ANY == 0:  # first time this cloud: remember it for phase 2
                 if n_touched >= n_cap:
-                    return GROW_TOUCHED, i, n_blocks, n_touched
+                    return GROW_TOUCHED, i, n_touched
                 flags[g] = f | MARK_FREE
                 touched[n_touched] = g
                 n_touched += 1
@@ -277,36 +245,38 @@ def _octree_collect(
         kz = coord_to_key(pz, inv_res)
         if not key_in_range(kx, ky, kz):
             continue
-        bkey, local = voxel_index(kx, ky, kz, bits)
-        if bkey != last_key:
-            b, n_blocks = table_find_or_insert(h_keys, h_vals, hshift, block_keys, n_blocks, bkey)
-            if b < 0:
-                return -b, i, n_blocks, n_touched
-            last_key = bkey
-            last_b = b
-        g = (last_b << vb) | local
+        g, last_key, last_b = voxel_slot(grid, kx, ky, kz, last_key, last_b)
+        if g < 0:
+            return -g, i, n_touched
         f = flags[g]
         if f & MARK_ANY == 0:
             if n_touched >= n_cap:
-                return GROW_TOUCHED, i, n_blocks, n_touched
+                return GROW_TOUCHED, i, n_touched
             touched[n_touched] = g
             n_touched += 1
         flags[g] = f | MARK_HIT
         label = labels[i]
-        if sem_ok[label]:
-            if mode == FUSION_MAX:
-                moved = _fuse_max(sem_l, sem_p, g, label, confs[i], gain, penalty)
+        if st.semantic[label]:
+            if k.mode == FUSION_MAX:
+                moved = _fuse_max(st.label, st.prob, g, label, confs[i], k.gain, k.penalty)
             else:
-                moved = _fuse_bayes(sem_l, sem_p, g, label, confs[i], n_classes, eps)
+                moved = _fuse_bayes(st.label, st.prob, g, label, confs[i], k.n_classes, k.eps)
             if moved:
                 flags[g] |= MARK_SEM
-    return DONE, points.shape[0], n_blocks, n_touched
+    return DONE, points.shape[0], n_touched
 
 
 @njit(cache=True, error_model="numpy")
-def _octree_apply(touched, n_touched, flags, logodds_, l_hit, l_miss, c_min, c_max, changed):
+def _octree_apply(st, k, n_touched, changed):
     """Phase 2: one OctoMap log-odds update per marked voxel (hit wins); list what changed.
     Returns (changed count, newly observed voxels, change in the occupied count)."""
+    touched = st.touched
+    flags = st.flags
+    logodds_ = st.logodds
+    l_hit = k.l_hit
+    l_miss = k.l_miss
+    c_min = k.c_min
+    c_max = k.c_max
     nc = 0
     d_obs = 0
     d_occ = 0
@@ -339,10 +309,10 @@ def _octree_apply(touched, n_touched, flags, logodds_, l_hit, l_miss, c_min, c_m
 
 
 @njit(cache=True, error_model="numpy")
-def _delta_rows(
-    g, block_keys, bits, res, logodds_, sem_l, sem_p, keys, centres, labels, confs, occupied, values
-):
+def _delta_rows(st, res, g, keys, centres, labels, confs, occupied, values):
     """Fill the Delta columns of voxels g in one pass (cheaper than numpy fancy indexing)."""
+    bits = st.grid.bits
+    block_keys = st.grid.block_keys
     vb = 3 * bits
     bm = (1 << bits) - 1
     for i in range(g.shape[0]):
@@ -358,11 +328,11 @@ def _delta_rows(
         centres[i, 0] = (kx + 0.5) * res
         centres[i, 1] = (ky + 0.5) * res
         centres[i, 2] = (kz + 0.5) * res
-        v = logodds_[gi]
+        v = st.logodds[gi]
         values[i] = v
         occupied[i] = 1 if v > 0 else 0
-        labels[i] = sem_l[gi, 0]
-        confs[i] = sem_p[gi, 0]
+        labels[i] = st.label[gi, 0]
+        confs[i] = st.prob[gi, 0]
 
 
 def ray_buffer(max_len_m: float, resolution_m: float) -> np.ndarray:
@@ -370,61 +340,57 @@ def ray_buffer(max_len_m: float, resolution_m: float) -> np.ndarray:
     return np.empty((3 * int(np.ceil(max_len_m / resolution_m)) + 16, 3), np.int64)
 
 
-class OctreeBackend:
-    """Occupancy + semantic voxel map; `integrate` returns the Delta of one cloud.
+class OccupancyBackend(MapBackend):
+    """Occupancy + semantic voxel map; `integrate` returns the Delta of one cloud. Subclasses
+    pick the fusion rule (`fusion`) and how many top classes a voxel keeps (`n_top`)."""
 
-    Inputs are validated by `SemanticMap`; this class trusts its arguments.
-    """
+    values_kind = "log_odds"
+    config_key = "octree"
+    config_class = OctreeConfig
+    uses_ray_length = True
+    fusion: ClassVar[int]
+    n_top: ClassVar[int]
 
-    def __init__(
-        self,
-        resolution_m: float,
-        fusion: str,
-        max_range_m: float,
-        ray_length_m: float | None,
-        semantic_lut: np.ndarray,
-        n_classes: int,
-        occupancy: OccupancyParams = OccupancyParams(),
-        fusion_params: FusionParams = FusionParams(),
-        block_bits: int = 3,
-    ):
-        if fusion not in FUSIONS:
-            raise ValueError(f"fusion must be one of {sorted(FUSIONS)}, got {fusion!r}")
-        if fusion == "bayes" and n_classes < 2:
-            raise ValueError("bayes fusion needs at least 2 semantic classes")
-        self.resolution_m = float(resolution_m)
-        self.fusion = fusion
-        self.max_range_m = float(max_range_m)
-        self.ray_length_m = ray_length_m
-        self.semantic_lut = semantic_lut
-        self.n_classes = int(n_classes)
-        self.occupancy = occupancy
-        self.fusion_params = fusion_params
-        n_sem = 1 if fusion == "max" else 3
-        self.grid = BlockGrid(
-            block_bits,
-            {
-                "logodds": (np.float32, ()),
-                "label": (np.uint16, (n_sem,)),
-                "prob": (np.float32, (n_sem,)),
-                "flags": (np.uint8, ()),
-            },
-        )
+    def __init__(self, config: OctreeConfig, **geometry):
+        super().__init__(config, **geometry)
+        self.n_classes = len(self.class_ids)
+        self.semantic_lut = np.zeros(65536, bool)
+        self.semantic_lut[self.class_ids] = True
         self._touched = np.empty(1 << 16, np.int64)
-        self.last_updates = 0
-        self.n_observed = 0  # kept up to date by the kernels: stats() never scans the map
-        self.n_occupied = 0
         self._keybuf = ray_buffer(self.max_range_m, self.resolution_m)
-        self._prm = np.array(
-            [
-                self.resolution_m,
-                1.0 / self.resolution_m,
-                self.max_range_m,
-                -1.0 if ray_length_m is None else float(ray_length_m),
-                fusion_params.max_same_gain,
-                fusion_params.max_disagree_factor,
-                fusion_params.bayes_min_confidence,
-            ]
+        ray = self.ray_length_m
+        self._consts = OccupancyConsts(
+            self.resolution_m,
+            1.0 / self.resolution_m,
+            self.max_range_m,
+            -1.0 if ray is None else float(ray),
+            float(config.max_same_gain),
+            float(config.max_disagree_factor),
+            float(config.bayes_min_confidence),
+            self.fusion,
+            self.n_classes,
+            *sensor_model(config),
+        )
+
+    def fields(self):
+        return {
+            "logodds": (np.float32, ()),
+            "label": (np.uint16, (self.n_top,)),
+            "prob": (np.float32, (self.n_top,)),
+            "flags": (np.uint8, ()),
+        }
+
+    def _state(self) -> OccupancyState:
+        c = self.grid.cols
+        return OccupancyState(
+            self.grid.state(),
+            c["flags"],
+            c["logodds"],
+            c["label"],
+            c["prob"],
+            self._touched,
+            self._keybuf,
+            self.semantic_lut,
         )
 
     def _grow_touched(self) -> None:
@@ -433,52 +399,26 @@ class OctreeBackend:
         self._touched = new
 
     def integrate(self, points, labels, confs, origin) -> Delta:
-        grid = self.grid
         i, n_touched = 0, 0
-        mode = FUSIONS[self.fusion]
         while True:
-            c = grid.cols
-            status, i, grid.n_blocks, n_touched = _octree_collect(
-                points,
-                labels,
-                confs,
-                origin,
-                i,
-                self._prm,
-                mode,
-                self.n_classes,
-                self.semantic_lut,
-                grid.h_keys,
-                grid.h_vals,
-                grid.hshift,
-                grid.block_keys,
-                grid.n_blocks,
-                grid.bits,
-                c["flags"],
-                c["label"],
-                c["prob"],
-                self._touched,
-                n_touched,
-                self._keybuf,
+            status, i, n_touched = _octree_collect(
+                points, labels, confs, origin, self._state(), self._consts, i, n_touched
             )
             if status == DONE:
                 break
             if status == GROW_TOUCHED:
                 self._grow_touched()
             else:
-                grid.handle(status)
+                self.grid.handle(status)
         self.last_updates = n_touched  # voxel log-odds updates of this cloud
-        l_hit, l_miss, c_min, c_max = self.occupancy.logs
         changed = np.empty(n_touched, np.int64)
-        c = grid.cols
-        nc, d_obs, d_occ = _octree_apply(
-            self._touched, n_touched, c["flags"], c["logodds"], l_hit, l_miss, c_min, c_max, changed
-        )
+        nc, d_obs, d_occ = _octree_apply(self._state(), self._consts, n_touched, changed)
         self.n_observed += d_obs
         self.n_occupied += d_occ
-        return self._rows(changed[:nc])
+        return self.rows(changed[:nc])
 
-    def _rows(self, g: np.ndarray) -> Delta:
+    def rows(self, g: np.ndarray) -> Delta:
+        g = np.asarray(g, np.int64)
         n = g.shape[0]
         d = Delta(
             np.empty((n, 3), np.int32),
@@ -488,15 +428,10 @@ class OctreeBackend:
             np.empty(n, np.uint8),
             np.empty(n, np.float32),
         )
-        c, grid = self.grid.cols, self.grid
         _delta_rows(
-            g,
-            grid.block_keys,
-            grid.bits,
+            self._state(),
             self.resolution_m,
-            c["logodds"],
-            c["label"],
-            c["prob"],
+            g,
             d.keys,
             d.centres,
             d.labels,
@@ -508,28 +443,9 @@ class OctreeBackend:
 
     # -- queries ---------------------------------------------------------------------------
 
-    def recount(self) -> None:
-        """Recompute the counters from the columns (after a load)."""
-        self.n_observed = int(self.observed_index().shape[0])
-        self.n_occupied = int(self.occupied_index().shape[0])
-
-    def observed_index(self) -> np.ndarray:
-        return np.flatnonzero(self.grid.used("flags") & OBSERVED)
-
     def occupied_index(self) -> np.ndarray:
         used = self.grid.used
         return np.flatnonzero((used("flags") & OBSERVED).astype(bool) & (used("logodds") > 0))
 
-    def rows(self, g: np.ndarray) -> Delta:
-        return self._rows(np.asarray(g, np.int64))
-
-    def known(self, g: np.ndarray) -> np.ndarray:
-        return (self.grid.cols["flags"][g] & OBSERVED).astype(bool)
-
     def top_classes(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.grid.cols["label"][g], self.grid.cols["prob"][g]
-
-    def bytes_per_voxel(self) -> int:
-        return sum(
-            col.dtype.itemsize * int(np.prod(col.shape[1:])) for col in self.grid.cols.values()
-        )
