@@ -1227,13 +1227,12 @@ def _reference_integrate(ref, table, cloud: m.SemanticCloud) -> None:
 
 def _reference_graph(config: SmanaConfig, table, snap: m.MapDelta):
     from smana.services.navgraph.graph import NavGraph
+    from smana.services.navgraph.service import to_patch
 
-    nc = config.navgraph
-    g = NavGraph(table, nc)
+    g = NavGraph(table, config.navgraph)
     g.integrate_delta(snap)
-    cells, labels, heights, flags = g.export()
-    heights = np.where(np.isnan(heights) | ((flags & m.FLAG_KNOWN) == 0), 0.0, heights)
-    return cells, labels, heights.astype(np.float32), flags
+    p = to_patch(g, *g.export(), seq=0, stamp_s=0.0)  # the wire form navgraph itself sends
+    return p.cells, p.labels, p.heights, p.flags
 
 
 def _reference_plan(config: SmanaConfig, table, graph: m.GraphPatch, req) -> m.PathReply:
