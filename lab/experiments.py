@@ -475,6 +475,8 @@ class ExplorationExperimentConfig:
             "mapper.resolution_m=0.1",
             "navgraph.bounds_min_xy=[-4.0, -4.0]",
             "navgraph.bounds_max_xy=[4.0, 4.0]",
+            # no hot spares: a 20 s run would start five only to stop them
+            "deploy.standby_delay_s=3600",
         )
         return cls(seeds=(3,), cost_factors=(1.0, 4.0), size_m=6.0, budget_s=20.0, extra=small)
 

@@ -25,6 +25,9 @@ def small_run_overrides(port: int, budget_s: float = BUDGET_S) -> list[str]:
         f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
         # keys of its own: stray processes of an earlier stack that reach a reused port stay apart
         f'general.robot="e2e{os.getpid()}"',
+        # no hot spares: a run this short would start five only to stop them (they are tested in
+        # test_supervisor.py and test_resilience.py)
+        "deploy.standby_delay_s=3600",
         "sim.garden.size_m=6.0",
         "sim.seed=3",
         "sim.camera.width=160",
