@@ -39,6 +39,21 @@ from .scene import DROP, BulletScene, transform_points
 from .worlds import World, build_world
 
 
+def _semantic_cloud(frame, source: str) -> SemanticCloud:
+    """A camera frame's or a LiDAR scan's cloud, placed with the published sensor pose."""
+    m = frame.world_from_sensor
+    return SemanticCloud(
+        stamp_s=frame.stamp_s,
+        seq=frame.seq,
+        points=frame.points,
+        labels=frame.labels,
+        confidences=frame.confidences,
+        sensor_position=m[:3, 3].copy(),
+        sensor_orientation_xyzw=matrix_to_quat(m[:3, :3]),
+        source=source,
+    )
+
+
 @dataclass
 class CameraFrame:
     """One camera frame as published. `points` are in the world frame as the robot believes it
@@ -59,17 +74,7 @@ class CameraFrame:
     true_world_from_sensor: np.ndarray  # 4x4
 
     def to_cloud(self) -> SemanticCloud:
-        m = self.world_from_sensor
-        return SemanticCloud(
-            stamp_s=self.stamp_s,
-            seq=self.seq,
-            points=self.points,
-            labels=self.labels,
-            confidences=self.confidences,
-            sensor_position=m[:3, 3].copy(),
-            sensor_orientation_xyzw=matrix_to_quat(m[:3, :3]),
-            source="camera",
-        )
+        return _semantic_cloud(self, "camera")
 
 
 @dataclass
@@ -93,17 +98,7 @@ class LidarScan:
     true_world_from_sensor: np.ndarray
 
     def to_cloud(self) -> SemanticCloud:
-        m = self.world_from_sensor
-        return SemanticCloud(
-            stamp_s=self.stamp_s,
-            seq=self.seq,
-            points=self.points,
-            labels=self.labels,
-            confidences=self.confidences,
-            sensor_position=m[:3, 3].copy(),
-            sensor_orientation_xyzw=matrix_to_quat(m[:3, :3]),
-            source="lidar",
-        )
+        return _semantic_cloud(self, "lidar")
 
 
 def pose_message(m: np.ndarray, stamp_s: float, seq: int) -> Pose:
