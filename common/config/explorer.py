@@ -56,7 +56,6 @@ class ExplorerConfig(Section, section="explorer"):
     # The budget starts with the first pose once a map and a planner are there; past the budget
     # plus this, with neither, the explorer gives up (ends `no_graph` or `no_planner`).
     startup_grace_s: float = param(120.0, ge=0)
-    enabled: bool = True
     control_rate_hz: float = param(10.0, gt=0)
     # next-best-view choice (services/explorer/frontier.py::select_view)
     candidate_spacing_m: float = param(0.6, gt=0)  # one candidate per block of this side
