@@ -73,7 +73,7 @@ def write_preview(world: World, out: Path, pixels: int, seed: int | None = None)
         top.origin_xy,
         np.asarray(top.origin_xy) + np.asarray(top.data.shape) * top.resolution_m,
     )
-    title = f"world preview: {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m" + (
+    title = f"world preview (hill-shaded): {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m" + (
         f", seed {seed}" if seed is not None else ""
     )
     fig = plots.world_map(
