@@ -355,35 +355,41 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
         return out_s
 
     used = {i: t for i, t in ticks.items() if any(LEVELS.index(r["level"]) == i for r in rows)}
-    plots.save_png(
-        out / "fig6_pose_noise_error.png",
+    # one fixed trajectory and one world: each point is one map (n = 1), so a ratio has no spread;
+    # the error's bars are its spread over the map's points, not over runs
+    one_run = "n = 1 run per level and back-end"
+    plots.save(
         plots.line_plot(
             series("pose", "error_mean_m", "error_std_m"),
             "Reconstruction error vs localisation noise (Fig. 6)",
             "localisation noise level",
-            "error (m), mean +- std",
+            "reconstruction error (m)",
             used,
+            note=f"mean, bars: std over map points\n{one_run}",
         ),
+        out / "fig6_pose_noise_error.png",
     )
-    plots.save_png(
-        out / "fig6_pose_noise_ratio.png",
+    plots.save(
         plots.line_plot(
             series("pose", "classification_ratio"),
             "Classification ratio vs localisation noise (Fig. 6)",
             "localisation noise level",
-            "classification ratio",
+            "classification ratio (share of map points labelled right)",
             used,
+            note=one_run,
         ),
+        out / "fig6_pose_noise_ratio.png",
     )
-    plots.save_png(
-        out / "fig7_label_noise_ratio.png",
+    plots.save(
         plots.line_plot(
             series("label", "classification_ratio"),
             "Classification ratio vs label noise (Fig. 7)",
             "label noise level (p = 1, .9, .8, .7)",
-            "classification ratio",
+            "classification ratio (share of map points labelled right)",
             used,
+            note=one_run,
         ),
+        out / "fig7_label_noise_ratio.png",
     )
     lines = [
         "# Noise experiment (paper Figures 6 and 7)",
@@ -590,28 +596,40 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
     )
     xs = [d["grass_cost_factor"] for d in summary]
     ok = [d for d in summary if d["terrain_share_mean"] is not None]
-    series = [
-        plots.Series(
-            "smana (mean +- std over seeds)",
-            [d["grass_cost_factor"] for d in ok],
-            [d["terrain_share_mean"] for d in ok],
-            [d["terrain_share_std"] for d in ok],
+    shares = {
+        d["grass_cost_factor"]: [
+            r["terrain_share"]
+            for r in rows
+            if r["grass_cost_factor"] == d["grass_cost_factor"] and r["terrain_share"] is not None
+        ]
+        for d in ok
+    }
+    ns = sorted({len(v) for v in shares.values()})
+    n_text = f"n = {ns[0]}" if len(ns) == 1 else f"n = {ns[0]}-{ns[-1]}"
+    n_text += " seed" if ns == [1] else " seeds"
+    mean = [d["terrain_share_mean"] for d in ok]
+    spread = None  # with one seed there is no spread to draw
+    if ns and ns[-1] > 1:
+        spread = (
+            [m - min(shares[d["grass_cost_factor"]]) for m, d in zip(mean, ok)],
+            [max(shares[d["grass_cost_factor"]]) - m for m, d in zip(mean, ok)],
         )
-    ]
+    label = f"smana, mean and min-max ({n_text})" if spread else f"smana ({n_text})"
+    series = [plots.Series(label, [d["grass_cost_factor"] for d in ok], mean, spread)]
     paper = [(f, v) for f, v in PAPER_TERRAIN_SHARE.items() if f in xs]
     if paper:
         series.append(
             plots.Series("paper", [f for f, _ in paper], [v for _, v in paper], dashed=True)
         )
-    plots.save_png(
-        out / "exploration_terrain_share.png",
+    plots.save(
         plots.line_plot(
             series,
-            "Travelled nodes on terrain vs grass cost",
-            "grass cost factor (x terrain)",
-            "terrain share",
+            f"Travelled nodes on terrain vs grass cost ({n_text})",
+            "grass cost factor (x terrain's cost)",
+            "terrain share of travelled nodes",
             {f: f"x{f:g}" for f in xs},
         ),
+        out / "exploration_terrain_share.png",
     )
     lines = [
         "# Exploration experiment (paper 4.3)",

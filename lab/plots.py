@@ -1,62 +1,144 @@
-"""Small PNG plots drawn with OpenCV (a dependency already), so reports need no matplotlib.
+"""Every figure smana writes, drawn with matplotlib off-screen (Agg): one module for all of them.
 
-`line_plot` draws series with optional error bars over numeric or named x positions, with axes,
-ticks, a title and a legend; `top_down` draws a class raster seen from above with a trajectory
-and markers. Both return an RGB uint8 image; `save_png` writes it.
+The rules a reviewer checks are kept here, once: axes carry units, maps are drawn in metres with
+equal aspect and a scale bar, class colours and names come from the `ClassTable` itself, series
+differ by marker and line style (so equal values stay visible), summaries of several runs say n
+and draw the spread, and `save` refuses a figure without a legend.
+
+matplotlib is imported inside the functions, never at import time, so `smana --help` and the
+services that import `smana.lab` for one helper stay fast. Figures are `matplotlib.figure.Figure`
+objects (no pyplot state machine), so nothing leaks between calls or threads.
+
+Figure functions:
+- `line_plot(series, ...)`: series over numeric or named x positions, with error bars;
+- `bar_plot(groups, series, values, errors, ...)`: grouped bars (`figure_11`, `figure_12`);
+- `map_figure(...)`: a class raster seen from above with trajectory, start, goals and overlays
+  (world_trajectory.png, graph.png, `smana world preview`);
+- `progress_plot(...)`: the explorer's explored area and distance over robot time;
+- `figure_11(rows, path)`, `figure_12(rows, path)`: the replay benchmark's Figures 11 and 12.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 
-PALETTE = [
-    (31, 119, 180),
-    (255, 127, 14),
-    (44, 160, 44),
-    (214, 39, 40),
-    (148, 103, 189),
-    (140, 86, 75),
-    (227, 119, 194),
-    (127, 127, 127),
-]
-FONT = cv2.FONT_HERSHEY_SIMPLEX
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+    from smana.common.classes import ClassTable
+
+MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
+LINESTYLES = ("-", "--", ":", "-.")
+# Colours of what a map overlays on the classes: picked away from every garden3drms class colour.
+OVERLAY = {
+    "unknown": (0.82, 0.82, 0.82),
+    "obstacle": (0.85, 0.0, 0.0),
+    "safety zone": (1.0, 0.55, 0.0),
+    "frontier": (0.0, 0.85, 1.0),
+    "trajectory": (1.0, 0.9, 0.0),
+    "start": (1.0, 1.0, 1.0),
+    "goals": (1.0, 0.0, 0.8),
+}
+
+
+class PlotError(ValueError):
+    """A figure breaks one of the module's rules (e.g. it has no legend)."""
 
 
 @dataclass
 class Series:
+    """One line of a `line_plot`. `yerr`: symmetric errors, or a (lower, upper) pair of lists of
+    distances below and above y (e.g. mean to min and max)."""
+
     label: str
     x: list[float]
     y: list[float | None]
-    yerr: list[float] | None = None
+    yerr: list[float] | tuple[list[float], list[float]] | None = None
     dashed: bool = False
     colour: tuple[int, int, int] | None = None
     extra: dict = field(default_factory=dict)
 
 
-def _nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
-    if not math.isfinite(lo) or not math.isfinite(hi):
-        return np.array([0.0, 1.0])
-    if hi - lo < 1e-12:
-        lo, hi = lo - 0.5, hi + 0.5
-    raw = (hi - lo) / n
-    mag = 10 ** math.floor(math.log10(raw))
-    step = min((s * mag for s in (1, 2, 2.5, 5, 10) if s * mag >= raw), default=mag * 10)
-    return np.arange(math.floor(lo / step) * step, hi + step * 0.999, step)
+def _figure(width_in: float = 7.2, height_in: float = 4.6) -> Figure:
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width_in, height_in), layout="constrained")
 
 
-def _text(img, s, org, scale=0.45, colour=(30, 30, 30), thick=1, anchor="left"):
-    (w, h), _ = cv2.getTextSize(s, FONT, scale, thick)
-    x, y = org
-    if anchor == "centre":
-        x -= w // 2
-    elif anchor == "right":
-        x -= w
-    cv2.putText(img, s, (int(x), int(y + h // 2)), FONT, scale, colour, thick, cv2.LINE_AA)
+def has_legend(fig: Figure) -> bool:
+    return bool(fig.legends) or any(ax.get_legend() is not None for ax in fig.axes)
+
+
+def save(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
+    """Write `fig` as an image (PNG unless the suffix says otherwise); refuses a legendless one."""
+    path = Path(path)
+    if not has_legend(fig):
+        title = fig.axes[0].get_title() if fig.axes else ""
+        raise PlotError(f"refusing to write {path.name}: figure {title!r} has no legend")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fmt = path.suffix.lstrip(".").lower() or "png"
+    if fmt not in fig.canvas.get_supported_filetypes():
+        raise PlotError(f"cannot write {path}: {fmt!r} is not an image type (use .png)")
+    fig.savefig(path, dpi=dpi, format=fmt)
+    return path
+
+
+def rgb01(colour) -> tuple[float, float, float]:
+    """A 0..255 RGB triple (the class table's colours) as matplotlib's 0..1 floats."""
+    return tuple(float(c) / 255.0 for c in colour)
+
+
+# -- lines and bars ----------------------------------------------------------------------------
+
+
+def _dodge(series: list[Series]) -> float:
+    """Horizontal shift between series: a 25th of the smallest x step, so error bars and markers
+    of series with equal values sit side by side instead of on top of each other (Fig. 6 hid
+    octree-max exactly under octree-bayes), while every point stays near its own x."""
+    xs = sorted({float(x) for s in series for x in s.x})
+    steps = np.diff(xs)
+    return float(steps.min()) / 25.0 if len(steps) else 0.03
+
+
+def draw_lines(ax: Axes, series: list[Series]) -> None:
+    n = len(series)
+    dodge = _dodge(series) if n > 1 else 0.0
+    for k, s in enumerate(series):
+        pts = [(float(x), float(y), i) for i, (x, y) in enumerate(zip(s.x, s.y)) if y is not None]
+        if not pts:
+            continue
+        x = np.array([p[0] for p in pts]) + (k - (n - 1) / 2) * dodge
+        y = np.array([p[1] for p in pts])
+        err = None
+        if s.yerr is not None:
+            idx = [p[2] for p in pts]
+            if isinstance(s.yerr, tuple):
+                err = np.array([[s.yerr[0][i] for i in idx], [s.yerr[1][i] for i in idx]], float)
+            else:
+                err = np.array([s.yerr[i] for i in idx], float)
+        ax.errorbar(
+            x,
+            y,
+            yerr=err,
+            label=s.label,
+            color=rgb01(s.colour) if s.colour else None,
+            marker=MARKERS[k % len(MARKERS)],
+            # later series: smaller hollow markers, so an equal value shows both
+            markersize=8 - min(k, 3),
+            markerfacecolor="none" if k % 2 else None,
+            linestyle="--" if s.dashed else LINESTYLES[k % len(LINESTYLES)],
+            linewidth=1.8,
+            capsize=3 if err is not None else 0,
+            zorder=3 + k,
+        )
 
 
 def line_plot(
@@ -65,124 +147,377 @@ def line_plot(
     xlabel: str,
     ylabel: str,
     xticklabels: dict[float, str] | None = None,
-    size: tuple[int, int] = (720, 460),
     ylim: tuple[float, float] | None = None,
-) -> np.ndarray:
-    w, h = size
-    img = np.full((h, w, 3), 255, np.uint8)
-    left, right, top, bottom = 80, 20, 40, 90
-    xs = [x for s in series for x in s.x]
-    ys = [
-        y + (e or 0) * sgn
-        for s in series
-        for y, e in zip(s.y, s.yerr or [0] * len(s.y), strict=True)
-        if y is not None
-        for sgn in (-1, 1)
+    note: str | None = None,
+) -> Figure:
+    """Series over numeric (or, with `xticklabels`, named) x positions; `note` goes under the
+    legend (what the error bars are, n)."""
+    fig = _figure()
+    ax = fig.add_subplot()
+    draw_lines(ax, series)
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if xticklabels:
+        ax.set_xticks(list(xticklabels), list(xticklabels.values()))
+    if ylim:
+        ax.set_ylim(*ylim)
+    ax.grid(True, alpha=0.3)
+    ax.legend(title=note, title_fontsize="small", fontsize="small")
+    return fig
+
+
+def bar_plot(
+    ax: Axes,
+    groups: list[str],
+    series: list[str],
+    values,
+    errors,
+    title: str,
+    ylabel: str,
+    log: bool = False,
+    error_label: str | None = None,
+) -> None:
+    """Grouped bars on `ax`; values/errors [n_series][n_groups], NaN bars left out, hatches tell
+    the series apart in grey print too."""
+    vals = np.asarray(values, float)
+    errs = np.nan_to_num(np.asarray(errors, float))
+    n_s = len(series)
+    width = 0.8 / max(n_s, 1)
+    x = np.arange(len(groups))
+    hatches = ("", "//", "..", "xx")
+    for s, name in enumerate(series):
+        ok = np.isfinite(vals[s])
+        e = np.where(errs[s] > 0, errs[s], 0.0)[ok]
+        ax.bar(
+            x[ok] + (s - (n_s - 1) / 2) * width,
+            vals[s][ok],
+            width * 0.95,
+            yerr=e if np.any(e > 0) else None,
+            capsize=3,
+            label=name,
+            hatch=hatches[s % len(hatches)],
+            edgecolor="black",
+            linewidth=0.5,
+        )
+    if log:
+        ax.set_yscale("log")
+    ax.set_xticks(x, groups, fontsize="small")
+    ax.set_title(title)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(title=error_label, title_fontsize="small", fontsize="small")
+
+
+def _bench_groups(rows: list[dict]) -> list[str]:
+    return [f"{r['backend']}\n{r['map_res']:g} / {r['graph_res']:g} m" for r in rows]
+
+
+def _bench_note(rows: list[dict]) -> str:
+    n = sorted({int(r.get("repeats", 1)) for r in rows})
+    runs = f"n = {n[0]} run" + ("s" if n[0] != 1 else "") if len(n) == 1 else f"n = {n} runs"
+    return f"error bars: std over samples\n(median over {runs})"
+
+
+def figure_11(rows: list[dict], path: str | Path) -> Path:
+    """Paper Figure 11: average CPU use with std (log scale) and peak RAM of the map and graph
+    processes, per back-end and resolution pair (map / graph)."""
+    fig = _figure(max(7.5, 1.2 * len(rows) + 2.0), 8.0)
+    top, bottom = fig.subplots(2, 1)
+    g = _bench_groups(rows)
+    bar_plot(
+        top,
+        g,
+        ["map process", "graph process"],
+        [[r["cpu_map"] for r in rows], [r["cpu_graph"] for r in rows]],
+        [[r["cpu_map_std"] for r in rows], [r["cpu_graph_std"] for r in rows]],
+        "Average CPU use (Fig. 11)",
+        "CPU (%, 100 % = one core, log scale)",
+        log=True,
+        error_label=_bench_note(rows),
+    )
+    bar_plot(
+        bottom,
+        g,
+        ["map process", "graph process"],
+        [[r["rss_map_mb"] for r in rows], [r["rss_graph_mb"] for r in rows]],
+        [[0] * len(rows), [0] * len(rows)],
+        "Peak RAM (resident set size)",
+        "peak RSS (MB)",
+        error_label="median over runs, no spread drawn",
+    )
+    bottom.set_xlabel("back-end, map / graph resolution")
+    return save(fig, path)
+
+
+def figure_12(rows: list[dict], path: str | Path) -> Path:
+    """Paper Figure 12: integration time per point with std, map and graph, log scale."""
+    fig = _figure(max(7.5, 1.2 * len(rows) + 2.0), 4.8)
+    ax = fig.add_subplot()
+    bar_plot(
+        ax,
+        _bench_groups(rows),
+        ["map (mapper integration)", "graph (navgraph update)"],
+        [[r["map_us_pt"] for r in rows], [r["graph_us_pt"] for r in rows]],
+        [[r["map_us_pt_std"] for r in rows], [r["graph_us_pt_std"] for r in rows]],
+        "Average integration time per point (Fig. 12)",
+        "time per point (µs, log scale)",
+        log=True,
+        error_label=_bench_note(rows),
+    )
+    ax.set_xlabel("back-end, map / graph resolution")
+    return save(fig, path)
+
+
+# -- maps --------------------------------------------------------------------------------------
+
+
+def class_handles(classes: ClassTable, ids) -> list:
+    """Legend patches for the classes `ids`, in the table's own colours and names."""
+    from matplotlib.patches import Patch
+
+    return [
+        Patch(facecolor=rgb01(classes[i].colour), edgecolor="black", linewidth=0.4, label=name)
+        for i, name in ((int(i), classes[int(i)].name) for i in sorted(set(ids)))
+        if int(i) in classes
     ]
-    if not xs or not ys:
-        _text(img, f"{title}: no data", (w // 2, h // 2), 0.6, anchor="centre")
-        return img
-    x0, x1 = min(xs), max(xs)
-    pad_x = (x1 - x0) * 0.08 or 0.5
-    x0, x1 = x0 - pad_x, x1 + pad_x
-    y0, y1 = ylim if ylim else (min(ys), max(ys))
-    yt = _nice_ticks(y0, y1)
-    if not ylim:
-        y0, y1 = float(yt[0]), float(yt[-1])
-
-    def px(x, y):
-        u = left + (x - x0) / (x1 - x0) * (w - left - right)
-        v = top + (1 - (y - y0) / ((y1 - y0) or 1)) * (h - top - bottom)
-        return int(round(u)), int(round(v))
-
-    cv2.rectangle(img, (left, top), (w - right, h - bottom), (120, 120, 120), 1)
-    for t in yt:
-        if y0 - 1e-9 <= t <= y1 + 1e-9:
-            _, v = px(x0, t)
-            cv2.line(img, (left, v), (w - right, v), (230, 230, 230), 1)
-            _text(img, f"{t:g}", (left - 6, v), anchor="right")
-    ticks = xticklabels or {x: f"{x:g}" for x in sorted(set(xs))}
-    for x, lab in ticks.items():
-        u, _ = px(x, y0)
-        cv2.line(img, (u, h - bottom), (u, h - bottom + 5), (120, 120, 120), 1)
-        _text(img, lab, (u, h - bottom + 16), anchor="centre")
-    _text(img, title, (w // 2, 18), 0.55, anchor="centre", thick=1)
-    _text(img, xlabel, ((left + w - right) // 2, h - bottom + 38), anchor="centre")
-    # y label: drawn horizontally above the axis (OpenCV cannot rotate text cheaply)
-    _text(img, ylabel, (left - 70, top - 16), 0.42)
-    lx, ly = left + 8, h - 22
-    for k, s in enumerate(series):
-        col = s.colour or PALETTE[k % len(PALETTE)]
-        data = [
-            (x, y, e)
-            for x, y, e in zip(s.x, s.y, s.yerr or [None] * len(s.y), strict=True)
-            if y is not None
-        ]
-        pts = [px(x, y) for x, y, _ in data]
-        for a, b in zip(pts[:-1], pts[1:], strict=True):
-            if s.dashed:
-                n = max(1, int(math.hypot(b[0] - a[0], b[1] - a[1]) // 8))
-                for i in range(0, n, 2):
-                    p = (a[0] + (b[0] - a[0]) * i // n, a[1] + (b[1] - a[1]) * i // n)
-                    q = (a[0] + (b[0] - a[0]) * (i + 1) // n, a[1] + (b[1] - a[1]) * (i + 1) // n)
-                    cv2.line(img, p, q, col, 2, cv2.LINE_AA)
-            else:
-                cv2.line(img, a, b, col, 2, cv2.LINE_AA)
-        for (u, v), (x, y, e) in zip(pts, data, strict=True):
-            if e:
-                _, a = px(x, y - e)
-                _, b = px(x, y + e)
-                cv2.line(img, (u, a), (u, b), col, 1, cv2.LINE_AA)
-                cv2.line(img, (u - 4, a), (u + 4, a), col, 1)
-                cv2.line(img, (u - 4, b), (u + 4, b), col, 1)
-            cv2.circle(img, (u, v), 4, col, -1, cv2.LINE_AA)
-        cv2.line(img, (lx, ly), (lx + 22, ly), col, 2)
-        _text(img, s.label, (lx + 28, ly), 0.42)
-        lx += 40 + cv2.getTextSize(s.label, FONT, 0.42, 1)[0][0]
-        if lx > w - 120:
-            lx, ly = left + 8, ly + 0  # one legend row is enough for smana's plots
-    return img
 
 
-def top_down(
-    class_rgb: np.ndarray,
-    origin_xy: tuple[float, float],
+def class_rgb(classes: ClassTable, ids: np.ndarray) -> np.ndarray:
+    """RGB u1 of a class-id raster through the table's colour lookup (ids past it: the last)."""
+    return classes.colour_lut[np.minimum(np.asarray(ids), classes.size - 1)]
+
+
+def map_figure(
+    rgb: np.ndarray,
+    origin_xy,
     resolution_m: float,
-    tracks: list[tuple[np.ndarray, tuple[int, int, int]]] = (),
-    markers: list[tuple[np.ndarray, tuple[int, int, int], int]] = (),
-    title: str = "",
-    pixels: int = 640,
-) -> np.ndarray:
-    """A raster indexed [ix, iy] (RGB per cell, cell (i, j) centred at origin + (i, j) * res),
-    drawn with x to the right and y up, plus polylines and point markers in world metres."""
-    nx, ny = class_rgb.shape[:2]
-    scale = max(1, pixels // max(nx, ny))
-    img = np.ascontiguousarray(np.transpose(class_rgb, (1, 0, 2))[::-1])
-    img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
-    img = np.ascontiguousarray(img)
+    title: str,
+    legend: list,
+    trajectory: np.ndarray | None = None,
+    goals: np.ndarray | None = None,
+    overlays: dict[str, np.ndarray] | None = None,
+    outline: np.ndarray | None = None,
+    outline_label: str = "object outline",
+    inches: float = 7.0,
+) -> Figure:
+    """A raster indexed [ix, iy] (RGB u1 per cell; cell (i, j) centred at origin + (i, j) * res)
+    drawn with x to the right and y up in metres, equal aspect, a scale bar.
 
-    def to_px(xy: np.ndarray) -> np.ndarray:
-        ij = (np.asarray(xy, float) - np.asarray(origin_xy)) / resolution_m
-        u = (ij[:, 0] + 0.5) * scale
-        v = (ny - 0.5 - ij[:, 1]) * scale
-        return np.stack([u, v], axis=1).round().astype(np.int32)
+    `legend`: handles of what the raster shows (e.g. `class_handles`); `overlays`: name ->
+    boolean mask of the raster's shape painted in that name's `OVERLAY` colour (unknown,
+    obstacle, safety zone, frontier) and labelled; `outline`: a mask whose border is drawn;
+    `trajectory` (N, 2) m, its first pose marked as the start; `goals` (K, 2) m."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+    from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
-    for xy, col in tracks:
-        if len(xy) >= 2:
-            cv2.polylines(img, [to_px(xy).reshape(-1, 1, 2)], False, col, 2, cv2.LINE_AA)
-    for xy, col, r in markers:
-        for u, v in to_px(np.asarray(xy).reshape(-1, 2)):
-            cv2.circle(img, (int(u), int(v)), r, col, -1, cv2.LINE_AA)
-    if title:
-        bar = np.full((28, img.shape[1], 3), 255, np.uint8)
-        _text(bar, title, (img.shape[1] // 2, 13), 0.5, anchor="centre")
-        img = np.vstack([bar, img])
-    return img
+    nx, ny = rgb.shape[:2]
+    img = np.asarray(rgb, float) / 255.0
+    handles = list(legend)
+    for name, mask in (overlays or {}).items():
+        mask = np.asarray(mask, bool)
+        if mask.any():
+            img[mask] = OVERLAY[name]
+            handles.append(
+                Patch(facecolor=OVERLAY[name], edgecolor="black", linewidth=0.4, label=name)
+            )
+    x0 = origin_xy[0] - 0.5 * resolution_m
+    y0 = origin_xy[1] - 0.5 * resolution_m
+    extent = (x0, x0 + nx * resolution_m, y0, y0 + ny * resolution_m)
+    fig = _figure(inches + 2.4, inches)
+    ax = fig.add_subplot()
+    ax.imshow(np.transpose(img, (1, 0, 2)), origin="lower", extent=extent, interpolation="nearest")
+    if outline is not None and np.any(outline):
+        xs = origin_xy[0] + np.arange(nx) * resolution_m
+        ys = origin_xy[1] + np.arange(ny) * resolution_m
+        ax.contour(
+            xs, ys, np.asarray(outline, float).T, levels=[0.5], colors="black", linewidths=0.6
+        )
+        handles.append(Line2D([], [], color="black", linewidth=0.8, label=outline_label))
+    if trajectory is not None and len(trajectory):
+        tr = np.asarray(trajectory, float).reshape(-1, 2)
+        if len(tr) >= 2:
+            (line,) = ax.plot(
+                tr[:, 0], tr[:, 1], color=OVERLAY["trajectory"], linewidth=1.8, label="trajectory"
+            )
+            line.set_path_effects(_halo())
+            handles.append(line)
+        handles.append(
+            ax.plot(
+                tr[0, 0],
+                tr[0, 1],
+                "o",
+                markersize=9,
+                color=OVERLAY["start"],
+                markeredgecolor="black",
+                label="start",
+                linestyle="none",
+            )[0]
+        )
+    if goals is not None and len(goals):
+        g = np.asarray(goals, float).reshape(-1, 2)
+        handles.append(
+            ax.plot(
+                g[:, 0],
+                g[:, 1],
+                "*",
+                markersize=11,
+                color=OVERLAY["goals"],
+                markeredgecolor="black",
+                linestyle="none",
+                label=f"goals (n = {len(g)})",
+            )[0]
+        )
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title)
+    span = extent[1] - extent[0]
+    bar = next((b for b in (50, 20, 10, 5, 2, 1, 0.5, 0.2, 0.1) if b <= span / 4), span / 4)
+    ax.add_artist(
+        AnchoredSizeBar(
+            ax.transData,
+            bar,
+            f"{bar:g} m",
+            "lower right",
+            pad=0.4,
+            frameon=True,
+            size_vertical=span / 200,
+        )
+    )
+    ax.legend(
+        handles=handles,
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),
+        fontsize="small",
+        frameon=False,
+    )
+    return fig
 
 
-def save_png(path: str | Path, rgb: np.ndarray) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1])):
-        raise OSError(f"could not write {path}")
-    return path
+def _halo():
+    from matplotlib import patheffects
+
+    return [patheffects.Stroke(linewidth=3.2, foreground="black"), patheffects.Normal()]
+
+
+def world_map(
+    classes: ClassTable,
+    class_ids: np.ndarray,
+    origin_xy,
+    resolution_m: float,
+    title: str,
+    rgb: np.ndarray | None = None,
+    trajectory: np.ndarray | None = None,
+    goals: np.ndarray | None = None,
+) -> Figure:
+    """Ground truth seen from above: the top class of every cell (or a shaded `rgb` of it) with
+    the classes present in the legend, the outline of objects (so a tree crown reads as an
+    object, not as terrain), trajectory, start and goals."""
+    ids = np.asarray(class_ids)
+    objects = classes.obstacle_lut[np.minimum(ids, classes.size - 1)]
+    return map_figure(
+        class_rgb(classes, ids) if rgb is None else rgb,
+        origin_xy,
+        resolution_m,
+        title,
+        class_handles(classes, np.unique(ids)),
+        trajectory,
+        goals,
+        outline=objects,
+        outline_label="object outline (seen from above)",
+    )
+
+
+def graph_map(
+    classes: ClassTable,
+    labels: np.ndarray,
+    flags: np.ndarray,
+    origin_xy,
+    resolution_m: float,
+    title: str,
+    trajectory: np.ndarray | None = None,
+    goals: np.ndarray | None = None,
+) -> Figure:
+    """The navigation graph (labels, flags: bit 1 known, 2 obstacle, 4 safety zone; cells
+    corner-anchored at `origin_xy`): known nodes in their class colour, unknown, obstacle and
+    safety-zone nodes and the frontier (known free nodes next to unknown ones) labelled."""
+    from scipy import ndimage
+
+    labels, flags = np.asarray(labels), np.asarray(flags)
+    known = (flags & 1) != 0
+    obstacle = known & ((flags & 2) != 0)
+    safety = known & ((flags & 4) != 0) & ~obstacle
+    free = known & ~obstacle & ~safety
+    free &= classes.traversable_lut[np.minimum(labels, classes.size - 1)]
+    # unknown space around the box too: the box is cut at the last known node
+    unknown_padded = np.pad(~known, 1, constant_values=True)
+    near_unknown = ndimage.binary_dilation(unknown_padded, np.ones((3, 3), bool))[1:-1, 1:-1]
+    frontier = free & near_unknown
+    rgb = class_rgb(classes, labels).copy()
+    shown = known & ~obstacle & ~safety & ~frontier
+    return map_figure(
+        rgb,
+        np.asarray(origin_xy, float) + 0.5 * resolution_m,
+        resolution_m,
+        title,
+        class_handles(classes, np.unique(labels[shown])),
+        trajectory,
+        goals,
+        overlays={
+            "unknown": ~known,
+            "obstacle": obstacle,
+            "safety zone": safety,
+            "frontier": frontier,
+        },
+    )
+
+
+def progress_plot(
+    t_s: np.ndarray,
+    explored_m2: np.ndarray,
+    distance_m: np.ndarray,
+    report_explored_m2: float | None = None,
+) -> Figure:
+    """The explorer's progress over robot time, on two panels: its explored area (its own graph's
+    known free nodes) and the distance it drove. `report_explored_m2`: the report's explored
+    reachable area against ground truth, drawn as a reference line (it measures another thing)."""
+    fig = _figure(7.2, 5.6)
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    top.plot(
+        t_s,
+        explored_m2,
+        marker="o",
+        markersize=3,
+        linestyle="-",
+        label="explorer's graph: known free nodes",
+    )
+    if report_explored_m2 is not None:
+        top.axhline(
+            report_explored_m2,
+            color="black",
+            linestyle="--",
+            linewidth=1,
+            label=f"report: known ∩ reachable ground truth ({report_explored_m2:.1f} m²)",
+        )
+    top.set_ylabel("explored area (m²)")
+    top.set_title("Exploration progress (one run)")
+    top.legend(fontsize="small", loc="lower right")
+    bottom.plot(
+        t_s,
+        distance_m,
+        marker="s",
+        markersize=3,
+        linestyle="--",
+        color="tab:orange",
+        label="distance driven (explorer's pose)",
+    )
+    bottom.set_ylabel("distance (m)")
+    bottom.set_xlabel("robot time (s) since the explorer started")
+    bottom.legend(fontsize="small", loc="lower right")
+    for ax in (top, bottom):
+        ax.grid(True, alpha=0.3)
+    return fig

@@ -143,77 +143,91 @@ def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> 
 
 
 def _plots(
-    run_dir: Path, classes: ClassTable, world, graph, traj, state, replay: dict | None = None
+    run_dir: Path,
+    classes: ClassTable,
+    world,
+    graph,
+    traj,
+    state,
+    replay: dict | None = None,
+    exploration: dict | None = None,
 ) -> dict[str, str]:
     """Top-down ground truth (simulated runs), the graph, exploration progress and, for a replay,
-    the integration latency per scan."""
+    the integration latency per scan. `exploration`: the report's exploration metrics, so the
+    progress plot can show the report's explored area beside the explorer's own."""
     out_dir = run_dir / "plots"
     files = {}
     goals = np.array([p["goal"] for p in (state or {}).get("plans", [])]).reshape(-1, 2)
-    tracks = [(traj[:, 1:3], (255, 230, 0))] if len(traj) else []
-    markers = [(goals, (255, 0, 200), 4)]
-    if len(traj):
-        markers.append((traj[:1, 1:3], (255, 255, 255), 7))
+    xy = traj[:, 1:3] if len(traj) else None
+
+    def put(name: str, fig) -> None:
+        files[name] = str(plots.save(fig, out_dir / f"{PLOT_FILES[name]}").relative_to(run_dir))
+
     if world is not None:
         top = world.top_class()
-        rgb = classes.colour_lut[top.data]
-        img = plots.top_down(
-            rgb,
-            top.origin_xy,
-            top.resolution_m,
-            tracks,
-            markers,
-            "ground truth, trajectory (yellow), goals (magenta)",
-        )
-        files["map"] = str(
-            plots.save_png(out_dir / "world_trajectory.png", img).relative_to(run_dir)
+        put(
+            "map",
+            plots.world_map(
+                classes,
+                top.data,
+                top.origin_xy,
+                top.resolution_m,
+                "Ground truth from above, with the robot's trajectory",
+                trajectory=xy,
+                goals=goals,
+            ),
         )
     if graph is not None:
-        flags, labels = graph["flags"], graph["labels"]
-        g_rgb = np.full(flags.shape + (3,), 60, np.uint8)
-        known = (flags & 1) != 0
-        g_rgb[known] = classes.colour_lut[np.minimum(labels[known], classes.size - 1)]
-        g_rgb[known & ((flags & 4) != 0)] = (255, 140, 0)
-        g_rgb[known & ((flags & 2) != 0)] = (200, 0, 0)
-        # graph cells are corner-anchored; top_down wants centre-anchored rasters
-        origin = np.asarray(graph["origin_xy"]) + 0.5 * float(graph["resolution_m"])
-        img = plots.top_down(
-            g_rgb,
-            origin,
-            float(graph["resolution_m"]),
-            tracks,
-            markers,
-            "navigation graph: class, obstacle (red), safety zone (orange)",
+        put(
+            "graph",
+            plots.graph_map(
+                classes,
+                graph["labels"],
+                graph["flags"],
+                graph["origin_xy"],
+                float(graph["resolution_m"]),
+                "Navigation graph at the end of the run (the explorer's copy)",
+                trajectory=xy,
+                goals=goals,
+            ),
         )
-        files["graph"] = str(plots.save_png(out_dir / "graph.png", img).relative_to(run_dir))
     hist = np.asarray((state or {}).get("history") or [], float).reshape(-1, 4)
     if len(hist) >= 2:
-        t = hist[:, 0] - hist[0, 0]
-        img = plots.line_plot(
-            [
-                plots.Series("explored area (m2)", t.tolist(), hist[:, 1].tolist()),
-                plots.Series("distance (m)", t.tolist(), hist[:, 3].tolist()),
-            ],
-            "exploration progress",
-            "time (s)",
-            "m2 / m",
-            xticklabels={float(v): f"{v:g}" for v in plots._nice_ticks(0, t[-1])},
+        put(
+            "progress",
+            plots.progress_plot(
+                hist[:, 0] - hist[0, 0],
+                hist[:, 1],
+                hist[:, 3],
+                (exploration or {}).get("explored_reachable_area_m2"),
+            ),
         )
-        files["progress"] = str(plots.save_png(out_dir / "progress.png", img).relative_to(run_dir))
     rows = [r for r in (replay or {}).get("per_scan") or [] if r[5] is not None]
     if len(rows) >= 2:
-        seq = [float(r[1]) for r in rows]
-        img = plots.line_plot(
-            [plots.Series("scan published -> integrated (ms)", seq, [float(r[5]) for r in rows])],
-            "replay: integration latency per scan",
-            "scan index",
-            "ms",
-            xticklabels={float(v): f"{v:g}" for v in plots._nice_ticks(seq[0], seq[-1])},
-        )
-        files["replay_latency"] = str(
-            plots.save_png(out_dir / "replay_latency.png", img).relative_to(run_dir)
+        put(
+            "replay_latency",
+            plots.line_plot(
+                [
+                    plots.Series(
+                        "scan published -> integrated by the mapper",
+                        [float(r[1]) for r in rows],
+                        [float(r[5]) for r in rows],
+                    )
+                ],
+                "Replay: integration latency per scan (one run)",
+                "scan index",
+                "latency (ms, wall time)",
+            ),
         )
     return files
+
+
+PLOT_FILES = {
+    "map": "world_trajectory.png",
+    "graph": "graph.png",
+    "progress": "progress.png",
+    "replay_latency": "replay_latency.png",
+}
 
 
 def map_content(map_path: Path, names: dict[int, str]) -> dict:
@@ -429,7 +443,9 @@ def write_report(
         "graph": "graph.npz" if (run_dir / "graph.npz").is_file() else None,
         "logs": sorted(str(p.relative_to(run_dir)) for p in (run_dir / "logs").glob("*.log")),
     }
-    metrics["files"]["plots"] = _plots(run_dir, classes, world, graph, traj, state, replay)
+    metrics["files"]["plots"] = _plots(
+        run_dir, classes, world, graph, traj, state, replay, metrics.get("exploration")
+    )
     metrics["warnings"] = list(warnings) + run_warnings(metrics, explored)
     metrics["report_time_s"] = time.perf_counter() - t0
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=json_default))

@@ -621,7 +621,7 @@ def main(args: argparse.Namespace) -> int:
             default=float,
         )
     )
-    from smana.lab.replay_plots import figure_11, figure_12
+    from smana.lab.plots import figure_11, figure_12
 
     figure_11(rows, out / "fig11_cpu_ram.png")
     figure_12(rows, out / "fig12_time_per_point.png")

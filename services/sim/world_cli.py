@@ -61,6 +61,28 @@ def world_from_args(args: argparse.Namespace) -> World:
     return build_world(config, ClassTable.load(args.classes))
 
 
+def write_preview(world: World, out: Path, pixels: int, seed: int | None = None) -> Path:
+    """The world from above in metres, hill-shaded, its classes in a legend (lab/plots.py draws
+    every smana figure; imported here, lazily, so the other subcommands never load matplotlib)."""
+    from smana.lab import plots
+
+    from .worlds.preview import shaded_classes
+
+    top = world.top_class()
+    lo, hi = (
+        top.origin_xy,
+        np.asarray(top.origin_xy) + np.asarray(top.data.shape) * top.resolution_m,
+    )
+    title = f"world preview (hill-shaded): {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m" + (
+        f", seed {seed}" if seed is not None else ""
+    )
+    fig = plots.world_map(
+        world.classes, top.data, top.origin_xy, top.resolution_m, title, shaded_classes(world)
+    )
+    width_in = fig.get_size_inches()[0]
+    return plots.save(fig, out, dpi=max(20, round(pixels / width_in)))
+
+
 def cli(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(prog="smana world", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -86,16 +108,8 @@ def cli(argv: list[str] | None = None) -> int:
             n = world.export_ply(args.out, args.spacing)
             print(f"wrote {n} points to {args.out}")
         elif args.command == "preview":
-            import cv2
-
-            img = world.preview_image(args.pixels)
-            try:
-                written = cv2.imwrite(str(args.out), np.ascontiguousarray(img[..., ::-1]))
-            except cv2.error:
-                written = False
-            if not written:
-                raise OSError(f"could not write {args.out} (is the extension an image type?)")
-            print(f"wrote {img.shape[1]}x{img.shape[0]} preview to {args.out}")
+            write_preview(world, args.out, args.pixels, args.seed)
+            print(f"wrote a {args.pixels} px wide preview (axes in metres) to {args.out}")
         else:
             print(json.dumps(world.summary(), indent=2))
     except (WorldError, OSError, ValueError) as exc:

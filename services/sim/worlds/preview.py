@@ -1,5 +1,5 @@
 """A top-down picture of a world: the class seen from above, hill-shaded so objects read as
-raised (`smana world preview`)."""
+raised (`smana world preview`, and `World.preview_image` for a raw RGB array)."""
 
 from __future__ import annotations
 
@@ -11,14 +11,18 @@ if TYPE_CHECKING:
     from .world import World
 
 
-def top_down_image(world: World, pixels: int = 768) -> np.ndarray:
-    """RGB u1[H, W, 3] of the classes (x to the right, y up), about `pixels` wide."""
+def shaded_classes(world: World) -> np.ndarray:
+    """RGB u1[nx, ny, 3] indexed [ix, iy] like the world's rasters: each cell's top class in the
+    class table's colour, hill-shaded with light from the north-west."""
     top_c, top_h = world.top_class(), world.top_height()
     rgb = world.classes.colour_lut[top_c.data].astype(np.float64)
     gx, gy = np.gradient(top_h.data, top_h.resolution_m)
-    # hill shading with light from the north-west
     shade = np.clip(1.0 - 0.35 * (gx - gy) / np.sqrt(1 + gx * gx + gy * gy), 0.55, 1.25)
-    rgb = np.clip(rgb * shade[..., None], 0, 255).astype(np.uint8)
-    img = np.ascontiguousarray(np.transpose(rgb, (1, 0, 2))[::-1])
+    return np.clip(rgb * shade[..., None], 0, 255).astype(np.uint8)
+
+
+def top_down_image(world: World, pixels: int = 768) -> np.ndarray:
+    """RGB u1[H, W, 3] of the classes (x to the right, y up), about `pixels` wide."""
+    img = np.ascontiguousarray(np.transpose(shaded_classes(world), (1, 0, 2))[::-1])
     scale = max(1, pixels // max(img.shape[:2]))
     return np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
