@@ -27,6 +27,7 @@ from smana.common.cli import (
     add_config_args,
     config_file_from_args,
     int_in,
+    non_negative_int,
     output_file,
     positive_float,
 )
@@ -39,7 +40,9 @@ def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--world", default=None, help="a sim.world value: garden (default), ply:PATH, module:Class"
     )
-    p.add_argument("--seed", type=int, default=None, help="world seed (default: sim.seed, 3)")
+    p.add_argument(
+        "--seed", type=non_negative_int, default=None, help="world seed (default: sim.seed, 3)"
+    )
     p.add_argument(
         "--size", type=positive_float, default=None, help="side of the procedural garden, m"
     )
