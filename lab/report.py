@@ -363,7 +363,8 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
             )
         )
     robot_s = ex.get("duration_robot_s", ee.get("elapsed_s", rp.get("duration_s")))
-    wall_s = run.get("wall_time_s", ee.get("wall_time_s"))
+    wall_s = run.get("wall_time_s")  # the supervisor's, start to stop; else the explorer's
+    wall_s = ee.get("wall_time_s") if wall_s is None else wall_s
     rows.append(
         ("duration", f"{_f(robot_s, '.0f', ' s')} robot time, {_f(wall_s, '.0f', ' s')} wall time")
     )

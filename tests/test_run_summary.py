@@ -65,6 +65,14 @@ def test_summary_in_the_terminal_and_report_md_is_metrics_json(run):  # noqa: F8
     assert lines[0] == "smana up: FAILED" and lines[-1] == "  warning: the planner never came up"
 
 
+def test_without_the_supervisor_the_wall_time_is_the_explorer_s(run):  # noqa: F811
+    run_dir, cfg, _ = run
+    report.write_report(run_dir, cfg)  # as `smana replay` or a test writes it
+    m = _metrics(run_dir)
+    assert m["run"]["wall_time_s"] is None and m["explorer"]["wall_time_s"] == 12.0
+    assert dict(report.summary_rows(m))["duration"].endswith(", 12 s wall time")
+
+
 def test_rewriting_a_report_keeps_how_the_run_ended(run):  # noqa: F811
     run_dir, cfg, _ = run
     report.write_report(run_dir, cfg, ended="--duration 60 s reached", wall_time_s=61.0)
