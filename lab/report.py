@@ -559,7 +559,10 @@ def render_markdown(m: dict) -> str:
         lines += ["## Exploration", "", "| figure | value |", "|---|---|"]
         rows = [
             ("ended because", ee.get("done_reason") or "-"),
-            ("wall time", _f(ee.get("wall_time_s"), ".0f", " s")),
+            (
+                "wall time, the explorer's (the run's is in the summary)",
+                _f(ee.get("wall_time_s"), ".0f", " s"),
+            ),
             ("robot time", _f(ex.get("duration_robot_s"), ".0f", " s")),
             (
                 "explored share of the reachable traversable area",
