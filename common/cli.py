@@ -14,6 +14,7 @@ import dataclasses
 import logging
 import math
 import os
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -41,17 +42,34 @@ def run_command(name: str, cli: Callable[[list[str] | None], int | None], argv=N
         return 2
 
 
+# A number or a comma-separated list of numbers (`-1.9,5.3`, `-2`, `-.5,1e3,-4`): a value, never
+# an option. argparse (before 3.12.7) takes only `-5` and `-1.5` for negative numbers.
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+NUMBER_LIST = re.compile(rf"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?(?:,\s*{_NUMBER})*$")
+
+
 class ArgumentParser(argparse.ArgumentParser):
     """argparse with a one-line error, `smana up: argument --duration: expected a number > 0, got
     '-5' (see smana up --help)`, and status 2: the usage block of a command with the shared flags
-    is seven lines that hide the one that matters. Subcommand parsers inherit it."""
+    is seven lines that hide the one that matters. Subcommand parsers inherit it.
+
+    An argument that reads as a number list starting with a minus sign (`--to -1.9,5.3`) is a
+    value, not an unknown option, for every option of every command (no smana flag looks like a
+    number, which is what makes this safe)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        # argparse's own hook for what looks like a negative number (its `_parse_optional` treats
+        # a match as positional while no option string looks like a number)
+        self._negative_number_matcher = NUMBER_LIST
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 
-def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
-    p = ArgumentParser(prog=prog, description=description)
+def add_config_args(p: argparse.ArgumentParser) -> None:
+    """`--config FILE` and `--set SECTION.KEY=VALUE`: how every command, a service or a tool
+    (`smana world`), chooses its config. `config_file_from_args` reads them."""
     p.add_argument("--config", "-c", metavar="FILE", help="smana TOML config")
     p.add_argument(
         "--set",
@@ -61,6 +79,16 @@ def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
         metavar="SECTION.KEY=VALUE",
         help="override one config value, e.g. --set mapper.resolution_m=0.3 (repeatable)",
     )
+
+
+def config_file_from_args(args: argparse.Namespace, layers=()) -> SmanaConfig:
+    """The config `add_config_args`' flags choose: defaults, `layers`, the file, then --set."""
+    return SmanaConfig.load(args.config, list(args.overrides or []), layers)
+
+
+def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
+    p = ArgumentParser(prog=prog, description=description)
+    add_config_args(p)
     p.add_argument("--robot", help="robot name, the <robot> segment of every key (default r1)")
     p.add_argument("--run-dir", help="directory for logs, saved state and the config used")
     p.add_argument("--log-level", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
@@ -71,8 +99,7 @@ def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
 def config_from_args(args: argparse.Namespace, layers=()) -> SmanaConfig:
     """Load `layers` and the config file, apply --set, then the dedicated flags. A bad config is a
     `ConfigError` naming the key (`run_command` prints it in one line)."""
-    overrides = list(args.overrides or [])
-    cfg = SmanaConfig.load(args.config, overrides, layers)
+    cfg = config_file_from_args(args, layers)
     general = cfg.general
     if args.robot:
         general = dataclasses.replace(general, robot=args.robot)
@@ -126,6 +153,18 @@ non_negative_int = _number(int, 0, inclusive=True)
 def int_in(low: int, high: int | None = None):
     """An argparse type: an integer from `low` (to `high`)."""
     return _number(int, low, inclusive=True, high=high)
+
+
+def point(text: str) -> tuple[float, ...]:
+    """An argparse type: a point `X,Y` or `X,Y,Z` in metres (`-1.9,5.3` too: `ArgumentParser`
+    takes it for a value)."""
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        v = ()
+    if len(v) not in (2, 3) or not all(math.isfinite(x) for x in v):
+        raise argparse.ArgumentTypeError(f"expected X,Y in metres, got {text!r}")
+    return v
 
 
 def output_dir(path: str | Path, what: str = "run directory", flag: str = "--run-dir") -> Path:

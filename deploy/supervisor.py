@@ -604,6 +604,7 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
         add_recorder(sup)
     on_stop_signals(lambda _sig: sup.stop())
     print(f"smana up: run directory {run_dir}", flush=True)
+    t0 = time.monotonic()
     try:
         code = sup.run(duration_s)
     except SessionError:
@@ -612,25 +613,31 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
         if fresh:
             shutil.rmtree(run_dir, ignore_errors=True)
         raise
+    wall_time_s = time.monotonic() - t0
     warnings = sup.warnings()
     explored = any(m.service == "explorer" for m in sup.procs.values())
     try:
         from smana.lab import report
 
         path = report.write_report(
-            run_dir, sup.service_config, warnings=warnings, explored=explored
+            run_dir,
+            sup.service_config,
+            warnings=warnings,
+            explored=explored,
+            ended=sup.ended,
+            wall_time_s=wall_time_s,
         )
+        # the terminal's summary is made from what metrics.json holds, as report.md's is
         metrics = json.loads((Path(run_dir) / "metrics.json").read_text())
         warnings = metrics.get("warnings", warnings)
         print(f"smana up: report written to {path}", flush=True)
-        summary = report.summary_lines(metrics, sup.ended)
+        summary = report.summary_lines(metrics)
     except Exception as exc:  # a failed report must not hide the run's own outcome
         log.exception("writing the report failed: %s", exc)
         warnings = [*warnings, f"the report could not be written: {exc}"]
-        summary = ["smana up: FAILED"] + [f"  warning: {w}" for w in warnings]
-    print(f"smana up: everything is in {run_dir}", flush=True)
-    for line in summary:
-        print(line, flush=True)
+        summary = ["smana up: FAILED", f"  run directory  {run_dir}"]
+        summary += [f"  warning: {w}" for w in warnings]
+    print("\n".join(summary), flush=True)
     return 1 if warnings or code else 0
 
 

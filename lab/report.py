@@ -326,29 +326,92 @@ def replay_warnings(rp: dict) -> list[str]:
     return out
 
 
-def summary_lines(metrics: dict, ended: str = "") -> list[str]:
-    """The few lines `smana up` ends with: the outcome, coverage, distance, collisions, why the
-    run ended (the explorer's reason, else `ended`: what stopped the stack), warnings."""
+def _pct(share) -> str:
+    return _f(None if share is None else 100 * share, ".1f", " %")
+
+
+def summary_rows(metrics: dict) -> list[tuple[str, str]]:
+    """What happened in a run, as (figure, value) rows, from `metrics.json`'s values only: the one
+    table `smana up` ends with in the terminal and that heads `report.md` (`summary_lines`,
+    `render_markdown`). A figure the run did not measure is `-` (a replay has no ground truth)."""
     ex, ee = metrics.get("exploration") or {}, metrics.get("explorer") or {}
+    rp, run = metrics.get("replay") or {}, metrics.get("run") or {}
     warnings = metrics.get("warnings") or []
-    cov = ex.get("coverage")
-    figures = [
-        f"explored {_f(100 * cov if cov is not None else None, '.1f', ' %')} of the reachable "
-        "traversable area"
-        if ex
-        else f"explored {_f(ee.get('explored_m2'), '.1f', ' m2')}",
-        f"{_f(ex.get('distance_m', ee.get('distance_m')), '.1f', ' m')} travelled",
-        f"{ex.get('collisions', '-')} collisions",
-        f"ended because: {ee.get('done_reason') or ended or '-'}",
-    ]
-    head = "FAILED" if warnings else "ok"
-    lines = [f"smana up: {head}: " + ", ".join(figures)]
+    n = len(warnings)
+    rows = [("outcome", f"FAILED ({n} warning{'s' * (n != 1)})" if warnings else "ok")]
+    if ex:
+        rows.append(
+            (
+                "explored area (against ground truth)",
+                f"{_f(ex.get('explored_reachable_area_m2'), '.1f', ' m2')} = "
+                f"{_pct(ex.get('coverage'))} of the reachable "
+                f"{_f(ex.get('reachable_area_m2'), '.1f', ' m2')}",
+            )
+        )
+    if ee:
+        rows.append(
+            ("explored area (explorer's own count)", _f(ee.get("explored_m2"), ".1f", " m2"))
+        )
+    distance = ex.get("distance_m", rp.get("distance_m", ee.get("distance_m")))
+    rows.append(("distance travelled", _f(distance, ".1f", " m")))
+    if ex:
+        rows.append(
+            (
+                "collisions",
+                f"{ex.get('collisions', '-')} ({ex.get('close_calls', '-')} close calls "
+                f"under {CLOSE_CALL_M} m)",
+            )
+        )
+    if ee:
+        rows.append(
+            (
+                "path queries",
+                f"{ee.get('path_queries') or 0} ({ee.get('path_ok') or 0} answered with a path)",
+            )
+        )
+    if rp:
+        rows.append(
+            (
+                "scans published / integrated",
+                f"{rp.get('published', '-')} / {rp.get('acknowledged', '-')}",
+            )
+        )
+    robot_s = ex.get("duration_robot_s", ee.get("elapsed_s", rp.get("duration_s")))
+    wall_s = run.get("wall_time_s")  # the supervisor's, start to stop; else the explorer's
+    wall_s = ee.get("wall_time_s") if wall_s is None else wall_s
+    rows.append(
+        ("duration", f"{_f(robot_s, '.0f', ' s')} robot time, {_f(wall_s, '.0f', ' s')} wall time")
+    )
+    mc = metrics.get("map_content")
+    voxels = mc.get("n_points") if isinstance(mc, dict) else None
+    rows.append(("map", f"{voxels} occupied voxels" if voxels is not None else "-"))
+    # the explorer's reason, and what stopped the stack (`explorer finished`, `--duration`, ...)
+    why = [w for w in (ee.get("done_reason"), run.get("ended")) if w]
+    rows.append(("ended because", f"{why[0]} ({why[1]})" if len(why) == 2 else "".join(why) or "-"))
+    rows.append(("run directory", str(metrics.get("run_dir", "-"))))
+    return rows
+
+
+def summary_lines(metrics: dict) -> list[str]:
+    """The terminal's end of `smana up`: a headline (`smana up: ok` / `smana up: FAILED`), the
+    `summary_rows` table, one line per warning."""
+    warnings = metrics.get("warnings") or []
+    rows = summary_rows(metrics)
+    width = max(len(a) for a, _ in rows)
+    lines = [f"smana up: {'FAILED' if warnings else 'ok'}"]
+    lines += [f"  {a:<{width}}  {b}" for a, b in rows[1:]]
     lines += [f"  warning: {w}" for w in warnings]
     return lines
 
 
 def write_report(
-    run_dir: str | Path, config, replay: dict | None = None, warnings=(), explored: bool = False
+    run_dir: str | Path,
+    config,
+    replay: dict | None = None,
+    warnings=(),
+    explored: bool = False,
+    ended: str = "",
+    wall_time_s: float | None = None,
 ) -> Path:
     """Measure a finished run and write metrics.json, report.md and plots/; returns report.md.
 
@@ -356,9 +419,12 @@ def write_report(
     report then describes the dataset instead of a simulated world, and measures nothing against
     ground truth (there is none). `warnings` are what the supervisor saw go wrong (services that
     never became ready, crash loops); `explored` says the run was an exploration, whose figures
-    are checked too (`run_warnings`). Every warning heads report.md and is in metrics.json."""
+    are checked too (`run_warnings`). Every warning heads report.md and is in metrics.json.
+    `ended` (what stopped the stack) and `wall_time_s` (the run's, start to stop) are the
+    supervisor's; re-writing a report keeps those of the metrics.json it replaces."""
     run_dir = Path(run_dir)
     t0 = time.perf_counter()
+    previous = (_load_json(run_dir / "metrics.json") or {}).get("run") or {}
     classes = ClassTable.load(config.general.class_table)
     names = {i: c.name for i, c in classes.classes.items()}
     state = _load_json(run_dir / "explorer" / "state.json")
@@ -368,6 +434,10 @@ def write_report(
         shutil.copy(run_dir / "explorer" / "graph.npz", run_dir / "graph.npz")
     metrics: dict = {
         "run_dir": str(run_dir),
+        "run": {
+            "ended": ended or previous.get("ended") or "",
+            "wall_time_s": wall_time_s if wall_time_s is not None else previous.get("wall_time_s"),
+        },
         "config": {
             "backend": config.mapper.backend,
             "map_resolution_m": config.mapper.resolution_m,
@@ -454,6 +524,18 @@ def write_report(
     return report
 
 
+# Why the two explored areas differ (the explorer's is in its progress plot, the report's here).
+EXPLORED_AREAS = (
+    "Two explored areas, measuring different things: *against ground truth* counts the cells of "
+    "the world the robot could reach (traversable, with its radius of clearance, connected to its "
+    "start) whose node in the final graph is known; *the explorer's own count* "
+    "(`explorer/state.json` `explored_m2`, its progress plot) counts the known nodes its graph "
+    "calls traversable (a traversable class, no obstacle, outside the safety zone) when it last "
+    "planned, reachable or not, in the robot's own (possibly "
+    "noisy) frame, and misses what the map learned after that plan."
+)
+
+
 def _f(v, fmt=".2f", unit=""):
     return "-" if v is None else f"{format(v, fmt)}{unit}"
 
@@ -466,6 +548,9 @@ def render_markdown(m: dict) -> str:
         lines += ["## Warnings", "", "This run did not do its job:", ""]
         lines += [f"- {w}" for w in m["warnings"]]
         lines.append("")
+    lines += ["## Summary", "", "| figure | value |", "|---|---|"]
+    lines += [f"| {a} | {b} |" for a, b in summary_rows(m)]
+    lines.append("")
     if rp:
         lines += [
             f"Replay of `{rp.get('dataset')}` ({rp.get('format')}, class table "
@@ -490,7 +575,10 @@ def render_markdown(m: dict) -> str:
         lines += ["## Exploration", "", "| figure | value |", "|---|---|"]
         rows = [
             ("ended because", ee.get("done_reason") or "-"),
-            ("wall time", _f(ee.get("wall_time_s"), ".0f", " s")),
+            (
+                "wall time, the explorer's (the run's is in the summary)",
+                _f(ee.get("wall_time_s"), ".0f", " s"),
+            ),
             ("robot time", _f(ex.get("duration_robot_s"), ".0f", " s")),
             (
                 "explored share of the reachable traversable area",
@@ -500,7 +588,20 @@ def render_markdown(m: dict) -> str:
                 "reachable traversable area (ground truth)",
                 _f(ex.get("reachable_area_m2"), ".1f", " m2"),
             ),
-            ("known graph area", _f(ex.get("known_area_m2"), ".1f", " m2")),
+            (
+                "explored area, against ground truth (reachable traversable area under a known "
+                "node of the final graph)",
+                _f(ex.get("explored_reachable_area_m2"), ".1f", " m2"),
+            ),
+            (
+                "explored area, the explorer's own count (known nodes its graph calls "
+                "traversable, at its last plan)",
+                _f(ee.get("explored_m2"), ".1f", " m2"),
+            ),
+            (
+                "known graph area (every known node of the final graph, obstacles included)",
+                _f(ex.get("known_area_m2"), ".1f", " m2"),
+            ),
             ("distance travelled", _f(ex.get("distance_m"), ".1f", " m")),
             ("goals", str(ee.get("n_goals", "-"))),
             (
@@ -518,6 +619,8 @@ def render_markdown(m: dict) -> str:
         ]
         lines += [f"| {a} | {b} |" for a, b in rows]
         lines.append("")
+        if ex and ee:
+            lines += [EXPLORED_AREAS, ""]
     mp = m.get("map")
     if isinstance(mp, dict) and mp.get("n_points"):
         lines += [

@@ -17,22 +17,13 @@ from smana.common.cli import (
     config_from_args,
     make_parser,
     non_negative_float,
+    point,
     positive_float,
     run_command,
 )
 from smana.common.messages import PathReply, PathRequest, to_json
 from smana.common.query import QueryError, request
 from smana.common.zenoh_config import open_session
-
-
-def _point(text: str) -> np.ndarray:
-    try:
-        v = np.array([float(x) for x in text.split(",")])
-    except ValueError:
-        raise ValueError(f"expected X,Y in metres, got {text!r}") from None
-    if v.shape not in ((2,), (3,)) or not np.isfinite(v).all():
-        raise ValueError(f"expected X,Y in metres, got {text!r}")
-    return v
 
 
 def format_reply(reply: PathReply, show_path: bool) -> str:
@@ -58,10 +49,20 @@ def format_reply(reply: PathReply, show_path: bool) -> str:
     return "\n".join(lines)
 
 
-def cli(argv: list[str] | None = None) -> int:
+def parser():
+    """`smana plan`'s arguments (the coordinates accept negative values: `--to -1.9,5.3`)."""
     p = make_parser("smana plan", __doc__.strip().splitlines()[0])
-    p.add_argument("--from", dest="start", required=True, metavar="X,Y", help="start (m)")
-    p.add_argument("--to", dest="goal", required=True, metavar="X,Y", help="goal (m)")
+    p.add_argument(
+        "--from", dest="start", type=point, required=True, metavar="X,Y", help="start (m)"
+    )
+    p.add_argument(
+        "--to",
+        dest="goal",
+        type=point,
+        required=True,
+        metavar="X,Y",
+        help="goal (m), e.g. -1.9,5.3",
+    )
     p.add_argument("--h-f", type=non_negative_float, help="height weight (default: [planner] h_f)")
     p.add_argument(
         "--t-f", type=non_negative_float, help="traversability weight (default: [planner] t_f)"
@@ -85,13 +86,13 @@ def cli(argv: list[str] | None = None) -> int:
         metavar="S",
         help="how long to wait for the planner's answer (default 10)",
     )
-    args = p.parse_args(argv)
+    return p
+
+
+def cli(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
     cfg = config_from_args(args)
-    try:
-        start, goal = _point(args.start), _point(args.goal)
-    except ValueError as exc:
-        print(f"smana plan: {exc}", file=sys.stderr)
-        return 2
+    start, goal = np.array(args.start), np.array(args.goal)
     from smana.common.classes import ClassTable
 
     table = ClassTable.load(cfg.general.class_table)

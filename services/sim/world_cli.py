@@ -1,34 +1,48 @@
 """`smana world ...`: look at a simulator world without running the simulator.
 
-    smana world export  --seed 3 --out gt.ply          # labelled ground-truth cloud (PLY)
-    smana world preview --seed 3 --out world.png       # top-down picture of the classes
-    smana world info    --seed 3                       # object counts, free share (JSON)
+    smana world preview --out world.png                # the world `smana up` explores
+    smana world export  --out gt.ply                   # its labelled ground-truth cloud (PLY)
+    smana world info                                   # object counts, free share (JSON)
+    smana world preview --seed 0 --out world.png       # another garden
     smana world preview --world ply:garden.ply --out world.png
 
-Every subcommand takes `--world` as `sim.world` does (resolved by the registry in
-services/sim/worlds: `garden`, the default, with `--seed/--size`; `ply:PATH`, or `--ply PATH`,
-with `--voxel`; an out-of-tree `module:Class`), and builds the world `smana sim` would build.
-"""
+The world is the one the config describes, exactly as `smana up` and `smana sim` build it: the
+defaults (`sim.seed` 3, the `[sim.garden]` knobs), then `--config FILE` and `--set sim.KEY=VALUE`,
+then the flags here (`--seed`, `--size`, ... override the config). `--world` takes what `sim.world`
+takes (resolved by the registry in services/sim/worlds: `garden`, the default; `ply:PATH`, or
+`--ply PATH`, with `--voxel`; an out-of-tree `module:Class`)."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from smana.common.cli import ArgumentParser, int_in, output_file, positive_float
+from smana.common.cli import (
+    ArgumentParser,
+    add_config_args,
+    config_file_from_args,
+    int_in,
+    non_negative_int,
+    output_file,
+    positive_float,
+)
 
 from .worlds import World, WorldError, build_world
 
 
 def _world_args(p: argparse.ArgumentParser) -> None:
+    add_config_args(p)
     p.add_argument(
         "--world", default=None, help="a sim.world value: garden (default), ply:PATH, module:Class"
     )
-    p.add_argument("--seed", type=int, default=0, help="world seed (default 0)")
+    p.add_argument(
+        "--seed", type=non_negative_int, default=None, help="world seed (default: sim.seed, 3)"
+    )
     p.add_argument(
         "--size", type=positive_float, default=None, help="side of the procedural garden, m"
     )
@@ -39,14 +53,18 @@ def _world_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--voxel", type=positive_float, default=None, help="object voxel size for a PLY, m"
     )
-    p.add_argument("--classes", default="garden3drms", help="class table name or TOML path")
+    p.add_argument(
+        "--classes",
+        default=None,
+        help="class table name or TOML path (default: general.class_table)",
+    )
 
 
-def world_from_args(args: argparse.Namespace) -> World:
-    """The world the flags describe, built through the registry as `smana sim` would build it."""
-    from smana.common.classes import ClassTable
-    from smana.common.config.sim import GardenConfig, PlyConfig, SimConfig
-
+def sim_config_from_args(args: argparse.Namespace):
+    """(`[sim]` section, class table name) the flags describe: the config's, with the flags on
+    top. The same config with no flags gives the world `smana up` explores."""
+    cfg = config_file_from_args(args)
+    sim = cfg.sim
     garden, ply = {}, {}
     if args.size is not None:
         garden["size_m"] = args.size
@@ -54,11 +72,23 @@ def world_from_args(args: argparse.Namespace) -> World:
         garden["ground_resolution_m"] = ply["ground_resolution_m"] = args.ground_resolution
     if args.voxel is not None:
         ply["voxel_m"] = args.voxel
-    world = args.world or (f"ply:{args.ply}" if args.ply is not None else "garden")
-    config = SimConfig(
-        world=world, seed=args.seed, garden=GardenConfig(**garden), ply=PlyConfig(**ply)
-    )
-    return build_world(config, ClassTable.load(args.classes))
+    changes: dict = {
+        "garden": dataclasses.replace(sim.garden, **garden),
+        "ply": dataclasses.replace(sim.ply, **ply),
+    }
+    if args.world is not None or args.ply is not None:
+        changes["world"] = args.world or f"ply:{args.ply}"
+    if args.seed is not None:
+        changes["seed"] = args.seed
+    return dataclasses.replace(sim, **changes), args.classes or cfg.general.class_table
+
+
+def world_from_args(args: argparse.Namespace) -> World:
+    """The world the flags describe, built through the registry as `smana sim` would build it."""
+    from smana.common.classes import ClassTable
+
+    sim, classes = sim_config_from_args(args)
+    return build_world(sim, ClassTable.load(classes))
 
 
 def write_preview(world: World, out: Path, pixels: int, seed: int | None = None) -> Path:
