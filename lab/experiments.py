@@ -41,6 +41,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
+from smana.common import progress
 from smana.common.zenoh_config import free_loopback_port
 from smana.lab import evaluation as ev
 from smana.lab import plots
@@ -178,8 +179,9 @@ class NoiseExperimentConfig:
         )
 
 
-def render_frames(world, poses: np.ndarray, image_px: int):
-    """Render the camera along the trajectory once: [(world_from_sensor, CameraCapture)]."""
+def render_frames(world, poses: np.ndarray, image_px: int, bar=None):
+    """Render the camera along the trajectory once: [(world_from_sensor, CameraCapture)].
+    `bar` (a `progress.bar`) advances by one per frame."""
     from smana.common.config.sim import CameraConfig, RobotConfig
     from smana.services.sim.camera import SemanticCamera
     from smana.services.sim.scene import BulletScene
@@ -195,6 +197,8 @@ def render_frames(world, poses: np.ndarray, image_px: int):
             base[:2, :2] = [[c, -s], [s, c]]
             base[:3, 3] = [x, y, float(world.ground.height_at(x, y)) + base_h]
             frames.append((base, cam.capture(base @ camera.mount_matrix()), camera.mount_matrix()))
+            if bar is not None:
+                bar.update()
     return frames
 
 
@@ -214,7 +218,7 @@ def _cloud(frame, labels_img, base_used, stride):
     return pts, labels_img[rows, cols].astype(np.uint16), sensor[:3, 3]
 
 
-def run_noise(settings: NoiseExperimentConfig, out: Path, log=print) -> list[dict]:
+def run_noise(settings: NoiseExperimentConfig, out: Path, log=progress.say) -> list[dict]:
     """Both sweeps for every back-end; returns one row per (back-end, sweep, level)."""
     from smana.common.classes import ClassTable
     from smana.services.mapper.semantic_map import SemanticMap
@@ -227,7 +231,8 @@ def run_noise(settings: NoiseExperimentConfig, out: Path, log=print) -> list[dic
     poses = fixed_trajectory(world, settings.length_m, settings.spacing_m)
     length = float(np.hypot(*np.diff(poses[:, :2], axis=0).T).sum())
     t0 = time.perf_counter()
-    frames = render_frames(world, poses, settings.image_px)
+    with progress.bar(len(poses), "noise: rendering", unit="frame") as bar:
+        frames = render_frames(world, poses, settings.image_px, bar)
     log(f"rendered {len(frames)} frames along {length:.1f} m in {time.perf_counter() - t0:.1f} s")
     gp, gl = world.gt_cloud(settings.gt_spacing_m)
     tree = cKDTree(np.asarray(gp, np.float64))
@@ -250,6 +255,8 @@ def run_noise(settings: NoiseExperimentConfig, out: Path, log=print) -> list[dic
     configs = [("label", lv, lv, "none") for lv in settings.levels]
     configs += [("pose", pl, "none", pl) for pl in settings.levels if pl != "none"]
     rows: list[dict] = []
+    # one step per map built: every step integrates the same frames, so the ETA holds
+    sweep_bar = progress.bar(len(configs) * len(settings.backends), "noise: mapping", unit="map")
     for sweep, level, label_level, pose_level in configs:
         t1 = time.perf_counter()
         clouds = inputs(label_level, pose_level)
@@ -283,7 +290,9 @@ def run_noise(settings: NoiseExperimentConfig, out: Path, log=print) -> list[dic
                 f"error {row['error_mean_m']:.4f} +- {row['error_std_m']:.4f} m "
                 f"ratio {row['classification_ratio']:.3f}"
             )
+            sweep_bar.update()
         log(f"  ({time.perf_counter() - t1:.1f} s)")
+    sweep_bar.close()
     meta = {
         "settings": asdict(settings),
         "trajectory_length_m": length,
@@ -481,7 +490,9 @@ class ExplorationExperimentConfig:
         return cls(seeds=(3,), cost_factors=(1.0, 4.0), size_m=6.0, budget_s=20.0, extra=small)
 
 
-def exploration_run(out: Path, seed: int, factor: float, s: ExplorationExperimentConfig, log=print):
+def exploration_run(
+    out: Path, seed: int, factor: float, s: ExplorationExperimentConfig, log=progress.say
+):
     """One `smana up` run with grass at `factor` times terrain's cost; returns its metrics."""
     from smana.common.classes import ClassTable
 
@@ -526,11 +537,15 @@ def exploration_run(out: Path, seed: int, factor: float, s: ExplorationExperimen
     return code, metrics or {}
 
 
-def run_exploration(s: ExplorationExperimentConfig, out: Path, log=print) -> list[dict]:
+def run_exploration(s: ExplorationExperimentConfig, out: Path, log=progress.say) -> list[dict]:
     rows = []
+    # one step per `smana up`: each runs to its time budget or to the end of the frontiers
+    runs = progress.bar(len(s.seeds) * len(s.cost_factors), "exploration", unit="run")
     for seed in s.seeds:
         for factor in s.cost_factors:
+            runs.set_postfix_str(f"seed {seed} grass x{factor:g}")
             code, m = exploration_run(out, seed, factor, s, log)
+            runs.update()
             ex = m.get("exploration") or {}
             ee = m.get("explorer") or {}
             rows.append(
@@ -548,6 +563,7 @@ def run_exploration(s: ExplorationExperimentConfig, out: Path, log=print) -> lis
                 }
             )
             log(f"  terrain share {rows[-1]['terrain_share']}, coverage {rows[-1]['coverage']}")
+    runs.close()
     write_exploration_outputs(rows, s, out)
     return rows
 
