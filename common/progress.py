@@ -18,10 +18,12 @@ of it; `SMANA_PROGRESS=1` forces it on (e.g. under `script` or a CI that renders
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 
 from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 ENV = "SMANA_PROGRESS"
 _ON = {"1", "yes", "on", "true", "always"}
@@ -60,6 +62,12 @@ def bar(total: int | None, desc: str, unit: str = "it", *, enable: bool | None =
         # a 2-core machine: the bar must not cost what it measures
         mininterval=0.5,
     )
+
+
+def logs_around_bar():
+    """A context in which `logging`'s console lines are written above the bars rather than
+    through them (a no-op when no bar is drawn)."""
+    return logging_redirect_tqdm() if enabled() else contextlib.nullcontext()
 
 
 def say(line: str, file=None) -> None:
