@@ -51,13 +51,21 @@ def bar(total: int | None, desc: str, unit: str = "it", *, enable: bool | None =
     if total is not None and total < 0:
         raise ValueError(f"progress total must be >= 0, got {total}")
     on = enabled() if enable is None else enable
+    try:
+        width, height = os.get_terminal_size(sys.stderr.fileno())
+    except (AttributeError, OSError, ValueError):  # not a terminal (a file, a pipe, a test)
+        width = height = None
     return tqdm(
         total=total,
         desc=desc,
         unit=unit,
         file=sys.stderr,
         disable=not on,
-        dynamic_ncols=True,
+        # follow the terminal's size; a pseudo-terminal that reports 0 x 0 (`script`, some CI
+        # runners) gets 80 x 24: tqdm draws nothing in zero columns or rows
+        dynamic_ncols=bool(width),
+        ncols=80 if width == 0 else None,
+        nrows=24 if height == 0 else None,
         leave=True,
         # a 2-core machine: the bar must not cost what it measures
         mininterval=0.5,

@@ -161,7 +161,9 @@ def run_stack(cfg: SmanaConfig, reader) -> int:
     sup.add("replay", argv, ServiceDeployConfig(restart="never"))
     on_stop_signals(lambda _sig: sup.stop())
     print(f"smana replay: run directory {run_dir}", flush=True)
-    with _StackProgress(sup, cfg.general.robot):
+    from smana.common import progress
+
+    with _StackProgress(sup, cfg.general.robot), progress.logs_around_bar():
         code = sup.run()
     completed = _replay_completed(run_dir)
     warnings = sup.warnings()
@@ -227,6 +229,9 @@ class _StackProgress:
         if self._thread.is_alive():
             self._thread.join()
         if self.bar is not None:
+            # the replay's last status may predate its last scans: its summary has the count
+            if _replay_completed(Path(self.sup.run_dir)):
+                self.bar.update(self.bar.total - self.bar.n)
             self.bar.close()
 
 
