@@ -34,6 +34,14 @@ def cli(argv: list[str] | None = None) -> int:
     from smana.services.replay.readers import READERS
 
     p = make_parser("smana replay", __doc__.strip().splitlines()[0])
+    p.epilog = (
+        "Duration on a 2-core machine: --info takes seconds. --run spends about 10 s starting "
+        "the stack, then goes at the mapper's pace in lockstep (30 synthetic 32 x 1024 scans: 5 "
+        "s), at the recorded rate times "
+        "--rate with --realtime; the report at the end takes a few seconds more. A progress bar "
+        "of the scans sent, with an ETA, shows on a terminal (SMANA_PROGRESS=1 forces it, 0 "
+        "hides it)."
+    )
     p.add_argument("dataset", nargs="?", help="dataset path (or set replay.dataset)")
     p.add_argument("--run", action="store_true", help="also start mapper, navgraph and planner")
     p.add_argument("--info", action="store_true", help="describe the dataset and exit")
