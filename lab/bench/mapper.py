@@ -339,7 +339,7 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench mapper",
         description=__doc__.splitlines()[0],
         epilog=(
-            "Duration on a 2-core machine: about 3 minutes by default (20 scans x 3 repeats "
+            "Duration on a 2-core machine: about 5 minutes by default (20 scans x 3 repeats "
             "per configuration, OctoMap included); --quick about 5 s. A progress bar with an "
             "ETA shows on a terminal (SMANA_PROGRESS=1 forces it, 0 hides it)."
         ),
