@@ -140,7 +140,11 @@ def run(repeats: int = 5, view_range_m: float = 4.0) -> dict:
 def cli(argv: list[str] | None = None) -> int:
     from smana.common.cli import ArgumentParser, positive_float, positive_int
 
-    p = ArgumentParser(prog="smana bench explorer", description=__doc__.splitlines()[0])
+    p = ArgumentParser(
+        prog="smana bench explorer",
+        description=__doc__.splitlines()[0],
+        epilog="Duration on a 2-core machine: about 5 s.",
+    )
     p.add_argument("--repeats", type=positive_int, default=5)
     p.add_argument("--view-range", type=positive_float, default=4.0)
     p.add_argument("--json", action="store_true")

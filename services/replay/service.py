@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from smana.common import keys
+from smana.common import keys, progress
 from smana.common.classes import ClassTable
 from smana.common.config import ReplayConfig, SmanaConfig
 from smana.common.messages import GraphPatch, MapDelta
@@ -72,30 +72,37 @@ def topic_of(rc: ReplayConfig, reader: DatasetReader) -> str:
 
 
 class Progress:
-    """A progress line on stderr: a redrawn bar on a terminal, a log line every 10 s otherwise."""
+    """Scans handled of the total on stderr: a bar with an ETA on a terminal (common/progress.py),
+    a log line every 10 s otherwise (the line logs and scripts read)."""
 
     def __init__(self, total: int, stream=None):
         self.total = total
         self.stream = stream or sys.stderr
-        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        on = progress.enabled(self.stream) and self.stream is sys.stderr
+        self.drawn = on  # (tqdm also disables a bar it has closed)
+        self.bar = progress.bar(total, "replay", unit="scan", enable=on)
         self.t0 = time.monotonic()
         self._last = 0.0
 
     def update(self, done: int, extra: str = "", force: bool = False) -> None:
+        if self.drawn:
+            if self.bar.disable:  # closed: the last update was forced
+                return
+            if done != self.bar.n or force:
+                self.bar.set_postfix_str(extra, refresh=False)
+                self.bar.update(done - self.bar.n)
+            if force:
+                self.bar.close()
+            return
         now = time.monotonic()
-        if not force and now - self._last < (0.25 if self.tty else 10.0):
+        if not force and now - self._last < 10.0:
             return
         self._last = now
         frac = done / self.total if self.total else 1.0
         rate = done / max(now - self.t0, 1e-9)
-        text = f"{done}/{self.total} scans {100 * frac:5.1f}% {rate:5.1f} scans/s {extra}"
-        if self.tty:
-            bar = "#" * int(30 * frac)
-            self.stream.write(f"\r[{bar:<30}] {text}\033[K")
-            if force:
-                self.stream.write("\n")
-        else:
-            self.stream.write(f"replay: {text}\n")
+        self.stream.write(
+            f"replay: {done}/{self.total} scans {100 * frac:5.1f}% {rate:5.1f} scans/s {extra}\n"
+        )
         self.stream.flush()
 
 
@@ -492,5 +499,6 @@ def summary_line(s: dict) -> str:
 
 def main(config: SmanaConfig, reader: DatasetReader | None = None) -> int:
     service = ReplayService(config, reader)
-    service.run()
+    with progress.logs_around_bar():
+        service.run()
     return service.exit_code
