@@ -340,10 +340,13 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
     n = len(warnings)
     rows = [("outcome", f"FAILED ({n} warning{'s' * (n != 1)})" if warnings else "ok")]
     if ex:
+        area = ex.get("explored_reachable_area_m2")
+        if area is None and ex.get("coverage") == 0:
+            area = 0.0  # no graph to measure: nothing explored
         rows.append(
             (
                 "explored area (against ground truth)",
-                f"{_f(ex.get('explored_reachable_area_m2'), '.1f', ' m2')} = "
+                f"{_f(area, '.1f', ' m2')} = "
                 f"{_pct(ex.get('coverage'))} of the reachable "
                 f"{_f(ex.get('reachable_area_m2'), '.1f', ' m2')}",
             )
