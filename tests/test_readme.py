@@ -219,3 +219,24 @@ def test_plan_examples_find_a_path_in_the_default_world(zenoh_stack):
         out = smana(*argv, *stack.zenoh_args(), "--robot", stack.robot)
         assert out.returncode == 0, f"`{line}`: exit {out.returncode}\n{out.stdout}{out.stderr}"
         assert out.stdout.startswith("path: "), out.stdout
+
+
+TUTORIAL = REPO / "docs" / "tutorial.md"
+COMMANDS_IN_TUTORIAL = smana_commands(TUTORIAL.read_text())
+
+
+def test_the_tutorial_walks_through_every_step():
+    steps = {
+        argv[0] if argv[0] != "bench" else f"bench {argv[1]}" for _, argv in COMMANDS_IN_TUTORIAL
+    }
+    assert {"up", "view", "plan", "world", "experiment", "bench replay", "replay"} <= steps
+
+
+@pytest.mark.parametrize(
+    "line,argv", COMMANDS_IN_TUTORIAL, ids=[" ".join(a)[:60] for _, a in COMMANDS_IN_TUTORIAL]
+)
+def test_tutorial_commands_parse(line, argv):
+    """Every command of docs/tutorial.md is one its command's parser accepts (the pictures were
+    made by running them; the README's test runs the quick ones)."""
+    assert argv[0] in COMMANDS, f"{line}: no command {argv[0]!r}"
+    parse_only(argv)
