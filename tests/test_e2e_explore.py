@@ -71,6 +71,8 @@ def test_short_closed_loop_run(tmp_path):
     # the explorer chose goals, asked the planner and drove
     state = json.loads((run_dir / "explorer" / "state.json").read_text())
     assert state["n_goals"] >= 1 and state["path_queries"] >= 1, state
+    # one plan-log entry per goal set: the figure's goals and the report's count agree
+    assert len(state["plans"]) == state["n_goals"], (len(state["plans"]), state["n_goals"])
     assert state["distance_m"] > 0.5, state
     assert state["explored_m2"] > 2.0, state
 

@@ -265,7 +265,9 @@ class ExplorerService(Service):
             t0 = time.perf_counter()
             outcome = self.core.plan(self._path_cost, reason)
             self.plan_time_ms = (time.perf_counter() - t0) * 1e3
-            if outcome.chosen is not None and (outcome.switched or reason != "periodic"):
+            goal = self.core.goal
+            if outcome.chosen is not None and goal is not None and goal.choice is outcome.chosen:
+                # a goal was set by this plan (one log entry per goal: the report counts them)
                 c = outcome.chosen
                 self._plan_log.append(
                     {
