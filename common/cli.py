@@ -44,8 +44,8 @@ def run_command(name: str, cli: Callable[[list[str] | None], int | None], argv=N
 
 # A number or a comma-separated list of numbers (`-1.9,5.3`, `-2`, `-.5,1e3,-4`): a value, never
 # an option. argparse (before 3.12.7) takes only `-5` and `-1.5` for negative numbers.
-_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
-NUMBER_LIST = re.compile(rf"^-(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?(?:,\s*{_NUMBER})*$")
+_UNSIGNED = r"(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+NUMBER_LIST = re.compile(rf"^-{_UNSIGNED}(?:,\s*[-+]?{_UNSIGNED})*$")
 
 
 class ArgumentParser(argparse.ArgumentParser):

@@ -118,7 +118,15 @@ def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> 
     if graph is not None:
         out.update(ev.exploration_coverage(graph, cell_xy, reach, res * res))
     else:
-        out.update({"coverage": 0.0, "reachable_area_m2": float(reach.sum() * res * res)})
+        # no graph: nothing explored (the same keys exploration_coverage gives)
+        out.update(
+            {
+                "coverage": 0.0,
+                "reachable_area_m2": float(reach.sum() * res * res),
+                "explored_reachable_area_m2": 0.0,
+                "known_area_m2": 0.0,
+            }
+        )
     names = {i: c.name for i, c in classes.classes.items()}
     gres = config.navgraph.resolution_m
     if len(traj) >= 2:
@@ -341,8 +349,6 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
     rows = [("outcome", f"FAILED ({n} warning{'s' * (n != 1)})" if warnings else "ok")]
     if ex:
         area = ex.get("explored_reachable_area_m2")
-        if area is None and ex.get("coverage") == 0:
-            area = 0.0  # no graph to measure: nothing explored
         rows.append(
             (
                 "explored area (against ground truth)",

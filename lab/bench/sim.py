@@ -58,20 +58,27 @@ def run(args) -> dict:
 
     # one step per frame or scan: camera alone, then on a thread and in a process, then LiDAR
     bar = progress.bar(args.runs * (3 * args.frames + args.scans), "bench sim", unit="frame")
-    cam_runs, stages, points = [], [], []
-    for _ in range(args.runs):
-        walls, cpus = [], []
-        for _ in range(args.frames):
-            bar.update()
-            drive()
-            t = {}
-            w0, c0 = time.perf_counter(), time.process_time()
-            f = sim.camera_frame(timings=t)
-            walls.append(time.perf_counter() - w0)
-            cpus.append(time.process_time() - c0)
-            stages.append(t)
-            points.append(len(f.points))
-        cam_runs.append((_median(walls), _median(cpus)))
+
+    def measure(take, n):
+        """`args.runs` runs of `n` captures: (median wall, median CPU) per run, every capture's
+        stage timings and point count."""
+        per_run, stages, points = [], [], []
+        for _ in range(args.runs):
+            walls, cpus = [], []
+            for _ in range(n):
+                bar.update()
+                drive()
+                t = {}
+                w0, c0 = time.perf_counter(), time.process_time()
+                out = take(timings=t)
+                walls.append(time.perf_counter() - w0)
+                cpus.append(time.process_time() - c0)
+                stages.append(t)
+                points.append(len(out.points))
+            per_run.append((_median(walls), _median(cpus)))
+        return per_run, stages, points
+
+    cam_runs, stages, points = measure(sim.camera_frame, args.frames)
     # as the service runs it: frame k finished (degraded, encoded) on a worker while k+1 renders
     from smana.services.sim.finishing import make_worker
 
@@ -95,20 +102,7 @@ def run(args) -> dict:
     t1 = time.perf_counter()
     sim.lidar_scan()  # builds the ray lists once
     t_lidar_setup = time.perf_counter() - t1
-    lidar_runs, lstages, lpoints = [], [], []
-    for _ in range(args.runs):
-        walls, cpus = [], []
-        for _ in range(args.scans):
-            bar.update()
-            drive()
-            t = {}
-            w0, c0 = time.perf_counter(), time.process_time()
-            s = sim.lidar_scan(timings=t)
-            walls.append(time.perf_counter() - w0)
-            cpus.append(time.process_time() - c0)
-            lstages.append(t)
-            lpoints.append(len(s.points))
-        lidar_runs.append((_median(walls), _median(cpus)))
+    lidar_runs, lstages, lpoints = measure(sim.lidar_scan, args.scans)
     bar.close()
     world = sim.world
     n_bodies = len(sim.scene.object_bodies)

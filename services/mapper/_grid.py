@@ -74,7 +74,7 @@ def unpack_block(key):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _slot(key, hshift):
+def hash_slot(key, hshift):
     # Fibonacci hashing: the high bits of key * golden ratio spread neighbouring blocks.
     return np.int64((np.uint64(key) * _FIB) >> np.uint64(hshift))
 
@@ -84,7 +84,7 @@ def table_find(grid, key):
     """Block index of `key`, or -1."""
     h_keys = grid.h_keys
     mask = h_keys.shape[0] - 1
-    s = _slot(key, grid.hshift)
+    s = hash_slot(key, grid.hshift)
     while True:
         k = h_keys[s]
         if k == key:
@@ -100,7 +100,7 @@ def table_find_or_insert(grid, key):
     full (nothing was changed then)."""
     h_keys = grid.h_keys
     mask = h_keys.shape[0] - 1
-    s = _slot(key, grid.hshift)
+    s = hash_slot(key, grid.hshift)
     while True:
         k = h_keys[s]
         if k == key:
@@ -143,7 +143,7 @@ def rebuild_table(grid):
     mask = h_keys.shape[0] - 1
     for b in range(grid.n_blocks[0]):
         key = grid.block_keys[b]
-        s = _slot(key, grid.hshift)
+        s = hash_slot(key, grid.hshift)
         while h_keys[s] != EMPTY:
             s = (s + 1) & mask
         h_keys[s] = key

@@ -34,6 +34,7 @@ from smana.services.mapper._grid import (
     MARK_HIT,
     OBSERVED,
     Grid,
+    hash_slot,
     pack_block,
     voxblox_ray_keys,
     voxel_slot,
@@ -77,7 +78,7 @@ class TsdfConsts(NamedTuple):
 def _set_insert(keys, key):
     """Insert into an open-addressing set; returns False when the key was already there."""
     mask = keys.shape[0] - 1
-    s = np.int64((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(40)) & mask
+    s = hash_slot(key, 40) & mask  # the block table's Fibonacci hash
     while True:
         k = keys[s]
         if k == key:
@@ -91,7 +92,7 @@ def _set_insert(keys, key):
 @njit(cache=True, error_model="numpy")
 def _set_contains(keys, key):
     mask = keys.shape[0] - 1
-    s = np.int64((np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(40)) & mask
+    s = hash_slot(key, 40) & mask  # the block table's Fibonacci hash
     while True:
         k = keys[s]
         if k == key:

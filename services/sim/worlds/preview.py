@@ -1,5 +1,5 @@
 """A top-down picture of a world: the class seen from above, hill-shaded so objects read as
-raised (`smana world preview`, and `World.preview_image` for a raw RGB array)."""
+raised (`smana world preview` draws it, with axes and a legend, through lab/plots.py)."""
 
 from __future__ import annotations
 
@@ -19,10 +19,3 @@ def shaded_classes(world: World) -> np.ndarray:
     gx, gy = np.gradient(top_h.data, top_h.resolution_m)
     shade = np.clip(1.0 - 0.35 * (gx - gy) / np.sqrt(1 + gx * gx + gy * gy), 0.55, 1.25)
     return np.clip(rgb * shade[..., None], 0, 255).astype(np.uint8)
-
-
-def top_down_image(world: World, pixels: int = 768) -> np.ndarray:
-    """RGB u1[H, W, 3] of the classes (x to the right, y up), about `pixels` wide."""
-    img = np.ascontiguousarray(np.transpose(shaded_classes(world), (1, 0, 2))[::-1])
-    scale = max(1, pixels // max(img.shape[:2]))
-    return np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)

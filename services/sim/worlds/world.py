@@ -12,7 +12,7 @@ tools need:
   above (what a 2.5D navigation graph of the true world would hold);
 - `world.gt_cloud(spacing_m)` -> (points f4[N,3], labels u2[N]) sampled on every visible surface
   (faces buried in the ground or inside another object are left out);
-- `world.export_ply(path)`, `world.preview_image()` (`preview.py`).
+- `world.export_ply(path)`; `preview.py` shades its classes for `smana world preview`.
 """
 
 from __future__ import annotations
@@ -28,7 +28,6 @@ from ..ply import write_labelled_ply
 from .base import WorldError
 from .ground import GroundModel, Raster
 from .objects import TERRAIN, WorldObject
-from .preview import top_down_image
 
 
 class World:
@@ -196,10 +195,6 @@ class World:
         pts, labels = self.gt_cloud(spacing_m)
         write_labelled_ply(path, pts, labels, self.classes.colour_lut[labels])
         return len(pts)
-
-    def preview_image(self, pixels: int = 768) -> np.ndarray:
-        """Top-down RGB picture of the classes (x to the right, y up), shaded by altitude."""
-        return top_down_image(self, pixels)
 
     def summary(self) -> dict:
         counts: dict[str, int] = {}
