@@ -1,0 +1,86 @@
+"""The paper's experiments (sections 4.2.2 and 4.3), reproduced in smana's simulated garden.
+
+    smana experiment noise [--quick] [--out DIR]
+    smana experiment exploration [--quick] [--seeds 3] [--out DIR]
+
+One module per experiment (`noise.py`, `exploration.py`), each with its `add_parser(sub)` and
+`main(args, parser, out)`; this module only dispatches. Every experiment writes raw results (CSV
+and JSON), PNG plots and a markdown summary into `--out`; `--quick` runs a small version that the
+test suite runs.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+from .exploration import (
+    PAPER_TERRAIN_SHARE,
+    ExplorationExperimentConfig,
+    exploration_run,
+    run_exploration,
+    summarise_exploration,
+    write_exploration_outputs,
+)
+from .noise import (
+    BACKENDS,
+    LEVELS,
+    PAPER_LABEL_LOSS,
+    POSE_NOISE,
+    NoiseExperimentConfig,
+    fixed_trajectory,
+    label_losses,
+    run_noise,
+    write_noise_outputs,
+)
+
+__all__ = [
+    "BACKENDS",
+    "LEVELS",
+    "PAPER_LABEL_LOSS",
+    "PAPER_TERRAIN_SHARE",
+    "POSE_NOISE",
+    "ExplorationExperimentConfig",
+    "NoiseExperimentConfig",
+    "cli",
+    "exploration_run",
+    "fixed_trajectory",
+    "label_losses",
+    "run_exploration",
+    "run_noise",
+    "summarise_exploration",
+    "write_exploration_outputs",
+    "write_noise_outputs",
+]
+
+# subcommand -> module; each module has add_parser(sub) and main(args, parser, out)
+EXPERIMENTS = {"noise": "noise", "exploration": "exploration"}
+
+
+def cli(argv: list[str] | None = None) -> int:
+    import importlib
+
+    from smana.common.cli import ArgumentParser, output_dir
+
+    p = ArgumentParser(prog="smana experiment", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="which", required=True)
+    modules = {k: importlib.import_module(f"{__name__}.{m}") for k, m in EXPERIMENTS.items()}
+    for mod in modules.values():
+        mod.add_parser(sub)
+    args = p.parse_args(argv)
+    mod = modules[args.which]
+    if hasattr(mod, "check_args"):
+        mod.check_args(args)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    out = args.out or Path("runs") / f"experiment-{args.which}-{stamp}"
+    output_dir(out, "output directory", "--out")
+    return mod.main(args, p, out)
+
+
+if __name__ == "__main__":
+    from smana.common.cli import run_command
+
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    sys.exit(run_command("experiment", cli))
