@@ -46,6 +46,10 @@ class TsdfConfig(Section, section="mapper.tsdf"):
     start_voxel_subsampling: float = param(2.0, ge=0)  # voxblox default; 0 disables it
     use_weight_dropoff: bool = True
     label_probability: float = param(0.9, gt=0, lt=1)  # Kimera: p of the measured label
+    # Surface extraction: voxels (and their sign-change neighbours) need at least this weight.
+    # voxblox's MeshIntegratorConfig default, which Kimera's mesher inherits; with weight 1 per
+    # ray it keeps every voxel a ray reached and drops only the far drop-off tail.
+    min_weight: float = param(1e-4, gt=0)
 
 
 @dataclass

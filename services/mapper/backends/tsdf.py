@@ -16,6 +16,14 @@ point labelled l adds log p to class l and log((1 - p) / (K - 1)) to every other
 by default); since adding the same constant to every class does not change the normalised
 distribution, the kernel adds only log(p / q) to class l and shifts the vector when it grows, so
 an update is O(1) instead of O(K). The voxel label is the most probable class.
+
+Surface (voxblox's mesh and Kimera's, without the triangles): a voxel is a surface voxel when its
+weight is at least `min_weight` and one of its 6 face neighbours, also of weight >= `min_weight`,
+has the opposite sign of distance, and the voxel is the one of that pair nearer the zero crossing
+(|d| <= |d_neighbour|; on a tie the voxel in front, d >= 0, wins). That is one voxel per sign
+change, so the surface is one voxel thick whatever the pose noise does to the band of small
+distances. Since the status depends on the neighbours, the delta of a cloud carries the updated
+voxels and their observed face neighbours, each with its new status.
 """
 
 from __future__ import annotations
@@ -36,13 +44,19 @@ from smana.services.mapper._grid import (
     Grid,
     hash_slot,
     pack_block,
+    table_find,
     voxblox_ray_keys,
+    voxel_index,
     voxel_slot,
 )
 from smana.services.mapper.backends.base import MapBackend
 from smana.services.mapper.delta import Delta
 
 _RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this
+# A flag bit of this back-end: the voxel was a surface voxel after the last cloud. Only the
+# incremental surface count reads it; the surface itself is always recomputed from distances.
+SURFACE = np.uint8(16)
+_FACES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.int64)
 
 
 class TsdfState(NamedTuple):
@@ -57,7 +71,7 @@ class TsdfState(NamedTuple):
     keybuf: np.ndarray  # i8 [n, 3]: one ray's voxel keys
     gbuf: np.ndarray  # i8 [n]: their global indices
     sem_idx: np.ndarray  # i2 [65536]: label -> class column, -1 for none
-    counts: np.ndarray  # i8 [2]: newly observed voxels, change in the surface-voxel count
+    counts: np.ndarray  # i8 [1]: newly observed voxels
 
 
 class TsdfConsts(NamedTuple):
@@ -201,12 +215,8 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
             d_new = (sdf * w + np.float64(dist_[g]) * w_old) / w_new
             if f & OBSERVED == 0:
                 counts[0] += 1
-            elif abs(dist_[g]) < res and w_old > 0:
-                counts[1] -= 1
             dist_[g] = min(trunc, d_new) if d_new > 0 else max(-trunc, d_new)
             weight_[g] = min(max_weight, w_new)
-            if abs(dist_[g]) < res:
-                counts[1] += 1
             flags[g] = f | MARK_FREE | MARK_HIT | OBSERVED
             if label_idx >= 0:
                 v = logp[g, label_idx] + k.log_ratio
@@ -215,6 +225,64 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
                     for j in range(logp.shape[1]):
                         logp[g, j] -= v
     return DONE, points.shape[0], n_touched
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _find_voxel(grid, ix, iy, iz):
+    """Global index of voxel (ix, iy, iz), -1 when its block was never allocated."""
+    bkey, local = voxel_index(ix, iy, iz, grid.bits)
+    b = table_find(grid, bkey)
+    return np.int64(-1) if b < 0 else (b << (3 * grid.bits)) | local
+
+
+@njit(cache=True, error_model="numpy")
+def _surface_kernel(g, keys, grid, distance, weight, min_weight, out):
+    """out[i] = voxel g[i] (coordinates keys[i]) is a surface voxel (module docstring)."""
+    for i in range(g.shape[0]):
+        out[i] = False
+        gi = g[i]
+        if not weight[gi] >= min_weight:
+            continue
+        d = distance[gi]
+        neg = d < 0
+        ad = abs(d)
+        for f in range(6):
+            n = _find_voxel(
+                grid,
+                keys[i, 0] + _FACES[f, 0],
+                keys[i, 1] + _FACES[f, 1],
+                keys[i, 2] + _FACES[f, 2],
+            )
+            if n < 0 or not weight[n] >= min_weight:
+                continue
+            dn = distance[n]
+            if (dn < 0) == neg:
+                continue
+            adn = abs(dn)
+            # the voxel nearer the crossing; on a tie the one in front (d >= 0), so exactly one
+            if ad < adn or (ad == adn and not neg):
+                out[i] = True
+                break
+
+
+@njit(cache=True, error_model="numpy")
+def _with_neighbours_kernel(g, keys, grid, flags, out):
+    """Write g and the observed face neighbours of each voxel into out; returns how many."""
+    n = 0
+    for i in range(g.shape[0]):
+        out[n] = g[i]
+        n += 1
+        for f in range(6):
+            nb = _find_voxel(
+                grid,
+                keys[i, 0] + _FACES[f, 0],
+                keys[i, 1] + _FACES[f, 1],
+                keys[i, 2] + _FACES[f, 2],
+            )
+            if nb >= 0 and flags[nb] & OBSERVED:
+                out[n] = nb
+                n += 1
+    return n
 
 
 @njit(cache=True, error_model="numpy")
@@ -249,6 +317,7 @@ class Tsdf(MapBackend):
         self.sem_idx[self.class_ids] = np.arange(k)
         p = config.label_probability
         self.trunc_m = config.truncation_voxels * self.resolution_m
+        self.min_weight = float(config.min_weight)
         self._touched = np.empty(1 << 16, np.int64)
         band = 2 * self.trunc_m + self.resolution_m
         n_buf = 3 * int(np.ceil(band / self.resolution_m)) + 16
@@ -295,7 +364,7 @@ class Tsdf(MapBackend):
         grid = self.grid
         size = 1 << max(4, int(2 * points.shape[0]).bit_length())
         startset = np.full(size, -1, np.int64)
-        counts = np.zeros(2, np.int64)
+        counts = np.zeros(1, np.int64)
         i, n_touched = 0, 0
         while True:
             status, i, n_touched = _tsdf_integrate(
@@ -313,8 +382,56 @@ class Tsdf(MapBackend):
         nc = _tsdf_finish(self._touched, n_touched, grid.cols["flags"], changed)
         self.last_updates = nc  # voxels whose distance was fused this cloud
         self.n_observed += int(counts[0])
-        self.n_occupied += int(counts[1])
-        return self.rows(changed[:nc])
+        # a voxel's status depends on its neighbours: re-extract around every updated voxel
+        g = self.with_neighbours(changed[:nc])
+        surface = self.surface(g)
+        self.n_occupied += self._store_surface(g, surface)
+        return self._rows(g, surface)
+
+    # -- surface extraction ----------------------------------------------------------------
+
+    def _check_index(self, g) -> np.ndarray:
+        g = np.ascontiguousarray(g, np.int64)
+        if g.ndim != 1:
+            raise ValueError(f"voxel indices must be a 1-D array, got shape {g.shape}")
+        n = self.grid.n_blocks * self.grid.voxels_per_block
+        if g.shape[0] and (g.min() < 0 or g.max() >= n):
+            raise ValueError(f"voxel indices must lie in [0, {n})")
+        return g
+
+    def surface(self, g) -> np.ndarray:
+        """Bool per voxel index: is it a surface voxel (zero crossing, min weight)?"""
+        g = self._check_index(g)
+        out = np.empty(g.shape[0], np.bool_)
+        c = self.grid.cols
+        keys = self.grid.coords(g)
+        _surface_kernel(
+            g, keys, self.grid.state(), c["distance"], c["weight"], self.min_weight, out
+        )
+        return out
+
+    def with_neighbours(self, g) -> np.ndarray:
+        """Sorted unique voxel indices of g and their observed face neighbours."""
+        g = self._check_index(g)
+        out = np.empty(7 * g.shape[0], np.int64)
+        n = _with_neighbours_kernel(
+            g, self.grid.coords(g), self.grid.state(), self.grid.cols["flags"], out
+        )
+        return np.unique(out[:n])
+
+    def _store_surface(self, g: np.ndarray, surface: np.ndarray) -> int:
+        """Set the SURFACE bits of g; returns the change in the number of surface voxels."""
+        flags = self.grid.cols["flags"]
+        f = flags[g]
+        was = (f & SURFACE) != 0
+        flags[g] = np.where(surface, f | SURFACE, f & ~SURFACE)
+        return int(surface.sum()) - int(was.sum())
+
+    def recount(self) -> None:
+        # a loaded map (format 2 files have no SURFACE bits) gets its bits from the distances
+        g = self.observed_index()
+        self._store_surface(g, self.surface(g))
+        super().recount()
 
     def labels_of(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(label, probability of that label) from the log-probability vectors."""
@@ -335,12 +452,13 @@ class Tsdf(MapBackend):
         return e / e.sum(axis=1, keepdims=True)
 
     def rows(self, g: np.ndarray) -> Delta:
-        g = np.asarray(g, np.int64)
-        c = self.grid.cols
+        g = self._check_index(g)
+        return self._rows(g, self.surface(g))
+
+    def _rows(self, g: np.ndarray, surface: np.ndarray) -> Delta:
         keys = self.grid.coords(g)
-        d = c["distance"][g]
+        d = self.grid.cols["distance"][g]
         labels, prob = self.labels_of(g)
-        surface = (np.abs(d) < self.resolution_m) & (c["weight"][g] > 0)
         return Delta(
             keys.astype(np.int32),
             ((keys + 0.5) * self.resolution_m).astype(np.float32),
@@ -353,6 +471,5 @@ class Tsdf(MapBackend):
     # -- queries ---------------------------------------------------------------------------
 
     def occupied_index(self) -> np.ndarray:
-        used = self.grid.used
-        surf = (np.abs(used("distance")) < self.resolution_m) & (used("weight") > 0)
-        return np.flatnonzero(surf & (used("flags") & OBSERVED).astype(bool))
+        g = self.observed_index()
+        return g[self.surface(g)]
