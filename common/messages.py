@@ -209,7 +209,9 @@ class MapDelta(Message):
 
     `values_kind` says what `values` holds, so that a consumer needs no back-end names:
     "log_odds" (occupancy back-ends; `occupied` is `values > 0`) or "signed_distance" (metres;
-    `occupied` marks surface voxels, |distance| < resolution with weight > 0). `backend` names
+    `occupied` marks the extracted surface: the voxel nearer zero of a pair of face neighbours of
+    opposite sign, both of weight >= `mapper.tsdf.min_weight`; since that depends on neighbours, a
+    delta also carries the neighbours of updated voxels whose status flipped). `backend` names
     the back-end for people and files.
 
     `producer` names the mapper session that numbered the stream (`seq` counts per producer): a

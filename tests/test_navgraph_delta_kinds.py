@@ -26,7 +26,7 @@ def small_graph() -> NavGraph:
 
 def column_delta(values_kind: str, backend: str = "a-back-end-the-graph-never-heard-of"):
     """Four voxels over one node: only the second is occupied; the first three lie within the
-    0.2 m band of the graph resolution when the values are signed distances."""
+    0.2 m band of the graph resolution when the values are signed distances (the old rule)."""
     centres = np.array([[1.05, 1.05, 0.05 + 0.1 * k] for k in range(4)], np.float32)
     return MapDelta(
         seq=1,
@@ -45,14 +45,48 @@ def test_the_graph_reads_every_kind_the_messages_carry():
     assert set(graph_module.SURFACE_INPUTS) == set(VALUES_KINDS)
 
 
-def test_signed_distances_widen_the_surface_whatever_the_back_end_is_called():
+def test_signed_distances_use_the_extracted_surface_whatever_the_back_end_is_called():
+    """The map's extraction (`occupied`) is the surface: no band of small distances around it."""
     delta = column_delta("signed_distance")
     by_kind = small_graph().integrate_delta(delta)
-    by_hand = small_graph().integrate(
-        delta.centres, delta.labels, delta.occupied, distances=delta.values
+    by_hand = small_graph().integrate(delta.centres, delta.labels, delta.occupied)
+    assert by_kind.heights.tolist() == by_hand.heights.tolist() == [pytest.approx(0.15)]
+    assert by_kind.n_surface == 1
+
+
+def test_a_tsdf_delta_gives_the_graph_one_voxel_per_crossing():
+    """End to end: a flat floor integrated by the TSDF gives nodes at the floor's height, one
+    surface voxel per column, under the old band rule it gave two or three."""
+    from smana.services.mapper.semantic_map import SemanticMap
+
+    m = SemanticMap("tsdf", 0.1, 10.0)
+    s = np.arange(0.55, 3.5, 0.1)
+    xx, yy = np.meshgrid(s, s, indexing="ij")
+    floor = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, 0.03)], -1).astype(np.float32)
+    origin = (2.05, 2.05, 1.55)
+    for p in floor:  # ray by ray: the fast integrator would leave holes in one dense cloud
+        m.integrate(p[None], np.array([GRASS]), None, origin)
+    rows = m.occupied_voxels()
+    g = small_graph()
+    up = g.integrate_delta(
+        MapDelta(
+            seq=1,
+            backend="tsdf",
+            resolution_m=0.1,
+            centres=rows.centres,
+            labels=rows.labels,
+            confidences=rows.confidences,
+            occupied=rows.occupied,
+            values=rows.values,
+            values_kind="signed_distance",
+        )
     )
-    assert by_kind.heights.tolist() == by_hand.heights.tolist() == [pytest.approx(0.25)]
-    assert by_kind.n_surface == 3
+    assert up.n_surface == len(rows.centres)
+    cols = {}
+    for c in rows.centres.tolist():
+        cols.setdefault((round(c[0], 2), round(c[1], 2)), []).append(c[2])
+    assert all(v == [pytest.approx(0.05)] for v in cols.values())  # z = 0.03 m lies in voxel 0
+    assert g.node(2.05, 2.05)["height"] == pytest.approx(0.05)
 
 
 def test_log_odds_values_are_not_read_as_distances():

@@ -160,28 +160,6 @@ def test_column_capacity_forgets_lowest_level_and_never_guesses():
     assert not g.node(1.1, 1.1)["known"]
 
 
-def test_tsdf_band_rule_uses_graph_resolution():
-    g = graph((0, 0), (4, 4), robot_radius_m=0.0)
-    vox = [voxel(10, 10, 0), voxel(10, 10, 1), voxel(10, 10, 2), voxel(10, 10, 3)]
-    dist = [0.15, 0.05, -0.19, -0.25]  # |d| < 0.2 m: the first three are in the band
-    up = g.integrate(
-        np.array(vox, np.float32),
-        np.full(4, GRASS, np.uint16),
-        np.array([0, 1, 0, 0], np.uint8),
-        distances=np.array(dist, np.float32),
-        map_resolution_m=MAP_RES,
-    )
-    assert up.heights[0] == pytest.approx(0.25)
-    # The top voxel leaves the band: the node drops to the next one.
-    g.integrate(
-        np.array(vox[2:3], np.float32),
-        np.array([GRASS], np.uint16),
-        np.array([0], np.uint8),
-        distances=np.array([0.3], np.float32),
-    )
-    assert g.node(1.1, 1.1)["height"] == pytest.approx(0.15)
-
-
 def test_bad_rows_are_counted_and_bad_arrays_rejected():
     g = graph((0, 0), (4, 4))
     vox = [voxel(10, 10, 0), [np.nan, 1.0, 0.0], [50.0, 1.0, 0.0], voxel(12, 12, 0)]
@@ -194,8 +172,6 @@ def test_bad_rows_are_counted_and_bad_arrays_rejected():
         g.integrate(np.zeros((3, 3), np.float32), np.zeros(2, np.uint16), np.ones(3, np.uint8))
     with pytest.raises(ValueError, match="values_kind"):
         g.integrate_delta(SimpleNamespace(values_kind="voxblox_esdf"))
-    with pytest.raises(ValueError, match="distances"):
-        g.integrate(np.zeros((1, 3)), np.zeros(1, np.uint16), np.ones(1), distances=np.zeros(2))
     with pytest.raises(ValueError, match="robot_radius"):
         NavGraph(CLASSES, NavgraphConfig(robot_radius_m=-1))
 

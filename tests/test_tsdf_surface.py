@@ -153,3 +153,18 @@ def test_deltas_carry_every_voxel_whose_status_changed():
             seen[tuple(k)] = bool(occ)
         assert {k for k, v in seen.items() if v} == surface_keys(m)
         assert m._core.n_occupied == len(surface_keys(m))
+
+
+def test_a_loaded_map_without_surface_bits_keeps_its_count(tmp_path):
+    """Format 2 files written before the extraction have no SURFACE bits: loading rebuilds them, so
+    the incremental count stays right for the clouds that follow."""
+    from smana.services.mapper.backends.tsdf import SURFACE
+
+    m = SemanticMap("tsdf", 0.1, 10.0)
+    pts = plane_scan(1.53, 0.4, 0.1) + np.array([0, 0.05, 0.05], np.float32)
+    integrate_ray_by_ray(m, pts, 2, (0.05, 0.05, 0.05))
+    m._core.grid.cols["flags"][:] &= ~SURFACE  # what an old file holds
+    loaded = SemanticMap.load(m.save(tmp_path / "map.npz"))
+    assert loaded._core.n_occupied == len(surface_keys(loaded)) == len(surface_keys(m)) > 0
+    integrate_ray_by_ray(loaded, pts + np.float32(0.04), 2, (0.05, 0.05, 0.05))
+    assert loaded._core.n_occupied == len(surface_keys(loaded))

@@ -265,7 +265,7 @@ def cli(argv: list[str] | None = None) -> int:
     def tsdf_timed():
         g = fresh()
         t0 = time.perf_counter()
-        up = g.integrate(*tsdf[:3], distances=tsdf[3], map_resolution_m=MAP_RES)
+        up = g.integrate(*tsdf[:3], map_resolution_m=MAP_RES)
         return (time.perf_counter() - t0) * 1e3, g, up
 
     def walled_timed():

@@ -14,7 +14,7 @@ class Delta:
     - `keys`: int32 voxel indices (ix, iy, iz) = floor(coordinate / resolution);
     - `centres`: float32 voxel centres in the world frame;
     - `labels`, `confidences`: the voxel's fused label (0 = none yet) and its confidence;
-    - `occupied`: octree: log-odds > 0; tsdf: surface voxel (|distance| < resolution, weight > 0);
+    - `occupied`: octree: log-odds > 0; tsdf: surface voxel (zero crossing, `backends/tsdf.py`);
     - `values`: octree: occupancy log-odds; tsdf: signed distance in metres.
     """
 

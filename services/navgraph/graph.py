@@ -4,10 +4,12 @@ Each map voxel is projected to the 2.5D node under it. A node shows the highest 
 its column (the first voxel sets label and height, afterwards the highest wins), obstacle classes
 come from the class table, and the safety zone marks nodes within `robot_radius_m` of an obstacle.
 
-A voxel is a surface voxel when the map says it is occupied; a map that carries signed distances
-(`MapDelta.values_kind == "signed_distance"`) also makes every voxel with |distance| below the
-graph resolution a surface voxel (the paper's rule). The graph reads what a delta holds, never
-which back-end made it.
+A voxel is a surface voxel when the map says it is occupied. A map that carries signed distances
+(`MapDelta.values_kind == "signed_distance"`) marks its extracted surface in `occupied` (the zero
+crossing between neighbouring voxels, one voxel thick, as voxblox and Kimera mesh it), so the graph
+reads it the same way; widening it to every voxel with |distance| below the graph resolution (the
+paper's rule) was dropped: under pose noise that band thickens and lifts node heights. The graph
+reads what a delta holds, never which back-end made it.
 
 To recompute a node when the map clears a voxel (an obstacle that moved away) the node must know
 what remains below, so every node keeps its column: a linked list of the occupied voxels projected
@@ -44,10 +46,11 @@ from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, Na
 NO_FLOOR = int(np.iinfo(np.int32).min)  # col_floor of a column that never overflowed
 
 # What `integrate_delta` reads from each kind of MapDelta.values (common/messages.py VALUES_KINDS):
-# occupancy maps say everything with `occupied`; signed distances also widen the surface.
+# both say everything with `occupied` (a signed-distance map's extracted surface), so neither
+# passes anything more; a future kind that needs its values names them here.
 SURFACE_INPUTS = {
     "log_odds": lambda delta: {},
-    "signed_distance": lambda delta: {"distances": delta.values},
+    "signed_distance": lambda delta: {},
 }
 
 # Voxel kinds after `_prepare`.
@@ -260,15 +263,11 @@ class NavGraph:
             **read(delta),
         )
 
-    def integrate(
-        self, centres, labels, occupied, *, distances=None, map_resolution_m: float = 0.1
-    ) -> GraphUpdate:
+    def integrate(self, centres, labels, occupied, *, map_resolution_m: float = 0.1) -> GraphUpdate:
         """Integrate the voxels of one map update and return the nodes that changed.
 
         A voxel with `occupied` set is added to (or relabels) its column, one without is removed
-        from it. With `distances` (signed, metres: a distance-field map) a voxel is also a surface
-        voxel when its |distance| is below the graph resolution (the paper's rule); a voxel that
-        leaves the band is removed. Rows with non-finite centres are dropped and counted.
+        from it. Rows with non-finite centres are dropped and counted.
         """
         t0 = time.perf_counter()
         if not (np.isfinite(map_resolution_m) and map_resolution_m > 0):
@@ -286,10 +285,6 @@ class NavGraph:
             raise ValueError(f"labels must be an integer array of length {m}")
         if occupied.shape != (m,):
             raise ValueError(f"occupied must have length {m}")
-        if distances is not None:
-            distances = np.asarray(distances)
-            if distances.shape != (m,):
-                raise ValueError(f"distances must have length {m}")
 
         if labels.dtype != np.uint16:
             if labels.dtype.kind == "i" and m and labels.min() < 0:
@@ -297,10 +292,6 @@ class NavGraph:
             labels = labels.astype(np.int64)
         if occupied.dtype != np.uint8:
             occupied = (occupied != 0).view(np.uint8)
-        has_distances = distances is not None
-        distances = (
-            np.zeros(0, np.float32) if distances is None else np.asarray(distances, np.float32)
-        )
 
         g = self.grid
         # 1. classify voxels (surface / cleared / unusable row), clean labels, and allocate the
@@ -312,9 +303,6 @@ class NavGraph:
             centres,
             labels,
             occupied,
-            distances,
-            has_distances,
-            self.resolution_m,
             self.classes.valid_lut,
             self._ignored_lut,
             self._kernel_state()[0],
@@ -503,15 +491,13 @@ def warm_up(classes: ClassTable) -> float:
 
     ok = classes.obstacle_lut.nonzero()[0]
     lab = int(ok[0]) if len(ok) else 0
-    for distances in (None, ro(np.array([0.0, 0.05], np.float32))):
-        for occ in (1, 0):
-            g.integrate(
-                ro(np.array([[0.55, 0.55, 0.05], [0.65, 0.55, 0.15]], np.float32)),
-                ro(np.array([lab, 0], np.uint16)),
-                ro(np.array([occ, occ], np.uint8)),
-                distances=distances,
-                map_resolution_m=0.1,
-            )
+    for occ in (1, 0):
+        g.integrate(
+            ro(np.array([[0.55, 0.55, 0.05], [0.65, 0.55, 0.15]], np.float32)),
+            ro(np.array([lab, 0], np.uint16)),
+            ro(np.array([occ, occ], np.uint8)),
+            map_resolution_m=0.1,
+        )
     return time.perf_counter() - t0
 
 
@@ -607,9 +593,6 @@ def _prepare(
     cen,
     labels,
     occupied,
-    distances,
-    has_distances,
-    band,
     valid_lut,
     ignored_lut,
     geo,
@@ -644,8 +627,6 @@ def _prepare(
             n_unknown += 1
         lab[i] = lb
         surface = occupied[i] != 0
-        if has_distances and not surface:
-            surface = abs(distances[i]) < band  # False for NaN
         # An ignored class (sky, ...) is not ground: treat it as a cleared voxel.
         if ignored_lut[lb]:
             surface = False

@@ -23,7 +23,7 @@ has the opposite sign of distance, and the voxel is the one of that pair nearer 
 (|d| <= |d_neighbour|; on a tie the voxel in front, d >= 0, wins). That is one voxel per sign
 change, so the surface is one voxel thick whatever the pose noise does to the band of small
 distances. Since the status depends on the neighbours, the delta of a cloud carries the updated
-voxels and their observed face neighbours, each with its new status.
+voxels and those of their face neighbours whose status flipped, each with its new status.
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ from smana.services.mapper._grid import (
     hash_slot,
     pack_block,
     table_find,
+    unpack_block,
     voxblox_ray_keys,
     voxel_index,
     voxel_slot,
@@ -56,6 +57,7 @@ _RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds t
 # A flag bit of this back-end: the voxel was a surface voxel after the last cloud. Only the
 # incremental surface count reads it; the surface itself is always recomputed from distances.
 SURFACE = np.uint8(16)
+_SEEN = np.uint8(32)  # scratch mark of the extraction, cleared before it returns
 _FACES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.int64)
 
 
@@ -235,54 +237,96 @@ def _find_voxel(grid, ix, iy, iz):
     return np.int64(-1) if b < 0 else (b << (3 * grid.bits)) | local
 
 
-@njit(cache=True, error_model="numpy")
-def _surface_kernel(g, keys, grid, distance, weight, min_weight, out):
-    """out[i] = voxel g[i] (coordinates keys[i]) is a surface voxel (module docstring)."""
-    for i in range(g.shape[0]):
-        out[i] = False
-        gi = g[i]
-        if not weight[gi] >= min_weight:
+@njit(cache=True, error_model="numpy", inline="always")
+def _voxel_key(grid, g):
+    """(ix, iy, iz) of global voxel index g."""
+    bits = grid.bits
+    vb = 3 * bits
+    bm = (1 << bits) - 1
+    bx, by, bz = unpack_block(grid.block_keys[g >> vb])
+    local = g & ((1 << vb) - 1)
+    return (
+        (bx << bits) | (local & bm),
+        (by << bits) | ((local >> bits) & bm),
+        (bz << bits) | ((local >> (2 * bits)) & bm),
+    )
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz):
+    """Voxel g at (ix, iy, iz) is a surface voxel (module docstring)."""
+    if not weight[g] >= min_weight:
+        return False
+    d = distance[g]
+    neg = d < 0
+    ad = abs(d)
+    for f in range(6):
+        n = _find_voxel(grid, ix + _FACES[f, 0], iy + _FACES[f, 1], iz + _FACES[f, 2])
+        if n < 0 or not weight[n] >= min_weight:
             continue
-        d = distance[gi]
-        neg = d < 0
-        ad = abs(d)
-        for f in range(6):
-            n = _find_voxel(
-                grid,
-                keys[i, 0] + _FACES[f, 0],
-                keys[i, 1] + _FACES[f, 1],
-                keys[i, 2] + _FACES[f, 2],
-            )
-            if n < 0 or not weight[n] >= min_weight:
-                continue
-            dn = distance[n]
-            if (dn < 0) == neg:
-                continue
-            adn = abs(dn)
-            # the voxel nearer the crossing; on a tie the one in front (d >= 0), so exactly one
-            if ad < adn or (ad == adn and not neg):
-                out[i] = True
-                break
+        dn = distance[n]
+        if (dn < 0) == neg:
+            continue
+        adn = abs(dn)
+        # the voxel nearer the crossing; on a tie the one in front (d >= 0), so exactly one
+        if ad < adn or (ad == adn and not neg):
+            return True
+    return False
 
 
 @njit(cache=True, error_model="numpy")
-def _with_neighbours_kernel(g, keys, grid, flags, out):
-    """Write g and the observed face neighbours of each voxel into out; returns how many."""
-    n = 0
+def _surface_kernel(g, grid, distance, weight, min_weight, out):
     for i in range(g.shape[0]):
-        out[n] = g[i]
-        n += 1
+        ix, iy, iz = _voxel_key(grid, g[i])
+        out[i] = _is_surface(grid, distance, weight, min_weight, g[i], ix, iy, iz)
+
+
+@njit(cache=True, error_model="numpy")
+def _extract_kernel(changed, grid, flags, distance, weight, min_weight, seen, out_g, out_surf):
+    """Surface status after a cloud: of every updated voxel (listed whatever its status does) and
+    of their observed face neighbours (listed only when their status flipped: an unchanged
+    neighbour tells a consumer nothing). Sets the SURFACE bits; returns (listed, change in the
+    surface count). `seen` (7 per updated voxel) holds the voxels examined, marked _SEEN meanwhile
+    so that a voxel shared by several updated ones is looked at once."""
+    n_seen = 0
+    n_out = 0
+    dcount = 0
+    for i in range(changed.shape[0]):
+        g = changed[i]
+        flags[g] |= _SEEN
+        seen[n_seen] = g
+        n_seen += 1
+    for i in range(changed.shape[0]):
+        g = changed[i]
+        ix, iy, iz = _voxel_key(grid, g)
+        s = _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz)
+        was = (flags[g] & SURFACE) != 0
+        dcount += np.int64(s) - np.int64(was)
+        flags[g] = (flags[g] | SURFACE) if s else (flags[g] & ~SURFACE)
+        out_g[n_out] = g
+        out_surf[n_out] = s
+        n_out += 1
         for f in range(6):
-            nb = _find_voxel(
-                grid,
-                keys[i, 0] + _FACES[f, 0],
-                keys[i, 1] + _FACES[f, 1],
-                keys[i, 2] + _FACES[f, 2],
-            )
-            if nb >= 0 and flags[nb] & OBSERVED:
-                out[n] = nb
-                n += 1
-    return n
+            jx = ix + _FACES[f, 0]
+            jy = iy + _FACES[f, 1]
+            jz = iz + _FACES[f, 2]
+            nb = _find_voxel(grid, jx, jy, jz)
+            if nb < 0 or flags[nb] & _SEEN or not flags[nb] & OBSERVED:
+                continue
+            flags[nb] |= _SEEN
+            seen[n_seen] = nb
+            n_seen += 1
+            s = _is_surface(grid, distance, weight, min_weight, nb, jx, jy, jz)
+            was = (flags[nb] & SURFACE) != 0
+            if s != was:
+                dcount += 1 if s else -1
+                flags[nb] = (flags[nb] | SURFACE) if s else (flags[nb] & ~SURFACE)
+                out_g[n_out] = nb
+                out_surf[n_out] = s
+                n_out += 1
+    for i in range(n_seen):
+        flags[seen[i]] &= ~_SEEN
+    return n_out, dcount
 
 
 @njit(cache=True, error_model="numpy")
@@ -383,10 +427,22 @@ class Tsdf(MapBackend):
         self.last_updates = nc  # voxels whose distance was fused this cloud
         self.n_observed += int(counts[0])
         # a voxel's status depends on its neighbours: re-extract around every updated voxel
-        g = self.with_neighbours(changed[:nc])
-        surface = self.surface(g)
-        self.n_occupied += self._store_surface(g, surface)
-        return self._rows(g, surface)
+        c = grid.cols
+        out_g = np.empty(7 * nc, np.int64)
+        out_surf = np.empty(7 * nc, np.bool_)
+        n, dcount = _extract_kernel(
+            changed[:nc],
+            grid.state(),
+            c["flags"],
+            c["distance"],
+            c["weight"],
+            self.min_weight,
+            np.empty(7 * nc, np.int64),
+            out_g,
+            out_surf,
+        )
+        self.n_occupied += dcount
+        return self._rows(out_g[:n], out_surf[:n])
 
     # -- surface extraction ----------------------------------------------------------------
 
@@ -404,20 +460,8 @@ class Tsdf(MapBackend):
         g = self._check_index(g)
         out = np.empty(g.shape[0], np.bool_)
         c = self.grid.cols
-        keys = self.grid.coords(g)
-        _surface_kernel(
-            g, keys, self.grid.state(), c["distance"], c["weight"], self.min_weight, out
-        )
+        _surface_kernel(g, self.grid.state(), c["distance"], c["weight"], self.min_weight, out)
         return out
-
-    def with_neighbours(self, g) -> np.ndarray:
-        """Sorted unique voxel indices of g and their observed face neighbours."""
-        g = self._check_index(g)
-        out = np.empty(7 * g.shape[0], np.int64)
-        n = _with_neighbours_kernel(
-            g, self.grid.coords(g), self.grid.state(), self.grid.cols["flags"], out
-        )
-        return np.unique(out[:n])
 
     def _store_surface(self, g: np.ndarray, surface: np.ndarray) -> int:
         """Set the SURFACE bits of g; returns the change in the number of surface voxels."""
