@@ -260,8 +260,17 @@ def _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz):
     d = distance[g]
     neg = d < 0
     ad = abs(d)
+    vb = 3 * grid.bits
+    own_key, _ = voxel_index(ix, iy, iz, grid.bits)
     for f in range(6):
-        n = _find_voxel(grid, ix + _FACES[f, 0], iy + _FACES[f, 1], iz + _FACES[f, 2])
+        bkey, local = voxel_index(
+            ix + _FACES[f, 0], iy + _FACES[f, 1], iz + _FACES[f, 2], grid.bits
+        )
+        if bkey == own_key:  # most neighbours share the block: no hash probe
+            n = ((g >> vb) << vb) | local
+        else:
+            b = table_find(grid, bkey)
+            n = np.int64(-1) if b < 0 else (b << vb) | local
         if n < 0 or not weight[n] >= min_weight:
             continue
         dn = distance[n]
