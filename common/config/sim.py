@@ -141,9 +141,11 @@ class RobotConfig(Section, section="sim.robot"):
 @dataclass
 class GardenConfig(Section, section="sim.garden"):
     """Knobs of the procedural garden (`sim.world = "garden"`, services/sim/worlds/garden.py).
-    The defaults give a world like the paper's 3DRMS garden: 12 m x 12 m, terrain and grass in
-    about equal parts, and objects covering enough of it that about half of the ground is free
-    and traversable once the robot's radius is accounted for."""
+    The "classic" layout: 12 m x 12 m, terrain and grass in about equal parts, objects scattered
+    so that about half of the ground is free once the robot's radius is accounted for (~78 %
+    seen from above). The "3drms" layout holds the paper's shares seen from above (`free_share`,
+    `terrain_share`); the object frequencies, `clutter`, `min_gap_m`, `spawn_clearance_m` and
+    `terrain_fraction` are the classic layout's."""
 
     # "classic": straight gravel strips across noise patches, objects scattered with gaps (~78 %
     # free from above); "3drms": the paper's statistics (section 4.3), gravel paths between plazas,
