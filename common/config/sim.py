@@ -141,10 +141,16 @@ class RobotConfig(Section, section="sim.robot"):
 @dataclass
 class GardenConfig(Section, section="sim.garden"):
     """Knobs of the procedural garden (`sim.world = "garden"`, services/sim/worlds/garden.py).
-    The defaults give a world like the paper's 3DRMS garden: 12 m x 12 m, terrain and grass in
-    about equal parts, and objects covering enough of it that about half of the ground is free
-    and traversable once the robot's radius is accounted for."""
+    The "classic" layout: 12 m x 12 m, terrain and grass in about equal parts, objects scattered
+    so that about half of the ground is free once the robot's radius is accounted for (~78 %
+    seen from above). The "3drms" layout holds the paper's shares seen from above (`free_share`,
+    `terrain_share`); the object frequencies, `clutter`, `min_gap_m`, `spawn_clearance_m` and
+    `terrain_fraction` are the classic layout's."""
 
+    # "classic": straight gravel strips across noise patches, objects scattered with gaps (~78 %
+    # free from above); "3drms": the paper's statistics (section 4.3), gravel paths between plazas,
+    # lawns and densely planted beds (services/sim/worlds/garden_3drms.py)
+    layout: Literal["3drms", "classic"] = "classic"
     size_m: float = param(12.0, ge=2, le=1000)  # side of the square garden
     ground_resolution_m: float = param(0.1, ge=0.01)  # height field / ground class raster cell
     terrain_fraction: float = param(0.5, ge=0, le=0.9)  # of the ground, terrain rather than grass
@@ -164,8 +170,17 @@ class GardenConfig(Section, section="sim.garden"):
     roses: float = param(0.2, ge=0)
     obstacles: float = param(0.2, ge=0)
     trees: float = param(0.15, ge=0)
+    # layout "3drms" only: targets measured from above over the whole raster, walls included
+    free_share: float = param(0.48, gt=0, lt=1)  # top class traversable (paper: 48 %)
+    terrain_share: float = param(0.55, ge=0, le=1)  # terrain / traversable (paper: 55 %)
+    path_width_m: list[float] = param([1.4, 2.0], gt=0)  # [min, max]; >= 1.2 to be followable
+    plaza_clearance_m: float = param(2.6, ge=0)  # object-free disk around the spawn (the centre)
 
     def validate(self) -> None:
+        if len(self.path_width_m) != 2 or self.path_width_m[0] > self.path_width_m[1]:
+            raise ConfigError(
+                f"sim.garden.path_width_m: expected [min, max], got {self.path_width_m}"
+            )
         if self.ground_resolution_m > self.size_m / 4:
             got = self.ground_resolution_m
             raise ConfigError(f"sim.garden.ground_resolution_m: at most size_m / 4, got {got}")

@@ -2,7 +2,7 @@
 
     smana world preview --out world.png                # the world `smana up` explores
     smana world export  --out gt.ply                   # its labelled ground-truth cloud (PLY)
-    smana world info                                   # object counts, free share (JSON)
+    smana world info                                   # object counts, free shares (JSON)
     smana world preview --seed 0 --out world.png       # another garden
     smana world preview --world ply:garden.ply --out world.png
 
@@ -141,7 +141,8 @@ def cli(argv: list[str] | None = None) -> int:
             write_preview(world, args.out, args.pixels, args.seed)
             print(f"wrote a {args.pixels} px wide preview (axes in metres) to {args.out}")
         else:
-            print(json.dumps(world.summary(), indent=2))
+            radius_m = config_file_from_args(args).navgraph.robot_radius_m
+            print(json.dumps(world.summary(radius_m), indent=2))
     except (WorldError, OSError, ValueError) as exc:
         print(f"smana world: error: {exc}", file=sys.stderr)
         return 2

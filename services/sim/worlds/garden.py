@@ -64,6 +64,12 @@ def generate(
                 f"procedural gardens use 3DRMS ids; class {cid} missing from {classes.name}"
             )
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5EED]))
+    if config.layout == "3drms":
+        from .garden_3drms import layout_3drms
+
+        ground, placed = layout_3drms(config, _heights(config, rng), rng)
+        objects = walls(ground, config.wall_height_m, config.wall_thickness_m) + placed
+        return World(ground, objects, classes, name=f"garden-{seed}", seed=seed)
     ground = _make_ground(config, rng)
     objects = walls(ground, config.wall_height_m, config.wall_thickness_m)
     objects += _place_objects(config, ground, rng)
@@ -76,10 +82,10 @@ def _smooth_noise(rng: np.random.Generator, shape, sigma_cells: float) -> np.nda
     return f / (f.std() + 1e-12)
 
 
-def _make_ground(cfg: GardenConfig, rng: np.random.Generator) -> GroundModel:
+def _heights(cfg: GardenConfig, rng: np.random.Generator) -> np.ndarray:
+    """The ground's height field, f8[n, n], vertices `ground_resolution_m` apart."""
     res = cfg.ground_resolution_m
     n = int(round(cfg.size_m / res)) + 1
-    half = (n - 1) * res / 2
     # a few metres between bumps: gentle hills, not a washboard
     heights = _smooth_noise(rng, (n, n), 1.5 / res) * (cfg.height_amplitude_m / 2.5)
     if n > 2:
@@ -87,6 +93,14 @@ def _make_ground(cfg: GardenConfig, rng: np.random.Generator) -> GroundModel:
         steepest = float(np.hypot(gx, gy).max())
         if steepest > cfg.max_slope:
             heights *= cfg.max_slope / steepest
+    return heights
+
+
+def _make_ground(cfg: GardenConfig, rng: np.random.Generator) -> GroundModel:
+    res = cfg.ground_resolution_m
+    heights = _heights(cfg, rng)
+    n = heights.shape[0]
+    half = (n - 1) * res / 2
     xs = -half + np.arange(n) * res
     gx, gy = np.meshgrid(xs, xs, indexing="ij")
     # gravel paths: straight terrain strips across the garden, as gardens have

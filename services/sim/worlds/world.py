@@ -10,6 +10,9 @@ tools need:
   a traversable class and, if a radius is given, no obstacle lies within that radius;
 - `world.top_class()` / `world.top_height()` -> `Raster`s of the class and altitude seen from
   above (what a 2.5D navigation graph of the true world would hold);
+- `world.terrain_share()`, `world.reachable_fraction(robot_radius_m)` -> the statistics the paper
+  gives its garden (terrain share of the traversable surface) and how much of the free space
+  connects to the spawn;
 - `world.gt_cloud(spacing_m)` -> (points f4[N,3], labels u2[N]) sampled on every visible surface
   (faces buried in the ground or inside another object are left out);
 - `world.export_ply(path)`; `preview.py` shades its classes for `smana world preview`.
@@ -120,6 +123,29 @@ class World:
     def free_fraction(self, robot_radius_m: float = 0.0) -> float:
         return float(self.traversability(robot_radius_m).data.mean())
 
+    def terrain_share(self) -> float:
+        """Share of the traversable surface seen from above whose class is terrain (the paper's
+        3DRMS garden: 0.55, the rest grass)."""
+        top = self.top_class().data
+        traversable = self.classes.traversable_lut[top]
+        return float((top[traversable] == TERRAIN).sum() / max(int(traversable.sum()), 1))
+
+    def reachable_fraction(self, robot_radius_m: float, only_class: int | None = None) -> float:
+        """Share of the cells with `robot_radius_m` clearance (of class `only_class`, if given)
+        that connect to the spawn pose through such cells, side by side (4-neighbours: a
+        diagonal squeeze between two corners does not count)."""
+        ok = self.traversability(robot_radius_m)
+        if only_class is not None:
+            ok = Raster(
+                ok.origin_xy, ok.resolution_m, ok.data & (self.top_class().data == only_class)
+            )
+        if not ok.data.any():
+            return 0.0
+        x, y, _ = self.spawn_pose(robot_radius_m)
+        labels, _ = ndimage.label(ok.data)
+        here = labels[ok.index_of(x, y)]
+        return float((labels == here).sum() / ok.data.sum()) if here else 0.0
+
     def spawn_pose(self, robot_radius_m: float = 0.45) -> tuple[float, float, float]:
         """(x, y, z_ground) of the free spot nearest the centre with that much clearance."""
         trav = self.traversability(robot_radius_m)
@@ -196,7 +222,11 @@ class World:
         write_labelled_ply(path, pts, labels, self.classes.colour_lut[labels])
         return len(pts)
 
-    def summary(self) -> dict:
+    def summary(self, robot_radius_m: float = 0.4) -> dict:
+        """What `smana world info` prints; `robot_radius_m` is the navigation graph's safety
+        radius (`navgraph.robot_radius_m`). Shares are of the whole raster seen from above,
+        walls included, as the paper counts its 48 % free surface."""
+        r = robot_radius_m
         counts: dict[str, int] = {}
         for o in self.objects:
             counts[o.kind] = counts.get(o.kind, 0) + 1
@@ -208,4 +238,8 @@ class World:
             "terrain_share_of_ground": float(np.mean(ground == TERRAIN)),
             "free_fraction": self.free_fraction(),
             "free_fraction_r0.35": self.free_fraction(0.35),
+            f"free_fraction_r{r:g}": self.free_fraction(r),
+            "terrain_share_of_traversable": self.terrain_share(),
+            f"reachable_share_r{r:g}": self.reachable_fraction(r),
+            f"terrain_reachable_share_r{r:g}": self.reachable_fraction(r, TERRAIN),
         }
