@@ -778,7 +778,8 @@ def _iv(d: dict) -> dict:
 
 # -- command line --------------------------------------------------------------------------------
 
-DURATION_HELP = "full run about 20 min with 2 jobs on a 2-core machine; --quick about 40 s"
+# measured: one full seed 235 s of CPU, a quick seed 3 s (plus about 10 s to start a worker)
+DURATION_HELP = "full run about 13 min with 2 jobs on a free 2-core machine; --quick about 40 s"
 
 
 def add_parser(sub) -> None:
@@ -791,8 +792,9 @@ def add_parser(sub) -> None:
         description="Paper Fig. 6 and 7: every back-end along a fixed 44 m trajectory, under 4 "
         "localisation and 4 label noise levels, over several seeds (world and start), one "
         "seed per worker process; the paper's claims decided by 95 % intervals over seeds.",
-        epilog=f"Duration: {DURATION_HELP} (5 seeds x 88 frames of 640 px integrated every 2nd "
-        "pixel, 5 cm voxels, 3 back-ends x 7 noise settings; quick: 2 seeds, 10 frames of 160 px, "
+        epilog=f"Duration: {DURATION_HELP} (5 seeds x 176 frames of 640 px integrated every 2nd "
+        "pixel, 5 cm voxels, 3 back-ends x 7 noise settings: about 4 CPU minutes per seed, 55 % "
+        "of it the SLIC label degradation; quick: 2 seeds, 10 frames of 160 px, "
         "10 cm voxels, 2 levels). A progress bar with an ETA over all maps shows on a terminal "
         "(SMANA_PROGRESS=1 forces it, 0 hides it). Exits 1 when a seed fails (the others are "
         "still run and summarised, with a warning on top of noise_summary.md).",
