@@ -204,6 +204,17 @@ def test_the_experiments_figures_say_n_and_draw_spread_only_with_several_runs(tm
         styles = {(ln.get_marker(), ln.get_linestyle()) for ln in lines}
         assert len(styles) == len(exp.BACKENDS)
         assert "n = 1" in fig.axes[0].get_legend().get_title().get_text()
+        assert not fig.axes[0].collections  # one run: no interval bars
+
+    # three seeds: each point a mean with its 95 % interval over them
+    saved.clear()
+    rows3 = [{**r, "seed": s, "error_mean_m": 0.02 + 0.001 * s} for s in (3, 4, 5) for r in rows]
+    exp.write_noise_outputs(rows3, meta, tmp_path / "noise3")
+    assert len(saved) == 3
+    for _, fig in saved:
+        title = fig.axes[0].get_legend().get_title().get_text()
+        assert "95 % t-interval (n = 3 seeds)" in title
+        assert fig.axes[0].collections  # the interval bars
 
     def exploration(seeds):
         saved.clear()
