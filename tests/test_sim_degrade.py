@@ -169,3 +169,17 @@ def test_pose_noise_has_the_set_standard_deviation():
     assert np.array_equal(PoseNoise(0, 0, np.random.default_rng(0)).apply(base), base)
     with pytest.raises(ValueError):
         PoseNoise(-1, 0, np.random.default_rng(0))
+
+
+def test_superpixels_from_an_earlier_call_give_the_same_degradation():
+    """The noise experiment segments each frame once and reuses it at every level."""
+    labels = _blocks(np.random.default_rng(3))
+    first = LabelDegrader("medium", np.random.default_rng(5), COLOURS).degrade(labels)
+    again = LabelDegrader("medium", np.random.default_rng(5), COLOURS).degrade(
+        labels, superpixels=first.superpixels
+    )
+    assert np.array_equal(first.labels, again.labels)
+    with pytest.raises(ValueError, match="do not match"):
+        LabelDegrader("low", np.random.default_rng(5), COLOURS).degrade(
+            labels, superpixels=first.superpixels[:10]
+        )

@@ -116,9 +116,16 @@ class LabelDegrader:
         self._in_table = np.zeros(self.size, bool)
         self._in_table[[i for i in self.ids if i < self.size]] = True
 
-    def degrade(self, labels: np.ndarray, timings: dict | None = None) -> DegradedLabels:
+    def degrade(
+        self,
+        labels: np.ndarray,
+        timings: dict | None = None,
+        superpixels: np.ndarray | None = None,
+    ) -> DegradedLabels:
         """Degrade a true label image (i4[H, W], -1 where there is no point). With `timings`,
-        the SLIC and the vote-and-redraw times go in it (ms)."""
+        the SLIC and the vote-and-redraw times go in it (ms). `superpixels`: this image's SLIC
+        segmentation from an earlier call (`DegradedLabels.superpixels`); SLIC depends on the
+        image alone, so a caller degrading one image at several levels computes it once."""
         labels = np.asarray(labels)
         if labels.ndim != 2:
             raise ValueError(f"label image must be 2D, got shape {labels.shape}")
@@ -128,7 +135,12 @@ class LabelDegrader:
         if self.level == "off":
             return DegradedLabels(labels.astype(np.int32), None, None, None)
         t0 = time.perf_counter()
-        sp = self.superpixels(labels)
+        if superpixels is None:
+            sp = self.superpixels(labels)
+        elif superpixels.shape != labels.shape:
+            raise ValueError(f"superpixels {superpixels.shape} do not match labels {labels.shape}")
+        else:
+            sp = superpixels
         t1 = time.perf_counter()
         majority = superpixel_majority(sp, labels, self.size)
         given = self.redraw(majority)
