@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from smana.common.config.explorer import ViewConfig
+from smana.common.config.explorer import ExplorerConfig, ViewConfig
 from smana.services.explorer import frontier as fr
 from smana.services.explorer.reference import view_gains_reference
 
@@ -164,6 +164,7 @@ def test_view_gains_rejects_bad_input():
 
 @pytest.mark.parametrize("seed", range(20))
 def test_select_view_is_exact_branch_and_bound(seed):
+    """select_view equals the brute-force reference: every candidate costed and scored."""
     rng = np.random.default_rng(seed)
     n = 25
     xy = rng.uniform(-5, 5, (n, 2))
@@ -171,6 +172,7 @@ def test_select_view_is_exact_branch_and_bound(seed):
     detour = rng.uniform(1.0, 3.0, n)  # path cost = detour * straight distance * 1.5 >= bound
     unreachable = rng.random(n) < 0.15
     robot = np.array([0.3, -0.2])
+    score = fr.ViewScore(rng.uniform(5, 12), rng.uniform(5, 30), rng.uniform(0, 2))
     queried = []
 
     def cost(goal):
@@ -187,33 +189,123 @@ def test_select_view_is_exact_branch_and_bound(seed):
         np.zeros(n),
         robot,
         cost,
-        weight=0.7,
+        score,
         min_gain_m2=1.0,
         cost_per_m_lower_bound=1.5,
         max_queries=n,
     )
-    scores = gains - 0.7 * detour * 1.5 * np.hypot(*(xy - robot).T)
-    ok = (gains >= 1.0) & ~unreachable
+    n_asked = len(queried)
+    reference = [
+        (gains[i] / score.view_area_m2 - score.weight * c[0] / score.cost_per_view_range, c[1])
+        for i in range(n)
+        if gains[i] >= 1.0 and (c := cost(xy[i])) is not None
+    ]
+    best = max(reference, key=lambda r: r[0])
     assert choice is not None
-    assert choice.score == pytest.approx(scores[ok].max())
-    assert choice.path == f"path{int(np.flatnonzero(ok)[np.argmax(scores[ok])])}"
-    assert choice.n_queries == len(queried) <= n
+    assert choice.score == pytest.approx(best[0])
+    assert choice.path == best[1]
+    assert choice.n_queries == n_asked <= n
+
+
+def test_path_cost_weight_trades_a_big_view_across_grass_for_a_near_one_on_terrain():
+    """A big gain 8 m away across grass against a small gain 2 m away on terrain, costed with the
+    planner's eq. 1 (t_f 0.8, T(terrain) 1, T(grass) 2, res 0.2): the view gain alone (w = 0)
+    takes the far one, the default weight the near one, and so did neither the old score."""
+    flat, bound = fr.path_cost_scale(0.8, np.array([np.inf, 2.0, 1.0]), 0.2)
+    assert (flat, bound) == pytest.approx((5.0, 1 + 4 / math.sqrt(2)))
+    fov = fr.FovModel.build(0.2, ViewConfig())
+    xy = np.array([[8.0, 0.0], [0.0, 2.0]])
+    gains = np.array([0.9, 0.35]) * fov.view_area_m2
+    per_m = {0: 1 + 0.8 * 2 / 0.2, 1: flat}  # grass, terrain
+
+    def cost(goal):
+        i = int(np.flatnonzero((xy == goal).all(axis=1))[0])
+        return per_m[i] * np.hypot(*goal), i
+
+    def choose(weight):
+        score = fr.ViewScore(fov.view_area_m2, flat * ViewConfig().max_range_m, weight)
+        c = fr.select_view(xy, xy, gains, [0, 0], [0, 0], cost, score, 0.4, bound, max_queries=5)
+        return c.path
+
+    assert choose(0.0) == 0
+    assert choose(ExplorerConfig().path_cost_weight) == 1
+    old = gains - 0.05 * np.array([cost(p)[0] for p in xy])  # gain_m2 - 0.05 * cost, as it was
+    assert np.argmax(old) == 0
+
+
+def test_view_area_is_the_all_unknown_gain():
+    fov = fr.FovModel.build(0.2, ViewConfig())
+    gains, _ = fr.view_gains(np.ones((61, 61), bool), None, [[30, 30]], fov)
+    assert gains.max() == pytest.approx(fov.view_area_m2)
+    # the sector's area, up to the grid's discretisation
+    sector = math.radians(57) / 2 * (4.0**2 - 0.3**2)
+    assert fov.view_area_m2 == pytest.approx(sector, rel=0.05)
 
 
 def test_select_view_none_when_nothing_is_worth_it_and_honours_query_cap():
     xy = np.array([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]])
     calls = []
+    score = fr.ViewScore(8.0, 20.0, 1.0)
 
     def cost(goal):
         calls.append(goal)
         return None
 
     assert (
-        fr.select_view(xy, xy, [0.1, 0.2, 0.3], [0, 0, 0], [0, 0], cost, 1.0, 0.5, max_queries=12)
+        fr.select_view(xy, xy, [0.1, 0.2, 0.3], [0, 0, 0], [0, 0], cost, score, 0.5, max_queries=9)
         is None
     )
     assert calls == []
     assert (
-        fr.select_view(xy, xy, [5, 5, 5], [0, 0, 0], [0, 0], cost, 1.0, 0.5, max_queries=2) is None
+        fr.select_view(xy, xy, [5, 5, 5], [0, 0, 0], [0, 0], cost, score, 0.5, max_queries=2)
+        is None
     )
     assert len(calls) == 2
+
+
+# -- nearest-frontier distance field ------------------------------------------------------------
+
+
+def _dijkstra_reference(free, starts, start_d, res):
+    """scipy's Dijkstra on the 8-connected graph of free nodes, one run per start."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
+    nx, ny = free.shape
+    rows, cols, w = [], [], []
+    for i, j in np.argwhere(free):
+        for a in (-1, 0, 1):
+            for b in (-1, 0, 1):
+                p, q = i + a, j + b
+                if (a or b) and 0 <= p < nx and 0 <= q < ny and free[p, q]:
+                    rows.append(i * ny + j)
+                    cols.append(p * ny + q)
+                    w.append(res * math.hypot(a, b))
+    graph = coo_matrix((w, (rows, cols)), shape=(nx * ny, nx * ny)).tocsr()
+    out = np.full(nx * ny, np.inf)
+    for (i, j), d0 in zip(starts, start_d, strict=True):
+        out = np.minimum(out, d0 + dijkstra(graph, indices=i * ny + j))
+    return out.reshape(nx, ny)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_travel_distance_matches_scipy_dijkstra(seed):
+    rng = np.random.default_rng(seed)
+    free = rng.random((23, 17)) < 0.7
+    cand = np.argwhere(free)
+    starts = cand[rng.choice(len(cand), size=int(rng.integers(1, 4)), replace=False)]
+    start_d = rng.uniform(0, 0.5, len(starts))
+    got = fr.travel_distance_m(free, starts, start_d, 0.2)
+    want = _dijkstra_reference(free, starts, start_d, 0.2)
+    assert np.array_equal(np.isinf(got), np.isinf(want))
+    np.testing.assert_allclose(got[np.isfinite(want)], want[np.isfinite(want)], atol=1e-9)
+    assert np.isinf(got[~free]).all()
+
+
+def test_travel_distance_checks_its_inputs():
+    free = np.ones((4, 4), bool)
+    free[1, 1] = False
+    assert np.isinf(fr.travel_distance_m(free, np.zeros((0, 2)), np.zeros(0), 0.2)).all()
+    for starts, d in (([[1, 1]], [0.0]), ([[4, 0]], [0.0]), ([[0, 0]], [-1.0]), ([[0, 0]], [])):
+        with pytest.raises(ValueError):
+            fr.travel_distance_m(free, starts, d, 0.2)

@@ -140,12 +140,18 @@ def _params(max_range_m=4.0, follower=None, **kw) -> ExplorerConfig:
     return ExplorerConfig(view=ViewConfig(max_range_m=max_range_m), follower=follower, **kw)
 
 
+def _explorer(params: ExplorerConfig, class_cost=COST) -> Explorer:
+    """The explorer as the service builds it: path costs scored on the toy planner's scale."""
+    flat, bound = fr.path_cost_scale(0.8, class_cost, RES)
+    return Explorer(params, TRAV, 9, bound, flat)
+
+
 def wrap_angle_arr(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 def _run(world: ToyWorld, params: ExplorerConfig, start=(1.0, 1.0, 0.0), dt=0.1, t_max=400.0):
-    ex = Explorer(params, TRAV, 9)
+    ex = _explorer(params)
     x, y, yaw = start
     clearance = math.inf
     obstacle_centres = (np.argwhere(world.obstacle) + 0.5) * RES
@@ -184,8 +190,10 @@ def test_explores_a_toy_garden_without_touching_obstacles():
     assert ex.done, ex.state_dict()
     assert ex.done_reason in ("no_view_worth_it", "no_frontier")
     assert coverage >= 0.9, coverage
-    # the safety zone inflates obstacles by 0.35 m; corner cutting and late sightings eat some
-    assert clearance > 0.15, clearance
+    # the safety zone inflates obstacles by 0.35 m; corner cutting and late sightings (a tree
+    # beside the 57-degree camera is mapped only when the robot turns to it) eat some: 0.09-0.20 m
+    # over seeds 1-4 with the old score, 0.09-0.12 m with the new one (issue 14)
+    assert clearance > 0.07, clearance
     st = ex.state_dict()
     assert st["distance_m"] > 10
     assert sum(st["label_counts"].values()) > 20
@@ -201,7 +209,7 @@ def test_grass_cost_shifts_travel_onto_terrain():
         cost = COST.copy()
         cost[1] = grass_cost
         params = _params(max_range_m=3.0, max_queries=6, time_budget_s=150)
-        ex = Explorer(params, TRAV, 9)
+        ex = _explorer(params, cost)
         x, y, yaw, t, dt = 1.0, 1.0, 0.0, 0.0, 0.1
         while t < 150 and not ex.done:
             if round(t / dt) % 3 == 0:
@@ -223,7 +231,7 @@ def test_grass_cost_shifts_travel_onto_terrain():
 def test_stops_when_nothing_is_left_and_on_budget():
     world = ToyWorld(_garden(3))
     world.known[:] = True  # everything already mapped: nothing to explore
-    ex = Explorer(_params(empty_retry_s=0.2), TRAV, 9)
+    ex = _explorer(_params(empty_retry_s=0.2))
     ex.update_grid(world.grid())
     t = 0.0
     x, y, yaw = 1.0, 1.0, 0.0
@@ -237,7 +245,7 @@ def test_stops_when_nothing_is_left_and_on_budget():
     assert ex.done_reason == "no_frontier"
     assert t < 20  # one spin (about 9 s) and a few retries
 
-    ex = Explorer(_params(time_budget_s=5.0), TRAV, 9)
+    ex = _explorer(_params(time_budget_s=5.0))
     world = ToyWorld(_garden(3))
     world.reveal(1.0, 1.0, 0.0)
     ex.update_grid(world.grid())
@@ -250,7 +258,7 @@ def test_stops_when_nothing_is_left_and_on_budget():
 def test_the_budget_starts_with_the_first_map_not_the_first_pose():
     # poses from t=0, but the map only arrives at t=50 (a stack still compiling): the 5 s budget
     # runs from there
-    ex = Explorer(_params(time_budget_s=5.0), TRAV, 9)
+    ex = _explorer(_params(time_budget_s=5.0))
     for t in range(0, 50, 5):
         ex.update_pose(1.0, 1.0, 0.0, float(t))
         assert ex.wants_plan() is None and not ex.done
@@ -264,7 +272,7 @@ def test_the_budget_starts_with_the_first_map_not_the_first_pose():
     ex.update_pose(1.0, 1.0, 0.0, 56.0)
     assert ex.wants_plan() is None and ex.done_reason == "time_budget"
     # a restarted explorer keeps the budget's start, not the trajectory's
-    again = Explorer(_params(time_budget_s=5.0), TRAV, 9)
+    again = _explorer(_params(time_budget_s=5.0))
     again.resume(ex.state_dict(), np.array(ex.trajectory))
     assert again.t_start == 50.0
 
@@ -272,7 +280,7 @@ def test_the_budget_starts_with_the_first_map_not_the_first_pose():
 def test_a_path_that_becomes_blocked_triggers_a_replan():
     world = ToyWorld(_garden(4))
     world.known[:20, :] = True
-    ex = Explorer(_params(), TRAV, 9)
+    ex = _explorer(_params())
     ex.update_grid(world.grid())
     ex.update_pose(1.0, 1.0, 0.0, 0.0)
     out = ex.plan(world.path_cost(ex.grid))
@@ -286,7 +294,7 @@ def test_a_path_that_becomes_blocked_triggers_a_replan():
 
 
 def test_bad_pose_is_rejected():
-    ex = Explorer(_params(), TRAV, 9)
+    ex = _explorer(_params())
     with pytest.raises(ValueError):
         ex.update_pose(float("nan"), 0.0, 0.0, 0.0)
     with pytest.raises(ValueError):
@@ -304,7 +312,7 @@ def test_a_robot_caught_in_a_safety_zone_backs_out_on_the_open_side():
     flags[10, :] |= fr.OBSTACLE
     flags[[8, 9, 11], :] |= fr.SAFETY_ZONE
     g = GridBox(np.zeros(2), RES, labels, flags)
-    ex = Explorer(_params(start_search_radius_m=1.0), TRAV, 9)
+    ex = _explorer(_params(start_search_radius_m=1.0))
     ex.update_grid(g)
     free = fr.traversable_mask(labels, flags, TRAV)
     x, y = 9.9 * RES, 6.5 * RES  # 2 cm from the wall node's edge, closer to the far side's free
@@ -314,3 +322,53 @@ def test_a_robot_caught_in_a_safety_zone_backs_out_on_the_open_side():
     # the far side is a separate component with no clear hop: not reachable from here
     assert not reach[15, 5]
     assert reach[3, 3]
+
+
+@pytest.mark.slow
+def test_nearest_frontier_explores_the_toy_garden_too():
+    world = ToyWorld(_garden(1))
+    params = _params(
+        max_range_m=3.0,
+        follower={"lookahead_m": 0.3, "max_linear_mps": 0.5},
+        time_budget_s=400,
+        strategy="nearest_frontier",
+    )
+    ex, clearance = _run(world, params)
+    reach = world.reachable_traversable((1.0, 1.0))
+    coverage = (world.known & reach).sum() / reach.sum()
+    assert ex.done_reason in ("no_view_worth_it", "no_frontier"), ex.state_dict()
+    assert coverage >= 0.9, coverage
+    # no collision here; the baseline drives along the edge of unknown space, where obstacles
+    # are mapped late, and comes closer than the next-best view (0.00-0.20 m over seeds 1-4)
+    assert clearance > 0.0, clearance
+    assert ex.state_dict()["strategy"] == "nearest_frontier"
+
+
+def test_nearest_frontier_goes_by_travel_distance_not_straight_line():
+    """A frontier 1.8 m away behind a wall (13 m to drive round) and one 4.8 m away in the open:
+    nearest_frontier takes the open one, facing the unknown; a periodic plan keeps it."""
+    labels = np.full((40, 20), 2, np.uint16)
+    flags = np.full((40, 20), fr.KNOWN, np.uint8)
+    flags[0:10, 15:20] = 0  # unknown behind the wall
+    flags[30:40, 0:5] = 0  # unknown in the open
+    labels[flags == 0] = 0
+    labels[0:38, 10] = 4
+    flags[0:38, 10] |= fr.OBSTACLE
+    g = GridBox(np.zeros(2), RES, labels, flags)
+    ex = _explorer(_params(strategy="nearest_frontier"))
+    ex.update_grid(g)
+    ex.update_pose(5.5 * RES, 5.5 * RES, 0.0, 0.0)
+
+    def straight(start, goal):
+        return float(np.hypot(*(goal - start))), np.array([start, goal])
+
+    out = ex.plan(straight)
+    c = out.chosen
+    assert c is not None and ex.goal is not None
+    assert c.cell[0] == 29 and c.cell[1] <= 5, c.cell
+    assert abs(wrap_angle(c.yaw)) < math.pi / 2  # faces +x, the unknown
+    assert c.score == pytest.approx(-np.hypot(*(c.cell - [5, 5])) * RES, abs=0.5)
+    ex.update_pose(6.5 * RES, 5.5 * RES, 0.0, 5.0)
+    again = ex.plan(straight, "periodic")
+    assert ex.goal.choice is c and not again.switched
+    assert ex.state_dict()["strategy"] == "nearest_frontier"

@@ -173,6 +173,10 @@ def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(fake_st
         state = json.loads((run_dir / "explorer" / "state.json").read_text())
         assert state["done_reason"] in ("no_frontier", "no_view_worth_it")
         assert state["plans"] and state["explored_m2"] > 50
+        # the strategy is recorded for the lab to tell runs apart; one history row per plan
+        assert state["strategy"] == "nbv"
+        assert {p["strategy"] for p in state["plans"]} == {"nbv"}
+        assert len(state["history"]) == state["n_plans"] and len(state["history"][0]) == 4
         traj = np.loadtxt(run_dir / "explorer" / "trajectory.csv", delimiter=",", skiprows=1)
         assert traj[:, 1].max() > 2.5
         g = np.load(run_dir / "explorer" / "graph.npz")

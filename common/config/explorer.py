@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 from smana.common.config._schema import ConfigError, Section, param, table
 
@@ -57,14 +58,25 @@ class ExplorerConfig(Section, section="explorer"):
     # plus this, with neither, the explorer gives up (ends `no_graph` or `no_planner`).
     startup_grace_s: float = param(120.0, ge=0)
     control_rate_hz: float = param(10.0, gt=0)
-    # next-best-view choice (services/explorer/frontier.py::select_view)
+    # "nbv": the paper's next-best view (score below); "nearest_frontier": Yamauchi 1997, the
+    # nearest frontier by travel distance, a baseline for the lab
+    strategy: Literal["nbv", "nearest_frontier"] = "nbv"
+    # next-best-view choice (services/explorer/frontier.py::select_view, `ViewScore`)
     candidate_spacing_m: float = param(0.6, gt=0)  # one candidate per block of this side
-    min_gain_m2: float = param(0.4, ge=0)  # a view seeing less unknown area is not worth it
-    path_cost_weight: float = param(0.05, ge=0)  # m^2 of view gain per unit of A* path cost
+    # a view seeing less unknown area is not worth a trip (both strategies: they stop alike)
+    min_gain_m2: float = param(0.4, ge=0)
+    # score = gain / full view area - w * path cost / cost of one view range on the cheapest
+    # flat ground; w = the share of a full view worth driving one max_range_m there. 0.5: a full
+    # view is worth 2 view ranges (8 m) of terrain, or ~2.4 m of grass at cost 4. A first
+    # guess to be tuned by an ablation (0.05 on the old m^2-per-cost scale was worth ~32 m).
+    path_cost_weight: float = param(0.5, ge=0)
     max_queries: int = param(10, gt=0)  # path queries per plan (branch and bound cap)
     # when to choose again
     replan_period_s: float = param(3.0, gt=0)
-    switch_margin_m2: float = param(1.0, ge=0)  # a periodic plan switches only for this much more
+    # a periodic plan switches only for a score higher by this (score units: share of a full
+    # view; 0.12 is ~1 m^2 of a default 8 m^2 view). nearest_frontier keeps its goal until it is
+    # reached or no longer worth a look.
+    switch_margin_share: float = param(0.12, ge=0)
     dwell_s: float = param(0.6, ge=0)  # pause at a reached view so the map catches up
     stuck_timeout_s: float = param(8.0, gt=0)  # no progress along the path: give that goal up
     # a given-up goal is left out of the candidates within this radius, for this long

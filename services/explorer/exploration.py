@@ -10,9 +10,14 @@ Decisions, in the order they are checked:
 - the remaining path crosses a node that became an obstacle or safety zone -> stop, plan;
 - no progress along the path for `stuck_timeout_s` -> forget that goal for a while, plan;
 - the goal's own view gain fell under `min_gain_m2` (seen on the way) -> plan;
-- every `replan_period_s` -> plan, and switch only to a view better by `switch_margin_m2`;
+- every `replan_period_s` -> plan, and switch only to a view better by `switch_margin_share`
+  (nearest_frontier: keep the goal while it is still worth a look);
 - no view worth it: spin once on the spot to look around, then give up after
   `done_after_empty` empty plans; or the time budget is over -> done.
+
+Two ways to choose (`strategy`): "nbv", the paper's next-best view (`frontier.select_view` with
+`frontier.ViewScore`), and "nearest_frontier", Yamauchi's baseline: the frontier node nearest by
+travel over free nodes whose view is worth a look (`_nearest_frontier`).
 
 Its parameters are the [explorer] config section as it is (`ExplorerConfig`, with its
 [explorer.view] and [explorer.follower] tables); the names above are its keys.
@@ -98,12 +103,19 @@ class Explorer:
         traversable_lut: np.ndarray,
         n_labels: int,
         cost_per_m_lower_bound: float = 1.0,
+        cost_per_m_flat: float = 1.0,
     ):
         """`config` is the [explorer] section as it is. `cost_per_m_lower_bound`: every path costs
         at least this much per metre of straight-line distance (from the planner's t_f and the
-        class costs; 1.0 is always safe): it lets `select_view` skip hopeless path queries."""
+        class costs; 1.0 is always safe): it lets `select_view` skip hopeless path queries.
+        `cost_per_m_flat`: the planner's cost of a metre on the cheapest flat ground, the unit
+        path costs are scored in (both from `frontier.path_cost_scale`; 1.0 and 1.0 is a planner
+        whose cost is the path length)."""
+        if not (cost_per_m_flat > 0 and cost_per_m_lower_bound >= 0):
+            raise ValueError("need cost_per_m_flat > 0 and cost_per_m_lower_bound >= 0")
         self.config = config
         self.cost_per_m_lower_bound = float(cost_per_m_lower_bound)
+        self.cost_per_m_flat = float(cost_per_m_flat)
         self.traversable_lut = np.asarray(traversable_lut, bool)
         self.grid: GridBox | None = None
         self._fov: fr.FovModel | None = None
@@ -139,6 +151,11 @@ class Explorer:
     def update_grid(self, grid: GridBox) -> None:
         if self._fov is None or self._fov.resolution_m != grid.resolution_m:
             self._fov = fr.FovModel.build(grid.resolution_m, self.config.view)
+            self.score = fr.ViewScore(
+                self._fov.view_area_m2,
+                self.cost_per_m_flat * self.config.view.max_range_m,
+                self.config.path_cost_weight,
+            )
         self.grid = grid
 
     def update_pose(self, x: float, y: float, yaw: float, t: float) -> None:
@@ -238,15 +255,7 @@ class Explorer:
         front = fr.frontier_cells(reach, unknown)
         self.frontier_size = len(front)
         self.history.append((self.t_now, self.explored_m2, self.frontier_size, self.distance_m))
-        spacing = max(1, int(round(self.config.candidate_spacing_m / g.resolution_m)))
-        cells = fr.sample_candidates(front, spacing)
-        cells = self._drop_blacklisted(cells)
-        opaque = fr.opaque_mask(g.flags)
-        gains, yaws = fr.view_gains(
-            unknown, opaque if self.config.view.occlusion else None, cells, self._fov
-        )
-        best_gain = gains.max(axis=1) if len(cells) else np.zeros(0)
-        xy = g.centres(cells) if len(cells) else np.zeros((0, 2))
+        keep_goal = reason == "periodic" and self.goal is not None and not self._goal_exhausted()
 
         def goal_cost(goal_xy):
             gc = g.cell_of(goal_xy)
@@ -262,22 +271,40 @@ class Explorer:
                 path = np.vstack([[x, y], np.asarray(path, float)[:, :2]])
             return cost + hop, path
 
-        choice = fr.select_view(
-            xy,
-            cells,
-            best_gain,
-            yaws,
-            np.array([x, y]),
-            goal_cost,
-            self.config.path_cost_weight,
-            self.config.min_gain_m2,
-            self.cost_per_m_lower_bound,
-            max_queries=self.config.max_queries,
-        )
+        opaque = fr.opaque_mask(g.flags) if self.config.view.occlusion else None
+        if self.config.strategy == "nearest_frontier":
+            if keep_goal:
+                # Yamauchi's robot drives to its frontier and chooses again once there (or once
+                # the frontier has gone): a periodic plan changes nothing
+                cells, choice = np.zeros((0, 2), np.int64), None
+                best_gain = np.zeros(0)
+            else:
+                cells, best_gain, choice = self._nearest_frontier(
+                    free, front, starts, (x, y), unknown, opaque, goal_cost
+                )
+        else:
+            spacing = max(1, int(round(self.config.candidate_spacing_m / g.resolution_m)))
+            cells = fr.sample_candidates(front, spacing)
+            cells = self._drop_blacklisted(cells)
+            gains, yaws = fr.view_gains(unknown, opaque, cells, self._fov)
+            best_gain = gains.max(axis=1) if len(cells) else np.zeros(0)
+            choice = fr.select_view(
+                g.centres(cells) if len(cells) else np.zeros((0, 2)),
+                cells,
+                best_gain,
+                yaws,
+                np.array([x, y]),
+                goal_cost,
+                self.score,
+                self.config.min_gain_m2,
+                self.cost_per_m_lower_bound,
+                max_queries=self.config.max_queries,
+            )
+        xy = g.centres(cells) if len(cells) else np.zeros((0, 2))
         outcome = PlanOutcome(reason, choice, False, len(front), len(cells), xy, best_gain)
         self.last_outcome = outcome
         if choice is None:
-            if reason in ("periodic",) and self.goal is not None and not self._goal_exhausted():
+            if keep_goal:
                 return outcome  # nothing new, keep going to the current goal
             self._set_goal(None)
             self._empty_plans += 1
@@ -287,9 +314,8 @@ class Explorer:
                 self.finish("no_view_worth_it" if len(cells) else "no_frontier")
             return outcome
         self._empty_plans = 0
-        if reason == "periodic" and self.goal is not None and not self._goal_exhausted():
-            if choice.score <= self._current_score() + self.config.switch_margin_m2:
-                return outcome
+        if keep_goal and choice.score <= self._current_score() + self.config.switch_margin_share:
+            return outcome
         outcome.switched = self.goal is not None
         self._set_goal(choice)
         return outcome
@@ -331,6 +357,7 @@ class Explorer:
         return {
             "t_s": self.t_now,
             "t_start_s": self.t_start,
+            "strategy": self.config.strategy,
             "elapsed_s": self.elapsed_s(),
             "mode": self.mode,
             "done": self.done,
@@ -476,7 +503,56 @@ class Explorer:
         # the cost left is the planned cost scaled by the share of the path still ahead
         total = max(self.goal.path_length_m, 1e-6)
         left = self.goal.choice.path_cost * self.follower.remaining_length_m() / total
-        return self._goal_gain() - self.config.path_cost_weight * left
+        return float(self.score(self._goal_gain(), left))
+
+    def _nearest_frontier(self, free, front, starts, xy, unknown, opaque, goal_cost):
+        """Yamauchi's choice: the frontier node nearest by travel (metres over free nodes from the
+        robot, class costs ignored) among those whose view is worth a look (`min_gain_m2`, the
+        same test the next-best view applies, so both strategies stop on the same criterion),
+        facing its most unknown heading. Returns (cells whose gain was computed, their gains,
+        the choice or None). Gains are computed in growing batches in distance order: the
+        nearest worthy node is usually among the first few."""
+        g = self.grid
+        cells = self._drop_blacklisted(front)
+        src = np.array(list(starts.values()), np.int64).reshape(-1, 2)
+        hop = np.hypot(*(g.centres(src) - np.asarray(xy, float)).T) if len(src) else np.zeros(0)
+        dist = fr.travel_distance_m(free, src, hop, g.resolution_m)
+        d = dist[cells[:, 0], cells[:, 1]] if len(cells) else np.zeros(0)
+        order = np.argsort(d, kind="stable")
+        order = order[np.isfinite(d[order])]
+        seen_cells, seen_gains = [], []
+        n_queries, lo, batch = 0, 0, 16
+        while lo < len(order) and n_queries < self.config.max_queries:
+            idx = order[lo : lo + batch]
+            gains, yaws = fr.view_gains(unknown, opaque, cells[idx], self._fov)
+            best = gains.max(axis=1)
+            seen_cells.append(cells[idx])
+            seen_gains.append(best)
+            for k in np.flatnonzero(best >= self.config.min_gain_m2):
+                if n_queries >= self.config.max_queries:
+                    break
+                n_queries += 1
+                goal_xy = g.centres(cells[idx[k]])
+                reply = goal_cost(goal_xy)
+                if reply is None or not math.isfinite(reply[0]):
+                    continue
+                choice = fr.ViewChoice(
+                    cells[idx[k]].copy(),
+                    goal_xy,
+                    float(yaws[k]),
+                    float(best[k]),
+                    float(reply[0]),
+                    -float(d[idx[k]]),  # nearer is better
+                    reply[1],
+                    n_queries,
+                    len(order),
+                )
+                return np.concatenate(seen_cells), np.concatenate(seen_gains), choice
+            lo += batch
+            batch *= 2
+        if not seen_cells:
+            return np.zeros((0, 2), np.int64), np.zeros(0), None
+        return np.concatenate(seen_cells), np.concatenate(seen_gains), None
 
     def _forget(self, xy, seconds: float | None = None) -> None:
         until = self.t_now + (self.config.blacklist_s if seconds is None else seconds)

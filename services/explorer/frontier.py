@@ -10,13 +10,19 @@ Three steps, each usable alone:
 2. `view_gains`: for each candidate and each of `n_yaw` headings, the unknown area (m^2) inside
    the camera's field-of-view mask (a sector of `fov_deg` and `max_range_m`: [explorer.view]),
    optionally cut by line of sight through obstacle nodes. The best heading is the view's yaw.
-3. `select_view`: score = gain - weight * A* path cost. Path costs come from a callable (the
-   planner over Zenoh in the service, a local search in tests); the candidates are queried in
-   order of an optimistic bound so that only a few paths are requested (branch and bound).
+3. `select_view`: score = gain / A_view - weight * cost / (c_flat * max_range) (`ViewScore`: the
+   share of a full view that is unknown, minus the path cost counted in view ranges driven on the
+   cheapest flat ground). Path costs come from a callable (the planner over Zenoh in the service, a
+   local search in tests); the candidates are queried in order of an optimistic bound so that
+   only a few paths are requested (branch and bound).
+
+The nearest-frontier baseline (Yamauchi 1997) needs `travel_distance_m`: metres over free nodes
+from the robot, 8-connected (a numba Dijkstra, `_travel_distance_kernel`).
 """
 
 from __future__ import annotations
 
+import heapq
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -154,6 +160,11 @@ class FovModel:
         in_sector = np.abs(diff) <= math.radians(fov_deg) / 2 + 1e-9
         return cls(float(resolution_m), view, yaws, offsets, in_sector)
 
+    @property
+    def view_area_m2(self) -> float:
+        """The area of one full view: the largest gain any candidate can have (all unknown)."""
+        return float(self.in_sector.sum(axis=1).max()) * self.resolution_m**2
+
 
 @numba.njit(cache=True, nogil=True)
 def _visible_unknown_kernel(
@@ -238,6 +249,48 @@ def view_gains(
 # -- choosing the view ------------------------------------------------------------------------
 
 
+def path_cost_scale(
+    t_f: float, class_costs: np.ndarray, resolution_m: float
+) -> tuple[float, float]:
+    """(cost per metre on the cheapest flat ground, a lower bound on cost per straight-line metre)
+    for the planner's cost c = d + h_f |dh| + t_f T(l) per step (paper eq. 1).
+
+    Along a grid axis a metre is 1/res steps of cost res + t_f T_min: 1 + t_f T_min / res (5 with
+    the defaults t_f 0.8, T(terrain) 1, res 0.2). No path can do better than diagonal steps on the
+    cheapest class (res sqrt 2 per step), nor beat the straight line: 1 + t_f T_min / (res sqrt 2)
+    per metre of straight-line distance bounds every path from below (`select_view`'s bound).
+    """
+    if not resolution_m > 0 or not t_f >= 0:
+        raise ValueError(f"need resolution_m > 0 and t_f >= 0, got {resolution_m}, {t_f}")
+    costs = np.asarray(class_costs, np.float64)
+    finite = costs[np.isfinite(costs)]
+    t_min = float(finite.min()) if len(finite) else 0.0
+    return 1.0 + t_f * t_min / resolution_m, 1.0 + t_f * t_min / (resolution_m * math.sqrt(2.0))
+
+
+@dataclass(frozen=True)
+class ViewScore:
+    """score = gain_m2 / view_area_m2 - weight * cost / cost_per_view_range.
+
+    Both terms are dimensionless, so `weight` (`explorer.path_cost_weight`) reads as the share of
+    a full view worth driving one view range (`view.max_range_m`) on the cheapest flat ground:
+    gain and cost trade on one scale whatever the sensor's footprint or the planner's t_f.
+    """
+
+    view_area_m2: float  # `FovModel.view_area_m2`: the gain of a view into all-unknown space
+    cost_per_view_range: float  # planner cost of max_range_m on the cheapest flat ground
+    weight: float
+
+    def __post_init__(self):
+        if not (self.view_area_m2 > 0 and self.cost_per_view_range > 0 and self.weight >= 0):
+            raise ValueError(
+                f"need view_area_m2 > 0, cost_per_view_range > 0, weight >= 0, got {self}"
+            )
+
+    def __call__(self, gain_m2, cost):
+        return gain_m2 / self.view_area_m2 - self.weight * cost / self.cost_per_view_range
+
+
 PathCostFn = Callable[[np.ndarray], "tuple[float, object] | None"]
 
 
@@ -248,7 +301,7 @@ class ViewChoice:
     yaw: float
     gain_m2: float
     path_cost: float
-    score: float
+    score: float  # nbv: `ViewScore`; nearest_frontier: minus the travel distance (m)
     path: object  # whatever the cost function returned with the cost (the planner's reply)
     n_queries: int
     n_candidates: int
@@ -261,30 +314,31 @@ def select_view(
     yaws: np.ndarray,
     robot_xy: np.ndarray,
     path_cost: PathCostFn,
-    weight: float,
+    score: ViewScore,
     min_gain_m2: float,
     cost_per_m_lower_bound: float = 1.0,
     *,
     max_queries: int,
 ) -> ViewChoice | None:
-    """Best view by score = gain - weight * path cost, asking `path_cost` as few times as it can.
+    """Best view by `score(gain, path cost)`, asking `path_cost` as few times as it can.
 
-    `path_cost(goal_xy)` returns (cost, path) or None when the goal is unreachable. Because every
-    path costs at least `cost_per_m_lower_bound` times the straight-line distance, `gain - weight
-    * bound * distance` is an upper bound on a candidate's score: candidates are queried in order
-    of that bound and the search stops as soon as no remaining bound can beat the best score found
-    (exact), or after `max_queries` (a latency cap; then the best found so far wins).
+    `path_cost(goal_xy)` returns (cost, path) or None when the goal is unreachable. Every path
+    costs at least `cost_per_m_lower_bound` times the straight-line distance and the score falls
+    as the cost grows, so `score(gain, bound * distance)` is an upper bound on a candidate's
+    score: candidates are queried in order of that bound and the search stops as soon as no
+    remaining bound can beat the best score found (exact), or after `max_queries` (a latency cap;
+    then the best found so far wins).
     Candidates with a gain below `min_gain_m2` are not worth a trip; None when none is left.
     """
-    if weight < 0 or cost_per_m_lower_bound < 0:
-        raise ValueError("weight and cost_per_m_lower_bound must be >= 0")
+    if cost_per_m_lower_bound < 0:
+        raise ValueError("cost_per_m_lower_bound must be >= 0")
     candidates_xy = np.asarray(candidates_xy, np.float64).reshape(-1, 2)
     gains_m2 = np.asarray(gains_m2, np.float64).reshape(-1)
     worth = np.flatnonzero(gains_m2 >= min_gain_m2)
     if len(worth) == 0:
         return None
     dist = np.hypot(*(candidates_xy[worth] - np.asarray(robot_xy, np.float64)[:2]).T)
-    bound = gains_m2[worth] - weight * cost_per_m_lower_bound * dist
+    bound = score(gains_m2[worth], cost_per_m_lower_bound * dist)
     order = worth[np.argsort(-bound, kind="stable")]
     bound_sorted = np.sort(bound)[::-1]
     best: ViewChoice | None = None
@@ -301,15 +355,15 @@ def select_view(
         cost, path = reply
         if not math.isfinite(cost):
             continue
-        score = float(gains_m2[i] - weight * cost)
-        if best is None or score > best.score:
+        s = float(score(gains_m2[i], cost))
+        if best is None or s > best.score:
             best = ViewChoice(
                 np.asarray(cells[i]),
                 candidates_xy[i].copy(),
                 float(yaws[i]),
                 float(gains_m2[i]),
                 float(cost),
-                score,
+                s,
                 path,
                 0,
                 len(worth),
@@ -317,3 +371,67 @@ def select_view(
     if best is not None:
         best.n_queries = n_queries
     return best
+
+
+# -- the nearest-frontier baseline ------------------------------------------------------------
+
+
+@numba.njit(cache=True, nogil=True)
+def _travel_distance_kernel(
+    free: np.ndarray, src: np.ndarray, src_d: np.ndarray, resolution_m: float
+) -> np.ndarray:
+    """Multi-source Dijkstra over `free` nodes, 8-connected, steps res and res * sqrt 2."""
+    nx, ny = free.shape
+    dist = np.full((nx, ny), np.inf)
+    diag = resolution_m * math.sqrt(2.0)
+    heap = [(0.0, np.int64(0))]
+    heap.pop()
+    for k in range(src.shape[0]):
+        i, j = src[k, 0], src[k, 1]
+        if src_d[k] < dist[i, j]:
+            dist[i, j] = src_d[k]
+            heapq.heappush(heap, (src_d[k], np.int64(i * ny + j)))
+    while len(heap) > 0:
+        d, n = heapq.heappop(heap)
+        i, j = n // ny, n % ny
+        if d > dist[i, j]:
+            continue  # a stale entry: the node was settled through a shorter way
+        for a in range(-1, 2):
+            for b in range(-1, 2):
+                if a == 0 and b == 0:
+                    continue
+                p, q = i + a, j + b
+                if p < 0 or q < 0 or p >= nx or q >= ny or not free[p, q]:
+                    continue
+                nd = d + (diag if a != 0 and b != 0 else resolution_m)
+                if nd < dist[p, q]:
+                    dist[p, q] = nd
+                    heapq.heappush(heap, (nd, np.int64(p * ny + q)))
+    return dist
+
+
+def travel_distance_m(
+    free: np.ndarray, starts: np.ndarray, start_dist_m: np.ndarray, resolution_m: float
+) -> np.ndarray:
+    """Metres of travel from the nearest start to every node over `free` nodes (8-connected,
+    diagonal res * sqrt 2, class costs ignored: Yamauchi's nearest frontier is by distance);
+    inf where no start reaches. Each start (ix, iy) must be free and begins at `start_dist_m`
+    (the hop from the robot to it)."""
+    free = np.ascontiguousarray(free, dtype=np.bool_)
+    if free.ndim != 2:
+        raise ValueError(f"free must be 2-D, got shape {free.shape}")
+    src = np.ascontiguousarray(np.asarray(starts, np.int64).reshape(-1, 2))
+    src_d = np.ascontiguousarray(np.asarray(start_dist_m, np.float64).reshape(-1))
+    if len(src_d) != len(src):
+        raise ValueError(f"{len(src)} starts but {len(src_d)} start distances")
+    if not resolution_m > 0:
+        raise ValueError(f"resolution_m must be > 0, got {resolution_m}")
+    if len(src) == 0:
+        return np.full(free.shape, np.inf)
+    if (src < 0).any() or (src[:, 0] >= free.shape[0]).any() or (src[:, 1] >= free.shape[1]).any():
+        raise ValueError("start nodes outside the grid")
+    if not free[src[:, 0], src[:, 1]].all():
+        raise ValueError("start nodes must be free")
+    if not (np.isfinite(src_d).all() and (src_d >= 0).all()):
+        raise ValueError("start distances must be finite and >= 0")
+    return _travel_distance_kernel(free, src, src_d, float(resolution_m))

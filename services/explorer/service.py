@@ -51,14 +51,6 @@ STATE_PERIOD_S = 0.5
 CHECKPOINT_PERIOD_S = 10.0  # state and trajectory saved for a restarted explorer to carry on
 
 
-def min_cost_per_m(t_f: float, class_costs: np.ndarray, resolution_m: float) -> float:
-    """A lower bound on path cost per metre of straight-line distance: every transition costs its
-    length plus t_f * T(l), and the longest transition is a diagonal (res * sqrt 2)."""
-    finite = class_costs[np.isfinite(class_costs)]
-    t_min = float(finite.min()) if len(finite) else 0.0
-    return 1.0 + t_f * t_min / (resolution_m * math.sqrt(2.0))
-
-
 class ExplorerService(Service):
     name = "explorer"
 
@@ -70,10 +62,11 @@ class ExplorerService(Service):
         self.class_costs = self._class_costs()
         nav = config.navgraph
         self.grid = NavGrid.from_bounds(nav.bounds_min_xy, nav.bounds_max_xy, nav.resolution_m)
-        bound = min_cost_per_m(
+        # the costs the planner will use for our requests: its t_f, the table and our overrides
+        flat, bound = fr.path_cost_scale(
             config.planner.t_f, self.table.costs(self.class_costs), nav.resolution_m
         )
-        self.core = Explorer(self.cfg, self.table.traversable_lut, self.table.size, bound)
+        self.core = Explorer(self.cfg, self.table.traversable_lut, self.table.size, bound, flat)
         self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
         self._grid_dirty = False
         self._grid_version_used = -1
@@ -156,6 +149,7 @@ class ExplorerService(Service):
         tiny = dataclasses.replace(self.cfg.view, max_range_m=1.0, min_range_m=0.1, n_yaw=4)
         fov = fr.FovModel.build(self.grid.resolution_m, tiny)
         fr.view_gains(unknown, ~unknown, np.array([[4, 4]]), fov)
+        fr.travel_distance_m(unknown, np.array([[4, 4]]), np.zeros(1), self.grid.resolution_m)
         self.log.info("kernels ready in %.1f s", time.perf_counter() - t0)
 
     def setup(self) -> None:
@@ -272,6 +266,7 @@ class ExplorerService(Service):
                 self._plan_log.append(
                     {
                         "t_s": self.core.t_now,
+                        "strategy": self.cfg.strategy,
                         "reason": reason,
                         "goal": c.xy.tolist(),
                         "yaw": c.yaw,
