@@ -179,7 +179,10 @@ def exploration_run(out: Path, seed: int, arm: Arm, s: ExplorationExperimentConf
     run_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     with open(run_dir / "up.log", "w") as f:
+        # its own process group, so a timeout ends the whole stack; Ctrl-C no longer reaches it
+        # by itself, run_exploration forwards it (_LIVE)
         p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+        _LIVE.add(p.pid)
         # a hung run must not hang the experiment: its process group is ended after a timeout
         timer = threading.Timer(s.budget_s * 3 + 180, os.killpg, (p.pid, signal.SIGKILL))
         timer.start()
@@ -188,11 +191,15 @@ def exploration_run(out: Path, seed: int, arm: Arm, s: ExplorationExperimentConf
             _, status, usage = os.wait4(p.pid, 0)
         finally:
             timer.cancel()
+            _LIVE.discard(p.pid)
         p.returncode = code = os.waitstatus_to_exitcode(status)
     wall = time.perf_counter() - t0
     metrics = _load(run_dir / "metrics.json")
     state = _load(run_dir / "explorer" / "state.json")
     return code, metrics, state, usage.ru_utime + usage.ru_stime, wall
+
+
+_LIVE: set[int] = set()  # process groups of the runs under way
 
 
 def _load(path: Path) -> dict:
@@ -269,7 +276,8 @@ def run_exploration(
     todo = [(seed, arm) for seed in s.seeds for arm in s.arms]
     rows = []
     runs = progress.bar(len(todo), "exploration", unit="run")
-    with ThreadPoolExecutor(max_workers=s.jobs) as pool:
+    pool = ThreadPoolExecutor(max_workers=s.jobs)
+    try:
         futs = {
             pool.submit(exploration_run, out, seed, arm, s, spawns[seed]): (seed, arm)
             for seed, arm in todo
@@ -287,6 +295,17 @@ def run_exploration(
                 f"{run_name(seed, arm)}: exit {row['exit_code']}, {row['wall_time_s']} s, "
                 f"terrain share {row['terrain_share']}, coverage {row['coverage']}"
             )
+    except BaseException:
+        # Ctrl-C: stop the queued runs and ask the running stacks to stop as `smana up` would
+        pool.shutdown(wait=False, cancel_futures=True)
+        for pid in list(_LIVE):
+            try:
+                os.killpg(pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+        raise
+    finally:
+        pool.shutdown(wait=True)
     runs.close()
     rows.sort(key=lambda r: ([a.name for a in s.arms].index(r["arm"]), r["seed"]))
     (write or write_exploration_outputs)(rows, s, out)
