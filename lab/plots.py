@@ -521,3 +521,30 @@ def progress_plot(
     for ax in (top, bottom):
         ax.grid(True, alpha=0.3)
     return fig
+
+
+def band_plot(
+    curves: list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
+    title: str,
+    xlabel: str,
+    ylabel: str,
+    note: str | None = None,
+    hline: float | None = None,
+) -> Figure:
+    """Mean curves with a shaded interval band: each curve is (label, x, mean, lo, hi); NaN in
+    lo/hi (fewer than two runs there) leaves the band out at those x. `hline` marks a target
+    (95 % coverage)."""
+    fig = _figure()
+    ax = fig.add_subplot()
+    for k, (label, x, mean, lo, hi) in enumerate(curves):
+        (line,) = ax.plot(x, mean, label=label, linestyle=LINESTYLES[k % len(LINESTYLES)])
+        ok = np.isfinite(lo) & np.isfinite(hi)
+        ax.fill_between(x, lo, hi, where=ok, color=line.get_color(), alpha=0.2, linewidth=0)
+    if hline is not None:
+        ax.axhline(hline, color="grey", linestyle=":", linewidth=1)
+    ax.set_title(title)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, alpha=0.3)
+    ax.legend(title=note, title_fontsize="small", fontsize="small")
+    return fig

@@ -1,5 +1,5 @@
-"""`smana experiment exploration --quick`: two short runs of the whole stack (grass cost x1 and
-x4) and the experiment's table, plot and summary."""
+"""`smana experiment exploration --quick`: four short runs of the whole stack (NBV at grass cost
+x1 and x4, two seeds each, two at once) and the experiment's verdicts, tables and plots."""
 
 from __future__ import annotations
 
@@ -16,14 +16,25 @@ def test_exploration_quick(tmp_path):
     assert exp.cli(["exploration", "--quick", "--out", str(tmp_path)]) == 0
     data = json.loads((tmp_path / "exploration_results.json").read_text())
     runs = data["runs"]
-    assert [r["grass_cost_factor"] for r in runs] == [1.0, 4.0]
+    assert [(r["arm"], r["seed"]) for r in runs] == [
+        ("nbv_x1", 3),
+        ("nbv_x1", 4),
+        ("nbv_x4", 3),
+        ("nbv_x4", 4),
+    ]
     for r in runs:
-        assert r["exit_code"] == 0, r
+        assert r["exit_code"] == 0 and r["ok"], r
         assert r["terrain_share"] is not None and 0.0 <= r["terrain_share"] <= 1.0
         assert r["coverage"] > 0.2 and r["distance_m"] > 0.5, r
-    # each run is a complete run directory with its own report, and the grass cost reached it
-    cfg = (tmp_path / "seed3_grass_x4" / "config.toml").read_text()
+        assert len(r["curve"]["coverage"]) >= 2
+        assert r["curve"]["coverage"][-1] == pytest.approx(r["coverage"])
+    # each run is a complete run directory with its own report, its grass cost and its start
+    cfg = (tmp_path / "seed3_nbv_x4" / "config.toml").read_text()
     assert 'class_costs = ["grass=4.0"]' in cfg
-    assert (tmp_path / "seed3_grass_x1" / "report.md").is_file()
+    x, y, _ = exp.exploration.pick_spawn(3, 6.0)
+    assert f"spawn = [{x}, {y}," in cfg
+    assert (tmp_path / "seed3_nbv_x1" / "report.md").is_file()
     assert (tmp_path / "exploration_terrain_share.png").stat().st_size > 1000
-    assert "| x4 |" in (tmp_path / "exploration_summary.md").read_text()
+    text = (tmp_path / "exploration_summary.md").read_text()
+    assert text.splitlines()[2].startswith("| claim | paper |") and "WARNING" not in text
+    assert "| nbv_x4 | 2 (0) |" in text

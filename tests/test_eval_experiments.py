@@ -173,30 +173,156 @@ def test_noise_a_failed_seed_is_reported_and_the_others_go_on(tmp_path):
     assert {c["verdict"] for c in data["claims"]} == {stats.INCONCLUSIVE}
 
 
-def test_exploration_outputs_from_rows(tmp_path):
+def _run(seed, arm, share=0.6, dist=40.0, reach_at=None, code=0, n=11):
+    """A synthetic exploration row: coverage rises linearly with distance to 0.97 at `dist`
+    (or to 0.9 and never 95 % with reach_at=False)."""
+    from smana.lab.experiments import exploration as ex
+
+    end = 0.97 if reach_at is not False else 0.9
+    hist = [(10.0 * k, 5.0 * k, 3, dist * k / (n - 1)) for k in range(n)]
+    m = {
+        "exploration": {"terrain_share": share, "coverage": end, "distance_m": dist},
+        "explorer": {
+            "explored_m2": hist[-1][1],
+            "done_reason": "no_frontier",
+            "elapsed_s": 100.0,
+            "wall_time_s": 125.0,
+        },
+    }
+    if code:
+        m = {}
+    return ex.make_row(seed, arm, code, m, {"history": hist} if not code else {}, 50.0, 60.0)
+
+
+def test_coverage_curve_is_rescaled_to_ground_truth_and_censored():
+    from smana.lab.experiments import exploration as ex
+
+    hist = [(100.0, 0.0, 5, 0.0), (110.0, 10.0, 4, 5.0), (120.0, 20.0, 0, 9.0)]
+    t, d, cov = ex.coverage_curve(hist, 20.0, 0.96)
+    # slow reference: each row's count over the final count, times the ground-truth end
+    assert cov.tolist() == pytest.approx([r[1] / 20.0 * 0.96 for r in hist])
+    assert t.tolist() == [0.0, 10.0, 20.0] and d.tolist() == [0.0, 5.0, 9.0]
+    assert ex.first_reach(d, cov) == 9.0
+    assert ex.first_reach(d, np.minimum(cov, 0.94)) is None  # censored, not a number
+    assert all(len(a) == 0 for a in ex.coverage_curve(hist, 20.0, None))
+    row = _run(3, ex.nbv(2.0), reach_at=False)
+    assert row["distance_to_95_m"] is None and row["time_to_95_s"] is None
+    row = _run(3, ex.nbv(2.0), dist=40.0)
+    # 0.97 * k / 10 >= 0.95 first at k = 10 (0.97 * 0.9 = 0.873)
+    assert row["distance_to_95_m"] == pytest.approx(40.0) and row["time_to_95_s"] == 100.0
+    assert row["real_time_factor"] == 0.8
+
+
+def test_mean_curve_holds_the_last_value_and_gives_a_band():
+    from smana.lab.experiments import exploration as ex
+
+    rows = [_run(s, ex.nbv(2.0), dist=d) for s, d in ((3, 20.0), (4, 40.0))]
+    grid, mean, lo, hi = ex.mean_curve(rows, "distance_m", n_points=5)
+    assert grid.tolist() == [0.0, 10.0, 20.0, 30.0, 40.0]
+    ref = [
+        np.mean([np.interp(x, r["curve"]["distance_m"], r["curve"]["coverage"]) for r in rows])
+        for x in grid
+    ]
+    assert mean.tolist() == pytest.approx(ref)
+    assert mean[-1] == pytest.approx(0.97)  # the short run keeps its final coverage
+    assert np.all(lo[1:-1] < mean[1:-1]) and np.all(hi[1:-1] > mean[1:-1])
+
+
+def _verdict(table, start):
+    (v,) = [v for v in table if v["claim"].startswith(start)]
+    return v["verdict"]
+
+
+def test_exploration_verdicts_from_synthetic_rows(tmp_path):
+    from smana.lab import stats
+    from smana.lab.experiments import exploration as ex
+
     rows = []
-    for seed in (3, 4):
-        for f, share in ((1.0, 0.55), (2.0, 0.7), (4.0, 0.85)):
-            rows.append(
-                {
-                    "seed": seed,
-                    "grass_cost_factor": f,
-                    "exit_code": 0,
-                    "terrain_share": share + 0.01 * seed,
-                    "coverage": 0.95,
-                    "explored_area_m2": 50.0,
-                    "distance_m": 40.0 + seed,
-                    "min_clearance_m": 0.4,
-                    "done_reason": "no_frontier",
-                    "wall_time_s": 200.0,
-                }
-            )
-    rows.append({**rows[0], "seed": 5, "terrain_share": None, "exit_code": 1})
-    exp.write_exploration_outputs(rows, exp.ExplorationExperimentConfig(seeds=(3, 4, 5)), tmp_path)
-    summary = json.loads((tmp_path / "exploration_results.json").read_text())["summary"]
-    x1 = summary[0]
-    assert x1["runs"] == 3 and x1["terrain_share_mean"] == pytest.approx(0.585)
-    assert summary[2]["paper_terrain_share"] == 0.88
+    for seed in (3, 4, 5):
+        for f, share in ((1.0, 0.60), (2.0, 0.70), (4.0, 0.88)):
+            rows.append(_run(seed, ex.nbv(f), share + 0.01 * (seed - 4), dist=30.0 + seed))
+        rows.append(_run(seed, ex.BASELINE, 0.65, dist=60.0 + seed))
+    table = ex.verdicts(rows)
+    assert _verdict(table, "terrain share at grass x1") == stats.REPRODUCED
+    assert _verdict(table, "terrain share rises") == stats.REPRODUCED
+    assert _verdict(table, "NBV reaches") == stats.REPRODUCED
+    # the baseline is better: not reproduced; far from the paper: not reproduced
+    worse = [
+        {**r, "distance_to_95_m": 200.0 + r["seed"]} if r["strategy"] == "nbv" else r for r in rows
+    ]
+    assert _verdict(ex.verdicts(worse), "NBV reaches") == stats.NOT_REPRODUCED
+    far = [{**r, "terrain_share": 0.2 + 0.01 * r["seed"]} for r in rows]
+    assert _verdict(ex.verdicts(far), "terrain share at grass x4") == stats.NOT_REPRODUCED
+    # only one baseline run reaches 95 %: inconclusive, whatever the means
+    few = [
+        {**r, "distance_to_95_m": None}
+        if r["strategy"] == "nearest_frontier" and r["seed"] > 3
+        else r
+        for r in rows
+    ]
+    assert _verdict(ex.verdicts(few), "NBV reaches") == stats.INCONCLUSIVE
+
+    s = ex.ExplorationExperimentConfig(seeds=(3, 4, 5))
+    ex.write_exploration_outputs(rows, s, tmp_path)
     text = (tmp_path / "exploration_summary.md").read_text()
-    assert "reproduced" in text and "NOT" not in text
-    assert (tmp_path / "exploration_terrain_share.png").stat().st_size > 1000
+    assert text.splitlines()[2].startswith("| claim | paper | smana mean [95 % CI] (n) |")
+    assert "WARNING" not in text
+    data = json.loads((tmp_path / "exploration_results.json").read_text())
+    x1 = data["summary"][0]
+    assert x1["arm"] == "nbv_x1" and x1["terrain_share"]["mean"] == pytest.approx(0.60)
+    assert x1["reached_95"] == 3
+    for name in ("terrain_share", "coverage_distance", "coverage_time"):
+        assert (tmp_path / f"exploration_{name}.png").stat().st_size > 1000
+
+
+def test_a_failed_run_is_counted_warned_at_the_top_and_exits_non_zero(tmp_path, monkeypatch):
+    from smana.lab.experiments import exploration as ex
+
+    arms = (ex.nbv(1.0), ex.nbv(4.0))
+
+    def fake_run(out, seed, arm, s, spawn=None):
+        if seed == 4 and arm.grass_cost_factor == 4.0:
+            return 1, {}, {}, 1.0, 2.0  # crashed: non-zero exit, no metrics
+        r = _run(seed, arm, 0.6 if arm.grass_cost_factor == 1 else 0.8)
+        m = {"exploration": {k: r[k] for k in ("terrain_share", "coverage", "distance_m")}}
+        return 0, m, {}, 1.0, 2.0
+
+    monkeypatch.setattr(ex, "exploration_run", fake_run)
+    monkeypatch.setattr(ex, "pick_spawn", lambda seed, size_m: [0.0, 0.0, 0.0])
+    s = ex.ExplorationExperimentConfig(seeds=(3, 4), arms=arms, jobs=2)
+    rows = ex.run_exploration(s, tmp_path, log=lambda _: None)
+    assert sum(not r["ok"] for r in rows) == 1
+    assert ex.finish(rows, tmp_path, "exploration") == 1
+    lines = (tmp_path / "exploration_summary.md").read_text().splitlines()
+    assert lines[2].startswith("**WARNING: 1 of 4 runs failed**")
+    assert "seed4_nbv_x4 (exit 1)" in lines[2]
+    summary = json.loads((tmp_path / "exploration_results.json").read_text())["summary"]
+    assert [(d["arm"], d["runs"], d["failed"]) for d in summary] == [
+        ("nbv_x1", 2, 0),
+        ("nbv_x4", 2, 1),
+    ]
+
+
+def test_pick_spawn_is_a_reachable_free_cell_and_depends_on_the_seed():
+    from smana.lab.experiments import exploration as ex
+    from smana.services.sim.worlds.garden import generate
+
+    a, b = ex.pick_spawn(3, 6.0), ex.pick_spawn(4, 6.0)
+    assert a == ex.pick_spawn(3, 6.0) and a != b
+    world = generate(3, size_m=6.0)
+    trav = world.traversability(ex.SPAWN_CLEARANCE_M)
+    assert trav.data[trav.index_of(a[0], a[1])]
+    assert -np.pi <= a[2] <= np.pi
+
+
+def test_ablation_outputs_from_synthetic_rows(tmp_path):
+    from smana.lab.experiments import ablation
+    from smana.lab.experiments import exploration as ex
+
+    arms = ablation.weight_arms(4.0, (0.0, 1.0))
+    assert arms[1].all_sets == (f"{ex.WEIGHT_KEY}=1.0",)
+    rows = [_run(s, a, 0.7 + 0.1 * a.path_cost_weight, dist=30.0) for a in arms for s in (3, 4)]
+    ablation.write_ablation_outputs(rows, ex.ExplorationExperimentConfig(seeds=(3, 4)), tmp_path)
+    text = (tmp_path / "ablation_summary.md").read_text()
+    assert "| 0 | x4 | 2 (0) | 70.0 %" in text and "| 1 | x4 | 2 (0) | 80.0 %" in text
+    assert (tmp_path / "ablation.png").stat().st_size > 1000

@@ -217,36 +217,43 @@ def test_the_experiments_figures_say_n_and_draw_spread_only_with_several_runs(tm
         assert fig.axes[0].collections  # the interval bars
 
     def exploration(seeds):
-        saved.clear()
-        runs = [
-            {
-                "seed": seed,
-                "grass_cost_factor": f,
-                "exit_code": 0,
-                "terrain_share": 0.5 + 0.05 * f + 0.01 * seed,
-                "coverage": 0.9,
-                "explored_area_m2": 40.0,
-                "distance_m": 30.0,
-                "min_clearance_m": 0.4,
-                "done_reason": "no_frontier",
-                "wall_time_s": 100.0,
-            }
-            for seed in seeds
-            for f in (1.0, 4.0)
-        ]
-        out = tmp_path / f"exploration{len(seeds)}"
-        exp.write_exploration_outputs(runs, exp.ExplorationExperimentConfig(seeds=seeds), out)
-        ((path, fig),) = saved
-        assert path.name == "exploration_terrain_share.png"
-        return fig
+        from smana.lab.experiments import exploration as ex
 
-    fig = exploration((3, 4, 5))
+        saved.clear()
+        runs = []
+        for seed in seeds:
+            for f in (1.0, 4.0):
+                hist = [(10.0 * k, 4.0 * k, 3, 3.0 * k) for k in range(11)]
+                m = {
+                    "exploration": {
+                        "terrain_share": 0.5 + 0.05 * f + 0.01 * seed,
+                        "coverage": 0.9,
+                        "distance_m": 30.0,
+                    },
+                    "explorer": {"explored_m2": 40.0},
+                }
+                runs.append(ex.make_row(seed, ex.nbv(f), 0, m, {"history": hist}, 1.0, 1.0))
+        out = tmp_path / f"exploration{len(seeds)}"
+        ex.write_exploration_outputs(runs, ex.ExplorationExperimentConfig(seeds=seeds), out)
+        by_name = {p.name: fig for p, fig in saved}
+        assert set(by_name) == {
+            "exploration_terrain_share.png",
+            "exploration_coverage_distance.png",
+            "exploration_coverage_time.png",
+        }
+        return by_name
+
+    figs = exploration((3, 4, 5))
+    fig = figs["exploration_terrain_share.png"]
     assert "n = 3 seeds" in fig.axes[0].get_title()
-    assert any("min-max (n = 3 seeds)" in t for t in _legend_texts(fig))
+    assert any("95 % CI (n = 3 seeds)" in t for t in _legend_texts(fig))
     assert fig.axes[0].collections  # the error bars
-    fig = exploration((3,))
+    band = figs["exploration_coverage_distance.png"].axes[0]
+    assert band.collections  # the interval bands
+    assert any("n = 3" in t for t in _legend_texts(figs["exploration_coverage_time.png"]))
+    fig = exploration((3,))["exploration_terrain_share.png"]
     assert "n = 1 seed" in fig.axes[0].get_title()
-    assert not any("min-max" in t for t in _legend_texts(fig))
+    assert not any("CI" in t for t in _legend_texts(fig))
     # no error bars: only the paper's line and smana's, no bar collections
     assert not fig.axes[0].collections
 

@@ -56,7 +56,7 @@ __all__ = [
 ]
 
 # subcommand -> module; each module has add_parser(sub) and main(args, parser, out)
-EXPERIMENTS = {"noise": "noise", "exploration": "exploration"}
+EXPERIMENTS = {"noise": "noise", "exploration": "exploration", "ablation": "ablation"}
 
 
 def cli(argv: list[str] | None = None) -> int:

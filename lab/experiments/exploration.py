@@ -1,17 +1,39 @@
-"""`smana experiment exploration` (paper 4.3): the whole stack (`smana up`) explores the garden
-with the grass traversability cost at x1 (costs ignored: grass costs what terrain costs), x2 (the
-class table) and x4, over several world seeds; the share of travelled graph nodes on terrain (vs
-grass), explored area and distance are read from each run's metrics.json.
+"""`smana experiment exploration` (paper 4.3): the whole stack (`smana up`) explores the garden,
+one run per arm and seed, `--jobs` runs at once.
+
+Arms: next-best-view (NBV) with the grass traversability cost at x1 (grass costs what terrain
+costs), x2 (the class table) and x4, and the nearest-frontier baseline (Yamauchi 1997) at x2, all
+in the same worlds. A seed fixes the world and the start pose (a random reachable free cell with
+`SPAWN_CLEARANCE_M`, drawn from the seed's own generator).
+
+Reported, each as a mean with its 95 % Student-t interval over seeds (lab/stats.py), and decided
+by the intervals: the share of travelled graph nodes on terrain (paper: 60/70/88 %), its rise from
+x1 to x4, and the distance to 95 % coverage of NBV against nearest-frontier.
+
+Coverage curve. The report's coverage (metrics.json `exploration.coverage`) is ground truth, but
+only at the end of the run: the share of the reachable traversable area (cells with the robot's
+radius of clearance, connected to the start) whose final graph node is known. The explorer's
+history gives `explored_m2` over time, but counts something else: known nodes its graph called
+traversable at each plan, reachable or not, in its own frame. The curve is the explorer's count
+rescaled so that its last value equals the ground-truth coverage:
+`coverage(t) = explored_m2(t) / explored_m2(end) * coverage_gt(end)`; that assumes the share of
+the explorer's count that is reachable ground truth stays the same over the run (an
+approximation, exact at the end). "Distance (time) to 95 %" is the first history row where that
+curve reaches 0.95; a run that never does is censored ("not reached"), never a number.
 """
 
 from __future__ import annotations
 
 import csv
 import json
+import math
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -19,27 +41,70 @@ import numpy as np
 
 from smana.common import progress
 from smana.common.zenoh_config import free_loopback_port
-from smana.lab import plots
+from smana.lab import plots, stats
 
 PAPER_TERRAIN_SHARE = {1.0: 0.60, 2.0: 0.70, 4.0: 0.88}  # grass cost factor -> terrain share
+TERRAIN_SHARE_TOLERANCE = 0.10  # "within 10 points of the paper"
+COVERAGE_TARGET = 0.95
+SPAWN_CLEARANCE_M = 0.6
+
+# The world every exploration run uses, as --set items; the one place to choose it (the
+# coordinator sets the cluttered 3DRMS-like garden here: 'sim.garden.layout="3drms"').
+WORLD_SETS: tuple[str, ...] = ()
+# The explorer's strategy key (Yamauchi's nearest frontier vs next best view).
+STRATEGY_KEY = "explorer.strategy"
+WEIGHT_KEY = "explorer.path_cost_weight"
 
 
-# -- exploration experiment ----------------------------------------------------------------------
+@dataclass(frozen=True)
+class Arm:
+    """One condition of the experiment: a name, a grass cost factor and its own --set items."""
+
+    name: str
+    grass_cost_factor: float
+    strategy: str = "nbv"
+    sets: tuple[str, ...] = ()
+    path_cost_weight: float | None = None
+
+    @property
+    def all_sets(self) -> tuple[str, ...]:
+        out = list(self.sets)
+        if self.strategy != "nbv":
+            # only non-default strategies are set: an NBV run works on a build without the key
+            out.append(f'{STRATEGY_KEY}="{self.strategy}"')
+        if self.path_cost_weight is not None:
+            out.append(f"{WEIGHT_KEY}={self.path_cost_weight}")
+        return tuple(out)
+
+
+def nbv(factor: float) -> Arm:
+    return Arm(f"nbv_x{factor:g}", factor)
+
+
+BASELINE = Arm("nearest_frontier_x2", 2.0, strategy="nearest_frontier")
+FULL_ARMS = (nbv(1.0), nbv(2.0), nbv(4.0), BASELINE)
 
 
 @dataclass
 class ExplorationExperimentConfig:
-    """What `smana experiment exploration` runs: one `smana up` per seed and grass cost factor."""
+    """What `smana experiment exploration` runs: one `smana up` per arm and seed."""
 
-    seeds: tuple[int, ...] = (3, 4, 5)
-    cost_factors: tuple[float, ...] = (1.0, 2.0, 4.0)
+    seeds: tuple[int, ...] = (3, 4, 5, 6, 7)
+    arms: tuple[Arm, ...] = FULL_ARMS
     size_m: float = 12.0
-    budget_s: float = 480.0
-    extra: tuple[str, ...] = ()  # more --set overrides for every run
+    # the classic 12 m garden ends (no frontier) at about 100 s of robot time, 140-150 s of wall
+    # time with 2 runs at once; 150 s caps a slower world at about 35 min for the 20 runs
+    budget_s: float = 150.0
+    jobs: int = 2
+    # a quarter of the default camera's pixels, square so the 57 degree view stays: a pixel spans
+    # 2.5 cm at the 8 m range (1.2 cm at 640), still under the 10 cm map voxel, so each voxel's
+    # label vote and the graph the explorer plans on keep their kind; rendering costs a quarter
+    extra: tuple[str, ...] = ("sim.camera.width=320", "sim.camera.height=320")
 
     @classmethod
     def quick(cls) -> ExplorationExperimentConfig:
-        # a 6 m garden, a small camera and a 10 cm map: two short closed loops for the test suite
+        # a 6 m garden, a small camera and a 10 cm map: short closed loops for the test suite;
+        # two arms that need no key another branch adds (x1 vs x4)
         small = (
             "sim.camera.width=160",
             "sim.camera.height=160",
@@ -49,192 +114,494 @@ class ExplorationExperimentConfig:
             # no hot spares: a 20 s run would start five only to stop them
             "deploy.standby_delay_s=3600",
         )
-        return cls(seeds=(3,), cost_factors=(1.0, 4.0), size_m=6.0, budget_s=20.0, extra=small)
+        return cls(seeds=(3, 4), arms=(nbv(1.0), nbv(4.0)), size_m=6.0, budget_s=20.0, extra=small)
 
 
-def exploration_run(
-    out: Path, seed: int, factor: float, s: ExplorationExperimentConfig, log=progress.say
-):
-    """One `smana up` run with grass at `factor` times terrain's cost; returns its metrics."""
+# -- one run -------------------------------------------------------------------------------------
+
+
+def pick_spawn(seed: int, size_m: float, world_sets=WORLD_SETS) -> list[float]:
+    """[x, y, yaw]: a free cell with SPAWN_CLEARANCE_M, reachable from the world's own start
+    (its free spot nearest the centre), drawn from the seed's generator."""
+    from smana.common.classes import ClassTable
+    from smana.common.config import SmanaConfig
+    from smana.lab import evaluation as ev
+    from smana.services.sim.worlds.garden import generate
+
+    cfg = SmanaConfig.load(
+        overrides=[f"sim.seed={seed}", f"sim.garden.size_m={size_m}", *world_sets]
+    )
+    world = generate(cfg.sim.seed, cfg.sim.garden, ClassTable.load("garden3drms"))
+    trav = world.traversability(SPAWN_CLEARANCE_M)
+    x0, y0, _ = world.spawn_pose(SPAWN_CLEARANCE_M)
+    i0, j0 = trav.index_of(x0, y0)
+    reach = ev.reachable_traversable(trav.data, (int(i0), int(j0)))
+    xs, ys = trav.cell_centres()
+    ii, jj = np.nonzero(reach)
+    # its own stream, apart from the world's: the start does not move when world generation does
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x57A7]))
+    k = int(rng.integers(len(ii)))
+    yaw = float(rng.uniform(-math.pi, math.pi))
+    return [round(float(xs[ii[k]]), 3), round(float(ys[jj[k]]), 3), round(yaw, 3)]
+
+
+def run_name(seed: int, arm: Arm) -> str:
+    return f"seed{seed}_{arm.name}"
+
+
+def exploration_run(out: Path, seed: int, arm: Arm, s: ExplorationExperimentConfig, spawn=None):
+    """One `smana up` run; returns (exit code, metrics, explorer state, cpu seconds, wall s)."""
     from smana.common.classes import ClassTable
 
-    table = ClassTable.load("garden3drms")
-    terrain = table.by_name("terrain").cost
+    terrain = ClassTable.load("garden3drms").by_name("terrain").cost
     # absolute: the supervisor starts each service inside the run directory
-    run_dir = (out / f"seed{seed}_grass_x{factor:g}").resolve()
+    run_dir = (out / run_name(seed, arm)).resolve()
     # a robot name of its own: stray processes of another stack that reach this router (a reused
     # port) then talk on other keys
-    robot = f"exp{os.getpid()}-s{seed}-x{factor:g}".replace(".", "_")
+    robot = f"exp{os.getpid()}-s{seed}-{arm.name}".replace(".", "_")
     sets = [
         f'general.robot="{robot}"',
         f"sim.seed={seed}",
         f"sim.garden.size_m={s.size_m}",
+        *WORLD_SETS,
         f"explorer.time_budget_s={s.budget_s}",
-        f'explorer.class_costs=["grass={factor * terrain}"]',
+        f'explorer.class_costs=["grass={arm.grass_cost_factor * terrain}"]',
+        *arm.all_sets,
         *s.extra,
     ]
+    if spawn is not None:
+        sets.append(f"sim.spawn={list(spawn)}")
     port = free_loopback_port()
-    argv = [
-        sys.executable,
-        "-m",
-        "smana.deploy.cli",
-        "up",
-        "--run-dir",
-        str(run_dir),
-        "--set",
-        f'deploy.router_listen=["tcp/127.0.0.1:{port}"]',
-    ]
+    argv = [sys.executable, "-m", "smana.deploy.cli", "up", "--run-dir", str(run_dir)]
+    argv += ["--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]']
     for item in sets:
         argv += ["--set", item]
-    t0 = time.perf_counter()
     run_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
     with open(run_dir / "up.log", "w") as f:
-        code = subprocess.call(
-            argv, stdout=f, stderr=subprocess.STDOUT, timeout=s.budget_s * 3 + 180
-        )
-    metrics = None
-    if (run_dir / "metrics.json").is_file():
-        metrics = json.loads((run_dir / "metrics.json").read_text())
-    log(f"seed {seed} grass x{factor:g}: exit {code}, {time.perf_counter() - t0:.0f} s")
-    return code, metrics or {}
+        # its own process group, so a timeout ends the whole stack; Ctrl-C no longer reaches it
+        # by itself, run_exploration forwards it (_LIVE)
+        p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+        _LIVE.add(p.pid)
+        # a hung run must not hang the experiment: its process group is ended after a timeout
+        timer = threading.Timer(s.budget_s * 3 + 180, os.killpg, (p.pid, signal.SIGKILL))
+        timer.start()
+        try:
+            # wait4, not wait: the run's own CPU time (its supervisor waits for its services)
+            _, status, usage = os.wait4(p.pid, 0)
+        finally:
+            timer.cancel()
+            _LIVE.discard(p.pid)
+        p.returncode = code = os.waitstatus_to_exitcode(status)
+    wall = time.perf_counter() - t0
+    metrics = _load(run_dir / "metrics.json")
+    state = _load(run_dir / "explorer" / "state.json")
+    return code, metrics, state, usage.ru_utime + usage.ru_stime, wall
 
 
-def run_exploration(s: ExplorationExperimentConfig, out: Path, log=progress.say) -> list[dict]:
+_LIVE: set[int] = set()  # process groups of the runs under way
+
+
+def _load(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def coverage_curve(history, explored_m2_end: float | None, coverage_end: float | None):
+    """(robot time s from the first row, distance m, coverage) arrays from the explorer's history
+    rows (t, explored_m2, frontier_size, distance_m), rescaled to the ground-truth coverage at
+    the end (module docstring); empty arrays when either end is missing."""
+    h = np.asarray(history or [], float).reshape(-1, 4)
+    empty = np.zeros(0)
+    if not len(h) or coverage_end is None:
+        return empty, empty, empty
+    end = explored_m2_end if explored_m2_end else h[-1, 1]
+    if not end > 0:
+        return empty, empty, empty
+    cov = np.clip(h[:, 1] / end * coverage_end, 0.0, 1.0)
+    return h[:, 0] - h[0, 0], h[:, 3], cov
+
+
+def first_reach(x: np.ndarray, cov: np.ndarray, target: float = COVERAGE_TARGET) -> float | None:
+    """x at the first row where coverage reaches `target`; None (censored) if it never does."""
+    hit = np.nonzero(cov >= target)[0]
+    return float(x[hit[0]]) if len(hit) else None
+
+
+def make_row(seed: int, arm: Arm, code: int, m: dict, state: dict, cpu_s: float, wall_s: float):
+    ex = m.get("exploration") or {}
+    ee = m.get("explorer") or {}
+    t, d, cov = coverage_curve(state.get("history"), ee.get("explored_m2"), ex.get("coverage"))
+    ok = code == 0 and bool(m)
+    return {
+        "seed": seed,
+        "arm": arm.name,
+        "strategy": arm.strategy,
+        "grass_cost_factor": arm.grass_cost_factor,
+        "path_cost_weight": arm.path_cost_weight,
+        "exit_code": code,
+        "ok": ok,
+        "terrain_share": ex.get("terrain_share"),
+        "coverage": ex.get("coverage"),
+        "explored_area_m2": ex.get("explored_reachable_area_m2"),
+        "reachable_area_m2": ex.get("reachable_area_m2"),
+        "distance_m": ex.get("distance_m"),
+        "min_clearance_m": ex.get("min_clearance_m"),
+        "done_reason": ee.get("done_reason"),
+        "robot_time_s": float(t[-1]) if len(t) else None,
+        "distance_to_95_m": first_reach(d, cov),
+        "time_to_95_s": first_reach(t, cov),
+        "wall_time_s": round(wall_s, 1),
+        "cpu_s": round(cpu_s, 1),
+        "real_time_factor": _achieved_rtf(ee),
+        "curve": {"t_s": t.tolist(), "distance_m": d.tolist(), "coverage": cov.tolist()},
+    }
+
+
+def _achieved_rtf(ee: dict) -> float | None:
+    """Robot seconds per wall second over the exploration (the sim's status reports the same
+    factor live but leaves no record): the explorer's elapsed robot time over its wall time."""
+    t, wall = ee.get("elapsed_s"), ee.get("wall_time_s")
+    return round(t / wall, 3) if t and wall else None
+
+
+def run_exploration(
+    s: ExplorationExperimentConfig, out: Path, log=progress.say, write=None
+) -> list[dict]:
+    """Every arm x seed, `s.jobs` at once; writes the outputs (`write(rows, s, out)`, by default
+    the exploration's) and returns the rows."""
+    spawns = {seed: pick_spawn(seed, s.size_m) for seed in s.seeds}
+    todo = [(seed, arm) for seed in s.seeds for arm in s.arms]
     rows = []
-    # one step per `smana up`: each runs to its time budget or to the end of the frontiers
-    runs = progress.bar(len(s.seeds) * len(s.cost_factors), "exploration", unit="run")
-    for seed in s.seeds:
-        for factor in s.cost_factors:
-            runs.set_postfix_str(f"seed {seed} grass x{factor:g}")
-            code, m = exploration_run(out, seed, factor, s, log)
+    runs = progress.bar(len(todo), "exploration", unit="run")
+    pool = ThreadPoolExecutor(max_workers=s.jobs)
+    try:
+        futs = {
+            pool.submit(exploration_run, out, seed, arm, s, spawns[seed]): (seed, arm)
+            for seed, arm in todo
+        }
+        for fut in as_completed(futs):
+            seed, arm = futs[fut]
+            try:
+                row = make_row(seed, arm, *fut.result())
+            except Exception as exc:  # a run that could not even start is a failed run
+                row = make_row(seed, arm, -1, {}, {}, 0.0, 0.0)
+                log(f"{run_name(seed, arm)}: {exc}")
+            rows.append(row)
             runs.update()
-            ex = m.get("exploration") or {}
-            ee = m.get("explorer") or {}
-            rows.append(
-                {
-                    "seed": seed,
-                    "grass_cost_factor": factor,
-                    "exit_code": code,
-                    "terrain_share": ex.get("terrain_share"),
-                    "coverage": ex.get("coverage"),
-                    "explored_area_m2": ex.get("explored_reachable_area_m2"),
-                    "distance_m": ex.get("distance_m"),
-                    "min_clearance_m": ex.get("min_clearance_m"),
-                    "done_reason": ee.get("done_reason"),
-                    "wall_time_s": ee.get("wall_time_s"),
-                }
+            log(
+                f"{run_name(seed, arm)}: exit {row['exit_code']}, {row['wall_time_s']} s, "
+                f"terrain share {row['terrain_share']}, coverage {row['coverage']}"
             )
-            log(f"  terrain share {rows[-1]['terrain_share']}, coverage {rows[-1]['coverage']}")
+    except BaseException:
+        # Ctrl-C: stop the queued runs and ask the running stacks to stop as `smana up` would
+        pool.shutdown(wait=False, cancel_futures=True)
+        for pid in list(_LIVE):
+            try:
+                os.killpg(pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+        raise
+    finally:
+        pool.shutdown(wait=True)
     runs.close()
-    write_exploration_outputs(rows, s, out)
+    rows.sort(key=lambda r: ([a.name for a in s.arms].index(r["arm"]), r["seed"]))
+    (write or write_exploration_outputs)(rows, s, out)
     return rows
 
 
+# -- aggregation ---------------------------------------------------------------------------------
+
+
+def _ci(rows, key) -> stats.Interval:
+    return stats.mean_ci([r[key] for r in rows if r["ok"]])
+
+
 def summarise_exploration(rows: list[dict]) -> list[dict]:
+    """Per arm: intervals of terrain share, coverage, distance, and of the distance and time to
+    95 % coverage over the runs that reached it (with how many did)."""
     out = []
-    for f in sorted({r["grass_cost_factor"] for r in rows}):
-        sel = [r for r in rows if r["grass_cost_factor"] == f]
-
-        def stat(key, sel=sel):
-            v = np.array([r[key] for r in sel if r[key] is not None], float)
-            return (float(v.mean()), float(v.std())) if len(v) else (None, None)
-
-        ts, cov, dist = stat("terrain_share"), stat("coverage"), stat("distance_m")
+    for arm in dict.fromkeys(r["arm"] for r in rows):
+        sel = [r for r in rows if r["arm"] == arm]
+        ok = [r for r in sel if r["ok"]]
         out.append(
             {
-                "grass_cost_factor": f,
+                "arm": arm,
+                "strategy": sel[0]["strategy"],
+                "grass_cost_factor": sel[0]["grass_cost_factor"],
+                "path_cost_weight": sel[0].get("path_cost_weight"),
                 "runs": len(sel),
-                "terrain_share_mean": ts[0],
-                "terrain_share_std": ts[1],
-                "coverage_mean": cov[0],
-                "coverage_std": cov[1],
-                "distance_mean_m": dist[0],
-                "distance_std_m": dist[1],
-                "paper_terrain_share": PAPER_TERRAIN_SHARE.get(f),
+                "failed": len(sel) - len(ok),
+                "reached_95": sum(r["distance_to_95_m"] is not None for r in ok),
+                **{
+                    k: _ci(sel, k).as_dict()
+                    for k in (
+                        "terrain_share",
+                        "coverage",
+                        "distance_m",
+                        "distance_to_95_m",
+                        "time_to_95_s",
+                    )
+                },
+                "paper_terrain_share": PAPER_TERRAIN_SHARE.get(sel[0]["grass_cost_factor"])
+                if sel[0]["strategy"] == "nbv"
+                else None,
             }
         )
     return out
 
 
+def _interval(d: dict) -> stats.Interval:
+    nan = math.nan
+    lo, hi = d["ci_lo"], d["ci_hi"]
+    return stats.Interval(
+        nan if d["mean"] is None else d["mean"],
+        nan if lo is None else lo,
+        nan if hi is None else hi,
+        d["n"],
+    )
+
+
+def verdicts(rows: list[dict]) -> list[dict]:
+    """The claims, each decided by lab/stats.py: (claim, paper, smana, verdict) rows."""
+    nbv_rows = [r for r in rows if r["strategy"] == "nbv" and r.get("path_cost_weight") is None]
+    out = []
+    by_factor = {}
+    for f in sorted({r["grass_cost_factor"] for r in nbv_rows}):
+        ci = _ci([r for r in nbv_rows if r["grass_cost_factor"] == f], "terrain_share")
+        by_factor[f] = ci
+        paper = PAPER_TERRAIN_SHARE.get(f)
+        if paper is None:
+            continue
+        out.append(
+            {
+                "claim": f"terrain share at grass x{f:g} within "
+                f"{100 * TERRAIN_SHARE_TOLERANCE:.0f} points of the paper",
+                "paper": f"{100 * paper:.0f} %",
+                "smana": ci.format(100, unit=" %"),
+                "verdict": stats.verdict_near(ci, paper, TERRAIN_SHARE_TOLERANCE),
+            }
+        )
+    if len(by_factor) >= 2:
+        lo_f, hi_f = min(by_factor), max(by_factor)
+        a, b = by_factor[lo_f], by_factor[hi_f]
+        out.append(
+            {
+                "claim": f"terrain share rises from x{lo_f:g} to x{hi_f:g} (intervals apart)",
+                "paper": f"{100 * PAPER_TERRAIN_SHARE.get(lo_f, math.nan):.0f} -> "
+                f"{100 * PAPER_TERRAIN_SHARE.get(hi_f, math.nan):.0f} %",
+                "smana": f"{a.format(100, unit=' %')} -> {b.format(100, unit=' %')}",
+                "verdict": stats.verdict_less(a, b),
+            }
+        )
+    base = [r for r in rows if r["strategy"] == "nearest_frontier"]
+    if base:
+        f = base[0]["grass_cost_factor"]
+        nb = [r for r in nbv_rows if r["grass_cost_factor"] == f]
+        a, b = _ci(nb, "distance_to_95_m"), _ci(base, "distance_to_95_m")
+        # censored runs are left out of the interval; fewer than 2 reaching: no verdict
+        verdict = stats.verdict_less(a, b) if a.n >= 2 and b.n >= 2 else stats.INCONCLUSIVE
+        out.append(
+            {
+                "claim": f"NBV reaches {100 * COVERAGE_TARGET:.0f} % coverage in less distance "
+                f"than nearest frontier (x{f:g})",
+                "paper": "(NBV's motivation)",
+                "smana": f"{a.format(unit=' m')} of {len(nb)} vs {b.format(unit=' m')} of "
+                f"{len(base)}",
+                "verdict": verdict,
+            }
+        )
+    return out
+
+
+def mean_curve(runs: list[dict], axis: str, n_points: int = 60):
+    """(x grid, mean, lo, hi) of coverage over runs against `axis` ("t_s" or "distance_m"); a
+    run that ended keeps its last coverage (what it had explored when it stopped)."""
+    curves = [r["curve"] for r in runs if r["ok"] and len(r["curve"][axis]) >= 2]
+    if not curves:
+        return None
+    x_max = max(c[axis][-1] for c in curves)
+    grid = np.linspace(0.0, x_max, n_points)
+    # np.interp holds the end values outside a run's range: 0 before, the final coverage after
+    ys = np.array([np.interp(grid, c[axis], c["coverage"], left=0.0) for c in curves])
+    cis = [stats.mean_ci(ys[:, k]) for k in range(n_points)]
+    return (
+        grid,
+        np.array([c.mean for c in cis]),
+        np.array([c.lo for c in cis]),
+        np.array([c.hi for c in cis]),
+    )
+
+
+# -- outputs -------------------------------------------------------------------------------------
+
+
 def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
+    flat = [{k: v for k, v in r.items() if k != "curve"} for r in rows]
     with open(out / "exploration_results.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w = csv.DictWriter(f, fieldnames=list(flat[0]))
         w.writeheader()
-        w.writerows(rows)
+        w.writerows(flat)
     summary = summarise_exploration(rows)
+    table = verdicts(rows)
     (out / "exploration_results.json").write_text(
-        json.dumps({"settings": asdict(s), "runs": rows, "summary": summary}, indent=2)
+        json.dumps(
+            {"settings": asdict(s), "runs": rows, "summary": summary, "verdicts": table},
+            indent=2,
+        )
     )
-    xs = [d["grass_cost_factor"] for d in summary]
-    ok = [d for d in summary if d["terrain_share_mean"] is not None]
-    shares = {
-        d["grass_cost_factor"]: [
-            r["terrain_share"]
-            for r in rows
-            if r["grass_cost_factor"] == d["grass_cost_factor"] and r["terrain_share"] is not None
-        ]
-        for d in ok
-    }
-    ns = sorted({len(v) for v in shares.values()})
-    n_text = f"n = {ns[0]}" if len(ns) == 1 else f"n = {ns[0]}-{ns[-1]}"
-    n_text += " seed" if ns == [1] else " seeds"
-    mean = [d["terrain_share_mean"] for d in ok]
-    spread = None  # with one seed there is no spread to draw
-    if ns and ns[-1] > 1:
-        spread = (
-            [m - min(shares[d["grass_cost_factor"]]) for m, d in zip(mean, ok)],
-            [max(shares[d["grass_cost_factor"]]) - m for m, d in zip(mean, ok)],
+    figures = _figures(rows, out)
+    failed = [r for r in rows if not r["ok"]]
+    lines = ["# Exploration experiment (paper 4.3)", ""]
+    if failed:
+        names = ", ".join(
+            f"{run_name(r['seed'], _arm_of(r))} (exit {r['exit_code']})" for r in failed
         )
-    label = f"smana, mean and min-max ({n_text})" if spread else f"smana ({n_text})"
-    series = [plots.Series(label, [d["grass_cost_factor"] for d in ok], mean, spread)]
-    paper = [(f, v) for f, v in PAPER_TERRAIN_SHARE.items() if f in xs]
-    if paper:
-        series.append(
-            plots.Series("paper", [f for f, _ in paper], [v for _, v in paper], dashed=True)
-        )
-    plots.save(
-        plots.line_plot(
-            series,
-            f"Travelled nodes on terrain vs grass cost ({n_text})",
-            "grass cost factor (x terrain's cost)",
-            "terrain share of travelled nodes",
-            {f: f"x{f:g}" for f in xs},
-        ),
-        out / "exploration_terrain_share.png",
-    )
-    lines = [
-        "# Exploration experiment (paper 4.3)",
-        "",
-        f"Seeds {list(s.seeds)}, garden {s.size_m} m, budget {s.budget_s:.0f} s per run.",
-        "",
-        "| grass cost | runs | terrain share | paper | coverage | distance (m) |",
-        "|---|---|---|---|---|---|",
-    ]
-
-    def pm(m, sd, scale=1.0, fmt=".1f"):
-        return "-" if m is None else f"{format(m * scale, fmt)} +- {format(sd * scale, fmt)}"
-
-    for d in summary:
-        paper_v = d["paper_terrain_share"]
-        lines.append(
-            f"| x{d['grass_cost_factor']:g} | {d['runs']} | "
-            f"{pm(d['terrain_share_mean'], d['terrain_share_std'], 100)} % | "
-            f"{'-' if paper_v is None else f'{100 * paper_v:.0f} %'} | "
-            f"{pm(d['coverage_mean'], d['coverage_std'], 100)} % | "
-            f"{pm(d['distance_mean_m'], d['distance_std_m'])} |"
-        )
-    shares = [d["terrain_share_mean"] for d in summary if d["terrain_share_mean"] is not None]
-    if len(shares) >= 2:
-        rising = all(b >= a for a, b in zip(shares[:-1], shares[1:], strict=True))
         lines += [
+            f"**WARNING: {len(failed)} of {len(rows)} runs failed** (no metrics or non-zero "
+            f"exit), left out of every number below: {names}.",
             "",
-            "Direction of the paper's effect (terrain share rises with the grass cost): "
-            + ("reproduced" if rising else "NOT reproduced")
-            + ".",
         ]
-    lines += ["", "![terrain share](exploration_terrain_share.png)", ""]
+    lines += [
+        "| claim | paper | smana mean [95 % CI] (n) | verdict |",
+        "|---|---|---|---|",
+        *(f"| {v['claim']} | {v['paper']} | {v['smana']} | {v['verdict']} |" for v in table),
+        "",
+        f"Seeds {list(s.seeds)}, garden {s.size_m} m, budget {s.budget_s:.0f} s per run, "
+        f"{s.jobs} runs at once. World: {' '.join(WORLD_SETS) or 'default garden'}.",
+        "",
+        "| arm | runs (failed) | terrain share | coverage | distance (m) | reached 95 % | "
+        "distance to 95 % (m) | time to 95 % (s) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for d in summary:
+        iv = {k: _interval(d[k]) for k in ("terrain_share", "coverage", "distance_m")}
+        d95, t95 = _interval(d["distance_to_95_m"]), _interval(d["time_to_95_s"])
+        lines.append(
+            f"| {d['arm']} | {d['runs']} ({d['failed']}) | "
+            f"{iv['terrain_share'].format(100, unit=' %')} | "
+            f"{iv['coverage'].format(100, unit=' %')} | {iv['distance_m'].format()} | "
+            f"{d['reached_95']} of {d['runs'] - d['failed']} | {d95.format()} | "
+            f"{t95.format(1.0, '.0f')} |"
+        )
+    lines += [
+        "",
+        "Distance and time to 95 % are over the runs that reached it; the others are counted "
+        "as not reached (censored), never as a number. Coverage curves: the explorer's "
+        "explored area rescaled to the ground-truth coverage at the end of each run "
+        "(lab/experiments/exploration.py explains).",
+        "",
+        "| run | exit | terrain share | coverage | distance (m) | to 95 % (m) | wall (s) | "
+        "CPU (s) | real-time factor |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        d95 = "not reached" if r["distance_to_95_m"] is None else f"{r['distance_to_95_m']:.1f}"
+        lines.append(
+            f"| {run_name(r['seed'], _arm_of(r))} | {r['exit_code']} | {_pct(r['terrain_share'])}"
+            f" | {_pct(r['coverage'])} | {_num(r['distance_m'])} | {d95} | "
+            f"{_num(r['wall_time_s'], '.0f')} | {_num(r['cpu_s'], '.0f')} | "
+            f"{_num(r['real_time_factor'], '.2f')} |"
+        )
+    lines += [""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
     (out / "exploration_summary.md").write_text("\n".join(lines))
+
+
+def _arm_of(r: dict) -> Arm:
+    return Arm(r["arm"], r["grass_cost_factor"])
+
+
+def _pct(v):
+    return "-" if v is None else f"{100 * v:.1f} %"
+
+
+def _num(v, fmt=".1f"):
+    return "-" if v is None else format(v, fmt)
+
+
+def _figures(rows: list[dict], out: Path) -> list[Path]:
+    saved = []
+    nbv_rows = [r for r in rows if r["strategy"] == "nbv" and r["ok"]]
+    factors = sorted({r["grass_cost_factor"] for r in nbv_rows if r["terrain_share"] is not None})
+    if factors:
+        cis = [
+            _ci([r for r in nbv_rows if r["grass_cost_factor"] == f], "terrain_share")
+            for f in factors
+        ]
+        ns = sorted({c.n for c in cis})
+        n_text = f"n = {ns[0]}" if len(ns) == 1 else f"n = {ns[0]}-{ns[-1]}"
+        n_text += " seed" if ns == [1] else " seeds"
+        err = None  # with one seed there is no interval to draw
+        if all(c.defined for c in cis):
+            err = ([c.mean - c.lo for c in cis], [c.hi - c.mean for c in cis])
+        label = f"smana NBV, mean and 95 % CI ({n_text})" if err else f"smana NBV ({n_text})"
+        series = [plots.Series(label, factors, [c.mean for c in cis], err)]
+        paper = [(f, v) for f, v in PAPER_TERRAIN_SHARE.items() if f in factors]
+        if paper:
+            series.append(
+                plots.Series("paper", [f for f, _ in paper], [v for _, v in paper], dashed=True)
+            )
+        base = [r for r in rows if r["strategy"] == "nearest_frontier" and r["ok"]]
+        if base:
+            ci = _ci(base, "terrain_share")
+            series.append(
+                plots.Series(
+                    f"nearest frontier (n = {ci.n})",
+                    [base[0]["grass_cost_factor"]],
+                    [ci.mean],
+                    ([ci.mean - ci.lo], [ci.hi - ci.mean]) if ci.defined else None,
+                )
+            )
+        saved.append(
+            plots.save(
+                plots.line_plot(
+                    series,
+                    f"Travelled nodes on terrain vs grass cost ({n_text})",
+                    "grass cost factor (x terrain's cost)",
+                    "terrain share of travelled nodes",
+                    {f: f"x{f:g}" for f in factors},
+                ),
+                out / "exploration_terrain_share.png",
+            )
+        )
+    # coverage curves: NBV against the baseline at the baseline's cost (x2), else every NBV arm
+    base = [r for r in rows if r["strategy"] == "nearest_frontier"]
+    f0 = base[0]["grass_cost_factor"] if base else None
+    groups = {}
+    for r in rows:
+        if r["strategy"] == "nbv" and r.get("path_cost_weight") is None:
+            if f0 is None or r["grass_cost_factor"] == f0:
+                groups.setdefault(f"NBV x{r['grass_cost_factor']:g}", []).append(r)
+    if base:
+        groups[f"nearest frontier x{f0:g}"] = base
+    for axis, xlabel, name in (
+        ("distance_m", "distance travelled (m)", "exploration_coverage_distance.png"),
+        ("t_s", "robot time (s)", "exploration_coverage_time.png"),
+    ):
+        curves = []
+        for label, sel in groups.items():
+            c = mean_curve(sel, axis)
+            if c is not None:
+                n = sum(1 for r in sel if r["ok"] and len(r["curve"][axis]) >= 2)
+                curves.append((f"{label} (n = {n})", *c))
+        if curves:
+            saved.append(
+                plots.save(
+                    plots.band_plot(
+                        curves,
+                        f"Coverage of the reachable traversable area vs {xlabel.split(' (')[0]}",
+                        xlabel,
+                        "coverage (rescaled to ground truth at the end)",
+                        note="mean and 95 % CI over seeds",
+                        hline=COVERAGE_TARGET,
+                    ),
+                    out / name,
+                )
+            )
+    return saved
 
 
 # -- command line --------------------------------------------------------------------------------
@@ -242,24 +609,28 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
 
 def add_parser(sub) -> None:
     """The `exploration` subcommand of `smana experiment`."""
-    from smana.common.cli import positive_float, positive_int
-
     e = sub.add_parser(
         "exploration",
-        help="terrain share vs grass traversability cost (about 30 min; --quick 1.5 min)",
-        description="Paper 4.3: one `smana up` per world seed and grass cost factor (x1, x2, "
-        "x4); the share of travelled nodes on terrain.",
-        epilog="Duration on a 2-core machine: about 30 minutes (3 seeds x 3 grass costs = 9 "
-        "runs of smana up, each up to --budget seconds); --quick about 1.5 minutes (2 runs of "
-        "20 s in a 6 m garden). A progress bar with an ETA shows on a terminal "
-        "(SMANA_PROGRESS=1 forces it, 0 hides it).",
+        help="terrain share vs grass cost, NBV vs nearest frontier (about 25 min; --quick 2.5)",
+        description="Paper 4.3: one `smana up` per arm (NBV at grass x1, x2, x4; nearest "
+        "frontier at x2) and seed; terrain share of travelled nodes, coverage curves, verdicts.",
+        epilog="Duration on a 2-core machine: about 25 minutes (4 arms x 5 seeds = 20 runs of "
+        "smana up, 2 at once, about 2.5 min each in the 12 m garden, at most 35 min with the "
+        "150 s budget); --quick about 2.5 minutes (2 arms x 2 seeds of 20 s in a 6 m "
+        "garden). A progress bar with an ETA shows on a terminal "
+        "(SMANA_PROGRESS=1 forces it, 0 hides it). Exits 1 if any run failed.",
     )
-    e.add_argument(
-        "--quick", action="store_true", help="2 runs of 20 s in a 6 m garden (about 1.5 min)"
-    )
+    add_common_args(e, quick_help="2 arms x 2 seeds of 20 s in a 6 m garden (about 2.5 min)")
+
+
+def add_common_args(e, quick_help: str) -> None:
+    from smana.common.cli import positive_float, positive_int
+
+    e.add_argument("--quick", action="store_true", help=quick_help)
     e.add_argument("--out", type=Path)
-    e.add_argument("--seeds", type=positive_int, help="number of world seeds (3, 4, ...)")
+    e.add_argument("--seeds", type=positive_int, help="number of seeds (3, 4, ...)")
     e.add_argument("--budget", type=positive_float, help="time budget per run, seconds")
+    e.add_argument("--jobs", type=positive_int, help="runs of smana up at once (default 2)")
     e.add_argument(
         "--set",
         dest="extra",
@@ -273,16 +644,30 @@ def check_args(args) -> None:
     """Refuse a bad --set now, not in every run (ConfigError, one line)."""
     from smana.common.config import SmanaConfig
 
-    SmanaConfig.load(overrides=args.extra)
+    SmanaConfig.load(overrides=[*WORLD_SETS, *args.extra])
 
 
-def main(args, parser, out: Path) -> int:
-    s = ExplorationExperimentConfig.quick() if args.quick else ExplorationExperimentConfig()
+def apply_args(s: ExplorationExperimentConfig, args) -> ExplorationExperimentConfig:
     if args.seeds:
         s.seeds = tuple(range(3, 3 + args.seeds))
     if args.budget:
         s.budget_s = args.budget
+    if args.jobs:
+        s.jobs = args.jobs
     s.extra = (*s.extra, *args.extra)
-    run_exploration(s, out)
-    print(f"results in {out} (exploration_summary.md)")
+    return s
+
+
+def finish(rows: list[dict], out: Path, name: str) -> int:
+    failed = sum(not r["ok"] for r in rows)
+    print(f"results in {out} ({name}_summary.md)")
+    if failed:
+        print(f"warning: {failed} of {len(rows)} runs failed (see {name}_summary.md)")
+        return 1
     return 0
+
+
+def main(args, parser, out: Path) -> int:
+    s = ExplorationExperimentConfig.quick() if args.quick else ExplorationExperimentConfig()
+    rows = run_exploration(apply_args(s, args), out)
+    return finish(rows, out, "exploration")
