@@ -1,5 +1,6 @@
-"""`smana experiment exploration --quick`: four short runs of the whole stack (NBV at grass cost
-x1 and x4, two seeds each, two at once) and the experiment's verdicts, tables and plots."""
+"""`smana experiment exploration --quick`: six short runs of the whole stack (NBV at grass cost
+x1 and x4 and the nearest-frontier baseline, two seeds each, two at once) in the cluttered garden,
+and the experiment's verdicts, tables and plots."""
 
 from __future__ import annotations
 
@@ -21,6 +22,8 @@ def test_exploration_quick(tmp_path):
         ("nbv_x1", 4),
         ("nbv_x4", 3),
         ("nbv_x4", 4),
+        ("nearest_frontier_x2", 3),
+        ("nearest_frontier_x2", 4),
     ]
     for r in runs:
         assert r["exit_code"] == 0 and r["ok"], r
@@ -30,7 +33,9 @@ def test_exploration_quick(tmp_path):
         assert r["curve"]["coverage"][-1] == pytest.approx(r["coverage"])
     # each run is a complete run directory with its own report, its grass cost and its start
     cfg = (tmp_path / "seed3_nbv_x4" / "config.toml").read_text()
-    assert 'class_costs = ["grass=4.0"]' in cfg
+    assert 'class_costs = ["grass=4.0"]' in cfg and 'layout = "3drms"' in cfg
+    baseline = (tmp_path / "seed4_nearest_frontier_x2" / "config.toml").read_text()
+    assert 'strategy = "nearest_frontier"' in baseline
     x, y, _ = exp.exploration.pick_spawn(3, 6.0)
     assert f"spawn = [{x}, {y}," in cfg
     assert (tmp_path / "seed3_nbv_x1" / "report.md").is_file()

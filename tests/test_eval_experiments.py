@@ -326,3 +326,31 @@ def test_ablation_outputs_from_synthetic_rows(tmp_path):
     text = (tmp_path / "ablation_summary.md").read_text()
     assert "| 0 | x4 | 2 (0) | 70.0 %" in text and "| 1 | x4 | 2 (0) | 80.0 %" in text
     assert (tmp_path / "ablation.png").stat().st_size > 1000
+
+
+def test_noise_backend_variants_and_sweeps():
+    """A variant changes the back-end's config section (an ablation on the same frames); a bad
+    spec is one line naming what is wrong."""
+    from smana.common.config.mapper import TsdfConfig
+    from smana.lab.experiments import noise
+
+    assert noise.parse_backend("octree-max") == ("octree-max", None)
+    name, cfg = noise.parse_backend("tsdf@truncation_voxels=4+min_weight=2")
+    assert name == "tsdf" and cfg == TsdfConfig(truncation_voxels=4.0, min_weight=2.0)
+    assert noise.parse_backend("tsdf@use_weight_dropoff=false")[1].use_weight_dropoff is False
+    for bad, words in (
+        ("nope", "unknown back-end"),
+        ("tsdf@nope=1", "KEY=VALUE"),
+        ("tsdf@max_weight=x", "takes a float"),
+        ("tsdf@truncation_voxels=0", "truncation_voxels"),
+    ):
+        with pytest.raises(ValueError, match=words):
+            noise.parse_backend(bad)
+    # a pose sweep alone still maps "none" once (as the label row both sweeps share)
+    assert noise._configs(("none", "high"), ("pose",)) == [
+        ("label", "none", "none", "none"),
+        ("pose", "high", "none", "high"),
+    ]
+    assert [c[1] for c in noise._configs(noise.LEVELS, ("label",))] == list(noise.LEVELS)
+    order = sorted(["tsdf@min_weight=2", "octree-max", "tsdf"], key=noise._order)
+    assert order == ["octree-max", "tsdf", "tsdf@min_weight=2"]

@@ -48,9 +48,9 @@ TERRAIN_SHARE_TOLERANCE = 0.10  # "within 10 points of the paper"
 COVERAGE_TARGET = 0.95
 SPAWN_CLEARANCE_M = 0.6
 
-# The world every exploration run uses, as --set items; the one place to choose it (the
-# coordinator sets the cluttered 3DRMS-like garden here: 'sim.garden.layout="3drms"').
-WORLD_SETS: tuple[str, ...] = ()
+# The world every exploration run uses, as --set items; the one place to choose it: the
+# cluttered garden with the paper's statistics (tests/test_garden_stats.py holds them).
+WORLD_SETS: tuple[str, ...] = ('sim.garden.layout="3drms"',)
 # The explorer's strategy key (Yamauchi's nearest frontier vs next best view).
 STRATEGY_KEY = "explorer.strategy"
 WEIGHT_KEY = "explorer.path_cost_weight"
@@ -104,7 +104,7 @@ class ExplorationExperimentConfig:
     @classmethod
     def quick(cls) -> ExplorationExperimentConfig:
         # a 6 m garden, a small camera and a 10 cm map: short closed loops for the test suite;
-        # two arms that need no key another branch adds (x1 vs x4)
+        # the two ends of the grass cost and the baseline
         small = (
             "sim.camera.width=160",
             "sim.camera.height=160",
@@ -114,7 +114,13 @@ class ExplorationExperimentConfig:
             # no hot spares: a 20 s run would start five only to stop them
             "deploy.standby_delay_s=3600",
         )
-        return cls(seeds=(3, 4), arms=(nbv(1.0), nbv(4.0)), size_m=6.0, budget_s=20.0, extra=small)
+        return cls(
+            seeds=(3, 4),
+            arms=(nbv(1.0), nbv(4.0), BASELINE),
+            size_m=6.0,
+            budget_s=20.0,
+            extra=small,
+        )
 
 
 # -- one run -------------------------------------------------------------------------------------

@@ -34,6 +34,54 @@ from smana.services.mapper.backends import BACKENDS as _REGISTRY
 
 BACKENDS = tuple(_REGISTRY)  # the mapper's registry: every back-end it knows
 LEVELS = ("none", "low", "medium", "high")
+SWEEPS = ("label", "pose")
+
+
+def parse_backend(spec: str):
+    """A back-end of the sweep: a registry name ("tsdf") or a variant with its config section
+    changed ("tsdf@truncation_voxels=4+min_weight=2"), so that an ablation runs beside the
+    defaults on the same frames and noise draws. Returns (name, config or None); ValueError with
+    one line on a bad spec."""
+    import dataclasses
+
+    from smana.common.config import ConfigError
+    from smana.services.mapper.backends import backend_class
+
+    name, _, rest = spec.partition("@")
+    if name not in BACKENDS:
+        raise ValueError(f"unknown back-end {name!r} in {spec!r}; known: {', '.join(BACKENDS)}")
+    if not rest:
+        return name, None
+    cls = backend_class(name).config_class
+    if cls is None:
+        raise ValueError(f"back-end {name} has no config section to change ({spec!r})")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    values: dict = {}
+    for item in rest.split("+"):
+        key, eq, text = item.partition("=")
+        if not eq or key not in fields:
+            raise ValueError(f"{spec!r}: expected KEY=VALUE with KEY one of {', '.join(fields)}")
+        default = getattr(cls(), key)
+        try:
+            if isinstance(default, bool):
+                if text not in ("true", "false"):
+                    raise ValueError(text)
+                values[key] = text == "true"
+            else:
+                values[key] = type(default)(text)
+        except ValueError:
+            raise ValueError(f"{spec!r}: {key} takes a {type(default).__name__}") from None
+    try:
+        return name, cls(**values)
+    except ConfigError as exc:
+        raise ValueError(f"{spec!r}: {exc}") from None
+
+
+def _order(backend: str) -> tuple[int, str]:
+    """Registry order, each variant after its back-end."""
+    return BACKENDS.index(backend.partition("@")[0]), backend
+
+
 # Localisation noise per level: standard deviation of x and y (m) and of yaw (rad), drawn afresh
 # for every frame. The paper's values are not legible in its Figure 6; these span "a good
 # odometry" to "a poor one" at the 5 cm map resolution.
@@ -168,8 +216,9 @@ class NoiseExperimentConfig:
     gt_spacing_m: float = 0.02
     ray_length_m: float = 1.0
     noise_seed: int = 0
-    backends: tuple[str, ...] = BACKENDS
+    backends: tuple[str, ...] = BACKENDS  # names or variants (`parse_backend`)
     levels: tuple[str, ...] = LEVELS
+    sweeps: tuple[str, ...] = SWEEPS
 
     @classmethod
     def quick(cls) -> NoiseExperimentConfig:
@@ -235,15 +284,19 @@ def _cloud(frame, labels_img, base_used, stride):
     return pts, labels_img[rows, cols].astype(np.uint16), sensor[:3, 3]
 
 
-def _configs(levels) -> list[tuple[str, str, str, str]]:
+def _configs(levels, sweeps=SWEEPS) -> list[tuple[str, str, str, str]]:
     """(sweep, level, label level, pose level): every label level without pose noise, then
-    every pose level above "none" without label noise (its "none" is the label sweep's)."""
-    out = [("label", lv, lv, "none") for lv in levels]
-    return out + [("pose", pl, "none", pl) for pl in levels if pl != "none"]
+    every pose level above "none" without label noise (its "none" is the label sweep's: a pose
+    sweep alone still maps "none" once, as a label row)."""
+    label = levels if "label" in sweeps else [lv for lv in levels if lv == "none"]
+    out = [("label", lv, lv, "none") for lv in label]
+    if "pose" in sweeps:
+        out += [("pose", pl, "none", pl) for pl in levels if pl != "none"]
+    return out
 
 
 def maps_per_seed(settings: NoiseExperimentConfig) -> int:
-    return len(_configs(settings.levels)) * len(settings.backends)
+    return len(_configs(settings.levels, settings.sweeps)) * len(settings.backends)
 
 
 def noise_seed_run(settings: NoiseExperimentConfig, seed: int, first: bool, tell=None) -> dict:
@@ -295,12 +348,15 @@ def noise_seed_run(settings: NoiseExperimentConfig, seed: int, first: bool, tell
         return clouds
 
     rows: list[dict] = []
-    for sweep, level, label_level, pose_level in _configs(settings.levels):
+    for sweep, level, label_level, pose_level in _configs(settings.levels, settings.sweeps):
         c2 = time.process_time()
         clouds = inputs(label_level, pose_level)
         cpu["degrade"] += time.process_time() - c2
         for backend in settings.backends:
-            m = SemanticMap(backend, settings.resolution_m, 8.0, settings.ray_length_m, classes)
+            name, config = parse_backend(backend)
+            m = SemanticMap(
+                name, settings.resolution_m, 8.0, settings.ray_length_m, classes, config
+            )
             c3 = time.process_time()
             for pts, lab, conf, origin in clouds:
                 m.integrate(pts, lab, conf, origin)
@@ -481,7 +537,7 @@ def _per_seed(rows, sweep, backend, key) -> dict:
 def aggregate(rows) -> list[dict]:
     """Mean and 95 % interval over seeds of each (back-end, sweep, level)."""
     out = []
-    backends = sorted({r["backend"] for r in rows}, key=BACKENDS.index)
+    backends = sorted({r["backend"] for r in rows}, key=_order)
     for sweep in ("label", "pose"):
         for b in backends:
             for level in _levels(rows, sweep):
@@ -513,7 +569,7 @@ def label_losses(rows) -> dict[str, dict]:
     the ratio at the lowest level."""
     out = {}
     levels = _levels(rows, "label")
-    for b in sorted({r["backend"] for r in rows}, key=BACKENDS.index):
+    for b in sorted({r["backend"] for r in rows}, key=_order):
         per = _per_seed(rows, "label", b, "classification_ratio")
         if len(levels) < 2:
             continue
@@ -633,7 +689,7 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
 
 
 def _noise_figures(rows, agg, out: Path) -> None:
-    backends = sorted({r["backend"] for r in rows}, key=BACKENDS.index)
+    backends = sorted({r["backend"] for r in rows}, key=_order)
     ns = {a[k]["n"] for a in agg for k in ("error_mean_m", "classification_ratio")}
     n_txt = f"n = {min(ns)}" if len(ns) == 1 else f"n = {min(ns)} to {max(ns)}"
     note = (
@@ -811,7 +867,16 @@ def add_parser(sub) -> None:
         help="2 seeds, 2 noise levels, a 6 m trajectory, 160 px, 10 cm voxels (about 40 s)",
     )
     n.add_argument("--out", type=Path)
-    n.add_argument("--backends", help="comma-separated subset of " + ",".join(BACKENDS))
+    n.add_argument(
+        "--backends",
+        help="comma-separated back-ends (default " + ",".join(BACKENDS) + "); a variant with "
+        "its config section changed runs beside them on the same frames: "
+        "tsdf@truncation_voxels=4+min_weight=2",
+    )
+    n.add_argument(
+        "--levels", help="comma-separated noise levels (default " + ",".join(LEVELS) + ")"
+    )
+    n.add_argument("--sweeps", help="label, pose or label,pose (default both)")
     n.add_argument("--seeds", type=positive_int, help="number of seeds (default 5; quick 2)")
     n.add_argument(
         "--first-seed", type=int, default=3, help="seeds run from this one up (default 3)"
@@ -828,9 +893,19 @@ def main(args, parser, out: Path) -> int:
     s = NoiseExperimentConfig.quick() if args.quick else NoiseExperimentConfig()
     if args.backends:
         s.backends = tuple(b.strip() for b in args.backends.split(",") if b.strip())
-        bad = [b for b in s.backends if b not in BACKENDS]
-        if bad:
-            parser.error(f"unknown back-end(s) {bad}")
+        for b in s.backends:
+            try:
+                parse_backend(b)
+            except ValueError as exc:
+                parser.error(str(exc))
+    for key, known in (("levels", LEVELS), ("sweeps", SWEEPS)):
+        text = getattr(args, key)
+        if text:
+            items = tuple(v.strip() for v in text.split(",") if v.strip())
+            bad = [v for v in items if v not in known]
+            if bad or not items:
+                parser.error(f"--{key}: expected some of {', '.join(known)}, got {text!r}")
+            setattr(s, key, tuple(v for v in known if v in items))
     n_seeds = args.seeds or len(s.seeds)
     s.seeds = tuple(range(args.first_seed, args.first_seed + n_seeds))
     run = run_noise(s, out, jobs=args.jobs)
