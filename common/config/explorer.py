@@ -66,10 +66,12 @@ class ExplorerConfig(Section, section="explorer"):
     # a view seeing less unknown area is not worth a trip (both strategies: they stop alike)
     min_gain_m2: float = param(0.4, ge=0)
     # score = gain / full view area - w * path cost / cost of one view range on the cheapest
-    # flat ground; w = the share of a full view worth driving one max_range_m there. 0.5: a full
-    # view is worth 2 view ranges (8 m) of terrain, or ~2.4 m of grass at cost 4. A first
-    # guess to be tuned by an ablation (0.05 on the old m^2-per-cost scale was worth ~32 m).
-    path_cost_weight: float = param(0.5, ge=0)
+    # flat ground; w = the share of a full view worth driving one max_range_m there. 2: a full
+    # view is worth half a view range (2 m) of terrain, or ~0.6 m of grass at cost 4. From the
+    # ablation in docs/experiments.md (w 0 / 0.5 / 2, grass x4, 3 seeds, cluttered garden): the
+    # same coverage and terrain share, about half the distance at 2 (0.05 on the old
+    # m^2-per-cost scale was worth ~32 m of terrain: the gain alone chose the goal).
+    path_cost_weight: float = param(2.0, ge=0)
     max_queries: int = param(10, gt=0)  # path queries per plan (branch and bound cap)
     # when to choose again
     replan_period_s: float = param(3.0, gt=0)
