@@ -354,3 +354,25 @@ def test_noise_backend_variants_and_sweeps():
     assert [c[1] for c in noise._configs(noise.LEVELS, ("label",))] == list(noise.LEVELS)
     order = sorted(["tsdf@min_weight=2", "octree-max", "tsdf"], key=noise._order)
     assert order == ["octree-max", "tsdf", "tsdf@min_weight=2"]
+
+
+def test_route_terrain_share_takes_the_cheapest_branch():
+    """A one-cell-wide ring of 5 x 5 cells, from corner (0, 0) to corner (4, 0): up the left side
+    (3 grass cells, then a terrain one) or round the right (10 terrain steps, two of them
+    diagonal). Each step pays its length plus 0.8 x the class cost x 0.1 / 0.2. Grass x1: left
+    2.0 against right 5.08; grass x4: left 3 x 1.7 + 0.5 = 5.6, so the terrain detour wins."""
+    from smana.lab.experiments import routes
+
+    reach = np.zeros((5, 5), bool)
+    reach[0, :] = reach[4, :] = reach[:, 0] = reach[:, 4] = True  # the ring
+    top = np.full((5, 5), routes.TERRAIN, np.uint16)
+    top[1:4, 0] = routes.GRASS  # the left side
+    shares = {}
+    for factor in (1.0, 4.0):
+        cost = np.where(top == routes.GRASS, factor, 1.0)
+        g, cells = routes._graph(reach, cost, 0.1, 0.8, 0.2)
+        node = {tuple(c): k for k, c in enumerate(cells)}
+        shares[factor] = routes.route_shares(g, cells, top, [node[(0, 0)]], [[node[(4, 0)]]])
+    # x1: cells entered (1,0) (2,0) (3,0) grass, (4,0) terrain -> 1 of 4 on terrain
+    assert shares[1.0] == pytest.approx(0.25)
+    assert shares[4.0] == pytest.approx(1.0)  # round the right: terrain only

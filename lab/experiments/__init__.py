@@ -56,7 +56,12 @@ __all__ = [
 ]
 
 # subcommand -> module; each module has add_parser(sub) and main(args, parser, out)
-EXPERIMENTS = {"noise": "noise", "exploration": "exploration", "ablation": "ablation"}
+EXPERIMENTS = {
+    "noise": "noise",
+    "exploration": "exploration",
+    "ablation": "ablation",
+    "routes": "routes",
+}
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -841,12 +841,12 @@ def _iv(d: dict) -> dict:
 # -- command line --------------------------------------------------------------------------------
 
 # measured: one full seed 235 s of CPU, a quick seed 3 s (plus about 10 s to start a worker)
-DURATION_HELP = "full run about 13 min with 2 jobs on a free 2-core machine; --quick about 40 s"
+DURATION_HELP = "full run about 7.5 min with 2 jobs on a 2-core machine; --quick about 30 s"
 
 
 def add_parser(sub) -> None:
     """The `noise` subcommand of `smana experiment`."""
-    from smana.common.cli import positive_int
+    from smana.common.cli import positive_float, positive_int
 
     n = sub.add_parser(
         "noise",
@@ -855,16 +855,17 @@ def add_parser(sub) -> None:
         "localisation and 4 label noise levels, over several seeds (world and start), one "
         "seed per worker process; the paper's claims decided by 95 % intervals over seeds.",
         epilog=f"Duration: {DURATION_HELP} (5 seeds x 176 frames of 640 px integrated every 2nd "
-        "pixel, 5 cm voxels, 3 back-ends x 7 noise settings: about 4 CPU minutes per seed, 55 % "
-        "of it the SLIC label degradation; quick: 2 seeds, 10 frames of 160 px, "
-        "10 cm voxels, 2 levels). A progress bar with an ETA over all maps shows on a terminal "
-        "(SMANA_PROGRESS=1 forces it, 0 hides it). Exits 1 when a seed fails (the others are "
+        "pixel, 5 cm voxels, 3 back-ends x 7 noise settings: about 2.3 CPU minutes per seed, "
+        "each frame's SLIC segmentation computed once for all settings; measured 7 min 14 s "
+        "wall; quick: 2 seeds, 10 frames of 160 px, 10 cm voxels, 2 levels). A progress bar "
+        "with an ETA over all maps shows on a terminal (SMANA_PROGRESS=1 forces it, 0 hides "
+        "it). Exits 1 when a seed fails (the others are "
         "still run and summarised, with a warning on top of noise_summary.md).",
     )
     n.add_argument(
         "--quick",
         action="store_true",
-        help="2 seeds, 2 noise levels, a 6 m trajectory, 160 px, 10 cm voxels (about 40 s)",
+        help="2 seeds, 2 noise levels, a 6 m trajectory, 160 px, 10 cm voxels (about 30 s)",
     )
     n.add_argument("--out", type=Path)
     n.add_argument(
@@ -877,6 +878,12 @@ def add_parser(sub) -> None:
         "--levels", help="comma-separated noise levels (default " + ",".join(LEVELS) + ")"
     )
     n.add_argument("--sweeps", help="label, pose or label,pose (default both)")
+    n.add_argument(
+        "--spacing",
+        type=positive_float,
+        help="metres between frames along the trajectory (default 0.25: 176 frames); "
+        "fewer frames, fewer views of each voxel",
+    )
     n.add_argument("--seeds", type=positive_int, help="number of seeds (default 5; quick 2)")
     n.add_argument(
         "--first-seed", type=int, default=3, help="seeds run from this one up (default 3)"
@@ -906,6 +913,8 @@ def main(args, parser, out: Path) -> int:
             if bad or not items:
                 parser.error(f"--{key}: expected some of {', '.join(known)}, got {text!r}")
             setattr(s, key, tuple(v for v in known if v in items))
+    if args.spacing:
+        s.spacing_m = args.spacing
     n_seeds = args.seeds or len(s.seeds)
     s.seeds = tuple(range(args.first_seed, args.first_seed + n_seeds))
     run = run_noise(s, out, jobs=args.jobs)

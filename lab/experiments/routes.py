@@ -1,0 +1,188 @@
+"""`smana experiment routes`: the terrain share of the cheapest routes between random places of
+the garden, without exploring. It separates what the world's layout decides from what the
+explorer decides: a robot that only drove between random reachable places by the planner's
+cheapest route would travel this share of terrain at each grass cost factor; the exploration
+experiment's travelled share is then read against it (docs/experiments.md).
+
+Routes are computed on the ground-truth raster (0.1 m): cells the robot may stand on (a
+traversable class with `navgraph.robot_radius_m` of clearance), reachable from the spawn,
+8-connected, each step costing what the planner's equation 1 charges (distance plus t_f x the
+class cost of the cell entered, scaled to the graph resolution: a 0.1 m step pays half a 0.2 m
+node's class cost; heights left out, the garden is gentle). Seconds per seed, in-process.
+
+    smana experiment routes [--seeds 5] [--factors 1,2,4] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from smana.common import progress
+from smana.lab import stats
+
+GRASS, TERRAIN = 1, 2
+OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, -1), (-1, 0), (-1, -1), (-1, 1))
+
+
+def _graph(reach: np.ndarray, step_class_cost: np.ndarray, res: float, t_f: float, graph_res):
+    """Directed 8-connected graph over the True cells of `reach`: (csr, cell index of each node)."""
+    cells = np.argwhere(reach)
+    idx = -np.ones(reach.shape, np.int64)
+    idx[reach] = np.arange(len(cells))
+    rows, cols, wts = [], [], []
+    for di, dj in OFFSETS:
+        b = cells + (di, dj)
+        ok = np.all((b >= 0) & (b < reach.shape), axis=1)
+        a, b = cells[ok], b[ok]
+        ok = reach[b[:, 0], b[:, 1]]
+        a, b = a[ok], b[ok]
+        step = math.hypot(di, dj) * res
+        # the planner charges t_f x T(l) per 0.2 m node entered: per raster step, its share
+        cost = step + t_f * step_class_cost[b[:, 0], b[:, 1]] * (res / graph_res)
+        rows.append(idx[a[:, 0], a[:, 1]])
+        cols.append(idx[b[:, 0], b[:, 1]])
+        wts.append(cost)
+    n = len(cells)
+    g = coo_matrix(
+        (np.concatenate(wts), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    ).tocsr()
+    return g, cells
+
+
+def route_terrain_share(
+    top_class: np.ndarray,
+    reach: np.ndarray,
+    grass_factor: float,
+    rng: np.random.Generator,
+    *,
+    res: float = 0.1,
+    t_f: float = 0.8,
+    graph_res: float = 0.2,
+    n_sources: int = 20,
+    targets_per_source: int = 10,
+) -> float | None:
+    """Share of terrain among the terrain and grass cells entered by the cheapest routes between
+    random pairs of `reach` cells, terrain costing 1 and grass `grass_factor` (the class table's
+    terrain cost times the factor, as the exploration experiment's --set does)."""
+    cost = np.where(top_class == GRASS, float(grass_factor), 1.0)
+    g, cells = _graph(reach, cost, res, t_f, graph_res)
+    if len(cells) < 2:
+        return None
+    sources = rng.choice(len(cells), size=min(n_sources, len(cells)), replace=False)
+    targets = [rng.choice(len(cells), size=targets_per_source) for _ in sources]
+    return route_shares(g, cells, top_class, sources, targets)
+
+
+def route_shares(g, cells: np.ndarray, top_class: np.ndarray, sources, targets) -> float | None:
+    """Terrain / (terrain + grass) over the cells entered by the cheapest routes from each
+    source node to each of its target nodes (`targets[k]` for `sources[k]`)."""
+    _, pred = dijkstra(g, directed=True, indices=np.asarray(sources), return_predecessors=True)
+    n_t = n_g = 0
+    for k, src in enumerate(sources):
+        for t in targets[k]:
+            node = int(t)
+            while node >= 0 and node != src:
+                c = top_class[cells[node, 0], cells[node, 1]]
+                n_t += c == TERRAIN
+                n_g += c == GRASS
+                node = int(pred[k, node])
+    return n_t / (n_t + n_g) if n_t + n_g else None
+
+
+def world_routes(seed: int, size_m: float, factors, world_sets, clearance_m: float) -> dict:
+    """{factor: share} for one garden seed (the exploration experiment's world and start)."""
+    from smana.common.classes import ClassTable
+    from smana.common.config import SmanaConfig
+    from smana.lab import evaluation as ev
+    from smana.services.sim.worlds.garden import generate
+
+    cfg = SmanaConfig.load(
+        overrides=[f"sim.seed={seed}", f"sim.garden.size_m={size_m}", *world_sets]
+    )
+    world = generate(cfg.sim.seed, cfg.sim.garden, ClassTable.load("garden3drms"))
+    trav = world.traversability(clearance_m)
+    x0, y0, _ = world.spawn_pose(clearance_m)
+    reach = ev.reachable_traversable(trav.data, tuple(int(v) for v in trav.index_of(x0, y0)))
+    top = world.top_class().data
+    out = {}
+    for f in factors:
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x2047E]))
+        out[f] = route_terrain_share(
+            top,
+            reach,
+            f,
+            rng,
+            res=trav.resolution_m,
+            t_f=cfg.planner.t_f,
+            graph_res=cfg.navgraph.resolution_m,
+        )
+    return out
+
+
+# -- command line --------------------------------------------------------------------------------
+
+
+def add_parser(sub) -> None:
+    from smana.common.cli import positive_int
+
+    r = sub.add_parser(
+        "routes",
+        help="terrain share of the cheapest routes between random places, per grass cost "
+        "(no exploration; about 10 s)",
+        description=__doc__.splitlines()[0],
+        epilog="Duration: about 2 s per seed and factor on a 2-core machine. The worlds are the "
+        "exploration experiment's (same seeds, size and layout).",
+    )
+    r.add_argument("--out", type=Path)
+    r.add_argument("--seeds", type=positive_int, default=5, help="number of seeds (default 5)")
+    r.add_argument("--factors", default="1,2,4", help="grass cost factors (default 1,2,4)")
+
+
+def main(args, parser, out: Path) -> int:
+    from smana.common.config import SmanaConfig
+
+    from .exploration import WORLD_SETS, ExplorationExperimentConfig
+
+    try:
+        factors = [float(v) for v in args.factors.split(",") if v.strip()]
+    except ValueError:
+        parser.error(f"--factors: expected numbers like 1,2,4, got {args.factors!r}")
+    if not factors or min(factors) <= 0:
+        parser.error(f"--factors: expected positive numbers, got {args.factors!r}")
+    s = ExplorationExperimentConfig()
+    seeds = list(range(3, 3 + args.seeds))
+    clearance = SmanaConfig.load().navgraph.robot_radius_m
+    per_seed = {}
+    with progress.bar(len(seeds), "routes", unit="seed") as bar:
+        for seed in seeds:
+            per_seed[seed] = world_routes(seed, s.size_m, factors, WORLD_SETS, clearance)
+            bar.update()
+    rows = [
+        {"grass_cost_factor": f, **stats.mean_ci([per_seed[k][f] for k in seeds]).as_dict()}
+        for f in factors
+    ]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "routes_results.json").write_text(
+        json.dumps({"seeds": seeds, "per_seed": per_seed, "summary": rows}, indent=2)
+    )
+    lines = [
+        "# Terrain share of the cheapest routes between random places (no exploration)",
+        "",
+        f"Seeds {seeds}, garden {s.size_m} m, {' '.join(WORLD_SETS)}, robot clearance "
+        f"{clearance} m; 200 routes per seed and factor.",
+        "",
+        "| grass cost | terrain share of routes, mean [95 % CI] (n) |",
+        "|---|---|",
+    ]
+    for f in factors:
+        iv = stats.mean_ci([per_seed[k][f] for k in seeds])
+        lines.append(f"| x{f:g} | {iv.format(100, unit=' %')} |")
+    (out / "routes_summary.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
