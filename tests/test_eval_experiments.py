@@ -309,7 +309,7 @@ def test_pick_spawn_is_a_reachable_free_cell_and_depends_on_the_seed():
 
     a, b = ex.pick_spawn(3, 6.0), ex.pick_spawn(4, 6.0)
     assert a == ex.pick_spawn(3, 6.0) and a != b
-    world = generate(3, size_m=6.0)
+    world = generate(3, size_m=6.0, layout="3drms")  # the experiment's world
     trav = world.traversability(ex.SPAWN_CLEARANCE_M)
     assert trav.data[trav.index_of(a[0], a[1])]
     assert -np.pi <= a[2] <= np.pi
