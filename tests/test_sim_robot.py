@@ -29,7 +29,7 @@ def sim():
 
 
 def test_height_field_agrees_with_the_ground_model():
-    world = generate(seed=11, size_m=5.0)
+    world = generate(seed=11, size_m=5.0, layout="classic")
     with BulletScene(world) as scene:
         rng = np.random.default_rng(0)
         xy = rng.uniform(-2.3, 2.3, (300, 2))

@@ -17,24 +17,24 @@ GROUND_IDS = (1, 2)
 
 @pytest.fixture(scope="module")
 def world() -> World:
-    return generate(seed=3)
+    return generate(seed=3, layout="classic")
 
 
 @pytest.fixture(scope="module")
 def small_world() -> World:
-    return generate(seed=5, size_m=6.0)
+    return generate(seed=5, size_m=6.0, layout="classic")
 
 
 def test_same_seed_same_world_other_seed_other_world(world):
-    again = generate(seed=3)
+    again = generate(seed=3, layout="classic")
     assert np.array_equal(again.ground.heights, world.ground.heights)
     assert np.array_equal(again.ground.classes, world.ground.classes)
     assert [o.primitives for o in again.objects] == [o.primitives for o in world.objects]
-    other = generate(seed=4)
+    other = generate(seed=4, layout="classic")
     assert not np.array_equal(other.ground.heights, world.ground.heights)
 
 
-def test_default_world_is_a_cluttered_12m_garden(world):
+def test_classic_world_is_a_12m_garden_with_scattered_objects(world):
     assert world.bounds == pytest.approx((-6.0, -6.0, 6.0, 6.0))
     kinds = {o.kind for o in world.objects}
     assert {"wall", "hedge", "rose", "obstacle"} <= kinds
@@ -61,7 +61,7 @@ def test_spawn_pose_is_free(world):
 
 
 def test_bigger_worlds_scale(world):
-    big = generate(seed=1, size_m=30.0, ground_resolution_m=0.2)
+    big = generate(seed=1, size_m=30.0, ground_resolution_m=0.2, layout="classic")
     assert big.bounds == pytest.approx((-15.0, -15.0, 15.0, 15.0))
     n_big = sum(o.kind != "wall" for o in big.objects)
     n_small = sum(o.kind != "wall" for o in world.objects)
@@ -145,7 +145,7 @@ def test_top_class_matches_a_column_march(small_world):
 
 
 def test_traversability_with_radius_is_a_subset():
-    w = generate(seed=7, size_m=8.0)
+    w = generate(seed=7, size_m=8.0, layout="classic")
     t0, t3 = w.traversability(0.0).data, w.traversability(0.3).data
     assert np.all(t0[t3]) and t3.sum() < t0.sum()
     assert not t0[w.top_class().data == 8].any()  # under a tree crown is not traversable
