@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from smana.common.config.mapper import TsdfConfig
 from smana.services.mapper.semantic_map import SemanticMap
 
 SEM_IDS = [1, 2, 4, 5, 6, 7, 8]
@@ -103,7 +104,7 @@ def test_tsdf_matches_slow_reference():
 
 
 def test_single_ray_distances_and_surface():
-    m = SemanticMap("tsdf", 0.1, 10.0)
+    m = SemanticMap("tsdf", 0.1, 10.0, config=TsdfConfig(min_weight=1e-4))  # a one-ray surface
     d = m.integrate(
         np.array([[2.03, 0.05, 0.05]], np.float32), np.array([2]), None, (0.05, 0.05, 0.05)
     )

@@ -57,9 +57,11 @@ def test_signed_distances_use_the_extracted_surface_whatever_the_back_end_is_cal
 def test_a_tsdf_delta_gives_the_graph_one_voxel_per_crossing():
     """End to end: a flat floor integrated by the TSDF gives nodes at the floor's height, one
     surface voxel per column, under the old band rule it gave two or three."""
+    from smana.common.config.mapper import TsdfConfig
     from smana.services.mapper.semantic_map import SemanticMap
 
-    m = SemanticMap("tsdf", 0.1, 10.0)
+    # one scan of one ray per floor point: a one-ray surface (the default waits for 3 rays)
+    m = SemanticMap("tsdf", 0.1, 10.0, config=TsdfConfig(min_weight=1e-4))
     s = np.arange(0.55, 3.5, 0.1)
     xx, yy = np.meshgrid(s, s, indexing="ij")
     floor = np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, 0.03)], -1).astype(np.float32)
