@@ -176,13 +176,15 @@ def _run(world: ToyWorld, params: ExplorerConfig, start=(1.0, 1.0, 0.0), dt=0.1,
 
 
 @pytest.mark.slow
-def test_explores_a_toy_garden_without_touching_obstacles():
+@pytest.mark.parametrize("strategy", ["nbv", "nearest_frontier"])
+def test_explores_a_toy_garden_without_touching_obstacles(strategy):
     world = ToyWorld(_garden(1))
     params = _params(
         max_range_m=3.0,
         follower={"lookahead_m": 0.3, "max_linear_mps": 0.5},
         max_queries=6,
         time_budget_s=400,
+        strategy=strategy,
     )
     ex, clearance = _run(world, params)
     reach = world.reachable_traversable((1.0, 1.0))
@@ -190,14 +192,20 @@ def test_explores_a_toy_garden_without_touching_obstacles():
     assert ex.done, ex.state_dict()
     assert ex.done_reason in ("no_view_worth_it", "no_frontier")
     assert coverage >= 0.9, coverage
-    # the safety zone inflates obstacles by 0.35 m; corner cutting and late sightings (a tree
-    # beside the 57-degree camera is mapped only when the robot turns to it) eat some: 0.09-0.20 m
-    # over seeds 1-4 with the old score, 0.09-0.12 m with the new one (issue 14)
-    assert clearance > 0.07, clearance
     st = ex.state_dict()
+    assert st["strategy"] == strategy
     assert st["distance_m"] > 10
     assert sum(st["label_counts"].values()) > 20
-    assert st["n_goals"] >= 3
+    if strategy == "nbv":
+        # the safety zone inflates obstacles by 0.35 m; corner cutting and late sightings (a
+        # tree beside the 57-degree camera is mapped only when the robot turns to it) eat some:
+        # 0.09-0.20 m over seeds 1-4 with the old score, 0.09-0.12 m with the new (issue 14)
+        assert clearance > 0.07, clearance
+        assert st["n_goals"] >= 3
+    else:
+        # no collision; the baseline drives along the edge of unknown space, where obstacles
+        # are mapped late, and comes closer than the next-best view (0.00-0.20 m, seeds 1-4)
+        assert clearance > 0.0, clearance
 
 
 def test_grass_cost_shifts_travel_onto_terrain():
@@ -322,26 +330,6 @@ def test_a_robot_caught_in_a_safety_zone_backs_out_on_the_open_side():
     # the far side is a separate component with no clear hop: not reachable from here
     assert not reach[15, 5]
     assert reach[3, 3]
-
-
-@pytest.mark.slow
-def test_nearest_frontier_explores_the_toy_garden_too():
-    world = ToyWorld(_garden(1))
-    params = _params(
-        max_range_m=3.0,
-        follower={"lookahead_m": 0.3, "max_linear_mps": 0.5},
-        time_budget_s=400,
-        strategy="nearest_frontier",
-    )
-    ex, clearance = _run(world, params)
-    reach = world.reachable_traversable((1.0, 1.0))
-    coverage = (world.known & reach).sum() / reach.sum()
-    assert ex.done_reason in ("no_view_worth_it", "no_frontier"), ex.state_dict()
-    assert coverage >= 0.9, coverage
-    # no collision here; the baseline drives along the edge of unknown space, where obstacles
-    # are mapped late, and comes closer than the next-best view (0.00-0.20 m over seeds 1-4)
-    assert clearance > 0.0, clearance
-    assert ex.state_dict()["strategy"] == "nearest_frontier"
 
 
 def test_nearest_frontier_goes_by_travel_distance_not_straight_line():
