@@ -19,7 +19,8 @@ def test_fixed_trajectory_is_long_smooth_and_clear_of_obstacles():
     world = generate(3, size_m=12.0)
     poses = exp.fixed_trajectory(world, length_m=44.0, spacing_m=0.25)
     steps = np.hypot(*np.diff(poses[:, :2], axis=0).T)
-    assert steps.sum() == pytest.approx(44.0, abs=0.5)
+    # cut at 44 m; smoothing the raster path can leave a tour a few per cent shorter
+    assert 0.95 * 44.0 <= steps.sum() <= 44.0
     assert steps.max() < 0.3
     top = world.top_class()
     obstacle = ~world.classes.traversable_lut[top.data]

@@ -841,7 +841,7 @@ def _iv(d: dict) -> dict:
 # -- command line --------------------------------------------------------------------------------
 
 # measured: one full seed 235 s of CPU, a quick seed 3 s (plus about 10 s to start a worker)
-DURATION_HELP = "full run about 7.5 min with 2 jobs on a 2-core machine; --quick about 30 s"
+DURATION_HELP = "full run about 8 min with 2 jobs on a 2-core machine; --quick about 30 s"
 
 
 def add_parser(sub) -> None:
@@ -856,7 +856,7 @@ def add_parser(sub) -> None:
         "seed per worker process; the paper's claims decided by 95 % intervals over seeds.",
         epilog=f"Duration: {DURATION_HELP} (5 seeds x 176 frames of 640 px integrated every 2nd "
         "pixel, 5 cm voxels, 3 back-ends x 7 noise settings: about 2.3 CPU minutes per seed, "
-        "each frame's SLIC segmentation computed once for all settings; measured 7 min 14 s "
+        "each frame's SLIC segmentation computed once for all settings; measured 7 to 8 min "
         "wall; quick: 2 seeds, 10 frames of 160 px, 10 cm voxels, 2 levels). A progress bar "
         "with an ETA over all maps shows on a terminal (SMANA_PROGRESS=1 forces it, 0 hides "
         "it). Exits 1 when a seed fails (the others are "
