@@ -65,7 +65,9 @@ def test_lockstep_replay_builds_the_in_process_map(fake_stack, dataset, backend)
     assert served.n_integrations == local.n_integrations == N_SCANS
     assert served.stats()["voxels_observed"] == local.stats()["voxels_observed"]
     a, b = sorted_rows(served.occupied_voxels()), sorted_rows(local.occupied_voxels())
-    assert len(a) > 500
+    # 5 sparse scans: a TSDF surface needs about 3 rays (mapper.tsdf.min_weight), so it keeps
+    # fewer voxels than the octrees (383 against 500+)
+    assert len(a) > 300
     np.testing.assert_array_equal(a.keys, b.keys)
     np.testing.assert_array_equal(a.labels, b.labels)
     np.testing.assert_array_equal(a.values, b.values)
