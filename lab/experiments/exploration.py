@@ -659,7 +659,7 @@ def add_parser(sub) -> None:
     """The `exploration` subcommand of `smana experiment`."""
     e = sub.add_parser(
         "exploration",
-        help="terrain share vs grass cost, NBV vs nearest frontier (about 20 min; --quick 3)",
+        help="terrain share vs grass cost, NBV vs nearest frontier (about 20 min; --quick 3 min)",
         description="Paper 4.3: one `smana up` per arm (NBV at grass x1, x2, x4; nearest "
         "frontier at x2) and seed; terrain share of travelled nodes, coverage curves, verdicts.",
         epilog="Duration on a 2-core machine: about 20 minutes (4 arms x 5 seeds = 20 runs of "
