@@ -41,5 +41,6 @@ def test_exploration_quick(tmp_path):
     assert (tmp_path / "seed3_nbv_x1" / "report.md").is_file()
     assert (tmp_path / "exploration_terrain_share.png").stat().st_size > 1000
     text = (tmp_path / "exploration_summary.md").read_text()
-    assert text.splitlines()[2].startswith("| claim | paper |") and "WARNING" not in text
+    assert text.splitlines()[2].startswith("**Quick run**") and "WARNING" not in text
+    assert "| claim | paper |" in text
     assert "| nbv_x4 | 2 (0) |" in text

@@ -1,4 +1,4 @@
-"""The paper's experiments (sections 4.2.2 and 4.3), reproduced in smana's simulated garden.
+"""The paper's experiments (sections 4.2 and 4.3), reproduced in smana's simulated garden.
 
     smana experiment noise [--quick] [--out DIR]
     smana experiment exploration [--quick] [--seeds 3] [--out DIR]
@@ -76,12 +76,13 @@ def cli(argv: list[str] | None = None) -> int:
         mod.add_parser(sub)
     args = p.parse_args(argv)
     mod = modules[args.which]
+    parser = sub.choices[args.which]  # errors point at `smana experiment <which> --help`
     if hasattr(mod, "check_args"):
-        mod.check_args(args)
+        mod.check_args(args, parser)  # a misuse is refused before the output directory exists
     stamp = time.strftime("%Y%m%d-%H%M%S")
     out = args.out or Path("runs") / f"experiment-{args.which}-{stamp}"
     output_dir(out, "output directory", "--out")
-    return mod.main(args, p, out)
+    return mod.main(args, parser, out)
 
 
 if __name__ == "__main__":

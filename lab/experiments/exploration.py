@@ -103,6 +103,7 @@ class ExplorationExperimentConfig:
     # 2.5 cm at the 8 m range (1.2 cm at 640), still under the 10 cm map voxel, so each voxel's
     # label vote and the graph the explorer plans on keep their kind; rendering costs a quarter
     extra: tuple[str, ...] = ("sim.camera.width=320", "sim.camera.height=320")
+    is_quick: bool = False  # the test suite's small version: its summary says so on top
 
     @classmethod
     def quick(cls) -> ExplorationExperimentConfig:
@@ -118,6 +119,7 @@ class ExplorationExperimentConfig:
             "deploy.standby_delay_s=3600",
         )
         return cls(
+            is_quick=True,
             seeds=(3, 4),
             arms=(nbv(1.0), nbv(4.0), BASELINE),
             size_m=6.0,
@@ -276,6 +278,10 @@ def _achieved_rtf(ee: dict) -> float | None:
     return round(t / wall, 3) if t and wall else None
 
 
+def _terminate(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def run_exploration(
     s: ExplorationExperimentConfig, out: Path, log=progress.say, write=None
 ) -> list[dict]:
@@ -283,6 +289,11 @@ def run_exploration(
     the exploration's) and returns the rows."""
     spawns = {seed: pick_spawn(seed, s.size_m) for seed in s.seeds}
     todo = [(seed, arm) for seed in s.seeds for arm in s.arms]
+    # a `kill` (SIGTERM) stops the runs as Ctrl-C does: each `smana up` is in its own process
+    # group and would otherwise live on without the experiment
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, _terminate)
     rows = []
     runs = progress.bar(len(todo), "exploration", unit="run")
     pool = ThreadPoolExecutor(max_workers=s.jobs)
@@ -315,6 +326,8 @@ def run_exploration(
         raise
     finally:
         pool.shutdown(wait=True)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     runs.close()
     rows.sort(key=lambda r: ([a.name for a in s.arms].index(r["arm"]), r["seed"]))
     (write or write_exploration_outputs)(rows, s, out)
@@ -513,6 +526,13 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
             f"exit), left out of every number below: {names}.",
             "",
         ]
+    if s.is_quick:
+        lines += [
+            "**Quick run**: 2 seeds of 20 s in a 6 m garden. It checks that the experiment "
+            "works; its verdicts say nothing about the paper (the full run: `smana experiment "
+            "exploration`, docs/experiments.md).",
+            "",
+        ]
     lines += [
         "| claim | paper | smana mean [95 % CI] (n) | verdict |",
         "|---|---|---|---|",
@@ -676,18 +696,20 @@ def add_parser(sub) -> None:
     )
 
 
-def add_common_args(e, quick_help: str) -> None:
+def add_common_args(e, quick_help: str, seeds_help: str = "default 5; quick 2") -> None:
     from smana.common.cli import positive_float, positive_int
 
     e.add_argument("--quick", action="store_true", help=quick_help)
-    e.add_argument("--out", type=Path)
     e.add_argument(
-        "--seeds", type=positive_int, help="number of seeds, from 3 up (default 5; quick 2)"
+        "--out", type=Path, help="output directory (default runs/experiment-<name>-<time>)"
     )
+    e.add_argument("--seeds", type=positive_int, help=f"number of seeds, from 3 up ({seeds_help})")
     e.add_argument(
         "--size", type=positive_float, help="side of the garden, m (default 12; quick 6)"
     )
-    e.add_argument("--budget", type=positive_float, help="time budget per run, seconds")
+    e.add_argument(
+        "--budget", type=positive_float, help="time budget per run, s of robot time (default 150)"
+    )
     e.add_argument("--jobs", type=positive_int, help="runs of smana up at once (default 2)")
     e.add_argument(
         "--set",
@@ -698,7 +720,7 @@ def add_common_args(e, quick_help: str) -> None:
     )
 
 
-def check_args(args) -> None:
+def check_args(args, parser=None) -> None:
     """Refuse a bad --set now, not in every run (ConfigError, one line)."""
     from smana.common.config import SmanaConfig
 

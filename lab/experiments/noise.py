@@ -219,10 +219,12 @@ class NoiseExperimentConfig:
     backends: tuple[str, ...] = BACKENDS  # names or variants (`parse_backend`)
     levels: tuple[str, ...] = LEVELS
     sweeps: tuple[str, ...] = SWEEPS
+    is_quick: bool = False  # the test suite's small version: its summary says so on top
 
     @classmethod
     def quick(cls) -> NoiseExperimentConfig:
         return cls(
+            is_quick=True,
             seeds=(3, 4),
             size_m=12.0,
             length_m=6.0,
@@ -750,6 +752,13 @@ def _noise_summary(rows, agg, decided, meta, out: Path) -> None:
         ]
         lines += [f"> - seed {s}: {msg}" for s, msg in failures.items()]
         lines.append("")
+    if st.get("is_quick"):
+        lines += [
+            "> **Quick run**: 2 seeds, a few small frames, 10 cm voxels. It checks that the "
+            "experiment works; its verdicts say nothing about the paper (the full run: "
+            "`smana experiment noise`, docs/experiments.md).",
+            "",
+        ]
     lines += [
         "| claim | paper | smana mean [95 % CI] (n) | verdict |",
         "|---|---|---|---|",
@@ -851,7 +860,7 @@ def add_parser(sub) -> None:
     n = sub.add_parser(
         "noise",
         help=f"map precision under localisation and label noise ({DURATION_HELP})",
-        description="Paper Fig. 6 and 7: every back-end along a fixed 44 m trajectory, under 4 "
+        description="Paper Fig. 6 and 7: every back-end along a fixed tour of about 44 m, under 4 "
         "localisation and 4 label noise levels, over several seeds (world and start), one "
         "seed per worker process; the paper's claims decided by 95 % intervals over seeds.",
         epilog=f"Duration: {DURATION_HELP} (5 seeds x 176 frames of 640 px integrated every 2nd "
@@ -865,9 +874,11 @@ def add_parser(sub) -> None:
     n.add_argument(
         "--quick",
         action="store_true",
-        help="2 seeds, 2 noise levels, a 6 m trajectory, 160 px, 10 cm voxels (about 30 s)",
+        help="2 seeds, 2 noise levels, a 5 m trajectory, 160 px, 10 cm voxels (about 30 s)",
     )
-    n.add_argument("--out", type=Path)
+    n.add_argument(
+        "--out", type=Path, help="output directory (default runs/experiment-noise-<time>)"
+    )
     n.add_argument(
         "--backends",
         help="comma-separated back-ends (default " + ",".join(BACKENDS) + "); a variant with "
@@ -896,10 +907,13 @@ def add_parser(sub) -> None:
     )
 
 
-def main(args, parser, out: Path) -> int:
+def settings_from_args(args, parser) -> NoiseExperimentConfig:
+    """The run's settings from the command line; a misuse is `parser.error` (one line, status 2)."""
     s = NoiseExperimentConfig.quick() if args.quick else NoiseExperimentConfig()
-    if args.backends:
+    if args.backends is not None:
         s.backends = tuple(b.strip() for b in args.backends.split(",") if b.strip())
+        if not s.backends:
+            parser.error(f"--backends: expected some of {', '.join(BACKENDS)}, got ''")
         for b in s.backends:
             try:
                 parse_backend(b)
@@ -907,7 +921,7 @@ def main(args, parser, out: Path) -> int:
                 parser.error(str(exc))
     for key, known in (("levels", LEVELS), ("sweeps", SWEEPS)):
         text = getattr(args, key)
-        if text:
+        if text is not None:
             items = tuple(v.strip() for v in text.split(",") if v.strip())
             bad = [v for v in items if v not in known]
             if bad or not items:
@@ -915,8 +929,19 @@ def main(args, parser, out: Path) -> int:
             setattr(s, key, tuple(v for v in known if v in items))
     if args.spacing:
         s.spacing_m = args.spacing
+    if args.first_seed < 0:
+        parser.error(f"--first-seed: expected an integer >= 0, got {args.first_seed}")
     n_seeds = args.seeds or len(s.seeds)
     s.seeds = tuple(range(args.first_seed, args.first_seed + n_seeds))
+    return s
+
+
+def check_args(args, parser) -> None:
+    settings_from_args(args, parser)
+
+
+def main(args, parser, out: Path) -> int:
+    s = settings_from_args(args, parser)
     run = run_noise(s, out, jobs=args.jobs)
     print(f"results in {out} (noise_summary.md)")
     if run.failures:
