@@ -21,6 +21,7 @@ simulated world rebuilt from the run's config and exported there), prints the ta
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -144,6 +145,43 @@ def reachable_traversable(trav: np.ndarray, start_ij: tuple[int, int]) -> np.nda
     comp, _ = ndimage.label(trav, structure=np.ones((3, 3), bool))
     c = comp[start_ij]
     return comp == c if c > 0 else np.zeros(trav.shape, bool)
+
+
+def reachable_from_spawn(world, clearance_m: float):
+    """(traversability `Raster` with `clearance_m`, mask of its cells 8-connected to the world's
+    spawn point, that point's cell): the free space a robot of that radius could reach from
+    where it starts."""
+    trav = world.traversability(clearance_m)
+    x0, y0, _ = world.spawn_pose(clearance_m)
+    start = tuple(int(v) for v in trav.index_of(x0, y0))
+    return trav, reachable_traversable(trav.data, start), start
+
+
+def grid_graph(mask: np.ndarray, offsets, step_cost):
+    """A sparse graph over the True cells of `mask`: one edge from each cell a to a + offset for
+    every offset in `offsets` whose end is in `mask`, weighted `step_cost(b_cells, step_cells)`
+    (b_cells (E, 2) the ends, step_cells the offset's length in cells). Returns (csr matrix,
+    cells (N, 2), the node index of each cell). For scipy.sparse.csgraph's shortest paths."""
+    from scipy.sparse import coo_matrix
+
+    cells = np.argwhere(mask)
+    idx = -np.ones(mask.shape, np.int64)
+    idx[mask] = np.arange(len(cells))
+    rows, cols, wts = [], [], []
+    for di, dj in offsets:
+        b = cells + (di, dj)
+        ok = np.all((b >= 0) & (b < mask.shape), axis=1)
+        a, b = cells[ok], b[ok]
+        ok = mask[b[:, 0], b[:, 1]]
+        a, b = a[ok], b[ok]
+        rows.append(idx[a[:, 0], a[:, 1]])
+        cols.append(idx[b[:, 0], b[:, 1]])
+        wts.append(np.broadcast_to(step_cost(b, math.hypot(di, dj)), len(b)))
+    n = len(cells)
+    graph = coo_matrix(
+        (np.concatenate(wts), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    ).tocsr()
+    return graph, cells, idx
 
 
 def exploration_coverage(

@@ -388,3 +388,24 @@ def test_route_terrain_share_takes_the_cheapest_branch():
     # x1: cells entered (1,0) (2,0) (3,0) grass, (4,0) terrain -> 1 of 4 on terrain
     assert shares[1.0] == pytest.approx(0.25)
     assert shares[4.0] == pytest.approx(1.0)  # round the right: terrain only
+
+
+def test_grid_graph_matches_a_loop_over_cells():
+    """ev.grid_graph (the noise tour's and the routes' graph) against a plain loop."""
+    import math
+
+    mask = np.random.default_rng(5).random((9, 7)) < 0.6
+    offsets = ((0, 1), (1, 0), (1, 1), (1, -1), (0, -1), (-1, 0), (-1, -1), (-1, 1))
+    cost = np.random.default_rng(6).random(mask.shape)
+    g, cells, idx = ev.grid_graph(mask, offsets, lambda b, step: step + cost[b[:, 0], b[:, 1]])
+    want = {}
+    for i, j in zip(*np.nonzero(mask), strict=True):
+        for di, dj in offsets:
+            a, b = i + di, j + dj
+            if 0 <= a < mask.shape[0] and 0 <= b < mask.shape[1] and mask[a, b]:
+                want[(idx[i, j], idx[a, b])] = math.hypot(di, dj) + cost[a, b]
+    coo = g.tocoo()
+    got = {(int(r), int(c)): v for r, c, v in zip(coo.row, coo.col, coo.data, strict=True)}
+    assert got.keys() == want.keys()
+    assert all(got[k] == pytest.approx(want[k]) for k in want)
+    assert [tuple(c) for c in cells] == [tuple(c) for c in np.argwhere(mask)]

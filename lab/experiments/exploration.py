@@ -131,22 +131,26 @@ class ExplorationExperimentConfig:
 # -- one run -------------------------------------------------------------------------------------
 
 
-def pick_spawn(seed: int, size_m: float, world_sets=WORLD_SETS) -> list[float]:
-    """[x, y, yaw]: a free cell with SPAWN_CLEARANCE_M, reachable from the world's own start
-    (its free spot nearest the centre), drawn from the seed's generator."""
+def experiment_world(seed: int, size_m: float, world_sets=WORLD_SETS):
+    """(config, world) of one seed as the runs build it: the garden of `sim.seed` with the
+    experiment's size and world overrides."""
     from smana.common.classes import ClassTable
     from smana.common.config import SmanaConfig
-    from smana.lab import evaluation as ev
     from smana.services.sim.worlds.garden import generate
 
     cfg = SmanaConfig.load(
         overrides=[f"sim.seed={seed}", f"sim.garden.size_m={size_m}", *world_sets]
     )
-    world = generate(cfg.sim.seed, cfg.sim.garden, ClassTable.load("garden3drms"))
-    trav = world.traversability(SPAWN_CLEARANCE_M)
-    x0, y0, _ = world.spawn_pose(SPAWN_CLEARANCE_M)
-    i0, j0 = trav.index_of(x0, y0)
-    reach = ev.reachable_traversable(trav.data, (int(i0), int(j0)))
+    return cfg, generate(cfg.sim.seed, cfg.sim.garden, ClassTable.load("garden3drms"))
+
+
+def pick_spawn(seed: int, size_m: float, world_sets=WORLD_SETS) -> list[float]:
+    """[x, y, yaw]: a free cell with SPAWN_CLEARANCE_M, reachable from the world's own start
+    (its free spot nearest the centre), drawn from the seed's generator."""
+    from smana.lab import evaluation as ev
+
+    _, world = experiment_world(seed, size_m, world_sets)
+    trav, reach, _ = ev.reachable_from_spawn(world, SPAWN_CLEARANCE_M)
     xs, ys = trav.cell_centres()
     ii, jj = np.nonzero(reach)
     # its own stream, apart from the world's: the start does not move when world generation does

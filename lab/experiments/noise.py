@@ -23,7 +23,6 @@ from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
-from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
@@ -121,36 +120,14 @@ def fixed_trajectory(
     reachable from it. Waypoints are spread over that free space (farthest-point sampling),
     visited nearest-first along shortest paths on the ground-truth traversability raster,
     smoothed, and cut at `length_m` (the tour repeats if it is shorter)."""
-    trav = world.traversability(clearance_m)
+    trav, reach, spawn = ev.reachable_from_spawn(world, clearance_m)
     res = trav.resolution_m
-    sx, sy, _ = world.spawn_pose(clearance_m)
-    si, sj = (int(v) for v in trav.index_of(sx, sy))
-    reach = ev.reachable_traversable(trav.data, (si, sj))
-    cells = np.argwhere(reach)
-    if len(cells) < 2:
+    if reach.sum() < 2:
         raise ValueError("the world has no free space to drive through")
-    idx = -np.ones(reach.shape, np.int64)
-    idx[reach] = np.arange(len(cells))
-    rows, cols, wts = [], [], []
-    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        a = cells
-        b = cells + (di, dj)
-        ok = (
-            (b[:, 0] >= 0)
-            & (b[:, 1] >= 0)
-            & (b[:, 0] < reach.shape[0])
-            & (b[:, 1] < reach.shape[1])
-        )
-        a, b = a[ok], b[ok]
-        ok = reach[b[:, 0], b[:, 1]]
-        rows.append(idx[a[ok, 0], a[ok, 1]])
-        cols.append(idx[b[ok, 0], b[ok, 1]])
-        wts.append(np.full(ok.sum(), math.hypot(di, dj) * res))
-    n = len(cells)
-    graph = coo_matrix(
-        (np.concatenate(wts), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
-    ).tocsr()
-    start = int(idx[si, sj]) if rng is None else int(rng.integers(len(cells)))
+    graph, cells, idx = ev.grid_graph(
+        reach, ((0, 1), (1, 0), (1, 1), (1, -1)), lambda b, step: step * res
+    )
+    start = int(idx[spawn]) if rng is None else int(rng.integers(len(cells)))
     # farthest-point sampling of waypoints, by path distance
     dist = dijkstra(graph, directed=False, indices=start)
     way = [start]

@@ -16,14 +16,13 @@ node's class cost; heights left out, the garden is gentle). Seconds per seed, in
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
-from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from smana.common import progress
+from smana.lab import evaluation as ev
 from smana.lab import stats
 
 GRASS, TERRAIN = 1, 2
@@ -31,28 +30,14 @@ OFFSETS = ((0, 1), (1, 0), (1, 1), (1, -1), (0, -1), (-1, 0), (-1, -1), (-1, 1))
 
 
 def _graph(reach: np.ndarray, step_class_cost: np.ndarray, res: float, t_f: float, graph_res):
-    """Directed 8-connected graph over the True cells of `reach`: (csr, cell index of each node)."""
-    cells = np.argwhere(reach)
-    idx = -np.ones(reach.shape, np.int64)
-    idx[reach] = np.arange(len(cells))
-    rows, cols, wts = [], [], []
-    for di, dj in OFFSETS:
-        b = cells + (di, dj)
-        ok = np.all((b >= 0) & (b < reach.shape), axis=1)
-        a, b = cells[ok], b[ok]
-        ok = reach[b[:, 0], b[:, 1]]
-        a, b = a[ok], b[ok]
-        step = math.hypot(di, dj) * res
-        # the planner charges t_f x T(l) per 0.2 m node entered: per raster step, its share
-        cost = step + t_f * step_class_cost[b[:, 0], b[:, 1]] * (res / graph_res)
-        rows.append(idx[a[:, 0], a[:, 1]])
-        cols.append(idx[b[:, 0], b[:, 1]])
-        wts.append(cost)
-    n = len(cells)
-    g = coo_matrix(
-        (np.concatenate(wts), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
-    ).tocsr()
-    return g, cells
+    """Directed 8-connected graph over the True cells of `reach`: (csr, cell index of each node).
+    The planner charges t_f x T(l) per graph node entered; a raster step pays its share."""
+
+    def cost(b, step):
+        return step * res + t_f * step_class_cost[b[:, 0], b[:, 1]] * (res / graph_res)
+
+    graph, cells, _ = ev.grid_graph(reach, OFFSETS, cost)
+    return graph, cells
 
 
 def route_terrain_share(
@@ -97,18 +82,10 @@ def route_shares(g, cells: np.ndarray, top_class: np.ndarray, sources, targets) 
 
 def world_routes(seed: int, size_m: float, factors, world_sets, clearance_m: float) -> dict:
     """{factor: share} for one garden seed (the exploration experiment's world and start)."""
-    from smana.common.classes import ClassTable
-    from smana.common.config import SmanaConfig
-    from smana.lab import evaluation as ev
-    from smana.services.sim.worlds.garden import generate
+    from .exploration import experiment_world
 
-    cfg = SmanaConfig.load(
-        overrides=[f"sim.seed={seed}", f"sim.garden.size_m={size_m}", *world_sets]
-    )
-    world = generate(cfg.sim.seed, cfg.sim.garden, ClassTable.load("garden3drms"))
-    trav = world.traversability(clearance_m)
-    x0, y0, _ = world.spawn_pose(clearance_m)
-    reach = ev.reachable_traversable(trav.data, tuple(int(v) for v in trav.index_of(x0, y0)))
+    cfg, world = experiment_world(seed, size_m, world_sets)
+    trav, reach, _ = ev.reachable_from_spawn(world, clearance_m)
     top = world.top_class().data
     out = {}
     for f in factors:
