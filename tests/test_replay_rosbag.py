@@ -14,8 +14,8 @@ from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from smana.common.messages import matrix_to_quat, quat_to_matrix  # noqa: E402
+from smana.common.ros import PoseTrack  # noqa: E402
 from smana.services.replay.readers import DatasetError, detect_format, open_dataset  # noqa: E402
-from smana.services.replay.readers.rosbag import PoseTrack  # noqa: E402
 
 TS1 = get_typestore(Stores.ROS1_NOETIC)
 TS2 = get_typestore(Stores.ROS2_HUMBLE)
