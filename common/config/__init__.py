@@ -3,7 +3,7 @@
     [general]   robot name, class table, run directory, status period      general.py
     [zenoh]     how every process reaches the others (common/zenoh_config)  general.py
     [deploy]    what `smana up` starts and how it restarts it              deploy.py
-    [sim] [mapper] [navgraph] [planner] [explorer] [replay]                 one module each
+    [sim] [mapper] [navgraph] [planner] [explorer] [replay] [ros2]          one module each
 
 Each section is defined once, in its module, as a `Section` dataclass (`_schema.py`): its fields
 carry their limits and the one generic validator checks them, on load and when a core is given a
@@ -31,6 +31,7 @@ from smana.common.config.mapper import MapperConfig
 from smana.common.config.navgraph import NavgraphConfig
 from smana.common.config.planner import PlannerConfig
 from smana.common.config.replay import ReplayConfig
+from smana.common.config.ros2 import Ros2Config
 from smana.common.config.sim import SimConfig
 
 __all__ = [
@@ -42,6 +43,7 @@ __all__ = [
     "NavgraphConfig",
     "PlannerConfig",
     "ReplayConfig",
+    "Ros2Config",
     "Section",
     "ServiceDeployConfig",
     "SimConfig",
@@ -64,6 +66,7 @@ class SmanaConfig:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     explorer: ExplorerConfig = field(default_factory=ExplorerConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
+    ros2: Ros2Config = field(default_factory=Ros2Config)
 
     @classmethod
     def load(
