@@ -287,3 +287,84 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack):
     client.close()
     # Every message in is in exactly one counter, and the service stopped cleanly.
     assert s.stop(s.procs[-1][1]) == 0, s.log("ros2")
+
+
+def test_late_subscriber_gets_the_map_and_bad_ros_input_is_counted(ros_stack):
+    """A subscriber that joins after the map went out (RViz opened late) gets it from the
+    transient-local cache; garbage on the robot's topics and a plan request without rmw_zenoh's
+    attachment are rejected and counted, and the service goes on."""
+    from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, get_message_class
+    from zenoh_ros2_sdk.qos import QosDurability, QosProfile
+
+    from smana.common.query import request
+    from smana.services.ros2 import rmw
+
+    s = ros_stack
+    sets = ["--set", "deploy.sim.enabled=false", "--set", 'mapper.inputs=["scan"]']
+    s.service("mapper", *sets)
+    ros2 = s.service("ros2", *sets)
+    s.wait_alive("mapper", timeout_s=180)
+    s.wait_alive("ros2", timeout_s=180)
+    port, msg = s.port, get_message_class
+
+    def status():
+        return request(s.session, "smana/test/ros2/status", None, 3.0)
+
+    odom_pub = ROS2Publisher("/odom", "nav_msgs/msg/Odometry", router_port=port)
+    cloud_pub = ROS2Publisher("/points", "sensor_msgs/msg/PointCloud2", router_port=port)
+    pts, labels = scene_in_sensor_frame(0.0)
+    cov = np.zeros(36)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not status().details["sent"]["map"] >= 2:
+        t = time.time()
+        odom_pub.publish(
+            header=header(msg, t, "odom"),
+            child_frame_id="base_link",
+            pose=msg("geometry_msgs/msg/PoseWithCovariance")(pose=pose(msg, 0, 0), covariance=cov),
+            twist=msg("geometry_msgs/msg/TwistWithCovariance")(
+                twist=msg("geometry_msgs/msg/Twist")(
+                    linear=msg("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0),
+                    angular=msg("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0),
+                ),
+                covariance=cov,
+            ),
+        )
+        cloud_pub.publish(**cloud_kwargs(msg, pts, labels, t, "odom"))  # already in the world
+        time.sleep(0.1)
+    before = status()
+    assert before.details["map_voxels"] > 100, before
+
+    # Nothing new is published from here on: a late subscriber can only get the cached map.
+    got = []
+    latched = QosProfile(durability=QosDurability.TRANSIENT_LOCAL, history_depth=1)
+    sub = ROS2Subscriber(
+        "/smana/test/map", "sensor_msgs/msg/PointCloud2", got.append, router_port=port, qos=latched
+    )
+    assert wait_for(lambda: got, 10), "no map from the transient-local cache"
+    assert got[0].width == before.details["map_voxels"]
+    sub.close()
+
+    # Garbage where CDR is expected, and a GetPlan without its attachment.
+    types = rmw.RosTypes()
+    cloud_key = rmw.data_key(
+        0, "/points", "sensor_msgs/msg/PointCloud2", types.hash("sensor_msgs/msg/PointCloud2")
+    )
+    odom_key = rmw.data_key(
+        0, "/odom", "nav_msgs/msg/Odometry", types.hash("nav_msgs/msg/Odometry")
+    )
+    plan_key = rmw.data_key(
+        0, "/smana/test/plan", "nav_msgs/srv/GetPlan", types.hash("nav_msgs/srv/GetPlan")
+    )
+    s.session.put(cloud_key, b"\x00\x01garbage")
+    s.session.put(odom_key, b"\x00\x01\x00\x00" + b"\xff" * 7)
+    replies = list(s.session.get(plan_key, payload=b"\x00\x01\x00\x00", timeout=5.0))
+    assert len(replies) == 1 and replies[0].err is not None
+    after = status()
+    assert wait_for(lambda: sum(status().rejected.values()) >= 3, 10), status()
+    after = status()
+    assert after.rejected.get("malformed", 0) >= 3, after.rejected
+    assert after.books_add_up() and after.state == "running", after
+    assert after.details["map_voxels"] == before.details["map_voxels"]
+    odom_pub.close()
+    cloud_pub.close()
+    assert s.stop(ros2) == 0, s.log("ros2")
