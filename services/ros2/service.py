@@ -188,6 +188,11 @@ class Ros2Service(Service):
 
     # -- smana -> ROS --------------------------------------------------------------------------
 
+    def _send(self, what: str, msg) -> None:
+        self.pubs[what].put(msg)
+        self.sent[what] += 1
+        self.msgs_out += 1
+
     def on_delta(self, delta: MapDelta):
         action, why = self.deltas_in.check(delta.producer, delta.seq)
         if action == COVERED:
@@ -219,11 +224,9 @@ class Ros2Service(Service):
         if key == self._last_state:
             return
         self._last_state = key
-        self.pubs["path"].put(convert.path(self.types, path, t))
-        self.sent["path"] += 1
+        self._send("path", convert.path(self.types, path, t))
         if xy is not None:
-            self.pubs["goal"].put(convert.pose_stamped(self.types, xy, yaw, t))
-            self.sent["goal"] += 1
+            self._send("goal", convert.pose_stamped(self.types, xy, yaw, t))
 
     def on_pose(self, pose: Pose) -> None:
         twist = (0.0, 0.0)
@@ -234,8 +237,7 @@ class Ros2Service(Service):
             dyaw = math.remainder(pose.yaw - last.yaw, math.tau)
             twist = (float(d @ [math.cos(pose.yaw), math.sin(pose.yaw)]) / dt, dyaw / dt)
         self._last_pose = pose
-        self.pubs["odom"].put(convert.odometry(self.types, pose, twist=twist))
-        self.sent["odom"] += 1
+        self._send("odom", convert.odometry(self.types, pose, twist=twist))
 
     def tick(self) -> None:
         now = time.monotonic()
@@ -254,8 +256,7 @@ class Ros2Service(Service):
         msg = make()
         if msg is None:
             return
-        self.pubs[what].put(msg)
-        self.sent[what] += 1
+        self._send(what, msg)
         self._published[what] = version
         self._next_pub[what] = now + period
 
@@ -338,8 +339,7 @@ class Ros2Service(Service):
         )
 
     def on_cmd_vel(self, cmd: VelocityCommand) -> None:
-        self.pubs["cmd_vel"].put(convert.twist(self.types, cmd.linear_mps, cmd.angular_radps))
-        self.sent["cmd_vel"] += 1
+        self._send("cmd_vel", convert.twist(self.types, cmd.linear_mps, cmd.angular_radps))
 
     # -- the plan service ----------------------------------------------------------------------
 
