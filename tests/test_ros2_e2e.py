@@ -301,6 +301,38 @@ def test_late_subscriber_gets_the_map_and_bad_ros_input_is_counted(ros_stack):
 
     s = ros_stack
     sets = ["--set", "deploy.sim.enabled=false", "--set", 'mapper.inputs=["scan"]']
+    # The robot's /tf_static went out before smana started, from a transient-local publisher
+    # (an AdvancedPublisher with a cache, as rmw_zenoh declares it): the ros2 service must ask
+    # for it, or it cannot place the clouds below.
+    import zenoh
+
+    from smana.common.config import ZenohConfig
+    from smana.common.zenoh_config import make_zenoh_config
+    from smana.services.ros2 import convert
+
+    conf = make_zenoh_config(ZenohConfig(mode="client", connect=[s.endpoint]))
+    conf.insert_json5("timestamping/enabled", "true")
+    robot_session = zenoh.open(conf)
+    types = rmw.RosTypes()
+    robot = rmw.RosNode(robot_session, types, 0, "robot_state_publisher", "/")
+    tf_pub = robot.publisher(
+        "/tf_static", "tf2_msgs/msg/TFMessage", rmw.QoS(transient_local=True, depth=1)
+    )
+    T = types.msg
+    tf_pub.put(
+        T("tf2_msgs/msg/TFMessage")(
+            transforms=[
+                T("geometry_msgs/msg/TransformStamped")(
+                    header=convert.header(types, 0.0, "base_link"),
+                    child_frame_id="lidar",
+                    transform=T("geometry_msgs/msg/Transform")(
+                        translation=T("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.5),
+                        rotation=T("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0),
+                    ),
+                )
+            ]
+        )
+    )
     s.service("mapper", *sets)
     ros2 = s.service("ros2", *sets)
     s.wait_alive("mapper", timeout_s=180)
@@ -312,7 +344,7 @@ def test_late_subscriber_gets_the_map_and_bad_ros_input_is_counted(ros_stack):
 
     odom_pub = ROS2Publisher("/odom", "nav_msgs/msg/Odometry", router_port=port)
     cloud_pub = ROS2Publisher("/points", "sensor_msgs/msg/PointCloud2", router_port=port)
-    pts, labels = scene_in_sensor_frame(0.0)
+    pts, labels = scene_in_sensor_frame(0.5)
     cov = np.zeros(36)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and not status().details["sent"]["map"] >= 2:
@@ -329,10 +361,11 @@ def test_late_subscriber_gets_the_map_and_bad_ros_input_is_counted(ros_stack):
                 covariance=cov,
             ),
         )
-        cloud_pub.publish(**cloud_kwargs(msg, pts, labels, t, "odom"))  # already in the world
+        cloud_pub.publish(**cloud_kwargs(msg, pts, labels, t, "lidar"))
         time.sleep(0.1)
     before = status()
-    assert before.details["map_voxels"] > 100, before
+    assert before.details["map_voxels"] > 100, (before, s.log("ros2"))
+    assert before.events.get("history_taken") == 1 and before.details["received"]["tf_static"] == 1
 
     # Nothing new is published from here on: a late subscriber can only get the cached map.
     got = []
@@ -345,7 +378,6 @@ def test_late_subscriber_gets_the_map_and_bad_ros_input_is_counted(ros_stack):
     sub.close()
 
     # Garbage where CDR is expected, and a GetPlan without its attachment.
-    types = rmw.RosTypes()
     cloud_key = rmw.data_key(
         0, "/points", "sensor_msgs/msg/PointCloud2", types.hash("sensor_msgs/msg/PointCloud2")
     )
@@ -367,4 +399,6 @@ def test_late_subscriber_gets_the_map_and_bad_ros_input_is_counted(ros_stack):
     assert after.details["map_voxels"] == before.details["map_voxels"]
     odom_pub.close()
     cloud_pub.close()
+    robot.close()
+    robot_session.close()
     assert s.stop(ros2) == 0, s.log("ros2")

@@ -168,11 +168,19 @@ class Ros2Service(Service):
         """What transient-local publishers already sent (their AdvancedPublisher caches), as a
         late-joining rmw_zenoh subscription asks for it."""
         try:
-            for reply in self.session.get(f"{key}/@adv/pub/**?_anyke", timeout=1.0):
-                if reply.ok is not None:
-                    handler(reply.ok.payload.to_bytes())
+            replies = list(self.session.get(f"{key}/@adv/pub/**?_anyke", timeout=1.0))
         except Exception as exc:  # noqa: BLE001 - history is a bonus; live samples follow
             self.note("history_failed", f"{key}: {exc}")
+            return
+        # Query replies are not samples the books count: each is an event, taken or refused.
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                handler(reply.ok.payload.to_bytes())
+                self.events["history_taken"] += 1
+            except (MessageError, Reject) as exc:
+                self.note("history_refused", f"{key}: cached sample refused: {exc}")
 
     def _on_alive(self, sample) -> None:
         import zenoh
