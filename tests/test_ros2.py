@@ -260,3 +260,17 @@ def test_configured_extrinsic_and_range_limits():
     pts = np.array([[1.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.1, 0.0, 0.0]], np.float32)
     cloud = ci.convert(_ros_cloud(pts, [2, 2, 2], "velodyne", 0.5))
     np.testing.assert_allclose(cloud.points, [[1.0, 0.0, 1.0]])  # too far and too near dropped
+
+
+def test_simulated_robot_frames_chain_to_the_pose():
+    from smana.common.messages import Pose
+
+    pose = Pose.from_xyz_yaw(1.5, -2.0, 0.1, 0.7, stamp_s=12.5)
+    tfm = convert.robot_frames(TYPES, pose)
+    ci = CloudInput(_Cfg(), None)
+    assert ci.add_static(tfm) == 2  # the same reader the robot's /tf_static goes through
+    np.testing.assert_allclose(
+        convert.chain(ci.static, "map", "base_link"), pose.matrix(), atol=1e-12
+    )
+    raw = TYPES.serialize(tfm, "tf2_msgs/msg/TFMessage")
+    assert TYPES.deserialize(raw, "tf2_msgs/msg/TFMessage").transforms[1].header.stamp.sec == 12

@@ -174,6 +174,32 @@ def odometry(types, pose: Pose, frame: str = "map", child: str = "base_link", tw
     )
 
 
+def robot_frames(
+    types, pose: Pose, world: str = "map", odom: str = "odom", base: str = "base_link"
+):
+    """/tf for a simulated robot: world -> odom (the identity: no loop closure) and odom -> base
+    at the pose."""
+
+    def stamped(parent, child, position, quat):
+        x, y, z = (float(v) for v in position)
+        qx, qy, qz, qw = (float(v) for v in quat)
+        return types.msg("geometry_msgs/msg/TransformStamped")(
+            header=header(types, pose.stamp_s, parent),
+            child_frame_id=child,
+            transform=types.msg("geometry_msgs/msg/Transform")(
+                translation=types.msg("geometry_msgs/msg/Vector3")(x=x, y=y, z=z),
+                rotation=types.msg("geometry_msgs/msg/Quaternion")(x=qx, y=qy, z=qz, w=qw),
+            ),
+        )
+
+    return types.msg("tf2_msgs/msg/TFMessage")(
+        transforms=[
+            stamped(world, odom, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0)),
+            stamped(odom, base, pose.position, pose.orientation_xyzw),
+        ]
+    )
+
+
 def twist(types, linear_mps: float, angular_radps: float):
     Vector3 = types.msg("geometry_msgs/msg/Vector3")
     return types.msg("geometry_msgs/msg/Twist")(

@@ -56,6 +56,7 @@ RESYNC_PERIOD_S = 1.0
 PLAN_TIMEOUT_S = 5.0  # a GetPlan waits this long for the planner
 CLOUD = "sensor_msgs/msg/PointCloud2"
 ODOM = "nav_msgs/msg/Odometry"
+TF = "tf2_msgs/msg/TFMessage"
 
 
 def robot_input_on(config: SmanaConfig) -> bool:
@@ -96,7 +97,7 @@ class Ros2Service(Service):
         self._published = {"map": -1, "costmap": -1}
         self._last_state: tuple | None = None
         self._last_pose: Pose | None = None
-        self.sent = {"map": 0, "costmap": 0, "path": 0, "goal": 0, "odom": 0, "cmd_vel": 0}
+        self.sent = dict.fromkeys(("map", "costmap", "path", "goal", "odom", "tf", "cmd_vel"), 0)
         self.received = {"clouds": 0, "odometry": 0, "tf_static": 0, "plans": 0}
 
     def prepare(self) -> None:
@@ -124,6 +125,11 @@ class Ros2Service(Service):
             "goal": node.publisher(f"{ns}/goal", "geometry_msgs/msg/PoseStamped", LATCHED_QOS),
             "odom": node.publisher(f"{ns}/odom", ODOM, QoS()),
         }
+        if not self.robot_input:
+            # In simulation nobody else owns the robot's frames: map -> odom (identity) and
+            # odom -> base_link go on /tf, so RViz2 can show the robot in any fixed frame. A
+            # real robot publishes its own odom -> base_link; smana then stays off /tf.
+            self.pubs["tf"] = node.publisher("/tf", TF, QoS(depth=100))
         self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
         self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
         self.subscribe(keys.explorer_state(r), self.on_explorer_state)
@@ -136,7 +142,7 @@ class Ros2Service(Service):
             odom_key, _ = node.endpoint(SUBSCRIPTION, rc.odom_topic, ODOM, QoS())
             self.subscribe(odom_key, self.on_odometry)
             tf_qos = QoS(transient_local=True, depth=100)
-            tf_key, _ = node.endpoint(SUBSCRIPTION, "/tf_static", "tf2_msgs/msg/TFMessage", tf_qos)
+            tf_key, _ = node.endpoint(SUBSCRIPTION, "/tf_static", TF, tf_qos)
             self.subscribe(tf_key, self.on_tf_static)
             self._query_history(tf_key, self.on_tf_static)
             self.pubs["cmd_vel"] = node.publisher(rc.cmd_vel_topic, "geometry_msgs/msg/Twist")
@@ -246,6 +252,8 @@ class Ros2Service(Service):
             twist = (float(d @ [math.cos(pose.yaw), math.sin(pose.yaw)]) / dt, dyaw / dt)
         self._last_pose = pose
         self._send("odom", convert.odometry(self.types, pose, twist=twist))
+        if "tf" in self.pubs:
+            self._send("tf", convert.robot_frames(self.types, pose))
 
     def tick(self) -> None:
         now = time.monotonic()
@@ -342,9 +350,7 @@ class Ros2Service(Service):
         )
 
     def on_tf_static(self, payload: bytes) -> None:
-        self.received["tf_static"] += self.cloud_input.add_static(
-            self._ros(payload, "tf2_msgs/msg/TFMessage")
-        )
+        self.received["tf_static"] += self.cloud_input.add_static(self._ros(payload, TF))
 
     def on_cmd_vel(self, cmd: VelocityCommand) -> None:
         self._send("cmd_vel", convert.twist(self.types, cmd.linear_mps, cmd.angular_radps))
