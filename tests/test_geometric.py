@@ -346,3 +346,13 @@ def test_config_section_is_checked():
         SmanaConfig.load(overrides=["geometric.max_slope_deg=95"])
     with pytest.raises(ConfigError, match="geometric.min_points"):
         GeometricConfig(min_points=0)
+
+
+def test_median_helper_matches_statistics_median():
+    from smana.common.geometric import _median
+
+    rng = np.random.default_rng(1)
+    for _ in range(2000):
+        n = int(rng.integers(1, 40))
+        a = rng.normal(size=n) if rng.random() < 0.5 else rng.integers(0, 4, n).astype(float)
+        assert _median(a.copy(), n) == statistics.median(a.tolist())
