@@ -271,5 +271,30 @@ def test_run_unlabelled_builds_a_graph_with_ground_and_obstacles(unlabelled, tmp
         known = (g["flags"] & 1).astype(bool)
         obstacle = (g["flags"] & 2).astype(bool)
         ground = known & (g["labels"] == GROUND)
+        print(
+            f"\nunlabelled replay: {known.sum()} known nodes, {ground.sum()} ground, "
+            f"{obstacle.sum()} obstacle; map points {per_class}"
+        )
         assert ground.sum() > 100, "ground nodes"
         assert obstacle.sum() > 5, "obstacle nodes"
+
+
+def test_real_kitti_scan_through_the_reader(tmp_path):
+    """The KITTI scan of tests/data as a SemanticKITTI sequence without labels, read and
+    prepared as the replay does (10 m around the sensor, 1.73 m above the road)."""
+    from pathlib import Path
+
+    seq = tmp_path / "sequences" / "00"
+    (seq / "velodyne").mkdir(parents=True)
+    shutil.copy(Path(__file__).parent / "data" / "kitti" / "000000.bin", seq / "velodyne")
+    identity = "1 0 0 0 0 1 0 0 0 0 1 0"
+    (seq / "poses.txt").write_text(identity + "\n")
+    (seq / "calib.txt").write_text(f"Tr: {identity}\n")
+    reader = open_dataset(tmp_path, label_field="none")
+    table = ClassTable.load(reader.info().class_table)
+    lab = GeometricLabeller.from_config(SmanaConfig())
+    pc = prepare_scan(reader.scan(0), table, max_range_m=10.0, min_range_m=0.5, labeller=lab)
+    share = np.bincount(pc.labels, minlength=3) / pc.n_out
+    road = np.abs(pc.points[:, 2] + 1.73) < 0.15
+    assert pc.n_out > 50000 and share[GROUND] > 0.7 and 0.05 < share[OBSTACLE] < 0.4
+    assert np.mean(pc.labels[road] == GROUND) > 0.95
