@@ -346,6 +346,8 @@ def test_config_section_is_checked():
         SmanaConfig.load(overrides=["geometric.max_slope_deg=95"])
     with pytest.raises(ConfigError, match="geometric.min_points"):
         GeometricConfig(min_points=0)
+    with pytest.raises(ConfigError, match="grid 20000 cells wide"):
+        GeometricConfig(cell_m=0.01)  # a grid the memory could not hold
 
 
 def test_median_helper_matches_statistics_median():

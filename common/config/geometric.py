@@ -10,7 +10,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from smana.common.config._schema import Section, param
+from smana.common.config._schema import ConfigError, Section, param
+
+MAX_GRID_SIDE = 4000  # cells along a side of the labeller's grid at most (64 MB of indices)
 
 
 @dataclass
@@ -22,3 +24,12 @@ class GeometricConfig(Section, section="geometric"):
     # Points farther than this from the sensor (on x or y) are unknown: bounds the grid, so that
     # one stray return far away cannot make it huge
     max_distance_m: float = param(100.0, gt=0)
+
+    def validate(self) -> None:
+        side = 2 * self.max_distance_m / self.cell_m
+        if side > MAX_GRID_SIDE:
+            raise ConfigError(
+                f"geometric.max_distance_m: {self.max_distance_m:g} m at cell_m "
+                f"{self.cell_m:g} makes a grid {side:.0f} cells wide (at most {MAX_GRID_SIDE}); "
+                "lower max_distance_m or raise cell_m"
+            )
