@@ -26,8 +26,8 @@ The method, on a 2D grid of `geometric.cell_m` cells in the world frame (z up):
 
 The kernels are single-threaded and deterministic. They work on the occupied cells only (a
 dense grid holds their compact index): a 124k-point KITTI scan spanning 156 x 100 m takes about
-18 ms of CPU on a loaded 2-core machine, about a third in binning the points, the rest mostly
-in the slope medians (tests/test_geometric_scans.py prints the figure).
+20 ms of CPU on a loaded 2-core machine, a third binning the points, two thirds in the cells'
+kinds, most of it the slope medians (tests/test_geometric_scans.py prints the figure).
 """
 
 from __future__ import annotations
@@ -229,32 +229,31 @@ def _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window):
     size = (2 * w + 1) * w * (2 * w + 1)  # pairs along one axis in the window, at most
     gx = np.empty(size, np.float64)
     gy = np.empty(size, np.float64)
+    # the window's usable ground heights (NaN elsewhere), gathered once per cell: every pair
+    # below reads this small array instead of the grid
+    win = np.empty((2 * w + 1, 2 * w + 1), np.float64)
     for c in range(n):
         if not usable[c]:
             continue
         i, j = cells.ij[c, 0], cells.ij[c, 1]
+        for a in range(2 * w + 1):
+            for b in range(2 * w + 1):
+                e = _neighbour(cells, i + a - w, j + b - w)
+                win[a, b] = zmin[e] if e >= 0 and usable[e] else np.nan
         nxs = 0
         nys = 0
-        for u in range(-w, w + 1):  # the row (or column) across the axis
-            for s in range(-w, w + 1):  # first cell of the pair along the axis
-                # along x: cells (i+s, j+u) and (i+t, j+u); along y: (i+u, j+s) and (i+u, j+t)
-                ex = _neighbour(cells, i + s, j + u)
-                ey = _neighbour(cells, i + u, j + s)
-                ex = ex if ex >= 0 and usable[ex] else -1
-                ey = ey if ey >= 0 and usable[ey] else -1
-                if ex < 0 and ey < 0:
-                    continue
-                for d in range(1, min(w, w - s) + 1):  # the second, d further, in the window
-                    if ex >= 0:
-                        fx = _neighbour(cells, i + s + d, j + u)
-                        if fx >= 0 and usable[fx]:
-                            gx[nxs] = (zmin[fx] - zmin[ex]) / (d * cell_m)
-                            nxs += 1
-                    if ey >= 0:
-                        fy = _neighbour(cells, i + u, j + s + d)
-                        if fy >= 0 and usable[fy]:
-                            gy[nys] = (zmin[fy] - zmin[ey]) / (d * cell_m)
-                            nys += 1
+        for u in range(2 * w + 1):  # the row (or column) across the axis
+            for s in range(2 * w + 1):  # first cell of the pair along the axis
+                for d in range(1, min(w, 2 * w - s) + 1):  # the second, d further, in the window
+                    # along x: window cells (s, u) and (s + d, u); along y: (u, s), (u, s + d)
+                    h0, h1 = win[s, u], win[s + d, u]
+                    if h0 == h0 and h1 == h1:
+                        gx[nxs] = (h1 - h0) / (d * cell_m)
+                        nxs += 1
+                    h0, h1 = win[u, s], win[u, s + d]
+                    if h0 == h0 and h1 == h1:
+                        gy[nys] = (h1 - h0) / (d * cell_m)
+                        nys += 1
         if nxs + nys == 0:
             kind[c] = _CELL_UNKNOWN
             continue
@@ -268,9 +267,9 @@ def _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window):
 
 
 @numba.njit(cache=True)
-def _label_kernel(points, origin, cell_m, max_step, tan_slope, window, min_points, max_dist, out):
+def _bin_points(points, origin, cell_m, max_dist):
+    """The occupied cells of a cloud, and each point's cell (-1: non-finite or too far)."""
     n = points.shape[0]
-    # grid position of each point used (finite, within max_dist of the sensor)
     valid = np.zeros(n, np.bool_)
     ix = np.empty(n, np.int64)
     iy = np.empty(n, np.int64)
@@ -288,12 +287,12 @@ def _label_kernel(points, origin, cell_m, max_step, tan_slope, window, min_point
         lo_y, hi_y = min(lo_y, b), max(hi_y, b)
         n_valid += 1
     if n_valid == 0:
-        return  # nothing valid: all unknown
+        lo_x = hi_x = lo_y = hi_y = 0
     index = np.full((hi_x - lo_x + 1, hi_y - lo_y + 1), -1, np.int32)
     ij = np.empty((n_valid, 2), np.int32)
     count = np.zeros(n_valid, np.int32)
     zmin = np.full(n_valid, np.inf)
-    cell_of = np.full(n, -1, np.int32)  # each point's compact cell
+    cell_of = np.full(n, -1, np.int32)
     n_cells = 0
     for k in range(n):
         if not valid[k]:
@@ -308,15 +307,26 @@ def _label_kernel(points, origin, cell_m, max_step, tan_slope, window, min_point
         cell_of[k] = c
         count[c] += 1
         zmin[c] = min(zmin[c], float(points[k, 2]))
-    cells = _Cells(index, ij[:n_cells], count[:n_cells], zmin[:n_cells])
-    kind = _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window)
-    for k in range(n):
+    return _Cells(index, ij[:n_cells], count[:n_cells], zmin[:n_cells]), cell_of
+
+
+@numba.njit(cache=True)
+def _point_labels(points, cells, cell_of, kind, min_points, max_step, out):
+    """Module docstring, step 4."""
+    for k in range(points.shape[0]):
         c = cell_of[k]
-        if c < 0 or count[c] < min_points:
+        if c < 0 or cells.count[c] < min_points:
             continue
-        if float(points[k, 2]) - zmin[c] > max_step:
+        if float(points[k, 2]) - cells.zmin[c] > max_step:
             out[k] = OBSTACLE
         elif kind[c] == _CELL_GROUND:
             out[k] = GROUND
         elif kind[c] == _CELL_OBSTACLE:
             out[k] = OBSTACLE
+
+
+@numba.njit(cache=True)
+def _label_kernel(points, origin, cell_m, max_step, tan_slope, window, min_points, max_dist, out):
+    cells, cell_of = _bin_points(points, origin, cell_m, max_dist)
+    kind = _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window)
+    _point_labels(points, cells, cell_of, kind, min_points, max_step, out)
