@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "planner": ("smana.services.planner.__main__:cli", "run the weighted A* planner service"),
     "explorer": ("smana.services.explorer.__main__:cli", "run the frontier explorer service"),
     "replay": ("smana.services.replay.__main__:cli", "replay a dataset into the stack"),
+    "ros2": ("smana.services.ros2.__main__:cli", "smana as a ROS 2 node over rmw_zenoh"),
     "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
     "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
     "bench": ("smana.deploy.cli:bench", "benchmarks of each service (smana bench --help)"),

@@ -3,7 +3,7 @@
     [general]   robot name, class table, run directory, status period      general.py
     [zenoh]     how every process reaches the others (common/zenoh_config)  general.py
     [deploy]    what `smana up` starts and how it restarts it              deploy.py
-    [sim] [mapper] [navgraph] [planner] [explorer] [replay]                 one module each
+    [sim] [mapper] [navgraph] [planner] [explorer] [replay] [ros2]          one module each
     [geometric] the labeller of clouds without labels (common/geometric)   geometric.py
 
 Each section is defined once, in its module, as a `Section` dataclass (`_schema.py`): its fields
@@ -33,6 +33,7 @@ from smana.common.config.mapper import MapperConfig
 from smana.common.config.navgraph import NavgraphConfig
 from smana.common.config.planner import PlannerConfig
 from smana.common.config.replay import ReplayConfig
+from smana.common.config.ros2 import Ros2Config
 from smana.common.config.sim import SimConfig
 
 __all__ = [
@@ -45,6 +46,7 @@ __all__ = [
     "NavgraphConfig",
     "PlannerConfig",
     "ReplayConfig",
+    "Ros2Config",
     "Section",
     "ServiceDeployConfig",
     "SimConfig",
@@ -68,6 +70,7 @@ class SmanaConfig:
     explorer: ExplorerConfig = field(default_factory=ExplorerConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
+    ros2: Ros2Config = field(default_factory=Ros2Config)
 
     @classmethod
     def load(
