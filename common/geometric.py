@@ -12,17 +12,19 @@ The method, on a 2D grid of `geometric.cell_m` cells in the world frame (z up):
 
 1. per cell, the number of points and the lowest height: the cell's ground height. A cell with
    fewer than `min_points` points is unknown.
-2. a pit is a cell lower than most of its (8) neighbours by more than the step height: a hole,
-   or a return from below the ground; a step is a cell higher than one of its neighbours by more
-   than `planner.max_step_m` (the edge of a ledge, a box, a car over ground it hides).
+2. obstacle cells: a cell whose points rise more than the step height (`planner.max_step_m`)
+   above its lowest has something standing in it (a wall, a trunk, a car; its foot hidden or
+   not); a pit is a cell lower than most of its (8) neighbours by more than the step height (a
+   hole, or a return from below the ground); a step is a cell higher than one of its neighbours
+   by more than the step height (the edge of a ledge, a box, a car over ground it hides).
 3. the slope of the other cells: along x and along y, the median of the height differences over
    run of the pairs of cells in a window of about the robot's footprint (`navgraph.robot_radius_m`
    each side). The median ignores a step inside the window, so a climbable step is not read as a
    steep slope. A cell with no pair to measure is unknown (an isolated return).
-4. a point more than the step height above its cell's ground is an obstacle (walls, trunks,
-   bushes), whatever the cell; any other point takes its cell's kind: ground where the cell is
-   neither a pit nor a step and its slope is at most `geometric.max_slope_deg`, an obstacle where
-   it is one of those, unknown where the cell is.
+4. each point takes its cell's kind: ground where the slope is at most
+   `geometric.max_slope_deg` and the cell is none of step 2's, an obstacle where it is one of
+   those or steeper, unknown where the cell is (a point more than the step height above its
+   cell's ground is an obstacle in any cell with enough points).
 
 The kernels are single-threaded and deterministic. They work on the occupied cells only (a
 dense grid holds their compact index): a 124k-point KITTI scan spanning 156 x 100 m takes about
@@ -174,6 +176,7 @@ class _Cells(NamedTuple):
     ij: np.ndarray  # i4[n, 2]: the grid position of each occupied cell
     count: np.ndarray  # i4[n]: points in it
     zmin: np.ndarray  # f8[n]: its lowest point's height (the ground height)
+    zmax: np.ndarray  # f8[n]: its highest point's height
 
 
 @numba.njit(cache=True)
@@ -211,7 +214,7 @@ def _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window):
     for c in range(n):
         if not known[c]:
             continue
-        if pit[c]:
+        if pit[c] or cells.zmax[c] - zmin[c] > max_step:  # a hole, or something standing
             kind[c] = _CELL_OBSTACLE
             continue
         i, j = cells.ij[c, 0], cells.ij[c, 1]
@@ -292,6 +295,7 @@ def _bin_points(points, origin, cell_m, max_dist):
     ij = np.empty((n_valid, 2), np.int32)
     count = np.zeros(n_valid, np.int32)
     zmin = np.full(n_valid, np.inf)
+    zmax = np.full(n_valid, -np.inf)
     cell_of = np.full(n, -1, np.int32)
     n_cells = 0
     for k in range(n):
@@ -307,7 +311,9 @@ def _bin_points(points, origin, cell_m, max_dist):
         cell_of[k] = c
         count[c] += 1
         zmin[c] = min(zmin[c], float(points[k, 2]))
-    return _Cells(index, ij[:n_cells], count[:n_cells], zmin[:n_cells]), cell_of
+        zmax[c] = max(zmax[c], float(points[k, 2]))
+    cells = _Cells(index, ij[:n_cells], count[:n_cells], zmin[:n_cells], zmax[:n_cells])
+    return cells, cell_of
 
 
 @numba.njit(cache=True)

@@ -44,6 +44,7 @@ def reference_labels(points, origin, cfg=CFG, max_step=STEP, radius=RADIUS) -> n
         cells.setdefault(c, []).append(z)
         where.append(c)
     ground = {c: min(zs) for c, zs in cells.items() if len(zs) >= cfg.min_points}
+    tall = {c for c in ground if max(cells[c]) - ground[c] > max_step}  # something stands in it
 
     def neighbours(c):
         return [
@@ -64,9 +65,10 @@ def reference_labels(points, origin, cfg=CFG, max_step=STEP, radius=RADIUS) -> n
         for c, g in ground.items()
         if c not in pits and any(n not in pits and g - ground[n] > max_step for n in neighbours(c))
     }
-    usable = {c for c in ground if c not in pits and c not in steps}
+    steps -= tall  # (an obstacle either way)
+    usable = {c for c in ground if c not in pits and c not in steps and c not in tall}
     w = window_cells(cfg.cell_m, radius)
-    kind = {c: "obstacle" for c in pits | steps}
+    kind = {c: "obstacle" for c in pits | steps | tall}
     tan = math.tan(math.radians(cfg.max_slope_deg))
     for c in usable:
         gx, gy = [], []
@@ -205,10 +207,16 @@ def test_a_step_over_the_limit_is_an_obstacle_at_its_edge_only():
 def test_a_wall_is_an_obstacle_and_the_ground_at_its_foot_is_ground():
     pts = np.concatenate([flat(), wall(1.01, -2, 2, 0.0, 2.0)])
     labels = label(pts)
-    high = pts[:, 2] > STEP + 0.01
-    assert np.all(labels[high] == OBSTACLE)
-    ground = pts[:, 2] == 0.0
-    assert share(labels, ground, GROUND) > 0.99
+    in_wall_cells = (pts[:, 0] >= 1.0) & (pts[:, 0] < 1.2) & (np.abs(pts[:, 1]) < 2)
+    assert np.all(labels[in_wall_cells] == OBSTACLE)  # the wall, its foot with it
+    assert np.all(labels[~in_wall_cells] == GROUND)  # right up to the cells beside it
+
+
+def test_a_wall_whose_foot_is_hidden_is_an_obstacle():
+    """Parked cars hide the foot of a building: the wall's cells start 1.5 m up, with no ground
+    beside them to be a step from; they are still obstacles, not a ledge to stand on."""
+    labels = label(wall(1.01, -2, 2, 1.5, 4.0))
+    assert np.all(labels == OBSTACLE)
 
 
 def test_a_tree_trunk_is_an_obstacle():
