@@ -10,8 +10,8 @@ on it unchanged. When a cloud has labels, they win; this only runs when there ar
 
 The method, on a 2D grid of `geometric.cell_m` cells in the world frame (z up):
 
-1. per cell, the number of points and the lowest height: the cell's ground height. A cell with
-   fewer than `min_points` points is unknown.
+1. per cell, the number of points, the highest and the lowest height: the cell's ground
+   height. A cell with fewer than `min_points` points is unknown.
 2. obstacle cells: a cell whose points rise more than the step height (`planner.max_step_m`)
    above its lowest has something standing in it (a wall, a trunk, a car; its foot hidden or
    not); a pit is a cell lower than most of its (8) neighbours by more than the step height (a
