@@ -4,6 +4,7 @@
     [zenoh]     how every process reaches the others (common/zenoh_config)  general.py
     [deploy]    what `smana up` starts and how it restarts it              deploy.py
     [sim] [mapper] [navgraph] [planner] [explorer] [replay] [ros2]          one module each
+    [geometric] the labeller of clouds without labels (common/geometric)   geometric.py
 
 Each section is defined once, in its module, as a `Section` dataclass (`_schema.py`): its fields
 carry their limits and the one generic validator checks them, on load and when a core is given a
@@ -27,6 +28,7 @@ from smana.common.config._schema import ConfigError, Section, build, param, tabl
 from smana.common.config.deploy import DeployConfig, ServiceDeployConfig
 from smana.common.config.explorer import ExplorerConfig
 from smana.common.config.general import GeneralConfig, ZenohConfig
+from smana.common.config.geometric import GeometricConfig
 from smana.common.config.mapper import MapperConfig
 from smana.common.config.navgraph import NavgraphConfig
 from smana.common.config.planner import PlannerConfig
@@ -39,6 +41,7 @@ __all__ = [
     "DeployConfig",
     "ExplorerConfig",
     "GeneralConfig",
+    "GeometricConfig",
     "MapperConfig",
     "NavgraphConfig",
     "PlannerConfig",
@@ -66,6 +69,7 @@ class SmanaConfig:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     explorer: ExplorerConfig = field(default_factory=ExplorerConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
+    geometric: GeometricConfig = field(default_factory=GeometricConfig)
     ros2: Ros2Config = field(default_factory=Ros2Config)
 
     @classmethod
