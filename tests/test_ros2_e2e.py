@@ -22,6 +22,7 @@ from tests.conftest import ZenohStack, wait_for  # noqa: E402
 from tests.support.ros2_sdk import GET_PLAN_SRV, sdk_session  # noqa: E402
 
 TERRAIN, HEDGE = 2, 4  # garden3drms
+GROUND, OBSTACLE = 1, 2  # geometric
 NS = "/smana/test"
 
 
@@ -41,7 +42,8 @@ def scene_in_sensor_frame(sensor_z: float) -> tuple[np.ndarray, np.ndarray]:
     return pts, labels.astype(np.uint16)
 
 
-def cloud_kwargs(msg, pts, labels, t_s: float, frame: str) -> dict:
+def cloud_kwargs(msg, pts, labels, t_s: float, frame: str, labelled: bool = True) -> dict:
+    """A PointCloud2 of x, y, z and a uint16 `label` (or, unlabelled, no label field)."""
     rec = np.zeros(
         len(pts),
         np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "<u2"), ("pad", "<u2")]),
@@ -51,7 +53,7 @@ def cloud_kwargs(msg, pts, labels, t_s: float, frame: str) -> dict:
     fields = [
         field(name=n, offset=o, datatype=d, count=1)
         for n, o, d in (("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("label", 12, 4))
-    ]
+    ][: 4 if labelled else 3]
     return dict(
         header=header(msg, t_s, frame),
         height=1,
@@ -101,7 +103,9 @@ def ros_stack(tmp_path, monkeypatch):
         stack.close()
 
 
-def test_ros2_robot_maps_plans_and_is_driven(ros_stack):
+@pytest.mark.parametrize("labelled", [True, False], ids=["labelled", "unlabelled"])
+def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
+    """With labels the garden table's; without, the geometric labeller's (ground, obstacle)."""
     from zenoh_ros2_sdk import (
         ROS2Publisher,
         ROS2ServiceClient,
@@ -113,6 +117,9 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack):
 
     s = ros_stack
     sets = ["--set", "deploy.sim.enabled=false", "--set", "explorer.time_budget_s=600"]
+    if not labelled:
+        sets += ["--set", "ros2.label_field=none", "--set", "general.class_table=geometric"]
+    ground_id, wall_id = (TERRAIN, HEDGE) if labelled else (GROUND, OBSTACLE)
     sets += ["--set", 'mapper.inputs=["scan"]']
     for name in ("mapper", "navgraph", "planner", "explorer", "ros2"):
         s.service(name, *sets)
@@ -210,7 +217,7 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack):
             twist=twist0,
         )
         if i % 4 == 2:
-            cloud_pub.publish(**cloud_kwargs(msg, pts, labels, t - 0.02, "lidar"))
+            cloud_pub.publish(**cloud_kwargs(msg, pts, labels, t - 0.02, "lidar", labelled))
         i += 1
         time.sleep(0.05)
     with lock:
@@ -237,8 +244,8 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack):
     wall = (rec["x"] > 2.4) & (rec["z"] > 0.15)
     ground = (rec["x"] < 2.3) & (np.abs(rec["z"]) < 0.1)
     assert wall.sum() > 50 and ground.sum() > 500
-    assert (rec["label"][wall] == HEDGE).mean() > 0.95
-    assert (rec["label"][ground] == TERRAIN).mean() > 0.95
+    assert (rec["label"][wall] == wall_id).mean() > 0.95
+    assert (rec["label"][ground] == ground_id).mean() > 0.95
 
     # The costmap: known terrain is free, the wall and its safety zone lethal, the rest unknown.
     c = got["costmap"][-1]
