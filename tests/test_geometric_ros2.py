@@ -15,6 +15,7 @@ from smana.common.config import SmanaConfig  # noqa: E402
 from smana.common.geometric import GROUND, OBSTACLE, GeometricLabeller  # noqa: E402
 from smana.services.ros2 import convert, rmw  # noqa: E402
 from smana.services.ros2.bridge import CloudInput  # noqa: E402
+from tests.support.ros2_sdk import pointcloud2  # noqa: E402
 
 TYPES = rmw.RosTypes()
 KITTI_SCAN = Path(__file__).parent / "data" / "kitti" / "000000.bin"
@@ -22,29 +23,7 @@ SENSOR_HEIGHT_M = 1.73
 
 
 def ros_cloud(points, labels=None, frame="velodyne", t_s=0.5):
-    """x, y, z float32 (and a uint32 label when given), as a LiDAR driver publishes them."""
-    names = ["x", "y", "z"] + (["label"] if labels is not None else [])
-    rec = np.zeros(len(points), [(n, "<f4" if n != "label" else "<u4") for n in names])
-    rec["x"], rec["y"], rec["z"] = points.T
-    if labels is not None:
-        rec["label"] = labels
-    field = TYPES.msg("sensor_msgs/msg/PointField")
-    fields = [
-        field(name=n, offset=4 * i, datatype=7 if n != "label" else 6, count=1)
-        for i, n in enumerate(names)
-    ]
-    step = 4 * len(names)
-    return TYPES.msg("sensor_msgs/msg/PointCloud2")(
-        header=convert.header(TYPES, t_s, frame),
-        height=1,
-        width=len(points),
-        fields=fields,
-        is_bigendian=False,
-        point_step=step,
-        row_step=step * len(points),
-        data=rec.view(np.uint8),
-        is_dense=True,
-    )
+    return pointcloud2(TYPES, points, labels, frame, t_s)
 
 
 def cloud_input(label_field):

@@ -16,7 +16,12 @@ from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE  # 
 from smana.common.service import Reject  # noqa: E402
 from smana.services.ros2 import convert, rmw  # noqa: E402
 from smana.services.ros2.bridge import CloudInput, MapCopy  # noqa: E402
-from tests.support.ros2_sdk import GET_PLAN_SRV, MESSAGE_TYPES, sdk_session  # noqa: E402
+from tests.support.ros2_sdk import (  # noqa: E402
+    GET_PLAN_SRV,
+    MESSAGE_TYPES,
+    pointcloud2,
+    sdk_session,
+)
 
 TYPES = rmw.RosTypes()
 
@@ -179,26 +184,7 @@ class _Cfg:
 
 
 def _ros_cloud(points, labels, frame, t_s):
-    rec = np.zeros(len(points), [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("label", "<u4")])
-    rec["x"], rec["y"], rec["z"] = points.T
-    rec["label"] = labels
-    field = TYPES.msg("sensor_msgs/msg/PointField")
-    fields = [
-        field(name=n, offset=4 * i, datatype=7 if i < 3 else 6, count=1)
-        for i, n in enumerate("xyz")
-    ]
-    fields.append(field(name="label", offset=12, datatype=6, count=1))
-    return TYPES.msg("sensor_msgs/msg/PointCloud2")(
-        header=convert.header(TYPES, t_s, frame),
-        height=1,
-        width=len(points),
-        fields=fields,
-        is_bigendian=False,
-        point_step=16,
-        row_step=16 * len(points),
-        data=rec.view(np.uint8),
-        is_dense=True,
-    )
+    return pointcloud2(TYPES, points, labels, frame, t_s)
 
 
 def _tf(parent, child, xyz, yaw):

@@ -217,16 +217,20 @@ def plan_response(types, path_xyz, t_s: float, frame: str = "map"):
 # -- in: ROS -> smana ----------------------------------------------------------------------------
 
 
-def pose_of(msg_pose) -> tuple[np.ndarray, np.ndarray]:
-    """geometry_msgs/Pose -> (position [3], unit quaternion xyzw [4]); ValueError if not finite
-    or the quaternion is degenerate."""
-    p, q = msg_pose.position, msg_pose.orientation
+def _checked(p, q, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(position [3], unit quaternion xyzw [4]) of ROS Point/Vector3 and Quaternion fields;
+    ValueError if not finite or the quaternion is degenerate."""
     pos = np.array([p.x, p.y, p.z], np.float64)
     quat = np.array([q.x, q.y, q.z, q.w], np.float64)
     norm = float(np.linalg.norm(quat))
     if not (np.isfinite(pos).all() and np.isfinite(quat).all()) or norm < 1e-6:
-        raise ValueError("pose with non-finite numbers or a zero quaternion")
+        raise ValueError(f"{what} with non-finite numbers or a zero quaternion")
     return pos, quat / norm
+
+
+def pose_of(msg_pose) -> tuple[np.ndarray, np.ndarray]:
+    """geometry_msgs/Pose -> (position, unit quaternion xyzw)."""
+    return _checked(msg_pose.position, msg_pose.orientation, "pose")
 
 
 def matrix(position, quat_xyzw) -> np.ndarray:
@@ -238,13 +242,7 @@ def matrix(position, quat_xyzw) -> np.ndarray:
 
 def transform_matrix(tf) -> np.ndarray:
     """geometry_msgs/Transform -> 4x4."""
-    t, q = tf.translation, tf.rotation
-    pos = np.array([t.x, t.y, t.z], np.float64)
-    quat = np.array([q.x, q.y, q.z, q.w], np.float64)
-    norm = float(np.linalg.norm(quat))
-    if not (np.isfinite(pos).all() and np.isfinite(quat).all()) or norm < 1e-6:
-        raise ValueError("transform with non-finite numbers or a zero quaternion")
-    return matrix(pos, quat / norm)
+    return matrix(*_checked(tf.translation, tf.rotation, "transform"))
 
 
 def extrinsic_matrix(x, y, z, roll, pitch, yaw) -> np.ndarray:

@@ -7,6 +7,8 @@ from __future__ import annotations
 import contextlib
 from pathlib import Path
 
+import numpy as np
+
 MESSAGE_TYPES = (
     "sensor_msgs/msg/PointCloud2",
     "nav_msgs/msg/OccupancyGrid",
@@ -67,3 +69,32 @@ def sdk_session(tmp: Path, monkeypatch):
                 inst.session.close()
         session.ZenohSession._instance = None
         message_registry._registry = None
+
+
+def pointcloud2(types, points, labels=None, frame="velodyne", t_s=0.5):
+    """A PointCloud2 (rosbags message of `types`, a `services.ros2.rmw.RosTypes`) of x, y, z
+    float32 and, when given, a uint32 `label`, as a LiDAR driver publishes them."""
+    from smana.services.ros2 import convert
+
+    names = ["x", "y", "z"] + (["label"] if labels is not None else [])
+    rec = np.zeros(len(points), [(n, "<f4" if n != "label" else "<u4") for n in names])
+    rec["x"], rec["y"], rec["z"] = np.asarray(points, np.float32).T
+    if labels is not None:
+        rec["label"] = labels
+    field = types.msg("sensor_msgs/msg/PointField")
+    fields = [
+        field(name=n, offset=4 * i, datatype=7 if n != "label" else 6, count=1)
+        for i, n in enumerate(names)
+    ]
+    step = 4 * len(names)
+    return types.msg("sensor_msgs/msg/PointCloud2")(
+        header=convert.header(types, t_s, frame),
+        height=1,
+        width=len(points),
+        fields=fields,
+        is_bigendian=False,
+        point_step=step,
+        row_step=step * len(points),
+        data=rec.view(np.uint8),
+        is_dense=True,
+    )
