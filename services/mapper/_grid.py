@@ -21,6 +21,7 @@ kernels of `backends/*.py` do not notice a change here. After editing this file,
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -369,6 +370,9 @@ class BlockGrid:
             for k, (dt, shape) in self.fields.items()
         }
         self._alloc_table(64)
+        # name -> function turning a saved column into this layout (a back-end whose column
+        # changed its dtype sets one, so that maps saved before still load)
+        self.loaders: dict[str, Callable[[np.ndarray], np.ndarray]] = {}
 
     def _alloc_table(self, size: int) -> None:
         self.h_keys = np.full(size, -1, np.int64)
@@ -428,7 +432,8 @@ class BlockGrid:
         nv = max(n, 16) * self.voxels_per_block
         for k, (dt, shape) in self.fields.items():
             col = np.zeros((nv, *shape), dt)
-            col[: n * self.voxels_per_block] = cols[k]
+            load = self.loaders.get(k)
+            col[: n * self.voxels_per_block] = cols[k] if load is None else load(cols[k])
             self.cols[k] = col
         self.n_blocks = n
         size = 64

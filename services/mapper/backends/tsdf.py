@@ -15,7 +15,10 @@ Semantics (Kimera): each voxel keeps a log-probability per semantic class, start
 point labelled l adds log p to class l and log((1 - p) / (K - 1)) to every other class (p = 0.9
 by default); since adding the same constant to every class does not change the normalised
 distribution, the kernel adds only log(p / q) to class l and shifts the vector when it grows, so
-an update is O(1) instead of O(K). The voxel label is the most probable class.
+an update is O(1) instead of O(K). Every entry is then a whole number of log(p / q) steps, so a
+voxel stores int16 step counts (2 bytes per class instead of 4, and exact where float32 sums
+drifted); a count pushed below -32767 by the shifts saturates there, a probability of
+exp(-32767 log(p / q)), zero in any float. The voxel label is the most probable class.
 
 Surface (voxblox's mesh and Kimera's, without the triangles): a voxel is a surface voxel when its
 weight is at least `min_weight` and one of its 6 face neighbours, also of weight >= `min_weight`,
@@ -53,7 +56,8 @@ from smana.services.mapper._grid import (
 from smana.services.mapper.backends.base import MapBackend
 from smana.services.mapper.delta import Delta
 
-_RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this
+_RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this (nats)
+_STEPS_MIN = -32767  # saturation of the int16 step counts
 # A flag bit of this back-end: the voxel was a surface voxel after the last cloud. Only the
 # incremental surface count reads it; the surface itself is always recomputed from distances.
 SURFACE = np.uint8(16)
@@ -68,7 +72,7 @@ class TsdfState(NamedTuple):
     flags: np.ndarray  # u1 [voxels]: OBSERVED and this cloud's marks
     distance: np.ndarray  # f4 [voxels], metres
     weight: np.ndarray  # f4 [voxels]
-    logp: np.ndarray  # f4 [voxels, K]: log-probability per semantic class
+    logp: np.ndarray  # i2 [voxels, K]: log-probability per semantic class, in log(p / q) steps
     touched: np.ndarray  # i8: voxels marked this cloud, in order
     keybuf: np.ndarray  # i8 [n, 3]: one ray's voxel keys
     gbuf: np.ndarray  # i8 [n]: their global indices
@@ -87,7 +91,7 @@ class TsdfConsts(NamedTuple):
     min_range: float
     sub_inv: float  # 1 / start-voxel subsampling cell, 0: off
     dropoff: bool
-    log_ratio: float  # log(p / q) added to the measured class
+    renorm_steps: int  # shift the vector once its top entry reaches this many steps
 
 
 @njit(cache=True, error_model="numpy")
@@ -221,11 +225,13 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
             weight_[g] = min(max_weight, w_new)
             flags[g] = f | MARK_FREE | MARK_HIT | OBSERVED
             if label_idx >= 0:
-                v = logp[g, label_idx] + k.log_ratio
-                logp[g, label_idx] = v
-                if v > _RENORM_AT:
-                    for j in range(logp.shape[1]):
-                        logp[g, j] -= v
+                v = np.int64(logp[g, label_idx]) + 1
+                if v >= k.renorm_steps:
+                    for c in range(logp.shape[1]):
+                        logp[g, c] = max(np.int64(logp[g, c]) - v, _STEPS_MIN)
+                    logp[g, label_idx] = 0
+                else:
+                    logp[g, label_idx] = v
     return DONE, points.shape[0], n_touched
 
 
@@ -369,6 +375,7 @@ class Tsdf(MapBackend):
         self.sem_idx = np.full(65536, -1, np.int16)
         self.sem_idx[self.class_ids] = np.arange(k)
         p = config.label_probability
+        self.log_ratio = float(np.log(p / ((1.0 - p) / (k - 1))))  # nats per step of `logp`
         self.trunc_m = config.truncation_voxels * self.resolution_m
         self.min_weight = float(config.min_weight)
         self._touched = np.empty(1 << 16, np.int64)
@@ -386,14 +393,15 @@ class Tsdf(MapBackend):
             float(config.min_range_m),
             sub / self.resolution_m if sub > 0 else 0.0,
             bool(config.use_weight_dropoff),
-            float(np.log(p / ((1.0 - p) / (k - 1)))),
+            int(np.floor(_RENORM_AT / self.log_ratio)) + 1,
         )
+        self.grid.loaders["logp"] = self._logp_from_nats
 
     def fields(self):
         return {
             "distance": (np.float32, ()),
             "weight": (np.float32, ()),
-            "logp": (np.float32, (len(self.class_ids),)),
+            "logp": (np.int16, (len(self.class_ids),)),
             "flags": (np.uint8, ()),
         }
 
@@ -472,6 +480,12 @@ class Tsdf(MapBackend):
         _surface_kernel(g, self.grid.state(), c["distance"], c["weight"], self.min_weight, out)
         return out
 
+    def _logp_from_nats(self, saved: np.ndarray) -> np.ndarray:
+        """A map saved before the step counts holds float32 log-probabilities: whole steps."""
+        if saved.dtype.kind == "f":
+            saved = np.maximum(np.rint(saved / self.log_ratio), _STEPS_MIN)
+        return saved.astype(np.int16)
+
     def _store_surface(self, g: np.ndarray, surface: np.ndarray) -> int:
         """Set the SURFACE bits of g; returns the change in the number of surface voxels."""
         flags = self.grid.cols["flags"]
@@ -488,7 +502,7 @@ class Tsdf(MapBackend):
 
     def labels_of(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(label, probability of that label) from the log-probability vectors."""
-        lp = self.grid.cols["logp"][g].astype(np.float64)
+        lp = self.grid.cols["logp"][g] * self.log_ratio
         if lp.shape[0] == 0:
             return np.zeros(0, np.uint16), np.zeros(0, np.float32)
         top = lp.argmax(axis=1)
@@ -500,7 +514,7 @@ class Tsdf(MapBackend):
 
     def probabilities(self, g: np.ndarray) -> np.ndarray:
         """Normalised class probabilities (rows follow `class_ids`)."""
-        lp = self.grid.cols["logp"][g].astype(np.float64)
+        lp = self.grid.cols["logp"][g] * self.log_ratio
         e = np.exp(lp - lp.max(axis=1, keepdims=True))
         return e / e.sum(axis=1, keepdims=True)
 
