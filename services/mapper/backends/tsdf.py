@@ -358,6 +358,47 @@ def _tsdf_finish(touched, n_touched, flags, changed):
     return nc
 
 
+@njit(cache=True, error_model="numpy")
+def _tsdf_rows(st, g, res, exp_steps, class_ids, keys, centres, labels, probs, values):
+    """Fill the Delta columns of voxels g in one pass: coordinates, distance, and the label
+    (first most probable class; 0 for a uniform vector) with its probability, 1 / sum over the
+    classes of exp(-(steps behind the top) * log(p / q)) (`exp_steps`, 0 past its end)."""
+    bits = st.grid.bits
+    block_keys = st.grid.block_keys
+    logp = st.logp
+    n_exp = exp_steps.shape[0]
+    vb = 3 * bits
+    bm = (1 << bits) - 1
+    for i in range(g.shape[0]):
+        gi = g[i]
+        bx, by, bz = unpack_block(block_keys[gi >> vb])
+        local = gi & ((1 << vb) - 1)
+        kx = (bx << bits) | (local & bm)
+        ky = (by << bits) | ((local >> bits) & bm)
+        kz = (bz << bits) | ((local >> (2 * bits)) & bm)
+        keys[i, 0] = kx
+        keys[i, 1] = ky
+        keys[i, 2] = kz
+        centres[i, 0] = (kx + 0.5) * res
+        centres[i, 1] = (ky + 0.5) * res
+        centres[i, 2] = (kz + 0.5) * res
+        values[i] = st.distance[gi]
+        top = 0
+        uniform = True
+        for c in range(1, logp.shape[1]):
+            if logp[gi, c] > logp[gi, top]:
+                top = c
+            if logp[gi, c] != logp[gi, 0]:
+                uniform = False
+        z = 0.0
+        for c in range(logp.shape[1]):
+            d = np.int64(logp[gi, top]) - np.int64(logp[gi, c])
+            if d < n_exp:
+                z += exp_steps[d]
+        probs[i] = 1.0 / z
+        labels[i] = 0 if uniform else class_ids[top]
+
+
 class Tsdf(MapBackend):
     """Semantic TSDF voxel map; `integrate` returns the Delta of one cloud."""
 
@@ -396,6 +437,8 @@ class Tsdf(MapBackend):
             int(np.floor(_RENORM_AT / self.log_ratio)) + 1,
         )
         self.grid.loaders["logp"] = self._logp_from_nats
+        # exp(-d log(p / q)) for d steps behind the top class, down to float64's underflow
+        self._exp_steps = np.exp(-np.arange(int(750 / self.log_ratio) + 1) * self.log_ratio)
 
     def fields(self):
         return {
@@ -502,20 +545,18 @@ class Tsdf(MapBackend):
 
     def labels_of(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(label, probability of that label) from the log-probability vectors."""
-        lp = self.grid.cols["logp"][g] * self.log_ratio
-        if lp.shape[0] == 0:
-            return np.zeros(0, np.uint16), np.zeros(0, np.float32)
-        top = lp.argmax(axis=1)
-        mx = lp[np.arange(lp.shape[0]), top]
-        prob = 1.0 / np.exp(lp - mx[:, None]).sum(axis=1)
-        labels = self.class_ids[top]
-        labels[(lp == lp[:, :1]).all(axis=1)] = 0  # never labelled: uniform vector
-        return labels, prob.astype(np.float32)
+        d = self._rows(np.asarray(g, np.int64), np.zeros(len(g), np.bool_))
+        return d.labels, d.confidences
+
+    def _steps_behind_top(self, g: np.ndarray) -> np.ndarray:
+        steps = self.grid.cols["logp"][g].astype(np.int64)
+        return steps.max(axis=1, keepdims=True) - steps
 
     def probabilities(self, g: np.ndarray) -> np.ndarray:
         """Normalised class probabilities (rows follow `class_ids`)."""
-        lp = self.grid.cols["logp"][g] * self.log_ratio
-        e = np.exp(lp - lp.max(axis=1, keepdims=True))
+        d = self._steps_behind_top(g)
+        lut = self._exp_steps
+        e = np.where(d < lut.shape[0], lut[np.minimum(d, lut.shape[0] - 1)], 0.0)
         return e / e.sum(axis=1, keepdims=True)
 
     def rows(self, g: np.ndarray) -> Delta:
@@ -523,17 +564,28 @@ class Tsdf(MapBackend):
         return self._rows(g, self.surface(g))
 
     def _rows(self, g: np.ndarray, surface: np.ndarray) -> Delta:
-        keys = self.grid.coords(g)
-        d = self.grid.cols["distance"][g]
-        labels, prob = self.labels_of(g)
-        return Delta(
-            keys.astype(np.int32),
-            ((keys + 0.5) * self.resolution_m).astype(np.float32),
-            labels,
-            prob,
+        n = g.shape[0]
+        d = Delta(
+            np.empty((n, 3), np.int32),
+            np.empty((n, 3), np.float32),
+            np.empty(n, np.uint16),
+            np.empty(n, np.float32),
             surface.astype(np.uint8),
-            d,
+            np.empty(n, np.float32),
         )
+        _tsdf_rows(
+            self._state(np.zeros(1, np.int64)),
+            g,
+            self.resolution_m,
+            self._exp_steps,
+            self.class_ids,
+            d.keys,
+            d.centres,
+            d.labels,
+            d.confidences,
+            d.values,
+        )
+        return d
 
     # -- queries ---------------------------------------------------------------------------
 
