@@ -94,31 +94,17 @@ class TsdfConsts(NamedTuple):
     renorm_steps: int  # shift the vector once its top entry reaches this many steps
 
 
-@njit(cache=True, error_model="numpy")
-def _set_insert(keys, key):
-    """Insert into an open-addressing set; returns False when the key was already there."""
+@njit(cache=True, error_model="numpy", inline="always")
+def _set_slot(keys, key):
+    """Slot of `key` in an open-addressing set, or the free slot where it would go: one probe
+    sequence serves the membership test and the insertion (`keys[slot] = key`), valid until
+    the next insertion."""
     mask = keys.shape[0] - 1
     s = hash_slot(key, 40) & mask  # the block table's Fibonacci hash
     while True:
         k = keys[s]
-        if k == key:
-            return False
-        if k == -1:
-            keys[s] = key
-            return True
-        s = (s + 1) & mask
-
-
-@njit(cache=True, error_model="numpy")
-def _set_contains(keys, key):
-    mask = keys.shape[0] - 1
-    s = hash_slot(key, 40) & mask  # the block table's Fibonacci hash
-    while True:
-        k = keys[s]
-        if k == key:
-            return True
-        if k == -1:
-            return False
+        if k == key or k == -1:
+            return s
         s = (s + 1) & mask
 
 
@@ -177,13 +163,15 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
             sy = py - uy * trunc
             sz = pz - uz * trunc
         skey = np.int64(-1)
+        sslot = np.int64(-1)
         if sub_inv > 0:
             skey = pack_block(
                 np.int64(np.floor(px * sub_inv)),
                 np.int64(np.floor(py * sub_inv)),
                 np.int64(np.floor(pz * sub_inv)),
             )
-            if _set_contains(startset, skey):
+            sslot = _set_slot(startset, skey)
+            if startset[sslot] == skey:
                 continue
         # cast from behind the surface towards the sensor, as voxblox does
         nk = voxblox_ray_keys(ex, ey, ez, sx, sy, sz, inv_res, keybuf)
@@ -197,7 +185,7 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
                 return -g, i, n_touched
             gbuf[j] = g
         if sub_inv > 0:
-            _set_insert(startset, skey)
+            startset[sslot] = skey
         label_idx = -1 if clearing else st.sem_idx[labels[i]]
         for j in range(nk):
             g = gbuf[j]
