@@ -224,11 +224,15 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _find_voxel(grid, ix, iy, iz):
-    """Global index of voxel (ix, iy, iz), -1 when its block was never allocated."""
+def _near_voxel(grid, g, own_key, ix, iy, iz):
+    """Global index of voxel (ix, iy, iz), -1 when its block was never allocated; `own_key` is
+    the block key of voxel g, a neighbour: most neighbours share its block, with no hash probe."""
     bkey, local = voxel_index(ix, iy, iz, grid.bits)
+    vb = 3 * grid.bits
+    if bkey == own_key:
+        return ((g >> vb) << vb) | local
     b = table_find(grid, bkey)
-    return np.int64(-1) if b < 0 else (b << (3 * grid.bits)) | local
+    return np.int64(-1) if b < 0 else (b << vb) | local
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -254,17 +258,9 @@ def _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz):
     d = distance[g]
     neg = d < 0
     ad = abs(d)
-    vb = 3 * grid.bits
     own_key, _ = voxel_index(ix, iy, iz, grid.bits)
     for f in range(6):
-        bkey, local = voxel_index(
-            ix + _FACES[f, 0], iy + _FACES[f, 1], iz + _FACES[f, 2], grid.bits
-        )
-        if bkey == own_key:  # most neighbours share the block: no hash probe
-            n = ((g >> vb) << vb) | local
-        else:
-            b = table_find(grid, bkey)
-            n = np.int64(-1) if b < 0 else (b << vb) | local
+        n = _near_voxel(grid, g, own_key, ix + _FACES[f, 0], iy + _FACES[f, 1], iz + _FACES[f, 2])
         if n < 0 or not weight[n] >= min_weight:
             continue
         dn = distance[n]
@@ -302,6 +298,7 @@ def _extract_kernel(changed, grid, flags, distance, weight, min_weight, seen, ou
     for i in range(changed.shape[0]):
         g = changed[i]
         ix, iy, iz = _voxel_key(grid, g)
+        own_key, _ = voxel_index(ix, iy, iz, grid.bits)
         s = _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz)
         was = (flags[g] & SURFACE) != 0
         dcount += np.int64(s) - np.int64(was)
@@ -313,7 +310,7 @@ def _extract_kernel(changed, grid, flags, distance, weight, min_weight, seen, ou
             jx = ix + _FACES[f, 0]
             jy = iy + _FACES[f, 1]
             jz = iz + _FACES[f, 2]
-            nb = _find_voxel(grid, jx, jy, jz)
+            nb = _near_voxel(grid, g, own_key, jx, jy, jz)
             if nb < 0 or flags[nb] & _SEEN or not flags[nb] & OBSERVED:
                 continue
             flags[nb] |= _SEEN
