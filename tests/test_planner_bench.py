@@ -1,9 +1,21 @@
-"""`smana bench planner --quick` runs and its A* costs agree with scipy's Dijkstra."""
+"""`smana bench planner --quick` runs, prints both sides of every row, and its A* costs agree
+with scipy's Dijkstra (and with pyastar2d's when it is installed)."""
 
-from smana.lab.bench.planner import cli
+import importlib.util
+
+from smana.lab.bench.planner import HINT, cli
 
 
 def test_quick_bench_agrees_with_dijkstra(capsys):
     assert cli(["--quick", "--queries", "4"]) == 0
     out = capsys.readouterr().out
     assert "all A* costs equal the Dijkstra optimum" in out
+    rows = [line for line in out.splitlines() if "scipy Dijkstra" in line]
+    assert len(rows) == 2 * 4 * 3  # two sizes, four queries, first / repeat / Euclidean
+    flat = [line for line in out.splitlines() if "paper " in line and "pyastar2d" in line]
+    if importlib.util.find_spec("pyastar2d") is None:
+        assert HINT in out
+    else:
+        assert len(flat) == 2 * 4 * 2  # first and repeat query under the paper's cost
+        assert sum("A*, pyastar2d's cost" in line for line in out.splitlines()) == 2 * 4
+    assert "load" in out and "cpu" in out and "ratio" in out
