@@ -11,7 +11,7 @@ def test_quick_bench_agrees_with_dijkstra(capsys):
     out = capsys.readouterr().out
     assert "all A* costs equal the Dijkstra optimum" in out
     rows = [line for line in out.splitlines() if "scipy Dijkstra" in line]
-    assert len(rows) == 2 * 4 * 3  # two sizes, four queries, first / repeat / Euclidean
+    assert len(rows) == 2 * 4 * 4  # two sizes, four queries, new / patched / repeat / Euclidean
     flat = [line for line in out.splitlines() if "paper " in line and "pyastar2d" in line]
     if importlib.util.find_spec("pyastar2d") is None:
         assert HINT in out

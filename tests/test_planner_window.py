@@ -26,7 +26,12 @@ def test_gather_window_equals_navgrid_box(seed):
     grid = _grid(rng, nx, ny, tile)
     x0, y0 = int(rng.integers(0, nx)), int(rng.integers(0, ny))
     x1, y1 = int(rng.integers(x0 + 1, nx + 1)), int(rng.integers(y0 + 1, ny + 1))
-    labels, flags, known_h = _gather_window(
+    shape = (x1 - x0, y1 - y0)
+    # Filled in place over garbage, as the planner refills its window after a graph change.
+    labels = rng.integers(0, 9, shape).astype(np.uint16)
+    flags = rng.integers(0, 9, shape).astype(np.uint8)
+    known_h = rng.normal(size=shape)
+    _gather_window(
         grid.tile_map,
         grid.layer("labels"),
         grid.layer("heights"),
@@ -34,8 +39,9 @@ def test_gather_window_equals_navgrid_box(seed):
         grid.tile_size,
         x0,
         y0,
-        x1 - x0,
-        y1 - y0,
+        labels,
+        flags,
+        known_h,
     )
     want_l, want_h, want_f = grid.box(x0, y0, x1, y1)
     np.testing.assert_array_equal(labels, want_l)
@@ -51,7 +57,8 @@ def test_enter_costs_and_their_minimum(allow_unknown):
     flags = rng.choice([0, FLAG_KNOWN, FLAG_KNOWN | FLAG_OBSTACLE, FLAG_SAFETY_ZONE], (30, 20))
     flags = flags.astype(np.uint8)
     lut = np.array([np.inf, 1.6, 0.8, 2.4, np.inf, np.inf, 0.4, np.inf, np.inf, 3.0])
-    enter, lowest = _enter_costs(labels, flags, lut, allow_unknown, 2.0)
+    enter = np.full(labels.shape, -1.0)
+    lowest = _enter_costs(labels, flags, lut, allow_unknown, 2.0, enter)
     blocked = (flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0
     known = (flags & FLAG_KNOWN) != 0
     want = np.where(labels < len(lut), lut[np.minimum(labels, len(lut) - 1)], np.inf)
@@ -61,5 +68,6 @@ def test_enter_costs_and_their_minimum(allow_unknown):
     want = np.where(blocked, np.inf, want)
     np.testing.assert_array_equal(enter, want)
     assert lowest == want[np.isfinite(want)].min()
-    _, none = _enter_costs(labels, np.full_like(flags, FLAG_OBSTACLE), lut, allow_unknown, 2.0)
+    blocked_all = np.full_like(flags, FLAG_OBSTACLE)
+    none = _enter_costs(labels, blocked_all, lut, allow_unknown, 2.0, np.empty(labels.shape))
     assert none == 0.0
