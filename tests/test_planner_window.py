@@ -30,7 +30,7 @@ def test_gather_window_equals_navgrid_box(seed):
     # Filled in place over garbage, as the planner refills its window after a graph change.
     labels = rng.integers(0, 9, shape).astype(np.uint16)
     flags = rng.integers(0, 9, shape).astype(np.uint8)
-    known_h = rng.normal(size=shape)
+    known_h = rng.normal(size=shape).astype(np.float32)
     _gather_window(
         grid.tile_map,
         grid.layer("labels"),

@@ -119,7 +119,9 @@ def search(
 ) -> AStarResult:
     """`astar` without the input checks, for a caller that built the arrays itself and knows
     their smallest finite enter cost (the Planner caches both per graph version): C-contiguous
-    float64 arrays, in-window cells, `max_step` a float (inf for none)."""
+    arrays, enter costs float64, heights float64 or float32 (the grid's; a height difference is
+    taken in float64 either way, so the cost is the same to the bit), in-window cells,
+    `max_step` a float (inf for none)."""
     t0 = time.perf_counter() if t0 is None else t0
     nx, ny = enter_cost.shape
     g, slot, parent = _work_arrays(nx * ny)

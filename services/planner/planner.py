@@ -292,7 +292,7 @@ class Planner:
                 self._cache = (
                     np.empty(shape, np.uint16),
                     np.empty(shape, np.uint8),
-                    np.empty(shape, np.float64),
+                    np.empty(shape, np.float32),  # the grid's own heights: half the bytes
                 )
             _gather_window(
                 g.tile_map,
@@ -342,7 +342,7 @@ def _fill_heights(z: np.ndarray) -> np.ndarray:
 def _gather_window(
     tile_map, labels_pool, heights_pool, flags_pool, t, ix0, iy0, labels, flags, known_h
 ):
-    """Fill dense labels, flags and known heights (float64, NaN where not known) of the w x h
+    """Fill dense labels, flags and known heights (float32, NaN where not known) of the w x h
     nodes from (ix0, iy0), (w, h) their shape, from the tile pools (slot, T, T); unallocated
     tiles read as unknown. Walks tile by tile along y so that no division happens per node."""
     w, h = labels.shape
