@@ -404,7 +404,7 @@ def cli(argv: list[str] | None = None) -> int:
                 failed |= not row["rel_err"] <= 1e-6
                 _print_row(n, q, row)
         print(
-            f"{'':>11} cluttered: window {r['window_ms']:.1f} ms (once per graph version), "
+            f"{'':>11} cluttered: window {r['window_ms']:.1f} ms on a new Planner, "
             f"grid {r['grid_bytes'] / 2**20:.1f} MiB, {r['edges']} edges, "
             f"scipy graph build {r['build_ms']:.0f} ms (not counted)"
         )
