@@ -2,6 +2,7 @@
 with scipy's Dijkstra (and with pyastar2d's when it is installed)."""
 
 import importlib.util
+import sys
 
 from smana.lab.bench.planner import HINT, cli
 
@@ -19,3 +20,11 @@ def test_quick_bench_agrees_with_dijkstra(capsys):
         assert len(flat) == 2 * 4 * 2  # first and repeat query under the paper's cost
         assert sum("A*, pyastar2d's cost" in line for line in out.splitlines()) == 2 * 4
     assert "load" in out and "cpu" in out and "ratio" in out
+
+
+def test_without_pyastar2d_a_hint_and_no_flat_rows(capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "pyastar2d", None)  # import raises ImportError
+    assert cli(["--quick", "--queries", "1", "--sizes", "40", "--no-euclidean"]) == 0
+    out = capsys.readouterr().out
+    assert HINT in out and "A*, pyastar2d's cost" not in out
+    assert sum("scipy Dijkstra" in line for line in out.splitlines()) == 3
