@@ -140,6 +140,7 @@ class PathProbe:
                         "wall_ms": (t1 - t0) * 1000.0,
                         "planner_ms": float(reply.time_ms),
                         "patch_seq": held,
+                        "want": want,
                     }
                 )
                 for seq in range(1, held + 1):
@@ -371,10 +372,14 @@ def report(result: dict, args: argparse.Namespace, load: tuple) -> tuple[str, li
     rep = result["replies"]
     ok = sum(r["ok"] for r in rep)
     plan = [r["planner_ms"] for r in rep if "planner_ms" in r]
+    trip = [r["wall_ms"] for r in rep if "planner_ms" in r]
+    early = sum(r.get("patch_seq", 0) < r.get("want", 0) for r in rep)
     lines.append(
-        f"Path queries: {len(rep)} asked ({ok} with a path), "
-        f"{len(result['answered'])} graph versions answered of {len(result['patches'])} patches; "
-        f"planner's own time p50 {_pct(plan)[0]:.1f} ms, max {_pct(plan)[2]:.1f} ms. Wall "
+        f"Path queries: {len(rep)} asked ({ok} with a path, {early} asked again because the "
+        f"planner had not applied the patch yet), {len(result['answered'])} graph versions "
+        f"answered of {len(result['patches'])} patches; round trip (stats + path) p50 "
+        f"{_pct(trip)[0]:.1f} ms, p95 {_pct(trip)[1]:.1f} ms; planner's own time p50 "
+        f"{_pct(plan)[0]:.1f} ms, max {_pct(plan)[2]:.1f} ms. Wall "
         f"{wall:.1f} s after the first scan, CPU {sum(cpu.values()):.1f} s for the four processes."
     )
     p95 = _pct(steady["e2e"].values())[1]
