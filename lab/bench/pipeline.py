@@ -17,8 +17,9 @@ p50 / p95 / max over the scans after the first (which loads every kernel), and t
 published, integrated (MapDeltas), stale or lost at the mapper, deltas and patches each next
 service received, from the replay's summary and the services' status books. CPU per stage is
 each process's CPU time (psutil, user + system) over the replay, per scan and as a share of one
-core. `--pin auto` puts the mapper alone on the first core and the other processes on the rest
-(`os.sched_setaffinity`, inherited at fork); `--pin none` leaves them to the scheduler.
+core. `--pin` sets each process's cores (`os.sched_setaffinity`, inherited at fork): by default one
+core per service when there are four or more; on two, the chain (mapper, navgraph, planner: a
+scan passes through them one after the other) on one core and the replay on the other.
 
 Exit status 1 when a scan was dropped or lost, a stage failed (no MapDelta, no patch or path
 for a scan that changed the graph), or a service's books say it dropped a message.
@@ -156,18 +157,22 @@ class PathProbe:
             s.undeclare()
 
 
-def pin_plan(n_cpus: int, enabled: bool) -> dict[str, set[int]]:
-    """Cores per process: the mapper alone on the first, the others on the rest; with four
-    cores or more, one core each for mapper, navgraph and planner (the replay shares the
-    rest)."""
-    if not enabled or n_cpus < 2:
-        return {}
+def pin_plan(how: str) -> dict[str, set[int]]:
+    """Cores per process. `auto`: with four cores or more, one each for mapper, navgraph and
+    planner, the replay on the rest; with fewer, `chain`. `chain`: mapper, navgraph and planner
+    (a scan passes through them one after the other) on the first core, the replay (the sensor,
+    reading and encoding the next scans) on the others. `mapper`: the mapper alone on the first
+    core, everything else on the others. `none`: the scheduler's choice."""
     cpus = sorted(os.sched_getaffinity(0))
-    if len(cpus) >= 4:
+    if how == "none" or len(cpus) < 2:
+        return {}
+    first, rest = {cpus[0]}, set(cpus[1:])
+    if how == "auto" and len(cpus) >= 4:
         rest = set(cpus[3:])
-        return {"mapper": {cpus[0]}, "navgraph": {cpus[1]}, "planner": {cpus[2]}, "replay": rest}
-    rest = set(cpus[1:])
-    return {"mapper": {cpus[0]}, "navgraph": rest, "planner": rest, "replay": rest}
+        return {"mapper": first, "navgraph": {cpus[1]}, "planner": {cpus[2]}, "replay": rest}
+    if how == "mapper":
+        return {"mapper": first, "navgraph": rest, "planner": rest, "replay": rest}
+    return {"mapper": first, "navgraph": first, "planner": first, "replay": rest}
 
 
 def _start_pinned(stack: Stack, name: str, args: list[str], cores: set[int] | None):
@@ -213,7 +218,7 @@ def run_pipeline(dataset: Path, args: argparse.Namespace, out: Path) -> dict:
 
     run_dir = out / "run"
     stack = Stack(run_dir / "logs")
-    pins = pin_plan(os.cpu_count() or 1, args.pin == "auto")
+    pins = pin_plan(args.pin)
     mres, gres = args.res
     sets = stack_settings(args.backend, mres, gres, args.table)
     result: dict = {"pins": {k: sorted(v) for k, v in pins.items()}}
@@ -476,9 +481,11 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--res", type=_res_pair, default=(0.1, 0.2), help="MAP/GRAPH resolution")
     p.add_argument(
         "--pin",
-        choices=("auto", "none"),
+        choices=("auto", "chain", "mapper", "none"),
         default="auto",
-        help="auto: the mapper alone on one core, the rest on the others",
+        help="cores per process (os.sched_setaffinity): auto = one per service with 4 cores or "
+        "more, else chain = mapper, navgraph and planner on one core and the replay on the "
+        "other(s); mapper = the mapper alone on one core; none = the scheduler's",
     )
     p.add_argument("--quick", action="store_true", help="small scans, a few seconds")
     p.add_argument("--out", default="runs/bench-pipeline")
