@@ -38,9 +38,10 @@ def test_a_result_too_big_for_its_slot_goes_inline():
 def test_worker_in_order_dead_worker_and_cleanup():
     with Simulation(CFG) as a, Simulation(CFG) as b:
         worker = ShmWorker(CFG, b.world.classes.colour_lut, images=True)
-        names = [s.name for s in worker.ins + worker.outs]
+        assert worker._proc is None  # nothing runs before the first frame (a standby sim)
         # more frames in flight than slots: submit waits for the oldest, order is kept
         futures = [worker.submit(None, b.capture_camera()) for _ in range(3)]
+        names = [s.name for s in worker.ins + worker.outs]
         want = [finished(a.camera_frame(), images=True) for _ in range(3)]
         assert [f.result(timeout=60).cloud for f in futures] == [w.cloud for w in want]
         os.kill(worker._proc.pid, signal.SIGKILL)

@@ -200,10 +200,20 @@ class ShmWorker:
     is ignored (the worker always finishes frames); it is there for the `Executor` protocol."""
 
     def __init__(self, config: SimConfig, colour_lut: np.ndarray, images: bool):
+        self._args = (config, colour_lut, images)
+        self._shape = (config.camera.height, config.camera.width)
+        self.ins: list = []
+        self.outs: list = []
+        self._proc = None  # started with the first frame, as a process pool starts its workers
+        self._pending: collections.deque[_SlotFuture] = collections.deque()
+        self._next_slot = 0
+        self._closed = self._broken = False
+
+    def _start(self) -> None:
         from multiprocessing import shared_memory
 
         ctx = multiprocessing.get_context("spawn")
-        h, w = config.camera.height, config.camera.width
+        h, w = self._shape
         self.ins = [
             shared_memory.SharedMemory(create=True, size=_IN_PX * h * w) for _ in range(SLOTS)
         ]
@@ -211,32 +221,21 @@ class ShmWorker:
             shared_memory.SharedMemory(create=True, size=_OUT_PX * h * w + _OUT_HEAD)
             for _ in range(SLOTS)
         ]
-        self._shape = (h, w)
         self._conn, child = ctx.Pipe()
+        names = ([s.name for s in self.ins], [s.name for s in self.outs])
         self._proc = ctx.Process(
-            target=_shm_main,
-            args=(
-                child,
-                config,
-                colour_lut,
-                images,
-                [s.name for s in self.ins],
-                [s.name for s in self.outs],
-            ),
-            name="sim-camera",
-            daemon=True,
+            target=_shm_main, args=(child, *self._args, *names), name="sim-camera", daemon=True
         )
         self._proc.start()
         child.close()
-        self._pending: collections.deque[_SlotFuture] = collections.deque()
-        self._next_slot = 0
-        self._closed = self._broken = False
 
     def submit(self, _fn, pending: PendingFrame) -> _SlotFuture:
         if self._broken:
             raise BrokenProcessPool("the camera worker process died")
         if self._closed:
             raise RuntimeError("the camera worker is shut down")
+        if self._proc is None:
+            self._start()
         while len(self._pending) >= SLOTS:  # every slot in use: wait for the oldest
             self.read_answer()
         slot = self._next_slot
@@ -292,6 +291,8 @@ class ShmWorker:
         if self._closed:
             return
         self._closed = True
+        if self._proc is None:
+            return  # never started
         if wait and not cancel_futures:
             try:
                 while self._pending:
