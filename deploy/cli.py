@@ -41,6 +41,7 @@ BENCHES = {
     "sim": "smana.lab.bench.sim:cli",
     "explorer": "smana.lab.bench.explorer:cli",
     "replay": "smana.lab.bench.replay:cli",
+    "pipeline": "smana.lab.bench.pipeline:cli",
     "restart": "smana.lab.bench.restart:cli",
     "fuzz": "smana.lab.bench.fuzz:cli",
 }
