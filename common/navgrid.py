@@ -16,10 +16,13 @@ covers [origin + i * res, origin + (i + 1) * res) and its centre is at origin + 
 
 from __future__ import annotations
 
+import collections
+
 import numpy as np
 
 # Node flags: bits of a node's `flags` layer, and of GraphPatch.flags on the wire. This module
 # needs no codec, so the navgraph and planner cores import them from here.
+CHANGE_LOG = 64  # versions whose changed cells a NavGrid remembers
 FLAG_KNOWN = 1
 FLAG_OBSTACLE = 2
 FLAG_SAFETY_ZONE = 4
@@ -67,8 +70,10 @@ class NavGrid:
         self.add_layer("labels", np.uint16, 0)
         self.add_layer("heights", np.float32, np.nan)
         self.add_layer("flags", np.uint8, 0)
-        # Bumped on every change so readers (the planner's dense window) can cache.
+        # Bumped on every change so readers (the planner's dense window) can cache; the last
+        # changes are logged by version so a reader can refresh only the cells that changed.
         self.version = 0
+        self._changes: collections.deque = collections.deque(maxlen=CHANGE_LOG)
 
     @classmethod
     def from_bounds(
@@ -210,7 +215,9 @@ class NavGrid:
         self.tile_coords[slots, 0] = mtx
         self.tile_coords[slots, 1] = mty
         self.n_tiles += n_new
-        self.version += 1
+        # New tiles hold the fill values, which is what an unallocated node reads as: no node
+        # a reader sees changed.
+        self.changed(np.zeros((0, 2), np.int32))
         return n_new
 
     def allocate_cells(self, ix, iy) -> int:
@@ -292,8 +299,29 @@ class NavGrid:
         self.flat("labels")[flat] = labels
         self.flat("heights")[flat] = heights
         self.flat("flags")[flat] = flags
-        self.version += 1
+        self.changed(cells)
         return n_bad
+
+    def changed(self, cells: np.ndarray | None) -> None:
+        """A new version: the nodes at `cells` (K, 2) changed, or None when a writer cannot say
+        which (a reader then rebuilds what it cached)."""
+        self.version += 1
+        self._changes.append((self.version, None if cells is None else np.array(cells, np.int32)))
+
+    def changes_since(self, version: int) -> np.ndarray | None:
+        """The cells (K, 2) written after `version`, repeats included; None when the log does
+        not reach back that far or a change there was not told by cells."""
+        if version == self.version:
+            return np.zeros((0, 2), np.int32)
+        if version > self.version or not self._changes or self._changes[0][0] > version + 1:
+            return None
+        out = []
+        for v, cells in self._changes:
+            if v > version:
+                if cells is None:
+                    return None
+                out.append(cells)
+        return np.concatenate(out) if out else np.zeros((0, 2), np.int32)
 
     def known_box(self) -> tuple[int, int, int, int] | None:
         """Half-open cell box (ix0, iy0, ix1, iy1) covering every allocated tile, or None."""

@@ -158,8 +158,8 @@ def _row(work, peer, p, s, expanded, cost, err) -> dict:
 
 def _patch_one_tile(grid: NavGrid):
     """A graph patch as the planner receives them: one tile's nodes, rewritten here with their
-    own values, so the graph changes version (the window and enter costs are rebuilt) and the
-    answer stays the same."""
+    own values, so the graph changes version (the window's patched nodes and their enter costs
+    are refreshed, `NavGrid.changes_since`) and the answer stays the same."""
     t = grid.tile_size
     x0, y0 = (s // 2 // t * t for s in grid.shape)
     cells = np.argwhere(np.ones((t, t), bool)) + (x0, y0)
@@ -172,7 +172,8 @@ def _patch_one_tile(grid: NavGrid):
 
 
 # What each smana row times: a new Planner (nothing cached), the planner's first query after a
-# graph patch (window and enter costs rebuilt in place), a repeat query on one graph version.
+# graph patch (the patched nodes of the window and enter costs refreshed), a repeat query on one
+# graph version.
 FIRST_NEW, FIRST_PATCHED, REPEAT = "new", "patched", "repeat"
 
 
@@ -374,7 +375,7 @@ def cli(argv: list[str] | None = None) -> int:
     print(f"ratio = smana / peer (< 1: smana faster); load = 1-min load average, {cores} cores")
     print(f"paper's cost: h_f 0.1, t_f 0.8, max step 0.3 m, resolution {RES} m, robot radius")
     print(f"{ROBOT_RADIUS} m, octile heuristic unless said; first = the first query after a graph")
-    print("patch (one tile; window and enter costs rebuilt), or on a new Planner (nothing cached);")
+    print("patch (one tile; its nodes refreshed in the cached window), or on a new Planner (nothing cached);")
     print("rel err = |cost - Dijkstra| / Dijkstra")
     print("flat graphs: pyastar2d's cost = sum of the weights entered (terrain 1.0, grass 1.8; a")
     print(

@@ -371,7 +371,7 @@ class NavGraph:
         sel = touched[changed]
         ix, iy = g.cells_of_flat(sel)
         if len(sel):
-            g.version += 1
+            g.changed(np.stack([ix, iy], axis=1))
         self.n_integrations += 1
         return GraphUpdate(
             cells=np.stack([ix, iy], axis=1).astype(np.int32),

@@ -267,6 +267,17 @@ class Planner:
         if self._enter_key != key:
             # Scale the finite costs only: inf * 0 would be NaN when t_f = 0.
             scaled = np.where(np.isfinite(lut), lut * p.t_f, np.inf)
+            cells = self._changed_in(box, self._enter_key, key)
+            if cells is not None:
+                # Only the patched nodes: their enter costs, and a minimum that can only fall
+                # (a minimum that is too low keeps the heuristic a lower bound: still exact).
+                out, lowest = self._enter_cache
+                low = _enter_cells(
+                    labels, flags, scaled, allow_unknown, float(p.unknown_cost * p.t_f), cells, out
+                )
+                self._enter_cache = (out, min(lowest, low))
+                self._enter_key = key
+                return self._enter_cache
             old = self._enter_cache
             out = old[0] if old is not None and old[0].shape == labels.shape else None
             out = np.empty(labels.shape) if out is None else out  # refilled: no page faults
@@ -276,6 +287,22 @@ class Planner:
             self._enter_cache = (out, lowest)
             self._enter_key = key
         return self._enter_cache
+
+    def _changed_in(self, box, old_key, new_key) -> np.ndarray | None:
+        """Window-local cells (K, 2) that changed between a cache built for `old_key` (graph
+        version first, then the window and the rest) and `new_key`; None when the cache must be
+        rebuilt whole: another window or cost set, a change the grid cannot list, or a change so
+        large that a whole pass is as cheap."""
+        if old_key is None or old_key[1:] != new_key[1:]:
+            return None
+        cells = self.grid.changes_since(old_key[0])
+        if cells is None:
+            return None
+        x0, y0, x1, y1 = box
+        if len(cells) > (x1 - x0) * (y1 - y0) // 8:
+            return None
+        inside = (cells[:, 0] >= x0) & (cells[:, 0] < x1) & (cells[:, 1] >= y0) & (cells[:, 1] < y1)
+        return np.ascontiguousarray(cells[inside] - np.array([x0, y0], np.int32))
 
     def _dense(self, box):
         """labels, flags and known heights (NaN where unknown) of the window, cached until the
@@ -287,6 +314,20 @@ class Planner:
         if self._cache_key != key:
             g = self.grid
             x0, y0, x1, y1 = box
+            cells = self._changed_in(box, self._cache_key, key)
+            if cells is not None:  # a patch since: refresh its nodes only
+                _gather_cells(
+                    g.tile_map,
+                    g.layer("labels"),
+                    g.layer("heights"),
+                    g.layer("flags"),
+                    g.tile_size,
+                    cells + np.array([x0, y0], np.int32),
+                    cells,
+                    *self._cache,
+                )
+                self._cache_key = key
+                return self._cache
             shape = (x1 - x0, y1 - y0)
             if self._cache is None or self._cache[0].shape != shape:
                 self._cache = (
@@ -374,6 +415,54 @@ def _gather_window(
 
 
 @numba.njit(cache=True)
+def _gather_cells(
+    tile_map, labels_pool, heights_pool, flags_pool, t, grid_cells, cells, labels, flags, known_h
+):
+    """`_gather_window` for a list of nodes: `grid_cells` in the grid, `cells` in the window."""
+    for k in range(len(cells)):
+        gx, gy = grid_cells[k, 0], grid_cells[k, 1]
+        i, j = cells[k, 0], cells[k, 1]
+        slot = tile_map[gx // t, gy // t]
+        if slot >= 0:
+            lx, ly = gx % t, gy % t
+            f = flags_pool[slot, lx, ly]
+            flags[i, j] = f
+            labels[i, j] = labels_pool[slot, lx, ly]
+            known_h[i, j] = heights_pool[slot, lx, ly] if f & FLAG_KNOWN else np.nan
+        else:
+            flags[i, j] = 0
+            labels[i, j] = 0
+            known_h[i, j] = np.nan
+
+
+@numba.njit(cache=True)
+def _enter_cost(f, lab, lut, n_lut, allow_unknown, unknown_cost):
+    if f & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
+        return np.inf
+    if f & FLAG_KNOWN:
+        c = lut[lab] if lab < n_lut else np.inf
+        if c == np.inf and lab == 0 and allow_unknown:
+            c = unknown_cost  # a known node of the "unknown" class
+        return c
+    return unknown_cost if allow_unknown else np.inf
+
+
+@numba.njit(cache=True)
+def _enter_cells(labels, flags, lut, allow_unknown, unknown_cost, cells, out):
+    """`_enter_costs` for a list of window cells; returns their smallest finite cost (+inf
+    when none is finite, so that it leaves the cached minimum as it was)."""
+    lowest = np.inf
+    n_lut = len(lut)
+    for k in range(len(cells)):
+        i, j = cells[k, 0], cells[k, 1]
+        c = _enter_cost(flags[i, j], labels[i, j], lut, n_lut, allow_unknown, unknown_cost)
+        out[i, j] = c
+        if c < lowest:
+            lowest = c
+    return lowest
+
+
+@numba.njit(cache=True)
 def _enter_costs(labels, flags, lut, allow_unknown, unknown_cost, out):
     """Fill `out` with t_f * T(l) per node; +inf for obstacles, safety zones, non-traversable
     classes, and unknown nodes unless allowed. `lut` is already scaled by t_f (and +inf where
@@ -383,17 +472,9 @@ def _enter_costs(labels, flags, lut, allow_unknown, unknown_cost, out):
     n_lut = len(lut)
     for i in range(nx):
         for j in range(ny):
-            f = flags[i, j]
-            if f & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
-                out[i, j] = np.inf
-            elif f & FLAG_KNOWN:
-                lab = labels[i, j]
-                c = lut[lab] if lab < n_lut else np.inf
-                if c == np.inf and lab == 0 and allow_unknown:
-                    c = unknown_cost  # a known node of the "unknown" class
-                out[i, j] = c
-            else:
-                out[i, j] = unknown_cost if allow_unknown else np.inf
+            out[i, j] = _enter_cost(
+                flags[i, j], labels[i, j], lut, n_lut, allow_unknown, unknown_cost
+            )
             if out[i, j] < lowest:
                 lowest = out[i, j]
     return lowest if lowest < np.inf else 0.0
