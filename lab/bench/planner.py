@@ -375,7 +375,8 @@ def cli(argv: list[str] | None = None) -> int:
     print(f"ratio = smana / peer (< 1: smana faster); load = 1-min load average, {cores} cores")
     print(f"paper's cost: h_f 0.1, t_f 0.8, max step 0.3 m, resolution {RES} m, robot radius")
     print(f"{ROBOT_RADIUS} m, octile heuristic unless said; first = the first query after a graph")
-    print("patch (one tile; its nodes refreshed in the cached window), or on a new Planner (nothing cached);")
+    print("patch (one tile: its nodes refreshed in the cached window), or on a new Planner")
+    print("(nothing cached);")
     print("rel err = |cost - Dijkstra| / Dijkstra")
     print("flat graphs: pyastar2d's cost = sum of the weights entered (terrain 1.0, grass 1.8; a")
     print(
