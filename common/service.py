@@ -4,6 +4,16 @@ A service subclasses `Service`, compiles or loads its kernels in `prepare()`, lo
 state in `warm_up()`, declares its inputs and outputs in `setup()` and does its periodic work in
 `tick()`. The base class does the rest:
 
+- with `prepare_in_background` (services whose `prepare()` only compiles numba kernels), runs
+  `prepare()` on a thread of its own from the process's start, so the service is live (alive
+  token, status answered) in about a second even on a cold numba cache, instead of after minutes
+  of compiling. Its status then says `details.kernels = "compiling"` until they are loaded
+  (`"ready"`, with `kernels_s` from the process's start). A handler that needs a kernel meanwhile
+  waits for it: numba compiles under one lock, and a function another thread is compiling is used
+  once compiled. Status queries do not wait: while the kernels compile they are answered from the
+  zenoh callback, as while starting. `SMANA_KERNELS=foreground` restores the old order (prepare,
+  then live: `smana bench startup` compares both);
+
 - opens the zenoh session (`with zenoh.open(conf) as session`) and at once declares the liveliness
   token `smana/<robot>/starting/<service>` and publishes a `ServiceStatus` in state `starting`
   every `general.status_period_s` (and answers it as a query), so that a supervisor and `smana
@@ -128,6 +138,8 @@ STOP_DEADLINE_S = 5.0  # after a stop signal: to leave the loop, and to close ze
 # Set by the supervisor for a hot spare (deploy/supervisor.py): prepare, write "ready" to the file
 # descriptor it names, then wait for a line on stdin before starting for real.
 STANDBY_ENV = "SMANA_STANDBY_FD"
+# "foreground": prepare() before the service is live even where it may run in the background.
+KERNELS_ENV = "SMANA_KERNELS"
 FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones are dropped
 
 
@@ -249,6 +261,8 @@ class Service:
     tick_period_s = 0.1  # how often tick() runs
     drain_on_stop = False  # handle what is still queued when a stop comes (the recorder does)
     max_payload_bytes = MAX_PAYLOAD_BYTES  # larger samples are rejected as `oversize`, uncopied
+    # prepare() only compiles kernels: run it on a thread, the service live meanwhile (see above)
+    prepare_in_background = False
 
     def __init__(self, config: SmanaConfig):
         self.config = config
@@ -262,6 +276,8 @@ class Service:
         self.state = "starting"
         self.startup_step = "opening the zenoh session"  # what a starting service is doing
         self.ready_s: float | None = None  # seconds from process start to ready
+        self.kernels = "ready"  # "compiling" while a background prepare() runs
+        self.kernels_s: float | None = None  # seconds from process start to kernels loaded
         self._t0 = time.monotonic()
         self._stop = threading.Event()
         self._ready = threading.Event()  # warmed up and declared: the starting heartbeat ends
@@ -278,6 +294,7 @@ class Service:
         self._status_seq = 0
         self._status_lock = threading.Lock()
         self._tracebacks_logged: set[str] = set()
+        self._kernels_announce = False  # kernels just loaded: publish a status now
 
     # -- what subclasses override ----------------------------------------------------------------
 
@@ -421,6 +438,14 @@ class Service:
         self._install_signal_handlers()
         standby_fd = os.environ.pop(STANDBY_ENV, "")
         standby = bool(standby_fd)
+        background = (
+            self.prepare_in_background
+            and not standby
+            and os.environ.get(KERNELS_ENV, "") != "foreground"
+        )
+        if background:  # from now: compiling overlaps opening zenoh and loading the run's state
+            self.kernels = "compiling"
+            threading.Thread(target=self._prepare_kernels, name="kernels", daemon=True).start()
         if standby:
             t0 = time.monotonic()
             self.prepare()
@@ -449,7 +474,7 @@ class Service:
                 threading.Thread(
                     target=self._heartbeat, name="starting-status", daemon=True
                 ).start()
-                if not standby:
+                if not standby and not background:
                     self.startup_step = "preparing (compiling or loading kernels)"
                     self.prepare()
                 self.startup_step = "warming up"
@@ -465,15 +490,17 @@ class Service:
                     with self._status_lock:
                         self.state = "running"
                         self.ready_s = time.monotonic() - self._t0
-                    self._ready.set()  # ends the heartbeat thread
+                        self.startup_step = "compiling (or loading) the numba kernels"
+                    self._ready.set()  # ends the heartbeat thread (unless kernels compile)
                     self._declared.remove(starting)
                     starting.undeclare()
                     self.log.info(
-                        "%s ready in %.1f s (robot %s, pid %d)",
+                        "%s ready in %.1f s (robot %s, pid %d)%s",
                         self.name,
                         self.ready_s,
                         r,
                         os.getpid(),
+                        ", kernels still compiling" if self.kernels != "ready" else "",
                     )
                     self._loop()
             finally:
@@ -520,12 +547,29 @@ class Service:
     def stopping(self) -> bool:
         return self._stop.is_set()
 
+    def _prepare_kernels(self) -> None:
+        """The background prepare(): compile or load the kernels, then say so at once (the main
+        loop publishes a status as soon as it can)."""
+        t0 = time.monotonic()
+        try:
+            self.prepare()
+        except Exception:  # noqa: BLE001 - each kernel then compiles on its first use
+            self.log.exception("preparing the kernels failed; they compile on first use")
+        with self._status_lock:
+            self.kernels = "ready"
+            self.kernels_s = time.monotonic() - self._t0
+        self.log.info("kernels ready (%.1f s in the background)", time.monotonic() - t0)
+        self._kernels_announce = True
+        self._ready.set()
+        self._wake.set()
+
     def _heartbeat(self) -> None:
-        """While starting: a status every period, from this thread (the main one is busy)."""
+        """While starting, and while the kernels compile: a status every period, from this
+        thread (the main one is busy, or may wait for a kernel)."""
         period = self.config.general.status_period_s
         while True:
             with self._status_lock:
-                if self.state != "starting" or self.stopping:
+                if (self.state != "starting" and self.kernels == "ready") or self.stopping:
                     return
                 msg = self.status()
             try:
@@ -533,12 +577,14 @@ class Service:
             except Exception:  # the session is closing
                 return
             self._ready.wait(period)
+            if self.state != "starting" and self.kernels != "ready":
+                self._ready.clear()  # now live: wait for the next period, or the kernels
 
     def _on_status_query(self, query) -> None:
         """Status queries: answered right here while starting (the main loop is not running yet;
         the starting status reads no service state), from the main loop afterwards."""
         with self._status_lock:
-            starting = self.state == "starting"
+            starting = self.state == "starting" or self.kernels != "ready"
             msg = self.status() if starting else None
         key = keys.status(self.robot, self.name)
         if msg is None:
@@ -641,9 +687,16 @@ class Service:
             if now >= next_tick:
                 next_tick = now + self.tick_period_s
                 self._guard(self.tick, "tick")
-            if now >= next_status:
+            if now >= next_status or self._kernels_announce:
                 next_status = now + period
-                self._guard(lambda: self._status_pub.put(self.status()), "status")
+                if self.kernels == "ready":  # until then the heartbeat thread publishes
+                    self._kernels_announce = False
+                    self._guard(self._publish_status, "status")
+
+    def _publish_status(self) -> None:
+        with self._status_lock:
+            msg = self.status()
+        self._status_pub.put(msg)
 
     def _settle_leftovers(self, drain: bool) -> None:
         """At stop: handle what is queued (`drain`) or count it dropped as `stopping`."""
@@ -777,9 +830,16 @@ class Service:
                 dict(b.rejected),
                 queued,
             )
-        details = {"startup_step": self.startup_step} if starting else self.status_details()
+        if starting or self.kernels != "ready":  # no service state read: maybe off the loop
+            details = {"startup_step": self.startup_step}
+        else:
+            details = self.status_details()
         if self.ready_s is not None:
             details = {**details, "ready_s": round(self.ready_s, 3)}
+        if self.prepare_in_background:
+            details["kernels"] = self.kernels
+            if self.kernels_s is not None:
+                details["kernels_s"] = round(self.kernels_s, 3)
         return ServiceStatus(
             stamp_s=time.time(),
             seq=self._status_seq,

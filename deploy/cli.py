@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("smana.services.replay.__main__:cli", "replay a dataset into the stack"),
     "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
     "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
+    "warmup": ("smana.deploy.warmup:cli", "compile every service's numba kernels ahead, once"),
     "bench": ("smana.deploy.cli:bench", "benchmarks of each service (smana bench --help)"),
     "eval": ("smana.lab.evaluation:cli", "evaluate a run's map against ground truth"),
     "experiment": ("smana.lab.experiments:cli", "the paper's experiments: noise, exploration"),
@@ -41,6 +42,7 @@ BENCHES = {
     "explorer": "smana.lab.bench.explorer:cli",
     "replay": "smana.lab.bench.replay:cli",
     "restart": "smana.lab.bench.restart:cli",
+    "startup": "smana.lab.bench.startup:cli",
     "fuzz": "smana.lab.bench.fuzz:cli",
 }
 

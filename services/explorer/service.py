@@ -53,6 +53,7 @@ CHECKPOINT_PERIOD_S = 10.0  # state and trajectory saved for a restarted explore
 
 class ExplorerService(Service):
     name = "explorer"
+    prepare_in_background = True  # prepare() only compiles kernels: live meanwhile
 
     def __init__(self, config: SmanaConfig):
         super().__init__(config)

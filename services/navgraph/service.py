@@ -107,6 +107,7 @@ def graph_difference(old, new):
 
 class NavgraphService(Service):
     name = "navgraph"
+    prepare_in_background = True  # prepare() only compiles kernels: live meanwhile
     tick_period_s = 1.0
 
     def __init__(self, config: SmanaConfig):

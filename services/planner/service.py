@@ -95,6 +95,7 @@ def request_from_params(params: dict[str, str]) -> PathRequest:
 
 class PlannerService(Service):
     name = "planner"
+    prepare_in_background = True  # prepare() only compiles kernels: live meanwhile
     tick_period_s = 0.2
 
     def __init__(self, config: SmanaConfig):
