@@ -6,14 +6,16 @@ state in `warm_up()`, declares its inputs and outputs in `setup()` and does its 
 
 - with `prepare_in_background` (services whose `prepare()` only compiles numba kernels), runs
   `prepare()` on a thread of its own from the process's start, so the service is live (alive
-  token, status answered) in about a second even on a cold numba cache, instead of after minutes
-  of compiling. Its status then says `details.kernels = "compiling"` until they are loaded
-  (`"ready"`, with `kernels_s` from the process's start). A handler that needs a kernel meanwhile
-  waits for it: numba compiles under one lock, and a function another thread is compiling is used
-  once compiled. Status queries do not wait: while the kernels compile they are answered from the
-  zenoh callback, as while starting. `SMANA_KERNELS=foreground` restores the old order (prepare,
-  then live: `smana bench startup` compares both);
-
+  token, status answered) in seconds even on a cold numba cache, instead of after a minute of
+  compiling. Its status says `details.kernels = "compiling"` until they are loaded (`"ready"`,
+  with `kernels_s` from the process's start). Until then the main loop runs nothing that may call
+  a kernel: samples and queries wait in their queues, in order, and ticks wait; a query still
+  waiting after `WARMING_UP_HOLD_S` is answered the error `warming_up` (ask again); status
+  queries are answered from the zenoh callback (as while starting). Only `warm_up()` and
+  `setup()` (a map to resume, a graph to sync) may call a kernel meanwhile: numba compiles under
+  one lock, so they wait for it, before the service is live.
+  `SMANA_KERNELS=foreground` restores the old order (prepare, then live; `smana bench startup`
+  compares both);
 - opens the zenoh session (`with zenoh.open(conf) as session`) and at once declares the liveliness
   token `smana/<robot>/starting/<service>` and publishes a `ServiceStatus` in state `starting`
   every `general.status_period_s` (and answers it as a query), so that a supervisor and `smana
@@ -141,6 +143,8 @@ STANDBY_ENV = "SMANA_STANDBY_FD"
 # "foreground": prepare() before the service is live even where it may run in the background.
 KERNELS_ENV = "SMANA_KERNELS"
 FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones are dropped
+# A query to a service still compiling its kernels waits this long, then is answered `warming_up`.
+WARMING_UP_HOLD_S = 3.0
 
 
 @dataclass
@@ -295,6 +299,7 @@ class Service:
         self._status_lock = threading.Lock()
         self._tracebacks_logged: set[str] = set()
         self._kernels_announce = False  # kernels just loaded: publish a status now
+        self._held_since: dict[int, float] = {}  # query -> when first held while compiling
 
     # -- what subclasses override ----------------------------------------------------------------
 
@@ -668,6 +673,11 @@ class Service:
         next_tick = next_status = time.monotonic()
         period = self.config.general.status_period_s
         while not self._stop.is_set():
+            if self.kernels != "ready":
+                self._hold_while_compiling(period)
+                next_tick = next_status = time.monotonic()
+                continue
+            self._held_since.clear()
             now = time.monotonic()
             timeout = max(0.0, min(next_tick, next_status) - now)
             if not self._fifo:
@@ -692,6 +702,42 @@ class Service:
                 if self.kernels == "ready":  # until then the heartbeat thread publishes
                     self._kernels_announce = False
                     self._guard(self._publish_status, "status")
+
+    def _hold_while_compiling(self, period: float) -> None:
+        """The kernels are still compiling: run nothing that may call one. Everything waits in
+        its queue, in order, and is handled once they are loaded; a query still waiting after
+        `WARMING_UP_HOLD_S` is answered the error `warming_up` (ask again: counted dropped
+        `warming_up`), not left to time out. The status is answered from the zenoh callback."""
+        self._wake.wait(min(period, 0.2))
+        self._wake.clear()
+        now = time.monotonic()
+        with self.books.lock:
+            late = []
+            for item in self._fifo:
+                if item[0] == "query":
+                    since = self._held_since.setdefault(id(item[3]), now)
+                    if now - since >= WARMING_UP_HOLD_S:
+                        late.append(item)
+            if late:
+                gone = {id(item) for item in late}
+                kept = [item for item in self._fifo if id(item) not in gone]
+                self._fifo.clear()
+                self._fifo.extend(kept)
+                self.books.in_flight += len(late)
+        for _what, _handler, _key, query in late:
+            self._held_since.pop(id(query), None)
+            self.books.settle("dropped", "warming_up")
+            try:
+                as_json = _query_form(query)[1]
+            except Exception:  # noqa: BLE001 - unreadable: answered in msgpack
+                as_json = False
+            self._reply_err(
+                query,
+                "warming_up",
+                f"{self.name} is compiling its numba kernels ({now - self._t0:.0f} s since its "
+                "start); ask again in a few seconds",
+                as_json,
+            )
 
     def _publish_status(self) -> None:
         with self._status_lock:

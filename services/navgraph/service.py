@@ -174,6 +174,8 @@ class NavgraphService(Service):
             snap = self._snapshot(5.0)
         except QueryError as exc:
             self.log.warning("resync (%s) failed: no snapshot (%s)", reason, exc.kind)
+            if exc.kind == "warming_up":  # a mapper live before its kernels: ask again
+                self._resync_reason = self._resync_reason or reason
             return False
         if snap is None:
             return False

@@ -160,6 +160,7 @@ class PlannerService(Service):
             )
         except QueryError as exc:
             self.log.info("no graph from navgraph (%s): waiting for patches", exc.kind)
+            self._resync |= exc.kind == "warming_up"  # live before its kernels: ask again
             return False
         if not self.graph.usable_snapshot(reply):
             return False
