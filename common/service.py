@@ -143,6 +143,9 @@ STANDBY_ENV = "SMANA_STANDBY_FD"
 # "foreground": prepare() before the service is live even where it may run in the background.
 KERNELS_ENV = "SMANA_KERNELS"
 FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones are dropped
+# The background compile's niceness above the process's: on a shared 2-core machine, the imports
+# and sessions of the services starting beside it go first.
+KERNELS_NICE = 5
 # A query to a service still compiling its kernels waits this long, then is answered `warming_up`.
 WARMING_UP_HOLD_S = 3.0
 
@@ -556,6 +559,12 @@ class Service:
         """The background prepare(): compile or load the kernels, then say so at once (the main
         loop publishes a status as soon as it can)."""
         t0 = time.monotonic()
+        try:  # Linux: this thread only. Compiling yields the cores to what makes services live.
+            tid = threading.get_native_id()
+            nice = os.getpriority(os.PRIO_PROCESS, tid) + KERNELS_NICE
+            os.setpriority(os.PRIO_PROCESS, tid, min(nice, 19))
+        except (AttributeError, OSError):
+            pass
         try:
             self.prepare()
         except Exception:  # noqa: BLE001 - each kernel then compiles on its first use
