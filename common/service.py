@@ -146,8 +146,9 @@ FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones 
 # The background compile's niceness above the process's: on a shared 2-core machine, the imports
 # and sessions of the services starting beside it go first.
 KERNELS_NICE = 5
-# A query to a service still compiling its kernels waits this long, then is answered `warming_up`.
-WARMING_UP_HOLD_S = 3.0
+# A query to a service still compiling its kernels waits this long, then is answered `warming_up`:
+# short, since a consumer's setup() may be the one asking (it asks again later).
+WARMING_UP_HOLD_S = 1.0
 
 
 @dataclass

@@ -11,6 +11,7 @@ import threading
 import pytest
 
 from smana.common import keys
+from smana.common import service as service_module
 from smana.common.cli import config_from_args, make_parser
 from smana.common.messages import Pose, ServiceStatus, encode
 from smana.common.query import QueryError, request
@@ -81,6 +82,7 @@ def test_live_while_kernels_compile_then_ready(fake_stack, monkeypatch):
         assert st.details["kernels"] == "compiling" and st.books_add_up()
         assert st.dropped == {"warming_up": 1}
         # a query that comes while they compile is answered once they are loaded, in its turn
+        monkeypatch.setattr(service_module, "WARMING_UP_HOLD_S", 30.0)  # (a loaded machine)
         answers = []
         asker = threading.Thread(target=lambda: answers.append(use(fake_stack)))
         asker.start()
