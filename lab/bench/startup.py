@@ -22,6 +22,8 @@ Two sides: `background` (now: kernels compile on a thread of the service, which 
 meanwhile) and `foreground` (`SMANA_KERNELS=foreground`: the order before, kernels then live).
 The table gives, per start and service, both sides' live and kernel times and the ratio of the
 live times (foreground / background), then the CPU and wall time of the run and the load average.
+`imp s` is the part of `live` before the service object exists (Python, imports, config: from its
+own `ready_s`); the rest is opening zenoh, `warm_up()` and `setup()` (and, foreground, kernels).
 A service that never becomes live, or whose kernels never load, fails the run (exit status 1).
 """
 
@@ -59,6 +61,7 @@ class Watch:
         self._lock = threading.Lock()
         self.alive: dict[str, float] = {}
         self.kernels: dict[str, float] = {}
+        self.ready_s: dict[str, float] = {}  # the service's own count: Service() to live
         self.pids: dict[str, int] = {}
         self._subs = [
             session.liveliness().declare_subscriber(keys.alive_any(ROBOT), self._on_alive),
@@ -69,6 +72,7 @@ class Watch:
         with self._lock:
             self.alive.pop(service, None)
             self.kernels.pop(service, None)
+            self.ready_s.pop(service, None)
 
     def _on_alive(self, sample) -> None:
         service = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -84,14 +88,21 @@ class Watch:
             st = decode(sample.payload.to_bytes(), ServiceStatus)
         except MessageError:
             return
-        if st.details.get("kernels", "ready") == "ready" and st.state == "running":
-            with self._lock:
-                if self.pids.get(st.service) == st.pid:  # not a late status of a killed one
-                    self.kernels.setdefault(st.service, now)
+        if st.state != "running" or self.pids.get(st.service) != st.pid:  # (a killed one's)
+            return
+        with self._lock:
+            if "ready_s" in st.details:
+                self.ready_s.setdefault(st.service, float(st.details["ready_s"]))
+            if st.details.get("kernels", "ready") == "ready":
+                self.kernels.setdefault(st.service, now)
 
     def times(self, service: str) -> tuple[float | None, float | None]:
         with self._lock:
             return self.alive.get(service), self.kernels.get(service)
+
+    def own_ready_s(self, service: str) -> float | None:
+        with self._lock:
+            return self.ready_s.get(service)
 
     def close(self) -> None:
         for s in self._subs:
@@ -150,7 +161,10 @@ class Stack:
         for s in services:
             alive, kernels = self.watch.times(s)
             t0 = self.t_start[s]
+            own = self.watch.own_ready_s(s)
             out[s] = {
+                # spawn to Service(): Python, imports, config (the rest is zenoh and state)
+                "imports_s": None if alive is None or own is None else alive - t0 - own,
                 "live_s": None if alive is None else alive - t0,
                 "kernels_s": None if kernels is None else max(kernels, alive or 0) - t0,
                 "exit": self.procs[s].poll(),
@@ -214,7 +228,7 @@ def print_table(results: dict, services) -> bool:
     sides = list(results)
     head = f"{'start':<6}{'service':<10}"
     for side in sides:
-        head += f"{side[:4] + ' live s':>13}{side[:4] + ' kern s':>13}"
+        head += f"{side[:4] + ' imp s':>12}{side[:4] + ' live s':>13}{side[:4] + ' kern s':>13}"
     if len(sides) == 2:
         head += f"{'live ratio':>12}"
     print(head)
@@ -224,10 +238,10 @@ def print_table(results: dict, services) -> bool:
             row = f"{start:<6}{s:<10}"
             lives = []
             for side in sides:
-                r = results[side].get(start, {}).get(s)
-                live, kern = (r["live_s"], r["kernels_s"]) if r else (None, None)
+                r = results[side].get(start, {}).get(s) or {}
+                live, kern, imp = r.get("live_s"), r.get("kernels_s"), r.get("imports_s")
                 ok &= live is not None and kern is not None
-                row += f"{_fmt(live):>13}{_fmt(kern):>13}"
+                row += f"{_fmt(imp):>12}{_fmt(live):>13}{_fmt(kern):>13}"
                 lives.append(live)
             if len(sides) == 2 and None not in lives:
                 row += f"{lives[1] / lives[0]:>11.1f}x"
