@@ -9,9 +9,9 @@ state in `warm_up()`, declares its inputs and outputs in `setup()` and does its 
   token, status answered) in seconds even on a cold numba cache, instead of after a minute of
   compiling. Its status says `details.kernels = "compiling"` until they are loaded (`"ready"`,
   with `kernels_s` from the process's start). Until then the main loop runs nothing that may call
-  a kernel: samples and queries wait in their queues, in order, and ticks wait; a query still
-  waiting after `WARMING_UP_HOLD_S` is answered the error `warming_up` (ask again); status
-  queries are answered from the zenoh callback (as while starting). Only `warm_up()` and
+  a kernel: samples wait in their queues, in order, and ticks wait; a query is answered the
+  error `warming_up` (ask again; after `WARMING_UP_HOLD_S`, none by default); status queries are
+  answered from the zenoh callback (as while starting). Only `warm_up()` and
   `setup()` (a map to resume, a graph to sync) may call a kernel meanwhile: numba compiles under
   one lock, so they wait for it, before the service is live.
   `SMANA_KERNELS=foreground` restores the old order (prepare, then live; `smana bench startup`
@@ -146,9 +146,10 @@ FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones 
 # The background compile's niceness above the process's: on a shared 2-core machine, the imports
 # and sessions of the services starting beside it go first.
 KERNELS_NICE = 5
-# A query to a service still compiling its kernels waits this long, then is answered `warming_up`:
-# short, since a consumer's setup() may be the one asking (it asks again later).
-WARMING_UP_HOLD_S = 1.0
+# A query to a service still compiling its kernels waits this long, then is answered `warming_up`.
+# None: a consumer's setup() may be the one asking (the planner's graph sync: held 1 s, it made the
+# planner live 1 s later), and every consumer asks again (bench startup, 2026-11-26).
+WARMING_UP_HOLD_S = 0.0
 
 
 @dataclass
