@@ -27,7 +27,7 @@ from smana.common import keys, progress
 from smana.common.classes import ClassTable
 from smana.common.config import ReplayConfig, SmanaConfig
 from smana.common.messages import GraphPatch, MapDelta
-from smana.common.service import Service
+from smana.common.service import Service, serving
 
 from .player import END, FeedItem, Pacer, ScanFeed
 from .readers import DatasetReader, detect_format, open_dataset
@@ -131,6 +131,7 @@ class ReplayService(Service):
         self.phase = "waiting"  # -> running -> done
         self.exit_code = 0
         self._alive: set[str] = set()
+        self._serving: set[str] = set()  # running with their kernels loaded (their status)
         self._starting: set[str] = set()
         self._last_sign: dict[str, float] = {}  # service -> when it last showed a token
         self._next: FeedItem | object | None = None
@@ -184,6 +185,8 @@ class ReplayService(Service):
             self._declared.append(
                 self.session.liveliness().declare_subscriber(key, self._on_token, history=True)
             )
+        # A service is live before its kernels are loaded: wait_for waits for them too.
+        self._declared.append(self.session.declare_subscriber(keys.status_any(r), self._on_status))
         self.feed.start()
         self.log.info(
             "replaying %d scans of %s (%s, %.1f Hz) on %s, %s%s",
@@ -206,20 +209,31 @@ class ReplayService(Service):
             where.add(name)
         else:
             where.discard(name)
+        if kind == "alive":
+            self._serving.discard(name)  # a new process: until its status says it serves
         self._last_sign[name] = time.monotonic()
+        self._wake.set()
+
+    def _on_status(self, sample) -> None:
+        # zenoh thread: only record and wake the main loop
+        if (got := serving(sample)) is None:
+            return
+        name, serves = got
+        (self._serving.add if serves else self._serving.discard)(name)
         self._wake.set()
 
     def _not_ready(self) -> tuple[list[str], str]:
         """The services of wait_for not alive yet, and why the replay gives up on them ("" while
         it still waits): one that showed no token for wait_timeout_s, or was still starting
         after deploy.startup_timeout_s."""
-        missing = [s for s in self.rc.wait_for if s not in self._alive]
+        missing = [s for s in self.rc.wait_for if s not in self._alive or s not in self._serving]
         now = time.monotonic()
         waited = now - self._t_wait
         silent = [
             s
             for s in missing
             if s not in self._starting
+            and s not in self._alive  # (alive, its kernels loading: still starting)
             and now - max(self._t_wait, self._last_sign.get(s, 0.0)) > self.rc.wait_timeout_s
         ]
         if silent:
