@@ -940,17 +940,18 @@ def _reply_bytes(result, as_json: bool) -> bytes:
     return msgpack.packb(result, use_bin_type=True, default=json_default)
 
 
-def serving(sample) -> tuple[str, bool] | None:
-    """From a status sample (a raw zenoh callback's): the service's name and whether it serves,
-    i.e. runs with its kernels loaded. A service is live before its kernels compile in the
-    background (answering `warming_up`), so its alive token alone does not say that; a consumer
-    that starts a clock on a producer's readiness (the explorer's budget, the replay's first
-    scan) waits for this too. None when the payload is no status."""
+def kernels_loaded(sample) -> tuple[str, bool] | None:
+    """From a status sample (a raw zenoh callback's): the service's name and whether its kernels
+    are loaded (yes for a status that does not say: a service of another kind). A service is
+    live before its kernels compile in the background (answering `warming_up`), so its alive
+    token alone does not say it serves; a consumer that starts a clock on a producer's readiness
+    (the explorer's budget, the replay's first scan) waits for this too. Every status says
+    `kernels` from the session's opening, well before the alive token. None: no status."""
     try:
         st = decode(sample.payload.to_bytes(), ServiceStatus)
     except MessageError:
         return None
-    return st.service, st.state == "running" and st.details.get("kernels", "ready") == "ready"
+    return st.service, st.details.get("kernels", "ready") == "ready"
 
 
 def run_service(cls: type[Service], config: SmanaConfig) -> int:

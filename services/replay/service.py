@@ -27,7 +27,7 @@ from smana.common import keys, progress
 from smana.common.classes import ClassTable
 from smana.common.config import ReplayConfig, SmanaConfig
 from smana.common.messages import GraphPatch, MapDelta
-from smana.common.service import Service, serving
+from smana.common.service import Service, kernels_loaded
 
 from .player import END, FeedItem, Pacer, ScanFeed
 from .readers import DatasetReader, detect_format, open_dataset
@@ -131,7 +131,7 @@ class ReplayService(Service):
         self.phase = "waiting"  # -> running -> done
         self.exit_code = 0
         self._alive: set[str] = set()
-        self._serving: set[str] = set()  # running with their kernels loaded (their status)
+        self._warming: set[str] = set()  # live, their status says their kernels compile
         self._starting: set[str] = set()
         self._last_sign: dict[str, float] = {}  # service -> when it last showed a token
         self._next: FeedItem | object | None = None
@@ -209,24 +209,22 @@ class ReplayService(Service):
             where.add(name)
         else:
             where.discard(name)
-        if kind == "alive":
-            self._serving.discard(name)  # a new process: until its status says it serves
         self._last_sign[name] = time.monotonic()
         self._wake.set()
 
     def _on_status(self, sample) -> None:
         # zenoh thread: only record and wake the main loop
-        if (got := serving(sample)) is None:
+        if (got := kernels_loaded(sample)) is None:
             return
-        name, serves = got
-        (self._serving.add if serves else self._serving.discard)(name)
+        name, loaded = got
+        (self._warming.discard if loaded else self._warming.add)(name)
         self._wake.set()
 
     def _not_ready(self) -> tuple[list[str], str]:
         """The services of wait_for not alive yet, and why the replay gives up on them ("" while
         it still waits): one that showed no token for wait_timeout_s, or was still starting
         after deploy.startup_timeout_s."""
-        missing = [s for s in self.rc.wait_for if s not in self._alive or s not in self._serving]
+        missing = [s for s in self.rc.wait_for if s not in self._alive or s in self._warming]
         now = time.monotonic()
         waited = now - self._t_wait
         silent = [
