@@ -143,9 +143,6 @@ STANDBY_ENV = "SMANA_STANDBY_FD"
 # "foreground": prepare() before the service is live even where it may run in the background.
 KERNELS_ENV = "SMANA_KERNELS"
 FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones are dropped
-# The background compile's niceness above the process's: on a shared 2-core machine, the imports
-# and sessions of the services starting beside it go first.
-KERNELS_NICE = 5
 # A query to a service still compiling its kernels waits this long, then is answered `warming_up`.
 # None: a consumer's setup() may be the one asking (the planner's graph sync: held 1 s, it made the
 # planner live 1 s later), and every consumer asks again (bench startup, 2026-11-26).
@@ -561,12 +558,6 @@ class Service:
         """The background prepare(): compile or load the kernels, then say so at once (the main
         loop publishes a status as soon as it can)."""
         t0 = time.monotonic()
-        try:  # Linux: this thread only. Compiling yields the cores to what makes services live.
-            tid = threading.get_native_id()
-            nice = os.getpriority(os.PRIO_PROCESS, tid) + KERNELS_NICE
-            os.setpriority(os.PRIO_PROCESS, tid, min(nice, 19))
-        except (AttributeError, OSError):
-            pass
         try:
             self.prepare()
         except Exception:  # noqa: BLE001 - each kernel then compiles on its first use
