@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 
 PREFIX = "smana"
-SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer", "replay", "recorder")
+SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer", "replay", "recorder", "ros2")
 _NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
 
 

@@ -22,8 +22,9 @@ def cloud_fields(msg) -> dict[str, tuple[int, int, int]]:
     return {f.name: (int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields}
 
 
-def check_cloud(msg, label_field: str) -> str | None:
-    """Why this PointCloud2 cannot be read as a labelled scan, or None if it can."""
+def check_cloud(msg, label_field: str | None) -> str | None:
+    """Why this PointCloud2 cannot be read as a labelled scan, or None if it can. With
+    `label_field=None` the cloud is read without labels (x, y, z only are required)."""
     fields = cloud_fields(msg)
     names = ", ".join(fields) or "none"
     for axis in "xyz":
@@ -31,10 +32,11 @@ def check_cloud(msg, label_field: str) -> str | None:
             return f"field {axis!r} missing from the PointCloud2 (fields: {names})"
         if fields[axis][1] not in _FLOAT_TYPES:
             return f"field {axis!r} is not float32/float64"
-    if label_field not in fields:
-        return f"label field {label_field!r} missing from the PointCloud2 (fields: {names})"
-    if fields[label_field][1] not in _INT_TYPES:
-        return f"label field {label_field!r} is not an integer type"
+    if label_field is not None:
+        if label_field not in fields:
+            return f"label field {label_field!r} missing from the PointCloud2 (fields: {names})"
+        if fields[label_field][1] not in _INT_TYPES:
+            return f"label field {label_field!r} is not an integer type"
     step = int(msg.point_step)
     for name, (off, dt, count) in fields.items():
         if dt in _FIELD_TYPES and off + np.dtype(_FIELD_TYPES[dt]).itemsize * max(count, 1) > step:
@@ -47,11 +49,14 @@ def check_cloud(msg, label_field: str) -> str | None:
     return None
 
 
-def decode_cloud(msg, label_field: str) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """PointCloud2 -> (points f4[N,3], labels [N], confidences f4[N] or None). Call check first."""
+def decode_cloud(
+    msg, label_field: str | None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """PointCloud2 -> (points f4[N,3], labels [N] or None, confidences f4[N] or None). Call check
+    first. `label_field=None` reads no labels (labels None), for clouds that carry none."""
     fields = cloud_fields(msg)
     order = ">" if msg.is_bigendian else "<"
-    wanted = ["x", "y", "z", label_field]
+    wanted = ["x", "y", "z"] + ([label_field] if label_field is not None else [])
     if "confidence" in fields and fields["confidence"][1] in _FLOAT_TYPES:
         wanted.append("confidence")
     dtype = np.dtype(
@@ -65,12 +70,13 @@ def decode_cloud(msg, label_field: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     h, w, step, row = int(msg.height), int(msg.width), int(msg.point_step), int(msg.row_step)
     data = np.frombuffer(memoryview(msg.data), np.uint8)
     if h * w == 0:
-        return np.zeros((0, 3), np.float32), np.zeros(0, np.uint32), None
+        labels = None if label_field is None else np.zeros(0, np.uint32)
+        return np.zeros((0, 3), np.float32), labels, None
     # Rows may carry padding past width * point_step: cut each row before viewing it as points.
     rows = np.lib.stride_tricks.as_strided(data, (h, w * step), (row, 1))
     pts = np.ascontiguousarray(rows).view(dtype).reshape(-1)
     points = np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float32)
-    labels = pts[label_field].astype(np.int64)
+    labels = None if label_field is None else pts[label_field].astype(np.int64)
     conf = pts["confidence"].astype(np.float32) if "confidence" in wanted else None
     return points, labels, conf
 

@@ -81,7 +81,7 @@ from smana.common.messages import (
     json_default,
     to_json,
 )
-from smana.common.zenoh_config import open_session
+from smana.common.zenoh_config import make_zenoh_config, open_session
 
 try:  # Linux: a child can ask to be signalled when its parent dies, even by SIGKILL
     import ctypes
@@ -127,8 +127,14 @@ def die_with_parent() -> None:
 
 
 def open_service_session(service: Service):
-    """The zenoh session a service runs on: one opened from its [zenoh] section."""
-    return open_session(service.config.zenoh)
+    """The zenoh session a service runs on: one opened from its [zenoh] section, plus what the
+    service itself needs of zenoh (`Service.zenoh_settings`)."""
+    if not service.zenoh_settings:
+        return open_session(service.config.zenoh)
+    conf = make_zenoh_config(service.config.zenoh)
+    for key, value in service.zenoh_settings.items():
+        conf.insert_json5(key, json.dumps(value))
+    return open_session(conf)
 
 
 # How `Service.run` opens its session. In-process tests put a fake zenoh's here
@@ -157,6 +163,7 @@ class Request:
     params: dict[str, str]
     payload: bytes | None
     json: bool  # the query asked in JSON, so the reply goes in JSON
+    attachment: bytes | None = None  # e.g. rmw_zenoh's (sequence number, timestamp, gid)
 
     def decode(self, expect: type[Message]) -> Message:
         """The payload as a message of type `expect` (MessageError if it is not one)."""
@@ -175,6 +182,15 @@ class Request:
         if not isinstance(data, dict):
             raise MessageError("malformed", "query payload is not a map")
         return data
+
+
+@dataclass
+class Reply:
+    """A query handler's answer given as it goes on the wire: bytes, and an attachment (a ROS 2
+    service reply carries the request's sequence number and client gid, `services/ros2`)."""
+
+    payload: bytes
+    attachment: bytes | None = None
 
 
 class Reject(Exception):
@@ -267,6 +283,7 @@ class Service:
     tick_period_s = 0.1  # how often tick() runs
     drain_on_stop = False  # handle what is still queued when a stop comes (the recorder does)
     max_payload_bytes = MAX_PAYLOAD_BYTES  # larger samples are rejected as `oversize`, uncopied
+    zenoh_settings: dict[str, Any] = {}  # zenoh config keys this service needs set (json values)
     # prepare() only compiles kernels: run it on a thread, the service live meanwhile (see above)
     prepare_in_background = False
 
@@ -376,14 +393,19 @@ class Service:
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
 
-    def queryable(self, key: str, handler: Callable[[Request], Any]) -> None:
+    def queryable(
+        self, key: str, handler: Callable[[Request], Any], complete: bool = False
+    ) -> None:
         """Answer queries on `key`. The handler gets a `Request` and returns a Message, a dict (sent
-        as a map) or bytes; raising `Reject`/`ReplyError` or `MessageError` sends an error reply."""
+        as a map), bytes or a `Reply`; raising `Reject`/`ReplyError` or `MessageError` sends an
+        error reply. `complete`: this queryable answers for all of `key` (queries that target
+        complete queryables only, as ROS 2 service clients do, reach it)."""
 
         def on_query(query, _h=handler, _k=key):
             self._push(("query", _h, _k, query))
 
-        self._declared.append(self.session.declare_queryable(key, on_query))
+        kw = {"complete": True} if complete else {}
+        self._declared.append(self.session.declare_queryable(key, on_query, **kw))
 
     def publisher(self, key: str, reliable_block: bool = False, express: bool = False) -> Publisher:
         """Declare a publisher. `reliable_block=True` makes zenoh block instead of dropping when the
@@ -824,7 +846,8 @@ class Service:
             if size > self.max_payload_bytes:  # refused before the payload is copied
                 raise MessageError("oversize", f"{size} bytes > {self.max_payload_bytes}")
             payload = query.payload.to_bytes() if query.payload is not None else None
-            req = Request(str(query.key_expr), params, payload, as_json)
+            att = query.attachment.to_bytes() if query.attachment is not None else None
+            req = Request(str(query.key_expr), params, payload, as_json, att)
         except MessageError as exc:
             self._rejected(exc.kind, f"query: {exc}")
             self._reply_err(query, exc.kind, str(exc), as_json)
@@ -834,6 +857,10 @@ class Service:
             return
         try:
             result = handler(req)
+            if isinstance(result, Reply):
+                self.books.settle("accepted")
+                self._send_reply(query, key, result.payload, None, result.attachment)
+                return
             body = _reply_bytes(result, as_json)
         except (Reject, MessageError) as exc:
             self._rejected(exc.kind, f"query {req.key}: {exc}")
@@ -849,9 +876,13 @@ class Service:
         self.books.settle("accepted")
         self._send_reply(query, key, body, as_json)
 
-    def _send_reply(self, query, key: str, body: bytes, as_json: bool) -> None:
+    def _send_reply(self, query, key: str, body: bytes, as_json, attachment=None) -> None:
+        """`as_json` None: bytes as they are, with zenoh's default encoding."""
         try:
-            query.reply(key, body, encoding=_encoding(as_json))
+            if as_json is None:
+                query.reply(key, body, attachment=attachment)
+            else:
+                query.reply(key, body, encoding=_encoding(as_json))
             self.msgs_out += 1
         except Exception as exc:  # the querier left: the query was still handled
             self.note("reply_failed", f"query {key}: reply not sent: {exc}")

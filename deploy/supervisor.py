@@ -54,7 +54,7 @@ from smana.common.service import STANDBY_ENV, die_with_parent, on_stop_signals
 log = logging.getLogger("smana.up")
 
 # Start order follows the data flow: producers first, so consumers find their inputs.
-SERVICE_ORDER = ("sim", "mapper", "navgraph", "planner", "explorer")
+SERVICE_ORDER = ("sim", "mapper", "navgraph", "planner", "explorer", "ros2")
 
 
 @dataclass
@@ -400,7 +400,10 @@ class Supervisor:
         from smana.deploy.router import open_router
 
         d = self.config.deploy
-        self.session = open_router(d.router_listen, self.config.zenoh, d.router_connect)
+        zc = self.config.zenoh
+        if d.ros2.enabled:  # ROS 2 nodes are peers that find each other through the router
+            zc = dataclasses.replace(zc, gossip=True)
+        self.session = open_router(d.router_listen, zc, d.router_connect)
         endpoints = ", ".join(d.router_listen)
         log.info("zenoh router listening on %s; run directory %s", endpoints, self.run_dir)
         if d.router_connect:

@@ -65,14 +65,16 @@ def wait_port(port: int, timeout_s: float = 15.0) -> None:
 class ZenohStack:
     """A router plus the processes a test starts against it."""
 
-    def __init__(self, tmp: Path):
+    def __init__(self, tmp: Path, router_args: tuple[str, ...] = ()):
         self.tmp = tmp
         self.port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.robot = ROBOT
         self.procs: list[tuple[str, subprocess.Popen]] = []
         self._session = None
-        self.router = self.start("router", "-m", "smana.deploy.router", "--listen", self.endpoint)
+        self.router = self.start(
+            "router", "-m", "smana.deploy.router", "--listen", self.endpoint, *router_args
+        )
         wait_port(self.port)
 
     def zenoh_args(self) -> list[str]:

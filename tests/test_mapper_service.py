@@ -180,3 +180,13 @@ def test_mapper_saves_on_shutdown_and_resumes(zenoh_stack, tmp_path):
     resumed = wait_stats(s, r, lambda x: True)
     assert resumed["voxels_observed"] == n_voxels
     inbox.sub.undeclare()
+
+
+def test_snapshot_of_a_fresh_map_is_a_valid_empty_delta(fake_stack):
+    """Before any cloud the mapper has no cloud number (-1 in its stats): the snapshot must still
+    decode (it carries 0), so a navgraph or ros2 started with the mapper syncs at once."""
+    st = fake_stack
+    st.service("mapper")
+    st.wait_alive("mapper")
+    snap = request(st.session, keys.query(st.robot, "mapper", "snapshot"))
+    assert isinstance(snap, MapDelta) and len(snap.centres) == 0 and snap.cloud_seq == 0

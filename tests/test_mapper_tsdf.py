@@ -143,3 +143,39 @@ def test_points_beyond_range_clear_without_labels():
     assert len(d) > 0 and np.allclose(d.values, 0.2)
     assert (d.labels == 0).all() and not d.occupied.any()
     assert max(k[0] for k in d.keys.tolist()) == 30
+
+
+def test_label_steps_are_int16_and_saturate():
+    m = SemanticMap("tsdf", 0.1, 10.0, config=TsdfConfig(min_weight=1e-4))
+    core = m._core
+    pt, origin = np.array([[2.03, 0.05, 0.05]], np.float32), (0.05, 0.05, 0.05)
+    m.integrate(pt, np.array([2]), None, origin)
+    g = core.observed_index()
+    logp = core.grid.cols["logp"]
+    assert logp.dtype == np.int16 and core.bytes_per_voxel() <= 32
+    col = SEM_IDS.index(2)
+    logp[g] = -32760  # as if other classes had won for hours
+    logp[g, col] = core._consts.renorm_steps - 1
+    m.integrate(pt, np.array([2]), None, origin)  # reaches the shift: others go to the floor
+    assert (logp[g, col] == 0).all()
+    assert (np.delete(logp[g], col, axis=1) == -32767).all()
+    labels, prob = core.labels_of(g)
+    assert set(labels.tolist()) == {2} and prob == pytest.approx(1.0)
+
+
+def test_a_map_saved_with_float_log_probabilities_loads(tmp_path):
+    rng = np.random.default_rng(3)
+    m = SemanticMap("tsdf", 0.2, 4.0)
+    pts = rng.uniform(-3, 3, (400, 3)).astype(np.float32)
+    for _ in range(12):  # the same rays: enough updates per voxel for the vector shift
+        m.integrate(pts, rng.choice(SEM_IDS, 400, p=[0.7] + [0.05] * 6), None, (0.0, 0.0, 0.0))
+    path = m.save(tmp_path / "map.npz")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    steps = arrays["col_logp"]
+    assert steps.min() < 0  # shifted vectors are part of the check
+    # the layout before int16 step counts: float32 log-probabilities in nats
+    arrays["col_logp"] = (steps * m._core.log_ratio).astype(np.float32)
+    np.savez(tmp_path / "old.npz", **arrays)
+    old = SemanticMap.load(tmp_path / "old.npz")
+    np.testing.assert_array_equal(old._core.grid.used("logp"), steps)

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from smana.services.planner.astar import astar, path_costs
+from smana.services.planner.astar import astar, path_costs, search
 from smana.services.planner.reference import dijkstra_cost
 
 
@@ -92,3 +92,27 @@ def test_bad_inputs_raise():
         astar(c, h, (0, 0), (1, 1), 0.2, heuristic="manhattan")
     with pytest.raises(ValueError, match="max_step"):
         astar(c, h, (0, 0), (1, 1), 0.2, max_step_m=0.0)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_many_ties_and_improvements_stay_exact(seed):
+    """Equal f everywhere (pyastar2d's cost: weights entered, no distance term, as the benchmark
+    runs it) and improved open nodes: the stack tier and decrease-key paths, against Dijkstra."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(20, 70))
+    w = rng.choice([1.0, 1.0, 1.8, 2.0], size=(n, n))
+    w[rng.random((n, n)) < 0.2 * (seed % 3)] = np.inf
+    heights = np.zeros((n, n))
+    start, goal = (0, 0), (n - 1, int(rng.integers(0, n)))
+    w[start] = w[goal] = 1.0
+    finite = w[np.isfinite(w)]
+    for res, h_f in ((0.0, 0.0), (0.2, 0.0)):
+        got = search(w, heights, start, goal, res, h_f, np.inf, "octile", float(finite.min()))
+        want = dijkstra_cost(w, heights, start, goal, res, h_f)
+        if math.isinf(want):
+            assert not got.found
+            continue
+        assert got.cost == pytest.approx(want, rel=1e-12)
+        steps = np.diff(got.cells, axis=0)
+        dist = res * np.hypot(steps[:, 0], steps[:, 1]).sum()
+        assert w[got.cells[1:, 0], got.cells[1:, 1]].sum() + dist == pytest.approx(got.cost)

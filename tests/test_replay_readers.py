@@ -281,7 +281,7 @@ def test_layout_problems(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(DatasetError, match="cannot tell the dataset format"):
         detect_format(tmp_path / "empty")
-    with pytest.raises(ValueError, match="label_field do not apply"):
+    with pytest.raises(ValueError, match="labels come from .label files; only 'none' applies"):
         open_dataset(tmp_path, sequence="01", label_field="class")
 
 
@@ -423,8 +423,9 @@ def test_ply_problems(tmp_path):
     reader = open_dataset(tmp_path)
     reasons = {s.name.split("/")[-1]: s.reason for s in reader.skipped}
     assert len(reader) == 1
-    assert (
-        "integer vertex property 'label' missing (properties: x, y, z, class)" == reasons["1.ply"]
+    assert reasons["1.ply"] == (
+        "integer vertex property 'label' missing (properties: x, y, z, class); "
+        "--label-field none labels the points by geometry"
     )
     assert "truncated" in reasons["2.ply"]
     assert "no 'ply' magic" in reasons["3.ply"]

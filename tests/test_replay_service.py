@@ -170,6 +170,7 @@ def test_bad_dataset_is_a_clear_error(tmp_path):
     )
     assert out.returncode == 2
     assert "label folder is missing" in out.stderr
+    assert "--label-field none" in out.stderr  # and what to do with unlabelled scans
 
 
 def test_info_lists_skipped_scans(dataset):

@@ -3,7 +3,8 @@
     [general]   robot name, class table, run directory, status period      general.py
     [zenoh]     how every process reaches the others (common/zenoh_config)  general.py
     [deploy]    what `smana up` starts and how it restarts it              deploy.py
-    [sim] [mapper] [navgraph] [planner] [explorer] [replay]                 one module each
+    [sim] [mapper] [navgraph] [planner] [explorer] [replay] [ros2]          one module each
+    [geometric] the labeller of clouds without labels (common/geometric)   geometric.py
 
 Each section is defined once, in its module, as a `Section` dataclass (`_schema.py`): its fields
 carry their limits and the one generic validator checks them, on load and when a core is given a
@@ -27,10 +28,12 @@ from smana.common.config._schema import ConfigError, Section, build, param, tabl
 from smana.common.config.deploy import DeployConfig, ServiceDeployConfig
 from smana.common.config.explorer import ExplorerConfig
 from smana.common.config.general import GeneralConfig, ZenohConfig
+from smana.common.config.geometric import GeometricConfig
 from smana.common.config.mapper import MapperConfig
 from smana.common.config.navgraph import NavgraphConfig
 from smana.common.config.planner import PlannerConfig
 from smana.common.config.replay import ReplayConfig
+from smana.common.config.ros2 import Ros2Config
 from smana.common.config.sim import SimConfig
 
 __all__ = [
@@ -38,10 +41,12 @@ __all__ = [
     "DeployConfig",
     "ExplorerConfig",
     "GeneralConfig",
+    "GeometricConfig",
     "MapperConfig",
     "NavgraphConfig",
     "PlannerConfig",
     "ReplayConfig",
+    "Ros2Config",
     "Section",
     "ServiceDeployConfig",
     "SimConfig",
@@ -64,6 +69,8 @@ class SmanaConfig:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     explorer: ExplorerConfig = field(default_factory=ExplorerConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
+    geometric: GeometricConfig = field(default_factory=GeometricConfig)
+    ros2: Ros2Config = field(default_factory=Ros2Config)
 
     @classmethod
     def load(

@@ -55,3 +55,5 @@ class DeployConfig(Section, section="deploy"):
     planner: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
     explorer: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
     recorder: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # Rerun .rrd
+    # ROS 2 over rmw_zenoh (`smana ros2`); off unless asked: --set deploy.ros2.enabled=true
+    ros2: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(enabled=False))

@@ -1,15 +1,25 @@
-"""`smana bench mapper`: time the three back-ends on OS1-64-like scans, side by side with OctoMap.
+"""`smana bench mapper`: time the three back-ends on OS1-64-like scans, side by side with OctoMap
+and Open3D.
 
-For each back-end, resolution (0.1, 0.3 m) and ray-casting mode (1 m, full ray; the TSDF has only
-its truncation band), with 10 m maximum range, it prints the median and p95 time per scan, the
-microseconds per point, voxel updates per second, peak RAM and bytes per allocated voxel. In the
-same run it times OctoMap's C++ `insertPointCloud` (the `pyoctomap` package, optional) on the same
-scans with the same range, and counts the voxels on which our `octree-max` (full rays) and OctoMap
-disagree (occupied vs free vs unknown).
+For each scene, back-end, resolution (0.1, 0.3 m) and ray-casting mode (1 m, full ray; the TSDF
+has only its truncation band), with 10 m maximum range, it prints the median and p95 time per scan
+(wall and CPU), the microseconds per point, voxel updates per second, peak RAM and bytes per
+allocated voxel. Two scenes: `garden` (every beam returns, most of them beyond the 10 m range, so
+rays are long carving rays) and `short` (the same scans with the returns beyond 10 m dropped: all
+rays end on a surface, mean range about 5 m, the case where the fixed cost per point shows).
 
-Every configuration runs in a fresh child process so that its peak RSS is its own; `--quick` runs
-a tiny version in-process (for the test suite). The scans come from `scans.GardenWorld`
-(deterministic), 64 x 2048 = 131,072 points each.
+Peers, on the same scans and range, each optional (a one-line hint when missing):
+- OctoMap's C++ `insertPointCloud` (`pyoctomap`), beside `octree-max` with full rays; in the same
+  run the voxels on which the two disagree (occupied vs free vs unknown) are counted, and a
+  disagreement above 1 % fails the run (exit status 1);
+- Open3D's `VoxelBlockGrid` TSDF (`open3d`, no labels), beside `tsdf`: it integrates depth
+  images, so each scan is projected beforehand (untimed) into 4 pinhole depth images of 90
+  degrees, 512 x 224 pixels.
+
+The comparison table prints, per pair, both sides' wall and CPU medians, the ratios and the load
+average around each side's run. Every configuration runs in a fresh child process so that its
+peak RSS is its own; `--quick` runs a tiny version in-process (for the test suite). The scans come
+from `scans.GardenWorld` (deterministic), 64 x 2048 = 131,072 points each before the range cut.
 """
 
 from __future__ import annotations
@@ -29,13 +39,19 @@ import numpy as np
 from smana.common import progress
 
 MAX_RANGE_M = 10.0
+SCENES = ("garden", "short")
 TARGETS = {
-    "octree_max_1m_0.1_ms": 35.0,
-    "full_ray_vs_octomap_ratio": 0.25,
+    "octree_max_1m_0.1_ms": 25.0,  # CPU per 131,072-point scan (issue 15)
+    "full_ray_vs_octomap_ratio": 0.20,  # short scene, 0.1 m
     "tsdf_0.1_ms": 100.0,
+    "tsdf_vs_open3d_cpu_ratio": 0.8,  # short scene, 0.1 m, with labels
+    "tsdf_vs_open3d_wall_ratio": 1.0,
     "octree_bytes_per_voxel": 32.0,
+    "tsdf_bytes_per_voxel": 32.0,
     "octomap_agreement": 0.99,
 }
+# pinhole cameras for Open3D: 4 x 90 degrees around the sensor
+O3D_W, O3D_H, O3D_F = 512, 224, 256.0
 
 
 def _rss_mb() -> float:
@@ -44,22 +60,46 @@ def _rss_mb() -> float:
 
 def _load_scans(path: Path):
     with np.load(path) as z:
-        pts, lab, conf, org = (z[k] for k in ("points", "labels", "confidences", "origins"))
-    return [(pts[i], lab[i], conf[i], org[i]) for i in range(pts.shape[0])]
+        pts, lab, conf, org, off = (
+            z[k] for k in ("points", "labels", "confidences", "origins", "offsets")
+        )
+    return [
+        (pts[a:b], lab[a:b], conf[a:b], org[i])
+        for i, (a, b) in enumerate(zip(off[:-1], off[1:], strict=True))
+    ]
 
 
-def _make_scans(n_scans: int, n_beams: int, n_cols: int, path: Path) -> None:
+def _make_scans(n_scans: int, n_beams: int, n_cols: int, scene: str, path: Path) -> dict:
+    """Write the scans of `scene` to `path`; returns its point count and mean range."""
     from smana.lab.data.scans import GardenWorld
 
     world = GardenWorld(n_beams=n_beams, n_cols=n_cols)
-    scans = [world.scan(k) for k in range(n_scans)]
+    scans, ranges = [], []
+    for k in range(n_scans):
+        s = world.scan(k)
+        r = np.linalg.norm(s.points.astype(np.float64) - s.origin, axis=1)
+        keep = r <= MAX_RANGE_M if scene == "short" else np.ones(r.shape[0], bool)
+        scans.append((s.points[keep], s.labels[keep], s.confidences[keep], s.origin))
+        ranges.append(r[keep])
+    sizes = [p.shape[0] for p, _, _, _ in scans]
     np.savez(
         path,
-        points=np.stack([s.points for s in scans]),
-        labels=np.stack([s.labels for s in scans]),
-        confidences=np.stack([s.confidences for s in scans]),
-        origins=np.stack([s.origin for s in scans]),
+        points=np.concatenate([s[0] for s in scans]),
+        labels=np.concatenate([s[1] for s in scans]),
+        confidences=np.concatenate([s[2] for s in scans]),
+        origins=np.stack([s[3] for s in scans]),
+        offsets=np.concatenate([[0], np.cumsum(sizes)]),
     )
+    r = np.concatenate(ranges)
+    return {
+        "points_per_scan": float(np.mean(sizes)),
+        "mean_range_m": float(r.mean()),
+        "beyond_range": float(np.mean(r > MAX_RANGE_M)),
+    }
+
+
+def _load() -> float:
+    return os.getloadavg()[0]
 
 
 # -- one measurement each (run in a child process) ---------------------------------------------
@@ -74,7 +114,7 @@ def run_ours(cfg: dict, scans) -> dict:
     p, lab, conf, org = scans[0]
     warm.integrate(p[:2000], lab[:2000], conf[:2000], org)
     del warm
-    rss0 = _rss_mb()
+    rss0, load0 = _rss_mb(), _load()
     run_medians, cpu_medians, times, updates, deltas = [], [], [], [], []
     for _ in range(cfg.get("repeats", 1)):  # a fresh map each run, the same scans
         m = SemanticMap(cfg["backend"], cfg["res"], MAX_RANGE_M, ray)
@@ -111,6 +151,7 @@ def run_ours(cfg: dict, scans) -> dict:
         "bytes_reserved_per_allocated_voxel": st["bytes_reserved_per_allocated_voxel"],
         "bytes_per_observed_voxel": st["bytes_per_observed_voxel"],
         "voxels_observed": st["voxels_observed"],
+        "load": [load0, _load()],
     }
 
 
@@ -128,7 +169,7 @@ def run_octomap(cfg: dict, scans) -> dict:
         over.append(time.perf_counter() - t0)
         over_cpu.append(time.process_time() - c0)
     del probe
-    rss0 = _rss_mb()
+    rss0, load0 = _rss_mb(), _load()
     run_medians, cpu_medians, times = [], [], []
     for _ in range(cfg.get("repeats", 1)):
         tree = pyoctomap.OcTree(cfg["res"])
@@ -160,6 +201,107 @@ def run_octomap(cfg: dict, scans) -> dict:
         "map_mb": tree.memoryUsage() / 2**20,
         "bytes_per_allocated_voxel": tree.memoryUsage() / max(leaves, 1),
         "voxels_observed": leaves,
+        "load": [load0, _load()],
+    }
+
+
+def depth_images(points: np.ndarray, origin: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(depth image, world-to-camera extrinsic) of 4 pinhole cameras at the sensor, looking
+    along +x, +y, -x, -y; each pixel keeps its nearest point (depth along the optical axis)."""
+    rel = points.astype(np.float64) - origin
+    out = []
+    for k in range(4):
+        a = k * np.pi / 2
+        fwd = np.array([np.cos(a), np.sin(a), 0.0])
+        right = np.array([np.sin(a), -np.cos(a), 0.0])
+        down = np.array([0.0, 0.0, -1.0])
+        rot = np.stack([right, down, fwd])  # world -> camera rows
+        cam = rel @ rot.T
+        z = cam[:, 2]
+        front = z > 1e-3
+        u = np.floor(O3D_F * cam[front, 0] / z[front] + O3D_W / 2).astype(np.int64)
+        v = np.floor(O3D_F * cam[front, 1] / z[front] + O3D_H / 2).astype(np.int64)
+        inside = (u >= 0) & (u < O3D_W) & (v >= 0) & (v < O3D_H)
+        depth = np.full(O3D_H * O3D_W, np.inf)
+        np.minimum.at(depth, v[inside] * O3D_W + u[inside], z[front][inside])
+        depth[np.isinf(depth)] = 0.0  # Open3D: 0 is no return
+        ext = np.eye(4)
+        ext[:3, :3] = rot
+        ext[:3, 3] = -rot @ origin
+        out.append((depth.reshape(O3D_H, O3D_W).astype(np.float32), ext))
+    return out
+
+
+def run_open3d(cfg: dict, scans) -> dict:
+    """Open3D's VoxelBlockGrid TSDF (tsdf and weight, no labels) on the scans' depth images."""
+    import open3d as o3d
+    import open3d.core as o3c
+
+    from smana.common.config.mapper import TsdfConfig
+
+    trunc = TsdfConfig().truncation_voxels
+    cpu = o3c.Device("CPU:0")
+    intr = o3c.Tensor(
+        np.array([[O3D_F, 0, O3D_W / 2], [0, O3D_F, O3D_H / 2], [0, 0, 1]]), o3c.float64
+    )
+    frames = [
+        [
+            (o3d.t.geometry.Image(o3c.Tensor(d)), o3c.Tensor(e, o3c.float64))
+            for d, e in depth_images(p, o)
+        ]
+        for p, _, _, o in scans
+    ]
+
+    def grid():
+        return o3d.t.geometry.VoxelBlockGrid(
+            attr_names=("tsdf", "weight"),
+            attr_dtypes=(o3c.float32, o3c.float32),
+            attr_channels=((1), (1)),
+            voxel_size=cfg["res"],
+            block_resolution=8,
+            block_count=20000,
+            device=cpu,
+        )
+
+    def integrate(vbg, frame):
+        for depth, ext in frame:
+            blocks = vbg.compute_unique_block_coordinates(
+                depth, intr, ext, 1.0, MAX_RANGE_M, trunc_voxel_multiplier=trunc
+            )
+            vbg.integrate(blocks, depth, intr, ext, 1.0, MAX_RANGE_M, trunc_voxel_multiplier=trunc)
+
+    integrate(grid(), frames[0])  # warm-up (first-call costs) outside the timed loop
+    rss0, load0 = _rss_mb(), _load()
+    run_medians, cpu_medians, times = [], [], []
+    for _ in range(cfg.get("repeats", 1)):
+        vbg = grid()
+        run, cpu_t = [], []
+        for frame in frames:
+            t0, c0 = time.perf_counter(), time.process_time()
+            integrate(vbg, frame)
+            run.append(time.perf_counter() - t0)
+            cpu_t.append(time.process_time() - c0)
+        run_medians.append(np.median(run))
+        cpu_medians.append(np.median(cpu_t))
+        times += run
+    n_blocks = int(vbg.hashmap().size())
+    med = float(np.median(run_medians))
+    n_pts = float(np.mean([s[0].shape[0] for s in scans]))
+    return {
+        **cfg,
+        "scans": len(scans),
+        "points_per_scan": n_pts,
+        "median_ms": med * 1e3,
+        "cpu_median_ms": float(np.median(cpu_medians) * 1e3),
+        "run_medians_ms": [float(x * 1e3) for x in run_medians],
+        "p95_ms": float(np.percentile(times, 95) * 1e3),
+        "us_per_point": med * 1e6 / n_pts,
+        "peak_rss_mb": _rss_mb(),
+        "rss_growth_mb": _rss_mb() - rss0,
+        "map_mb": n_blocks * 512 * 8 / 2**20,
+        "bytes_per_allocated_voxel": 8.0,  # two float32 attributes (hash map not counted)
+        "voxels_observed": n_blocks * 512,  # allocated: Open3D does not tell observed ones
+        "load": [load0, _load()],
     }
 
 
@@ -203,7 +345,13 @@ def run_agreement(cfg: dict, scans) -> dict:
     }
 
 
-RUNNERS = {"ours": run_ours, "octomap": run_octomap, "agreement": run_agreement}
+RUNNERS = {
+    "ours": run_ours,
+    "octomap": run_octomap,
+    "open3d": run_open3d,
+    "agreement": run_agreement,
+}
+PEERS = {"octomap": "pyoctomap", "open3d": "open3d"}  # kind -> module to import
 
 
 def _run(cfg: dict, scans_path: Path, in_process: bool) -> dict:
@@ -236,87 +384,139 @@ def _carves(backend: str) -> bool:
 
 
 def _ray(r: dict) -> str:
-    if r["kind"] == "ours" and not _carves(r["backend"]):
+    if r["kind"] == "open3d" or (r["kind"] == "ours" and not _carves(r["backend"])):
         return "band"
     return "full" if r.get("ray_m") is None else f"{r['ray_m']:g} m"
 
 
+NAMES = {"octomap": "OctoMap C++", "open3d": "Open3D VBG"}
+
+
 def _table(results: list[dict]) -> str:
     head = (
-        f"{'back-end':<14}{'res':>5}{'ray':>6}{'median ms':>11}{'cpu ms':>8}{'p95 ms':>9}"
-        f"{'us/pt':>8}{'Mupd/s':>8}{'RSS MB':>8}{'map MB':>8}{'B/alloc':>9}{'B/obs':>8}"
-        f"{'voxels':>10}"
+        f"{'back-end':<14}{'scene':>7}{'res':>5}{'ray':>6}{'median ms':>11}{'cpu ms':>8}"
+        f"{'p95 ms':>9}{'us/pt':>8}{'Mupd/s':>8}{'RSS MB':>8}{'map MB':>8}{'B/alloc':>9}"
+        f"{'B/obs':>8}{'voxels':>10}{'load':>11}"
     )
     lines = [head, "-" * len(head)]
     for r in results:
-        if r["kind"] not in ("ours", "octomap") or "error" in r:
+        if r["kind"] == "agreement" or "error" in r:
             continue
-        name = r["backend"] if r["kind"] == "ours" else "OctoMap C++"
+        name = NAMES.get(r["kind"], r["backend"])
         upd = r.get("voxel_updates_per_s", float("nan")) / 1e6
+        load = "{:.1f}-{:.1f}".format(*r["load"])
         lines.append(
-            f"{name:<14}{r['res']:>5g}{_ray(r):>6}{r['median_ms']:>11.1f}"
+            f"{name:<14}{r['scene']:>7}{r['res']:>5g}{_ray(r):>6}{r['median_ms']:>11.1f}"
             f"{r['cpu_median_ms']:>8.1f}{r['p95_ms']:>9.1f}"
             f"{r['us_per_point']:>8.3f}{upd:>8.1f}{r['peak_rss_mb']:>8.0f}{r['map_mb']:>8.1f}"
             f"{r['bytes_per_allocated_voxel']:>9.1f}{r.get('bytes_per_observed_voxel', 0):>8.1f}"
-            f"{r['voxels_observed']:>10}"
+            f"{r['voxels_observed']:>10}{load:>11}"
         )
     return "\n".join(lines)
 
 
-def _summary(results: list[dict]) -> tuple[list[str], dict]:
-    def find(kind, backend=None, res=None, ray="any"):
-        for r in results:
-            if r["kind"] != kind or "error" in r or (res is not None and r["res"] != res):
-                continue
-            if backend is not None and r.get("backend") != backend:
-                continue
-            if ray != "any" and r.get("ray_m") != ray:
-                continue
-            return r
-        return None
+def _find(results, kind, backend=None, res=None, ray="any", scene=None):
+    for r in results:
+        if r["kind"] != kind or "error" in r or (res is not None and r["res"] != res):
+            continue
+        if backend is not None and r.get("backend") != backend:
+            continue
+        if ray != "any" and r.get("ray_m") != ray:
+            continue
+        if scene is not None and r.get("scene") != scene:
+            continue
+        return r
+    return None
 
+
+def _pairs(results: list[dict]) -> list[dict]:
+    """smana beside its peer: both sides' wall and CPU medians, the ratios, the loads."""
+    out = []
+    keys = sorted({(r["scene"], r["res"]) for r in results}, key=lambda k: (k[1], k[0]))
+    for scene, res in keys:
+        for backend, ray, kind, cpp in (
+            ("octree-max", None, "octomap", True),
+            ("tsdf", None, "open3d", False),
+        ):
+            ours = _find(results, "ours", backend, res, ray, scene)
+            peer = _find(results, kind, res=res, scene=scene)
+            if not (ours and peer):
+                continue
+            # OctoMap's side without pyoctomap's copy of the cloud into C++ (run_octomap)
+            p_wall = peer["cpp_median_ms"] if cpp else peer["median_ms"]
+            p_cpu = peer["cpp_cpu_median_ms"] if cpp else peer["cpu_median_ms"]
+            out.append(
+                {
+                    "pair": f"{backend} {_ray(ours)} / {NAMES[kind]}",
+                    "scene": scene,
+                    "res": res,
+                    "ours_ms": ours["median_ms"],
+                    "ours_cpu_ms": ours["cpu_median_ms"],
+                    "peer_ms": p_wall,
+                    "peer_cpu_ms": p_cpu,
+                    "ratio": ours["median_ms"] / p_wall,
+                    "ratio_cpu": ours["cpu_median_ms"] / p_cpu,
+                    "load": [*ours["load"], *peer["load"]],
+                }
+            )
+    return out
+
+
+def _pair_table(pairs: list[dict]) -> str:
+    head = (
+        f"{'smana / peer':<32}{'scene':>7}{'res':>5}{'smana ms':>10}{'cpu':>7}{'peer ms':>9}"
+        f"{'cpu':>7}{'wall x':>8}{'cpu x':>7}{'load':>11}"
+    )
+    lines = [head, "-" * len(head)]
+    for p in pairs:
+        load = f"{min(p['load']):.1f}-{max(p['load']):.1f}"
+        lines.append(
+            f"{p['pair']:<32}{p['scene']:>7}{p['res']:>5g}{p['ours_ms']:>10.1f}"
+            f"{p['ours_cpu_ms']:>7.1f}{p['peer_ms']:>9.1f}{p['peer_cpu_ms']:>7.1f}"
+            f"{p['ratio']:>8.3f}{p['ratio_cpu']:>7.3f}{load:>11}"
+        )
+    return "\n".join(lines)
+
+
+def _summary(results: list[dict], pairs: list[dict]) -> tuple[list[str], dict]:
     lines, checks = [], {}
     for r in results:
         if "error" in r:
             lines.append(f"ERROR {r['kind']} {r.get('backend', '')} {r['res']}: {r['error']}")
-    for res in sorted({r["res"] for r in results}):
-        ours, om = find("ours", "octree-max", res, None), find("octomap", res=res)
-        if ours and om:
-            ratio = ours["median_ms"] / om["cpp_median_ms"]
-            cpu_ratio = ours["cpu_median_ms"] / om["cpp_cpu_median_ms"]
-            lines.append(
-                f"full rays {res:g} m: octree-max {ours['median_ms']:.1f} ms vs OctoMap C++ "
-                f"{om['cpp_median_ms']:.1f} ms (+{om['wrapper_ms']:.1f} ms pyoctomap copy) per "
-                f"scan -> ratio {ratio:.3f} (cpu time: {cpu_ratio:.3f})"
-            )
-            if res == 0.1:
-                checks["full_ray_vs_octomap_ratio"] = ratio
-                checks["full_ray_vs_octomap_ratio_cpu"] = cpu_ratio
-        ag = find("agreement", res=res)
-        if ag:
-            lines.append(
-                f"agreement {res:g} m ({ag['scans']} scans, full rays): {ag['agreement']:.4%} of "
-                f"{ag['voxels_union']} voxels; only ours {ag['only_ours']}, only OctoMap "
-                f"{ag['only_octomap']}, occupied/free differs {ag['state_differs']}, identical "
-                f"log-odds {ag['logodds_equal']}"
-            )
-            checks.setdefault("octomap_agreement", ag["agreement"])
-            checks["octomap_agreement"] = min(checks["octomap_agreement"], ag["agreement"])
-    r = find("ours", "octree-max", 0.1, 1.0)
+    for p in pairs:
+        if p["res"] != 0.1 or p["scene"] != "short":
+            continue
+        if p["pair"].startswith("octree-max"):
+            checks["full_ray_vs_octomap_ratio"] = p["ratio"]
+            checks["full_ray_vs_octomap_ratio_cpu"] = p["ratio_cpu"]
+        else:
+            checks["tsdf_vs_open3d_wall_ratio"] = p["ratio"]
+            checks["tsdf_vs_open3d_cpu_ratio"] = p["ratio_cpu"]
+    for ag in results:
+        if ag["kind"] != "agreement" or "error" in ag:
+            continue
+        lines.append(
+            f"agreement {ag['scene']} {ag['res']:g} m ({ag['scans']} scans, full rays): "
+            f"{ag['agreement']:.4%} of {ag['voxels_union']} voxels; only ours {ag['only_ours']}, "
+            f"only OctoMap {ag['only_octomap']}, occupied/free differs {ag['state_differs']}, "
+            f"identical log-odds {ag['logodds_equal']}"
+        )
+        checks["octomap_agreement"] = min(checks.get("octomap_agreement", 1.0), ag["agreement"])
+    r = _find(results, "ours", "octree-max", 0.1, 1.0, "garden")
     if r:
         checks["octree_max_1m_0.1_ms"] = r["median_ms"]
         checks["octree_max_1m_0.1_ms_cpu"] = r["cpu_median_ms"]
-    r = find("ours", "tsdf", 0.1)
+    r = _find(results, "ours", "tsdf", 0.1, scene="garden")
     if r:
         checks["tsdf_0.1_ms"] = r["median_ms"]
         checks["tsdf_0.1_ms_cpu"] = r["cpu_median_ms"]
-    octs = [
-        r["bytes_per_allocated_voxel"]
-        for r in results
-        if r["kind"] == "ours" and "error" not in r and _carves(r["backend"])
-    ]
+    ours = [r for r in results if r["kind"] == "ours" and "error" not in r]
+    octs = [r["bytes_per_allocated_voxel"] for r in ours if _carves(r["backend"])]
     if octs:
         checks["octree_bytes_per_voxel"] = max(octs)
+    tsdfs = [r["bytes_per_allocated_voxel"] for r in ours if r["backend"] == "tsdf"]
+    if tsdfs:
+        checks["tsdf_bytes_per_voxel"] = max(tsdfs)
     for name, got in checks.items():
         want = TARGETS[name.removesuffix("_cpu")]
         ok = got >= want if name == "octomap_agreement" else got <= want
@@ -330,6 +530,18 @@ def _summary(results: list[dict]) -> tuple[list[str], dict]:
     return lines, checks
 
 
+def _have(module: str) -> bool:
+    try:
+        __import__(module)
+    except ImportError:
+        print(
+            f"{module} not installed (pip install 'smana[bench]'): its rows are skipped",
+            file=sys.stderr,
+        )
+        return False
+    return True
+
+
 def cli(argv: list[str] | None = None) -> int:
     from smana.common.cli import ArgumentParser, output_file, positive_float, positive_int
     from smana.services.mapper.backends import BACKENDS
@@ -339,9 +551,11 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench mapper",
         description=__doc__.splitlines()[0],
         epilog=(
-            "Duration on a 2-core machine: about 5 minutes by default (20 scans x 3 repeats "
-            "per configuration, OctoMap included); --quick about 5 s. A progress bar with an "
-            "ETA shows on a terminal (SMANA_PROGRESS=1 forces it, 0 hides it)."
+            "Duration on a 2-core machine: about 10 minutes by default (20 scans x 3 repeats "
+            "per configuration, both scenes, OctoMap and Open3D included); --quick about 10 s. "
+            "Exit status 1 when a configuration failed or octree-max disagrees with OctoMap on "
+            "more than 1 % of the voxels. A progress bar with an ETA shows on a terminal "
+            "(SMANA_PROGRESS=1 forces it, 0 hides it)."
         ),
     )
     p.add_argument("--quick", action="store_true", help="tiny scans, 0.3 m only, in-process")
@@ -354,7 +568,15 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--agreement-scans", type=positive_int, default=5)
     p.add_argument("--resolutions", type=positive_float, nargs="+", default=[0.1, 0.3])
     p.add_argument("--backends", nargs="+", choices=backends, default=backends)
+    p.add_argument(
+        "--scenes",
+        nargs="+",
+        choices=SCENES,
+        default=list(SCENES),
+        help="garden: every return, most beyond range; short: returns within range only",
+    )
     p.add_argument("--no-octomap", action="store_true", help="skip the pyoctomap comparison")
+    p.add_argument("--no-open3d", action="store_true", help="skip the Open3D comparison")
     p.add_argument("--in-process", action="store_true", help="no child processes (RSS shared)")
     p.add_argument("--json", action="store_true", help="print JSON instead of the table")
     p.add_argument("--out", type=Path, help="also write the JSON results to this file")
@@ -375,88 +597,87 @@ def cli(argv: list[str] | None = None) -> int:
         beams, cols, n = 16, 256, 3
         args.resolutions, args.in_process, args.agreement_scans = [0.3], True, 2
         args.repeats = 1
-    have_octomap = not args.no_octomap
-    if have_octomap:
-        try:
-            import pyoctomap  # noqa: F401
-        except ImportError:
-            print(
-                "pyoctomap not installed (pip install 'smana[bench]'): no OctoMap comparison",
-                file=sys.stderr,
-            )
-            have_octomap = False
+    peers = {
+        kind: not getattr(args, f"no_{kind}") and _have(module) for kind, module in PEERS.items()
+    }
     configs = []
-    for res in args.resolutions:
-        for backend in args.backends:
-            # a back-end without ray carving (the TSDF's band) runs once
-            for ray in [1.0, None] if _carves(backend) else [None]:
+    for scene in args.scenes:
+        for res in args.resolutions:
+            common = {"scene": scene, "res": res, "repeats": args.repeats}
+            for backend in args.backends:
+                # a back-end without ray carving (the TSDF's band) runs once
+                for ray in [1.0, None] if _carves(backend) else [None]:
+                    configs.append({"kind": "ours", "backend": backend, "ray_m": ray, **common})
+            if peers["octomap"] and "octree-max" in args.backends:
+                configs.append({"kind": "octomap", "backend": "octomap", "ray_m": None, **common})
                 configs.append(
                     {
-                        "kind": "ours",
-                        "backend": backend,
+                        "kind": "agreement",
+                        "backend": "octree-max",
+                        "scene": scene,
                         "res": res,
-                        "ray_m": ray,
-                        "repeats": args.repeats,
+                        "ray_m": None,
+                        "n_scans": args.agreement_scans,
                     }
                 )
-        if have_octomap:
-            configs.append(
-                {
-                    "kind": "octomap",
-                    "backend": "octomap",
-                    "res": res,
-                    "ray_m": None,
-                    "repeats": args.repeats,
-                }
-            )
-            configs.append(
-                {
-                    "kind": "agreement",
-                    "backend": "octree-max",
-                    "res": res,
-                    "ray_m": None,
-                    "n_scans": args.agreement_scans,
-                }
-            )
+            if peers["open3d"] and "tsdf" in args.backends:
+                configs.append({"kind": "open3d", "backend": "open3d", "ray_m": None, **common})
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="smana-bench-") as tmp:
-        scans_path = Path(tmp) / "scans.npz"
-        _make_scans(n, beams, cols, scans_path)
+        paths, scenes = {}, {}
+        for scene in args.scenes:
+            paths[scene] = Path(tmp) / f"{scene}.npz"
+            scenes[scene] = _make_scans(n, beams, cols, scene, paths[scene])
         results = []
         with progress.bar(len(configs), "bench mapper", unit="config") as bar:
             for cfg in configs:
                 if not args.json:
                     progress.say(
-                        f"running {cfg['kind']} {cfg['backend']} {cfg['res']:g} m {_ray(cfg)} ...",
+                        f"running {cfg['kind']} {cfg['backend']} {cfg['scene']} {cfg['res']:g} m "
+                        f"{_ray(cfg)} ...",
                         file=sys.stderr,
                     )
-                results.append(_run(cfg, scans_path, args.in_process))
+                results.append(_run(cfg, paths[cfg["scene"]], args.in_process))
                 bar.update()
-    lines, checks = _summary(results)
+    pairs = _pairs(results)
+    lines, checks = _summary(results, pairs)
+    failed = any("error" in r for r in results) or checks.get("octomap_agreement", 1.0) < 0.99
     report = {
         "scans": n,
         "points_per_scan": beams * cols,
+        "scenes": scenes,
         "max_range_m": MAX_RANGE_M,
-        "machine": {"cpus": os.cpu_count(), "load_avg_1m": os.getloadavg()[0]},
+        "machine": {"cpus": os.cpu_count(), "load_avg_1m": _load()},
         "wall_s": time.perf_counter() - t_start,
         "results": results,
+        "pairs": pairs,
         "checks": checks,
         "targets": TARGETS,
+        "failed": failed,
     }
     if args.out:
         args.out.write_text(json.dumps(report, indent=1))
     if args.json:
         print(json.dumps(report, indent=1))
     else:
-        load = report["machine"]["load_avg_1m"]
         print(
-            f"{n} scans of {beams} x {cols} points, max range {MAX_RANGE_M:g} m, "
-            f"load average {load:.2f} on {os.cpu_count()} cpus"
+            f"{n} scans of {beams} x {cols} beams, max range {MAX_RANGE_M:g} m, "
+            f"load average {_load():.2f} on {os.cpu_count()} cpus"
         )
+        for scene, st in scenes.items():
+            print(
+                f"scene {scene}: {st['points_per_scan']:.0f} points per scan, mean range "
+                f"{st['mean_range_m']:.1f} m, {st['beyond_range']:.0%} beyond {MAX_RANGE_M:g} m"
+            )
         print(_table(results))
+        print()
+        print(_pair_table(pairs))
+        print("(wall x, cpu x: smana / peer; load: 1-minute load average around both runs)")
         print("\n".join(lines))
         print(f"wall time {report['wall_s']:.0f} s")
-    return 0
+    if failed:
+        print("bench mapper: a configuration failed or OctoMap agreement < 99 %", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ kernels of `backends/*.py` do not notice a change here. After editing this file,
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -215,14 +216,17 @@ def key_in_range(kx, ky, kz):
     return -lim <= kx < lim and -lim <= ky < lim and -lim <= kz < lim
 
 
-@njit(cache=True, error_model="numpy")
-def octomap_ray_keys(ox, oy, oz, ex, ey, ez, res, inv_res, out):
-    """OctoMap's computeRayKeys: voxels from the origin's voxel up to, not including, the end's.
+@njit(cache=True, error_model="numpy", inline="always")
+def octomap_ray_start(ox, oy, oz, ex, ey, ez, res, inv_res):
+    """OctoMap's computeRayKeys, as a walk: (first, walk). `first` is -1 when an end lies outside
+    the key range (OctoMap skips the ray), 0 when both ends share a voxel (no key), else 1: the
+    walk's cell (walk[0:3]) is the origin's voxel, the first key; `octomap_ray_next` gives the
+    others, up to, not including, the end's voxel.
 
     A transcription of OcTreeBaseImpl::computeRayKeys (Amanatides-Woo 3D DDA) keeping its mix of
     float (point3d) and double (tMax, tDelta) arithmetic, so that both walk the same voxels even
-    when a ray grazes a voxel corner. Coordinates must be float32. Writes keys into `out` (n x 3)
-    and returns how many, or -1 when an end lies outside the key range (OctoMap skips the ray).
+    when a ray grazes a voxel corner. Coordinates must be float32. A kernel walking the keys as
+    they come (no buffer) saves a store and a load per voxel and keeps the walk in registers.
     """
     kox = coord_to_key(ox, inv_res)
     koy = coord_to_key(oy, inv_res)
@@ -230,15 +234,15 @@ def octomap_ray_keys(ox, oy, oz, ex, ey, ez, res, inv_res, out):
     kex = coord_to_key(ex, inv_res)
     key_ = coord_to_key(ey, inv_res)
     kez = coord_to_key(ez, inv_res)
+    big = np.finfo(np.float64).max
+    first = 1
     if not (key_in_range(kox, koy, koz) and key_in_range(kex, key_, kez)):
-        return -1
-    if kox == kex and koy == key_ and koz == kez:
-        return 0
-    n_max = out.shape[0]
-    out[0, 0] = kox
-    out[0, 1] = koy
-    out[0, 2] = koz
-    n = 1
+        first = -1
+    elif kox == kex and koy == key_ and koz == kez:
+        first = 0
+    if first <= 0:
+        z = np.int64(0)
+        return first, (z, z, z, z, z, z, z, z, z, big, big, big, big, big, big, big)
     # float32 direction and length, exactly as point3d computes them
     dx = np.float32(ex - ox)
     dy = np.float32(ey - oy)
@@ -249,47 +253,62 @@ def octomap_ray_keys(ox, oy, oz, ex, ey, ez, res, inv_res, out):
     dy = np.float32(dy / length)
     dz = np.float32(dz / length)
     half = np.float64(np.float32(res * 0.5))
-    big = np.finfo(np.float64).max
-    cx, cy, cz = kox, koy, koz
-    sx = 1 if dx > 0 else (-1 if dx < 0 else 0)
-    sy = 1 if dy > 0 else (-1 if dy < 0 else 0)
-    sz = 1 if dz > 0 else (-1 if dz < 0 else 0)
+    sx = np.int64(1 if dx > 0 else (-1 if dx < 0 else 0))
+    sy = np.int64(1 if dy > 0 else (-1 if dy < 0 else 0))
+    sz = np.int64(1 if dz > 0 else (-1 if dz < 0 else 0))
     tmx = tmy = tmz = big
     tdx = tdy = tdz = big
     if sx != 0:
-        tmx = ((np.float64(cx) + 0.5) * res + sx * half - np.float64(ox)) / np.float64(dx)
+        tmx = ((np.float64(kox) + 0.5) * res + sx * half - np.float64(ox)) / np.float64(dx)
         tdx = res / abs(np.float64(dx))
     if sy != 0:
-        tmy = ((np.float64(cy) + 0.5) * res + sy * half - np.float64(oy)) / np.float64(dy)
+        tmy = ((np.float64(koy) + 0.5) * res + sy * half - np.float64(oy)) / np.float64(dy)
         tdy = res / abs(np.float64(dy))
     if sz != 0:
-        tmz = ((np.float64(cz) + 0.5) * res + sz * half - np.float64(oz)) / np.float64(dz)
+        tmz = ((np.float64(koz) + 0.5) * res + sz * half - np.float64(oz)) / np.float64(dz)
         tdz = res / abs(np.float64(dz))
-    flen = np.float64(length)
+    walk = (kox, koy, koz, kex, key_, kez, sx, sy, sz, tmx, tmy, tmz, tdx, tdy, tdz)
+    return first, (*walk, np.float64(length))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def octomap_ray_next(walk):
+    """One DDA step: (done, walk); when not done, walk[0:3] is the next key."""
+    cx, cy, cz, kex, key_, kez, sx, sy, sz, tmx, tmy, tmz, tdx, tdy, tdz, flen = walk
+    if tmx < tmy:
+        dim = 0 if tmx < tmz else 2
+    else:
+        dim = 1 if tmy < tmz else 2
+    if dim == 0:
+        cx += sx
+        tmx += tdx
+    elif dim == 1:
+        cy += sy
+        tmy += tdy
+    else:
+        cz += sz
+        tmz += tdz
+    done = (cx == kex and cy == key_ and cz == kez) or min(tmx, tmy, tmz) > flen
+    return done, (cx, cy, cz, kex, key_, kez, sx, sy, sz, tmx, tmy, tmz, tdx, tdy, tdz, flen)
+
+
+@njit(cache=True, error_model="numpy")
+def octomap_ray_keys(ox, oy, oz, ex, ey, ez, res, inv_res, out):
+    """OctoMap's computeRayKeys (`octomap_ray_start`) into `out` (n x 3): returns how many keys,
+    or -1 when an end lies outside the key range."""
+    first, walk = octomap_ray_start(ox, oy, oz, ex, ey, ez, res, inv_res)
+    if first <= 0:
+        return first
+    n_max = out.shape[0]
+    n = 0
     while True:
-        if tmx < tmy:
-            dim = 0 if tmx < tmz else 2
-        else:
-            dim = 1 if tmy < tmz else 2
-        if dim == 0:
-            cx += sx
-            tmx += tdx
-        elif dim == 1:
-            cy += sy
-            tmy += tdy
-        else:
-            cz += sz
-            tmz += tdz
-        if cx == kex and cy == key_ and cz == kez:
-            break
-        if min(tmx, tmy, tmz) > flen:
-            break
-        if n >= n_max:  # cannot happen for rays within the buffer's design length
-            break
-        out[n, 0] = cx
-        out[n, 1] = cy
-        out[n, 2] = cz
+        out[n, 0] = walk[0]
+        out[n, 1] = walk[1]
+        out[n, 2] = walk[2]
         n += 1
+        done, walk = octomap_ray_next(walk)
+        if done or n >= n_max:  # n_max: cannot happen for rays within the buffer's length
+            break
     return n
 
 
@@ -369,6 +388,9 @@ class BlockGrid:
             for k, (dt, shape) in self.fields.items()
         }
         self._alloc_table(64)
+        # name -> function turning a saved column into this layout (a back-end whose column
+        # changed its dtype sets one, so that maps saved before still load)
+        self.loaders: dict[str, Callable[[np.ndarray], np.ndarray]] = {}
 
     def _alloc_table(self, size: int) -> None:
         self.h_keys = np.full(size, -1, np.int64)
@@ -428,7 +450,8 @@ class BlockGrid:
         nv = max(n, 16) * self.voxels_per_block
         for k, (dt, shape) in self.fields.items():
             col = np.zeros((nv, *shape), dt)
-            col[: n * self.voxels_per_block] = cols[k]
+            load = self.loaders.get(k)
+            col[: n * self.voxels_per_block] = cols[k] if load is None else load(cols[k])
             self.cols[k] = col
         self.n_blocks = n
         size = 64

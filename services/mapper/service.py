@@ -285,7 +285,10 @@ class MapperService(Service):
             rows = self.map.occupied_voxels(box)
         except ValueError as exc:
             raise ReplyError("value", str(exc)) from None
-        return self._message(rows, self.last_stamp_s, self.last_cloud_seq, self.delta_seq)
+        # Before the first cloud there is no cloud number (-1 in the stats); the message carries
+        # numbers >= 0, and an empty snapshot of a fresh map is still a valid snapshot.
+        cloud_seq = max(self.last_cloud_seq, 0)
+        return self._message(rows, self.last_stamp_s, cloud_seq, self.delta_seq)
 
     def on_save(self, req: Request) -> dict:
         if self.save_path is None:

@@ -1,7 +1,9 @@
 """`smana replay DATASET`: replay a recorded dataset into the stack instead of the simulator.
 
 DATASET is a SemanticKITTI or RELLIS-3D sequence (or their root), a ROS 1 .bag, a ROS 2 bag folder,
-an .mcap file, or a folder of labelled PLY/NPZ scans. With --run, the mapper, navgraph and planner
+an .mcap file, or a folder of labelled PLY/NPZ scans. Scans without labels (KITTI .bin without
+.label, clouds without a label field) replay with --label-field none: their points are labelled
+ground or obstacle by geometry. With --run, the mapper, navgraph and planner
 are started too (no sim), and the run directory gets what `smana up` writes.
 """
 
@@ -71,7 +73,11 @@ def cli(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--start", type=non_negative_int, metavar="N", help="first scan to replay")
     p.add_argument("--count", type=non_negative_int, metavar="N", help="number of scans to replay")
-    p.add_argument("--label-field", help="bags and PLY: name of the integer label field")
+    p.add_argument(
+        "--label-field",
+        help="bags and PLY: name of the integer label field; 'none' (any format): read no "
+        "labels, label the points ground/obstacle by geometry (class table geometric)",
+    )
     p.add_argument("--cloud-topic", help="bags: the sensor_msgs/PointCloud2 topic")
     p.add_argument("--odom-topic", help="bags: the nav_msgs/Odometry topic")
     p.add_argument(
@@ -105,11 +111,17 @@ def cli(argv: list[str] | None = None) -> int:
     setup_logging(cfg.general.log_level, "replay")
 
     from smana.services.replay.readers import DatasetError
-    from smana.services.replay.service import open_reader
+    from smana.services.replay.service import open_reader, table_name
 
     try:
         reader = open_reader(rc)
     except (DatasetError, ValueError, ImportError) as exc:
+        print(f"smana replay: {exc}", file=sys.stderr)
+        return 2
+    try:
+        table_name(rc, reader)  # a table that cannot hold the labels stops here
+    except ValueError as exc:
+        reader.close()
         print(f"smana replay: {exc}", file=sys.stderr)
         return 2
     if args.info:

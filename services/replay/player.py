@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from smana.common.classes import ClassTable
+from smana.common.geometric import GeometricLabeller
 from smana.common.messages import Pose, SemanticCloud, encode
 
 from .prepare import PreparedCloud, prepare_scan
@@ -71,6 +72,7 @@ class ScanFeed:
         count: int = 0,
         ahead: int = 3,
         keep_prepared: bool = False,
+        labeller: GeometricLabeller | None = None,
     ):
         n = len(reader)
         if start >= n:
@@ -79,6 +81,7 @@ class ScanFeed:
         self.reader, self.table, self.source = reader, table, source
         self.max_range_m, self.min_range_m = max_range_m, min_range_m
         self.keep_prepared = keep_prepared
+        self.labeller = labeller  # labels scans that come without (prepare_scan)
         self._queue: queue.Queue = queue.Queue(maxsize=ahead)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="replay-feed", daemon=True)
@@ -156,7 +159,7 @@ class ScanFeed:
         self._put(END)
 
     def _prepare(self, scan: Scan, pose_seq: int, cloud_seq: int) -> FeedItem:
-        pc = prepare_scan(scan, self.table, self.max_range_m, self.min_range_m)
+        pc = prepare_scan(scan, self.table, self.max_range_m, self.min_range_m, self.labeller)
         pose = Pose(
             stamp_s=scan.stamp_s,
             seq=pose_seq,

@@ -4,6 +4,10 @@ Dataset ids become class-table ids (`maps_from`), points of ignored classes (sky
 points outside [min_range_m, max_range_m] from the sensor are dropped, as are non-finite points,
 and the rest is moved to the world frame. Every drop is counted, so a replay can say how much of
 the data it published.
+
+A scan without labels (`Scan.labels` None, `--label-field none`) is labelled after the pose is
+applied, by the geometric labeller (common/geometric.py) on the points kept: ids of the
+`geometric` table, judged in the world frame where z is up.
 """
 
 from __future__ import annotations
@@ -13,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from smana.common.classes import ClassTable
+from smana.common.geometric import TABLE as GEOMETRIC_TABLE
+from smana.common.geometric import GeometricLabeller
 from smana.common.messages import matrix_to_quat
 
 from .readers.base import Scan
@@ -34,15 +40,26 @@ class PreparedCloud:
 
 
 def prepare_scan(
-    scan: Scan, table: ClassTable, max_range_m: float, min_range_m: float = 0.0
+    scan: Scan,
+    table: ClassTable,
+    max_range_m: float,
+    min_range_m: float = 0.0,
+    labeller: GeometricLabeller | None = None,
 ) -> PreparedCloud:
-    """Filter and transform one scan (see the module docstring). Raises ValueError on bad input."""
+    """Filter and transform one scan (see the module docstring). Raises ValueError on bad input,
+    and on a scan without labels when there is no `labeller` or `table` is not `geometric`."""
     if not (0 <= min_range_m < max_range_m):
         raise ValueError(f"need 0 <= min_range_m < max_range_m, got {min_range_m}, {max_range_m}")
     pts = np.asarray(scan.points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"scan {scan.name}: points have shape {pts.shape}, expected (N, 3)")
-    if scan.labels.shape != (pts.shape[0],):
+    unlabelled = scan.labels is None
+    if unlabelled and (labeller is None or table.name != GEOMETRIC_TABLE):
+        raise ValueError(
+            f"scan {scan.name} has no labels: it needs the geometric labeller and the "
+            f"{GEOMETRIC_TABLE!r} class table (got {table.name!r})"
+        )
+    if not unlabelled and scan.labels.shape != (pts.shape[0],):
         raise ValueError(f"scan {scan.name}: {scan.labels.size} labels for {pts.shape[0]} points")
     pose = np.asarray(scan.pose, np.float64)
     if pose.shape != (4, 4) or not np.all(np.isfinite(pose)):
@@ -50,17 +67,24 @@ def prepare_scan(
     conf = scan.confidences
     conf = np.ones(pts.shape[0], np.float32) if conf is None else np.asarray(conf, np.float32)
 
-    labels, n_unclaimed = table.map_dataset_labels(scan.labels)
+    if unlabelled:  # labelled below, in the world frame; no class is ignored
+        labels, n_unclaimed = None, 0
+    else:
+        labels, n_unclaimed = table.map_dataset_labels(scan.labels)
     finite = np.isfinite(pts).all(axis=1) & np.isfinite(conf)
     r2 = np.einsum("ij,ij->i", pts, pts, dtype=np.float64)
     # The sensor's "no return" points sit at the origin: min_range_m > 0 drops them as well.
     in_range = (r2 <= max_range_m**2) & (r2 >= min_range_m**2)
-    kept_class = ~table.ignored_lut[np.minimum(labels, table.size - 1)]
+    if unlabelled:
+        kept_class = np.ones(pts.shape[0], bool)
+    else:
+        kept_class = ~table.ignored_lut[np.minimum(labels, table.size - 1)]
     keep = finite & in_range & kept_class
-    world = pts[keep].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    world = (pts[keep].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32)
+    kept_labels = labeller.label(world, pose[:3, 3]) if unlabelled else labels[keep]
     return PreparedCloud(
-        points=world.astype(np.float32),
-        labels=labels[keep],
+        points=world,
+        labels=kept_labels,
         confidences=np.clip(conf[keep], 0.0, 1.0),
         sensor_position=pose[:3, 3].copy(),
         sensor_orientation_xyzw=matrix_to_quat(pose[:3, :3]),

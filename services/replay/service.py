@@ -26,11 +26,14 @@ import numpy as np
 from smana.common import keys, progress
 from smana.common.classes import ClassTable
 from smana.common.config import ReplayConfig, SmanaConfig
+from smana.common.geometric import TABLE as GEOMETRIC_TABLE
+from smana.common.geometric import GeometricLabeller
 from smana.common.messages import GraphPatch, MapDelta
 from smana.common.service import Service, kernels_loaded
 
 from .player import END, FeedItem, Pacer, ScanFeed
 from .readers import DatasetReader, detect_format, open_dataset
+from .readers.base import NO_LABELS
 from .readers.rosbag import fixed_pose_matrix
 
 TRAJECTORY_NAME = "replay_trajectory.csv"  # every pose the replay published, in the run dir
@@ -61,7 +64,15 @@ def open_reader(rc: ReplayConfig) -> DatasetReader:
 
 
 def table_name(rc: ReplayConfig, reader: DatasetReader) -> str:
-    return rc.class_table or reader.default_class_table
+    """The class table of the replay: the one named, or the dataset's own (`geometric` for scans
+    read without labels, which no other table fits: ValueError)."""
+    name = rc.class_table or reader.class_table
+    if not reader.labelled and name != GEOMETRIC_TABLE:
+        raise ValueError(
+            f"--label-field {NO_LABELS} labels points with the {GEOMETRIC_TABLE!r} class table, "
+            f"not {name!r}: leave out --table (replay.class_table)"
+        )
+    return name
 
 
 def topic_of(rc: ReplayConfig, reader: DatasetReader) -> str:
@@ -117,6 +128,8 @@ class ReplayService(Service):
         self.reader.report_skipped()
         self.table = ClassTable.load(table_name(rc, self.reader))
         self.topic = topic_of(rc, self.reader)
+        # scans without labels are labelled by geometry, against this robot's limits
+        labeller = None if self.reader.labelled else GeometricLabeller.from_config(config)
         self.feed = ScanFeed(
             self.reader,
             self.table,
@@ -125,6 +138,7 @@ class ReplayService(Service):
             "lidar" if self.topic == "scan" else "camera",
             rc.start,
             rc.count,
+            labeller=labeller,
         )
         period = 1.0 / (self.reader.rate_hz * rc.rate_factor)
         self.pacer = Pacer(rc.mode, rc.rate_factor, rc.ack_timeout_s, period_s=period)

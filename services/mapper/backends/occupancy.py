@@ -44,7 +44,8 @@ from smana.services.mapper._grid import (
     Grid,
     coord_to_key,
     key_in_range,
-    octomap_ray_keys,
+    octomap_ray_next,
+    octomap_ray_start,
     unpack_block,
     voxel_slot,
 )
@@ -194,7 +195,7 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
     grid = st.grid
     flags = st.flags
     touched = st.touched
-    keybuf = st.keybuf
+    max_keys = st.keybuf.shape[0]  # octomap_ray_keys' bound on a walk
     ox = np.float32(origin[0])
     oy = np.float32(origin[1])
     oz = np.float32(origin[2])
@@ -224,11 +225,10 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
             sx = np.float32(ex - np.float32(np.float32(dx / ln) * rm))
             sy = np.float32(ey - np.float32(np.float32(dy / ln) * rm))
             sz = np.float32(ez - np.float32(np.float32(dz / ln) * rm))
-        nk = octomap_ray_keys(sx, sy, sz, ex, ey, ez, res, inv_res, keybuf)
-        for j in range(nk):
-            g, last_key, last_b = voxel_slot(
-                grid, keybuf[j, 0], keybuf[j, 1], keybuf[j, 2], last_key, last_b
-            )
+        first, walk = octomap_ray_start(sx, sy, sz, ex, ey, ez, res, inv_res)
+        n_keys = 0
+        while first > 0:  # the ray's keys as the walk yields them
+            g, last_key, last_b = voxel_slot(grid, walk[0], walk[1], walk[2], last_key, last_b)
             if g < 0:
                 return -g, i, n_touched
             f = flags[g]
@@ -238,6 +238,10 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
                 flags[g] = f | MARK_FREE
                 touched[n_touched] = g
                 n_touched += 1
+            n_keys += 1
+            done, walk = octomap_ray_next(walk)
+            if done or n_keys >= max_keys:
+                break
         if not hit:
             continue
         kx = coord_to_key(px, inv_res)

@@ -15,7 +15,10 @@ Semantics (Kimera): each voxel keeps a log-probability per semantic class, start
 point labelled l adds log p to class l and log((1 - p) / (K - 1)) to every other class (p = 0.9
 by default); since adding the same constant to every class does not change the normalised
 distribution, the kernel adds only log(p / q) to class l and shifts the vector when it grows, so
-an update is O(1) instead of O(K). The voxel label is the most probable class.
+an update is O(1) instead of O(K). Every entry is then a whole number of log(p / q) steps, so a
+voxel stores int16 step counts (2 bytes per class instead of 4, and exact where float32 sums
+drifted); a count pushed below -32767 by the shifts saturates there, a probability of
+exp(-32767 log(p / q)), zero in any float. The voxel label is the most probable class.
 
 Surface (voxblox's mesh and Kimera's, without the triangles): a voxel is a surface voxel when its
 weight is at least `min_weight` and one of its 6 face neighbours, also of weight >= `min_weight`,
@@ -53,7 +56,8 @@ from smana.services.mapper._grid import (
 from smana.services.mapper.backends.base import MapBackend
 from smana.services.mapper.delta import Delta
 
-_RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this
+_RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this (nats)
+_STEPS_MIN = -32767  # saturation of the int16 step counts
 # A flag bit of this back-end: the voxel was a surface voxel after the last cloud. Only the
 # incremental surface count reads it; the surface itself is always recomputed from distances.
 SURFACE = np.uint8(16)
@@ -68,7 +72,7 @@ class TsdfState(NamedTuple):
     flags: np.ndarray  # u1 [voxels]: OBSERVED and this cloud's marks
     distance: np.ndarray  # f4 [voxels], metres
     weight: np.ndarray  # f4 [voxels]
-    logp: np.ndarray  # f4 [voxels, K]: log-probability per semantic class
+    logp: np.ndarray  # i2 [voxels, K]: log-probability per semantic class, in log(p / q) steps
     touched: np.ndarray  # i8: voxels marked this cloud, in order
     keybuf: np.ndarray  # i8 [n, 3]: one ray's voxel keys
     gbuf: np.ndarray  # i8 [n]: their global indices
@@ -87,34 +91,20 @@ class TsdfConsts(NamedTuple):
     min_range: float
     sub_inv: float  # 1 / start-voxel subsampling cell, 0: off
     dropoff: bool
-    log_ratio: float  # log(p / q) added to the measured class
+    renorm_steps: int  # shift the vector once its top entry reaches this many steps
 
 
-@njit(cache=True, error_model="numpy")
-def _set_insert(keys, key):
-    """Insert into an open-addressing set; returns False when the key was already there."""
+@njit(cache=True, error_model="numpy", inline="always")
+def _set_slot(keys, key):
+    """Slot of `key` in an open-addressing set, or the free slot where it would go: one probe
+    sequence serves the membership test and the insertion (`keys[slot] = key`), valid until
+    the next insertion."""
     mask = keys.shape[0] - 1
     s = hash_slot(key, 40) & mask  # the block table's Fibonacci hash
     while True:
         k = keys[s]
-        if k == key:
-            return False
-        if k == -1:
-            keys[s] = key
-            return True
-        s = (s + 1) & mask
-
-
-@njit(cache=True, error_model="numpy")
-def _set_contains(keys, key):
-    mask = keys.shape[0] - 1
-    s = hash_slot(key, 40) & mask  # the block table's Fibonacci hash
-    while True:
-        k = keys[s]
-        if k == key:
-            return True
-        if k == -1:
-            return False
+        if k == key or k == -1:
+            return s
         s = (s + 1) & mask
 
 
@@ -173,13 +163,15 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
             sy = py - uy * trunc
             sz = pz - uz * trunc
         skey = np.int64(-1)
+        sslot = np.int64(-1)
         if sub_inv > 0:
             skey = pack_block(
                 np.int64(np.floor(px * sub_inv)),
                 np.int64(np.floor(py * sub_inv)),
                 np.int64(np.floor(pz * sub_inv)),
             )
-            if _set_contains(startset, skey):
+            sslot = _set_slot(startset, skey)
+            if startset[sslot] == skey:
                 continue
         # cast from behind the surface towards the sensor, as voxblox does
         nk = voxblox_ray_keys(ex, ey, ez, sx, sy, sz, inv_res, keybuf)
@@ -193,7 +185,7 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
                 return -g, i, n_touched
             gbuf[j] = g
         if sub_inv > 0:
-            _set_insert(startset, skey)
+            startset[sslot] = skey
         label_idx = -1 if clearing else st.sem_idx[labels[i]]
         for j in range(nk):
             g = gbuf[j]
@@ -221,20 +213,26 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
             weight_[g] = min(max_weight, w_new)
             flags[g] = f | MARK_FREE | MARK_HIT | OBSERVED
             if label_idx >= 0:
-                v = logp[g, label_idx] + k.log_ratio
-                logp[g, label_idx] = v
-                if v > _RENORM_AT:
-                    for j in range(logp.shape[1]):
-                        logp[g, j] -= v
+                v = np.int64(logp[g, label_idx]) + 1
+                if v >= k.renorm_steps:
+                    for c in range(logp.shape[1]):
+                        logp[g, c] = max(np.int64(logp[g, c]) - v, _STEPS_MIN)
+                    logp[g, label_idx] = 0
+                else:
+                    logp[g, label_idx] = v
     return DONE, points.shape[0], n_touched
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _find_voxel(grid, ix, iy, iz):
-    """Global index of voxel (ix, iy, iz), -1 when its block was never allocated."""
+def _near_voxel(grid, g, own_key, ix, iy, iz):
+    """Global index of voxel (ix, iy, iz), -1 when its block was never allocated; `own_key` is
+    the block key of voxel g, a neighbour: most neighbours share its block, with no hash probe."""
     bkey, local = voxel_index(ix, iy, iz, grid.bits)
+    vb = 3 * grid.bits
+    if bkey == own_key:
+        return ((g >> vb) << vb) | local
     b = table_find(grid, bkey)
-    return np.int64(-1) if b < 0 else (b << (3 * grid.bits)) | local
+    return np.int64(-1) if b < 0 else (b << vb) | local
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -260,17 +258,9 @@ def _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz):
     d = distance[g]
     neg = d < 0
     ad = abs(d)
-    vb = 3 * grid.bits
     own_key, _ = voxel_index(ix, iy, iz, grid.bits)
     for f in range(6):
-        bkey, local = voxel_index(
-            ix + _FACES[f, 0], iy + _FACES[f, 1], iz + _FACES[f, 2], grid.bits
-        )
-        if bkey == own_key:  # most neighbours share the block: no hash probe
-            n = ((g >> vb) << vb) | local
-        else:
-            b = table_find(grid, bkey)
-            n = np.int64(-1) if b < 0 else (b << vb) | local
+        n = _near_voxel(grid, g, own_key, ix + _FACES[f, 0], iy + _FACES[f, 1], iz + _FACES[f, 2])
         if n < 0 or not weight[n] >= min_weight:
             continue
         dn = distance[n]
@@ -308,6 +298,7 @@ def _extract_kernel(changed, grid, flags, distance, weight, min_weight, seen, ou
     for i in range(changed.shape[0]):
         g = changed[i]
         ix, iy, iz = _voxel_key(grid, g)
+        own_key, _ = voxel_index(ix, iy, iz, grid.bits)
         s = _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz)
         was = (flags[g] & SURFACE) != 0
         dcount += np.int64(s) - np.int64(was)
@@ -319,7 +310,7 @@ def _extract_kernel(changed, grid, flags, distance, weight, min_weight, seen, ou
             jx = ix + _FACES[f, 0]
             jy = iy + _FACES[f, 1]
             jz = iz + _FACES[f, 2]
-            nb = _find_voxel(grid, jx, jy, jz)
+            nb = _near_voxel(grid, g, own_key, jx, jy, jz)
             if nb < 0 or flags[nb] & _SEEN or not flags[nb] & OBSERVED:
                 continue
             flags[nb] |= _SEEN
@@ -352,6 +343,47 @@ def _tsdf_finish(touched, n_touched, flags, changed):
     return nc
 
 
+@njit(cache=True, error_model="numpy")
+def _tsdf_rows(st, g, res, exp_steps, class_ids, keys, centres, labels, probs, values):
+    """Fill the Delta columns of voxels g in one pass: coordinates, distance, and the label
+    (first most probable class; 0 for a uniform vector) with its probability, 1 / sum over the
+    classes of exp(-(steps behind the top) * log(p / q)) (`exp_steps`, 0 past its end)."""
+    bits = st.grid.bits
+    block_keys = st.grid.block_keys
+    logp = st.logp
+    n_exp = exp_steps.shape[0]
+    vb = 3 * bits
+    bm = (1 << bits) - 1
+    for i in range(g.shape[0]):
+        gi = g[i]
+        bx, by, bz = unpack_block(block_keys[gi >> vb])
+        local = gi & ((1 << vb) - 1)
+        kx = (bx << bits) | (local & bm)
+        ky = (by << bits) | ((local >> bits) & bm)
+        kz = (bz << bits) | ((local >> (2 * bits)) & bm)
+        keys[i, 0] = kx
+        keys[i, 1] = ky
+        keys[i, 2] = kz
+        centres[i, 0] = (kx + 0.5) * res
+        centres[i, 1] = (ky + 0.5) * res
+        centres[i, 2] = (kz + 0.5) * res
+        values[i] = st.distance[gi]
+        top = 0
+        uniform = True
+        for c in range(1, logp.shape[1]):
+            if logp[gi, c] > logp[gi, top]:
+                top = c
+            if logp[gi, c] != logp[gi, 0]:
+                uniform = False
+        z = 0.0
+        for c in range(logp.shape[1]):
+            d = np.int64(logp[gi, top]) - np.int64(logp[gi, c])
+            if d < n_exp:
+                z += exp_steps[d]
+        probs[i] = 1.0 / z
+        labels[i] = 0 if uniform else class_ids[top]
+
+
 class Tsdf(MapBackend):
     """Semantic TSDF voxel map; `integrate` returns the Delta of one cloud."""
 
@@ -369,6 +401,7 @@ class Tsdf(MapBackend):
         self.sem_idx = np.full(65536, -1, np.int16)
         self.sem_idx[self.class_ids] = np.arange(k)
         p = config.label_probability
+        self.log_ratio = float(np.log(p / ((1.0 - p) / (k - 1))))  # nats per step of `logp`
         self.trunc_m = config.truncation_voxels * self.resolution_m
         self.min_weight = float(config.min_weight)
         self._touched = np.empty(1 << 16, np.int64)
@@ -386,14 +419,17 @@ class Tsdf(MapBackend):
             float(config.min_range_m),
             sub / self.resolution_m if sub > 0 else 0.0,
             bool(config.use_weight_dropoff),
-            float(np.log(p / ((1.0 - p) / (k - 1)))),
+            int(np.floor(_RENORM_AT / self.log_ratio)) + 1,
         )
+        self.grid.loaders["logp"] = self._logp_from_nats
+        # exp(-d log(p / q)) for d steps behind the top class, down to float64's underflow
+        self._exp_steps = np.exp(-np.arange(int(750 / self.log_ratio) + 1) * self.log_ratio)
 
     def fields(self):
         return {
             "distance": (np.float32, ()),
             "weight": (np.float32, ()),
-            "logp": (np.float32, (len(self.class_ids),)),
+            "logp": (np.int16, (len(self.class_ids),)),
             "flags": (np.uint8, ()),
         }
 
@@ -472,6 +508,12 @@ class Tsdf(MapBackend):
         _surface_kernel(g, self.grid.state(), c["distance"], c["weight"], self.min_weight, out)
         return out
 
+    def _logp_from_nats(self, saved: np.ndarray) -> np.ndarray:
+        """A map saved before the step counts holds float32 log-probabilities: whole steps."""
+        if saved.dtype.kind == "f":
+            saved = np.maximum(np.rint(saved / self.log_ratio), _STEPS_MIN)
+        return saved.astype(np.int16)
+
     def _store_surface(self, g: np.ndarray, surface: np.ndarray) -> int:
         """Set the SURFACE bits of g; returns the change in the number of surface voxels."""
         flags = self.grid.cols["flags"]
@@ -488,20 +530,18 @@ class Tsdf(MapBackend):
 
     def labels_of(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(label, probability of that label) from the log-probability vectors."""
-        lp = self.grid.cols["logp"][g].astype(np.float64)
-        if lp.shape[0] == 0:
-            return np.zeros(0, np.uint16), np.zeros(0, np.float32)
-        top = lp.argmax(axis=1)
-        mx = lp[np.arange(lp.shape[0]), top]
-        prob = 1.0 / np.exp(lp - mx[:, None]).sum(axis=1)
-        labels = self.class_ids[top]
-        labels[(lp == lp[:, :1]).all(axis=1)] = 0  # never labelled: uniform vector
-        return labels, prob.astype(np.float32)
+        d = self._rows(np.asarray(g, np.int64), np.zeros(len(g), np.bool_))
+        return d.labels, d.confidences
+
+    def _steps_behind_top(self, g: np.ndarray) -> np.ndarray:
+        steps = self.grid.cols["logp"][g].astype(np.int64)
+        return steps.max(axis=1, keepdims=True) - steps
 
     def probabilities(self, g: np.ndarray) -> np.ndarray:
         """Normalised class probabilities (rows follow `class_ids`)."""
-        lp = self.grid.cols["logp"][g].astype(np.float64)
-        e = np.exp(lp - lp.max(axis=1, keepdims=True))
+        d = self._steps_behind_top(g)
+        lut = self._exp_steps
+        e = np.where(d < lut.shape[0], lut[np.minimum(d, lut.shape[0] - 1)], 0.0)
         return e / e.sum(axis=1, keepdims=True)
 
     def rows(self, g: np.ndarray) -> Delta:
@@ -509,17 +549,28 @@ class Tsdf(MapBackend):
         return self._rows(g, self.surface(g))
 
     def _rows(self, g: np.ndarray, surface: np.ndarray) -> Delta:
-        keys = self.grid.coords(g)
-        d = self.grid.cols["distance"][g]
-        labels, prob = self.labels_of(g)
-        return Delta(
-            keys.astype(np.int32),
-            ((keys + 0.5) * self.resolution_m).astype(np.float32),
-            labels,
-            prob,
+        n = g.shape[0]
+        d = Delta(
+            np.empty((n, 3), np.int32),
+            np.empty((n, 3), np.float32),
+            np.empty(n, np.uint16),
+            np.empty(n, np.float32),
             surface.astype(np.uint8),
-            d,
+            np.empty(n, np.float32),
         )
+        _tsdf_rows(
+            self._state(np.zeros(1, np.int64)),
+            g,
+            self.resolution_m,
+            self._exp_steps,
+            self.class_ids,
+            d.keys,
+            d.centres,
+            d.labels,
+            d.confidences,
+            d.values,
+        )
+        return d
 
     # -- queries ---------------------------------------------------------------------------
 

@@ -19,6 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
+# `label_field` value of a dataset read without labels: its points are labelled by geometry
+# (common/geometric.py) in the world frame, with the `geometric` class table.
+NO_LABELS = "none"
+NO_LABELS_HINT = "--label-field none labels the points by geometry"
+
 
 class DatasetError(ValueError):
     """A dataset is missing something or holds malformed data; the message names the file."""
@@ -37,16 +42,17 @@ class SkippedScan:
 
 @dataclass
 class Scan:
-    """One labelled scan in its sensor frame, with the sensor pose in the world frame.
+    """One scan in its sensor frame, with the sensor pose in the world frame.
 
-    `labels` keep the dataset's own numbering; the class table maps them (`maps_from`).
+    `labels` keep the dataset's own numbering; the class table maps them (`maps_from`). None: the
+    scan is read without labels (`label_field = "none"`), the replay labels it by geometry.
     """
 
     index: int  # position in the replayed sequence (skipped scans leave no gap)
     name: str
     stamp_s: float
     points: np.ndarray  # f4[N, 3], sensor frame
-    labels: np.ndarray  # integer [N], dataset ids
+    labels: np.ndarray | None  # integer [N], dataset ids; None = unlabelled
     pose: np.ndarray  # f8[4, 4], sensor -> world
     confidences: np.ndarray | None = None  # f4[N] in [0, 1], None = all 1
 
@@ -73,6 +79,7 @@ class DatasetReader(ABC):
     default_class_table: str = ""
     sensor: str = "lidar"
     sequential: bool = False  # True: scan(i) is cheap only going forward (a stream)
+    labelled: bool = True  # False: scans come without labels (label_field "none")
 
     def __init__(self, path: str | Path, *, strict: bool = False):
         self.path = Path(path)
@@ -111,10 +118,17 @@ class DatasetReader(ABC):
             str(self.path),
             len(self),
             self.rate_hz,
-            self.default_class_table,
+            self.class_table,
             self.sensor,
             list(self.skipped),
         )
+
+    @property
+    def class_table(self) -> str:
+        """The table the scans' labels belong to: the dataset's own, or `geometric` unlabelled."""
+        from smana.common.geometric import TABLE
+
+        return self.default_class_table if self.labelled else TABLE
 
     def skip(self, name: str, reason: str) -> None:
         """Record a scan that cannot be replayed (or raise, in strict mode)."""

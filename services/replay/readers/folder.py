@@ -6,6 +6,8 @@ binary) holds a `vertex` element with float x, y, z, an integer label property (
 default) and optionally a float `confidence`. Poses come from `poses.txt`, one line per scan, as
 12 numbers (KITTI row-major 3 x 4) or 8 (TUM: stamp x y z qx qy qz qw); an NPZ's own `pose` wins.
 Without stamps from TUM poses, NPZ files or `times.txt`, scans are spaced at `rate_hz`.
+With `label_field="none"` no labels are read (a PLY needs no label property, an NPZ no `labels`):
+the replay labels the points by geometry.
 """
 
 from __future__ import annotations
@@ -18,7 +20,16 @@ import numpy as np
 from smana.common import ply
 from smana.common.messages import quat_to_matrix
 
-from .base import DatasetError, DatasetReader, Scan, check_poses, rate_from_stamps, read_times
+from .base import (
+    NO_LABELS,
+    NO_LABELS_HINT,
+    DatasetError,
+    DatasetReader,
+    Scan,
+    check_poses,
+    rate_from_stamps,
+    read_times,
+)
 
 
 def write_ply(path: Path, points, labels, confidences=None, binary: bool = True) -> None:
@@ -88,7 +99,8 @@ class FolderReader(DatasetReader):
         super().__init__(path, strict=strict)
         if not self.path.is_dir():
             raise DatasetError(self.path, "expected a folder of .ply or .npz scans")
-        self.label_field = label_field
+        self.labelled = label_field != NO_LABELS
+        self.label_field = label_field if self.labelled else None
         plys, npzs = sorted(self.path.glob("*.ply")), sorted(self.path.glob("*.npz"))
         if plys and npzs:
             raise DatasetError(self.path, "holds both .ply and .npz scans; keep one kind")
@@ -128,22 +140,30 @@ class FolderReader(DatasetReader):
     def _problem(self, f: Path, has_pose: bool) -> str | None:
         if f.suffix == ".ply":
             try:
-                return ply.PlyHeader(f).problem(self.label_field)
+                why = ply.PlyHeader(f).problem(self.label_field)
             except ply.PlyError as exc:
                 return exc.problem
+            if why and self.label_field is not None and repr(self.label_field) in why:
+                why = f"{why}; {NO_LABELS_HINT}"
+            return why
         try:
             shapes = _npz_shapes(f)
         except DatasetError as exc:
             return exc.problem
-        if "points" not in shapes or "labels" not in shapes:
-            return f"NPZ needs 'points' and 'labels' arrays (has: {', '.join(shapes) or 'none'})"
-        (pshape, _), (lshape, ldtype) = shapes["points"], shapes["labels"]
+        has = ", ".join(shapes) or "none"
+        if "points" not in shapes:
+            return f"NPZ needs a 'points' array (has: {has})"
+        if self.labelled and "labels" not in shapes:
+            return f"NPZ needs 'points' and 'labels' arrays (has: {has}; {NO_LABELS_HINT})"
+        pshape = shapes["points"][0]
         if len(pshape) != 2 or pshape[1] != 3:
             return f"points has shape {pshape}, expected (N, 3)"
-        if lshape != (pshape[0],):
-            return f"labels has shape {lshape} for {pshape[0]} points"
-        if ldtype.kind not in "iu":
-            return f"labels are {ldtype}, expected integers"
+        if self.labelled:
+            lshape, ldtype = shapes["labels"]
+            if lshape != (pshape[0],):
+                return f"labels has shape {lshape} for {pshape[0]} points"
+            if ldtype.kind not in "iu":
+                return f"labels are {ldtype}, expected integers"
         if "confidences" in shapes and shapes["confidences"][0] != (pshape[0],):
             return f"confidences has shape {shapes['confidences'][0]} for {pshape[0]} points"
         if "pose" in shapes and shapes["pose"][0] != (4, 4):
@@ -171,13 +191,13 @@ class FolderReader(DatasetReader):
             except ply.PlyError as exc:
                 raise DatasetError(f, exc.problem) from None
             points = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
-            labels = v[self.label_field].astype(np.int64)
+            labels = None if self.label_field is None else v[self.label_field].astype(np.int64)
             if "confidence" in v.dtype.names:
                 conf = v["confidence"].astype(np.float32)
         else:
             with np.load(f, allow_pickle=False) as z:
                 points = np.asarray(z["points"], np.float32)
-                labels = np.asarray(z["labels"])
+                labels = np.asarray(z["labels"]) if self.labelled else None
                 if "confidences" in z:
                     conf = np.asarray(z["confidences"], np.float32)
                 if "pose" in z:

@@ -5,6 +5,8 @@ field of any width (name configurable, `label` by default); an optional float `c
 is used when present. Poses come from a nav_msgs/Odometry topic, interpolated at each cloud's
 header stamp (linear in position, slerp in orientation), or from one fixed pose for a static
 sensor. Clouds stamped outside the odometry's time span by more than `max_pose_gap_s` are skipped.
+With `label_field="none"` clouds need x, y, z only and are read without labels: the replay labels
+their points by geometry.
 
 The `rosbags` package is imported lazily: it is an optional dependency
 (`pip install 'smana[replay]'`).
@@ -18,7 +20,7 @@ import numpy as np
 
 from smana.common.ros import PoseTrack, check_cloud, decode_cloud
 
-from .base import DatasetError, DatasetReader, Scan
+from .base import NO_LABELS, NO_LABELS_HINT, DatasetError, DatasetReader, Scan
 
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
@@ -112,7 +114,8 @@ class RosbagReader(DatasetReader):
         strict: bool = False,
     ):
         super().__init__(path, strict=strict)
-        self.label_field = label_field
+        self.labelled = label_field != NO_LABELS
+        self.label_field = label_field if self.labelled else None  # as common/ros.py takes it
         self._bag = _open_bag(self.path)
         try:
             self._index(cloud_topic, odom_topic, fixed_pose, sensor_to_base, max_pose_gap_s)
@@ -165,6 +168,8 @@ class RosbagReader(DatasetReader):
             name = f"{self.cloud_topic}#{k}"
             why = check_cloud(msg, self.label_field)
             if why is not None:
+                if why.startswith("label field") and "missing" in why:
+                    why = f"{why}; {NO_LABELS_HINT}"
                 self.skip(name, why)
                 continue
             stamp = _stamp_s(msg.header)

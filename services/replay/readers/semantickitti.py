@@ -1,7 +1,9 @@
 """SemanticKITTI layout: `sequences/NN/{velodyne,labels}/NNNNNN.{bin,label}`, poses, calib.
 
 Scans are float32 (x, y, z, remission); labels uint32 with the semantic class in the low 16 bits
-and the instance id in the high 16. `poses.txt` holds the left camera's poses, so the LiDAR's are
+and the instance id in the high 16. With `label_field="none"` the labels (and their folder) are not
+read: the replay labels the points by geometry, as for KITTI odometry scans that never had any.
+`poses.txt` holds the left camera's poses, so the LiDAR's are
 inv(Tr) @ P @ Tr with Tr (LiDAR -> camera) from `calib.txt`. RELLIS-3D ships the same files under
 other folder names (see `rellis3d.py`).
 """
@@ -13,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from .base import (
+    NO_LABELS,
+    NO_LABELS_HINT,
     DatasetError,
     DatasetReader,
     Scan,
@@ -37,15 +41,26 @@ class KittiLayoutReader(DatasetReader):
     calib_required = True
     nominal_rate_hz = 10.0
 
-    def __init__(self, path, *, sequence: str | None = None, strict: bool = False):
+    def __init__(
+        self,
+        path,
+        *,
+        sequence: str | None = None,
+        label_field: str = "label",
+        strict: bool = False,
+    ):
         super().__init__(path, strict=strict)
+        if label_field not in ("label", NO_LABELS):
+            raise ValueError(
+                f"label field {label_field!r}: {self.format} labels come from .label files; "
+                f"only {NO_LABELS!r} applies (label the points by geometry)"
+            )
+        self.labelled = label_field != NO_LABELS
         self.seq_dir = self._find_sequence(self.path, sequence)
         clouds = self.seq_dir / self.cloud_dir
         labels = self.seq_dir / self.label_dir
-        if not labels.is_dir():
-            raise DatasetError(
-                labels, "label folder is missing (unlabelled scans cannot be mapped)"
-            )
+        if self.labelled and not labels.is_dir():
+            raise DatasetError(labels, f"label folder is missing ({NO_LABELS_HINT})")
         bins = []
         for b in sorted(clouds.glob("*.bin")):
             if b.stem.isdigit():
@@ -75,14 +90,16 @@ class KittiLayoutReader(DatasetReader):
         self._rate_hz = rate_from_stamps(stamps, self.nominal_rate_hz)
 
         # Per-scan checks need only file sizes, so the skip list is complete before replay starts.
-        self._items: list[tuple[Path, Path, np.ndarray, float]] = []
+        self._items: list[tuple[Path, Path | None, np.ndarray, float]] = []
         for k, b in enumerate(bins):
             lab = labels / (b.stem + ".label")
             size = b.stat().st_size
             if size == 0 or size % POINT_BYTES:
                 self.skip(str(b), f"truncated: {size} bytes is not a multiple of {POINT_BYTES}")
+            elif not self.labelled:
+                self._items.append((b, None, poses[k], float(stamps[k])))
             elif not lab.is_file():
-                self.skip(str(b), f"no label file {lab}")
+                self.skip(str(b), f"no label file {lab} ({NO_LABELS_HINT})")
             elif lab.stat().st_size != size // POINT_BYTES * LABEL_BYTES:
                 n_lab = lab.stat().st_size / LABEL_BYTES
                 self.skip(str(b), f"{lab.name} holds {n_lab:g} labels for {size // 16} points")
@@ -124,6 +141,8 @@ class KittiLayoutReader(DatasetReader):
     def scan(self, i: int) -> Scan:
         b, lab, pose, stamp = self._items[i]
         raw = np.fromfile(b, dtype=np.float32).reshape(-1, 4)
+        if lab is None:  # unlabelled: the replay labels the points by geometry
+            return Scan(i, b.name, stamp, np.ascontiguousarray(raw[:, :3]), None, pose.copy())
         labels = np.fromfile(lab, dtype=np.uint32) & 0xFFFF
         if labels.size != raw.shape[0]:  # the file changed since it was indexed
             raise DatasetError(lab, f"{labels.size} labels for {raw.shape[0]} points")

@@ -1,0 +1,50 @@
+"""[ros2] config section: how the `ros2` service joins a ROS 2 graph that runs rmw_zenoh."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from smana.common.config._schema import ConfigError, Section, param
+
+
+@dataclass
+class Ros2Config(Section, section="ros2"):
+    """`smana ros2`: smana's map, costmap, path, goal and odometry as ROS 2 topics, and (for a
+    real robot) a ROS 2 robot's clouds and odometry in, velocity commands out."""
+
+    domain_id: int = param(0, ge=0, le=232)  # ROS_DOMAIN_ID
+    node_name: str = "smana"  # the ROS 2 node (its namespace is /smana/<robot>)
+    cloud_topic: str = "/points"  # sensor_msgs/msg/PointCloud2 in
+    odom_topic: str = "/odom"  # nav_msgs/msg/Odometry in
+    cmd_vel_topic: str = "/cmd_vel"  # geometry_msgs/msg/Twist out
+    # The integer label field of the clouds. "none": every cloud is labelled by the geometric
+    # labeller (class table `geometric`); a cloud without the field is refused otherwise.
+    label_field: str = "label"
+    # "auto": read the robot's topics when smana's simulator is not running ([deploy.sim]
+    # enabled = false), "on" / "off" to force.
+    robot_input: Literal["auto", "on", "off"] = "auto"
+    # Frames a cloud may already be in: used as it is (REP-105: smana's world is the odom frame).
+    # The mapper input the robot's clouds go to: robot/scan (LiDAR) or robot/cloud (a depth
+    # camera); the mapper listens to it when it is in mapper.inputs.
+    cloud_input: Literal["scan", "cloud"] = "scan"
+    world_frames: list[str] = param(["map", "odom"])
+    # Clouds in a sensor frame: the sensor's pose on the robot (x, y, z, roll, pitch, yaw) when
+    # /tf_static does not give it; [] = from /tf_static only.
+    sensor_extrinsic: list[float] = param([])
+    base_frame: str = "base_link"
+    max_pose_gap_s: float = param(0.2, gt=0)  # odometry interpolated at most this far
+    map_period_s: float = param(1.0, gt=0)  # /smana/<robot>/map at most this often
+    costmap_period_s: float = param(1.0, gt=0)
+    min_range_m: float = param(0.3, ge=0)  # cloud points nearer the sensor are dropped
+    max_range_m: float = param(20.0, gt=0)  # and farther ones
+
+    def validate(self) -> None:
+        for name in ("cloud_topic", "odom_topic", "cmd_vel_topic"):
+            topic = getattr(self, name)
+            if not topic.startswith("/") or "//" in topic or topic.endswith("/"):
+                raise ConfigError(f"ros2.{name}: a ROS 2 topic like /points, got {topic!r}")
+        if self.sensor_extrinsic and len(self.sensor_extrinsic) != 6:
+            raise ConfigError("ros2.sensor_extrinsic: [x, y, z, roll, pitch, yaw] or []")
+        if not self.label_field:
+            raise ConfigError("ros2.label_field: a field name, or none")

@@ -1,0 +1,37 @@
+"""`smana ros2`: smana as a ROS 2 node over rmw_zenoh (no ROS install, no bridge process).
+
+Publishes /smana/<robot>/{map,costmap,path,goal,odom} and answers /smana/<robot>/plan
+(nav_msgs/srv/GetPlan); for a real robot it also reads [ros2] cloud_topic, odom_topic and
+/tf_static and sends the explorer's commands to cmd_vel_topic. ROS 2 nodes reach it through a
+zenoh router with gossip on: smana's own (`smana up --set deploy.ros2.enabled=true`) or the
+robot's rmw_zenohd (`--connect tcp/<robot>:7447`). See docs/ros2.md.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from smana.common.cli import config_from_args, make_parser, run_command, setup_logging
+
+
+def cli(argv: list[str] | None = None) -> int:
+    p = make_parser("smana ros2", __doc__.strip().splitlines()[0])
+    args = p.parse_args(argv)
+    cfg = config_from_args(args)
+    setup_logging(cfg.general.log_level, "ros2")
+    try:
+        import rosbags  # noqa: F401 - message types, CDR and type hashes
+    except ImportError:
+        print("smana ros2: needs the 'rosbags' package: pip install 'smana[ros2]'", file=sys.stderr)
+        return 2
+    from smana.services.ros2.service import main
+
+    try:
+        return main(cfg)
+    except (OSError, ValueError) as exc:  # a config that cannot work: one line, no traceback
+        print(f"smana ros2: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(run_command("ros2", cli))

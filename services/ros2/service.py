@@ -1,0 +1,398 @@
+"""The ros2 service: smana as a ROS 2 node over rmw_zenoh (the mapping is in `rmw.py`, the
+conversions in `convert.py`, the state in `bridge.py`; this file is the wiring).
+
+Out, for robot R (node `/smana/R/<ros2.node_name>`, frame `map`):
+- `/smana/R/map` sensor_msgs/PointCloud2 (x, y, z, rgb, label), transient-local, at most every
+  `ros2.map_period_s` when the map changed; kept from `mapper/delta` (resynchronised from
+  `mapper/snapshot` at start, on a gap and when the mapper restarts);
+- `/smana/R/costmap` nav_msgs/OccupancyGrid of the navigation graph, transient-local; kept from
+  `navgraph/patch` (`common/graph_copy.py`, synced from `navgraph/graph`);
+- `/smana/R/path` nav_msgs/Path and `/smana/R/goal` geometry_msgs/PoseStamped from
+  `explorer/state`, when they change;
+- `/smana/R/odom` nav_msgs/Odometry from `robot/pose`;
+- a ROS 2 service `/smana/R/plan` (nav_msgs/srv/GetPlan), answered by smana's planner.
+
+In, for a real robot (`ros2.robot_input`; by default when smana's simulator is off):
+`ros2.cloud_topic` PointCloud2 (latest wins) -> `robot/scan`, `ros2.odom_topic` Odometry ->
+`robot/pose`, `/tf_static` for the sensor's pose on the robot, and `robot/cmd_vel` ->
+`ros2.cmd_vel_topic` geometry_msgs/Twist.
+
+Every message in is counted once (`common/service.py`); a ROS message that does not decode as
+its type, a cloud that cannot be placed or read, a plan request without a valid attachment is
+rejected with its reason and the service goes on.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import msgpack
+import numpy as np
+
+from smana.common import keys
+from smana.common.classes import ClassTable
+from smana.common.config import SmanaConfig
+from smana.common.graph_copy import GraphCopy
+from smana.common.messages import (
+    GraphPatch,
+    MapDelta,
+    MessageError,
+    PathReply,
+    PathRequest,
+    Pose,
+    VelocityCommand,
+)
+from smana.common.navgrid import NavGrid
+from smana.common.plausibility import APPLY, COVERED, SequenceFollower
+from smana.common.query import QueryError, request
+from smana.common.service import Reject, Reply, Request, Service, run_service
+
+from . import convert
+from .bridge import CloudInput, MapCopy
+from .rmw import LATCHED_QOS, SENSOR_QOS, SERVICE, SUBSCRIPTION, QoS, RosNode, RosTypes
+
+RESYNC_PERIOD_S = 1.0
+PLAN_TIMEOUT_S = 5.0  # a GetPlan waits this long for the planner
+CLOUD = "sensor_msgs/msg/PointCloud2"
+ODOM = "nav_msgs/msg/Odometry"
+TF = "tf2_msgs/msg/TFMessage"
+
+
+def robot_input_on(config: SmanaConfig) -> bool:
+    mode = config.ros2.robot_input
+    return mode == "on" or (mode == "auto" and not config.deploy.sim.enabled)
+
+
+class Ros2Service(Service):
+    name = "ros2"
+    tick_period_s = 0.1
+    # Transient-local topics are AdvancedPublishers, which order their cache by timestamps
+    # (rmw_zenoh's session config turns timestamping on for the same reason).
+    zenoh_settings = {"timestamping/enabled": True}
+
+    def __init__(self, config: SmanaConfig):
+        super().__init__(config)
+        rc = config.ros2
+        self.classes = ClassTable.load(config.general.class_table)
+        if rc.label_field == "none" and self.classes.name != "geometric":
+            raise ValueError(
+                "ros2.label_field=none labels clouds with the geometric labeller: "
+                "set general.class_table=geometric too"
+            )
+        nc = config.navgraph
+        self.grid = NavGrid.from_bounds(
+            nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.tile_size
+        )
+        self.graph = GraphCopy(self.grid, self.note)
+        self.map = MapCopy()
+        self.deltas_in = SequenceFollower()
+        self.robot_input = robot_input_on(config)
+        self.cloud_input: CloudInput | None = None
+        self.types: RosTypes | None = None
+        self.node: RosNode | None = None
+        self._next_sync = {"map": 0.0, "graph": 0.0}
+        self._want_sync = {"map": True, "graph": True}
+        self._next_pub = {"map": 0.0, "costmap": 0.0}
+        self._published = {"map": -1, "costmap": -1}
+        self._last_state: tuple | None = None
+        self._last_pose: Pose | None = None
+        self.sent = dict.fromkeys(("map", "costmap", "path", "goal", "odom", "tf", "cmd_vel"), 0)
+        self.received = {"clouds": 0, "odometry": 0, "tf_static": 0, "plans": 0}
+
+    def prepare(self) -> None:
+        self.startup_step = "loading ROS 2 message types"
+        self.types = RosTypes()
+        labeller = None
+        if self.config.ros2.label_field == "none":
+            from smana.common.geometric import GeometricLabeller
+
+            self.startup_step = "loading (or compiling) the geometric labeller"
+            labeller = GeometricLabeller.from_config(self.config).label
+            labeller(np.zeros((1, 3), np.float32), np.zeros(3))  # compile before going live
+        if self.robot_input:
+            self.cloud_input = CloudInput(self.config, labeller)
+
+    def setup(self) -> None:
+        r, rc = self.robot, self.config.ros2
+        ns = f"/smana/{r}"
+        self.node = RosNode(self.session, self.types, rc.domain_id, rc.node_name, ns)
+        node = self.node
+        self.pubs = {
+            "map": node.publisher(f"{ns}/map", CLOUD, LATCHED_QOS),
+            "costmap": node.publisher(f"{ns}/costmap", "nav_msgs/msg/OccupancyGrid", LATCHED_QOS),
+            "path": node.publisher(f"{ns}/path", "nav_msgs/msg/Path", LATCHED_QOS),
+            "goal": node.publisher(f"{ns}/goal", "geometry_msgs/msg/PoseStamped", LATCHED_QOS),
+            "odom": node.publisher(f"{ns}/odom", ODOM, QoS()),
+        }
+        if not self.robot_input:
+            # In simulation nobody else owns the robot's frames: map -> odom (identity) and
+            # odom -> base_link go on /tf, so RViz2 can show the robot in any fixed frame. A
+            # real robot publishes its own odom -> base_link; smana then stays off /tf.
+            self.pubs["tf"] = node.publisher("/tf", TF, QoS(depth=100))
+        self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
+        self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
+        self.subscribe(keys.explorer_state(r), self.on_explorer_state)
+        self.subscribe(keys.pose(r), self.on_pose, Pose)
+        plan_key, _ = node.endpoint(SERVICE, f"{ns}/plan", "nav_msgs/srv/GetPlan")
+        self.queryable(plan_key, self.on_plan, complete=True)  # ROS 2 clients ask complete ones
+        if self.robot_input:
+            cloud_key, _ = node.endpoint(SUBSCRIPTION, rc.cloud_topic, CLOUD, SENSOR_QOS)
+            self.subscribe_latest(cloud_key, self.on_cloud)
+            odom_key, _ = node.endpoint(SUBSCRIPTION, rc.odom_topic, ODOM, QoS())
+            self.subscribe(odom_key, self.on_odometry)
+            tf_qos = QoS(transient_local=True, depth=100)
+            tf_key, _ = node.endpoint(SUBSCRIPTION, "/tf_static", TF, tf_qos)
+            self.subscribe(tf_key, self.on_tf_static)
+            self._query_history(tf_key, self.on_tf_static)
+            self.pubs["cmd_vel"] = node.publisher(rc.cmd_vel_topic, "geometry_msgs/msg/Twist")
+            ci = rc.cloud_input
+            self.scan_pub = self.publisher(keys.scan(r) if ci == "scan" else keys.cloud(r))
+            if ci not in self.config.mapper.inputs:
+                self.log.warning(
+                    "the robot's clouds go to robot/%s but mapper.inputs is %s: nothing will be "
+                    "mapped; set --set 'mapper.inputs=[\"%s\"]'",
+                    ci,
+                    self.config.mapper.inputs,
+                    ci,
+                )
+            self.pose_pub = self.publisher(keys.pose(r))
+            self.subscribe(keys.cmd_vel(r), self.on_cmd_vel, VelocityCommand)
+        self._declared.append(
+            self.session.liveliness().declare_subscriber(keys.alive(r, "*"), self._on_alive)
+        )
+        self.log.info(
+            "ROS 2 node %s/%s on domain %d (zenoh %s)%s",
+            ns,
+            rc.node_name,
+            rc.domain_id,
+            node.zid,
+            ", reading the robot's topics" if self.robot_input else "",
+        )
+
+    def _query_history(self, key: str, handler) -> None:
+        """What transient-local publishers already sent (their AdvancedPublisher caches), as a
+        late-joining rmw_zenoh subscription asks for it."""
+        try:
+            replies = list(self.session.get(f"{key}/@adv/pub/**?_anyke", timeout=1.0))
+        except Exception as exc:  # noqa: BLE001 - history is a bonus; live samples follow
+            self.note("history_failed", f"{key}: {exc}")
+            return
+        # Query replies are not samples the books count: each is an event, taken or refused.
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                handler(reply.ok.payload.to_bytes())
+                self.events["history_taken"] += 1
+            except (MessageError, Reject) as exc:
+                self.note("history_refused", f"{key}: cached sample refused: {exc}")
+
+    def _on_alive(self, sample) -> None:
+        import zenoh
+
+        if sample.kind == zenoh.SampleKind.PUT:
+            service = str(sample.key_expr).rsplit("/", 1)[-1]
+            if service in ("mapper", "navgraph"):  # a (re)started producer: new stream
+                self._want_sync["map" if service == "mapper" else "graph"] = True
+
+    def on_stop(self) -> None:
+        if self.node is not None:
+            self.node.close()
+
+    # -- smana -> ROS --------------------------------------------------------------------------
+
+    def _send(self, what: str, msg) -> None:
+        self.pubs[what].put(msg)
+        self.sent[what] += 1
+        self.msgs_out += 1
+
+    def on_delta(self, delta: MapDelta):
+        action, why = self.deltas_in.check(delta.producer, delta.seq)
+        if action == COVERED:
+            return ("dropped", "covered")
+        if action != APPLY:
+            raise Reject(action, f"map delta {delta.seq}: {why}; resync asked")
+        self.map.apply(delta)
+        self.deltas_in.advance(delta.producer, delta.seq)
+        if why:
+            self.note("delta_gap", f"map deltas: {why}")
+
+    def on_patch(self, patch: GraphPatch):
+        if self.graph.receive(patch) is None:
+            return ("dropped", "covered")
+
+    def on_explorer_state(self, payload: bytes) -> None:
+        try:
+            state = msgpack.unpackb(payload)
+            goal = state.get("goal")
+            path = np.asarray(state.get("path") or np.zeros((0, 2)), np.float64)
+            t = float(state.get("t_s") or 0.0)
+            xy = None if goal is None else [float(v) for v in goal["xy"]]
+            yaw = 0.0 if goal is None else float(goal.get("yaw") or 0.0)
+        except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as exc:
+            raise MessageError("malformed", f"explorer state: {exc}") from None
+        if path.ndim != 2 or path.shape[-1] not in (2, 3) or not np.isfinite(path).all():
+            raise MessageError("value", "explorer state: path must be finite (x, y) points")
+        key = (None if xy is None else tuple(xy), yaw, path.tobytes())
+        if key == self._last_state:
+            return
+        self._last_state = key
+        self._send("path", convert.path(self.types, path, t))
+        if xy is not None:
+            self._send("goal", convert.pose_stamped(self.types, xy, yaw, t))
+
+    def on_pose(self, pose: Pose) -> None:
+        twist = (0.0, 0.0)
+        last = self._last_pose
+        if last is not None and 0.0 < pose.stamp_s - last.stamp_s < 1.0:
+            dt = pose.stamp_s - last.stamp_s
+            d = pose.position[:2] - last.position[:2]
+            dyaw = math.remainder(pose.yaw - last.yaw, math.tau)
+            twist = (float(d @ [math.cos(pose.yaw), math.sin(pose.yaw)]) / dt, dyaw / dt)
+        self._last_pose = pose
+        self._send("odom", convert.odometry(self.types, pose, twist=twist))
+        if "tf" in self.pubs:
+            self._send("tf", convert.robot_frames(self.types, pose))
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        for what in ("map", "graph"):
+            stream = self.deltas_in if what == "map" else self.graph
+            if (self._want_sync[what] or stream.want_resync) and now >= self._next_sync[what]:
+                self._next_sync[what] = now + RESYNC_PERIOD_S
+                self._want_sync[what] = not self._sync(what)
+        self._publish_latched("map", self.map.version, self._map_message, now)
+        self._publish_latched("costmap", self.grid.version, self._costmap_message, now)
+
+    def _publish_latched(self, what: str, version: int, make, now: float) -> None:
+        period = getattr(self.config.ros2, f"{what}_period_s")
+        if version == self._published[what] or now < self._next_pub[what]:
+            return
+        msg = make()
+        if msg is None:
+            return
+        self._send(what, msg)
+        self._published[what] = version
+        self._next_pub[what] = now + period
+
+    def _stamp(self) -> float:
+        return self._last_pose.stamp_s if self._last_pose is not None else time.time()
+
+    def _map_message(self):
+        return convert.map_cloud(
+            self.types, self.map.centres, self.map.labels, self.classes.colour_lut, self._stamp()
+        )
+
+    def _costmap_message(self):
+        return convert.occupancy_grid(self.types, self.grid, self.classes.cost_lut, self._stamp())
+
+    def _sync(self, what: str) -> bool:
+        """Replace the map copy or the graph copy by its producer's snapshot."""
+        r = self.robot
+        key = (
+            keys.query(r, "mapper", "snapshot")
+            if what == "map"
+            else keys.query(r, "navgraph", "graph")
+        )
+        try:
+            reply = request(self.session, key, None, 5.0)
+        except QueryError as exc:
+            self.log.info("no %s snapshot yet (%s)", what, exc.kind)
+            return False
+        if what == "map":
+            if not isinstance(reply, MapDelta):
+                self.note("bad_snapshot", "mapper/snapshot did not answer with a MapDelta")
+                return False
+            self.map.reset(reply)
+            self.deltas_in.synced(reply.producer, reply.seq)
+        else:
+            if not self.graph.usable_snapshot(reply):
+                return False
+            g = self.grid
+            self.grid = self.graph.grid = NavGrid(g.origin_xy, g.shape, g.resolution_m, g.tile_size)
+            self.graph.adopt(reply)
+            self._published["costmap"] = -1
+        return True
+
+    # -- ROS -> smana (a real robot) -----------------------------------------------------------
+
+    def _ros(self, payload: bytes, typename: str):
+        try:
+            return self.types.deserialize(payload, typename)
+        except Exception as exc:  # noqa: BLE001 - any CDR that is not this type
+            raise MessageError("malformed", f"not a {typename}: {type(exc).__name__}") from None
+
+    def on_cloud(self, payload: bytes) -> None:
+        cloud = self.cloud_input.convert(self._ros(payload, CLOUD))
+        self.received["clouds"] += 1
+        if cloud.n_dropped_nonfinite:
+            self.note("points_dropped", f"{cloud.n_dropped_nonfinite} points not finite")
+        self.scan_pub.put(cloud)
+
+    def on_odometry(self, payload: bytes) -> None:
+        msg = self._ros(payload, ODOM)
+        try:
+            pos, quat = convert.pose_of(msg.pose.pose)
+        except ValueError as exc:
+            raise Reject("value", f"odometry: {exc}") from None
+        t = convert.stamp_s(msg.header)
+        self.cloud_input.poses.add(t, pos, quat)
+        self.received["odometry"] += 1
+        self.pose_pub.put(
+            Pose(
+                stamp_s=t,
+                seq=self.received["odometry"],
+                position=pos,
+                orientation_xyzw=quat,
+                frame_id="world",
+            )
+        )
+
+    def on_tf_static(self, payload: bytes) -> None:
+        self.received["tf_static"] += self.cloud_input.add_static(self._ros(payload, TF))
+
+    def on_cmd_vel(self, cmd: VelocityCommand) -> None:
+        self._send("cmd_vel", convert.twist(self.types, cmd.linear_mps, cmd.angular_radps))
+
+    # -- the plan service ----------------------------------------------------------------------
+
+    def on_plan(self, req: Request) -> Reply:
+        try:
+            reply_attachment = self.node.reply_attachment(req.attachment)
+        except ValueError as exc:
+            raise Reject("malformed", f"GetPlan request: {exc}") from None
+        msg = self._ros(req.payload or b"", "nav_msgs/srv/GetPlan_Request")
+        try:
+            start, _ = convert.pose_of(msg.start.pose)
+            goal, _ = convert.pose_of(msg.goal.pose)
+        except ValueError as exc:
+            raise Reject("value", f"GetPlan request: {exc}") from None
+        self.received["plans"] += 1
+        ask = PathRequest(
+            request_id=f"ros2-{self.received['plans']}", start=start[:2], goal=goal[:2]
+        )
+        try:
+            answer = request(self.session, keys.path_query(self.robot), ask, PLAN_TIMEOUT_S)
+            path = answer.path if isinstance(answer, PathReply) and answer.ok else np.zeros((0, 3))
+            if isinstance(answer, PathReply) and not answer.ok:
+                self.log.info("GetPlan: no path (%s: %s)", answer.error, answer.message)
+        except QueryError as exc:
+            self.log.info("GetPlan: planner did not answer (%s)", exc.kind)
+            path = np.zeros((0, 3))
+        body = convert.plan_response(self.types, path, self._stamp())
+        return Reply(self.types.serialize(body, "nav_msgs/srv/GetPlan_Response"), reply_attachment)
+
+    def status_details(self) -> dict:
+        return {
+            "robot_input": self.robot_input,
+            "map_voxels": len(self.map),
+            "graph_nodes_known": self.grid.n_known(),
+            "sent": dict(self.sent),
+            "received": dict(self.received),
+            "zid": self.node.zid if self.node is not None else "",
+        }
+
+
+def main(config: SmanaConfig) -> int:
+    return run_service(Ros2Service, config)

@@ -1,0 +1,100 @@
+"""What the ROS 2 tests share: message definitions for zenoh-ros2-sdk written from rosbags'
+typestore (the SDK would otherwise download them: no network at test time), and an SDK session
+on a test's own router, reset between tests (the SDK keeps one session per process)."""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+
+import numpy as np
+
+MESSAGE_TYPES = (
+    "sensor_msgs/msg/PointCloud2",
+    "nav_msgs/msg/OccupancyGrid",
+    "nav_msgs/msg/Path",
+    "geometry_msgs/msg/PoseStamped",
+    "nav_msgs/msg/Odometry",
+    "geometry_msgs/msg/Twist",
+    "tf2_msgs/msg/TFMessage",
+    "service_msgs/msg/ServiceEventInfo",
+)
+GET_PLAN_SRV = (
+    "geometry_msgs/PoseStamped start\ngeometry_msgs/PoseStamped goal\nfloat32 tolerance\n"
+    "---\nnav_msgs/Path plan\n"
+)
+
+
+def write_msgdefs(root: Path) -> Path:
+    """One `<pkg>/msg/<Name>.msg` per type (and its dependencies), as ROS 2 packages ship them;
+    `nav_msgs/srv/GetPlan.srv`. The text comes from rosbags, the parsing and hashing from the
+    SDK: the hashes the tests compare are computed twice, independently."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for typename in MESSAGE_TYPES:
+        text, _ = store.generate_msgdef(typename, ros_version=2)
+        name = typename
+        for i, block in enumerate(text.split("=" * 80 + "\n")):
+            if i:
+                head, block = block.split("\n", 1)
+                name = head.removeprefix("MSG: ")
+            pkg, msg = name.replace("/msg/", "/").split("/")
+            path = root / pkg / "msg" / f"{msg}.msg"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(block.rstrip("\n") + "\n")
+    srv = root / "nav_msgs" / "srv" / "GetPlan.srv"
+    srv.parent.mkdir(parents=True, exist_ok=True)
+    srv.write_text(GET_PLAN_SRV)
+    return root
+
+
+@contextlib.contextmanager
+def sdk_session(tmp: Path, monkeypatch):
+    """The SDK's registry on local definitions and a fresh SDK session; closed afterwards."""
+    monkeypatch.setenv("ZENOH_ROS2_SDK_CACHE", str(tmp / "sdk-cache"))
+    # Its peer finds the test's router by the endpoint it is given: nothing else.
+    monkeypatch.setenv("ZENOH_CONFIG_OVERRIDE", "scouting/multicast/enabled=false")
+    from zenoh_ros2_sdk import message_registry, session
+
+    session.ZenohSession._instance = None
+    message_registry._registry = None
+    message_registry.get_registry(str(write_msgdefs(tmp / "msgs")))
+    try:
+        yield
+    finally:
+        inst = session.ZenohSession._instance
+        if inst is not None:
+            with contextlib.suppress(Exception):
+                inst.session.close()
+        session.ZenohSession._instance = None
+        message_registry._registry = None
+
+
+def pointcloud2(types, points, labels=None, frame="velodyne", t_s=0.5):
+    """A PointCloud2 (rosbags message of `types`, a `services.ros2.rmw.RosTypes`) of x, y, z
+    float32 and, when given, a uint32 `label`, as a LiDAR driver publishes them."""
+    from smana.services.ros2 import convert
+
+    names = ["x", "y", "z"] + (["label"] if labels is not None else [])
+    rec = np.zeros(len(points), [(n, "<f4" if n != "label" else "<u4") for n in names])
+    rec["x"], rec["y"], rec["z"] = np.asarray(points, np.float32).T
+    if labels is not None:
+        rec["label"] = labels
+    field = types.msg("sensor_msgs/msg/PointField")
+    fields = [
+        field(name=n, offset=4 * i, datatype=7 if n != "label" else 6, count=1)
+        for i, n in enumerate(names)
+    ]
+    step = 4 * len(names)
+    return types.msg("sensor_msgs/msg/PointCloud2")(
+        header=convert.header(types, t_s, frame),
+        height=1,
+        width=len(points),
+        fields=fields,
+        is_bigendian=False,
+        point_step=step,
+        row_step=step * len(points),
+        data=rec.view(np.uint8),
+        is_dense=True,
+    )
