@@ -4,6 +4,18 @@ A service subclasses `Service`, compiles or loads its kernels in `prepare()`, lo
 state in `warm_up()`, declares its inputs and outputs in `setup()` and does its periodic work in
 `tick()`. The base class does the rest:
 
+- with `prepare_in_background` (services whose `prepare()` only compiles numba kernels), runs
+  `prepare()` on a thread of its own from the process's start, so the service is live (alive
+  token, status answered) in seconds even on a cold numba cache, instead of after a minute of
+  compiling. Its status says `details.kernels = "compiling"` until they are loaded (`"ready"`,
+  with `kernels_s` from the process's start). Until then the main loop runs nothing that may call
+  a kernel: samples wait in their queues, in order, and ticks wait; a query is answered the
+  error `warming_up` (ask again; after `WARMING_UP_HOLD_S`, none by default); status queries are
+  answered from the zenoh callback (as while starting). Only `warm_up()` and
+  `setup()` (a map to resume, a graph to sync) may call a kernel meanwhile: numba compiles under
+  one lock, so they wait for it, before the service is live.
+  `SMANA_KERNELS=foreground` restores the old order (prepare, then live; `smana bench startup`
+  compares both);
 - opens the zenoh session (`with zenoh.open(conf) as session`) and at once declares the liveliness
   token `smana/<robot>/starting/<service>` and publishes a `ServiceStatus` in state `starting`
   every `general.status_period_s` (and answers it as a query), so that a supervisor and `smana
@@ -134,7 +146,13 @@ STOP_DEADLINE_S = 5.0  # after a stop signal: to leave the loop, and to close ze
 # Set by the supervisor for a hot spare (deploy/supervisor.py): prepare, write "ready" to the file
 # descriptor it names, then wait for a line on stdin before starting for real.
 STANDBY_ENV = "SMANA_STANDBY_FD"
+# "foreground": prepare() before the service is live even where it may run in the background.
+KERNELS_ENV = "SMANA_KERNELS"
 FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones are dropped
+# A query to a service still compiling its kernels waits this long, then is answered `warming_up`.
+# None: a consumer's setup() may be the one asking (the planner's graph sync: held 1 s, it made the
+# planner live 1 s later), and every consumer asks again (bench startup, 2026-11-26).
+WARMING_UP_HOLD_S = 0.0
 
 
 @dataclass
@@ -266,6 +284,8 @@ class Service:
     drain_on_stop = False  # handle what is still queued when a stop comes (the recorder does)
     max_payload_bytes = MAX_PAYLOAD_BYTES  # larger samples are rejected as `oversize`, uncopied
     zenoh_settings: dict[str, Any] = {}  # zenoh config keys this service needs set (json values)
+    # prepare() only compiles kernels: run it on a thread, the service live meanwhile (see above)
+    prepare_in_background = False
 
     def __init__(self, config: SmanaConfig):
         self.config = config
@@ -279,6 +299,8 @@ class Service:
         self.state = "starting"
         self.startup_step = "opening the zenoh session"  # what a starting service is doing
         self.ready_s: float | None = None  # seconds from process start to ready
+        self.kernels = "ready"  # "compiling" while a background prepare() runs
+        self.kernels_s: float | None = None  # seconds from process start to kernels loaded
         self._t0 = time.monotonic()
         self._stop = threading.Event()
         self._ready = threading.Event()  # warmed up and declared: the starting heartbeat ends
@@ -295,6 +317,8 @@ class Service:
         self._status_seq = 0
         self._status_lock = threading.Lock()
         self._tracebacks_logged: set[str] = set()
+        self._kernels_announce = False  # kernels just loaded: publish a status now
+        self._held_since: dict[int, float] = {}  # query -> when first held while compiling
 
     # -- what subclasses override ----------------------------------------------------------------
 
@@ -443,6 +467,14 @@ class Service:
         self._install_signal_handlers()
         standby_fd = os.environ.pop(STANDBY_ENV, "")
         standby = bool(standby_fd)
+        background = (
+            self.prepare_in_background
+            and not standby
+            and os.environ.get(KERNELS_ENV, "") != "foreground"
+        )
+        if background:  # from now: compiling overlaps opening zenoh and loading the run's state
+            self.kernels = "compiling"
+            threading.Thread(target=self._prepare_kernels, name="kernels", daemon=True).start()
         if standby:
             t0 = time.monotonic()
             self.prepare()
@@ -471,7 +503,7 @@ class Service:
                 threading.Thread(
                     target=self._heartbeat, name="starting-status", daemon=True
                 ).start()
-                if not standby:
+                if not standby and not background:
                     self.startup_step = "preparing (compiling or loading kernels)"
                     self.prepare()
                 self.startup_step = "warming up"
@@ -487,15 +519,17 @@ class Service:
                     with self._status_lock:
                         self.state = "running"
                         self.ready_s = time.monotonic() - self._t0
-                    self._ready.set()  # ends the heartbeat thread
+                        self.startup_step = "compiling (or loading) the numba kernels"
+                    self._ready.set()  # ends the heartbeat thread (unless kernels compile)
                     self._declared.remove(starting)
                     starting.undeclare()
                     self.log.info(
-                        "%s ready in %.1f s (robot %s, pid %d)",
+                        "%s ready in %.1f s (robot %s, pid %d)%s",
                         self.name,
                         self.ready_s,
                         r,
                         os.getpid(),
+                        ", kernels still compiling" if self.kernels != "ready" else "",
                     )
                     self._loop()
             finally:
@@ -542,12 +576,29 @@ class Service:
     def stopping(self) -> bool:
         return self._stop.is_set()
 
+    def _prepare_kernels(self) -> None:
+        """The background prepare(): compile or load the kernels, then say so at once (the main
+        loop publishes a status as soon as it can)."""
+        t0 = time.monotonic()
+        try:
+            self.prepare()
+        except Exception:  # noqa: BLE001 - each kernel then compiles on its first use
+            self.log.exception("preparing the kernels failed; they compile on first use")
+        with self._status_lock:
+            self.kernels = "ready"
+            self.kernels_s = time.monotonic() - self._t0
+        self.log.info("kernels ready (%.1f s in the background)", time.monotonic() - t0)
+        self._kernels_announce = True
+        self._ready.set()
+        self._wake.set()
+
     def _heartbeat(self) -> None:
-        """While starting: a status every period, from this thread (the main one is busy)."""
+        """While starting, and while the kernels compile: a status every period, from this
+        thread (the main one is busy, or may wait for a kernel)."""
         period = self.config.general.status_period_s
         while True:
             with self._status_lock:
-                if self.state != "starting" or self.stopping:
+                if (self.state != "starting" and self.kernels == "ready") or self.stopping:
                     return
                 msg = self.status()
             try:
@@ -555,12 +606,14 @@ class Service:
             except Exception:  # the session is closing
                 return
             self._ready.wait(period)
+            if self.state != "starting" and self.kernels != "ready":
+                self._ready.clear()  # now live: wait for the next period, or the kernels
 
     def _on_status_query(self, query) -> None:
         """Status queries: answered right here while starting (the main loop is not running yet;
         the starting status reads no service state), from the main loop afterwards."""
         with self._status_lock:
-            starting = self.state == "starting"
+            starting = self.state == "starting" or self.kernels != "ready"
             msg = self.status() if starting else None
         key = keys.status(self.robot, self.name)
         if msg is None:
@@ -644,6 +697,11 @@ class Service:
         next_tick = next_status = time.monotonic()
         period = self.config.general.status_period_s
         while not self._stop.is_set():
+            if self.kernels != "ready":
+                self._hold_while_compiling(period)
+                next_tick = next_status = time.monotonic()
+                continue
+            self._held_since.clear()
             now = time.monotonic()
             timeout = max(0.0, min(next_tick, next_status) - now)
             if not self._fifo:
@@ -663,9 +721,52 @@ class Service:
             if now >= next_tick:
                 next_tick = now + self.tick_period_s
                 self._guard(self.tick, "tick")
-            if now >= next_status:
+            if now >= next_status or self._kernels_announce:
                 next_status = now + period
-                self._guard(lambda: self._status_pub.put(self.status()), "status")
+                if self.kernels == "ready":  # until then the heartbeat thread publishes
+                    self._kernels_announce = False
+                    self._guard(self._publish_status, "status")
+
+    def _hold_while_compiling(self, period: float) -> None:
+        """The kernels are still compiling: run nothing that may call one. Everything waits in
+        its queue, in order, and is handled once they are loaded; a query still waiting after
+        `WARMING_UP_HOLD_S` is answered the error `warming_up` (ask again: counted dropped
+        `warming_up`), not left to time out. The status is answered from the zenoh callback."""
+        self._wake.wait(min(period, 0.2))
+        self._wake.clear()
+        now = time.monotonic()
+        with self.books.lock:
+            late = []
+            for item in self._fifo:
+                if item[0] == "query":
+                    since = self._held_since.setdefault(id(item[3]), now)
+                    if now - since >= WARMING_UP_HOLD_S:
+                        late.append(item)
+            if late:
+                gone = {id(item) for item in late}
+                kept = [item for item in self._fifo if id(item) not in gone]
+                self._fifo.clear()
+                self._fifo.extend(kept)
+                self.books.in_flight += len(late)
+        for _what, _handler, _key, query in late:
+            self._held_since.pop(id(query), None)
+            self.books.settle("dropped", "warming_up")
+            try:
+                as_json = _query_form(query)[1]
+            except Exception:  # noqa: BLE001 - unreadable: answered in msgpack
+                as_json = False
+            self._reply_err(
+                query,
+                "warming_up",
+                f"{self.name} is compiling its numba kernels ({now - self._t0:.0f} s since its "
+                "start); ask again in a few seconds",
+                as_json,
+            )
+
+    def _publish_status(self) -> None:
+        with self._status_lock:
+            msg = self.status()
+        self._status_pub.put(msg)
 
     def _settle_leftovers(self, drain: bool) -> None:
         """At stop: handle what is queued (`drain`) or count it dropped as `stopping`."""
@@ -808,9 +909,16 @@ class Service:
                 dict(b.rejected),
                 queued,
             )
-        details = {"startup_step": self.startup_step} if starting else self.status_details()
+        if starting or self.kernels != "ready":  # no service state read: maybe off the loop
+            details = {"startup_step": self.startup_step}
+        else:
+            details = self.status_details()
         if self.ready_s is not None:
             details = {**details, "ready_s": round(self.ready_s, 3)}
+        if self.prepare_in_background:
+            details["kernels"] = self.kernels
+            if self.kernels_s is not None:
+                details["kernels_s"] = round(self.kernels_s, 3)
         return ServiceStatus(
             stamp_s=time.time(),
             seq=self._status_seq,
@@ -852,6 +960,20 @@ def _reply_bytes(result, as_json: bool) -> bytes:
     if as_json:
         return json.dumps(result, default=json_default).encode()
     return msgpack.packb(result, use_bin_type=True, default=json_default)
+
+
+def kernels_loaded(sample) -> tuple[str, bool] | None:
+    """From a status sample (a raw zenoh callback's): the service's name and whether its kernels
+    are loaded (yes for a status that does not say: a service of another kind). A service is
+    live before its kernels compile in the background (answering `warming_up`), so its alive
+    token alone does not say it serves; a consumer that starts a clock on a producer's readiness
+    (the explorer's budget, the replay's first scan) waits for this too. Every status says
+    `kernels` from the session's opening, well before the alive token. None: no status."""
+    try:
+        st = decode(sample.payload.to_bytes(), ServiceStatus)
+    except MessageError:
+        return None
+    return st.service, st.details.get("kernels", "ready") == "ready"
 
 
 def run_service(cls: type[Service], config: SmanaConfig) -> int:

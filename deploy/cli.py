@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "ros2": ("smana.services.ros2.__main__:cli", "smana as a ROS 2 node over rmw_zenoh"),
     "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
     "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
+    "warmup": ("smana.deploy.warmup:cli", "compile every service's numba kernels ahead, once"),
     "bench": ("smana.deploy.cli:bench", "benchmarks of each service (smana bench --help)"),
     "eval": ("smana.lab.evaluation:cli", "evaluate a run's map against ground truth"),
     "experiment": ("smana.lab.experiments:cli", "the paper's experiments: noise, exploration"),
@@ -43,6 +44,7 @@ BENCHES = {
     "replay": "smana.lab.bench.replay:cli",
     "pipeline": "smana.lab.bench.pipeline:cli",
     "restart": "smana.lab.bench.restart:cli",
+    "startup": "smana.lab.bench.startup:cli",
     "fuzz": "smana.lab.bench.fuzz:cli",
 }
 

@@ -213,16 +213,19 @@ class Supervisor:
 
     def _keep_spare(self, m: Managed) -> None:
         """A ready service with `standby` gets a hot spare, `deploy.standby_delay_s` after it
-        became ready (so the two never compile the same kernels at once on a cold cache, and a
-        short run never pays for it)."""
+        became ready and once its kernels are loaded (a service is live while they compile: so
+        the two never compile the same kernels at once on a cold cache, and a short run never
+        pays for it)."""
         if m.spare is not None and m.spare.poll() is not None:
             log.warning("%s: its standby process exited with status %d", m.name, m.spare.returncode)
             self._end_spare(m)
         ready_for = time.monotonic() - m.ready_at if m.ready_at is not None else -1.0
+        st = self.statuses.get((m.robot, m.service))  # one dict read: no lock needed
         if (
             m.spare is None
             and m.policy.standby
             and ready_for >= self.config.deploy.standby_delay_s
+            and (st is None or st.details.get("kernels", "ready") == "ready")
             and not self._stop.is_set()
         ):
             m.spare = self._start_process(m, standby=True)

@@ -37,6 +37,20 @@ def wait_for(pred, timeout_s: float = 20.0, step_s: float = 0.05) -> bool:
     return False
 
 
+def kernels_ready(session, robot: str, service: str) -> bool:
+    """Whether a live service's kernels are loaded. One that compiles them in the background
+    (`Service.prepare_in_background`) is live at once and answers its queries `warming_up` until
+    they are: a test waits for both, as it did when live meant compiled."""
+    from smana.common import keys
+    from smana.common.query import QueryError, request
+
+    try:
+        st = request(session, keys.status(robot, service), timeout_s=2.0)
+    except QueryError:
+        return False
+    return st.details.get("kernels", "ready") == "ready"
+
+
 def wait_port(port: int, timeout_s: float = 15.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -127,7 +141,9 @@ class ZenohStack:
         key = keys.alive(robot or self.robot, service)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if list(self.session.liveliness().get(key, timeout=1.0)):
+            if list(self.session.liveliness().get(key, timeout=1.0)) and kernels_ready(
+                self.session, robot or self.robot, service
+            ):
                 return
             for name, p in self.procs:
                 if name == service and p.poll() is not None:

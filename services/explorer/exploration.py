@@ -30,7 +30,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from smana.common.config.explorer import ExplorerConfig
 from smana.services.explorer import frontier as fr
@@ -424,6 +423,8 @@ class Explorer:
         space beyond that hop: an unseen obstacle may stand beside the robot, out of view. A hop
         must not cross an obstacle node: a robot caught in a safety zone that just appeared
         around it backs out on the open side, not through the obstacle to a nearer node."""
+        from scipy import ndimage  # here, not at import: off the explorer's start
+
         g = self.grid
         comp, _ = ndimage.label(free, structure=fr.EIGHT_CONNECTED)
         cell = np.array(g.cell_of(xy))

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from scipy import ndimage
 
 from smana.common.config.explorer import ViewConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
@@ -77,6 +76,8 @@ def reachable_mask(free: np.ndarray, start: tuple[int, int]) -> np.ndarray:
     ix, iy = start
     if not (0 <= ix < free.shape[0] and 0 <= iy < free.shape[1]) or not free[ix, iy]:
         return np.zeros(free.shape, bool)
+    from scipy import ndimage  # here, not at import: half a second off the explorer's start
+
     comp, _ = ndimage.label(free, structure=EIGHT_CONNECTED)
     return comp == comp[ix, iy]
 
@@ -97,6 +98,8 @@ def frontier_cells(reachable: np.ndarray, unknown: np.ndarray) -> np.ndarray:
     Space outside the grid box is not unknown: the graph has fixed bounds and nothing outside them
     can ever be mapped, so a border node is a frontier only if it touches unknown nodes inside.
     """
+    from scipy import ndimage
+
     near_unknown = ndimage.binary_dilation(unknown, structure=EIGHT_CONNECTED, border_value=0)
     return np.argwhere(reachable & near_unknown)
 

@@ -43,7 +43,7 @@ from smana.common.messages import (
 from smana.common.navgrid import NavGrid
 from smana.common.plausibility import PoseGate, StampGate
 from smana.common.query import QueryError, request
-from smana.common.service import Reject, Service
+from smana.common.service import Reject, Service, kernels_loaded
 from smana.services.explorer import frontier as fr
 from smana.services.explorer.exploration import Explorer, GridBox
 
@@ -53,6 +53,7 @@ CHECKPOINT_PERIOD_S = 10.0  # state and trajectory saved for a restarted explore
 
 class ExplorerService(Service):
     name = "explorer"
+    prepare_in_background = True  # prepare() only compiles kernels: live meanwhile
 
     def __init__(self, config: SmanaConfig):
         super().__init__(config)
@@ -77,6 +78,7 @@ class ExplorerService(Service):
         self._t_wall0: float | None = None
         self._t_created = time.monotonic()
         self._planner_alive = 0  # planners whose liveliness token is up
+        self._planner_kernels = True  # no planner status said its kernels are compiling
         self._seq = 0
         self._next_state = 0.0
         self._next_checkpoint = time.monotonic() + CHECKPOINT_PERIOD_S
@@ -164,6 +166,11 @@ class ExplorerService(Service):
                 keys.alive(r, "planner"), self._on_planner_token, history=True
             )
         )
+        # A planner is live before its kernels are loaded (it answers `warming_up`, its status
+        # says so): the budget waits for them.
+        self._declared.append(
+            self.session.declare_subscriber(keys.status(r, "planner"), self._on_planner_status)
+        )
         self._sync_graph()
 
     def _sync_graph(self) -> None:
@@ -191,6 +198,11 @@ class ExplorerService(Service):
         import zenoh
 
         self._planner_alive += 1 if sample.kind == zenoh.SampleKind.PUT else -1
+
+    def _on_planner_status(self, sample) -> None:
+        # a zenoh callback: one flag
+        if (got := kernels_loaded(sample)) is not None:
+            self._planner_kernels = got[1]
 
     def on_patch(self, patch: GraphPatch):
         if self.graph.receive(patch) is None:
@@ -251,7 +263,7 @@ class ExplorerService(Service):
             self._sync_graph()
         # The core gets a grid, and its budget starts, only once a planner is there to cost
         # paths: on a cold numba cache the planner may be ready long after the map.
-        if self._grid_dirty and self._planner_alive > 0:
+        if self._grid_dirty and self._planner_alive > 0 and self._planner_kernels:
             self._refresh_grid()
         reason = self.core.wants_plan()
         if reason is not None and self.core.grid is not None:

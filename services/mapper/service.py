@@ -80,6 +80,7 @@ def build_map(config: SmanaConfig, table: ClassTable, log=None) -> SemanticMap:
 
 class MapperService(Service):
     name = "mapper"
+    prepare_in_background = True  # prepare() only compiles kernels: live meanwhile
     tick_period_s = 0.5
 
     def __init__(self, config: SmanaConfig):

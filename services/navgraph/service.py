@@ -107,6 +107,7 @@ def graph_difference(old, new):
 
 class NavgraphService(Service):
     name = "navgraph"
+    prepare_in_background = True  # prepare() only compiles kernels: live meanwhile
     tick_period_s = 1.0
 
     def __init__(self, config: SmanaConfig):
@@ -173,6 +174,8 @@ class NavgraphService(Service):
             snap = self._snapshot(5.0)
         except QueryError as exc:
             self.log.warning("resync (%s) failed: no snapshot (%s)", reason, exc.kind)
+            if exc.kind == "warming_up":  # a mapper live before its kernels: ask again
+                self._resync_reason = self._resync_reason or reason
             return False
         if snap is None:
             return False

@@ -95,6 +95,7 @@ def request_from_params(params: dict[str, str]) -> PathRequest:
 
 class PlannerService(Service):
     name = "planner"
+    prepare_in_background = True  # prepare() only compiles kernels: live meanwhile
     tick_period_s = 0.2
 
     def __init__(self, config: SmanaConfig):
@@ -159,6 +160,7 @@ class PlannerService(Service):
             )
         except QueryError as exc:
             self.log.info("no graph from navgraph (%s): waiting for patches", exc.kind)
+            self._resync |= exc.kind == "warming_up"  # live before its kernels: ask again
             return False
         if not self.graph.usable_snapshot(reply):
             return False

@@ -29,7 +29,7 @@ from smana.common.config import ReplayConfig, SmanaConfig
 from smana.common.geometric import TABLE as GEOMETRIC_TABLE
 from smana.common.geometric import GeometricLabeller
 from smana.common.messages import GraphPatch, MapDelta
-from smana.common.service import Service
+from smana.common.service import Service, kernels_loaded
 
 from .player import END, FeedItem, Pacer, ScanFeed
 from .readers import DatasetReader, detect_format, open_dataset
@@ -145,6 +145,7 @@ class ReplayService(Service):
         self.phase = "waiting"  # -> running -> done
         self.exit_code = 0
         self._alive: set[str] = set()
+        self._warming: set[str] = set()  # live, their status says their kernels compile
         self._starting: set[str] = set()
         self._last_sign: dict[str, float] = {}  # service -> when it last showed a token
         self._next: FeedItem | object | None = None
@@ -198,6 +199,8 @@ class ReplayService(Service):
             self._declared.append(
                 self.session.liveliness().declare_subscriber(key, self._on_token, history=True)
             )
+        # A service is live before its kernels are loaded: wait_for waits for them too.
+        self._declared.append(self.session.declare_subscriber(keys.status_any(r), self._on_status))
         self.feed.start()
         self.log.info(
             "replaying %d scans of %s (%s, %.1f Hz) on %s, %s%s",
@@ -223,17 +226,26 @@ class ReplayService(Service):
         self._last_sign[name] = time.monotonic()
         self._wake.set()
 
+    def _on_status(self, sample) -> None:
+        # zenoh thread: only record and wake the main loop
+        if (got := kernels_loaded(sample)) is None:
+            return
+        name, loaded = got
+        (self._warming.discard if loaded else self._warming.add)(name)
+        self._wake.set()
+
     def _not_ready(self) -> tuple[list[str], str]:
         """The services of wait_for not alive yet, and why the replay gives up on them ("" while
         it still waits): one that showed no token for wait_timeout_s, or was still starting
         after deploy.startup_timeout_s."""
-        missing = [s for s in self.rc.wait_for if s not in self._alive]
+        missing = [s for s in self.rc.wait_for if s not in self._alive or s in self._warming]
         now = time.monotonic()
         waited = now - self._t_wait
         silent = [
             s
             for s in missing
             if s not in self._starting
+            and s not in self._alive  # (alive, its kernels loading: still starting)
             and now - max(self._t_wait, self._last_sign.get(s, 0.0)) > self.rc.wait_timeout_s
         ]
         if silent:

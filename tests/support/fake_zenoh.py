@@ -786,11 +786,14 @@ class FakeStack:
 
     def wait_alive(self, service: str, timeout_s: float = 30.0, robot: str | None = None) -> None:
         from smana.common import keys
+        from tests.conftest import kernels_ready
 
         key = keys.alive(robot or self.robot, service)
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            if list(self.session.liveliness().get(key)):
+            if list(self.session.liveliness().get(key)) and kernels_ready(
+                self.session, robot or self.robot, service
+            ):
                 return
             for r in self.runs:
                 if r.log_name == service and r.returncode is not None:
