@@ -300,8 +300,7 @@ def test_late_subscriber_gets_the_map_and_bad_ros_input_is_counted(ros_stack):
     """A subscriber that joins after the map went out (RViz opened late) gets it from the
     transient-local cache; garbage on the robot's topics and a plan request without rmw_zenoh's
     attachment are rejected and counted, and the service goes on."""
-    from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, get_message_class
-    from zenoh_ros2_sdk.qos import QosDurability, QosProfile
+    from zenoh_ros2_sdk import ROS2Publisher, get_message_class
 
     from smana.common.query import request
     from smana.services.ros2 import rmw
@@ -374,15 +373,30 @@ def test_late_subscriber_gets_the_map_and_bad_ros_input_is_counted(ros_stack):
     assert before.details["map_voxels"] > 100, (before, s.log("ros2"))
     assert before.events.get("history_taken") == 1 and before.details["received"]["tf_static"] == 1
 
-    # Nothing new is published from here on: a late subscriber can only get the cached map.
+    # Nothing new is published from here on: a late subscriber can only get the cached map. It
+    # subscribes as rmw_zenoh_cpp does for a transient-local subscription: a zenoh-ext
+    # AdvancedSubscriber asking the publishers' caches for their history; the SDK decodes it.
+    # (The SDK's own late-joiner query finds no publisher of a nested topic such as /smana/R/map:
+    # it puts the topic in its liveliness pattern without turning '/' into '%'.)
+    from zenoh import ext
+    from zenoh_ros2_sdk.keyexpr import topic_keyexpr
+    from zenoh_ros2_sdk.session import ZenohSession
+    from zenoh_ros2_sdk.utils import ros2_to_dds_type
+
+    cloud_type = "sensor_msgs/msg/PointCloud2"
+    sdk = ZenohSession.get_instance(router_port=port)
+    sdk.register_message_type(None, cloud_type)
+    map_key = topic_keyexpr(0, "/smana/test/map", ros2_to_dds_type(cloud_type), cloud_pub.type_hash)
     got = []
-    latched = QosProfile(durability=QosDurability.TRANSIENT_LOCAL, history_depth=1)
-    sub = ROS2Subscriber(
-        "/smana/test/map", "sensor_msgs/msg/PointCloud2", got.append, router_port=port, qos=latched
+    late = ext.declare_advanced_subscriber(
+        sdk.session,
+        map_key,
+        lambda sample: got.append(sdk.store.deserialize_cdr(sample.payload.to_bytes(), cloud_type)),
+        history=ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
     )
     assert wait_for(lambda: got, 10), "no map from the transient-local cache"
     assert got[0].width == before.details["map_voxels"]
-    sub.close()
+    late.undeclare()
 
     # Garbage where CDR is expected, and a GetPlan without its attachment.
     cloud_key = rmw.data_key(
