@@ -77,3 +77,19 @@ def _parse(payload: bytes):
         except MessageError as exc:
             raise QueryError("malformed", f"bad reply: {exc}") from None
     return data
+
+
+def ready(session, robot: str, service: str, timeout_s: float = 1.0) -> bool:
+    """Whether `service` of `robot` is live and serves: its alive token is up and its status says
+    its kernels are loaded. A service that compiles them in the background is live at once and
+    answers `warming_up` until then (`common/service.py`), so a harness that times or fuzzes it
+    waits for both, as it did when live meant compiled."""
+    from smana.common import keys
+
+    if not list(session.liveliness().get(keys.alive(robot, service), timeout=timeout_s)):
+        return False
+    try:
+        st = request(session, keys.status(robot, service), None, max(timeout_s, 2.0))
+    except QueryError:
+        return False
+    return st.details.get("kernels", "ready") == "ready"

@@ -38,9 +38,7 @@ def wait_for(pred, timeout_s: float = 20.0, step_s: float = 0.05) -> bool:
 
 
 def kernels_ready(session, robot: str, service: str) -> bool:
-    """Whether a live service's kernels are loaded. One that compiles them in the background
-    (`Service.prepare_in_background`) is live at once and answers its queries `warming_up` until
-    they are: a test waits for both, as it did when live meant compiled."""
+    """Whether a live service's kernels are loaded (`common.query.ready`, less the token)."""
     from smana.common import keys
     from smana.common.query import QueryError, request
 

@@ -392,10 +392,12 @@ class Stack:
         return p.read_text(errors="replace") if p.exists() else ""
 
     def wait_alive(self, names, timeout_s: float) -> None:
+        """Live and serving: the alive token, and the kernels loaded (`common.query.ready`)."""
+        from smana.common.query import ready
+
         deadline = time.monotonic() + timeout_s
         for name in names:
-            key = keys.alive(self.robot_of(name), name)
-            while not list(self.session.liveliness().get(key, timeout=1.0)):
+            while not ready(self.session, self.robot_of(name), name):
                 if self.procs[name].poll() is not None or time.monotonic() > deadline:
                     raise CampaignError(f"{name} did not come up:\n{self.log(name)[-3000:]}")
                 time.sleep(0.05)

@@ -116,12 +116,13 @@ class Stack:
         return proc
 
     def wait_alive(self, names: list[str], timeout_s: float = 60.0) -> None:
-        from smana.common import keys
+        """Live and serving: the alive token, and the kernels loaded (`common.query.ready`)."""
+        from smana.common.query import ready
 
         deadline = time.monotonic() + timeout_s
         for name in names:
             while True:
-                if list(self.session.liveliness().get(keys.alive(self.robot, name), timeout=1.0)):
+                if ready(self.session, self.robot, name):
                     break
                 if self.procs[name].poll() is not None or time.monotonic() > deadline:
                     log = (self.log_dir / f"{name}.log").read_text(errors="replace")[-3000:]
