@@ -254,7 +254,7 @@ def in_service(args, kind: str) -> dict:
     }
 
 
-def service_report(rows: list[dict], load0: float) -> str:
+def service_report(rows: list[dict], load0: float, width: int = 640) -> str:
     lines = [
         "",
         f"in the service (sim as its own process, camera asked for 30 Hz, LiDAR off; clouds "
@@ -270,7 +270,10 @@ def service_report(rows: list[dict], load0: float) -> str:
             f"{r['load']:5.1f}"
         )
     best = max(rows, key=lambda r: r["hz"])
-    verdict = "met" if best["hz"] >= TARGET_SERVICE_HZ else "NOT met"
+    if width != 640:  # the target is for the paper's 640 x 640 camera
+        verdict = f"not judged at {width} x {width} (the target is for 640 x 640)"
+    else:
+        verdict = "met" if best["hz"] >= TARGET_SERVICE_HZ else "NOT met"
     lines.append(
         f"target >= {TARGET_SERVICE_HZ:g} Hz in the service: {verdict} "
         f"({best['hz']:.2f} Hz with worker {best['worker']})"
@@ -408,7 +411,7 @@ def cli(argv: list[str] | None = None) -> int:
             rows.append(in_service(args, kind))
             print(f"in the service, worker {kind}: {rows[-1]['hz']:.2f} Hz", file=sys.stderr)
         result["service"] = rows
-        print(service_report(rows, load0))
+        print(service_report(rows, load0, args.width))
     if args.json:
         with open(args.json, "w") as f:
             json.dump(result, f, indent=1)
