@@ -105,6 +105,25 @@ def _load() -> float:
 # -- one measurement each (run in a child process) ---------------------------------------------
 
 
+def _timings(cfg: dict, scans, run_medians, cpu_medians, times, rss0: float) -> dict:
+    """The figures every row shares: medians (of the runs' medians: robust to a busy run), p95,
+    time per point, memory growth."""
+    med = float(np.median(run_medians))
+    n_pts = float(np.mean([s[0].shape[0] for s in scans]))
+    return {
+        **cfg,
+        "scans": len(scans),
+        "points_per_scan": n_pts,
+        "median_ms": med * 1e3,
+        "cpu_median_ms": float(np.median(cpu_medians) * 1e3),
+        "run_medians_ms": [float(x * 1e3) for x in run_medians],
+        "p95_ms": float(np.percentile(times, 95) * 1e3),
+        "us_per_point": med * 1e6 / n_pts,
+        "peak_rss_mb": _rss_mb(),
+        "rss_growth_mb": _rss_mb() - rss0,
+    }
+
+
 def run_ours(cfg: dict, scans) -> dict:
     from smana.services.mapper.semantic_map import SemanticMap
 
@@ -130,22 +149,10 @@ def run_ours(cfg: dict, scans) -> dict:
         cpu_medians.append(np.median(cpu))
         times += run
     st = m.stats()
-    t = np.array(times)
-    med = float(np.median(run_medians))  # median of the runs' medians: robust to a busy run
-    n_pts = float(np.mean([s[0].shape[0] for s in scans]))
     return {
-        **cfg,
-        "scans": len(scans),
-        "points_per_scan": n_pts,
-        "median_ms": med * 1e3,
-        "cpu_median_ms": float(np.median(cpu_medians) * 1e3),
-        "run_medians_ms": [float(x * 1e3) for x in run_medians],
-        "p95_ms": float(np.percentile(t, 95) * 1e3),
-        "us_per_point": med * 1e6 / n_pts,
-        "voxel_updates_per_s": float(np.sum(updates) / np.sum(t)),
+        **_timings(cfg, scans, run_medians, cpu_medians, times, rss0),
+        "voxel_updates_per_s": float(np.sum(updates) / np.sum(times)),
         "delta_median": float(np.median(deltas)),
-        "peak_rss_mb": _rss_mb(),
-        "rss_growth_mb": _rss_mb() - rss0,
         "map_mb": st["bytes_used"] / 2**20,
         "bytes_per_allocated_voxel": st["bytes_per_allocated_voxel"],
         "bytes_reserved_per_allocated_voxel": st["bytes_reserved_per_allocated_voxel"],
@@ -285,19 +292,8 @@ def run_open3d(cfg: dict, scans) -> dict:
         cpu_medians.append(np.median(cpu_t))
         times += run
     n_blocks = int(vbg.hashmap().size())
-    med = float(np.median(run_medians))
-    n_pts = float(np.mean([s[0].shape[0] for s in scans]))
     return {
-        **cfg,
-        "scans": len(scans),
-        "points_per_scan": n_pts,
-        "median_ms": med * 1e3,
-        "cpu_median_ms": float(np.median(cpu_medians) * 1e3),
-        "run_medians_ms": [float(x * 1e3) for x in run_medians],
-        "p95_ms": float(np.percentile(times, 95) * 1e3),
-        "us_per_point": med * 1e6 / n_pts,
-        "peak_rss_mb": _rss_mb(),
-        "rss_growth_mb": _rss_mb() - rss0,
+        **_timings(cfg, scans, run_medians, cpu_medians, times, rss0),
         "map_mb": n_blocks * 512 * 8 / 2**20,
         "bytes_per_allocated_voxel": 8.0,  # two float32 attributes (hash map not counted)
         "voxels_observed": n_blocks * 512,  # allocated: Open3D does not tell observed ones

@@ -75,6 +75,33 @@ def unpack_block(key):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def voxel_key(grid, g):
+    """(ix, iy, iz) of global voxel index g (block slot << 3 * bits | index in the block)."""
+    bits = grid.bits
+    vb = 3 * bits
+    bm = (1 << bits) - 1
+    bx, by, bz = unpack_block(grid.block_keys[g >> vb])
+    local = g & ((1 << vb) - 1)
+    return (
+        (bx << bits) | (local & bm),
+        (by << bits) | ((local >> bits) & bm),
+        (bz << bits) | ((local >> (2 * bits)) & bm),
+    )
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def put_key_centre(grid, g, res, keys, centres, i):
+    """Row i of a Delta's keys and centres: voxel g's integer key and its centre in metres."""
+    kx, ky, kz = voxel_key(grid, g)
+    keys[i, 0] = kx
+    keys[i, 1] = ky
+    keys[i, 2] = kz
+    centres[i, 0] = (kx + 0.5) * res
+    centres[i, 1] = (ky + 0.5) * res
+    centres[i, 2] = (kz + 0.5) * res
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def hash_slot(key, hshift):
     # Fibonacci hashing: the high bits of key * golden ratio spread neighbouring blocks.
     return np.int64((np.uint64(key) * _FIB) >> np.uint64(hshift))

@@ -46,7 +46,7 @@ from smana.services.mapper._grid import (
     key_in_range,
     octomap_ray_next,
     octomap_ray_start,
-    unpack_block,
+    put_key_centre,
     voxel_slot,
 )
 from smana.services.mapper.backends.base import MapBackend
@@ -315,23 +315,9 @@ def _octree_apply(st, k, n_touched, changed):
 @njit(cache=True, error_model="numpy")
 def _delta_rows(st, res, g, keys, centres, labels, confs, occupied, values):
     """Fill the Delta columns of voxels g in one pass (cheaper than numpy fancy indexing)."""
-    bits = st.grid.bits
-    block_keys = st.grid.block_keys
-    vb = 3 * bits
-    bm = (1 << bits) - 1
     for i in range(g.shape[0]):
         gi = g[i]
-        bx, by, bz = unpack_block(block_keys[gi >> vb])
-        local = gi & ((1 << vb) - 1)
-        kx = (bx << bits) | (local & bm)
-        ky = (by << bits) | ((local >> bits) & bm)
-        kz = (bz << bits) | ((local >> (2 * bits)) & bm)
-        keys[i, 0] = kx
-        keys[i, 1] = ky
-        keys[i, 2] = kz
-        centres[i, 0] = (kx + 0.5) * res
-        centres[i, 1] = (ky + 0.5) * res
-        centres[i, 2] = (kz + 0.5) * res
+        put_key_centre(st.grid, gi, res, keys, centres, i)
         v = st.logodds[gi]
         values[i] = v
         occupied[i] = 1 if v > 0 else 0

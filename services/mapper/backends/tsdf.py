@@ -47,10 +47,11 @@ from smana.services.mapper._grid import (
     Grid,
     hash_slot,
     pack_block,
+    put_key_centre,
     table_find,
-    unpack_block,
     voxblox_ray_keys,
     voxel_index,
+    voxel_key,
     voxel_slot,
 )
 from smana.services.mapper.backends.base import MapBackend
@@ -236,21 +237,6 @@ def _near_voxel(grid, g, own_key, ix, iy, iz):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _voxel_key(grid, g):
-    """(ix, iy, iz) of global voxel index g."""
-    bits = grid.bits
-    vb = 3 * bits
-    bm = (1 << bits) - 1
-    bx, by, bz = unpack_block(grid.block_keys[g >> vb])
-    local = g & ((1 << vb) - 1)
-    return (
-        (bx << bits) | (local & bm),
-        (by << bits) | ((local >> bits) & bm),
-        (bz << bits) | ((local >> (2 * bits)) & bm),
-    )
-
-
-@njit(cache=True, error_model="numpy", inline="always")
 def _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz):
     """Voxel g at (ix, iy, iz) is a surface voxel (module docstring)."""
     if not weight[g] >= min_weight:
@@ -276,7 +262,7 @@ def _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz):
 @njit(cache=True, error_model="numpy")
 def _surface_kernel(g, grid, distance, weight, min_weight, out):
     for i in range(g.shape[0]):
-        ix, iy, iz = _voxel_key(grid, g[i])
+        ix, iy, iz = voxel_key(grid, g[i])
         out[i] = _is_surface(grid, distance, weight, min_weight, g[i], ix, iy, iz)
 
 
@@ -297,7 +283,7 @@ def _extract_kernel(changed, grid, flags, distance, weight, min_weight, seen, ou
         n_seen += 1
     for i in range(changed.shape[0]):
         g = changed[i]
-        ix, iy, iz = _voxel_key(grid, g)
+        ix, iy, iz = voxel_key(grid, g)
         own_key, _ = voxel_index(ix, iy, iz, grid.bits)
         s = _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz)
         was = (flags[g] & SURFACE) != 0
@@ -348,25 +334,11 @@ def _tsdf_rows(st, g, res, exp_steps, class_ids, keys, centres, labels, probs, v
     """Fill the Delta columns of voxels g in one pass: coordinates, distance, and the label
     (first most probable class; 0 for a uniform vector) with its probability, 1 / sum over the
     classes of exp(-(steps behind the top) * log(p / q)) (`exp_steps`, 0 past its end)."""
-    bits = st.grid.bits
-    block_keys = st.grid.block_keys
     logp = st.logp
     n_exp = exp_steps.shape[0]
-    vb = 3 * bits
-    bm = (1 << bits) - 1
     for i in range(g.shape[0]):
         gi = g[i]
-        bx, by, bz = unpack_block(block_keys[gi >> vb])
-        local = gi & ((1 << vb) - 1)
-        kx = (bx << bits) | (local & bm)
-        ky = (by << bits) | ((local >> bits) & bm)
-        kz = (bz << bits) | ((local >> (2 * bits)) & bm)
-        keys[i, 0] = kx
-        keys[i, 1] = ky
-        keys[i, 2] = kz
-        centres[i, 0] = (kx + 0.5) * res
-        centres[i, 1] = (ky + 0.5) * res
-        centres[i, 2] = (kz + 0.5) * res
+        put_key_centre(st.grid, gi, res, keys, centres, i)
         values[i] = st.distance[gi]
         top = 0
         uniform = True
