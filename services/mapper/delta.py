@@ -29,14 +29,15 @@ class Delta:
         return int(self.keys.shape[0])
 
     @classmethod
-    def empty(cls) -> Delta:
+    def empty(cls, n: int = 0) -> Delta:
+        """n rows, uninitialised (a kernel fills them); no rows by default."""
         return cls(
-            np.zeros((0, 3), np.int32),
-            np.zeros((0, 3), np.float32),
-            np.zeros(0, np.uint16),
-            np.zeros(0, np.float32),
-            np.zeros(0, np.uint8),
-            np.zeros(0, np.float32),
+            np.empty((n, 3), np.int32),
+            np.empty((n, 3), np.float32),
+            np.empty(n, np.uint16),
+            np.empty(n, np.float32),
+            np.empty(n, np.uint8),
+            np.empty(n, np.float32),
         )
 
     def subset(self, mask: np.ndarray) -> Delta:

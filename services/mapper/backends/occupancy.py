@@ -409,15 +409,7 @@ class OccupancyBackend(MapBackend):
 
     def rows(self, g: np.ndarray) -> Delta:
         g = np.asarray(g, np.int64)
-        n = g.shape[0]
-        d = Delta(
-            np.empty((n, 3), np.int32),
-            np.empty((n, 3), np.float32),
-            np.empty(n, np.uint16),
-            np.empty(n, np.float32),
-            np.empty(n, np.uint8),
-            np.empty(n, np.float32),
-        )
+        d = Delta.empty(g.shape[0])
         _delta_rows(
             self._state(),
             self.resolution_m,

@@ -521,15 +521,8 @@ class Tsdf(MapBackend):
         return self._rows(g, self.surface(g))
 
     def _rows(self, g: np.ndarray, surface: np.ndarray) -> Delta:
-        n = g.shape[0]
-        d = Delta(
-            np.empty((n, 3), np.int32),
-            np.empty((n, 3), np.float32),
-            np.empty(n, np.uint16),
-            np.empty(n, np.float32),
-            surface.astype(np.uint8),
-            np.empty(n, np.float32),
-        )
+        d = Delta.empty(g.shape[0])
+        d.occupied = surface.astype(np.uint8)
         _tsdf_rows(
             self._state(np.zeros(1, np.int64)),
             g,
