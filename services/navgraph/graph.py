@@ -370,11 +370,12 @@ class NavGraph:
         changed = ~same_nodes(n_lab, n_h, n_f, changes.label, changes.height, changes.flags)
         sel = touched[changed]
         ix, iy = g.cells_of_flat(sel)
+        cells = np.stack([ix, iy], axis=1).astype(np.int32)
         if len(sel):
-            g.changed(np.stack([ix, iy], axis=1))
+            g.changed(cells)
         self.n_integrations += 1
         return GraphUpdate(
-            cells=np.stack([ix, iy], axis=1).astype(np.int32),
+            cells=cells,
             labels=n_lab[changed],
             heights=n_h[changed],
             flags=n_f[changed],
