@@ -40,7 +40,6 @@ import json
 import os
 import random
 import resource
-import signal
 import subprocess
 import sys
 import time
@@ -56,6 +55,7 @@ from smana.common import messages as m
 from smana.common.config import SmanaConfig
 from smana.common.zenoh_config import free_loopback_port
 from smana.lab import fuzz
+from smana.lab.bench import procs
 
 SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim")
 # Rejection kinds only the codec produces: the books must match the prediction exactly. Others
@@ -359,33 +359,10 @@ class Stack:
         return self.sim_robot if service == "sim" else self.robot
 
     def start(self, name: str) -> None:
-        from smana.deploy.supervisor import die_with_parent
-
-        log = open(self.out / f"{name}.log", "ab")  # noqa: SIM115 - the child owns it
-        argv = [
-            sys.executable,
-            "-m",
-            f"smana.services.{name}",
-            "--mode",
-            "client",
-            "--connect",
-            self.endpoint,
-            "--robot",
-            self.robot_of(name),
-            "--config",
-            str(self.config_path),
-        ]
-        self.procs[name] = subprocess.Popen(
-            argv,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,
-            env=dict(os.environ, PYTHONUNBUFFERED="1"),
-            cwd=self.out,
-            preexec_fn=die_with_parent,
+        argv = procs.service_argv(
+            name, self.endpoint, self.robot_of(name), "--config", str(self.config_path)
         )
-        log.close()
+        self.procs[name] = procs.spawn(argv, self.out / f"{name}.log", cwd=self.out)
 
     def log(self, name: str) -> str:
         p = self.out / f"{name}.log"
@@ -403,30 +380,12 @@ class Stack:
                 time.sleep(0.05)
 
     def stop_all(self, timeout_s: float = 15.0) -> dict[str, int | None]:
-        codes: dict[str, int | None] = {}
-        for proc in self.procs.values():
-            if proc.poll() is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGINT)
-                except ProcessLookupError:
-                    pass
-        for name, proc in self.procs.items():
-            try:
-                codes[name] = proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-                codes[name] = None  # did not stop on SIGINT
-        return codes
+        """Exit codes by service; None for one that did not stop on SIGINT."""
+        return dict(zip(self.procs, procs.stop(self.procs.values(), timeout_s), strict=True))
 
     def close(self) -> None:
         for proc in self.procs.values():
-            if proc.poll() is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                proc.wait()
+            procs.kill(proc)
         self.session.close()
 
 

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import statistics
 import subprocess
 import sys
@@ -36,6 +35,7 @@ import numpy as np
 
 from smana.common import progress
 from smana.common.zenoh_config import free_loopback_port
+from smana.lab.bench import procs
 from smana.services.mapper.backends import BACKENDS as _REGISTRY
 from smana.services.mapper.backends import backend_class
 
@@ -90,28 +90,8 @@ class Stack:
         self.procs: dict[str, subprocess.Popen] = {}
 
     def start(self, name: str, args: list[str]) -> subprocess.Popen:
-        log = open(self.log_dir / f"{name}.log", "ab")  # noqa: SIM115 - the child owns it
-        argv = [
-            sys.executable,
-            "-m",
-            f"smana.services.{name}",
-            "--mode",
-            "client",
-            "--connect",
-            self.endpoint,
-            "--robot",
-            self.robot,
-            *args,
-        ]
-        proc = subprocess.Popen(
-            argv,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,
-            env=dict(os.environ, PYTHONUNBUFFERED="1"),
-        )
-        log.close()
+        argv = procs.service_argv(name, self.endpoint, self.robot, *args)
+        proc = procs.spawn(argv, self.log_dir / f"{name}.log")
         self.procs[name] = proc
         return proc
 
@@ -131,14 +111,8 @@ class Stack:
 
     def stop(self, name: str, timeout_s: float = 10.0) -> None:
         proc = self.procs.pop(name, None)
-        if proc is None or proc.poll() is not None:
-            return
-        os.killpg(proc.pid, signal.SIGINT)
-        try:
-            proc.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        if proc is not None:
+            procs.stop([proc], timeout_s)
 
     def close(self) -> None:
         for name in list(self.procs):

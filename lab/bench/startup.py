@@ -33,7 +33,6 @@ import argparse
 import json
 import os
 import resource
-import signal
 import subprocess
 import sys
 import tempfile
@@ -43,6 +42,7 @@ from pathlib import Path
 
 from smana.common import keys
 from smana.common.cli import ArgumentParser, positive_float, run_command
+from smana.lab.bench import procs
 
 SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer")
 QUICK_SERVICES = ("navgraph",)
@@ -119,31 +119,17 @@ class Stack:
         self.t_start: dict[str, float] = {}
 
     def start(self, service: str) -> None:
-        from smana.common.service import KERNELS_ENV, die_with_parent
+        from smana.common.service import KERNELS_ENV
 
-        env = dict(os.environ, NUMBA_CACHE_DIR=str(self.cache), PYTHONUNBUFFERED="1")
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(self.cache))
         env[KERNELS_ENV] = self.side
-        argv = [
-            sys.executable,
-            "-m",
-            f"smana.services.{service}",
-            *("--mode", "client", "--connect", self.endpoint, "--robot", ROBOT),
-            *("--set", "explorer.time_budget_s=100000"),
-        ]
-        log = open(self.workdir / f"{self.side}-{service}.log", "ab")  # noqa: SIM115 - child's
+        argv = procs.service_argv(
+            service, self.endpoint, ROBOT, "--set", "explorer.time_budget_s=100000"
+        )
         self.watch.reset(service)
         self.t_start[service] = time.monotonic()
-        proc = subprocess.Popen(
-            argv,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,
-            env=env,
-            cwd=self.workdir,
-            preexec_fn=die_with_parent,
-        )
-        log.close()
+        log = self.workdir / f"{self.side}-{service}.log"
+        proc = procs.spawn(argv, log, env=env, cwd=self.workdir)
         self.watch.pids[service] = proc.pid
         self.procs[service] = proc
 
@@ -172,26 +158,10 @@ class Stack:
         return out
 
     def kill(self, service: str) -> None:
-        proc = self.procs[service]
-        try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-        proc.wait()
+        procs.kill(self.procs[service])
 
     def stop(self) -> None:
-        for proc in self.procs.values():
-            if proc.poll() is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGINT)
-                except ProcessLookupError:
-                    pass
-        for proc in self.procs.values():
-            try:
-                proc.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+        procs.stop(self.procs.values(), timeout_s=15)
 
 
 def run_side(side: str, services, endpoint: str, watch: Watch, out: Path, timeout_s: float):
