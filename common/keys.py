@@ -11,7 +11,17 @@ from __future__ import annotations
 import re
 
 PREFIX = "smana"
-SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer", "replay", "recorder", "ros2")
+SERVICES = (
+    "sim",
+    "mapper",
+    "navgraph",
+    "planner",
+    "explorer",
+    "replay",
+    "recorder",
+    "ros2",
+    "coordinator",
+)
 _NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
 
 
@@ -77,6 +87,16 @@ def path_query(robot: str) -> str:
 
 def explorer_state(robot: str) -> str:
     return key(robot, "explorer", "state")
+
+
+def claim(fleet: str) -> str:
+    """The coordinator's query: a member's ranked views in, the one it may head for out."""
+    return key(fleet, "coordinator", "claim")
+
+
+def claims(fleet: str) -> str:
+    """Every member's current goal, as the coordinator holds them (published on each change)."""
+    return key(fleet, "coordinator", "claims")
 
 
 def status(robot: str, service: str) -> str:

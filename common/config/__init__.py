@@ -5,6 +5,7 @@
     [deploy]    what `smana up` starts and how it restarts it              deploy.py
     [sim] [mapper] [navgraph] [planner] [explorer] [replay] [ros2]          one module each
     [geometric] the labeller of clouds without labels (common/geometric)   geometric.py
+    [fleet]     several robots, one map, one graph, coordinated views     fleet.py
 
 Each section is defined once, in its module, as a `Section` dataclass (`_schema.py`): its fields
 carry their limits and the one generic validator checks them, on load and when a core is given a
@@ -27,6 +28,7 @@ from typing import Any
 from smana.common.config._schema import ConfigError, Section, build, param, table, to_toml
 from smana.common.config.deploy import DeployConfig, ServiceDeployConfig
 from smana.common.config.explorer import ExplorerConfig
+from smana.common.config.fleet import FleetConfig
 from smana.common.config.general import GeneralConfig, ZenohConfig
 from smana.common.config.geometric import GeometricConfig
 from smana.common.config.mapper import MapperConfig
@@ -40,6 +42,7 @@ __all__ = [
     "ConfigError",
     "DeployConfig",
     "ExplorerConfig",
+    "FleetConfig",
     "GeneralConfig",
     "GeometricConfig",
     "MapperConfig",
@@ -71,6 +74,7 @@ class SmanaConfig:
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     geometric: GeometricConfig = field(default_factory=GeometricConfig)
     ros2: Ros2Config = field(default_factory=Ros2Config)
+    fleet: FleetConfig = field(default_factory=FleetConfig)
 
     @classmethod
     def load(
