@@ -24,6 +24,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "explorer": ("smana.services.explorer.__main__:cli", "run the frontier explorer service"),
     "replay": ("smana.services.replay.__main__:cli", "replay a dataset into the stack"),
     "ros2": ("smana.services.ros2.__main__:cli", "smana as a ROS 2 node over rmw_zenoh"),
+    "coordinator": (
+        "smana.services.coordinator.__main__:cli",
+        "run a fleet's coordinator (next-best views, no two robots to one frontier)",
+    ),
     "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
     "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
     "warmup": ("smana.deploy.warmup:cli", "compile every service's numba kernels ahead, once"),

@@ -47,7 +47,7 @@ from pathlib import Path
 
 from smana.common import keys
 from smana.common.cli import config_from_args, make_parser, setup_logging
-from smana.common.config import ServiceDeployConfig, SmanaConfig
+from smana.common.config import ConfigError, ServiceDeployConfig, SmanaConfig
 from smana.common.messages import MessageError, ServiceStatus, decode
 from smana.common.service import STANDBY_ENV, die_with_parent, on_stop_signals
 
@@ -55,6 +55,11 @@ log = logging.getLogger("smana.up")
 
 # Start order follows the data flow: producers first, so consumers find their inputs.
 SERVICE_ORDER = ("sim", "mapper", "navgraph", "planner", "explorer", "ros2")
+# A fleet (`fleet.robots`, `smana up --robots N`): the fleet's shared services run under
+# `fleet.name` on the base (`deploy.fleet_base`), each member's own under its name, on its host
+# (`deploy.robots`, default every member). One simulator simulates every member.
+FLEET_SHARED = ("sim", "mapper", "navgraph", "coordinator")
+FLEET_MEMBER = ("mapper", "planner", "explorer")
 
 
 @dataclass
@@ -114,22 +119,14 @@ class Supervisor:
         )
         self.config_path = self.service_config.write(self.run_dir / "config.toml")
         self.procs: dict[str, Managed] = {}
+        self.fleet = config.fleet.name if config.fleet.robots else None
+        if self.fleet is not None:
+            self._add_fleet(names)
+            names = []
         for robot in self.robots:
             for n in names:
-                argv = [
-                    sys.executable,
-                    "-m",
-                    f"smana.services.{n}",
-                    "--config",
-                    str(self.config_path),
-                    "--robot",
-                    robot,
-                ]
-                if config.zenoh.credentials_file:
-                    argv += ["--set", f'zenoh.user="{n}"']  # each service logs in as itself
                 name = n if len(self.robots) == 1 else f"{n}@{robot}"
-                policy = getattr(config.deploy, n)
-                self.add(name, argv + policy.args, policy, service=n, robot=robot)
+                self._add_service(name, n, robot)
         self.statuses: dict[tuple[str, str], ServiceStatus] = {}
         self.ended = ""  # why the run ended (for the summary)
         self.seen_ready: set[tuple[str, str]] = set()  # (robot, service) alive at some point,
@@ -137,6 +134,51 @@ class Supervisor:
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self.session = None
+
+    def _add_service(self, name: str, service: str, robot: str, extra=()) -> None:
+        argv = [
+            sys.executable,
+            "-m",
+            f"smana.services.{service}",
+            "--config",
+            str(self.config_path),
+            "--robot",
+            robot,
+            *extra,
+        ]
+        if self.config.zenoh.credentials_file:
+            argv += ["--set", f'zenoh.user="{service}"']  # each service logs in as itself
+        policy = getattr(self.config.deploy, service)
+        self.add(name, argv + policy.args, policy, service=service, robot=robot)
+
+    def _add_fleet(self, names: list[str]) -> None:
+        """The fleet's layout (FLEET_SHARED, FLEET_MEMBER). Members' files go to
+        `<run_dir>/robots/<member>/` (their own map, the explorer's state), the fleet's to the
+        run directory itself (the merged map, the simulator's record)."""
+        fc, dc = self.config.fleet, self.config.deploy
+        if not dc.fleet_members:
+            members = []
+        elif dc.robots:
+            members = list(dc.robots)
+        else:  # a base runs every member; a member's own host runs itself
+            members = list(fc.robots) if dc.fleet_base else [self.config.general.robot]
+        strangers = [r for r in members if r not in fc.robots]
+        if strangers:
+            raise ConfigError(f"deploy.robots {strangers} are not in fleet.robots {fc.robots}")
+        self.robots = members or [self.fleet]
+        enabled = [*names, "coordinator"] if dc.coordinator.enabled else names
+        if dc.fleet_base:
+            for n in FLEET_SHARED:
+                if n in enabled:
+                    extra = ["--set", 'mapper.source="fleet"'] if n == "mapper" else []
+                    self._add_service(f"{n}@{self.fleet}", n, self.fleet, extra)
+        for robot in members:
+            run_dir = self.run_dir / "robots" / robot
+            run_dir.mkdir(parents=True, exist_ok=True)
+            for n in FLEET_MEMBER:
+                if n in enabled:
+                    extra = ["--set", f"general.run_dir={json.dumps(str(run_dir))}"]
+                    self._add_service(f"{n}@{robot}", n, robot, extra)
 
     def add(
         self,
@@ -519,11 +561,16 @@ class Supervisor:
         if self.config.deploy.finish_with == "explorer":
             # What exploration needs, here or on another host of the deployment.
             for m in [m for m in self.procs.values() if m.service == "explorer"]:
-                for need in ("mapper", "navgraph", "planner"):
-                    if (m.robot, need) in self.seen_ready:
+                for need in ("mapper", "navgraph", "planner", "coordinator"):
+                    where = m.robot
+                    if self.fleet is not None and need in ("navgraph", "coordinator"):
+                        where = self.fleet  # the fleet's shared graph and coordinator
+                    elif need == "coordinator":
+                        continue
+                    if (where, need) in self.seen_ready:
                         continue
                     why = "see above"
-                    if self._find(m.robot, need) is None:
+                    if self._find(where, need) is None:
                         why = f"disabled in this run (deploy.{need}.enabled = false) and none ran"
                         why += " elsewhere"
                     out.append(
@@ -581,6 +628,14 @@ def add_recorder(sup: Supervisor) -> bool:
         log.warning("no Rerun recording (%s): pip install rerun-sdk", exc)
         return False
     policy = sup.config.deploy.recorder
+    if sup.fleet is not None:  # one recording of the whole fleet, on the base
+        if not sup.config.deploy.fleet_base:
+            return False
+        argv = recorder_argv(sup.config_path, sup.fleet) + list(policy.args)
+        if sup.config.zenoh.credentials_file:
+            argv += ["--set", 'zenoh.user="recorder"']
+        sup.add(f"recorder@{sup.fleet}", argv, policy, service="recorder", robot=sup.fleet)
+        return True
     for robot in sup.robots:
         argv = recorder_argv(sup.config_path, robot) + list(policy.args)
         if sup.config.zenoh.credentials_file:
@@ -648,7 +703,7 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
 
 
 def cli(argv: list[str] | None = None) -> int:
-    from smana.common.cli import positive_float
+    from smana.common.cli import positive_float, positive_int
 
     p = make_parser(
         "smana up",
@@ -663,7 +718,17 @@ def cli(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--only", metavar="A,B", help="start only these services, e.g. mapper,planner")
     p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
+    p.add_argument(
+        "--robots",
+        type=positive_int,
+        metavar="N",
+        help="a fleet of N robots r1..rN in one simulated world, sharing one map, one "
+        "navigation graph and a coordinator (the same as --set 'fleet.robots=[\"r1\", ...]')",
+    )
     args = p.parse_args(argv)
+    if args.robots is not None:
+        members = ", ".join(f'"r{i + 1}"' for i in range(args.robots))
+        args.overrides = [*(args.overrides or []), f"fleet.robots=[{members}]"]
     cfg = config_from_args(args, layers=[profile_path(args.profile, p)])
     from smana.services.mapper.backends import check_backend
 

@@ -37,7 +37,11 @@ class DeployConfig(Section, section="deploy"):
     # (e.g. tls/0.0.0.0:7448 on a base station) are for other hosts' routers.
     router_listen: list[str] = param(["tcp/127.0.0.1:7447"])
     router_connect: list[str] = param([])  # other routers (robot -> base)
-    robots: list[str] = param([])  # multi-robot: one instance per robot name
+    robots: list[str] = param([])  # multi-robot: one instance per robot name (in a fleet: the
+    # members whose own services run on this host; [] = every member on the base, else
+    # general.robot)
+    fleet_base: bool = True  # a fleet: this host runs the fleet's shared services
+    fleet_members: bool = True  # a fleet: this host runs members' own services
     # Health: a service shows its `starting` token within health_timeout_s of its start (or it is
     # killed and restarted), then its `alive` token within startup_timeout_s (loading a map,
     # compiling numba kernels on a cold cache: minutes on a loaded 2-core machine).
@@ -55,5 +59,6 @@ class DeployConfig(Section, section="deploy"):
     planner: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
     explorer: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
     recorder: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # Rerun .rrd
+    coordinator: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # a fleet's
     # ROS 2 over rmw_zenoh (`smana ros2`); off unless asked: --set deploy.ros2.enabled=true
     ros2: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(enabled=False))

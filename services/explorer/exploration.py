@@ -34,9 +34,14 @@ import numpy as np
 from smana.common.config.explorer import ExplorerConfig
 from smana.services.explorer import frontier as fr
 from smana.services.explorer.follower import PurePursuit, wrap_angle
+from smana.services.explorer.team import Team
 
 # path_cost(start_xy, goal_xy) -> (cost, path (K, 2|3)) or None when there is no path
 PathFn = Callable[[np.ndarray, np.ndarray], "tuple[float, np.ndarray] | None"]
+# claim(goal_xy) -> (granted, the member holding a goal too near, that goal) (fleet members)
+ClaimFn = Callable[[np.ndarray], "tuple[bool, str | None, np.ndarray | None]"]
+MAX_CLAIMS_PER_PLAN = 3  # refused this often in one plan: wait for the next one
+GOAL_SEEN_CHECK_S = 1.0  # in a fleet, how often the goal's gain is checked between plans
 
 
 @dataclass
@@ -103,16 +108,23 @@ class Explorer:
         n_labels: int,
         cost_per_m_lower_bound: float = 1.0,
         cost_per_m_flat: float = 1.0,
+        team: Team | None = None,
     ):
         """`config` is the [explorer] section as it is. `cost_per_m_lower_bound`: every path costs
         at least this much per metre of straight-line distance (from the planner's t_f and the
         class costs; 1.0 is always safe): it lets `select_view` skip hopeless path queries.
         `cost_per_m_flat`: the planner's cost of a metre on the cheapest flat ground, the unit
         path costs are scored in (both from `frontier.path_cost_scale`; 1.0 and 1.0 is a planner
-        whose cost is the path length)."""
+        whose cost is the path length). `team`: the other fleet members (services/explorer/team.py),
+        None for a robot alone."""
         if not (cost_per_m_flat > 0 and cost_per_m_lower_bound >= 0):
             raise ValueError("need cost_per_m_flat > 0 and cost_per_m_lower_bound >= 0")
         self.config = config
+        self.team = team
+        self._yield = False  # a member with the right of way held us too long: re-plan
+        self._t_goal_check = -math.inf
+        self.n_claims_refused = 0
+        self.n_yields = 0
         self.cost_per_m_lower_bound = float(cost_per_m_lower_bound)
         self.cost_per_m_flat = float(cost_per_m_flat)
         self.traversable_lut = np.asarray(traversable_lut, bool)
@@ -232,14 +244,30 @@ class Explorer:
             self.n_stuck += 1
             self._forget(self.goal.choice.xy)
             return "stuck"
+        if self.team is not None:
+            if self._yield:
+                self._yield = False
+                self.n_yields += 1
+                self._forget(self.goal.choice.xy, seconds=10.0)
+                return "yield"
+            if t - self._t_goal_check >= GOAL_SEEN_CHECK_S:
+                # another member may have seen our view for us: do not drive there for nothing
+                self._t_goal_check = t
+                if self._goal_exhausted():
+                    return "goal_seen"
         if t - self._t_last_plan >= self.config.replan_period_s:
             return "periodic"
         return None
 
-    def plan(self, path_cost: PathFn, reason: str = "no_goal") -> PlanOutcome:
+    def plan(
+        self, path_cost: PathFn, reason: str = "no_goal", claim: ClaimFn | None = None
+    ) -> PlanOutcome:
         """Choose the next view (or keep the current one) and hand its path to the follower.
 
         `path_cost(start_xy, goal_xy)` returns (cost, path (K, 2|3)) or None when unreachable.
+        `claim(goal_xy)` (a fleet member's, with `team`): asks the coordinator for a new goal
+        before the robot heads for it; a refusal names the member whose goal is too near, and
+        the choice is made again without the views near it.
         """
         assert self.grid is not None and self.pose is not None
         self.n_plans += 1
@@ -283,22 +311,19 @@ class Explorer:
                 )
         else:
             spacing = max(1, int(round(self.config.candidate_spacing_m / g.resolution_m)))
-            cells = fr.sample_candidates(front, spacing)
-            cells = self._drop_blacklisted(cells)
-            gains, yaws = fr.view_gains(unknown, opaque, cells, self._fov)
-            best_gain = gains.max(axis=1) if len(cells) else np.zeros(0)
-            choice = fr.select_view(
-                g.centres(cells) if len(cells) else np.zeros((0, 2)),
-                cells,
-                best_gain,
-                yaws,
-                np.array([x, y]),
-                goal_cost,
-                self.score,
-                self.config.min_gain_m2,
-                self.cost_per_m_lower_bound,
-                max_queries=self.config.max_queries,
-            )
+            all_cells = self._drop_blacklisted(fr.sample_candidates(front, spacing))
+            for _ in range(MAX_CLAIMS_PER_PLAN):
+                cells, best_gain, choice = self._next_best_view(
+                    all_cells, unknown, opaque, (x, y), goal_cost
+                )
+                if choice is None or claim is None or self._keeps(keep_goal, choice):
+                    break
+                granted, holder, holder_xy = claim(choice.xy)
+                if granted:
+                    break
+                self.n_claims_refused += 1
+                self.team.add_goal(holder, holder_xy)
+                choice = None  # refused every time: no new goal from this plan
         xy = g.centres(cells) if len(cells) else np.zeros((0, 2))
         outcome = PlanOutcome(reason, choice, False, len(front), len(cells), xy, best_gain)
         self.last_outcome = outcome
@@ -306,6 +331,11 @@ class Explorer:
             if keep_goal:
                 return outcome  # nothing new, keep going to the current goal
             self._set_goal(None)
+            if self.team is not None and len(self.team.goals):
+                # what is left may be another member's to see: wait for its goals to change
+                # instead of spinning or giving up
+                self._empty_plans = max(self._empty_plans, 1)
+                return outcome
             self._empty_plans += 1
             if self._maybe_spin():
                 return outcome
@@ -313,11 +343,42 @@ class Explorer:
                 self.finish("no_view_worth_it" if len(cells) else "no_frontier")
             return outcome
         self._empty_plans = 0
-        if keep_goal and choice.score <= self._current_score() + self.config.switch_margin_share:
+        if self._keeps(keep_goal, choice):
             return outcome
         outcome.switched = self.goal is not None
         self._set_goal(choice)
         return outcome
+
+    def _keeps(self, keep_goal: bool, choice: fr.ViewChoice) -> bool:
+        """A periodic plan keeps the current goal unless the new view is better by the margin."""
+        return keep_goal and choice.score <= self._current_score() + self.config.switch_margin_share
+
+    def _next_best_view(self, cells, unknown, opaque, xy, goal_cost):
+        """The paper's choice among candidate cells: (cells kept, their best gains, the choice or
+        None). In a fleet, views near another member's goal are left out and the unknown area
+        around it counts for nothing (that member will see it)."""
+        g = self.grid
+        gain_unknown = unknown
+        if self.team is not None:
+            if len(cells):
+                cells = cells[self.team.apart(g.centres(cells))]
+            claimed = self.team.claimed(g.origin_xy, g.resolution_m, unknown.shape)
+            gain_unknown = unknown & ~claimed
+        gains, yaws = fr.view_gains(gain_unknown, opaque, cells, self._fov)
+        best_gain = gains.max(axis=1) if len(cells) else np.zeros(0)
+        choice = fr.select_view(
+            g.centres(cells) if len(cells) else np.zeros((0, 2)),
+            cells,
+            best_gain,
+            yaws,
+            np.asarray(xy, float),
+            goal_cost,
+            self.score,
+            self.config.min_gain_m2,
+            self.cost_per_m_lower_bound,
+            max_queries=self.config.max_queries,
+        )
+        return cells, best_gain, choice
 
     def control(self) -> tuple[float, float]:
         """Velocity command (v m/s, w rad/s) for the current tick."""
@@ -334,7 +395,7 @@ class Explorer:
                 return 0.0, 0.0
             return 0.0, self.config.follower.max_angular_radps * 0.6
         if self.goal is None:
-            return 0.0, 0.0
+            return self._make_way(x, y, yaw)
         cmd = self.follower.command(x, y, yaw, self._segment_clear)
         if cmd.done:
             self._forget(self.goal.choice.xy, seconds=self.config.dwell_s + 5.0)
@@ -342,12 +403,33 @@ class Explorer:
             self._t_arrived = self.t_now
             return 0.0, 0.0
         v, w = cmd.linear_mps, cmd.angular_radps
+        if self.team is not None and v > 0:
+            stop, give_way = self.team.hold(x, y, yaw, self.t_now)
+            if stop:
+                v = 0.0  # turning on the spot stays allowed: it may point the robot away
+            self._yield |= give_way
         if self.grid is not None and v > self.config.creep_speed_mps:
             here = np.array(self.grid.cell_of((x, y)))
             if self.grid.inside(here).all() and _blocking(self.grid.flags[here[0], here[1]]):
                 w *= self.config.creep_speed_mps / v  # same arc, slower
                 v = self.config.creep_speed_mps
         return v, w
+
+    def _make_way(self, x: float, y: float, yaw: float) -> tuple[float, float]:
+        """Idle in a fleet: step away from a member that comes close (team.py), slowly, and
+        only onto ground known to be clear."""
+        away = None if self.team is None else self.team.make_way(x, y, self.t_now)
+        if away is None:
+            return 0.0, 0.0
+        err = wrap_angle(math.atan2(away[1], away[0]) - yaw)
+        fc = self.config.follower
+        w = max(-fc.max_angular_radps, min(fc.max_angular_radps, 2.0 * err))
+        if abs(err) > 0.5:
+            return 0.0, w
+        p = np.array([x, y])
+        if not self._segment_clear(p, p + 0.5 * away):
+            return 0.0, 0.0
+        return self.config.creep_speed_mps, w
 
     # -- state ----------------------------------------------------------------------------------
 
@@ -379,6 +461,9 @@ class Explorer:
             "n_goals": self.n_goals,
             "n_blocked": self.n_replans_blocked,
             "n_stuck": self.n_stuck,
+            "n_claims_refused": self.n_claims_refused,
+            "n_yields": self.n_yields,
+            "n_team_stops": 0 if self.team is None else self.team.n_stops,
             "pose": None if self.pose is None else list(self.pose),
         }
 

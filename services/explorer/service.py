@@ -26,6 +26,7 @@ import time
 import uuid
 from pathlib import Path
 
+import msgpack
 import numpy as np
 
 from smana.common import keys
@@ -46,6 +47,7 @@ from smana.common.query import QueryError, request
 from smana.common.service import Reject, Service, kernels_loaded
 from smana.services.explorer import frontier as fr
 from smana.services.explorer.exploration import Explorer, GridBox
+from smana.services.explorer.team import Team
 
 STATE_PERIOD_S = 0.5
 CHECKPOINT_PERIOD_S = 10.0  # state and trajectory saved for a restarted explorer to carry on
@@ -67,7 +69,15 @@ class ExplorerService(Service):
         flat, bound = fr.path_cost_scale(
             config.planner.t_f, self.table.costs(self.class_costs), nav.resolution_m
         )
-        self.core = Explorer(self.cfg, self.table.traversable_lut, self.table.size, bound, flat)
+        # A fleet member explores on the fleet's shared graph, with the others (team.py).
+        self.fleet = config.fleet
+        self.graph_ns = self.fleet.shared_namespace(self.robot)
+        self.team = Team(self.fleet, self.robot) if self.robot in self.fleet.robots else None
+        self.core = Explorer(
+            self.cfg, self.table.traversable_lut, self.table.size, bound, flat, team=self.team
+        )
+        self.claims_asked = 0  # asked of the coordinator (its books count them as received)
+        self.claim_errors: dict[str, int] = {}
         self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
         self._grid_dirty = False
         self._grid_version_used = -1
@@ -158,8 +168,13 @@ class ExplorerService(Service):
         r = self.robot
         self.cmd_pub = self.publisher(keys.cmd_vel(r), express=True)
         self.state_pub = self.publisher(keys.explorer_state(r))
-        self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
+        self.subscribe(keys.graph_patch(self.graph_ns), self.on_patch, GraphPatch)
         self.subscribe(keys.pose(r), self.on_pose, Pose)
+        if self.team is not None:
+            for m in self.fleet.robots:
+                if m != r:
+                    self.subscribe(keys.pose(m), lambda p, m=m: self.on_member_pose(m, p), Pose)
+            self.subscribe(keys.claims(self.fleet.name), self.on_claims)
         self.queryable(keys.explorer_state(r), lambda req: self.core.state_dict())
         self._declared.append(
             self.session.liveliness().declare_subscriber(
@@ -180,7 +195,7 @@ class ExplorerService(Service):
         self._next_sync = time.monotonic() + 2.0
         self.graph_queries += 1
         try:
-            reply = request(self.session, keys.query(self.robot, "navgraph", "graph"), None, 2.0)
+            reply = request(self.session, keys.query(self.graph_ns, "navgraph", "graph"), None, 2.0)
         except QueryError as exc:
             if self._sync_failures == 0:
                 self.log.info("no graph from navgraph yet (%s): will ask again", exc.kind)
@@ -192,6 +207,38 @@ class ExplorerService(Service):
         self._patched()
         self._need_sync = False
         self.log.info("graph synced from navgraph: %d nodes", len(reply.cells))
+
+    def on_member_pose(self, member: str, pose: Pose) -> None:
+        self.team.update_position(member, pose.position[0], pose.position[1], pose.stamp_s)
+
+    def on_claims(self, payload: bytes) -> None:
+        try:
+            claims = msgpack.unpackb(payload)["claims"]
+            if not isinstance(claims, dict):
+                raise TypeError("claims is not a map")
+        except Exception as exc:
+            raise Reject("malformed", f"coordinator claims: {exc}") from None
+        self.team.update_goals(claims)
+
+    def _claim(self, goal_xy):
+        """Ask the coordinator for `goal_xy`. Without an answer the member plans alone (the
+        views near the others' last known goals are still left out)."""
+        self.claims_asked += 1
+        body = {"robot": self.robot, "goal": [float(goal_xy[0]), float(goal_xy[1])]}
+        try:
+            reply = request(
+                self.session, keys.claim(self.fleet.name), body, self.fleet.claim_timeout_s
+            )
+            granted, holder = bool(reply["granted"]), reply.get("holder")
+            claims = reply.get("claims") or {}
+        except (QueryError, KeyError, TypeError) as exc:
+            kind = getattr(exc, "kind", "malformed")
+            self.claim_errors[kind] = self.claim_errors.get(kind, 0) + 1
+            if self.claim_errors[kind] in (1, 10, 100):
+                self.log.warning("no answer from the coordinator (%s): planning alone", kind)
+            return True, None, None
+        self.team.update_goals(claims)
+        return granted, holder, claims.get(holder) if holder else None
 
     def _on_planner_token(self, sample) -> None:
         # a zenoh callback: count planners up (one per robot, or one on the base and the robot)
@@ -269,7 +316,8 @@ class ExplorerService(Service):
         if reason is not None and self.core.grid is not None:
             self._send(*self.core.control())  # keep the last command fresh while we think
             t0 = time.perf_counter()
-            outcome = self.core.plan(self._path_cost, reason)
+            claim = self._claim if self.team is not None else None
+            outcome = self.core.plan(self._path_cost, reason, claim)
             self.plan_time_ms = (time.perf_counter() - t0) * 1e3
             goal = self.core.goal
             if outcome.chosen is not None and goal is not None and goal.choice is outcome.chosen:
@@ -465,7 +513,15 @@ class ExplorerService(Service):
             "path_ok": self.path_ok,
             "path_errors": dict(self.path_errors),
             "plan_time_ms": self.plan_time_ms,
-        }
+        } | (
+            {}
+            if self.team is None
+            else {
+                "claims_asked": self.claims_asked,
+                "claim_errors": dict(self.claim_errors),
+                "team_stops": self.team.n_stops,
+            }
+        )
 
 
 def main(config: SmanaConfig) -> int:

@@ -14,6 +14,7 @@ query, which a request may override one by one (h_f, t_f, max_step_m, unknown_co
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -78,8 +79,8 @@ class Planner:
 
     # -- the query -----------------------------------------------------------------------------
 
-    def plan_request(self, req) -> PlanResult:
-        """Answer a PathRequest (or anything with its attributes)."""
+    def plan_request(self, req, avoid=None, avoid_radius_m: float = 0.0) -> PlanResult:
+        """Answer a PathRequest (or anything with its attributes); `avoid` as in `plan`."""
         return self.plan(
             req.start,
             req.goal,
@@ -89,6 +90,8 @@ class Planner:
             allow_unknown=req.allow_unknown,
             unknown_cost=req.unknown_cost,
             max_step_m=req.max_step_m,
+            avoid=avoid,
+            avoid_radius_m=avoid_radius_m,
         )
 
     def plan(
@@ -103,7 +106,12 @@ class Planner:
         unknown_cost: float | None = None,
         max_step_m: float | None = None,
         heuristic: str | None = None,
+        avoid=None,
+        avoid_radius_m: float = 0.0,
     ) -> PlanResult:
+        """`avoid`: positions (K, 2) of moving obstacles (other fleet members): nodes within
+        `avoid_radius_m` of one are not entered, except by a path moving away from it (a robot
+        already that close may still leave)."""
         t0 = time.perf_counter()
         try:
             result = self._plan(
@@ -116,6 +124,8 @@ class Planner:
                 unknown_cost,
                 max_step_m,
                 heuristic,
+                avoid,
+                avoid_radius_m,
             )
         except PlanError as exc:
             nf = np.zeros(0) if exc.nearest_free is None else np.asarray(exc.nearest_free, float)
@@ -153,7 +163,18 @@ class Planner:
         return a[:2]
 
     def _plan(
-        self, start, goal, h_f, t_f, class_costs, allow_unknown, unknown_cost, max_step_m, heuristic
+        self,
+        start,
+        goal,
+        h_f,
+        t_f,
+        class_costs,
+        allow_unknown,
+        unknown_cost,
+        max_step_m,
+        heuristic,
+        avoid=None,
+        avoid_radius_m=0.0,
     ) -> PlanResult:
         p, lut = self._params(h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic)
         s_xy, g_xy = self._point("start", start), self._point("goal", goal)
@@ -179,17 +200,27 @@ class Planner:
         self._check_end("start", sx, sy, flags, enter, box, s_xy, allow_unknown=True)
         self._check_end("goal", gx, gy, flags, enter, box, g_xy, allow_unknown)
         step = float(p.max_step_m)
-        res = search(
-            enter,
-            known_h,
-            (sx, sy),
-            (gx, gy),
-            g.resolution_m,
-            float(p.h_f),
-            step,
-            p.heuristic,
-            min_enter,
-        )
+        # Moving obstacles block nodes for this query only: the cached enter costs are put back
+        # after the search. Raising costs keeps min_enter a lower bound: still exact.
+        blocked = self._blocked(box, s_xy, g_xy, (gx, gy), avoid, avoid_radius_m)
+        saved = enter[blocked] if blocked is not None else None
+        try:
+            if blocked is not None:
+                enter[blocked] = np.inf
+            res = search(
+                enter,
+                known_h,
+                (sx, sy),
+                (gx, gy),
+                g.resolution_m,
+                float(p.h_f),
+                step,
+                p.heuristic,
+                min_enter,
+            )
+        finally:
+            if blocked is not None:
+                enter[blocked] = saved
         if not res.found:
             raise PlanError(
                 UNREACHABLE,
@@ -225,6 +256,35 @@ class Planner:
             label_share=share,
             nodes_expanded=res.nodes_expanded,
         )
+
+    def _blocked(self, box, s_xy, g_xy, goal_cell, avoid, radius_m) -> np.ndarray | None:
+        """Window mask of the nodes the moving obstacles `avoid` close for this query (see
+        `plan`), or None when there are none; a goal among them is refused."""
+        if avoid is None or radius_m <= 0:
+            return None
+        avoid = np.asarray(avoid, np.float64).reshape(-1, 2)
+        if len(avoid) == 0:
+            return None
+        g = self.grid
+        x0, y0, x1, y1 = box
+        cx = g.origin_xy[0] + (np.arange(x0, x1) + 0.5) * g.resolution_m
+        cy = g.origin_xy[1] + (np.arange(y0, y1) + 0.5) * g.resolution_m
+        mask = np.zeros((x1 - x0, y1 - y0), bool)
+        for ox, oy in avoid:
+            d_start = math.hypot(s_xy[0] - ox, s_xy[1] - oy)
+            limit = min(radius_m, d_start)  # nearer than the start: only moving away is allowed
+            i = np.flatnonzero(np.abs(cx - ox) < limit)
+            j = np.flatnonzero(np.abs(cy - oy) < limit)
+            if len(i) and len(j):
+                d2 = (cx[i, None] - ox) ** 2 + (cy[None, j] - oy) ** 2
+                mask[i[0] : i[-1] + 1, j[0] : j[-1] + 1] |= d2 < limit * limit
+            if math.hypot(g_xy[0] - ox, g_xy[1] - oy) < limit or mask[goal_cell]:
+                raise PlanError(
+                    GOAL_BLOCKED,
+                    f"goal ({g_xy[0]:.2f}, {g_xy[1]:.2f}) is within {radius_m:g} m of another "
+                    f"robot at ({ox:.2f}, {oy:.2f})",
+                )
+        return mask if mask.any() else None
 
     def _check_end(self, name, ix, iy, flags, enter, box, xy, allow_unknown) -> None:
         f = int(flags[ix, iy])

@@ -36,6 +36,7 @@ from smana.common.messages import (
     MessageError,
     PathReply,
     PathRequest,
+    Pose,
     from_dict,
 )
 from smana.common.navgrid import NavGrid
@@ -116,6 +117,10 @@ class PlannerService(Service):
         self.outcomes: dict[str, int] = {}
         self.times_ms: list[float] = []
         self._resync = False
+        # A fleet member plans on the fleet's shared graph, around the other members.
+        self.fleet = config.fleet
+        self.graph_ns = self.fleet.shared_namespace(self.robot)
+        self.members: dict[str, tuple[float, float, float]] = {}  # name -> (x, y, when heard)
 
     def prepare(self) -> None:
         # Before the liveliness token: whoever waits for the planner gets a compiled one.
@@ -124,15 +129,19 @@ class PlannerService(Service):
 
     def setup(self) -> None:
         r = self.robot
-        self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
+        self.subscribe(keys.graph_patch(self.graph_ns), self.on_patch, GraphPatch)
         self.queryable(keys.path_query(r), self.on_path)
+        if r in self.fleet.robots:
+            for m in self.fleet.robots:
+                if m != r:
+                    self.subscribe(keys.pose(m), lambda p, m=m: self.on_member_pose(m, p), Pose)
         self.queryable(keys.query(r, "planner", "stats"), lambda req: self.stats())
         self.sync()
         # A navgraph that (re)starts starts a new graph and a new patch sequence: fetch it then.
         # The callback only raises a flag; tick() does the work on the main loop.
         self._declared.append(
             self.session.liveliness().declare_subscriber(
-                keys.alive(r, "navgraph"), self._on_navgraph_token
+                keys.alive(self.graph_ns, "navgraph"), self._on_navgraph_token
             )
         )
 
@@ -156,7 +165,7 @@ class PlannerService(Service):
         self.graph_queries += 1
         try:
             reply = request(
-                self.session, keys.query(self.robot, "navgraph", "graph"), None, timeout
+                self.session, keys.query(self.graph_ns, "navgraph", "graph"), None, timeout
             )
         except QueryError as exc:
             self.log.info("no graph from navgraph (%s): waiting for patches", exc.kind)
@@ -199,7 +208,17 @@ class PlannerService(Service):
             # Still answered as a PathReply (ok false, `malformed`), and counted as rejected.
             result = PlanResult(False, MALFORMED, f"malformed request: {exc}")
             raise Reject(exc.kind, f"bad path request: {exc}", self._reply("", result)) from None
-        return self._reply(msg.request_id, self.planner.plan_request(msg))
+        now = time.monotonic()
+        avoid = [
+            (x, y) for x, y, t in self.members.values() if now - t <= self.fleet.pose_timeout_s
+        ]
+        result = self.planner.plan_request(msg, avoid, self.fleet.robot_clearance_m)
+        return self._reply(msg.request_id, result)
+
+    def on_member_pose(self, member: str, pose: Pose) -> None:
+        """Another fleet member's pose: a moving obstacle for the next queries."""
+        x, y = float(pose.position[0]), float(pose.position[1])
+        self.members[member] = (x, y, time.monotonic())
 
     def _reply(self, request_id: str, result: PlanResult) -> PathReply:
         key = "ok" if result.ok else result.error

@@ -1,0 +1,104 @@
+"""The claim book: every fleet member's current goal, and the rule that keeps goals apart.
+
+The coordinator's core, without zenoh. Each member's explorer chooses its next-best view itself
+(from the shared graph, with the views near other members' goals discounted) and then claims it:
+the book grants a goal unless another member's goal lies within `goal_separation_m` of it, so no
+two members head for the same frontier. Claims are answered one at a time, in arrival order (the
+service's main loop), which settles two members choosing the same place at the same moment: the
+first one wins, the second one is told who holds it and plans again.
+
+A claim ends when its member claims something else, releases it (goal reached, nothing worth a
+trip, done), or falls silent for `ttl_s` (its explorer stopped, or its link to the base dropped:
+the place is free for the others).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass
+class Claim:
+    xy: tuple[float, float]
+    t: float  # when it was claimed or last confirmed (the book's clock)
+
+
+class ClaimBook:
+    def __init__(self, members: list[str], goal_separation_m: float, ttl_s: float):
+        if goal_separation_m < 0 or ttl_s <= 0:
+            raise ValueError("need goal_separation_m >= 0 and ttl_s > 0")
+        self.members = list(members)
+        self.separation_m = float(goal_separation_m)
+        self.ttl_s = float(ttl_s)
+        self.claims: dict[str, Claim] = {}
+        self.heard: dict[str, float] = {}  # when each member was last heard of
+        self.granted = 0
+        self.refused = 0
+        self.released = 0
+        self.expired = 0
+        self.version = 0  # bumped on every change, for the service to publish
+
+    def check_member(self, robot: str) -> None:
+        if robot not in self.members:
+            raise ValueError(f"{robot!r} is not a member of the fleet ({', '.join(self.members)})")
+
+    def claim(self, robot: str, xy, t: float) -> tuple[bool, str | None]:
+        """Claim `xy` for `robot`: (True, None) when granted, else (False, the member whose goal
+        is too near). Granting replaces the member's earlier claim."""
+        self.check_member(robot)
+        x, y = (float(v) for v in xy)
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise ValueError(f"goal must be finite, got {xy!r}")
+        self.heard[robot] = t
+        for other, c in sorted(self.claims.items()):
+            if other != robot and math.hypot(x - c.xy[0], y - c.xy[1]) < self.separation_m:
+                self.refused += 1
+                return False, other
+        self.claims[robot] = Claim((x, y), t)
+        self.granted += 1
+        self.version += 1
+        return True, None
+
+    def release(self, robot: str, t: float) -> bool:
+        self.check_member(robot)
+        self.heard[robot] = t
+        if self.claims.pop(robot, None) is None:
+            return False
+        self.released += 1
+        self.version += 1
+        return True
+
+    def confirm(self, robot: str, goal_xy, t: float) -> None:
+        """What a member's own state says (it goes to `goal_xy`, or to nothing): a claim is kept
+        alive by it, and ends when the member says it has no goal."""
+        self.check_member(robot)
+        self.heard[robot] = t
+        c = self.claims.get(robot)
+        if goal_xy is None:
+            if c is not None:
+                self.release(robot, t)
+        elif c is not None and math.hypot(goal_xy[0] - c.xy[0], goal_xy[1] - c.xy[1]) < 1e-3:
+            c.t = t
+
+    def expire(self, t: float) -> list[str]:
+        """Forget the claims of members not heard of for `ttl_s`."""
+        gone = [r for r in self.claims if t - self.heard.get(r, -math.inf) > self.ttl_s]
+        for r in gone:
+            del self.claims[r]
+            self.expired += 1
+        if gone:
+            self.version += 1
+        return gone
+
+    def snapshot(self) -> dict[str, list[float]]:
+        return {r: [c.xy[0], c.xy[1]] for r, c in sorted(self.claims.items())}
+
+    def stats(self) -> dict:
+        return {
+            "claims": self.snapshot(),
+            "granted": self.granted,
+            "refused": self.refused,
+            "released": self.released,
+            "expired": self.expired,
+        }

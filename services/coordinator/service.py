@@ -1,0 +1,103 @@
+"""The coordinator service: the `ClaimBook` on the fleet's keys (`smana/<fleet>/coordinator/...`).
+
+- query `coordinator/claim`: a map `{"robot": name, "goal": [x, y]}` claims a goal, `{"robot":
+  name, "goal": null}` releases the member's claim; the reply is `{"ok": true, "granted": bool,
+  "holder": the member whose goal is too near (or null), "claims": {member: [x, y]}}`;
+- `coordinator/claims` (published on each change and every second, also a query): `{"claims":
+  {member: [x, y]}, "version": n, "stamp_s": wall time}`: what every explorer discounts its views
+  with;
+- in: each member's `explorer/state`, which keeps its claim alive (or ends it when the member has
+  no goal any more); a member silent for `fleet.pose_timeout_s` x 5 loses its claim.
+"""
+
+from __future__ import annotations
+
+import time
+
+import msgpack
+
+from smana.common import keys
+from smana.common.config import ConfigError, SmanaConfig
+from smana.common.service import Reject, Service, run_service
+
+from .claims import ClaimBook
+
+PUBLISH_PERIOD_S = 1.0
+
+
+class CoordinatorService(Service):
+    name = "coordinator"
+    tick_period_s = 0.2
+
+    def __init__(self, config: SmanaConfig):
+        super().__init__(config)
+        fc = config.fleet
+        if not fc.robots:
+            raise ConfigError(
+                "the coordinator needs a fleet: set fleet.robots (or smana up --robots N)"
+            )
+        self.book = ClaimBook(fc.robots, fc.goal_separation_m, ttl_s=5 * fc.pose_timeout_s)
+        self._published = -1
+        self._next_publish = 0.0
+
+    def setup(self) -> None:
+        r = self.robot
+        self.claims_pub = self.publisher(keys.claims(r), reliable_block=True)
+        self.queryable(keys.claim(r), self.on_claim)
+        self.queryable(keys.claims(r), lambda req: self._claims())
+        self.queryable(keys.query(r, "coordinator", "stats"), lambda req: self.book.stats())
+        for m in self.book.members:
+            self.subscribe(keys.explorer_state(m), lambda b, m=m: self.on_state(m, b))
+
+    def on_claim(self, req) -> dict:
+        body = req.body()
+        robot, goal = body.get("robot"), body.get("goal", "missing")
+        if not isinstance(robot, str) or goal == "missing":
+            raise Reject("missing_field", 'a claim is {"robot": name, "goal": [x, y] or null}')
+        now = time.monotonic()
+        try:
+            if goal is None:
+                self.book.release(robot, now)
+                granted, holder = True, None
+            else:
+                if not isinstance(goal, list | tuple) or len(goal) != 2:
+                    raise ValueError(f"goal must be [x, y], got {goal!r}")
+                granted, holder = self.book.claim(robot, goal, now)
+        except (TypeError, ValueError) as exc:
+            raise Reject("value", f"claim: {exc}") from None
+        self._publish()
+        return {"ok": True, "granted": granted, "holder": holder, "claims": self.book.snapshot()}
+
+    def on_state(self, robot: str, payload: bytes) -> None:
+        try:
+            state = msgpack.unpackb(payload)
+            goal = state.get("goal") if isinstance(state, dict) else None
+            xy = None if not goal else [float(v) for v in goal["xy"]][:2]
+        except Exception as exc:
+            raise Reject("malformed", f"explorer state of {robot}: {exc}") from None
+        if isinstance(state, dict) and state.get("mode") == "done":
+            xy = None
+        self.book.confirm(robot, xy, time.monotonic())
+
+    def tick(self) -> None:
+        now = time.monotonic()
+        for r in self.book.expire(now):
+            self.note("claim_expired", f"{r} silent: its goal is free again")
+        if self.book.version != self._published or now >= self._next_publish:
+            self._publish()
+
+    def _claims(self) -> dict:
+        book = self.book
+        return {"claims": book.snapshot(), "version": book.version, "stamp_s": time.time()}
+
+    def _publish(self) -> None:
+        self._published = self.book.version
+        self._next_publish = time.monotonic() + PUBLISH_PERIOD_S
+        self.claims_pub.put(self._claims())
+
+    def status_details(self) -> dict:
+        return self.book.stats()
+
+
+def main(config: SmanaConfig) -> int:
+    return run_service(CoordinatorService, config)
