@@ -236,3 +236,29 @@ def test_fleet_layout_of_smana_up(tmp_path):
     assert {m.robot for m in Supervisor(robot, tmp_path / "a").procs.values()} == {"r2"}
     base = SmanaConfig.load(overrides=['fleet.robots=["r1", "r2"]', "deploy.fleet_members=false"])
     assert {m.robot for m in Supervisor(base, tmp_path / "b").procs.values()} == {"fleet"}
+
+
+def test_coordinator_service_claims_and_books(fake_stack):
+    from smana.common import keys
+
+    sets = ["--set", 'fleet.name="test"', "--set", 'fleet.robots=["r1", "r2"]']
+    fake_stack.service("coordinator", *sets)
+    fake_stack.wait_alive("coordinator")
+    claim = lambda body: fake_stack.query("coordinator", "claim", body)  # noqa: E731
+    assert claim({"robot": "r1", "goal": [1.0, 1.0]})["granted"] is True
+    got = claim({"robot": "r2", "goal": [1.5, 1.0]})
+    assert got["granted"] is False and got["holder"] == "r1"
+    assert got["claims"] == {"r1": [1.0, 1.0]}
+    assert claim({"robot": "r2", "goal": [5.0, 1.0]})["granted"] is True
+    # refused in one line each, and counted: a stranger, a goal that is not a point, no goal key
+    for bad in ({"robot": "r9", "goal": [0, 0]}, {"robot": "r1", "goal": "x"}, {"robot": "r1"}):
+        with pytest.raises(Exception, match="claim"):
+            claim(bad)
+    # r1's explorer says it has no goal any more: its claim ends
+    fake_stack.publish(keys.explorer_state("r1"), {"mode": "waiting", "goal": None})
+    fake_stack.publish(keys.explorer_state("r2"), b"\xc1 not msgpack")
+    assert fake_stack.drained("coordinator")
+    assert fake_stack.query("coordinator", "claims")["claims"] == {"r2": [5.0, 1.0]}
+    st = fake_stack.status("coordinator")
+    assert st.books_add_up() and st.rejected.get("malformed") == 1
+    assert st.rejected.get("value") == 2 and st.rejected.get("missing_field") == 1
