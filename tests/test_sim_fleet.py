@@ -20,6 +20,7 @@ from smana.common.classes import ClassTable
 from smana.common.config.fleet import FleetConfig
 from smana.common.config.sim import CameraConfig, GardenConfig, LidarConfig, SimConfig
 from smana.common.messages import (
+    MapDelta,
     Pose,
     SemanticCloud,
     ServiceStatus,
@@ -28,6 +29,7 @@ from smana.common.messages import (
     encode,
 )
 from smana.common.query import request
+from smana.services.sim.finishing import finished, make_worker
 from smana.services.sim.scene import transform_points
 from smana.services.sim.simulation import Simulation, place_members
 from smana.services.sim.worlds import build_world
@@ -263,3 +265,96 @@ def test_fleet_service_publishes_each_member_on_its_keys(fake_stack, tmp_path):
     assert summary["robots"] == ["r1", "r2"]
     assert summary["robot_contacts"] == {"r1-r2": 0} and summary["robot_contacts_total"] == 0
     assert summary["min_separation_m"]["r1-r2"] >= 1.1 and summary["sim_time_s"] > 0
+
+
+@pytest.mark.parametrize("kind", ["thread", "process"])
+def test_each_members_frames_finish_with_its_own_streams(world, kind):
+    """A camera worker finishes each member's frames with that member's random streams: the
+    bytes are those of finishing in line."""
+    with (
+        Simulation(CFG, world=world, robots=["a", "b"]) as inline,
+        Simulation(CFG, world=world, robots=["a", "b"]) as worked,
+    ):
+        executor, finish = make_worker(kind, CFG, worked.frame_finisher, world.classes.colour_lut)
+        try:
+            order = ["a", "b", "b", "a"]
+            want = [finished(inline.camera_frame(member=m), images=False).cloud for m in order]
+            got = [
+                executor.submit(finish, worked.capture_camera(member=m)).result(timeout=60)
+                for m in order
+            ]
+        finally:
+            executor.shutdown(wait=True)
+    assert [g.cloud for g in got] == want
+    assert want[0] != want[1]  # the members draw different labels / confidences
+
+
+def test_fleet_lockstep_waits_for_every_members_map_delta(fake_stack):
+    stack = fake_stack
+    proc = stack.service(
+        "sim",
+        *SMALL,
+        "--camera",
+        "32x32",
+        "--camera-rate",
+        "10",
+        "--rtf",
+        "3",
+        "--lockstep",
+        "--set",
+        "sim.lockstep_timeout_s=0.5",
+        "--robots",
+        "2",
+        "--robot",
+        "fleet",
+    )
+    stack.wait_alive("sim", robot="fleet")
+    c = Collector(stack.session)
+    acks = {}
+
+    def acknowledge(r: str) -> None:
+        delta_pub = stack.session.declare_publisher(keys.map_delta(r))
+
+        def ack(sample):
+            cloud = decode(sample.payload.to_bytes(), SemanticCloud)
+            delta_pub.put(encode(MapDelta(cloud_seq=cloud.seq)))
+
+        acks[r] = (delta_pub, stack.session.declare_subscriber(keys.cloud(r), ack))
+
+    def timeouts() -> int:
+        st = request(stack.session, keys.status("fleet", "sim"), timeout_s=5)
+        return int(st.details["lockstep_timeouts"])
+
+    for r in ("r1", "r2"):
+        c.add(keys.cloud(r), lambda b: decode(b, SemanticCloud))
+    try:
+        # only r1's mapper answers: the world still waits for r2's, up to each timeout
+        acknowledge("r1")
+        assert wait_for(lambda: timeouts() >= 2, 30.0)
+        # both answer: clouds flow for both members, with no more timeouts (one may be running)
+        acknowledge("r2")
+        before, t_before = {r: len(c.get(keys.cloud(r))) for r in ("r1", "r2")}, timeouts()
+        assert wait_for(
+            lambda: all(len(c.get(keys.cloud(r))) - before[r] >= 6 for r in ("r1", "r2")), 60.0
+        )
+        assert timeouts() - t_before <= 1
+    finally:
+        c.close()
+        for pub, sub in acks.values():
+            sub.undeclare()
+            pub.undeclare()
+    assert stack.stop(proc, signal.SIGINT) == 0
+
+
+def test_robots_flag_makes_a_fleet_under_its_name(monkeypatch):
+    from smana.services.sim import __main__ as sim_main
+    from smana.services.sim import service
+
+    seen = []
+    monkeypatch.setattr(service, "main", lambda cfg: seen.append(cfg) or 0)
+    assert sim_main.cli(["--robots", "3"]) == 0
+    assert seen[-1].fleet.robots == ["r1", "r2", "r3"] and seen[-1].general.robot == "fleet"
+    assert sim_main.cli(["--robots", "2", "--robot", "f2"]) == 0
+    assert seen[-1].fleet.robots == ["r1", "r2"] and seen[-1].general.robot == "f2"
+    assert sim_main.cli([]) == 0
+    assert seen[-1].fleet.robots == [] and seen[-1].general.robot == "r1"
