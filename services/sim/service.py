@@ -208,10 +208,13 @@ class SimService(Service):
             "members": self._member_figures(),
         }
         path = Path(run_dir) / "sim.json"
-        path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".sim.json.{os.getpid()}.tmp")
-        tmp.write_text(json.dumps(summary, indent=1) + "\n")
-        os.replace(tmp, path)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp.write_text(json.dumps(summary, indent=1) + "\n")
+            os.replace(tmp, path)
+        except OSError as exc:  # the run's figures are lost, not the stop
+            self.log.error("could not write %s: %s", path, exc)
 
     # -- the loop --------------------------------------------------------------------------------
 
