@@ -2,13 +2,16 @@
 
     smana sim --world garden --seed 3 --noise medium --pose-noise 0.1,0.02
     smana sim --world ply:garden.ply --camera 320x320 --camera-rate 5 --lidar --rtf 2
+    smana sim --robots 3             # a fleet r1, r2, r3 in one world, under `fleet.name`
 
-Every flag is a shortcut for a `[sim]` config key (`--set sim.KEY=VALUE` or
-`--set sim.camera.KEY=VALUE` reaches the others).
+Every flag is a shortcut for a config key: `--set sim.KEY=VALUE` or `--set sim.camera.KEY=VALUE`
+reaches the others. `--robots N` is `fleet.robots = ["r1", .., "rN"]`; the service then runs under
+`fleet.name` unless `--robot` says otherwise.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -69,6 +72,9 @@ def cli(argv: list[str] | None = None) -> int:
     g.add_argument("--lidar-rate", type=float, metavar="HZ")
     g.add_argument("--rtf", type=float, metavar="X", help="real-time factor")
     g.add_argument("--lockstep", action="store_true", help="wait for each cloud's MapDelta")
+    g.add_argument(
+        "--robots", type=int, metavar="N", help="a fleet r1 .. rN in one world (fleet.robots)"
+    )
     args = p.parse_args(argv)
     # each flag is a `--set` override, applied after the user's: the same checks and messages
     sets: dict[str, object] = {}
@@ -101,7 +107,16 @@ def cli(argv: list[str] | None = None) -> int:
         if getattr(args, flag):
             sets[key] = value
     args.overrides = [*(args.overrides or []), *(f"sim.{k}={_toml(v)}" for k, v in sets.items())]
+    if args.robots is not None:
+        if args.robots < 1:
+            raise UsageError(f"--robots wants a count >= 1, not {args.robots}")
+        names = [f"r{i}" for i in range(1, args.robots + 1)]
+        args.overrides.append(f"fleet.robots={json.dumps(names)}")
     cfg = config_from_args(args)
+    if args.robots is not None and not args.robot:  # the fleet's sim speaks for no one member
+        cfg = dataclasses.replace(
+            cfg, general=dataclasses.replace(cfg.general, robot=cfg.fleet.name)
+        )
     setup_logging(cfg.general.log_level, "sim")
     from smana.services.sim.service import main
     from smana.services.sim.worlds import WorldError

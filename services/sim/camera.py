@@ -112,6 +112,9 @@ def _label_pixels(
                 shade = (rgba[r, c, 0] + rgba[r, c, 1] + rgba[r, c, 2]) / (3.0 * 255.0)
                 for k in range(3):
                     rgb_out[r, c, k] = min(colour_lut[label, k] * shade, 255.0)
+            if label == -3:  # a fleet's robot (MEMBER): in the depth image, not in the cloud
+                depth_out[r, c] = d
+                continue
             if label < 0:
                 continue
             depth_out[r, c] = d
@@ -135,8 +138,9 @@ def label_pixels(
     """Depth buffer and segmentation mask -> (depth_m f4[H,W], labels i4[H,W], rgb u1[H,W,3]).
 
     `labels` is the class id of each pixel, -1 where there is no point (background, beyond
-    `max_range_m`, or a body whose `label_lut` entry is DROP); `label_lut[body] == GROUND` means
-    "class of the ground raster at the pixel's world (x, y)". Ground pixels are coloured by class.
+    `max_range_m`, or a body whose `label_lut` entry is DROP or MEMBER); `label_lut[body] ==
+    GROUND` means "class of the ground raster at the pixel's world (x, y)". Ground pixels are
+    coloured by class. A MEMBER body (a fleet's robot: seen, not mapped) keeps its depth.
     """
     zbuf = np.ascontiguousarray(zbuf, np.float32)
     seg = np.ascontiguousarray(seg, np.int32)
@@ -188,6 +192,7 @@ class CameraCapture:
     labels: np.ndarray  # i4[H, W] class ids, -1 where there is no point
     world_from_sensor: np.ndarray  # 4x4 true sensor pose used to render
     focal_px: float
+    member_px: int = 0  # pixels on the bodies `capture` was asked to count (other robots)
 
     @property
     def valid(self) -> np.ndarray:
@@ -208,8 +213,14 @@ class SemanticCamera:
             s.fov_deg, s.width / s.height, s.near_m, self._far
         )
 
-    def capture(self, world_from_sensor: np.ndarray, timings: dict | None = None) -> CameraCapture:
-        """Render from a sensor pose (4x4, world frame) and label every pixel.
+    def capture(
+        self,
+        world_from_sensor: np.ndarray,
+        timings: dict | None = None,
+        count_bodies: np.ndarray | None = None,
+    ) -> CameraCapture:
+        """Render from a sensor pose (4x4, world frame) and label every pixel. With
+        `count_bodies`, the pixels showing those bodies are counted (`member_px`).
 
         A pose that puts a ground vertex exactly in the camera's plane (e.g. a camera looking
         level, exactly above a grid vertex) makes TinyRenderer rasterise a degenerate triangle
@@ -226,9 +237,13 @@ class SemanticCamera:
             physicsClientId=self.scene.client,
         )
         t1 = time.perf_counter()
+        seg = np.asarray(seg, np.int32).reshape(s.height, s.width)
+        member_px = 0
+        if count_bodies is not None and len(count_bodies):
+            member_px = int(np.isin(seg, count_bodies).sum())
         depth, labels, rgb = label_pixels(
             np.asarray(zbuf, np.float32).reshape(s.height, s.width),
-            np.asarray(seg, np.int32).reshape(s.height, s.width),
+            seg,
             np.asarray(rgba, np.uint8).reshape(s.height, s.width, 4),
             near=s.near_m,
             far=self._far,
@@ -242,4 +257,6 @@ class SemanticCamera:
         if timings is not None:
             timings["render_ms"] = 1e3 * (t1 - t0)
             timings["label_ms"] = 1e3 * (time.perf_counter() - t1)
-        return CameraCapture(rgb, depth, labels, np.array(world_from_sensor, float), s.focal_px)
+        return CameraCapture(
+            rgb, depth, labels, np.array(world_from_sensor, float), s.focal_px, member_px
+        )

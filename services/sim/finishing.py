@@ -100,7 +100,7 @@ def _shm_main(conn, config: SimConfig, colour_lut, images: bool, names, out_name
     die_with_parent()
     # the service's process group gets the stop signal; the service then shuts us down in order
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    finisher = FrameFinisher(config, colour_lut)
+    finishers: dict[int, FrameFinisher] = {}  # per fleet member: its own random streams
     h, w = config.camera.height, config.camera.width
     ins = [_attach(n) for n in names]
     outs = [_attach(n) for n in out_names]
@@ -112,12 +112,16 @@ def _shm_main(conn, config: SimConfig, colour_lut, images: bool, names, out_name
                 break
             if msg is None:
                 break
-            slot, stamp_s, seq, world_from_sensor, true_pose, focal_px = msg
+            slot, stamp_s, seq, world_from_sensor, true_pose, focal_px, member = msg
+            if member not in finishers:
+                finishers[member] = FrameFinisher(config, colour_lut, member)
+            finisher = finishers[member]
             try:
                 rgb, depth, labels = _frame_views(ins[slot].buf, h, w)
                 cap = CameraCapture(rgb, depth, labels, true_pose, focal_px)
                 frame = finished(
-                    finisher.finish(PendingFrame(stamp_s, seq, cap, world_from_sensor)), images
+                    finisher.finish(PendingFrame(stamp_s, seq, cap, world_from_sensor, member)),
+                    images,
                 )
                 del rgb, depth, labels, cap
                 conn.send(_write_result(outs[slot].buf, frame))
@@ -256,6 +260,7 @@ class ShmWorker:
                 pending.world_from_sensor,
                 cap.world_from_sensor,
                 cap.focal_px,
+                pending.member,
             )
         )
         return future
@@ -326,7 +331,8 @@ def make_worker(
     kind: str, config: SimConfig, finisher: FrameFinisher, colour_lut: np.ndarray
 ) -> tuple[Executor | ShmWorker, Callable[[PendingFrame], FinishedFrame] | None] | None:
     """An executor and the function to submit to it, for `kind` "process" or "thread"; None for
-    "off" (finish in line)."""
+    "off" (finish in line). `finisher`: a `FrameFinisher`, or anything with its `finish` (a
+    simulation's `frame_finisher`, which hands each fleet member's frames to that member's)."""
     images = config.camera.publish_images
     if kind == "process":
         return ShmWorker(config, colour_lut, images), None

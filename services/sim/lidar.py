@@ -33,6 +33,7 @@ class LidarHits:
     labels: np.ndarray  # i8[N]
     ray_index: np.ndarray  # i8[N] index into LidarConfig.directions()
     world_from_sensor: np.ndarray  # 4x4 true sensor pose at the scan
+    member_hits: int = 0  # hits on the bodies `scan` was asked to count (other robots)
 
     @property
     def points_world(self) -> np.ndarray:
@@ -59,9 +60,15 @@ class Lidar:
                 for s in range(0, len(self.dirs), BATCH)
             ]
 
-    def scan(self, world_from_base: np.ndarray, timings: dict | None = None) -> LidarHits:
+    def scan(
+        self,
+        world_from_base: np.ndarray,
+        timings: dict | None = None,
+        count_bodies: np.ndarray | None = None,
+    ) -> LidarHits:
         """Cast every ray. `world_from_base` is the parent body's true pose (or, without a
-        parent, the pose of the frame the mount is given in)."""
+        parent, the pose of the frame the mount is given in). With `count_bodies`, the hits on
+        those bodies are counted (`member_hits`)."""
         c = self.scene.client
         t0 = time.perf_counter()
         out = []
@@ -96,10 +103,17 @@ class Lidar:
         world_from_sensor = world_from_base @ cfg.mount_matrix()
         world = transform_points(pts_sensor, world_from_sensor)
         labels = self.scene.labels_of(bodies[hit], world[:, :2])
-        keep = labels >= 0  # drop hits on the robot itself
+        keep = labels >= 0  # drop hits on the robot itself (and on other robots)
+        member_hits = 0
+        if count_bodies is not None and len(count_bodies):
+            member_hits = int(np.isin(bodies[hit], count_bodies).sum())
         if timings is not None:
             timings["cast_ms"] = 1e3 * (t1 - t0)
             timings["hits_ms"] = 1e3 * (time.perf_counter() - t1)
         return LidarHits(
-            pts_sensor[keep].astype(np.float32), labels[keep], hit[keep], world_from_sensor
+            pts_sensor[keep].astype(np.float32),
+            labels[keep],
+            hit[keep],
+            world_from_sensor,
+            member_hits,
         )

@@ -3,7 +3,9 @@
 The ground is one height-field body, so its class cannot come from the body id: sensors ask the
 world's ground-class raster at the hit's (x, y) instead. Every other body has one class.
 `label_lut[body_id]` gives a body's class id, `GROUND` for the height field and `DROP` for bodies
-that sensors must ignore (the robot itself).
+that sensors must ignore (the robot itself). `MEMBER` marks the robots of a fleet: they give no
+points either, but the camera's depth image shows them (a member sees the others, it does not map
+them).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from .worlds import BOX, CYLINDER, Primitive, World, WorldObject
 
 GROUND = -2  # label_lut value: look the class up in the ground raster
 DROP = -1  # label_lut value: not part of the world (the robot); sensors drop these hits
+MEMBER = -3  # label_lut value: a fleet's robot; dropped from clouds, kept in depth images
 MAX_MESH_VERTICES = 60_000  # PyBullet refuses meshes above 131,072 vertices; stay well below
 
 
@@ -63,12 +66,13 @@ class BulletScene:
 
     def labels_of(self, bodies: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """Class ids of hits on `bodies` at world `xy` (N,2); -1 where the hit must be dropped
-        (nothing hit, or the robot)."""
+        (nothing hit, the robot, or a fleet's robot)."""
         lut = self.label_lut
         bodies = np.asarray(bodies)
         known = (bodies >= 0) & (bodies < len(lut))
         out = np.full(len(bodies), DROP, np.int64)
         out[known] = lut[bodies[known]]
+        out[out == MEMBER] = DROP
         ground = out == GROUND
         if ground.any():
             out[ground] = self.world.ground.class_at(xy[ground, 0], xy[ground, 1])
