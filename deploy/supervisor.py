@@ -102,7 +102,7 @@ class Supervisor:
         names = (
             services
             if services is not None
-            else [n for n in SERVICE_ORDER if getattr(config.deploy, n).enabled]
+            else [n for n in (*SERVICE_ORDER, "coordinator") if getattr(config.deploy, n).enabled]
         )
         self.logs = self.run_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
@@ -120,7 +120,9 @@ class Supervisor:
         self.config_path = self.service_config.write(self.run_dir / "config.toml")
         self.procs: dict[str, Managed] = {}
         self.fleet = config.fleet.name if config.fleet.robots else None
-        if self.fleet is not None:
+        if self.fleet is None:
+            names = [n for n in names if n != "coordinator"]  # a fleet's alone
+        else:
             self._add_fleet(names)
             names = []
         for robot in self.robots:
@@ -166,7 +168,7 @@ class Supervisor:
         if strangers:
             raise ConfigError(f"deploy.robots {strangers} are not in fleet.robots {fc.robots}")
         self.robots = members or [self.fleet]
-        enabled = [*names, "coordinator"] if dc.coordinator.enabled else names
+        enabled = names
         if dc.fleet_base:
             for n in FLEET_SHARED:
                 if n in enabled:
@@ -737,7 +739,7 @@ def cli(argv: list[str] | None = None) -> int:
     services = None
     if args.only:
         services = [s.strip() for s in args.only.split(",") if s.strip()]
-        known = (*SERVICE_ORDER, "recorder")
+        known = (*SERVICE_ORDER, "coordinator", "recorder")
         unknown = [s for s in services if s not in known]
         if unknown:
             p.error(f"unknown service(s) {unknown}; known: {', '.join(known)}")

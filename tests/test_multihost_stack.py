@@ -2,7 +2,8 @@
 --profile robot` (router + mapper), the base `smana up --profile base` (router + navgraph +
 planner), linked by mutual TLS with users and the ACL. A path query on the base is answered from
 the robot's map; after the link is cut for a few seconds (the robot keeps mapping) and restored,
-the base's navigation graph equals the graph of the robot's whole map."""
+the base's navigation graph equals the graph of the robot's whole map. The same for a fleet (issue
+17): a member on the robot host, the fleet mapper and graph on the base."""
 
 from __future__ import annotations
 
@@ -148,3 +149,68 @@ def test_base_plans_on_robot_map_and_recovers_from_a_link_drop(hosts):
     r = ask(hosts, "base", "smana/r1/planner/path", far, name="path2")
     assert r and r["ok"], r
     assert np.isfinite(r["cost_total"])
+
+
+def test_fleet_base_merges_a_member_and_fills_its_gap_after_a_link_drop(hosts):
+    """The fleet across hosts: the member r1 (profile fleet-robot) maps on its host, the base
+    (profile fleet) merges its deltas into the fleet's map and graph. While the link is cut the
+    member maps new ground; once it is back, the fleet mapper fills the gap from the member's own
+    map, and the fleet's graph equals the graph of the member's whole map."""
+    fleet = ["--set", 'fleet.robots=["r1"]']
+    hosts.run(
+        "robot",
+        "up-member",
+        "-m",
+        "smana.deploy",
+        "up",
+        "--profile",
+        "fleet-robot",
+        "--robot",
+        "r1",
+        "--only",
+        "mapper",
+        "--run-dir",
+        "member_run",
+        "--set",
+        f'deploy.router_connect=["tls/{BASE_IP}:7448"]',
+        *fleet,
+    )
+    hosts.run(
+        "base",
+        "up-fleet",
+        "-m",
+        "smana.deploy",
+        "up",
+        "--profile",
+        "fleet",
+        "--only",
+        "mapper,navgraph",
+        "--run-dir",
+        "fleet_run",
+        *fleet,
+    )
+
+    def logs():
+        runs = (("member_run", "mapper@r1"), ("fleet_run", "mapper@fleet"))
+        files = [hosts.tmp / d / "logs" / f"{s}.log" for d, s in runs]
+        texts = [f.read_text(errors="replace") for f in files if f.exists()]
+        return "\n".join([*texts, hosts.log("up-member"), hosts.log("up-fleet")])
+
+    def fleet_graph():
+        reply = ask(hosts, "base", "smana/fleet/navgraph/graph?format=json", name="fgraph")
+        return from_json(json.dumps(reply), GraphPatch) if reply else None
+
+    def converged():
+        g, ref = fleet_graph(), graph_of_robot_map(hosts)
+        return g is not None and ref is not None and same_graph(g, ref)
+
+    assert wait_for(lambda: ask(hosts, "base", "smana/r1/mapper/stats?format=json"), 90, 1), logs()
+    assert wait_for(lambda: ask(hosts, "base", "smana/fleet/mapper/stats?format=json"), 60, 1)
+    assert hosts.call("robot", "publish-1", PUBLISH, LOCAL, "0", "3", *login("sim")) == 0
+    assert wait_for(converged, 60, 1), logs()
+    hosts.set_link(False)
+    assert hosts.call("robot", "publish-2", PUBLISH, LOCAL, "3", "2", *login("sim")) == 0
+    hosts.set_link(True)
+    assert wait_for(converged, 90, 2), logs()
+    g = fleet_graph()
+    assert g.cells[:, 0].max() * g.resolution_m + g.origin_xy[0] > 9.0  # the ground mapped offline
