@@ -683,8 +683,11 @@ def _fleet_lines(fleet: dict) -> list[str]:
     return lines + [""]
 
 
-def _fleet_plots(run_dir: Path, classes, world, fleet_traj: dict, graph) -> dict[str, str]:
-    """The ground truth and the shared graph with every member's trajectory in its own colour."""
+def _fleet_plots(
+    run_dir: Path, classes, world, fleet_traj: dict, graph, fleet: dict
+) -> dict[str, str]:
+    """The ground truth and the shared graph with every member's trajectory in its own colour,
+    and the fleet's coverage curve."""
     files = {}
     trajs = {r: t[:, 1:3] for r, t in fleet_traj.items() if len(t)}
     if world is not None:
@@ -709,6 +712,23 @@ def _fleet_plots(run_dir: Path, classes, world, fleet_traj: dict, graph) -> dict
             trajectories=trajs,
         )
         files["graph"] = str(plots.save(fig, run_dir / "plots" / "graph.png"))
+    curve = fleet.get("curve") or {}
+    if len(curve.get("t_s") or []) >= 2:
+        fig = plots.line_plot(
+            [
+                plots.Series(
+                    "fleet (rescaled to ground truth at the end)", curve["t_s"], curve["coverage"]
+                ),
+                plots.Series(
+                    "95 %", [curve["t_s"][0], curve["t_s"][-1]], [0.95, 0.95], dashed=True
+                ),
+            ],
+            "Coverage of the reachable traversable area, the fleet's",
+            "robot time (s, simulated, shared by the members)",
+            "coverage",
+            ylim=(0.0, 1.02),
+        )
+        files["fleet_progress"] = str(plots.save(fig, run_dir / "plots" / "fleet_progress.png"))
     return {k: str(Path(v).relative_to(run_dir)) for k, v in files.items()}
 
 
@@ -922,7 +942,9 @@ def write_report(
     }
     if is_fleet:
         fleet_traj = {r: _trajectory(member_dir(run_dir, r))[0] for r in config.fleet.robots}
-        metrics["files"]["plots"] = _fleet_plots(run_dir, classes, world, fleet_traj, graph)
+        metrics["files"]["plots"] = _fleet_plots(
+            run_dir, classes, world, fleet_traj, graph, metrics["fleet"]
+        )
         metrics["warnings"] = list(warnings) + fleet_warnings(metrics["fleet"])
     else:
         metrics["files"]["plots"] = _plots(
@@ -986,7 +1008,10 @@ def render_markdown(m: dict) -> str:
         lines += _fleet_lines(m["fleet"])
     ex, ee = m.get("exploration") or {}, m.get("explorer") or {}
     if ex or ee:
-        lines += ["## Exploration", "", "| figure | value |", "|---|---|"]
+        title = "## Exploration"
+        if m.get("fleet"):
+            title += " (the fleet: merged coverage, the members' figures added)"
+        lines += [title, "", "| figure | value |", "|---|---|"]
         rows = [
             ("ended because", ee.get("done_reason") or "-"),
             (
@@ -1031,6 +1056,9 @@ def render_markdown(m: dict) -> str:
             ("collisions (footprint over an obstacle)", str(ex.get("collisions", "-"))),
             ("trajectory measured from", ex.get("trajectory_source", "-")),
         ]
+        if m.get("fleet"):
+            # a fleet's explorers are its members' (the Fleet section): only what was measured
+            rows = [(a, b) for a, b in rows if b not in ("-", "None")]
         lines += [f"| {a} | {b} |" for a, b in rows]
         lines.append("")
         if ex and ee:

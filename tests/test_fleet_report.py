@@ -156,7 +156,8 @@ def test_fleet_section_measures_the_run(fleet_run):
     assert rows["to 95 % coverage"].startswith("15 s robot time, 5.0 m")
     text = path.read_text()
     assert "## Fleet" in text and "| merged map |" in text
-    assert (run / m["files"]["plots"]["fleet_map"]).stat().st_size > 1000
+    for name in ("fleet_map", "graph", "fleet_progress"):
+        assert (run / m["files"]["plots"][name]).stat().st_size > 1000
     assert (run / "graph.npz").is_file()
 
 
