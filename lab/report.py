@@ -11,6 +11,14 @@ and measures the run against the simulated world's ground truth (rebuilt from th
 explored share of the reachable traversable area, travelled labels (terrain vs grass), clearance
 from obstacles along the trajectory, and the map's reconstruction error and classification ratio.
 
+A fleet's run (`fleet.robots` set) is laid out per member instead: `robots/<r>/map.npz` (the
+member's own map), `robots/<r>/explorer/{state.json,trajectory.csv,graph.npz}`,
+`robots/<r>/trajectory_{pose,truth}.csv`, beside the merged `map.npz` and the simulator's
+`sim.json` (robot-robot contacts, separations). Its report adds a "fleet" section
+(`fleet_metrics`): per member, contacts, merged coverage, the overlap of the members' maps, time
+and total distance to 95 % coverage, the merged map's scores beside each member's own map's; and
+its warnings (`fleet_warnings`): a contact, a member without state or that did not move.
+
 Also a command: `python -m smana.lab.report RUN_DIR` re-writes the report of a finished run.
 """
 
@@ -419,6 +427,13 @@ def observed_cells(points: np.ndarray, voxel_m: float, cell_xy: np.ndarray) -> n
     return np.isin(code(np.floor(cell_xy / voxel_m + 1e-6)), cols)
 
 
+def observed_voxels(semantic_map):
+    """Every voxel the map observed, free ones too (`SemanticMap.observed_voxels`); a map class
+    without that method (before the fleet mapper) gives its occupied voxels."""
+    get = getattr(semantic_map, "observed_voxels", None) or semantic_map.occupied_voxels
+    return get()
+
+
 def map_overlap(observed: dict[str, np.ndarray], reach: np.ndarray, cell_area_m2: float) -> dict:
     """The share of the explored reachable area that more than one member observed: reachable
     cells observed by >= 2 members over those observed by >= 1 (None when none were)."""
@@ -507,8 +522,9 @@ def fleet_metrics(run_dir: Path, config, world, gt=None, names=None) -> dict:
             if path.is_file():
                 try:
                     own = SemanticMap.load(path)
-                    pts = own.occupied_voxels().centres
-                    observed[r] = observed_cells(pts, own.resolution_m, cell_xy)
+                    observed[r] = observed_cells(
+                        observed_voxels(own).centres, own.resolution_m, cell_xy
+                    )
                 except (OSError, ValueError) as exc:
                     log.warning("%s: %s", path, exc)
         out.update(map_overlap(observed, reach, area))
