@@ -106,9 +106,9 @@ def run_name(seed: int, world: str, n: int) -> str:
 
 def fleet_argv(run_dir: Path, seed: int, world: World, n: int, s, spawn=None, port=None):
     """The `smana up --robots N` command line of one run."""
-    robot = f"exp{os.getpid()}-s{seed}-{world.name}-n{n}"
+    # every run a fleet (`--robots 1` too: a one-member fleet is a lone robot, bit for bit, and
+    # its report has the same "fleet" section); each on its own loopback port
     sets = [
-        f'general.robot="{robot}"',
         f"sim.seed={seed}",
         f"sim.garden.size_m={world.size_m}",
         *ex.WORLD_SETS,
