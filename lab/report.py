@@ -496,6 +496,8 @@ def fleet_metrics(run_dir: Path, config, world, gt=None, names=None) -> dict:
             histories[r] = state.get("history") or []
         members[r] = m
     out: dict = {"name": config.fleet.name, "robots": robots, "members": members}
+    # a real fleet (no simulator in the stack) has no sim.json to miss
+    out["simulated"] = bool(config.deploy.sim.enabled)
     pairs = (sim or {}).get("min_separation_m") or {}
     out["sim"] = {
         "summary": SIM_SUMMARY if sim is not None else None,
@@ -561,7 +563,7 @@ def fleet_warnings(fleet: dict) -> list[str]:
     out = []
     sim = fleet.get("sim") or {}
     total = sim.get("robot_contacts_total")
-    if sim.get("summary") is None:
+    if sim.get("summary") is None and fleet.get("simulated", True):
         out.append(f"the simulator left no {SIM_SUMMARY}: robot-robot contacts are unknown")
     elif total:
         pairs = ", ".join(f"{k} x{v}" for k, v in sorted(sim["robot_contacts"].items()) if v)

@@ -182,6 +182,10 @@ def test_a_contact_and_a_member_without_state_are_warnings(fleet_run, tmp_path):
     assert any(x.startswith("r2: the robot did not move") for x in w), w
     assert not any(x.startswith("r1:") for x in w), w
     assert report.summary_lines(m)[0] == "smana up: FAILED"
+    # no sim.json: contacts unknown, a warning when a simulator ran, none on real robots
+    fleet = dict(m["fleet"], sim={"summary": None})
+    assert any("no sim.json" in w for w in report.fleet_warnings(fleet))
+    assert not any("sim.json" in w for w in report.fleet_warnings(dict(fleet, simulated=False)))
     assert (other / "report.md").read_text().index("## Warnings") < 40
 
 
