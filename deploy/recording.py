@@ -17,6 +17,12 @@ Into the run directory it writes every pose as it comes (`trajectory_pose.csv`,
 `trajectory_truth.csv`: what the report measures a simulated run on) and, when it stops,
 `recorder.json`: what it recorded and the books of what it received.
 
+A fleet (`fleet.robots` set, the recorder started as `--robot <fleet.name>`) is one recording:
+each member's pose, trajectories, explorer frontier, path and goal under `world/robots/<member>/`
+in the member's own colour (`metrics/<member>/*`), the fleet's merged map (`smana/<fleet>/mapper/
+delta`) and shared graph (`smana/<fleet>/navgraph/patch`) once, each member's trajectory files in
+`robots/<member>/`, and `recorder.json` counting per member (`members`).
+
 `RunRecorder` is the part without Zenoh (fed decoded messages, used in tests); `rerun` is imported
 lazily and a missing SDK gives a one-line hint and a recorder that does nothing.
 """
@@ -47,6 +53,17 @@ SUMMARY_NAME = "recorder.json"
 APP_ID = "smana"
 TRAJECTORY_FILES = {"pose": "trajectory_pose.csv", "pose_truth": "trajectory_truth.csv"}
 TRAJECTORY_HEADER = "t_s,x_m,y_m,z_m,yaw_rad"
+FLEET_DIR = "robots"  # a fleet member's trajectories: RUN_DIR/robots/<member>/
+# One colour per fleet member (its body, path and goal): apart from the class colours' greens and
+# browns, and in the order of lab/plots.py's MEMBER_COLOURS, so the viewer and the report agree.
+MEMBER_COLOURS = (
+    (255, 230, 0),
+    (25, 115, 255),
+    (255, 50, 150),
+    (0, 240, 240),
+    (150, 50, 255),
+    (255, 128, 0),
+)
 
 
 def import_rerun():
@@ -223,8 +240,29 @@ def decode_image(payload: bytes) -> tuple[float, np.ndarray]:
     return float(m.get("stamp_s", m.get("stamp", 0.0))), img.reshape(shape)
 
 
+class Track:
+    """One robot's poses in the recording: where its entities live (`prefix`), its colour, its
+    trajectories (in memory, and in files when a folder is given)."""
+
+    def __init__(self, prefix: str, colour, folder: Path | None):
+        self.prefix = prefix
+        self.colour = list(colour)
+        self.rows: dict[str, list[tuple[float, ...]]] = {"pose": [], "pose_truth": []}
+        self.files = (
+            {}
+            if folder is None
+            else {k: TrajectoryCsv(Path(folder) / n) for k, n in TRAJECTORY_FILES.items()}
+        )
+        self.counts: dict[str, int] = {}
+
+
 class RunRecorder:
-    """Logs decoded smana messages into a Rerun recording stream (file and/or live viewer)."""
+    """Logs decoded smana messages into a Rerun recording stream (file and/or live viewer).
+
+    A single robot's entities are `world/robot`, `world/trajectory`, `world/explorer/...`; with
+    `members` (a fleet) each member's are under `world/robots/<member>/` in its own colour (its
+    poses and explorer state are passed with `robot=`), its trajectory files under
+    `trajectory_dir/robots/<member>/`, and the map and graph are the fleet's, once."""
 
     def __init__(
         self,
@@ -240,6 +278,7 @@ class RunRecorder:
         graph_period_s: float = 2.0,
         trajectory_period_s: float = 1.0,
         trajectory_dir: Path | None = None,
+        members: list[str] | tuple[str, ...] = (),
     ):
         self.rr = rr = import_rerun()
         self.classes = classes
@@ -254,18 +293,17 @@ class RunRecorder:
         self.voxels = VoxelStore()
         self.grid = NavGrid.from_bounds(*graph_bounds, graph_resolution_m)
         self._graph_version = -1
-        # (t, x, y, z, yaw) of every pose, as published and true; with `trajectory_dir`, also
-        # written to TRAJECTORY_FILES there as they come
-        self.trajectory: list[tuple[float, ...]] = []
-        self.trajectory_truth: list[tuple[float, ...]] = []
-        self._files = (
-            {}
-            if trajectory_dir is None
-            else {
-                kind: TrajectoryCsv(Path(trajectory_dir) / name)
-                for kind, name in TRAJECTORY_FILES.items()
-            }
-        )
+        # (t, x, y, z, yaw) of every pose, as published and true, per robot (None: the single
+        # robot); with `trajectory_dir`, also written to TRAJECTORY_FILES there as they come
+        self.members = list(members)
+        folder = None if trajectory_dir is None else Path(trajectory_dir)
+        self.tracks: dict[str | None, Track] = {None: Track("world", [255, 200, 0], folder)}
+        for k, r in enumerate(self.members):
+            self.tracks[r] = Track(
+                f"world/{FLEET_DIR}/{r}",
+                MEMBER_COLOURS[k % len(MEMBER_COLOURS)],
+                None if folder is None else folder / FLEET_DIR / r,
+            )
         self.counts: dict[str, int] = {}
         self.t = 0.0
         self.rec = None
@@ -296,11 +334,27 @@ class RunRecorder:
         self.rec.log("world", ctx, static=True)
         self.rec.log("camera", ctx, static=True)
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        self.rec.log(
-            "world/robot/body",
-            rr.Boxes3D(half_sizes=[[0.28, 0.2, 0.1]], colors=[[240, 190, 30]]),
-            static=True,
-        )
+        for r, track in self.tracks.items():
+            if r is None and self.members:
+                continue  # a fleet's recording has its members' bodies only
+            self.rec.log(
+                f"{track.prefix}/robot/body",
+                rr.Boxes3D(
+                    half_sizes=[[0.28, 0.2, 0.1]],
+                    colors=[[240, 190, 30] if r is None else track.colour],
+                    labels=None if r is None else [r],
+                ),
+                static=True,
+            )
+
+    @property
+    def trajectory(self) -> list[tuple[float, ...]]:
+        """The single robot's published poses (a member's: `tracks[member].rows`)."""
+        return self.tracks[None].rows["pose"]
+
+    @property
+    def trajectory_truth(self) -> list[tuple[float, ...]]:
+        return self.tracks[None].rows["pose_truth"]
 
     # -- helpers --------------------------------------------------------------------------------
 
@@ -321,31 +375,33 @@ class RunRecorder:
 
     # -- inputs ---------------------------------------------------------------------------------
 
-    def on_pose(self, pose: Pose, truth: bool = False) -> None:
+    def on_pose(self, pose: Pose, truth: bool = False, robot: str | None = None) -> None:
         # The row first: the trajectory files are what the report measures, the viewer's
         # picture comes second.
         kind = "pose_truth" if truth else "pose"
+        track = self.tracks[robot]
         p = np.asarray(pose.position, float)
         row = (float(pose.stamp_s), float(p[0]), float(p[1]), float(p[2]), float(pose.yaw))
-        (self.trajectory_truth if truth else self.trajectory).append(row)
-        if kind in self._files:
-            self._files[kind].write(row)
+        track.rows[kind].append(row)
+        if kind in track.files:
+            track.files[kind].write(row)
         self._count(kind)
+        track.counts[kind] = track.counts.get(kind, 0) + 1
         if self.rec is None:
             return
         rr = self.rr
         self._time(pose.stamp_s)
         if not truth:
             q = np.asarray(pose.orientation_xyzw, float)
-            self.rec.log("world/robot", rr.Transform3D(translation=p, quaternion=q))
-        if self._due("trajectory", time.monotonic()):
-            self._log_trajectories()
+            self.rec.log(f"{track.prefix}/robot", rr.Transform3D(translation=p, quaternion=q))
+        if self._due(f"trajectory:{robot}", time.monotonic()):
+            self._log_trajectories(track)
 
-    def _log_trajectories(self) -> None:
+    def _log_trajectories(self, track: Track) -> None:
         rr = self.rr
         for path, rows, colour, radius in (
-            ("world/trajectory", self.trajectory, [255, 200, 0], 0.03),
-            ("world/trajectory_truth", self.trajectory_truth, [255, 255, 255], 0.015),
+            (f"{track.prefix}/trajectory", track.rows["pose"], track.colour, 0.03),
+            (f"{track.prefix}/trajectory_truth", track.rows["pose_truth"], [255] * 3, 0.015),
         ):
             if len(rows) >= 2:
                 xyz = np.array(rows)[:, 1:4]
@@ -436,11 +492,16 @@ class RunRecorder:
             "world/graph/safety_zone", rr.Points3D(pts[safety], colors=[255, 140, 0], radii=r)
         )
 
-    def on_explorer_state(self, st: dict) -> None:
+    def on_explorer_state(self, st: dict, robot: str | None = None) -> None:
         self._count("explorer_state")
+        track = self.tracks[robot]
+        track.counts["explorer_state"] = track.counts.get("explorer_state", 0) + 1
         if self.rec is None:
             return
         rr = self.rr
+        ex = f"{track.prefix}/explorer"
+        colour = [255, 0, 200] if robot is None else track.colour
+        metrics = "metrics" if robot is None else f"metrics/{robot}"
         self._time(float(st.get("t_s") or 0.0))
         cand = np.asarray(st.get("candidates") or [], float).reshape(-1, 2)
         gains = np.asarray(st.get("candidate_gains_m2") or [], float)
@@ -448,43 +509,46 @@ class RunRecorder:
             g = gains / max(gains.max(), 1e-6)
             colours = np.column_stack([255 * g, 80 + 100 * (1 - g), 255 * (1 - g)]).astype(np.uint8)
             pts = np.column_stack([cand, np.full(len(cand), 0.1)])
-            self.rec.log("world/explorer/frontier", rr.Points3D(pts, colors=colours, radii=0.06))
+            self.rec.log(f"{ex}/frontier", rr.Points3D(pts, colors=colours, radii=0.06))
         else:
-            self.rec.log("world/explorer/frontier", rr.Clear(recursive=False))
+            self.rec.log(f"{ex}/frontier", rr.Clear(recursive=False))
         path = np.asarray(st.get("path") or [], float).reshape(-1, 2)
         if len(path) >= 2:
             p3 = np.column_stack([path, np.full(len(path), 0.12)])
-            self.rec.log(
-                "world/explorer/path", rr.LineStrips3D([p3], colors=[[255, 0, 200]], radii=0.025)
-            )
+            self.rec.log(f"{ex}/path", rr.LineStrips3D([p3], colors=[colour], radii=0.025))
         else:
-            self.rec.log("world/explorer/path", rr.Clear(recursive=False))
+            self.rec.log(f"{ex}/path", rr.Clear(recursive=False))
         goal = st.get("goal")
         if goal:
             gx, gy = goal["xy"]
             yaw = float(goal.get("yaw", 0.0))
             self.rec.log(
-                "world/explorer/goal",
+                f"{ex}/goal",
                 rr.Arrows3D(
                     origins=[[gx, gy, 0.15]],
                     vectors=[[0.5 * math.cos(yaw), 0.5 * math.sin(yaw), 0]],
-                    colors=[[255, 0, 200]],
+                    colors=[colour],
                 ),
             )
         else:
-            self.rec.log("world/explorer/goal", rr.Clear(recursive=False))
+            self.rec.log(f"{ex}/goal", rr.Clear(recursive=False))
         for name in ("explored_m2", "distance_m", "frontier_size"):
             if st.get(name) is not None:
-                self.rec.log(f"metrics/{name}", rr.Scalars(float(st[name])))
+                self.rec.log(f"{metrics}/{name}", rr.Scalars(float(st[name])))
 
     def save_trajectories(self, folder: Path) -> None:
         """trajectory_pose.csv / trajectory_truth.csv (t_s, x_m, y_m, z_m, yaw_rad) for the report:
-        the true trajectory is what collisions and travelled labels are measured on. (A recorder
-        given `trajectory_dir` has written them there already, row by row.)"""
-        for kind, rows in (("pose", self.trajectory), ("pose_truth", self.trajectory_truth)):
-            if rows:
+        the true trajectory is what collisions and travelled labels are measured on; a fleet
+        member's in `folder/robots/<member>/`. (A recorder given `trajectory_dir` has written them
+        there already, row by row.)"""
+        for r, track in self.tracks.items():
+            out = Path(folder) if r is None else Path(folder) / FLEET_DIR / r
+            for kind, rows in track.rows.items():
+                if not rows:
+                    continue
+                out.mkdir(parents=True, exist_ok=True)
                 np.savetxt(
-                    Path(folder) / TRAJECTORY_FILES[kind],
+                    out / TRAJECTORY_FILES[kind],
                     np.array(rows),
                     delimiter=",",
                     fmt="%.4f",
@@ -493,13 +557,15 @@ class RunRecorder:
                 )
 
     def close(self) -> None:
-        for f in self._files.values():
-            f.close()
+        for track in self.tracks.values():
+            for f in track.files.values():
+                f.close()
         if self.rec is None:
             return
         self.flush_map()
         self.flush_graph()
-        self._log_trajectories()
+        for track in self.tracks.values():
+            self._log_trajectories(track)
         self.rec.flush()
         self.rec.disconnect()
         self.rec = None
@@ -526,6 +592,9 @@ class RecorderService(Service):
         super().__init__(config)
         nav = config.navgraph
         self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
+        # started as the fleet (`--robot <fleet.name>`): one recording of every member
+        fleet = config.fleet
+        self.members = list(fleet.robots) if fleet.enabled and self.robot == fleet.name else []
         self.core = RunRecorder(
             ClassTable.load(config.general.class_table),
             rrd_path,
@@ -534,12 +603,16 @@ class RecorderService(Service):
             graph_resolution_m=nav.resolution_m,
             graph_bounds=(tuple(nav.bounds_min_xy), tuple(nav.bounds_max_xy)),
             trajectory_dir=self.run_dir,
+            members=self.members,
         )
         self.rrd_path = rrd_path
 
     def setup(self) -> None:
         r = self.robot
         c = self.core
+        if self.members:
+            self._setup_fleet()
+            return
         self.subscribe(keys.pose(r), c.on_pose, Pose)
         self.subscribe(keys.pose_truth(r), lambda p: c.on_pose(p, truth=True), Pose)
         self.subscribe(keys.map_delta(r), c.on_delta, MapDelta)
@@ -548,11 +621,22 @@ class RecorderService(Service):
         for kind in ("rgb", "semantic"):
             self.subscribe_latest(keys.image(r, kind), lambda b, k=kind: c.on_image(k, b))
 
-    def _on_state(self, payload: bytes) -> None:
+    def _setup_fleet(self) -> None:
+        """Every member's poses and explorer state, the fleet's merged map and shared graph.
+        (No camera images: N members' would outweigh the rest of the recording.)"""
+        c = self.core
+        for m in self.members:
+            self.subscribe(keys.pose(m), lambda p, m=m: c.on_pose(p, robot=m), Pose)
+            self.subscribe(keys.pose_truth(m), lambda p, m=m: c.on_pose(p, True, m), Pose)
+            self.subscribe(keys.explorer_state(m), lambda b, m=m: self._on_state(b, m))
+        self.subscribe(keys.map_delta(self.robot), c.on_delta, MapDelta)
+        self.subscribe(keys.graph_patch(self.robot), c.on_patch, GraphPatch)
+
+    def _on_state(self, payload: bytes, robot: str | None = None) -> None:
         st = msgpack.unpackb(payload, raw=False, strict_map_key=False)
         if not isinstance(st, dict):
             raise ValueError("explorer state is not a map")
-        self.core.on_explorer_state(st)
+        self.core.on_explorer_state(st, robot)
 
     def tick(self) -> None:
         # a quiet stack still gets its map and graph logged
@@ -583,7 +667,7 @@ class RecorderService(Service):
     def summary(self) -> dict:
         """What `recorder.json` holds: what was recorded, and the books of what was received."""
         st = self.status()
-        return {
+        out = {
             "recorded": self.recorded(),
             "msgs_in": st.msgs_in,
             "accepted": st.accepted,
@@ -593,14 +677,33 @@ class RecorderService(Service):
             "rrd": str(self.rrd_path or ""),
             "trajectories": {k: v for k, v in TRAJECTORY_FILES.items() if self.core.counts.get(k)},
         }
+        if self.members:
+            # per member: what was recorded of it, and where its trajectories are
+            tracks = self.core.tracks
+            out["members"] = {
+                m: {"pose": 0, "pose_truth": 0, "explorer_state": 0, **tracks[m].counts}
+                for m in self.members
+            }
+            out["trajectories"] = {
+                m: {
+                    k: f"{FLEET_DIR}/{m}/{v}"
+                    for k, v in TRAJECTORY_FILES.items()
+                    if tracks[m].counts.get(k)
+                }
+                for m in self.members
+            }
+        return out
 
     def status_details(self) -> dict:
         recorded = self.recorded()
-        return {
+        out = {
             "recorded": recorded,
             "progress": _recorded_line(recorded),
             "rrd": str(self.rrd_path or ""),
         }
+        if self.members:
+            out["members"] = {m: dict(self.core.tracks[m].counts) for m in self.members}
+        return out
 
 
 def _recorded_line(recorded: dict[str, int]) -> str:

@@ -44,6 +44,16 @@ OVERLAY = {
     "start": (1.0, 1.0, 1.0),
     "goals": (1.0, 0.0, 0.8),
 }
+# One colour per fleet member's trajectory (r1, r2, ...): saturated, apart from the overlays above
+# and from the garden's greens and browns.
+MEMBER_COLOURS = (
+    (1.0, 0.9, 0.0),
+    (0.1, 0.45, 1.0),
+    (1.0, 0.2, 0.6),
+    (0.0, 0.95, 0.95),
+    (0.6, 0.2, 1.0),
+    (1.0, 0.5, 0.0),
+)
 
 
 class PlotError(ValueError):
@@ -300,6 +310,7 @@ def map_figure(
     outline: np.ndarray | None = None,
     outline_label: str = "object outline",
     inches: float = 7.0,
+    trajectories: dict[str, np.ndarray] | None = None,
 ) -> Figure:
     """A raster indexed [ix, iy] (RGB u1 per cell; cell (i, j) centred at origin + (i, j) * res)
     drawn with x to the right and y up in metres, equal aspect, a scale bar.
@@ -307,7 +318,9 @@ def map_figure(
     `legend`: handles of what the raster shows (e.g. `class_handles`); `overlays`: name ->
     boolean mask of the raster's shape painted in that name's `OVERLAY` colour (unknown,
     obstacle, safety zone, frontier) and labelled; `outline`: a mask whose border is drawn;
-    `trajectory` (N, 2) m, its first pose marked as the start; `goals` (K, 2) m."""
+    `trajectory` (N, 2) m, its first pose marked as the start; `goals` (K, 2) m;
+    `trajectories`: a fleet's, member name -> (N, 2) m, each in its own `MEMBER_COLOURS` colour
+    with its start, the legend naming the members."""
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
@@ -355,6 +368,17 @@ def map_figure(
                 linestyle="none",
             )[0]
         )
+    for k, (name, tr) in enumerate((trajectories or {}).items()):
+        tr = np.asarray(tr, float).reshape(-1, 2)
+        if not len(tr):
+            continue
+        colour = MEMBER_COLOURS[k % len(MEMBER_COLOURS)]
+        (line,) = ax.plot(
+            tr[:, 0], tr[:, 1], color=colour, linewidth=1.8, label=f"{name}: trajectory, start"
+        )
+        line.set_path_effects(_halo())
+        ax.plot(tr[0, 0], tr[0, 1], "o", markersize=9, color=colour, markeredgecolor="black")
+        handles.append(line)
     if goals is not None and len(goals):
         g = np.asarray(goals, float).reshape(-1, 2)
         handles.append(
@@ -413,10 +437,11 @@ def world_map(
     rgb: np.ndarray | None = None,
     trajectory: np.ndarray | None = None,
     goals: np.ndarray | None = None,
+    trajectories: dict[str, np.ndarray] | None = None,
 ) -> Figure:
     """Ground truth seen from above: the top class of every cell (or a shaded `rgb` of it) with
     the classes present in the legend, the outline of objects (so a tree crown reads as an
-    object, not as terrain), trajectory, start and goals."""
+    object, not as terrain), trajectory (or a fleet's `trajectories`), start and goals."""
     ids = np.asarray(class_ids)
     objects = classes.obstacle_lut[np.minimum(ids, classes.size - 1)]
     return map_figure(
@@ -429,6 +454,7 @@ def world_map(
         goals,
         outline=objects,
         outline_label="object outline (seen from above)",
+        trajectories=trajectories,
     )
 
 
@@ -441,6 +467,7 @@ def graph_map(
     title: str,
     trajectory: np.ndarray | None = None,
     goals: np.ndarray | None = None,
+    trajectories: dict[str, np.ndarray] | None = None,
 ) -> Figure:
     """The navigation graph (labels, flags: bit 1 known, 2 obstacle, 4 safety zone; cells
     corner-anchored at `origin_xy`): known nodes in their class colour, unknown, obstacle and
@@ -473,6 +500,7 @@ def graph_map(
             "safety zone": safety,
             "frontier": frontier,
         },
+        trajectories=trajectories,
     )
 
 

@@ -11,6 +11,14 @@ and measures the run against the simulated world's ground truth (rebuilt from th
 explored share of the reachable traversable area, travelled labels (terrain vs grass), clearance
 from obstacles along the trajectory, and the map's reconstruction error and classification ratio.
 
+A fleet's run (`fleet.robots` set) is laid out per member instead: `robots/<r>/map.npz` (the
+member's own map), `robots/<r>/explorer/{state.json,trajectory.csv,graph.npz}`,
+`robots/<r>/trajectory_{pose,truth}.csv`, beside the merged `map.npz` and the simulator's
+`sim.json` (robot-robot contacts, separations). Its report adds a "fleet" section
+(`fleet_metrics`): per member, contacts, merged coverage, the overlap of the members' maps, time
+and total distance to 95 % coverage, the merged map's scores beside each member's own map's; and
+its warnings (`fleet_warnings`): a contact, a member without state or that did not move.
+
 Also a command: `python -m smana.lab.report RUN_DIR` re-writes the report of a finished run.
 """
 
@@ -75,8 +83,9 @@ def _graph(run_dir: Path) -> dict | None:
     return None
 
 
-def _final_map(run_dir: Path, classes: ClassTable) -> Path | None:
-    """The run's map as PLY (exported from a saved .npz map when only that exists)."""
+def _final_map(run_dir: Path, classes: ClassTable, fleet: bool = False) -> Path | None:
+    """The run's map as PLY (exported from a saved .npz map when only that exists). A fleet's
+    is the merged map, `<run>/map.npz` (its members' own maps are under robots/)."""
     try:
         return ev.find_map(run_dir)
     except FileNotFoundError:
@@ -84,6 +93,8 @@ def _final_map(run_dir: Path, classes: ClassTable) -> Path | None:
     maps = [
         p for p in run_dir.rglob("*.npz") if "explorer" not in p.parts and p.name != "graph.npz"
     ]
+    if fleet:
+        maps = [p for p in maps if p == run_dir / "map.npz"]
     for path in sorted(maps, key=lambda p: p.stat().st_mtime, reverse=True):
         try:
             from smana.services.mapper.semantic_map import SemanticMap
@@ -95,19 +106,15 @@ def _final_map(run_dir: Path, classes: ClassTable) -> Path | None:
     return None
 
 
-def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> dict:
-    """Coverage, travelled labels and clearance of a run, against the world's ground truth."""
-    classes = world.classes
-    top = world.top_class()
-    res = top.resolution_m
-    radius = config.navgraph.robot_radius_m
-    trav = world.traversability(radius)
+def reachable_area(world, traj: np.ndarray, radius_m: float):
+    """(traversability raster, cell centres (nx, ny, 2), mask of the cells reachable from the
+    trajectory's start, or from the world's spawn point without one)."""
+    trav = world.traversability(radius_m)
     xs, ys = trav.cell_centres()
     cell_xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1)
-    start = traj[0, 1:3] if len(traj) else np.array(world.spawn_pose(radius)[:2])
+    start = traj[0, 1:3] if len(traj) else np.array(world.spawn_pose(radius_m)[:2])
     si, sj = trav.index_of(start[0], start[1])
     reach = ev.reachable_traversable(trav.data, (int(si), int(sj)))
-    out: dict = {"robot_radius_m": radius}
     if not reach.any():
         # the start cell itself may sit inside the clearance margin: take the nearest reachable
         d = np.where(
@@ -115,6 +122,21 @@ def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> 
         )
         i, j = np.unravel_index(np.argmin(d), d.shape)
         reach = ev.reachable_traversable(trav.data, (int(i), int(j)))
+    return trav, cell_xy, reach
+
+
+def exploration_metrics(
+    world, graph: dict | None, traj: np.ndarray, config, obstacle: np.ndarray | None = None
+) -> dict:
+    """Coverage, travelled labels and clearance of a run, against the world's ground truth.
+    `obstacle`: the world's `ev.collision_raster` when the caller has it already (a fleet's
+    members share it)."""
+    classes = world.classes
+    top = world.top_class()
+    res = top.resolution_m
+    radius = config.navgraph.robot_radius_m
+    _, cell_xy, reach = reachable_area(world, traj, radius)
+    out: dict = {"robot_radius_m": radius}
     if graph is not None:
         out.update(ev.exploration_coverage(graph, cell_xy, reach, res * res))
     else:
@@ -139,7 +161,8 @@ def exploration_metrics(world, graph: dict | None, traj: np.ndarray, config) -> 
         out["terrain_share"] = ev.terrain_share(gt_labels)
         out["travelled_label_share"] = ev.label_shares(gt_labels, names)
         # what the robot's body can hit: objects up to its height (it passes under tree crowns)
-        obstacle = ev.collision_raster(world, ev.robot_height_m())
+        if obstacle is None:
+            obstacle = ev.collision_raster(world, ev.robot_height_m())
         clear = ev.clearance_along(xy, obstacle, top.origin_xy, res)
         out["min_clearance_m"] = float(clear.min())
         out["close_calls"] = ev.count_events(clear < CLOSE_CALL_M)
@@ -334,6 +357,399 @@ def replay_warnings(rp: dict) -> list[str]:
     return out
 
 
+# -- a fleet's run -------------------------------------------------------------------------------
+
+FLEET_DIR = "robots"  # <run>/robots/<member>/: the member's map.npz, explorer/, trajectories
+SIM_SUMMARY = "sim.json"  # the fleet simulator's: robot-robot contacts and separations
+COVERAGE_TARGET = 0.95
+
+
+def member_dir(run_dir: Path, robot: str) -> Path:
+    return Path(run_dir) / FLEET_DIR / robot
+
+
+def fleet_graph(run_dir: Path, robots) -> dict | None:
+    """The fleet's shared navigation graph at the end: the newest member's copy (each member's
+    explorer saves the same graph), else `<run>/graph.npz`."""
+    copies = [member_dir(run_dir, r) / "explorer" / "graph.npz" for r in robots]
+    copies = sorted((p for p in copies if p.is_file()), key=lambda p: p.stat().st_mtime)
+    for path in [*reversed(copies), Path(run_dir) / "graph.npz"]:
+        if path.is_file():
+            with np.load(path) as g:
+                return {k: g[k] for k in g.files}
+    return None
+
+
+def fleet_coverage_curve(histories: dict[str, list], coverage_end: float | None):
+    """(robot time s from the fleet's first row, total distance m, coverage) arrays from the
+    members' explorer histories (rows t, explored_m2, frontier_size, distance_m; t is the
+    simulated time all members share). The fleet's explored area at t is the largest any member
+    reported up to t (they count the same shared graph); its distance at t the sum of each
+    member's last distance up to t. Rescaled as a single robot's (exploration.py's
+    `coverage_curve`): the last value equals the ground-truth coverage. Empty arrays when there
+    is no history or no end to rescale to."""
+    hs = [np.asarray(h or [], float).reshape(-1, 4) for h in histories.values()]
+    hs = [h[np.argsort(h[:, 0], kind="stable")] for h in hs if len(h)]
+    empty = np.zeros(0)
+    if not hs or coverage_end is None:
+        return empty, empty, empty
+    t = np.unique(np.concatenate([h[:, 0] for h in hs]))
+    explored, distance = np.zeros(len(t)), np.zeros(len(t))
+    for h in hs:
+        k = np.searchsorted(h[:, 0], t, side="right") - 1  # the member's last row up to t
+        seen = k >= 0
+        explored[seen] = np.maximum(explored[seen], np.maximum.accumulate(h[:, 1])[k[seen]])
+        distance[seen] += h[k[seen], 3]
+    if not explored[-1] > 0:
+        return empty, empty, empty
+    cov = np.clip(explored / explored[-1] * coverage_end, 0.0, 1.0)
+    return t - t[0], distance, cov
+
+
+def first_reach(x: np.ndarray, cov: np.ndarray, target: float = COVERAGE_TARGET) -> float | None:
+    """x at the first row where coverage reaches `target`; None (censored) if it never does."""
+    hit = np.nonzero(np.asarray(cov) >= target)[0]
+    return float(x[hit[0]]) if len(hit) else None
+
+
+def observed_cells(points: np.ndarray, voxel_m: float, cell_xy: np.ndarray) -> np.ndarray:
+    """Mask of the raster cells (centres `cell_xy` (nx, ny, 2)) that lie in a map column holding
+    one of `points` (voxel centres of a map of resolution `voxel_m`): whatever the raster's and
+    the map's resolutions, each cell reads the one voxel column over its centre."""
+    if not len(points):
+        return np.zeros(cell_xy.shape[:2], bool)
+
+    def code(ij):  # one int64 per column
+        return (ij[..., 0].astype(np.int64) << 32) + ij[..., 1].astype(np.int64)
+
+    cols = np.unique(code(np.floor(np.asarray(points)[:, :2] / voxel_m)))
+    # a cell centre on a column's border reads the same column for every member
+    return np.isin(code(np.floor(cell_xy / voxel_m + 1e-6)), cols)
+
+
+def observed_voxels(semantic_map):
+    """Every voxel the map observed, free ones too (`SemanticMap.observed_voxels`); a map class
+    without that method (before the fleet mapper) gives its occupied voxels."""
+    get = getattr(semantic_map, "observed_voxels", None) or semantic_map.occupied_voxels
+    return get()
+
+
+def map_overlap(observed: dict[str, np.ndarray], reach: np.ndarray, cell_area_m2: float) -> dict:
+    """The share of the explored reachable area that more than one member observed: reachable
+    cells observed by >= 2 members over those observed by >= 1 (None when none were)."""
+    count = np.zeros(reach.shape, np.int32)
+    for mask in observed.values():
+        count += mask & reach
+    n1, n2 = int((count >= 1).sum()), int((count >= 2).sum())
+    return {
+        "overlap": n2 / n1 if n1 else None,
+        "observed_reachable_area_m2": n1 * cell_area_m2,
+        "observed_by_several_m2": n2 * cell_area_m2,
+        "observed_share_per_member": {
+            r: float((m & reach).sum() / reach.sum()) if reach.any() else None
+            for r, m in observed.items()
+        },
+    }
+
+
+MAP_SCORES = ("n_points", "reconstruction_error_mean_m", "classification_ratio")
+
+
+def fleet_metrics(run_dir: Path, config, world, gt=None, names=None) -> dict:
+    """The "fleet" section of metrics.json: per member (distance, goals, times, world
+    collisions), robot-robot contacts and separation (`sim.json`), the merged coverage, the
+    overlap of the members' maps, time and total distance to 95 % coverage, and the merged map's
+    scores beside each member's own map's. `gt`: the ground-truth (points, labels), `world`:
+    None without ground truth (then only what needs none)."""
+    from smana.services.mapper.semantic_map import SemanticMap
+
+    run_dir = Path(run_dir)
+    robots = list(config.fleet.robots)
+    radius = config.navgraph.robot_radius_m
+    sim = _load_json(run_dir / SIM_SUMMARY)
+    graph = fleet_graph(run_dir, robots)
+    obstacle = ev.collision_raster(world, ev.robot_height_m()) if world is not None else None
+    members, trajectories, histories = {}, {}, {}
+    for r in robots:
+        d = member_dir(run_dir, r)
+        state = _load_json(d / "explorer" / "state.json")
+        traj, source = _trajectory(d)
+        trajectories[r] = traj
+        m: dict = {"state": state is not None, "trajectory_source": source}
+        if world is not None and len(traj) >= 2:
+            ex = exploration_metrics(world, None, traj, config, obstacle)
+            for k in ("distance_m", "collisions", "collision_time_s", "min_clearance_m"):
+                m[k] = ex.get(k)
+            m["close_calls"] = ex.get("close_calls")
+            m["terrain_share"] = ex.get("terrain_share")
+            m["robot_time_s"] = ex.get("duration_robot_s")
+        elif len(traj) >= 2:
+            m["distance_m"] = float(np.hypot(*np.diff(traj[:, 1:3], axis=0).T).sum())
+            m["robot_time_s"] = float(traj[-1, 0] - traj[0, 0])
+        if state is not None:
+            for k in ("done_reason", "n_goals", "explored_m2", "path_queries", "path_ok"):
+                m[k] = state.get(k)
+            m["path_errors"] = state.get("path_errors")
+            m["explorer_distance_m"] = state.get("distance_m")
+            m["wall_time_s"] = state.get("wall_time_s")
+            m.setdefault("robot_time_s", state.get("elapsed_s"))
+            histories[r] = state.get("history") or []
+        members[r] = m
+    out: dict = {"name": config.fleet.name, "robots": robots, "members": members}
+    # a real fleet (no simulator in the stack) has no sim.json to miss
+    out["simulated"] = bool(config.deploy.sim.enabled)
+    pairs = (sim or {}).get("min_separation_m") or {}
+    out["sim"] = {
+        "summary": SIM_SUMMARY if sim is not None else None,
+        "robot_contacts": (sim or {}).get("robot_contacts") or {},
+        "robot_contacts_total": (sim or {}).get("robot_contacts_total"),
+        "min_separation_m": pairs,
+        "min_separation_overall_m": min(pairs.values()) if pairs else None,
+        "sim_time_s": (sim or {}).get("sim_time_s"),
+    }
+    dists = [m.get("distance_m", m.get("explorer_distance_m")) for m in members.values()]
+    out["total_distance_m"] = float(sum(v for v in dists if v is not None))
+    if world is not None:
+        start = next((t for t in trajectories.values() if len(t)), np.zeros((0, 4)))
+        trav, cell_xy, reach = reachable_area(world, start, radius)
+        area = trav.resolution_m**2
+        if graph is not None:
+            out.update(ev.exploration_coverage(graph, cell_xy, reach, area))
+        else:
+            out.update(coverage=0.0, reachable_area_m2=float(reach.sum() * area))
+            out.update(explored_reachable_area_m2=0.0, known_area_m2=0.0)
+        observed = {}
+        for r in robots:
+            path = member_dir(run_dir, r) / "map.npz"
+            if path.is_file():
+                try:
+                    own = SemanticMap.load(path)
+                    observed[r] = observed_cells(
+                        observed_voxels(own).centres, own.resolution_m, cell_xy
+                    )
+                except (OSError, ValueError) as exc:
+                    log.warning("%s: %s", path, exc)
+        out.update(map_overlap(observed, reach, area))
+        out["maps_read"] = sorted(observed)
+    t, dist, cov = fleet_coverage_curve(histories, out.get("coverage"))
+    out["time_to_95_s"] = first_reach(t, cov)
+    out["distance_to_95_m"] = first_reach(dist, cov)
+    out["curve"] = {"t_s": t.tolist(), "distance_m": dist.tolist(), "coverage": cov.tolist()}
+    if gt is not None:
+        gp, gl = gt
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(gp)
+        maps = {"merged": run_dir / "map.npz"}
+        maps.update({r: member_dir(run_dir, r) / "map.npz" for r in robots})
+        scores = {}
+        for who, path in maps.items():
+            if not path.is_file():
+                scores[who] = None
+                continue
+            try:
+                mp, ml = ev.load_labelled_cloud(path)
+                full = ev.evaluate_map(mp, ml, gp, gl, names, gt_tree=tree)
+                scores[who] = {k: full[k] for k in MAP_SCORES}
+            except (OSError, ValueError) as exc:
+                scores[who] = f"evaluation failed: {exc}"
+        out["map"] = scores
+    return out
+
+
+def fleet_warnings(fleet: dict) -> list[str]:
+    """What in a fleet's figures says it did not do its job: a robot-robot contact, a member
+    whose explorer left no state or that did not move (and each member's explorer checks)."""
+    out = []
+    sim = fleet.get("sim") or {}
+    total = sim.get("robot_contacts_total")
+    if sim.get("summary") is None and fleet.get("simulated", True):
+        out.append(f"the simulator left no {SIM_SUMMARY}: robot-robot contacts are unknown")
+    elif total:
+        pairs = ", ".join(f"{k} x{v}" for k, v in sorted(sim["robot_contacts"].items()) if v)
+        out.append(f"{total} robot-robot contact(s) ({pairs or 'no pair named'})")
+    for r, m in (fleet.get("members") or {}).items():
+        ee = None
+        if m.get("state"):
+            ee = {k: m.get(k) for k in ("path_queries", "path_ok", "path_errors", "done_reason")}
+        dist = m.get("distance_m", m.get("explorer_distance_m"))
+        where = f"robots/{r}/explorer/state.json"
+        for w in run_warnings({"explorer": ee, "exploration": {"distance_m": dist}}, True):
+            out.append(f"{r}: " + w.replace("explorer/state.json", where))
+    return out
+
+
+def fleet_exploration(fleet: dict) -> dict:
+    """The run's "exploration" section for a fleet: the merged coverage, and the members'
+    distances and collisions added (what the summary table shows of any run)."""
+    members = fleet.get("members") or {}
+    keys = ("coverage", "reachable_area_m2", "explored_reachable_area_m2", "known_area_m2")
+    out = {k: fleet[k] for k in keys if k in fleet}
+    out["distance_m"] = fleet.get("total_distance_m")
+    for k in ("collisions", "close_calls"):
+        vals = [m.get(k) for m in members.values() if m.get(k) is not None]
+        if vals:
+            out[k] = int(sum(vals))
+    clear = [m["min_clearance_m"] for m in members.values() if m.get("min_clearance_m") is not None]
+    if clear:
+        out["min_clearance_m"] = min(clear)
+    times = [m.get("robot_time_s") for m in members.values() if m.get("robot_time_s") is not None]
+    if times:
+        out["duration_robot_s"] = max(times)
+    sources = sorted({m.get("trajectory_source") for m in members.values()} - {None})
+    out["trajectory_source"] = ", ".join(sources) or "none"
+    return out
+
+
+def fleet_summary_rows(fleet: dict) -> list[tuple[str, str]]:
+    """The fleet's lines of the summary table (from metrics.json's "fleet" section only)."""
+    sim = fleet.get("sim") or {}
+    robots = fleet.get("robots") or []
+    rows = [("fleet", f"{len(robots)} members: {', '.join(robots)}")]
+    t95, d95 = fleet.get("time_to_95_s"), fleet.get("distance_to_95_m")
+    rows.append(
+        (
+            f"to {100 * COVERAGE_TARGET:.0f} % coverage",
+            "not reached"
+            if t95 is None
+            else f"{t95:.0f} s robot time, {_f(d95, '.1f', ' m')} total distance",
+        )
+    )
+    rows.append(("overlap of the members' maps", _pct(fleet.get("overlap"))))
+    contacts = sim.get("robot_contacts_total")
+    rows.append(
+        (
+            "robot-robot contacts",
+            f"{'-' if contacts is None else contacts} (minimum separation "
+            f"{_f(sim.get('min_separation_overall_m'), '.2f', ' m')})",
+        )
+    )
+    mp = fleet.get("map") or {}
+    if isinstance(mp.get("merged"), dict):
+        rows.append(("merged map", _map_scores(mp["merged"])))
+    for r, m in (fleet.get("members") or {}).items():
+        own = mp.get(r)
+        rows.append(
+            (
+                f"{r}",
+                f"{_f(m.get('distance_m', m.get('explorer_distance_m')), '.1f', ' m')}, "
+                f"{m.get('n_goals', '-')} goals, {m.get('collisions', '-')} collisions, "
+                f"{_f(m.get('robot_time_s'), '.0f', ' s')} robot time"
+                + (f"; own map {_map_scores(own)}" if isinstance(own, dict) else ""),
+            )
+        )
+    return rows
+
+
+def _map_scores(s: dict) -> str:
+    return (
+        f"error {_f(s.get('reconstruction_error_mean_m'), '.3f', ' m')}, "
+        f"classification {_f(s.get('classification_ratio'), '.3f')}"
+    )
+
+
+def _fleet_lines(fleet: dict) -> list[str]:
+    """report.md's "Fleet" section."""
+    sim = fleet.get("sim") or {}
+    mp = fleet.get("map") or {}
+    lines = [
+        "## Fleet",
+        "",
+        f"Fleet `{fleet.get('name')}`: {len(fleet.get('robots') or [])} members sharing one map "
+        "and one navigation graph. Coverage is the merged graph's, against ground truth; the "
+        "overlap is the share of the explored reachable area observed by more than one member "
+        "(a cell observed by a member: an occupied voxel in its column in that member's own "
+        "map); time and total distance to 95 % are read off the fleet's coverage curve (the "
+        "largest explored area any member had reported, rescaled to the ground truth at the "
+        "end).",
+        "",
+        "| figure | value |",
+        "|---|---|",
+        (
+            "| merged coverage of the reachable traversable area | "
+            f"{_pct(fleet.get('coverage'))} of {_f(fleet.get('reachable_area_m2'), '.1f', ' m2')} |"
+        ),
+        f"| overlap | {_pct(fleet.get('overlap'))} |",
+        f"| time to 95 % (robot time) | {_f(fleet.get('time_to_95_s'), '.0f', ' s')} |",
+        f"| total distance to 95 % | {_f(fleet.get('distance_to_95_m'), '.1f', ' m')} |",
+        f"| total distance | {_f(fleet.get('total_distance_m'), '.1f', ' m')} |",
+        f"| robot-robot contacts | {sim.get('robot_contacts_total', '-')} |",
+        f"| minimum separation | {_f(sim.get('min_separation_overall_m'), '.2f', ' m')} |",
+        f"| simulated time | {_f(sim.get('sim_time_s'), '.0f', ' s')} |",
+        "",
+        "| member | distance (m) | goals | robot time (s) | wall time (s) | collisions | "
+        "observed share | map error (m) | classification ratio | ended because |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    seen = fleet.get("observed_share_per_member") or {}
+    for who in ["merged", *(fleet.get("members") or {})]:
+        m = (fleet.get("members") or {}).get(who, {})
+        s = mp.get(who) if isinstance(mp.get(who), dict) else {}
+        lines.append(
+            f"| {'merged map' if who == 'merged' else who} | "
+            f"{_f(m.get('distance_m', m.get('explorer_distance_m')), '.1f')} | "
+            f"{m.get('n_goals', '-')} | {_f(m.get('robot_time_s'), '.0f')} | "
+            f"{_f(m.get('wall_time_s'), '.0f')} | {m.get('collisions', '-')} | "
+            f"{_pct(seen.get(who))} | {_f(s.get('reconstruction_error_mean_m'), '.3f')} | "
+            f"{_f(s.get('classification_ratio'), '.3f')} | {m.get('done_reason') or '-'} |"
+        )
+    pairs = sim.get("min_separation_m") or {}
+    if pairs:
+        lines += ["", "| pair | contacts | minimum separation (m) |", "|---|---|---|"]
+        for k, v in sorted(pairs.items()):
+            lines.append(f"| {k} | {(sim.get('robot_contacts') or {}).get(k, 0)} | {v:.2f} |")
+    return lines + [""]
+
+
+def _fleet_plots(
+    run_dir: Path, classes, world, fleet_traj: dict, graph, fleet: dict
+) -> dict[str, str]:
+    """The ground truth and the shared graph with every member's trajectory in its own colour,
+    and the fleet's coverage curve."""
+    files = {}
+    trajs = {r: t[:, 1:3] for r, t in fleet_traj.items() if len(t)}
+    if world is not None:
+        top = world.top_class()
+        fig = plots.world_map(
+            classes,
+            top.data,
+            top.origin_xy,
+            top.resolution_m,
+            "Ground truth from above, with each member's trajectory",
+            trajectories=trajs,
+        )
+        files["fleet_map"] = str(plots.save(fig, run_dir / "plots" / "fleet_trajectories.png"))
+    if graph is not None:
+        fig = plots.graph_map(
+            classes,
+            graph["labels"],
+            graph["flags"],
+            graph["origin_xy"],
+            float(graph["resolution_m"]),
+            "The fleet's shared navigation graph at the end, with each member's trajectory",
+            trajectories=trajs,
+        )
+        files["graph"] = str(plots.save(fig, run_dir / "plots" / "graph.png"))
+    curve = fleet.get("curve") or {}
+    if len(curve.get("t_s") or []) >= 2:
+        fig = plots.line_plot(
+            [
+                plots.Series(
+                    "fleet (rescaled to ground truth at the end)", curve["t_s"], curve["coverage"]
+                ),
+                plots.Series(
+                    "95 %", [curve["t_s"][0], curve["t_s"][-1]], [0.95, 0.95], dashed=True
+                ),
+            ],
+            "Coverage of the reachable traversable area, the fleet's",
+            "robot time (s, simulated, shared by the members)",
+            "coverage",
+            ylim=(0.0, 1.02),
+        )
+        files["fleet_progress"] = str(plots.save(fig, run_dir / "plots" / "fleet_progress.png"))
+    return {k: str(Path(v).relative_to(run_dir)) for k, v in files.items()}
+
+
 def _pct(share) -> str:
     return _f(None if share is None else 100 * share, ".1f", " %")
 
@@ -347,6 +763,8 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
     warnings = metrics.get("warnings") or []
     n = len(warnings)
     rows = [("outcome", f"FAILED ({n} warning{'s' * (n != 1)})" if warnings else "ok")]
+    if metrics.get("fleet"):
+        rows += fleet_summary_rows(metrics["fleet"])
     if ex:
         area = ex.get("explored_reachable_area_m2")
         rows.append(
@@ -436,11 +854,18 @@ def write_report(
     previous = (_load_json(run_dir / "metrics.json") or {}).get("run") or {}
     classes = ClassTable.load(config.general.class_table)
     names = {i: c.name for i, c in classes.classes.items()}
+    is_fleet = config.fleet.enabled and replay is None
     state = _load_json(run_dir / "explorer" / "state.json")
     traj, traj_source = _trajectory(run_dir)
     graph = _graph(run_dir)
     if graph is not None and not (run_dir / "graph.npz").exists():
         shutil.copy(run_dir / "explorer" / "graph.npz", run_dir / "graph.npz")
+    if is_fleet:
+        # a fleet's explorers and trajectories are its members' (robots/<r>/); the shared graph
+        # is copied to <run>/graph.npz as a single robot's is
+        graph = fleet_graph(run_dir, config.fleet.robots)
+        if graph is not None:
+            np.savez(run_dir / "graph.npz", **graph)
     metrics: dict = {
         "run_dir": str(run_dir),
         "run": {
@@ -494,10 +919,19 @@ def write_report(
             world = ev.world_from_config(config)
         except Exception as exc:  # a real robot or a missing world file: no ground truth
             metrics["ground_truth"] = f"unavailable: {exc}"
-    if world is not None:
+    gt = None  # (points, labels) of the ground truth, read once for every map of a fleet
+    if is_fleet:
+        if world is not None:
+            try:
+                gt = ev.gt_cloud_for_run(run_dir, config)
+            except (OSError, ValueError) as exc:
+                log.warning("gt.ply: %s", exc)
+        metrics["fleet"] = fleet_metrics(run_dir, config, world, gt, names)
+        metrics["exploration"] = fleet_exploration(metrics["fleet"])
+    elif world is not None:
         metrics["exploration"] = exploration_metrics(world, graph, traj, config)
         metrics["exploration"]["trajectory_source"] = traj_source
-    map_path = _final_map(run_dir, classes)
+    map_path = _final_map(run_dir, classes, fleet=is_fleet)
     if map_path is not None:
         try:
             metrics["map_content"] = map_content(map_path, names)
@@ -506,10 +940,12 @@ def write_report(
     if map_path is not None and world is not None:
         try:
             mp, ml = ev.load_labelled_cloud(map_path)
-            gt = run_dir / "gt.ply"
-            if not gt.is_file():
-                world.export_ply(gt, 0.03)
-            gp, gl = ev.load_labelled_cloud(gt)
+            if gt is None:
+                gt_path = run_dir / "gt.ply"
+                if not gt_path.is_file():
+                    world.export_ply(gt_path, 0.03)
+                gt = ev.load_labelled_cloud(gt_path)
+            gp, gl = gt
             metrics["map"] = ev.evaluate_map(mp, ml, gp, gl, names)
             metrics["map"]["file"] = str(map_path.relative_to(run_dir))
         except (OSError, ValueError) as exc:
@@ -522,10 +958,17 @@ def write_report(
         "graph": "graph.npz" if (run_dir / "graph.npz").is_file() else None,
         "logs": sorted(str(p.relative_to(run_dir)) for p in (run_dir / "logs").glob("*.log")),
     }
-    metrics["files"]["plots"] = _plots(
-        run_dir, classes, world, graph, traj, state, replay, metrics.get("exploration")
-    )
-    metrics["warnings"] = list(warnings) + run_warnings(metrics, explored)
+    if is_fleet:
+        fleet_traj = {r: _trajectory(member_dir(run_dir, r))[0] for r in config.fleet.robots}
+        metrics["files"]["plots"] = _fleet_plots(
+            run_dir, classes, world, fleet_traj, graph, metrics["fleet"]
+        )
+        metrics["warnings"] = list(warnings) + fleet_warnings(metrics["fleet"])
+    else:
+        metrics["files"]["plots"] = _plots(
+            run_dir, classes, world, graph, traj, state, replay, metrics.get("exploration")
+        )
+        metrics["warnings"] = list(warnings) + run_warnings(metrics, explored)
     metrics["report_time_s"] = time.perf_counter() - t0
     (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=2, default=json_default))
     report = run_dir / "report.md"
@@ -579,9 +1022,14 @@ def render_markdown(m: dict) -> str:
         ]
     if rp:
         lines += _replay_lines(rp)
+    if m.get("fleet"):
+        lines += _fleet_lines(m["fleet"])
     ex, ee = m.get("exploration") or {}, m.get("explorer") or {}
     if ex or ee:
-        lines += ["## Exploration", "", "| figure | value |", "|---|---|"]
+        title = "## Exploration"
+        if m.get("fleet"):
+            title += " (the fleet: merged coverage, the members' figures added)"
+        lines += [title, "", "| figure | value |", "|---|---|"]
         rows = [
             ("ended because", ee.get("done_reason") or "-"),
             (
@@ -626,6 +1074,9 @@ def render_markdown(m: dict) -> str:
             ("collisions (footprint over an obstacle)", str(ex.get("collisions", "-"))),
             ("trajectory measured from", ex.get("trajectory_source", "-")),
         ]
+        if m.get("fleet"):
+            # a fleet's explorers are its members' (the Fleet section): only what was measured
+            rows = [(a, b) for a, b in rows if b not in ("-", "None")]
         lines += [f"| {a} | {b} |" for a, b in rows]
         lines.append("")
         if ex and ee:

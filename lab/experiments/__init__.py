@@ -2,6 +2,7 @@
 
     smana experiment noise [--quick] [--out DIR]
     smana experiment exploration [--quick] [--seeds 3] [--out DIR]
+    smana experiment fleet [--quick] [--robots 1,2,3] [--out DIR]
 
 One module per experiment (`noise.py`, `exploration.py`), each with its `add_parser(sub)` and
 `main(args, parser, out)`; this module only dispatches. Every experiment writes raw results (CSV
@@ -61,6 +62,7 @@ EXPERIMENTS = {
     "exploration": "exploration",
     "ablation": "ablation",
     "routes": "routes",
+    "fleet": "fleet",
 }
 
 

@@ -1,0 +1,620 @@
+"""`smana experiment fleet`: does a fleet explore faster, without a worse map and without touching
+each other? One `smana up --robots N` per world, fleet size N and seed, `--jobs` runs at once.
+
+Worlds: the default garden (12 m) and one 3.4 times its area (22 m, `sim.garden.size_m`), both
+the exploration experiment's cluttered layout. A seed fixes the world and the spawn
+(`exploration.pick_spawn`, the same for every N: the first member starts there, the simulator
+places the others `fleet.spawn_spacing_m` apart).
+
+Reported per world and N, each as a mean with its 95 % Student-t interval over seeds
+(lab/stats.py): robot time and total distance (all members) to 95 % coverage, coverage at the
+end, the overlap of the members' maps, the merged map's reconstruction error and classification
+ratio, robot-robot contacts. The numbers are the run report's (`metrics.json` "fleet",
+lab/report.py): its coverage curve is the members' explored area (the largest any member had
+reported) rescaled to the ground-truth coverage at the end, as the exploration experiment's.
+
+Verdicts, never from one run:
+- in the larger world, time to 95 % with 2 robots at most 0.6 times one robot's, with 3 at most
+  0.45 times: the ratio per seed (paired: same world, same spawn), its mean and interval; met
+  when the interval's upper end is under the target, not met when its lower end is above,
+  inconclusive otherwise. A seed where either run never reached 95 % is censored (left out, and
+  said so), never given a number;
+- the merged map as accurate as a single robot's: per seed, the fleet's error minus the 1-robot
+  run's (met when the interval reaches 0 or lies below), the classification ratio likewise
+  (reaches 0 or lies above);
+- zero robot-robot contacts over all runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from smana.common import progress
+from smana.common.zenoh_config import free_loopback_port
+from smana.lab import plots, stats
+
+from . import exploration as ex
+
+COVERAGE_TARGET = ex.COVERAGE_TARGET
+# fleet size -> the largest time to 95 % it may take, as a share of one robot's (larger world)
+TIME_TARGETS = {2: 0.6, 3: 0.45}
+MET, NOT_MET = "met", "not met"  # a target's verdict; otherwise stats.INCONCLUSIVE
+
+
+@dataclass(frozen=True)
+class World:
+    name: str
+    size_m: float
+    budget_s: float  # robot time per run
+
+
+DEFAULT_GARDEN = World("garden12", 12.0, 150.0)
+# 22 m: 3.4 times the default garden's area; one robot explored the 20 m garden in 420 s at most
+# (docs/experiments.md), the 22 m one is 1.2 times larger
+LARGE_GARDEN = World("garden22", 22.0, 480.0)
+
+
+@dataclass
+class FleetExperimentConfig:
+    """What `smana experiment fleet` runs: one `smana up --robots N` per world, N and seed."""
+
+    seeds: tuple[int, ...] = (3, 4, 5)
+    worlds: tuple[World, ...] = (DEFAULT_GARDEN, LARGE_GARDEN)
+    robots: tuple[int, ...] = (1, 2, 3)
+    # a fleet of 3 is 3 simulated cameras and 3 stacks on a 2-core machine: one run at a time
+    jobs: int = 1
+    budget_s: float | None = None  # overrides every world's budget
+    extra: tuple[str, ...] = ("sim.camera.width=320", "sim.camera.height=320")
+    is_quick: bool = False
+
+    @classmethod
+    def quick(cls) -> FleetExperimentConfig:
+        # the default garden, 1 and 2 robots, one seed, a short budget: two runs of ~1 min
+        return cls(
+            is_quick=True,
+            seeds=(3,),
+            worlds=(DEFAULT_GARDEN,),
+            robots=(1, 2),
+            budget_s=40.0,
+            extra=(
+                "sim.camera.width=160",
+                "sim.camera.height=160",
+                "deploy.standby_delay_s=3600",  # no hot spares for a 40 s run
+            ),
+        )
+
+    def budget(self, world: World) -> float:
+        return self.budget_s if self.budget_s is not None else world.budget_s
+
+
+# -- one run -------------------------------------------------------------------------------------
+
+
+def run_name(seed: int, world: str, n: int) -> str:
+    return f"{world}_n{n}_seed{seed}"
+
+
+def fleet_argv(run_dir: Path, seed: int, world: World, n: int, s, spawn=None, port=None):
+    """The `smana up --robots N` command line of one run."""
+    # every run a fleet (`--robots 1` too: a one-member fleet is a lone robot, bit for bit, and
+    # its report has the same "fleet" section); each on its own loopback port
+    sets = [
+        f"sim.seed={seed}",
+        f"sim.garden.size_m={world.size_m}",
+        *ex.WORLD_SETS,
+        f"explorer.time_budget_s={s.budget(world)}",
+        *s.extra,
+    ]
+    if spawn is not None:
+        sets.append(f"sim.spawn={list(spawn)}")
+    port = free_loopback_port() if port is None else port
+    argv = [sys.executable, "-m", "smana.deploy.cli", "up", "--robots", str(n)]
+    argv += ["--run-dir", str(run_dir)]
+    argv += ["--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]']
+    for item in sets:
+        argv += ["--set", item]
+    return argv
+
+
+def fleet_run(out: Path, seed: int, world: World, n: int, s: FleetExperimentConfig, spawn=None):
+    """One `smana up --robots N`; returns (exit code, metrics, cpu seconds, wall seconds)."""
+    run_dir = (out / run_name(seed, world.name, n)).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    argv = fleet_argv(run_dir, seed, world, n, s, spawn)
+    t0 = time.perf_counter()
+    with open(run_dir / "up.log", "w") as f:
+        p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
+        ex._LIVE.add(p.pid)  # the exploration runner's: Ctrl-C stops these runs too
+        # N stacks share the cores: robot time runs slower than for one robot
+        timer = threading.Timer(
+            s.budget(world) * (2 + 2 * n) + 240, os.killpg, (p.pid, signal.SIGKILL)
+        )
+        timer.start()
+        try:
+            _, status, usage = os.wait4(p.pid, 0)
+        finally:
+            timer.cancel()
+            ex._LIVE.discard(p.pid)
+        code = os.waitstatus_to_exitcode(status)
+    wall = time.perf_counter() - t0
+    return code, ex._load(run_dir / "metrics.json"), usage.ru_utime + usage.ru_stime, wall
+
+
+def make_row(seed: int, world: World, n: int, code: int, m: dict, cpu_s: float, wall_s: float):
+    """One run's figures from its metrics.json: the "fleet" section, or for a run of one robot
+    without it, the single robot's exploration and map (the same curve, exploration.py's)."""
+    f = m.get("fleet") or {}
+    mp = m.get("map") if isinstance(m.get("map"), dict) else {}
+    if f:
+        sim = f.get("sim") or {}
+        curve = f.get("curve") or {"t_s": [], "distance_m": [], "coverage": []}
+        row = {
+            "coverage": f.get("coverage"),
+            "time_to_95_s": f.get("time_to_95_s"),
+            "distance_to_95_m": f.get("distance_to_95_m"),
+            "total_distance_m": f.get("total_distance_m"),
+            "overlap": f.get("overlap"),
+            "robot_contacts": sim.get("robot_contacts_total"),
+            "min_separation_m": sim.get("min_separation_overall_m"),
+        }
+        merged = (f.get("map") or {}).get("merged")
+        if isinstance(merged, dict):
+            mp = merged
+    else:
+        e, ee = m.get("exploration") or {}, m.get("explorer") or {}
+        t, d, cov = ex.coverage_curve(_history(m), ee.get("explored_m2"), e.get("coverage"))
+        curve = {"t_s": t.tolist(), "distance_m": d.tolist(), "coverage": cov.tolist()}
+        row = {
+            "coverage": e.get("coverage"),
+            "time_to_95_s": ex.first_reach(t, cov),
+            "distance_to_95_m": ex.first_reach(d, cov),
+            "total_distance_m": e.get("distance_m"),
+            "overlap": None,
+            # one robot cannot touch another
+            "robot_contacts": 0 if n == 1 and m else None,
+            "min_separation_m": None,
+        }
+    ex_ = m.get("exploration") or {}
+    return {
+        "seed": seed,
+        "world": world.name,
+        "size_m": world.size_m,
+        "n_robots": n,
+        "exit_code": code,
+        "ok": code == 0 and bool(m),
+        **row,
+        "map_error_m": mp.get("reconstruction_error_mean_m"),
+        "classification_ratio": mp.get("classification_ratio"),
+        "collisions": ex_.get("collisions"),
+        "wall_time_s": round(wall_s, 1),
+        "cpu_s": round(cpu_s, 1),
+        "curve": curve,
+    }
+
+
+def _history(m: dict) -> list:
+    """A single robot's explorer history, read back from its run directory."""
+    if not m.get("run_dir"):
+        return []
+    return ex._load(Path(m["run_dir"]) / "explorer" / "state.json").get("history") or []
+
+
+def run_fleet(s: FleetExperimentConfig, out: Path, log=progress.say) -> list[dict]:
+    """Every world x N x seed, `s.jobs` at once; writes the outputs and returns the rows."""
+    spawns = {(w.name, seed): ex.pick_spawn(seed, w.size_m) for w in s.worlds for seed in s.seeds}
+    todo = [(seed, w, n) for w in s.worlds for seed in s.seeds for n in s.robots]
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGTERM, ex._terminate)
+    rows = []
+    bar = progress.bar(len(todo), "fleet", unit="run")
+    pool = ThreadPoolExecutor(max_workers=s.jobs)
+    try:
+        futs = {
+            pool.submit(fleet_run, out, seed, w, n, s, spawns[(w.name, seed)]): (seed, w, n)
+            for seed, w, n in todo
+        }
+        for fut in as_completed(futs):
+            seed, w, n = futs[fut]
+            try:
+                row = make_row(seed, w, n, *fut.result())
+            except Exception as exc:  # a run that could not even start is a failed run
+                row = make_row(seed, w, n, -1, {}, 0.0, 0.0)
+                log(f"{run_name(seed, w.name, n)}: {exc}")
+            rows.append(row)
+            bar.update()
+            log(
+                f"{run_name(seed, w.name, n)}: exit {row['exit_code']}, {row['wall_time_s']} s, "
+                f"coverage {row['coverage']}, time to 95 % {row['time_to_95_s']}"
+            )
+    except BaseException:
+        pool.shutdown(wait=False, cancel_futures=True)
+        for pid in list(ex._LIVE):
+            try:
+                os.killpg(pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+        raise
+    finally:
+        pool.shutdown(wait=True)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    bar.close()
+    order = [w.name for w in s.worlds]
+    rows.sort(key=lambda r: (order.index(r["world"]), r["n_robots"], r["seed"]))
+    write_fleet_outputs(rows, s, out)
+    return rows
+
+
+# -- aggregation ---------------------------------------------------------------------------------
+
+SUMMARY_KEYS = (
+    "time_to_95_s",
+    "distance_to_95_m",
+    "coverage",
+    "overlap",
+    "map_error_m",
+    "classification_ratio",
+    "robot_contacts",
+)
+
+
+def summarise_fleet(rows: list[dict]) -> list[dict]:
+    """Per world and N: the intervals of SUMMARY_KEYS over the runs that ran (time and distance
+    to 95 % over those that reached it, with how many did)."""
+    out = []
+    for world, n in dict.fromkeys((r["world"], r["n_robots"]) for r in rows):
+        sel = [r for r in rows if r["world"] == world and r["n_robots"] == n]
+        ok = [r for r in sel if r["ok"]]
+        out.append(
+            {
+                "world": world,
+                "size_m": sel[0]["size_m"],
+                "n_robots": n,
+                "runs": len(sel),
+                "failed": len(sel) - len(ok),
+                "reached_95": sum(r["time_to_95_s"] is not None for r in ok),
+                **{k: ex._ci(sel, k).as_dict() for k in SUMMARY_KEYS},
+            }
+        )
+    return out
+
+
+def _by_seed(rows, world: str, n: int, key: str) -> dict[int, float | None]:
+    return {
+        r["seed"]: r[key] for r in rows if r["ok"] and r["world"] == world and r["n_robots"] == n
+    }
+
+
+def target_below(ci: stats.Interval, target: float) -> str:
+    """ "At most `target`": met when the interval's upper end is under it, not met when its lower
+    end is above, inconclusive otherwise (or without an interval)."""
+    if not ci.defined:
+        return stats.INCONCLUSIVE
+    if ci.hi < target:
+        return MET
+    if ci.lo > target:
+        return NOT_MET
+    return stats.INCONCLUSIVE
+
+
+def not_worse(ci: stats.Interval, lower_is_better: bool) -> str:
+    """A paired difference (fleet minus one robot) that must not be worse: met when its interval
+    holds 0 or lies on the better side, not met when it lies wholly on the worse side."""
+    if not ci.defined:
+        return stats.INCONCLUSIVE
+    worse = ci.lo > 0 if lower_is_better else ci.hi < 0
+    return NOT_MET if worse else MET
+
+
+def time_ratios(rows: list[dict], world: str, n: int) -> tuple[dict[int, float], list[int]]:
+    """(seed -> time to 95 % with n robots over one robot's, the censored seeds: one of the two
+    runs never reached 95 %). Seeds where either run failed are in neither."""
+    one, many = _by_seed(rows, world, 1, "time_to_95_s"), _by_seed(rows, world, n, "time_to_95_s")
+    ratios, censored = {}, []
+    for seed in sorted(one.keys() & many.keys()):
+        a, b = one[seed], many[seed]
+        if a is None or b is None:
+            censored.append(seed)
+        elif a > 0:
+            ratios[seed] = b / a
+    return ratios, censored
+
+
+def paired_difference(rows: list[dict], world: str, n: int, key: str) -> stats.Interval:
+    """Interval of (n robots minus one robot) of `key` over the seeds both ran with a value."""
+    one, many = _by_seed(rows, world, 1, key), _by_seed(rows, world, n, key)
+    return stats.mean_ci(
+        [
+            many[k] - one[k]
+            for k in sorted(one.keys() & many.keys())
+            if one[k] is not None and many[k] is not None
+        ]
+    )
+
+
+def verdicts(rows: list[dict], large_world: str = LARGE_GARDEN.name) -> list[dict]:
+    """The targets, each decided by intervals over seeds: (claim, target, smana, verdict) rows."""
+    out = []
+    worlds = list(dict.fromkeys(r["world"] for r in rows))
+    sizes = sorted({r["n_robots"] for r in rows})
+    if large_world in worlds and 1 in sizes:
+        for n, target in TIME_TARGETS.items():
+            if n not in sizes:
+                continue
+            ratios, censored = time_ratios(rows, large_world, n)
+            ci = stats.mean_ci(list(ratios.values()))
+            note = (
+                f"; censored (never reached 95 %): seed {', '.join(map(str, censored))}"
+                if censored
+                else ""
+            )
+            out.append(
+                {
+                    "claim": f"{large_world}: time to {100 * COVERAGE_TARGET:.0f} % coverage with "
+                    f"{n} robots over one robot's, paired per seed",
+                    "target": f"<= {target:g}",
+                    "smana": ci.format(fmt=".2f") + note,
+                    "verdict": target_below(ci, target),
+                }
+            )
+    for world in worlds:
+        for n in sizes:
+            if n == 1 or 1 not in sizes:
+                continue
+            for key, what, lower in (
+                ("map_error_m", "reconstruction error (m)", True),
+                ("classification_ratio", "classification ratio", False),
+            ):
+                ci = paired_difference(rows, world, n, key)
+                out.append(
+                    {
+                        "claim": f"{world}: merged map's {what} with {n} robots minus one "
+                        "robot's, paired per seed, not worse",
+                        "target": "interval holds 0 or " + ("below" if lower else "above"),
+                        "smana": ci.format(fmt=".4f" if lower else ".3f"),
+                        "verdict": not_worse(ci, lower),
+                    }
+                )
+    ok = [r for r in rows if r["ok"]]
+    counts = [r.get("robot_contacts") for r in ok]
+    known = [c for c in counts if c is not None]
+    total = int(sum(known))
+    if total:
+        verdict = NOT_MET
+    elif ok and len(known) == len(counts):
+        verdict = MET
+    else:
+        verdict = stats.INCONCLUSIVE
+    out.append(
+        {
+            "claim": "robot-robot contacts over all runs",
+            "target": "0",
+            "smana": f"{total} in {len(known)} runs"
+            + (
+                f" ({len(counts) - len(known)} runs without a count)"
+                if len(known) < len(counts)
+                else ""
+            ),
+            "verdict": verdict,
+        }
+    )
+    return out
+
+
+# -- outputs -------------------------------------------------------------------------------------
+
+
+def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -> list[Path]:
+    """fleet.md (verdicts on top), fleet.json (settings, runs, summary, verdicts), fleet.csv and a
+    coverage-vs-time figure per world; returns the figures."""
+    out.mkdir(parents=True, exist_ok=True)
+    flat = [{k: v for k, v in r.items() if k != "curve"} for r in rows]
+    if flat:
+        with open(out / "fleet.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(flat[0]))
+            w.writeheader()
+            w.writerows(flat)
+    summary = summarise_fleet(rows)
+    table = verdicts(rows)
+    (out / "fleet.json").write_text(
+        json.dumps(
+            {"settings": asdict(s), "runs": rows, "summary": summary, "verdicts": table}, indent=2
+        )
+    )
+    figures = _figures(rows, out)
+    lines = ["# Fleet experiment", ""]
+    if s.is_quick:
+        lines += [
+            f"**Quick run**: the default garden, {' and '.join(map(str, s.robots))} robots, "
+            f"{len(s.seeds)} seed(s) of {s.budget(s.worlds[0]):.0f} s. It checks that the "
+            "experiment works; its verdicts say nothing (the full run: `smana experiment fleet`).",
+            "",
+        ]
+    failed = [r for r in rows if not r["ok"]]
+    if failed:
+        names = ", ".join(
+            f"{run_name(r['seed'], r['world'], r['n_robots'])} (exit {r['exit_code']})"
+            for r in failed
+        )
+        lines += [
+            f"**WARNING: {len(failed)} of {len(rows)} runs failed** (no metrics or non-zero "
+            f"exit), left out of every number below: {names}.",
+            "",
+        ]
+    lines += [
+        "| claim | target | smana mean [95 % CI] (n) | verdict |",
+        "|---|---|---|---|",
+        *(f"| {v['claim']} | {v['target']} | {v['smana']} | {v['verdict']} |" for v in table),
+        "",
+        f"Seeds {list(s.seeds)}, worlds "
+        + ", ".join(f"{w.name} ({w.size_m:g} m, budget {s.budget(w):.0f} s)" for w in s.worlds)
+        + f", {s.jobs} run(s) at once. World: {' '.join(ex.WORLD_SETS)}.",
+        "",
+        "| world | robots | runs (failed) | reached 95 % | time to 95 % (s) | total distance to "
+        "95 % (m) | coverage | overlap | map error (m) | classification ratio | contacts |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for d in summary:
+        iv = {k: ex._interval(d[k]) for k in SUMMARY_KEYS}
+        lines.append(
+            f"| {d['world']} | {d['n_robots']} | {d['runs']} ({d['failed']}) | "
+            f"{d['reached_95']} of {d['runs'] - d['failed']} | "
+            f"{iv['time_to_95_s'].format(fmt='.0f')} | {iv['distance_to_95_m'].format()} | "
+            f"{iv['coverage'].format(100, unit=' %')} | {iv['overlap'].format(100, unit=' %')} | "
+            f"{iv['map_error_m'].format(fmt='.3f')} | "
+            f"{iv['classification_ratio'].format(fmt='.3f')} | "
+            f"{iv['robot_contacts'].format(fmt='.1f')} |"
+        )
+    lines += [
+        "",
+        "Time and distance to 95 % are over the runs that reached it; the others are counted "
+        "as not reached (censored), never as a number. The distance is every member's, added.",
+        "",
+        "| run | exit | coverage | time to 95 % (s) | distance to 95 % (m) | overlap | "
+        "contacts | min separation (m) | wall (s) | CPU (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        t95 = "not reached" if r["time_to_95_s"] is None else f"{r['time_to_95_s']:.0f}"
+        lines.append(
+            f"| {run_name(r['seed'], r['world'], r['n_robots'])} | {r['exit_code']} | "
+            f"{ex._pct(r['coverage'])} | {t95} | {ex._num(r['distance_to_95_m'])} | "
+            f"{ex._pct(r['overlap'])} | {_int(r['robot_contacts'])} | "
+            f"{ex._num(r['min_separation_m'], '.2f')} | {ex._num(r['wall_time_s'], '.0f')} | "
+            f"{ex._num(r['cpu_s'], '.0f')} |"
+        )
+    lines += [""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
+    (out / "fleet.md").write_text("\n".join(lines))
+    return figures
+
+
+def _int(v) -> str:
+    return "-" if v is None else str(int(v))
+
+
+def _figures(rows: list[dict], out: Path) -> list[Path]:
+    """Coverage against robot time per world, one curve (mean and interval over seeds) per N."""
+    saved = []
+    for world in dict.fromkeys(r["world"] for r in rows):
+        curves = []
+        for n in sorted({r["n_robots"] for r in rows if r["world"] == world}):
+            sel = [r for r in rows if r["world"] == world and r["n_robots"] == n]
+            c = ex.mean_curve(sel, "t_s")
+            if c is not None:
+                k = sum(1 for r in sel if r["ok"] and len(r["curve"]["t_s"]) >= 2)
+                curves.append((f"{n} robot{'s' * (n > 1)} (n = {k})", *c))
+        if curves:
+            size = next(r["size_m"] for r in rows if r["world"] == world)
+            saved.append(
+                plots.save(
+                    plots.band_plot(
+                        curves,
+                        f"Coverage vs robot time, {size:g} m garden",
+                        "robot time (s)",
+                        "coverage (rescaled to ground truth at the end)",
+                        note="mean and 95 % CI over seeds",
+                        hline=COVERAGE_TARGET,
+                    ),
+                    out / f"fleet_coverage_time_{world}.png",
+                )
+            )
+    return saved
+
+
+# -- command line --------------------------------------------------------------------------------
+
+
+def add_parser(sub) -> None:
+    """The `fleet` subcommand of `smana experiment`."""
+    from smana.common.cli import positive_float, positive_int
+
+    e = sub.add_parser(
+        "fleet",
+        help="1, 2 and 3 robots exploring the 12 m and 22 m gardens (about 2 h; --quick 3 min)",
+        description="One `smana up --robots N` per world (12 m and 22 m garden), N (1, 2, 3) and "
+        "seed: time and total distance to 95 % coverage, overlap, merged map's accuracy, "
+        "robot-robot contacts; verdicts on the speed-up in the larger world.",
+        epilog="Duration on a 2-core machine, one run at a time (estimated from the exploration "
+        "experiment's single-robot runs, not yet measured for fleets): 3 seeds x 2 worlds x "
+        "3 fleet sizes = 18 runs; the 12 m garden's 2 to 4 min each, the 22 m garden's 6 to 12 "
+        "min each: about 2 hours (--seeds 5 about 3 h 20 min). --quick about 3 minutes (the "
+        "12 m garden, 1 and 2 robots, 1 seed of 40 s). A progress bar with an ETA shows on a "
+        "terminal (SMANA_PROGRESS=1 forces it, 0 hides it). Exits 1 if any run failed.",
+    )
+    e.add_argument("--quick", action="store_true", help="1 seed, 1 and 2 robots, 12 m (3 min)")
+    e.add_argument(
+        "--out", type=Path, help="output directory (default runs/experiment-fleet-<time>)"
+    )
+    e.add_argument("--seeds", type=positive_int, help="number of seeds, from 3 up (default 3)")
+    e.add_argument(
+        "--robots", help="comma-separated fleet sizes (default 1,2,3; 1 is the reference)"
+    )
+    e.add_argument(
+        "--worlds",
+        help=f"comma-separated subset of {DEFAULT_GARDEN.name},{LARGE_GARDEN.name} (default both)",
+    )
+    e.add_argument(
+        "--budget",
+        type=positive_float,
+        help="time budget per run, s of robot time (default 150 in the 12 m garden, 480 in the "
+        "22 m one)",
+    )
+    e.add_argument("--jobs", type=positive_int, help="runs of smana up at once (default 1)")
+    e.add_argument("--set", dest="extra", action="append", default=[], help="extra config override")
+
+
+def apply_args(s: FleetExperimentConfig, args) -> FleetExperimentConfig:
+    from smana.common.cli import UsageError
+
+    if args.seeds:
+        s.seeds = tuple(range(3, 3 + args.seeds))
+    if args.budget:
+        s.budget_s = args.budget
+    if args.jobs:
+        s.jobs = args.jobs
+    if args.robots:
+        try:
+            sizes = tuple(sorted({int(v) for v in args.robots.split(",") if v.strip()}))
+        except ValueError:
+            sizes = ()
+        if not sizes or min(sizes) < 1:
+            raise UsageError(f"--robots: expected fleet sizes like 1,2,3, got {args.robots!r}")
+        s.robots = sizes
+    if args.worlds:
+        known = {w.name: w for w in (DEFAULT_GARDEN, LARGE_GARDEN)}
+        names = [v.strip() for v in args.worlds.split(",") if v.strip()]
+        if not names or any(v not in known for v in names):
+            raise UsageError(f"--worlds: expected some of {', '.join(known)}, got {args.worlds!r}")
+        s.worlds = tuple(known[v] for v in names)
+    s.extra = (*s.extra, *args.extra)
+    return s
+
+
+def check_args(args, parser=None) -> None:
+    """Refuse a bad --set, --robots or --worlds now, not in every run."""
+    from smana.common.config import SmanaConfig
+
+    SmanaConfig.load(overrides=[*ex.WORLD_SETS, *args.extra])
+    apply_args(FleetExperimentConfig(), args)
+
+
+def main(args, parser, out: Path) -> int:
+    s = FleetExperimentConfig.quick() if args.quick else FleetExperimentConfig()
+    rows = run_fleet(apply_args(s, args), out)
+    failed = sum(not r["ok"] for r in rows)
+    print(f"results in {out} (fleet.md)")
+    if failed:
+        print(f"warning: {failed} of {len(rows)} runs failed (see fleet.md)")
+        return 1
+    return 0

@@ -1,0 +1,189 @@
+"""`smana experiment fleet` without a stack: rows from fabricated metrics, the summary, the
+verdicts (paired ratios, censoring, not-worse map, contacts) and the outputs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from smana.lab import stats
+from smana.lab.experiments import fleet as fx
+
+W12, W22 = fx.DEFAULT_GARDEN, fx.LARGE_GARDEN
+
+
+def _row(world, n, seed, t95, err=0.03, ratio=0.9, contacts=0, ok=True, coverage=0.99):
+    t = np.linspace(0, 100, 11)
+    cov = np.minimum(1.0, t / 100 + 0.05) * coverage
+    return {
+        "seed": seed,
+        "world": world.name,
+        "size_m": world.size_m,
+        "n_robots": n,
+        "exit_code": 0 if ok else 1,
+        "ok": ok,
+        "coverage": coverage,
+        "time_to_95_s": t95,
+        "distance_to_95_m": None if t95 is None else t95 / 5,
+        "total_distance_m": 30.0,
+        "overlap": None if n == 1 else 0.3,
+        "robot_contacts": contacts,
+        "min_separation_m": None if n == 1 else 1.5,
+        "map_error_m": err,
+        "classification_ratio": ratio,
+        "collisions": 0,
+        "wall_time_s": 100.0,
+        "cpu_s": 150.0,
+        "curve": {"t_s": t.tolist(), "distance_m": (t / 5).tolist(), "coverage": cov.tolist()},
+    }
+
+
+def _rows(times: dict[int, list], **kw):
+    """World 22 rows with the given times to 95 % per N over seeds 3, 4, 5."""
+    return [_row(W22, n, 3 + k, t, **kw) for n, ts in times.items() for k, t in enumerate(ts)]
+
+
+def _verdict(table, start):
+    return next(v for v in table if v["claim"].startswith(start))
+
+
+def test_time_ratio_verdicts_are_paired_per_seed():
+    rows = _rows({1: [100, 200, 300], 2: [50, 100, 150], 3: [60, 120, 180]})
+    table = fx.verdicts(rows)
+    two = _verdict(table, "garden22: time to 95 % coverage with 2")
+    three = _verdict(table, "garden22: time to 95 % coverage with 3")
+    # every seed's ratio is 0.5 (2 robots) and 0.6 (3): no spread, intervals of width 0
+    assert two["verdict"] == fx.MET and two["smana"].startswith("0.50 [0.50, 0.50] (n = 3)")
+    assert three["verdict"] == fx.NOT_MET
+    # spread across the target: inconclusive
+    rows = _rows({1: [100, 100, 100], 2: [40, 60, 80]})
+    assert _verdict(fx.verdicts(rows), "garden22: time to 95 % coverage with 2")["verdict"] == (
+        stats.INCONCLUSIVE
+    )
+
+
+def test_a_run_that_never_reached_95_is_censored_and_said_so():
+    rows = _rows({1: [100, None, 300], 2: [50, 100, None]})
+    ratios, censored = fx.time_ratios(rows, W22.name, 2)
+    assert ratios == {3: 0.5} and censored == [4, 5]
+    v = _verdict(fx.verdicts(rows), "garden22: time to 95 % coverage with 2")
+    assert v["verdict"] == stats.INCONCLUSIVE  # one ratio: no interval
+    assert "censored (never reached 95 %): seed 4, 5" in v["smana"]
+    # a failed run is neither a ratio nor censored
+    rows = _rows({1: [100, 200, 300], 2: [50, 100, 150]})
+    rows[-1]["ok"] = False
+    assert fx.time_ratios(rows, W22.name, 2) == ({3: 0.5, 4: 0.5}, [])
+
+
+def test_merged_map_not_worse_and_contacts():
+    rows = [_row(W12, 1, s, 50, err=0.030 + 0.001 * s, ratio=0.90) for s in (3, 4, 5)]
+    rows += [
+        _row(W12, 2, s, 30, err=0.030 + 0.001 * s + d, ratio=0.9)
+        for s, d in ((3, 0.001), (4, -0.001), (5, 0.0))
+    ]
+    table = fx.verdicts(rows)
+    assert _verdict(table, "garden12: merged map's reconstruction")["verdict"] == fx.MET
+    # the same ratio in every seed: a difference of exactly 0
+    assert _verdict(table, "garden12: merged map's classification")["verdict"] == fx.MET
+    worse = [
+        dict(
+            r,
+            map_error_m=r["map_error_m"]
+            + 0.01 * (r["n_robots"] - 1)
+            + 0.001 * r["seed"] * (r["n_robots"] - 1),
+        )
+        for r in rows
+    ]
+    table = fx.verdicts(worse)
+    assert _verdict(table, "garden12: merged map's reconstruction")["verdict"] == fx.NOT_MET
+    assert _verdict(table, "robot-robot contacts")["verdict"] == fx.MET
+    rows[-1]["robot_contacts"] = 2
+    v = _verdict(fx.verdicts(rows), "robot-robot contacts")
+    assert v["verdict"] == fx.NOT_MET and v["smana"].startswith("2 in 6 runs")
+    rows[-1]["robot_contacts"] = None
+    assert _verdict(fx.verdicts(rows), "robot-robot contacts")["verdict"] == stats.INCONCLUSIVE
+
+
+def test_not_worse_and_target_below_by_hand():
+    iv = stats.Interval
+    assert fx.target_below(iv(0.5, 0.4, 0.59, 3), 0.6) == fx.MET
+    assert fx.target_below(iv(0.7, 0.61, 0.8, 3), 0.6) == fx.NOT_MET
+    assert fx.target_below(iv(0.6, 0.5, 0.7, 3), 0.6) == stats.INCONCLUSIVE
+    assert fx.target_below(iv(0.5, float("nan"), float("nan"), 1), 0.6) == stats.INCONCLUSIVE
+    assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True) == fx.MET
+    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), True) == fx.MET
+    assert fx.not_worse(iv(0.02, 0.01, 0.03, 3), True) == fx.NOT_MET
+    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), False) == fx.NOT_MET
+
+
+def test_summary_per_world_and_fleet_size():
+    rows = _rows({1: [100, 200, None], 2: [50, 100, 150]})
+    rows.append(_row(W22, 2, 6, 10, ok=False))
+    s = {(d["world"], d["n_robots"]): d for d in fx.summarise_fleet(rows)}
+    one, two = s[("garden22", 1)], s[("garden22", 2)]
+    assert (one["runs"], one["failed"], one["reached_95"]) == (3, 0, 2)
+    assert one["time_to_95_s"]["mean"] == 150 and one["time_to_95_s"]["n"] == 2
+    assert (two["runs"], two["failed"], two["reached_95"]) == (4, 1, 3)
+    assert two["time_to_95_s"]["mean"] == 100  # the failed run's 10 s is left out
+    assert two["overlap"]["mean"] == pytest.approx(0.3) and one["overlap"]["n"] == 0
+
+
+def test_rows_from_a_fleet_run_and_a_single_robot_run():
+    metrics = {
+        "fleet": {
+            "coverage": 0.98,
+            "time_to_95_s": 42.0,
+            "distance_to_95_m": 12.0,
+            "total_distance_m": 20.0,
+            "overlap": 0.25,
+            "sim": {"robot_contacts_total": 0, "min_separation_overall_m": 1.1},
+            "map": {"merged": {"reconstruction_error_mean_m": 0.03, "classification_ratio": 0.9}},
+            "curve": {"t_s": [0, 42], "distance_m": [0, 12], "coverage": [0.1, 0.98]},
+        },
+        "exploration": {"collisions": 1},
+    }
+    r = fx.make_row(3, W22, 2, 0, metrics, 10.0, 20.0)
+    assert r["ok"] and r["time_to_95_s"] == 42.0 and r["overlap"] == 0.25
+    assert r["map_error_m"] == 0.03 and r["robot_contacts"] == 0 and r["collisions"] == 1
+    failed = fx.make_row(3, W22, 2, -1, {}, 0.0, 0.0)
+    assert not failed["ok"] and failed["robot_contacts"] is None
+
+
+def test_outputs_say_quick_on_top_and_draw_one_curve_per_fleet_size(tmp_path):
+    s = fx.FleetExperimentConfig.quick()
+    rows = [_row(W12, n, 3 + k, 50 / n) for n in (1, 2) for k in range(2)]
+    rows.append(_row(W12, 2, 5, None, ok=False))
+    figures = fx.write_fleet_outputs(rows, s, tmp_path)
+    text = (tmp_path / "fleet.md").read_text()
+    assert text.splitlines()[2].startswith("**Quick run**")
+    assert "**WARNING: 1 of 5 runs failed**" in text and "garden12_n2_seed5 (exit 1)" in text
+    data = json.loads((tmp_path / "fleet.json").read_text())
+    assert {"settings", "runs", "summary", "verdicts"} <= set(data)
+    assert [p.name for p in figures] == ["fleet_coverage_time_garden12.png"]
+    assert figures[0].stat().st_size > 1000
+
+
+def test_argv_and_arguments(tmp_path):
+    import argparse
+
+    s = fx.FleetExperimentConfig()
+    argv = fx.fleet_argv(tmp_path, 3, W22, 3, s, spawn=[1.0, 2.0, 0.5], port=7000)
+    assert argv[3:7] == ["up", "--robots", "3", "--run-dir"]
+    assert "sim.garden.size_m=22.0" in argv and "explorer.time_budget_s=480.0" in argv
+    assert "sim.spawn=[1.0, 2.0, 0.5]" in argv
+    p = argparse.ArgumentParser()
+    sub = p.add_subparsers()
+    fx.add_parser(sub)
+    args = p.parse_args(["fleet", "--robots", "1,3", "--worlds", "garden22", "--budget", "90"])
+    s = fx.apply_args(fx.FleetExperimentConfig(), args)
+    assert s.robots == (1, 3) and [w.name for w in s.worlds] == ["garden22"]
+    assert s.budget(W22) == 90
+    from smana.common.cli import UsageError
+
+    with pytest.raises(UsageError):
+        fx.apply_args(fx.FleetExperimentConfig(), p.parse_args(["fleet", "--robots", "0,x"]))
+    assert "hour" in sub.choices["fleet"].epilog and "--quick about 3 minutes" in (
+        sub.choices["fleet"].epilog
+    )
