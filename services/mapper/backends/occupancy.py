@@ -181,6 +181,17 @@ def _fuse_bayes(sem_l, sem_p, g, label, conf, n_classes, eps):
     return sem_l[g, 0] != old_l0 or sem_p[g, 0] != old_p0
 
 
+@njit(cache=True, error_model="numpy")
+def _fuse_observations(sem_l, sem_p, rows, labels, confs, k):
+    """Fuse observation i (labels[i], confs[i]) into row rows[i] of (sem_l, sem_p), in the given
+    order, by the map's rule (`_fuse_max` / `_fuse_bayes`, the ones the cloud kernel calls)."""
+    for i in range(rows.shape[0]):
+        if k.mode == FUSION_MAX:
+            _fuse_max(sem_l, sem_p, rows[i], labels[i], confs[i], k.gain, k.penalty)
+        else:
+            _fuse_bayes(sem_l, sem_p, rows[i], labels[i], confs[i], k.n_classes, k.eps)
+
+
 # -- integration kernels -------------------------------------------------------------------------
 
 
@@ -422,6 +433,22 @@ class OccupancyBackend(MapBackend):
             d.values,
         )
         return d
+
+    def fuse_labels(self, n: int, rows, labels, confs) -> tuple[np.ndarray, np.ndarray]:
+        """The (top classes, their confidences) of `n` voxels that start with no label and fuse
+        observation i (labels[i], confs[i]) into voxel rows[i], in the order given, by this
+        back-end's own rule (the cloud kernel's). Labels that are not semantic classes are
+        skipped (they update occupancy only, as in a cloud)."""
+        rows = np.ascontiguousarray(rows, np.int64)
+        labels = np.ascontiguousarray(labels, np.uint16)
+        confs = np.ascontiguousarray(np.clip(confs, 0.0, 1.0), np.float32)
+        keep = self.semantic_lut[labels]
+        if not keep.all():
+            rows, labels, confs = rows[keep], labels[keep], confs[keep]
+        sem_l = np.zeros((n, self.n_top), np.uint16)
+        sem_p = np.zeros((n, self.n_top), np.float32)
+        _fuse_observations(sem_l, sem_p, rows, labels, confs, self._consts)
+        return sem_l, sem_p
 
     # -- queries ---------------------------------------------------------------------------
 
