@@ -1,0 +1,148 @@
+"""The fleet mapper (`mapper --robot fleet --set mapper.source=fleet`) in-process on the fake zenoh
+(tests/support/fake_zenoh.py): two members' mappers fed clouds, the fleet mapper merging their
+deltas, and an unchanged navgraph run as `--robot fleet` building one graph from it. The fleet
+mapper starts after the members mapped (it fills in from their snapshots), follows their delta
+streams, and resyncs a member from its own map when deltas of it were lost."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from smana.common import keys
+from smana.common.config.mapper import MapperConfig
+from smana.common.messages import GraphPatch, MapDelta, SemanticCloud, encode
+from smana.common.query import request
+from smana.services.mapper.fleet import FleetMap
+from tests.conftest import wait_for
+
+RES = 0.2
+AREAS = {"r1": 0.0, "r2": 5.0}  # each member maps a 3 m box from this x on
+MEMBERS = '["r1","r2"]'
+
+
+def make_cloud(member: str, seq: int) -> SemanticCloud:
+    rng = np.random.default_rng(100 * seq + len(member))
+    x0 = AREAS[member]
+    n = 400
+    pts = np.column_stack(
+        [rng.uniform(x0, x0 + 3, n), rng.uniform(-1.5, 1.5, n), rng.uniform(-0.4, 0.0, n)]
+    ).astype(np.float32)
+    return SemanticCloud(
+        stamp_s=float(seq),
+        seq=seq,
+        points=pts,
+        labels=rng.choice(np.array([1, 2, 4, 8], np.uint16), n),
+        confidences=rng.uniform(0.3, 1.0, n).astype(np.float32),
+        sensor_position=np.array([x0 + 0.3 * seq, 0.0, 1.2]),
+    )
+
+
+def as_dict(d) -> dict:
+    k = np.floor(d.centres / RES).astype(np.int64)
+    return {tuple(a): (float(v), int(lab)) for a, v, lab in zip(k, d.values, d.labels)}
+
+
+def merge_of(maps: dict) -> dict:
+    """What the fleet map must be: every member's whole map merged (a FleetMap fed only
+    snapshots, one replace per member)."""
+    fm = FleetMap(MapperConfig(resolution_m=RES), list(maps))
+    for name, m in maps.items():
+        d = m.observed_voxels()
+        fm.replace(name, d.centres, d.labels, d.confidences, d.values)
+    return as_dict(fm.observed_voxels())
+
+
+def books_add_up(session, robot: str, service: str) -> None:
+    st = request(session, keys.status(robot, service))
+    assert st.books_add_up(), st
+
+
+def test_fleet_mapper_merges_members_and_resyncs_a_lost_stream(fake_stack):
+    st, s = fake_stack, fake_stack.session
+    common = ("--set", f"mapper.resolution_m={RES}", "--set", "mapper.autosave_period_s=0")
+    runs = {m: st.service("mapper", "--robot", m, *common) for m in AREAS}
+    for m in AREAS:
+        st.wait_alive("mapper", robot=m)
+    sent = dict.fromkeys(AREAS, 0)
+
+    def feed(member: str, n: int = 1) -> None:
+        for _ in range(n):
+            sent[member] += 1
+            s.put(keys.cloud(member), encode(make_cloud(member, sent[member])))
+            assert wait_for(lambda: runs[member].service.clouds == sent[member], 30)
+
+    for m in AREAS:  # the members map before the fleet mapper is there (a rejoin)
+        feed(m, 2)
+
+    fleet_run = st.service(
+        "mapper", "--robot", "fleet", *common, "--set", "mapper.source=fleet",
+        "--set", f"fleet.robots={MEMBERS}",
+    )  # fmt: skip
+    st.wait_alive("mapper", robot="fleet")
+    fleet = fleet_run.service
+    assert wait_for(lambda: all(fleet.member_books[m]["resyncs"] == 1 for m in AREAS), 30)
+    maps = {m: runs[m].service.map for m in AREAS}
+    assert as_dict(fleet.map.observed_voxels()) == merge_of(maps)
+
+    nav = st.service("navgraph", "--robot", "fleet")
+    st.wait_alive("navgraph", robot="fleet")
+    for m in AREAS:
+        feed(m, 1)
+    assert wait_for(lambda: all(fleet.member_books[m]["deltas"] == 1 for m in AREAS), 30)
+    assert as_dict(fleet.map.observed_voxels()) == merge_of(maps)
+    # one graph for both: known nodes in each member's area
+    assert wait_for(lambda: nav.service.patch_seq > 0 and st.drained("navgraph"), 30)
+    graph = request(s, keys.query("fleet", "navgraph", "graph"))
+    assert isinstance(graph, GraphPatch)
+    x = graph.origin_xy[0] + (graph.cells[:, 0] + 0.5) * graph.resolution_m
+    for x0 in AREAS.values():
+        assert ((x > x0 + 0.5) & (x < x0 + 2.5)).sum() > 20, x0
+
+    # r2's deltas lost on the way (the link dropped them): the next one shows the gap, and the
+    # fleet mapper fills it from r2's own map
+    lost = {"on": True}
+    push = fleet._push
+
+    def lossy_push(item):
+        handler = item[1]
+        if lost["on"] and item[0] == "sample" and getattr(handler, "__defaults__", None) == ("r2",):
+            return
+        push(item)
+
+    fleet._push = lossy_push
+    feed("r2", 2)
+    lost["on"] = False
+    feed("r2", 1)
+    feed("r1", 1)
+    assert wait_for(lambda: fleet.member_books["r2"]["resyncs"] == 2, 30)
+    assert wait_for(lambda: st.drained("mapper") and fleet.events["delta_gap"] >= 1, 10)
+    assert wait_for(lambda: as_dict(fleet.map.observed_voxels()) == merge_of(maps), 10)
+
+    # the fleet's snapshot and the navgraph agree with it; stats tell per member
+    snap = request(s, keys.query("fleet", "mapper", "snapshot"), {"observed": True})
+    assert isinstance(snap, MapDelta) and as_dict(snap) == merge_of(maps)
+    stats = request(s, keys.query("fleet", "mapper", "stats"))
+    assert stats["members"]["r2"]["resyncs"] == 2 and stats["members"]["r1"]["deltas"] == 2
+    assert stats["members"]["r2"]["last_seq"] == runs["r2"].service.delta_seq
+    assert stats["voxels_observed"] == len(merge_of(maps))
+
+    # a delta at another resolution is refused by its kind, the map untouched
+    bad = runs["r1"].service._message(
+        runs["r1"].service.map.occupied_voxels(), 99.0, 99, runs["r1"].service.delta_seq + 1
+    )
+    bad.resolution_m = 0.5
+    st.publish(keys.map_delta("r1"), bad)
+    assert wait_for(lambda: fleet.books.rejected["resolution"] == 1, 10)
+    assert as_dict(fleet.map.observed_voxels()) == merge_of(maps)
+    assert wait_for(lambda: st.drained("navgraph"), 10)
+    for robot in ("r1", "r2", "fleet"):
+        books_add_up(s, robot, "mapper")
+    books_add_up(s, "fleet", "navgraph")
+
+
+def test_fleet_mapper_refuses_a_tsdf_map(fake_stack):
+    run = fake_stack.service(
+        "mapper", "--robot", "fleet", "--set", "mapper.source=fleet",
+        "--set", "mapper.backend=tsdf", "--set", f"fleet.robots={MEMBERS}",
+    )  # fmt: skip
+    assert run.wait(10) == 2
