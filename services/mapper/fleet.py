@@ -137,9 +137,9 @@ class FleetMap:
         self.frame = fleet.frame
         # per member (cos, sin, tx, ty), None for the identity
         self._poses: list[tuple[float, float, float, float] | None] = []
-        for i, _ in enumerate(self.members):
-            if fleet.frame == "start_pose" and i < len(fleet.start_poses):
-                x, y, yaw = (float(v) for v in fleet.start_poses[i])
+        for name in self.members:
+            if fleet.frame == "start_pose" and name in fleet.robots[: len(fleet.start_poses)]:
+                x, y, yaw = (float(v) for v in fleet.start_poses[fleet.robots.index(name)])
                 self._poses.append((np.cos(yaw), np.sin(yaw), x, y))
             else:
                 self._poses.append(None)
@@ -318,11 +318,7 @@ class FleetMap:
 
     def member_stats(self) -> dict[str, dict[str, int]]:
         return {
-            name: {
-                "deltas_applied": self.deltas_applied[m],
-                "replaced": self.replaced[m],
-                "voxels": self.layers[m].n_voxels,
-            }
+            name: {"deltas_applied": self.deltas_applied[m], "voxels": self.layers[m].n_voxels}
             for m, name in enumerate(self.members)
         }
 

@@ -133,9 +133,7 @@ class MapperService(Service):
         self.fleet = config.mapper.source == "fleet"
         self.members = list(config.fleet.robots) if self.fleet else []
         self.followers = {m: SequenceFollower() for m in self.members}
-        self.member_books = {
-            m: {"deltas": 0, "covered": 0, "resyncs": 0, "last_seq": -1} for m in self.members
-        }
+        self.member_books = {m: {"covered": 0, "resyncs": 0, "last_seq": -1} for m in self.members}
         self._resync_why = dict.fromkeys(self.members, "")
         self._next_resync = dict.fromkeys(self.members, 0.0)
         self._member_down = dict.fromkeys(self.members, False)
@@ -255,7 +253,6 @@ class MapperService(Service):
             raise Reject(action, f"{member} map delta {delta.seq}: {why}; resync asked")
         d = self.map.apply(member, delta.centres, delta.labels, delta.confidences, delta.values)
         follower.advance(delta.producer, delta.seq)
-        books["deltas"] += 1
         books["last_seq"] = delta.seq
         if why:  # applied across a gap; the resync fills it
             self.note("delta_gap", f"{member} map deltas: {why}")
@@ -267,7 +264,8 @@ class MapperService(Service):
 
         if sample.kind == zenoh.SampleKind.DELETE:
             self._member_down[member] = True
-        elif self._member_down[member]:
+        elif self._member_down[member] or not self.member_books[member]["resyncs"]:
+            # back, or there for the first time since we started (it may have resumed a map)
             self._member_down[member] = False
             self._resync_why[member] = "its mapper is back (restart or link drop)"
 
