@@ -16,8 +16,8 @@ the merged map does not depend on the order in which the members' deltas arrive:
   clamped member lost updates that the sum cannot recover). Occupied = merged log-odds > 0.
 - labels: the back-end's own fusion rule (`OccupancyBackend.fuse_labels`, the kernels the cloud
   path uses), fed each member's (label, confidence) as one observation, starting from an
-  unlabelled voxel, in a canonical order: by confidence, ties by member index. A member whose
-  voxel has label 0 (none) adds occupancy only.
+  unlabelled voxel, in a canonical order: by confidence (ascending: the most confident comes
+  last), ties by member index. A member whose voxel has label 0 (none) adds occupancy only.
 - frame: `fleet.frame = "world"` takes the centres as they are; "start_pose" moves each member's
   centres by its `fleet.start_poses` entry [x, y, yaw] (SE(2), z unchanged) and re-voxelises them
   in the fleet grid; source voxels of one member that fall into one fleet voxel are fused by the
@@ -383,6 +383,8 @@ class FleetMap:
                     layers[name] = (
                         z[f"layer{m}_block_keys"],
                         {k: z[f"layer{m}_{k}"] for k in _LAYER_FIELDS},
+                        saved["deltas_applied"][m],
+                        saved["replaced"][m],
                     )
         except (OSError, ValueError, KeyError) as exc:
             raise ValueError(f"{path}: not a fleet map file ({exc})") from exc
@@ -393,7 +395,7 @@ class FleetMap:
             )
         for m, name in enumerate(fm.members):
             if name in layers:
-                block_keys, cols = layers[name]
+                block_keys, cols, fm.deltas_applied[m], fm.replaced[m] = layers[name]
                 fm.layers[m].grid.restore(block_keys, cols)
                 fm.layers[m].n_voxels = int(fm.layers[m].index().shape[0])
         fm.rebuild()

@@ -251,7 +251,10 @@ class MapperService(Service):
             return ("dropped", "covered")
         if action != APPLY:
             raise Reject(action, f"{member} map delta {delta.seq}: {why}; resync asked")
+        t0 = time.perf_counter()
         d = self.map.apply(member, delta.centres, delta.labels, delta.confidences, delta.values)
+        self.times_ms.append((time.perf_counter() - t0) * 1e3)
+        del self.times_ms[:-100]
         follower.advance(delta.producer, delta.seq)
         books["last_seq"] = delta.seq
         if why:  # applied across a gap; the resync fills it
@@ -403,7 +406,11 @@ class MapperService(Service):
             "labels_replaced",
             "integrate_ms_median",
         )
-        return {k: s[k] for k in keep}
+        out = {k: s[k] for k in keep}
+        if self.fleet:  # plain values only: totals over the members
+            out["member_deltas"] = sum(m["deltas_applied"] for m in s["members"].values())
+            out["member_resyncs"] = sum(m["resyncs"] for m in s["members"].values())
+        return out
 
     def on_snapshot(self, req: Request) -> MapDelta:
         body = req.body()
