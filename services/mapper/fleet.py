@@ -58,9 +58,27 @@ _LAYER_FIELDS = {
     "conf": (np.float32, ()),
     "flags": (np.uint8, ()),
 }
-# the 3 x 3 source voxels around a back-projected fleet voxel centre: a source voxel whose
-# centre lands in a fleet voxel lies within res / sqrt(2) of that voxel's back-projected centre
-_AROUND = np.array([[dx, dy, 0] for dx in (-1, 0, 1) for dy in (-1, 0, 1)], np.int64)
+# A source voxel whose centre lands in a fleet voxel has its centre within res / sqrt(2) of that
+# voxel's back-projected centre on each axis: an interval shorter than 2 voxels, so 2 x 2
+# candidate source voxels from the first key it may hold (the margin covers rounding)
+_REACH = np.sqrt(0.5) + 1e-6
+_AROUND = np.array([[dx, dy, 0] for dx in (0, 1) for dy in (0, 1)], np.int64)
+
+
+def _unique_keys(keys: np.ndarray) -> np.ndarray:
+    """The distinct rows of int64 voxel keys inside the key range, sorted (packed in 16 bits an
+    axis: one 1-D sort, many times faster than `np.unique(axis=0)`)."""
+    packed = ((keys[:, 0] + KEY_LIMIT) << 32) | ((keys[:, 1] + KEY_LIMIT) << 16)
+    packed |= keys[:, 2] + KEY_LIMIT
+    packed.sort()
+    first = np.ones(packed.shape[0], bool)
+    np.not_equal(packed[1:], packed[:-1], out=first[1:])
+    u = packed[first]
+    out = np.empty((u.shape[0], 3), np.int64)
+    out[:, 0] = (u >> 32) - KEY_LIMIT
+    out[:, 1] = ((u >> 16) & 0xFFFF) - KEY_LIMIT
+    out[:, 2] = (u & 0xFFFF) - KEY_LIMIT
+    return out
 
 
 def check_fleet_source(config: MapperConfig, fleet: FleetConfig) -> None:
@@ -182,14 +200,15 @@ class FleetMap:
         x = (fleet_keys[:, 0] + 0.5) * res - tx
         y = (fleet_keys[:, 1] + 0.5) * res - ty
         base = fleet_keys.copy()
-        base[:, 0] = np.floor((c * x + s * y) / res)
-        base[:, 1] = np.floor((-s * x + c * y) / res)
+        base[:, 0] = np.ceil((c * x + s * y) / res - 0.5 - _REACH)
+        base[:, 1] = np.ceil((-s * x + c * y) / res - 0.5 - _REACH)
         cand = (base[:, None, :] + _AROUND[None]).reshape(-1, 3)
         return np.repeat(np.arange(n), len(_AROUND)), cand
 
     @staticmethod
     def _in_range(keys: np.ndarray) -> np.ndarray:
-        return ((keys >= -KEY_LIMIT) & (keys < KEY_LIMIT)).all(axis=1)
+        # one test for both bounds and all three axes: k + LIMIT in [0, 2 LIMIT)
+        return ((keys + KEY_LIMIT) >> 16 == 0).all(axis=1)
 
     # -- updates -----------------------------------------------------------------------------
 
@@ -237,16 +256,18 @@ class FleetMap:
 
     def _recompute(self, fleet_keys: np.ndarray) -> Delta:
         """Derive the merged voxels of `fleet_keys` from the layers; write them; the changed."""
-        fleet_keys = fleet_keys[self._in_range(fleet_keys)]
+        if any(p is not None for p in self._poses):  # a moved key may leave the range
+            fleet_keys = fleet_keys[self._in_range(fleet_keys)]
         if fleet_keys.shape[0] == 0:
             return Delta.empty()
-        fleet_keys = np.unique(fleet_keys, axis=0)
+        fleet_keys = _unique_keys(fleet_keys)
         n = fleet_keys.shape[0]
         rows, lo, lab, conf, who = [], [], [], [], []
         for m, layer in enumerate(self.layers):
             r, cand = self._candidates(m, fleet_keys)
-            ok = self._in_range(cand)
-            r, cand = r[ok], cand[ok]
+            if self._poses[m] is not None:
+                ok = self._in_range(cand)
+                r, cand = r[ok], cand[ok]
             has, g = layer.get(cand)
             if self._poses[m] is not None:  # only the source voxels that land in this one
                 has[has] = (self._to_fleet(m, cand[has]) == fleet_keys[r[has]]).all(axis=1)
@@ -262,9 +283,8 @@ class FleetMap:
         total = np.bincount(rows, weights=lo.astype(np.float64), minlength=n)
         c_min, c_max = self._clamp
         merged = np.clip(total.astype(np.float32), c_min, c_max)
-        # labels: one observation per (member, source voxel), canonical order per voxel
-        order = np.lexsort((who, conf, rows))
-        sem_l, sem_p = self._core.fuse_labels(n, rows[order], lab[order], conf[order])
+        # labels: one observation per (member, source voxel), by confidence then member
+        sem_l, sem_p = self._core.fuse_labels(n, rows, lab, conf, who)
         return self._write(fleet_keys, known, merged, sem_l, sem_p)
 
     def _write(self, keys, known, merged, sem_l, sem_p) -> Delta:
@@ -274,9 +294,10 @@ class FleetMap:
         was = g >= 0
         was[was] = (grid.cols["flags"][g[was]] & OBSERVED).astype(bool)
         keep = known | was
-        keys, known, merged, sem_l, sem_p, was = (
-            a[keep] for a in (keys, known, merged, sem_l, sem_p, was)
-        )
+        if not keep.all():
+            keys, known, merged, sem_l, sem_p, was = (
+                a[keep] for a in (keys, known, merged, sem_l, sem_p, was)
+            )
         g = grid.insert(keys)  # after any growth, every column is the grown one
         cols = grid.cols
         old_lo = cols["logodds"][g].copy()
