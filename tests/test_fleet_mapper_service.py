@@ -76,10 +76,9 @@ def test_fleet_mapper_merges_members_and_resyncs_a_lost_stream(fake_stack):
     for m in AREAS:  # the members map before the fleet mapper is there (a rejoin)
         feed(m, 2)
 
-    fleet_run = st.service(
-        "mapper", "--robot", "fleet", *common, "--set", "mapper.source=fleet",
-        "--set", f"fleet.robots={MEMBERS}",
-    )  # fmt: skip
+    fleet_args = ("--robot", "fleet", *common, "--set", "mapper.source=fleet",
+                  "--set", f"fleet.robots={MEMBERS}", "--save", "fleet.npz")  # fmt: skip
+    fleet_run = st.service("mapper", *fleet_args)
     st.wait_alive("mapper", robot="fleet")
     fleet = fleet_run.service
     assert wait_for(lambda: all(fleet.member_books[m]["resyncs"] == 1 for m in AREAS), 30)
@@ -152,6 +151,16 @@ def test_fleet_mapper_merges_members_and_resyncs_a_lost_stream(fake_stack):
     for robot in ("r1", "r2", "fleet"):
         books_add_up(s, robot, "mapper")
     books_add_up(s, "fleet", "navgraph")
+
+    # the fleet mapper saves its layers on shutdown and resumes from them
+    applied = fleet.map.deltas_applied
+    assert st.stop(fleet_run) == 0
+    st.procs = [(n, p) for n, p in st.procs if p is not fleet_run]
+    again_run = st.service("mapper", *fleet_args, "--load", "auto")
+    st.wait_alive("mapper", robot="fleet")
+    again = again_run.service
+    assert again.map.deltas_applied == applied
+    assert wait_for(lambda: as_dict(again.map.observed_voxels()) == merge_of(maps), 10)
 
 
 def test_fleet_mapper_refuses_a_tsdf_map(fake_stack):
