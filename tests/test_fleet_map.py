@@ -277,3 +277,29 @@ def test_the_fusion_rule_is_the_cloud_kernels():
 def test_tsdf_is_refused_in_one_line():
     with pytest.raises(ConfigError, match='mapper.source = "fleet".*tsdf'):
         FleetMap(config("tsdf"), ["r1"])
+
+
+def test_an_auto_load_that_is_no_fleet_map_starts_empty(tmp_path):
+    """`mapper.load = "auto"` finding a robot's map where the fleet's should be: the fleet map
+    starts empty (the members' snapshots fill it in); a named file is an error."""
+    import dataclasses
+
+    from smana.common.config import SmanaConfig
+    from smana.services.mapper.service import build_map
+
+    robot_map = SemanticMap.from_config(config("octree-max"))
+    robot_map.integrate(*cloud(0, 0.0))
+    path = robot_map.save(tmp_path / "map.npz")
+    base = SmanaConfig()
+    fleet = FleetConfig(robots=["r1", "r2"])
+    for load in ("auto", str(path)):
+        mc = dataclasses.replace(
+            config("octree-max"), source="fleet", load=load, save_path=str(path)
+        )
+        cfg = dataclasses.replace(base, mapper=mc, fleet=fleet)
+        if load == "auto":
+            fm = build_map(cfg, robot_map.class_table)
+            assert isinstance(fm, FleetMap) and fm.stats()["voxels_observed"] == 0
+        else:
+            with pytest.raises(ValueError, match="not a fleet map"):
+                build_map(cfg, robot_map.class_table)

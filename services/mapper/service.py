@@ -83,7 +83,15 @@ def build_map(config: SmanaConfig, table: ClassTable, log=None) -> SemanticMap |
         fleet = config.fleet
         if not load:
             return FleetMap(mc, fleet.robots, fleet, table)
-        fm = FleetMap.load(load, mc, fleet.robots, fleet, table)
+        try:
+            fm = FleetMap.load(load, mc, fleet.robots, fleet, table)
+        except ValueError as exc:
+            if mc.load != "auto":
+                raise
+            # the members' own maps hold everything: they fill an empty fleet map in at start
+            if log:
+                log.warning("%s; starting empty, the members' snapshots fill it in", exc)
+            return FleetMap(mc, fleet.robots, fleet, table)
         if log:
             log.info("resumed fleet map from %s (%d voxels)", load, fm.stats()["voxels_observed"])
         return fm
