@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from smana.common.config._schema import ConfigError, Section, param, table
 
@@ -66,6 +67,10 @@ class MapperConfig(Section, section="mapper"):
     autosave_period_s: float = param(30.0, ge=0)  # 0 = only on shutdown
     load: str = ""  # resume from this map file; "auto" = save_path when it exists
     save_path: str = ""  # "" = <run_dir>/map.npz (no autosave without a run dir)
+    # What the map is made of: "clouds", the robot's own clouds (`inputs`); "fleet", the map
+    # deltas of every `fleet.robots` member, merged into one map (services/mapper/fleet.py;
+    # run under the fleet's name, `--robot fleet`)
+    source: Literal["clouds", "fleet"] = "clouds"
     octree: OctreeConfig = table(OctreeConfig)
     tsdf: TsdfConfig = table(TsdfConfig)
 

@@ -24,6 +24,10 @@ def cli(argv: list[str] | None = None) -> int:
     from smana.services.mapper.backends import check_backend
 
     check_backend(cfg.mapper.backend)  # an unknown back-end stops here, in one line
+    if cfg.mapper.source == "fleet":
+        from smana.services.mapper.fleet import check_fleet_source
+
+        check_fleet_source(cfg.mapper, cfg.fleet)  # so does a fleet map that cannot be merged
     setup_logging(cfg.general.log_level, "mapper")
     from smana.services.mapper.service import main
 

@@ -184,7 +184,15 @@ class SemanticMap:
     def occupied_voxels(self, box=None) -> Delta:
         """Occupied (octree) or surface (tsdf) voxels with labels, optionally inside a box
         ((xmin, ymin, zmin), (xmax, ymax, zmax)) that contains their centres."""
-        rows = self._core.rows(self._core.occupied_index())
+        return self._in_box(self._core.rows(self._core.occupied_index()), box)
+
+    def observed_voxels(self, box=None) -> Delta:
+        """Every observed voxel (free ones too) with its value and label, optionally in a box
+        (as `occupied_voxels`): the whole map, as a consumer that replaces its copy needs it."""
+        return self._in_box(self._core.rows(self._core.observed_index()), box)
+
+    @staticmethod
+    def _in_box(rows: Delta, box) -> Delta:
         if box is None:
             return rows
         lo, hi = (np.asarray(b, np.float64) for b in box)

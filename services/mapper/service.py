@@ -16,8 +16,22 @@ Queries (msgpack or JSON, see `common/service.py`):
 - `mapper/stats`: map and service figures;
 - `mapper/snapshot`: occupied voxels as a `MapDelta`; optional box
   `{"box": [xmin, ymin, zmin, xmax, ymax, zmax]}` (or `?box=...` in the selector);
+  `{"observed": true}` (or `?observed=true`): every observed voxel, free ones too (what a
+  consumer that replaces its copy of the map needs: the fleet mapper);
 - `mapper/save`: save now to `mapper.save_path` (or `{"name": "file.npz"}` beside it);
 - `mapper/point`: `{"points": [[x, y, z], ...]}` -> known, occupied, labels, confidences, values.
+
+Fleet (`mapper.source = "fleet"`, run under the fleet's name: `--robot fleet`): instead of clouds,
+the inputs are the map deltas of every member of `fleet.robots` (`smana/<member>/mapper/delta`,
+FIFO), merged into one map by `fleet.py::FleetMap`; the outputs, queries and files are the same,
+on the fleet's keys, so a navgraph run as `--robot fleet` builds one graph for all. Each member's
+stream is followed per producer (`SequenceFollower`): a gap, a new producer (the member's mapper
+restarted), a number that goes back or jumps, or the member's mapper token coming back (a robot
+that dropped off the link and rejoined) resyncs that member's layer from its own map
+(`smana/<member>/mapper/snapshot` with `{"observed": true}`), at most once every
+`RESYNC_MIN_PERIOD_S`; deltas the snapshot already covers are dropped as `covered`. A delta at
+another resolution is rejected as `resolution`, one that holds no log-odds as `values_kind`.
+Merged deltas go out only when a merged voxel changed.
 
 The map is saved every `mapper.autosave_period_s` (when it changed) and on shutdown, atomically;
 `mapper.load` (or `--load FILE`) resumes from a file, "auto" from `save_path` when it exists.
@@ -25,7 +39,7 @@ The map is saved every `mapper.autosave_period_s` (when it changed) and on shutd
 
 from __future__ import annotations
 
-import dataclasses
+import math
 import time
 from pathlib import Path
 
@@ -35,14 +49,17 @@ from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
 from smana.common.messages import MapDelta, SemanticCloud
-from smana.common.plausibility import StampGate
+from smana.common.plausibility import APPLY, COVERED, SequenceFollower, StampGate
+from smana.common.query import QueryError, request
 from smana.common.service import Reject, ReplyError, Request, Service, run_service
 from smana.services.mapper.delta import Delta
+from smana.services.mapper.fleet import FleetMap
 from smana.services.mapper.semantic_map import SemanticMap
 
 MAX_QUERY_POINTS = 100_000
 MAX_NAME_BYTES = 255  # NAME_MAX of Linux file systems
 MAX_SEQ_GAP = 1000  # a larger jump in a sender's cloud numbers is a new numbering, not a loss
+RESYNC_MIN_PERIOD_S = 1.0  # the fleet mapper asks a member for its snapshot at most this often
 
 
 def resolve_save_path(config: SmanaConfig) -> Path | None:
@@ -54,13 +71,30 @@ def resolve_save_path(config: SmanaConfig) -> Path | None:
     return None
 
 
-def build_map(config: SmanaConfig, table: ClassTable, log=None) -> SemanticMap:
-    """The map the config asks for: loaded from `mapper.load`, or new."""
+def build_map(config: SmanaConfig, table: ClassTable, log=None) -> SemanticMap | FleetMap:
+    """The map the config asks for: loaded from `mapper.load`, or new (a `FleetMap` for
+    `mapper.source = "fleet"`)."""
     mc = config.mapper
     load = mc.load
     if load == "auto":
         save = resolve_save_path(config)
         load = str(save) if save is not None and save.is_file() else ""
+    if mc.source == "fleet":
+        fleet = config.fleet
+        if not load:
+            return FleetMap(mc, fleet.robots, fleet, table)
+        try:
+            fm = FleetMap.load(load, mc, fleet.robots, fleet, table)
+        except ValueError as exc:
+            if mc.load != "auto":
+                raise
+            # the members' own maps hold everything: they fill an empty fleet map in at start
+            if log:
+                log.warning("%s; starting empty, the members' snapshots fill it in", exc)
+            return FleetMap(mc, fleet.robots, fleet, table)
+        if log:
+            log.info("resumed fleet map from %s (%d voxels)", load, fm.stats()["voxels_observed"])
+        return fm
     if load:
         m = SemanticMap.load(load, table)
         if log and (m.backend, m.resolution_m) != (mc.backend, mc.resolution_m):
@@ -103,22 +137,29 @@ class MapperService(Service):
         self.dirty = False
         self.last_save_s = 0.0
         self._next_save = time.monotonic() + config.mapper.autosave_period_s
+        # the fleet mapper: per member, its stream, its counters and a pending resync's reason
+        self.fleet = config.mapper.source == "fleet"
+        self.members = list(config.fleet.robots) if self.fleet else []
+        self.followers = {m: SequenceFollower() for m in self.members}
+        self.member_books = {m: {"covered": 0, "resyncs": 0, "last_seq": -1} for m in self.members}
+        self._resync_why = dict.fromkeys(self.members, "")
+        self._next_resync = dict.fromkeys(self.members, 0.0)
+        self._member_down = dict.fromkeys(self.members, False)
 
     def prepare(self) -> None:
         # (Compile or) load the kernels before the token says we are ready.
         self.startup_step = "loading (or compiling) the numba kernels"
         t0 = time.perf_counter()
-        warm = build_map(
-            dataclasses.replace(
-                self.config, mapper=dataclasses.replace(self.config.mapper, load="")
-            ),
-            self.table,
-        )
+        warm = SemanticMap.from_config(self.config.mapper, self.table)
         pts = np.array([[1.0, 0.1, 0.1], [0.1, 1.0, 0.2], [20.0, 0.1, 0.1]], np.float32)
         lab = np.array([warm.class_ids[0], 0, 0], np.uint16)
-        warm.integrate(pts, lab, np.ones(3, np.float32), (0.0, 0.0, 0.0))
+        d = warm.integrate(pts, lab, np.ones(3, np.float32), (0.0, 0.0, 0.0))
         warm.query(pts.astype(np.float64))
         warm.occupied_voxels()
+        if self.fleet:
+            fm = FleetMap(self.config.mapper, self.members, self.config.fleet, self.table)
+            fm.apply(self.members[0], d.centres, d.labels, d.confidences, d.values)
+            fm.replace(self.members[0], d.centres, d.labels, d.confidences, d.values)
         self.log.info("kernels ready in %.1f s", time.perf_counter() - t0)
 
     def warm_up(self) -> None:
@@ -129,7 +170,15 @@ class MapperService(Service):
     def setup(self) -> None:
         r = self.robot
         self.delta_pub = self.publisher(keys.map_delta(r), reliable_block=True)
-        for name in self.config.mapper.inputs:
+        for m in self.members:
+            self.subscribe(keys.map_delta(m), lambda d, m=m: self.on_member_delta(m, d), MapDelta)
+            self._declared.append(
+                self.session.liveliness().declare_subscriber(
+                    keys.alive(m, "mapper"), lambda s, m=m: self._on_member_token(m, s)
+                )
+            )
+            self._resync_why[m] = "start"  # whatever the member mapped before we came
+        for name in [] if self.fleet else self.config.mapper.inputs:
             key = keys.cloud(r) if name == "cloud" else keys.scan(r)
             self.subscribe_latest(
                 key, lambda c, n=name: self.on_cloud(c, n), SemanticCloud, drop_nonfinite=True
@@ -191,6 +240,98 @@ class MapperService(Service):
         self.delta_seq += 1
         self.delta_pub.put(self._message(delta, cloud.stamp_s, cloud.seq, self.delta_seq))
 
+    # -- the fleet path ----------------------------------------------------------------------
+
+    def on_member_delta(self, member: str, delta: MapDelta):
+        # Checks first: a refused delta changes nothing (and leaves a gap that asks a resync).
+        if delta.values_kind != self.map.values_kind:
+            raise Reject("values_kind", f"{member} delta {delta.seq}: {delta.values_kind} values")
+        if not math.isclose(delta.resolution_m, self.map.resolution_m, rel_tol=1e-6):
+            raise Reject(
+                "resolution",
+                f"{member} delta {delta.seq}: {delta.resolution_m} m voxels, the fleet map's "
+                f"are {self.map.resolution_m} m",
+            )
+        follower, books = self.followers[member], self.member_books[member]
+        action, why = follower.check(delta.producer, delta.seq)
+        if action == COVERED:
+            books["covered"] += 1
+            return ("dropped", "covered")
+        if action != APPLY:
+            raise Reject(action, f"{member} map delta {delta.seq}: {why}; resync asked")
+        t0 = time.perf_counter()
+        d = self.map.apply(member, delta.centres, delta.labels, delta.confidences, delta.values)
+        self.times_ms.append((time.perf_counter() - t0) * 1e3)
+        del self.times_ms[:-100]
+        follower.advance(delta.producer, delta.seq)
+        books["last_seq"] = delta.seq
+        if why:  # applied across a gap; the resync fills it
+            self.note("delta_gap", f"{member} map deltas: {why}")
+        self._publish_merged(d, delta.stamp_s, delta.cloud_seq)
+
+    def _on_member_token(self, member: str, sample) -> None:
+        # A zenoh callback: only flags; tick() does the work on the main loop.
+        import zenoh
+
+        if sample.kind == zenoh.SampleKind.DELETE:
+            self._member_down[member] = True
+        elif self._member_down[member] or not self.member_books[member]["resyncs"]:
+            # back, or there for the first time since we started (it may have resumed a map)
+            self._member_down[member] = False
+            self._resync_why[member] = "its mapper is back (restart or link drop)"
+
+    def _fleet_tick(self) -> None:
+        now = time.monotonic()
+        for m, follower in self.followers.items():
+            if follower.want_resync and not self._resync_why[m]:
+                self._resync_why[m] = follower.want_resync
+            if self._resync_why[m] and now >= self._next_resync[m]:
+                self._next_resync[m] = now + RESYNC_MIN_PERIOD_S
+                why, self._resync_why[m] = self._resync_why[m], ""
+                self.resync_member(m, why)
+
+    def resync_member(self, member: str, reason: str) -> bool:
+        """Replace `member`'s layer with its mapper's whole map; publish what changed."""
+        try:
+            snap = request(
+                self.session, keys.query(member, "mapper", "snapshot"), {"observed": True}, 5.0
+            )
+        except QueryError as exc:
+            self.log.info("%s: no snapshot for a resync (%s): %s", member, reason, exc.kind)
+            if exc.kind == "warming_up":  # a mapper live before its kernels: ask again
+                self._resync_why[member] = self._resync_why[member] or reason
+            return False
+        if not (
+            isinstance(snap, MapDelta)
+            and snap.values_kind == self.map.values_kind
+            and math.isclose(snap.resolution_m, self.map.resolution_m, rel_tol=1e-6)
+        ):
+            self.note("bad_snapshot", f"{member}: its snapshot is not a log-odds MapDelta")
+            return False
+        d = self.map.replace(member, snap.centres, snap.labels, snap.confidences, snap.values)
+        self.followers[member].synced(snap.producer, snap.seq)
+        books = self.member_books[member]
+        books["resyncs"] += 1
+        books["last_seq"] = snap.seq
+        self.log.info(
+            "%s: layer resynced from its snapshot (%s): %d voxels, %d merged voxels changed",
+            member,
+            reason,
+            len(snap.centres),
+            len(d),
+        )
+        self._publish_merged(d, snap.stamp_s, snap.cloud_seq)
+        return True
+
+    def _publish_merged(self, d: Delta, stamp_s: float, cloud_seq: int) -> None:
+        self.dirty = True
+        if not len(d):
+            return  # no merged voxel changed: nothing to tell
+        self.last_cloud_seq = cloud_seq
+        self.last_stamp_s = max(self.last_stamp_s, stamp_s)
+        self.delta_seq += 1
+        self.delta_pub.put(self._message(d, stamp_s, cloud_seq, self.delta_seq))
+
     def _message(self, d: Delta, stamp_s: float, cloud_seq: int, seq: int) -> MapDelta:
         return MapDelta(
             stamp_s=stamp_s,
@@ -210,6 +351,8 @@ class MapperService(Service):
     # -- saving ------------------------------------------------------------------------------
 
     def tick(self) -> None:
+        if self.fleet:
+            self._fleet_tick()
         period = self.config.mapper.autosave_period_s
         if period > 0 and time.monotonic() >= self._next_save:
             self._next_save = time.monotonic() + period
@@ -252,7 +395,12 @@ class MapperService(Service):
             "integrate_ms_last": float(t[-1]),
             "save_path": str(self.save_path) if self.save_path else "",
             "last_save_s": self.last_save_s,
+            **({"members": self._member_stats()} if self.fleet else {}),
         }
+
+    def _member_stats(self) -> dict:
+        layers = self.map.member_stats()
+        return {m: {**layers[m], **self.member_books[m]} for m in self.members}
 
     def status_details(self) -> dict:
         s = self.stats()
@@ -266,7 +414,11 @@ class MapperService(Service):
             "labels_replaced",
             "integrate_ms_median",
         )
-        return {k: s[k] for k in keep}
+        out = {k: s[k] for k in keep}
+        if self.fleet:  # plain values only: totals over the members
+            out["member_deltas"] = sum(m["deltas_applied"] for m in s["members"].values())
+            out["member_resyncs"] = sum(m["resyncs"] for m in s["members"].values())
+        return out
 
     def on_snapshot(self, req: Request) -> MapDelta:
         body = req.body()
@@ -281,8 +433,11 @@ class MapperService(Service):
                     "value", "box must be 6 numbers: xmin,ymin,zmin,xmax,ymax,zmax"
                 ) from None
             box = (b[0], b[1])
+        observed = body.get("observed", req.params.get("observed", False))
+        if isinstance(observed, str):
+            observed = observed.lower() in ("1", "true", "yes")
         try:
-            rows = self.map.occupied_voxels(box)
+            rows = self.map.observed_voxels(box) if observed else self.map.occupied_voxels(box)
         except ValueError as exc:
             raise ReplyError("value", str(exc)) from None
         # Before the first cloud there is no cloud number (-1 in the stats); the message carries

@@ -181,6 +181,45 @@ def _fuse_bayes(sem_l, sem_p, g, label, conf, n_classes, eps):
     return sem_l[g, 0] != old_l0 or sem_p[g, 0] != old_p0
 
 
+@njit(cache=True, error_model="numpy")
+def _fuse_observations(sem_l, sem_p, rows, labels, confs, sources, k):
+    """Fuse observation i (labels[i], confs[i]) into row rows[i] of (sem_l, sem_p) by the map's
+    rule (`_fuse_max` / `_fuse_bayes`, the ones the cloud kernel calls). A row's observations
+    are fused in a canonical order whatever their order here: by confidence, then by
+    `sources[i]` (who made the observation). Grouped by row with a counting sort, each group
+    sorted by insertion (a handful of observations a voxel)."""
+    n = sem_l.shape[0]
+    start = np.zeros(n + 1, np.int64)
+    for i in range(rows.shape[0]):
+        start[rows[i] + 1] += 1
+    for r in range(n):
+        start[r + 1] += start[r]
+    fill = start[:n].copy()
+    idx = np.empty(rows.shape[0], np.int64)
+    for i in range(rows.shape[0]):
+        idx[fill[rows[i]]] = i
+        fill[rows[i]] += 1
+    for r in range(n):
+        a = start[r]
+        b = start[r + 1]
+        for j in range(a + 1, b):
+            x = idx[j]
+            t = j
+            while t > a:
+                y = idx[t - 1]
+                if confs[y] < confs[x] or (confs[y] == confs[x] and sources[y] <= sources[x]):
+                    break
+                idx[t] = y
+                t -= 1
+            idx[t] = x
+        for j in range(a, b):
+            i = idx[j]
+            if k.mode == FUSION_MAX:
+                _fuse_max(sem_l, sem_p, r, labels[i], confs[i], k.gain, k.penalty)
+            else:
+                _fuse_bayes(sem_l, sem_p, r, labels[i], confs[i], k.n_classes, k.eps)
+
+
 # -- integration kernels -------------------------------------------------------------------------
 
 
@@ -422,6 +461,28 @@ class OccupancyBackend(MapBackend):
             d.values,
         )
         return d
+
+    def fuse_labels(
+        self, n: int, rows, labels, confs, sources=None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The (top classes, their confidences) of `n` voxels that start with no label and fuse
+        observation i (labels[i], confs[i]) into voxel rows[i] by this back-end's own rule (the
+        cloud kernel's), a voxel's observations in a canonical order: by confidence, then by
+        `sources` (default: the order given). Labels that are not semantic classes are skipped
+        (they update occupancy only, as in a cloud)."""
+        rows = np.ascontiguousarray(rows, np.int64)
+        labels = np.ascontiguousarray(labels, np.uint16)
+        confs = np.ascontiguousarray(np.clip(confs, 0.0, 1.0), np.float32)
+        if sources is None:
+            sources = np.arange(rows.shape[0])
+        sources = np.ascontiguousarray(sources, np.int64)
+        keep = self.semantic_lut[labels]
+        if not keep.all():
+            rows, labels, confs, sources = rows[keep], labels[keep], confs[keep], sources[keep]
+        sem_l = np.zeros((n, self.n_top), np.uint16)
+        sem_p = np.zeros((n, self.n_top), np.float32)
+        _fuse_observations(sem_l, sem_p, rows, labels, confs, sources, self._consts)
+        return sem_l, sem_p
 
     # -- queries ---------------------------------------------------------------------------
 
