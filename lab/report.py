@@ -612,7 +612,8 @@ def fleet_summary_rows(fleet: dict) -> list[tuple[str, str]]:
     """The fleet's lines of the summary table (from metrics.json's "fleet" section only)."""
     sim = fleet.get("sim") or {}
     robots = fleet.get("robots") or []
-    rows = [("fleet", f"{len(robots)} members: {', '.join(robots)}")]
+    n = len(robots)
+    rows = [("fleet", f"{n} member{'s' if n != 1 else ''}: {', '.join(robots)}")]
     t95, d95 = fleet.get("time_to_95_s"), fleet.get("distance_to_95_m")
     rows.append(
         (

@@ -171,7 +171,7 @@ def test_argv_and_arguments(tmp_path):
     s = fx.FleetExperimentConfig()
     argv = fx.fleet_argv(tmp_path, 3, W22, 3, s, spawn=[1.0, 2.0, 0.5], port=7000)
     assert argv[3:7] == ["up", "--robots", "3", "--run-dir"]
-    assert "sim.garden.size_m=22.0" in argv and "explorer.time_budget_s=480.0" in argv
+    assert "sim.garden.size_m=22.0" in argv and "explorer.time_budget_s=700.0" in argv
     assert "sim.spawn=[1.0, 2.0, 0.5]" in argv
     p = argparse.ArgumentParser()
     sub = p.add_subparsers()
