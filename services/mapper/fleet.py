@@ -35,7 +35,6 @@ and that `FleetMap.load` reads with its layers, so a restarted fleet mapper resu
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -350,8 +349,6 @@ class FleetMap:
 
     def save(self, path: str | Path) -> Path:
         """The merged map as `SemanticMap.save` writes it, plus the layers (atomically)."""
-        path = Path(path)
-        grid = self._core.grid
         meta = self.map._meta()
         meta["fleet"] = {
             "members": self.members,
@@ -360,24 +357,13 @@ class FleetMap:
             "deltas_applied": self.deltas_applied,
             "replaced": self.replaced,
         }
-        arrays: dict[str, Any] = {f"col_{k}": grid.used(k) for k in grid.cols}
+        arrays: dict[str, Any] = {}
         for m, layer in enumerate(self.layers):
             lg = layer.grid
             arrays[f"layer{m}_block_keys"] = lg.block_keys[: lg.n_blocks]
             for k in lg.cols:
                 arrays[f"layer{m}_{k}"] = lg.used(k)
-        tmp = path.with_name(path.name + ".tmp")
-        with open(tmp, "wb") as fh:
-            np.savez(
-                fh,
-                meta=np.frombuffer(json.dumps(meta).encode(), np.uint8),
-                block_keys=grid.block_keys[: grid.n_blocks],
-                **arrays,
-            )
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        return path
+        return self.map.save(path, meta, **arrays)
 
     @classmethod
     def load(

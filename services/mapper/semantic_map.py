@@ -266,8 +266,10 @@ class SemanticMap:
             "points": self.n_points,
         }
 
-    def save(self, path: str | Path) -> Path:
-        """Write the map to an .npz file atomically (a crash mid-save keeps the old file)."""
+    def save(self, path: str | Path, meta: dict | None = None, **extra: np.ndarray) -> Path:
+        """Write the map to an .npz file atomically (a crash mid-save keeps the old file).
+        `meta` replaces the map's own metadata and `extra` adds arrays (the fleet map's layers);
+        `load` reads such a file as a plain map."""
         path = Path(path)
         grid = self._core.grid
         arrays = {f"col_{k}": grid.used(k) for k in grid.cols}
@@ -275,9 +277,10 @@ class SemanticMap:
         with open(tmp, "wb") as fh:
             np.savez(
                 fh,
-                meta=np.frombuffer(json.dumps(self._meta()).encode(), np.uint8),
+                meta=np.frombuffer(json.dumps(meta or self._meta()).encode(), np.uint8),
                 block_keys=grid.block_keys[: grid.n_blocks],
                 **arrays,
+                **extra,
             )
             fh.flush()
             os.fsync(fh.fileno())
