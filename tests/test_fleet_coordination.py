@@ -262,3 +262,14 @@ def test_coordinator_service_claims_and_books(fake_stack):
     st = fake_stack.status("coordinator")
     assert st.books_add_up() and st.rejected.get("malformed") == 1
     assert st.rejected.get("value") == 2 and st.rejected.get("missing_field") == 1
+
+
+def test_members_poses_in_the_fleet_frame():
+    world = FleetConfig(robots=["r1", "r2"])
+    assert world.to_fleet_frame("r2", 1.0, 2.0, 0.3) == (1.0, 2.0, 0.3)
+    own = FleetConfig(
+        robots=["r1", "r2"], frame="start_pose", start_poses=[[0, 0, 0], [5.0, 1.0, math.pi / 2]]
+    )
+    x, y, yaw = own.to_fleet_frame("r2", 1.0, 0.0, 0.1)  # 1 m ahead of r2's start, facing +y
+    assert (x, y, yaw) == pytest.approx((5.0, 2.0, math.pi / 2 + 0.1))
+    assert own.to_fleet_frame("fleet", 1.0, 0.0) == (1.0, 0.0, 0.0)  # not a member: as it is

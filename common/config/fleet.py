@@ -10,6 +10,7 @@ out next-best views so that no two robots head for the same frontier).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -58,6 +59,16 @@ class FleetConfig(Section, section="fleet"):
     @property
     def enabled(self) -> bool:
         return bool(self.robots)
+
+    def to_fleet_frame(self, robot: str, x: float, y: float, yaw: float = 0.0):
+        """A member's pose (x, y, yaw) in the fleet's frame: as it is with frame "world", moved
+        by the member's start pose with "start_pose" (its odometry starts there). Anyone else's
+        pose is returned as it is."""
+        if self.frame != "start_pose" or robot not in self.robots:
+            return x, y, yaw
+        sx, sy, syaw = self.start_poses[self.robots.index(robot)]
+        c, s = math.cos(syaw), math.sin(syaw)
+        return sx + c * x - s * y, sy + s * x + c * y, yaw + syaw
 
     def shared_namespace(self, robot: str) -> str:
         """Where `robot`'s planner and explorer find the navigation graph: the fleet's for a

@@ -209,7 +209,8 @@ class ExplorerService(Service):
         self.log.info("graph synced from navgraph: %d nodes", len(reply.cells))
 
     def on_member_pose(self, member: str, pose: Pose) -> None:
-        self.team.update_position(member, pose.position[0], pose.position[1], pose.stamp_s)
+        x, y, _ = self.fleet.to_fleet_frame(member, pose.position[0], pose.position[1])
+        self.team.update_position(member, x, y, pose.stamp_s)
 
     def on_claims(self, payload: bytes) -> None:
         try:
@@ -282,7 +283,11 @@ class ExplorerService(Service):
             )
         if where.reset:
             self.note("pose_reset", f"the robot reappeared at {pose.position[:2].tolist()}")
-        self.core.update_pose(float(pose.position[0]), float(pose.position[1]), pose.yaw, t)
+        # a fleet member plans on the fleet's graph: its pose in the fleet's frame
+        x, y, yaw = self.fleet.to_fleet_frame(
+            self.robot, float(pose.position[0]), float(pose.position[1]), pose.yaw
+        )
+        self.core.update_pose(x, y, yaw, t)
         self._last_pose_wall = time.monotonic()
 
     # -- the control loop -------------------------------------------------------------------------

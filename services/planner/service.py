@@ -217,7 +217,7 @@ class PlannerService(Service):
 
     def on_member_pose(self, member: str, pose: Pose) -> None:
         """Another fleet member's pose: a moving obstacle for the next queries."""
-        x, y = float(pose.position[0]), float(pose.position[1])
+        x, y, _ = self.fleet.to_fleet_frame(member, float(pose.position[0]), pose.position[1])
         self.members[member] = (x, y, time.monotonic())
 
     def _reply(self, request_id: str, result: PlanResult) -> PathReply:
