@@ -273,3 +273,39 @@ def test_members_poses_in_the_fleet_frame():
     x, y, yaw = own.to_fleet_frame("r2", 1.0, 0.0, 0.1)  # 1 m ahead of r2's start, facing +y
     assert (x, y, yaw) == pytest.approx((5.0, 2.0, math.pi / 2 + 0.1))
     assert own.to_fleet_frame("fleet", 1.0, 0.0) == (1.0, 0.0, 0.0)  # not a member: as it is
+
+
+def test_a_stalled_member_holds_nobody_back():
+    book = ClaimBook(["r1", "r2"], goal_separation_m=2.0, ttl_s=60.0, stall_s=20.0)
+    book.claim("r1", (1.0, 1.0), 0.0)
+    book.confirm("r1", (1.0, 1.0), 0.0, distance_m=5.0)
+    book.confirm("r1", (1.0, 1.0), 15.0, distance_m=5.3)  # a back-off, not progress
+    assert book.claim("r2", (1.5, 1.0), 15.0) == (False, "r1")
+    book.confirm("r1", (1.0, 1.0), 21.0, distance_m=5.5)
+    assert book.stalled_members(21.0) == ["r1"] and book.snapshot(21.0) == {}
+    assert book.claim("r2", (1.5, 1.0), 21.0) == (True, None)  # r1 is wedged: r2 may go
+    assert book.snapshot() == {"r1": [1.0, 1.0], "r2": [1.5, 1.0]}  # still in the book
+    book.confirm("r1", (1.0, 1.0), 25.0, distance_m=6.6)  # it moves again
+    assert book.snapshot(25.0) == {"r1": [1.0, 1.0], "r2": [1.5, 1.0]}
+
+
+def test_a_stuck_explorer_reverses_out_before_going_on():
+    from tests.test_explorer_loop import _explorer
+
+    world = ToyWorld(_garden(1))
+    ex = _explorer(_params(max_range_m=3.0))
+    world.reveal(1.0, 1.0, 0.0)
+    ex.update_grid(world.grid())
+    ex.update_pose(1.0, 1.0, 0.0, 0.0)
+    ex.plan(world.path_cost(ex.grid), ex.wants_plan())
+    assert ex.goal is not None
+    t = 0.0
+    while ex.wants_plan() != "stuck":  # the robot does not move: wedged
+        t += 0.5
+        ex.update_pose(1.0, 1.0, 0.0, t)
+        assert t < 60
+    ex.plan(world.path_cost(ex.grid), "stuck")
+    v, w = ex.control()
+    assert v < 0 and w == 0.0  # reversing, straight
+    ex.update_pose(0.9, 1.0, 0.0, t + 2.5)  # the back-off is over: on along the new path
+    assert ex.control()[0] >= 0

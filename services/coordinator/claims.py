@@ -9,13 +9,18 @@ first one wins, the second one is told who holds it and plans again.
 
 A claim ends when its member claims something else, releases it (goal reached, nothing worth a
 trip, done), or falls silent for `ttl_s` (its explorer stopped, or its link to the base dropped:
-the place is free for the others).
+the place is free for the others). A claim whose member has not moved `STALL_M` in `stall_s`
+(wedged somewhere, or held up) is stalled: it stays in the book but holds nobody back (it is left
+out of `snapshot()` and of the separation test) until the member moves again, so one stuck robot
+cannot keep the others waiting for the views it will not reach.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+STALL_M = 1.0  # a member that moved less than this in `stall_s` is stalled (a back-off is 0.3 m)
 
 
 @dataclass
@@ -24,13 +29,23 @@ class Claim:
     t: float  # when it was claimed or last confirmed (the book's clock)
 
 
+@dataclass
+class Progress:
+    distance_m: float  # the member's odometer when it last moved STALL_M
+    t: float  # when that was
+
+
 class ClaimBook:
-    def __init__(self, members: list[str], goal_separation_m: float, ttl_s: float):
+    def __init__(
+        self, members: list[str], goal_separation_m: float, ttl_s: float, stall_s: float = 20.0
+    ):
         if goal_separation_m < 0 or ttl_s <= 0:
             raise ValueError("need goal_separation_m >= 0 and ttl_s > 0")
         self.members = list(members)
         self.separation_m = float(goal_separation_m)
         self.ttl_s = float(ttl_s)
+        self.stall_s = float(stall_s)
+        self.progress: dict[str, Progress] = {}
         self.claims: dict[str, Claim] = {}
         self.heard: dict[str, float] = {}  # when each member was last heard of
         self.granted = 0
@@ -52,7 +67,9 @@ class ClaimBook:
             raise ValueError(f"goal must be finite, got {xy!r}")
         self.heard[robot] = t
         for other, c in sorted(self.claims.items()):
-            if other != robot and math.hypot(x - c.xy[0], y - c.xy[1]) < self.separation_m:
+            if other == robot or self.stalled(other, t):
+                continue
+            if math.hypot(x - c.xy[0], y - c.xy[1]) < self.separation_m:
                 self.refused += 1
                 return False, other
         self.claims[robot] = Claim((x, y), t)
@@ -69,11 +86,21 @@ class ClaimBook:
         self.version += 1
         return True
 
-    def confirm(self, robot: str, goal_xy, t: float) -> None:
-        """What a member's own state says (it goes to `goal_xy`, or to nothing): a claim is kept
-        alive by it, and ends when the member says it has no goal."""
+    def stalled(self, robot: str, t: float) -> bool:
+        p = self.progress.get(robot)
+        return p is not None and t - p.t > self.stall_s
+
+    def confirm(self, robot: str, goal_xy, t: float, distance_m: float | None = None) -> None:
+        """What a member's own state says (it goes to `goal_xy`, or to nothing; its odometer): a
+        claim is kept alive by it, and ends when the member says it has no goal."""
         self.check_member(robot)
         self.heard[robot] = t
+        if distance_m is not None:
+            p = self.progress.get(robot)
+            if p is None or distance_m - p.distance_m >= STALL_M or distance_m < p.distance_m:
+                if p is not None and self.stalled(robot, t):
+                    self.version += 1  # its claim holds the others back again
+                self.progress[robot] = Progress(float(distance_m), t)
         c = self.claims.get(robot)
         if goal_xy is None:
             if c is not None:
@@ -91,8 +118,16 @@ class ClaimBook:
             self.version += 1
         return gone
 
-    def snapshot(self) -> dict[str, list[float]]:
-        return {r: [c.xy[0], c.xy[1]] for r, c in sorted(self.claims.items())}
+    def snapshot(self, t: float | None = None) -> dict[str, list[float]]:
+        """The claims that hold the others back at time `t` (every claim without `t`)."""
+        return {
+            r: [c.xy[0], c.xy[1]]
+            for r, c in sorted(self.claims.items())
+            if t is None or not self.stalled(r, t)
+        }
+
+    def stalled_members(self, t: float) -> list[str]:
+        return sorted(r for r in self.claims if self.stalled(r, t))
 
     def stats(self) -> dict:
         return {

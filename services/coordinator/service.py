@@ -36,8 +36,11 @@ class CoordinatorService(Service):
             raise ConfigError(
                 "the coordinator needs a fleet: set fleet.robots (or smana up --robots N)"
             )
-        self.book = ClaimBook(fc.robots, fc.goal_separation_m, ttl_s=5 * fc.pose_timeout_s)
+        self.book = ClaimBook(
+            fc.robots, fc.goal_separation_m, ttl_s=5 * fc.pose_timeout_s, stall_s=fc.claim_stall_s
+        )
         self._published = -1
+        self._stalled: list[str] = []
         self._next_publish = 0.0
 
     def setup(self) -> None:
@@ -66,29 +69,43 @@ class CoordinatorService(Service):
         except (TypeError, ValueError) as exc:
             raise Reject("value", f"claim: {exc}") from None
         self._publish()
-        return {"ok": True, "granted": granted, "holder": holder, "claims": self.book.snapshot()}
+        claims = self.book.snapshot(now)
+        return {"ok": True, "granted": granted, "holder": holder, "claims": claims}
 
     def on_state(self, robot: str, payload: bytes) -> None:
         try:
             state = msgpack.unpackb(payload)
             goal = state.get("goal") if isinstance(state, dict) else None
             xy = None if not goal else [float(v) for v in goal["xy"]][:2]
+            dist = state.get("distance_m") if isinstance(state, dict) else None
+            dist = float(dist) if isinstance(dist, int | float) else None
         except Exception as exc:
             raise Reject("malformed", f"explorer state of {robot}: {exc}") from None
         if isinstance(state, dict) and state.get("mode") == "done":
             xy = None
-        self.book.confirm(robot, xy, time.monotonic())
+        self.book.confirm(robot, xy, time.monotonic(), dist)
 
     def tick(self) -> None:
         now = time.monotonic()
         for r in self.book.expire(now):
             self.note("claim_expired", f"{r} silent: its goal is free again")
-        if self.book.version != self._published or now >= self._next_publish:
+        stalled = self.book.stalled_members(now)
+        if stalled != self._stalled:
+            for r in set(stalled) - set(self._stalled):
+                self.note("claim_stalled", f"{r} has not moved: its goal holds nobody back")
+            self._stalled = stalled
+            self._publish()
+        elif self.book.version != self._published or now >= self._next_publish:
             self._publish()
 
     def _claims(self) -> dict:
-        book = self.book
-        return {"claims": book.snapshot(), "version": book.version, "stamp_s": time.time()}
+        book, now = self.book, time.monotonic()
+        return {
+            "claims": book.snapshot(now),
+            "stalled": book.stalled_members(now),
+            "version": book.version,
+            "stamp_s": time.time(),
+        }
 
     def _publish(self) -> None:
         self._published = self.book.version

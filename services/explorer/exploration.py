@@ -41,6 +41,8 @@ PathFn = Callable[[np.ndarray, np.ndarray], "tuple[float, np.ndarray] | None"]
 # claim(goal_xy) -> (granted, the member holding a goal too near, that goal) (fleet members)
 ClaimFn = Callable[[np.ndarray], "tuple[bool, str | None, np.ndarray | None]"]
 MAX_CLAIMS_PER_PLAN = 3  # refused this often in one plan: wait for the next one
+BACK_OFF_S = 2.0  # stuck: reverse this long at creep speed (when clear behind) before going on
+BACK_OFF_M = 0.4  # how far behind the robot must be clear of known obstacles to reverse
 GOAL_SEEN_CHECK_S = 1.0  # in a fleet, how often the goal's gain is checked between plans
 
 
@@ -122,6 +124,7 @@ class Explorer:
         self.config = config
         self.team = team
         self._yield = False  # a member with the right of way held us too long: re-plan
+        self._back_off_until: float | None = None  # reversing out of where it got stuck
         self._t_goal_check = -math.inf
         self.n_claims_refused = 0
         self.n_yields = 0
@@ -243,6 +246,9 @@ class Explorer:
         if self._stuck():
             self.n_stuck += 1
             self._forget(self.goal.choice.xy)
+            # wedged against a corner the graph did not show (a hedge's edge between nodes):
+            # every next path starts into it again, so reverse out first
+            self._back_off_until = t + BACK_OFF_S
             return "stuck"
         if self.team is not None:
             if self._yield:
@@ -394,6 +400,15 @@ class Explorer:
                 self._t_last_plan = -math.inf
                 return 0.0, 0.0
             return 0.0, self.config.follower.max_angular_radps * 0.6
+        if self._back_off_until is not None:
+            if self.t_now < self._back_off_until:
+                p = np.array([x, y])
+                behind = p - BACK_OFF_M * np.array([math.cos(yaw), math.sin(yaw)])
+                if self._segment_clear(p, behind, OBSTACLE_ONLY):
+                    return -self.config.creep_speed_mps, 0.0
+            self._back_off_until = None
+            if self.goal is not None:  # the new path starts where the robot now is
+                self._progress_mark = (self.t_now, self.follower.remaining_length_m())
         if self.goal is None:
             return self._make_way(x, y, yaw)
         cmd = self.follower.command(x, y, yaw, self._segment_clear)
