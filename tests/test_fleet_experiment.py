@@ -184,6 +184,6 @@ def test_argv_and_arguments(tmp_path):
 
     with pytest.raises(UsageError):
         fx.apply_args(fx.FleetExperimentConfig(), p.parse_args(["fleet", "--robots", "0,x"]))
-    assert "hour" in sub.choices["fleet"].epilog and "--quick about 3 minutes" in (
+    assert "80 minutes" in sub.choices["fleet"].epilog and "--quick 2 minutes" in (
         sub.choices["fleet"].epilog
     )
