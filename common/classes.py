@@ -23,6 +23,19 @@ class ClassTableError(ValueError):
     """A class table file is malformed."""
 
 
+# One colour per fleet member (r1, r2, ...; RGB uint8), for its body, path and goal in the
+# recording and its trajectory in the report's figures: saturated, apart from the class colours'
+# greens and browns.
+MEMBER_COLOURS = (
+    (255, 230, 0),
+    (25, 115, 255),
+    (255, 50, 150),
+    (0, 240, 240),
+    (150, 50, 255),
+    (255, 128, 0),
+)
+
+
 @dataclass(frozen=True)
 class SemanticClass:
     id: int

@@ -40,7 +40,7 @@ import msgpack
 import numpy as np
 
 from smana.common import keys
-from smana.common.classes import ClassTable
+from smana.common.classes import MEMBER_COLOURS, ClassTable
 from smana.common.config import SmanaConfig
 from smana.common.messages import GraphPatch, MapDelta, Pose
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
@@ -54,16 +54,6 @@ APP_ID = "smana"
 TRAJECTORY_FILES = {"pose": "trajectory_pose.csv", "pose_truth": "trajectory_truth.csv"}
 TRAJECTORY_HEADER = "t_s,x_m,y_m,z_m,yaw_rad"
 FLEET_DIR = "robots"  # a fleet member's trajectories: RUN_DIR/robots/<member>/
-# One colour per fleet member (its body, path and goal): apart from the class colours' greens and
-# browns, and in the order of lab/plots.py's MEMBER_COLOURS, so the viewer and the report agree.
-MEMBER_COLOURS = (
-    (255, 230, 0),
-    (25, 115, 255),
-    (255, 50, 150),
-    (0, 240, 240),
-    (150, 50, 255),
-    (255, 128, 0),
-)
 
 
 def import_rerun():

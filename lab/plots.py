@@ -26,6 +26,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from smana.common.classes import MEMBER_COLOURS as MEMBER_RGB
+
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
@@ -44,16 +46,8 @@ OVERLAY = {
     "start": (1.0, 1.0, 1.0),
     "goals": (1.0, 0.0, 0.8),
 }
-# One colour per fleet member's trajectory (r1, r2, ...): saturated, apart from the overlays above
-# and from the garden's greens and browns.
-MEMBER_COLOURS = (
-    (1.0, 0.9, 0.0),
-    (0.1, 0.45, 1.0),
-    (1.0, 0.2, 0.6),
-    (0.0, 0.95, 0.95),
-    (0.6, 0.2, 1.0),
-    (1.0, 0.5, 0.0),
-)
+# Each fleet member's trajectory in its colour of the recording (common/classes.py).
+MEMBER_COLOURS = tuple(tuple(c / 255 for c in rgb) for rgb in MEMBER_RGB)
 
 
 class PlotError(ValueError):

@@ -257,9 +257,10 @@ class Planner:
             nodes_expanded=res.nodes_expanded,
         )
 
-    def _blocked(self, box, s_xy, g_xy, goal_cell, avoid, radius_m) -> np.ndarray | None:
-        """Window mask of the nodes the moving obstacles `avoid` close for this query (see
-        `plan`), or None when there are none; a goal among them is refused."""
+    def _blocked(self, box, s_xy, g_xy, goal_cell, avoid, radius_m):
+        """Window indices (rows, cols) of the nodes the moving obstacles `avoid` close for this
+        query (see `plan`), or None when there are none; a goal among them is refused. Only the
+        discs' bounding boxes are visited: the window may be a thousand nodes a side."""
         if avoid is None or radius_m <= 0:
             return None
         avoid = np.asarray(avoid, np.float64).reshape(-1, 2)
@@ -269,22 +270,27 @@ class Planner:
         x0, y0, x1, y1 = box
         cx = g.origin_xy[0] + (np.arange(x0, x1) + 0.5) * g.resolution_m
         cy = g.origin_xy[1] + (np.arange(y0, y1) + 0.5) * g.resolution_m
-        mask = np.zeros((x1 - x0, y1 - y0), bool)
+        rows, cols = [], []
         for ox, oy in avoid:
             d_start = math.hypot(s_xy[0] - ox, s_xy[1] - oy)
             limit = min(radius_m, d_start)  # nearer than the start: only moving away is allowed
             i = np.flatnonzero(np.abs(cx - ox) < limit)
             j = np.flatnonzero(np.abs(cy - oy) < limit)
+            inside = np.zeros((0, 2), np.int64)
             if len(i) and len(j):
                 d2 = (cx[i, None] - ox) ** 2 + (cy[None, j] - oy) ** 2
-                mask[i[0] : i[-1] + 1, j[0] : j[-1] + 1] |= d2 < limit * limit
-            if math.hypot(g_xy[0] - ox, g_xy[1] - oy) < limit or mask[goal_cell]:
+                inside = np.argwhere(d2 < limit * limit) + (i[0], j[0])
+                rows.append(inside[:, 0])
+                cols.append(inside[:, 1])
+            if math.hypot(g_xy[0] - ox, g_xy[1] - oy) < limit or (inside == goal_cell).all(1).any():
                 raise PlanError(
                     GOAL_BLOCKED,
                     f"goal ({g_xy[0]:.2f}, {g_xy[1]:.2f}) is within {radius_m:g} m of another "
                     f"robot at ({ox:.2f}, {oy:.2f})",
                 )
-        return mask if mask.any() else None
+        if not rows or not sum(len(r) for r in rows):
+            return None
+        return np.concatenate(rows), np.concatenate(cols)
 
     def _check_end(self, name, ix, iy, flags, enter, box, xy, allow_unknown) -> None:
         f = int(flags[ix, iy])
