@@ -56,27 +56,31 @@ class ToyWorld:
 
     def reveal(self, x, y, yaw):
         """Mark nodes the camera sees: in the sector, within range, line of sight not through a
-        (true) obstacle; the node under the robot is seen too (a short LiDAR stand-in)."""
+        (true) obstacle; the node under the robot is seen too (a short LiDAR stand-in). Each ray
+        is sampled at half-node steps (every ray at once; samples past a ray's end are masked)."""
         c = np.array([int(x / RES), int(y / RES)])
         self.known[c[0], c[1]] = True
         off = self.fov.offsets
         bearing = np.arctan2(off[:, 1], off[:, 0])
-        inside = np.abs(wrap_angle_arr(bearing - yaw)) <= math.radians(57) / 2
-        for dx, dy in off[inside]:
-            n = int(math.ceil(math.hypot(dx, dy) * 2))
-            ok = True
-            for s in range(1, n):
-                px = math.floor(c[0] + s / n * dx + 0.5)
-                py = math.floor(c[1] + s / n * dy + 0.5)
-                if not (0 <= px < self.gt.shape[0] and 0 <= py < self.gt.shape[1]):
-                    ok = False
-                    break
-                if (px, py) != (c[0] + dx, c[1] + dy) and self.obstacle[px, py]:
-                    ok = False
-                    break
-            tx, ty = c[0] + dx, c[1] + dy
-            if ok and 0 <= tx < self.gt.shape[0] and 0 <= ty < self.gt.shape[1]:
-                self.known[tx, ty] = True
+        off = off[np.abs(wrap_angle_arr(bearing - yaw)) <= math.radians(57) / 2]
+        if not len(off):
+            return
+        n = np.ceil(np.hypot(off[:, 0], off[:, 1]) * 2).astype(int)  # steps per ray
+        s = np.arange(1, n.max())
+        frac = s[None, :] / n[:, None]
+        px = np.floor(c[0] + frac * off[:, :1] + 0.5).astype(int)
+        py = np.floor(c[1] + frac * off[:, 1:] + 0.5).astype(int)
+        on_ray = s[None, :] < n[:, None]
+        inside = (px >= 0) & (px < self.gt.shape[0]) & (py >= 0) & (py < self.gt.shape[1])
+        tx, ty = c[0] + off[:, 0], c[1] + off[:, 1]
+        is_target = (px == tx[:, None]) & (py == ty[:, None])
+        blocked = ~inside | (
+            self.obstacle[px.clip(0, self.gt.shape[0] - 1), py.clip(0, self.gt.shape[1] - 1)]
+            & ~is_target
+        )
+        ok = ~(blocked & on_ray).any(axis=1)
+        ok &= (tx >= 0) & (tx < self.gt.shape[0]) & (ty >= 0) & (ty < self.gt.shape[1])
+        self.known[tx[ok], ty[ok]] = True
 
     def grid(self) -> GridBox:
         flags = self.known.astype(np.uint8) * fr.KNOWN
