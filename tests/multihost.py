@@ -4,11 +4,13 @@ with the reason, where the machine does not allow namespaces (not root, no iprou
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -43,9 +45,20 @@ class TwoHosts:
             _ip("-n", ns, "link", "set", dev, "up")
             _ip("-n", ns, "link", "set", "lo", "up")
 
-    def down(self) -> None:
-        for _, p in reversed(self.procs):
-            self.stop(p)
+    def down(self, timeout_s: float = 5.0) -> None:
+        """Every process asked to stop at once (SIGINT), killed if it has not after timeout_s."""
+        live = [p for _, p in self.procs if p.poll() is None]
+        for p in live:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGINT)
+        deadline = time.monotonic() + timeout_s
+        for p in live:
+            try:
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
         for ns in self.ns.values():
             _ip("netns", "del", ns, check=False)
 

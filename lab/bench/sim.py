@@ -170,6 +170,7 @@ def run(args) -> dict:
     }
 
 
+DEFAULT_COUNTS = {"runs": 5, "frames": 6, "scans": 3}  # without --quick
 WORKERS = ("off", "thread", "process")  # sim.camera.worker, as the service runs each
 
 
@@ -374,13 +375,18 @@ def cli(argv: list[str] | None = None) -> int:
             "default (TinyRenderer frames and LiDAR scans dominate)."
         ),
     )
-    p.add_argument("--runs", type=positive_int, default=5)
-    p.add_argument("--frames", type=positive_int, default=6, help="camera frames per run")
-    p.add_argument("--scans", type=positive_int, default=3, help="LiDAR scans per run")
+    p.add_argument("--runs", type=positive_int, help="runs per figure (default 5; quick 3)")
+    p.add_argument("--frames", type=positive_int, help="camera frames per run (default 6; quick 3)")
+    p.add_argument("--scans", type=positive_int, help="LiDAR scans per run (default 3; quick 2)")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--noise", default="medium", choices=["off", "none", "low", "medium", "high"])
     p.add_argument("--width", type=int_in(1, 4096), default=640, help="camera side, pixels")
-    p.add_argument("--quick", action="store_true", help="3 runs x 3 frames, 3 x 2 scans")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="3 runs x 3 frames, 3 x 2 scans, at most 4 s per worker kind in the service "
+        "(--runs, --frames and --scans given explicitly still apply)",
+    )
     p.add_argument(
         "--service-s",
         type=positive_int,
@@ -399,8 +405,11 @@ def cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.json:
         output_file(args.json, "--json")
+    defaults = {"runs": 3, "frames": 3, "scans": 2} if args.quick else DEFAULT_COUNTS
+    for name, value in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
     if args.quick:
-        args.runs, args.frames, args.scans = 3, 3, 2
         args.service_s = min(args.service_s, 4)
     result = run(args)
     print(report(result))

@@ -532,7 +532,8 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
         ]
     if s.is_quick:
         lines += [
-            "**Quick run**: 2 seeds of 20 s in a 6 m garden. It checks that the experiment "
+            f"**Quick run**: {len(s.seeds)} seed{'s' * (len(s.seeds) != 1)} of "
+            f"{s.budget_s:.0f} s in a {s.size_m:g} m garden. It checks that the experiment "
             "works; its verdicts say nothing about the paper (the full run: `smana experiment "
             "exploration`, docs/experiments.md).",
             "",

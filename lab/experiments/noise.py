@@ -731,7 +731,8 @@ def _noise_summary(rows, agg, decided, meta, out: Path) -> None:
         lines.append("")
     if st.get("is_quick"):
         lines += [
-            "> **Quick run**: 2 seeds, a few small frames, 10 cm voxels. It checks that the "
+            f"> **Quick run**: {len(st['seeds'])} seed{'s' * (len(st['seeds']) != 1)}, a few "
+            "small frames, 10 cm voxels. It checks that the "
             "experiment works; its verdicts say nothing about the paper (the full run: "
             "`smana experiment noise`, docs/experiments.md).",
             "",
