@@ -23,6 +23,28 @@ REPO = Path(__file__).resolve().parents[1]
 ROBOT = "test"
 
 
+def pytest_configure(config):
+    """Before the workers start (the controller of a parallel run only), compile the services'
+    numba kernels once with `smana warmup`. On a fresh clone the cache is empty and the workers'
+    services would otherwise compile the same kernels at once on the same cores; on a warm cache
+    this loads them and takes a second or two. A failure here fails no test: every service still
+    compiles what is missing itself (the cold start has its own test, test_resilience.py)."""
+    if hasattr(config, "workerinput") or not getattr(config.option, "numprocesses", None):
+        return
+    if config.option.collectonly:
+        return
+    t0 = time.monotonic()
+    done = subprocess.run(
+        [sys.executable, "-m", "smana.deploy.warmup"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    )
+    tail = done.stdout.strip().splitlines()[-1:] or done.stderr.strip().splitlines()[-1:]
+    sys.stderr.write(f"numba warm-up before the workers: {time.monotonic() - t0:.1f} s, ")
+    sys.stderr.write(f"exit {done.returncode}: {tail[0] if tail else ''}\n")
+
+
 def free_port() -> int:
     return free_loopback_port()
 
