@@ -6,6 +6,7 @@ tests/support/fake_zenoh.py). Everything is torn down even when the test fails."
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -185,12 +186,20 @@ class ZenohStack:
                 proc.wait()
         return proc.returncode
 
-    def close(self) -> None:
+    def close(self, timeout_s: float = 5.0) -> None:
+        """The test's session, then every service at once (SIGINT, SIGKILL after `timeout_s`),
+        then the router they were stopping through."""
         if self._session is not None:
             self._session.close()
             self._session = None
-        for _, p in reversed(self.procs):
-            self.stop(p, timeout_s=3.0)
+        services = [p for _, p in self.procs if p is not self.router and p.poll() is None]
+        for p in services:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGINT)
+        deadline = time.monotonic() + timeout_s
+        for p in services:
+            self.stop(p, timeout_s=max(0.0, deadline - time.monotonic()))
+        self.stop(self.router, timeout_s=timeout_s)
 
 
 @pytest.fixture
