@@ -572,8 +572,9 @@ def add_parser(sub) -> None:
     e.add_argument(
         "--budget",
         type=positive_float,
-        help="time budget per run, s of robot time (default 150 in the 12 m garden, 480 in the "
-        "22 m one)",
+        help=f"time budget per run, s of robot time (default {DEFAULT_GARDEN.budget_s:.0f} in the "
+        f"{DEFAULT_GARDEN.size_m:g} m garden, {LARGE_GARDEN.budget_s:.0f} in the "
+        f"{LARGE_GARDEN.size_m:g} m one)",
     )
     e.add_argument("--jobs", type=positive_int, help="runs of smana up at once (default 1)")
     e.add_argument("--set", dest="extra", action="append", default=[], help="extra config override")
