@@ -33,9 +33,8 @@ class FleetConfig(Section, section="fleet"):
     # that member will see it.
     claim_radius_m: float = param(2.5, ge=0)
     claim_timeout_s: float = param(2.0, gt=0)  # a claim query unanswered -> plan alone
-    # A member that got less than 1 m from where it was this long ago (wedged, held up; measured
-    # between its poses, not on its odometer) holds nobody back: its goal is left out of the
-    # claims until it moves again.
+    # A member that moved less than 1 m in this long (wedged, held up) holds nobody back: its
+    # goal is left out of the claims until it moves again.
     claim_stall_s: float = param(20.0, gt=0)
     # Other members as moving obstacles: the planner does not enter nodes this close to another
     # member (centre to centre), except to move away from it; the follower stops while another

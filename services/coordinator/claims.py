@@ -9,13 +9,10 @@ first one wins, the second one is told who holds it and plans again.
 
 A claim ends when its member claims something else, releases it (goal reached, nothing worth a
 trip, done), or falls silent for `ttl_s` (its explorer stopped, or its link to the base dropped:
-the place is free for the others). A claim whose member has not got `STALL_M` away from where it
-was `stall_s` ago (wedged somewhere, or held up) is stalled: it stays in the book but holds
-nobody back (it is left out of `snapshot()` and of the separation test) until the member moves
-again, so one stuck robot cannot keep the others waiting for the views it will not reach. Moving
-is measured between poses, not on the member's odometer: a wedged robot that backs off and runs
-into the same corner again clocks distance without getting anywhere, and pose noise inflates an
-odometer (0.05 m of noise at 10 Hz adds metres a minute) but not the distance between two poses.
+the place is free for the others). A claim whose member has not moved `STALL_M` in `stall_s`
+(wedged somewhere, or held up) is stalled: it stays in the book but holds nobody back (it is left
+out of `snapshot()` and of the separation test) until the member moves again, so one stuck robot
+cannot keep the others waiting for the views it will not reach.
 """
 
 from __future__ import annotations
@@ -23,7 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-STALL_M = 1.0  # a member that got less far than this in `stall_s` is stalled (a back-off: 0.3 m)
+STALL_M = 1.0  # a member that moved less than this in `stall_s` is stalled (a back-off is 0.3 m)
 
 
 @dataclass
@@ -34,7 +31,7 @@ class Claim:
 
 @dataclass
 class Progress:
-    xy: tuple[float, float]  # where the member was when it last got STALL_M from the place before
+    distance_m: float  # the member's odometer when it last moved STALL_M
     t: float  # when that was
 
 
@@ -93,19 +90,17 @@ class ClaimBook:
         p = self.progress.get(robot)
         return p is not None and t - p.t > self.stall_s
 
-    def confirm(self, robot: str, goal_xy, t: float, position_xy=None) -> None:
-        """What a member's own state says (it goes to `goal_xy`, or to nothing; where it is, in
-        any fixed frame of its own): a claim is kept alive by it, and ends when the member says
-        it has no goal."""
+    def confirm(self, robot: str, goal_xy, t: float, distance_m: float | None = None) -> None:
+        """What a member's own state says (it goes to `goal_xy`, or to nothing; its odometer): a
+        claim is kept alive by it, and ends when the member says it has no goal."""
         self.check_member(robot)
         self.heard[robot] = t
-        if position_xy is not None:
-            xy = (float(position_xy[0]), float(position_xy[1]))
+        if distance_m is not None:
             p = self.progress.get(robot)
-            if p is None or math.hypot(xy[0] - p.xy[0], xy[1] - p.xy[1]) >= STALL_M:
+            if p is None or distance_m - p.distance_m >= STALL_M or distance_m < p.distance_m:
                 if p is not None and self.stalled(robot, t):
                     self.version += 1  # its claim holds the others back again
-                self.progress[robot] = Progress(xy, t)
+                self.progress[robot] = Progress(float(distance_m), t)
         c = self.claims.get(robot)
         if goal_xy is None:
             if c is not None:

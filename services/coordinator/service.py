@@ -12,7 +12,6 @@
 
 from __future__ import annotations
 
-import math
 import time
 
 import msgpack
@@ -78,15 +77,13 @@ class CoordinatorService(Service):
             state = msgpack.unpackb(payload)
             goal = state.get("goal") if isinstance(state, dict) else None
             xy = None if not goal else [float(v) for v in goal["xy"]][:2]
-            pose = state.get("pose") if isinstance(state, dict) else None
-            at = None if pose is None else [float(v) for v in pose][:2]
-            if at is not None and not (len(at) == 2 and all(map(math.isfinite, at))):
-                raise ValueError(f"pose must be [x, y, yaw], got {pose!r}")
+            dist = state.get("distance_m") if isinstance(state, dict) else None
+            dist = float(dist) if isinstance(dist, int | float) else None
         except Exception as exc:
             raise Reject("malformed", f"explorer state of {robot}: {exc}") from None
         if isinstance(state, dict) and state.get("mode") == "done":
             xy = None
-        self.book.confirm(robot, xy, time.monotonic(), at)
+        self.book.confirm(robot, xy, time.monotonic(), dist)
 
     def tick(self) -> None:
         now = time.monotonic()

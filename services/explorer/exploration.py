@@ -404,7 +404,9 @@ class Explorer:
             if self.t_now < self._back_off_until:
                 p = np.array([x, y])
                 behind = p - BACK_OFF_M * np.array([math.cos(yaw), math.sin(yaw)])
-                if self._segment_clear(p, behind, OBSTACLE_ONLY):
+                # clear of known obstacles, and of fleet members: reversing is blind to them
+                member = self.team is not None and self.team.ahead(x, y, yaw + math.pi, self.t_now)
+                if self._segment_clear(p, behind, OBSTACLE_ONLY) and not member:
                     return -self.config.creep_speed_mps, 0.0
             self._back_off_until = None
             if self.goal is not None:  # the new path starts where the robot now is
