@@ -35,12 +35,12 @@ def pytest_configure(config):
     if config.option.collectonly:
         return
     t0 = time.monotonic()
-    done = subprocess.run(
-        [sys.executable, "-m", "smana.deploy.warmup"],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-    )
+    argv = [sys.executable, "-m", "smana.deploy.warmup"]
+    try:
+        done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=300)
+    except subprocess.TimeoutExpired:
+        sys.stderr.write("numba warm-up before the workers: gave up after 300 s\n")
+        return
     tail = done.stdout.strip().splitlines()[-1:] or done.stderr.strip().splitlines()[-1:]
     sys.stderr.write(f"numba warm-up before the workers: {time.monotonic() - t0:.1f} s, ")
     sys.stderr.write(f"exit {done.returncode}: {tail[0] if tail else ''}\n")
