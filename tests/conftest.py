@@ -46,6 +46,32 @@ def pytest_configure(config):
     sys.stderr.write(f"exit {done.returncode}: {tail[0] if tail else ''}\n")
 
 
+def stop_group(proc: subprocess.Popen, sig=signal.SIGINT, timeout_s: float = 5.0) -> int:
+    """Signal a process group; SIGKILL it if it has not exited within `timeout_s`."""
+    if proc.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        try:
+            proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    return proc.returncode
+
+
+def stop_together(procs, timeout_s: float = 5.0) -> None:
+    """Every process group asked to stop at once (SIGINT), each killed if it has not exited by
+    one shared deadline: a teardown waits for the slowest, not for the sum."""
+    live = [p for p in procs if p.poll() is None]
+    for p in live:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGINT)
+    deadline = time.monotonic() + timeout_s
+    for p in live:
+        stop_group(p, timeout_s=max(0.0, deadline - time.monotonic()))
+
+
 def free_port() -> int:
     return free_loopback_port()
 
@@ -173,18 +199,7 @@ class ZenohStack:
         raise TimeoutError(f"{service} not alive after {timeout_s} s:\n{self.log(service)}")
 
     def stop(self, proc: subprocess.Popen, sig=signal.SIGINT, timeout_s: float = 5.0) -> int:
-        """Signal a process group; SIGKILL it if it has not exited within `timeout_s`."""
-        if proc.poll() is None:
-            try:
-                os.killpg(proc.pid, sig)
-            except ProcessLookupError:
-                pass
-            try:
-                proc.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
-        return proc.returncode
+        return stop_group(proc, sig, timeout_s)
 
     def close(self, timeout_s: float = 5.0) -> None:
         """The test's session, then every service at once (SIGINT, SIGKILL after `timeout_s`),
@@ -192,14 +207,8 @@ class ZenohStack:
         if self._session is not None:
             self._session.close()
             self._session = None
-        services = [p for _, p in self.procs if p is not self.router and p.poll() is None]
-        for p in services:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGINT)
-        deadline = time.monotonic() + timeout_s
-        for p in services:
-            self.stop(p, timeout_s=max(0.0, deadline - time.monotonic()))
-        self.stop(self.router, timeout_s=timeout_s)
+        stop_together([p for _, p in self.procs if p is not self.router], timeout_s)
+        stop_group(self.router, timeout_s=timeout_s)
 
 
 @pytest.fixture

@@ -4,19 +4,20 @@ with the reason, where the machine does not allow namespaces (not root, no iprou
 
 from __future__ import annotations
 
-import contextlib
 import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from smana.deploy.supervisor import die_with_parent
-from tests.conftest import wait_for  # noqa: F401 - the multi-host tests import it from here
+from tests.conftest import (
+    stop_group,
+    stop_together,
+    wait_for,  # noqa: F401 - the multi-host tests import it from here
+)
 
 ROBOT_IP, BASE_IP = "10.213.7.1", "10.213.7.2"
 
@@ -46,19 +47,7 @@ class TwoHosts:
             _ip("-n", ns, "link", "set", "lo", "up")
 
     def down(self, timeout_s: float = 5.0) -> None:
-        """Every process asked to stop at once (SIGINT), killed if it has not after timeout_s."""
-        live = [p for _, p in self.procs if p.poll() is None]
-        for p in live:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(p.pid, signal.SIGINT)
-        deadline = time.monotonic() + timeout_s
-        for p in live:
-            try:
-                p.wait(timeout=max(0.0, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                with contextlib.suppress(ProcessLookupError):
-                    os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
+        stop_together([p for _, p in self.procs], timeout_s)
         for ns in self.ns.values():
             _ip("netns", "del", ns, check=False)
 
@@ -98,15 +87,7 @@ class TwoHosts:
 
     @staticmethod
     def stop(p: subprocess.Popen, timeout_s: float = 5.0) -> None:
-        if p.poll() is None:
-            try:
-                os.killpg(p.pid, signal.SIGINT)
-                p.wait(timeout=timeout_s)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.wait()
-            except ProcessLookupError:
-                pass
+        stop_group(p, timeout_s=timeout_s)
 
 
 def make_two_hosts(tmp: Path) -> TwoHosts:

@@ -170,7 +170,8 @@ def run(args) -> dict:
     }
 
 
-DEFAULT_COUNTS = {"runs": 5, "frames": 6, "scans": 3}  # without --quick
+DEFAULT_COUNTS = {"runs": 5, "frames": 6, "scans": 3}  # per figure, unless given
+QUICK_COUNTS = {"runs": 3, "frames": 3, "scans": 2}  # with --quick
 WORKERS = ("off", "thread", "process")  # sim.camera.worker, as the service runs each
 
 
@@ -405,7 +406,7 @@ def cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.json:
         output_file(args.json, "--json")
-    defaults = {"runs": 3, "frames": 3, "scans": 2} if args.quick else DEFAULT_COUNTS
+    defaults = QUICK_COUNTS if args.quick else DEFAULT_COUNTS
     for name, value in defaults.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
