@@ -95,9 +95,9 @@ def main(argv: list[str] | None = None) -> int:
         print(_usage())
         return 0 if argv else 2
     if argv[0] == "--version":
-        from importlib.metadata import version
+        from smana.common.version import smana_version
 
-        print(version("smana"))
+        print(smana_version())
         return 0
     name = argv[0]
     if name not in COMMANDS:

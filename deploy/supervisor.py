@@ -60,6 +60,13 @@ SERVICE_ORDER = ("sim", "mapper", "navgraph", "planner", "explorer", "ros2")
 # (`deploy.robots`, default every member). One simulator simulates every member.
 FLEET_SHARED = ("sim", "mapper", "navgraph", "coordinator")
 FLEET_MEMBER = ("mapper", "planner", "explorer")
+# What a service needs beyond smana's own dependencies: (module, the extra that installs it). A
+# missing one stops `smana up` before anything starts, in one line (exit 2), instead of a service
+# that exits 2 at every restart.
+OPTIONAL_NEEDS = {"ros2": (("rosbags", "ros2"),)}
+# A service that exits with this status refused its configuration (`run_command`'s user errors):
+# restarting it cannot help, so the stack stops and `smana up` exits with it.
+CONFIG_ERROR = 2
 
 
 @dataclass
@@ -135,6 +142,7 @@ class Supervisor:
         # here or on another host
         self._lock = threading.Lock()
         self._stop = threading.Event()
+        self.config_error: str | None = None  # a service's one line when it exited CONFIG_ERROR
         self.session = None
 
     def _add_service(self, name: str, service: str, robot: str, extra=()) -> None:
@@ -348,7 +356,12 @@ class Supervisor:
                 with self._lock:
                     m.alive = m.starting = False
                 failed = code != 0
-                if m.policy.restart == "always" or (m.policy.restart == "on-failure" and failed):
+                if code == CONFIG_ERROR:
+                    m.finished = True
+                    self.config_error = f"{m.name} refused its configuration: {_last_line(m)}"
+                    log.error("%s; stopping the stack", self.config_error)
+                    self._stop.set()
+                elif m.policy.restart == "always" or (m.policy.restart == "on-failure" and failed):
                     self._schedule_restart(m, f"exited with status {code}")
                 else:
                     m.finished = True
@@ -535,6 +548,9 @@ class Supervisor:
                     break
         finally:
             self.shutdown()
+        if self.config_error is not None:
+            self.ended = self.config_error
+            return CONFIG_ERROR
         return result
 
     def warnings(self) -> list[str]:
@@ -647,6 +663,32 @@ def add_recorder(sup: Supervisor) -> bool:
     return True
 
 
+def _last_line(m: Managed) -> str:
+    """The last line a service wrote to its log (a refusal is one line: its reason)."""
+    try:
+        lines = m.log_path.read_text(errors="replace").strip().splitlines()
+    except OSError:
+        lines = []
+    return lines[-1].strip() if lines else f"exit status {CONFIG_ERROR}, empty log"
+
+
+def check_optional_needs(config: SmanaConfig, services=None) -> None:
+    """A UsageError, before anything starts, when an enabled service needs a package that is not
+    installed (`OPTIONAL_NEEDS`), naming the extra that brings it."""
+    import importlib.util
+
+    from smana.common.cli import UsageError
+
+    for name, needs in OPTIONAL_NEEDS.items():
+        enabled = name in services if services is not None else getattr(config.deploy, name).enabled
+        for module, extra in needs if enabled else ():
+            if importlib.util.find_spec(module) is None:
+                raise UsageError(
+                    f"the {name} service needs the {module!r} package, which is not installed: "
+                    f"pip install 'smana[{extra}]'"
+                )
+
+
 def main(config: SmanaConfig, duration_s: float | None = None, services=None) -> int:
     import shutil
 
@@ -656,6 +698,7 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
     # Refuse what cannot work before the router starts, not halfway through the run.
     if duration_s is not None and not 0 < duration_s < float("inf"):
         raise UsageError(f"--duration must be a number of seconds > 0, got {duration_s:g}")
+    check_optional_needs(config, services)
     run_dir = Path(config.general.run_dir) if config.general.run_dir else default_run_dir()
     fresh = not run_dir.exists()
     output_dir(run_dir)
@@ -677,6 +720,9 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
             shutil.rmtree(run_dir, ignore_errors=True)
         raise
     wall_time_s = time.monotonic() - t0
+    if code == CONFIG_ERROR:
+        # one line, as for a mistake caught before the start; the logs stay in the run directory
+        raise UsageError(f"{sup.config_error} (logs in {run_dir / 'logs'})")
     warnings = sup.warnings()
     explored = any(m.service == "explorer" for m in sup.procs.values())
     try:

@@ -35,6 +35,7 @@ import numpy as np
 
 from smana.common.classes import ClassTable
 from smana.common.messages import json_default
+from smana.common.version import smana_version
 from smana.lab import evaluation as ev
 from smana.lab import plots
 
@@ -875,6 +876,7 @@ def write_report(
         if graph is not None:
             np.savez(run_dir / "graph.npz", **graph)
     metrics: dict = {
+        "smana_version": smana_version(),
         "run_dir": str(run_dir),
         "run": {
             "ended": ended or previous.get("ended") or "",

@@ -191,6 +191,38 @@ def test_up_refuses_a_run_dir_that_is_a_file(tmp_path):
     one_line_misuse(r, "up", "cannot be created", "--run-dir")
 
 
+def test_mapper_run_dir_is_a_file(tmp_path):
+    """A service alone refuses a run directory that is a file before it maps anything (it used
+    to map, then lose the map in a FileExistsError on SIGTERM and exit 0)."""
+    f = tmp_path / "afile"
+    f.write_text("")
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    r = smana("mapper", "--run-dir", str(f), "--connect", ep, NO_SCOUT)
+    one_line_misuse(r, "mapper", f"run directory {f} is a file")
+    assert f.read_text() == ""
+
+
+def test_missing_extra_fails_the_stack_at_once(tmp_path):
+    """`smana up` with a service whose optional package is missing stops before anything starts,
+    in one line naming the extra (it used to restart the service 8 times). `rosbags` is hidden the
+    way Python hides a module: `sys.modules["rosbags"] = None`."""
+    code = (
+        "import sys; sys.modules['rosbags'] = None\n"
+        "from smana.common.cli import run_command\n"
+        "from smana.deploy.supervisor import cli\n"
+        "sys.exit(run_command('up', cli))"
+    )
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    run_dir = tmp_path / "run"
+    args = ["--set", "deploy.ros2.enabled=true", "--run-dir", str(run_dir), NO_SCOUT]
+    args += ["--set", f'deploy.router_listen=["{ep}"]', "--duration", "60"]
+    r = subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=60, cwd=REPO
+    )
+    one_line_misuse(r, "up", "rosbags", "pip install 'smana[ros2]'")
+    assert not run_dir.exists()
+
+
 def test_bad_config_value_is_one_line(tmp_path):
     cfg = tmp_path / "bad.toml"
     cfg.write_text("[mapper]\nresolution_m = -1\n")

@@ -64,6 +64,28 @@ def test_kill9_is_restarted_within_3s(tmp_path):
     assert echo.proc is None and echo.exit_codes[-1] == 0  # stopped cleanly by SIGINT
 
 
+def test_a_service_that_refuses_its_config_stops_the_stack(tmp_path):
+    """Exit status 2 is a service's "this configuration cannot work" (one line on stderr): it is
+    not restarted, the stack stops at once and the run returns 2 with that line."""
+    from tests.conftest import free_port
+
+    sup = make_supervisor(tmp_path, free_port(), restart="on-failure", restart_delay_s=0.2)
+    refuse = "import sys; print('smana echo: needs X: pip install smana[x]', file=sys.stderr); "
+    argv = [sys.executable, "-c", refuse + "sys.exit(2)"]
+    sup.add("refuser", argv, ServiceDeployConfig(restart="on-failure", restart_delay_s=0.2))
+    t0 = time.monotonic()
+    code = sup.run(progress_period_s=3600)
+    assert code == 2
+    assert time.monotonic() - t0 < 30
+    refuser = sup.procs["refuser"]
+    assert refuser.exit_codes == [2] and refuser.n_restarts == 0
+    assert (
+        sup.config_error
+        == "refuser refused its configuration: smana echo: needs X: pip install smana[x]"
+    )
+    assert all(m.proc is None for m in sup.procs.values())  # the echo service was stopped too
+
+
 def test_crash_loop_goes_on_and_never_policy_says_so(tmp_path):
     from tests.conftest import free_port
 

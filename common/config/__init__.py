@@ -37,6 +37,7 @@ from smana.common.config.planner import PlannerConfig
 from smana.common.config.replay import ReplayConfig
 from smana.common.config.ros2 import Ros2Config
 from smana.common.config.sim import SimConfig
+from smana.common.version import smana_version
 
 __all__ = [
     "ConfigError",
@@ -93,7 +94,8 @@ class SmanaConfig:
         return build(cls, data, "")
 
     def to_toml(self) -> str:
-        return to_toml(self)
+        """The config as TOML, headed by the smana that wrote it (a comment: it reads back)."""
+        return f"# written by smana {smana_version()}\n" + to_toml(self)
 
     def write(self, path: str | Path) -> Path:
         p = Path(path)
