@@ -53,6 +53,9 @@ class Jobs:
                 job()
             except Exception:  # noqa: BLE001 - a job's bug: logged, the thread goes on
                 log.exception("a background job failed")
+            # Let go of the job before waiting for the next: what it holds (a zenoh query,
+            # whose asker waits until it is dropped) must not live on until then.
+            job = _ = None
 
     def close(self) -> None:
         """Drop what waits (each `on_drop` called) and end the threads; a job already running

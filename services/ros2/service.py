@@ -442,9 +442,16 @@ class Ros2Service(Service):
         self.books.settle("dropped", why)
         self._log_kind(why, f"GetPlan dropped: {why}", self.books.dropped[why])
         self._reply_err(query, why, f"GetPlan not answered: {why}", False)
+        _finish(query)
 
     def _plan(self, query, deadline: float) -> None:
         """A plan worker: answer one GetPlan by its deadline; settle it in the books."""
+        try:
+            self._answer_plan(query, deadline)
+        finally:
+            _finish(query)  # the asker's get ends now, not when the query is collected
+
+    def _answer_plan(self, query, deadline: float) -> None:
         try:
             size = len(query.payload) if query.payload is not None else 0
             if size > self.max_payload_bytes:
@@ -507,6 +514,13 @@ class Ros2Service(Service):
             "plans_waiting": self.plan_jobs.waiting() if self.plan_jobs else 0,
             "zid": self.node.zid if self.node is not None else "",
         }
+
+
+def _finish(query) -> None:
+    try:
+        query.drop()
+    except Exception:  # noqa: BLE001 - already finished, or the session is closing
+        pass
 
 
 def main(config: SmanaConfig) -> int:
