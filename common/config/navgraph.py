@@ -11,7 +11,7 @@ from smana.common.config._schema import ConfigError, Section, param
 
 @dataclass
 class NavgraphConfig(Section, section="navgraph"):
-    resolution_m: float = param(0.2, gt=0)
+    resolution_m: float = param(0.2, gt=0, le=100.0)
     bounds_min_xy: list[float] = param([-50.0, -50.0])
     bounds_max_xy: list[float] = param([50.0, 50.0])
     robot_radius_m: float = param(0.4, ge=0, lt=math.inf)  # sizes the safety-zone stencil
