@@ -16,6 +16,7 @@ import pytest
 pytest.importorskip("rosbags")
 
 from smana.common.config import GeneralConfig, Ros2Config  # noqa: E402
+from smana.common.messages import Pose, decode  # noqa: E402
 from smana.common.service import Reject  # noqa: E402
 from smana.services.ros2 import bridge, convert, rmw  # noqa: E402
 from smana.services.ros2.bridge import CloudInput, OdometryInput  # noqa: E402
@@ -69,8 +70,6 @@ def test_implausible_odometry_is_refused_before_it_is_republished():
     pose, wire = inp.checked(odometry(10.2, 1.2, quat=(0.0, 0.0, 0.0, 1.05)))
     assert pose.seq == 1 and pose.position.tolist() == [1.2, 0.0, 0.0]
     assert np.isclose(np.linalg.norm(pose.orientation_xyzw), 1.0)  # normalised once taken
-    from smana.common.messages import Pose, decode
-
     assert decode(wire, Pose).position.tolist() == [1.2, 0.0, 0.0]  # what goes on robot/pose
     # farther than the robot can travel, or a stamp far from the stream's clock
     assert refused(inp, odometry(10.3, 50.0)) == "pose_jump"
@@ -180,10 +179,13 @@ def test_odometry_flows_while_the_planner_and_the_mapper_never_answer(tmp_path):
         held = []  # queries nobody answers (kept: a dropped query is answered "no reply")
         for key in ("planner/path", "mapper/snapshot", "navgraph/graph"):
             s.session.declare_queryable(f"smana/test/{key}", held.append)
-        arrivals = []
-        s.session.declare_subscriber(
-            "smana/test/robot/pose", lambda _s: arrivals.append(time.monotonic())
-        )
+        arrivals, xs = [], []
+
+        def on_pose(sample):
+            arrivals.append(time.monotonic())
+            xs.append(float(decode(sample.payload.to_bytes(), Pose).position[0]))
+
+        s.session.declare_subscriber("smana/test/robot/pose", on_pose)
         ros2 = s.service("ros2", "--set", "deploy.sim.enabled=false")
         s.wait_alive("ros2", timeout_s=120)
         node = rmw.RosNode(s.session, TYPES, 0, "robot", "/")
@@ -249,6 +251,23 @@ def test_odometry_flows_while_the_planner_and_the_mapper_never_answer(tmp_path):
             assert len(plan.plan.poses) == 0
         st = request(s.session, "smana/test/ros2/status", None, 3.0)
         assert st.books_add_up() and st.details["received"]["plans"] == 3, st
+
+        # Implausible odometry and clouds: counted rejected `value`, never republished.
+        def values() -> int:
+            return request(s.session, "smana/test/ros2/status", None, 3.0).rejected.get("value", 0)
+
+        before, n_poses = values(), len(xs)
+        t = time.time()
+        odom.put(odometry(t, 1e308))
+        odom.put(odometry(t, 0.0, quat=(1e200, 1e200, 0.0, 0.0)))
+        points = node.publisher("/points", "sensor_msgs/msg/PointCloud2", rmw.SENSOR_QOS)
+        pts = np.array([[1.0, 0.0, 0.0]], np.float32)
+        assert wait_for(lambda: points._zpub.matching_status.matching, 10)
+        points.put(pointcloud2(TYPES, pts, [2], "odom", -3.0))
+        assert wait_for(lambda: values() >= before + 3, 10), s.log("ros2")
+        st = request(s.session, "smana/test/ros2/status", None, 3.0)
+        assert len(xs) == n_poses and max(abs(x) for x in xs) < 10.0
+        assert st.books_add_up() and st.details["received"]["clouds"] == 0, st
         node.close()
         assert s.stop(ros2) == 0, s.log("ros2")
     finally:
