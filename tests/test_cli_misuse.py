@@ -348,6 +348,29 @@ def test_check_name_is_the_one_rule():
             check_name(bad)
 
 
+def test_eval_of_a_run_without_a_simulator_needs_gt(tmp_path):
+    """A run with the simulator off has no world to score against: `smana eval map` says so in
+    one line instead of scoring the map against the default simulated garden."""
+    import numpy as np
+
+    from smana.common.config import SmanaConfig
+    from smana.services.mapper.ply import write_ply
+
+    run = tmp_path / "run"
+    SmanaConfig.load(None, ["deploy.sim.enabled=false"]).write(run / "config.toml")
+    pts = np.zeros((4, 3), np.float32)
+    write_ply(
+        run / "map.ply",
+        pts,
+        np.zeros((4, 3), np.uint8),
+        np.ones(4, np.uint16),
+        np.ones(4, np.float32),
+    )
+    r, took, left = smana_alone(tmp_path, "eval", "map", str(run))
+    one_line_misuse(r, "eval", "no ground truth", "simulator was off", "--gt FILE")
+    assert not (run / "gt.ply").exists() and not left
+
+
 def test_a_start_that_fails_halfway_leaves_nothing_running(tmp_path):
     """The supervisor's start fails after it started a service (here the navgraph's log cannot
     be opened): it stops what it started and exits, instead of hanging with an orphan."""
