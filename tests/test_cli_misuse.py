@@ -322,6 +322,8 @@ def _no_router_args() -> list[str]:
         (["up", "--set", "mapper.resolution_m=1e-9"], ["mapper.resolution_m", "0.001"]),
         (["up", "--set", "mapper.resolution_m=1e300"], ["mapper.resolution_m", "<= 100"]),
         (["up", "--set", "explorer.time_budget_s=inf"], ["explorer.time_budget_s", "finite"]),
+        (["up", "--set", "navgraph.bounds_max_xy=[1e300, 1e300]"], ["navgraph.bounds", "nodes"]),
+        (["up", "--set", "navgraph.resolution_m=1e-5"], ["navgraph.", "at most 1048576"]),
         (["deploy", "init-certs", "--hosts", "robot,../base"], ["--hosts", "'../base'"]),
         (["deploy", "acl", "--robot", "r1/**"], ["--robot", "'r1/**'"]),
     ],
