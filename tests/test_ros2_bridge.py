@@ -136,6 +136,7 @@ def test_tf_static_is_bounded_under_100000_unique_frames():
         grown = tracemalloc.get_traced_memory()[0] - base
     finally:
         tracemalloc.stop()
+    print(f"/tf_static: {total} unique frames, {len(ci.static)} kept, +{grown} B traced")
     assert len(ci.static) == bridge.MAX_STATIC_FRAMES
     assert ci.static_refused == total - bridge.MAX_STATIC_FRAMES
     assert grown < 200_000, grown  # flat: 98,000 refused frames kept nothing
