@@ -270,6 +270,21 @@ def test_odometry_flows_while_the_planner_and_the_mapper_never_answer(tmp_path):
         st = request(s.session, "smana/test/ros2/status", None, 3.0)
         assert len(xs) == n_poses and max(abs(x) for x in xs) < 10.0
         assert st.books_add_up() and st.details["received"]["clouds"] == 0, st
+
+        # More GetPlans than the workers and their queue hold (2 + 8): the rest are refused at
+        # once with `queue_full`, never waited for; the others are answered by their deadline.
+        answers.clear()
+        askers = [threading.Thread(target=get_plan, args=(10 + i,)) for i in range(12)]
+        for a in askers:
+            a.start()
+        for a in askers:
+            a.join(20)
+        refused = [took for took, r in answers if len(r) == 1 and r[0].err is not None]
+        answered = [took for took, r in answers if len(r) == 1 and r[0].ok is not None]
+        assert len(refused) >= 2 and len(refused) + len(answered) == 12, answers
+        assert max(refused) < 1.0 and max(answered) < 6.5, (refused, answered)
+        st = request(s.session, "smana/test/ros2/status", None, 3.0)
+        assert st.dropped.get("queue_full") == len(refused) and st.books_add_up(), st
         node.close()
         assert s.stop(ros2) == 0, s.log("ros2")
     finally:
