@@ -16,7 +16,7 @@ import pytest
 pytest.importorskip("rosbags")
 
 from smana.common.config import GeneralConfig, Ros2Config  # noqa: E402
-from smana.common.messages import Pose, decode  # noqa: E402
+from smana.common.messages import Pose, VelocityCommand, decode, encode  # noqa: E402
 from smana.common.service import Reject  # noqa: E402
 from smana.services.ros2 import bridge, convert, rmw  # noqa: E402
 from smana.services.ros2.bridge import CloudInput, OdometryInput  # noqa: E402
@@ -191,12 +191,20 @@ def test_odometry_flows_while_the_planner_and_the_mapper_never_answer(tmp_path):
         s.wait_alive("ros2", timeout_s=120)
         node = rmw.RosNode(s.session, TYPES, 0, "robot", "/")
         odom = node.publisher("/odom", ODOM)
+        twists = []  # what the robot's base gets on /cmd_vel
+        twist = "geometry_msgs/msg/Twist"
+        s.session.declare_subscriber(
+            rmw.data_key(0, "/cmd_vel", twist, TYPES.hash(twist)),
+            lambda _s: twists.append(time.monotonic()),
+        )
+        cmd_vel = s.session.declare_publisher("smana/test/robot/cmd_vel")
         stop = threading.Event()
 
         def drive():
             t0, i = time.time(), 0
             while not stop.is_set():
                 odom.put(odometry(t0 + 0.05 * i, 0.01 * i))
+                cmd_vel.put(encode(VelocityCommand(t0 + 0.05 * i, i + 1, 0.2, 0.0, "explorer")))
                 i += 1
                 time.sleep(0.05)
 
@@ -235,12 +243,15 @@ def test_odometry_flows_while_the_planner_and_the_mapper_never_answer(tmp_path):
         driver.join(5)
         window = [t for t in arrivals if t_ask <= t <= t_done]
         gaps = np.diff(window)
+        commands = [t for t in twists if t_ask <= t <= t_done]  # velocity commands out, too
         print(
             f"odometry forwarded while 3 GetPlans waited {t_done - t_ask:.2f} s: "
-            f"{len(window)} poses, largest gap {gaps.max():.3f} s; status answered in "
+            f"{len(window)} poses, largest gap {gaps.max():.3f} s; "
+            f"/cmd_vel's largest gap {np.diff(commands).max():.3f} s; status answered in "
             f"{status_s:.3f} s; GetPlan answered in {sorted(round(a[0], 2) for a in answers)} s"
         )
         assert len(window) > 20 and gaps.max() <= 1.0, gaps.max()
+        assert len(commands) > 20 and np.diff(commands).max() <= 1.0, np.diff(commands).max()
         assert status_s < 1.0 and st.state == "running"
         assert any("mapper" in str(q.key_expr) for q in held)  # a sync was pending meanwhile
         assert len(answers) == 3
