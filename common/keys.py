@@ -22,14 +22,27 @@ SERVICES = (
     "ros2",
     "coordinator",
 )
-_NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
+NAME_PATTERN = "[A-Za-z0-9_-]{1,32}"
+_NAME = re.compile(NAME_PATTERN)
+
+
+def check_name(name, what: str = "robot name") -> str:
+    """The one check of a name smana puts in a key and in a file name: a robot (`--robot`,
+    `general.robot`), a fleet and its members (`fleet.name`, `fleet.robots`), a host of
+    `smana deploy init-certs`. It is a whole zenoh key chunk (`smana/<robot>/...`) and part of a
+    file name (`logs/mapper@<robot>.log`, `<host>.pem`), so: 1 to 32 letters, digits, '_' or
+    '-'; no '/', '*', '$', '?', '#', '@', '.', space. ValueError (one line) otherwise."""
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        raise ValueError(
+            f"{what} {name!r} must match {NAME_PATTERN} (letters, digits, '_' and '-': it is "
+            "a zenoh key chunk and a file name)"
+        )
+    return name
 
 
 def check_robot(robot: str) -> str:
-    """Robot names become key segments: no '/', '*', '$', '?' or '#'."""
-    if not _NAME.match(robot or ""):
-        raise ValueError(f"robot name {robot!r} must match [A-Za-z0-9_-]+")
-    return robot
+    """A robot name, checked by `check_name`."""
+    return check_name(robot)
 
 
 def key(robot: str, service: str, topic: str) -> str:

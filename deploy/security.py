@@ -286,6 +286,21 @@ def init_certs(out: Path, hosts: list[str], days: int = 825, force: bool = False
     return [*written, dictionary, *per_role, acl]
 
 
+def _check_names(hosts: list[str], robots: list[str]) -> None:
+    """Host names become file names and certificate names, robot names key chunks: the one
+    check of both (common/keys.py), a one-line UsageError before anything is written."""
+    from smana.common.cli import UsageError
+    from smana.common.keys import check_name
+
+    try:
+        for h in hosts:
+            check_name(h, "--hosts: host name")
+        for r in robots:
+            check_name(r, "--robot: robot name")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
 def cli(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="smana deploy",
@@ -302,11 +317,11 @@ def cli(argv: list[str] | None = None) -> int:
     acl.add_argument("--robot", default="*", help="restrict the policy to one robot name")
     acl.add_argument("--hosts", default="robot,base", help="host certificates' common names")
     args = p.parse_args(argv)
+    hosts = [h.strip() for h in args.hosts.split(",") if h.strip()]
+    _check_names(hosts, [] if args.cmd != "acl" or args.robot == "*" else [args.robot])
     if args.cmd == "acl":
-        hosts = [h.strip() for h in args.hosts.split(",") if h.strip()]
         print(json.dumps(acl_policy(args.robot, hosts), indent=2))
         return 0
-    hosts = [h.strip() for h in args.hosts.split(",") if h.strip()]
     if not hosts:
         p.error("--hosts needs at least one name")
     try:

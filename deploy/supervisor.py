@@ -513,13 +513,14 @@ class Supervisor:
 
     def run(self, duration_s: float | None = None, progress_period_s: float = 10.0) -> int:
         """Supervise until done; returns 0 when the run finished normally."""
-        self.start()
         t0 = time.monotonic()
         next_progress = t0 + progress_period_s
         finish_with = self.config.deploy.finish_with
         result = 0
         self.ended = "stopped (Ctrl-C or a signal)"
         try:
+            # Inside the try: a start that fails halfway stops what it started (no orphans)
+            self.start()
             while not self._stop.wait(0.1):
                 self.poll()
                 now = time.monotonic()

@@ -359,8 +359,14 @@ def world_from_config(config):
 
 
 def gt_cloud_for_run(run_dir: Path, config, spacing_m: float = 0.03):
-    """The GT cloud of a run: `<run_dir>/gt.ply`, exported there from the world if missing."""
+    """The GT cloud of a run: `<run_dir>/gt.ply`, exported there from the world if missing.
+    ValueError when it is missing and the run had no simulator (no world to export)."""
     gt = run_dir / "gt.ply"
+    if not gt.is_file() and not config.deploy.sim.enabled:
+        raise ValueError(
+            f"no ground truth for {run_dir}: the simulator was off in this run (no {gt.name}); "
+            "give one with --gt FILE"
+        )
     if not gt.is_file():
         world_from_config(config).export_ply(gt, spacing_m)
     return load_labelled_cloud(gt)

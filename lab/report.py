@@ -774,6 +774,8 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
     rows = [("outcome", f"FAILED ({n} warning{'s' * (n != 1)})" if warnings else "ok")]
     if metrics.get("fleet"):
         rows += fleet_summary_rows(metrics["fleet"])
+    if metrics.get("ground_truth") == NO_SIMULATOR:
+        rows.append(("ground truth", "none: the simulator was off"))
     if ex:
         area = ex.get("explored_reachable_area_m2")
         rows.append(
@@ -924,6 +926,10 @@ def write_report(
         metrics["replay"]["trajectory_source"] = traj_source
         metrics["replay"]["poses_recorded"] = recorded_poses(run_dir)
         metrics["replay"]["recorder_stopped_cleanly"] = (run_dir / "recorder.json").is_file()
+    elif not config.deploy.sim.enabled:
+        # A real robot (or a ROS 2 one): the config's world was never simulated, so nothing is
+        # scored against it.
+        metrics["ground_truth"] = NO_SIMULATOR
     else:
         try:
             world = ev.world_from_config(config)
@@ -986,6 +992,11 @@ def write_report(
     return report
 
 
+NO_SIMULATOR = (
+    "none: the simulator was off (a real robot), so nothing is scored against a simulated "
+    "world; `smana eval map RUN_DIR --gt FILE` scores the map against a ground-truth cloud"
+)
+
 # Why the two explored areas differ (the explorer's is in its progress plot, the report's here).
 EXPLORED_AREAS = (
     "Two explored areas, measuring different things: *against ground truth* counts the cells of "
@@ -1019,6 +1030,12 @@ def render_markdown(m: dict) -> str:
             f"`{rp.get('class_table')}`), map back-end `{c['backend']}` at "
             f"{c['map_resolution_m']} m, graph {c['graph_resolution_m']} m. No ground truth: the "
             "map is described, not measured.",
+            "",
+        ]
+    elif m.get("ground_truth") == NO_SIMULATOR:
+        lines += [
+            f"Map back-end `{c['backend']}` at {c['map_resolution_m']} m, graph "
+            f"{c['graph_resolution_m']} m. No ground truth: {NO_SIMULATOR[6:]}.",
             "",
         ]
     else:

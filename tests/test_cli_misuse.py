@@ -278,6 +278,145 @@ def test_experiment_out_that_is_a_file(tmp_path):
     one_line_misuse(r, "experiment", "is a file", "--out")
 
 
+# -- names and numbers that escaped: one line, exit 2 within 10 s, nothing left running ---------
+
+
+def smana_alone(tmp_path, *args: str, timeout_s: float = 10.0):
+    """Run `smana ...` in its own process group with a marker in its environment (inherited by
+    anything it starts, in whatever group); returns (completed, seconds, processes left)."""
+    import os
+    import signal
+    import time
+    import uuid
+
+    import psutil
+
+    mark = uuid.uuid4().hex
+    t0 = time.monotonic()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "smana.deploy", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        text=True,
+        cwd=tmp_path,
+        start_new_session=True,
+        env=dict(os.environ, SMANA_MISUSE_MARK=mark),
+    )
+
+    def left() -> list:
+        out = []
+        for p in psutil.process_iter():
+            try:
+                if p.pid != os.getpid() and (
+                    os.getpgid(p.pid) == proc.pid or p.environ().get("SMANA_MISUSE_MARK") == mark
+                ):
+                    out.append(p)
+            except (psutil.Error, ProcessLookupError, PermissionError):
+                continue
+        return out
+
+    try:
+        out, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        for p in left():
+            p.kill()
+        out, err = proc.communicate()
+        pytest.fail(f"smana {' '.join(args)} still running after {timeout_s} s:\n{err}")
+    took = time.monotonic() - t0
+    remaining = left()
+    for p in remaining:  # leave the machine clean even when the test fails
+        with __import__("contextlib").suppress(psutil.Error):
+            p.send_signal(signal.SIGKILL)
+    done = subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+    return done, took, remaining
+
+
+def _no_router_args() -> list[str]:
+    # were anything to start, it would listen on a free port, never on a real stack's 7447
+    return [NO_SCOUT, "--set", f'deploy.router_listen=["tcp/127.0.0.1:{free_port()}"]']
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["up", "--set", 'fleet.robots=["a/b"]'], ["fleet.robots", "'a/b'", "[A-Za-z0-9_-]"]),
+        (["up", "--set", 'fleet.name="f*"'], ["fleet.name", "'f*'"]),
+        (["up", "--robot", "a/b"], ["general.robot", "'a/b'"]),
+        (["up", "--set", 'general.robot="r$1"'], ["general.robot", "'r$1'"]),
+        (["up", "--set", 'deploy.robots=["r1", "r#2"]'], ["deploy.robots", "'r#2'"]),
+        (["up", "--robot", "r" * 33], ["general.robot", "{1,32}"]),
+        (["up", "--robot", "mapper@r1"], ["'mapper@r1'"]),
+        (["replay", "--robot", "a?b", "data"], ["general.robot", "'a?b'"]),
+        (["ros2", "--robot", "a/b"], ["general.robot", "'a/b'"]),
+        (["up", "--set", "mapper.resolution_m=1e400"], ["mapper.resolution_m", "finite", "inf"]),
+        (["up", "--set", "navgraph.resolution_m=-1e400"], ["navgraph.resolution_m", "finite"]),
+        (["up", "--set", "mapper.resolution_m=1e-9"], ["mapper.resolution_m", "0.001"]),
+        (["up", "--set", "mapper.resolution_m=1e300"], ["mapper.resolution_m", "<= 100"]),
+        (["up", "--set", "explorer.time_budget_s=inf"], ["explorer.time_budget_s", "finite"]),
+        (["up", "--set", "navgraph.bounds_max_xy=[1e300, 1e300]"], ["navgraph.bounds", "nodes"]),
+        (["up", "--set", "navgraph.resolution_m=1e-5"], ["navgraph.", "at most 1048576"]),
+        (["deploy", "init-certs", "--hosts", "robot,../base"], ["--hosts", "'../base'"]),
+        (["deploy", "acl", "--robot", "r1/**"], ["--robot", "'r1/**'"]),
+    ],
+)
+def test_a_bad_name_or_number_is_one_line_and_exit_2_with_nothing_left(tmp_path, args, words):
+    if args[0] in ("up", "replay", "ros2"):
+        args = [*args, "--run-dir", str(tmp_path / "run"), *_no_router_args()]
+    if args[0] == "deploy" and args[1] == "init-certs":
+        args = [*args, "--out", str(tmp_path / "certs")]
+    r, took, left = smana_alone(tmp_path, *args)
+    one_line_misuse(r, args[0], *words)
+    assert took < 10.0, took
+    assert not left, left
+    assert not (tmp_path / "run").exists() and not (tmp_path / "certs").exists()
+
+
+def test_check_name_is_the_one_rule():
+    from smana.common.keys import check_name, check_robot
+
+    for good in ("r1", "robot_2", "a-b", "X" * 32, "_", "0"):
+        assert check_name(good) == good == check_robot(good)
+    for bad in ("", "a/b", "a*", "$x", "a?", "#", "a@b", "a.b", "a b", "x" * 33, "é", None, 7):
+        with pytest.raises(ValueError, match="must match"):
+            check_name(bad)
+
+
+def test_eval_of_a_run_without_a_simulator_needs_gt(tmp_path):
+    """A run with the simulator off has no world to score against: `smana eval map` says so in
+    one line instead of scoring the map against the default simulated garden."""
+    import numpy as np
+
+    from smana.common.config import SmanaConfig
+    from smana.services.mapper.ply import write_ply
+
+    run = tmp_path / "run"
+    SmanaConfig.load(None, ["deploy.sim.enabled=false"]).write(run / "config.toml")
+    pts = np.zeros((4, 3), np.float32)
+    write_ply(
+        run / "map.ply",
+        pts,
+        np.zeros((4, 3), np.uint8),
+        np.ones(4, np.uint16),
+        np.ones(4, np.float32),
+    )
+    r, took, left = smana_alone(tmp_path, "eval", "map", str(run))
+    one_line_misuse(r, "eval", "no ground truth", "simulator was off", "--gt FILE")
+    assert not (run / "gt.ply").exists() and not left
+
+
+def test_a_start_that_fails_halfway_leaves_nothing_running(tmp_path):
+    """The supervisor's start fails after it started a service (here the navgraph's log cannot
+    be opened): it stops what it started and exits, instead of hanging with an orphan."""
+    run = tmp_path / "run"
+    (run / "logs" / "navgraph.log").mkdir(parents=True)
+    args = ["up", "--only", "planner,navgraph", "--run-dir", str(run), *_no_router_args()]
+    r, took, left = smana_alone(tmp_path, *args, timeout_s=20.0)
+    assert r.returncode != 0 and "navgraph.log" in r.stderr, r.stderr
+    assert not left, left
+    print(f"a failed start ended in {took:.1f} s")
+
+
 # -- the catching itself -------------------------------------------------------------------------
 
 

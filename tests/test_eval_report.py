@@ -118,3 +118,21 @@ def test_report_of_an_empty_run_dir_still_writes(tmp_path):
     m = json.loads((tmp_path / "metrics.json").read_text())
     assert m["exploration"]["coverage"] == 0.0
     assert "map" not in m and path.is_file()
+
+
+def test_report_without_a_simulator_scores_nothing_against_a_world(run):
+    """A run with the simulator off (a real robot) has no ground truth: the report says so
+    instead of scoring coverage and the map against the config's default simulated world."""
+    run_dir, _, _ = run
+    cfg = SmanaConfig.load(run_dir / "config.toml", ["deploy.sim.enabled=false"])
+    path = report.write_report(run_dir, cfg, explored=True)
+    m = json.loads((run_dir / "metrics.json").read_text())
+    assert m["ground_truth"] == report.NO_SIMULATOR
+    assert "exploration" not in m and "map" not in m
+    assert not (run_dir / "gt.ply").exists()
+    assert m["map_content"]["n_points"] > 0  # what needs no ground truth is still described
+    text = path.read_text()
+    assert "No ground truth: the simulator was off" in text
+    assert "reachable" not in text.split("## Summary")[1].split("##")[0]
+    summary = "\n".join(report.summary_lines(m))
+    assert "none: the simulator was off" in summary and "of the reachable" not in summary

@@ -12,8 +12,9 @@ carry their limits and the one generic validator checks them, on load and when a
 section made in Python. A core receives its section as it is (`Explorer(config.explorer)`); parts
 of a core are nested tables (`[explorer.follower]`).
 
-An unknown key, a value of the wrong type or out of range is a `ConfigError` that names it
-(`mapper.resolution_m: expected a number > 0, got -1`). Command-line overrides use the same dotted
+An unknown key, a value of the wrong type or out of range, or a number that is not finite (`1e400`
+reads as inf) is a `ConfigError` that names it (`mapper.resolution_m: expected a number > 0, got
+-1`). Command-line overrides use the same dotted
 names (`--set mapper.resolution_m=0.3`). The config actually used is written into the run
 directory as `config.toml`, so a run can be repeated exactly.
 """

@@ -15,6 +15,7 @@ in the section's `validate()`. Cores receive their section as it is: no copies, 
 from __future__ import annotations
 
 import dataclasses
+import math
 import numbers
 import types
 import typing
@@ -130,8 +131,8 @@ def check_value(key: str, v, hint, meta) -> Any:
             what = "an integer" if hint is int else "a number"
             raise ConfigError(f"{key}: expected {what}, got {v!r}")
         raw, v = v, hint(v)
-        if v != v:
-            raise ConfigError(f"{key}: expected a number, got nan")
+        if not math.isfinite(v):  # 1e400 reads as inf: no parameter means infinity
+            raise ConfigError(f"{key}: expected a finite number, got {raw!r}")
         for op, bound in meta.items():
             if op in _OPS and not _OPS[op][0](v, bound):
                 raise ConfigError(f"{key}: expected a number {_OPS[op][1]} {bound:g}, got {raw!r}")

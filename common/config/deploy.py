@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from smana.common.config._schema import Section, param
+from smana.common.config._schema import ConfigError, Section, param
 
 RestartPolicy = Literal["never", "on-failure", "always"]
 
@@ -62,3 +62,12 @@ class DeployConfig(Section, section="deploy"):
     coordinator: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # a fleet's
     # ROS 2 over rmw_zenoh (`smana ros2`); off unless asked: --set deploy.ros2.enabled=true
     ros2: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(enabled=False))
+
+    def validate(self) -> None:
+        from smana.common.keys import check_name
+
+        for robot in self.robots:
+            try:
+                check_name(robot)
+            except ValueError as exc:
+                raise ConfigError(f"deploy.robots: {exc}") from None

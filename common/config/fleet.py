@@ -44,6 +44,14 @@ class FleetConfig(Section, section="fleet"):
     pose_timeout_s: float = param(2.0, gt=0)  # a member's pose older than this is forgotten
 
     def validate(self) -> None:
+        from smana.common.keys import check_name
+
+        for key, names in (("name", [self.name]), ("robots", self.robots)):
+            for name in names:
+                try:
+                    check_name(name, "fleet name" if key == "name" else "robot name")
+                except ValueError as exc:
+                    raise ConfigError(f"fleet.{key}: {exc}") from None
         if self.name in self.robots:
             raise ConfigError(f"fleet.name {self.name!r} must not also be a member's name")
         if len(set(self.robots)) != len(self.robots):

@@ -25,10 +25,10 @@ class GeneralConfig(Section, section="general"):
     pose_slack_m: float = param(1.0, ge=0)
 
     def validate(self) -> None:
-        from smana.common.keys import check_robot
+        from smana.common.keys import check_name
 
         try:
-            check_robot(self.robot)
+            check_name(self.robot)
         except ValueError as exc:
             raise ConfigError(f"general.robot: {exc}") from None
 

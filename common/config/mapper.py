@@ -60,7 +60,8 @@ class TsdfConfig(Section, section="mapper.tsdf"):
 @dataclass
 class MapperConfig(Section, section="mapper"):
     backend: str = "octree-max"  # a registry name or a module:Class spec (see the docstring)
-    resolution_m: float = param(0.1, gt=0)
+    # A MapDelta carries 0.001 .. 100 m (common/messages.py): finer is refused in validate()
+    resolution_m: float = param(0.1, gt=0, le=100.0)
     max_range_m: float = param(10.0, gt=0)
     raycast_range_m: float = param(1.0, ge=0)  # free space carved before a hit; 0 = whole ray
     inputs: list[str] = param(["cloud"])  # "cloud" and/or "scan"
@@ -75,6 +76,8 @@ class MapperConfig(Section, section="mapper"):
     tsdf: TsdfConfig = table(TsdfConfig)
 
     def validate(self) -> None:
+        if self.resolution_m < 1e-3:
+            raise ConfigError(f"mapper.resolution_m: at least 0.001 m, got {self.resolution_m!r}")
         if not self.backend.strip():
             raise ConfigError("mapper.backend: expected a back-end name, got ''")
         for name in self.inputs:

@@ -8,10 +8,12 @@ from dataclasses import dataclass
 
 from smana.common.config._schema import ConfigError, Section, param
 
+MAX_TILES = 1 << 24  # the grid's tile table: 64 MB of int32
+
 
 @dataclass
 class NavgraphConfig(Section, section="navgraph"):
-    resolution_m: float = param(0.2, gt=0)
+    resolution_m: float = param(0.2, gt=0, le=100.0)
     bounds_min_xy: list[float] = param([-50.0, -50.0])
     bounds_max_xy: list[float] = param([50.0, 50.0])
     robot_radius_m: float = param(0.4, ge=0, lt=math.inf)  # sizes the safety-zone stencil
@@ -27,3 +29,16 @@ class NavgraphConfig(Section, section="navgraph"):
                 raise ConfigError(f"navgraph.{name}: expected [x, y], got {getattr(self, name)}")
         if not all(a < b for a, b in zip(self.bounds_min_xy, self.bounds_max_xy, strict=True)):
             raise ConfigError("navgraph.bounds_max_xy: must exceed bounds_min_xy on both axes")
+        # What the grid would be (common/navgrid.py), refused here rather than by a navgraph
+        # that crashes at every restart: nodes per axis, and its table of tiles in memory.
+        from smana.common.navgrid import MAX_NODES_PER_AXIS
+
+        span = [b - a for a, b in zip(self.bounds_min_xy, self.bounds_max_xy, strict=True)]
+        nodes = [math.ceil(s / self.resolution_m) for s in span]
+        tiles = math.prod(-(-n // self.tile_size) for n in nodes)
+        if max(nodes) > MAX_NODES_PER_AXIS or tiles > MAX_TILES:
+            raise ConfigError(
+                f"navgraph.bounds_min_xy / bounds_max_xy / resolution_m: a grid of "
+                f"{nodes[0]:.3g} x {nodes[1]:.3g} nodes (at most {MAX_NODES_PER_AXIS} per axis "
+                f"and {MAX_TILES} tiles of tile_size); narrow the bounds or coarsen the resolution"
+            )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Literal
 
@@ -40,6 +41,10 @@ class Ros2Config(Section, section="ros2"):
     max_range_m: float = param(20.0, gt=0)  # and farther ones
 
     def validate(self) -> None:
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,63}", self.node_name):
+            raise ConfigError(
+                f"ros2.node_name: a ROS 2 node name (letters, digits, '_'), got {self.node_name!r}"
+            )
         for name in ("cloud_topic", "odom_topic", "cmd_vel_topic"):
             topic = getattr(self, name)
             if not topic.startswith("/") or "//" in topic or topic.endswith("/"):

@@ -1,6 +1,13 @@
 """What the ros2 service keeps between messages, without zenoh: a copy of the map from the
 mapper's deltas, recent odometry, the static transforms, and the conversion of a ROS 2 robot's
-PointCloud2 into a smana `SemanticCloud` in the world frame."""
+Odometry into a smana `Pose` and its PointCloud2 into a `SemanticCloud` in the world frame.
+
+A ROS 2 robot's input passes the checks smana's own messages pass (`common/messages.py`'s codec:
+coordinates within 1000 km, stamps up to the year 2286, a unit quaternion; and
+`common/plausibility.py`: a stamp must fit its stream's clock, a pose may not jump further than
+the robot can travel) before it is taken: a refusal is a `Reject` whose kind says why, and
+nothing refused is republished. Every table keyed by something the robot chooses (the static
+transforms, keyed by frame name) has a cap; what would go past it is refused and counted."""
 
 from __future__ import annotations
 
@@ -9,13 +16,46 @@ from collections.abc import Callable
 
 import numpy as np
 
-from smana.common.messages import MapDelta, SemanticCloud, matrix_to_quat
+from smana.common.messages import (
+    STAMP_LIMIT_S,
+    MapDelta,
+    MessageError,
+    Pose,
+    SemanticCloud,
+    decode,
+    encode,
+    matrix_to_quat,
+)
+from smana.common.plausibility import PoseGate, StampGate
 from smana.common.ros import PoseTrack, check_cloud, decode_cloud
 from smana.common.service import Reject
 
 from . import convert
 
 _AXIS_OFFSET = 1 << 20  # voxel indices per axis fit in 21 bits: +-100 km at 0.1 m
+# A robot has tens of static frames; a stream of new names (a bug, or a peer filling memory)
+# stops here. Longer frame names than any ROS graph uses are refused too.
+MAX_STATIC_FRAMES = 1000
+MAX_FRAME_NAME = 256
+
+
+def checked(msg, what: str):
+    """`msg` through smana's codec, as a receiving service would decode it: (the message,
+    its msgpack bytes). A value the codec refuses is a `Reject` of the codec's kind."""
+    payload = encode(msg)
+    try:
+        return decode(payload, type(msg)), payload
+    except MessageError as exc:
+        raise Reject(exc.kind, f"{what}: {exc}") from None
+
+
+def plausible_stamp(gate: StampGate, t_s: float, what: str) -> None:
+    """The codec's stamp range, then the stream's clock (`Reject` `value` or the gate's kind)."""
+    if not 0.0 <= t_s <= STAMP_LIMIT_S:
+        raise Reject("value", f"{what}: stamp {t_s:.6g} s outside [0, {STAMP_LIMIT_S:g}]")
+    when = gate.check(t_s)
+    if not when.ok:
+        raise Reject(when.kind, f"{what}: {when.reason}")
 
 
 class MapCopy:
@@ -88,6 +128,34 @@ class PoseHistory:
         return len(self._poses)
 
 
+class OdometryInput:
+    """A ROS 2 robot's nav_msgs/Odometry -> the smana `Pose` it publishes on `robot/pose`, through
+    the codec's bounds and the gates `general` configures (as the explorer gates smana's own
+    poses): `checked` gives the pose and its bytes, or raises `Reject`."""
+
+    def __init__(self, general):
+        g = general
+        self.stamps = StampGate(g.stamp_window_s, g.max_time_rate)
+        self.places = PoseGate(g.max_speed_mps, g.pose_slack_m)
+        self.seq = 0
+
+    def checked(self, msg) -> tuple[Pose, bytes]:
+        try:
+            pos, quat = convert.pose_of(msg.pose.pose, normalise=False)
+        except ValueError as exc:
+            raise Reject("value", f"odometry: {exc}") from None
+        t = convert.stamp_s(msg.header)
+        # The codec first (1e308 m, a quaternion of norm 1e200), then the stream's history.
+        pose, _ = checked(Pose(t, self.seq + 1, pos, quat, "world"), "odometry")
+        plausible_stamp(self.stamps, t, "odometry")
+        where = self.places.check(t, pos)
+        if not where.ok:
+            raise Reject(where.kind, f"odometry: {where.reason}")
+        self.seq += 1
+        pose.orientation_xyzw = quat / np.linalg.norm(quat)
+        return checked(pose, "odometry")
+
+
 class CloudInput:
     """A ROS 2 robot's PointCloud2 -> SemanticCloud in the world frame.
 
@@ -102,6 +170,13 @@ class CloudInput:
         self.field = None if self.rc.label_field == "none" else self.rc.label_field
         self.poses = PoseHistory()
         self.static: dict[str, tuple[str, np.ndarray]] = {}
+        self.static_refused = 0  # transforms refused: new frames past MAX_STATIC_FRAMES, ...
+        general = getattr(config, "general", None)
+        self.stamps = (
+            StampGate(general.stamp_window_s, general.max_time_rate)
+            if general is not None
+            else StampGate()
+        )
         self.extrinsic = (
             convert.extrinsic_matrix(*self.rc.sensor_extrinsic)
             if self.rc.sensor_extrinsic
@@ -110,14 +185,22 @@ class CloudInput:
         self.seq = 0
 
     def add_static(self, tf_message) -> int:
-        """Static transforms of a tf2_msgs/TFMessage; returns how many were taken."""
+        """Static transforms of a tf2_msgs/TFMessage; returns how many were taken. A transform
+        that is not finite, names a frame longer than MAX_FRAME_NAME, or would add a frame past
+        MAX_STATIC_FRAMES is refused (counted in `static_refused`); a known frame is updated."""
         n = 0
         for t in tf_message.transforms:
+            child, parent = t.child_frame_id.lstrip("/"), t.header.frame_id.lstrip("/")
+            full = child not in self.static and len(self.static) >= MAX_STATIC_FRAMES
+            if full or max(len(child), len(parent)) > MAX_FRAME_NAME:
+                self.static_refused += 1
+                continue
             try:
                 m = convert.transform_matrix(t.transform)
             except ValueError:
+                self.static_refused += 1
                 continue
-            self.static[t.child_frame_id.lstrip("/")] = (t.header.frame_id.lstrip("/"), m)
+            self.static[child] = (parent, m)
             n += 1
         return n
 
@@ -131,6 +214,7 @@ class CloudInput:
                 why += "; to map clouds without labels set ros2.label_field=none"
             raise Reject("value", why)
         t = convert.stamp_s(msg.header)
+        plausible_stamp(self.stamps, t, "cloud")
         frame = msg.header.frame_id.lstrip("/")
         base = self.poses.at(t, self.rc.max_pose_gap_s)
         if base is None:

@@ -217,20 +217,22 @@ def plan_response(types, path_xyz, t_s: float, frame: str = "map"):
 # -- in: ROS -> smana ----------------------------------------------------------------------------
 
 
-def _checked(p, q, what: str) -> tuple[np.ndarray, np.ndarray]:
+def _checked(p, q, what: str, normalise: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """(position [3], unit quaternion xyzw [4]) of ROS Point/Vector3 and Quaternion fields;
-    ValueError if not finite or the quaternion is degenerate."""
+    ValueError if not finite or the quaternion is degenerate (its norm zero, or overflowing).
+    `normalise=False` returns the quaternion as it came, for a caller that checks its norm."""
     pos = np.array([p.x, p.y, p.z], np.float64)
     quat = np.array([q.x, q.y, q.z, q.w], np.float64)
-    norm = float(np.linalg.norm(quat))
-    if not (np.isfinite(pos).all() and np.isfinite(quat).all()) or norm < 1e-6:
-        raise ValueError(f"{what} with non-finite numbers or a zero quaternion")
-    return pos, quat / norm
+    with np.errstate(over="ignore"):
+        norm = float(np.linalg.norm(quat))
+    if not (np.isfinite(pos).all() and np.isfinite(quat).all()) or not 1e-6 <= norm < math.inf:
+        raise ValueError(f"{what} with non-finite numbers or a zero or overflowing quaternion")
+    return pos, quat / norm if normalise else quat
 
 
-def pose_of(msg_pose) -> tuple[np.ndarray, np.ndarray]:
+def pose_of(msg_pose, normalise: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """geometry_msgs/Pose -> (position, unit quaternion xyzw)."""
-    return _checked(msg_pose.position, msg_pose.orientation, "pose")
+    return _checked(msg_pose.position, msg_pose.orientation, "pose", normalise)
 
 
 def matrix(position, quat_xyzw) -> np.ndarray:

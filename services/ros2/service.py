@@ -19,12 +19,23 @@ In, for a real robot (`ros2.robot_input`; by default when smana's simulator is o
 
 Every message in is counted once (`common/service.py`); a ROS message that does not decode as
 its type, a cloud that cannot be placed or read, a plan request without a valid attachment is
-rejected with its reason and the service goes on.
+rejected with its reason and the service goes on. The robot's Odometry and PointCloud2 pass the
+checks smana's own poses and clouds pass (the codec's bounds, the stream's clock, how far the
+robot can travel: `bridge.py`) before anything is republished; /tf_static holds at most
+`bridge.MAX_STATIC_FRAMES` frames.
+
+Nothing on the main loop waits for a query: GetPlan is answered by plan workers (`jobs.py`, each
+request with a deadline of PLAN_TIMEOUT_S from its arrival; past `PLAN_WAITING` waiting requests
+one is refused `queue_full`), and the map and graph snapshots are fetched by a sync worker and
+adopted on the loop when they come (the deltas and patches that arrive meanwhile wait for them).
+So odometry and velocity commands are forwarded while a planner or mapper does not answer.
 """
 
 from __future__ import annotations
 
 import math
+import queue
+import threading
 import time
 
 import msgpack
@@ -48,12 +59,16 @@ from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, Reply, Request, Service, run_service
 
-from . import convert
-from .bridge import CloudInput, MapCopy
+from . import bridge, convert
+from .bridge import CloudInput, MapCopy, OdometryInput, checked
+from .jobs import Jobs
 from .rmw import LATCHED_QOS, SENSOR_QOS, SERVICE, SUBSCRIPTION, QoS, RosNode, RosTypes
 
 RESYNC_PERIOD_S = 1.0
-PLAN_TIMEOUT_S = 5.0  # a GetPlan waits this long for the planner
+SYNC_TIMEOUT_S = 5.0  # a snapshot query waits this long (on the sync worker)
+PLAN_TIMEOUT_S = 5.0  # a GetPlan is answered within this long of its arrival
+PLAN_THREADS, PLAN_WAITING = 2, 8  # plan workers, and requests that may wait for one
+MAX_HELD = 1000  # deltas (patches) kept while their snapshot is being fetched
 CLOUD = "sensor_msgs/msg/PointCloud2"
 ODOM = "nav_msgs/msg/Odometry"
 TF = "tf2_msgs/msg/TFMessage"
@@ -99,6 +114,13 @@ class Ros2Service(Service):
         self._last_pose: Pose | None = None
         self.sent = dict.fromkeys(("map", "costmap", "path", "goal", "odom", "tf", "cmd_vel"), 0)
         self.received = {"clouds": 0, "odometry": 0, "tf_static": 0, "plans": 0}
+        self.odometry_input = OdometryInput(config.general)
+        self.plan_jobs: Jobs | None = None
+        self.sync_jobs: Jobs | None = None
+        self._plan_lock = threading.Lock()  # plan workers share `received["plans"]`
+        self._fetched: queue.SimpleQueue = queue.SimpleQueue()  # (what, snapshot or QueryError)
+        self._syncing: set[str] = set()
+        self._held: dict[str, list] = {"map": [], "graph": []}
 
     def prepare(self) -> None:
         self.startup_step = "loading ROS 2 message types"
@@ -134,8 +156,14 @@ class Ros2Service(Service):
         self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
         self.subscribe(keys.explorer_state(r), self.on_explorer_state)
         self.subscribe(keys.pose(r), self.on_pose, Pose)
-        plan_key, _ = node.endpoint(SERVICE, f"{ns}/plan", "nav_msgs/srv/GetPlan")
-        self.queryable(plan_key, self.on_plan, complete=True)  # ROS 2 clients ask complete ones
+        self.plan_jobs = Jobs("ros2-plan", PLAN_THREADS, PLAN_WAITING)
+        self.sync_jobs = Jobs("ros2-sync", 1, 2)
+        self._plan_key, _ = node.endpoint(SERVICE, f"{ns}/plan", "nav_msgs/srv/GetPlan")
+        # ROS 2 clients ask complete queryables. Not `self.queryable`: its queries are answered
+        # on the main loop, and a plan waits for the planner.
+        self._declared.append(
+            self.session.declare_queryable(self._plan_key, self._on_plan_query, complete=True)
+        )
         if self.robot_input:
             cloud_key, _ = node.endpoint(SUBSCRIPTION, rc.cloud_topic, CLOUD, SENSOR_QOS)
             self.subscribe_latest(cloud_key, self.on_cloud)
@@ -197,6 +225,9 @@ class Ros2Service(Service):
                 self._want_sync["map" if service == "mapper" else "graph"] = True
 
     def on_stop(self) -> None:
+        for jobs in (self.plan_jobs, self.sync_jobs):
+            if jobs is not None:
+                jobs.close()
         if self.node is not None:
             self.node.close()
 
@@ -207,7 +238,16 @@ class Ros2Service(Service):
         self.sent[what] += 1
         self.msgs_out += 1
 
+    def _hold(self, what: str, msg):
+        """Keep a delta (patch) that came while its snapshot is on its way: applied after it."""
+        if len(self._held[what]) >= MAX_HELD:
+            return ("dropped", "sync_backlog")  # the stream has a gap now: a resync follows
+        self._held[what].append(msg)
+        return None
+
     def on_delta(self, delta: MapDelta):
+        if "map" in self._syncing:
+            return self._hold("map", delta)
         action, why = self.deltas_in.check(delta.producer, delta.seq)
         if action == COVERED:
             return ("dropped", "covered")
@@ -219,6 +259,8 @@ class Ros2Service(Service):
             self.note("delta_gap", f"map deltas: {why}")
 
     def on_patch(self, patch: GraphPatch):
+        if "graph" in self._syncing:
+            return self._hold("graph", patch)
         if self.graph.receive(patch) is None:
             return ("dropped", "covered")
 
@@ -257,11 +299,16 @@ class Ros2Service(Service):
 
     def tick(self) -> None:
         now = time.monotonic()
+        self._take_snapshots()
         for what in ("map", "graph"):
             stream = self.deltas_in if what == "map" else self.graph
+            if what in self._syncing:
+                continue
             if (self._want_sync[what] or stream.want_resync) and now >= self._next_sync[what]:
                 self._next_sync[what] = now + RESYNC_PERIOD_S
-                self._want_sync[what] = not self._sync(what)
+                self._syncing.add(what)
+                if not self.sync_jobs.submit(lambda w=what: self._fetch(w)):
+                    self._syncing.discard(what)
         self._publish_latched("map", self.map.version, self._map_message, now)
         self._publish_latched("costmap", self.grid.version, self._costmap_message, now)
 
@@ -287,8 +334,8 @@ class Ros2Service(Service):
     def _costmap_message(self):
         return convert.occupancy_grid(self.types, self.grid, self.classes.cost_lut, self._stamp())
 
-    def _sync(self, what: str) -> bool:
-        """Replace the map copy or the graph copy by its producer's snapshot."""
+    def _fetch(self, what: str) -> None:
+        """The sync worker: ask the map's or the graph's producer for its snapshot."""
         r = self.robot
         key = (
             keys.query(r, "mapper", "snapshot")
@@ -296,10 +343,36 @@ class Ros2Service(Service):
             else keys.query(r, "navgraph", "graph")
         )
         try:
-            reply = request(self.session, key, None, 5.0)
+            reply = request(self.session, key, None, SYNC_TIMEOUT_S)
         except QueryError as exc:
-            self.log.info("no %s snapshot yet (%s)", what, exc.kind)
-            return False
+            reply = exc
+        self._fetched.put((what, reply))
+
+    def _take_snapshots(self) -> None:
+        """The main loop: adopt the snapshots fetched since the last tick, then apply what was
+        held while each was on its way."""
+        while True:
+            try:
+                what, reply = self._fetched.get_nowait()
+            except queue.Empty:
+                return
+            if isinstance(reply, QueryError):
+                self.log.info("no %s snapshot yet (%s)", what, reply.kind)
+                ok = False
+            else:
+                ok = self._sync(what, reply)
+            self._want_sync[what] = not ok
+            self._syncing.discard(what)
+            held, self._held[what] = self._held[what], []
+            apply = self.on_delta if what == "map" else self.on_patch
+            for msg in held:
+                try:
+                    apply(msg)
+                except Reject as exc:
+                    self.note("held_" + exc.kind, f"a {what} update held during the sync: {exc}")
+
+    def _sync(self, what: str, reply) -> bool:
+        """Replace the map copy or the graph copy by its producer's snapshot."""
         if what == "map":
             if not isinstance(reply, MapDelta):
                 self.note("bad_snapshot", "mapper/snapshot did not answer with a MapDelta")
@@ -325,39 +398,83 @@ class Ros2Service(Service):
 
     def on_cloud(self, payload: bytes) -> None:
         cloud = self.cloud_input.convert(self._ros(payload, CLOUD))
+        _, wire = checked(cloud, "cloud")  # what the mapper would refuse is refused here
         self.received["clouds"] += 1
         if cloud.n_dropped_nonfinite:
             self.note("points_dropped", f"{cloud.n_dropped_nonfinite} points not finite")
-        self.scan_pub.put(cloud)
+        self.scan_pub.put(wire)
 
     def on_odometry(self, payload: bytes) -> None:
-        msg = self._ros(payload, ODOM)
-        try:
-            pos, quat = convert.pose_of(msg.pose.pose)
-        except ValueError as exc:
-            raise Reject("value", f"odometry: {exc}") from None
-        t = convert.stamp_s(msg.header)
-        self.cloud_input.poses.add(t, pos, quat)
+        pose, wire = self.odometry_input.checked(self._ros(payload, ODOM))
+        self.cloud_input.poses.add(pose.stamp_s, pose.position, pose.orientation_xyzw)
         self.received["odometry"] += 1
-        self.pose_pub.put(
-            Pose(
-                stamp_s=t,
-                seq=self.received["odometry"],
-                position=pos,
-                orientation_xyzw=quat,
-                frame_id="world",
-            )
-        )
+        self.pose_pub.put(wire)
 
     def on_tf_static(self, payload: bytes) -> None:
+        before = self.cloud_input.static_refused
         self.received["tf_static"] += self.cloud_input.add_static(self._ros(payload, TF))
+        if refused := self.cloud_input.static_refused - before:
+            self.note(
+                "tf_static_refused",
+                f"/tf_static: {refused} transform(s) refused (not finite, a frame name over "
+                f"{bridge.MAX_FRAME_NAME} characters, or past {bridge.MAX_STATIC_FRAMES} frames)",
+                refused,
+            )
 
     def on_cmd_vel(self, cmd: VelocityCommand) -> None:
         self._send("cmd_vel", convert.twist(self.types, cmd.linear_mps, cmd.angular_radps))
 
     # -- the plan service ----------------------------------------------------------------------
 
-    def on_plan(self, req: Request) -> Reply:
+    def _on_plan_query(self, query) -> None:
+        """zenoh's thread: count the request in and hand it to a plan worker; never waits."""
+        with self.books.lock:
+            self.books.received += 1
+            self.books.in_flight += 1
+        deadline = time.monotonic() + PLAN_TIMEOUT_S
+        taken = self.plan_jobs.submit(
+            lambda: self._plan(query, deadline), lambda: self._plan_dropped(query, "stopping")
+        )
+        if not taken:
+            self._plan_dropped(query, "stopping" if self.stopping else "queue_full")
+
+    def _plan_dropped(self, query, why: str) -> None:
+        self.books.settle("dropped", why)
+        self._log_kind(why, f"GetPlan dropped: {why}", self.books.dropped[why])
+        self._reply_err(query, why, f"GetPlan not answered: {why}", False)
+        _finish(query)
+
+    def _plan(self, query, deadline: float) -> None:
+        """A plan worker: answer one GetPlan by its deadline; settle it in the books."""
+        try:
+            self._answer_plan(query, deadline)
+        finally:
+            _finish(query)  # the asker's get ends now, not when the query is collected
+
+    def _answer_plan(self, query, deadline: float) -> None:
+        try:
+            size = len(query.payload) if query.payload is not None else 0
+            if size > self.max_payload_bytes:
+                raise MessageError("oversize", f"{size} bytes > {self.max_payload_bytes}")
+            payload = query.payload.to_bytes() if query.payload is not None else None
+            att = query.attachment.to_bytes() if query.attachment is not None else None
+            reply = self.on_plan(Request(self._plan_key, {}, payload, False, att), deadline)
+        except (Reject, MessageError) as exc:
+            self._rejected(exc.kind, f"GetPlan: {exc}")
+            self._reply_err(query, exc.kind, str(exc), False)
+            return
+        except Exception as exc:  # noqa: BLE001 - a bug: counted, logged, the worker goes on
+            self._internal(exc, "GetPlan")
+            self._reply_err(query, "internal", f"{type(exc).__name__}: {exc}", False)
+            return
+        self.books.settle("accepted")
+        self._send_reply(query, self._plan_key, reply.payload, None, reply.attachment)
+
+    def on_plan(self, req: Request, deadline: float | None = None) -> Reply:
+        """A GetPlan request -> its response, asking smana's planner until `deadline`
+        (monotonic; PLAN_TIMEOUT_S from now by default). Runs on a plan worker."""
+        if deadline is None:
+            deadline = time.monotonic() + PLAN_TIMEOUT_S
         try:
             reply_attachment = self.node.reply_attachment(req.attachment)
         except ValueError as exc:
@@ -368,12 +485,15 @@ class Ros2Service(Service):
             goal, _ = convert.pose_of(msg.goal.pose)
         except ValueError as exc:
             raise Reject("value", f"GetPlan request: {exc}") from None
-        self.received["plans"] += 1
-        ask = PathRequest(
-            request_id=f"ros2-{self.received['plans']}", start=start[:2], goal=goal[:2]
-        )
+        with self._plan_lock:
+            self.received["plans"] += 1
+            n = self.received["plans"]
+        ask = PathRequest(request_id=f"ros2-{n}", start=start[:2], goal=goal[:2])
         try:
-            answer = request(self.session, keys.path_query(self.robot), ask, PLAN_TIMEOUT_S)
+            left = deadline - time.monotonic()
+            if left <= 0.05:
+                raise QueryError("timeout", "the request waited past its deadline")
+            answer = request(self.session, keys.path_query(self.robot), ask, left)
             path = answer.path if isinstance(answer, PathReply) and answer.ok else np.zeros((0, 3))
             if isinstance(answer, PathReply) and not answer.ok:
                 self.log.info("GetPlan: no path (%s: %s)", answer.error, answer.message)
@@ -390,8 +510,17 @@ class Ros2Service(Service):
             "graph_nodes_known": self.grid.n_known(),
             "sent": dict(self.sent),
             "received": dict(self.received),
+            "static_frames": len(self.cloud_input.static) if self.cloud_input else 0,
+            "plans_waiting": self.plan_jobs.waiting() if self.plan_jobs else 0,
             "zid": self.node.zid if self.node is not None else "",
         }
+
+
+def _finish(query) -> None:
+    try:
+        query.drop()
+    except Exception:  # noqa: BLE001 - already finished, or the session is closing
+        pass
 
 
 def main(config: SmanaConfig) -> int:
