@@ -33,6 +33,7 @@ import tempfile
 import time
 import tomllib
 import zipfile
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -154,14 +155,19 @@ def smoke(python: str, constraints: Path | None, up: bool, work: Path) -> None:
 
     listing = run([py, "-c", LIST_COMMANDS], cwd=outside, timeout=120, env=env).stdout
     commands, benches = json.loads(listing)
-    run([smana, "--help"], cwd=outside, timeout=120, env=env)
-    n = 1
-    for argv in [[c] for c in commands] + [["bench", b] for b in benches]:
+
+    def helps(argv: list[str]) -> int:
+        """`smana ARGV --help` and the --help of each of its subcommands: how many ran."""
         text = run([smana, *argv, "--help"], cwd=outside, timeout=300, env=env).stdout
-        n += 1
-        for sub in subcommands(text.split("\n\n")[0]):
+        subs = subcommands(text.split("\n\n")[0])
+        for sub in subs:
             run([smana, *argv, sub, "--help"], cwd=outside, timeout=300, env=env)
-            n += 1
+        return 1 + len(subs)
+
+    # each --help is a Python start and an import: four at once on two cores
+    with ThreadPoolExecutor(4) as pool:
+        argvs = [[]] + [[c] for c in commands] + [["bench", b] for b in benches]
+        n = sum(pool.map(helps, argvs))  # [] is `smana --help` itself
     step(f"--help of {n} commands, benches and subcommands: exit 0")
 
     if not up:
