@@ -8,10 +8,13 @@ All in process (the cores' import in one child process), no stack started.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import inspect
 import io
 import json
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -183,3 +186,41 @@ def test_ros2_enabled_turns_gossip_on_in_the_router(tmp_path, monkeypatch):
     _, zc, _ = router_args(monkeypatch, on)
     assert zc.gossip is True
     assert json.loads(router_config(["tcp/127.0.0.1:7447"], zc).get_json("scouting/gossip/enabled"))
+
+
+def test_set_reaches_nested_tables_and_config_toml_holds_every_key(tmp_path):
+    """The README's `--set explorer.follower.lookahead_m=0.3`; the tutorial's "every key of every
+    section, with its value, is in the run directory's config.toml"."""
+    cfg = SmanaConfig.load(None, ["explorer.follower.lookahead_m=0.3"])
+    assert cfg.explorer.follower.lookahead_m == 0.3
+    sup = Supervisor(cfg, tmp_path / "run", services=[])
+    text = sup.config_path.read_text()
+    written = tomllib.loads(text)
+
+    def paths(obj, prefix=""):
+        for f in dataclasses.fields(obj):
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                yield from paths(value, f"{prefix}{f.name}.")
+            else:
+                yield prefix + f.name
+
+    missing = []
+    for path in paths(cfg):
+        node = written
+        for part in path.split("."):
+            node = node.get(part, KeyError) if isinstance(node, dict) else KeyError
+        if node is KeyError:
+            missing.append(path)
+    assert not missing, missing
+    assert written["explorer"]["follower"]["lookahead_m"] == 0.3
+
+
+def test_smana_up_prints_one_line_of_every_service_every_ten_seconds(tmp_path, capsys):
+    assert inspect.signature(Supervisor.run).parameters["progress_period_s"].default == 10.0
+    sup = supervisor_of("local", tmp_path)
+    sup.print_progress(10.0)
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 1, lines
+    for name in ("sim", "mapper", "navgraph", "planner", "explorer"):
+        assert f"{name}:" in lines[0], lines[0]
