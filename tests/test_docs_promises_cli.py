@@ -12,6 +12,7 @@ import dataclasses
 import inspect
 import io
 import json
+import re
 import subprocess
 import sys
 import tomllib
@@ -223,4 +224,46 @@ def test_smana_up_prints_one_line_of_every_service_every_ten_seconds(tmp_path, c
     lines = capsys.readouterr().out.splitlines()
     assert len(lines) == 1, lines
     for name in ("sim", "mapper", "navgraph", "planner", "explorer"):
-        assert f"{name}:" in lines[0], lines[0]
+        assert f"{name}:down" in lines[0], lines[0]  # its state: nothing was started
+
+
+def test_a_profile_is_a_layer_under_config_and_set_and_the_help_names_each(tmp_path):
+    """docs/deployment.md: `--profile NAME` (a TOML layer under deploy/profiles/, or any TOML
+    file) with `--config` and `--set` on top of it; `smana up --help` names every bundled one."""
+    from smana.deploy.supervisor import profile_path
+
+    bundled = sorted(p.stem for p in PROFILES.glob("*.toml"))
+    assert {"local", "robot", "base", "multi-robot", "fleet", "fleet-robot"} <= set(bundled)
+    _, text = help_of("up")
+    profile_help = " ".join(text.split("--profile PROFILE")[-1].split("--only")[0].split())
+    for name in bundled:
+        assert re.search(rf"(?<![\w-]){re.escape(name)}(?![\w-])", profile_help), name
+    mine = tmp_path / "my.toml"
+    mine.write_text('[deploy]\nrouter_connect = ["tcp/10.0.0.2:7447"]\n')
+    assert profile_path(str(mine)) == mine
+    robot = profile_path("robot")
+    assert SmanaConfig.load(None, [], layers=[robot]).deploy.router_connect[0].startswith("tls/")
+    on_top = tmp_path / "on_top.toml"
+    on_top.write_text(
+        '[deploy]\nrouter_connect = ["tls/10.0.0.9:7448"]\n[mapper]\nresolution_m = 0.2\n'
+    )
+    cfg = SmanaConfig.load(on_top, ["mapper.resolution_m=0.3"], layers=[robot])
+    assert cfg.deploy.router_connect == ["tls/10.0.0.9:7448"]  # --config over the profile
+    assert cfg.mapper.resolution_m == 0.3  # --set over --config
+    assert not cfg.deploy.navgraph.enabled  # what neither changed stays the profile's
+
+
+def test_a_duration_in_a_help_text_says_it_was_measured_once():
+    """A time in `--help` is a measurement on one machine, not a promise: each help text that
+    gives one says so ("measured once"); the figures are in docs/benchmarks.md."""
+    helps = [(name,) for name in COMMANDS] + [("bench", b) for b in BENCHES]
+    helps += [("experiment", e) for e in ("noise", "exploration", "ablation", "routes", "fleet")]
+    timed = 0
+    for argv in helps:
+        _, text = help_of(*argv)
+        flat = " ".join(text.split())
+        for said in re.finditer(r"about (a|[\d.]+) (s|min|minutes?)\b", flat):
+            window = flat[max(0, said.start() - 400) : said.start()]
+            assert "measured once" in window, (argv, flat[said.start() - 120 : said.end()])
+            timed += 1
+    assert timed >= 15
