@@ -558,7 +558,9 @@ def add_parser(sub) -> None:
         "progress bar with an ETA shows on a terminal (SMANA_PROGRESS=1 forces it, 0 hides "
         "it). Exits 1 if any run failed.",
     )
-    e.add_argument("--quick", action="store_true", help="1 seed, 1 and 2 robots, 12 m (2 min)")
+    e.add_argument(
+        "--quick", action="store_true", help="1 seed, 1 and 2 robots, 12 m (measured once: 2 min)"
+    )
     e.add_argument(
         "--out", type=Path, help="output directory (default runs/experiment-fleet-<time>)"
     )
