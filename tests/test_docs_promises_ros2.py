@@ -1,14 +1,22 @@
-"""docs/ros2.md: "The mapper reads the clouds only when the input is in `mapper.inputs` ... the
-ros2 service warns at start when it is missing." Two ros2 services with a robot's input (smana's
-simulator off, so `ros2.robot_input = "auto"` is on) as processes on an isolated zenoh, their
-logs read once they are live. (The fake zenoh has no zenoh-ext publishers, which they use.)"""
+"""docs/ros2.md's sentences no other test held:
+
+- "The mapper reads the clouds only when the input is in `mapper.inputs` ... the ros2 service
+  warns at start when it is missing": two ros2 services with a robot's input as processes on an
+  isolated zenoh, their logs read once they are live (the fake zenoh has no zenoh-ext
+  publishers, which they use);
+- `ros2.robot_input` "auto" is on exactly when smana's simulator is off;
+- the map and the costmap go out "at most every `ros2.map_period_s` (1 s) when the map changed":
+  the service's publishing rule, in process, with a recording `_send`.
+"""
 
 from __future__ import annotations
 
 import pytest
 
 pytest.importorskip("rosbags")
-pytestmark = pytest.mark.multiprocess
+
+from smana.common.config import SmanaConfig  # noqa: E402
+from smana.services.ros2.service import Ros2Service, robot_input_on  # noqa: E402
 
 WARNING = "nothing will be mapped; set --set 'mapper.inputs=[\"scan\"]'"
 
@@ -21,6 +29,7 @@ def ros2(stack, log_name: str, robot: str, inputs: str):
     )
 
 
+@pytest.mark.multiprocess
 def test_the_ros2_service_warns_when_the_mapper_does_not_read_its_clouds(zenoh_stack):
     warned = ros2(zenoh_stack, "ros2-clouds", "rc", '["cloud"]')
     quiet = ros2(zenoh_stack, "ros2-scans", "rs", '["scan"]')
@@ -28,3 +37,31 @@ def test_the_ros2_service_warns_when_the_mapper_does_not_read_its_clouds(zenoh_s
     zenoh_stack.wait_alive("ros2", robot="rs")
     assert WARNING in zenoh_stack.log(warned), zenoh_stack.log(warned)
     assert "mapper.inputs" not in zenoh_stack.log(quiet), zenoh_stack.log(quiet)
+
+
+def test_robot_input_auto_is_on_when_smanas_simulator_is_off():
+    assert not robot_input_on(SmanaConfig.load())
+    assert robot_input_on(SmanaConfig.load(None, ["deploy.sim.enabled=false"]))
+    assert robot_input_on(SmanaConfig.load(None, ["ros2.robot_input=on"]))
+    assert not robot_input_on(
+        SmanaConfig.load(None, ["deploy.sim.enabled=false", "ros2.robot_input=off"])
+    )
+
+
+@pytest.mark.parametrize("what", ["map", "costmap"])
+def test_the_map_and_costmap_go_out_when_changed_at_most_once_a_period(what):
+    svc = Ros2Service(SmanaConfig.load())
+    assert getattr(svc.config.ros2, f"{what}_period_s") == 1.0
+    sent = []
+    svc._send = lambda topic, msg: sent.append(msg)
+
+    def publish(version, now):
+        svc._publish_latched(what, version, lambda: f"v{version}@{now}", now)
+
+    publish(1, 100.0)  # the first version goes out at once
+    publish(2, 100.5)  # changed, but within the period: held back
+    publish(2, 100.99)
+    publish(2, 101.0)  # the period is over: the newest version
+    publish(2, 103.0)  # unchanged: nothing
+    publish(3, 103.2)
+    assert sent == ["v1@100.0", "v2@101.0", "v3@103.2"]
