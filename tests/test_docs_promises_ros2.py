@@ -15,7 +15,9 @@ import pytest
 
 pytest.importorskip("rosbags")
 
+from smana.common import keys  # noqa: E402
 from smana.common.config import SmanaConfig  # noqa: E402
+from smana.common.query import request  # noqa: E402
 from smana.services.ros2.service import Ros2Service, robot_input_on  # noqa: E402
 
 WARNING = "nothing will be mapped; set --set 'mapper.inputs=[\"scan\"]'"
@@ -37,6 +39,13 @@ def test_the_ros2_service_warns_when_the_mapper_does_not_read_its_clouds(zenoh_s
     zenoh_stack.wait_alive("ros2", robot="rs")
     assert WARNING in zenoh_stack.log(warned), zenoh_stack.log(warned)
     assert "mapper.inputs" not in zenoh_stack.log(quiet), zenoh_stack.log(quiet)
+    # "Its status details give the numbers sent and received per topic, the map's voxels and
+    # the graph's known nodes."
+    st = request(zenoh_stack.session, keys.status("rc", "ros2"), timeout_s=5)
+    d = st.details
+    assert d["robot_input"] is True and d["map_voxels"] == 0 and d["graph_nodes_known"] == 0, d
+    assert {"map", "costmap", "path", "goal", "odom", "cmd_vel"} <= set(d["sent"]), d
+    assert {"clouds", "odometry", "tf_static", "plans"} <= set(d["received"]), d
 
 
 def test_robot_input_auto_is_on_when_smanas_simulator_is_off():
