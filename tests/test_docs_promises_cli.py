@@ -267,3 +267,13 @@ def test_a_duration_in_a_help_text_says_it_was_measured_once():
             assert "measured once" in window, (argv, flat[said.start() - 120 : said.end()])
             timed += 1
     assert timed >= 15
+
+
+def test_world_info_gives_bounds_objects_and_free_space(capsys):
+    """The README: `smana world info  # the default world: bounds, objects, free space, as JSON`."""
+    from smana.services.sim.world_cli import cli
+
+    assert cli(["info"]) in (0, None)
+    info = json.loads(capsys.readouterr().out)
+    assert len(info["bounds"]) == 4 and sum(info["objects"].values()) > 0, info
+    assert 0 < info["free_fraction"] < 1, info
