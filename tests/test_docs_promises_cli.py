@@ -277,3 +277,5 @@ def test_world_info_gives_bounds_objects_and_free_space(capsys):
     info = json.loads(capsys.readouterr().out)
     assert len(info["bounds"]) == 4 and sum(info["objects"].values()) > 0, info
     assert 0 < info["free_fraction"] < 1, info
+    # "First steps, in the default world (a 12 m garden, seed 3; ...)"
+    assert info["name"] == "garden-3" and info["bounds"] == [-6.0, -6.0, 6.0, 6.0], info
