@@ -6,10 +6,13 @@
   publishers, which they use);
 - `ros2.robot_input` "auto" is on exactly when smana's simulator is off;
 - the map and the costmap go out "at most every `ros2.map_period_s` (1 s) when the map changed":
-  the service's publishing rule, in process, with a recording `_send`.
+  the service's publishing rule, in process, with a recording `_send`;
+- odometry "with a twist from consecutive poses", in process the same way.
 """
 
 from __future__ import annotations
+
+import math
 
 import pytest
 
@@ -74,3 +77,26 @@ def test_the_map_and_costmap_go_out_when_changed_at_most_once_a_period(what):
     publish(2, 103.0)  # unchanged: nothing
     publish(3, 103.2)
     assert sent == ["v1@100.0", "v2@101.0", "v3@103.2"]
+
+
+def test_odometry_carries_a_twist_from_consecutive_poses():
+    """docs/ros2.md: `/smana/R/odom` is "the pose smana uses (`robot/pose`), with a twist from
+    consecutive poses" (forward speed in the body frame, yaw rate)."""
+    from smana.common.messages import Pose
+    from smana.services.ros2.rmw import RosTypes
+
+    svc = Ros2Service(SmanaConfig.load())
+    svc.types, svc.pubs = RosTypes(), {}  # what setup() makes; no /tf here
+    sent = []
+    svc._send = lambda topic, msg: sent.append((topic, msg))
+    svc.on_pose(Pose.from_xyz_yaw(1.0, 2.0, 0.0, 1.0, stamp_s=10.0))
+    # 0.1 s later: 0.1 m ahead along the heading of 1.05 rad, turned by 0.05 rad
+    svc.on_pose(
+        Pose.from_xyz_yaw(1.0 + 0.1 * math.cos(1.05), 2.0 + 0.1 * math.sin(1.05), 0.0, 1.05, 10.1)
+    )
+    odom = [m for topic, m in sent if topic == "odom"]
+    assert len(odom) == 2
+    assert odom[0].twist.twist.linear.x == 0.0 and odom[0].twist.twist.angular.z == 0.0
+    assert odom[1].twist.twist.linear.x == pytest.approx(1.0)
+    assert odom[1].twist.twist.angular.z == pytest.approx(0.5)
+    assert odom[1].pose.pose.position.x == pytest.approx(1.0 + 0.1 * math.cos(1.05))
