@@ -4,6 +4,8 @@
   warns at start when it is missing": two ros2 services with a robot's input as processes on an
   isolated zenoh, their logs read once they are live (the fake zenoh has no zenoh-ext
   publishers, which they use);
+- with a robot's input, its status details and that it leaves `/tf` to the robot (no `/tf`
+  publisher among its liveliness tokens);
 - `ros2.robot_input` "auto" is on exactly when smana's simulator is off;
 - the map and the costmap go out "at most every `ros2.map_period_s` (1 s) when the map changed":
   the service's publishing rule, in process, with a recording `_send`;
@@ -49,6 +51,16 @@ def test_the_ros2_service_warns_when_the_mapper_does_not_read_its_clouds(zenoh_s
     assert d["robot_input"] is True and d["map_voxels"] == 0 and d["graph_nodes_known"] == 0, d
     assert {"map", "costmap", "path", "goal", "odom", "cmd_vel"} <= set(d["sent"]), d
     assert {"clouds", "odometry", "tf_static", "plans"} <= set(d["received"]), d
+    # "With a real robot it leaves `/tf` to the robot": its node announces a map publisher and
+    # a /tf_static subscription (rmw_zenoh's liveliness tokens), and no /tf publisher.
+    tokens = [
+        str(r.ok.key_expr)
+        for r in zenoh_stack.session.liveliness().get("@ros2_lv/**", timeout=5)
+        if r.ok is not None and "/%smana%rc/" in str(r.ok.key_expr)
+    ]
+    assert any("/MP/" in k and "/%smana%rc%map/" in k for k in tokens), tokens
+    assert any("/MS/" in k and "/%tf_static/" in k for k in tokens), tokens
+    assert not any("/MP/" in k and "/%tf/" in k for k in tokens), tokens
 
 
 def test_robot_input_auto_is_on_when_smanas_simulator_is_off():
