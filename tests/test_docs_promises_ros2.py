@@ -37,7 +37,7 @@ def ros2(stack, log_name: str, robot: str, inputs: str):
 
 
 @pytest.mark.multiprocess
-def test_the_ros2_service_warns_when_the_mapper_does_not_read_its_clouds(zenoh_stack):
+def test_with_a_robots_input_ros2_warns_keeps_its_books_and_leaves_tf(zenoh_stack):
     warned = ros2(zenoh_stack, "ros2-clouds", "rc", '["cloud"]')
     quiet = ros2(zenoh_stack, "ros2-scans", "rs", '["scan"]')
     zenoh_stack.wait_alive("ros2", robot="rc")
