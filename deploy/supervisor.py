@@ -762,8 +762,8 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--profile",
         default="local",
-        help="deployment profile: local (default), robot, base, multi-robot, or a "
-        "TOML file; --config and --set apply on top of it",
+        help="deployment profile: local (default), robot, base, multi-robot, fleet, "
+        "fleet-robot, or a TOML file; --config and --set apply on top of it",
     )
     p.add_argument("--only", metavar="A,B", help="start only these services, e.g. mapper,planner")
     p.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")

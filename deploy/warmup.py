@@ -97,7 +97,8 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana warmup",
         description=__doc__.strip().splitlines()[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Duration on a 2-core machine: about a minute on an empty cache, 3 s on a full one.",
+        epilog="Duration measured once on a 2-core machine: about a minute on an empty cache, 3 "
+        "s on a full one.",
     )
     add_config_args(p)
     p.add_argument(

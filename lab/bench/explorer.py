@@ -143,7 +143,7 @@ def cli(argv: list[str] | None = None) -> int:
     p = ArgumentParser(
         prog="smana bench explorer",
         description=__doc__.splitlines()[0],
-        epilog="Duration on a 2-core machine: about 5 s.",
+        epilog="Duration measured once on a 2-core machine: about 5 s.",
     )
     p.add_argument("--repeats", type=positive_int, default=5)
     p.add_argument("--view-range", type=positive_float, default=4.0)

@@ -1293,7 +1293,8 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench fuzz",
         description=__doc__.split("\n\n")[0],
         epilog=(
-            "Duration on a 2-core machine: about 1.5 minutes for the default 10,000 inputs (a"
+            "Duration measured once on a 2-core machine: about 1.5 minutes for the default "
+            "10,000 inputs (a"
             " stack without the sim; docs/benchmarks.md); --inputs 300 takes 10 to 20 s."
         ),
     )

@@ -547,7 +547,8 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench mapper",
         description=__doc__.splitlines()[0],
         epilog=(
-            "Duration on a 2-core machine: about 10 minutes by default (20 scans x 3 repeats "
+            "Duration measured once on a 2-core machine: about 10 minutes by default (20 scans x "
+            "3 repeats "
             "per configuration, both scenes, OctoMap and Open3D included); --quick about 10 s. "
             "Exit status 1 when a configuration failed or octree-max disagrees with OctoMap on "
             "more than 1 % of the voxels. A progress bar with an ETA shows on a terminal "

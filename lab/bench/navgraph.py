@@ -215,7 +215,8 @@ def cli(argv: list[str] | None = None) -> int:
     p = ArgumentParser(
         prog="smana bench navgraph",
         description=__doc__.split("\n")[0],
-        epilog="Duration on a 2-core machine: about 20 s by default; --quick about 2 s.",
+        epilog="Duration measured once on a 2-core machine: about 20 s by default; --quick about "
+        "2 s.",
     )
     p.add_argument("--quick", action="store_true", help="test-sized run (16 x 512 rays, 3 runs)")
     p.add_argument("--runs", type=positive_int, help="runs per case (median reported)")

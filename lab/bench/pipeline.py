@@ -482,7 +482,8 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench pipeline",
         description=__doc__.splitlines()[0],
         epilog=(
-            "Duration on a 2-core machine: 1 to 3 minutes by default (the 100-scan sequence "
+            "Duration measured once on a 2-core machine: 1 to 3 minutes by default (the 100-scan "
+            "sequence "
             "is written once and reused, four services start, 10 s of replay); --quick, the "
             "test suite's (20 scans of 8,192 points), about 30 s, mostly the services starting. "
             "Output: the tables on stdout and in <out>/pipeline_bench.md, the per-scan figures "

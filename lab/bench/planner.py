@@ -347,7 +347,8 @@ def cli(argv: list[str] | None = None) -> int:
     p = ArgumentParser(
         prog="smana bench planner",
         description=__doc__.split("\n")[0],
-        epilog="Duration on a 2-core machine: about 60 s by default; --quick a few seconds.",
+        epilog="Duration measured once on a 2-core machine: about 60 s by default; --quick a few "
+        "seconds.",
     )
     p.add_argument("--quick", action="store_true", help="test-sized run (small graphs, few runs)")
     # below 4 x 4 nodes there are no two free nodes far enough apart to query

@@ -645,7 +645,8 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench replay",
         description=__doc__.splitlines()[0],
         epilog=(
-            "Duration on a 2-core machine: about 5 minutes by default (a synthetic 100-scan "
+            "Duration measured once on a 2-core machine: about 5 minutes by default (a synthetic "
+            "100-scan "
             "OS1-64 sequence, 3 back-ends x 3 resolutions x 3 repeats, then the realtime "
             "check: 28 runs of about 11 s); on a real dataset, 28 runs of about 10 s plus its "
             "scans at the mapper's pace (--scans 0: all of them). A progress bar with an ETA "

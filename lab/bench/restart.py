@@ -176,7 +176,8 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench restart",
         description=__doc__.strip().splitlines()[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Duration on a 2-core machine: about 5 minutes by default (5 kills per service,\n"
+        epilog="Duration measured once on a 2-core machine: about 5 minutes by default (5 kills "
+        "per service,\n"
         "standby and respawn). A progress bar with an ETA shows on a terminal\n"
         "(SMANA_PROGRESS=1 forces it, 0 hides it).",
     )

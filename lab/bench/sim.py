@@ -372,7 +372,8 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench sim",
         description=__doc__.splitlines()[0],
         epilog=(
-            "Duration on a 2-core machine: about 1 minute with --quick, about 2 minutes by "
+            "Duration measured once on a 2-core machine: about 1 minute with --quick, about 2 "
+            "minutes by "
             "default (TinyRenderer frames and LiDAR scans dominate)."
         ),
     )

@@ -224,7 +224,8 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench startup",
         description=__doc__.strip().splitlines()[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Duration on a 2-core machine: about 3 minutes by default (two sides, each a cold\n"
+        epilog="Duration measured once on a 2-core machine: about 3 minutes by default (two "
+        "sides, each a cold\n"
         "start of the whole stack); --quick (one service) well under a minute.",
     )
     p.add_argument(

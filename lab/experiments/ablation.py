@@ -103,9 +103,11 @@ def add_parser(sub) -> None:
 
     e = sub.add_parser(
         "ablation",
-        help="NBV terrain share, distance, coverage vs path-cost weight (about 10 min)",
+        help="NBV terrain share, distance, coverage vs path-cost weight "
+        "(measured once: about 10 min)",
         description="NBV at one grass cost factor for several explorer.path_cost_weight values.",
-        epilog="Duration on a 2-core machine: about 10 minutes with the defaults (3 weights x 3 "
+        epilog="Duration measured once on a 2-core machine: about 10 minutes with the defaults "
+        "(3 weights x 3 "
         "seeds = 9 runs, 2 at once: measured 9 min 28 s); --quick about 2.5 minutes (2 weights "
         "x 2 seeds of 20 s). Exits 1 if any run failed.",
     )

@@ -684,16 +684,20 @@ def add_parser(sub) -> None:
     """The `exploration` subcommand of `smana experiment`."""
     e = sub.add_parser(
         "exploration",
-        help="terrain share vs grass cost, NBV vs nearest frontier (about 20 min; --quick 3 min)",
+        help="terrain share vs grass cost, NBV vs nearest frontier "
+        "(measured once: about 20 min; --quick 3 min)",
         description="Paper 4.3: one `smana up` per arm (NBV at grass x1, x2, x4; nearest "
         "frontier at x2) and seed; terrain share of travelled nodes, coverage curves, verdicts.",
-        epilog="Duration on a 2-core machine: about 20 minutes (4 arms x 5 seeds = 20 runs of "
+        epilog="Duration measured once on a 2-core machine: about 20 minutes (4 arms x 5 seeds = "
+        "20 runs of "
         "smana up, 2 at once, about 2 min each in the cluttered 12 m garden: measured 19 min "
         "50 s; --seeds 8 about 32 min); --quick about 3 minutes (3 arms x 2 seeds of 20 s in "
         "a 6 m garden). A progress bar with an ETA shows on a terminal "
         "(SMANA_PROGRESS=1 forces it, 0 hides it). Exits 1 if any run failed.",
     )
-    add_common_args(e, quick_help="3 arms x 2 seeds of 20 s in a 6 m garden (about 3 min)")
+    add_common_args(
+        e, quick_help="3 arms x 2 seeds of 20 s in a 6 m garden (measured once: about 3 min)"
+    )
     e.add_argument(
         "--arms",
         help="comma-separated subset of the arms, e.g. nbv_x2,nearest_frontier_x2 "

@@ -546,18 +546,21 @@ def add_parser(sub) -> None:
 
     e = sub.add_parser(
         "fleet",
-        help="1, 2 and 3 robots exploring the 12 m and 22 m gardens (about 80 min; --quick 2 min)",
+        help="1, 2 and 3 robots exploring the 12 m and 22 m gardens "
+        "(measured once: about 80 min; --quick 2 min)",
         description="One `smana up --robots N` per world (12 m and 22 m garden), N (1, 2, 3) and "
         "seed: time and total distance to 95 % coverage, overlap, merged map's accuracy, "
         "robot-robot contacts; verdicts on the speed-up in the larger world.",
-        epilog="Duration on a 2-core machine, one run at a time (measured on 2026-11-27): 3 "
+        epilog="Duration measured once on a 2-core machine, one run at a time (2026-11-27): 3 "
         "seeds x 2 worlds x 3 fleet sizes = 18 runs; the 22 m garden's 5 to 9 min each (59 min "
         "in all), the 12 m garden's 1 to 3 min each (18 min): about 80 minutes (--seeds 5 about "
         "2 h 10 min). --quick 2 minutes (the 12 m garden, 1 and 2 robots, 1 seed of 40 s). A "
         "progress bar with an ETA shows on a terminal (SMANA_PROGRESS=1 forces it, 0 hides "
         "it). Exits 1 if any run failed.",
     )
-    e.add_argument("--quick", action="store_true", help="1 seed, 1 and 2 robots, 12 m (2 min)")
+    e.add_argument(
+        "--quick", action="store_true", help="1 seed, 1 and 2 robots, 12 m (measured once: 2 min)"
+    )
     e.add_argument(
         "--out", type=Path, help="output directory (default runs/experiment-fleet-<time>)"
     )

@@ -828,7 +828,9 @@ def _iv(d: dict) -> dict:
 # -- command line --------------------------------------------------------------------------------
 
 # measured: one full seed 235 s of CPU, a quick seed 3 s (plus about 10 s to start a worker)
-DURATION_HELP = "full run about 8 min with 2 jobs on a 2-core machine; --quick about 30 s"
+DURATION_HELP = (
+    "measured once on a 2-core machine: full run about 8 min with 2 jobs; --quick about 30 s"
+)
 
 
 def add_parser(sub) -> None:
@@ -852,7 +854,8 @@ def add_parser(sub) -> None:
     n.add_argument(
         "--quick",
         action="store_true",
-        help="2 seeds, 2 noise levels, a 5 m trajectory, 160 px, 10 cm voxels (about 30 s)",
+        help="2 seeds, 2 noise levels, a 5 m trajectory, 160 px, 10 cm voxels "
+        "(measured once: about 30 s)",
     )
     n.add_argument(
         "--out", type=Path, help="output directory (default runs/experiment-noise-<time>)"

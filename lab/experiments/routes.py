@@ -111,10 +111,11 @@ def add_parser(sub) -> None:
     r = sub.add_parser(
         "routes",
         help="terrain share of the cheapest routes between random places, per grass cost "
-        "(no exploration; about 5 s)",
+        "(no exploration; measured once: about 5 s)",
         description="The terrain share of the cheapest routes between random places of the "
         "garden at each grass cost, without exploring: what the layout alone decides.",
-        epilog="Duration: about 1 s per seed on a 2-core machine (5 seeds x 3 factors: 4.5 s). "
+        epilog="Duration measured once on a 2-core machine: about 1 s per seed (5 seeds x 3 "
+        "factors: 4.5 s). "
         "The worlds are the exploration experiment's (same seeds, size and layout).",
     )
     r.add_argument(

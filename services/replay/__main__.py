@@ -37,7 +37,8 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = make_parser("smana replay", __doc__.strip().splitlines()[0])
     p.epilog = (
-        "Duration on a 2-core machine: --info takes seconds. --run spends about 10 s starting "
+        "Duration measured once on a 2-core machine: --info takes seconds. --run spends about 10 "
+        "s starting "
         "the stack, then goes at the mapper's pace in lockstep (30 synthetic 32 x 1024 scans: 5 "
         "s), at the recorded rate times "
         "--rate with --realtime; the report at the end takes a few seconds more. A progress bar "
