@@ -101,6 +101,8 @@ ALL_MESSAGES = [
     "liveliness_query",
 ]
 
+RELAY_MESSAGES = [m for m in ALL_MESSAGES if m != "query"]
+
 
 def user(robot: str, role: str) -> str:
     """A robot's (or the fleet's) identity: `r2.mapper`."""
@@ -202,7 +204,8 @@ def acl_policy(
                 [f"smana/{r}/robot/{t}" for t in SENSOR_TOPICS],
             ),
             _rule(f"cmd_vel-{r}", ["ingress"], ["put"], [f"smana/{r}/robot/cmd_vel"]),
-            _rule(f"relay-{r}", ["ingress"], ALL_MESSAGES, [f"smana/{r}/**"]),
+            # All but queries: those a robot's router passes on are read-only or its claim.
+            _rule(f"relay-{r}", ["ingress"], RELAY_MESSAGES, [f"smana/{r}/**"]),
         ]
         if fleet:
             rules.append(_rule(f"claim-{r}", ["ingress"], ["query"], [claim_key(fleet, r)]))
