@@ -543,3 +543,63 @@ def test_no_session_without_a_known_password(router, tmp_path):
         conf.insert_json5("transport/auth/usrpwd", "{}")  # no login at all
         with pytest.raises(zenoh.ZError):
             zenoh.open(conf)
+
+
+def test_as_tool_no_selector_makes_the_mapper_write_a_file(router, tmp_path):
+    """Issue 25's probe, end to end: a mapper logged in as its robot's identity, asked to save by
+    every selector shape. As `tool` nothing reaches it (the policy); as the base's router every
+    shape does, and the mapper itself saves only for the exact key (its own check)."""
+    import zenoh
+
+    from smana.common import keys
+    from smana.common.query import request
+    from tests.conftest import kernels_ready, stop_group
+
+    robot = Who("mapper", "robot", "tcp").robot
+    log = open(tmp_path / "mapper.log", "ab")  # noqa: SIM115 - the child owns it
+    maps = tmp_path / "maps"
+    argv = [
+        *("-m", "smana.services.mapper", "--robot", robot, "--save", str(maps / "map.npz")),
+        *("--mode", "client", "--connect", router.endpoints["tcp"], "--no-multicast-scouting"),
+        *("--set", f'zenoh.user="{robot}.mapper"', "--set", "mapper.autosave_period_s=0"),
+        *("--set", f"zenoh.credentials_file={str(router.dictionary)!r}".replace("'", '"')),
+    ]
+    proc = subprocess.Popen(
+        [sys.executable, *argv],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        start_new_session=True,
+        preexec_fn=die_with_parent,
+    )
+    log.close()
+    tool = zenoh.open(router.config(Who("tool", "base", "tcp")))
+    relay = zenoh.open(router.config(Who("router", "base", "tcp")))
+    save = keys.query(robot, "mapper", "save")
+    try:
+        ready = wait_for(
+            lambda: (
+                bool(list(tool.liveliness().get(keys.alive(robot, "mapper"), timeout=2.0)))
+                and kernels_ready(tool, robot, "mapper")
+            ),
+            300.0,
+            0.5,
+        )
+        assert ready, (tmp_path / "mapper.log").read_text()[-3000:]
+        for session in (tool, relay):
+            for shape in SHAPES:
+                session.get(selector(shape, save), payload=b"", timeout=60.0)  # not waited for
+            # The positive control: this session's later query is answered, and the mapper
+            # answers queries in the order they come.
+            request(session, keys.query(robot, "mapper", "stats"), timeout_s=60.0)
+            if session is tool:
+                assert not maps.exists() or not list(maps.iterdir())
+                st = request(tool, keys.status(robot, "mapper"), timeout_s=60.0)
+                assert "selector" not in st.rejected  # nothing reached it
+        assert [p.name for p in maps.iterdir()] == ["map.npz"]  # the exact key's save alone
+        st = request(tool, keys.status(robot, "mapper"), timeout_s=60.0)
+        assert st.rejected.get("selector") == len(SHAPES) - 1, st.rejected
+    finally:
+        tool.close()
+        relay.close()
+        stop_group(proc)
