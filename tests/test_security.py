@@ -150,6 +150,11 @@ def test_init_certs_misuse_is_one_line_and_status_2(tmp_path, args, words):
     assert lines[0].startswith("smana deploy") and all(w in lines[0] for w in words), lines[0]
 
 
+def test_deploy_acl_prints_the_bases_policy(tmp_path):
+    r = deploy("acl", "--robots", "r1,r2", cwd=tmp_path)
+    assert r.returncode == 0 and json.loads(r.stdout) == acl_policy(ROBOTS)
+
+
 def test_init_certs_refuses_to_overwrite_a_set(tmp_path):
     assert deploy("init-certs", "--out", "c", cwd=tmp_path).returncode == 0
     r = deploy("init-certs", "--out", "c", cwd=tmp_path)
@@ -194,6 +199,7 @@ def test_no_rule_but_a_routers_grants_a_wildcard_query_that_could_reach_a_write(
     """The static half of the selector matrix in test_acl_table.py: every query rule's key either
     names a query that only reads or is one exact key; only a router's relays `**`."""
     policy = acl_policy(ROBOTS)
+    assert {rule["permission"] for rule in policy["rules"]} == {"allow"}  # no deny to get past
     for rule in policy["rules"]:
         if "query" not in rule["messages"] or "ingress" not in rule["flows"]:
             continue
