@@ -169,6 +169,13 @@ class Who:
             out[f"claim@{robot}"] = (f"smana/{FLEET}/coordinator/claim/{robot}", may_claim)
         return out
 
+    def may_put(self, key: str) -> bool:
+        """A put on a wildcard `key`: the base's router relays it, a robot's router within its
+        own robot; nobody else has a rule whose key includes one of PUT_SHAPES."""
+        if not self.named or self.role != "router":
+            return False
+        return self.scope == "base" or key.startswith(f"smana/{self.robot}/")
+
     def reaches(self, key: str, shape: str, may: bool) -> bool:
         if self.named and self.role == "router" and self.scope == "base":
             return True  # the base's router relays everything
@@ -187,6 +194,10 @@ def selector(shape: str, key: str) -> str:
         after_robot="/".join(parts[2:]),
     )
 
+
+# Puts with a wildcard key, which zenoh delivers to every subscriber whose key intersects it
+# (`smana/*/robot/cmd_vel` would reach every robot's base): none but a router's passes.
+PUT_SHAPES = ("smana/{robot}/robot/*", "smana/{robot}/**", "smana/*/robot/cmd_vel", "smana/**")
 
 SESSIONS = [Who(r, "robot", link) for r in ROBOT_ROLES for link in LINKS] + [
     Who(r, "base", link) for r in BASE_ROLES for link in LINKS
@@ -294,6 +305,7 @@ class Observer:
         self.deletes: set[tuple[str, str]] = set()
         self.after_puts: set[str] = set()  # robots whose end-of-puts query arrived
         self.writes: set[str] = set()  # payloads of the queries that reached a key that writes
+        self.wild: set[str] = set()  # payloads of the puts on a wildcard key that came through
         self.strays: list[str] = []
         self._declared = [
             session.declare_subscriber("smana/**", self._on_sample),
@@ -306,6 +318,10 @@ class Observer:
     def _on_sample(self, sample) -> None:
         import zenoh
 
+        if "*" in str(sample.key_expr):
+            with self._lock:
+                self.wild.add(sample.payload.to_string())
+            return
         _, robot, family = str(sample.key_expr).split("/", 2)
         with self._lock:
             if sample.kind == zenoh.SampleKind.DELETE:
@@ -373,6 +389,18 @@ class Probe:
                 key = f"smana/{robot}/{family}"
                 self.session.put(key, f"{self.robot} {tag}", congestion_control=block)
                 self.session.delete(key, congestion_control=block)
+
+    def put_wild(self) -> dict[str, str]:
+        """A put on every wildcard shape over both robots; payload -> key."""
+        import zenoh
+
+        keys = {
+            shape.format(robot=r) for shape in PUT_SHAPES for r in (self.robot, self.who.foreign)
+        }
+        sent = {f"{self.who.name}|{k}": k for k in sorted(keys)}
+        for payload, k in sent.items():
+            self.session.put(k, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        return sent
 
     def ask_writes(self) -> dict[str, tuple[str, str, bool]]:
         """Every query that writes, by every selector shape; payload -> (selector, shape, may)."""
@@ -474,9 +502,10 @@ def test_every_identity_over_every_listener_gets_exactly_its_row(router):
         # ...then once more, and every query that writes by every selector, each session closing
         # with a query the observer answers: when the answer is back, whatever the router let
         # through of that session's puts and queries has arrived.
-        sent = {}
+        sent, wild = {}, {}
         for p in probes:
             p.put_all("last")
+            wild |= p.put_wild()
             sent |= p.ask_writes()
         pending = {
             p.robot: p.session.get(f"smana/{p.robot}/ready/status", timeout=120.0) for p in probes
@@ -507,6 +536,10 @@ def test_every_identity_over_every_listener_gets_exactly_its_row(router):
             who = next(p.who for p in probes if payload.startswith(f"{p.who.name}|"))
             if (payload in reached) != who.reaches(sel, shape, may):
                 wrong.append(f"{payload} ({sel}): reached {payload in reached}")
+        for payload, k in wild.items():
+            who = next(p.who for p in probes if payload.startswith(f"{p.who.name}|"))
+            if (payload in observer.wild) != who.may_put(k):
+                wrong.append(f"{payload}: put came through {payload in observer.wild}")
         assert not wrong, "\n".join(wrong) + "\n\nwhat came through:\n" + render(actual)
         # The positive control for the last round: each reading session's query.
         assert observer.after_puts == {p.robot for p in probes if p.who.named}
@@ -522,7 +555,8 @@ def test_every_identity_over_every_listener_gets_exactly_its_row(router):
             f"{len(probes)} sessions open in {ready_s:.1f} s; {cells} cells (sessions x 2 robots "
             f"x {len(TABLE)} key families x put/delete/reply/token) and {len(sent)} queries that "
             f"write ({len(SESSIONS)} sessions x 4 keys x {len(SHAPES)} selector shapes, "
-            f"{len(reached)} reached) checked in {total_s:.1f} s ({rounds} round(s) of puts)"
+            f"{len(reached)} reached), {len(wild)} puts on a wildcard key "
+            f"({len(observer.wild)} through), checked in {total_s:.1f} s ({rounds} round(s))"
         )
     finally:
         for p in probes:
