@@ -322,3 +322,37 @@ def test_a_claim_from_a_stranger_by_a_wildcard_or_off_the_map_is_refused(fake_st
     status = st.status("coordinator")
     assert status.rejected.get("member") == 1 and status.rejected.get("value") == 3
     assert status.rejected.get("selector") == 6 and status.books_add_up()
+
+
+@pytest.mark.parametrize(
+    "profile, host",
+    [
+        ("robot", "r1"),
+        ("fleet-robot", "r1"),
+        ("base", "base"),
+        ("multi-robot", "base"),
+        ("fleet", "base"),
+    ],
+)
+def test_each_secured_profile_runs_on_its_hosts_folder(certs, tmp_path, profile, host):
+    """A profile's [zenoh] files are in its host's folder once copied as `certs/`, and every
+    service the profile starts finds its own `<robot>.<service>` login there."""
+    from smana.common.config import SmanaConfig
+    from smana.deploy.supervisor import Supervisor, profile_path
+
+    (tmp_path / "certs").symlink_to(certs / host)
+    cfg = SmanaConfig.load(layers=[profile_path(profile)])
+    for field in ("tls_ca", "tls_cert", "tls_key", "credentials_file", "acl_file"):
+        assert (tmp_path / getattr(cfg.zenoh, field)).is_file(), (profile, field)
+    users = read_credentials(str(certs / host / "dictionary.txt"))
+    cfg = dataclasses.replace(
+        cfg,
+        zenoh=dataclasses.replace(
+            cfg.zenoh, credentials_file=str(tmp_path / cfg.zenoh.credentials_file)
+        ),
+    )
+    procs = Supervisor(cfg, tmp_path / "run").procs.values()
+    logins = [[a for a in p.argv if a.startswith("zenoh.user=")] for p in procs]
+    assert logins and all(len(one) == 1 for one in logins), logins
+    missing = {s for (s,) in logins if s.split("=", 1)[1].strip('"') not in users}
+    assert not missing, (profile, missing)
