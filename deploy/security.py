@@ -480,11 +480,15 @@ def init_certs(
     base: str = "base",
     days: int = 825,
     force: bool = False,
+    clients: list[str] = (),
 ) -> list[Path]:
     """Create the CA, the issuer's books and one folder per host (the base and each robot) in
-    `out`. `FileExistsError` when `out` holds a set already and not `force`."""
-    robots = list(robots)
-    _check_names(robots, fleet, base)
+    `out`, and for each of `clients` (a host that only runs clients over TLS: an operator's
+    laptop) a folder with `ca.pem` and its certificate alone, which grants nothing by itself: it
+    logs in with a file from the base's `credentials/`. `FileExistsError` when `out` holds a set
+    already and not `force`."""
+    robots, clients = list(robots), list(clients)
+    _check_names([*robots, *clients], fleet, base)
     if not robots:
         raise UsageError("--robots needs at least one name")
     if not 1 <= days <= 36500:
@@ -493,7 +497,7 @@ def init_certs(
     if (out / "ca.pem").exists() and not force:
         raise FileExistsError(f"{out}/ca.pem exists (use --force to replace the whole set)")
     old = json.loads((out / "issued.json").read_text()) if (out / "issued.json").exists() else {}
-    for host in [*old.get("robots", []), *([old["base"]] if "base" in old else [])]:
+    for host in [*old.get("robots", []), *old.get("clients", []), *([old["base"]] if old else [])]:
         shutil.rmtree(out / check_robot(host), ignore_errors=True)
     # What earlier versions wrote: every password in one file, or one file per role for all
     # robots. Their passwords are void now.
@@ -503,13 +507,17 @@ def init_certs(
     ca_key, ca = _ca(days)
     _write_key(ca_key, out / "ca.key")
     _write_cert(ca, out / "ca.pem")
-    issued = {"robots": robots, "fleet": fleet, "base": base, "days": days}
+    issued = {"robots": robots, "fleet": fleet, "base": base, "days": days, "clients": clients}
     users = base_users(robots, fleet) + [u for r in robots for u in robot_users(r)]
     passwords = {u: secrets.token_urlsafe(18) for u in dict.fromkeys(users)}
     written = [out / "ca.pem", out / "ca.key", _write_books(out, issued, passwords)]
     written += _issue_host_cert(out, base, days) + _write_base(out, issued, passwords)
     for r in robots:
         written += _issue_host_cert(out, r, days) + _write_robot(out, issued, passwords, r)
+    for c in clients:
+        written += _issue_host_cert(out, c, days)
+        shutil.copyfile(out / "ca.pem", out / c / "ca.pem")
+        written.append(out / c / "ca.pem")
     return written
 
 
@@ -518,7 +526,9 @@ def add_robot(out: Path, robot: str) -> list[Path]:
     issued, passwords = _books(out)
     if robot in issued["robots"]:
         raise UsageError(f"{robot} is issued already (revoke-robot it first to re-issue it)")
-    _check_names([*issued["robots"], robot], issued["fleet"], issued["base"])
+    _check_names(
+        [*issued["robots"], *issued.get("clients", []), robot], issued["fleet"], issued["base"]
+    )
     issued["robots"].append(robot)
     for u in robot_users(robot):
         passwords[u] = secrets.token_urlsafe(18)
@@ -564,6 +574,12 @@ def cli(argv: list[str] | None = None) -> int:
     ic.add_argument("--robots", default="r1", help="comma-separated robot names (default r1)")
     ic.add_argument("--fleet", default="fleet", help="the fleet's name (fleet.name)")
     ic.add_argument("--base", default="base", help="the base station's host name")
+    ic.add_argument(
+        "--clients",
+        default="",
+        help="comma-separated hosts that only run clients over TLS (an operator's laptop): a "
+        "certificate each, no password",
+    )
     ic.add_argument("--days", type=int, default=825, help="validity of the certificates (>= 1)")
     ic.add_argument("--force", action="store_true", help="replace an existing set")
     for name, what in (("add-robot", "issue one more robot"), ("revoke-robot", "forget a robot")):
@@ -583,7 +599,13 @@ def cli(argv: list[str] | None = None) -> int:
     try:
         if args.cmd == "init-certs":
             files = init_certs(
-                out, _names(args.robots), args.fleet, args.base, args.days, args.force
+                out,
+                _names(args.robots),
+                args.fleet,
+                args.base,
+                args.days,
+                args.force,
+                _names(args.clients),
             )
         elif args.cmd == "add-robot":
             files = add_robot(out, args.robot)

@@ -16,6 +16,7 @@ import sys
 import pytest
 
 from smana.common import keys
+from smana.common.cli import UsageError
 from smana.common.config import ConfigError, ZenohConfig
 from smana.common.query import QueryError, request
 from smana.common.zenoh_config import make_zenoh_config, read_credentials
@@ -356,3 +357,14 @@ def test_each_secured_profile_runs_on_its_hosts_folder(certs, tmp_path, profile,
     assert logins and all(len(one) == 1 for one in logins), logins
     missing = {s for (s,) in logins if s.split("=", 1)[1].strip('"') not in users}
     assert not missing, (profile, missing)
+
+
+def test_a_client_host_gets_a_certificate_and_no_password(tmp_path):
+    init_certs(tmp_path, ["r1"], clients=["laptop"])
+    folder = tmp_path / "laptop"
+    assert sorted(p.name for p in folder.iterdir()) == ["ca.pem", "host.key", "host.pem"]
+    text = b"".join(p.read_bytes() for p in every_file(folder))
+    every = read_credentials(str(tmp_path / "users.txt"))
+    assert not [u for u, pw in every.items() if pw.encode() in text]
+    with pytest.raises(UsageError):  # a client's name is taken like a robot's
+        add_robot(tmp_path, "laptop")
