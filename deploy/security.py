@@ -143,8 +143,8 @@ def acl_policy(
       publishes, serves queries, replies and shows liveliness under its own name; the sensor roles
       publish the robot's sensor streams and pose (and `alive/robot`); its explorer publishes its
       velocity commands and claims goals at `smana/<fleet>/coordinator/claim/<robot>`, its own
-      claim key only; `<robot>.tool` only reads; its router relays `smana/<robot>/**` and its
-      explorer's claim, and nothing of another robot's;
+      claim key only; `<robot>.tool` only reads; its router relays everything of
+      `smana/<robot>/**` but queries, and its explorer's claim, and nothing of another robot's;
     - the fleet's identities write under `smana/<fleet>/` as each service under its own name;
     - with `base_identities` (the base's policy): `operator` may also publish every robot's
       velocity commands and ask every robot's mapper to save (exact keys); `tool` only reads;
