@@ -102,9 +102,11 @@ def explorer_state(robot: str) -> str:
     return key(robot, "explorer", "state")
 
 
-def claim(fleet: str) -> str:
-    """The coordinator's query: a member's ranked views in, the one it may head for out."""
-    return key(fleet, "coordinator", "claim")
+def claim(fleet: str, member: str) -> str:
+    """The coordinator's query for one member's claims: the goal it wants in, granted or not out.
+    One key per member, so that an access-control policy lets each member's identity ask its own
+    only (`deploy/security.py`)."""
+    return key(fleet, "coordinator", f"claim/{check_robot(member)}")
 
 
 def claims(fleet: str) -> str:

@@ -10,10 +10,10 @@ import json
 import logging
 import threading
 
-from smana.common.config import ZenohConfig
+from smana.common.config import ConfigError, ZenohConfig
 from smana.common.service import on_stop_signals
-from smana.common.zenoh_config import make_zenoh_config, open_session
-from smana.deploy.security import uplink_policy
+from smana.common.zenoh_config import make_zenoh_config, open_session, read_credentials
+from smana.deploy.security import router_user, uplink_policy
 
 log = logging.getLogger("smana.router")
 
@@ -24,17 +24,20 @@ ROUTER_LISTEN_HINT = "--set 'deploy.router_listen=[\"{}\"]'"
 def router_config(listen: list[str], base: ZenohConfig | None = None, connect: list[str] = ()):
     """A router-mode zenoh config listening on `listen` and linking to the routers in `connect`.
     From `base` (the [zenoh] section) it keeps the config file, scouting choice and security:
-    TLS files, the credentials (it logs in to other routers as user `router` and accepts every
-    user of the file: the dictionary) and the access-control policy, which it extends to the
+    TLS files, the credentials (it logs in to other routers as the file's router user, `router`
+    or `<robot>.router`, and accepts every user of the file: the dictionary) and the
+    access-control policy, which it extends to the
     routers it links to over TLS when it has no TLS listener (`_trust_uplinks`)."""
     zc = base or ZenohConfig()
+    user = ""
+    if zc.credentials_file:
+        try:
+            user = router_user(read_credentials(zc.credentials_file))
+        except (OSError, ValueError) as exc:
+            raise ConfigError(f"zenoh.credentials_file {zc.credentials_file}: {exc}") from None
     conf = make_zenoh_config(
         dataclasses.replace(
-            zc,
-            mode="router",
-            connect=list(connect),
-            listen=list(listen),
-            user="router" if zc.credentials_file else "",
+            zc, mode="router", connect=list(connect), listen=list(listen), user=user
         )
     )
     # A router relays everything; it keeps no storage, so no plugin is needed.

@@ -1,20 +1,28 @@
-"""`smana deploy init-certs`: the files that secure a multi-host deployment (zenoh features).
+"""`smana deploy`: the files that secure a multi-host deployment (zenoh features), one identity
+per robot (as SROS2 gives each node an enclave).
 
-It writes into one folder:
+`smana deploy init-certs --robots r1,r2` writes into one folder (`--out`):
 
-- `ca.pem` / `ca.key`: a local certificate authority (keep `ca.key` off every host);
-- `<host>.pem` / `<host>.key` per host (robot, base, ...): certificates signed by the CA, good for
-  both ends of a link, so TLS between routers is mutual (each side checks the other's certificate);
-- `dictionary.txt`: every role's `user:password` line, random passwords (zenoh's usrpwd dictionary
-  format). Only hosts that run a router get it: a router checks every login against it, and logs in
-  to other routers with the `router` line;
-- `credentials/<role>.txt`: that role's line alone, for a host that only runs clients (an operator's
-  laptop, a viewer, a sensor driver on its own computer). `router` has none;
-- `acl.json5`: the access-control policy the routers enforce (see `acl_policy`).
+- `ca.pem` / `ca.key`: a local certificate authority, and `users.txt`, every identity's password,
+  with `issued.json` (the robots, the fleet, the base): the issuer's own books, they go to no host;
+- one folder per host, to be copied to that host as `certs/`: `<base>/` and `<robot>/` for each
+  robot, holding `ca.pem`, the host's certificate `host.pem` / `host.key` (its common name is the
+  host's name; good for both ends of a link, so TLS between routers is mutual), `acl.json5` (the
+  policy its router enforces, `acl_policy`), `dictionary.txt` (the passwords of the users that log
+  in to its router and of what runs there, in zenoh's usrpwd format) and `credentials/<user>.txt`
+  (one user's line, for a client on a computer of its own: a driver, an operator's laptop).
 
-Point the `[zenoh]` section at them (`tls_ca`, `tls_cert`, `tls_key`, `credentials_file`,
-`acl_file`); the `robot`, `base` and `multi-robot` profiles do (see `docs/deployment.md`, which also
-has the policy as a table).
+Identities: `<robot>.<role>` for what belongs to one robot (`r2.sim`, `r2.mapper`, ..., `r2.tool`,
+and `r2.router`, the robot's router when it links to the base), `<fleet>.<role>` for the fleet's
+shared services, and `operator`, `tool` and `router` (the base's router) on the base. A robot's
+folder holds only that robot's secrets; the base's folder holds the fleet's and base's own, and
+per robot the services a base may run for it (navgraph, planner, explorer, recorder) and its
+router's login (the base checks it). `smana deploy add-robot r3` and `revoke-robot r2` rewrite
+the base's dictionary and policy and that robot's folder, and no other robot's.
+
+Point the `[zenoh]` section at a host's folder (`tls_ca`, `tls_cert`, `tls_key`,
+`credentials_file`, `acl_file`); the `robot`, `base`, `multi-robot`, `fleet` and `fleet-robot`
+profiles do (see `docs/deployment.md`, which also has the policy as a table).
 """
 
 from __future__ import annotations
@@ -26,22 +34,60 @@ import ipaddress
 import json
 import os
 import secrets
-import sys
+import shutil
 from pathlib import Path
 
-from smana.common.keys import SERVICES
+from smana.common.cli import ArgumentParser, UsageError
+from smana.common.keys import check_robot
+from smana.common.zenoh_config import read_credentials
 
-# Who may do what. Roles are zenoh user names; `router` is the user routers log in as when they
-# link up (robot -> base), `operator` a human with a joystick, `tool` any external zenoh tool.
+# Who may do what. Roles become zenoh user names `<robot>.<role>`; `router` is a router's login
+# when it links to another (robot -> base); `operator` a human with a joystick on the base, `tool`
+# any external zenoh tool (a robot has its own, `<robot>.tool`).
 SENSOR_ROLES = ("sim", "replay", "driver")
-COMMAND_ROLES = ("explorer", "operator")
-SAVE_ROLES = ("operator",)  # may make the mapper write its map to disk (a query, but a write)
-OWNERS = (*SERVICES, "driver")  # each owns smana/<r>/<owner>/** and smana/<r>/alive/<owner>
-ROLES = (*SERVICES, "driver", "operator", "tool", "router")
-READERS = tuple(role for role in ROLES if role != "router")
+OWNERS = (
+    "sim",
+    "replay",
+    "driver",
+    "mapper",
+    "navgraph",
+    "planner",
+    "explorer",
+    "recorder",
+    "ros2",
+)
+ROBOT_ROLES = (*OWNERS, "tool", "router")  # every robot's identities
+BASE_RUNS = ("navgraph", "planner", "explorer", "recorder")  # a robot's, that a base may run
+FLEET_ROLES = (
+    "mapper",
+    "navgraph",
+    "planner",
+    "coordinator",
+    "recorder",
+)  # the fleet's, on the base
+BASE_ROLES = ("operator", "tool", "router")
 SENSOR_TOPICS = ("cloud", "scan", "pose", "pose_truth", "clock", "image/**")
+# The queries that only read, on every namespace: `smana/*/<service>/<query>`. An allow rule
+# grants a query only when its key expression includes the query's whole selector (zenoh 1.x,
+# tested in tests/test_acl_table.py), so `smana/r1/mapper/*` or `smana/**` match none of these,
+# and a query that writes (`mapper/save`, `coordinator/claim/<member>`) is granted by its exact
+# key only. A deny rule would not do: it too applies only to selectors its key includes.
+READ_QUERIES = (
+    "mapper/stats",
+    "mapper/snapshot",
+    "mapper/point",
+    "navgraph/graph",
+    "navgraph/node",
+    "navgraph/stats",
+    "planner/path",
+    "planner/stats",
+    "explorer/state",
+    "coordinator/claims",
+    "coordinator/stats",
+    "*/status",
+)
 
-READ = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
+READ = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
 OWN = ["put", "delete", "declare_queryable", "reply"]
 ALL_MESSAGES = [
     "put",
@@ -54,6 +100,21 @@ ALL_MESSAGES = [
     "declare_liveliness_subscriber",
     "liveliness_query",
 ]
+
+RELAY_MESSAGES = [m for m in ALL_MESSAGES if m != "query"]
+
+
+def user(robot: str, role: str) -> str:
+    """A robot's (or the fleet's) identity: `r2.mapper`."""
+    return f"{robot}.{role}"
+
+
+def save_key(robot: str) -> str:
+    return f"smana/{robot}/mapper/save"
+
+
+def claim_key(fleet: str, member: str) -> str:
+    return f"smana/{fleet}/coordinator/claim/{member}"
 
 
 def _rule(
@@ -68,66 +129,109 @@ def _rule(
     }
 
 
-def acl_policy(robot: str = "*", hosts: list[str] = ()) -> dict:
-    """The access-control policy (the table in docs/deployment.md): default deny; every role may
-    subscribe and query, except that only an operator may ask the mapper to save; only the sensor
-    roles publish the robot's sensor streams and pose; only the explorer and an operator publish
-    velocity commands; each service (and a driver) publishes, serves queries and shows liveliness
-    under its own name only; `tool` reads and never writes; routers relay everything.
+def acl_policy(
+    robots: list[str] = ("r1",),
+    fleet: str | None = "fleet",
+    base: str = "base",
+    base_identities: bool = True,
+) -> dict:
+    """The access-control policy (the table in docs/deployment.md), default deny:
 
-    A subject that lists several attributes matches a session only when all of them match (zenoh
-    expands it into every combination of one value per attribute). So a router is user `router`
-    presenting a host certificate (`hosts`, common names) on a TLS link, or user `router` on a tcp
-    link; a certificate alone grants nothing, since every TLS client must present one. A router
-    that opened a TLS link cannot see a user name on it (user/password only authenticates the side
-    that connects): `uplink_policy` trusts the far router by its certificate there."""
-    r = robot
-    sensor_keys = [f"smana/{r}/robot/{t}" for t in SENSOR_TOPICS]
+    - every identity may subscribe, list liveliness tokens and ask the read-only queries
+      (`READ_QUERIES`) of every namespace;
+    - each robot's identities write only under `smana/<its robot>/`: each service (and a driver)
+      publishes, serves queries, replies and shows liveliness under its own name; the sensor roles
+      publish the robot's sensor streams and pose (and `alive/robot`); its explorer publishes its
+      velocity commands and claims goals at `smana/<fleet>/coordinator/claim/<robot>`, its own
+      claim key only; `<robot>.tool` only reads; its router relays everything of
+      `smana/<robot>/**` but queries, and its explorer's claim, and nothing of another robot's;
+    - the fleet's identities write under `smana/<fleet>/` as each service under its own name;
+    - with `base_identities` (the base's policy): `operator` may also publish every robot's
+      velocity commands and ask every robot's mapper to save (exact keys); `tool` only reads;
+      `router` (the base's router) relays everything.
+
+    Routers are named by user and link: user `<name>` on a tcp link, or the same user presenting
+    its host's certificate (common name `<robot>`, or `base`) on TLS; a certificate alone grants
+    nothing, since every TLS client must present one. A router that opened a TLS link cannot see
+    a user name on it (user/password only authenticates the side that connects): `uplink_policy`
+    trusts the far router by its certificate there."""
+    robots = [check_robot(r) for r in robots]
     rules = [
         _rule("read", ["ingress"], READ, ["smana/**"]),
+        _rule("read-queries", ["ingress"], ["query"], [f"smana/*/{q}" for q in READ_QUERIES]),
         # What routers send out to their clients: samples, replies, queries to queryables.
         _rule("deliver", ["egress"], ALL_MESSAGES, ["smana/**"]),
         _rule("relay", ["ingress", "egress"], ALL_MESSAGES, ["smana/**"]),
-        # Saving writes a file on the mapper's host: a deny beside `read`, on the same subjects,
-        # wins over it (for every robot, whatever `robot` is).
-        _rule("no-save", ["ingress"], ["query"], ["smana/*/mapper/save"], "deny"),
-        _rule("publish-sensors", ["ingress"], ["put"], sensor_keys),
-        _rule("publish-cmd_vel", ["ingress"], ["put"], [f"smana/{r}/robot/cmd_vel"]),
     ]
-    subjects = [{"id": role, "usernames": [role]} for role in READERS]
-    subjects.append({"id": "routers-tcp", "usernames": ["router"], "link_protocols": ["tcp"]})
-    if hosts:
-        subjects.append(
-            {"id": "routers-tls", "usernames": ["router"], "cert_common_names": list(hosts)}
-        )
-    policies = [
-        {"id": "read", "rules": ["read", "deliver"], "subjects": list(READERS)},
-        {
-            "id": "no-save",
-            "rules": ["no-save"],
-            "subjects": [role for role in READERS if role not in SAVE_ROLES],
-        },
-        {"id": "sensors", "rules": ["publish-sensors"], "subjects": list(SENSOR_ROLES)},
-        {"id": "commanders", "rules": ["publish-cmd_vel"], "subjects": list(COMMAND_ROLES)},
-        {
-            "id": "routers",
-            "rules": ["relay"],
-            "subjects": ["routers-tcp", *(["routers-tls"] if hosts else [])],
-        },
-    ]
-    # Each owner's key space: its topics, status and queryables; its liveliness token alone (the
-    # supervisor's health check trusts it). Whatever drives the robot also shows `alive/robot`.
-    for owner in OWNERS:
-        alive = [f"smana/{r}/alive/{owner}"]
-        if owner in SENSOR_ROLES:
-            alive.append(f"smana/{r}/alive/robot")
+    subjects: list[dict] = []
+    policies: list[dict] = []
+    readers: list[str] = []
+
+    def identity(name: str, rule_ids: list[str]) -> None:
+        subjects.append({"id": name, "usernames": [name]})
+        readers.append(name)
+        if rule_ids:
+            policies.append({"id": name, "rules": rule_ids, "subjects": [name]})
+
+    def router(name: str, host: str, rule_ids: list[str]) -> None:
+        ids = [f"{name}@tcp", f"{name}@tls"]
+        subjects.append({"id": ids[0], "usernames": [name], "link_protocols": ["tcp"]})
+        subjects.append({"id": ids[1], "usernames": [name], "cert_common_names": [host]})
+        policies.append({"id": name, "rules": rule_ids, "subjects": ids})
+
+    def owners(ns: str, roles) -> None:
+        for owner in roles:
+            u = user(ns, owner)
+            alive = [f"smana/{ns}/alive/{owner}"]
+            ids = [f"own-{u}", f"alive-{u}"]
+            rules.append(_rule(ids[0], ["ingress"], OWN, [f"smana/{ns}/{owner}/**"]))
+            if owner in SENSOR_ROLES:
+                alive.append(f"smana/{ns}/alive/robot")  # whatever drives the robot shows it
+                ids.append(f"sensors-{ns}")
+            if owner == "explorer":
+                ids.append(f"cmd_vel-{ns}")
+                if fleet:
+                    ids.append(f"claim-{ns}")
+            rules.append(_rule(ids[1], ["ingress"], ["liveliness_token"], alive))
+            identity(u, ids)
+
+    for r in robots:
         rules += [
-            _rule(f"own-{owner}", ["ingress"], OWN, [f"smana/{r}/{owner}/**"]),
-            _rule(f"alive-{owner}", ["ingress"], ["liveliness_token"], alive),
+            _rule(
+                f"sensors-{r}",
+                ["ingress"],
+                ["put"],
+                [f"smana/{r}/robot/{t}" for t in SENSOR_TOPICS],
+            ),
+            _rule(f"cmd_vel-{r}", ["ingress"], ["put"], [f"smana/{r}/robot/cmd_vel"]),
+            # All but queries: those a robot's router passes on are read-only or its claim.
+            _rule(f"relay-{r}", ["ingress"], RELAY_MESSAGES, [f"smana/{r}/**"]),
         ]
-        policies.append(
-            {"id": f"own-{owner}", "rules": [f"own-{owner}", f"alive-{owner}"], "subjects": [owner]}
-        )
+        if fleet:
+            rules.append(_rule(f"claim-{r}", ["ingress"], ["query"], [claim_key(fleet, r)]))
+        owners(r, OWNERS)
+        identity(user(r, "tool"), [])
+        relay = [f"relay-{r}", *([f"claim-{r}"] if fleet else [])]
+        router(user(r, "router"), r, ["read", "read-queries", "deliver", *relay])
+    if fleet:
+        owners(check_robot(fleet), FLEET_ROLES)
+    if base_identities:
+        save = [save_key(r) for r in robots] + ([save_key(fleet)] if fleet else [])
+        rules += [
+            _rule(
+                "operator-cmd_vel",
+                ["ingress"],
+                ["put"],
+                [f"smana/{r}/robot/cmd_vel" for r in robots],
+            ),
+            _rule("operator-save", ["ingress"], ["query"], save),
+        ]
+        identity("operator", ["operator-cmd_vel", "operator-save"])
+        identity("tool", [])
+    router("router", base, ["relay"])
+    policies.insert(
+        0, {"id": "read", "rules": ["read", "read-queries", "deliver"], "subjects": readers}
+    )
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -161,6 +265,17 @@ def uplink_policy(policy: dict) -> dict:
     return policy
 
 
+def router_user(users: dict[str, str]) -> str:
+    """The user a router logs in as, from its host's dictionary: `router` on the base, the one
+    `<robot>.router` on a robot."""
+    if "router" in users:
+        return "router"
+    mine = [u for u in users if u.endswith(".router")]
+    if len(mine) != 1:
+        raise ValueError(f"expected one router login in the dictionary, found {mine or 'none'}")
+    return mine[0]
+
+
 def _key():
     from cryptography.hazmat.primitives.asymmetric import ec
 
@@ -192,148 +307,317 @@ def _write_cert(cert, path: Path) -> None:
     path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
 
 
-def init_certs(out: Path, hosts: list[str], days: int = 825, force: bool = False) -> list[Path]:
-    """Create the CA, one certificate per host, the routers' dictionary, one credentials file per
-    role and the ACL policy in `out`."""
+def _ca(days: int):
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes
-    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+    from cryptography.x509.oid import NameOID
 
-    out.mkdir(parents=True, exist_ok=True)
-    if (out / "ca.pem").exists() and not force:
-        raise FileExistsError(f"{out}/ca.pem exists (use --force to replace the whole set)")
     now = datetime.datetime.now(datetime.UTC)
-    ca_key = _key()
-    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "smana local CA")])
-    ca = (
+    key = _key()
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "smana local CA")])
+    usage = dict.fromkeys(
+        (
+            "content_commitment",
+            "key_encipherment",
+            "data_encipherment",
+            "key_agreement",
+            "encipher_only",
+            "decipher_only",
+        ),
+        False,
+    )
+    cert = (
         x509.CertificateBuilder()
-        .subject_name(ca_name)
-        .issuer_name(ca_name)
-        .public_key(ca_key.public_key())
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
         .not_valid_before(now - datetime.timedelta(hours=1))
         .not_valid_after(now + datetime.timedelta(days=days))
         .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
         .add_extension(
-            x509.KeyUsage(
-                digital_signature=True,
-                key_cert_sign=True,
-                crl_sign=True,
-                content_commitment=False,
-                key_encipherment=False,
-                data_encipherment=False,
-                key_agreement=False,
-                encipher_only=False,
-                decipher_only=False,
-            ),
+            x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True, **usage),
             critical=True,
         )
-        .add_extension(x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), False)
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), False)
+        .sign(key, hashes.SHA256())
+    )
+    return key, cert
+
+
+def _host_cert(ca_key, ca_cert, host: str, days: int):
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    now = datetime.datetime.now(datetime.UTC)
+    key = _key()
+    # The common name identifies the host; the names and loopback address let the certificate
+    # also pass a name check where a user turns that on.
+    alt = [
+        x509.DNSName(host),
+        x509.DNSName("localhost"),
+        x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
+    ]
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, host)]))
+        .issuer_name(ca_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - datetime.timedelta(hours=1))
+        .not_valid_after(now + datetime.timedelta(days=days))
+        .add_extension(x509.SubjectAlternativeName(alt), critical=False)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(
+            x509.ExtendedKeyUsage(
+                [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
+            ),
+            critical=False,
+        )
+        .add_extension(
+            x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), False
+        )
         .sign(ca_key, hashes.SHA256())
     )
-    _write_key(ca_key, out / "ca.key")
-    _write_cert(ca, out / "ca.pem")
-    written = [out / "ca.pem", out / "ca.key"]
-    for host in hosts:
-        key = _key()
-        # The common name identifies the host; the names and loopback address let the
-        # certificate also pass a name check where a user turns that on.
-        alt = [
-            x509.DNSName(host),
-            x509.DNSName("localhost"),
-            x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
-        ]
-        cert = (
-            x509.CertificateBuilder()
-            .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, host)]))
-            .issuer_name(ca_name)
-            .public_key(key.public_key())
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(now - datetime.timedelta(hours=1))
-            .not_valid_after(now + datetime.timedelta(days=days))
-            .add_extension(x509.SubjectAlternativeName(alt), critical=False)
-            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-            .add_extension(
-                x509.ExtendedKeyUsage(
-                    [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
-                ),
-                critical=False,
-            )
-            .add_extension(
-                x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), False
-            )
-            .sign(ca_key, hashes.SHA256())
-        )
-        _write_key(key, out / f"{host}.key")
-        _write_cert(cert, out / f"{host}.pem")
-        written += [out / f"{host}.pem", out / f"{host}.key"]
-    # Routers must know every password to check logins; a client needs only its own. A file of
-    # every password on every host would hand the `router` login (the relay rule) to any tool.
-    passwords = {role: secrets.token_urlsafe(18) for role in ROLES}
-    dictionary = out / "dictionary.txt"
-    _write_secret(dictionary, "".join(f"{u}:{pw}\n" for u, pw in passwords.items()))
-    folder = out / "credentials"
+    return key, cert
+
+
+def robot_users(robot: str) -> list[str]:
+    return [user(robot, role) for role in ROBOT_ROLES]
+
+
+def base_users(robots: list[str], fleet: str | None) -> list[str]:
+    """Whose passwords the base holds: its own, the fleet's, and per robot what a base may run
+    for it and its router's login (checked when the robot links up)."""
+    users = list(BASE_ROLES) + ([user(fleet, role) for role in FLEET_ROLES] if fleet else [])
+    for r in robots:
+        users += [user(r, role) for role in (*BASE_RUNS, "router")]
+    return users
+
+
+def _write_users(path: Path, passwords: dict[str, str], users: list[str]) -> None:
+    _write_secret(path, "".join(f"{u}:{passwords[u]}\n" for u in users))
+
+
+def _write_host(
+    out: Path, host: str, passwords: dict, users: list[str], policy: dict
+) -> list[Path]:
+    """A host's folder, its certificate aside: what its router and its clients need, no more."""
+    folder = out / host
     folder.mkdir(exist_ok=True)
     os.chmod(folder, 0o700)
-    per_role = []
-    for role in READERS:
-        per_role.append(folder / f"{role}.txt")
-        _write_secret(per_role[-1], f"{role}:{passwords[role]}\n")
-    # The single file of every password that earlier versions wrote: its passwords are void now.
-    (out / "credentials.txt").unlink(missing_ok=True)
-    acl = out / "acl.json5"
-    acl.write_text(json.dumps(acl_policy(hosts=hosts), indent=2) + "\n")
-    return [*written, dictionary, *per_role, acl]
+    shutil.copyfile(out / "ca.pem", folder / "ca.pem")
+    _write_users(folder / "dictionary.txt", passwords, users)
+    creds = folder / "credentials"
+    shutil.rmtree(creds, ignore_errors=True)  # a revoked robot's files go with it
+    creds.mkdir()
+    os.chmod(creds, 0o700)
+    written = [folder / "ca.pem", folder / "dictionary.txt"]
+    for u in users:
+        if u != "router" and not u.endswith(".router"):  # a router's login stays in the dictionary
+            _write_users(creds / f"{u}.txt", passwords, [u])
+            written.append(creds / f"{u}.txt")
+    (folder / "acl.json5").write_text(json.dumps(policy, indent=2) + "\n")
+    return [*written, folder / "acl.json5"]
 
 
-def _check_names(hosts: list[str], robots: list[str]) -> None:
-    """Host names become file names and certificate names, robot names key chunks: the one
-    check of both (common/keys.py), a one-line UsageError before anything is written."""
-    from smana.common.cli import UsageError
-    from smana.common.keys import check_name
+def _issue_host_cert(out: Path, host: str, days: int) -> list[Path]:
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
 
+    ca_key = serialization.load_pem_private_key((out / "ca.key").read_bytes(), None)
+    ca_cert = x509.load_pem_x509_certificate((out / "ca.pem").read_bytes())
+    key, cert = _host_cert(ca_key, ca_cert, host, days)
+    folder = out / host
+    folder.mkdir(exist_ok=True)
+    os.chmod(folder, 0o700)
+    _write_key(key, folder / "host.key")
+    _write_cert(cert, folder / "host.pem")
+    return [folder / "host.pem", folder / "host.key"]
+
+
+def _books(out: Path) -> tuple[dict, dict[str, str]]:
     try:
-        for h in hosts:
-            check_name(h, "--hosts: host name")
-        for r in robots:
-            check_name(r, "--robot: robot name")
+        issued = json.loads((out / "issued.json").read_text())
+        return issued, read_credentials(str(out / "users.txt"))
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"{out} holds no set of `smana deploy init-certs` ({exc})") from None
+
+
+def _write_books(out: Path, issued: dict, passwords: dict[str, str]) -> Path:
+    (out / "issued.json").write_text(json.dumps(issued, indent=2) + "\n")
+    _write_users(out / "users.txt", passwords, list(passwords))
+    return out / "users.txt"
+
+
+def _write_base(out: Path, issued: dict, passwords: dict[str, str]) -> list[Path]:
+    robots, fleet, base = issued["robots"], issued["fleet"], issued["base"]
+    policy = acl_policy(robots, fleet, base)
+    return _write_host(out, base, passwords, base_users(robots, fleet), policy)
+
+
+def _write_robot(out: Path, issued: dict, passwords: dict[str, str], robot: str) -> list[Path]:
+    policy = acl_policy([robot], issued["fleet"], issued["base"], base_identities=False)
+    return _write_host(out, robot, passwords, robot_users(robot), policy)
+
+
+def _check_names(robots: list[str], fleet: str | None, base: str) -> None:
+    try:
+        for name in [*robots, *([fleet] if fleet else []), base]:
+            check_robot(name)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    names = [*robots, *([fleet] if fleet else []), base]
+    if len(set(names)) != len(names):
+        raise UsageError(f"robot, fleet and base names must all differ, got {', '.join(names)}")
+
+
+def init_certs(
+    out: Path,
+    robots: list[str] = ("r1",),
+    fleet: str | None = "fleet",
+    base: str = "base",
+    days: int = 825,
+    force: bool = False,
+    clients: list[str] = (),
+) -> list[Path]:
+    """Create the CA, the issuer's books and one folder per host (the base and each robot) in
+    `out`, and for each of `clients` (a host that only runs clients over TLS: an operator's
+    laptop) a folder with `ca.pem` and its certificate alone, which grants nothing by itself: it
+    logs in with a file from the base's `credentials/`. `FileExistsError` when `out` holds a set
+    already and not `force`."""
+    robots, clients = list(robots), list(clients)
+    _check_names([*robots, *clients], fleet, base)
+    if not robots:
+        raise UsageError("--robots needs at least one name")
+    if not 1 <= days <= 36500:
+        raise UsageError(f"--days must be from 1 to 36500, got {days}")
+    out.mkdir(parents=True, exist_ok=True)
+    if (out / "ca.pem").exists() and not force:
+        raise FileExistsError(f"{out}/ca.pem exists (use --force to replace the whole set)")
+    old = json.loads((out / "issued.json").read_text()) if (out / "issued.json").exists() else {}
+    for host in [*old.get("robots", []), *old.get("clients", []), *([old["base"]] if old else [])]:
+        shutil.rmtree(out / check_robot(host), ignore_errors=True)
+    # What earlier versions wrote: every password in one file, or one file per role for all
+    # robots. Their passwords are void now.
+    for name in ("credentials.txt", "dictionary.txt", "acl.json5"):
+        (out / name).unlink(missing_ok=True)
+    shutil.rmtree(out / "credentials", ignore_errors=True)
+    ca_key, ca = _ca(days)
+    _write_key(ca_key, out / "ca.key")
+    _write_cert(ca, out / "ca.pem")
+    issued = {"robots": robots, "fleet": fleet, "base": base, "days": days, "clients": clients}
+    users = base_users(robots, fleet) + [u for r in robots for u in robot_users(r)]
+    passwords = {u: secrets.token_urlsafe(18) for u in dict.fromkeys(users)}
+    written = [out / "ca.pem", out / "ca.key", _write_books(out, issued, passwords)]
+    written += _issue_host_cert(out, base, days) + _write_base(out, issued, passwords)
+    for r in robots:
+        written += _issue_host_cert(out, r, days) + _write_robot(out, issued, passwords, r)
+    for c in clients:
+        written += _issue_host_cert(out, c, days)
+        shutil.copyfile(out / "ca.pem", out / c / "ca.pem")
+        written.append(out / c / "ca.pem")
+    return written
+
+
+def add_robot(out: Path, robot: str) -> list[Path]:
+    """Issue one more robot: its folder, and the base's dictionary and policy; nothing else."""
+    issued, passwords = _books(out)
+    if robot in issued["robots"]:
+        raise UsageError(f"{robot} is issued already (revoke-robot it first to re-issue it)")
+    _check_names(
+        [*issued["robots"], *issued.get("clients", []), robot], issued["fleet"], issued["base"]
+    )
+    issued["robots"].append(robot)
+    for u in robot_users(robot):
+        passwords[u] = secrets.token_urlsafe(18)
+    written = [_write_books(out, issued, passwords)]
+    written += _issue_host_cert(out, robot, issued["days"])
+    written += _write_robot(out, issued, passwords, robot)
+    return written + _write_base(out, issued, passwords)
+
+
+def revoke_robot(out: Path, robot: str) -> list[Path]:
+    """Forget a robot: its passwords leave the base's dictionary and its rules the base's policy,
+    so its router and services can no longer log in. Its certificate stays signed (there is no
+    revocation list), which grants nothing without a password."""
+    issued, passwords = _books(out)
+    if robot not in issued["robots"]:
+        raise UsageError(f"{robot} is not issued (issued: {', '.join(issued['robots'])})")
+    issued["robots"].remove(robot)
+    for u in robot_users(robot):
+        passwords.pop(u, None)
+    shutil.rmtree(out / robot, ignore_errors=True)
+    return [_write_books(out, issued, passwords), *_write_base(out, issued, passwords)]
+
+
+def _names(text: str) -> list[str]:
+    return [n.strip() for n in text.split(",") if n.strip()]
+
+
+HANDOUT = (
+    "Copy each host's folder to that host as certs/: {base}/ to the base, <robot>/ to each robot. "
+    "ca.key, users.txt and issued.json go nowhere."
+)
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
+    p = ArgumentParser(
         prog="smana deploy",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = p.add_subparsers(dest="cmd", required=True)
-    ic = sub.add_parser("init-certs", help="create a CA, host certificates, credentials and ACL")
+    ic = sub.add_parser("init-certs", help="create a CA, host folders (certificates, users, ACL)")
     ic.add_argument("--out", default="certs", help="folder to write into (default ./certs)")
-    ic.add_argument("--hosts", default="robot,base", help="comma-separated host names")
-    ic.add_argument("--days", type=int, default=825, help="validity of the certificates")
+    ic.add_argument("--robots", default="r1", help="comma-separated robot names (default r1)")
+    ic.add_argument("--fleet", default="fleet", help="the fleet's name (fleet.name)")
+    ic.add_argument("--base", default="base", help="the base station's host name")
+    ic.add_argument(
+        "--clients",
+        default="",
+        help="comma-separated hosts that only run clients over TLS (an operator's laptop): a "
+        "certificate each, no password",
+    )
+    ic.add_argument("--days", type=int, default=825, help="validity of the certificates (>= 1)")
     ic.add_argument("--force", action="store_true", help="replace an existing set")
+    for name, what in (("add-robot", "issue one more robot"), ("revoke-robot", "forget a robot")):
+        sp = sub.add_parser(name, help=f"{what}: its folder and the base's; no other robot's")
+        sp.add_argument("robot")
+        sp.add_argument("--out", default="certs", help="the set's folder (default ./certs)")
     acl = sub.add_parser("acl", help="print the access-control policy (JSON5)")
-    acl.add_argument("--robot", default="*", help="restrict the policy to one robot name")
-    acl.add_argument("--hosts", default="robot,base", help="host certificates' common names")
+    acl.add_argument("--robots", default="r1", help="comma-separated robot names")
+    acl.add_argument("--fleet", default="fleet", help="the fleet's name")
+    acl.add_argument("--base", default="base", help="the base station's host name")
     args = p.parse_args(argv)
-    hosts = [h.strip() for h in args.hosts.split(",") if h.strip()]
-    _check_names(hosts, [] if args.cmd != "acl" or args.robot == "*" else [args.robot])
     if args.cmd == "acl":
-        print(json.dumps(acl_policy(args.robot, hosts), indent=2))
+        _check_names(_names(args.robots), args.fleet, args.base)
+        print(json.dumps(acl_policy(_names(args.robots), args.fleet, args.base), indent=2))
         return 0
-    if not hosts:
-        p.error("--hosts needs at least one name")
+    out = Path(args.out)
     try:
-        files = init_certs(Path(args.out), hosts, args.days, args.force)
+        if args.cmd == "init-certs":
+            files = init_certs(
+                out,
+                _names(args.robots),
+                args.fleet,
+                args.base,
+                args.days,
+                args.force,
+                _names(args.clients),
+            )
+        elif args.cmd == "add-robot":
+            files = add_robot(out, args.robot)
+        else:
+            files = revoke_robot(out, args.robot)
     except FileExistsError as exc:
-        print(f"smana deploy init-certs: {exc}", file=sys.stderr)
-        return 1
+        raise UsageError(str(exc)) from None
+    except OSError as exc:
+        where = exc.filename or out
+        raise UsageError(f"cannot write {where}: {exc.strerror or exc}") from None
     for f in files:
         print(f)
-    print(
-        "To every host: ca.pem and its own <host>.pem/.key. Where a router runs (smana up, smana "
-        "router): also dictionary.txt and acl.json5. Where only clients run: the one "
-        "credentials/<role>.txt it logs in as. ca.key goes nowhere."
-    )
+    issued, _ = _books(out)
+    print(HANDOUT.format(base=issued["base"]))
     return 0

@@ -157,7 +157,7 @@ class Supervisor:
             *extra,
         ]
         if self.config.zenoh.credentials_file:
-            argv += ["--set", f'zenoh.user="{service}"']  # each service logs in as itself
+            argv += ["--set", f'zenoh.user="{robot}.{service}"']  # each service as itself
         policy = getattr(self.config.deploy, service)
         self.add(name, argv + policy.args, policy, service=service, robot=robot)
 
@@ -652,13 +652,13 @@ def add_recorder(sup: Supervisor) -> bool:
             return False
         argv = recorder_argv(sup.config_path, sup.fleet) + list(policy.args)
         if sup.config.zenoh.credentials_file:
-            argv += ["--set", 'zenoh.user="recorder"']
+            argv += ["--set", f'zenoh.user="{sup.fleet}.recorder"']
         sup.add(f"recorder@{sup.fleet}", argv, policy, service="recorder", robot=sup.fleet)
         return True
     for robot in sup.robots:
         argv = recorder_argv(sup.config_path, robot) + list(policy.args)
         if sup.config.zenoh.credentials_file:
-            argv += ["--set", 'zenoh.user="recorder"']
+            argv += ["--set", f'zenoh.user="{robot}.recorder"']
         name = "recorder" if len(sup.robots) == 1 else f"recorder@{robot}"
         sup.add(name, argv, policy, service="recorder", robot=robot)
     return True

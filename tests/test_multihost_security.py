@@ -1,7 +1,10 @@
 """Robot and base station on two network namespaces, linked by their routers over mutual TLS with
-user/password authentication and the access-control policy of `smana deploy init-certs`."""
+user/password authentication and the access-control policy of `smana deploy init-certs`: each
+host with its own folder of the set (`certs/r1/`, `certs/base/`), as if copied there."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 
@@ -10,20 +13,36 @@ from tests.multihost import BASE_IP, make_two_hosts, wait_for
 
 pytestmark = pytest.mark.multiprocess
 
-PROBE = str(__import__("pathlib").Path(__file__).parent / "support" / "zenoh_probe.py")
+PROBE = str(Path(__file__).parent / "support" / "zenoh_probe.py")
 LOCAL = "tcp/127.0.0.1:7447"
 TLS = f"tls/{BASE_IP}:7448"
+FOLDER = {"robot": "r1", "base": "base"}  # namespace -> its folder of the set
 
 
-def login(role: str) -> list[str]:
-    """A client logs in with its role's own file: clients never need the routers' dictionary."""
-    return ["--user", role, "--credentials", f"certs/credentials/{role}.txt"]
+def login(user: str, folder: str) -> list[str]:
+    """A client logs in with its own file: clients never need a router's dictionary."""
+    return ["--user", user, "--credentials", f"certs/{folder}/credentials/{user}.txt"]
+
+
+def host_config(tmp: Path, host: str) -> list[str]:
+    """`--config` for a namespace's router: the profile's [zenoh] files, from its own folder."""
+    d = f"certs/{FOLDER[host]}"
+    files = {
+        "tls_ca": f"{d}/ca.pem",
+        "tls_cert": f"{d}/host.pem",
+        "tls_key": f"{d}/host.key",
+        "credentials_file": f"{d}/dictionary.txt",
+        "acl_file": f"{d}/acl.json5",
+    }
+    path = tmp / f"{host}-host.toml"
+    path.write_text("[zenoh]\n" + "".join(f'{k} = "{v}"\n' for k, v in files.items()))
+    return ["--config", str(path)]
 
 
 @pytest.fixture
 def hosts(tmp_path):
-    init_certs(tmp_path / "certs", ["robot", "base"])
-    init_certs(tmp_path / "foreign", ["robot"])  # a CA the deployment does not trust
+    init_certs(tmp_path / "certs", ["r1", "r2"])
+    init_certs(tmp_path / "foreign", ["r1"])  # a CA the deployment does not trust
     h = make_two_hosts(tmp_path)
     try:
         yield h
@@ -32,95 +51,68 @@ def hosts(tmp_path):
 
 
 def start_routers(hosts):
-    hosts.run("base", "router-base", "-m", "smana.deploy.router", "--profile", "base")
+    hosts.run(
+        "base",
+        "router-base",
+        *("-m", "smana.deploy.router", "--profile", "base"),
+        *host_config(hosts.tmp, "base"),
+    )
     hosts.run(
         "robot",
         "router-robot",
-        "-m",
-        "smana.deploy.router",
-        "--profile",
-        "robot",
+        *("-m", "smana.deploy.router", "--profile", "robot"),
+        *host_config(hosts.tmp, "robot"),
         "--set",
         f'deploy.router_connect=["tls/{BASE_IP}:7448"]',
     )
     # The base's router is reachable from the robot's namespace only through the TLS link: a
     # client on the robot that can query the base's liveliness proves the link is up.
     ok = wait_for(
-        lambda: hosts.call("robot", "probe-open", PROBE, "open", LOCAL, *login("tool")) == 0, 30
+        lambda: (
+            hosts.call("robot", "probe-open", PROBE, "open", LOCAL, *login("r1.tool", "r1")) == 0
+        ),
+        30,
     )
     assert ok, hosts.log("router-robot") + hosts.log("router-base")
 
 
-def test_only_authorised_roles_publish_velocity_commands(hosts):
+def test_only_the_robots_own_commanders_publish_its_velocity_commands(hosts):
     start_routers(hosts)
     out = hosts.tmp / "cmd_vel.txt"
-    hosts.run(
-        "robot", "sub", PROBE, "sub", LOCAL, "smana/r1/robot/cmd_vel", str(out), *login("sim")
-    )
+    key = "smana/r1/robot/cmd_vel"
+    hosts.run("robot", "sub", PROBE, "sub", LOCAL, key, str(out), *login("r1.sim", "r1"))
     assert wait_for(lambda: "subscribed" in hosts.log("sub"), 20), hosts.log("sub")
 
+    def pub(host: str, name: str, payload: str, *auth: str, endpoint: str = LOCAL) -> None:
+        hosts.call(host, name, PROBE, "pub", endpoint, key, payload, *auth)
+
     def sent_through():
-        hosts.call(
-            "base",
-            "pub-explorer",
-            PROBE,
-            "pub",
-            LOCAL,
-            "smana/r1/robot/cmd_vel",
-            "from-explorer",
-            *login("explorer"),
-        )
+        pub("base", "pub-explorer", "from-explorer", *login("r1.explorer", "base"))
         return out.exists() and "from-explorer" in out.read_text()
 
     # Routes take a moment to propagate across the TLS link.
     assert wait_for(sent_through, 30, 0.5), hosts.log("router-base")
-    for role in ("tool", "mapper", "sim"):
-        hosts.call(
-            "base",
-            f"pub-{role}",
-            PROBE,
-            "pub",
-            LOCAL,
-            "smana/r1/robot/cmd_vel",
-            f"from-{role}",
-            *login(role),
-        )
-    # From the robot, straight to the base's TLS port with the robot's certificate (issue 11):
-    # the certificate identifies the link and grants nothing, so the roles' rights are the same.
-    robot_cert = ["--tls-dir", "certs", "--host", "robot"]
-    for role in ("tool", "mapper"):
-        hosts.call(
-            "robot",
-            f"pub-{role}-tls",
-            PROBE,
-            "pub",
-            TLS,
-            "smana/r1/robot/cmd_vel",
-            f"from-{role}-tls",
-            *login(role),
-            *robot_cert,
-        )
-    hosts.call(
-        "robot",
-        "pub-explorer-tls",
-        PROBE,
-        "pub",
-        TLS,
-        "smana/r1/robot/cmd_vel",
-        "explorer-tls",
-        *login("explorer"),
-        *robot_cert,
+    # On the base: the read-only tool, and identities the base holds that do not command r1.
+    for user in ("tool", "r1.navgraph", "r2.explorer"):
+        pub("base", f"pub-{user}", f"from-{user}", *login(user, "base"))
+    # From the robot, straight to the base's TLS port with a host certificate (issue 11), which
+    # identifies the link and grants nothing; and robot r2's explorer with r2's own certificate
+    # and password (issue 25): it commands r2, not r1.
+    for user, folder, host in (
+        ("r1.tool", "r1", "r1"),
+        ("r1.mapper", "r1", "r1"),
+        ("r2.explorer", "r2", "r2"),
+        ("r2.router", "r2", "r2"),
+    ):
+        auth = [*login(user, folder), "--tls-dir", "certs", "--host", host]
+        if user.endswith(".router"):  # a router's login is only in its host's dictionary
+            auth[3] = f"certs/{folder}/dictionary.txt"
+        pub("robot", f"pub-{user}-tls", f"from-{user}-tls", *auth, endpoint=TLS)
+    tls = ["--tls-dir", "certs", "--host", "r1"]
+    pub(
+        "robot", "pub-explorer-tls", "explorer-tls", *login("r1.explorer", "r1"), *tls, endpoint=TLS
     )
-    hosts.call(
-        "base",
-        "pub-explorer2",
-        PROBE,
-        "pub",
-        LOCAL,
-        "smana/r1/robot/cmd_vel",
-        "explorer-again",
-        *login("explorer"),
-    )
+    pub("base", "pub-explorer2", "explorer-again", *login("r1.explorer", "base"))
     assert wait_for(lambda: {"explorer-tls", "explorer-again"} <= set(out.read_text().split()), 10)
     received = set(out.read_text().split())
     assert received == {"from-explorer", "explorer-tls", "explorer-again"}
@@ -129,54 +121,27 @@ def test_only_authorised_roles_publish_velocity_commands(hosts):
 def test_wrong_password_or_certificate_gets_no_link(hosts):
     start_routers(hosts)
     bad = hosts.tmp / "bad-credentials.txt"
-    bad.write_text("explorer:not-the-password\n")
+    bad.write_text("r1.explorer:not-the-password\n")
     assert (
         hosts.call(
             "base",
             "probe-badpw",
-            PROBE,
-            "open",
-            LOCAL,
-            "--user",
-            "explorer",
-            "--credentials",
-            str(bad),
+            *(PROBE, "open", LOCAL, "--user", "r1.explorer", "--credentials", str(bad)),
         )
         == 3
     )
     assert hosts.call("base", "probe-nopw", PROBE, "open", LOCAL) == 3
-    good = login("tool")
+    # The base does not hold the passwords of what runs on a robot only: r1's mapper and tool
+    # cannot log in there, only through their own robot's router.
+    tls = ["--tls-dir", "certs", "--host", "r1"]
+    for user in ("r1.mapper", "r1.tool"):
+        auth = login(user, "r1")
+        assert hosts.call("robot", f"probe-{user}", PROBE, "open", TLS, *auth, *tls) == 3
+    good = login("r1.explorer", "r1")  # one the base may run, so it holds its password
     # The right certificate and password get a link to the base over TLS...
-    assert (
-        hosts.call(
-            "robot",
-            "probe-tls-ok",
-            PROBE,
-            "open",
-            TLS,
-            *good,
-            "--tls-dir",
-            "certs",
-            "--host",
-            "robot",
-        )
-        == 0
-    )
+    assert hosts.call("robot", "probe-tls-ok", PROBE, "open", TLS, *good, *tls) == 0
     # ...a certificate from another CA does not, password or not.
-    assert (
-        hosts.call(
-            "robot",
-            "probe-tls-foreign",
-            PROBE,
-            "open",
-            TLS,
-            *good,
-            "--tls-dir",
-            "foreign",
-            "--host",
-            "robot",
-        )
-        == 3
-    )
+    foreign = ["--tls-dir", "foreign", "--host", "r1"]
+    assert hosts.call("robot", "probe-tls-foreign", PROBE, "open", TLS, *good, *foreign) == 3
     # Nor does a plain TCP connection to the TLS port.
     assert hosts.call("robot", "probe-plain", PROBE, "open", f"tcp/{BASE_IP}:7448", *good) == 3

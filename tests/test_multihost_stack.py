@@ -27,13 +27,25 @@ PROBE, PUBLISH = str(SUPPORT / "zenoh_probe.py"), str(SUPPORT / "publish_clouds.
 LOCAL = "tcp/127.0.0.1:7447"
 
 
-def login(role: str) -> list[str]:
-    return ["--user", role, "--credentials", f"certs/credentials/{role}.txt"]
+def login(user: str, host: str = "base") -> list[str]:
+    """A client's login from its host's folder of the set (`certs/r1/`, `certs/base/`)."""
+    folder = "r1" if host == "robot" else "base"
+    return ["--user", user, "--credentials", f"certs/{folder}/credentials/{user}.txt"]
+
+
+def host_config(tmp: Path, host: str) -> list[str]:
+    """`--config` for a namespace's `smana up`: the profile's [zenoh] files from its own folder."""
+    d = f"certs/{'r1' if host == 'robot' else 'base'}"
+    files = ("tls_ca", "ca.pem"), ("tls_cert", "host.pem"), ("tls_key", "host.key")
+    files += ("credentials_file", "dictionary.txt"), ("acl_file", "acl.json5")
+    path = tmp / f"{host}-host.toml"
+    path.write_text("[zenoh]\n" + "".join(f'{k} = "{d}/{v}"\n' for k, v in files))
+    return ["--config", str(path)]
 
 
 @pytest.fixture
 def hosts(tmp_path):
-    init_certs(tmp_path / "certs", ["robot", "base"])
+    init_certs(tmp_path / "certs", ["r1"])
     h = make_two_hosts(tmp_path)
     try:
         yield h
@@ -46,7 +58,8 @@ def ask(hosts, host, key, body=None, name="q"):
     out = hosts.tmp / f"{name}.json"
     out.unlink(missing_ok=True)
     extra = ["--json", json.dumps(body)] if body is not None else []
-    code = hosts.call(host, name, PROBE, "get", LOCAL, key, str(out), *login("tool"), *extra)
+    who = login("r1.tool" if host == "robot" else "tool", host)
+    code = hosts.call(host, name, PROBE, "get", LOCAL, key, str(out), *who, *extra)
     if code != 0 or not out.exists():
         return None
     first = json.loads(out.read_text().splitlines()[0])
@@ -88,6 +101,7 @@ def test_base_plans_on_robot_map_and_recovers_from_a_link_drop(hosts):
         "up",
         "--profile",
         "robot",
+        *host_config(hosts.tmp, "robot"),
         "--only",
         "mapper",
         "--run-dir",
@@ -103,6 +117,7 @@ def test_base_plans_on_robot_map_and_recovers_from_a_link_drop(hosts):
         "up",
         "--profile",
         "base",
+        *host_config(hosts.tmp, "base"),
         "--only",
         "navgraph,planner",
         "--run-dir",
@@ -119,7 +134,9 @@ def test_base_plans_on_robot_map_and_recovers_from_a_link_drop(hosts):
     assert wait_for(lambda: ask(hosts, "base", "smana/r1/mapper/stats?format=json"), 90, 1), logs()
     assert wait_for(lambda: ask(hosts, "base", "smana/r1/planner/stats?format=json"), 60, 1), logs()
 
-    assert hosts.call("robot", "publish-1", PUBLISH, LOCAL, "0", "3", *login("sim")) == 0
+    assert (
+        hosts.call("robot", "publish-1", PUBLISH, LOCAL, "0", "3", *login("r1.sim", "robot")) == 0
+    )
     request = {"start": [0.1, 0.1], "goal": [5.9, 1.9]}
 
     def planned():
@@ -133,7 +150,9 @@ def test_base_plans_on_robot_map_and_recovers_from_a_link_drop(hosts):
 
     # Cut the link; the robot keeps mapping new ground meanwhile.
     hosts.set_link(False)
-    assert hosts.call("robot", "publish-2", PUBLISH, LOCAL, "3", "2", *login("sim")) == 0
+    assert (
+        hosts.call("robot", "publish-2", PUBLISH, LOCAL, "3", "2", *login("r1.sim", "robot")) == 0
+    )
     robot_stats = ask(hosts, "robot", "smana/r1/mapper/stats?format=json", name="rstats")
     assert robot_stats is not None  # the robot side still runs and answers locally
     hosts.set_link(True)
@@ -165,6 +184,7 @@ def test_fleet_base_merges_a_member_and_fills_its_gap_after_a_link_drop(hosts):
         "up",
         "--profile",
         "fleet-robot",
+        *host_config(hosts.tmp, "robot"),
         "--robot",
         "r1",
         "--only",
@@ -183,6 +203,7 @@ def test_fleet_base_merges_a_member_and_fills_its_gap_after_a_link_drop(hosts):
         "up",
         "--profile",
         "fleet",
+        *host_config(hosts.tmp, "base"),
         "--only",
         "mapper,navgraph",
         "--run-dir",
@@ -206,10 +227,14 @@ def test_fleet_base_merges_a_member_and_fills_its_gap_after_a_link_drop(hosts):
 
     assert wait_for(lambda: ask(hosts, "base", "smana/r1/mapper/stats?format=json"), 90, 1), logs()
     assert wait_for(lambda: ask(hosts, "base", "smana/fleet/mapper/stats?format=json"), 60, 1)
-    assert hosts.call("robot", "publish-1", PUBLISH, LOCAL, "0", "3", *login("sim")) == 0
+    assert (
+        hosts.call("robot", "publish-1", PUBLISH, LOCAL, "0", "3", *login("r1.sim", "robot")) == 0
+    )
     assert wait_for(converged, 60, 1), logs()
     hosts.set_link(False)
-    assert hosts.call("robot", "publish-2", PUBLISH, LOCAL, "3", "2", *login("sim")) == 0
+    assert (
+        hosts.call("robot", "publish-2", PUBLISH, LOCAL, "3", "2", *login("r1.sim", "robot")) == 0
+    )
     hosts.set_link(True)
     assert wait_for(converged, 90, 2), logs()
     g = fleet_graph()

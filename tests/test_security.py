@@ -1,25 +1,42 @@
-"""`smana deploy init-certs` and the security config, in process: which file holds which password,
-how a session finds its login, and where a router trusts the routers it links to by certificate.
-The policy itself is tested against a real router in test_acl_table.py."""
+"""`smana deploy init-certs` and the security config, in process: which host's folder holds which
+password, how a session finds its login, where a router trusts the routers it links to by
+certificate, and the services' own checks on the queries that change state (a save, a claim),
+which hold with or without a policy. The policy itself is tested against a real router in
+test_acl_table.py."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import stat
+import subprocess
+import sys
 
 import pytest
 
+from smana.common import keys
+from smana.common.cli import UsageError
 from smana.common.config import ConfigError, ZenohConfig
+from smana.common.query import QueryError, request
 from smana.common.zenoh_config import make_zenoh_config, read_credentials
 from smana.deploy.router import router_config
-from smana.deploy.security import ROLES, acl_policy, init_certs, uplink_policy
+from smana.deploy.security import (
+    acl_policy,
+    add_robot,
+    init_certs,
+    revoke_robot,
+    uplink_policy,
+)
+from tests.conftest import REPO
+
+ROBOTS = ["r1", "r2"]
 
 
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory):
     out = tmp_path_factory.mktemp("certs")
-    init_certs(out, ["robot", "base"])
+    init_certs(out, ROBOTS)
     return out
 
 
@@ -27,34 +44,130 @@ def mode(path) -> int:
     return stat.S_IMODE(path.stat().st_mode)
 
 
-def test_only_the_routers_dictionary_holds_every_password(certs):
-    dictionary = read_credentials(str(certs / "dictionary.txt"))
-    assert set(dictionary) == set(ROLES)
-    assert not (certs / "credentials.txt").exists()
-    files = sorted((certs / "credentials").iterdir())
-    assert [f.stem for f in files] == sorted(set(ROLES) - {"router"})
-    for f in files:
-        assert read_credentials(str(f)) == {f.stem: dictionary[f.stem]}
-        assert mode(f) == 0o600
-    assert mode(certs / "dictionary.txt") == 0o600 and mode(certs / "credentials") == 0o700
-    assert mode(certs / "ca.key") == 0o600 and mode(certs / "robot.key") == 0o600
+def every_file(folder):
+    return [p for p in folder.rglob("*") if p.is_file()]
 
 
-def test_force_replaces_the_set_and_removes_an_old_all_in_one_file(tmp_path):
-    init_certs(tmp_path, ["robot"])
-    (tmp_path / "credentials.txt").write_text("router:old\n")
+def test_each_host_holds_only_its_own_secrets(certs):
+    every = read_credentials(str(certs / "users.txt"))
+    assert len(set(every.values())) == len(every)  # no password twice
+    for robot in ROBOTS:
+        folder = certs / robot
+        mine = read_credentials(str(folder / "dictionary.txt"))
+        assert set(mine) == {f"{robot}.{r}" for r in (*OWNERS, "tool", "router")}
+        # No other robot's, no operator's, no base router's password, in any file of the folder
+        text = b"".join(p.read_bytes() for p in every_file(folder))
+        leaked = [u for u, pw in every.items() if u not in mine and pw.encode() in text]
+        assert leaked == [], leaked
+        for f in (folder / "credentials").iterdir():
+            assert read_credentials(str(f)) == {f.stem: mine[f.stem]} and mode(f) == 0o600
+        assert not (folder / "credentials" / f"{robot}.router.txt").exists()
+        assert mode(folder / "dictionary.txt") == 0o600 and mode(folder / "host.key") == 0o600
+        assert mode(folder) == 0o700 and mode(folder / "credentials") == 0o700
+    base = read_credentials(str(certs / "base" / "dictionary.txt"))
+    # what the base runs (its own, the fleet's, the robots' base-side services) and the robots'
+    # router logins it checks; none of a robot's sensors' or mapper's
+    assert {"operator", "tool", "router", "fleet.coordinator", "r2.explorer", "r2.router"} <= set(
+        base
+    )
+    assert not {u for u in base if u.split(".")[-1] in ("sim", "driver", "replay", "mapper")} - {
+        "fleet.mapper"
+    }
+    assert all(base[u] == every[u] for u in base)
+    assert mode(certs / "ca.key") == 0o600 and mode(certs / "users.txt") == 0o600
+
+
+OWNERS = (
+    "sim",
+    "replay",
+    "driver",
+    "mapper",
+    "navgraph",
+    "planner",
+    "explorer",
+    "recorder",
+    "ros2",
+)
+
+
+def snapshot(folder):
+    return {p.relative_to(folder): p.read_bytes() for p in every_file(folder)}
+
+
+def test_adding_or_revoking_a_robot_leaves_the_others_alone(tmp_path):
+    init_certs(tmp_path, ROBOTS)
+    r1, base_cert = snapshot(tmp_path / "r1"), (tmp_path / "base" / "host.pem").read_bytes()
+    add_robot(tmp_path, "r3")
+    base = read_credentials(str(tmp_path / "base" / "dictionary.txt"))
+    assert "r3.router" in base and "r3.explorer" in base
+    assert "smana/r3/robot/cmd_vel" in (tmp_path / "base" / "acl.json5").read_text()
+    r3 = read_credentials(str(tmp_path / "r3" / "dictionary.txt"))
+    assert set(r3) == {f"r3.{r}" for r in (*OWNERS, "tool", "router")}
+    revoke_robot(tmp_path, "r2")
+    assert not (tmp_path / "r2").exists()
+    base = read_credentials(str(tmp_path / "base" / "dictionary.txt"))
+    assert not [u for u in base if u.startswith("r2.")]
+    assert "smana/r2/" not in (tmp_path / "base" / "acl.json5").read_text()
+    assert not (tmp_path / "base" / "credentials" / "r2.explorer.txt").exists()
+    assert snapshot(tmp_path / "r1") == r1  # untouched, byte for byte
+    assert (tmp_path / "base" / "host.pem").read_bytes() == base_cert
+
+
+def test_force_replaces_the_set_and_removes_old_files(tmp_path):
+    init_certs(tmp_path, ["r1"])
+    (tmp_path / "credentials.txt").write_text("router:old\n")  # what old versions wrote
     with pytest.raises(FileExistsError):
-        init_certs(tmp_path, ["robot"])
-    init_certs(tmp_path, ["robot"], force=True)
-    assert not (tmp_path / "credentials.txt").exists()
+        init_certs(tmp_path, ["r1"])
+    init_certs(tmp_path, ["r7"], force=True)
+    assert not (tmp_path / "credentials.txt").exists() and not (tmp_path / "r1").exists()
+
+
+def deploy(*args, cwd=REPO):
+    return subprocess.run(
+        [sys.executable, "-m", "smana.deploy", "deploy", *args],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=cwd,
+        stdin=subprocess.DEVNULL,
+    )
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["init-certs", "--days", "-1"], ["--days"]),
+        (["init-certs", "--days", "99999999"], ["--days"]),
+        (["init-certs", "--out", "/proc/nope"], ["/proc/nope"]),
+        (["init-certs", "--robots", "r1,a/b"], ["a/b"]),
+        (["init-certs", "--robots", "r1,r1"], ["differ"]),
+        (["add-robot", "r3", "--out", "/nonexistent/set"], ["/nonexistent/set"]),
+    ],
+)
+def test_init_certs_misuse_is_one_line_and_status_2(tmp_path, args, words):
+    r = deploy(*args, cwd=tmp_path)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert lines[0].startswith("smana deploy") and all(w in lines[0] for w in words), lines[0]
+
+
+def test_deploy_acl_prints_the_bases_policy(tmp_path):
+    r = deploy("acl", "--robots", "r1,r2", cwd=tmp_path)
+    assert r.returncode == 0 and json.loads(r.stdout) == acl_policy(ROBOTS)
+
+
+def test_init_certs_refuses_to_overwrite_a_set(tmp_path):
+    assert deploy("init-certs", "--out", "c", cwd=tmp_path).returncode == 0
+    r = deploy("init-certs", "--out", "c", cwd=tmp_path)
+    assert r.returncode == 2 and "--force" in r.stderr and len(r.stderr.splitlines()) == 1
 
 
 def usrpwd(conf) -> dict:
     return json.loads(conf.get_json("transport/auth/usrpwd"))
 
 
-def test_a_client_logs_in_from_its_roles_file(certs):
-    tool = certs / "credentials" / "tool.txt"
+def test_a_client_logs_in_from_its_own_file(certs):
+    tool = certs / "base" / "credentials" / "tool.txt"
     password = read_credentials(str(tool))["tool"]
     # The file's one line names the user; naming it again changes nothing.
     for user in ("", "tool"):
@@ -62,46 +175,61 @@ def test_a_client_logs_in_from_its_roles_file(certs):
         assert (auth["user"], auth["password"], auth["dictionary_file"]) == ("tool", password, None)
     with pytest.raises(ConfigError, match="'mapper' has no line"):
         make_zenoh_config(ZenohConfig(user="mapper", credentials_file=str(tool)))
-    # The dictionary names many users: a client must say which one it is.
-    auth = usrpwd(make_zenoh_config(ZenohConfig(credentials_file=str(certs / "dictionary.txt"))))
-    assert auth["user"] is None
 
 
-def test_a_router_needs_the_dictionary(certs):
-    zc = ZenohConfig(credentials_file=str(certs / "dictionary.txt"))
-    auth = usrpwd(router_config(["tcp/127.0.0.1:0"], zc))
-    assert auth["user"] == "router" and auth["dictionary_file"].endswith("dictionary.txt")
-    # A host that got only a role's file cannot run a router that links to others.
-    with pytest.raises(ConfigError, match="'router' has no line"):
+def test_a_router_logs_in_as_its_hosts_router(certs):
+    for host, user in (("base", "router"), ("r2", "r2.router")):
+        zc = ZenohConfig(credentials_file=str(certs / host / "dictionary.txt"))
+        auth = usrpwd(router_config(["tcp/127.0.0.1:0"], zc))
+        assert auth["user"] == user and auth["dictionary_file"].endswith("dictionary.txt")
+    # A host that got only one client's file cannot run a router that links to others.
+    with pytest.raises(ConfigError, match="router login"):
         router_config(
             ["tcp/127.0.0.1:0"],
-            dataclasses.replace(zc, credentials_file=str(certs / "credentials" / "tool.txt")),
+            dataclasses.replace(zc, credentials_file=str(certs / "base/credentials/tool.txt")),
         )
 
 
 def test_no_certificate_alone_names_a_subject():
-    for s in acl_policy(hosts=["robot", "base"])["subjects"]:
+    for s in acl_policy(ROBOTS)["subjects"]:
         if s.get("cert_common_names"):
-            assert s["usernames"] == ["router"], s
+            assert s["usernames"] and s["usernames"][0].split(".")[-1] == "router", s
 
 
-def enforced(certs, listen, connect) -> dict:
+def test_no_rule_but_a_routers_grants_a_wildcard_query_that_could_reach_a_write():
+    """The static half of the selector matrix in test_acl_table.py: every query rule's key either
+    names a query that only reads or is one exact key; only a router's relays `**`."""
+    policy = acl_policy(ROBOTS)
+    assert {rule["permission"] for rule in policy["rules"]} == {"allow"}  # no deny to get past
+    for rule in policy["rules"]:
+        if "query" not in rule["messages"] or "ingress" not in rule["flows"]:
+            continue
+        for k in rule["key_exprs"]:
+            if rule["id"] == "read-queries":
+                assert k.startswith("smana/*/") and "save" not in k and "claim/" not in k, k
+            elif rule["id"] in ("relay",) or rule["id"].startswith("relay-"):
+                continue
+            else:
+                assert "*" not in k and "$" not in k, (rule["id"], k)
+
+
+def enforced(certs, listen, connect, host="r1") -> dict:
     zc = ZenohConfig(
-        tls_ca=str(certs / "ca.pem"),
-        tls_cert=str(certs / "robot.pem"),
-        tls_key=str(certs / "robot.key"),
-        credentials_file=str(certs / "dictionary.txt"),
-        acl_file=str(certs / "acl.json5"),
+        tls_ca=str(certs / host / "ca.pem"),
+        tls_cert=str(certs / host / "host.pem"),
+        tls_key=str(certs / host / "host.key"),
+        credentials_file=str(certs / host / "dictionary.txt"),
+        acl_file=str(certs / host / "acl.json5"),
     )
     return json.loads(router_config(listen, zc, connect).get_json("access_control"))
 
 
 def relayed_by_certificate(policy) -> set[str]:
-    """Common names that get the relay rule with no user name attached."""
+    """Common names that get a relay rule with no user name attached."""
     subjects = {s["id"]: s for s in policy["subjects"]}
     names = set()
     for p in policy["policies"]:
-        if "relay" in p["rules"]:
+        if any(r == "relay" or r.startswith("relay-") for r in p["rules"]):
             for sid in p["subjects"]:
                 if not subjects[sid].get("usernames"):
                     names |= set(subjects[sid].get("cert_common_names") or [])
@@ -110,19 +238,133 @@ def relayed_by_certificate(policy) -> set[str]:
 
 def test_a_router_trusts_a_certificate_only_on_links_it_opened(certs):
     lo, tls_in, tls_out = ["tcp/127.0.0.1:7447"], ["tls/0.0.0.0:7448"], ["tls/10.0.0.2:7448"]
-    # The robot: loopback for its services, a TLS link out to the base.
-    assert relayed_by_certificate(enforced(certs, lo, tls_out)) == {"robot", "base"}
+    # A robot: loopback for its services, a TLS link out to the base, which it trusts.
+    assert relayed_by_certificate(enforced(certs, lo, tls_out)) == {"base"}
     # The base listens on TLS, where anyone with a host certificate can connect: no such trust.
-    assert relayed_by_certificate(enforced(certs, lo + tls_in, [])) == set()
-    assert relayed_by_certificate(enforced(certs, lo + tls_in, tls_out)) == set()
+    assert relayed_by_certificate(enforced(certs, lo + tls_in, [], "base")) == set()
+    assert relayed_by_certificate(enforced(certs, lo + tls_in, tls_out, "base")) == set()
     assert relayed_by_certificate(enforced(certs, lo, [])) == set()
 
 
 def test_uplink_policy_adds_a_twin_to_the_routers_policies():
-    policy = acl_policy(hosts=["base"])
+    policy = acl_policy(["r1"], base_identities=False)
     twin = uplink_policy(policy)
-    assert policy == acl_policy(hosts=["base"])  # the input is left alone
-    assert {"id": "routers-tls-uplink", "cert_common_names": ["base"]} in twin["subjects"]
-    routers = next(p for p in twin["policies"] if p["id"] == "routers")
-    assert routers["subjects"] == ["routers-tcp", "routers-tls", "routers-tls-uplink"]
-    assert uplink_policy(acl_policy()) == acl_policy()  # no host names, nothing to trust
+    assert policy == acl_policy(["r1"], base_identities=False)  # the input is left alone
+    assert {"id": "router@tls-uplink", "cert_common_names": ["base"]} in twin["subjects"]
+    routers = next(p for p in twin["policies"] if p["id"] == "router")
+    assert routers["subjects"] == ["router@tcp", "router@tls", "router@tls-uplink"]
+
+
+# -- the services' own checks on a save and a claim, on an unsecured (fake) network -------------
+
+
+def test_a_save_by_a_wildcard_or_past_the_quota_writes_nothing(fake_stack, tmp_path):
+    st = fake_stack
+    st.service(
+        "mapper",
+        "--save",
+        str(tmp_path / "map.npz"),
+        "--set",
+        "mapper.autosave_period_s=0",
+        "--set",
+        "mapper.save_max_files=3",
+    )
+    st.wait_alive("mapper")
+    s, r = st.session, st.robot
+    exact = keys.query(r, "mapper", "save")
+    shapes = ("mapper/*", "mapper/**", "*/save", "**", "mapper/sav$*", "**/save")
+    for sel in shapes:  # each reaches the save queryable, which refuses it
+        list(s.get(f"smana/{r}/{sel}", timeout=5.0))
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+    # the exact key saves, within the quota: map.npz and two more files, then `quota`
+    for name in ("a.npz", "b.npz"):
+        assert request(s, exact, {"name": name})["ok"]
+    assert request(s, exact)["ok"]  # map.npz itself
+    with pytest.raises(QueryError) as err:
+        request(s, exact, {"name": "c.npz"})
+    assert err.value.kind == "quota"
+    assert request(s, exact, {"name": "a.npz"})["ok"]  # rewriting one adds nothing
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz", "b.npz", "map.npz"]
+    assert st.drained("mapper")
+    status = st.status("mapper")
+    assert status.rejected.get("selector") == 6 and status.rejected.get("quota") == 1
+    assert status.books_add_up()
+
+
+def test_a_claim_from_a_stranger_by_a_wildcard_or_off_the_map_is_refused(fake_stack):
+    st = fake_stack
+    st.service("coordinator", "--set", 'fleet.robots=["r1", "r2"]')
+    st.wait_alive("coordinator")
+    s, fleet = st.session, st.robot
+    assert request(s, keys.claim(fleet, "r1"), {"goal": [1.0, 1.0]})["granted"]
+    refused = {
+        "member": [(keys.claim(fleet, "r2"), {"robot": "r1", "goal": [9.0, 9.0]})],
+        "value": [
+            (keys.claim(fleet, "r2"), {"goal": [1e308, 1e308]}),
+            (keys.claim(fleet, "r2"), {"goal": [math.inf, 0.0]}),
+            (keys.claim(fleet, "r2"), {"goal": [0.0, 51.0]}),  # navgraph bounds: +-50 m
+        ],
+    }
+    for kind, cases in refused.items():
+        for key, body in cases:
+            with pytest.raises(QueryError) as err:
+                request(s, key, body)
+            assert err.value.kind == kind, (key, body, err.value)
+    # a stranger: no member's key is its own, and a wildcard reaches every member's queryable,
+    # each of which refuses it
+    with pytest.raises(QueryError):
+        request(s, keys.query(fleet, "coordinator", "claim/r9"), {"goal": [20.0, 20.0]})
+    for sel in ("claim/*", "**", "claim/r$*"):  # 2 members' queryables each
+        release = json.dumps({"goal": None}).encode()
+        list(s.get(f"smana/{fleet}/coordinator/{sel}", payload=release, timeout=5.0))
+    assert st.drained("coordinator")
+    claims = request(s, keys.claims(fleet))["claims"]
+    assert claims == {"r1": [1.0, 1.0]}  # nothing a stranger or a wildcard sent changed it
+    status = st.status("coordinator")
+    assert status.rejected.get("member") == 1 and status.rejected.get("value") == 3
+    assert status.rejected.get("selector") == 6 and status.books_add_up()
+
+
+@pytest.mark.parametrize(
+    "profile, host",
+    [
+        ("robot", "r1"),
+        ("fleet-robot", "r1"),
+        ("base", "base"),
+        ("multi-robot", "base"),
+        ("fleet", "base"),
+    ],
+)
+def test_each_secured_profile_runs_on_its_hosts_folder(certs, tmp_path, profile, host):
+    """A profile's [zenoh] files are in its host's folder once copied as `certs/`, and every
+    service the profile starts finds its own `<robot>.<service>` login there."""
+    from smana.common.config import SmanaConfig
+    from smana.deploy.supervisor import Supervisor, profile_path
+
+    (tmp_path / "certs").symlink_to(certs / host)
+    cfg = SmanaConfig.load(layers=[profile_path(profile)])
+    for field in ("tls_ca", "tls_cert", "tls_key", "credentials_file", "acl_file"):
+        assert (tmp_path / getattr(cfg.zenoh, field)).is_file(), (profile, field)
+    users = read_credentials(str(certs / host / "dictionary.txt"))
+    cfg = dataclasses.replace(
+        cfg,
+        zenoh=dataclasses.replace(
+            cfg.zenoh, credentials_file=str(tmp_path / cfg.zenoh.credentials_file)
+        ),
+    )
+    procs = Supervisor(cfg, tmp_path / "run").procs.values()
+    logins = [[a for a in p.argv if a.startswith("zenoh.user=")] for p in procs]
+    assert logins and all(len(one) == 1 for one in logins), logins
+    missing = {s for (s,) in logins if s.split("=", 1)[1].strip('"') not in users}
+    assert not missing, (profile, missing)
+
+
+def test_a_client_host_gets_a_certificate_and_no_password(tmp_path):
+    init_certs(tmp_path, ["r1"], clients=["laptop"])
+    folder = tmp_path / "laptop"
+    assert sorted(p.name for p in folder.iterdir()) == ["ca.pem", "host.key", "host.pem"]
+    text = b"".join(p.read_bytes() for p in every_file(folder))
+    every = read_credentials(str(tmp_path / "users.txt"))
+    assert not [u for u, pw in every.items() if pw.encode() in text]
+    with pytest.raises(UsageError):  # a client's name is taken like a robot's
+        add_robot(tmp_path, "laptop")

@@ -1,7 +1,7 @@
 """`smana coordinator`: hands out the fleet's next-best views, no two members to one frontier.
 
 Runs under the fleet's name (`--robot fleet`, `fleet.name`) with `fleet.robots` set; answers
-`smana/<fleet>/coordinator/claim` and publishes `smana/<fleet>/coordinator/claims`.
+`smana/<fleet>/coordinator/claim/<member>` and publishes `smana/<fleet>/coordinator/claims`.
 """
 
 from __future__ import annotations

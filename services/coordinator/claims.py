@@ -36,11 +36,20 @@ class Progress:
 
 
 class ClaimBook:
+    """`bounds`: ((xmin, ymin), (xmax, ymax)), the fleet's area (the navigation graph's bounds); a
+    goal outside it is refused like a non-finite one."""
+
     def __init__(
-        self, members: list[str], goal_separation_m: float, ttl_s: float, stall_s: float = 20.0
+        self,
+        members: list[str],
+        goal_separation_m: float,
+        ttl_s: float,
+        stall_s: float = 20.0,
+        bounds=None,
     ):
         if goal_separation_m < 0 or ttl_s <= 0:
             raise ValueError("need goal_separation_m >= 0 and ttl_s > 0")
+        self.bounds = None if bounds is None else tuple(tuple(map(float, b)) for b in bounds)
         self.members = list(members)
         self.separation_m = float(goal_separation_m)
         self.ttl_s = float(ttl_s)
@@ -65,6 +74,10 @@ class ClaimBook:
         x, y = (float(v) for v in xy)
         if not (math.isfinite(x) and math.isfinite(y)):
             raise ValueError(f"goal must be finite, got {xy!r}")
+        if self.bounds is not None:
+            (x0, y0), (x1, y1) = self.bounds
+            if not (x0 <= x <= x1 and y0 <= y <= y1):
+                raise ValueError(f"goal {xy!r} is outside the fleet's area {self.bounds}")
         self.heard[robot] = t
         for other, c in sorted(self.claims.items()):
             if other == robot or self.stalled(other, t):

@@ -1,13 +1,22 @@
 """The coordinator service: the `ClaimBook` on the fleet's keys (`smana/<fleet>/coordinator/...`).
 
-- query `coordinator/claim`: a map `{"robot": name, "goal": [x, y]}` claims a goal, `{"robot":
-  name, "goal": null}` releases the member's claim; the reply is `{"ok": true, "granted": bool,
-  "holder": the member whose goal is too near (or null), "claims": {member: [x, y]}}`;
+- query `coordinator/claim/<member>`, one key per member: `{"goal": [x, y]}` claims a goal for
+  that member, `{"goal": null}` releases its claim (a `"robot"` field, if any, must name the same
+  member); the reply is `{"ok": true, "granted": bool, "holder": the member whose goal is too near
+  (or null), "claims": {member: [x, y]}}`. Refused and counted: a selector that is not the exact
+  key (`claim/*`, `**`: `selector`), another member's name in the body (`member`), a goal that is
+  not finite or lies outside the fleet's area, `navgraph.bounds_*_xy` (`value`);
 - `coordinator/claims` (published on each change and every second, also a query): `{"claims":
   {member: [x, y]}, "version": n, "stamp_s": wall time}`: what every explorer discounts its views
   with;
 - in: each member's `explorer/state`, which keeps its claim alive (or ends it when the member has
   no goal any more); a member silent for `fleet.pose_timeout_s` x 5 loses its claim.
+
+Who asks matters, and a query does not say who sent it (zenoh's source info and attachment are
+whatever the sender writes). So each member claims on a key of its own, and on a secured
+deployment the access-control policy lets only that member's identities (`<member>.explorer`,
+and its router) send a query there, by that exact key (`deploy/security.py`); the checks above
+hold on an unsecured one too.
 """
 
 from __future__ import annotations
@@ -36,8 +45,13 @@ class CoordinatorService(Service):
             raise ConfigError(
                 "the coordinator needs a fleet: set fleet.robots (or smana up --robots N)"
             )
+        nc = config.navgraph
         self.book = ClaimBook(
-            fc.robots, fc.goal_separation_m, ttl_s=5 * fc.pose_timeout_s, stall_s=fc.claim_stall_s
+            fc.robots,
+            fc.goal_separation_m,
+            ttl_s=5 * fc.pose_timeout_s,
+            stall_s=fc.claim_stall_s,
+            bounds=(nc.bounds_min_xy, nc.bounds_max_xy),
         )
         self._published = -1
         self._stalled: list[str] = []
@@ -46,17 +60,22 @@ class CoordinatorService(Service):
     def setup(self) -> None:
         r = self.robot
         self.claims_pub = self.publisher(keys.claims(r), reliable_block=True)
-        self.queryable(keys.claim(r), self.on_claim)
+        for m in self.book.members:
+            self.queryable(keys.claim(r, m), lambda req, m=m: self.on_claim(m, req))
         self.queryable(keys.claims(r), lambda req: self._claims())
         self.queryable(keys.query(r, "coordinator", "stats"), lambda req: self.book.stats())
         for m in self.book.members:
             self.subscribe(keys.explorer_state(m), lambda b, m=m: self.on_state(m, b))
 
-    def on_claim(self, req) -> dict:
+    def on_claim(self, robot: str, req) -> dict:
+        if req.key != keys.claim(self.robot, robot):  # a wildcard reaches every member's key
+            raise Reject("selector", f"claim: {req.key} is not {keys.claim(self.robot, robot)}")
         body = req.body()
-        robot, goal = body.get("robot"), body.get("goal", "missing")
-        if not isinstance(robot, str) or goal == "missing":
-            raise Reject("missing_field", 'a claim is {"robot": name, "goal": [x, y] or null}')
+        goal = body.get("goal", "missing")
+        if goal == "missing":
+            raise Reject("missing_field", 'a claim is {"goal": [x, y] or null}')
+        if body.get("robot", robot) != robot:
+            raise Reject("member", f"claim for {body.get('robot')!r} on {robot}'s key")
         now = time.monotonic()
         try:
             if goal is None:

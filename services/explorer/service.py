@@ -226,10 +226,9 @@ class ExplorerService(Service):
         views near the others' last known goals are still left out)."""
         self.claims_asked += 1
         body = {"robot": self.robot, "goal": [float(goal_xy[0]), float(goal_xy[1])]}
+        key = keys.claim(self.fleet.name, self.robot)
         try:
-            reply = request(
-                self.session, keys.claim(self.fleet.name), body, self.fleet.claim_timeout_s
-            )
+            reply = request(self.session, key, body, self.fleet.claim_timeout_s)
             granted, holder = bool(reply["granted"]), reply.get("holder")
             claims = reply.get("claims") or {}
         except (QueryError, KeyError, TypeError) as exc:

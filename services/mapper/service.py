@@ -18,7 +18,9 @@ Queries (msgpack or JSON, see `common/service.py`):
   `{"box": [xmin, ymin, zmin, xmax, ymax, zmax]}` (or `?box=...` in the selector);
   `{"observed": true}` (or `?observed=true`): every observed voxel, free ones too (what a
   consumer that replaces its copy of the map needs: the fleet mapper);
-- `mapper/save`: save now to `mapper.save_path` (or `{"name": "file.npz"}` beside it);
+- `mapper/save`: save now to `mapper.save_path` (or `{"name": "file.npz"}` beside it); only by
+  its exact key (a wildcard selector is refused, `selector`), and within `mapper.save_max_files`
+  and `save_max_mb` (`quota`);
 - `mapper/point`: `{"points": [[x, y, z], ...]}` -> known, occupied, labels, confidences, values.
 
 Fleet (`mapper.source = "fleet"`, run under the fleet's name: `--robot fleet`): instead of clouds,
@@ -136,6 +138,7 @@ class MapperService(Service):
         self.times_ms: list[float] = []
         self.dirty = False
         self.last_save_s = 0.0
+        self._last_save_bytes = 0
         self._next_save = time.monotonic() + config.mapper.autosave_period_s
         # the fleet mapper: per member, its stream, its counters and a pending resync's reason
         self.fleet = config.mapper.source == "fleet"
@@ -363,6 +366,7 @@ class MapperService(Service):
         t0 = time.perf_counter()
         path.parent.mkdir(parents=True, exist_ok=True)
         self.map.save(path)
+        self._last_save_bytes = path.stat().st_size
         self.dirty = False
         self.last_save_s = time.time()
         ms = (time.perf_counter() - t0) * 1e3
@@ -446,6 +450,9 @@ class MapperService(Service):
         return self._message(rows, self.last_stamp_s, cloud_seq, self.delta_seq)
 
     def on_save(self, req: Request) -> dict:
+        # It writes a file: only its exact key, never a wildcard that happened to match it
+        if req.key != keys.query(self.robot, "mapper", "save"):
+            raise ReplyError("selector", f"save: {req.key} is not the save key itself")
         if self.save_path is None:
             raise ReplyError("value", "no mapper.save_path and no run dir: nowhere to save")
         name = req.body().get("name")
@@ -463,10 +470,26 @@ class MapperService(Service):
             ):
                 raise ReplyError("value", f"name must be a plain file name.npz, got {name!r}")
             path = self.save_path.parent / name
+        self._check_save_quota(path)
         try:
             return self.save(path)
         except OSError as exc:  # disk full, permissions: the query fails, the mapper goes on
             raise ReplyError("io", f"could not save to {path}: {exc.strerror or exc}") from None
+
+    def _check_save_quota(self, path: Path) -> None:
+        """Refuse a queried save that would leave more than `save_max_files` .npz files, or more
+        than `save_max_mb` of them (counting the new one as large as the last save), beside
+        `save_path`: whoever may ask cannot fill the disk."""
+        mc = self.config.mapper
+        others = [p for p in path.parent.glob("*.npz") if p.name != path.name and p.is_file()]
+        used = sum(p.stat().st_size for p in others)
+        size = path.stat().st_size if path.is_file() else self._last_save_bytes
+        if len(others) + 1 > mc.save_max_files or (used + size) / 1e6 > mc.save_max_mb:
+            raise ReplyError(
+                "quota",
+                f"save: {len(others)} map files, {used / 1e6:.0f} MB in {path.parent} "
+                f"(mapper.save_max_files {mc.save_max_files}, save_max_mb {mc.save_max_mb:g})",
+            )
 
     def on_point(self, req: Request) -> dict:
         pts = req.body().get("points")

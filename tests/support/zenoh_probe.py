@@ -5,7 +5,8 @@
     zenoh_probe.py pub ENDPOINT KEY PAYLOAD [auth]
     zenoh_probe.py get ENDPOINT KEY OUT [--json BODY] [auth]
 
-auth: --user U --credentials FILE, and for tls/ endpoints --tls-dir DIR --host NAME.
+auth: --user U --credentials FILE, and for tls/ endpoints --tls-dir DIR --host NAME (the
+folder of `smana deploy init-certs` and the host whose certificate to present).
 """
 
 from __future__ import annotations
@@ -34,8 +35,8 @@ def config(args) -> zenoh.Config:
         d = args.tls_dir
         zc.tls_ca, zc.tls_cert, zc.tls_key = (
             f"{d}/ca.pem",
-            f"{d}/{args.host}.pem",
-            f"{d}/{args.host}.key",
+            f"{d}/{args.host}/host.pem",  # a host's folder of `smana deploy init-certs`
+            f"{d}/{args.host}/host.key",
         )
     return make_zenoh_config(zc)
 
