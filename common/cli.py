@@ -111,7 +111,9 @@ def config_from_args(args: argparse.Namespace, layers=()) -> SmanaConfig:
     run_dir = Path(general.run_dir) if general.run_dir else None
     if run_dir is not None and run_dir.exists() and not run_dir.is_dir():
         # refused before anything starts: a service would map, then fail to save into it
-        raise UsageError(f"run directory {run_dir} is a file, not a directory; choose another")
+        raise UsageError(
+            f"run directory {run_dir} is a file, not a directory; choose another with --run-dir DIR"
+        )
     try:
         return dataclasses.replace(cfg, general=general, zenoh=apply_zenoh_args(cfg.zenoh, args))
     except ValueError as exc:

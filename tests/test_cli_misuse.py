@@ -356,8 +356,8 @@ def _no_router_args() -> list[str]:
         (["up", "--set", "explorer.time_budget_s=inf"], ["explorer.time_budget_s", "finite"]),
         (["up", "--set", "navgraph.bounds_max_xy=[1e300, 1e300]"], ["navgraph.bounds", "nodes"]),
         (["up", "--set", "navgraph.resolution_m=1e-5"], ["navgraph.", "at most 1048576"]),
-        (["deploy", "init-certs", "--hosts", "robot,../base"], ["--hosts", "'../base'"]),
-        (["deploy", "acl", "--robot", "r1/**"], ["--robot", "'r1/**'"]),
+        (["deploy", "init-certs", "--robots", "r1,../base"], ["robot name", "'../base'"]),
+        (["deploy", "acl", "--robots", "r1/**"], ["robot name", "'r1/**'"]),
     ],
 )
 def test_a_bad_name_or_number_is_one_line_and_exit_2_with_nothing_left(tmp_path, args, words):

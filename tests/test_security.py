@@ -368,3 +368,14 @@ def test_a_client_host_gets_a_certificate_and_no_password(tmp_path):
     assert not [u for u, pw in every.items() if pw.encode() in text]
     with pytest.raises(UsageError):  # a client's name is taken like a robot's
         add_robot(tmp_path, "laptop")
+
+
+def test_the_policy_grants_nothing_outside_smana():
+    """Default deny, and every allow rule's key is under `smana/`: the secured profile admits
+    only smana's keys (docs/ros2.md, docs/deployment.md)."""
+    for base_identities in (True, False):
+        policy = acl_policy(["r1", "r2"], "fleet", "base", base_identities=base_identities)
+        assert policy["enabled"] is True and policy["default_permission"] == "deny"
+        keys = [k for rule in policy["rules"] for k in rule["key_exprs"]]
+        assert keys and all(k.startswith("smana/") for k in keys), keys
+        assert all(rule["permission"] == "allow" for rule in policy["rules"])
