@@ -28,6 +28,16 @@ def cli(argv: list[str] | None = None) -> int:
         from smana.services.mapper.fleet import check_fleet_source
 
         check_fleet_source(cfg.mapper, cfg.fleet)  # so does a fleet map that cannot be merged
+    if cfg.mapper.load and cfg.mapper.load != "auto":
+        from smana.services.mapper.mapfile import MapFileError, check_map_file
+
+        # a map file that cannot be used stops here, in one line, before zenoh opens (its
+        # arrays are checked as they are read, in the service: the same one line, exit 2)
+        try:
+            check_map_file(cfg.mapper.load, cfg.mapper.backend)
+        except MapFileError as exc:
+            print(f"smana mapper: {exc}", file=sys.stderr)
+            return 2
     setup_logging(cfg.general.log_level, "mapper")
     from smana.services.mapper.service import main
 
