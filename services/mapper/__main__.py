@@ -29,12 +29,13 @@ def cli(argv: list[str] | None = None) -> int:
 
         check_fleet_source(cfg.mapper, cfg.fleet)  # so does a fleet map that cannot be merged
     if cfg.mapper.load and cfg.mapper.load != "auto":
-        from smana.services.mapper.mapfile import MapFileError, check_map_file
+        from smana.services.mapper.mapfile import MapFileError
+        from smana.services.mapper.semantic_map import SemanticMap
 
-        # a map file that cannot be used stops here, in one line, before zenoh opens (its
-        # arrays are checked as they are read, in the service: the same one line, exit 2)
+        # a map file that cannot be used stops here, in one line, before zenoh opens; the
+        # arrays' values are checked as they are read, in the service (one line, exit 2)
         try:
-            check_map_file(cfg.mapper.load, cfg.mapper.backend)
+            SemanticMap.check_file(cfg.mapper.load, cfg.general.class_table, cfg.mapper.backend)
         except MapFileError as exc:
             print(f"smana mapper: {exc}", file=sys.stderr)
             return 2

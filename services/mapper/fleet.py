@@ -48,15 +48,10 @@ from smana.services.mapper._grid import KEY_LIMIT, OBSERVED, BlockGrid
 from smana.services.mapper.backends import backend_class
 from smana.services.mapper.backends.occupancy import sensor_model
 from smana.services.mapper.delta import Delta
-from smana.services.mapper.semantic_map import QueryResult, SemanticMap, fleet_layer_names
+from smana.services.mapper.semantic_map import QueryResult, SemanticMap
 
 HAS = np.uint8(1)  # a layer's flag: the member reported this voxel
-_LAYER_FIELDS = {
-    "logodds": (np.float32, ()),
-    "label": (np.uint16, ()),
-    "conf": (np.float32, ()),
-    "flags": (np.uint8, ()),
-}
+_LAYER_FIELDS = mapfile.LAYER  # a layer's columns, as the map file stores them
 # A source voxel whose centre lands in a fleet voxel has its centre within res / sqrt(2) of that
 # voxel's back-projected centre on each axis: an interval shorter than 2 voxels, so 2 x 2
 # candidate source voxels from the first key it may hold (the margin covers rounding)
@@ -396,7 +391,7 @@ class FleetMap:
             # same (as the file describes them), so that the file also loads as a plain map
             grid = SemanticMap._from_meta(meta, class_table, f.path)._core.grid
             expected = {"meta", "block_keys", *(f"col_{k}" for k in grid.fields)}
-            mapfile.check_members(f, expected | fleet_layer_names(len(saved["members"])))
+            mapfile.check_members(f, expected | mapfile.layer_names(len(saved["members"])))
             mapfile.read_grid(f, "block_keys", "col_", grid.fields, grid.bits, set(grid.loaders))
             layers = {}
             for m, name in enumerate(saved["members"]):

@@ -29,6 +29,7 @@ import math
 import os
 import stat
 import struct
+import tokenize
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -55,6 +56,10 @@ _PACK_OFF = 1 << 20  # _grid's block key packing: 21 bits an axis, offset by 2**
 _PACK_MASK = (1 << 21) - 1
 # What reading a broken zip or npy member can raise besides ValueError: all mean "broken file"
 _BROKEN = (OSError, EOFError, zipfile.BadZipFile, zlib.error, struct.error, NotImplementedError)
+
+
+# What numpy's header parser (a Python literal, tokenized then evaluated) raises on bad text
+_BAD_TEXT = (ValueError, TypeError, SyntaxError, RecursionError, tokenize.TokenError)
 
 
 class MapFileError(ValueError):
@@ -149,7 +154,7 @@ class MapFile:
                 else:
                     raise ValueError(f"npy version {version} not supported")
                 header = fp.tell()  # magic, length and header text: where the data starts
-        except (*_BROKEN, ValueError, TypeError, SyntaxError, RecursionError, KeyError) as exc:
+        except (*_BROKEN, *_BAD_TEXT, KeyError) as exc:
             raise _fail(self.path, f"{name}: broken .npy header ({_why(exc)})") from None
         if dtype.hasobject or dtype.kind not in "biuf" or dtype.fields is not None:
             raise _fail(self.path, f"{name}: dtype {dtype.str} is not a plain number type")
@@ -241,7 +246,9 @@ def _is_int(v) -> bool:
 
 
 def _is_number(v) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return False
+    return abs(v) <= 1e300 if isinstance(v, int) else math.isfinite(v)  # 10**400: no float
 
 
 def _count(path, key: str, v) -> int:
@@ -329,15 +336,17 @@ def check_meta(meta: dict, path, trusted_backend: str | None = None) -> dict:
     version = meta.get("smana_version", "")
     if not isinstance(version, str) or len(version) > 100:
         raise _fail(path, f"meta.smana_version: expected a short string, got {_show(version)}")
-    if fmt == 1:  # the octrees' section was two tables, the TSDF's its own
+    if fmt == 1:  # the octrees' section was two tables, the TSDF's its own; both checked
+        from smana.common.config.mapper import OctreeConfig, TsdfConfig
+
         for key in ("occupancy", "fusion", "tsdf"):
             if not isinstance(meta[key], dict):
                 raise _fail(path, f"meta.{key}: expected an object, got {_show(meta[key])}")
-        if backend.config_key == "tsdf":
-            saved = meta["tsdf"]
-        else:
-            saved = {**meta["occupancy"], **meta["fusion"]}
-        out["config"] = _section(path, "config", saved, backend.config_class)
+        octree = _section(path, "occupancy", {**meta["occupancy"], **meta["fusion"]}, OctreeConfig)
+        tsdf = _section(path, "tsdf", meta["tsdf"], TsdfConfig)
+        out["config"] = tsdf if backend.config_key == "tsdf" else octree
+        if backend.config_class is None:
+            out["config"] = None
     else:
         _section(path, "config", meta["config"], backend.config_class)
     if "fleet" in meta:
@@ -381,6 +390,20 @@ def check_fleet_meta(fleet, path) -> None:
 
 # -- the arrays ------------------------------------------------------------------------------------
 
+# A fleet map's layer per member (`FleetMap`): its columns, beside `layer<m>_block_keys`
+LAYER = {
+    "logodds": (np.float32, ()),
+    "label": (np.uint16, ()),
+    "conf": (np.float32, ()),
+    "flags": (np.uint8, ()),
+}
+
+
+def layer_names(n_members: int) -> set[str]:
+    """The arrays a fleet map file adds for its members."""
+    return {f"layer{m}_{k}" for m in range(n_members) for k in ("block_keys", *LAYER)}
+
+
 # Value ranges of columns by name (every float column must be finite besides)
 _RANGES = {"prob": (0.0, 1.0), "conf": (0.0, 1.0), "weight": (0.0, math.inf)}
 
@@ -396,11 +419,11 @@ def check_members(f: MapFile, expected: set[str]) -> None:
         raise _fail(f.path, f"arrays: {what}")
 
 
-def read_grid(
+def check_grid(
     f: MapFile, keys_name: str, prefix: str, fields: dict, bits: int, legacy: set[str] = frozenset()
-) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Block keys and voxel columns of one block grid (`fields`: name -> (dtype, trailing
-    shape)), checked against the declaration before they are read, and their values after.
+) -> None:
+    """The headers of one block grid's arrays: block keys (int64, one dimension) and a column
+    per field (`fields`: name -> (dtype, trailing shape)) of one row per voxel of those blocks.
     A column in `legacy` may also be float32 (a layout a loader of the back-end converts)."""
     mem = f.members.get(keys_name)
     if mem is None:
@@ -410,9 +433,17 @@ def read_grid(
     n = mem.shape[0]
     f.check(keys_name, (np.int64,), (n,))
     vpb = 1 << (3 * bits)
-    for k, (dt, shape) in fields.items():  # every header before any column is read
+    for k, (dt, shape) in fields.items():
         dts = (dt, np.float32) if k in legacy else (dt,)
         f.check(prefix + k, dts, (n * vpb, *shape))
+
+
+def read_grid(
+    f: MapFile, keys_name: str, prefix: str, fields: dict, bits: int, legacy: set[str] = frozenset()
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Block keys and voxel columns of one block grid, their headers checked (`check_grid`)
+    before they are read, their values after."""
+    check_grid(f, keys_name, prefix, fields, bits, legacy)
     block_keys = f.array(keys_name)
     check_block_keys(block_keys, bits, f.path, keys_name)
     cols = {}
@@ -444,19 +475,14 @@ def check_block_keys(keys: np.ndarray, bits: int, path, name: str = "block_keys"
         raise _fail(path, f"{name}: a block twice")
 
 
-def check_map_file(path: str | Path, trusted_backend: str | None = None) -> None:
-    """The container, the headers and the metadata of a map file (no array is read but
-    `meta`): a quick check before a service starts. `MapFileError` when it cannot be used."""
-    with MapFile(path) as f:
-        check_meta(f.meta(), f.path, trusted_backend)
-
-
 __all__ = [
-    "check_map_file",
     "MAX_MAP_BYTES",
     "MapFile",
     "MapFileError",
+    "LAYER",
     "check_block_keys",
+    "check_grid",
+    "layer_names",
     "check_members",
     "check_meta",
     "max_range_for",

@@ -31,7 +31,7 @@ from smana.services.mapper import mapfile, ply
 from smana.services.mapper._grid import KEY_LIMIT
 from smana.services.mapper.backends import backend_class
 from smana.services.mapper.delta import Delta
-from smana.services.mapper.mapfile import FORMAT_VERSION
+from smana.services.mapper.mapfile import FORMAT_VERSION, LAYER
 
 _DEFAULT = MapperConfig()  # the library's defaults are the config's, declared once there
 
@@ -42,12 +42,6 @@ def smana_version() -> str:
         return version("smana")
     except PackageNotFoundError:
         return ""
-
-
-def fleet_layer_names(n_members: int) -> set[str]:
-    """The arrays a fleet map file adds per member (`FleetMap.save`)."""
-    fields = ("block_keys", "logodds", "label", "conf", "flags")
-    return {f"layer{m}_{k}" for m in range(n_members) for k in fields}
 
 
 @dataclass
@@ -319,12 +313,7 @@ class SemanticMap:
         one-line `MapFileError` (a ValueError). The back-end it names must be a registered one,
         or `backend` (a module:Class spec the caller trusts, e.g. its `mapper.backend`)."""
         with mapfile.MapFile(path, max_bytes) as f:
-            meta = mapfile.check_meta(f.meta(), f.path, backend)
-            m = cls._from_meta(meta, class_table, f.path)
-            expected = {"meta", "block_keys", *(f"col_{k}" for k in m._core.grid.fields)}
-            if "fleet" in meta:
-                expected |= fleet_layer_names(len(meta["fleet"]["members"]))
-            mapfile.check_members(f, expected)
+            meta, m = cls._checked(f, class_table, backend)
             grid = m._core.grid
             block_keys, cols = mapfile.read_grid(
                 f, "block_keys", "col_", grid.fields, grid.bits, set(grid.loaders)
@@ -334,6 +323,35 @@ class SemanticMap:
         m.n_integrations = meta["integrations"]
         m.n_points = meta["points"]
         return m
+
+    @classmethod
+    def check_file(
+        cls,
+        path: str | Path,
+        class_table: ClassTable | str | Path | None = None,
+        backend: str | None = None,
+    ) -> None:
+        """Everything `load` checks but the arrays' values (the container, the metadata, every
+        array's dtype and shape), without reading more than the metadata: a quick check before
+        a service starts. A `MapFileError` (one line) when the file cannot be used."""
+        with mapfile.MapFile(path) as f:
+            meta, m = cls._checked(f, class_table, backend)
+            grid = m._core.grid
+            mapfile.check_grid(f, "block_keys", "col_", grid.fields, grid.bits, set(grid.loaders))
+            for i in range(len(meta.get("fleet", {}).get("members", ()))):
+                mapfile.check_grid(f, f"layer{i}_block_keys", f"layer{i}_", LAYER, grid.bits)
+
+    @classmethod
+    def _checked(cls, f: mapfile.MapFile, class_table, backend) -> tuple[dict, SemanticMap]:
+        """The checked metadata of an open file and the empty map it describes; the file holds
+        exactly the arrays that map needs (and a fleet map's layers)."""
+        meta = mapfile.check_meta(f.meta(), f.path, backend)
+        m = cls._from_meta(meta, class_table, f.path)
+        expected = {"meta", "block_keys", *(f"col_{k}" for k in m._core.grid.fields)}
+        if "fleet" in meta:
+            expected |= mapfile.layer_names(len(meta["fleet"]["members"]))
+        mapfile.check_members(f, expected)
+        return meta, m
 
     @classmethod
     def _from_meta(cls, meta: dict, class_table, path) -> SemanticMap:
