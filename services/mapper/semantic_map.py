@@ -318,6 +318,9 @@ class SemanticMap:
             block_keys, cols = mapfile.read_grid(
                 f, "block_keys", "col_", grid.fields, grid.bits, set(grid.loaders)
             )
+            # a fleet map's layers are not this map's, but the file is checked whole
+            for i in range(len(meta.get("fleet", {}).get("members", ()))):
+                mapfile.read_grid(f, f"layer{i}_block_keys", f"layer{i}_", LAYER, grid.bits)
         grid.restore(block_keys, cols)
         m._core.recount()
         m.n_integrations = meta["integrations"]
