@@ -1432,8 +1432,8 @@ def predict_explorer_state(payload: bytes) -> str | None:
     try:
         state = msgpack.unpackb(payload)
         goal = state.get("goal") if isinstance(state, dict) else None
-        if goal:
-            [float(v) for v in goal["xy"]]  # noqa: B018 - the conversion is the check
+        if goal and len([float(v) for v in goal["xy"]]) < 2:
+            return "malformed"
         dist = state.get("distance_m") if isinstance(state, dict) else None
         if isinstance(dist, int | float):
             float(dist)
