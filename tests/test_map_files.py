@@ -151,6 +151,37 @@ def probe_cases() -> dict[str, tuple[dict, str]]:
     return cases
 
 
+def test_a_file_never_makes_the_loader_import_the_module_it_names(tmp_path, monkeypatch):
+    """A `module:Class` back-end in a file is refused unless the caller trusts that spec (its
+    own `mapper.backend`): the module is not even imported."""
+    mark = tmp_path / "imported"
+    (tmp_path / "spy_backend.py").write_text(f"open({str(mark)!r}, 'w').close()\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    b = base("octree-max")
+    path = tmp_path / "spy.npz"
+    path.write_bytes(
+        fm.file_bytes(
+            {**b.arrays, "meta": fm._meta_bytes({**b.meta, "backend": "spy_backend:Spy"})}
+        )
+    )
+    with pytest.raises(MapFileError, match="none of the known back-ends"):
+        SemanticMap.load(path)
+    with pytest.raises(MapFileError, match="none of the known back-ends"):
+        SemanticMap.check_file(path)
+    assert not mark.exists()
+    with pytest.raises(MapFileError, match="is not a MapBackend class"):  # trusted: imported
+        SemanticMap.load(path, backend="spy_backend:Spy")
+    assert mark.exists()
+
+
+def test_a_range_beyond_the_maps_extent_is_refused_in_the_library_too():
+    # 1e308 overflowed the octree's kernels set-up (OverflowError) from a file or a config
+    for kw in ({"max_range_m": 1e308}, {"max_range_m": 1e20}, {"ray_length_m": 1e308}):
+        with pytest.raises(ValueError, match="must be in"):
+            SemanticMap("octree-max", 0.1, **kw)
+    SemanticMap("octree-max", 0.1, max_range_m=4 * 32768 * 0.1)  # the limit itself is fine
+
+
 @pytest.mark.parametrize("case", list(probe_cases()))
 def test_the_probes_corrupt_files_are_refused_in_one_line(case, tmp_path):
     arrays, reason = probe_cases()[case]
