@@ -1,9 +1,14 @@
 """`smana bench fuzz`: the multi-process fuzz campaign of issue 11 ("Trust").
 
-The real services (mapper, navgraph, planner, explorer and, unless left out, the simulator) run as
-their own processes against a zenoh router in this process, on a free loopback port with
-multicast scouting and gossip off. The campaign:
+The real services (mapper, navgraph, planner, explorer, the coordinator and, unless left out, the
+simulator) run as their own processes against a zenoh router in this process, on a free loopback
+port with multicast scouting and gossip off. The coordinator runs on a fleet name of its own
+(`FLEET`, members `fuzz.FLEET_MEMBERS`), so nothing but the campaign talks to it. The campaign:
 
+0. **map files** (issue 25; `--map-files`, in this process, before the stack starts): valid and
+   corrupt map files from `lab/fuzz_maps.py`, each loaded as the mapper (or the fleet mapper)
+   loads one; each ends in exactly one of loaded / refused / crash; a loaded file must equal the
+   file as saved and a file the generator knows to be corrupt must be refused;
 1. **establishes state**: a few genuine ground clouds (with a wall) go to the mapper; navgraph
    builds its graph from the deltas; the planner answers a fixed path query round the wall;
 2. **phase `refused`**: inputs every service must refuse, on every key it listens to: payloads
