@@ -1424,7 +1424,8 @@ def cli(argv: list[str] | None = None) -> int:
         description=__doc__.split("\n\n")[0],
         epilog=(
             "Duration on a 2-core machine: about 1.5 minutes for the default 10,000 inputs (a"
-            " stack without the sim; docs/benchmarks.md); --inputs 300 takes 10 to 20 s."
+            " stack without the sim; docs/benchmarks.md), plus 10 to 20 s for the default 1,000"
+            " map files; --inputs 300 --map-files 0 takes 10 to 20 s."
         ),
     )
     p.add_argument(
