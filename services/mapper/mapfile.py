@@ -56,8 +56,6 @@ _PACK_OFF = 1 << 20  # _grid's block key packing: 21 bits an axis, offset by 2**
 _PACK_MASK = (1 << 21) - 1
 # What reading a broken zip or npy member can raise besides ValueError: all mean "broken file"
 _BROKEN = (OSError, EOFError, zipfile.BadZipFile, zlib.error, struct.error, NotImplementedError)
-
-
 # What numpy's header parser (a Python literal, tokenized then evaluated) raises on bad text
 _BAD_TEXT = (ValueError, TypeError, SyntaxError, RecursionError, tokenize.TokenError)
 
