@@ -317,3 +317,19 @@ def test_meta_json_is_strict(tmp_path):
     path.write_bytes(fm.file_bytes({**b.arrays, "meta": np.frombuffer(text.encode(), np.uint8)}))
     with pytest.raises(MapFileError, match="NaN is not a number"):
         SemanticMap.load(path)
+
+
+def test_smana_mapper_refuses_a_range_beyond_the_maps_extent_in_one_line(tmp_path):
+    # 1e308 from the config overflowed the octree's set-up, a traceback in the log
+    out = subprocess.run(
+        [sys.executable, "-m", "smana.services.mapper", "--set", "mapper.max_range_m=1e308"]
+        + ["--mode", "client", "--connect", "tcp/127.0.0.1:9"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.strip().splitlines() == [
+        "smana mapper: max_range_m must be in (0, 13107.2], got 1e+308"
+    ]
