@@ -1304,6 +1304,8 @@ def query_case(service: str, name: str, d: Draw, ctx: Context | None = None) -> 
     elif (service, name) == ("navgraph", "graph"):
         params, obj = _box_case(d, ctx, 4) if d.boolean(0.7) else ("", None)
         how = "box"
+    elif (service, name) == ("coordinator", "claim"):
+        obj, how = coordinator_claim(d, ctx)
     elif (service, name) == ("mapper", "save"):
         good = d.boolean(0.3)
         nm = d.choice(SAVE_NAMES_OK if good else SAVE_NAMES_BAD)
@@ -1367,3 +1369,74 @@ def query_case(service: str, name: str, d: Draw, ctx: Context | None = None) -> 
         )
     payload, enc = _body(d, as_json, obj)
     return QueryCase(params, payload, enc, how)
+
+
+# -- the coordinator (issue 25) -------------------------------------------------------------------
+
+FLEET_MEMBERS = ("fuzzc1", "fuzzc2")  # the coordinator's members in the campaign
+
+
+def _goal(d: Draw, ctx: Context) -> Any:
+    k = d.integer(0, 5)
+    if k <= 1:
+        return _sane_numbers(d, ctx, 2)
+    if k == 2:
+        return _numbers(d, d.choice((2, 2, 1, 3)))
+    if k == 3:
+        return d.choice((None, "1,2", [], [[1, 2]], {"x": 1}, [True, False], ["1", "2"]))
+    if k == 4:
+        return [d.choice((1e308, -1e308, 2**64, -(2**63))), d.choice((0.0, 1e-300))]
+    return wild_value(d)
+
+
+def coordinator_claim(d: Draw, ctx: Context) -> tuple[Any, str]:
+    """A `coordinator/claim` body: a member (or not) claiming a goal (sane or wild), releasing,
+    or leaving a field out."""
+    robot = d.choice((*FLEET_MEMBERS, *FLEET_MEMBERS, "stranger", "", 5, None, "x" * 300))
+    k = d.integer(0, 5)
+    if k <= 2:
+        return {"robot": robot, "goal": _goal(d, ctx)}, "claim"
+    if k == 3:
+        return {"robot": robot, "goal": None}, "release"
+    if k == 4:
+        return d.choice(({"robot": robot}, {"goal": [0, 0]}, {}, [robot, [0, 0]])), "missing"
+    return {"robot": robot, "goal": _goal(d, ctx), d.choice(("x", "goal2")): 1}, "extra-field"
+
+
+def explorer_state(d: Draw, ctx: Context) -> tuple[bytes, str]:
+    """A member's `explorer/state` as the coordinator reads it (msgpack of a map with `goal`
+    {"xy": [x, y]}, `mode`, `distance_m`), plausible, wild or broken."""
+    k = d.integer(0, 5)
+    if k == 0:
+        return d.blob(d.choice((0, 1, 7, 64))), "random bytes"
+    if k == 1:
+        obj = wild_value(d)
+        return (msgpack.packb(obj, use_bin_type=True) if _packable(obj) else b"\xc1"), "wild"
+    goal: Any = {"xy": _goal(d, ctx)} if d.boolean(0.8) else d.choice((None, {}, [], "x", 1))
+    state = {
+        "mode": d.choice(("exploring", "done", "idle", "", None, 5)),
+        "goal": goal,
+        "distance_m": d.choice((0.0, 1.5, NAN, INF, -1.0, 1e308, "1", None, True)),
+    }
+    if k == 2:
+        del state[d.choice(sorted(state))]
+    payload = msgpack.packb(state, use_bin_type=True) if _packable(state) else b"\xc1"
+    if k == 3 and len(payload) > 1:
+        payload = payload[: d.integer(1, len(payload) - 1)]
+    return payload, f"state{k}"
+
+
+def predict_explorer_state(payload: bytes) -> str | None:
+    """What the coordinator counts a member's state under: None (accepted) or "malformed", as
+    `CoordinatorService.on_state` decides it (a second statement of its rule)."""
+    try:
+        state = msgpack.unpackb(payload)
+        goal = state.get("goal") if isinstance(state, dict) else None
+        if goal and len([float(v) for v in goal["xy"]]) < 2:
+            return "malformed"
+        dist = state.get("distance_m") if isinstance(state, dict) else None
+        if isinstance(dist, int | float):
+            float(dist)
+    except Exception:  # noqa: BLE001 - whatever the handler's try block turns into "malformed"
+        return "malformed"
+    return None

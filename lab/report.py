@@ -84,7 +84,9 @@ def _graph(run_dir: Path) -> dict | None:
     return None
 
 
-def _final_map(run_dir: Path, classes: ClassTable, fleet: bool = False) -> Path | None:
+def _final_map(
+    run_dir: Path, classes: ClassTable, fleet: bool = False, backend: str | None = None
+) -> Path | None:
     """The run's map as PLY (exported from a saved .npz map when only that exists). A fleet's
     is the merged map, `<run>/map.npz` (its members' own maps are under robots/)."""
     try:
@@ -100,7 +102,8 @@ def _final_map(run_dir: Path, classes: ClassTable, fleet: bool = False) -> Path 
         try:
             from smana.services.mapper.semantic_map import SemanticMap
 
-            SemanticMap.load(path).export_ply(run_dir / "map.ply", classes)
+            # backend: the run's own, trusted even as a module:Class spec (map files are checked)
+            SemanticMap.load(path, backend=backend).export_ply(run_dir / "map.ply", classes)
             return run_dir / "map.ply"
         except Exception as exc:  # not a map file
             log.debug("%s is not a saved map: %s", path, exc)
@@ -524,7 +527,7 @@ def fleet_metrics(run_dir: Path, config, world, gt=None, names=None) -> dict:
             path = member_dir(run_dir, r) / "map.npz"
             if path.is_file():
                 try:
-                    own = SemanticMap.load(path)
+                    own = SemanticMap.load(path, backend=config.mapper.backend)
                     observed[r] = observed_cells(
                         observed_voxels(own).centres, own.resolution_m, cell_xy
                     )
@@ -947,7 +950,7 @@ def write_report(
     elif world is not None:
         metrics["exploration"] = exploration_metrics(world, graph, traj, config)
         metrics["exploration"]["trajectory_source"] = traj_source
-    map_path = _final_map(run_dir, classes, fleet=is_fleet)
+    map_path = _final_map(run_dir, classes, fleet=is_fleet, backend=config.mapper.backend)
     if map_path is not None:
         try:
             metrics["map_content"] = map_content(map_path, names)

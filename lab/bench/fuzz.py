@@ -1,9 +1,14 @@
 """`smana bench fuzz`: the multi-process fuzz campaign of issue 11 ("Trust").
 
-The real services (mapper, navgraph, planner, explorer and, unless left out, the simulator) run as
-their own processes against a zenoh router in this process, on a free loopback port with
-multicast scouting and gossip off. The campaign:
+The real services (mapper, navgraph, planner, explorer, the coordinator and, unless left out, the
+simulator) run as their own processes against a zenoh router in this process, on a free loopback
+port with multicast scouting and gossip off. The coordinator runs on a fleet name of its own
+(`FLEET`, members `fuzz.FLEET_MEMBERS`), so nothing but the campaign talks to it. The campaign:
 
+0. **map files** (issue 25; `--map-files`, in this process, before the stack starts): valid and
+   corrupt map files from `lab/fuzz_maps.py`, each loaded as the mapper (or the fleet mapper)
+   loads one; each ends in exactly one of loaded / refused / crash; a loaded file must equal the
+   file as saved and a file the generator knows to be corrupt must be refused;
 1. **establishes state**: a few genuine ground clouds (with a wall) go to the mapper; navgraph
    builds its graph from the deltas; the planner answers a fixed path query round the wall;
 2. **phase `refused`**: inputs every service must refuse, on every key it listens to: payloads
@@ -57,7 +62,7 @@ from smana.common.zenoh_config import free_loopback_port
 from smana.lab import fuzz
 from smana.lab.bench import procs
 
-SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim")
+SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim", "coordinator")
 # Rejection kinds only the codec produces: the books must match the prediction exactly. Others
 # ("value", and the handlers' own: stamp, producer, sequence, geometry, frame, pose_jump, ...) may
 # also come from decodable input a handler refuses.
@@ -115,10 +120,12 @@ class Target:
     consumers: tuple[str, ...] = ()
     weight: float = 1.0
     drop_nonfinite: bool = False
+    robot: str = ""  # a key of another robot than the service's own (a fleet member's)
+    refused_phase: bool = True  # takes part in the refused phase (its input cannot change state)
 
     @property
     def name(self) -> str:
-        return f"{self.service}:{self.topic}"
+        return f"{self.service}:{self.robot + '/' if self.robot else ''}{self.topic}"
 
     @property
     def services(self) -> tuple[str, ...]:
@@ -148,6 +155,15 @@ TARGETS: tuple[Target, ...] = (
     Target("sim", "robot/cmd_vel", "fifo", m.VelocityCommand, ("sim",), 6),
     Target("sim", "mapper/delta", "fifo", m.MapDelta, ("sim",), 3),
     Target("sim", "sim/status", "query", weight=1),
+    # the coordinator, on the fleet's name; its members' states are raw msgpack maps (expect None)
+    Target("coordinator", "coordinator/claim", "query", weight=6, refused_phase=False),
+    Target("coordinator", "coordinator/claims", "query", weight=1),
+    Target("coordinator", "coordinator/stats", "query", weight=1),
+    Target("coordinator", "coordinator/status", "query", weight=1),
+    *(
+        Target("coordinator", "explorer/state", "fifo", None, ("coordinator",), 3, robot=r)
+        for r in fuzz.FLEET_MEMBERS
+    ),
 )
 # Oversize payloads (64 MiB + a little each), in this order, as many as asked.
 OVERSIZE_ORDER = (
@@ -167,6 +183,14 @@ WALL_X, WALL_Y = 0.0, (-3.0, 1.0)
 FIXED_QUERY = ((-2.0, -2.0), (2.0, -2.0))
 RECOVERY_AREA = (4.0, -3.0, 6.0, -1.0)  # genuine clouds after the fuzz land here
 GROUND, GRASS, HEDGE = 2, 1, 4
+FLEET = "fuzzfleet"  # the coordinator's robot name (its members: fuzz.FLEET_MEMBERS)
+COORDINATOR_CONFIG = """\
+[general]
+status_period_s = 1.0
+
+[fleet]
+robots = {members}
+"""
 
 
 class CampaignError(RuntimeError):
@@ -204,6 +228,19 @@ class ServiceFigures:
 
 
 @dataclass
+class MapFileFigures:
+    """Per kind of map file (`lab.fuzz_maps.MAP_MUTATIONS`): each file ends in exactly one of
+    loaded / refused / crash; `wrong` counts outcomes against the prediction or a loaded map that
+    differs from the file as saved (a subset, not an outcome of its own)."""
+
+    inputs: int = 0
+    loaded: int = 0
+    refused: int = 0
+    crash: int = 0
+    wrong: int = 0
+
+
+@dataclass
 class Result:
     seed: int
     inputs_requested: int
@@ -221,6 +258,11 @@ class Result:
     load_start: tuple = ()
     load_end: tuple = ()
     phase_s: dict[str, float] = field(default_factory=dict)
+    map_files: dict[str, MapFileFigures] = field(default_factory=dict)  # by mutation
+
+    @property
+    def map_inputs(self) -> int:
+        return sum(f.inputs for f in self.map_files.values())
 
     @property
     def ok(self) -> bool:
@@ -356,12 +398,15 @@ class Stack:
         self.procs: dict[str, subprocess.Popen] = {}
 
     def robot_of(self, service: str) -> str:
+        if service == "coordinator":
+            return FLEET
         return self.sim_robot if service == "sim" else self.robot
 
     def start(self, name: str) -> None:
-        argv = procs.service_argv(
-            name, self.endpoint, self.robot_of(name), "--config", str(self.config_path)
-        )
+        config = self.config_path
+        if name == "coordinator":  # a fleet of its own: nothing else talks to it
+            config = self.out / "fuzz-coordinator.toml"
+        argv = procs.service_argv(name, self.endpoint, self.robot_of(name), "--config", str(config))
         self.procs[name] = procs.spawn(argv, self.out / f"{name}.log", cwd=self.out)
 
     def log(self, name: str) -> str:
@@ -408,8 +453,10 @@ class Campaign:
         settle_timeout_s: float = 120.0,
         robot: str = "fuzz",
         sim_robot: str = "fuzzsim",
+        map_files: int = 1000,
     ):
         self.out = Path(out)
+        self.n_map_files = map_files
         self.n_inputs, self.seed = inputs, seed
         self.services = tuple(s for s in SERVICES if s in services)
         self.targets = [
@@ -442,7 +489,7 @@ class Campaign:
 
     def key(self, t: Target) -> str:
         seg, name = t.topic.split("/", 1)
-        return keys.key(self.stack.robot_of(t.service), seg, name)
+        return keys.key(t.robot or self.stack.robot_of(t.service), seg, name)
 
     def publisher(self, t: Target):
         import zenoh
@@ -569,15 +616,20 @@ class Campaign:
         self.save_dir.mkdir(exist_ok=True)
         config_path = self.out / "fuzz.toml"
         config_path.write_text(CONFIG.format(save_path=self.save_dir / "map.npz"))
+        members = json.dumps(list(fuzz.FLEET_MEMBERS))
+        (self.out / "fuzz-coordinator.toml").write_text(COORDINATOR_CONFIG.format(members=members))
         self.config = SmanaConfig.load(config_path)
         self.files_before = _files(self.out, exclude=self.save_dir)
+        if self.n_map_files:
+            self._timed("map_files", lambda: self.map_file_phase(self.n_map_files))
+        t_stack = time.monotonic()
         self.stack = Stack(self.out, config_path, self.robot, self.sim_robot)
         codes: dict[str, int | None] = {}
         try:
             for name in self.services:
                 self.stack.start(name)
             self.stack.wait_alive(self.services, self.startup_timeout_s)
-            r.phase_s["startup"] = time.monotonic() - t0
+            r.phase_s["startup"] = time.monotonic() - t_stack
             self._timed("establish", self.establish)
             budget = self.n_inputs
             n1 = budget * 2 // 5
@@ -602,7 +654,7 @@ class Campaign:
             sf.rejected.get("internal", 0)
             + sum(v for k, v in sf.events.items() if k.startswith("internal"))
             for sf in r.service_figures.values()
-        )
+        ) + sum(f.crash for f in r.map_files.values())
         r.inputs = self.sent
         r.wall_s = time.monotonic() - t0
         me = resource.getrusage(resource.RUSAGE_SELF)
@@ -620,6 +672,52 @@ class Campaign:
             print(f"fuzz: {name} ...", file=sys.stderr, flush=True)
         fn()
         self.result.phase_s[name] = time.monotonic() - t0
+
+    # -- 0. map files (in this process: the loaders, no stack) -----------------------------------
+
+    def map_file_phase(self, n: int) -> None:
+        """`n` map files, valid and corrupt (`lab.fuzz_maps`), each loaded as the mapper (or the
+        fleet mapper) loads one; every file ends in exactly one counter."""
+        import tempfile
+
+        from smana.lab import fuzz_maps
+
+        r = self.result
+        bases = fuzz_maps.bases()
+        self._begin("map files", n)
+        with tempfile.TemporaryDirectory(prefix="smana-fuzz-maps-") as tmp:
+            path = Path(tmp) / "map.npz"
+            for _ in range(n):
+                base = self.draw.choice(bases)
+                mutant = fuzz_maps.mutate_map(base, self.draw)
+                kind = mutant.how.split(":", 1)[0]
+                f = r.map_files.setdefault(kind, MapFileFigures())
+                f.inputs += 1
+                path.write_bytes(mutant.data)
+                out, why = fuzz_maps.try_load(path, base)
+                setattr(f, out, getattr(f, out) + 1)
+                wrong = (
+                    (out == "loaded" and why != "same")
+                    or (mutant.predict is True and out != "refused")
+                    or (mutant.predict is False and out != "loaded")
+                )
+                if wrong or out == "crash":
+                    f.wrong += int(wrong)
+                    if len(r.notes) < 50:
+                        r.notes.append(f"map file {base.name} {mutant.how}: {out} ({why})")
+                self._tick()
+        _check(r, "map files: no crash", all(f.crash == 0 for f in r.map_files.values()))
+        _check(
+            r,
+            "map files: refused or loaded as predicted, a loaded one as saved",
+            all(f.wrong == 0 for f in r.map_files.values()),
+        )
+        _check(
+            r,
+            "map files: each ends in exactly one counter",
+            all(f.inputs == f.loaded + f.refused + f.crash for f in r.map_files.values())
+            and sum(f.inputs for f in r.map_files.values()) == n,
+        )
 
     # -- 1. establish -----------------------------------------------------------------------------
 
@@ -753,6 +851,7 @@ class Campaign:
             "planner": d.get("navgraph.patch_seq", 0) + d.get("explorer.path_queries", 0),
             "explorer": d.get("navgraph.patch_seq", 0),
             "sim": 0,  # on its own robot: nothing else talks to it
+            "coordinator": 0,  # on the fleet's name, its members the campaign's: the same
         }
 
     # -- fingerprints -----------------------------------------------------------------------------
@@ -768,21 +867,25 @@ class Campaign:
         }
         if "planner" in self.services:
             fp["planner"] = reply_fingerprint(self.request("planner", "path", fixed_request()))
+        if "coordinator" in self.services:
+            claims = self.request("coordinator", "claims")
+            fp["coordinator"] = json.dumps([claims["claims"], claims["version"]], sort_keys=True)
         return fp
 
     # -- 2/3. the phases --------------------------------------------------------------------------
 
-    def plan_inputs(self, n: int) -> list[Target]:
+    def plan_inputs(self, n: int, phase: str = "") -> list[Target]:
         """`n` targets drawn by weight (each target at least once), in a random order."""
-        weights = [t.weight for t in self.targets]
+        targets = [t for t in self.targets if phase != "refused" or t.refused_phase]
+        weights = [t.weight for t in targets]
         total = sum(weights)
         counts = [max(1, int(round(n * w / total))) for w in weights]
-        plan = [t for t, c in zip(self.targets, counts) for _ in range(c)]
+        plan = [t for t, c in zip(targets, counts) for _ in range(c)]
         self.draw.r.shuffle(plan)
         return plan[:n] if len(plan) > n else plan
 
     def phase(self, name: str, n: int) -> None:
-        plan = self.plan_inputs(n)
+        plan = self.plan_inputs(n, name)
         self._begin(name, len(plan))
         if name == "refused":  # the oversize payloads go first, they are refused in any phase
             by_name = {t.name: t for t in self.targets}
@@ -838,7 +941,17 @@ class Campaign:
 
     def send(self, t: Target, phase: str | None, oversize: bool = False) -> None:
         kf = self.result.keys.setdefault(t.name, KeyFigures())
-        if oversize:
+        if t.expect is None:  # a member's explorer state, for the coordinator
+            payload, _ = fuzz.explorer_state(self.draw, self.ctx)
+            if phase == "refused":  # one it must refuse
+                for _ in range(50):
+                    if fuzz.predict_explorer_state(payload):
+                        break
+                    payload, _ = fuzz.explorer_state(self.draw, self.ctx)
+                else:
+                    payload = b"\xc1"
+            decodable = None
+        elif oversize:
             payload, decodable = fuzz.oversize_payload(t.expect, self.draw.integer(1, 4096)), False
         elif phase == "refused":
             payload, decodable = self.refused_input(t)
@@ -852,7 +965,10 @@ class Campaign:
         self._put(t, kf, payload, decodable)
 
     def _put(self, t: Target, kf: KeyFigures, payload: bytes, decodable: bool | None) -> None:
-        kind = fuzz.predict(payload, t.expect, drop_nonfinite=t.drop_nonfinite)
+        if t.expect is None:
+            kind = fuzz.predict_explorer_state(payload)
+        else:
+            kind = fuzz.predict(payload, t.expect, drop_nonfinite=t.drop_nonfinite)
         kf.inputs += 1
         kf.codec[kind or "accepted"] += 1
         if decodable:
@@ -1235,7 +1351,11 @@ def _files(root: Path, exclude: Path) -> set[str]:
 
 
 def table(r: Result) -> str:
-    lines = [f"smana bench fuzz: seed {r.seed}, {r.inputs} inputs over {', '.join(r.services)}", ""]
+    lines = [
+        f"smana bench fuzz: seed {r.seed}, {r.inputs + r.map_inputs} inputs: {r.inputs} over "
+        f"{', '.join(r.services)}, {r.map_inputs} map files",
+        "",
+    ]
     lines.append(
         "| service:key | inputs | codec refuses (by kind) | accepted by codec | query replies |"
     )
@@ -1265,6 +1385,16 @@ def table(r: Result) -> str:
             f"| {name} | {s.msgs_in} | {s.mine} | {s.background} | {s.accepted} | "
             f"{drop} | {rej or '-'} | {crashes} | {s.exit_code} |"
         )
+    if r.map_files:
+        lines += [
+            "",
+            "| map file | inputs | loaded (as saved) | refused (one line) | crash | wrong |",
+            "|---|---:|---:|---:|---:|---:|",
+        ]
+        for kind, f in sorted(r.map_files.items()):
+            lines.append(
+                f"| {kind} | {f.inputs} | {f.loaded} | {f.refused} | {f.crash} | {f.wrong} |"
+            )
     lines += ["", "| check | result |", "|---|---|"]
     lines += [f"| {k} | {'pass' if v else 'FAIL'} |" for k, v in r.checks.items()]
     lines += [
@@ -1294,8 +1424,8 @@ def cli(argv: list[str] | None = None) -> int:
         description=__doc__.split("\n\n")[0],
         epilog=(
             "Duration measured once on a 2-core machine: about 1.5 minutes for the default "
-            "10,000 inputs (a"
-            " stack without the sim; docs/benchmarks.md); --inputs 300 takes 10 to 20 s."
+            "10,000 inputs (a stack without the sim; docs/benchmarks.md), plus 10 to 20 s for the "
+            "default 1,000 map files; --inputs 300 --map-files 0 takes 10 to 20 s."
         ),
     )
     p.add_argument(
@@ -1313,6 +1443,12 @@ def cli(argv: list[str] | None = None) -> int:
         default=6,
         help="payloads over 64 MiB to send (default 6; they cost memory)",
     )
+    p.add_argument(
+        "--map-files",
+        type=non_negative_int,
+        default=1000,
+        help="map files, valid and corrupt, to load in this process (default 1000; 0: none)",
+    )
     p.add_argument("--out", default="runs/fuzz", help="folder for logs and fuzz.json")
     args = p.parse_args(argv)
     services = tuple(s.strip() for s in args.services.split(",") if s.strip())
@@ -1320,7 +1456,15 @@ def cli(argv: list[str] | None = None) -> int:
     if unknown or not {"mapper", "navgraph"} <= set(services):
         p.error(f"--services: the mapper and navgraph are needed; known: {','.join(SERVICES)}")
     run_dir = output_dir(Path(args.out) / time.strftime("%Y%m%d-%H%M%S"), "output folder", "--out")
-    campaign = Campaign(run_dir, args.inputs, args.seed, services, args.oversize, progress=True)
+    campaign = Campaign(
+        run_dir,
+        args.inputs,
+        args.seed,
+        services,
+        args.oversize,
+        progress=True,
+        map_files=args.map_files,
+    )
     try:
         result = campaign.run()
     except CampaignError as exc:

@@ -96,6 +96,8 @@ class CoordinatorService(Service):
             state = msgpack.unpackb(payload)
             goal = state.get("goal") if isinstance(state, dict) else None
             xy = None if not goal else [float(v) for v in goal["xy"]][:2]
+            if xy is not None and len(xy) < 2:  # found by smana bench fuzz: an IndexError
+                raise ValueError(f"goal.xy must be [x, y], got {goal['xy']!r}")
             dist = state.get("distance_m") if isinstance(state, dict) else None
             dist = float(dist) if isinstance(dist, int | float) else None
         except Exception as exc:

@@ -28,6 +28,18 @@ def cli(argv: list[str] | None = None) -> int:
         from smana.services.mapper.fleet import check_fleet_source
 
         check_fleet_source(cfg.mapper, cfg.fleet)  # so does a fleet map that cannot be merged
+    from smana.services.mapper.semantic_map import SemanticMap
+
+    try:
+        # a map the library refuses (a range beyond the map's extent) stops here, in one line
+        SemanticMap.from_config(cfg.mapper, cfg.general.class_table)
+        if cfg.mapper.load and cfg.mapper.load != "auto":
+            # so does a map file that cannot be used, before zenoh opens; the arrays' values are
+            # checked as they are read, in the service (one line, exit 2)
+            SemanticMap.check_file(cfg.mapper.load, cfg.general.class_table, cfg.mapper.backend)
+    except ValueError as exc:
+        print(f"smana mapper: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
     setup_logging(cfg.general.log_level, "mapper")
     from smana.services.mapper.service import main
 

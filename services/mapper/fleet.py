@@ -34,7 +34,6 @@ and that `FleetMap.load` reads with its layers, so a restarted fleet mapper resu
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +43,7 @@ from smana.common.classes import ClassTable
 from smana.common.config import ConfigError
 from smana.common.config.fleet import FleetConfig
 from smana.common.config.mapper import MapperConfig
+from smana.services.mapper import mapfile
 from smana.services.mapper._grid import KEY_LIMIT, OBSERVED, BlockGrid
 from smana.services.mapper.backends import backend_class
 from smana.services.mapper.backends.occupancy import sensor_model
@@ -51,12 +51,7 @@ from smana.services.mapper.delta import Delta
 from smana.services.mapper.semantic_map import QueryResult, SemanticMap
 
 HAS = np.uint8(1)  # a layer's flag: the member reported this voxel
-_LAYER_FIELDS = {
-    "logodds": (np.float32, ()),
-    "label": (np.uint16, ()),
-    "conf": (np.float32, ()),
-    "flags": (np.uint8, ()),
-}
+_LAYER_FIELDS = mapfile.LAYER  # a layer's columns, as the map file stores them
 # A source voxel whose centre lands in a fleet voxel has its centre within res / sqrt(2) of that
 # voxel's back-projected centre on each axis: an interval shorter than 2 voxels, so 2 x 2
 # candidate source voxels from the first key it may hold (the margin covers rounding)
@@ -373,33 +368,42 @@ class FleetMap:
         members: list[str],
         fleet: FleetConfig | None = None,
         class_table: ClassTable | str | Path = "garden3drms",
+        max_bytes: int = mapfile.MAX_MAP_BYTES,
     ) -> FleetMap:
         """Resume from a file `save` wrote: the layers of the members named in it that are still
         members (the others start empty); the merged map is derived again from them. The config
         (back-end, resolution, frame) is the one given: a file made with another resolution is
-        refused."""
+        refused. The file is checked before use as `SemanticMap.load` checks it (`mapfile`)."""
         fm = cls(config, members, fleet, class_table)
-        try:
-            with np.load(Path(path), allow_pickle=False) as z:
-                meta = json.loads(bytes(z["meta"]).decode())
-                saved = meta.get("fleet")
-                if saved is None:
-                    raise ValueError("a robot's map, not a fleet map (no layers)")
-                layers = {}
-                for m, name in enumerate(saved["members"]):
-                    layers[name] = (
-                        z[f"layer{m}_block_keys"],
-                        {k: z[f"layer{m}_{k}"] for k in _LAYER_FIELDS},
-                        saved["deltas_applied"][m],
-                        saved["replaced"][m],
-                    )
-        except (OSError, ValueError, KeyError) as exc:
-            raise ValueError(f"{path}: not a fleet map file ({exc})") from exc
-        if meta["resolution_m"] != fm.resolution_m or meta["backend"] != fm.backend:
-            raise ValueError(
-                f"{path}: a {meta['backend']} map at {meta['resolution_m']} m; the config asks "
-                f"for {fm.backend} at {fm.resolution_m} m"
-            )
+        with mapfile.MapFile(path, max_bytes) as f:
+            meta = mapfile.check_meta(f.meta(), f.path, config.backend)
+            saved = meta.get("fleet")
+            if saved is None:
+                raise mapfile.MapFileError(f"{path}: a robot's map, not a fleet map (no layers)")
+            if meta["resolution_m"] != fm.resolution_m or meta["backend"] != fm.backend:
+                raise mapfile.MapFileError(
+                    f"{path}: a {meta['backend']} map at {meta['resolution_m']} m; the config "
+                    f"asks for {fm.backend} at {fm.resolution_m} m"
+                )
+            if meta["block_bits"] != fm.map.block_bits:
+                raise mapfile.MapFileError(f"{path}: blocks of {meta['block_bits']} bits")
+            # the merged map is derived again from the layers; its columns are checked all the
+            # same (as the file describes them), so that the file also loads as a plain map
+            grid = SemanticMap._from_meta(meta, class_table, f.path)._core.grid
+            expected = {"meta", "block_keys", *(f"col_{k}" for k in grid.fields)}
+            mapfile.check_members(f, expected | mapfile.layer_names(len(saved["members"])))
+            mapfile.read_grid(f, "block_keys", "col_", grid.fields, grid.bits, set(grid.loaders))
+            layers = {}
+            for m, name in enumerate(saved["members"]):
+                block_keys, cols = mapfile.read_grid(
+                    f, f"layer{m}_block_keys", f"layer{m}_", _LAYER_FIELDS, grid.bits
+                )
+                layers[name] = (
+                    block_keys,
+                    cols,
+                    saved["deltas_applied"][m],
+                    saved["replaced"][m],
+                )
         for m, name in enumerate(fm.members):
             if name in layers:
                 block_keys, cols, fm.deltas_applied[m], fm.replaced[m] = layers[name]

@@ -19,6 +19,7 @@ import dataclasses
 import json
 import os
 from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
@@ -26,15 +27,21 @@ import numpy as np
 
 from smana.common.classes import ClassTable
 from smana.common.config.mapper import MapperConfig
-from smana.services.mapper import ply
+from smana.services.mapper import mapfile, ply
 from smana.services.mapper._grid import KEY_LIMIT
 from smana.services.mapper.backends import backend_class
 from smana.services.mapper.delta import Delta
+from smana.services.mapper.mapfile import FORMAT_VERSION, LAYER
 
-# 2: the back-end's config section under "config"; 1 (still read): the octrees' under
-# "occupancy" and "fusion", the TSDF's under "tsdf"
-FORMAT_VERSION = 2
 _DEFAULT = MapperConfig()  # the library's defaults are the config's, declared once there
+
+
+def smana_version() -> str:
+    """The installed smana's version, written into every saved map ("" when not installed)."""
+    try:
+        return version("smana")
+    except PackageNotFoundError:
+        return ""
 
 
 @dataclass
@@ -72,10 +79,15 @@ class SemanticMap:
         cls = backend_class(backend)  # a ValueError naming the known back-ends
         if not (np.isfinite(resolution_m) and 0.01 <= resolution_m <= 10.0):
             raise ValueError(f"resolution_m must be in [0.01, 10], got {resolution_m}")
-        if not (np.isfinite(max_range_m) and max_range_m > 0):
-            raise ValueError(f"max_range_m must be > 0, got {max_range_m}")
-        if ray_length_m is not None and not (np.isfinite(ray_length_m) and ray_length_m > 0):
-            raise ValueError(f"ray_length_m must be > 0 or None (whole ray), got {ray_length_m}")
+        extent = mapfile.max_range_for(resolution_m)  # a longer range overflows the kernels
+        if not (np.isfinite(max_range_m) and 0 < max_range_m <= extent):
+            raise ValueError(f"max_range_m must be in (0, {extent:g}], got {max_range_m}")
+        if ray_length_m is not None and not (
+            np.isfinite(ray_length_m) and 0 < ray_length_m <= extent
+        ):
+            raise ValueError(
+                f"ray_length_m must be in (0, {extent:g}] or None (whole ray), got {ray_length_m}"
+            )
         if config is None:
             config = cls.default_config()
         elif cls.config_class is not None and not isinstance(config, cls.config_class):
@@ -264,6 +276,7 @@ class SemanticMap:
             "block_bits": self.block_bits,
             "integrations": self.n_integrations,
             "points": self.n_points,
+            "smana_version": smana_version(),
         }
 
     def save(self, path: str | Path, meta: dict | None = None, **extra: np.ndarray) -> Path:
@@ -289,42 +302,81 @@ class SemanticMap:
 
     @classmethod
     def load(
-        cls, path: str | Path, class_table: ClassTable | str | Path | None = None
+        cls,
+        path: str | Path,
+        class_table: ClassTable | str | Path | None = None,
+        backend: str | None = None,
+        max_bytes: int = mapfile.MAX_MAP_BYTES,
     ) -> SemanticMap:
-        """Read a map written by `save`; `class_table` defaults to the bundled one it names."""
-        try:
-            with np.load(Path(path), allow_pickle=False) as z:
-                meta = json.loads(bytes(z["meta"]).decode())
-                block_keys = z["block_keys"]
-                cols = {k[4:]: z[k] for k in z.files if k.startswith("col_")}
-        except (OSError, ValueError, KeyError) as exc:
-            raise ValueError(f"{path}: not a smana map file ({exc})") from exc
-        if meta.get("format") not in (1, FORMAT_VERSION):
-            raise ValueError(f"{path}: unsupported map format {meta.get('format')!r}")
-        backend = backend_class(meta["backend"])
-        if meta["format"] == 1:  # the octrees' section was two tables, the TSDF's its own
-            octree = {**meta["occupancy"], **meta["fusion"]}
-            saved = meta["tsdf"] if backend.config_key == "tsdf" else octree
-        else:
-            saved = meta["config"]
-        m = cls(
-            backend=meta["backend"],
-            resolution_m=meta["resolution_m"],
-            max_range_m=meta["max_range_m"],
-            ray_length_m=meta["ray_length_m"],
-            class_table=class_table if class_table is not None else meta["class_table"],
-            config=backend.config_class(**saved) if backend.config_class is not None else None,
-            block_bits=meta["block_bits"],
-        )
-        if m.class_ids.tolist() != meta["class_ids"]:
-            raise ValueError(f"{path}: class table does not match the one the map was built with")
-        grid = m._core.grid
-        if set(cols) != set(grid.cols):
-            raise ValueError(f"{path}: columns {sorted(cols)} do not fit backend {m.backend}")
+        """Read a map written by `save`; `class_table` defaults to the bundled one it names.
+        Everything in the file is checked before use (`mapfile`); a file that cannot be used is a
+        one-line `MapFileError` (a ValueError). The back-end it names must be a registered one,
+        or `backend` (a module:Class spec the caller trusts, e.g. its `mapper.backend`)."""
+        with mapfile.MapFile(path, max_bytes) as f:
+            meta, m = cls._checked(f, class_table, backend)
+            grid = m._core.grid
+            block_keys, cols = mapfile.read_grid(
+                f, "block_keys", "col_", grid.fields, grid.bits, set(grid.loaders)
+            )
+            # a fleet map's layers are not this map's, but the file is checked whole
+            for i in range(len(meta.get("fleet", {}).get("members", ()))):
+                mapfile.read_grid(f, f"layer{i}_block_keys", f"layer{i}_", LAYER, grid.bits)
         grid.restore(block_keys, cols)
         m._core.recount()
         m.n_integrations = meta["integrations"]
         m.n_points = meta["points"]
+        return m
+
+    @classmethod
+    def check_file(
+        cls,
+        path: str | Path,
+        class_table: ClassTable | str | Path | None = None,
+        backend: str | None = None,
+    ) -> None:
+        """Everything `load` checks but the arrays' values (the container, the metadata, every
+        array's dtype and shape), without reading more than the metadata: a quick check before
+        a service starts. A `MapFileError` (one line) when the file cannot be used."""
+        with mapfile.MapFile(path) as f:
+            meta, m = cls._checked(f, class_table, backend)
+            grid = m._core.grid
+            mapfile.check_grid(f, "block_keys", "col_", grid.fields, grid.bits, set(grid.loaders))
+            for i in range(len(meta.get("fleet", {}).get("members", ()))):
+                mapfile.check_grid(f, f"layer{i}_block_keys", f"layer{i}_", LAYER, grid.bits)
+
+    @classmethod
+    def _checked(cls, f: mapfile.MapFile, class_table, backend) -> tuple[dict, SemanticMap]:
+        """The checked metadata of an open file and the empty map it describes; the file holds
+        exactly the arrays that map needs (and a fleet map's layers)."""
+        meta = mapfile.check_meta(f.meta(), f.path, backend)
+        m = cls._from_meta(meta, class_table, f.path)
+        expected = {"meta", "block_keys", *(f"col_{k}" for k in m._core.grid.fields)}
+        if "fleet" in meta:
+            expected |= mapfile.layer_names(len(meta["fleet"]["members"]))
+        mapfile.check_members(f, expected)
+        return meta, m
+
+    @classmethod
+    def _from_meta(cls, meta: dict, class_table, path) -> SemanticMap:
+        """The empty map a checked `meta` describes."""
+        backend = backend_class(meta["backend"])
+        saved = meta["config"]
+        try:
+            m = cls(
+                backend=meta["backend"],
+                resolution_m=meta["resolution_m"],
+                max_range_m=meta["max_range_m"],
+                ray_length_m=meta["ray_length_m"],
+                class_table=class_table if class_table is not None else meta["class_table"],
+                config=backend.config_class(**saved) if backend.config_class is not None else None,
+                block_bits=meta["block_bits"],
+            )
+        except ValueError as exc:
+            raise mapfile.MapFileError(f"{path}: {exc}") from None
+        if m.class_ids.tolist() != meta["class_ids"]:
+            raise mapfile.MapFileError(
+                f"{path}: class table does not match the one the map was built with"
+            )
         return m
 
     def export_ply(self, path: str | Path, class_table: ClassTable | None = None) -> int:

@@ -98,7 +98,7 @@ def build_map(config: SmanaConfig, table: ClassTable, log=None) -> SemanticMap |
             log.info("resumed fleet map from %s (%d voxels)", load, fm.stats()["voxels_observed"])
         return fm
     if load:
-        m = SemanticMap.load(load, table)
+        m = SemanticMap.load(load, table, backend=mc.backend)
         if log and (m.backend, m.resolution_m) != (mc.backend, mc.resolution_m):
             log.warning(
                 "map file %s is %s at %g m; config asked for %s at %g m: using the file",
