@@ -62,6 +62,10 @@ def test_kill9_is_restarted_within_3s(tmp_path):
         t.join(15)
     assert not t.is_alive()
     assert echo.proc is None and echo.exit_codes[-1] == 0  # stopped cleanly by SIGINT
+    # back within 3 s, and still a warning of the run: one line, the status and the time back
+    crashes = [w for w in sup.warnings() if w.startswith("echo crashed")]
+    assert len(crashes) == 1, sup.warnings()
+    assert "exit status -9; restarted, ready" in crashes[0], crashes
 
 
 def test_crash_loop_goes_on_and_never_policy_says_so(tmp_path):
