@@ -32,12 +32,13 @@ SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer")
 class Up:
     """`smana up` as a subprocess, and a zenoh client of its router."""
 
-    def __init__(self, tmp: Path, overrides: list[str], env: dict | None = None):
+    def __init__(self, tmp: Path, overrides: list[str], env: dict | None = None, args=()):
         self.port = free_port()
         self.run_dir = tmp / "run"
         self.robot = f"res{os.getpid()}"
         sets = [*small_run_overrides(self.port), f'general.robot="{self.robot}"', *overrides]
         argv = [sys.executable, "-m", "smana.deploy", "up", "--run-dir", str(self.run_dir)]
+        argv += list(args)
         for s in sets:
             argv += ["--set", s]
         self.log_path = tmp / "up.log"

@@ -223,6 +223,7 @@ class MapperService(Service):
             "records_replayed": b.records,
             "voxels_replayed": b.voxels,
             "torn_bytes": b.torn_bytes,
+            "journal_files": b.files,  # 2 and more: it followed the journal through autosaves
             "followed_in_standby": followed,
             "replay_ms": (time.perf_counter() - t0) * 1e3,
         }
