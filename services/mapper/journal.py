@@ -202,21 +202,26 @@ class JournalReader:
             self._fd = None
 
     def _read(self) -> None:
+        chunks = [self._buf]
         while chunk := os.read(self._fd, 1 << 20):
-            self._buf += chunk
-        while len(self._buf) >= _FRAME.size:
-            magic, length, crc = _FRAME.unpack_from(self._buf)
+            chunks.append(chunk)
+        buf = b"".join(chunks)
+        view, at = memoryview(buf), 0  # records are read in place, the rest kept once
+        while len(buf) - at >= _FRAME.size:
+            magic, length, crc = _FRAME.unpack_from(buf, at)
             if magic != MAGIC or length > MAX_RECORD_BYTES:
-                return  # garbage: nothing after it is read (finish() counts it torn)
-            end = _FRAME.size + length
-            if len(self._buf) < end:
-                return  # still being written, or cut short
-            body = self._buf[_FRAME.size : end]
+                break  # garbage: nothing after it is read (finish() counts it torn)
+            end = at + _FRAME.size + length
+            if len(buf) < end:
+                break  # still being written, or cut short
+            body = view[at + _FRAME.size : end]
             if zlib.crc32(body) != crc:
-                return
+                break
             self._apply(msgpack.unpackb(body, raw=False))
-            self._buf = self._buf[end:]
-            self.offset += end
+            self.offset += end - at
+            at = end
+        view.release()
+        self._buf = buf[at:]
 
     def _apply(self, rec: dict) -> None:
         m = self.map
