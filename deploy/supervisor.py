@@ -143,8 +143,9 @@ class Supervisor:
         # here or on another host
         self._lock = threading.Lock()
         self._stop = threading.Event()
-        self._t0: float | None = None  # when start() began (crash times count from it)
         self.session = None
+
+    _t0: float | None = None  # when start() began: crash times count from it
 
     def _add_service(self, name: str, service: str, robot: str, extra=()) -> None:
         argv = [
@@ -316,6 +317,9 @@ class Supervisor:
 
     def _schedule_restart(self, m: Managed, why: str) -> None:
         now = time.monotonic()
+        if m.exit_codes and m.exit_codes[-1] != 0:  # a crash, not a clean end under "always"
+            at = now - self._t0 if self._t0 is not None else 0.0
+            m.crashes.append({"code": m.exit_codes[-1], "at_s": at, "back_s": None, "spare": False})
         p = m.policy
         while m.restarts and now - m.restarts[0] > p.restart_window_s:
             m.restarts.popleft()
@@ -362,9 +366,6 @@ class Supervisor:
                     m.alive = m.starting = False
                 failed = code != 0
                 if m.policy.restart == "always" or (m.policy.restart == "on-failure" and failed):
-                    if failed:
-                        at = now - self._t0 if self._t0 is not None else 0.0
-                        m.crashes.append({"code": code, "at_s": at, "back_s": None, "spare": False})
                     self._schedule_restart(m, f"exited with status {code}")
                 else:
                     m.finished = True
