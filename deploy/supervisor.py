@@ -99,6 +99,7 @@ class Managed:
     # each crash that was restarted: exit status, seconds into the run, seconds until the next
     # process was ready (None while it is not), whether a hot spare took over
     crashes: list[dict] = field(default_factory=list)
+    killed_for: str = ""  # why the supervisor killed the current process (its health checks)
 
 
 class Supervisor:
@@ -319,7 +320,9 @@ class Supervisor:
         now = time.monotonic()
         if m.exit_codes and m.exit_codes[-1] != 0:  # a crash, not a clean end under "always"
             at = now - self._t0 if self._t0 is not None else 0.0
-            m.crashes.append({"code": m.exit_codes[-1], "at_s": at, "back_s": None, "spare": False})
+            crash = {"code": m.exit_codes[-1], "at_s": at, "back_s": None, "spare": False}
+            m.crashes.append({**crash, "killed_for": m.killed_for})
+            m.killed_for = ""
         p = m.policy
         while m.restarts and now - m.restarts[0] > p.restart_window_s:
             m.restarts.popleft()
@@ -383,6 +386,7 @@ class Supervisor:
                         m.name,
                         age,
                     )
+                    m.killed_for = "no sign of life after its start"
                     self._signal(m, signal.SIGKILL)
                 elif age > d.startup_timeout_s:
                     log.warning(
@@ -391,6 +395,7 @@ class Supervisor:
                         m.name,
                         age,
                     )
+                    m.killed_for = "not ready within deploy.startup_timeout_s"
                     self._signal(m, signal.SIGKILL)
             elif not alive:
                 # A service that stops on its own undeclares its token first and then flushes
@@ -403,6 +408,7 @@ class Supervisor:
                         m.name,
                         now - m.lost_at,
                     )
+                    m.killed_for = "hung: its liveliness token gone, the process still running"
                     self._signal(m, signal.SIGKILL)
             else:
                 m.lost_at = None
@@ -604,7 +610,8 @@ class Supervisor:
 
     @staticmethod
     def _crash_lines(m: Managed, log_file) -> list[str]:
-        """One line per crash that was restarted: a run that recovered still says it crashed."""
+        """One line per crash that was restarted (or kill by the health checks): a run that
+        recovered still says it crashed."""
         out = []
         for c in m.crashes:
             if c["back_s"] is None:
@@ -612,8 +619,13 @@ class Supervisor:
             else:
                 how = "a hot spare took over" if c["spare"] else "restarted"
                 back = f"{how}, ready {c['back_s']:.2f} s after it ended"
+            what = (
+                f"was killed by the supervisor ({c['killed_for']})"
+                if c["killed_for"]
+                else "crashed"
+            )
             out.append(
-                f"{m.name} crashed {c['at_s']:.0f} s into the run (exit status {c['code']}; "
+                f"{m.name} {what} {c['at_s']:.0f} s into the run (exit status {c['code']}; "
                 f"{back}; see {log_file})"
             )
         return out

@@ -247,3 +247,23 @@ def test_one_instance_per_robot(tmp_path):
     finally:
         sup.stop()
         t.join(15)
+
+
+def test_a_process_the_supervisor_kills_is_a_warning_that_says_why(tmp_path):
+    from tests.conftest import free_port
+
+    sup = make_supervisor(tmp_path, free_port(), restart="on-failure")
+    sup.config.deploy.health_timeout_s = 1.0  # a process with no token at all: killed soon
+    mute = [sys.executable, "-c", "import time; time.sleep(60)"]
+    sup.add("mute", mute, ServiceDeployConfig(restart="on-failure", restart_delay_s=30))
+    t = run_in_thread(sup)
+    try:
+        assert wait_for(lambda: sup.procs["mute"].crashes, 30)
+    finally:
+        sup.stop()
+        t.join(15)
+    lines = [w for w in sup.warnings() if w.startswith("mute was")]
+    assert len(lines) == 1 and lines[0].startswith(
+        "mute was killed by the supervisor (no sign of life after its start) "
+    ), lines
+    assert "exit status -9; not ready again before the run ended" in lines[0], lines

@@ -2,11 +2,11 @@
 
 The test feeds the mapper its clouds itself (`smana up --only mapper,navgraph`), one at a time,
 so that nothing is in flight when it kills: then the hot spare's map must equal the dead mapper's
-exactly, in its stats and in every voxel of its snapshot, before the first autosave (journal
-alone) and after it (autosave + journal); the navigation graph keeps every node through the
-mapper's take-over and through its own; each crash is a warning line of report.md and of the
-summary, and `smana up` exits 1. What is in flight at a kill during a stream is counted: a torn
-journal record (tests/test_mapper_journal.py), the clouds not integrated
+exactly (its stats, every voxel of its snapshot, every column of what it saves), before the first
+autosave (journal alone) and after it (autosave + journal); the navigation graph keeps every node
+through the mapper's take-over and through its own; each crash is a warning line of report.md and
+of the summary, and `smana up` exits 1. What is in flight at a kill during a stream is counted: a
+torn journal record (tests/test_mapper_journal.py), the clouds not integrated
 (`clouds_lost_upstream`)."""
 
 from __future__ import annotations
@@ -21,7 +21,9 @@ import pytest
 
 from smana.common import keys
 from smana.common.messages import MapDelta, SemanticCloud, encode
+from smana.services.mapper.semantic_map import SemanticMap
 from tests.conftest import kernels_ready, wait_for
+from tests.test_mapper_journal import assert_same_voxels
 from tests.test_resilience import Up
 
 pytestmark = [pytest.mark.multiprocess, pytest.mark.slow]
@@ -140,6 +142,7 @@ def test_a_takeover_loses_no_voxel_and_no_graph_node_and_the_report_says_so(tmp_
         feeder.send(4)
         before = up.query("mapper", "stats")
         snap_before = up.query("mapper", "snapshot", {"observed": True})
+        up.query("mapper", "save", {"name": "before.npz"})  # what it saves, to compare
         graph_before = settled_graph(up)
         assert before["clouds"] == 8 and before["voxels_occupied"] > 1000, before
         assert graph_before["nodes_known"] > 100, graph_before
@@ -164,6 +167,10 @@ def test_a_takeover_loses_no_voxel_and_no_graph_node_and_the_report_says_so(tmp_
         assert before["journal"]["records"] == 4 * (2 - autosaved), before["journal"]
         for a, b in zip(by_centre(snap_before), by_centre(snap_after), strict=True):
             np.testing.assert_array_equal(a, b)
+        # and what it saves: every column of every voxel (label distributions, weights, flags)
+        up.query("mapper", "save", {"name": "after.npz"})
+        saved = [SemanticMap.load(up.run_dir / f"{n}.npz") for n in ("before", "after")]
+        assert_same_voxels(*saved)
         # the navgraph resyncs from the new mapper's snapshot: every node is still there
         assert wait_for(lambda: up.query("navgraph", "stats")["resyncs"] >= 1, 60)
         graph_after = settled_graph(up)
