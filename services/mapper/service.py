@@ -70,6 +70,9 @@ MAX_QUERY_POINTS = 100_000
 MAX_NAME_BYTES = 255  # NAME_MAX of Linux file systems
 MAX_SEQ_GAP = 1000  # a larger jump in a sender's cloud numbers is a new numbering, not a loss
 RESYNC_MIN_PERIOD_S = 1.0  # the fleet mapper asks a member for its snapshot at most this often
+# a journal this large brings the next autosave forward (and starts a new journal): the disk it
+# takes stays bounded, with `autosave_period_s = 0` (only on shutdown) too
+JOURNAL_MAX_BYTES = 256 << 20
 
 
 def resolve_save_path(config: SmanaConfig) -> Path | None:
@@ -464,7 +467,8 @@ class MapperService(Service):
         if self.fleet:
             self._fleet_tick()
         period = self.config.mapper.autosave_period_s
-        if period > 0 and time.monotonic() >= self._next_save:
+        full = self.journal is not None and self.journal.bytes > JOURNAL_MAX_BYTES
+        if full or (period > 0 and time.monotonic() >= self._next_save):
             self._next_save = time.monotonic() + period
             if self.dirty and self.save_path is not None:
                 self.save(self.save_path)
