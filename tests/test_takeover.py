@@ -187,9 +187,13 @@ def test_a_takeover_loses_no_voxel_and_no_graph_node_and_the_report_says_so(tmp_
         )
         assert graph_spare["nodes_known"] == graph_before["nodes_known"]
         assert nav_answered_s < 1.0, nav_answered_s
-        # the mapper that took over goes on mapping, and journals what it maps
+        # the mapper that took over goes on mapping, and journals what it maps; clouds that
+        # went unmapped meanwhile (two numbers never delivered) are counted: the cloud numbers
+        # came back with the journal
+        feeder.seq += 2
         again = feeder.send(1)
         assert again["clouds"] == 9 and again["journal"]["records"] >= 1, again
+        assert up.status("mapper").events.get("clouds_lost_upstream") == 2
     finally:
         up.close()
     assert up.proc.returncode == 1, up.log()

@@ -106,6 +106,7 @@ class JournalWriter:
         """After an autosave: a new journal holding only its header (the map file holds the
         rest). Written beside and renamed over, so a reader sees the old file or the new one."""
         tmp = self.path.with_name(self.path.name + ".tmp")
+        tmp.parent.mkdir(parents=True, exist_ok=True)  # a run directory not made yet
         head = frame(_header(self.map, service))
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         os.write(fd, head)

@@ -207,8 +207,7 @@ class MapperService(Service):
         self.startup_step = "loading the map"
         if not self._replays():
             self.map = build_map(self.config, self.table, self.log)
-            if self.journal_path is not None:
-                self.journal = JournalWriter(self.journal_path, self.map, self._counters())
+            self._start_journal(None)
             return
         t0 = time.perf_counter()
         followed = self._reader is not None
@@ -243,10 +242,15 @@ class MapperService(Service):
         if b.torn_bytes:
             self.note("journal_torn", f"{b.torn_bytes} bytes of a journal record cut short")
         # go on after the last whole record, or start a new journal
-        go_on = reader.exists and not b.skipped and offset > 0
-        self.journal = JournalWriter(
-            self.journal_path, self.map, self._counters(), offset if go_on else None
-        )
+        self._start_journal(offset if reader.exists and not b.skipped and offset > 0 else None)
+
+    def _start_journal(self, offset: int | None) -> None:
+        if self.journal_path is None:
+            return
+        try:
+            self.journal = JournalWriter(self.journal_path, self.map, self._counters(), offset)
+        except OSError as exc:  # the map goes on; only a take-over would lose more
+            self.note("journal_failed", f"journal {self.journal_path}: {exc}; mapping without")
 
     def _counters(self) -> dict:
         """The service's figures a journal record carries beside the voxels."""
