@@ -339,6 +339,10 @@ class Service:
     def on_stop(self) -> None:
         """Flush state before the session closes (save the map, ...)."""
 
+    def standing_by(self) -> None:
+        """A hot spare, about every 0.2 s while it waits to take over (no session yet): keep
+        what it will need current (the mapper follows its journal)."""
+
     def status_details(self) -> dict:
         """Service-specific figures for the status message (plain values only)."""
         return {}
@@ -565,6 +569,7 @@ class Service:
             ready, _, _ = select.select([sys.stdin], [], [], 0.2)
             if ready:
                 return bool(sys.stdin.readline()) and not self.stopping
+            self._guard(self.standing_by, "standing_by")
         return False
 
     def stop(self) -> None:

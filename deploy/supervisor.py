@@ -17,9 +17,13 @@ it is ready. A service that shows neither within `health_timeout_s` of its start
 starting after `startup_timeout_s`, or whose alive token vanished while its process still runs, is
 killed and restarted.
 
-The mapper resumes from its autosave in the run directory (`mapper.load = "auto"` unless the
-config names a file), so a crash loses at most one `mapper.autosave_period_s`; navgraph, planner
-and explorer resync from their producers' snapshots and the explorer from its checkpoint.
+The mapper resumes from its autosave and its journal in the run directory (`mapper.load = "auto"`
+unless the config names a file): a crash loses no voxel a consumer saw, only what was in flight
+(counted, `services/mapper/service.py`); its hot spare follows the journal while it stands by.
+Navgraph, planner and explorer resync from their producers' snapshots and the explorer from its
+checkpoint. A crash is never silent, even when a spare took over at once: each process that ended
+on its own with a non-zero status and was restarted is a warning of the run (`crashes`), in
+report.md and the terminal summary.
 
 The run ends when the service named by `deploy.finish_with` exits with status 0 (the explorer, when
 exploration is done), after `--duration`, or on Ctrl-C; every service then gets SIGINT, and SIGKILL
@@ -98,6 +102,11 @@ class Managed:
     back_s: list[float] = field(default_factory=list)  # end of a process -> next one alive
     exit_codes: list[int] = field(default_factory=list)
     spare: subprocess.Popen | None = None  # the standby process, when the policy asks for one
+    took_over: bool = False  # the current process is a spare that took over
+    # each crash that was restarted: exit status, seconds into the run, seconds until the next
+    # process was ready (None while it is not), whether a hot spare took over
+    crashes: list[dict] = field(default_factory=list)
+    killed_for: str = ""  # why the supervisor killed the current process (its health checks)
 
 
 class Supervisor:
@@ -144,6 +153,8 @@ class Supervisor:
         self._stop = threading.Event()
         self.config_error: str | None = None  # a service's one line when it exited CONFIG_ERROR
         self.session = None
+
+    _t0: float | None = None  # when start() began: crash times count from it
 
     def _add_service(self, name: str, service: str, robot: str, extra=()) -> None:
         argv = [
@@ -242,6 +253,7 @@ class Supervisor:
         return proc
 
     def _spawn(self, m: Managed) -> None:
+        m.took_over = False
         if m.spare is not None and m.spare.poll() is None:
             # The hot spare has imported and prepared (or is about to): one line, it takes over.
             proc, m.spare = m.spare, None
@@ -253,9 +265,12 @@ class Supervisor:
                 proc = self._start_process(m, standby=False)
             else:
                 log.info("%s: the standby process (pid %d) takes over", m.name, proc.pid)
+                m.took_over = True
         else:
             proc = self._start_process(m, standby=False)
             log.info("started %s (pid %d)", m.name, proc.pid)
+        if m.crashes and m.crashes[-1]["back_s"] is None:
+            m.crashes[-1]["spare"] = m.took_over
         m.proc = proc
         m.started_at = time.monotonic()
         with self._lock:
@@ -311,6 +326,11 @@ class Supervisor:
 
     def _schedule_restart(self, m: Managed, why: str) -> None:
         now = time.monotonic()
+        if m.exit_codes and m.exit_codes[-1] != 0:  # a crash, not a clean end under "always"
+            at = now - self._t0 if self._t0 is not None else 0.0
+            crash = {"code": m.exit_codes[-1], "at_s": at, "back_s": None, "spare": False}
+            m.crashes.append({**crash, "killed_for": m.killed_for})
+            m.killed_for = ""
         p = m.policy
         while m.restarts and now - m.restarts[0] > p.restart_window_s:
             m.restarts.popleft()
@@ -379,6 +399,7 @@ class Supervisor:
                         m.name,
                         age,
                     )
+                    m.killed_for = "no sign of life after its start"
                     self._signal(m, signal.SIGKILL)
                 elif age > d.startup_timeout_s:
                     log.warning(
@@ -387,6 +408,7 @@ class Supervisor:
                         m.name,
                         age,
                     )
+                    m.killed_for = "not ready within deploy.startup_timeout_s"
                     self._signal(m, signal.SIGKILL)
             elif not alive:
                 # A service that stops on its own undeclares its token first and then flushes
@@ -399,6 +421,7 @@ class Supervisor:
                         m.name,
                         now - m.lost_at,
                     )
+                    m.killed_for = "hung: its liveliness token gone, the process still running"
                     self._signal(m, signal.SIGKILL)
             else:
                 m.lost_at = None
@@ -435,6 +458,8 @@ class Supervisor:
                 m.ready_s.append(now - m.started_at)
                 if m.down_at is not None:
                     m.back_s.append(now - m.down_at)
+                    if m.crashes and m.crashes[-1]["back_s"] is None:
+                        m.crashes[-1]["back_s"] = m.back_s[-1]
                     log.info(
                         "%s is back %.2f s after its last process ended (ready %.2f s "
                         "after its start)",
@@ -460,6 +485,7 @@ class Supervisor:
         zc = self.config.zenoh
         if d.ros2.enabled:  # ROS 2 nodes are peers that find each other through the router
             zc = dataclasses.replace(zc, gossip=True)
+        self._t0 = time.monotonic()
         self.session = open_router(d.router_listen, zc, d.router_connect)
         endpoints = ", ".join(d.router_listen)
         log.info("zenoh router listening on %s; run directory %s", endpoints, self.run_dir)
@@ -572,7 +598,9 @@ class Supervisor:
                     f"{m.policy.max_restarts} in {m.policy.restart_window_s:.0f} s (last "
                     f"exit statuses {codes}; see {log_file})"
                 )
-            elif m.finished and m.exit_codes and m.exit_codes[-1] not in (0, -signal.SIGINT):
+            else:
+                out += self._crash_lines(m, log_file)
+            if m.finished and m.exit_codes and m.exit_codes[-1] not in (0, -signal.SIGINT):
                 out.append(
                     f"{m.name} exited with status {m.exit_codes[-1]} and was not "
                     f"restarted (restart = {m.policy.restart})"
@@ -595,6 +623,28 @@ class Supervisor:
                     out.append(
                         f"the {need} the explorer of robot {m.robot} needs never came up ({why})"
                     )
+        return out
+
+    @staticmethod
+    def _crash_lines(m: Managed, log_file) -> list[str]:
+        """One line per crash that was restarted (or kill by the health checks): a run that
+        recovered still says it crashed."""
+        out = []
+        for c in m.crashes:
+            if c["back_s"] is None:
+                back = "not ready again before the run ended"
+            else:
+                how = "a hot spare took over" if c["spare"] else "restarted"
+                back = f"{how}, ready {c['back_s']:.2f} s after it ended"
+            what = (
+                f"was killed by the supervisor ({c['killed_for']})"
+                if c["killed_for"]
+                else "crashed"
+            )
+            out.append(
+                f"{m.name} {what} {c['at_s']:.0f} s into the run (exit status {c['code']}; "
+                f"{back}; see {log_file})"
+            )
         return out
 
     def print_progress(self, elapsed_s: float) -> None:

@@ -8,6 +8,7 @@ with the paper's cost stands in for the planner, and a unicycle integrates the c
 from __future__ import annotations
 
 import heapq
+import json
 import math
 
 import numpy as np
@@ -287,6 +288,51 @@ def test_the_budget_starts_with_the_first_map_not_the_first_pose():
     again = _explorer(_params(time_budget_s=5.0))
     again.resume(ex.state_dict(), np.array(ex.trajectory))
     assert again.t_start == 50.0
+
+
+def test_a_resumed_explorer_keeps_its_goal_and_drives_on_along_its_path():
+    # a spare that takes over from the checkpoint (JSON, as on disk) with the robot further on
+    world = ToyWorld(_garden(2))
+    params = _params(max_range_m=3.0, follower={"lookahead_m": 0.3}, max_queries=6)
+    ex = _explorer(params)
+    x, y, yaw, t, dt = 1.0, 1.0, 0.0, 0.0, 0.1
+    state, saved = None, None
+    while t < 200.0 and not ex.done:
+        world.reveal(x, y, yaw)
+        ex.update_grid(world.grid())
+        ex.update_pose(x, y, yaw, t)
+        if reason := ex.wants_plan():
+            ex.plan(world.path_cost(ex.grid), reason)
+        if ex.goal is not saved:  # the service's checkpoint whenever the goal changes
+            saved = ex.goal
+            state = json.loads(json.dumps(ex.state_dict()))  # as on disk
+            traj = np.array(ex.trajectory)
+        v, w = ex.control()
+        g = ex.goal
+        if (
+            g is not None
+            and g.path_length_m > 1.5
+            and ex.follower.remaining_length_m() < (g.path_length_m - 0.8)
+        ):
+            break  # 0.8 m along a long path: the process dies here
+        x += v * math.cos(yaw) * dt
+        y += v * math.sin(yaw) * dt
+        yaw = wrap_angle(yaw + w * dt)
+        t += dt
+    assert ex.goal is not None and state["goal"] is not None, "no goal of more than 1.5 m"
+    again = _explorer(params)
+    again.resume(state, traj)
+    again.update_grid(world.grid())
+    again.update_pose(x, y, yaw, t)
+    assert again.mode == "following"
+    assert again.goal.choice.xy.tolist() == ex.goal.choice.xy.tolist()
+    np.testing.assert_allclose(again.goal.path_xy, ex.goal.path_xy, atol=1e-3)
+    # no new plan before the old one would have come, and it drives on, not back to the start
+    assert again.wants_plan() is None
+    assert again.follower.remaining_length_m() == pytest.approx(
+        ex.follower.remaining_length_m(), abs=0.05
+    )
+    np.testing.assert_allclose(again.control(), ex.control(), atol=1e-3)
 
 
 def test_a_path_that_becomes_blocked_triggers_a_replan():

@@ -141,6 +141,16 @@ def test_explorer_drives_to_the_frontier_survives_bad_input_and_finishes(fake_st
         st = request(s, keys.explorer_state(robot), timeout_s=5)
         assert st["mode"] in ("following", "waiting", "spinning")
         assert st["distance_m"] > 1.0
+        # the checkpoint holds the goal it drives to (written at every new goal, not only every
+        # 10 s): a spare that takes over drives on to it
+        checkpoint = run_dir / "explorer" / "state.json"
+
+        def saved_goal():
+            live = request(s, keys.explorer_state(robot), timeout_s=5)["goal"]
+            saved = json.loads(checkpoint.read_text())["goal"] if checkpoint.exists() else None
+            return live is not None and saved is not None and saved["xy"] == live["xy"]
+
+        assert wait_for(saved_goal, 5), zenoh_stack.log("explorer")
 
         # bad input is counted, not fatal
         s.put(keys.graph_patch(robot), b"\x00garbage")

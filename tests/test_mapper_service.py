@@ -154,6 +154,23 @@ def test_mapper_service_end_to_end(fake_stack, tmp_path):
     assert st.stop(proc) == 0
 
 
+def test_a_full_journal_brings_the_autosave_forward(fake_stack, tmp_path, monkeypatch):
+    # autosave only on shutdown, and a journal that is full after one record: the next tick
+    # saves the map and starts a new journal, so its disk use stays bounded
+    from smana.services.mapper import service as mapper_service
+
+    monkeypatch.setattr(mapper_service, "JOURNAL_MAX_BYTES", 1)
+    map_file = tmp_path / "map.npz"
+    fake_stack.service("mapper", *mapper_args(map_file))
+    fake_stack.wait_alive("mapper")
+    s, r = fake_stack.session, fake_stack.robot
+    s.put(keys.cloud(r), encode(make_cloud(1)))
+    stats = wait_stats(s, r, lambda x: x["clouds"] == 1 and x["last_save_s"] > 0)
+    assert stats["last_save_s"] > 0 and map_file.exists()
+    assert stats["journal"]["records"] == 0, stats["journal"]
+    assert map_file.with_suffix(".journal").stat().st_size == stats["journal"]["bytes"]
+
+
 @pytest.mark.multiprocess
 def test_mapper_saves_on_shutdown_and_resumes(zenoh_stack, tmp_path):
     st = zenoh_stack

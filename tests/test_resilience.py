@@ -2,8 +2,9 @@
 
 - a first start on a fresh install (an empty numba cache) with both cores busy: no service is
   killed for warming up, every one becomes ready, and the robot moves;
-- `kill -9` of each service in turn: each is back, the map resumed, and the run completes with a
-  clean report;
+- `kill -9` of each service in turn, the robot exploring: each is back, the map resumed with
+  every cloud the dead mapper had integrated, and the run completes; each crash is a warning line
+  of report.md and of the summary, and `smana up` exits 1;
 - a run whose planner is disabled says so: a Warnings section heads report.md and `smana up`
   exits non-zero.
 """
@@ -32,12 +33,13 @@ SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer")
 class Up:
     """`smana up` as a subprocess, and a zenoh client of its router."""
 
-    def __init__(self, tmp: Path, overrides: list[str], env: dict | None = None):
+    def __init__(self, tmp: Path, overrides: list[str], env: dict | None = None, args=()):
         self.port = free_port()
         self.run_dir = tmp / "run"
         self.robot = f"res{os.getpid()}"
         sets = [*small_run_overrides(self.port), f'general.robot="{self.robot}"', *overrides]
         argv = [sys.executable, "-m", "smana.deploy", "up", "--run-dir", str(self.run_dir)]
+        argv += list(args)
         for s in sets:
             argv += ["--set", s]
         self.log_path = tmp / "up.log"
@@ -152,10 +154,11 @@ def test_first_start_on_a_cold_cache_and_busy_cores_kills_nothing_and_the_robot_
 
 
 def test_kill9_of_each_service_comes_back_with_the_map_and_the_run_completes(tmp_path):
-    # spares at once (their default wait of 20 s keeps them out of short runs)
+    # spares at once (their default wait of 20 s keeps them out of short runs); a budget of 45 s:
+    # on a busy machine the waits for five spares ate a budget of 20 s before the first goal
     up = Up(
         tmp_path,
-        ["explorer.time_budget_s=20", "deploy.recorder.enabled=false", "deploy.standby_delay_s=0"],
+        ["explorer.time_budget_s=45", "deploy.recorder.enabled=false", "deploy.standby_delay_s=0"],
     )
     try:
         assert wait_for(lambda: all(up.alive(s) for s in SERVICES), 600, 0.5), up.log()
@@ -165,9 +168,9 @@ def test_kill9_of_each_service_comes_back_with_the_map_and_the_run_completes(tmp
             st = up.status(service)
             assert st is not None, up.log()
             if service == "mapper":
-                # what the saved map holds (observed voxels never go away; occupied ones may)
+                # mid-stream, no autosave needed: the spare follows the journal
                 assert wait_for(lambda: up.query("mapper", "stats")["voxels_occupied"] > 0, 60)
-                before = up.query("mapper", "save")["voxels_observed"]
+                before = up.query("mapper", "stats")
             t_kill = time.monotonic()
             os.kill(st.pid, signal.SIGKILL)
 
@@ -178,16 +181,31 @@ def test_kill9_of_each_service_comes_back_with_the_map_and_the_run_completes(tmp
             assert wait_for(back, 120, 0.1), up.log(service)
             print(f"{service} back in {time.monotonic() - t_kill:.2f} s")
             if service == "mapper":
-                after = up.query("mapper", "stats")["voxels_observed"]
-                assert after >= before, (before, after, up.log("mapper"))
-        assert up.proc.wait(600) == 0, up.log()
+                # every cloud the dead mapper had answered for is in the spare's map (clouds
+                # that came after the query may be too); observed voxels never go away
+                after = up.query("mapper", "stats")
+                print(
+                    f"mapper: clouds {before['clouds']} -> {after['clouds']}, occupied "
+                    f"{before['voxels_occupied']} -> {after['voxels_occupied']}, observed "
+                    f"{before['voxels_observed']} -> {after['voxels_observed']}"
+                )
+                assert after["clouds"] >= before["clouds"], (before, after, up.log("mapper"))
+                assert after["voxels_observed"] >= before["voxels_observed"], (before, after)
+                if after["clouds"] == before["clouds"]:
+                    assert after["voxels_occupied"] == before["voxels_occupied"], (before, after)
+        # a run that recovered from its crashes still fails: each one is a warning
+        assert up.proc.wait(600) == 1, up.log()
     finally:
         up.close()
     log = up.log()
     for service in SERVICES:
         assert f"{service} exited with status -9; restarting" in log, log
     report = (up.run_dir / "report.md").read_text()
-    assert "## Warnings" not in report, report
+    warnings = json.loads((up.run_dir / "metrics.json").read_text())["warnings"]
+    assert sorted(w.split(" ")[0] for w in warnings) == sorted(SERVICES), warnings
+    for w in warnings:
+        assert " crashed " in w and "exit status -9; a hot spare took over" in w, warnings
+        assert f"- {w}" in report and f"warning: {w}" in log, (report, log)
     metrics = json.loads((up.run_dir / "metrics.json").read_text())
     assert metrics["explorer"]["distance_m"] > 0.2, metrics["explorer"]
 

@@ -62,6 +62,10 @@ def test_kill9_is_restarted_within_3s(tmp_path):
         t.join(15)
     assert not t.is_alive()
     assert echo.proc is None and echo.exit_codes[-1] == 0  # stopped cleanly by SIGINT
+    # back within 3 s, and still a warning of the run: one line, the status and the time back
+    crashes = [w for w in sup.warnings() if w.startswith("echo crashed")]
+    assert len(crashes) == 1, sup.warnings()
+    assert "exit status -9; restarted, ready" in crashes[0], crashes
 
 
 def test_a_service_that_refuses_its_config_stops_the_stack(tmp_path):
@@ -265,3 +269,23 @@ def test_one_instance_per_robot(tmp_path):
     finally:
         sup.stop()
         t.join(15)
+
+
+def test_a_process_the_supervisor_kills_is_a_warning_that_says_why(tmp_path):
+    from tests.conftest import free_port
+
+    sup = make_supervisor(tmp_path, free_port(), restart="on-failure")
+    sup.config.deploy.health_timeout_s = 1.0  # a process with no token at all: killed soon
+    mute = [sys.executable, "-c", "import time; time.sleep(60)"]
+    sup.add("mute", mute, ServiceDeployConfig(restart="on-failure", restart_delay_s=30))
+    t = run_in_thread(sup)
+    try:
+        assert wait_for(lambda: sup.procs["mute"].crashes, 30)
+    finally:
+        sup.stop()
+        t.join(15)
+    lines = [w for w in sup.warnings() if w.startswith("mute was")]
+    assert len(lines) == 1 and lines[0].startswith(
+        "mute was killed by the supervisor (no sign of life after its start) "
+    ), lines
+    assert "exit status -9; not ready again before the run ended" in lines[0], lines

@@ -135,6 +135,7 @@ class Explorer:
         self._fov: fr.FovModel | None = None
         self.follower = PurePursuit(config.follower)
         self.goal: Goal | None = None
+        self._resumed_goal = False  # a goal from a checkpoint: its path found at the next pose
         self.pose: tuple[float, float, float] | None = None
         self.t_start: float | None = None
         self.t_now = 0.0
@@ -187,6 +188,10 @@ class Explorer:
                 self.distance_m += step
         self.pose = (x, y, yaw)
         self.t_now = t
+        if self._resumed_goal and self.goal is not None:
+            self._resumed_goal = False
+            self.follower.skip_to_nearest(x, y)
+            self._progress_mark = (t, self.follower.remaining_length_m())
         if not self.trajectory or t - self.trajectory[-1][0] >= 0.1:
             self.trajectory.append((t, x, y, yaw))
         if self.grid is not None:
@@ -214,6 +219,35 @@ class Explorer:
             self.t_start = float(state["t_start_s"])
         elif len(traj):
             self.t_start = float(traj[0, 0])
+        self._resume_goal(state)
+
+    def _resume_goal(self, state: dict) -> None:
+        """The goal and its path as they were saved (a spare that takes over keeps driving to
+        the same view); the robot has moved on meanwhile, so the path is followed from the point
+        nearest the robot's first pose. A checkpoint without a goal's node (older) keeps none."""
+        g, path = state.get("goal"), state.get("path")
+        if state.get("done") or not g or not path or "cell" not in g:
+            return
+        xy = np.asarray(g["xy"], float)
+        choice = fr.ViewChoice(
+            np.asarray(g["cell"], np.int64),
+            xy,
+            float(g["yaw"]),
+            float(g["gain_m2"]),
+            float(g["path_cost"]),
+            float(g["score"]),
+            None,
+            0,
+            0,
+        )
+        path_xy = np.asarray(path, float).reshape(-1, 2)
+        self.follower.set_path(path_xy, final_yaw=choice.yaw)
+        t_set = float(g.get("t_set_s") or state.get("t_s") or 0.0)
+        self.goal = Goal(choice, path_xy, t_set, self.follower.remaining_length_m())
+        if state.get("t_last_plan_s") is not None:  # the next periodic plan comes when it would
+            self._t_last_plan = float(state["t_last_plan_s"])
+        self._progress_mark = None  # set again at the first pose: no stall from the pause
+        self._resumed_goal = True
 
     # -- decisions ------------------------------------------------------------------------------
 
@@ -464,6 +498,8 @@ class Explorer:
             if g is None
             else {
                 "xy": [float(v) for v in g.choice.xy],
+                "cell": [int(v) for v in g.choice.cell],
+                "t_set_s": g.t_set,
                 "yaw": g.choice.yaw,
                 "gain_m2": g.choice.gain_m2,
                 "path_cost": g.choice.path_cost,
@@ -475,6 +511,7 @@ class Explorer:
             "distance_m": self.distance_m,
             "label_counts": {str(i): int(c) for i, c in enumerate(self.label_counts) if c},
             "n_plans": self.n_plans,
+            "t_last_plan_s": self._t_last_plan if math.isfinite(self._t_last_plan) else None,
             "n_goals": self.n_goals,
             "n_blocked": self.n_replans_blocked,
             "n_stuck": self.n_stuck,

@@ -58,6 +58,13 @@ class PurePursuit:
         self._arrived = False
         self.final_yaw = final_yaw
 
+    def skip_to_nearest(self, x: float, y: float) -> None:
+        """Go on from the path point nearest (x, y), wherever it is (a path resumed by a process
+        that took over, the robot further along than the window `command` searches)."""
+        if self.active:
+            d = np.hypot(*(self.path - np.array([x, y], np.float64)).T)
+            self._progress = int(np.argmin(d))
+
     @property
     def active(self) -> bool:
         return len(self.path) > 0

@@ -92,6 +92,7 @@ class ExplorerService(Service):
         self._seq = 0
         self._next_state = 0.0
         self._next_checkpoint = time.monotonic() + CHECKPOINT_PERIOD_S
+        self._goal_saved = None  # the goal the last checkpoint holds
         self._plan_log: list[dict] = []
         self._need_sync = True
         self._next_sync = 0.0
@@ -142,10 +143,15 @@ class ExplorerService(Service):
         self.n_path_queries = int(state.get("path_queries") or 0)
         self.path_ok = int(state.get("path_ok") or 0)
         self.path_errors = {str(k): int(v) for k, v in (state.get("path_errors") or {}).items()}
+        self._goal_saved = self.core.goal
+        goal = self.core.goal
         self.log.info(
-            "resumed the run's exploration: %.1f m travelled, %d goals",
+            "resumed the run's exploration: %.1f m travelled, %d goals%s",
             self.core.distance_m,
             self.core.n_goals,
+            ""
+            if goal is None
+            else f", driving on to ({goal.choice.xy[0]:.2f}, {goal.choice.xy[1]:.2f})",
         )
         if state.get("done"):
             self.log.info("exploration had finished in this run (%s)", state.get("done_reason"))
@@ -358,8 +364,11 @@ class ExplorerService(Service):
         if now >= self._next_state:
             self._next_state = now + STATE_PERIOD_S
             self.state_pub.put(self._state())
-        if now >= self._next_checkpoint:
+        # a checkpoint every period, and whenever the goal changes: a spare that takes over
+        # drives on to the same view, not to one of a checkpoint ago
+        if now >= self._next_checkpoint or self.core.goal is not self._goal_saved:
             self._next_checkpoint = now + CHECKPOINT_PERIOD_S
+            self._goal_saved = self.core.goal
             self.save(final=False)
         if self.core.done:
             self._finish()

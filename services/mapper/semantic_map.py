@@ -261,6 +261,47 @@ class SemanticMap:
             "bytes_per_observed_voxel": used / observed if observed else 0.0,
         }
 
+    # -- voxel states (the journal's, services/mapper/journal.py) -----------------------------
+
+    def column_names(self) -> list[str]:
+        """The back-end's per-voxel columns (what a saved map and a journal record hold)."""
+        return list(self._core.grid.cols)
+
+    def voxel_state(self, keys: np.ndarray) -> dict[str, np.ndarray]:
+        """Every column of the voxels at integer keys (N x 3) as the back-end holds them (label
+        distributions, weights, flags): what `set_voxel_state` needs to set them again exactly,
+        which a `Delta` row is not. Each key must be in an allocated block."""
+        keys = np.asarray(keys)
+        if keys.ndim != 2 or keys.shape[1] != 3:
+            raise ValueError(f"keys must be N x 3, got shape {keys.shape}")
+        g = self._core.grid.lookup(keys)
+        if (g < 0).any():
+            raise ValueError(f"{int((g < 0).sum())} keys are in no allocated block")
+        return {k: c[g] for k, c in self._core.grid.cols.items()}
+
+    def set_voxel_state(self, keys: np.ndarray, cols: dict[str, np.ndarray]) -> None:
+        """Set every column of the voxels at `keys` (blocks allocated as needed). The map's
+        figures (observed, occupied) are stale until `recount()`: call it after a batch."""
+        keys = np.asarray(keys)
+        if keys.ndim != 2 or keys.shape[1] != 3:
+            raise ValueError(f"keys must be N x 3, got shape {keys.shape}")
+        if keys.size and (keys.min() < -KEY_LIMIT or keys.max() >= KEY_LIMIT):
+            raise ValueError(f"keys must lie in [-{KEY_LIMIT}, {KEY_LIMIT})")
+        grid = self._core.grid
+        if set(cols) != set(grid.cols):
+            raise ValueError(f"columns {sorted(cols)} do not fit back-end {self.backend}")
+        for k, v in cols.items():
+            col = grid.cols[k]
+            if v.dtype != col.dtype or v.shape != (keys.shape[0], *col.shape[1:]):
+                raise ValueError(f"column {k}: {v.dtype} {v.shape} does not fit {col.dtype}")
+        g = grid.insert(keys)  # may grow the columns: read them after
+        for k, v in cols.items():
+            grid.cols[k][g] = v
+
+    def recount(self) -> None:
+        """Recompute the observed and occupied counts from the columns."""
+        self._core.recount()
+
     # -- persistence -----------------------------------------------------------------------
 
     def _meta(self) -> dict:

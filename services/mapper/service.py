@@ -37,6 +37,15 @@ Merged deltas go out only when a merged voxel changed.
 
 The map is saved every `mapper.autosave_period_s` (when it changed) and on shutdown, atomically;
 `mapper.load` (or `--load FILE`) resumes from a file, "auto" from `save_path` when it exists.
+Between two autosaves every integration is appended to the map's journal (`map.journal` beside
+`map.npz`, `journal.py`) before its delta goes out: the full state of each voxel it changed. With
+`mapper.load = "auto"` (what `smana up` sets) a mapper that starts in a run directory replays
+that journal over the autosave, so a take-over after `kill -9` loses no voxel a consumer saw;
+what was in flight (the cloud being integrated, a record cut short: `takeover.torn_bytes`) is
+counted, and the clouds that went unmapped meanwhile as `clouds_lost_upstream` (the cloud numbers
+are in the journal too). A hot spare follows the journal while it stands by (`standing_by`), so
+it takes over with the last few records left to read. The fleet mapper keeps no journal: the
+members' own maps hold everything, and fill it in at start.
 """
 
 from __future__ import annotations
@@ -56,12 +65,16 @@ from smana.common.query import QueryError, request
 from smana.common.service import Reject, ReplyError, Request, Service, run_service
 from smana.services.mapper.delta import Delta
 from smana.services.mapper.fleet import FleetMap
+from smana.services.mapper.journal import JournalReader, JournalWriter, journal_path
 from smana.services.mapper.semantic_map import SemanticMap
 
 MAX_QUERY_POINTS = 100_000
 MAX_NAME_BYTES = 255  # NAME_MAX of Linux file systems
 MAX_SEQ_GAP = 1000  # a larger jump in a sender's cloud numbers is a new numbering, not a loss
 RESYNC_MIN_PERIOD_S = 1.0  # the fleet mapper asks a member for its snapshot at most this often
+# a journal this large brings the next autosave forward (and starts a new journal): the disk it
+# takes stays bounded, with `autosave_period_s = 0` (only on shutdown) too
+JOURNAL_MAX_BYTES = 256 << 20
 
 
 def resolve_save_path(config: SmanaConfig) -> Path | None:
@@ -148,6 +161,12 @@ class MapperService(Service):
         self._resync_why = dict.fromkeys(self.members, "")
         self._next_resync = dict.fromkeys(self.members, 0.0)
         self._member_down = dict.fromkeys(self.members, False)
+        # the journal since the last autosave (none for the fleet mapper, nor without a file)
+        use_journal = self.save_path is not None and not self.fleet
+        self.journal_path = journal_path(self.save_path) if use_journal else None
+        self.journal: JournalWriter | None = None
+        self._reader: JournalReader | None = None  # followed while a hot spare stands by
+        self.takeover: dict = {}  # what the replay at start found (stats()["takeover"])
 
     def prepare(self) -> None:
         # (Compile or) load the kernels before the token says we are ready.
@@ -165,10 +184,103 @@ class MapperService(Service):
             fm.replace(self.members[0], d.centres, d.labels, d.confidences, d.values)
         self.log.info("kernels ready in %.1f s", time.perf_counter() - t0)
 
+    def standing_by(self) -> None:
+        # A hot spare keeps its copy of the map current from the journal, so that a take-over
+        # reads only the records written since the last poll.
+        if not self._replays():
+            return
+        if self._reader is None:
+            self._reader = self._open_journal()
+            self.log.info("standing by: following %s", self.journal_path)
+        else:
+            self._reader.poll()
+
+    def _replays(self) -> bool:
+        return self.journal_path is not None and self.config.mapper.load == "auto"
+
+    def _open_journal(self) -> JournalReader:
+        # the journal first, then the autosave: a rotation in between leaves the reader on the
+        # old journal, whose records the new autosave holds (replaying them changes nothing)
+        reader = JournalReader(self.journal_path)
+        reader.attach(build_map(self.config, self.table, self.log))
+        return reader
+
     def warm_up(self) -> None:
-        # The run's map: resumed from its autosave after a crash (`mapper.load`).
+        # The run's map: resumed from its autosave and its journal after a crash (`mapper.load`).
         self.startup_step = "loading the map"
-        self.map = build_map(self.config, self.table, self.log)
+        if not self._replays():
+            self.map = build_map(self.config, self.table, self.log)
+            self._start_journal(None)
+            return
+        t0 = time.perf_counter()
+        followed = self._reader is not None
+        reader, self._reader = self._reader or self._open_journal(), None
+        self.startup_step = "replaying the map's journal"
+        offset = reader.finish()
+        reader.close()
+        self.map = reader.map
+        self.map.recount()
+        b = reader.books
+        self._restore(b.service)
+        if b.skipped:
+            self.log.warning("%s: not replayed", b.skipped)
+        self.takeover = {
+            "records_replayed": b.records,
+            "voxels_replayed": b.voxels,
+            "torn_bytes": b.torn_bytes,
+            "journal_files": b.files,  # 2 and more: it followed the journal through autosaves
+            "followed_in_standby": followed,
+            "replay_ms": (time.perf_counter() - t0) * 1e3,
+        }
+        if b.records or b.torn_bytes:
+            self.log.info(
+                "replayed %d journal records (%d voxel states) over the autosave in %.0f ms%s; "
+                "the map has %d occupied voxels",
+                b.records,
+                b.voxels,
+                self.takeover["replay_ms"],
+                f", {b.torn_bytes} bytes of a record cut short dropped" if b.torn_bytes else "",
+                self.map.stats()["voxels_occupied"],
+            )
+        if b.torn_bytes:
+            self.note("journal_torn", f"{b.torn_bytes} bytes of a journal record cut short")
+        # go on after the last whole record, or start a new journal
+        self._start_journal(offset if reader.exists and not b.skipped and offset > 0 else None)
+
+    def _start_journal(self, offset: int | None) -> None:
+        if self.journal_path is None:
+            return
+        try:
+            self.journal = JournalWriter(self.journal_path, self.map, self._counters(), offset)
+        except OSError as exc:  # the map goes on; only a take-over would lose more
+            self.note("journal_failed", f"journal {self.journal_path}: {exc}; mapping without")
+
+    def _counters(self) -> dict:
+        """The service's figures a journal record carries beside the voxels."""
+        return {
+            "clouds": self.clouds,
+            "last_cloud_seq": self.last_cloud_seq,
+            "last_stamp_s": self.last_stamp_s,
+            "delta_seq": self.delta_seq,
+            "input_seq": dict(self.input_seq),
+            "points_dropped": self.points_dropped,
+            "labels_replaced": self.labels_replaced,
+            "integrations": self.map.n_integrations,
+            "points": self.map.n_points,
+        }
+
+    def _restore(self, c: dict) -> None:
+        if not c:
+            return
+        self.clouds = int(c["clouds"])
+        self.last_cloud_seq = int(c["last_cloud_seq"])
+        self.last_stamp_s = float(c["last_stamp_s"])
+        self.delta_seq = int(c["delta_seq"])
+        self.input_seq = {str(k): int(v) for k, v in c["input_seq"].items()}
+        self.points_dropped = int(c["points_dropped"])
+        self.labels_replaced = int(c["labels_replaced"])
+        self.map.n_integrations = int(c["integrations"])
+        self.map.n_points = int(c["points"])
 
     def setup(self) -> None:
         r = self.robot
@@ -241,6 +353,11 @@ class MapperService(Service):
         self.last_cloud_seq = cloud.seq
         self.last_stamp_s = cloud.stamp_s
         self.delta_seq += 1
+        if self.journal is not None:  # before the delta goes out: what a consumer saw survives
+            try:
+                self.journal.append(delta.keys, self._counters())
+            except OSError as exc:  # disk full: the map goes on, a take-over loses more
+                self.note("journal_failed", f"journal {self.journal_path}: {exc}")
         self.delta_pub.put(self._message(delta, cloud.stamp_s, cloud.seq, self.delta_seq))
 
     # -- the fleet path ----------------------------------------------------------------------
@@ -357,10 +474,20 @@ class MapperService(Service):
         if self.fleet:
             self._fleet_tick()
         period = self.config.mapper.autosave_period_s
-        if period > 0 and time.monotonic() >= self._next_save:
+        full = self.journal is not None and self.journal.bytes > JOURNAL_MAX_BYTES
+        if full or (period > 0 and time.monotonic() >= self._next_save):
             self._next_save = time.monotonic() + period
             if self.dirty and self.save_path is not None:
                 self.save(self.save_path)
+                self._rotate_journal()
+
+    def _rotate_journal(self) -> None:
+        """The autosave holds the journal's records now: start a new one."""
+        if self.journal is not None:
+            try:
+                self.journal.rotate(self._counters())
+            except OSError as exc:
+                self.note("journal_failed", f"journal {self.journal_path}: {exc}")
 
     def save(self, path: Path) -> dict:
         t0 = time.perf_counter()
@@ -384,6 +511,9 @@ class MapperService(Service):
             return  # stopped while warming up: nothing was mapped, an autosave is still there
         if self.save_path is not None and (self.dirty or not self.save_path.exists()):
             self.save(self.save_path)
+            self._rotate_journal()
+        if self.journal is not None:
+            self.journal.close()
 
     # -- queries -----------------------------------------------------------------------------
 
@@ -399,6 +529,12 @@ class MapperService(Service):
             "integrate_ms_last": float(t[-1]),
             "save_path": str(self.save_path) if self.save_path else "",
             "last_save_s": self.last_save_s,
+            "journal": (
+                {"records": self.journal.records, "bytes": self.journal.bytes}
+                if self.journal is not None
+                else {}
+            ),
+            "takeover": self.takeover,
             **({"members": self._member_stats()} if self.fleet else {}),
         }
 
