@@ -127,6 +127,7 @@ def test_a_format_1_map_file_still_loads(tmp_path):
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(bytes(arrays["meta"]).decode())
     octree = meta.pop("config")
+    del octree["max_fusion"]  # format 1 predates it
     fusion = ("max_same_gain", "max_disagree_factor", "bayes_min_confidence")
     meta["occupancy"] = {k: v for k, v in octree.items() if k not in fusion}
     meta["fusion"] = {k: octree[k] for k in fusion}
@@ -135,9 +136,28 @@ def test_a_format_1_map_file_still_loads(tmp_path):
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     np.savez(tmp_path / "old.npz", **arrays)
     old = SemanticMap.load(tmp_path / "old.npz")
-    assert old.config == m.config
+    # a file from before `max_fusion` was fused by the gain rule, and keeps it
+    assert old.config == dataclasses.replace(m.config, max_fusion="gain")
     probe = rng.uniform(-3, 3, (300, 3))
     np.testing.assert_array_equal(old.query(probe).values, m.query(probe).values)
+
+
+def test_a_saved_octree_map_keeps_its_max_fusion_rule(tmp_path):
+    from smana.common.config.mapper import OctreeConfig
+
+    gain = SemanticMap("octree-max", 0.2, 4.0, 1.0, config=OctreeConfig(max_fusion="gain"))
+    assert SemanticMap.load(gain.save(tmp_path / "gain.npz")).config.max_fusion == "gain"
+    plain = SemanticMap("octree-max", 0.2, 4.0, 1.0)
+    path = plain.save(tmp_path / "plain.npz")
+    assert SemanticMap.load(path).config.max_fusion == "average"
+    # a format-2 file written before the field existed was fused by the gain rule
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    del meta["config"]["max_fusion"]
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(tmp_path / "before.npz", **arrays)
+    assert SemanticMap.load(tmp_path / "before.npz").config.max_fusion == "gain"
 
 
 @pytest.mark.multiprocess

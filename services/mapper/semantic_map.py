@@ -307,6 +307,8 @@ class SemanticMap:
             saved = meta["tsdf"] if backend.config_key == "tsdf" else octree
         else:
             saved = meta["config"]
+        if backend.config_key == "octree" and "max_fusion" not in saved:
+            saved = {**saved, "max_fusion": "gain"}  # saved before the rule was a choice
         m = cls(
             backend=meta["backend"],
             resolution_m=meta["resolution_m"],
