@@ -356,6 +356,9 @@ def noise_seed_run(settings: NoiseExperimentConfig, seed: int, first: bool, tell
                 "error_mean_m": scores["reconstruction_error_mean_m"],
                 "error_std_m": scores["reconstruction_error_std_m"],
                 "classification_ratio": scores["classification_ratio"],
+                "precision": scores["precision"],
+                "completeness": scores["completeness"],
+                "f_score": scores["f_score"],
                 "integrate_cpu_ms_per_frame": 1e3 * (c4 - c3) / max(1, len(clouds)),
                 "per_class_ratio": {
                     k: v["classification_ratio"] for k, v in scores["per_true_class"].items()
