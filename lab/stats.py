@@ -197,6 +197,13 @@ def decide_near(ci: Interval, target: float, tolerance: float) -> Decision:
     )
 
 
+def decide_above(ci: Interval, c: float = 0.0) -> Decision:
+    """A direction the paper gives without a size ("A loses less than B"), tested on the paired
+    per-seed difference: reproduced when its interval lies above `c`, not reproduced when below
+    (`verdict_positive` with its p-values)."""
+    return _undefined(ci) or _decide(_t_sf(ci, c), _t_cdf(ci, c), (1 - ci.confidence) / 2)
+
+
 def decide_not_worse(ci: Interval, margin: float, higher_is_better: bool = False) -> Decision:
     """Non-inferiority of B against A from the per-seed differences B - A, with a margin
     declared before the runs: met when the interval lies on the good side of the margin (below

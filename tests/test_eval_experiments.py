@@ -104,11 +104,11 @@ def _noise_rows(losses, added):
             base = {"seed": seed, "backend": b, "n_points": 100, "error_std_m": 0.01}
             rows += [
                 {**base, "sweep": "label", "level": "none", "classification_ratio": 0.95,
-                 "error_mean_m": 0.03},
+                 "error_mean_m": 0.03, "f_score": 0.9},
                 {**base, "sweep": "label", "level": "high",
-                 "classification_ratio": 0.95 - loss[k], "error_mean_m": 0.03},
+                 "classification_ratio": 0.95 - loss[k], "error_mean_m": 0.03, "f_score": 0.9},
                 {**base, "sweep": "pose", "level": "high", "classification_ratio": 0.9,
-                 "error_mean_m": 0.03 + add[k]},
+                 "error_mean_m": 0.03 + add[k], "f_score": 0.9 - 10 * add[k]},
             ]  # fmt: skip
     return rows
 
@@ -125,6 +125,17 @@ def test_noise_claims_are_decided_by_intervals_over_seeds():
     assert c[4]["smana"].mean == pytest.approx(ref.mean)
     assert c[4]["smana"].lo == pytest.approx(ref.lo)
     assert c[0]["smana"].mean == pytest.approx(np.mean([x[0] for x in losses]))
+    # (b) and (c) are paired per seed too: octree-max's loss minus tsdf's
+    assert c[2]["smana"].mean == pytest.approx(np.mean([x[1] - x[0] for x in losses]))
+    assert c[3]["smana"].mean == pytest.approx(np.mean([10 * (a[1] - a[0]) for a in added]))
+    assert c[3]["claim"].startswith("(c) tsdf more robust") and "F-score" in c[3]["claim"]
+    # a TSDF that gains accuracy by leaving surface out is not more robust: (c) follows F
+    pruned = _noise_rows(losses, added)
+    for r in pruned:
+        if r["backend"] == "tsdf" and r["sweep"] == "pose":
+            r["f_score"] = 0.5
+    c = noise.claims(pruned)
+    assert c[3]["verdict"] == stats.NOT_REPRODUCED and c[4]["verdict"] == stats.REPRODUCED
     # the losses far from the paper's and the effect reversed
     far = noise.claims(_noise_rows([(0.3, 0.1), (0.31, 0.11)], [(0.010, 0.001), (0.0105, 0.0015)]))
     assert [x["verdict"] for x in far] == [stats.NOT_REPRODUCED] * 5
@@ -265,14 +276,30 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
     assert _verdict(ex.verdicts(worse), "NBV reaches") == stats.NOT_REPRODUCED
     far = [{**r, "terrain_share": 0.2 + 0.01 * r["seed"]} for r in rows]
     assert _verdict(ex.verdicts(far), "terrain share at grass x4") == stats.NOT_REPRODUCED
-    # only one baseline run reaches 95 %: inconclusive, whatever the means
+    # baseline runs that never reached 95 % are kept as censored at the distance they drove
+    # (61 to 65 m, beyond every NBV run's 33 to 35 m): still decided, not dropped
     few = [
         {**r, "distance_to_95_m": None}
         if r["strategy"] == "nearest_frontier" and r["seed"] > 3
         else r
         for r in rows
     ]
-    assert _verdict(ex.verdicts(few), "NBV reaches") == stats.INCONCLUSIVE
+    assert _verdict(ex.verdicts(few), "NBV reaches") == stats.REPRODUCED
+    # censored early (they stopped after 5 m): they say nothing, inconclusive
+    early = [{**r, "distance_m": 5.0} if r["distance_to_95_m"] is None else r for r in few]
+    assert _verdict(ex.verdicts(early), "NBV reaches") == stats.INCONCLUSIVE
+    # the rise is tested for its size: +28 points with a 10-point tolerance, not only > 0
+    small = [
+        {**r, "terrain_share": r["terrain_share"] - 0.25}
+        if r["grass_cost_factor"] == 4.0 and r["strategy"] == "nbv"
+        else r
+        for r in rows
+    ]
+    assert _verdict(ex.verdicts(small), "terrain share rises") == stats.NOT_REPRODUCED
+    # the world's own routes rule the paper's x1 share out: said so, with the evidence
+    routes = {1.0: stats.Interval(0.85, 0.82, 0.88, 3)}
+    (x1,) = [v for v in ex.verdicts(rows, routes) if "x1," in v["claim"]]
+    assert x1["verdict"] == stats.NOT_REPRODUCIBLE_HERE and x1["evidence"].startswith("routes")
 
     s = ex.ExplorationExperimentConfig(seeds=(3, 4, 5))
     ex.write_exploration_outputs(rows, s, tmp_path)

@@ -112,10 +112,13 @@ def test_not_worse_and_target_below_by_hand():
     assert fx.target_below(iv(0.7, 0.61, 0.8, 3), 0.6) == fx.NOT_MET
     assert fx.target_below(iv(0.6, 0.5, 0.7, 3), 0.6) == stats.INCONCLUSIVE
     assert fx.target_below(iv(0.5, float("nan"), float("nan"), 1), 0.6) == stats.INCONCLUSIVE
-    assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True) == fx.MET
-    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), True) == fx.MET
-    assert fx.not_worse(iv(0.02, 0.01, 0.03, 3), True) == fx.NOT_MET
-    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), False) == fx.NOT_MET
+    # non-inferiority: the interval must clear the margin; holding 0 is not enough
+    assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.005) == stats.INCONCLUSIVE
+    assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.02) == fx.MET
+    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), True, 0.0) == fx.MET
+    assert fx.not_worse(iv(0.02, 0.01, 0.03, 3), True, 0.005) == fx.NOT_MET
+    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), False, 0.005) == fx.NOT_MET
+    assert fx.not_worse(iv(-0.002, -0.004, 0.0, 3), False, 0.005) == fx.MET
 
 
 def test_summary_per_world_and_fleet_size():

@@ -74,6 +74,15 @@ def test_decide_near_is_the_interval_rule_with_its_p_values():
     assert seen == set(stats.VERDICTS)
 
 
+def test_decide_above_is_verdict_positive_with_its_p_values():
+    rng = np.random.default_rng(6)
+    for _ in range(300):
+        ci = stats.mean_ci(_rows(rng, int(rng.integers(2, 8))))
+        d = stats.decide_above(ci)
+        assert d.verdict == stats.verdict_positive(ci)
+        assert d.p_yes + d.p_no == pytest.approx(1.0)
+
+
 def test_an_effect_about_plus_d_needs_its_size_not_only_its_sign():
     # smana's exploration, x4 minus x1: +15.6 points [5.9, 25.2] (n = 5); the paper's +28
     paired = stats.Interval(0.156, 0.059, 0.252, 5)
