@@ -93,6 +93,9 @@ def test_noise_quick(tmp_path):
     assert len(verdicts) == 5 and set(verdicts) <= set(stats.VERDICTS)
     assert "(n = 2)" in lines[6] and "WARNING" not in text
     assert "Classification loss" in text and "CPU time per seed" in text
+    # the compact raw rows docs/experiments/data/ would hold, one per seed, back-end and level
+    compact = json.loads((tmp_path / "data" / "noise.json").read_text())["rows"]
+    assert len(compact) == len(rows) and {"f_score", "completeness"} <= set(compact[0])
 
 
 def _noise_rows(losses, added):
@@ -308,6 +311,8 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
     assert "WARNING" not in text
     data = json.loads((tmp_path / "exploration_results.json").read_text())
     x1 = data["summary"][0]
+    compact = json.loads((tmp_path / "data" / "exploration.json").read_text())["rows"]
+    assert len(compact) == len(rows) and "curve" not in compact[0]
     assert x1["arm"] == "nbv_x1" and x1["terrain_share"]["mean"] == pytest.approx(0.60)
     assert x1["reached_95"] == 3
     for name in ("terrain_share", "coverage_distance", "coverage_time"):

@@ -164,6 +164,8 @@ def test_outputs_say_quick_on_top_and_draw_one_curve_per_fleet_size(tmp_path):
     assert "**WARNING: 1 of 5 runs failed**" in text and "garden12_n2_seed5 (exit 1)" in text
     data = json.loads((tmp_path / "fleet.json").read_text())
     assert {"settings", "runs", "summary", "verdicts"} <= set(data)
+    compact = json.loads((tmp_path / "data" / "fleet.json").read_text())["rows"]
+    assert len(compact) == len(rows) and "curve" not in compact[0]
     assert [p.name for p in figures] == ["fleet_coverage_time_garden12.png"]
     assert figures[0].stat().st_size > 1000
 

@@ -527,6 +527,9 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
         w = csv.DictWriter(f, fieldnames=list(flat[0]))
         w.writeheader()
         w.writerows(flat)
+    from .report import write_data
+
+    write_data(out, "exploration", rows, asdict(s))
     summary = summarise_exploration(rows)
     table = verdicts(rows)
     (out / "exploration_results.json").write_text(

@@ -437,6 +437,9 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
             w.writeheader()
             w.writerows(flat)
     summary = summarise_fleet(rows)
+    from .report import write_data
+
+    write_data(out, "fleet", rows, asdict(s))
     table = verdicts(rows)
     (out / "fleet.json").write_text(
         json.dumps(

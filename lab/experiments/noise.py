@@ -668,6 +668,9 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
         w = csv.DictWriter(f, fieldnames=fields)
         w.writeheader()
         w.writerows(flat)
+    from .report import write_data
+
+    write_data(out, "noise", rows, meta.get("settings") or {})
     agg = aggregate(rows)
     decided = claims(rows)
     losses = label_losses(rows)
