@@ -382,11 +382,14 @@ def test_noise_backend_variants_and_sweeps():
     name, cfg = noise.parse_backend("tsdf@truncation_voxels=4+min_weight=2")
     assert name == "tsdf" and cfg == TsdfConfig(truncation_voxels=4.0, min_weight=2.0)
     assert noise.parse_backend("tsdf@use_weight_dropoff=false")[1].use_weight_dropoff is False
+    # octree-max's earlier same-label rule, as a variant beside the default
+    assert noise.parse_backend("octree-max@max_fusion=gain")[1].max_fusion == "gain"
     for bad, words in (
         ("nope", "unknown back-end"),
         ("tsdf@nope=1", "KEY=VALUE"),
         ("tsdf@max_weight=x", "takes a float"),
         ("tsdf@truncation_voxels=0", "truncation_voxels"),
+        ("octree-max@max_fusion=nope", "max_fusion"),
     ):
         with pytest.raises(ValueError, match=words):
             noise.parse_backend(bad)

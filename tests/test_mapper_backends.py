@@ -55,6 +55,10 @@ def test_the_core_receives_its_section_as_it_is():
     assert m._core.config is cfg.mapper.tsdf and m._core.trunc_m == pytest.approx(0.3)
     cfg = SmanaConfig.load(None, ["mapper.octree.prob_hit=0.8"])
     assert SemanticMap.from_config(cfg.mapper)._core.config is cfg.mapper.octree
+    # octree-max's same-label rule: Semantic Octomap's by default, the gain rule by name
+    assert SmanaConfig.load(None, []).mapper.octree.max_fusion == "average"
+    cfg = SmanaConfig.load(None, ["mapper.octree.max_fusion=gain"])
+    assert SemanticMap.from_config(cfg.mapper)._core._consts.max_rule == 1
 
 
 @pytest.mark.parametrize(
@@ -64,6 +68,10 @@ def test_the_core_receives_its_section_as_it_is():
         ("mapper.octree.prob_hit=0.4", "need prob_miss < 0.5 < prob_hit"),
         ("mapper.tsdf.max_weight=0", "mapper.tsdf.max_weight: expected a number > 0, got 0"),
         ("mapper.tsdf_max_weight=1", "unknown key mapper.tsdf_max_weight"),
+        (
+            "mapper.octree.max_fusion=nope",
+            "mapper.octree.max_fusion: expected one of ['average', 'gain'], got 'nope'",
+        ),
     ],
 )
 def test_backend_sections_are_checked_with_one_line_naming_the_key(override, message):
