@@ -104,3 +104,20 @@ def test_routes_writes_its_data_file(tmp_path):
     rows = report.load_data(tmp_path / "data")["routes"]["rows"]
     assert [(r["seed"], r["grass_cost_factor"]) for r in rows] == [(3, 1.0), (3, 4.0)]
     assert all(0 < r["terrain_share"] <= 1 for r in rows)
+
+
+def test_noise_data_of_one_sweep_generates_its_claims_and_names_the_missing(tmp_path):
+    rows = []
+    for seed in (3, 4, 5):
+        for backend, loss in (("tsdf", 0.10), ("octree-max", 0.30)):
+            for level, ratio in (("none", 0.95), ("high", 0.95 - loss - 0.002 * seed)):
+                rows.append(
+                    {"seed": seed, "backend": backend, "sweep": "label", "level": level,
+                     "classification_ratio": ratio, "error_mean_m": 0.02, "f_score": 0.8}
+                )  # fmt: skip
+    report.write_data(tmp_path, "noise", rows, {"sweeps": ["label"]})
+    table = report.verdict_claims(report.load_data(tmp_path / "data"))
+    assert [c["claim"][:3] for c in table] == ["(a)", "(a)", "(b)"]
+    assert all(c["holm_verdict"] == stats.REPRODUCED for c in table)
+    text = report.verdicts_section(report.load_data(tmp_path / "data"))
+    assert "no rows for claim (c), (c') (a run of some sweeps only: sweeps label)" in text

@@ -123,6 +123,8 @@ def _noise_claims(data: dict) -> list[dict]:
 
     out = []
     for c in claims(data["rows"]):
+        if c["smana"].n == 0:  # a run without that sweep: the claim is not in this data
+            continue
         txt = c["smana"].format(c["scale"], ".1f", c["unit"])
         out.append({**c, "smana": txt, "experiment": "noise"})
     return out
@@ -173,6 +175,17 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
                 f"{c['rule']} | {c['p']:.2g} | {c['holm_verdict']} ({c['holm']}) |"
             )
         lines.append("")
+    if "noise" in all_data:
+        have = {c["claim"].split(")")[0] + ")" for c in table if c["experiment"] == "noise"}
+        lacking = [k for k in ("(a)", "(b)", "(c)", "(c')") if k not in have]
+        if lacking:
+            meta = all_data["noise"]["meta"]
+            how = meta.get("command") or f"sweeps {', '.join(meta.get('sweeps') or ['?'])}"
+            lines.append(
+                f"_The committed noise data has no rows for claim {', '.join(lacking)} "
+                f"(a run of some sweeps only: {how})._"
+            )
+            lines.append("")
     if missing:
         names = ", ".join(f"`{n}`" for n in missing)
         lines.append(
