@@ -121,3 +121,13 @@ def test_noise_data_of_one_sweep_generates_its_claims_and_names_the_missing(tmp_
     assert all(c["holm_verdict"] == stats.REPRODUCED for c in table)
     text = report.verdicts_section(report.load_data(tmp_path / "data"))
     assert "no rows for claim (c), (c') (a run of some sweeps only: sweeps label)" in text
+    # claims refuted by the data stay refuted after the correction (tsdf losing 40 points)
+    far = [{**r, "classification_ratio": r["classification_ratio"] - 0.3}
+           if r["backend"] == "tsdf" and r["level"] == "high" else r for r in rows]  # fmt: skip
+    report.write_data(tmp_path, "noise", far, {"sweeps": ["label"]})
+    table = report.verdict_claims(report.load_data(tmp_path / "data"))
+    assert [c["holm_verdict"] for c in table] == [
+        stats.NOT_REPRODUCED,
+        stats.REPRODUCED,
+        stats.NOT_REPRODUCED,
+    ]

@@ -145,12 +145,8 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
         table += _noise_claims(all_data["noise"])
     if "exploration" in all_data:
         table += _exploration_claims(all_data["exploration"], routes)
-    decisions = [
-        stats.Decision(c["verdict"], c["p"], c["p"])
-        if c["verdict"] in (stats.INCONCLUSIVE, stats.NOT_REPRODUCIBLE_HERE)
-        else stats.Decision(c["verdict"], c["p"], 1.0)
-        for c in table
-    ]
+    # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
+    decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in table]
     for c, d in zip(table, stats.holm_table(decisions), strict=True):
         c["holm_verdict"] = d.verdict
         c["holm"] = d.evidence
