@@ -315,6 +315,14 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
     assert len(compact) == len(rows) and "curve" not in compact[0]
     assert x1["arm"] == "nbv_x1" and x1["terrain_share"]["mean"] == pytest.approx(0.60)
     assert x1["reached_95"] == 3
+    assert x1["km_median_distance_to_95_m"] == pytest.approx(34.0)  # of 33, 34, 35 m
+    # two of three never reach 95 %: kept as censored at the 40 m they drove; no median
+    arm = ex.nbv(2.0)
+    runs = [_run(3, arm, dist=20.0)] + [_run(s, arm, reach_at=False) for s in (4, 5)]
+    (d,) = ex.summarise_exploration(runs)
+    assert d["reached_95"] == 1 and d["km_median_distance_to_95_m"] is None
+    (d,) = ex.summarise_exploration(runs[:2] + [_run(5, arm, dist=30.0)])
+    assert d["km_median_distance_to_95_m"] == pytest.approx(30.0)  # 20, 30 reached; 40 censored
     for name in ("terrain_share", "coverage_distance", "coverage_time"):
         assert (tmp_path / f"exploration_{name}.png").stat().st_size > 1000
 

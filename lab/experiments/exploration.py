@@ -345,6 +345,11 @@ def _ci(rows, key) -> stats.Interval:
     return stats.mean_ci([r[key] for r in rows if r["ok"]])
 
 
+def _km(rows: list[dict], key: str, bound: str) -> float | None:
+    values, censored = _censored(rows, key, bound)
+    return stats.km_median(values, censored) if values else None
+
+
 def summarise_exploration(rows: list[dict]) -> list[dict]:
     """Per arm: intervals of terrain share, coverage, distance, and of the distance and time to
     95 % coverage over the runs that reached it (with how many did)."""
@@ -361,6 +366,9 @@ def summarise_exploration(rows: list[dict]) -> list[dict]:
                 "runs": len(sel),
                 "failed": len(sel) - len(ok),
                 "reached_95": sum(r["distance_to_95_m"] is not None for r in ok),
+                # every run that ran, those that never reached 95 % censored at what they spent
+                "km_median_distance_to_95_m": _km(ok, "distance_to_95_m", "distance_m"),
+                "km_median_time_to_95_s": _km(ok, "time_to_95_s", "robot_time_s"),
                 **{
                     k: _ci(sel, k).as_dict()
                     for k in (
@@ -567,8 +575,8 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
         f"{s.jobs} runs at once. World: {' '.join(WORLD_SETS) or 'default garden'}.",
         "",
         "| arm | runs (failed) | terrain share | coverage | distance (m) | reached 95 % | "
-        "distance to 95 % (m) | time to 95 % (s) |",
-        "|---|---|---|---|---|---|---|---|",
+        "distance to 95 % (m) | time to 95 % (s) | Kaplan-Meier median to 95 % (m, s) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for d in summary:
         iv = {k: _interval(d[k]) for k in ("terrain_share", "coverage", "distance_m")}
@@ -578,12 +586,15 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
             f"{iv['terrain_share'].format(100, unit=' %')} | "
             f"{iv['coverage'].format(100, unit=' %')} | {iv['distance_m'].format()} | "
             f"{d['reached_95']} of {d['runs'] - d['failed']} | {d95.format()} | "
-            f"{t95.format(1.0, '.0f')} |"
+            f"{t95.format(1.0, '.0f')} | {_num(d['km_median_distance_to_95_m'])}, "
+            f"{_num(d['km_median_time_to_95_s'], '.0f')} |"
         )
     lines += [
         "",
         "Distance and time to 95 % are over the runs that reached it; the others are counted "
-        "as not reached (censored), never as a number. Coverage curves: the explorer's "
+        "as not reached (censored), never as a number. The Kaplan-Meier median keeps them, "
+        "censored at the distance (time) they had spent; '-' when over half never reached "
+        "it. Coverage curves: the explorer's "
         "explored area rescaled to the ground-truth coverage at the end of each run "
         "(lab/experiments/exploration.py explains).",
         "",
