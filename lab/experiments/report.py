@@ -186,8 +186,10 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
         names = ", ".join(f"`{n}`" for n in missing)
         lines.append(
             f"_No raw results of {names} are committed yet (docs/experiments/data/): their "
-            "claims are not generated here. The table below is transcribed from the runs of "
-            "those experiments, not yet regenerated, relabelled by hand with the rules above._"
+            "claims are not generated here"
+            + (", and the Holm correction above covers only the claims generated" if table else "")
+            + ". The table below is transcribed from the runs of those experiments, not yet "
+            "regenerated, relabelled by hand with the rules above._"
         )
     return "\n".join(lines) + "\n"
 
