@@ -176,7 +176,11 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
         lacking = [k for k in ("(a)", "(b)", "(c)", "(c')") if k not in have]
         if lacking:
             meta = all_data["noise"]["meta"]
-            how = meta.get("command") or f"sweeps {', '.join(meta.get('sweeps') or ['?'])}"
+            how = (
+                meta.get("command")
+                or "; ".join(meta.get("commands") or [])
+                or f"sweeps {', '.join(meta.get('sweeps') or ['?'])}"
+            )
             lines.append(
                 f"_The committed noise data has no rows for claim {', '.join(lacking)} "
                 f"(a run of some sweeps only: {how})._"
