@@ -69,8 +69,18 @@ def test_a_run_that_never_reached_95_is_censored_and_said_so():
     ratios, censored = fx.time_ratios(rows, W22.name, 2)
     assert ratios == {3: 0.5} and censored == [4, 5]
     v = _verdict(fx.verdicts(rows), "garden22: time to 95 % coverage with 2")
-    assert v["verdict"] == stats.INCONCLUSIVE  # one ratio: no interval
-    assert "censored (never reached 95 %): seed 4, 5" in v["smana"]
+    # kept as bounds (every run ends at 100 s): seed 4 below 100 / 100, seed 5 above 100 / 300
+    assert fx.bounded_ratios(rows, W22.name, 2) == {
+        3: (0.5, ""),
+        4: (1.0, "below"),
+        5: (pytest.approx(1 / 3), "above"),
+    }
+    assert v["verdict"] == stats.INCONCLUSIVE
+    assert v["smana"].startswith("0.61 [") and "(n = 3)" in v["smana"]
+    assert (
+        "censored (never reached 95 %), kept as bounds: seed 4: < 1.00, seed 5: > 0.33"
+        in (v["smana"])
+    )
     # a failed run is neither a ratio nor censored
     rows = _rows({1: [100, 200, 300], 2: [50, 100, 150]})
     rows[-1]["ok"] = False
@@ -104,6 +114,23 @@ def test_merged_map_not_worse_and_contacts():
     assert v["verdict"] == fx.NOT_MET and v["smana"].startswith("2 in 6 runs")
     rows[-1]["robot_contacts"] = None
     assert _verdict(fx.verdicts(rows), "robot-robot contacts")["verdict"] == stats.INCONCLUSIVE
+
+
+def test_a_censored_ratio_blocks_only_the_verdict_it_could_overturn():
+    # a fleet that never reached 95 % (its run ended at 100 s): its ratio is above 1.0, so "not
+    # met" stands when even the bound puts the interval over the target, and "met" cannot
+    slow = _rows({1: [100, 100, 100], 2: [90, 95, None]})
+    assert fx.target_below_censored(fx.bounded_ratios(slow, W22.name, 2), 0.6) == fx.NOT_MET
+    fast = _rows({1: [100, 100, 100], 2: [30, 35, None]})
+    bounded = fx.bounded_ratios(fast, W22.name, 2)
+    assert fx.target_below(stats.mean_ci([v for v, _ in bounded.values()]), 2.0) == fx.MET
+    assert fx.target_below_censored(bounded, 2.0) == stats.INCONCLUSIVE  # > 1.0 is not <= 2
+    # the lone robot never reached 95 %: the ratio is below its bound, so "not met" is blocked
+    lone = _rows({1: [100, 100, None], 2: [90, 95, 90]})
+    bounded = fx.bounded_ratios(lone, W22.name, 2)
+    assert bounded[5] == (0.9, "below")
+    assert fx.target_below(stats.mean_ci([v for v, _ in bounded.values()]), 0.6) == fx.NOT_MET
+    assert fx.target_below_censored(bounded, 0.6) == stats.INCONCLUSIVE
 
 
 def test_not_worse_and_target_below_by_hand():
