@@ -7,6 +7,13 @@ and per class, where "class" is either the label the map gave (`per_class`: how 
 the map calls hedge) or the true label of the nearest GT point (`per_true_class`: how much of
 the true hedge came out as hedge).
 
+Accuracy alone rewards a map that holds only what it is sure of, so every map is also scored
+the other way round, as Tanks and Temples scores a reconstruction (Knapitsch et al. 2017):
+`precision` is the share of map points within `threshold_m` (5 cm) of a true surface point,
+`completeness` the share of true surface points within `threshold_m` of a map point, and
+`f_score` their harmonic mean. The ground truth is the whole world's surface, seen or not, so a
+map of part of the world is that incomplete; compare maps of the same views.
+
 Exploration: the share of the reachable traversable area that the navigation graph came to know,
 the labels of the graph nodes the robot travelled over (terrain vs grass, paper 4.3), and the
 robot's clearance from obstacles along its trajectory.
@@ -71,6 +78,18 @@ def _summary(err: np.ndarray, ok: np.ndarray) -> dict:
     }
 
 
+def surface_completeness(map_points, gt_points, threshold_m: float = 0.05) -> float:
+    """Share of ground-truth points with a map point within `threshold_m` (0 for an empty map)."""
+    mp = np.asarray(map_points, np.float64).reshape(-1, 3)
+    gp = np.asarray(gt_points, np.float64).reshape(-1, 3)
+    if len(gp) == 0:
+        raise ValueError("the ground-truth cloud is empty")
+    if len(mp) == 0:
+        return 0.0
+    dist, _ = cKDTree(mp).query(gp, k=1, distance_upper_bound=threshold_m * (1 + 1e-9))
+    return float((dist <= threshold_m).mean())
+
+
 def evaluate_map(
     map_points,
     map_labels,
@@ -78,14 +97,18 @@ def evaluate_map(
     gt_labels,
     class_names: dict[int, str] | None = None,
     gt_tree=None,
+    threshold_m: float = 0.05,
 ) -> dict:
     """Reconstruction error and classification ratio of a labelled map against a labelled GT cloud.
 
     Returns a dict: `n_points`, `reconstruction_error_mean_m`, `reconstruction_error_std_m`,
-    `reconstruction_error_median_m`, `reconstruction_error_p95_m`, `classification_ratio`, and
-    `per_class` / `per_true_class` (name -> n_points, error_mean_m, error_std_m, error_median_m,
-    classification_ratio).
+    `reconstruction_error_median_m`, `reconstruction_error_p95_m`, `classification_ratio`,
+    `precision`, `completeness`, `f_score` (at `threshold_m`, see the module docstring),
+    `threshold_m`, and `per_class` / `per_true_class` (name -> n_points, error_mean_m,
+    error_std_m, error_median_m, classification_ratio).
     """
+    if not (math.isfinite(threshold_m) and threshold_m > 0):
+        raise ValueError(f"threshold_m must be > 0, got {threshold_m}")
     mp, ml = _check_cloud("map", map_points, map_labels)
     gp, gl = _check_cloud("ground truth", gt_points, gt_labels)
     if len(gp) == 0:
@@ -99,10 +122,18 @@ def evaluate_map(
             "reconstruction_error_median_m": None,
             "reconstruction_error_p95_m": None,
             "classification_ratio": None,
+            "precision": None,
+            "completeness": 0.0,
+            "f_score": None,
+            "threshold_m": threshold_m,
             "per_class": {},
             "per_true_class": {},
         }
     dist, idx = nearest_gt(mp, gp, gt_tree)
+    precision = float((dist <= threshold_m).mean())
+    completeness = surface_completeness(mp, gp, threshold_m)
+    pr = precision + completeness
+    f_score = 2 * precision * completeness / pr if pr > 0 else 0.0
     true = gl[idx]
     ok = ml == true
     out = {
@@ -112,6 +143,10 @@ def evaluate_map(
         "reconstruction_error_median_m": float(np.median(dist)),
         "reconstruction_error_p95_m": float(np.percentile(dist, 95)),
         "classification_ratio": float(ok.mean()),
+        "precision": precision,
+        "completeness": completeness,
+        "f_score": f_score,
+        "threshold_m": threshold_m,
         "per_class": {},
         "per_true_class": {},
     }
@@ -389,6 +424,8 @@ def format_map_table(scores: dict) -> str:
         f"std {f(scores['reconstruction_error_std_m'], '.4f')} m, "
         f"median {f(scores['reconstruction_error_median_m'], '.4f')} m",
         f"classification ratio: {f(scores['classification_ratio'], '.3f')}",
+        f"within {scores['threshold_m'] * 100:g} cm: precision {f(scores['precision'], '.3f')}, "
+        f"completeness {f(scores['completeness'], '.3f')}, F-score {f(scores['f_score'], '.3f')}",
         "",
         f"{'class (map label)':<20} {'points':>8} {'err mean m':>11} {'err std m':>10} "
         f"{'class. ratio':>12}",
@@ -409,6 +446,7 @@ def eval_map_run(
     map_path: Path | None = None,
     gt_path: Path | None = None,
     spacing_m: float = 0.03,
+    threshold_m: float = 0.05,
 ) -> dict:
     """Evaluate a run directory's map; writes `eval_map.json` there and returns the scores."""
     from smana.common.classes import ClassTable
@@ -423,7 +461,7 @@ def eval_map_run(
         gp, gl = load_labelled_cloud(Path(gt_path))
     else:
         gp, gl = gt_cloud_for_run(run_dir, config, spacing_m)
-    scores = evaluate_map(mp, ml, gp, gl, names)
+    scores = evaluate_map(mp, ml, gp, gl, names, threshold_m=threshold_m)
     scores["map"] = str(map_path)
     scores["gt"] = str(gt_path or run_dir / "gt.ply")
     (run_dir / "eval_map.json").write_text(json.dumps(scores, indent=2))
@@ -435,7 +473,11 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = ArgumentParser(prog="smana eval", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="what", required=True)
-    m = sub.add_parser("map", help="reconstruction error and classification ratio of a run's map")
+    m = sub.add_parser(
+        "map",
+        help="reconstruction error, classification ratio, precision, completeness and F-score "
+        "of a run's map",
+    )
     m.add_argument("run_dir", type=Path)
     m.add_argument("--map", type=Path, help="map file (PLY or .npz); default: found in RUN_DIR")
     m.add_argument(
@@ -447,13 +489,20 @@ def cli(argv: list[str] | None = None) -> int:
     m.add_argument(
         "--spacing", type=positive_float, default=0.03, help="GT sample spacing when exported"
     )
+    m.add_argument(
+        "--threshold",
+        type=positive_float,
+        default=0.05,
+        help="distance (m) within which a map point and a true surface point count as matched "
+        "(precision, completeness, F-score; default 0.05)",
+    )
     m.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = p.parse_args(argv)
     if not args.run_dir.is_dir():
         print(f"smana eval: {args.run_dir} is not a directory", file=sys.stderr)
         return 2
     try:
-        scores = eval_map_run(args.run_dir, args.map, args.gt, args.spacing)
+        scores = eval_map_run(args.run_dir, args.map, args.gt, args.spacing, args.threshold)
     except (FileNotFoundError, ValueError) as exc:
         print(f"smana eval: {exc}", file=sys.stderr)
         return 2

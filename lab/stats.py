@@ -4,6 +4,8 @@ verdict on a paper claim decided by the intervals, never by one run.
     ci = mean_ci([0.61, 0.55, 0.70, 0.58, 0.66])      # Interval(mean, lo, hi, n)
     verdict_near(ci, 0.60, tolerance=0.10)             # "reproduced" / "not reproduced" / ...
     verdict_less(ci_tsdf, ci_octree)                   # a's interval entirely below b's
+    decide_near(paired_ci, 0.28, tolerance=0.10)       # "about +28 points", with its p-values
+    holm_table([d1, d2, ...])                          # the verdict table corrected together
 
 The interval is Student's t on the mean (runs are few: 5 to 10), two-sided at `confidence`.
 With fewer than two finite values there is no interval: lo and hi are NaN and every verdict is
@@ -115,3 +117,216 @@ def verdict_positive(ci: Interval) -> str:
     if ci.hi < 0:
         return NOT_REPRODUCED
     return INCONCLUSIVE
+
+
+# -- rules fixed before the runs (issue 26) -------------------------------------------------------
+#
+# Every rule below is the interval rule above written as one-sided tests, so that each verdict
+# has the p-value that decided it and a table of verdicts can be corrected together (Holm). A
+# t interval at `confidence` lies above c exactly when the one-sided test of "mean <= c" has
+# p < (1 - confidence) / 2: the same decision, now with its p.
+
+NOT_REPRODUCIBLE_HERE = "not reproducible in this world"
+
+
+@dataclass(frozen=True)
+class Decision:
+    """A verdict with the p-values of its two one-sided conclusions: `p_yes` that the claim
+    holds (reproduced / met), `p_no` that it does not. `alpha` is the one-sided level each is
+    held to: (1 - confidence) / 2, 0.025 for 95 % intervals."""
+
+    verdict: str
+    p_yes: float
+    p_no: float
+    alpha: float = 0.025
+    evidence: str = ""
+
+    @property
+    def p(self) -> float:
+        """The p-value of the conclusion reached (or of the nearer one when inconclusive)."""
+        if self.verdict == REPRODUCED:
+            return self.p_yes
+        if self.verdict == NOT_REPRODUCED:
+            return self.p_no
+        return min(self.p_yes, self.p_no)
+
+
+def _t_sf(ci: Interval, c: float) -> float:
+    """p of the one-sided test "mean <= c" (small when the mean is well above c)."""
+    t_star = float(_st.t.ppf(0.5 + ci.confidence / 2, ci.n - 1))
+    sem = ci.half_width / t_star
+    if sem == 0:
+        return 0.0 if ci.mean > c else 1.0
+    return float(_st.t.sf((ci.mean - c) / sem, ci.n - 1))
+
+
+def _t_cdf(ci: Interval, c: float) -> float:
+    """p of the one-sided test "mean >= c" (small when the mean is well below c)."""
+    t_star = float(_st.t.ppf(0.5 + ci.confidence / 2, ci.n - 1))
+    sem = ci.half_width / t_star
+    if sem == 0:
+        return 0.0 if ci.mean < c else 1.0
+    return float(_st.t.cdf((ci.mean - c) / sem, ci.n - 1))
+
+
+def _decide(p_yes: float, p_no: float, alpha: float, evidence: str = "") -> Decision:
+    if p_yes < alpha:
+        v = REPRODUCED
+    elif p_no < alpha:
+        v = NOT_REPRODUCED
+    else:
+        v = INCONCLUSIVE
+    return Decision(v, p_yes, p_no, alpha, evidence)
+
+
+def _undefined(ci: Interval) -> Decision | None:
+    if ci.defined:
+        return None
+    return Decision(INCONCLUSIVE, 1.0, 1.0, (1 - ci.confidence) / 2)
+
+
+def decide_near(ci: Interval, target: float, tolerance: float) -> Decision:
+    """ "About X": reproduced when the interval lies within X +/- tol (both one-sided tests of the
+    two edges reject: TOST), not reproduced when it lies wholly outside the band. The same rule
+    decides a paired difference "about +D" (give it the per-seed differences' interval): the
+    effect's size is tested, not only its sign."""
+    return _undefined(ci) or _decide(
+        max(_t_sf(ci, target - tolerance), _t_cdf(ci, target + tolerance)),
+        min(_t_cdf(ci, target - tolerance), _t_sf(ci, target + tolerance)),
+        (1 - ci.confidence) / 2,
+    )
+
+
+def decide_above(ci: Interval, c: float = 0.0) -> Decision:
+    """A direction the paper gives without a size ("A loses less than B"), tested on the paired
+    per-seed difference: reproduced when its interval lies above `c`, not reproduced when below
+    (`verdict_positive` with its p-values)."""
+    return _undefined(ci) or _decide(_t_sf(ci, c), _t_cdf(ci, c), (1 - ci.confidence) / 2)
+
+
+def decide_not_worse(ci: Interval, margin: float, higher_is_better: bool = False) -> Decision:
+    """Non-inferiority of B against A from the per-seed differences B - A, with a margin
+    declared before the runs: met when the interval lies on the good side of the margin (below
+    +margin where lower is better, above -margin where higher is better), not met when it lies
+    wholly on the bad side; a difference whose interval holds 0 is not enough."""
+    if not margin >= 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
+    if higher_is_better:
+        return _undefined(ci) or _decide(
+            _t_sf(ci, -margin), _t_cdf(ci, -margin), (1 - ci.confidence) / 2
+        )
+    return _undefined(ci) or _decide(_t_cdf(ci, margin), _t_sf(ci, margin), (1 - ci.confidence) / 2)
+
+
+def decide_in_world(
+    ci: Interval, target: float, tolerance: float, world: Interval, what: str = "routes"
+) -> Decision:
+    """ "About X" where the world itself may rule X out: when the interval of what the world's
+    layout alone gives (`world`, e.g. `smana experiment routes`) lies wholly outside X +/- tol,
+    the verdict is "not reproducible in this world", with that interval as the evidence;
+    otherwise `decide_near`."""
+    lo, hi = target - tolerance, target + tolerance
+    if world.defined and (world.lo > hi or world.hi < lo):
+        d = decide_near(ci, target, tolerance)
+        w = f"{world.mean:.4g} [{world.lo:.4g}, {world.hi:.4g}]"
+        ev = f"{what}: {w}, wholly outside [{lo:.4g}, {hi:.4g}]"
+        return Decision(NOT_REPRODUCIBLE_HERE, d.p_yes, d.p_no, d.alpha, ev)
+    return decide_near(ci, target, tolerance)
+
+
+def holm(pvalues, alpha: float = 0.025) -> tuple[np.ndarray, np.ndarray]:
+    """Holm's step-down correction of a family of p-values: (adjusted p-values, rejected).
+    Sorted ascending, the i-th smallest (from 0) is held to alpha / (m - i) and the first one
+    that fails stops the rest; adjusted p = running max of (m - i) p, capped at 1."""
+    p = np.asarray(pvalues, float)
+    m = len(p)
+    order = np.argsort(p, kind="stable")
+    adj = np.empty(m)
+    adj[order] = np.minimum(np.maximum.accumulate((m - np.arange(m)) * p[order]), 1.0)
+    return adj, adj <= alpha
+
+
+def holm_table(decisions: list[Decision]) -> list[Decision]:
+    """The verdict table corrected together (Holm over every decided claim's p): a reached
+    verdict whose adjusted p exceeds its alpha becomes inconclusive; "not reproducible in this
+    world" is a fact of the world, not a test, and stays."""
+    tested = [i for i, d in enumerate(decisions) if d.verdict != NOT_REPRODUCIBLE_HERE]
+    out = list(decisions)
+    if not tested:
+        return out
+    alpha = decisions[tested[0]].alpha
+    adj, keep = holm([decisions[i].p for i in tested], alpha)
+    for i, a, k in zip(tested, adj, keep, strict=True):
+        d = decisions[i]
+        verdict = d.verdict if k or d.verdict == INCONCLUSIVE else INCONCLUSIVE
+        out[i] = Decision(verdict, d.p_yes, d.p_no, d.alpha, f"Holm-adjusted p = {a:.3g}")
+    return out
+
+
+# -- censored runs -------------------------------------------------------------------------------
+
+
+def kaplan_meier(values, censored) -> tuple[np.ndarray, np.ndarray]:
+    """Kaplan-Meier survival of "not yet reached" (e.g. 95 % coverage): (event times, S after
+    each). A censored run (never reached it) counts with its bound (the budget, or the distance
+    it drove) as "not reached by then"; at equal values an event comes before a censoring."""
+    v = np.asarray(values, float)
+    c = np.asarray(censored, bool)
+    if v.shape != c.shape or not np.isfinite(v).all():
+        raise ValueError("values and censored must be finite and the same length")
+    times = np.unique(v[~c])
+    surv = np.empty(len(times))
+    s = 1.0
+    for k, t in enumerate(times):
+        at_risk = np.count_nonzero(v >= t)
+        events = np.count_nonzero((v == t) & ~c)
+        s *= 1.0 - events / at_risk
+        surv[k] = s
+    return times, surv
+
+
+def km_median(values, censored) -> float | None:
+    """The Kaplan-Meier median: the first event time at which S falls to 0.5 or below; None when
+    it never does (more than half the runs censored before reaching it)."""
+    times, surv = kaplan_meier(values, censored)
+    hit = np.flatnonzero(surv <= 0.5)
+    return float(times[hit[0]]) if len(hit) else None
+
+
+def logrank(a_values, a_censored, b_values, b_censored) -> tuple[float, float]:
+    """Log-rank test of two arms with censored runs: (z, two-sided p). z < 0 when arm A reaches
+    the event sooner than B would under the same hazard (fewer observed than expected for B)."""
+    va, ca = np.asarray(a_values, float), np.asarray(a_censored, bool)
+    vb, cb = np.asarray(b_values, float), np.asarray(b_censored, bool)
+    v = np.concatenate([va, vb])
+    ev_ = ~np.concatenate([ca, cb])
+    in_a = np.arange(len(v)) < len(va)
+    o_minus_e, var = 0.0, 0.0
+    for t in np.unique(v[ev_]):
+        risk = v >= t
+        n, na = np.count_nonzero(risk), np.count_nonzero(risk & in_a)
+        d = np.count_nonzero((v == t) & ev_)
+        da = np.count_nonzero((v == t) & ev_ & in_a)
+        o_minus_e += da - d * na / n
+        if n > 1:
+            var += d * (na / n) * (1 - na / n) * (n - d) / (n - 1)
+    if var == 0:
+        return 0.0, 1.0
+    z = -o_minus_e / math.sqrt(var)
+    return z, float(2 * _st.norm.sf(abs(z)))
+
+
+def decide_sooner_censored(
+    a_values, a_censored, b_values, b_censored, alpha: float = 0.025
+) -> Decision:
+    """ "A reaches it sooner (less time, less distance) than B", censored runs kept: decided by
+    the log-rank test on the same seed set (the caller passes both arms' runs of the seeds
+    where both ran), one-sided at `alpha`; the evidence gives both Kaplan-Meier medians."""
+    z, _ = logrank(a_values, a_censored, b_values, b_censored)
+    ma, mb = km_median(a_values, a_censored), km_median(b_values, b_censored)
+
+    def f(m):
+        return "not reached" if m is None else f"{m:.4g}"
+
+    ev = f"Kaplan-Meier medians {f(ma)} vs {f(mb)}, log-rank z = {z:.2f}"
+    return _decide(float(_st.norm.cdf(z)), float(_st.norm.sf(z)), alpha, ev)

@@ -93,6 +93,9 @@ def test_noise_quick(tmp_path):
     assert len(verdicts) == 5 and set(verdicts) <= set(stats.VERDICTS)
     assert "(n = 2)" in lines[6] and "WARNING" not in text
     assert "Classification loss" in text and "CPU time per seed" in text
+    # the compact raw rows docs/experiments/data/ would hold, one per seed, back-end and level
+    compact = json.loads((tmp_path / "data" / "noise.json").read_text())["rows"]
+    assert len(compact) == len(rows) and {"f_score", "completeness"} <= set(compact[0])
 
 
 def _noise_rows(losses, added):
@@ -104,11 +107,11 @@ def _noise_rows(losses, added):
             base = {"seed": seed, "backend": b, "n_points": 100, "error_std_m": 0.01}
             rows += [
                 {**base, "sweep": "label", "level": "none", "classification_ratio": 0.95,
-                 "error_mean_m": 0.03},
+                 "error_mean_m": 0.03, "f_score": 0.9},
                 {**base, "sweep": "label", "level": "high",
-                 "classification_ratio": 0.95 - loss[k], "error_mean_m": 0.03},
+                 "classification_ratio": 0.95 - loss[k], "error_mean_m": 0.03, "f_score": 0.9},
                 {**base, "sweep": "pose", "level": "high", "classification_ratio": 0.9,
-                 "error_mean_m": 0.03 + add[k]},
+                 "error_mean_m": 0.03 + add[k], "f_score": 0.9 - 10 * add[k]},
             ]  # fmt: skip
     return rows
 
@@ -125,6 +128,17 @@ def test_noise_claims_are_decided_by_intervals_over_seeds():
     assert c[4]["smana"].mean == pytest.approx(ref.mean)
     assert c[4]["smana"].lo == pytest.approx(ref.lo)
     assert c[0]["smana"].mean == pytest.approx(np.mean([x[0] for x in losses]))
+    # (b) and (c) are paired per seed too: octree-max's loss minus tsdf's
+    assert c[2]["smana"].mean == pytest.approx(np.mean([x[1] - x[0] for x in losses]))
+    assert c[3]["smana"].mean == pytest.approx(np.mean([10 * (a[1] - a[0]) for a in added]))
+    assert c[3]["claim"].startswith("(c) tsdf more robust") and "F-score" in c[3]["claim"]
+    # a TSDF that gains accuracy by leaving surface out is not more robust: (c) follows F
+    pruned = _noise_rows(losses, added)
+    for r in pruned:
+        if r["backend"] == "tsdf" and r["sweep"] == "pose":
+            r["f_score"] = 0.5
+    c = noise.claims(pruned)
+    assert c[3]["verdict"] == stats.NOT_REPRODUCED and c[4]["verdict"] == stats.REPRODUCED
     # the losses far from the paper's and the effect reversed
     far = noise.claims(_noise_rows([(0.3, 0.1), (0.31, 0.11)], [(0.010, 0.001), (0.0105, 0.0015)]))
     assert [x["verdict"] for x in far] == [stats.NOT_REPRODUCED] * 5
@@ -265,14 +279,30 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
     assert _verdict(ex.verdicts(worse), "NBV reaches") == stats.NOT_REPRODUCED
     far = [{**r, "terrain_share": 0.2 + 0.01 * r["seed"]} for r in rows]
     assert _verdict(ex.verdicts(far), "terrain share at grass x4") == stats.NOT_REPRODUCED
-    # only one baseline run reaches 95 %: inconclusive, whatever the means
+    # baseline runs that never reached 95 % are kept as censored at the distance they drove
+    # (61 to 65 m, beyond every NBV run's 33 to 35 m): still decided, not dropped
     few = [
         {**r, "distance_to_95_m": None}
         if r["strategy"] == "nearest_frontier" and r["seed"] > 3
         else r
         for r in rows
     ]
-    assert _verdict(ex.verdicts(few), "NBV reaches") == stats.INCONCLUSIVE
+    assert _verdict(ex.verdicts(few), "NBV reaches") == stats.REPRODUCED
+    # censored early (they stopped after 5 m): they say nothing, inconclusive
+    early = [{**r, "distance_m": 5.0} if r["distance_to_95_m"] is None else r for r in few]
+    assert _verdict(ex.verdicts(early), "NBV reaches") == stats.INCONCLUSIVE
+    # the rise is tested for its size: +28 points with a 10-point tolerance, not only > 0
+    small = [
+        {**r, "terrain_share": r["terrain_share"] - 0.25}
+        if r["grass_cost_factor"] == 4.0 and r["strategy"] == "nbv"
+        else r
+        for r in rows
+    ]
+    assert _verdict(ex.verdicts(small), "terrain share rises") == stats.NOT_REPRODUCED
+    # the world's own routes rule the paper's x1 share out: said so, with the evidence
+    routes = {1.0: stats.Interval(0.85, 0.82, 0.88, 3)}
+    (x1,) = [v for v in ex.verdicts(rows, routes) if "x1," in v["claim"]]
+    assert x1["verdict"] == stats.NOT_REPRODUCIBLE_HERE and x1["evidence"].startswith("routes")
 
     s = ex.ExplorationExperimentConfig(seeds=(3, 4, 5))
     ex.write_exploration_outputs(rows, s, tmp_path)
@@ -281,8 +311,18 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
     assert "WARNING" not in text
     data = json.loads((tmp_path / "exploration_results.json").read_text())
     x1 = data["summary"][0]
+    compact = json.loads((tmp_path / "data" / "exploration.json").read_text())["rows"]
+    assert len(compact) == len(rows) and "curve" not in compact[0]
     assert x1["arm"] == "nbv_x1" and x1["terrain_share"]["mean"] == pytest.approx(0.60)
     assert x1["reached_95"] == 3
+    assert x1["km_median_distance_to_95_m"] == pytest.approx(34.0)  # of 33, 34, 35 m
+    # two of three never reach 95 %: kept as censored at the 40 m they drove; no median
+    arm = ex.nbv(2.0)
+    runs = [_run(3, arm, dist=20.0)] + [_run(s, arm, reach_at=False) for s in (4, 5)]
+    (d,) = ex.summarise_exploration(runs)
+    assert d["reached_95"] == 1 and d["km_median_distance_to_95_m"] is None
+    (d,) = ex.summarise_exploration(runs[:2] + [_run(5, arm, dist=30.0)])
+    assert d["km_median_distance_to_95_m"] == pytest.approx(30.0)  # 20, 30 reached; 40 censored
     for name in ("terrain_share", "coverage_distance", "coverage_time"):
         assert (tmp_path / f"exploration_{name}.png").stat().st_size > 1000
 
@@ -350,11 +390,14 @@ def test_noise_backend_variants_and_sweeps():
     name, cfg = noise.parse_backend("tsdf@truncation_voxels=4+min_weight=2")
     assert name == "tsdf" and cfg == TsdfConfig(truncation_voxels=4.0, min_weight=2.0)
     assert noise.parse_backend("tsdf@use_weight_dropoff=false")[1].use_weight_dropoff is False
+    # octree-max's earlier same-label rule, as a variant beside the default
+    assert noise.parse_backend("octree-max@max_fusion=gain")[1].max_fusion == "gain"
     for bad, words in (
         ("nope", "unknown back-end"),
         ("tsdf@nope=1", "KEY=VALUE"),
         ("tsdf@max_weight=x", "takes a float"),
         ("tsdf@truncation_voxels=0", "truncation_voxels"),
+        ("octree-max@max_fusion=nope", "max_fusion"),
     ):
         with pytest.raises(ValueError, match=words):
             noise.parse_backend(bad)

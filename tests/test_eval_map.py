@@ -62,6 +62,33 @@ def test_matches_brute_force_on_random_clouds():
         assert s["per_class"][str(c)]["error_mean_m"] == pytest.approx(err[sel].mean())
 
 
+def test_precision_completeness_and_f_score_match_brute_force():
+    """Every pair's distance, by numpy broadcasting: the obvious computation."""
+    rng = np.random.default_rng(4)
+    gp = rng.uniform(0, 1, (300, 3))
+    mp = np.concatenate([gp[:120] + rng.normal(0, 0.03, (120, 3)), rng.uniform(0, 1, (40, 3))])
+    d = np.linalg.norm(mp[:, None, :] - gp[None, :, :], axis=2)
+    for t in (0.02, 0.05, 0.1):
+        s = ev.evaluate_map(mp, np.ones(len(mp)), gp, np.ones(len(gp)), threshold_m=t)
+        p = (d.min(axis=1) <= t).mean()
+        c = (d.min(axis=0) <= t).mean()
+        assert s["precision"] == pytest.approx(p) and s["completeness"] == pytest.approx(c)
+        assert s["f_score"] == pytest.approx(2 * p * c / (p + c))
+        assert s["threshold_m"] == t
+        assert ev.surface_completeness(mp, gp, t) == pytest.approx(c)
+
+
+def test_an_accurate_map_of_half_the_surface_is_half_complete():
+    gp, gl = _plane()
+    half = gp[gp[:, 0] < 5] + [0.0, 0.0, 0.01]  # the grass half, 1 cm off: accurate
+    s = ev.evaluate_map(half, np.ones(len(half)), gp, gl)
+    assert s["reconstruction_error_mean_m"] == pytest.approx(0.01)
+    assert s["precision"] == 1.0 and s["completeness"] == 0.5
+    assert s["f_score"] == pytest.approx(2 / 3)
+    # a point exactly at the threshold counts as matched
+    assert ev.surface_completeness([[0.0, 0.0, 0.05]], [[0.0, 0.0, 0.0]], 0.05) == 1.0
+
+
 def test_bad_input_is_a_clear_error():
     gp, gl = _plane()
     with pytest.raises(ValueError, match="points"):
@@ -74,6 +101,9 @@ def test_bad_input_is_a_clear_error():
         ev.evaluate_map(np.zeros((1, 3)), [1], np.zeros((0, 3)), [])
     empty = ev.evaluate_map(np.zeros((0, 3)), [], gp, gl)
     assert empty["n_points"] == 0 and empty["classification_ratio"] is None
+    assert empty["completeness"] == 0.0 and empty["f_score"] is None
+    with pytest.raises(ValueError, match="threshold_m"):
+        ev.evaluate_map(gp, gl, gp, gl, threshold_m=0.0)
 
 
 def test_cli_on_a_run_directory(tmp_path, capsys):
@@ -93,6 +123,14 @@ def test_cli_on_a_run_directory(tmp_path, capsys):
     assert ev.cli(["map", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "classification ratio: 0.750" in out
+    assert "within 5 cm: precision " in out  # the default threshold
+    # every map point 5 cm off (a hair more in float32): all matched at 6 cm, none at 4 cm
+    assert ev.cli(["map", str(tmp_path), "--threshold", "0.06"]) == 0
+    assert (
+        "within 6 cm: precision 1.000, completeness 1.000, F-score 1.000" in capsys.readouterr().out
+    )
+    assert ev.cli(["map", str(tmp_path), "--threshold", "0.04", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["completeness"] == 0.0
     saved = json.loads((tmp_path / "eval_map.json").read_text())
     assert saved["reconstruction_error_mean_m"] == pytest.approx(0.05, abs=1e-6)
     assert saved["per_true_class"]["hedge"]["classification_ratio"] == pytest.approx(0.5)

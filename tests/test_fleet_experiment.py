@@ -69,8 +69,18 @@ def test_a_run_that_never_reached_95_is_censored_and_said_so():
     ratios, censored = fx.time_ratios(rows, W22.name, 2)
     assert ratios == {3: 0.5} and censored == [4, 5]
     v = _verdict(fx.verdicts(rows), "garden22: time to 95 % coverage with 2")
-    assert v["verdict"] == stats.INCONCLUSIVE  # one ratio: no interval
-    assert "censored (never reached 95 %): seed 4, 5" in v["smana"]
+    # kept as bounds (every run ends at 100 s): seed 4 below 100 / 100, seed 5 above 100 / 300
+    assert fx.bounded_ratios(rows, W22.name, 2) == {
+        3: (0.5, ""),
+        4: (1.0, "below"),
+        5: (pytest.approx(1 / 3), "above"),
+    }
+    assert v["verdict"] == stats.INCONCLUSIVE
+    assert v["smana"].startswith("0.61 [") and "(n = 3)" in v["smana"]
+    assert (
+        "censored (never reached 95 %), kept as bounds: seed 4: < 1.00, seed 5: > 0.33"
+        in (v["smana"])
+    )
     # a failed run is neither a ratio nor censored
     rows = _rows({1: [100, 200, 300], 2: [50, 100, 150]})
     rows[-1]["ok"] = False
@@ -106,16 +116,36 @@ def test_merged_map_not_worse_and_contacts():
     assert _verdict(fx.verdicts(rows), "robot-robot contacts")["verdict"] == stats.INCONCLUSIVE
 
 
+def test_a_censored_ratio_blocks_only_the_verdict_it_could_overturn():
+    # a fleet that never reached 95 % (its run ended at 100 s): its ratio is above 1.0, so "not
+    # met" stands when even the bound puts the interval over the target, and "met" cannot
+    slow = _rows({1: [100, 100, 100], 2: [90, 95, None]})
+    assert fx.target_below_censored(fx.bounded_ratios(slow, W22.name, 2), 0.6) == fx.NOT_MET
+    fast = _rows({1: [100, 100, 100], 2: [30, 35, None]})
+    bounded = fx.bounded_ratios(fast, W22.name, 2)
+    assert fx.target_below(stats.mean_ci([v for v, _ in bounded.values()]), 2.0) == fx.MET
+    assert fx.target_below_censored(bounded, 2.0) == stats.INCONCLUSIVE  # > 1.0 is not <= 2
+    # the lone robot never reached 95 %: the ratio is below its bound, so "not met" is blocked
+    lone = _rows({1: [100, 100, None], 2: [90, 95, 90]})
+    bounded = fx.bounded_ratios(lone, W22.name, 2)
+    assert bounded[5] == (0.9, "below")
+    assert fx.target_below(stats.mean_ci([v for v, _ in bounded.values()]), 0.6) == fx.NOT_MET
+    assert fx.target_below_censored(bounded, 0.6) == stats.INCONCLUSIVE
+
+
 def test_not_worse_and_target_below_by_hand():
     iv = stats.Interval
     assert fx.target_below(iv(0.5, 0.4, 0.59, 3), 0.6) == fx.MET
     assert fx.target_below(iv(0.7, 0.61, 0.8, 3), 0.6) == fx.NOT_MET
     assert fx.target_below(iv(0.6, 0.5, 0.7, 3), 0.6) == stats.INCONCLUSIVE
     assert fx.target_below(iv(0.5, float("nan"), float("nan"), 1), 0.6) == stats.INCONCLUSIVE
-    assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True) == fx.MET
-    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), True) == fx.MET
-    assert fx.not_worse(iv(0.02, 0.01, 0.03, 3), True) == fx.NOT_MET
-    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), False) == fx.NOT_MET
+    # non-inferiority: the interval must clear the margin; holding 0 is not enough
+    assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.005) == stats.INCONCLUSIVE
+    assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.02) == fx.MET
+    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), True, 0.0) == fx.MET
+    assert fx.not_worse(iv(0.02, 0.01, 0.03, 3), True, 0.005) == fx.NOT_MET
+    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), False, 0.005) == fx.NOT_MET
+    assert fx.not_worse(iv(-0.002, -0.004, 0.0, 3), False, 0.005) == fx.MET
 
 
 def test_summary_per_world_and_fleet_size():
@@ -161,6 +191,8 @@ def test_outputs_say_quick_on_top_and_draw_one_curve_per_fleet_size(tmp_path):
     assert "**WARNING: 1 of 5 runs failed**" in text and "garden12_n2_seed5 (exit 1)" in text
     data = json.loads((tmp_path / "fleet.json").read_text())
     assert {"settings", "runs", "summary", "verdicts"} <= set(data)
+    compact = json.loads((tmp_path / "data" / "fleet.json").read_text())["rows"]
+    assert len(compact) == len(rows) and "curve" not in compact[0]
     assert [p.name for p in figures] == ["fleet_coverage_time_garden12.png"]
     assert figures[0].stat().st_size > 1000
 

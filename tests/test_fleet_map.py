@@ -62,15 +62,16 @@ def as_dict(d) -> dict:
 # -- the reference --------------------------------------------------------------------------------
 
 
-def fuse_max_ref(state, label, conf, gain=0.5, penalty=0.9):
+def fuse_max_ref(state, label, conf, penalty=0.9):
+    """Semantic Octomap's SemanticsMax::semanticFusion (mapper.octree.max_fusion "average")."""
     cl, cp = state
     if cl == 0:
         return label, conf
     if cl == label:
-        return cl, cp + gain * conf * (1 - cp)
-    if conf > cp:
-        return label, penalty * conf
-    return cl, penalty * cp
+        return cl, (cp + conf) / 2
+    if cp > conf:
+        return cl, penalty * cp
+    return label, penalty * conf
 
 
 def fold_bayes_ref(observations, k: int, eps=1e-3):

@@ -55,6 +55,10 @@ def test_the_core_receives_its_section_as_it_is():
     assert m._core.config is cfg.mapper.tsdf and m._core.trunc_m == pytest.approx(0.3)
     cfg = SmanaConfig.load(None, ["mapper.octree.prob_hit=0.8"])
     assert SemanticMap.from_config(cfg.mapper)._core.config is cfg.mapper.octree
+    # octree-max's same-label rule: Semantic Octomap's by default, the gain rule by name
+    assert SmanaConfig.load(None, []).mapper.octree.max_fusion == "average"
+    cfg = SmanaConfig.load(None, ["mapper.octree.max_fusion=gain"])
+    assert SemanticMap.from_config(cfg.mapper)._core._consts.max_rule == 1
 
 
 @pytest.mark.parametrize(
@@ -64,6 +68,10 @@ def test_the_core_receives_its_section_as_it_is():
         ("mapper.octree.prob_hit=0.4", "need prob_miss < 0.5 < prob_hit"),
         ("mapper.tsdf.max_weight=0", "mapper.tsdf.max_weight: expected a number > 0, got 0"),
         ("mapper.tsdf_max_weight=1", "unknown key mapper.tsdf_max_weight"),
+        (
+            "mapper.octree.max_fusion=nope",
+            "mapper.octree.max_fusion: expected one of ['average', 'gain'], got 'nope'",
+        ),
     ],
 )
 def test_backend_sections_are_checked_with_one_line_naming_the_key(override, message):
@@ -127,6 +135,7 @@ def test_a_format_1_map_file_still_loads(tmp_path):
         arrays = {k: z[k] for k in z.files}
     meta = json.loads(bytes(arrays["meta"]).decode())
     octree = meta.pop("config")
+    del octree["max_fusion"]  # format 1 predates it
     fusion = ("max_same_gain", "max_disagree_factor", "bayes_min_confidence")
     meta["occupancy"] = {k: v for k, v in octree.items() if k not in fusion}
     meta["fusion"] = {k: octree[k] for k in fusion}
@@ -135,9 +144,28 @@ def test_a_format_1_map_file_still_loads(tmp_path):
     arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
     np.savez(tmp_path / "old.npz", **arrays)
     old = SemanticMap.load(tmp_path / "old.npz")
-    assert old.config == m.config
+    # a file from before `max_fusion` was fused by the gain rule, and keeps it
+    assert old.config == dataclasses.replace(m.config, max_fusion="gain")
     probe = rng.uniform(-3, 3, (300, 3))
     np.testing.assert_array_equal(old.query(probe).values, m.query(probe).values)
+
+
+def test_a_saved_octree_map_keeps_its_max_fusion_rule(tmp_path):
+    from smana.common.config.mapper import OctreeConfig
+
+    gain = SemanticMap("octree-max", 0.2, 4.0, 1.0, config=OctreeConfig(max_fusion="gain"))
+    assert SemanticMap.load(gain.save(tmp_path / "gain.npz")).config.max_fusion == "gain"
+    plain = SemanticMap("octree-max", 0.2, 4.0, 1.0)
+    path = plain.save(tmp_path / "plain.npz")
+    assert SemanticMap.load(path).config.max_fusion == "average"
+    # a format-2 file written before the field existed was fused by the gain rule
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(arrays["meta"]).decode())
+    del meta["config"]["max_fusion"]
+    arrays["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+    np.savez(tmp_path / "before.npz", **arrays)
+    assert SemanticMap.load(tmp_path / "before.npz").config.max_fusion == "gain"
 
 
 @pytest.mark.multiprocess

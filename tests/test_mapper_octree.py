@@ -59,10 +59,10 @@ def ref_ray_keys(o, e, res):
 class RefOctree:
     """OctoMap insertPointCloud + per-point semantic fusion, with Python containers."""
 
-    def __init__(self, res, max_range, ray_m, fusion):
+    def __init__(self, res, max_range, ray_m, fusion, config=None):
         self.res, self.max_range, self.ray_m, self.fusion = res, max_range, ray_m, fusion
-        self.l_hit, self.l_miss, self.c_min, self.c_max = sensor_model(OctreeConfig())
-        self.fp = OctreeConfig()
+        self.fp = config or OctreeConfig()
+        self.l_hit, self.l_miss, self.c_min, self.c_max = sensor_model(self.fp)
         self.logodds: dict[tuple, np.float32] = {}
         self.sem: dict[tuple, list] = {}  # key -> [[label, prob], ...] best first
 
@@ -102,6 +102,14 @@ class RefOctree:
                 self.sem[k] = [[lab, F32(c)]]
                 return
             cl, cp = cur[0][0], float(cur[0][1])
+            if self.fp.max_fusion == "average":  # semantics_max.h, line by line
+                if cl == lab:
+                    cur[0][1] = F32((F32(cur[0][1]) + F32(c)) / 2.0)
+                elif cp > float(F32(c)):
+                    cur[0][1] = F32(cp * self.fp.max_disagree_factor)
+                else:
+                    cur[0] = [lab, F32(float(F32(c)) * self.fp.max_disagree_factor)]
+                return
             if cl == lab:
                 cur[0][1] = F32(cp + self.fp.max_same_gain * c * (1 - cp))
             elif c > cp:
@@ -151,16 +159,20 @@ def map_state(m: SemanticMap, top_only: bool = False) -> dict:
 # -- tests ----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("fusion", ["max", "bayes"])
+@pytest.mark.parametrize("fusion", ["max", "max@gain", "bayes"])
 @pytest.mark.parametrize("ray_m", [None, 0.7])
 def test_octree_matches_slow_reference(fusion, ray_m):
     rng = np.random.default_rng(11)
     res, max_range = 0.2, 3.5
-    m = SemanticMap(f"octree-{fusion}", res, max_range, ray_m)
-    ref = RefOctree(res, max_range, ray_m, fusion)
+    fusion, _, rule = fusion.partition("@")
+    config = OctreeConfig(max_fusion=rule or "average")
+    m = SemanticMap(f"octree-{fusion}", res, max_range, ray_m, config=config)
+    ref = RefOctree(res, max_range, ray_m, fusion, config)
     for _ in range(3):
         pts, labels, conf, origin = random_cloud(rng, 400)
         pts[:40] = pts[40:80]  # several points per voxel, labels in conflict
+        conf[80:120] = np.round(conf[80:120], 1)  # and confidences that tie
+        pts[80:120] = pts[120:160]
         m.integrate(pts, labels, conf, origin)
         ref.integrate(pts, labels, conf, origin.astype(np.float32))
     state = map_state(m)
@@ -170,6 +182,8 @@ def test_octree_matches_slow_reference(fusion, ray_m):
         want = ref.sem.get(k, [])
         got = [(lab, p) for lab, p in zip(labs, probs, strict=True) if lab != 0]
         assert [lab for lab, _ in got] == [lab for lab, _ in want], k
+        if fusion == "max":  # both rules are float32 arithmetic the reference repeats exactly
+            assert [p for _, p in got] == [p for _, p in want], k
         np.testing.assert_allclose([p for _, p in got], [p for _, p in want], rtol=1e-6)
 
 
@@ -248,21 +262,41 @@ def test_endpoint_wins_over_free_within_one_cloud():
     np.testing.assert_array_equal(q.values, logodds(0.7))
 
 
-def _one_voxel(fusion, observations):
-    m = SemanticMap(f"octree-{fusion}", 0.1, 10.0, None)
+def _one_voxel(fusion, observations, config=None):
+    m = SemanticMap(f"octree-{fusion}", 0.1, 10.0, None, config=config)
     p = np.array([[1.05, 0.05, 0.05]], np.float32)
     for lab, conf in observations:
         m.integrate(p, np.array([lab]), np.array([conf], np.float32), (0.05, 0.05, 0.05))
     return m, m.query(p)
 
 
-def test_max_fusion_rules_from_the_paper():
-    _, q = _one_voxel("max", [(1, 0.6), (1, 0.6)])
-    assert q.labels[0] == 1 and q.confidences[0] > 0.6  # same label raises
+def test_max_fusion_is_semantic_octomaps_semantics_max():
+    """`SemanticsMax::semanticFusion(stored, observed)`, worked by hand: same label averages
+    (so agreement never raises c above the larger of the two), a different label keeps the more
+    confident one times 0.9, the observation winning a tie."""
+    f32 = np.float32
+    _, q = _one_voxel("max", [(1, 0.6), (1, 0.8)])
+    assert q.labels[0] == 1 and q.confidences[0] == f32(f32(f32(0.6) + f32(0.8)) / 2)
+    _, q = _one_voxel("max", [(1, 0.6), (1, 0.6), (1, 0.6)])
+    assert q.confidences[0] == f32(0.6)  # agreement holds c, it does not raise it
     _, q = _one_voxel("max", [(1, 0.6), (4, 0.8)])
-    assert q.labels[0] == 4  # higher-confidence label replaces
+    assert q.labels[0] == 4 and q.confidences[0] == f32(float(f32(0.8)) * 0.9)
     _, q = _one_voxel("max", [(1, 0.6), (4, 0.5)])
-    assert q.labels[0] == 1 and q.confidences[0] < 0.6  # lower one lowers the confidence
+    assert q.labels[0] == 1 and q.confidences[0] == f32(float(f32(0.6)) * 0.9)
+    _, q = _one_voxel("max", [(1, 0.5), (4, 0.5)])
+    assert q.labels[0] == 4 and q.confidences[0] == f32(0.45)  # a tie: the observation
+
+
+def test_max_fusion_gain_variant_keeps_the_earlier_rule():
+    """`mapper.octree.max_fusion = "gain"`: agreement raises c by gain * c_obs * (1 - c); a tie
+    keeps the stored label."""
+    config = OctreeConfig(max_fusion="gain")
+    _, q = _one_voxel("max", [(1, 0.6), (1, 0.6)], config)
+    assert q.labels[0] == 1 and q.confidences[0] == pytest.approx(0.6 + 0.5 * 0.6 * 0.4)
+    _, q = _one_voxel("max", [(1, 0.6), (4, 0.8)], config)
+    assert q.labels[0] == 4 and q.confidences[0] == pytest.approx(0.72)
+    _, q = _one_voxel("max", [(1, 0.5), (4, 0.5)], config)
+    assert q.labels[0] == 1 and q.confidences[0] == pytest.approx(0.45)
 
 
 def test_bayes_fusion_keeps_top3_and_renormalises():

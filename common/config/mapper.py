@@ -23,7 +23,11 @@ class OctreeConfig(Section, section="mapper.octree"):
     prob_miss: float = param(0.4, gt=0, lt=1)
     clamp_min: float = param(0.1192, gt=0, lt=1)
     clamp_max: float = param(0.971, gt=0, lt=1)
-    max_same_gain: float = param(0.5, ge=0, le=1)  # same label: c += gain * c_obs * (1 - c)
+    # octree-max, same label: "average" is Semantic Octomap's `SemanticsMax::semanticFusion`
+    # (c = (c + c_obs) / 2); "gain" is smana's earlier rule, kept as a variant:
+    # c += max_same_gain * c_obs * (1 - c), agreement always raising c
+    max_fusion: Literal["average", "gain"] = "average"
+    max_same_gain: float = param(0.5, ge=0, le=1)  # used by max_fusion = "gain" only
     max_disagree_factor: float = param(0.9, gt=0, le=1)  # other label: the winner's c times this
     # Bayes: keeps c in [eps, 1 - eps] so that no class reaches 0 or 1
     bayes_min_confidence: float = param(1e-3, gt=0, lt=0.5)

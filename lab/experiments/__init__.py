@@ -3,11 +3,13 @@
     smana experiment noise [--quick] [--out DIR]
     smana experiment exploration [--quick] [--seeds 3] [--out DIR]
     smana experiment fleet [--quick] [--robots 1,2,3] [--out DIR]
+    smana experiment report [--check]     # docs/experiments.md's tables from the committed data
 
 One module per experiment (`noise.py`, `exploration.py`), each with its `add_parser(sub)` and
 `main(args, parser, out)`; this module only dispatches. Every experiment writes raw results (CSV
 and JSON), PNG plots and a markdown summary into `--out`; `--quick` runs a small version that the
-test suite runs.
+test suite runs. Each also writes its compact raw rows into `--out`/data/<name>.json
+(`report.write_data`), the file docs/experiments/data/ holds once committed.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ EXPERIMENTS = {
     "ablation": "ablation",
     "routes": "routes",
     "fleet": "fleet",
+    "report": "report",  # not an experiment: the docs' tables from the committed data
 }
 
 
@@ -79,6 +82,8 @@ def cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     mod = modules[args.which]
     parser = sub.choices[args.which]  # errors point at `smana experiment <which> --help`
+    if getattr(mod, "NO_OUTPUT", False):  # writes into the repo's docs, no run directory
+        return mod.main(args, parser, None)
     if hasattr(mod, "check_args"):
         mod.check_args(args, parser)  # a misuse is refused before the output directory exists
     stamp = time.strftime("%Y%m%d-%H%M%S")

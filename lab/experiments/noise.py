@@ -356,6 +356,9 @@ def noise_seed_run(settings: NoiseExperimentConfig, seed: int, first: bool, tell
                 "error_mean_m": scores["reconstruction_error_mean_m"],
                 "error_std_m": scores["reconstruction_error_std_m"],
                 "classification_ratio": scores["classification_ratio"],
+                "precision": scores["precision"],
+                "completeness": scores["completeness"],
+                "f_score": scores["f_score"],
                 "integrate_cpu_ms_per_frame": 1e3 * (c4 - c3) / max(1, len(clouds)),
                 "per_class_ratio": {
                     k: v["classification_ratio"] for k, v in scores["per_true_class"].items()
@@ -509,7 +512,7 @@ def _per_seed(rows, sweep, backend, key) -> dict:
     out: dict = {}
     for level in _levels(rows, sweep):
         for r in _runs(rows, sweep, backend, level):
-            out.setdefault(r.get("seed"), {})[level] = r[key]
+            out.setdefault(r.get("seed"), {})[level] = r.get(key)  # older rows lack f_score
     return out
 
 
@@ -538,7 +541,7 @@ def _deltas(rows, sweep, backend, key) -> dict:
     return {
         seed: v[hi] - v[lo]
         for seed, v in _per_seed(rows, sweep, backend, key).items()
-        if lo in v and hi in v
+        if v.get(lo) is not None and v.get(hi) is not None
     }
 
 
@@ -569,62 +572,80 @@ def _ci(values) -> stats.Interval:
 
 
 def claims(rows) -> list[dict]:
-    """The paper's claims of section 4.2, each decided by lab/stats.py over seeds."""
+    """The paper's claims of section 4.2, each decided over seeds by a rule of lab/stats.py fixed
+    before the runs (p-values uncorrected; docs/experiments.md corrects its table together):
+    (a) each loss about the paper's (`decide_near`); (b) and (c), directions the paper gives
+    without a size, on per-seed paired differences (`decide_above`). (c) is decided on the
+    F-score, which counts what a map leaves out as well as where its points are: a map that
+    drops uncertain surface is more accurate without being more robust; (c') is accuracy alone."""
     out = []
+
+    def add(claim, paper, ci, scale, d: stats.Decision, rule, other=None):
+        c = {
+            "claim": claim,
+            "paper": paper,
+            "smana": ci,
+            "scale": scale,
+            "unit": "",
+            "verdict": d.verdict,
+            "p": d.p,
+            "rule": rule,
+        }
+        if other is not None:
+            c["other"] = other
+        out.append(c)
+
     loss = {b: _deltas(rows, "label", b, "classification_ratio") for b in ("tsdf", "octree-max")}
     loss = {b: {s: -d for s, d in v.items()} for b, v in loss.items()}  # a loss is a drop
     for b in ("tsdf", "octree-max"):
         ci = _ci(loss[b].values())
         paper = PAPER_LABEL_LOSS[b]
-        out.append(
-            {
-                "claim": f"(a) {b}: classification ratio lost from the lowest to the highest "
-                "label noise (points), within 5 points of the paper",
-                "paper": f"{100 * paper:.0f}",
-                "smana": ci,
-                "scale": 100.0,
-                "unit": "",
-                "verdict": stats.verdict_near(ci, paper, LABEL_LOSS_TOLERANCE),
-            }
+        add(
+            f"(a) {b}: classification ratio lost from the lowest to the highest label noise "
+            "(points), about the paper's",
+            f"{100 * paper:.0f} +/- {100 * LABEL_LOSS_TOLERANCE:.0f}",
+            ci,
+            100.0,
+            stats.decide_near(ci, paper, LABEL_LOSS_TOLERANCE),
+            "about X",
         )
-    a, b = _ci(loss["tsdf"].values()), _ci(loss["octree-max"].values())
-    out.append(
-        {
-            "claim": "(b) tsdf loses less than octree-max to label noise (points; "
-            "octree-max's interval on the right)",
-            "paper": "11 < 30",
-            "smana": a,
-            "other": b,
-            "scale": 100.0,
-            "unit": "",
-            "verdict": stats.verdict_less(a, b),
-        }
+
+    def paired(per_b: dict, per_a: dict) -> stats.Interval:
+        both = sorted(set(per_a) & set(per_b), key=str)
+        return _ci(per_b[s] - per_a[s] for s in both)
+
+    d = paired(loss["octree-max"], loss["tsdf"])
+    add(
+        "(b) tsdf loses less than octree-max to label noise: octree-max's loss minus tsdf's, "
+        "paired per seed (points)",
+        "30 - 11 > 0",
+        d,
+        100.0,
+        stats.decide_above(d),
+        "above 0",
+    )
+    f_lost = {b: _deltas(rows, "pose", b, "f_score") for b in ("tsdf", "octree-max")}
+    f_lost = {b: {s: -x for s, x in v.items() if x is not None} for b, v in f_lost.items()}
+    d = paired(f_lost["octree-max"], f_lost["tsdf"])
+    add(
+        "(c) tsdf more robust to localisation noise: F-score (5 cm) lost to the highest pose "
+        "noise, octree-max's minus tsdf's, paired per seed (points)",
+        "tsdf more robust",
+        d,
+        100.0,
+        stats.decide_above(d),
+        "above 0",
     )
     added = {b: _deltas(rows, "pose", b, "error_mean_m") for b in ("tsdf", "octree-max")}
-    a, b = _ci(added["tsdf"].values()), _ci(added["octree-max"].values())
-    out.append(
-        {
-            "claim": "(c) tsdf's added reconstruction error (highest minus no localisation "
-            "noise, mm) below octree-max's (octree-max's interval on the right)",
-            "paper": "tsdf more robust",
-            "smana": a,
-            "other": b,
-            "scale": 1000.0,
-            "unit": "",
-            "verdict": stats.verdict_less(a, b),
-        }
-    )
-    both = set(added["tsdf"]) & set(added["octree-max"])
-    paired = _ci(added["octree-max"][s] - added["tsdf"][s] for s in sorted(both, key=str))
-    out.append(
-        {
-            "claim": "(c') paired per seed: octree-max's added error minus tsdf's (mm), above 0",
-            "paper": "> 0",
-            "smana": paired,
-            "scale": 1000.0,
-            "unit": "",
-            "verdict": stats.verdict_positive(paired),
-        }
+    d = paired(added["octree-max"], added["tsdf"])
+    add(
+        "(c') the same on accuracy alone: reconstruction error added by the highest pose noise, "
+        "octree-max's minus tsdf's, paired per seed (mm)",
+        "> 0",
+        d,
+        1000.0,
+        stats.decide_above(d),
+        "above 0",
     )
     return out
 
@@ -647,6 +668,9 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
         w = csv.DictWriter(f, fieldnames=fields)
         w.writeheader()
         w.writerows(flat)
+    from .report import write_data
+
+    write_data(out, "noise", rows, meta.get("settings") or {})
     agg = aggregate(rows)
     decided = claims(rows)
     losses = label_losses(rows)
@@ -748,7 +772,9 @@ def _noise_summary(rows, agg, decided, meta, out: Path) -> None:
         lines.append(f"| {c['claim']} | {c['paper']} | {txt} | {c['verdict']} |")
     lines += [
         "",
-        "Verdicts by lab/stats.py over seeds (Student-t 95 % intervals): a claim is reproduced "
+        "Verdicts by lab/stats.py over seeds (Student-t 95 % intervals, rules in "
+        "docs/experiments.md: (a) about X, (b) (c) (c') paired per seed above 0; p-values "
+        "uncorrected here, Holm-corrected in the docs' table): a claim is reproduced "
         "only when its interval says so; with fewer than 2 seeds it is inconclusive. The paper's "
         '"11 % / 30 % loss" is read as points of classification ratio (its Figure 7 plots the '
         "ratio in %); the relative loss is in the table below.",

@@ -149,6 +149,18 @@ def main(args, parser, out: Path) -> int:
         for f in factors
     ]
     out.mkdir(parents=True, exist_ok=True)
+    from .report import write_data
+
+    write_data(
+        out,
+        "routes",
+        [
+            {"seed": k, "grass_cost_factor": f, "terrain_share": per_seed[k][f]}
+            for k in seeds
+            for f in factors
+        ],
+        {"command": f"smana experiment routes --seeds {args.seeds} --factors {args.factors}"},
+    )
     (out / "routes_results.json").write_text(
         json.dumps({"seeds": seeds, "per_seed": per_seed, "summary": rows}, indent=2)
     )

@@ -402,6 +402,8 @@ class SemanticMap:
         """The empty map a checked `meta` describes."""
         backend = backend_class(meta["backend"])
         saved = meta["config"]
+        if backend.config_key == "octree" and "max_fusion" not in saved:
+            saved = {**saved, "max_fusion": "gain"}  # saved before the rule was a choice
         try:
             m = cls(
                 backend=meta["backend"],

@@ -15,9 +15,13 @@ Two departures from OctoMap, both from the paper's setting:
 - semantics: every point fuses its label into its end voxel (points labelled 0 or with a label
   outside the semantic classes update occupancy only).
 
-Max fusion (Semantic Octomap `SemanticsMax`, with the paper's wording that agreement raises the
-confidence): same label -> c += gain * c_obs * (1 - c); other label with higher confidence ->
-(label_obs, penalty * c_obs); other label with lower confidence -> c *= penalty.
+Max fusion, `max_fusion = "average"` (the default), exactly Semantic Octomap's
+`SemanticsMax::semanticFusion(stored, observed)` (floatlazer/semantic_slam,
+`semantics_octree/semantics_max.h`): same label -> c = (c + c_obs) / 2; other label -> the one of
+higher confidence (the observation on a tie) is kept, its confidence times `max_disagree_factor`
+(0.9 there). `max_fusion = "gain"`, smana's earlier rule after the paper's wording that agreement
+raises the confidence: same label -> c += max_same_gain * c_obs * (1 - c); other label with a
+strictly higher confidence -> (label_obs, penalty * c_obs), else c *= penalty.
 
 Bayesian fusion (Semantic Octomap `SemanticsBayesian`, with the rest of the mass spread evenly as
 the paper says): the voxel keeps its 3 most probable classes; each of the K - 3 others holds an
@@ -54,6 +58,10 @@ from smana.services.mapper.delta import Delta
 
 FUSION_MAX = 0
 FUSION_BAYES = 1
+# octree-max's rule for a same-label observation (`OctreeConfig.max_fusion`)
+MAX_AVERAGE = 0
+MAX_GAIN = 1
+MAX_RULES = {"average": MAX_AVERAGE, "gain": MAX_GAIN}
 
 
 def logodds(p: float) -> np.float32:
@@ -91,6 +99,7 @@ class OccupancyConsts(NamedTuple):
     inv_res: float
     max_range: float  # < 0: no limit
     ray_m: float  # < 0: carve the whole ray
+    max_rule: int  # MAX_AVERAGE | MAX_GAIN
     gain: float
     penalty: float
     eps: float
@@ -106,7 +115,7 @@ class OccupancyConsts(NamedTuple):
 
 
 @njit(cache=True, error_model="numpy")
-def _fuse_max(sem_l, sem_p, g, label, conf, gain, penalty):
+def _fuse_max(sem_l, sem_p, g, label, conf, rule, gain, penalty):
     cl = sem_l[g, 0]
     old = sem_p[g, 0]
     cp = np.float64(old)
@@ -115,6 +124,17 @@ def _fuse_max(sem_l, sem_p, g, label, conf, gain, penalty):
         sem_l[g, 0] = label
         sem_p[g, 0] = c
         return True
+    if rule == MAX_AVERAGE:
+        if cl == label:
+            # C++: (float + float) / 2. -- the sum rounds to float first
+            sem_p[g, 0] = np.float64(np.float32(old + np.float32(conf))) / 2.0
+        elif cp > c:
+            sem_p[g, 0] = cp * penalty
+        else:  # the observation wins a tie, as `s1.c > s2.c ? s1 : s2` does
+            sem_l[g, 0] = label
+            sem_p[g, 0] = c * penalty
+            return True
+        return sem_p[g, 0] != old
     if cl == label:
         sem_p[g, 0] = cp + gain * c * (1.0 - cp)
     elif c > cp:
@@ -215,7 +235,7 @@ def _fuse_observations(sem_l, sem_p, rows, labels, confs, sources, k):
         for j in range(a, b):
             i = idx[j]
             if k.mode == FUSION_MAX:
-                _fuse_max(sem_l, sem_p, r, labels[i], confs[i], k.gain, k.penalty)
+                _fuse_max(sem_l, sem_p, r, labels[i], confs[i], k.max_rule, k.gain, k.penalty)
             else:
                 _fuse_bayes(sem_l, sem_p, r, labels[i], confs[i], k.n_classes, k.eps)
 
@@ -301,7 +321,9 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
         label = labels[i]
         if st.semantic[label]:
             if k.mode == FUSION_MAX:
-                moved = _fuse_max(st.label, st.prob, g, label, confs[i], k.gain, k.penalty)
+                moved = _fuse_max(
+                    st.label, st.prob, g, label, confs[i], k.max_rule, k.gain, k.penalty
+                )
             else:
                 moved = _fuse_bayes(st.label, st.prob, g, label, confs[i], k.n_classes, k.eps)
             if moved:
@@ -393,6 +415,7 @@ class OccupancyBackend(MapBackend):
             1.0 / self.resolution_m,
             self.max_range_m,
             -1.0 if ray is None else float(ray),
+            MAX_RULES[config.max_fusion],
             float(config.max_same_gain),
             float(config.max_disagree_factor),
             float(config.bayes_min_confidence),

@@ -1,0 +1,133 @@
+"""`smana experiment report`: docs/experiments.md's generated sections are what the committed raw
+results in docs/experiments/data/ give, and a hand edit of one is caught."""
+
+from __future__ import annotations
+
+import json
+
+from smana.lab import experiments as exp
+from smana.lab import stats
+from smana.lab.experiments import report
+
+
+def test_the_committed_doc_is_what_the_committed_data_generates(capsys):
+    assert exp.cli(["report", "--check"]) == 0, capsys.readouterr().out
+    text = report.DOC.read_text()
+    names = [m.group("name") for m in report.SECTION.finditer(text)]
+    assert sorted(names) == sorted(report.sections({}))  # every section is in the doc, once
+
+
+def _doc(tmp_path):
+    doc = tmp_path / "experiments.md"
+    doc.write_text(
+        "# page\n\nhand-written\n\n<!-- generated: verdicts -->\nold\n"
+        "<!-- end generated: verdicts -->\n\nmore\n\n<!-- generated: routes -->\n"
+        "<!-- end generated: routes -->\n"
+    )
+    return doc
+
+
+def _exploration_rows():
+    rows = []
+    for seed in (3, 4, 5):
+        for f, share in ((1.0, 0.60), (4.0, 0.88)):
+            rows.append(
+                {"seed": seed, "arm": f"nbv_x{f:g}", "strategy": "nbv", "grass_cost_factor": f,
+                 "path_cost_weight": None, "ok": True, "terrain_share": share + 0.01 * seed,
+                 "distance_m": 20.0, "distance_to_95_m": 10.0 + seed}
+            )  # fmt: skip
+    return rows
+
+
+def test_report_rewrites_only_the_generated_sections_from_the_data(tmp_path, capsys):
+    doc, data = _doc(tmp_path), tmp_path / "data"
+    report.write_data(tmp_path, "routes", [
+        {"seed": s, "grass_cost_factor": f, "terrain_share": 0.5 + 0.1 * f + 0.01 * s,
+         "curve": [1, 2]} for s in (3, 4, 5) for f in (1.0, 4.0)
+    ])  # fmt: skip
+    report.write_data(tmp_path, "exploration", _exploration_rows())
+    # before the report: the doc does not match its data
+    assert exp.cli(["report", "--check", "--doc", str(doc), "--data", str(data)]) == 1
+    assert "verdicts, routes" in capsys.readouterr().out
+    assert exp.cli(["report", "--doc", str(doc), "--data", str(data)]) == 0
+    text = doc.read_text()
+    assert text.startswith("# page\n\nhand-written\n") and "\nmore\n" in text
+    assert "old" not in text
+    # routes: the interval over the seeds of the data file, nothing else
+    want = stats.mean_ci([0.6 + 0.01 * s for s in (3, 4, 5)])
+    assert f"| x1 | {want.format(100, unit=' %')} |" in text
+    # the exploration's claims with their rules and Holm; the missing experiments say so
+    assert "| rule | p | verdict (Holm) |" in text
+    assert "exploration: terrain share at grass x1, about the paper's" in text
+    assert "Holm-adjusted p" in text
+    assert "No raw results of `noise`, `fleet` are committed yet" in text
+    assert exp.cli(["report", "--check", "--doc", str(doc), "--data", str(data)]) == 0
+    # a hand edit inside a generated section is caught
+    doc.write_text(text.replace("| x1 |", "| x1 (edited) |"))
+    assert exp.cli(["report", "--check", "--doc", str(doc), "--data", str(data)]) == 1
+    assert "routes" in capsys.readouterr().out
+
+
+def test_no_data_is_said_not_invented(tmp_path):
+    doc = _doc(tmp_path)
+    assert exp.cli(["report", "--doc", str(doc), "--data", str(tmp_path / "none")]) == 0
+    text = doc.read_text()
+    assert "No raw results of `smana experiment routes` are committed yet" in text
+    assert "No raw results of `noise`, `exploration`, `fleet` are committed yet" in text
+    assert "%" not in text.split("<!-- generated: routes -->")[1]
+
+
+def test_bad_doc_or_data_is_one_line_and_exit_2(tmp_path, capsys):
+    doc = tmp_path / "experiments.md"
+    doc.write_text("<!-- generated: nope -->\n<!-- end generated: nope -->\n")
+    assert exp.cli(["report", "--doc", str(doc), "--data", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "unknown generated section 'nope'" in err
+    (tmp_path / "routes.json").write_text(json.dumps({"experiment": "noise", "rows": []}))
+    assert exp.cli(["report", "--doc", str(_doc(tmp_path)), "--data", str(tmp_path)]) == 2
+    assert "routes.json: not experiment data" in capsys.readouterr().err
+    assert exp.cli(["report", "--doc", str(tmp_path / "missing.md")]) == 2
+
+
+def test_write_data_is_compact_and_round_trips(tmp_path):
+    rows = [{"seed": 3, "x": 0.123456789, "curve": {"t": [1.0]}, "per": [1], "ok": True}]
+    path = report.write_data(tmp_path, "noise", rows, {"seeds": [3]})
+    assert path == tmp_path / "data" / "noise.json"
+    data = report.load_data(tmp_path / "data")["noise"]
+    assert data["rows"] == [{"seed": 3, "x": 0.123457, "ok": True}]
+    assert data["meta"] == {"seeds": [3]}
+    assert len(path.read_text().splitlines()) == 3  # the head, one line a row, the end
+
+
+def test_routes_writes_its_data_file(tmp_path):
+    assert exp.cli(["routes", "--seeds", "1", "--factors", "1,4", "--out", str(tmp_path)]) == 0
+    rows = report.load_data(tmp_path / "data")["routes"]["rows"]
+    assert [(r["seed"], r["grass_cost_factor"]) for r in rows] == [(3, 1.0), (3, 4.0)]
+    assert all(0 < r["terrain_share"] <= 1 for r in rows)
+
+
+def test_noise_data_of_one_sweep_generates_its_claims_and_names_the_missing(tmp_path):
+    rows = []
+    for seed in (3, 4, 5):
+        for backend, loss in (("tsdf", 0.10), ("octree-max", 0.30)):
+            for level, ratio in (("none", 0.95), ("high", 0.95 - loss - 0.002 * seed)):
+                rows.append(
+                    {"seed": seed, "backend": backend, "sweep": "label", "level": level,
+                     "classification_ratio": ratio, "error_mean_m": 0.02, "f_score": 0.8}
+                )  # fmt: skip
+    report.write_data(tmp_path, "noise", rows, {"sweeps": ["label"]})
+    table = report.verdict_claims(report.load_data(tmp_path / "data"))
+    assert [c["claim"][:3] for c in table] == ["(a)", "(a)", "(b)"]
+    assert all(c["holm_verdict"] == stats.REPRODUCED for c in table)
+    text = report.verdicts_section(report.load_data(tmp_path / "data"))
+    assert "no rows for claim (c), (c') (a run of some sweeps only: sweeps label)" in text
+    # claims refuted by the data stay refuted after the correction (tsdf losing 40 points)
+    far = [{**r, "classification_ratio": r["classification_ratio"] - 0.3}
+           if r["backend"] == "tsdf" and r["level"] == "high" else r for r in rows]  # fmt: skip
+    report.write_data(tmp_path, "noise", far, {"sweeps": ["label"]})
+    table = report.verdict_claims(report.load_data(tmp_path / "data"))
+    assert [c["holm_verdict"] for c in table] == [
+        stats.NOT_REPRODUCED,
+        stats.REPRODUCED,
+        stats.NOT_REPRODUCED,
+    ]
