@@ -1304,7 +1304,7 @@ def query_case(service: str, name: str, d: Draw, ctx: Context | None = None) -> 
     elif (service, name) == ("navgraph", "graph"):
         params, obj = _box_case(d, ctx, 4) if d.boolean(0.7) else ("", None)
         how = "box"
-    elif (service, name) == ("coordinator", "claim"):
+    elif service == "coordinator" and name.split("/")[0] == "claim":  # claim/<member>
         obj, how = coordinator_claim(d, ctx)
     elif (service, name) == ("mapper", "save"):
         good = d.boolean(0.3)

@@ -232,3 +232,9 @@ def fake_stack(tmp_path, monkeypatch):
         yield stack
     finally:
         stack.close()
+
+
+def saved_maps(folder) -> list[str]:
+    """The files a save wrote into `folder`: not the mapper's own journal of its integrations
+    (`map.journal`, which it keeps beside its save path from its start)."""
+    return sorted(p.name for p in folder.iterdir() if p.suffix != ".journal")

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from smana.common import keys
 from smana.common.config import SmanaConfig
 from smana.common.messages import MessageError
 from smana.common.service import Reject
@@ -47,8 +48,11 @@ class _Pub:
 
 
 class _Req:
-    def __init__(self, body):
+    """A claim query on a member's key (`keys.claim`), as the coordinator's queryable gets it."""
+
+    def __init__(self, body, key: str):
         self._body = body
+        self.key = key
 
     def body(self):
         return self._body
@@ -79,13 +83,15 @@ def test_claims_and_states_are_refused_or_taken_never_a_crash(data):
     d, ctx = HypothesisDraw(data), fuzz.Context()
     s = coordinator()
     # a member holding a claim: the states that follow are checked against it
-    s.on_claim(_Req({"robot": fuzz.FLEET_MEMBERS[0], "goal": [1.0, 2.0]}))
+    first = fuzz.FLEET_MEMBERS[0]
+    s.on_claim(first, _Req({"robot": first, "goal": [1.0, 2.0]}, keys.claim(s.robot, first)))
     for _ in range(d.integer(1, 6)):
         if d.boolean():
             body = _claim_body(fuzz.query_case("coordinator", "claim", d, ctx))
             if body is not None:
+                member = d.choice(fuzz.FLEET_MEMBERS)  # the key it came on; the body may differ
                 try:
-                    msgpack.packb(s.on_claim(_Req(body)))
+                    msgpack.packb(s.on_claim(member, _Req(body, keys.claim(s.robot, member))))
                 except (Reject, MessageError):
                     pass
         else:
@@ -102,7 +108,9 @@ def test_claims_and_states_are_refused_or_taken_never_a_crash(data):
 def test_a_state_with_a_one_number_goal_is_refused_while_a_claim_is_held():
     # found by the fuzz: an IndexError (an `internal` rejection) when the member held a claim
     s = coordinator()
-    s.on_claim(_Req({"robot": "fuzzc1", "goal": [1.0, 2.0]}))
+    s.on_claim(
+        "fuzzc1", _Req({"robot": "fuzzc1", "goal": [1.0, 2.0]}, keys.claim(s.robot, "fuzzc1"))
+    )
     for xy in ([5.0], []):
         with pytest.raises(Reject) as info:
             s.on_state("fuzzc1", msgpack.packb({"goal": {"xy": xy}, "mode": "exploring"}))

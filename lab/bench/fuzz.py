@@ -156,7 +156,8 @@ TARGETS: tuple[Target, ...] = (
     Target("sim", "mapper/delta", "fifo", m.MapDelta, ("sim",), 3),
     Target("sim", "sim/status", "query", weight=1),
     # the coordinator, on the fleet's name; its members' states are raw msgpack maps (expect None)
-    Target("coordinator", "coordinator/claim", "query", weight=6, refused_phase=False),
+    # claims on member fuzzc1's own key (`keys.claim`); the bodies name any member or none
+    Target("coordinator", "coordinator/claim/fuzzc1", "query", weight=6, refused_phase=False),
     Target("coordinator", "coordinator/claims", "query", weight=1),
     Target("coordinator", "coordinator/stats", "query", weight=1),
     Target("coordinator", "coordinator/status", "query", weight=1),
