@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from smana.common.messages import MessageError, PathRequest, encode
+from smana.common.messages import MAX_PAYLOAD_BYTES, MessageError, PathRequest, encode
 from smana.common.service import Reject
 
 TOPICS = ("odom", "cloud", "tf_static", "plan")
@@ -239,9 +239,16 @@ class Ros2Inputs:
         raw[i : i + 4] = struct.pack("<I", v)
         return Ros2Case(topic, kind, bytes(raw), self.attachment(), None, f"{v} at {i}")
 
+    def oversize(self, topic: str) -> Ros2Case:
+        """A payload one byte over the services' limit (64 MiB): refused before it is copied."""
+        payload = bytes(MAX_PAYLOAD_BYTES + 1)
+        return Ros2Case(topic, "oversize", payload, self.attachment(), True, "64 MiB + 1")
+
     def _bad_attachment(self) -> tuple[bytes | None, str]:
         d = self.draw
         good = self.attachment()
+        noise = bytearray(d.blob(33))
+        noise[16] = d.integer(17, 255)  # never the gid's length: 16 would make it a valid one
         return d.choice(
             (
                 (None, "no attachment"),
@@ -249,7 +256,7 @@ class Ros2Inputs:
                 (good[:16], "16 bytes"),
                 (good + b"\x00", "34 bytes"),
                 (good[:16] + b"\x20" + good[17:], "gid length 32"),
-                (d.blob(33), "33 random bytes"),
+                (bytes(noise), "33 bytes of noise"),
             )
         )
 
@@ -392,6 +399,9 @@ class Ros2Reference:
             raise MessageError("malformed", f"not a {typename}: {type(exc).__name__}") from None
 
     def fate(self, case: Ros2Case) -> str:
+        if len(case.payload) > MAX_PAYLOAD_BYTES:  # common/service.py: refused uncopied
+            self.fates["oversize"] += 1
+            return "oversize"
         try:
             with np.errstate(all="ignore"):  # wild values overflow on the way to a refusal
                 getattr(self, f"_{case.topic}")(case)

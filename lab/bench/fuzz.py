@@ -695,6 +695,7 @@ class Campaign:
             self.out / "ros2",
             self.n_ros2,
             self.seed,
+            oversize=min(self.oversize, 4),  # one per ROS 2 key at most
             startup_timeout_s=self.startup_timeout_s,
             settle_timeout_s=self.settle_timeout_s,
             progress=self.progress,

@@ -99,6 +99,7 @@ class Ros2Family:
         inputs: int = 2000,
         seed: int = 0,
         robot: str = "fuzzros2",
+        oversize: int = 1,
         startup_timeout_s: float = 300.0,
         settle_timeout_s: float = 60.0,
         progress: bool = False,
@@ -108,6 +109,7 @@ class Ros2Family:
         self.out, self.n, self.seed, self.robot = Path(out), inputs, seed, robot
         self.startup_timeout_s, self.settle_timeout_s = startup_timeout_s, settle_timeout_s
         self.progress = progress
+        self.n_oversize = oversize
         self.draw = RandomDraw(random.Random(seed))
         self.fig = Ros2Figures()
         self.mine = 0  # samples and queries sent to the service (status polls included)
@@ -308,7 +310,10 @@ class Ros2Family:
         topics = [t for t, w in TOPIC_WEIGHTS.items() for _ in range(w)]
         t_print = time.monotonic()
         for i in range(self.n):
-            self.send(self.inputs.case(self.draw.choice(topics)))
+            if i < self.n_oversize:  # first, one per topic in turn
+                self.send(self.inputs.oversize(fuzz_ros2.TOPICS[i % len(fuzz_ros2.TOPICS)]))
+            else:
+                self.send(self.inputs.case(self.draw.choice(topics)))
             if self.progress and time.monotonic() - t_print > 10.0:
                 t_print = time.monotonic()
                 print(f"fuzz ros2: {i + 1}/{self.n} inputs", flush=True)
