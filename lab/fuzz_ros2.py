@@ -7,6 +7,7 @@ bench (`lab/bench/fuzz_ros2.py`) puts these cases on the wire.
   rosbags' typestore on one plausible track (a robot driving along x, a LiDAR frame under
   base_link), and mutants: CDR truncations, bit flips, a wrong encapsulation header, huge
   lengths and counts written over the CDR, field values NaN/inf/1e308, wild stamps and places,
+  bursts of odometry that agree on another clock and place (the gates relock onto them),
   absurd width * height * point_step, field lists that lie, another type's CDR, random bytes,
   an empty payload, wrong or missing rmw_zenoh attachments.
 - **Prediction** (`Ros2Reference`): each case's fate as the service counts it ("accepted", or
@@ -239,6 +240,20 @@ class Ros2Inputs:
         raw[i : i + 4] = struct.pack("<I", v)
         return Ros2Case(topic, kind, bytes(raw), self.attachment(), None, f"{v} at {i}")
 
+    def hijack(self, n: int = 6) -> list[Ros2Case]:
+        """`n` odometry messages that agree with each other on another clock and place (a second
+        robot on the same topic, a bag replayed): enough for the gates to relock onto them."""
+        d = self.draw
+        t, x = self.t_s + d.choice((1e5, -50.0, 3600.0)), self.x + d.choice((500.0, -80.0))
+        out = []
+        for i in range(n):
+            msg = self.odometry_msg(t + i * STAMP_STEP_S, x + i * STEP_M)
+            how = f"hijack {i + 1}/{n} at t{t - self.t_s:+g} s, x{x - self.x:+g} m"
+            out.append(
+                Ros2Case("odom", "hijack", self.ser(msg, "odom"), self.attachment(), None, how)
+            )
+        return out
+
     def oversize(self, topic: str) -> Ros2Case:
         """A payload one byte over the services' limit (64 MiB): refused before it is copied."""
         payload = bytes(MAX_PAYLOAD_BYTES + 1)
@@ -300,7 +315,15 @@ class Ros2Inputs:
         d = self.draw
         frame = SENSOR_FRAME if d.integer(0, 1) else "odom"
         msg = self.cloud_msg(self.t_s, frame, n=d.choice((0, 1, 64)))
-        what = d.integer(0, 8)
+        what = d.integer(0, 10)
+        if what == 9:  # valid but heavy: 50,000 points (800 kB)
+            return self.cloud_msg(self.t_s, frame, n=50_000), "50,000 points", None
+        if what == 10:  # valid, organised: 8 rows of 8 with 16 bytes of padding after each
+            msg = self.cloud_msg(self.t_s, frame, n=64)
+            rows = msg.data.reshape(8, 128)
+            msg.data = np.concatenate([rows, np.zeros((8, 16), np.uint8)], axis=1).reshape(-1)
+            msg.height, msg.width, msg.row_step = 8, 8, 144
+            return msg, "8x8 with row padding", None
         if what == 0:
             name = d.choice(("width", "height", "point_step", "row_step"))
             setattr(msg, name, d.choice(WILD_U32))

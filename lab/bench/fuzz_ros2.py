@@ -33,7 +33,9 @@ from smana.lab import fuzz_ros2
 from smana.lab.bench import procs
 
 TOPIC_WEIGHTS = {"odom": 4, "cloud": 3, "tf_static": 1, "plan": 2}
+HIJACK_ONE_IN = 150  # a burst of odometry on another clock and place, about this often
 SETTLE_EVERY = 100  # FIFO inputs before waiting for the service to catch up
+RELOCK = 5  # the gates' default: consistent messages that move an established clock or place
 PLANNER_PATH = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.0], [2.0, 1.0, 0.0]], np.float32)
 CONFIG = """\
 [general]
@@ -57,6 +59,7 @@ class Ros2Figures:
     inputs: int = 0
     by_kind: dict = field(default_factory=dict)  # "topic:kind" -> inputs
     fates: dict = field(default_factory=dict)  # "topic:fate" -> inputs, as predicted
+    kind_fates: dict = field(default_factory=dict)  # "topic:kind" -> {fate: inputs}
     intent_held: int = 0  # cases whose fate the generator knew, and the reference agreed
     status_polls: int = 0
     echoes: int = 0  # accepted odometry seen on robot/pose
@@ -160,6 +163,8 @@ class Ros2Family:
         key = f"{case.topic}:{case.kind}"
         f.by_kind[key] = f.by_kind.get(key, 0) + 1
         f.fates[f"{case.topic}:{fate}"] = f.fates.get(f"{case.topic}:{fate}", 0) + 1
+        kf = f.kind_fates.setdefault(key, {})
+        kf[fate] = kf.get(fate, 0) + 1
         if fate != "accepted":
             f.predicted[fate] = f.predicted.get(fate, 0) + 1
         if case.refuse is not None:
@@ -309,14 +314,20 @@ class Ros2Family:
     def _fuzz(self) -> None:
         topics = [t for t, w in TOPIC_WEIGHTS.items() for _ in range(w)]
         t_print = time.monotonic()
-        for i in range(self.n):
+        i = 0
+        while i < self.n:
             if i < self.n_oversize:  # first, one per topic in turn
-                self.send(self.inputs.oversize(fuzz_ros2.TOPICS[i % len(fuzz_ros2.TOPICS)]))
+                cases = [self.inputs.oversize(fuzz_ros2.TOPICS[i % len(fuzz_ros2.TOPICS)])]
+            elif self.draw.integer(0, HIJACK_ONE_IN - 1) == 0:
+                cases = self.inputs.hijack()[: self.n - i]
             else:
-                self.send(self.inputs.case(self.draw.choice(topics)))
+                cases = [self.inputs.case(self.draw.choice(topics))]
+            for case in cases:
+                self.send(case)
+            i += len(cases)
             if self.progress and time.monotonic() - t_print > 10.0:
                 t_print = time.monotonic()
-                print(f"fuzz ros2: {i + 1}/{self.n} inputs", flush=True)
+                print(f"fuzz ros2: {i}/{self.n} inputs", flush=True)
         self.settle()
 
     def _after(self) -> None:
@@ -324,7 +335,7 @@ class Ros2Family:
         onto a hostile place: bounded by its relock rule), a GetPlan gets the planner's path."""
         f = self.fig
         through = False
-        for _ in range(12):
+        for _ in range(2 * RELOCK + 4):  # the stamp gate's relock, then the pose gate's
             case = self.inputs.genuine("odom")
             self.send(case)
             self.settle()
