@@ -301,8 +301,11 @@ class Ros2Inputs:
             msg.header.stamp.nanosec = d.choice(WILD_U32)
             return msg, f"stamp {msg.header.stamp.sec}.{msg.header.stamp.nanosec}", None
         if what == 4:  # a place farther than the robot can travel (the pose gate)
-            p.x = x + d.choice((50.0, -200.0, 5e5))
-            return msg, f"jump to x={p.x}", True
+            jump = d.choice((50.0, -200.0, 5e5))
+            p.x = x + jump
+            # 50 m may be within reach of a place a hijack moved the gate to (tens of seconds
+            # away on its clock); 500 km is out of reach of anything
+            return msg, f"jump to x={p.x}", True if jump == 5e5 else None
         if what == 5:
             msg.pose.covariance[:] = d.choice(WILD_FLOATS)
             msg.twist.twist.linear.x = d.choice(WILD_FLOATS)

@@ -73,3 +73,20 @@ def test_bench_fuzz_with_nothing_to_fuzz_is_one_line_and_exit_2(capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert "nothing to fuzz" in err and "Traceback" not in err
+
+
+@pytest.mark.multiprocess
+@pytest.mark.slow
+def test_bench_fuzz_ros2_flag_runs_the_family_alone(tmp_path, capsys):
+    import json
+
+    code = cli(["--inputs", "0", "--map-files", "0", "--ros2", "200", "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    (run,) = tmp_path.iterdir()
+    result = json.loads((run / "fuzz.json").read_text())
+    ros2 = result["ros2"]
+    # 200 fuzzed, 4 to establish the track, genuine odometry and one GetPlan after
+    assert result["ok"] and 200 + 4 + 2 <= ros2["inputs"] <= 200 + 4 + 15, out
+    assert ros2["rejected"]["oversize"] == 4, out  # --oversize 6: one per ROS 2 key
+    assert f"ROS 2 family: {ros2['inputs']} inputs" in out and result["keys"] == {}, out
