@@ -14,7 +14,9 @@ bench (`lab/bench/fuzz_ros2.py`) puts these cases on the wire.
   the rejection kind), by the service's cores (`services/ros2/bridge.py`, its decoder) fed the
   same cases in the same order in this process. Where the generator knows the fate on its own
   (`Ros2Case.refuse`: an empty payload, a NaN position, a GetPlan without a valid attachment
-  must be refused; a genuine message must be taken) the reference is checked against it.
+  must be refused; a decodable /tf_static message is taken, its bad transforms counted as
+  events) the reference is checked against it. A genuine message has no such fate: after a
+  burst on another clock the gates refuse the genuine track until they relock onto it.
 """
 
 from __future__ import annotations
@@ -444,8 +446,6 @@ class Ros2Reference:
         return fate
 
     def _odom(self, case: Ros2Case) -> None:
-        from smana.services.ros2.bridge import checked  # noqa: F401 - as the service imports
-
         pose, _ = self.odometry.checked(self._ros(case.payload, TYPES_OF["odom"]))
         self.clouds.poses.add(pose.stamp_s, pose.position, pose.orientation_xyzw)
         self.received["odometry"] += 1

@@ -67,12 +67,25 @@ def test_fuzz_ros2_topics_and_getplan(tmp_path):
     assert f.plan_replies["ok"] > 0 and f.plan_replies["err"] > 0 and not f.plan_replies["none"]
 
 
-def test_bench_fuzz_with_nothing_to_fuzz_is_one_line_and_exit_2(capsys):
+def _misuse(capsys, *argv: str) -> str:
     with pytest.raises(SystemExit) as e:
-        cli(["--inputs", "0", "--map-files", "0", "--ros2", "0"])
+        cli(list(argv))
     assert e.value.code == 2
-    err = capsys.readouterr().err
-    assert "nothing to fuzz" in err and "Traceback" not in err
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("smana bench fuzz"), lines
+    return lines[0]
+
+
+def test_bench_fuzz_with_nothing_to_fuzz_is_one_line_and_exit_2(capsys):
+    assert "nothing to fuzz" in _misuse(capsys, "--inputs", "0", "--map-files", "0", "--ros2", "0")
+
+
+def test_bench_fuzz_ros2_without_rosbags_is_one_line_and_exit_2(capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "rosbags", None)  # hidden, as Python hides a module
+    line = _misuse(capsys, "--inputs", "0", "--map-files", "0", "--ros2", "10")
+    assert "pip install 'smana[ros2]'" in line and "--ros2 0" in line
 
 
 @pytest.mark.multiprocess

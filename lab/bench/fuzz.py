@@ -1470,7 +1470,7 @@ def cli(argv: list[str] | None = None) -> int:
         epilog=(
             "Duration measured once on a 2-core machine: about 1.5 minutes for the default "
             "10,000 inputs (a stack without the sim; docs/benchmarks.md), plus 10 to 20 s for the "
-            "default 1,000 map files, plus about 10 s for the default 2,000 ROS 2 inputs (10,000 "
+            "default 1,000 map files, plus 10 to 15 s for the default 2,000 ROS 2 inputs (10,000 "
             "took 30 to 51 s); --inputs 300 --map-files 0 --ros2 0 takes 10 to 20 s."
         ),
     )
@@ -1511,6 +1511,11 @@ def cli(argv: list[str] | None = None) -> int:
     unknown = set(services) - set(SERVICES)
     if not (args.inputs or args.map_files or args.ros2):
         p.error("nothing to fuzz: --inputs, --map-files and --ros2 are all 0")
+    if args.ros2:
+        try:
+            import rosbags  # noqa: F401 - the ROS 2 family's message types and CDR
+        except ImportError:
+            p.error("--ros2 needs the 'rosbags' package: pip install 'smana[ros2]' (or --ros2 0)")
     if unknown or (args.inputs and not {"mapper", "navgraph"} <= set(services)):
         p.error(f"--services: the mapper and navgraph are needed; known: {','.join(SERVICES)}")
     run_dir = output_dir(Path(args.out) / time.strftime("%Y%m%d-%H%M%S"), "output folder", "--out")
