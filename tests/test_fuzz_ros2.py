@@ -63,6 +63,9 @@ def test_fuzz_ros2_topics_and_getplan(tmp_path):
     assert f.rejected["oversize"] == 4, report  # one on each topic and one GetPlan
     assert f.received == f.received_predicted and f.received["clouds"] > 0, report
     assert f.checks["a genuine Odometry reaches robot/pose after the fuzz"], report
+    # a hostile /tf_static cache answered its history query at start-up, each reply as predicted
+    assert sum(f.history.values()) == 20 and f.history.get("history_refused"), report
+    assert f.checks["the /tf_static history taken and refused as predicted"], report
     assert f.checks["a genuine GetPlan is answered with the planner's path after the fuzz"]
     assert f.plan_replies["ok"] > 0 and f.plan_replies["err"] > 0 and not f.plan_replies["none"]
 

@@ -34,6 +34,7 @@ from smana.lab.bench import procs
 
 TOPIC_WEIGHTS = {"odom": 4, "cloud": 3, "tf_static": 1, "plan": 2}
 HIJACK_ONE_IN = 150  # a burst of odometry on another clock and place, about this often
+HISTORY = 20  # replies of a hostile /tf_static cache to the service's history query
 SETTLE_EVERY = 100  # FIFO inputs before waiting for the service to catch up
 RELOCK = 5  # the gates' default: consistent messages that move an established clock or place
 PLANNER_PATH = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.0], [2.0, 1.0, 0.0]], np.float32)
@@ -64,6 +65,7 @@ class Ros2Figures:
     status_polls: int = 0
     echoes: int = 0  # accepted odometry seen on robot/pose
     plan_replies: Counter = field(default_factory=Counter)  # "ok" / "err" / "none"
+    history: dict = field(default_factory=dict)  # /tf_static history replies: taken / refused
     msgs_in: int = 0
     accepted: int = 0
     dropped: dict = field(default_factory=dict)
@@ -238,6 +240,7 @@ class Ros2Family:
                     lambda s: self.poses.append(m.decode(s.payload.to_bytes(), m.Pose)),
                 )
             )
+            declared.append(self._history_cache(types, config))
             argv = procs.service_argv("ros2", endpoint, self.robot, "--config", str(config_path))
             self.proc = procs.spawn(argv, self.out / "ros2.log", cwd=self.out)
             deadline = time.monotonic() + self.startup_timeout_s
@@ -271,6 +274,27 @@ class Ros2Family:
         f.wall_s = time.monotonic() - t0
         f.load_end = os.getloadavg()
         return f
+
+    def _history_cache(self, types, config):
+        """A hostile transient-local /tf_static publisher's cache: what the service's history
+        query at start-up gets (`HISTORY` replies, genuine and mutated), predicted as taken or
+        refused (events `history_taken`, `history_refused`: a reply is no sample in the books)."""
+        from smana.services.ros2 import rmw
+
+        typename = fuzz_ros2.TYPES_OF["tf_static"]
+        tf_key = rmw.data_key(config.ros2.domain_id, "/tf_static", typename, types.hash(typename))
+        cases = [self.inputs.case("tf_static") for _ in range(HISTORY)]
+        f = self.fig
+        for case in cases:  # handled in the service's set-up, before any live input
+            fate = self.ref.fate(case)
+            what = "history_taken" if fate == "accepted" else "history_refused"
+            f.history[what] = f.history.get(what, 0) + 1
+
+        def answer(query):
+            for i, case in enumerate(cases):  # a key each: replies on one key are consolidated
+                query.reply(f"{tf_key}/@adv/pub/fuzz/{i}", case.payload)
+
+        return self.session.declare_queryable(f"{tf_key}/@adv/pub/fuzz/**", answer)
 
     def _declare(self, types, config, declared) -> None:
         """The robot's publishers on rmw_zenoh's keys, matched by the service's subscribers."""
@@ -380,6 +404,12 @@ class Ros2Family:
         f.received = dict(st.details.get("received", {}))
         f.received_predicted = dict(self.ref.received)
         f.check("same process (no restart)", st.pid == self.proc.pid, f"pid {st.pid}")
+        history = {k: v for k, v in b.events.items() if k.startswith("history_")}
+        f.check(
+            "the /tf_static history taken and refused as predicted",
+            history == dict(sorted(f.history.items())),
+            f"events {history}, predicted {f.history}",
+        )
         f.check("alive after the fuzz", self.proc.poll() is None)
         f.check(
             "msgs_in = inputs + queries + the poses it echoed",
@@ -450,6 +480,7 @@ def table(f: Ros2Figures) -> str:
         "",
         f"books: msgs_in {f.msgs_in} = accepted {f.accepted} + dropped "
         f"{sum(f.dropped.values())} + rejected {sum(f.rejected.values())} ({rej})",
+        f"/tf_static history replies {f.history}; "
         f"received {f.received} (reference {f.received_predicted}); GetPlan replies "
         f"{dict(f.plan_replies)}; generator's intent held in {f.intent_held} cases",
         f"crashes {f.crashes}, tracebacks {f.tracebacks}, exit {f.exit_code}; wall {f.wall_s:.1f}"
