@@ -33,7 +33,13 @@ port with multicast scouting and gossip off. The coordinator runs on a fleet nam
    inputs sent; no `internal` rejection and no `internal_*` event (crashes); same pid (no
    restart), every query answered, clean exit on SIGINT.
 
-Each input is generated from `--seed`; the same generators drive the in-process hypothesis tests.
+7. **ROS 2 topics** (issue 25; `--ros2 N`, after the stack has stopped): `smana ros2` reading a
+   robot's topics, on a router of its own, gets hostile `/odom`, `/points`, `/tf_static` and
+   GetPlan requests (`lab/bench/fuzz_ros2.py`); each case's fate predicted, the books checked
+   against the predictions, genuine odometry and GetPlan working afterwards.
+
+`--inputs 0` leaves out the stack (steps 1 to 6). Each input is generated from `--seed`; the
+same generators drive the in-process hypothesis tests.
 Output: a table, and the raw figures as JSON (`--out`). Exit status 1 when a check fails.
 """
 
@@ -260,6 +266,7 @@ class Result:
     load_end: tuple = ()
     phase_s: dict[str, float] = field(default_factory=dict)
     map_files: dict[str, MapFileFigures] = field(default_factory=dict)  # by mutation
+    ros2: object = None  # `fuzz_ros2.Ros2Figures` of the ROS 2 family, when it ran
 
     @property
     def map_inputs(self) -> int:
@@ -267,7 +274,8 @@ class Result:
 
     @property
     def ok(self) -> bool:
-        return self.crashes == 0 and all(self.checks.values()) and bool(self.checks)
+        ros2_ok = self.ros2 is None or self.ros2.ok
+        return self.crashes == 0 and all(self.checks.values()) and bool(self.checks) and ros2_ok
 
     def to_json(self) -> dict:
         d = _plain(self)
@@ -455,8 +463,10 @@ class Campaign:
         robot: str = "fuzz",
         sim_robot: str = "fuzzsim",
         map_files: int = 1000,
+        ros2: int = 0,
     ):
         self.out = Path(out)
+        self.n_ros2 = ros2
         self.n_map_files = map_files
         self.n_inputs, self.seed = inputs, seed
         self.services = tuple(s for s in SERVICES if s in services)
@@ -615,7 +625,7 @@ class Campaign:
         self.out.mkdir(parents=True, exist_ok=True)
         self.save_dir = self.out / "mapper"
         self.save_dir.mkdir(exist_ok=True)
-        config_path = self.out / "fuzz.toml"
+        config_path = self.config_path = self.out / "fuzz.toml"
         config_path.write_text(CONFIG.format(save_path=self.save_dir / "map.npz"))
         members = json.dumps(list(fuzz.FLEET_MEMBERS))
         (self.out / "fuzz-coordinator.toml").write_text(COORDINATOR_CONFIG.format(members=members))
@@ -623,9 +633,40 @@ class Campaign:
         self.files_before = _files(self.out, exclude=self.save_dir)
         if self.n_map_files:
             self._timed("map_files", lambda: self.map_file_phase(self.n_map_files))
-        t_stack = time.monotonic()
-        self.stack = Stack(self.out, config_path, self.robot, self.sim_robot)
         codes: dict[str, int | None] = {}
+        if self.n_inputs:
+            codes = self._run_stack()
+        for name, code in codes.items():
+            sf = r.service_figures.setdefault(name, ServiceFigures())
+            sf.exit_code = code
+            sf.tracebacks = self.stack.log(name).count("Traceback")
+            _check(r, "clean exit on SIGINT", code == 0, f"{name} exited {code}")
+        self.check_files()
+        if self.n_ros2:
+            self._timed("ros2", self.ros2_family)
+        r.crashes = sum(
+            sf.rejected.get("internal", 0)
+            + sum(v for k, v in sf.events.items() if k.startswith("internal"))
+            for sf in r.service_figures.values()
+        ) + sum(f.crash for f in r.map_files.values())
+        if r.ros2 is not None:
+            r.crashes += r.ros2.crashes
+        r.inputs = self.sent
+        r.wall_s = time.monotonic() - t0
+        me = resource.getrusage(resource.RUSAGE_SELF)
+        kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+        r.cpu_s = me.ru_utime + me.ru_stime - cpu0.ru_utime - cpu0.ru_stime
+        r.cpu_s_services = kids.ru_utime + kids.ru_stime
+        r.load_end = os.getloadavg()
+        if self.progress and sys.stderr.isatty():
+            print(file=sys.stderr)
+        return r
+
+    def _run_stack(self) -> dict[str, int | None]:
+        """Steps 1 to 6 on the stack; the services' exit codes."""
+        r = self.result
+        t_stack = time.monotonic()
+        self.stack = Stack(self.out, self.config_path, self.robot, self.sim_robot)
         try:
             for name in self.services:
                 self.stack.start(name)
@@ -645,27 +686,25 @@ class Campaign:
                 pub.undeclare()
             codes = self.stack.stop_all()
             self.stack.close()
-        for name, code in codes.items():
-            sf = r.service_figures.setdefault(name, ServiceFigures())
-            sf.exit_code = code
-            sf.tracebacks = self.stack.log(name).count("Traceback")
-            _check(r, "clean exit on SIGINT", code == 0, f"{name} exited {code}")
-        self.check_files()
-        r.crashes = sum(
-            sf.rejected.get("internal", 0)
-            + sum(v for k, v in sf.events.items() if k.startswith("internal"))
-            for sf in r.service_figures.values()
-        ) + sum(f.crash for f in r.map_files.values())
-        r.inputs = self.sent
-        r.wall_s = time.monotonic() - t0
-        me = resource.getrusage(resource.RUSAGE_SELF)
-        kids = resource.getrusage(resource.RUSAGE_CHILDREN)
-        r.cpu_s = me.ru_utime + me.ru_stime - cpu0.ru_utime - cpu0.ru_stime
-        r.cpu_s_services = kids.ru_utime + kids.ru_stime
-        r.load_end = os.getloadavg()
-        if self.progress and sys.stderr.isatty():
-            print(file=sys.stderr)
-        return r
+        return codes
+
+    def ros2_family(self) -> None:
+        """Step 7: the ROS 2 family, its own router and `smana ros2` (lab/bench/fuzz_ros2.py)."""
+        from smana.lab.bench.fuzz_ros2 import Ros2Family, Ros2FuzzError
+
+        family = Ros2Family(
+            self.out / "ros2",
+            self.n_ros2,
+            self.seed,
+            oversize=min(self.oversize, 4),  # one per ROS 2 key at most
+            startup_timeout_s=self.startup_timeout_s,
+            settle_timeout_s=self.settle_timeout_s,
+            progress=self.progress,
+        )
+        try:
+            self.result.ros2 = family.run()
+        except Ros2FuzzError as exc:
+            raise CampaignError(f"ROS 2 family: {exc}") from None
 
     def _timed(self, name: str, fn) -> None:
         t0 = time.monotonic()
@@ -1352,9 +1391,11 @@ def _files(root: Path, exclude: Path) -> set[str]:
 
 
 def table(r: Result) -> str:
+    n_ros2 = r.ros2.inputs if r.ros2 is not None else 0
     lines = [
-        f"smana bench fuzz: seed {r.seed}, {r.inputs + r.map_inputs} inputs: {r.inputs} over "
-        f"{', '.join(r.services)}, {r.map_inputs} map files",
+        f"smana bench fuzz: seed {r.seed}, {r.inputs + r.map_inputs + n_ros2} inputs: {r.inputs} "
+        f"over {', '.join(r.services) if r.inputs else 'no stack'}, {r.map_inputs} map files, "
+        f"{n_ros2} to smana ros2",
         "",
     ]
     lines.append(
@@ -1396,6 +1437,10 @@ def table(r: Result) -> str:
             lines.append(
                 f"| {kind} | {f.inputs} | {f.loaded} | {f.refused} | {f.crash} | {f.wrong} |"
             )
+    if r.ros2 is not None:
+        from smana.lab.bench.fuzz_ros2 import table as ros2_table
+
+        lines += ["", ros2_table(r.ros2)]
     lines += ["", "| check | result |", "|---|---|"]
     lines += [f"| {k} | {'pass' if v else 'FAIL'} |" for k, v in r.checks.items()]
     lines += [
@@ -1418,7 +1463,7 @@ def _load(la) -> str:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    from smana.common.cli import ArgumentParser, non_negative_int, output_dir, positive_int
+    from smana.common.cli import ArgumentParser, non_negative_int, output_dir
 
     p = ArgumentParser(
         prog="smana bench fuzz",
@@ -1426,11 +1471,15 @@ def cli(argv: list[str] | None = None) -> int:
         epilog=(
             "Duration measured once on a 2-core machine: about 1.5 minutes for the default "
             "10,000 inputs (a stack without the sim; docs/benchmarks.md), plus 10 to 20 s for the "
-            "default 1,000 map files; --inputs 300 --map-files 0 takes 10 to 20 s."
+            "default 1,000 map files, plus 10 to 15 s for the default 2,000 ROS 2 inputs (10,000 "
+            "took 30 to 51 s); --inputs 300 --map-files 0 --ros2 0 takes 10 to 20 s."
         ),
     )
     p.add_argument(
-        "--inputs", type=positive_int, default=10_000, help="fuzzed inputs (default 10000)"
+        "--inputs",
+        type=non_negative_int,
+        default=10_000,
+        help="fuzzed inputs to the stack (default 10000; 0: no stack)",
     )
     p.add_argument("--seed", type=non_negative_int, default=0, help="random seed (default 0)")
     p.add_argument(
@@ -1450,11 +1499,25 @@ def cli(argv: list[str] | None = None) -> int:
         default=1000,
         help="map files, valid and corrupt, to load in this process (default 1000; 0: none)",
     )
+    p.add_argument(
+        "--ros2",
+        type=non_negative_int,
+        default=2000,
+        help="hostile ROS 2 inputs (/odom, /points, /tf_static, GetPlan) to smana ros2 on a "
+        "router of its own, after the stack (default 2000; 0: none)",
+    )
     p.add_argument("--out", default="runs/fuzz", help="folder for logs and fuzz.json")
     args = p.parse_args(argv)
     services = tuple(s.strip() for s in args.services.split(",") if s.strip())
     unknown = set(services) - set(SERVICES)
-    if unknown or not {"mapper", "navgraph"} <= set(services):
+    if not (args.inputs or args.map_files or args.ros2):
+        p.error("nothing to fuzz: --inputs, --map-files and --ros2 are all 0")
+    if args.ros2:
+        try:
+            import rosbags  # noqa: F401 - the ROS 2 family's message types and CDR
+        except ImportError:
+            p.error("--ros2 needs the 'rosbags' package: pip install 'smana[ros2]' (or --ros2 0)")
+    if unknown or (args.inputs and not {"mapper", "navgraph"} <= set(services)):
         p.error(f"--services: the mapper and navgraph are needed; known: {','.join(SERVICES)}")
     run_dir = output_dir(Path(args.out) / time.strftime("%Y%m%d-%H%M%S"), "output folder", "--out")
     campaign = Campaign(
@@ -1465,6 +1528,7 @@ def cli(argv: list[str] | None = None) -> int:
         args.oversize,
         progress=True,
         map_files=args.map_files,
+        ros2=args.ros2,
     )
     try:
         result = campaign.run()
