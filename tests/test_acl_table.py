@@ -36,7 +36,7 @@ import pytest
 
 from smana.common.config import ZenohConfig
 from smana.common.zenoh_config import make_zenoh_config
-from smana.deploy.security import init_certs
+from smana.deploy.security import OWNERS, init_certs
 from smana.deploy.supervisor import die_with_parent
 from tests.conftest import free_port, saved_maps, wait_for, wait_port
 
@@ -54,17 +54,6 @@ SENSORS = (
     "robot/pose_truth",
     "robot/clock",
     "robot/image/rgb",
-)
-OWNERS = (
-    "sim",
-    "replay",
-    "driver",
-    "mapper",
-    "navgraph",
-    "planner",
-    "explorer",
-    "recorder",
-    "ros2",
 )
 TABLE = {
     **{family: {"sim": "p", "replay": "p", "driver": "p"} for family in SENSORS},

@@ -22,14 +22,14 @@ from smana.common.query import QueryError, request
 from smana.common.zenoh_config import make_zenoh_config, read_credentials
 from smana.deploy.router import router_config
 from smana.deploy.security import (
+    OWNERS,
     acl_policy,
     add_robot,
     init_certs,
     revoke_robot,
     uplink_policy,
 )
-from tests.conftest import REPO
-from tests.test_acl_table import saved_maps
+from tests.conftest import REPO, saved_maps
 
 ROBOTS = ["r1", "r2"]
 
@@ -76,19 +76,6 @@ def test_each_host_holds_only_its_own_secrets(certs):
     }
     assert all(base[u] == every[u] for u in base)
     assert mode(certs / "ca.key") == 0o600 and mode(certs / "users.txt") == 0o600
-
-
-OWNERS = (
-    "sim",
-    "replay",
-    "driver",
-    "mapper",
-    "navgraph",
-    "planner",
-    "explorer",
-    "recorder",
-    "ros2",
-)
 
 
 def snapshot(folder):
