@@ -236,5 +236,6 @@ def fake_stack(tmp_path, monkeypatch):
 
 def saved_maps(folder) -> list[str]:
     """The files a save wrote into `folder`: not the mapper's own journal of its integrations
-    (`map.journal`, which it keeps beside its save path from its start)."""
-    return sorted(p.name for p in folder.iterdir() if p.suffix != ".journal")
+    (`map.journal`, which it keeps beside its save path from its start), nor an autosave's file
+    being written (`map.npz.tmp`, renamed onto `map.npz` when whole)."""
+    return sorted(p.name for p in folder.iterdir() if p.suffix not in (".journal", ".tmp"))
