@@ -108,12 +108,8 @@ def config_from_args(args: argparse.Namespace, layers=()) -> SmanaConfig:
     if args.log_level:
         general = dataclasses.replace(general, log_level=args.log_level)
     general.validate()
-    run_dir = Path(general.run_dir) if general.run_dir else None
-    if run_dir is not None and run_dir.exists() and not run_dir.is_dir():
-        # refused before anything starts: a service would map, then fail to save into it
-        raise UsageError(
-            f"run directory {run_dir} is a file, not a directory; choose another with --run-dir DIR"
-        )
+    if general.run_dir:  # before anything starts: a service would map, then fail to save
+        not_a_file(general.run_dir)
     try:
         return dataclasses.replace(cfg, general=general, zenoh=apply_zenoh_args(cfg.zenoh, args))
     except ValueError as exc:
@@ -173,13 +169,19 @@ def point(text: str) -> tuple[float, ...]:
     return v
 
 
+def not_a_file(path: str | Path, what: str = "run directory", flag: str = "--run-dir") -> Path:
+    """`path`, or a UsageError when it exists and is not a directory."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise UsageError(f"{what} {p} is a file, not a directory; choose another with {flag} DIR")
+    return p
+
+
 def output_dir(path: str | Path, what: str = "run directory", flag: str = "--run-dir") -> Path:
     """`path` as a directory to write into, created if missing. UsageError, before anything starts,
     when it is a file or cannot be created or written (`flag` is how to choose another)."""
-    p = Path(path)
+    p = not_a_file(path, what, flag)
     fix = f"choose another with {flag} DIR"
-    if p.exists() and not p.is_dir():
-        raise UsageError(f"{what} {p} is a file, not a directory; {fix}")
     try:
         p.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
