@@ -131,3 +131,50 @@ def test_noise_data_of_one_sweep_generates_its_claims_and_names_the_missing(tmp_
         stats.REPRODUCED,
         stats.NOT_REPRODUCED,
     ]
+
+
+def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
+    """A run in another garden is a data file of its own (`exploration_garden20.json`) whose
+    claims name it and are not bounded by the default garden's routes; the fleet's tested claims
+    carry their p into the Holm correction, its contact count stays out of it."""
+    from smana.lab.experiments import exploration as ex
+
+    assert ex.data_variant(ex.ExplorationExperimentConfig()) is None
+    assert ex.data_variant(ex.ExplorationExperimentConfig(size_m=20.0)) == "garden20"
+    assert ex.data_variant(ex.ExplorationExperimentConfig.quick()) == "quick"
+    laid = ex.ExplorationExperimentConfig(extra=('sim.garden.layout="paths"',))
+    assert ex.data_variant(laid) == "garden12paths"
+    report.write_data(tmp_path, "exploration", _exploration_rows(), {}, "garden20")
+    report.write_data(tmp_path, "routes", [
+        {"seed": s, "grass_cost_factor": 1.0, "terrain_share": 0.95} for s in (3, 4, 5)
+    ])  # fmt: skip
+    fleet = []
+    for seed in (3, 4, 5):
+        for n, t in ((1, 300.0), (2, 150.0 + seed)):
+            fleet.append(
+                {"seed": seed, "world": "garden22", "n_robots": n, "ok": True,
+                 "time_to_95_s": t, "map_error_m": 0.02, "classification_ratio": 0.9 + 0.001 * seed,
+                 "robot_contacts": 0}
+            )  # fmt: skip
+    report.write_data(tmp_path, "fleet", fleet)
+    data = report.load_data(tmp_path / "data")
+    assert sorted(data) == ["exploration_garden20", "fleet", "routes"]
+    table = report.verdict_claims(data)
+    big = [c for c in table if c["experiment"] == "exploration (garden20)"]
+    # the default garden's routes (95 % at x1) would make x1 "not reproducible in this world"
+    assert big and all(c["verdict"] != stats.NOT_REPRODUCIBLE_HERE for c in big)
+    fl = [c for c in table if c["experiment"] == "fleet"]
+    ratio = next(c for c in fl if "time to 95 %" in c["claim"])
+    assert ratio["verdict"] == "met" and ratio["p"] < 0.025 and ratio["rule"] == "at most T"
+    contacts = next(c for c in fl if "contacts" in c["claim"])
+    assert contacts["p"] is None and contacts["holm"] == "a count, not a test"
+    n_tested = sum(c["p"] is not None for c in table)
+    assert f"Holm over the {n_tested} tested" in report.verdicts_section(data)
+    bad = tmp_path / "data" / "fleet_x.json"
+    bad.write_text('{"experiment": "noise", "rows": []}')
+    try:
+        report.load_data(tmp_path / "data")
+    except ValueError as exc:
+        assert "fleet_x.json: not experiment data" in str(exc)
+    else:
+        raise AssertionError("a fleet variant holding another experiment's data was accepted")

@@ -528,6 +528,24 @@ def mean_curve(runs: list[dict], axis: str, n_points: int = 60):
 # -- outputs -------------------------------------------------------------------------------------
 
 
+def data_variant(s: ExplorationExperimentConfig) -> str | None:
+    """The name of a run's data file beside the default one (`exploration.json`, the 12 m garden
+    of the default layout): `exploration_garden20.json` for a 20 m garden, with the layout when
+    a `--set sim.garden.layout=...` changed it (`exploration_garden12<layout>.json`); a quick
+    run is `quick`."""
+    if s.is_quick:
+        return "quick"
+    layouts = [
+        e.split("=", 1)[1].strip().strip("\"'")
+        for e in s.extra
+        if e.startswith("sim.garden.layout=")
+    ]
+    layout = "".join(c for c in (layouts[-1] if layouts else "") if c.isalnum()).lower()
+    if s.size_m == ExplorationExperimentConfig.size_m and not layout:
+        return None
+    return f"garden{s.size_m:g}".replace(".", "p") + layout
+
+
 def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     flat = [{k: v for k, v in r.items() if k != "curve"} for r in rows]
@@ -537,7 +555,7 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
         w.writerows(flat)
     from .report import write_data
 
-    write_data(out, "exploration", rows, asdict(s))
+    write_data(out, "exploration", rows, asdict(s), data_variant(s))
     summary = summarise_exploration(rows)
     table = verdicts(rows)
     (out / "exploration_results.json").write_text(

@@ -305,25 +305,33 @@ def _by_seed(rows, world: str, n: int, key: str) -> dict[int, float | None]:
     }
 
 
+def _met(d: stats.Decision) -> str:
+    return {stats.REPRODUCED: MET, stats.NOT_REPRODUCED: NOT_MET}.get(d.verdict, d.verdict)
+
+
+def decide_below(ci: stats.Interval, target: float) -> stats.Decision:
+    """ "At most `target`" as a one-sided test: met when the interval's upper end is under it
+    (p_yes: the test "mean >= target"), not met when its lower end is above. A time ratio's
+    target is positive: the rule is non-inferiority with the target as its margin."""
+    return stats.decide_not_worse(ci, target)
+
+
 def target_below(ci: stats.Interval, target: float) -> str:
     """ "At most `target`": met when the interval's upper end is under it, not met when its lower
     end is above, inconclusive otherwise (or without an interval)."""
-    if not ci.defined:
-        return stats.INCONCLUSIVE
-    if ci.hi < target:
-        return MET
-    if ci.lo > target:
-        return NOT_MET
-    return stats.INCONCLUSIVE
+    return _met(decide_below(ci, target))
 
 
-def not_worse(ci: stats.Interval, lower_is_better: bool, margin: float) -> str:
+def decide_not_worse(ci: stats.Interval, lower_is_better: bool, margin: float) -> stats.Decision:
     """A paired difference (fleet minus one robot) that must not be worse by more than `margin`
     (declared before the runs, `NOT_WORSE_MARGINS`): met when its interval lies on the good side
     of the margin, not met when wholly on the bad side (`stats.decide_not_worse`). An interval
     that merely holds 0 is not enough: it must be narrow enough to rule the margin out."""
-    v = stats.decide_not_worse(ci, margin, higher_is_better=not lower_is_better).verdict
-    return {stats.REPRODUCED: MET, stats.NOT_REPRODUCED: NOT_MET}.get(v, v)
+    return stats.decide_not_worse(ci, margin, higher_is_better=not lower_is_better)
+
+
+def not_worse(ci: stats.Interval, lower_is_better: bool, margin: float) -> str:
+    return _met(decide_not_worse(ci, lower_is_better, margin))
 
 
 def time_ratios(rows: list[dict], world: str, n: int) -> tuple[dict[int, float], list[int]]:
@@ -369,17 +377,22 @@ def bounded_ratios(rows: list[dict], world: str, n: int) -> dict[int, tuple[floa
     return out
 
 
-def target_below_censored(bounded: dict[int, tuple[float, str]], target: float) -> str:
+def decide_below_censored(bounded: dict[int, tuple[float, str]], target: float) -> stats.Decision:
     """ "At most `target`" over per-seed ratios some of which are bounds (`bounded_ratios`):
-    the interval of the values and bounds decides as `target_below` does, except that a ratio
+    the interval of the values and bounds decides as `decide_below` does, except that a ratio
     known only to lie above its bound forbids "met" (its true value could be anything larger),
     and one known only to lie below forbids "not met"."""
-    ci = stats.mean_ci([v for v, _ in bounded.values()])
+    d = decide_below(stats.mean_ci([v for v, _ in bounded.values()]), target)
     kinds = {kind for _, kind in bounded.values()}
-    verdict = target_below(ci, target)
-    if (verdict == MET and "above" in kinds) or (verdict == NOT_MET and "below" in kinds):
-        return stats.INCONCLUSIVE
-    return verdict
+    if (d.verdict == stats.REPRODUCED and "above" in kinds) or (
+        d.verdict == stats.NOT_REPRODUCED and "below" in kinds
+    ):
+        return stats.Decision(stats.INCONCLUSIVE, d.p_yes, d.p_no, d.alpha, "a censored bound")
+    return d
+
+
+def target_below_censored(bounded: dict[int, tuple[float, str]], target: float) -> str:
+    return _met(decide_below_censored(bounded, target))
 
 
 def paired_difference(rows: list[dict], world: str, n: int, key: str) -> stats.Interval:
@@ -411,13 +424,16 @@ def verdicts(rows: list[dict], large_world: str = LARGE_GARDEN.name) -> list[dic
                 if kind
             ]
             note = f"; censored (never reached 95 %), kept as bounds: {', '.join(kept)}"
+            d = decide_below_censored(bounded, target)
             out.append(
                 {
                     "claim": f"{large_world}: time to {100 * COVERAGE_TARGET:.0f} % coverage with "
                     f"{n} robots over one robot's, paired per seed",
                     "target": f"<= {target:g}",
                     "smana": ci.format(fmt=".2f") + (note if kept else ""),
-                    "verdict": target_below_censored(bounded, target),
+                    "verdict": _met(d),
+                    "p": d.p,
+                    "rule": "at most T",
                 }
             )
     for world in worlds:
@@ -430,6 +446,7 @@ def verdicts(rows: list[dict], large_world: str = LARGE_GARDEN.name) -> list[dic
             ):
                 ci = paired_difference(rows, world, n, key)
                 margin = NOT_WORSE_MARGINS[key]
+                d = decide_not_worse(ci, lower, margin)
                 out.append(
                     {
                         "claim": f"{world}: merged map's {what} with {n} robots minus one "
@@ -437,7 +454,9 @@ def verdicts(rows: list[dict], large_world: str = LARGE_GARDEN.name) -> list[dic
                         "target": (f"below +{margin:g}" if lower else f"above -{margin:g}")
                         + " (margin)",
                         "smana": ci.format(fmt=".4f" if lower else ".3f"),
-                        "verdict": not_worse(ci, lower, margin),
+                        "verdict": _met(d),
+                        "p": d.p,
+                        "rule": "not worse",
                     }
                 )
     ok = [r for r in rows if r["ok"]]
@@ -461,8 +480,12 @@ def verdicts(rows: list[dict], large_world: str = LARGE_GARDEN.name) -> list[dic
                 else ""
             ),
             "verdict": verdict,
+            "p": None,  # a count, not a test
+            "rule": "a count",
         }
     )
+    for v in out:
+        v["paper"] = v["target"]
     return out
 
 

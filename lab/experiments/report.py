@@ -56,10 +56,15 @@ def compact_rows(rows: list[dict]) -> list[dict]:
     ]
 
 
-def write_data(out: Path, name: str, rows: list[dict], meta: dict | None = None) -> Path:
-    """`<out>/data/<name>.json`: {"experiment", "meta", "rows"}, one row a line so that a diff
-    of two runs reads row by row."""
-    path = Path(out) / "data" / f"{name}.json"
+def write_data(
+    out: Path, name: str, rows: list[dict], meta: dict | None = None, variant: str | None = None
+) -> Path:
+    """`<out>/data/<name>.json` (or `<name>_<variant>.json` for a run of the experiment in other
+    conditions, e.g. a larger garden): {"experiment", "meta", "rows"}, one row a line so that a
+    diff of two runs reads row by row."""
+    if variant is not None and not re.fullmatch(r"[a-z0-9]+", variant):
+        raise ValueError(f"data variant must be lowercase letters and digits, got {variant!r}")
+    path = Path(out) / "data" / (f"{name}_{variant}.json" if variant else f"{name}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     body = ",\n".join("  " + json.dumps(r, sort_keys=True) for r in compact_rows(rows))
     head = json.dumps({"experiment": name, "meta": meta or {}}, sort_keys=True, default=str)
@@ -68,21 +73,26 @@ def write_data(out: Path, name: str, rows: list[dict], meta: dict | None = None)
 
 
 def load_data(data_dir: Path) -> dict[str, dict]:
-    """{experiment: its data} for every committed data file; a file that is not valid data is a
+    """{file stem: its data} for every committed data file of a known experiment: `<name>.json`
+    and its variants `<name>_<variant>.json` (sorted); a file that is not valid data is a
     one-line ValueError naming it."""
     out = {}
     for name in EXPERIMENTS:
-        path = Path(data_dir) / f"{name}.json"
-        if not path.is_file():
-            continue
-        try:
-            data = json.loads(path.read_text())
-            if data.get("experiment") != name or not isinstance(data.get("rows"), list):
-                raise ValueError(f"expected experiment {name!r} and a list of rows")
-        except ValueError as exc:
-            raise ValueError(f"{path}: not experiment data ({exc})") from None
-        out[name] = data
+        variants = sorted(Path(data_dir).glob(f"{name}_*.json"))
+        for path in [Path(data_dir) / f"{name}.json", *variants]:
+            if path.is_file() and re.fullmatch(rf"{name}(_[a-z0-9]+)?", path.stem):
+                out[path.stem] = _read_data(path, name)
     return out
+
+
+def _read_data(path: Path, name: str) -> dict:
+    try:
+        data = json.loads(path.read_text())
+        if data.get("experiment") != name or not isinstance(data.get("rows"), list):
+            raise ValueError(f"expected experiment {name!r} and a list of rows")
+    except ValueError as exc:
+        raise ValueError(f"{path}: not experiment data ({exc})") from None
+    return data
 
 
 # -- the sections ---------------------------------------------------------------------------------
@@ -130,36 +140,64 @@ def _noise_claims(data: dict) -> list[dict]:
     return out
 
 
-def _exploration_claims(data: dict, routes: dict | None) -> list[dict]:
+def _where(key: str, data: dict) -> str:
+    """How a claim names the run it comes from: the experiment, and for a variant its garden."""
+    name = data["experiment"]
+    if key == name:
+        return name
+    return f"{name} ({key[len(name) + 1 :]})"
+
+
+def _exploration_claims(key: str, data: dict, routes: dict | None) -> list[dict]:
     from .exploration import verdicts
 
     rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
-    return [{**v, "experiment": "exploration"} for v in verdicts(rows, routes)]
+    # the routes are the default garden's: they bound only the default run's terrain shares
+    world = routes if key == "exploration" else None
+    return [{**v, "experiment": _where(key, data)} for v in verdicts(rows, world)]
+
+
+def _fleet_claims(key: str, data: dict) -> list[dict]:
+    from .fleet import verdicts
+
+    rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
+    return [{**v, "experiment": _where(key, data)} for v in verdicts(rows)]
 
 
 def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
-    """Every claim the committed data decides, Holm-corrected together over the table."""
+    """Every claim the committed data decides, Holm-corrected together over the table. A claim
+    without a p-value (a count, such as the fleet's contacts) is not a test: it is listed, and
+    stays out of the correction."""
     routes = _routes_intervals(all_data["routes"]) if "routes" in all_data else None
     table = []
-    if "noise" in all_data:
-        table += _noise_claims(all_data["noise"])
-    if "exploration" in all_data:
-        table += _exploration_claims(all_data["exploration"], routes)
+    for key, data in all_data.items():
+        if data["experiment"] == "noise":
+            table += _noise_claims(data)
+        elif data["experiment"] == "exploration":
+            table += _exploration_claims(key, data, routes)
+        elif data["experiment"] == "fleet":
+            table += _fleet_claims(key, data)
+    tested = [c for c in table if c.get("p") is not None]
     # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
-    decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in table]
-    for c, d in zip(table, stats.holm_table(decisions), strict=True):
+    decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in tested]
+    for c, d in zip(tested, stats.holm_table(decisions), strict=True):
         c["holm_verdict"] = d.verdict
         c["holm"] = d.evidence
+    for c in table:
+        if c.get("p") is None:
+            c["holm_verdict"], c["holm"] = c["verdict"], "a count, not a test"
     return table
 
 
 def verdicts_section(all_data: dict[str, dict]) -> str:
     table = verdict_claims(all_data)
-    missing = [n for n in ("noise", "exploration", "fleet") if n not in all_data]
+    have = {d["experiment"] for d in all_data.values()}
+    missing = [n for n in ("noise", "exploration", "fleet") if n not in have]
     lines = []
     if table:
         lines += [
-            f"Generated from docs/experiments/data/ ({len(table)} claims, Holm over all of them):",
+            f"Generated from docs/experiments/data/ ({len(table)} claims, Holm over the "
+            f"{sum(c.get('p') is not None for c in table)} tested):",
             "",
             "| claim | paper | smana, mean [95 % CI] (n) | rule | p | verdict (Holm) |",
             "|---|---|---|---|---|---|",
@@ -168,7 +206,8 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
             ev = f"; {c['evidence']}" if c.get("evidence") else ""
             lines.append(
                 f"| {c['experiment']}: {c['claim']} | {c['paper']} | {c['smana']}{ev} | "
-                f"{c['rule']} | {c['p']:.2g} | {c['holm_verdict']} ({c['holm']}) |"
+                f"{c['rule']} | {'-' if c.get('p') is None else format(c['p'], '.2g')} | "
+                f"{c['holm_verdict']} ({c['holm']}) |"
             )
         lines.append("")
     if "noise" in all_data:
