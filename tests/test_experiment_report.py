@@ -34,7 +34,8 @@ def _exploration_rows():
             rows.append(
                 {"seed": seed, "arm": f"nbv_x{f:g}", "strategy": "nbv", "grass_cost_factor": f,
                  "path_cost_weight": None, "ok": True, "terrain_share": share + 0.01 * seed,
-                 "distance_m": 20.0, "distance_to_95_m": 10.0 + seed}
+                 "distance_m": 20.0, "distance_to_95_m": 10.0 + seed, "coverage": 0.99,
+                 "time_to_95_s": 30.0, "robot_time_s": 60.0}
             )  # fmt: skip
     return rows
 
@@ -154,7 +155,8 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
             fleet.append(
                 {"seed": seed, "world": "garden22", "n_robots": n, "ok": True,
                  "time_to_95_s": t, "map_error_m": 0.02, "classification_ratio": 0.9 + 0.001 * seed,
-                 "robot_contacts": 0}
+                 "robot_contacts": 0, "size_m": 22.0, "distance_to_95_m": 50.0, "coverage": 0.99,
+                 "overlap": 0.4 if n > 1 else None}
             )  # fmt: skip
     report.write_data(tmp_path, "fleet", fleet)
     data = report.load_data(tmp_path / "data")
@@ -168,6 +170,10 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
     assert ratio["verdict"] == "met" and ratio["p"] < 0.025 and ratio["rule"] == "at most T"
     contacts = next(c for c in fl if "contacts" in c["claim"])
     assert contacts["p"] is None and contacts["holm"] == "a count, not a test"
+    text = report.exploration_section(data)
+    assert "docs/experiments/data/exploration_garden20.json: garden ? m" not in text
+    assert "| NBV, grass x1 | " in text and "| NBV, grass x4 | " in text
+    assert "| garden22 | 2 | 3 of 3 | 154 [152, 156] (n = 3) |" in report.fleet_section(data)
     n_tested = sum(c["p"] is not None for c in table)
     assert f"Holm over the {n_tested} tested" in report.verdicts_section(data)
     bad = tmp_path / "data" / "fleet_x.json"

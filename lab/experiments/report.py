@@ -128,6 +128,89 @@ def routes_section(data: dict | None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _arm_name(arm: str) -> str:
+    kind, _, factor = arm.rpartition("_x")
+    return f"{'NBV' if kind == 'nbv' else kind.replace('_', ' ')}, grass x{factor}"
+
+
+def exploration_section(all_data: dict[str, dict]) -> str:
+    """Per exploration data file (the default garden first, then each variant): per arm the
+    intervals over seeds, how many runs reached 95 % and the Kaplan-Meier median distance to it
+    (runs that never reached it kept as censored)."""
+    from .exploration import _interval, summarise_exploration
+
+    keys = [k for k, d in all_data.items() if d["experiment"] == "exploration"]
+    if not keys:
+        return _missing("exploration")
+    lines = []
+    for key in keys:
+        data = all_data[key]
+        rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
+        meta = data["meta"]
+        seeds = sorted({r["seed"] for r in rows})
+        failed = sum(not r["ok"] for r in rows)
+        size = float(meta.get("size_m", math.nan))
+        lines += [
+            f"Generated from docs/experiments/data/{key}.json: garden {size:g} m, "
+            f"seeds {seeds[0]} to {seeds[-1]}, budget {meta.get('budget_s', 0):.0f} s of robot "
+            f"time per run, {len(rows)} runs"
+            + (f", **{failed} failed** (left out of every figure)" if failed else ", none failed")
+            + (f"; overrides: {', '.join(meta['extra'])}" if meta.get("extra") else "")
+            + ".",
+            "",
+            "| arm | terrain share | coverage at the end | distance (m) | reached 95 % | "
+            "distance to 95 % (m), Kaplan-Meier median | time to 95 % (s), Kaplan-Meier median |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for d in summarise_exploration(rows):
+            iv = {k: _interval(d[k]) for k in ("terrain_share", "coverage", "distance_m")}
+            km_d, km_t = d["km_median_distance_to_95_m"], d["km_median_time_to_95_s"]
+            lines.append(
+                f"| {_arm_name(d['arm'])} | {iv['terrain_share'].format(100, unit=' %')} | "
+                f"{iv['coverage'].format(100, unit=' %')} | {iv['distance_m'].format()} | "
+                f"{d['reached_95']} of {d['runs'] - d['failed']} | "
+                f"{'not reached by half' if km_d is None else f'{km_d:.1f}'} | "
+                f"{'not reached by half' if km_t is None else f'{km_t:.0f}'} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def fleet_section(all_data: dict[str, dict]) -> str:
+    """Per fleet data file, world and fleet size: intervals over seeds of time and distance to
+    95 % (over the runs that reached it, with how many did), coverage, overlap and the merged
+    map's scores."""
+    from .exploration import _interval
+    from .fleet import summarise_fleet
+
+    keys = [k for k, d in all_data.items() if d["experiment"] == "fleet"]
+    if not keys:
+        return _missing("fleet")
+    lines = []
+    for key in keys:
+        rows = [{**r, "ok": bool(r.get("ok"))} for r in all_data[key]["rows"]]
+        seeds = sorted({r["seed"] for r in rows})
+        lines += [
+            f"Generated from docs/experiments/data/{key}.json (seeds {seeds[0]} to {seeds[-1]}, "
+            f"{len(rows)} runs, {sum(not r['ok'] for r in rows)} failed):",
+            "",
+            "| world | robots | reached 95 % | time to 95 % (s) | distance to 95 % (m) | "
+            "coverage | overlap | map error (m) | classification ratio |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for d in summarise_fleet(rows):
+            iv = {k: _interval(d[k]) for k in d if isinstance(d[k], dict)}
+            lines.append(
+                f"| {d['world']} | {d['n_robots']} | {d['reached_95']} of "
+                f"{d['runs'] - d['failed']} | {iv['time_to_95_s'].format(fmt='.0f')} | "
+                f"{iv['distance_to_95_m'].format()} | {iv['coverage'].format(100, unit=' %')} | "
+                f"{iv['overlap'].format(100, unit=' %')} | {iv['map_error_m'].format(fmt='.3f')} | "
+                f"{iv['classification_ratio'].format(fmt='.3f')} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
 def _noise_claims(data: dict) -> list[dict]:
     from .noise import claims
 
@@ -241,6 +324,8 @@ def sections(all_data: dict[str, dict]) -> dict[str, str]:
     return {
         "verdicts": verdicts_section(all_data),
         "routes": routes_section(all_data.get("routes")),
+        "exploration": exploration_section(all_data),
+        "fleet": fleet_section(all_data),
     }
 
 
