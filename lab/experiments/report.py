@@ -286,7 +286,8 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
             "|---|---|---|---|---|---|",
         ]
         for c in table:
-            ev = f"; {c['evidence']}" if c.get("evidence") else ""
+            e = c.get("evidence")
+            ev = f"; {e}" if e and e not in c["smana"] else ""
             lines.append(
                 f"| {c['experiment']}: {c['claim']} | {c['paper']} | {c['smana']}{ev} | "
                 f"{c['rule']} | {'-' if c.get('p') is None else format(c['p'], '.2g')} | "
