@@ -30,7 +30,7 @@ from smana.lab import stats
 ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = ROOT / "docs" / "experiments" / "data"
 DOC = ROOT / "docs" / "experiments.md"
-EXPERIMENTS = ("noise", "exploration", "fleet", "routes")  # the data files a report reads
+EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "resources")  # the data files read
 SECTION = re.compile(
     r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
     re.S,
@@ -145,6 +145,13 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
         table += _noise_claims(all_data["noise"])
     if "exploration" in all_data:
         table += _exploration_claims(all_data["exploration"], routes)
+    if "resources" in all_data:
+        from .resources import claims as resources_claims
+
+        table += [
+            {**c, "experiment": "resources"}
+            for c in resources_claims(all_data["resources"]["rows"])
+        ]
     # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
     decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in table]
     for c, d in zip(table, stats.holm_table(decisions), strict=True):
@@ -198,10 +205,25 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def resources_section(data: dict | None) -> str:
+    if data is None:
+        return _missing("resources")
+    from .resources import table
+
+    meta = data["meta"]
+    head = (
+        f"Generated from docs/experiments/data/resources.json (`{meta.get('command', '?')}`: "
+        f"{meta.get('data', '?')}; {meta.get('duration_s', '?')} s on {meta.get('cpus', '?')} "
+        "cpus):"
+    )
+    return "\n".join([head, "", *table(data["rows"])]) + "\n"
+
+
 def sections(all_data: dict[str, dict]) -> dict[str, str]:
     return {
         "verdicts": verdicts_section(all_data),
         "routes": routes_section(all_data.get("routes")),
+        "resources": resources_section(all_data.get("resources")),
     }
 
 
