@@ -278,7 +278,7 @@ def add_parser(sub) -> None:
         "resources",
         help="section 5: time per point, CPU and memory of the back-ends on real KITTI scans",
         description=__doc__.splitlines()[0],
-        epilog="Duration measured once on a 2-core machine (load about 10): 92 s with the "
+        epilog="Duration measured once on a 2-core machine (load about 10): about 92 s with the "
         "default 5 repeats (9 configurations of 5 scans, a child process each); --quick (2 "
         "scans, every 8th point, 0.3 m, in-process) a few seconds. Exit status 1 when a "
         "configuration failed.",
