@@ -42,17 +42,26 @@ def test_quick_run_writes_its_data_and_verdicts(tmp_path, capsys):
     assert data["experiment"] == "resources" and data["meta"]["quick"] is True
     scans = [r for r in data["rows"] if r["kind"] == "scan"]
     configs = [r for r in data["rows"] if r["kind"] == "config"]
-    assert sorted(r["backend"] for r in configs) == sorted(resources.BACKENDS)
+    # every back-end with the geometric table, the TSDF with RELLIS-3D's 20 classes as well
+    runs = sorted((r["backend"], r["classes"]) for r in configs)
+    want = [(b, "geometric") for b in resources.BACKENDS] + [("tsdf", "rellis3d")]
+    assert runs == sorted(want)
     assert all(r["res_m"] == 0.3 and r["graph_res_m"] == 0.6 for r in configs)
-    # 2 scans of every back-end, every 8th point of each
-    assert len(scans) == 2 * len(resources.BACKENDS)
-    want = [len(range(0, n, 8)) for n in KITTI_POINTS[:2]]
-    for b in resources.BACKENDS:
-        assert [r["points"] for r in scans if r["backend"] == b] == want
+    # 2 scans of each, every 8th point of each scan
+    assert len(scans) == 2 * len(want)
+    points = [len(range(0, n, 8)) for n in KITTI_POINTS[:2]]
+    for b, classes in want:
+        mine = [r for r in scans if (r["backend"], r["classes"]) == (b, classes)]
+        assert [r["points"] for r in mine] == points
+    # the 20-class TSDF's voxel is wider: its map takes more memory for the same voxels
+    tsdf = {r["classes"]: r for r in configs if r["backend"] == "tsdf"}
+    assert tsdf["rellis3d"]["voxels_observed"] == tsdf["geometric"]["voxels_observed"]
+    assert tsdf["rellis3d"]["map_mb"] > 2 * tsdf["geometric"]["map_mb"]
     assert all(r["map_cpu_ms"] > 0 and r["graph_cpu_ms"] >= 0 for r in scans)
     assert all(r["map_mb"] > 0 and r["graph_mb"] > 0 and r["peak_rss_mb"] > 0 for r in configs)
     out = capsys.readouterr().out
     assert "Quick run" in out and out.count("| octree-max | 0.3 / 0.6 m |") == 1
+    assert out.count("| tsdf, rellis3d classes | 0.3 / 0.6 m |") == 1
     # the 0.3 m claims only: the quick form has no 0.1 m rows
     assert [c["claim"].split(" at ")[1][:5] for c in resources.claims(data["rows"])] == [
         "0.3 m"

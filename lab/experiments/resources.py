@@ -9,8 +9,11 @@ The data: the first five scans of KITTI odometry sequence 00 (Velodyne HDL-64E, 
 124,000 points each; tests/data/kitti, with its licence and provenance) placed in the world by
 KITTI's ground-truth poses, the car driving about 0.86 m a scan. They carry no labels: the
 geometric labeller (common/geometric.py) gives each point ground, obstacle or unknown before the
-timing (untimed), and the maps use the `geometric` class table. As in the paper: 10 m maximum
-range, octree ray casting limited to the last 1 m before a hit, graph resolution twice the map's.
+timing (untimed), and the maps use the `geometric` class table (3 classes). The TSDF's voxel
+holds one int16 per class, so it runs a second time with RELLIS-3D's table (20 classes, the
+paper's labels; the same labels renamed, WIDE_LABELS): the voxel real labels would give. As in
+the paper: 10 m maximum range, octree ray casting limited to the last 1 m before a hit, graph
+resolution twice the map's.
 
 Each (back-end, resolution) runs in a child process of its own, so that its peak RSS is its own
 (`ru_maxrss`, the resident set's high-water mark: the interpreter, numba and the scans included;
@@ -54,7 +57,13 @@ RESOLUTIONS = (0.1, 0.3, 0.6)
 CLAIM_RESOLUTIONS = (0.1, 0.3)  # the paper's two settings (map / graph 0.1 / 0.2, 0.3 / 0.6 m)
 PERIOD_MS = 100.0  # a 10 Hz LiDAR
 RAY_M = 1.0  # the paper's octree ray casting distance
-CLASSES = "geometric"
+CLASSES = "geometric"  # the labeller's table: 3 classes
+# The TSDF's voxel holds one int16 per class: run it a second time with RELLIS-3D's 20 classes
+# (the paper's labels), the geometric labels renamed to ids of that table (ground -> asphalt,
+# obstacle -> building): they carry nothing more, but the voxel is the size real labels give.
+WIDE_CLASSES = "rellis3d"
+WIDE_LABELS = np.array([0, 2, 10], np.uint16)  # geometric id -> rellis3d id
+WIDE_BACKENDS = ("tsdf",)
 # Paper, RELLIS-3D 00000, map + graph a scan (ms), Xeon W-2123 8 cores, C++ (REFERENCE.md)
 PAPER_SCAN_MS = {("octree-max", 0.1): 560.0, ("tsdf", 0.1): 7200.0}
 PAPER_SCAN_MS |= {("octree-max", 0.3): 100.0, ("tsdf", 0.3): 1400.0}
@@ -83,13 +92,16 @@ def kitti_sequence(n_scans: int = 5, every: int = 1):
     return out
 
 
-def write_scans(path: Path, n_scans: int, every: int) -> list[int]:
-    """The labelled sequence in `smana bench mapper`'s scans file format; the point counts."""
+def write_scans(path: Path, n_scans: int, every: int, relabel=None) -> list[int]:
+    """The labelled sequence in `smana bench mapper`'s scans file format (labels through the
+    `relabel` lookup table when given); the point counts."""
     from smana.common.geometric import label_geometric
 
     scans = []
     for pts, org in kitti_sequence(n_scans, every):
         lab = label_geometric(pts, org)
+        if relabel is not None:
+            lab = relabel[lab]
         scans.append((pts, lab, np.ones(len(pts), np.float32), org))
     np.savez(
         path,
@@ -103,7 +115,8 @@ def write_scans(path: Path, n_scans: int, every: int) -> list[int]:
 
 
 def run(backends, resolutions, repeats: int, n_scans: int, every: int, in_process: bool):
-    """One result of `run_sequence` per (back-end, resolution)."""
+    """One result of `run_sequence` per (back-end, resolution, class table): every back-end
+    with the geometric table, those of WIDE_BACKENDS with RELLIS-3D's as well."""
     from smana.lab.bench import mapper as bench
 
     configs = [
@@ -114,18 +127,21 @@ def run(backends, resolutions, repeats: int, n_scans: int, every: int, in_proces
             "graph_res": 2 * r,
             "ray_m": RAY_M,
             "repeats": repeats,
-            "classes": CLASSES,
+            "classes": classes,
         }
         for r in resolutions
-        for b in backends
+        for classes, names in ((CLASSES, backends), (WIDE_CLASSES, WIDE_BACKENDS))
+        for b in names
+        if b in backends
     ]
     results = []
     with tempfile.TemporaryDirectory(prefix="smana-resources-") as tmp:
-        path = Path(tmp) / "scans.npz"
-        write_scans(path, n_scans, every)
+        paths = {CLASSES: Path(tmp) / "scans.npz", WIDE_CLASSES: Path(tmp) / "wide.npz"}
+        write_scans(paths[CLASSES], n_scans, every)
+        write_scans(paths[WIDE_CLASSES], n_scans, every, WIDE_LABELS)
         with progress.bar(len(configs), "resources", unit="config") as bar:
             for cfg in configs:
-                results.append(bench._run(cfg, path, in_process))
+                results.append(bench._run(cfg, paths[cfg["classes"]], in_process))
                 bar.update()
     return results
 
@@ -137,7 +153,12 @@ def rows_of(results: list[dict]) -> list[dict]:
         if "error" in r:
             rows.append({"kind": "error", "backend": r["backend"], "res_m": r["res"]})
             continue
-        key = {"backend": r["backend"], "res_m": r["res"], "graph_res_m": r["graph_res"]}
+        key = {
+            "backend": r["backend"],
+            "classes": r["classes"],
+            "res_m": r["res"],
+            "graph_res_m": r["graph_res"],
+        }
         for k in range(r["scans"]):
             rows.append(
                 {
@@ -164,11 +185,14 @@ def rows_of(results: list[dict]) -> list[dict]:
     return rows
 
 
-def _scans(rows, backend: str, res: float) -> dict[int, dict]:
+def _scans(rows, backend: str, res: float, classes: str = CLASSES) -> dict[int, dict]:
     return {
         r["scan"]: r
         for r in rows
-        if r["kind"] == "scan" and r["backend"] == backend and r["res_m"] == res
+        if r["kind"] == "scan"
+        and r["backend"] == backend
+        and r["res_m"] == res
+        and r.get("classes", CLASSES) == classes
     }
 
 
@@ -245,8 +269,14 @@ def table(rows: list[dict]) -> list[str]:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     configs = [r for r in rows if r["kind"] == "config"]
-    for c in sorted(configs, key=lambda c: (c["res_m"], BACKENDS.index(c["backend"]))):
-        sc = list(_scans(rows, c["backend"], c["res_m"]).values())
+
+    def order(c):
+        return c["res_m"], c.get("classes", CLASSES) != CLASSES, BACKENDS.index(c["backend"])
+
+    for c in sorted(configs, key=order):
+        classes = c.get("classes", CLASSES)
+        sc = list(_scans(rows, c["backend"], c["res_m"], classes).values())
+        name = c["backend"] if classes == CLASSES else f"{c['backend']}, {classes} classes"
         pts = np.array([r["points"] for r in sc], float)
 
         def ci(values):
@@ -257,9 +287,9 @@ def table(rows: list[dict]) -> list[str]:
         us_graph = float(np.mean(np.array([r["graph_cpu_ms"] for r in sc]) / pts) * 1e3)
         cpu = sum(_total(r) for r in sc) / sum(_wall(r) for r in sc)
         rt = "yes" if tot.defined and tot.hi < PERIOD_MS else "no" if tot.lo > PERIOD_MS else "?"
-        paper = PAPER_SCAN_MS.get((c["backend"], c["res_m"]))
+        paper = PAPER_SCAN_MS.get((c["backend"], c["res_m"])) if classes == CLASSES else None
         lines.append(
-            f"| {c['backend']} | {c['res_m']:g} / {c['graph_res_m']:g} m | "
+            f"| {name} | {c['res_m']:g} / {c['graph_res_m']:g} m | "
             f"{ci([r['map_cpu_ms'] for r in sc])} | {ci([r['graph_cpu_ms'] for r in sc])} | "
             f"{tot.format(1.0, '.1f')} | {us_map:.2f}, {us_graph:.3f} | "
             f"{ci([_wall(r) for r in sc])} | {cpu:.0%} | {rt} | {tot.mean / PERIOD_MS:.0%} | "
@@ -281,8 +311,8 @@ def add_parser(sub) -> None:
         "resources",
         help="section 5: time per point, CPU and memory of the back-ends on real KITTI scans",
         description=__doc__.splitlines()[0],
-        epilog="Duration measured once on a 2-core machine (load about 10): about 92 s with the "
-        "default 5 repeats (9 configurations of 5 scans, a child process each); --quick (2 "
+        epilog="Duration measured once on a 2-core machine (load 13 to 44): about 150 s with the "
+        "default 5 repeats (12 configurations of 5 scans, a child process each); --quick (2 "
         "scans, every 8th point, 0.3 m, in-process) a few seconds. Exit status 1 when a "
         "configuration failed.",
     )
