@@ -140,3 +140,14 @@ def test_a_bad_repeat_count_is_one_line_and_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--repeats" in err and "Traceback" not in err
     assert not (tmp_path / "r").exists()
+
+
+def test_without_the_scans_it_says_so_in_one_line_and_exits_2(tmp_path, monkeypatch, capsys):
+    from smana.common.cli import run_command
+
+    monkeypatch.setattr(resources, "KITTI_DIR", tmp_path / "nowhere")
+    out = tmp_path / "r"
+    assert run_command("experiment", exp.cli, ["resources", "--quick", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "KITTI scans are not here" in err, err
+    assert "Traceback" not in err and not out.exists()
