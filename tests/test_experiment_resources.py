@@ -151,3 +151,24 @@ def test_without_the_scans_it_says_so_in_one_line_and_exits_2(tmp_path, monkeypa
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "KITTI scans are not here" in err, err
     assert "Traceback" not in err and not out.exists()
+
+
+def test_a_failed_configuration_is_named_and_exits_1(tmp_path, monkeypatch, capsys):
+    """--help: "Exit status 1 when a configuration failed"."""
+    from smana.lab.bench import mapper as bench
+
+    real = bench._run
+
+    def tsdf_fails(cfg, path, in_process):
+        if cfg["backend"] == "tsdf":
+            return {**cfg, "error": ["MemoryError"]}
+        return real(cfg, path, in_process)
+
+    monkeypatch.setattr(bench, "_run", tsdf_fails)
+    assert exp.cli(["resources", "--quick", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "resources: tsdf 0.3 m failed: ['MemoryError']" in err
+    rows = json.loads((tmp_path / "data" / "resources.json").read_text())["rows"]
+    assert {r["backend"] for r in rows if r["kind"] == "error"} == {"tsdf"}
+    # the octree's claim stands on its own runs; none of the TSDF's is made without its data
+    assert [c["claim"][:30] for c in resources.claims(rows)] == ["octree-max runs in real time a"]
