@@ -30,7 +30,7 @@ from smana.lab import stats
 ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = ROOT / "docs" / "experiments" / "data"
 DOC = ROOT / "docs" / "experiments.md"
-EXPERIMENTS = ("noise", "exploration", "fleet", "routes")  # the data files a report reads
+EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "resources")  # the data files read
 SECTION = re.compile(
     r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
     re.S,
@@ -260,6 +260,12 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
             table += _exploration_claims(key, data, routes)
         elif data["experiment"] == "fleet":
             table += _fleet_claims(key, data)
+        elif data["experiment"] == "resources":
+            from .resources import claims as resources_claims
+
+            table += [
+                {**c, "experiment": _where(key, data)} for c in resources_claims(data["rows"])
+            ]
     tested = [c for c in table if c.get("p") is not None]
     # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
     decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in tested]
@@ -321,12 +327,27 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def resources_section(data: dict | None) -> str:
+    if data is None:
+        return _missing("resources")
+    from .resources import table
+
+    meta = data["meta"]
+    head = (
+        f"Generated from docs/experiments/data/resources.json (`{meta.get('command', '?')}`: "
+        f"{meta.get('data', '?')}; {meta.get('duration_s', '?')} s on {meta.get('cpus', '?')} "
+        "cpus):"
+    )
+    return "\n".join([head, "", *table(data["rows"])]) + "\n"
+
+
 def sections(all_data: dict[str, dict]) -> dict[str, str]:
     return {
         "verdicts": verdicts_section(all_data),
         "routes": routes_section(all_data.get("routes")),
         "exploration": exploration_section(all_data),
         "fleet": fleet_section(all_data),
+        "resources": resources_section(all_data.get("resources")),
     }
 
 
