@@ -692,7 +692,7 @@ def default_run_dir() -> Path:
 def add_recorder(sup: Supervisor) -> bool:
     """Record the run into `<run_dir>/recording.rrd` (one recorder per robot)."""
     try:
-        from smana.deploy.recording import recorder_argv
+        from smana.services.recorder.service import recorder_argv
     except ImportError as exc:  # rerun-sdk missing: the run goes on without a recording
         log.warning("no Rerun recording (%s): pip install rerun-sdk", exc)
         return False

@@ -28,7 +28,7 @@ def _load_json(path: Path) -> dict | None:
 
 
 REPLAY_TRAJECTORY = "replay_trajectory.csv"  # services/replay/service.py::TRAJECTORY_NAME
-RECORDED_POSES = "trajectory_pose.csv"  # deploy/recording.py::TRAJECTORY_FILES
+RECORDED_POSES = "trajectory_pose.csv"  # services/recorder/recorder.py::TRAJECTORY_FILES
 
 
 MOVED_M = 0.1  # a robot that travelled less did not move
