@@ -138,3 +138,30 @@ def test_a_run_whose_supervisor_saw_a_failure_exits_1(run, capsys):  # noqa: F81
     out = capsys.readouterr().out
     assert "smana up: FAILED" in out and "  warning: planner never became ready" in out
     assert f"smana up: report written to {run_dir / 'report.md'}" in out
+
+
+def test_replay_run_goes_through_smana_ups_path(tmp_path, monkeypatch):
+    """`smana replay DATASET --run` hands its stack to `smana up`'s `main`: the replay is one of
+    the stack's services (never restarted) and the run ends with it."""
+    from smana.deploy import supervisor
+    from smana.lab.data import synthetic as syn
+    from smana.services.replay.__main__ import cli
+
+    syn.write_rellis_sequence(tmp_path / "data", syn.SyntheticConfig(n_scans=2, beams=4, columns=8))
+    seen = {}
+
+    def main(config, duration_s=None, services=None, prog="smana up"):
+        seen.update(config=config, duration_s=duration_s, services=services, prog=prog)
+        return 0
+
+    monkeypatch.setattr(supervisor, "main", main)
+    run_dir = tmp_path / "run"
+    assert cli([str(tmp_path / "data"), "--run", "--run-dir", str(run_dir)]) == 0
+    stack = ["mapper", "navgraph", "planner"]
+    assert seen["services"] in ([*stack, "recorder", "replay"], [*stack, "replay"])
+    assert seen["prog"] == "smana replay" and seen["duration_s"] is None
+    cfg = seen["config"]
+    assert cfg.deploy.finish_with == "replay" and cfg.deploy.replay.restart == "never"
+    assert cfg.general.run_dir == str(run_dir) and cfg.general.class_table == "rellis3d"
+    assert cfg.mapper.inputs == ["scan"]
+    assert cfg.replay.wait_for == seen["services"][:-1]  # the replay waits for the rest
