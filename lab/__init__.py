@@ -1,6 +1,6 @@
 """The research harness: what measures smana rather than runs it.
 
-    evaluation.py    `smana eval map` (the measures are the product's, deploy/report/ground_truth.py)
+    evaluation.py    `smana eval map` (its measures are deploy/report/ground_truth.py's)
     experiments.py   the paper's experiments (`smana experiment noise|exploration`)
     plots.py         the paper's figures, beside the product's (common/figures.py, re-exported)
     fuzz.py          the message fuzzer (`smana bench fuzz`, tests/test_fuzz_*.py)
