@@ -100,7 +100,7 @@ def rgb01(colour) -> tuple[float, float, float]:
     return tuple(float(c) / 255.0 for c in colour)
 
 
-# -- lines and bars ----------------------------------------------------------------------------
+# -- lines ---------------------------------------------------------------------------------------
 
 
 def _dodge(series: list[Series]) -> float:

@@ -29,7 +29,7 @@ common/figures.py), `write` (`write_report`) and `finish` (the end of `smana up`
 """
 
 from smana.deploy.report.checks import fleet_warnings, replay_warnings, run_warnings
-from smana.deploy.report.figures import PLOT_FILES, _fleet_plots, _plots
+from smana.deploy.report.figures import PLOT_FILES
 from smana.deploy.report.fleet import (
     MAP_SCORES,
     first_reach,
@@ -77,8 +77,6 @@ __all__ = [
     "RECORDED_POSES",
     "REPLAY_TRAJECTORY",
     "SIM_SUMMARY",
-    "_fleet_plots",
-    "_plots",
     "exploration_metrics",
     "first_reach",
     "fleet_coverage_curve",

@@ -16,7 +16,6 @@ from smana.deploy.report import ground_truth as ev
 
 log = logging.getLogger("smana.report")
 
-
 CLOSE_CALL_M = 0.30  # clearance under which the base (half-width 0.31 m with wheels) may touch
 
 
@@ -29,11 +28,7 @@ def _load_json(path: Path) -> dict | None:
 
 REPLAY_TRAJECTORY = "replay_trajectory.csv"  # services/replay/service.py::TRAJECTORY_NAME
 RECORDED_POSES = "trajectory_pose.csv"  # services/recorder/recorder.py::TRAJECTORY_FILES
-
-
 MOVED_M = 0.1  # a robot that travelled less did not move
-
-
 FLEET_DIR = "robots"  # <run>/robots/<member>/: the member's map.npz, explorer/, trajectories
 SIM_SUMMARY = "sim.json"  # the fleet simulator's: robot-robot contacts and separations
 COVERAGE_TARGET = 0.95
@@ -43,8 +38,6 @@ NO_SIMULATOR = (
     "none: the simulator was off (a real robot), so nothing is scored against a simulated "
     "world; `smana eval map RUN_DIR --gt FILE` scores the map against a ground-truth cloud"
 )
-
-# Why the two explored areas differ (the explorer's is in its progress plot, the report's here).
 
 
 def _f(v, fmt=".2f", unit=""):

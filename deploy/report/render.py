@@ -13,6 +13,7 @@ from smana.deploy.report.measures import (
     _pct,
 )
 
+# Why the two explored areas differ (the explorer's is in its progress plot, the report's here).
 EXPLORED_AREAS = (
     "Two explored areas, measuring different things: *against ground truth* counts the cells of "
     "the world the robot could reach (traversable, with its radius of clearance, connected to its "
