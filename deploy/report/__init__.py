@@ -28,74 +28,51 @@ common/figures.py), `write` (`write_report`) and `finish` (the end of `smana up`
 `smana replay --run`: the report, the summary, the exit status).
 """
 
-from smana.deploy.report.checks import fleet_warnings, replay_warnings, run_warnings
-from smana.deploy.report.figures import PLOT_FILES
-from smana.deploy.report.fleet import (
-    MAP_SCORES,
-    first_reach,
-    fleet_coverage_curve,
-    fleet_exploration,
-    fleet_graph,
-    fleet_metrics,
-    map_overlap,
-    observed_cells,
-    observed_voxels,
-)
-from smana.deploy.report.measures import (
-    CLOSE_CALL_M,
-    COVERAGE_TARGET,
-    FLEET_DIR,
-    MOVED_M,
-    NO_SIMULATOR,
-    RECORDED_POSES,
-    REPLAY_TRAJECTORY,
-    SIM_SUMMARY,
-    exploration_metrics,
-    map_content,
-    member_dir,
-    reachable_area,
-    recorded_poses,
-    replay_metrics,
-)
-from smana.deploy.report.render import (
-    EXPLORED_AREAS,
-    render_markdown,
-    summary_lines,
-    summary_rows,
-)
-from smana.deploy.report.write import write_report
+from __future__ import annotations
 
-__all__ = [
-    "CLOSE_CALL_M",
-    "COVERAGE_TARGET",
-    "EXPLORED_AREAS",
-    "FLEET_DIR",
-    "MAP_SCORES",
-    "MOVED_M",
-    "NO_SIMULATOR",
-    "PLOT_FILES",
-    "RECORDED_POSES",
-    "REPLAY_TRAJECTORY",
-    "SIM_SUMMARY",
-    "exploration_metrics",
-    "first_reach",
-    "fleet_coverage_curve",
-    "fleet_exploration",
-    "fleet_graph",
-    "fleet_metrics",
-    "fleet_warnings",
-    "map_content",
-    "map_overlap",
-    "member_dir",
-    "observed_cells",
-    "observed_voxels",
-    "reachable_area",
-    "recorded_poses",
-    "render_markdown",
-    "replay_metrics",
-    "replay_warnings",
-    "run_warnings",
-    "summary_lines",
-    "summary_rows",
-    "write_report",
-]
+import importlib
+
+# What the package offers, by module: imported on first use, so that `smana up` starts without
+# loading scipy (deploy/supervisor.py imports `finish` when it starts, the rest at the end).
+_WHERE = {
+    "CLOSE_CALL_M": "measures",
+    "COVERAGE_TARGET": "measures",
+    "EXPLORED_AREAS": "render",
+    "FLEET_DIR": "measures",
+    "MAP_SCORES": "fleet",
+    "MOVED_M": "measures",
+    "NO_SIMULATOR": "measures",
+    "PLOT_FILES": "figures",
+    "RECORDED_POSES": "measures",
+    "REPLAY_TRAJECTORY": "measures",
+    "SIM_SUMMARY": "measures",
+    "exploration_metrics": "measures",
+    "first_reach": "fleet",
+    "fleet_coverage_curve": "fleet",
+    "fleet_exploration": "fleet",
+    "fleet_graph": "fleet",
+    "fleet_metrics": "fleet",
+    "fleet_warnings": "checks",
+    "map_content": "measures",
+    "map_overlap": "fleet",
+    "member_dir": "measures",
+    "observed_cells": "fleet",
+    "observed_voxels": "fleet",
+    "reachable_area": "measures",
+    "recorded_poses": "measures",
+    "render_markdown": "render",
+    "replay_metrics": "measures",
+    "replay_warnings": "checks",
+    "run_warnings": "checks",
+    "summary_lines": "render",
+    "summary_rows": "render",
+    "write_report": "write",
+}
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    module = _WHERE.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)

@@ -18,9 +18,6 @@ import sys
 import threading
 from pathlib import Path
 
-from smana.deploy.report.render import summary_lines
-from smana.deploy.report.write import write_report
-
 log = logging.getLogger("smana.up")
 
 REPLAY_SUMMARY = (
@@ -34,6 +31,9 @@ def finish(sup, run_dir, code: int, wall_time_s: float, prog: str = "smana up") 
     and return the exit status: 0 when the run did its job, 1 otherwise. A replayed dataset
     (`deploy.finish_with = "replay"`) is reported in its replay form (the dataset, its figures,
     the map's content; nothing against a simulated world)."""
+    from smana.deploy.report.render import summary_lines
+    from smana.deploy.report.write import write_report
+
     run_dir = Path(run_dir)
     warnings = sup.warnings()
     replay = None
