@@ -165,3 +165,17 @@ def test_replay_run_goes_through_smana_ups_path(tmp_path, monkeypatch):
     assert cfg.general.run_dir == str(run_dir) and cfg.general.class_table == "rellis3d"
     assert cfg.mapper.inputs == ["scan"]
     assert cfg.replay.wait_for == seen["services"][:-1]  # the replay waits for the rest
+
+
+def test_rewriting_the_report_of_no_run_is_one_line(tmp_path):
+    out = subprocess.run(
+        [sys.executable, "-m", "smana.deploy.report", str(tmp_path / "nowhere")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.stderr.strip().splitlines() == [
+        f"smana report: {tmp_path / 'nowhere'} is not a run directory"
+    ]
