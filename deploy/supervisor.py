@@ -692,7 +692,7 @@ def default_run_dir() -> Path:
 def add_recorder(sup: Supervisor) -> bool:
     """Record the run into `<run_dir>/recording.rrd` (one recorder per robot)."""
     try:
-        from smana.deploy.recording import recorder_argv
+        from smana.services.recorder.service import recorder_argv
     except ImportError as exc:  # rerun-sdk missing: the run goes on without a recording
         log.warning("no Rerun recording (%s): pip install rerun-sdk", exc)
         return False
@@ -740,11 +740,14 @@ def check_optional_needs(config: SmanaConfig, services=None) -> None:
                 )
 
 
-def main(config: SmanaConfig, duration_s: float | None = None, services=None) -> int:
+def main(
+    config: SmanaConfig, duration_s: float | None = None, services=None, prog: str = "smana up"
+) -> int:
     import shutil
 
     from smana.common.cli import UsageError, output_dir
     from smana.common.zenoh_config import SessionError
+    from smana.deploy.report.finish import RunProgress, finish
 
     # Refuse what cannot work before the router starts, not halfway through the run.
     if duration_s is not None and not 0 < duration_s < float("inf"):
@@ -760,10 +763,11 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
     if record:
         add_recorder(sup)
     on_stop_signals(lambda _sig: sup.stop())
-    print(f"smana up: run directory {run_dir}", flush=True)
+    print(f"{prog}: run directory {run_dir}", flush=True)
     t0 = time.monotonic()
     try:
-        code = sup.run(duration_s)
+        with RunProgress(sup):
+            code = sup.run(duration_s)
     except SessionError:
         # The router did not open (its port is taken, ...): nothing ran, so leave no run
         # directory behind unless it was there before.
@@ -774,31 +778,7 @@ def main(config: SmanaConfig, duration_s: float | None = None, services=None) ->
     if code == CONFIG_ERROR:
         # one line, as for a mistake caught before the start; the logs stay in the run directory
         raise UsageError(f"{sup.config_error} (logs in {run_dir / 'logs'})")
-    warnings = sup.warnings()
-    explored = any(m.service == "explorer" for m in sup.procs.values())
-    try:
-        from smana.lab import report
-
-        path = report.write_report(
-            run_dir,
-            sup.service_config,
-            warnings=warnings,
-            explored=explored,
-            ended=sup.ended,
-            wall_time_s=wall_time_s,
-        )
-        # the terminal's summary is made from what metrics.json holds, as report.md's is
-        metrics = json.loads((Path(run_dir) / "metrics.json").read_text())
-        warnings = metrics.get("warnings", warnings)
-        print(f"smana up: report written to {path}", flush=True)
-        summary = report.summary_lines(metrics)
-    except Exception as exc:  # a failed report must not hide the run's own outcome
-        log.exception("writing the report failed: %s", exc)
-        warnings = [*warnings, f"the report could not be written: {exc}"]
-        summary = ["smana up: FAILED", f"  run directory  {run_dir}"]
-        summary += [f"  warning: {w}" for w in warnings]
-    print("\n".join(summary), flush=True)
-    return 1 if warnings or code else 0
+    return finish(sup, run_dir, code, wall_time_s, prog)  # report, summary, exit status
 
 
 def cli(argv: list[str] | None = None) -> int:

@@ -6,7 +6,7 @@
     smana view --spawn               # watch a running stack live in a new viewer
     smana view --connect URL         # ... or stream to a viewer already running at URL
 
-Live modes run the same recorder as `smana up` (deploy/recording.py), with the usual zenoh flags
+Live modes run the same recorder as `smana up` (services/recorder/), with the usual zenoh flags
 to reach the stack. Without a display or a viewer binary, a one-line hint says what to do.
 
 `--web` serves on 127.0.0.1 (Rerun's own default is every interface): `--bind 0.0.0.0` shares it
@@ -29,7 +29,7 @@ from collections import deque
 from pathlib import Path
 from urllib.parse import quote
 
-from smana.deploy.recording import RRD_NAME
+from smana.services.recorder.recorder import RRD_NAME
 
 
 def _viewer_cmd() -> list[str] | None:
@@ -230,7 +230,7 @@ def cli(argv: list[str] | None = None) -> int:
     if args.spawn or args.viewer_url:
         cfg = config_from_args(args)
         setup_logging(cfg.general.log_level, "view")
-        from smana.deploy.recording import main as record
+        from smana.services.recorder.service import main as record
 
         rrd = args.run_dir / RRD_NAME if args.run_dir else None
         if rrd is not None:  # the live recording goes there: a file is refused before it starts

@@ -1,14 +1,13 @@
 """The research harness: what measures smana rather than runs it.
 
-    evaluation.py    a map and a trajectory against the simulator's ground truth
-    report.py        a run's report.md / metrics.json (written by `smana up` and `smana replay`)
+    evaluation.py    `smana eval map` (its measures are deploy/report/ground_truth.py's)
     experiments.py   the paper's experiments (`smana experiment noise|exploration`)
-    plots.py         every figure smana writes (matplotlib, Agg; refuses one without a legend)
+    plots.py         the paper's figures, beside the product's (common/figures.py, re-exported)
     fuzz.py          the message fuzzer (`smana bench fuzz`, tests/test_fuzz_*.py)
     bench/           `smana bench <name>`: one module per benchmark, each beside its peer
     data/            deterministic synthetic scans and datasets for benchmarks and tests
 
-It imports the cores (services/*) and common/; the product never imports it, except `smana up`
-and `smana replay`, which write their run's report with `lab.report` when they finish, and
-`smana world preview`, which draws with `lab.plots`.
+It imports the product (services/*, common/, deploy/); the product never imports it: a run's
+report is the product's (deploy/report/), and so are the figures a run or `smana world preview`
+draws (common/figures.py).
 """

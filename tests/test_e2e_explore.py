@@ -44,9 +44,9 @@ def small_run_overrides(port: int, budget_s: float = BUDGET_S) -> list[str]:
 def run_stack(run_dir: Path, overrides: list[str], timeout_s: float) -> int:
     """What `smana up` does: the supervisor with the recorder, then the report."""
     from smana.common.config import SmanaConfig
-    from smana.deploy.recording import recorder_argv
+    from smana.deploy.report import write_report
     from smana.deploy.supervisor import Supervisor
-    from smana.lab.report import write_report
+    from smana.services.recorder.service import recorder_argv
 
     cfg = SmanaConfig.load(None, [*overrides, f'general.run_dir="{run_dir}"'])
     sup = Supervisor(cfg, run_dir)

@@ -16,8 +16,9 @@ from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import ServiceDeployConfig, SmanaConfig
 from smana.common.messages import GraphPatch, MapDelta, Pose, encode
-from smana.deploy import recording as recmod
 from smana.deploy.supervisor import Supervisor
+from smana.services.recorder import recorder as recmod
+from smana.services.recorder import service as recsvc
 from tests.conftest import free_port, wait_for
 
 rr = pytest.importorskip("rerun")
@@ -192,7 +193,7 @@ def test_a_recorder_behind_records_its_backlog_when_stopped(fake_stack, tmp_path
             f'general.run_dir="{tmp_path / "run"}"',
         ],
     )
-    svc = recmod.RecorderService(cfg, tmp_path / "run" / "recording.rrd")
+    svc = recsvc.RecorderService(cfg, tmp_path / "run" / "recording.rrd")
     on_delta, release, holding = svc.core.on_delta, threading.Event(), threading.Event()
 
     def held_delta(delta):  # the first delta holds the recorder until the stop has come
@@ -254,7 +255,7 @@ def test_recorder_records_every_pose_until_the_stack_stops(tmp_path):
     )
     sup.add(
         "recorder",
-        recmod.recorder_argv(sup.config_path, "rec"),
+        recsvc.recorder_argv(sup.config_path, "rec"),
         ServiceDeployConfig(restart="never"),
     )
     t = threading.Thread(target=sup.run, kwargs={"progress_period_s": 3600}, daemon=True)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from smana.common.config import SmanaConfig
-from smana.lab import report
+from smana.deploy import report
 from smana.lab.evaluation import world_from_config
 from smana.services.mapper.ply import write_ply
 

@@ -15,7 +15,8 @@ from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
 from smana.common.messages import GraphPatch, MapDelta, Pose, encode
-from smana.deploy import recording as recmod
+from smana.services.recorder import recorder as recmod
+from smana.services.recorder import service as recsvc
 from tests.conftest import wait_for
 
 rr = pytest.importorskip("rerun")
@@ -116,7 +117,7 @@ def test_the_fleet_recorder_service_subscribes_to_every_member(fake_stack, tmp_p
             f"fleet.robots={list(MEMBERS)!r}".replace("'", '"'),
         ],
     )
-    svc = recmod.RecorderService(cfg, run / "recording.rrd")
+    svc = recsvc.RecorderService(cfg, run / "recording.rrd")
     assert svc.members == list(MEMBERS)
     t = threading.Thread(target=svc.run, daemon=True)
     t.start()

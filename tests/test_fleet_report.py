@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from smana.common.config import SmanaConfig
+from smana.deploy import report
 from smana.lab import evaluation as ev
-from smana.lab import report
 from smana.services.mapper.semantic_map import SemanticMap
 
 ROBOTS = ("r1", "r2")

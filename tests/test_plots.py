@@ -28,7 +28,10 @@ TABLE = ClassTable.from_dict(
 
 @pytest.fixture
 def saved(monkeypatch):
-    """Every figure handed to `plots.save`: (path, figure), in order."""
+    """Every figure handed to `plots.save` (the lab's or the product's, common/figures.py):
+    (path, figure), in order."""
+    from smana.common import figures
+
     record: list[tuple[Path, object]] = []
     real = plots.save
 
@@ -38,6 +41,7 @@ def saved(monkeypatch):
         return out
 
     monkeypatch.setattr(plots, "save", recording)
+    monkeypatch.setattr(figures, "save", recording)
     return record
 
 
@@ -63,7 +67,7 @@ def test_importing_the_module_does_not_load_matplotlib():
     import subprocess
     import sys
 
-    code = "import sys, smana.lab.plots, smana.lab.report; print('matplotlib' in sys.modules)"
+    code = "import sys, smana.lab.plots, smana.deploy.report; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
@@ -129,10 +133,11 @@ def test_progress_has_two_panels_in_robot_time():
 
 def test_the_reports_pngs_all_go_through_the_module(tmp_path, saved):
     from smana.common.config import SmanaConfig
-    from smana.lab import report
+    from smana.deploy.report.figures import _plots
+    from smana.deploy.report.ground_truth import world_from_config
 
     cfg = SmanaConfig.load(None, ["sim.garden.size_m=5.0", "sim.seed=3"])
-    world = report.ev.world_from_config(cfg)
+    world = world_from_config(cfg)
     x0, y0, _ = world.spawn_pose(0.4)
     t = np.arange(0.0, 3.0, 0.1)
     traj = np.column_stack([t, x0 + 0.2 * t, y0 + 0 * t, 0 * t])
@@ -148,7 +153,7 @@ def test_the_reports_pngs_all_go_through_the_module(tmp_path, saved):
     replay = {"per_scan": [[i, i, f"s{i}", 0.1 * i, 100, 5.0 + i] for i in range(4)]}
     exploration = {"explored_reachable_area_m2": 4.5}
     classes = ClassTable.load("garden3drms")
-    files = report._plots(tmp_path, classes, world, graph, traj, state, replay, exploration)
+    files = _plots(tmp_path, classes, world, graph, traj, state, replay, exploration)
     assert set(files) == {"map", "graph", "progress", "replay_latency"}
     written = sorted(p.relative_to(tmp_path) for p in (tmp_path / "plots").glob("*.png"))
     assert written == sorted(p.relative_to(tmp_path) for p, _ in saved)

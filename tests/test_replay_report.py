@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from smana.common.config import SmanaConfig
-from smana.lab import report
+from smana.deploy import report
 
 N = 12
 

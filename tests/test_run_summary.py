@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from smana.lab import report
+from smana.deploy import report
 from tests.test_eval_report import run  # noqa: F401 - the fixture: a small hand-made run
 
 
@@ -76,7 +76,7 @@ def test_without_the_supervisor_the_wall_time_is_the_explorer_s(run):  # noqa: F
 def test_rewriting_a_report_keeps_how_the_run_ended(run):  # noqa: F811
     run_dir, cfg, _ = run
     report.write_report(run_dir, cfg, ended="--duration 60 s reached", wall_time_s=61.0)
-    report.write_report(run_dir, cfg)  # `python -m smana.lab.report RUN_DIR`
+    report.write_report(run_dir, cfg)  # `python -m smana.deploy.report RUN_DIR`
     assert _metrics(run_dir)["run"] == {"ended": "--duration 60 s reached", "wall_time_s": 61.0}
 
 

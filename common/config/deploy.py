@@ -60,6 +60,10 @@ class DeployConfig(Section, section="deploy"):
     explorer: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
     recorder: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # Rerun .rrd
     coordinator: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # a fleet's
+    # A dataset replayed in place of the sim (`smana replay --run`): sent once, never restarted
+    replay: ServiceDeployConfig = field(
+        default_factory=lambda: ServiceDeployConfig(enabled=False, restart="never")
+    )
     # ROS 2 over rmw_zenoh (`smana ros2`); off unless asked: --set deploy.ros2.enabled=true
     ros2: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(enabled=False))
 

@@ -10,8 +10,9 @@ Reported per world and N, each as a mean with its 95 % Student-t interval over s
 (lab/stats.py): robot time and total distance (all members) to 95 % coverage, coverage at the
 end, the overlap of the members' maps, the merged map's reconstruction error and classification
 ratio, robot-robot contacts. The numbers are the run report's (`metrics.json` "fleet",
-lab/report.py): its coverage curve is the members' explored area (the largest any member had
-reported) rescaled to the ground-truth coverage at the end, as the exploration experiment's.
+deploy/report/fleet.py): its coverage curve is the members' explored area (the largest any
+member had reported) rescaled to the ground-truth coverage at the end, as the exploration
+experiment's.
 
 Verdicts, never from one run:
 - in the larger world, time to 95 % with 2 robots at most 0.6 times one robot's, with 3 at most

@@ -9,11 +9,9 @@ are started too (no sim), and the run directory gets what `smana up` writes.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import io
+import importlib.util
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -21,13 +19,11 @@ from smana.common.cli import (
     config_from_args,
     make_parser,
     non_negative_int,
-    output_dir,
     positive_float,
     run_command,
     setup_logging,
 )
 from smana.common.config import SmanaConfig
-from smana.common.service import on_stop_signals
 
 STACK = ("mapper", "navgraph", "planner")
 
@@ -146,13 +142,11 @@ def _info(reader, rc) -> int:
 
 
 def run_stack(cfg: SmanaConfig, reader) -> int:
-    """Supervise mapper, navgraph and planner (and the recorder) with the replay in place of the
-    sim; the run ends when the replay has sent its last scan. The run directory gets what
-    `smana up` writes: config, logs, map, recording, report (with a replay section). What went
-    wrong (a service never ready, a scan lost in lockstep, a recorder that missed poses) heads
-    the report, ends the output and makes the exit status 1."""
-    from smana.common.config import ServiceDeployConfig
-    from smana.deploy.supervisor import Supervisor
+    """`smana up`'s path (deploy/supervisor.py `main`) with the replay in place of the sim:
+    mapper, navgraph and planner (and the recorder) are supervised, the run ends when the replay
+    has sent its last scan, and the run directory gets what `smana up` writes, its report in its
+    replay form (deploy/report/finish.py)."""
+    from smana.deploy.supervisor import main
     from smana.services.replay.service import table_name, topic_of
 
     rc = cfg.replay
@@ -163,142 +157,17 @@ def run_stack(cfg: SmanaConfig, reader) -> int:
     reader.close()  # the replay process opens it again
     g = cfg.general
     run_dir = Path(g.run_dir) if g.run_dir else Path("runs") / time.strftime("replay-%Y%m%d-%H%M%S")
-    output_dir(run_dir)  # a file, or a folder that cannot be made: refused before anything starts
     services = [n for n in STACK if getattr(cfg.deploy, n).enabled]
-    recorder = _recorder_argv()
+    if importlib.util.find_spec("rerun") is not None:  # a build without rerun-sdk: no recording
+        services.append("recorder")
     cfg = dataclasses.replace(
         cfg,
         general=dataclasses.replace(g, class_table=table, run_dir=str(run_dir)),
         mapper=dataclasses.replace(cfg.mapper, inputs=[topic]),
         deploy=dataclasses.replace(cfg.deploy, finish_with="replay"),
-        replay=dataclasses.replace(
-            rc, class_table=table, wait_for=services + (["recorder"] if recorder else [])
-        ),
+        replay=dataclasses.replace(rc, class_table=table, wait_for=services),
     )
-    sup = Supervisor(cfg, run_dir, services)
-    if recorder:
-        sup.add("recorder", recorder(sup.config_path, cfg.general.robot))
-    argv = [sys.executable, "-m", "smana.services.replay", "--config", str(sup.config_path)]
-    sup.add("replay", argv, ServiceDeployConfig(restart="never"))
-    on_stop_signals(lambda _sig: sup.stop())
-    print(f"smana replay: run directory {run_dir}", flush=True)
-    from smana.common import progress
-
-    with _StackProgress(sup, cfg.general.robot), progress.logs_around_bar():
-        code = sup.run()
-    completed = _replay_completed(run_dir)
-    warnings = sup.warnings()
-    if code != 0 and completed:
-        # The replay finished its work (its summary is written) and was only caught exiting:
-        # the supervisor kills a process whose liveliness token went before the process did.
-        print("smana replay: the replay completed; its exit was cut short", file=sys.stderr)
-        code = 0
-        warnings = [w for w in warnings if not w.startswith("replay exited with status")]
-    if not (run_dir / "replay.json").is_file():
-        warnings.append("the replay did not finish (no replay.json; see logs/replay.log)")
-    warnings = _write_report(run_dir, sup.service_config, warnings)
-    print(f"smana replay: done, everything is in {run_dir}", flush=True)
-    print(f"smana replay: {'FAILED' if warnings or code else 'ok'}", flush=True)
-    for w in warnings:
-        print(f"  warning: {w}", flush=True)
-    return 1 if warnings or code else 0
-
-
-class _StackProgress:
-    """`smana replay --run`'s bar: the supervised replay writes to its log file, so this process
-    draws the scans it has sent of the total, read from its status (`progress`: "done/total",
-    published every `general.status_period_s`). On a terminal only (common/progress.py); the
-    supervisor's 10 s line is then written above the bar."""
-
-    def __init__(self, sup, robot: str):
-        from smana.common import progress
-
-        self.sup, self.robot, self.progress = sup, robot, progress
-        self.on = progress.enabled()
-        self.bar = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._follow, name="replay-progress", daemon=True)
-
-    def __enter__(self):
-        if self.on:
-            plain = self.sup.print_progress
-
-            def print_progress(elapsed_s: float) -> None:
-                buf = io.StringIO()
-                with contextlib.redirect_stdout(buf):
-                    plain(elapsed_s)
-                self.progress.say(buf.getvalue().rstrip("\n"))
-
-            self.sup.print_progress = print_progress
-            self._thread.start()
-        return self
-
-    def _follow(self) -> None:
-        while not self._stop.wait(0.5):
-            st = self.sup.statuses.get((self.robot, "replay"))  # one dict read: no lock needed
-            if st is None:
-                continue
-            done, _, total = str(st.details.get("progress", "")).partition("/")
-            if not (done.isdigit() and total.isdigit()):
-                continue
-            if self.bar is None:
-                self.bar = self.progress.bar(int(total), "replay", unit="scan")
-            self.bar.update(int(done) - self.bar.n)
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join()
-        if self.bar is not None:
-            # the replay's last status may predate its last scans: its summary has the count
-            if _replay_completed(Path(self.sup.run_dir)):
-                self.bar.update(self.bar.total - self.bar.n)
-            self.bar.close()
-
-
-def _replay_completed(run_dir: Path) -> bool:
-    import json
-
-    path = run_dir / "replay.json"
-    if not path.is_file():
-        return False
-    s = json.loads(path.read_text())
-    handled = s["published"] + s["empty"] + len(s["read_errors"])
-    return handled == s["scans"] and not (s["mode"] == "lockstep" and s["lost"])
-
-
-def _recorder_argv():
-    try:
-        from smana.deploy.recording import recorder_argv
-    except ImportError:  # a build without the recorder (rerun-sdk missing)
-        return None
-    return recorder_argv
-
-
-def _write_report(run_dir: Path, cfg: SmanaConfig, warnings: list[str]) -> list[str]:
-    """`smana up`'s report (map export, files, metrics, plots), in its replay form: the dataset,
-    the replay's figures and the map's content instead of measures against a simulated world.
-    Returns every warning: `warnings` and what the report found in the figures."""
-    import json
-
-    summary_path = run_dir / "replay.json"
-    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else None
-    if summary is None:
-        print(
-            f"smana replay: no {summary_path} (the replay did not finish); the report has no "
-            "replay section",
-            file=sys.stderr,
-        )
-    try:
-        from smana.lab import report
-
-        path = report.write_report(run_dir, cfg, replay=summary or {}, warnings=warnings)
-        metrics = json.loads((run_dir / "metrics.json").read_text())
-    except Exception as exc:  # noqa: BLE001 - the run's own outcome matters more
-        print(f"smana replay: the run report failed: {exc}", file=sys.stderr)
-        return [*warnings, f"the report could not be written: {exc}"]
-    print(f"smana replay: report written to {path}", flush=True)
-    return metrics.get("warnings", warnings)
+    return main(cfg, services=[*services, "replay"], prog="smana replay")
 
 
 if __name__ == "__main__":

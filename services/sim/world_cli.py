@@ -92,9 +92,10 @@ def world_from_args(args: argparse.Namespace) -> World:
 
 
 def write_preview(world: World, out: Path, pixels: int, seed: int | None = None) -> Path:
-    """The world from above in metres, hill-shaded, its classes in a legend (lab/plots.py draws
-    every smana figure; imported here, lazily, so the other subcommands never load matplotlib)."""
-    from smana.lab import plots
+    """The world from above in metres, hill-shaded, its classes in a legend (common/figures.py
+    draws the product's figures; imported here, lazily, so the other subcommands never load
+    matplotlib)."""
+    from smana.common import figures as plots
 
     from .worlds.preview import shaded_classes
 
