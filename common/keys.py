@@ -10,18 +10,12 @@ from __future__ import annotations
 
 import re
 
+from smana.common import services
+
 PREFIX = "smana"
-SERVICES = (
-    "sim",
-    "mapper",
-    "navgraph",
-    "planner",
-    "explorer",
-    "replay",
-    "recorder",
-    "ros2",
-    "coordinator",
-)
+# Every service's name, from the table of services (common/services.py): smana's own, then
+# plug-ins' (entry-point group `smana.services`).
+SERVICES = services.names()
 NAME_PATTERN = "[A-Za-z0-9_-]{1,32}"
 _NAME = re.compile(NAME_PATTERN)
 

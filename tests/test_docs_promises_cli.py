@@ -23,7 +23,8 @@ import pytest
 import smana.deploy
 from smana.common import keys
 from smana.common.config import SmanaConfig
-from smana.deploy.cli import BENCHES, COMMANDS, _usage, main
+from smana.deploy.cli import COMMANDS, _usage, main
+from smana.lab.bench import BENCHES
 from smana.deploy.router import router_config
 from smana.deploy.supervisor import Supervisor
 
