@@ -24,9 +24,9 @@ import smana.deploy
 from smana.common import keys
 from smana.common.config import SmanaConfig
 from smana.deploy.cli import COMMANDS, _usage, main
-from smana.lab.bench import BENCHES
 from smana.deploy.router import router_config
 from smana.deploy.supervisor import Supervisor
+from smana.lab.bench import BENCHES
 
 PROFILES = Path(smana.deploy.__file__).parent / "profiles"
 

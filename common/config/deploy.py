@@ -57,6 +57,7 @@ class _DeployBase(Section, section="deploy"):
     standby_delay_s: float = param(20.0, ge=0)
     stop_timeout_s: float = param(5.0, gt=0)
     finish_with: str = "explorer"  # the run ends when this service exits with status 0
+
     def validate(self) -> None:
         from smana.common.keys import check_name
 
