@@ -1,0 +1,181 @@
+"""The table of services (common/services.py): every list of services derives from it, and a
+service is a folder plus one row. The toy is tests/support/echo_service.py, declared by a row in a
+plug-in made here (a module and an entry point of group `smana.services`, on PYTHONPATH): with no
+edit to any file of smana, `smana up` starts it and it answers its status query over zenoh, it
+is in the access-control policy, `smana --help` lists it and `[deploy.echo]` configures it."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from smana.common import keys, services
+from smana.common.config import SmanaConfig
+from smana.deploy import security, supervisor, warmup
+from tests.conftest import REPO, free_port, stop_group, wait_for
+
+ROW = """
+from smana.common.services import ServiceRow
+
+ROW = ServiceRow(
+    "echo",
+    "a toy service (tests/test_service_table.py)",
+    module="tests.support.echo_service",
+    service_class="tests.support.echo_service:EchoService",
+    reads=("count",),
+)
+NOT_A_ROW = ("echo2", "a plug-in's mistake")
+"""
+
+
+def plugin(tmp_path: Path, entry: str = "echo = echo_toy:ROW") -> dict:
+    """An installed plug-in, as pip would leave it: its module and its dist-info (METADATA, its
+    entry points) in a folder on PYTHONPATH. Returns the environment that sees it."""
+    where = tmp_path / "plugin"
+    info = where / "echo_toy-0.1.dist-info"
+    info.mkdir(parents=True)
+    (where / "echo_toy.py").write_text(ROW)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: echo-toy\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text(f"[smana.services]\n{entry}\n")
+    return dict(os.environ, PYTHONPATH=os.pathsep.join([str(where), str(REPO)]))
+
+
+def smana(*argv: str, env: dict, timeout_s: float = 120) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "smana.deploy.cli", *argv],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        cwd=REPO,
+    )
+
+
+def test_the_lists_that_name_services_are_the_table_s():
+    """What used to be hand-kept in seven places, derived: the same values as before the table."""
+    assert supervisor.SERVICE_ORDER == (
+        "sim",
+        "mapper",
+        "navgraph",
+        "planner",
+        "explorer",
+        "coordinator",
+        "ros2",
+    )
+    assert supervisor.FLEET_SHARED == ("sim", "mapper", "navgraph", "coordinator")
+    assert supervisor.FLEET_MEMBER == ("mapper", "planner", "explorer")
+    assert supervisor.OPTIONAL_NEEDS == {"ros2": (("rosbags", "ros2"),)}
+    assert list(warmup.WARMUPS) == ["mapper", "navgraph", "planner", "explorer"]
+    for name, spec in warmup.WARMUPS.items():
+        assert services.load(spec).name == name  # the class the row names is that service's
+    assert set(keys.SERVICES) == {
+        *("sim", "mapper", "navgraph", "planner", "explorer"),
+        *("replay", "recorder", "ros2", "coordinator"),
+    }
+    assert security.OWNERS == (
+        *("sim", "replay", "driver", "mapper", "navgraph"),
+        *("planner", "explorer", "recorder", "ros2"),
+    )
+    assert security.BASE_RUNS == ("navgraph", "planner", "explorer", "recorder")
+    assert security.FLEET_ROLES == ("mapper", "navgraph", "planner", "coordinator", "recorder")
+    assert security.READ_QUERIES[-1] == "*/status" and "mapper/point" in security.READ_QUERIES
+    d = SmanaConfig.load().deploy
+    supervised = [r.name for r in services.supervised()]
+    assert sorted(supervised) == sorted([*supervisor.SERVICE_ORDER, "recorder"])
+    assert [n for n in supervised if getattr(d, n).standby] == list(supervisor.SERVICE_ORDER[:5])
+    assert [n for n in supervised if not getattr(d, n).enabled] == ["ros2"]
+    assert not hasattr(d, "replay")  # `smana up` never starts the replay: no [deploy.replay]
+
+
+def test_a_row_with_a_value_outside_its_column_is_refused():
+    with pytest.raises(ValueError, match="bad name, up, fleet or acl"):
+        services.ServiceRow("echo", "x", fleet=("everywhere",))
+    with pytest.raises(ValueError, match="bad name, up, fleet or acl"):
+        services.ServiceRow("no/slash", "x")
+
+
+def test_a_plugin_row_is_in_the_acl_the_help_and_the_config(tmp_path):
+    env = plugin(tmp_path)
+    acl = smana("deploy", "acl", "--robots", "r1,r2", env=env)
+    assert acl.returncode == 0, acl.stderr
+    policy = json.loads(acl.stdout)
+    rules = {r["id"]: r for r in policy["rules"]}
+    for robot in ("r1", "r2"):
+        assert any(s["usernames"] == [f"{robot}.echo"] for s in policy["subjects"])
+        assert rules[f"own-{robot}.echo"]["key_exprs"] == [f"smana/{robot}/echo/**"]
+        assert rules[f"alive-{robot}.echo"]["key_exprs"] == [f"smana/{robot}/alive/echo"]
+    assert "smana/*/echo/count" in rules["read-queries"]["key_exprs"]
+    # without the plug-in, none of it
+    plain = smana("deploy", "acl", "--robots", "r1", env=dict(os.environ))
+    assert "echo" not in plain.stdout
+    helps = smana("--help", env=env)
+    assert "\n  echo " in helps.stdout, helps.stdout
+    code = "from smana.common import keys; from smana.common.config import SmanaConfig; "
+    code += "print(keys.SERVICES[-1], SmanaConfig.load(None, ['deploy.echo.max_restarts=2'])"
+    code += ".deploy.echo.max_restarts)"
+    got = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert got.stdout.split() == ["echo", "2"], got.stderr
+
+
+def test_a_plugin_that_is_not_a_row_is_one_warning_and_left_out(tmp_path):
+    env = plugin(tmp_path, "echo2 = echo_toy:NOT_A_ROW")
+    helps = smana("--help", env=env)
+    assert helps.returncode == 0
+    assert "echo2" not in helps.stdout
+    lines = [ln for ln in helps.stderr.splitlines() if ln.strip()]
+    assert lines == ["service plug-in echo2 = echo_toy:NOT_A_ROW is not a ServiceRow"], lines
+
+
+@pytest.mark.multiprocess
+def test_smana_up_starts_a_plugin_service_that_answers_its_status(tmp_path):
+    """A service is a folder plus one row: `smana up --only echo` starts the toy under its
+    `[deploy.echo]` policy, and it answers `smana/<robot>/echo/status` over zenoh."""
+    import zenoh
+
+    from smana.common.config import ZenohConfig
+    from smana.common.messages import ServiceStatus
+    from smana.common.query import QueryError, request
+    from smana.common.zenoh_config import make_zenoh_config
+
+    env = plugin(tmp_path)
+    port = free_port()
+    log = tmp_path / "up.log"
+    argv = ["up", "--only", "echo", "--robot", "tbl", "--run-dir", str(tmp_path / "run")]
+    argv += ["--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]']
+    argv += ["--set", "deploy.echo.restart=never", "--set", "general.status_period_s=0.5"]
+    up = subprocess.Popen(
+        [sys.executable, "-m", "smana.deploy.cli", *argv],
+        stdout=open(log, "wb"),  # noqa: SIM115 - the child owns it
+        stderr=subprocess.STDOUT,
+        start_new_session=True,
+        env=env,
+        cwd=REPO,
+    )
+
+    def status():
+        try:
+            st = request(session, keys.status("tbl", "echo"), timeout_s=1)
+        except QueryError:
+            return None
+        return st if isinstance(st, ServiceStatus) else None
+
+    try:
+        assert wait_for(lambda: "zenoh router listening" in log.read_text(), 60), log.read_text()
+        conf = make_zenoh_config(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
+        with zenoh.open(conf) as session:
+            assert wait_for(status, 60), log.read_text()
+            st = status()
+            assert (st.robot, st.service) == ("tbl", "echo")
+            assert st.pid != up.pid  # its own process, started by the supervisor
+    finally:
+        stop_group(up, signal.SIGINT, timeout_s=60)
+    written = (tmp_path / "run" / "config.toml").read_text()
+    assert "[deploy.echo]" in written and 'restart = "never"' in written
+    assert "started echo" in log.read_text()
+    assert (tmp_path / "run" / "logs" / "echo.log").is_file()
