@@ -34,7 +34,7 @@ NOT_A_ROW = ("echo2", "a plug-in's mistake")
 """
 
 
-def plugin(tmp_path: Path, entry: str = "echo = echo_toy:ROW") -> dict:
+def plugin(tmp_path: Path, *entries: str) -> dict:
     """An installed plug-in, as pip would leave it: its module and its dist-info (METADATA, its
     entry points) in a folder on PYTHONPATH. Returns the environment that sees it."""
     where = tmp_path / "plugin"
@@ -42,7 +42,8 @@ def plugin(tmp_path: Path, entry: str = "echo = echo_toy:ROW") -> dict:
     info.mkdir(parents=True)
     (where / "echo_toy.py").write_text(ROW)
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: echo-toy\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text(f"[smana.services]\n{entry}\n")
+    lines = "\n".join(entries or ["echo = echo_toy:ROW"])
+    (info / "entry_points.txt").write_text(f"[smana.services]\n{lines}\n")
     return dict(os.environ, PYTHONPATH=os.pathsep.join([str(where), str(REPO)]))
 
 
@@ -123,13 +124,29 @@ def test_a_plugin_row_is_in_the_acl_the_help_and_the_config(tmp_path):
     assert got.stdout.split() == ["echo", "2"], got.stderr
 
 
-def test_a_plugin_that_is_not_a_row_is_one_warning_and_left_out(tmp_path):
-    env = plugin(tmp_path, "echo2 = echo_toy:NOT_A_ROW")
+def test_a_plugin_that_does_not_load_or_is_not_a_row_is_one_warning_and_left_out(tmp_path):
+    env = plugin(tmp_path, "echo2 = echo_toy:NOT_A_ROW", "echo3 = no_such_module:ROW")
     helps = smana("--help", env=env)
     assert helps.returncode == 0
-    assert "echo2" not in helps.stdout
-    lines = [ln for ln in helps.stderr.splitlines() if ln.strip()]
-    assert lines == ["service plug-in echo2 = echo_toy:NOT_A_ROW is not a ServiceRow"], lines
+    assert "echo2" not in helps.stdout and "echo3" not in helps.stdout
+    lines = sorted(ln for ln in helps.stderr.splitlines() if ln.strip())
+    assert lines == [
+        "service plug-in echo2 = echo_toy:NOT_A_ROW is not a ServiceRow",
+        "service plug-in echo3 = no_such_module:ROW does not load: No module named "
+        "'no_such_module'",
+    ], lines
+
+
+def test_the_product_names_no_lab_module_and_lab_commands_register_themselves():
+    """deploy/cli.py names no module of lab/: `smana bench`, `eval` and `experiment` come from the
+    entry-point group `smana.commands` (pyproject.toml) and are in `smana --help`."""
+    from smana.deploy.cli import COMMANDS, _usage
+
+    source = (REPO / "deploy" / "cli.py").read_text()
+    assert "smana.lab" not in source
+    for name in ("bench", "eval", "experiment"):
+        assert COMMANDS[name][0].startswith("smana.lab."), COMMANDS[name]
+        assert f"\n  {name} " in _usage()
 
 
 @pytest.mark.multiprocess
