@@ -24,7 +24,7 @@ from typing import Any, Literal
 
 ENTRY_POINT_GROUP = "smana.services"
 FLEET_PLACES = ("shared", "member")
-ACL_ROLES = ("robot", "sensor", "base", "fleet")
+ACL_ROLES = ("robot", "sensor", "drive", "base", "fleet")
 
 log = logging.getLogger("smana.services")
 
@@ -52,8 +52,10 @@ class ServiceRow:
     deploy: dict[str, Any] = field(default_factory=dict)  # [deploy.<name>] defaults
     warm_up: bool = False  # `smana warmup` compiles its kernels (its class's prepare())
     # The ACL (deploy/security.py): "robot", an identity `<robot>.<name>` that owns
-    # `smana/<robot>/<name>/**`; "sensor", it also publishes the robot's sensor streams; "base",
-    # a base may run it for a robot; "fleet", an identity `<fleet>.<name>` on the base.
+    # `smana/<robot>/<name>/**`; "sensor", it also publishes the robot's sensor streams; "drive",
+    # it also publishes the robot's velocity commands and, in a fleet, asks the coordinator for
+    # the robot's claims; "base", a base may run it for a robot; "fleet", an identity
+    # `<fleet>.<name>` on the base.
     acl: tuple[str, ...] = ("robot",)
     reads: tuple[str, ...] = ()  # its queries that only read: every identity may ask them
     needs: tuple[str, ...] = ()  # what it needs to do its job (a run's warning when one is missing)
@@ -131,7 +133,7 @@ TABLE: tuple[ServiceRow, ...] = (
         fleet=("member",),
         deploy={"standby": True},
         warm_up=True,
-        acl=("robot", "base"),
+        acl=("robot", "drive", "base"),
         reads=("state",),
         needs=("mapper", "navgraph", "planner", "coordinator"),
     ),

@@ -50,6 +50,7 @@ from smana.common.zenoh_config import read_credentials
 SENSOR_ROLES = (*services.with_acl("sensor"), "driver")
 OWNERS = (*SENSOR_ROLES, *(r for r in services.with_acl("robot") if r not in SENSOR_ROLES))
 ROBOT_ROLES = (*OWNERS, "tool", "router")  # every robot's identities
+DRIVERS = services.with_acl("drive")  # they publish cmd_vel and claim goals
 BASE_RUNS = services.with_acl("base")  # a robot's, that a base may run
 FLEET_ROLES = services.with_acl("fleet")  # the fleet's, on the base
 BASE_ROLES = ("operator", "tool", "router")
@@ -162,7 +163,7 @@ def acl_policy(
             if owner in SENSOR_ROLES:
                 alive.append(f"smana/{ns}/alive/robot")  # whatever drives the robot shows it
                 ids.append(f"sensors-{ns}")
-            if owner == "explorer":
+            if owner in DRIVERS:
                 ids.append(f"cmd_vel-{ns}")
                 if fleet:
                     ids.append(f"claim-{ns}")

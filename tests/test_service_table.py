@@ -85,7 +85,13 @@ def test_the_lists_that_name_services_are_the_table_s():
     )
     assert security.BASE_RUNS == ("navgraph", "planner", "explorer", "recorder")
     assert security.FLEET_ROLES == ("mapper", "navgraph", "planner", "coordinator", "recorder")
-    assert security.READ_QUERIES[-1] == "*/status" and "mapper/point" in security.READ_QUERIES
+    assert security.SENSOR_ROLES == ("sim", "replay", "driver")
+    assert security.DRIVERS == ("explorer",)
+    assert security.READ_QUERIES == (
+        *("mapper/stats", "mapper/snapshot", "mapper/point"),
+        *("navgraph/graph", "navgraph/node", "navgraph/stats", "planner/path", "planner/stats"),
+        *("explorer/state", "coordinator/claims", "coordinator/stats", "*/status"),
+    )
     d = SmanaConfig.load().deploy
     supervised = [r.name for r in services.supervised()]
     assert sorted(supervised) == sorted([*supervisor.SERVICE_ORDER, "recorder"])
