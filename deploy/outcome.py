@@ -49,11 +49,11 @@ class Outcome:
         finish_with = services.row(self.config.deploy.finish_with)
         for m in [m for m in self.procs.values() if finish_with and m.service == finish_with.name]:
             for need in finish_with.needs:
-                row = services.row(need)
+                row = services.row(need)  # None: a plug-in's need no row names
                 where = m.robot
-                if self.fleet is not None and row.shared_only:
+                if self.fleet is not None and row is not None and row.shared_only:
                     where = self.fleet  # the fleet's shared graph and coordinator
-                elif self.fleet is None and row.fleet_only:
+                elif self.fleet is None and row is not None and row.fleet_only:
                     continue
                 if (where, need) in self.seen_ready:
                     continue

@@ -202,3 +202,38 @@ def test_smana_up_starts_a_plugin_service_that_answers_its_status(tmp_path):
     assert "[deploy.echo]" in written and 'restart = "never"' in written
     assert "started echo" in log.read_text()
     assert (tmp_path / "run" / "logs" / "echo.log").is_file()
+
+
+def test_a_service_the_explorer_needs_that_never_came_up_is_a_warning(tmp_path):
+    """The explorer's `needs` row: each of mapper, navgraph and planner that was never ready is a
+    warning, on the robot's own name alone and on the fleet's name for the fleet's shared ones;
+    the coordinator only in a fleet. Nothing is started: the supervisor is only built."""
+
+    def needs_lines(overrides, services_=None):
+        cfg = SmanaConfig.load(None, overrides)
+        sup = supervisor.Supervisor(cfg, tmp_path / str(len(list(tmp_path.iterdir()))), services_)
+        sup.seen_ready = {("r1", "mapper"), ("r2", "mapper")}
+        return sorted(w for w in sup.warnings() if "needs never came up" in w)
+
+    assert needs_lines(["deploy.navgraph.enabled=false"], None) == [
+        "the navgraph the explorer of robot r1 needs never came up (disabled in this run "
+        "(deploy.navgraph.enabled = false) and none ran elsewhere)",
+        "the planner the explorer of robot r1 needs never came up (see above)",
+    ]
+    fleet = needs_lines(['fleet.robots=["r1", "r2"]'], ["mapper", "navgraph", "explorer"])
+    assert fleet == [
+        f"the {need} the explorer of robot {r} needs never came up ({why})"
+        for need, why in (
+            (
+                "coordinator",
+                "disabled in this run (deploy.coordinator.enabled = false) and none ran elsewhere",
+            ),
+            ("navgraph", "see above"),
+            (
+                "planner",
+                "disabled in this run (deploy.planner.enabled = false) and none ran elsewhere",
+            ),
+        )
+        for r in ("r1", "r2")
+    ]
+    assert needs_lines(['deploy.finish_with="replay"']) == []  # the replay's row needs nothing
