@@ -123,6 +123,8 @@ def test_a_plugin_row_is_in_the_acl_the_help_and_the_config(tmp_path):
     assert "echo" not in plain.stdout
     helps = smana("--help", env=env)
     assert "\n  echo " in helps.stdout, helps.stdout
+    echo_help = smana("echo", "--help", env=env)
+    assert echo_help.returncode == 0 and "--cloud-delay" in echo_help.stdout, echo_help.stderr
     code = "from smana.common import keys; from smana.common.config import SmanaConfig; "
     code += "print(keys.SERVICES[-1], SmanaConfig.load(None, ['deploy.echo.max_restarts=2'])"
     code += ".deploy.echo.max_restarts)"
