@@ -18,15 +18,12 @@ from __future__ import annotations
 
 import functools
 import importlib
-import logging
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 ENTRY_POINT_GROUP = "smana.services"
 FLEET_PLACES = ("shared", "member")
 ACL_ROLES = ("robot", "sensor", "drive", "base", "fleet")
-
-log = logging.getLogger("smana.services")
 
 
 @dataclass(frozen=True)
@@ -179,8 +176,10 @@ def load(spec: str) -> Any:
 def rows() -> tuple[ServiceRow, ...]:
     """`TABLE`, then every row declared under the entry-point group `smana.services`. A plug-in
     that does not load, is not a `ServiceRow` or reuses a name is left out with one warning."""
+    import logging
     from importlib.metadata import entry_points
 
+    log = logging.getLogger("smana.services")
     out = list(TABLE)
     for ep in entry_points(group=ENTRY_POINT_GROUP):
         try:

@@ -14,6 +14,7 @@ port in use, nothing to connect to) is one line on stderr, `smana <command>: <me
 
 from __future__ import annotations
 
+import functools
 import importlib
 import sys
 
@@ -21,24 +22,32 @@ from smana.common import services
 
 COMMAND_GROUP = "smana.commands"
 
+_TOOLS = {
+    "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
+    "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
+    "warmup": ("smana.deploy.warmup:cli", "compile every service's numba kernels ahead, once"),
+    "view": ("smana.deploy.view:cli", "open a run's Rerun recording"),
+    "router": ("smana.deploy.router:cli", "run a standalone zenoh router (Python, no zenohd)"),
+    "deploy": ("smana.deploy.security:cli", "multi-host set-up: init-certs (TLS, users, ACL)"),
+}
 
-def _commands() -> dict[str, tuple[str, str]]:
-    """name -> (module:function, one-line help), in the order of `smana --help`."""
-    from importlib.metadata import entry_points
 
+def _table(rows) -> dict[str, tuple[str, str]]:
     out = {
         "up": ("smana.deploy.supervisor:cli", "start the whole stack (the closed-loop demo)"),
         "status": ("smana.deploy.status:cli", "list live services and their status over zenoh"),
     }
-    out |= {r.name: (r.command, r.help) for r in services.rows() if r.command}
-    out |= {
-        "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
-        "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
-        "warmup": ("smana.deploy.warmup:cli", "compile every service's numba kernels ahead, once"),
-        "view": ("smana.deploy.view:cli", "open a run's Rerun recording"),
-        "router": ("smana.deploy.router:cli", "run a standalone zenoh router (Python, no zenohd)"),
-        "deploy": ("smana.deploy.security:cli", "multi-host set-up: init-certs (TLS, users, ACL)"),
-    }
+    return out | {r.name: (r.command, r.help) for r in rows if r.command} | _TOOLS
+
+
+@functools.cache
+def commands() -> dict[str, tuple[str, str]]:
+    """name -> (module:function, one-line help), in the order of `smana --help`: smana's own,
+    then plug-ins' (reading the installed entry points, which costs a few hundred ms on a loaded
+    machine: only `--help` and a name smana does not know pay it)."""
+    from importlib.metadata import entry_points
+
+    out = _table(services.rows())
     for ep in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
         if ep.name in out:
             continue  # smana's own command wins over a plug-in's of the same name
@@ -50,11 +59,15 @@ def _commands() -> dict[str, tuple[str, str]]:
     return out
 
 
-COMMANDS: dict[str, tuple[str, str]] = _commands()
+def __getattr__(name: str):
+    if name == "COMMANDS":  # every command, plug-ins' included (read when first asked for)
+        return commands()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _usage() -> str:
-    width = max(len(n) for n in COMMANDS)
+    known = commands()
+    width = max(len(n) for n in known)
     lines = [
         "usage: smana <command> [options]",
         "",
@@ -62,7 +75,7 @@ def _usage() -> str:
         "",
         "commands:",
     ]
-    lines += [f"  {name:<{width}}  {text}" for name, (_, text) in COMMANDS.items()]
+    lines += [f"  {name:<{width}}  {text}" for name, (_, text) in known.items()]
     lines += ["", "Run `smana <command> --help` for the options of one command."]
     return "\n".join(lines)
 
@@ -93,10 +106,13 @@ def main(argv: list[str] | None = None) -> int:
         print(smana_version())
         return 0
     name = argv[0]
-    if name not in COMMANDS:
+    known = _table(services.TABLE)  # smana's own: no need to read the installed entry points
+    if name not in known:
+        known = commands()
+    if name not in known:
         print(f"smana: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    target, text = COMMANDS[name]
+    target, text = known[name]
     if not target:
         print(f"smana {name}: {text}", file=sys.stderr)
         return 2
