@@ -10,18 +10,9 @@ from __future__ import annotations
 
 import re
 
+from smana.common import services
+
 PREFIX = "smana"
-SERVICES = (
-    "sim",
-    "mapper",
-    "navgraph",
-    "planner",
-    "explorer",
-    "replay",
-    "recorder",
-    "ros2",
-    "coordinator",
-)
 NAME_PATTERN = "[A-Za-z0-9_-]{1,32}"
 _NAME = re.compile(NAME_PATTERN)
 
@@ -144,3 +135,11 @@ def starting_any(robot: str = "*") -> str:
 
 def status_any(robot: str = "*") -> str:
     return f"{PREFIX}/{robot}/*/status"
+
+
+def __getattr__(name: str):
+    # SERVICES: every service's name, from the table of services (common/services.py): smana's
+    # own, then plug-ins' (entry-point group `smana.services`), read when first asked for.
+    if name == "SERVICES":
+        return services.names()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

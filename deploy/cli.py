@@ -2,6 +2,10 @@
 
 Subcommands are imported lazily, so `smana --help` is instant and a tool's optional dependencies
 are only needed when that tool runs. Each target is `module:function` taking the remaining argv.
+The services' commands come from the table of services (common/services.py); the research
+harness's (`bench`, `eval`, `experiment`) and any plug-in's from the entry-point group
+`smana.commands` (pyproject.toml), each a `(module:function, one-line help)` pair, so this file
+names no module of `lab/`.
 
 Exit status: 0 done, 1 the command ran and failed, 2 misuse. Misuse (a bad argument or config, a
 port in use, nothing to connect to) is one line on stderr, `smana <command>: <message>`; see
@@ -10,51 +14,60 @@ port in use, nothing to connect to) is one line on stderr, `smana <command>: <me
 
 from __future__ import annotations
 
+import functools
 import importlib
 import sys
 
-# name -> (module:function, one-line help). Order is the order of `smana --help`.
-COMMANDS: dict[str, tuple[str, str]] = {
-    "up": ("smana.deploy.supervisor:cli", "start the whole stack (the closed-loop demo)"),
-    "status": ("smana.deploy.status:cli", "list live services and their status over zenoh"),
-    "sim": ("smana.services.sim.__main__:cli", "run the PyBullet simulator service"),
-    "mapper": ("smana.services.mapper.__main__:cli", "run the semantic mapper service"),
-    "navgraph": ("smana.services.navgraph.__main__:cli", "run the navigation graph service"),
-    "planner": ("smana.services.planner.__main__:cli", "run the weighted A* planner service"),
-    "explorer": ("smana.services.explorer.__main__:cli", "run the frontier explorer service"),
-    "replay": ("smana.services.replay.__main__:cli", "replay a dataset into the stack"),
-    "ros2": ("smana.services.ros2.__main__:cli", "smana as a ROS 2 node over rmw_zenoh"),
-    "coordinator": (
-        "smana.services.coordinator.__main__:cli",
-        "run a fleet's coordinator (next-best views, no two robots to one frontier)",
-    ),
+from smana.common import services
+
+COMMAND_GROUP = "smana.commands"
+
+_TOOLS = {
     "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
     "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
     "warmup": ("smana.deploy.warmup:cli", "compile every service's numba kernels ahead, once"),
-    "bench": ("smana.deploy.cli:bench", "benchmarks of each service (smana bench --help)"),
-    "eval": ("smana.lab.evaluation:cli", "evaluate a run's map against ground truth"),
-    "experiment": ("smana.lab.experiments:cli", "the paper's experiments: noise, exploration"),
     "view": ("smana.deploy.view:cli", "open a run's Rerun recording"),
     "router": ("smana.deploy.router:cli", "run a standalone zenoh router (Python, no zenohd)"),
     "deploy": ("smana.deploy.security:cli", "multi-host set-up: init-certs (TLS, users, ACL)"),
 }
 
-BENCHES = {
-    "mapper": "smana.lab.bench.mapper:cli",
-    "navgraph": "smana.lab.bench.navgraph:cli",
-    "planner": "smana.lab.bench.planner:cli",
-    "sim": "smana.lab.bench.sim:cli",
-    "explorer": "smana.lab.bench.explorer:cli",
-    "replay": "smana.lab.bench.replay:cli",
-    "pipeline": "smana.lab.bench.pipeline:cli",
-    "restart": "smana.lab.bench.restart:cli",
-    "startup": "smana.lab.bench.startup:cli",
-    "fuzz": "smana.lab.bench.fuzz:cli",
-}
+
+def _table(rows) -> dict[str, tuple[str, str]]:
+    out = {
+        "up": ("smana.deploy.supervisor:cli", "start the whole stack (the closed-loop demo)"),
+        "status": ("smana.deploy.status:cli", "list live services and their status over zenoh"),
+    }
+    return out | {r.name: (r.command, r.help) for r in rows if r.command} | _TOOLS
+
+
+@functools.cache
+def commands() -> dict[str, tuple[str, str]]:
+    """name -> (module:function, one-line help), in the order of `smana --help`: smana's own,
+    then plug-ins' (reading the installed entry points, which costs a few hundred ms on a loaded
+    machine: only `--help` and a name smana does not know pay it)."""
+    from importlib.metadata import entry_points
+
+    out = _table(services.rows())
+    for ep in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
+        if ep.name in out:
+            continue  # smana's own command wins over a plug-in's of the same name
+        try:
+            target, text = ep.load()
+        except Exception as exc:  # noqa: BLE001 - a broken plug-in must not stop smana
+            target, text = "", f"(a plug-in, {ep.value}, that does not load: {exc})"
+        out[ep.name] = (target, text)
+    return out
+
+
+def __getattr__(name: str):
+    if name == "COMMANDS":  # every command, plug-ins' included (read when first asked for)
+        return commands()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _usage() -> str:
-    width = max(len(n) for n in COMMANDS)
+    known = commands()
+    width = max(len(n) for n in known)
     lines = [
         "usage: smana <command> [options]",
         "",
@@ -62,12 +75,13 @@ def _usage() -> str:
         "",
         "commands:",
     ]
-    lines += [f"  {name:<{width}}  {text}" for name, (_, text) in COMMANDS.items()]
+    lines += [f"  {name:<{width}}  {text}" for name, (_, text) in known.items()]
     lines += ["", "Run `smana <command> --help` for the options of one command."]
     return "\n".join(lines)
 
 
-def _call(name: str, target: str, argv: list[str]) -> int:
+def call(name: str, target: str, argv: list[str]) -> int:
+    """Run `target` ("module:function") as `smana <name>` with `argv`."""
     from smana.common.cli import run_command
 
     module, func = target.split(":")
@@ -81,14 +95,6 @@ def _call(name: str, target: str, argv: list[str]) -> int:
     return run_command(name, getattr(mod, func), argv)
 
 
-def bench(argv: list[str]) -> int:
-    """`smana bench <name> ...`"""
-    if not argv or argv[0] in ("-h", "--help") or argv[0] not in BENCHES:
-        print("usage: smana bench {" + ",".join(BENCHES) + "} [options]", file=sys.stderr)
-        return 0 if argv and argv[0] in ("-h", "--help") else 2
-    return _call(f"bench {argv[0]}", BENCHES[argv[0]], argv[1:])
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
@@ -100,10 +106,17 @@ def main(argv: list[str] | None = None) -> int:
         print(smana_version())
         return 0
     name = argv[0]
-    if name not in COMMANDS:
+    known = _table(services.TABLE)  # smana's own: no need to read the installed entry points
+    if name not in known:
+        known = commands()
+    if name not in known:
         print(f"smana: unknown command {name!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    return _call(name, COMMANDS[name][0], argv[1:])
+    target, text = known[name]
+    if not target:
+        print(f"smana {name}: {text}", file=sys.stderr)
+        return 2
+    return call(name, target, argv[1:])
 
 
 if __name__ == "__main__":

@@ -37,34 +37,22 @@ import secrets
 import shutil
 from pathlib import Path
 
+from smana.common import services
 from smana.common.cli import ArgumentParser, UsageError
 from smana.common.keys import check_robot
 from smana.common.zenoh_config import read_credentials
 
-# Who may do what. Roles become zenoh user names `<robot>.<role>`; `router` is a router's login
-# when it links to another (robot -> base); `operator` a human with a joystick on the base, `tool`
-# any external zenoh tool (a robot has its own, `<robot>.tool`).
-SENSOR_ROLES = ("sim", "replay", "driver")
-OWNERS = (
-    "sim",
-    "replay",
-    "driver",
-    "mapper",
-    "navgraph",
-    "planner",
-    "explorer",
-    "recorder",
-    "ros2",
-)
+# Who may do what, from the table of services (common/services.py: each row's `acl` and `reads`).
+# Roles become zenoh user names `<robot>.<role>`; `router` is a router's login when it links to
+# another (robot -> base); `operator` a human with a joystick on the base, `tool` any external
+# zenoh tool (a robot has its own, `<robot>.tool`); `driver` a real robot's driver, not a service
+# of smana, which publishes the robot's sensors as the sim and the replay do.
+SENSOR_ROLES = (*services.with_acl("sensor"), "driver")
+OWNERS = (*SENSOR_ROLES, *(r for r in services.with_acl("robot") if r not in SENSOR_ROLES))
 ROBOT_ROLES = (*OWNERS, "tool", "router")  # every robot's identities
-BASE_RUNS = ("navgraph", "planner", "explorer", "recorder")  # a robot's, that a base may run
-FLEET_ROLES = (
-    "mapper",
-    "navgraph",
-    "planner",
-    "coordinator",
-    "recorder",
-)  # the fleet's, on the base
+DRIVERS = services.with_acl("drive")  # they publish cmd_vel and claim goals
+BASE_RUNS = services.with_acl("base")  # a robot's, that a base may run
+FLEET_ROLES = services.with_acl("fleet")  # the fleet's, on the base
 BASE_ROLES = ("operator", "tool", "router")
 SENSOR_TOPICS = ("cloud", "scan", "pose", "pose_truth", "clock", "image/**")
 # The queries that only read, on every namespace: `smana/*/<service>/<query>`. An allow rule
@@ -72,20 +60,7 @@ SENSOR_TOPICS = ("cloud", "scan", "pose", "pose_truth", "clock", "image/**")
 # tested in tests/test_acl_table.py), so `smana/r1/mapper/*` or `smana/**` match none of these,
 # and a query that writes (`mapper/save`, `coordinator/claim/<member>`) is granted by its exact
 # key only. A deny rule would not do: it too applies only to selectors its key includes.
-READ_QUERIES = (
-    "mapper/stats",
-    "mapper/snapshot",
-    "mapper/point",
-    "navgraph/graph",
-    "navgraph/node",
-    "navgraph/stats",
-    "planner/path",
-    "planner/stats",
-    "explorer/state",
-    "coordinator/claims",
-    "coordinator/stats",
-    "*/status",
-)
+READ_QUERIES = (*(f"{r.name}/{q}" for r in services.rows() for q in r.reads), "*/status")
 
 READ = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
 OWN = ["put", "delete", "declare_queryable", "reply"]
@@ -188,7 +163,7 @@ def acl_policy(
             if owner in SENSOR_ROLES:
                 alive.append(f"smana/{ns}/alive/robot")  # whatever drives the robot shows it
                 ids.append(f"sensors-{ns}")
-            if owner == "explorer":
+            if owner in DRIVERS:
                 ids.append(f"cmd_vel-{ns}")
                 if fleet:
                     ids.append(f"claim-{ns}")

@@ -36,80 +36,51 @@ robot that did not move each head `report.md` as a warning, end the terminal sum
 
 from __future__ import annotations
 
-import collections
 import dataclasses
-import json
 import logging
-import os
 import signal
-import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 from smana.common import keys
+from smana.common import services as service_table
 from smana.common.cli import config_from_args, make_parser, setup_logging
 from smana.common.config import ConfigError, ServiceDeployConfig, SmanaConfig
 from smana.common.messages import MessageError, ServiceStatus, decode
-from smana.common.service import STANDBY_ENV, die_with_parent, on_stop_signals
+from smana.common.service import die_with_parent, on_stop_signals
+from smana.deploy.fleet import add_fleet
+from smana.deploy.outcome import CONFIG_ERROR, Outcome, _last_line
+from smana.deploy.processes import Managed, ProcessControl
+
+__all__ = ["CONFIG_ERROR", "Managed", "Supervisor", "cli", "die_with_parent", "main"]
 
 log = logging.getLogger("smana.up")
 
-# Start order follows the data flow: producers first, so consumers find their inputs.
-SERVICE_ORDER = ("sim", "mapper", "navgraph", "planner", "explorer", "ros2")
-# A fleet (`fleet.robots`, `smana up --robots N`): the fleet's shared services run under
-# `fleet.name` on the base (`deploy.fleet_base`), each member's own under its name, on its host
-# (`deploy.robots`, default every member). One simulator simulates every member.
-FLEET_SHARED = ("sim", "mapper", "navgraph", "coordinator")
-FLEET_MEMBER = ("mapper", "planner", "explorer")
-# What a service needs beyond smana's own dependencies: (module, the extra that installs it). A
-# missing one stops `smana up` before anything starts, in one line (exit 2), instead of a service
-# that exits 2 at every restart.
-OPTIONAL_NEEDS = {"ros2": (("rosbags", "ros2"),)}
-# A service that exits with this status refused its configuration (`run_command`'s user errors):
-# restarting it cannot help, so the stack stops and `smana up` exits with it.
-CONFIG_ERROR = 2
+# Start order follows the data flow, producers first so consumers find their inputs, and the
+# fleet's layout (FLEET_SHARED on the base, FLEET_MEMBER per member): both from the table of
+# services (common/services.py), as everything else that lists services.
+SERVICE_ORDER = service_table.start_order()
+FLEET_SHARED = service_table.fleet("shared")
+FLEET_MEMBER = service_table.fleet("member")
+# What a service needs beyond smana's own dependencies (the table's `requires`: the module and
+# the extra that installs it). A missing one stops `smana up` before anything starts, in one line
+# (exit 2), instead of a service that exits 2 at every restart.
+OPTIONAL_NEEDS = {r.name: r.requires for r in service_table.supervised() if r.requires}
 
 
-@dataclass
-class Managed:
-    """One supervised service process."""
-
-    name: str  # "mapper", or "mapper@r2" when the supervisor runs several robots
-    argv: list[str]
-    policy: ServiceDeployConfig
-    log_path: Path
-    service: str = ""
-    robot: str = ""
-    proc: subprocess.Popen | None = None
-    started_at: float = 0.0
-    alive: bool = False  # its alive token is up (ready)
-    starting: bool = False  # its starting token is up (loading, compiling)
-    seen_alive: bool = False  # the alive token came up at least once since the last start
-    seen_starting: bool = False  # ... the starting token
-    lost_at: float | None = None  # when the token vanished while the process still ran
-    down_at: float | None = None  # when its last process ended (for the time back)
-    restarts: collections.deque = field(default_factory=collections.deque)  # in the window
-    n_restarts: int = 0
-    crash_looped: bool = False  # restarted more than max_restarts in a window at some point
-    next_start: float = 0.0
-    finished: bool = False  # exited and will not be restarted
-    ever_ready: bool = False
-    ready_s: list[float] = field(default_factory=list)  # start -> alive, each process
-    ready_at: float | None = None  # when the current process became ready
-    back_s: list[float] = field(default_factory=list)  # end of a process -> next one alive
-    exit_codes: list[int] = field(default_factory=list)
-    spare: subprocess.Popen | None = None  # the standby process, when the policy asks for one
-    took_over: bool = False  # the current process is a spare that took over
-    # each crash that was restarted: exit status, seconds into the run, seconds until the next
-    # process was ready (None while it is not), whether a hot spare took over
-    crashes: list[dict] = field(default_factory=list)
-    killed_for: str = ""  # why the supervisor killed the current process (its health checks)
+def _row(name: str) -> service_table.ServiceRow:
+    row = service_table.row(name)
+    if row is None:
+        raise ConfigError(f"unknown service {name!r} (known: {', '.join(service_table.names())})")
+    return row
 
 
-class Supervisor:
+class Supervisor(ProcessControl, Outcome):
+    """Starts the services of one host, watches their health, restarts them by their policy
+    (deploy/processes.py), and says at the end what went wrong (deploy/outcome.py)."""
+
     def __init__(self, config: SmanaConfig, run_dir: Path, services: list[str] | None = None):
         self.config = config
         self.run_dir = Path(run_dir).resolve()
@@ -118,7 +89,7 @@ class Supervisor:
         names = (
             services
             if services is not None
-            else [n for n in (*SERVICE_ORDER, "coordinator") if getattr(config.deploy, n).enabled]
+            else [n for n in SERVICE_ORDER if getattr(config.deploy, n).enabled]
         )
         self.logs = self.run_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
@@ -137,9 +108,9 @@ class Supervisor:
         self.procs: dict[str, Managed] = {}
         self.fleet = config.fleet.name if config.fleet.robots else None
         if self.fleet is None:
-            names = [n for n in names if n != "coordinator"]  # a fleet's alone
+            names = [n for n in names if not _row(n).fleet_only]  # the coordinator: a fleet's
         else:
-            self._add_fleet(names)
+            add_fleet(self, names)
             names = []
         for robot in self.robots:
             for n in names:
@@ -160,7 +131,7 @@ class Supervisor:
         argv = [
             sys.executable,
             "-m",
-            f"smana.services.{service}",
+            _row(service).module,
             "--config",
             str(self.config_path),
             "--robot",
@@ -171,35 +142,6 @@ class Supervisor:
             argv += ["--set", f'zenoh.user="{robot}.{service}"']  # each service as itself
         policy = getattr(self.config.deploy, service)
         self.add(name, argv + policy.args, policy, service=service, robot=robot)
-
-    def _add_fleet(self, names: list[str]) -> None:
-        """The fleet's layout (FLEET_SHARED, FLEET_MEMBER). Members' files go to
-        `<run_dir>/robots/<member>/` (their own map, the explorer's state), the fleet's to the
-        run directory itself (the merged map, the simulator's record)."""
-        fc, dc = self.config.fleet, self.config.deploy
-        if not dc.fleet_members:
-            members = []
-        elif dc.robots:
-            members = list(dc.robots)
-        else:  # a base runs every member; a member's own host runs itself
-            members = list(fc.robots) if dc.fleet_base else [self.config.general.robot]
-        strangers = [r for r in members if r not in fc.robots]
-        if strangers:
-            raise ConfigError(f"deploy.robots {strangers} are not in fleet.robots {fc.robots}")
-        self.robots = members or [self.fleet]
-        enabled = names
-        if dc.fleet_base:
-            for n in FLEET_SHARED:
-                if n in enabled:
-                    extra = ["--set", 'mapper.source="fleet"'] if n == "mapper" else []
-                    self._add_service(f"{n}@{self.fleet}", n, self.fleet, extra)
-        for robot in members:
-            run_dir = self.run_dir / "robots" / robot
-            run_dir.mkdir(parents=True, exist_ok=True)
-            for n in FLEET_MEMBER:
-                if n in enabled:
-                    extra = ["--set", f"general.run_dir={json.dumps(str(run_dir))}"]
-                    self._add_service(f"{n}@{robot}", n, robot, extra)
 
     def add(
         self,
@@ -221,139 +163,6 @@ class Supervisor:
         )
 
     # -- process control ---------------------------------------------------------------------------
-
-    def _start_process(self, m: Managed, standby: bool) -> subprocess.Popen:
-        logf = open(m.log_path, "ab")  # noqa: SIM115 - the child owns it; closed below
-        what = "standby" if standby else "start"
-        logf.write(f"\n--- {what} {time.strftime('%H:%M:%S')}: {' '.join(m.argv)}\n".encode())
-        logf.flush()
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        ready_r = ready_w = None
-        if standby:  # the spare says "ready" on a pipe of its own once it has prepared
-            ready_r, ready_w = os.pipe()
-            os.set_blocking(ready_r, False)
-            env[STANDBY_ENV] = str(ready_w)
-        proc = subprocess.Popen(
-            m.argv,
-            stdout=logf,
-            stderr=subprocess.STDOUT,
-            stdin=subprocess.PIPE if standby else subprocess.DEVNULL,
-            start_new_session=True,
-            env=env,
-            preexec_fn=die_with_parent,
-            pass_fds=(ready_w,) if standby else (),
-        )
-        # Children keep the supervisor's working directory, so relative paths in the config
-        # (certificates, maps, worlds) mean the same to every process.
-        logf.close()
-        if standby:
-            os.close(ready_w)
-            proc.ready_fd = ready_r
-            proc.prepared = False
-        return proc
-
-    def _spawn(self, m: Managed) -> None:
-        m.took_over = False
-        if m.spare is not None and m.spare.poll() is None:
-            # The hot spare has imported and prepared (or is about to): one line, it takes over.
-            proc, m.spare = m.spare, None
-            os.close(proc.ready_fd)
-            try:
-                proc.stdin.write(b"go\n")
-                proc.stdin.close()
-            except OSError:  # it died meanwhile: start afresh
-                proc = self._start_process(m, standby=False)
-            else:
-                log.info("%s: the standby process (pid %d) takes over", m.name, proc.pid)
-                m.took_over = True
-        else:
-            proc = self._start_process(m, standby=False)
-            log.info("started %s (pid %d)", m.name, proc.pid)
-        if m.crashes and m.crashes[-1]["back_s"] is None:
-            m.crashes[-1]["spare"] = m.took_over
-        m.proc = proc
-        m.started_at = time.monotonic()
-        with self._lock:
-            m.alive = m.starting = m.seen_alive = m.seen_starting = False
-            m.ready_at = None
-        m.lost_at = None
-
-    def _keep_spare(self, m: Managed) -> None:
-        """A ready service with `standby` gets a hot spare, `deploy.standby_delay_s` after it
-        became ready and once its kernels are loaded (a service is live while they compile: so
-        the two never compile the same kernels at once on a cold cache, and a short run never
-        pays for it)."""
-        if m.spare is not None and m.spare.poll() is not None:
-            log.warning("%s: its standby process exited with status %d", m.name, m.spare.returncode)
-            self._end_spare(m)
-        ready_for = time.monotonic() - m.ready_at if m.ready_at is not None else -1.0
-        st = self.statuses.get((m.robot, m.service))  # one dict read: no lock needed
-        if (
-            m.spare is None
-            and m.policy.standby
-            and ready_for >= self.config.deploy.standby_delay_s
-            and (st is None or st.details.get("kernels", "ready") == "ready")
-            and not self._stop.is_set()
-        ):
-            m.spare = self._start_process(m, standby=True)
-        if m.spare is not None and not m.spare.prepared:
-            try:
-                m.spare.prepared = bool(os.read(m.spare.ready_fd, 64))
-            except BlockingIOError:
-                pass
-
-    def spare_ready(self, m: Managed) -> bool:
-        """Whether `m` has a standby process that has prepared and waits to take over."""
-        return m.spare is not None and m.spare.prepared
-
-    def _end_spare(self, m: Managed) -> None:
-        if m.spare is not None:
-            try:
-                m.spare.stdin.close()  # a standby process ends when its stdin closes
-                m.spare.wait(timeout=2.0)
-            except (OSError, subprocess.TimeoutExpired):
-                m.spare.kill()
-                m.spare.wait()
-            os.close(m.spare.ready_fd)
-            m.spare = None
-
-    def _signal(self, m: Managed, sig: int) -> None:
-        if m.proc is not None and m.proc.poll() is None:
-            try:
-                os.killpg(m.proc.pid, sig)
-            except ProcessLookupError:
-                pass
-
-    def _schedule_restart(self, m: Managed, why: str) -> None:
-        now = time.monotonic()
-        if m.exit_codes and m.exit_codes[-1] != 0:  # a crash, not a clean end under "always"
-            at = now - self._t0 if self._t0 is not None else 0.0
-            crash = {"code": m.exit_codes[-1], "at_s": at, "back_s": None, "spare": False}
-            m.crashes.append({**crash, "killed_for": m.killed_for})
-            m.killed_for = ""
-        p = m.policy
-        while m.restarts and now - m.restarts[0] > p.restart_window_s:
-            m.restarts.popleft()
-        if len(m.restarts) >= p.max_restarts:
-            # A crash loop: keep trying, slowly, and make sure the run says so.
-            delay = p.restart_max_delay_s
-            if not m.crash_looped:
-                log.error(
-                    "%s keeps failing (%d restarts in %.0f s): restarting it every %.0f s "
-                    "from now on; the run will be reported failed (see %s)",
-                    m.name,
-                    len(m.restarts),
-                    p.restart_window_s,
-                    delay,
-                    m.log_path,
-                )
-            m.crash_looped = True
-        else:
-            delay = min(p.restart_delay_s * 2 ** len(m.restarts), p.restart_max_delay_s)
-        m.restarts.append(now)
-        m.n_restarts += 1
-        m.next_start = now + delay
-        log.warning("%s %s; restarting in %.1f s (see %s)", m.name, why, delay, m.log_path)
 
     def poll(self) -> None:
         """One supervision step: reap exits, apply restart policies, check health."""
@@ -509,7 +318,7 @@ class Supervisor:
         for m in self.procs.values():
             self._end_spare(m)
         running = [m for m in self.procs.values() if m.proc is not None]
-        last = [m for m in running if m.service == "recorder"]
+        last = [m for m in running if service_table.stops_last(m.service)]
         for wave in ([m for m in running if m not in last], last):
             self._stop_wave(wave)
         for s in getattr(self, "_subs", []):
@@ -517,25 +326,6 @@ class Supervisor:
         if self.session is not None:
             self.session.close()
             self.session = None
-
-    def _stop_wave(self, running: list[Managed]) -> None:
-        # Stop in reverse data-flow order: the explorer stops driving before the sim goes away.
-        for m in reversed(running):
-            self._signal(m, signal.SIGINT)
-        deadline = time.monotonic() + self.config.deploy.stop_timeout_s
-        for m in reversed(running):
-            try:
-                m.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                log.warning(
-                    "%s did not stop within %.0f s: killing it",
-                    m.name,
-                    self.config.deploy.stop_timeout_s,
-                )
-                self._signal(m, signal.SIGKILL)
-                m.proc.wait()
-            m.exit_codes.append(m.proc.returncode)
-            m.proc = None
 
     def run(self, duration_s: float | None = None, progress_period_s: float = 10.0) -> int:
         """Supervise until done; returns 0 when the run finished normally."""
@@ -579,93 +369,6 @@ class Supervisor:
             self.ended = self.config_error
             return CONFIG_ERROR
         return result
-
-    def warnings(self) -> list[str]:
-        """What the supervisor saw go wrong in this run (the report adds what its figures show)."""
-        out = []
-        for m in self.procs.values():
-            log_file = (
-                m.log_path.relative_to(self.run_dir)
-                if m.log_path.is_relative_to(self.run_dir)
-                else m.log_path
-            )
-            if not m.ever_ready:
-                out.append(f"{m.name} never became ready (see {log_file})")
-            if m.crash_looped:
-                codes = ", ".join(str(c) for c in m.exit_codes[-5:])
-                out.append(
-                    f"{m.name} kept crashing: restarted {m.n_restarts} times, more than "
-                    f"{m.policy.max_restarts} in {m.policy.restart_window_s:.0f} s (last "
-                    f"exit statuses {codes}; see {log_file})"
-                )
-            else:
-                out += self._crash_lines(m, log_file)
-            if m.finished and m.exit_codes and m.exit_codes[-1] not in (0, -signal.SIGINT):
-                out.append(
-                    f"{m.name} exited with status {m.exit_codes[-1]} and was not "
-                    f"restarted (restart = {m.policy.restart})"
-                )
-        if self.config.deploy.finish_with == "explorer":
-            # What exploration needs, here or on another host of the deployment.
-            for m in [m for m in self.procs.values() if m.service == "explorer"]:
-                for need in ("mapper", "navgraph", "planner", "coordinator"):
-                    where = m.robot
-                    if self.fleet is not None and need in ("navgraph", "coordinator"):
-                        where = self.fleet  # the fleet's shared graph and coordinator
-                    elif need == "coordinator":
-                        continue
-                    if (where, need) in self.seen_ready:
-                        continue
-                    why = "see above"
-                    if self._find(where, need) is None:
-                        why = f"disabled in this run (deploy.{need}.enabled = false) and none ran"
-                        why += " elsewhere"
-                    out.append(
-                        f"the {need} the explorer of robot {m.robot} needs never came up ({why})"
-                    )
-        return out
-
-    @staticmethod
-    def _crash_lines(m: Managed, log_file) -> list[str]:
-        """One line per crash that was restarted (or kill by the health checks): a run that
-        recovered still says it crashed."""
-        out = []
-        for c in m.crashes:
-            if c["back_s"] is None:
-                back = "not ready again before the run ended"
-            else:
-                how = "a hot spare took over" if c["spare"] else "restarted"
-                back = f"{how}, ready {c['back_s']:.2f} s after it ended"
-            what = (
-                f"was killed by the supervisor ({c['killed_for']})"
-                if c["killed_for"]
-                else "crashed"
-            )
-            out.append(
-                f"{m.name} {what} {c['at_s']:.0f} s into the run (exit status {c['code']}; "
-                f"{back}; see {log_file})"
-            )
-        return out
-
-    def print_progress(self, elapsed_s: float) -> None:
-        with self._lock:
-            statuses = dict(self.statuses)
-        parts = []
-        for name, m in self.procs.items():
-            st = statuses.get((m.robot, m.service))
-            mark = (
-                "up" if m.alive else "starting" if m.starting else "done" if m.finished else "down"
-            )
-            extra = ""
-            if st is not None and st.pid == (m.proc.pid if m.proc else -1):
-                # a stream's first messages, refused while its clock settles, are no news
-                bad = sum(n for k, n in st.rejected.items() if k != "settling")
-                extra = f" in={st.msgs_in} out={st.msgs_out}" + (f" rejected={bad}" if bad else "")
-                progress = st.details.get("progress")
-                if progress:
-                    extra += f" {progress}"
-            parts.append(f"{name}:{mark}{extra}")
-        print(f"[{elapsed_s:6.0f} s] " + " | ".join(parts), flush=True)
 
 
 def profile_path(name: str, parser=None) -> Path:
@@ -712,15 +415,6 @@ def add_recorder(sup: Supervisor) -> bool:
         name = "recorder" if len(sup.robots) == 1 else f"recorder@{robot}"
         sup.add(name, argv, policy, service="recorder", robot=robot)
     return True
-
-
-def _last_line(m: Managed) -> str:
-    """The last line a service wrote to its log (a refusal is one line: its reason)."""
-    try:
-        lines = m.log_path.read_text(errors="replace").strip().splitlines()
-    except OSError:
-        lines = []
-    return lines[-1].strip() if lines else f"exit status {CONFIG_ERROR}, empty log"
 
 
 def check_optional_needs(config: SmanaConfig, services=None) -> None:
@@ -816,7 +510,7 @@ def cli(argv: list[str] | None = None) -> int:
     services = None
     if args.only:
         services = [s.strip() for s in args.only.split(",") if s.strip()]
-        known = (*SERVICE_ORDER, "coordinator", "recorder")
+        known = [r.name for r in service_table.supervised()]
         unknown = [s for s in services if s not in known]
         if unknown:
             p.error(f"unknown service(s) {unknown}; known: {', '.join(known)}")

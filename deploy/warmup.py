@@ -18,21 +18,17 @@ kernel loaded from the cache costs no compile: run on an empty `NUMBA_CACHE_DIR`
 
 from __future__ import annotations
 
-import importlib
 import sys
 import time
 
+from smana.common import services
 from smana.common.cli import config_file_from_args, run_command
 
-# service -> its Service class; `prepare()` compiles its kernels on a throwaway input (no session,
-# no file of the run). The sim is not here: its `prepare()` builds a world, and its one kernel
-# (camera labels) compiles in its camera worker on the first frame.
-WARMUPS: dict[str, str] = {
-    "mapper": "smana.services.mapper.service:MapperService",
-    "navgraph": "smana.services.navgraph.service:NavgraphService",
-    "planner": "smana.services.planner.service:PlannerService",
-    "explorer": "smana.services.explorer.service:ExplorerService",
-}
+# service -> its Service class, from the table of services (common/services.py, `warm_up`):
+# `prepare()` compiles its kernels on a throwaway input (no session, no file of the run). The sim
+# is not among them: its `prepare()` builds a world, and its one kernel (camera labels) compiles in
+# its camera worker on the first frame.
+WARMUPS: dict[str, str] = {r.name: r.service_class for r in services.rows() if r.warm_up}
 
 
 class CompileTimes:
@@ -73,9 +69,8 @@ class CompileTimes:
 def warm(service: str, config, profile: bool = False) -> dict:
     """Compile (or load) `service`'s kernels here: its import seconds, its prepare seconds and,
     with `profile`, the seconds per kernel compiled."""
-    module, cls_name = WARMUPS[service].split(":")
     t0 = time.perf_counter()
-    cls = getattr(importlib.import_module(module), cls_name)
+    cls = services.load(WARMUPS[service])
     t1 = time.perf_counter()
     svc = cls(config)
     if profile:

@@ -5,6 +5,8 @@
     plots.py         the paper's figures, beside the product's (common/figures.py, re-exported)
     fuzz.py          the message fuzzer (`smana bench fuzz`, tests/test_fuzz_*.py)
     bench/           `smana bench <name>`: one module per benchmark, each beside its peer
+    commands.py      its `smana` commands (bench, eval, experiment), declared to deploy/cli.py
+                     through the entry-point group `smana.commands` (pyproject.toml)
     data/            deterministic synthetic scans and datasets for benchmarks and tests
 
 It imports the product (services/*, common/, deploy/); the product never imports it: a run's

@@ -23,9 +23,10 @@ import pytest
 import smana.deploy
 from smana.common import keys
 from smana.common.config import SmanaConfig
-from smana.deploy.cli import BENCHES, COMMANDS, _usage, main
+from smana.deploy.cli import COMMANDS, _usage, main
 from smana.deploy.router import router_config
 from smana.deploy.supervisor import Supervisor
+from smana.lab.bench import BENCHES
 
 PROFILES = Path(smana.deploy.__file__).parent / "profiles"
 

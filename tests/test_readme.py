@@ -26,7 +26,8 @@ from smana.common import keys
 from smana.common.messages import MapDelta, encode
 from smana.common.query import request
 from smana.common.zenoh_config import free_loopback_port
-from smana.deploy.cli import BENCHES, COMMANDS
+from smana.deploy.cli import COMMANDS
+from smana.lab.bench import BENCHES
 from tests.conftest import REPO, wait_for
 
 README = REPO / "README.md"

@@ -201,7 +201,7 @@ def check_versions(run_dir: Path, version: str, py: Path, cwd: Path, env: dict) 
 
 
 LIST_COMMANDS = (
-    "import json; from smana.deploy.cli import BENCHES, COMMANDS; "
+    "import json; from smana.deploy.cli import COMMANDS; from smana.lab.bench import BENCHES; "
     "print(json.dumps([list(COMMANDS), list(BENCHES)]))"
 )
 

@@ -1,10 +1,14 @@
-"""[deploy] config section."""
+"""[deploy] config section: how `smana up` runs the stack, and one `[deploy.<service>]` table per
+service it can start, made from the table of services (common/services.py: each row's `deploy`
+defaults), so a plug-in's service gets its table with no edit here."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
+from smana.common import services
 from smana.common.config._schema import ConfigError, Section, param
 
 RestartPolicy = Literal["never", "on-failure", "always"]
@@ -31,7 +35,7 @@ class ServiceDeployConfig(Section):
 
 
 @dataclass
-class DeployConfig(Section, section="deploy"):
+class _DeployBase(Section, section="deploy"):
     profile: str = "local"  # set by `smana up --profile NAME` (deploy/profiles/NAME.toml)
     # The supervisor's router. Local services connect to the FIRST listen endpoint; further ones
     # (e.g. tls/0.0.0.0:7448 on a base station) are for other hosts' routers.
@@ -53,19 +57,6 @@ class DeployConfig(Section, section="deploy"):
     standby_delay_s: float = param(20.0, ge=0)
     stop_timeout_s: float = param(5.0, gt=0)
     finish_with: str = "explorer"  # the run ends when this service exits with status 0
-    sim: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
-    mapper: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
-    navgraph: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
-    planner: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
-    explorer: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(standby=True))
-    recorder: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # Rerun .rrd
-    coordinator: ServiceDeployConfig = field(default_factory=ServiceDeployConfig)  # a fleet's
-    # A dataset replayed in place of the sim (`smana replay --run`): sent once, never restarted
-    replay: ServiceDeployConfig = field(
-        default_factory=lambda: ServiceDeployConfig(enabled=False, restart="never")
-    )
-    # ROS 2 over rmw_zenoh (`smana ros2`); off unless asked: --set deploy.ros2.enabled=true
-    ros2: ServiceDeployConfig = field(default_factory=lambda: ServiceDeployConfig(enabled=False))
 
     def validate(self) -> None:
         from smana.common.keys import check_name
@@ -75,3 +66,20 @@ class DeployConfig(Section, section="deploy"):
                 check_name(robot)
             except ValueError as exc:
                 raise ConfigError(f"deploy.robots: {exc}") from None
+
+
+def _policy(defaults: dict):
+    return field(default_factory=lambda: ServiceDeployConfig(**defaults))
+
+
+# [deploy] with a ServiceDeployConfig field per service `smana up` can start, in table order.
+DeployConfig = dataclasses.make_dataclass(
+    "DeployConfig",
+    [(r.name, ServiceDeployConfig, _policy(r.deploy)) for r in services.supervised()],
+    bases=(_DeployBase,),
+    namespace={
+        "__doc__": "[deploy]: the supervisor's settings and each service's policy.",
+        "__module__": __name__,
+    },
+)
+DeployConfig.section = "deploy"  # make_dataclass passes no class keywords to __init_subclass__
