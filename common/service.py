@@ -80,7 +80,7 @@ from smana.common.service_queries import (
     Reply,
     ReplyError,
     Request,
-    _query_form,
+    query_form,
 )
 from smana.common.zenoh_config import make_zenoh_config, open_session
 
@@ -469,7 +469,7 @@ class Service(Inbox, Answers, Liveliness):
             self._held_since.pop(id(query), None)
             self.books.settle("dropped", "warming_up")
             try:
-                as_json = _query_form(query)[1]
+                as_json = query_form(query)[1]
             except Exception:  # noqa: BLE001 - unreadable: answered in msgpack
                 as_json = False
             self._reply_err(

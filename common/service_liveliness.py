@@ -10,7 +10,7 @@ import time
 
 from smana.common import keys
 from smana.common.messages import MessageError, ServiceStatus, decode
-from smana.common.service_queries import _encoding, _query_form, _reply_bytes
+from smana.common.service_queries import query_form, reply_bytes, reply_encoding
 
 
 class Liveliness:
@@ -90,8 +90,8 @@ class Liveliness:
             self.books.received += 1
             self.books.accepted += 1
         try:
-            as_json = _query_form(query)[1]
-            query.reply(key, _reply_bytes(msg, as_json), encoding=_encoding(as_json))
+            as_json = query_form(query)[1]
+            query.reply(key, reply_bytes(msg, as_json), encoding=reply_encoding(as_json))
         except Exception:  # the querier left: nothing to answer
             pass
 

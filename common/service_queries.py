@@ -87,7 +87,7 @@ class Answers:
         wider query (`smana/r1/**`) matches and an access-control policy allows."""
         as_json = False
         try:
-            params, as_json = _query_form(query)
+            params, as_json = query_form(query)
             size = len(query.payload) if query.payload is not None else 0
             if size > self.max_payload_bytes:  # refused before the payload is copied
                 raise MessageError("oversize", f"{size} bytes > {self.max_payload_bytes}")
@@ -107,11 +107,11 @@ class Answers:
                 self.books.settle("accepted")
                 self._send_reply(query, key, result.payload, None, result.attachment)
                 return
-            body = _reply_bytes(result, as_json)
+            body = reply_bytes(result, as_json)
         except (Reject, MessageError) as exc:
             self._rejected(exc.kind, f"query {req.key}: {exc}")
             if getattr(exc, "reply", None) is not None:
-                self._send_reply(query, key, _reply_bytes(exc.reply, as_json), as_json)
+                self._send_reply(query, key, reply_bytes(exc.reply, as_json), as_json)
             else:
                 self._reply_err(query, exc.kind, str(exc), as_json)
             return
@@ -128,7 +128,7 @@ class Answers:
             if as_json is None:
                 query.reply(key, body, attachment=attachment)
             else:
-                query.reply(key, body, encoding=_encoding(as_json))
+                query.reply(key, body, encoding=reply_encoding(as_json))
             self.msgs_out += 1
         except Exception as exc:  # the querier left: the query was still handled
             self.note("reply_failed", f"query {key}: reply not sent: {exc}")
@@ -136,12 +136,12 @@ class Answers:
     def _reply_err(self, query, kind: str, message: str, as_json: bool) -> None:
         body = {"ok": False, "error": kind, "message": message}
         try:
-            query.reply_err(_reply_bytes(body, as_json), encoding=_encoding(as_json))
+            query.reply_err(reply_bytes(body, as_json), encoding=reply_encoding(as_json))
         except Exception as exc:
             self.note("reply_failed", f"error reply not sent: {exc}")
 
 
-def _query_form(query) -> tuple[dict[str, str], bool]:
+def query_form(query) -> tuple[dict[str, str], bool]:
     """A query's selector parameters, and whether it asked in JSON (a JSON or text payload, or
     `?format=json`)."""
     params = dict(query.parameters) if query.parameters else {}
@@ -149,13 +149,15 @@ def _query_form(query) -> tuple[dict[str, str], bool]:
     return params, enc.startswith(("application/json", "text/")) or params.get("format") == "json"
 
 
-def _encoding(as_json: bool):
+def reply_encoding(as_json: bool):
+    """The zenoh encoding of a reply in JSON or msgpack."""
     import zenoh
 
     return zenoh.Encoding.APPLICATION_JSON if as_json else zenoh.Encoding("application/msgpack")
 
 
-def _reply_bytes(result, as_json: bool) -> bytes:
+def reply_bytes(result, as_json: bool) -> bytes:
+    """A handler's result (bytes, a Message or a plain map) as the reply's payload."""
     if isinstance(result, bytes):
         return result
     if isinstance(result, Message):
