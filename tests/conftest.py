@@ -186,9 +186,8 @@ class ZenohStack:
     def subscriber(self, key: str, handler, timeout_s: float = 10.0):
         """A subscriber on the test's session that the router has passed on (the subscriber side
         of `publisher`): declared, then held until a publisher on `key` in another session of this
-        stack sees it. Every client that publishes on `key` (a service) learns of it in the same
-        pass of the router, on a link that also carries whatever the test sends it next, so a
-        reply to what the test sends afterwards is not filtered out before it reaches the router.
+        stack sees it, so the router holds it and passes it on to the clients that publish on
+        `key`. `tests/test_service.py` checks that a service then publishing on `key` reaches it.
         `key` must have no other subscriber: the probe cannot tell one subscriber from another."""
         sub = self.session.declare_subscriber(key, handler)
         probe = self.probe_session.declare_publisher(key)
