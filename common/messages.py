@@ -8,112 +8,72 @@ lists) for queries from any zenoh tool.
 Decoded arrays are read-only views of the payload (no copy); copy before modifying them.
 Decoding validates everything and raises one error type, `MessageError`, whose `kind` names what was
 wrong (services count errors by kind). Nothing a remote peer sends can crash a decoder.
+
+This module holds the schemas; the base class, field kinds and bounds are in `schema.py`, the codec
+in `codec.py`. Import all of it from here.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
-import types
-import typing
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import ClassVar
 
-import msgpack
 import numpy as np
 
-SCHEMA_VERSION = 1
-MAX_PAYLOAD_BYTES = 64 * 1024 * 1024  # a 131k-point cloud is ~2.2 MB; 64 MB leaves room for maps
-
-# Bounds on values no robot can produce: refused as `value` by the decoder, so no service ever
-# computes with them. Coordinates: 1000 km from the world origin. Stamps: seconds (simulated,
-# dataset or Unix time) up to the year 2286. Sequence numbers and every integer: int64.
-COORD_LIMIT_M = 1.0e6
-STAMP_LIMIT_S = 1.0e10
-INT_LIMIT = 2**63 - 1
-RESOLUTION_RANGE_M = (1.0e-3, 100.0)
-
-ERROR_KINDS = (
-    "oversize",  # payload larger than the limit
-    "malformed",  # not msgpack/JSON, or not a map with a type tag
-    "type",  # a message of another type than expected
-    "version",  # schema version this build does not speak
-    "missing_field",
-    "unknown_field",
-    "dtype",  # array of a dtype the schema does not allow
-    "shape",  # array of the wrong rank or inner dimensions, or data of the wrong byte size
-    "length",  # arrays that must have the same length do not
-    "nonfinite",  # NaN or inf where a finite number is required
-    "value",  # a scalar of the wrong type or outside its range
+from smana.common.codec import decode, encode, from_dict, from_json, json_default, to_json
+from smana.common.schema import (
+    COORD_LIMIT_M,
+    ERROR_KINDS,
+    INT_LIMIT,
+    MAX_PAYLOAD_BYTES,
+    REGISTRY,
+    RESOLUTION_RANGE_M,
+    SCHEMA_VERSION,
+    STAMP_LIMIT_S,
+    ArraySpec,
+    Message,
+    MessageError,
+    array,
+    scalar,
 )
 
-
-class MessageError(ValueError):
-    """A payload that is not a valid message. `kind` is one of ERROR_KINDS."""
-
-    def __init__(self, kind: str, message: str):
-        assert kind in ERROR_KINDS, kind
-        super().__init__(f"{kind}: {message}")
-        self.kind = kind
-
-
-@dataclass(frozen=True)
-class ArraySpec:
-    """What an array field may hold. `shape` uses None for a free dimension; dimensions that share a
-    `group` name must agree across the fields of one message (e.g. every per-point array has N)."""
-
-    dtypes: tuple[str, ...]
-    shape: tuple[int | None, ...]
-    group: str | None = None
-    finite: bool = True
-    shapes: tuple[tuple[int | None, ...], ...] = ()  # alternatives to `shape` (e.g. 2 or 3 coords)
-    limit: float | None = None  # largest magnitude a value may have (coordinates: COORD_LIMIT_M)
-
-    def allowed_shapes(self) -> tuple[tuple[int | None, ...], ...]:
-        return (self.shape, *self.shapes)
-
-
-def array(dtypes, shape, group=None, finite=True, shapes=(), default=None, limit=None):
-    """A dataclass field holding a numpy array with the given spec."""
-    spec = ArraySpec(
-        tuple(np.dtype(d).str for d in dtypes), tuple(shape), group, finite, shapes, limit
-    )
-    if default is None:
-
-        def empty():
-            return np.zeros(tuple(0 if s is None else s for s in shape), spec.dtypes[0])
-
-        return field(default_factory=empty, metadata={"array": spec})
-    return field(default_factory=default, metadata={"array": spec})
-
+# The message API, whichever module holds each part: the base and bounds (schema.py), the
+# schemas (here), the codec (codec.py).
+__all__ = [
+    "COORD_LIMIT_M",
+    "ERROR_KINDS",
+    "INT_LIMIT",
+    "MAX_PAYLOAD_BYTES",
+    "REGISTRY",
+    "RESOLUTION_RANGE_M",
+    "SCHEMA_VERSION",
+    "STAMP_LIMIT_S",
+    "VALUES_KINDS",
+    "ArraySpec",
+    "GraphPatch",
+    "MapDelta",
+    "Message",
+    "MessageError",
+    "PathReply",
+    "PathRequest",
+    "Pose",
+    "SemanticCloud",
+    "ServiceStatus",
+    "VelocityCommand",
+    "array",
+    "decode",
+    "encode",
+    "from_dict",
+    "from_json",
+    "json_default",
+    "matrix_to_quat",
+    "quat_to_matrix",
+    "scalar",
+    "to_json",
+]
 
 # -- the messages ---------------------------------------------------------------------------------
-
-REGISTRY: dict[str, type[Message]] = {}
-
-
-@dataclass
-class Message:
-    """Base of every message. Subclasses are registered by class name."""
-
-    TYPE: ClassVar[str] = ""
-    # Fields a JSON query may leave out (they take their defaults). The msgpack wire form always
-    # carries every field, so there a missing field is an error.
-    JSON_OPTIONAL: ClassVar[tuple[str, ...]] = ()
-
-    def __init_subclass__(cls, **kw):
-        super().__init_subclass__(**kw)
-        cls.TYPE = cls.__name__
-        REGISTRY[cls.__name__] = cls
-
-    def check(self) -> None:
-        """Checks across fields, after each field passed its own (raise MessageError)."""
-
-
-def scalar(default, lo=None, hi=None):
-    """A scalar field whose value must lie in [lo, hi] (either end may be open: None)."""
-    return field(default=default, metadata={"range": (lo, hi)})
 
 
 def _stamp_field():
@@ -349,286 +309,6 @@ class ServiceStatus(Message):
         """msgs_in == accepted + dropped + rejected + pending."""
         settled = self.accepted + sum(self.dropped.values()) + sum(self.rejected.values())
         return self.msgs_in == settled + self.pending
-
-
-# -- codec ----------------------------------------------------------------------------------------
-
-
-def _fields(cls) -> list[dataclasses.Field]:
-    return [f for f in dataclasses.fields(cls) if not f.metadata.get("local")]
-
-
-def _array_to_wire(a: np.ndarray) -> dict:
-    a = np.ascontiguousarray(a)
-    return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
-
-
-def encode(msg: Message) -> bytes:
-    """Serialise a message to msgpack bytes."""
-    out: dict[str, Any] = {"_type": msg.TYPE, "_v": SCHEMA_VERSION}
-    for f in _fields(type(msg)):
-        v = getattr(msg, f.name)
-        out[f.name] = _array_to_wire(np.asarray(v)) if "array" in f.metadata else _plain(v)
-    return msgpack.packb(out, use_bin_type=True)
-
-
-def json_default(o):
-    """`default=` for json.dumps and msgpack.packb: numpy scalars and arrays as plain values."""
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(f"cannot encode {type(o).__name__}")
-
-
-def _plain(v):
-    """numpy scalars and containers of them to plain Python (msgpack and JSON want these)."""
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, dict):
-        return {(k if isinstance(k, str) else str(k)): _plain(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [_plain(x) for x in v]
-    return v
-
-
-def decode(
-    payload: bytes | bytearray | memoryview,
-    expect: type[Message] | tuple[type[Message], ...] | None = None,
-    *,
-    drop_nonfinite: bool = False,
-    max_bytes: int = MAX_PAYLOAD_BYTES,
-) -> Message:
-    """Parse and validate msgpack bytes. With `drop_nonfinite`, per-point rows holding NaN/inf (or
-    coordinates beyond COORD_LIMIT_M) are removed (a SemanticCloud records how many in
-    `n_dropped_nonfinite`) instead of rejected. Every failure is a MessageError."""
-    if len(payload) > max_bytes:
-        raise MessageError("oversize", f"{len(payload)} bytes > limit {max_bytes}")
-    try:
-        raw = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=False)
-    except Exception as exc:  # msgpack raises several unrelated types on garbage
-        raise MessageError("malformed", f"not msgpack: {exc}") from None
-    return from_dict(raw, expect, drop_nonfinite=drop_nonfinite, wire=True)
-
-
-def to_json(msg: Message) -> bytes:
-    """The JSON form: same fields, arrays as nested lists."""
-    out: dict[str, Any] = {"_type": msg.TYPE, "_v": SCHEMA_VERSION}
-    for f in _fields(type(msg)):
-        out[f.name] = _plain(getattr(msg, f.name))
-    return json.dumps(out, allow_nan=False).encode()
-
-
-def from_json(
-    payload: bytes | str, expect=None, *, drop_nonfinite=False, max_bytes=MAX_PAYLOAD_BYTES
-) -> Message:
-    """Parse a JSON message. `_type` and `_v` may be omitted when `expect` names one type (so a
-    user can type `{"start": [0, 0], "goal": [5, 3]}` into any zenoh tool)."""
-    if len(payload) > max_bytes:
-        raise MessageError("oversize", f"{len(payload)} bytes > limit {max_bytes}")
-    try:
-        raw = json.loads(payload)
-    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
-        raise MessageError("malformed", f"not JSON: {type(exc).__name__}: {exc}") from None
-    if isinstance(raw, dict) and isinstance(expect, type):
-        raw.setdefault("_type", expect.TYPE)
-        raw.setdefault("_v", SCHEMA_VERSION)
-    return from_dict(raw, expect, drop_nonfinite=drop_nonfinite, wire=False)
-
-
-def from_dict(raw, expect=None, *, drop_nonfinite=False, wire=True) -> Message:
-    """Validate a decoded map (msgpack wire form, or JSON form with `wire=False`)."""
-    try:
-        return _from_dict(raw, expect, drop_nonfinite, wire)
-    except MessageError:
-        raise
-    except Exception as exc:  # a check this codec lacks: still a rejection, never a crash
-        raise MessageError("malformed", f"{type(exc).__name__}: {exc}") from None
-
-
-def _from_dict(raw, expect, drop_nonfinite: bool, wire: bool) -> Message:
-    if not isinstance(raw, dict) or not isinstance(raw.get("_type"), str):
-        raise MessageError("malformed", "expected a map with a '_type' field")
-    tname = raw["_type"]
-    cls = REGISTRY.get(tname)
-    if cls is None:
-        raise MessageError("type", f"unknown message type {tname!r}")
-    if expect is not None:
-        allowed = expect if isinstance(expect, tuple) else (expect,)
-        if cls not in allowed:
-            names = ", ".join(c.TYPE for c in allowed)
-            raise MessageError("type", f"expected {names}, got {tname}")
-    if type(raw.get("_v")) is not int or raw["_v"] != SCHEMA_VERSION:  # True == 1 == 1.0
-        got = raw.get("_v")
-        raise MessageError("version", f"{tname} v{got!r}, this build speaks v{SCHEMA_VERSION}")
-
-    fields = {f.name: f for f in _fields(cls)}
-    unknown = set(raw) - set(fields) - {"_type", "_v"}
-    if unknown:
-        raise MessageError("unknown_field", f"{tname} has no field(s) {sorted(unknown)}")
-    hints = typing.get_type_hints(cls)
-    values: dict[str, Any] = {}
-    for name, f in fields.items():
-        if name not in raw:
-            if not wire and name in cls.JSON_OPTIONAL:
-                continue
-            raise MessageError("missing_field", f"{tname}.{name}")
-        if "array" in f.metadata:
-            values[name] = _check_array(tname, name, raw[name], f.metadata["array"], wire)
-        else:
-            rng = f.metadata.get("range", (None, None))
-            values[name] = _check_scalar(tname, name, raw[name], hints[name], rng)
-    msg = cls(**values)
-    _check_groups(tname, msg, drop_nonfinite)
-    msg.check()
-    return msg
-
-
-def _check_array(tname, name, v, spec: ArraySpec, wire: bool) -> np.ndarray:
-    where = f"{tname}.{name}"
-    if wire:
-        if not isinstance(v, dict) or set(v) != {"dtype", "shape", "data"}:
-            raise MessageError("malformed", f"{where}: expected {{dtype, shape, data}}")
-        try:
-            dt = np.dtype(v["dtype"])
-        except (TypeError, ValueError):
-            raise MessageError("dtype", f"{where}: unknown dtype {v['dtype']!r}") from None
-        if dt.str not in spec.dtypes:
-            raise MessageError("dtype", f"{where}: dtype {dt.str}, allowed {list(spec.dtypes)}")
-        shape = v["shape"]
-        # Python integers throughout, before anything is allocated: a product taken in int64
-        # wraps ([2**32, 2**32] is 0) and would let a claimed shape past the length check.
-        if not isinstance(shape, list) or not all(
-            type(s) is int and 0 <= s <= MAX_PAYLOAD_BYTES for s in shape
-        ):
-            raise MessageError("shape", f"{where}: shape must be a list of non-negative ints")
-        if len(shape) not in {len(s) for s in spec.allowed_shapes()}:
-            raise MessageError("shape", f"{where}: shape {shape}, expected {_fmt(spec)}")
-        data = v["data"]
-        if not isinstance(data, bytes | bytearray):
-            raise MessageError("malformed", f"{where}: data must be bytes")
-        if len(data) != math.prod(shape) * dt.itemsize:
-            raise MessageError(
-                "shape", f"{where}: {len(data)} bytes do not hold shape {shape} of {dt.str}"
-            )
-        a = np.frombuffer(data, dt).reshape(shape)
-    else:
-        try:
-            a = np.asarray(v, dtype=np.dtype(spec.dtypes[0]))
-        except (TypeError, ValueError, OverflowError):
-            raise MessageError("value", f"{where}: not an array of {spec.dtypes[0]}") from None
-        if a.size == 0 and len(spec.shape) > 1:
-            a = a.reshape((0, *spec.shape[1:]))
-    if not any(_shape_ok(a.shape, s) for s in spec.allowed_shapes()):
-        raise MessageError("shape", f"{where}: shape {list(a.shape)}, expected {_fmt(spec)}")
-    if spec.group is None:
-        if spec.finite and a.dtype.kind == "f" and not np.isfinite(a).all():
-            raise MessageError("nonfinite", f"{where}: NaN or inf")
-        if spec.limit is not None and a.size and np.abs(a).max() > spec.limit:
-            raise MessageError("value", f"{where}: a value beyond +-{spec.limit:g}")
-    return a
-
-
-def _shape_ok(shape, want) -> bool:
-    if len(shape) != len(want):
-        return False
-    return all(w is None or s == w for s, w in zip(shape, want, strict=True))
-
-
-def _fmt(spec: ArraySpec) -> str:
-    return " or ".join(str([("N" if d is None else d) for d in s]) for s in spec.allowed_shapes())
-
-
-def _check_groups(tname, msg: Message, drop_nonfinite: bool) -> None:
-    """Arrays of one group must share their first dimension; their float rows must be finite and
-    within their limit. With `drop_nonfinite` the bad rows are removed instead."""
-    groups: dict[str, list[tuple[str, ArraySpec]]] = {}
-    for f in _fields(type(msg)):
-        spec = f.metadata.get("array")
-        if spec is not None and spec.group is not None:
-            groups.setdefault(spec.group, []).append((f.name, spec))
-    for members in groups.values():
-        lengths = {name: len(getattr(msg, name)) for name, _ in members}
-        if len(set(lengths.values())) > 1:
-            raise MessageError("length", f"{tname}: array lengths disagree {lengths}")
-        checked = [
-            (name, spec)
-            for name, spec in members
-            if spec.finite and getattr(msg, name).dtype.kind == "f" and getattr(msg, name).size
-        ]
-        if all(_all_within(getattr(msg, name), spec.limit) for name, spec in checked):
-            continue  # the usual case, two reductions per array: no row to drop
-        nonfinite = beyond = None
-        for name, spec in checked:
-            a = getattr(msg, name)
-            flat = a.reshape(len(a), -1)
-            rows = ~np.isfinite(flat).all(axis=1)
-            nonfinite = rows if nonfinite is None else nonfinite | rows
-            if spec.limit is not None:
-                with np.errstate(invalid="ignore"):
-                    far = (np.abs(flat) > spec.limit).any(axis=1)
-                beyond = far if beyond is None else beyond | far
-        bad = nonfinite if beyond is None else (beyond if nonfinite is None else nonfinite | beyond)
-        if bad is None or not bad.any():
-            continue
-        if not drop_nonfinite:
-            if nonfinite is not None and nonfinite.any():
-                raise MessageError(
-                    "nonfinite", f"{tname}: {int(nonfinite.sum())} rows hold NaN or inf"
-                )
-            raise MessageError("value", f"{tname}: {int(beyond.sum())} rows beyond their limit")
-        keep = ~bad
-        for name, _ in members:
-            setattr(msg, name, getattr(msg, name)[keep])
-        if hasattr(msg, "n_dropped_nonfinite"):
-            msg.n_dropped_nonfinite = int(bad.sum())
-
-
-def _all_within(a: np.ndarray, limit: float | None) -> bool:
-    """Every value finite (and within +-limit), from the array's minimum and maximum: NaN
-    propagates into both and fails every comparison, inf fails the bound."""
-    lo, hi = float(a.min()), float(a.max())
-    bound = math.inf if limit is None else limit
-    return -bound <= lo and hi <= bound and math.isfinite(lo) and math.isfinite(hi)
-
-
-_SCALARS = {float: (int, float), int: (int,), str: (str,), bool: (bool,), dict: (dict,)}
-
-
-def _check_scalar(tname, name, v, hint, rng=(None, None)):
-    where = f"{tname}.{name}"
-    optional = isinstance(hint, types.UnionType) and type(None) in typing.get_args(hint)
-    if optional:
-        if v is None:
-            return None
-        hint = next(a for a in typing.get_args(hint) if a is not type(None))
-    ok_types = _SCALARS.get(hint, (object,))
-    if isinstance(v, bool) and hint is not bool:
-        raise MessageError("value", f"{where}: expected {hint.__name__}, got bool")
-    if not isinstance(v, ok_types):
-        raise MessageError("value", f"{where}: expected {hint.__name__}, got {type(v).__name__}")
-    if hint is float:
-        v = float(v)
-        if not math.isfinite(v):
-            raise MessageError("nonfinite", f"{where}: NaN or inf")
-    if hint is int and not -INT_LIMIT <= v <= INT_LIMIT:
-        raise MessageError("value", f"{where}: {v} does not fit int64")
-    lo, hi = rng
-    if (lo is not None and v < lo) or (hi is not None and v > hi):
-        raise MessageError("value", f"{where}: {v!r} outside [{lo}, {hi}]")
-    if hint is dict:
-        _check_dict_values(where, v)
-    return v
-
-
-def _check_dict_values(where, d: dict) -> None:
-    for k, x in d.items():
-        if isinstance(x, float) and not math.isfinite(x):
-            raise MessageError("nonfinite", f"{where}[{k!r}]: NaN or inf")
-        if isinstance(x, dict):
-            _check_dict_values(f"{where}[{k!r}]", x)
 
 
 # -- small geometry helpers used by several services -----------------------------------------------

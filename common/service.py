@@ -44,6 +44,11 @@ state in `warm_up()`, declares its inputs and outputs in `setup()` and does its 
   thread's stack to the log and exits with status 3: with its supervisor gone (killed -9), nobody
   else would end it.
 
+The class is put together by job: this module holds the lifecycle (run, the main loop, standby,
+kernels, stop and its watchdog); `service_books.py` the inputs, outputs and books (`Inbox`);
+`service_queries.py` queries and their replies (`Answers`); `service_liveliness.py` the status
+and its heartbeat (`Liveliness`). Services import all of it from here.
+
 A complete minimal example is `tests/support/echo_service.py`. Tests run services in-process on a
 fake zenoh (`tests/support/fake_zenoh.py`), handed to `run` through `session_factory`.
 
@@ -61,27 +66,36 @@ import os
 import signal
 import threading
 import time
-import traceback
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
-
-import msgpack
 
 from smana.common import keys
 from smana.common.config import SmanaConfig
-from smana.common.messages import (
-    MAX_PAYLOAD_BYTES,
-    Message,
-    MessageError,
-    ServiceStatus,
-    decode,
-    encode,
-    from_json,
-    json_default,
-    to_json,
+from smana.common.messages import MAX_PAYLOAD_BYTES
+from smana.common.service_books import Books, Inbox, LatestSlot
+from smana.common.service_liveliness import Liveliness, kernels_loaded
+from smana.common.service_queries import (
+    Answers,
+    Reject,
+    Reply,
+    ReplyError,
+    Request,
+    query_form,
 )
 from smana.common.zenoh_config import make_zenoh_config, open_session
+
+# What services and tools import from here: the service API, whichever module holds each part.
+__all__ = [
+    "Reject",
+    "Reply",
+    "ReplyError",
+    "Request",
+    "Service",
+    "die_with_parent",
+    "kernels_loaded",
+    "on_stop_signals",
+    "run_service",
+]
 
 try:  # Linux: a child can ask to be signalled when its parent dies, even by SIGKILL
     import ctypes
@@ -148,134 +162,13 @@ STOP_DEADLINE_S = 5.0  # after a stop signal: to leave the loop, and to close ze
 STANDBY_ENV = "SMANA_STANDBY_FD"
 # "foreground": prepare() before the service is live even where it may run in the background.
 KERNELS_ENV = "SMANA_KERNELS"
-FIFO_LIMIT = 10_000  # light messages waiting for the main loop before new ones are dropped
 # A query to a service still compiling its kernels waits this long, then is answered `warming_up`.
 # None: a consumer's setup() may be the one asking (the planner's graph sync: held 1 s, it made the
 # planner live 1 s later), and every consumer asks again (bench startup, 2026-11-26).
 WARMING_UP_HOLD_S = 0.0
 
 
-@dataclass
-class Request:
-    """A query as a handler sees it: its parameters, its payload (if any) and its encoding."""
-
-    key: str
-    params: dict[str, str]
-    payload: bytes | None
-    json: bool  # the query asked in JSON, so the reply goes in JSON
-    attachment: bytes | None = None  # e.g. rmw_zenoh's (sequence number, timestamp, gid)
-
-    def decode(self, expect: type[Message]) -> Message:
-        """The payload as a message of type `expect` (MessageError if it is not one)."""
-        if not self.payload:
-            raise MessageError("missing_field", f"{expect.TYPE} query needs a payload")
-        return from_json(self.payload, expect) if self.json else decode(self.payload, expect)
-
-    def body(self) -> dict:
-        """The payload as a plain map (empty when there is none): for queries without a schema."""
-        if not self.payload:
-            return {}
-        try:
-            data = json.loads(self.payload) if self.json else msgpack.unpackb(self.payload)
-        except Exception as exc:
-            raise MessageError("malformed", f"query payload is not a map: {exc}") from None
-        if not isinstance(data, dict):
-            raise MessageError("malformed", "query payload is not a map")
-        return data
-
-
-@dataclass
-class Reply:
-    """A query handler's answer given as it goes on the wire: bytes, and an attachment (a ROS 2
-    service reply carries the request's sequence number and client gid, `services/ros2`)."""
-
-    payload: bytes
-    attachment: bytes | None = None
-
-
-class Reject(Exception):
-    """Raise from a handler to refuse the message it was given: counted in `rejected[kind]`,
-    logged, and the service's state stays as it was. From a query handler it becomes an error
-    reply `{"ok": false, "error": kind, "message": ...}`, or `reply` (a Message or map) sent as an
-    ordinary reply where the query's schema has its own error form (a PathReply with ok false)."""
-
-    def __init__(self, kind: str, message: str, reply=None):
-        super().__init__(message)
-        self.kind = kind
-        self.reply = reply
-
-
-class ReplyError(Reject):
-    """A query handler's refusal (the name query handlers have always used)."""
-
-
-class Books:
-    """Where every message a service received went. Zenoh callbacks (their own threads) and the
-    main loop both write, so every change is made under one lock; `snapshot()` adds up:
-    received == accepted + sum(dropped) + sum(rejected) + pending."""
-
-    def __init__(self):
-        self.lock = threading.Lock()
-        self.received = 0
-        self.accepted = 0
-        self.in_flight = 0  # taken off a queue by the main loop, its fate not yet known
-        self.dropped: collections.Counter[str] = collections.Counter()
-        self.rejected: collections.Counter[str] = collections.Counter()
-
-    def settle(self, outcome: str, kind: str = "") -> None:
-        """The fate of a message taken with `Service._take` (in flight): `accepted`,
-        `dropped` (kind = reason) or `rejected` (kind)."""
-        with self.lock:
-            self.in_flight -= 1
-            if outcome == "accepted":
-                self.accepted += 1
-            elif outcome == "dropped":
-                self.dropped[kind] += 1
-            else:
-                self.rejected[kind] += 1
-
-
-class _Latest:
-    """A one-slot mailbox: put() replaces what was there (and says so), take() empties it and
-    says how many items were replaced since the last take."""
-
-    def __init__(self):
-        self.item = None
-        self.replaced = 0
-
-    def put(self, item) -> bool:
-        replaced = self.item is not None
-        self.replaced += replaced
-        self.item = item
-        return replaced
-
-    def take(self):
-        item, self.item = self.item, None
-        n, self.replaced = self.replaced, 0
-        return item, n
-
-
-class Publisher:
-    """A declared zenoh publisher that encodes messages and counts what it sends."""
-
-    def __init__(self, service: Service, zpub, key: str):
-        self._service, self._zpub, self.key = service, zpub, key
-
-    def put(self, msg: Message | dict | bytes) -> None:
-        if isinstance(msg, Message):
-            payload = encode(msg)
-        elif isinstance(msg, dict):
-            payload = msgpack.packb(msg, use_bin_type=True, default=json_default)
-        else:
-            payload = msg
-        self._zpub.put(payload)
-        self._service.msgs_out += 1
-
-    def undeclare(self):
-        self._zpub.undeclare()
-
-
-class Service:
+class Service(Inbox, Answers, Liveliness):
     """Base of every smana service. Subclasses set `name` and override `warm_up`, `setup`,
     `tick`, `on_stop` and `status_details` as they need."""
 
@@ -308,7 +201,7 @@ class Service:
         self._watchdog: threading.Timer | None = None
         self._wake = threading.Event()
         self._fifo: collections.deque = collections.deque()
-        self._latest: list[tuple[_Latest, Callable]] = []
+        self._latest: list[tuple[LatestSlot, Callable]] = []
         # for a latest-wins handler: how many newer samples of its input were dropped as stale
         # just before the one it is given (a sender's numbering gap minus these was lost on the
         # way, before reaching this service)
@@ -346,119 +239,6 @@ class Service:
     def status_details(self) -> dict:
         """Service-specific figures for the status message (plain values only)."""
         return {}
-
-    # -- declarations ------------------------------------------------------------------------------
-
-    def _received(self, sample) -> bytes | None:
-        """Count a sample in; None (and rejected `oversize`) when it is too large to copy."""
-        n = len(sample.payload)
-        if n > self.max_payload_bytes:
-            with self.books.lock:
-                self.books.received += 1
-                self.books.rejected["oversize"] += 1
-            self._log_kind("oversize", f"{sample.key_expr}: {n} bytes > {self.max_payload_bytes}")
-            return None
-        return sample.payload.to_bytes()
-
-    def subscribe(self, key: str, handler: Callable, expect: type[Message] | None = None) -> None:
-        """Light input: every sample is queued (FIFO) and handled in order on the main loop.
-        With `expect`, the handler gets a decoded message; without, the raw bytes."""
-
-        def on_sample(sample, _h=handler, _e=expect):
-            payload = self._received(sample)
-            if payload is not None:
-                self._push(("sample", _h, _e, payload))
-
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
-
-    def subscribe_latest(
-        self,
-        key: str,
-        handler: Callable,
-        expect: type[Message] | None = None,
-        drop_nonfinite: bool = False,
-    ) -> None:
-        """Heavy input: only the newest unhandled sample is kept; older ones are dropped as
-        `stale` (a slow mapper skips old scans instead of falling behind)."""
-        slot = _Latest()
-        self._latest.append(
-            (slot, lambda payload: self._handle_payload(handler, expect, payload, drop_nonfinite))
-        )
-
-        def on_sample(sample, _slot=slot):
-            payload = self._received(sample)
-            if payload is None:
-                return
-            with self.books.lock:
-                self.books.received += 1
-                if _slot.put(payload):
-                    self.books.dropped["stale"] += 1
-            self._wake.set()
-
-        self._declared.append(self.session.declare_subscriber(key, on_sample))
-
-    def queryable(
-        self, key: str, handler: Callable[[Request], Any], complete: bool = False
-    ) -> None:
-        """Answer queries on `key`. The handler gets a `Request` and returns a Message, a dict (sent
-        as a map), bytes or a `Reply`; raising `Reject`/`ReplyError` or `MessageError` sends an
-        error reply. `complete`: this queryable answers for all of `key` (queries that target
-        complete queryables only, as ROS 2 service clients do, reach it)."""
-
-        def on_query(query, _h=handler, _k=key):
-            self._push(("query", _h, _k, query))
-
-        kw = {"complete": True} if complete else {}
-        self._declared.append(self.session.declare_queryable(key, on_query, **kw))
-
-    def publisher(self, key: str, reliable_block: bool = False, express: bool = False) -> Publisher:
-        """Declare a publisher. `reliable_block=True` makes zenoh block instead of dropping when the
-        link is congested: for data that must not be lost (map deltas, graph patches). Sensor
-        streams keep the default DROP, so a slow link loses stale scans, not the process."""
-        import zenoh
-
-        cc = zenoh.CongestionControl.BLOCK if reliable_block else zenoh.CongestionControl.DROP
-        zpub = self.session.declare_publisher(key, congestion_control=cc, express=express)
-        self._declared.append(zpub)
-        return Publisher(self, zpub, key)
-
-    # -- counting ----------------------------------------------------------------------------------
-
-    def note(self, kind: str, message: str, n: int = 1) -> None:
-        """Count an event that is not a message's fate (points dropped inside an accepted cloud,
-        a gap in a sequence, a timeout) and log it: the first few of a kind, then one in 100."""
-        self.events[kind] += n
-        self._log_kind(kind, message, self.events[kind])
-
-    def _log_kind(self, kind: str, message: str, n: int | None = None) -> None:
-        if n is None:
-            n = self.books.rejected[kind] + self.events[kind]
-        if n <= 5 or n % 100 == 0:
-            self.log.warning("%s (%s #%d)", message, kind, n)
-
-    def _rejected(self, kind: str, message: str) -> None:
-        """Settle the message in flight as rejected, and log it."""
-        self.books.settle("rejected", kind)
-        self._log_kind(kind, message, self.books.rejected[kind])
-
-    def _internal(self, exc: BaseException, where: str) -> None:
-        """A bug met while handling one message: rejected `internal`; the first traceback of each
-        (exception type, place) is logged whole, later ones as one line."""
-        self.books.settle("rejected", "internal")
-        tb = traceback.extract_tb(exc.__traceback__)
-        place = f"{tb[-1].filename}:{tb[-1].lineno}" if tb else "?"
-        sig = f"{type(exc).__name__}@{place}"
-        if sig not in self._tracebacks_logged and len(self._tracebacks_logged) < 100:
-            self._tracebacks_logged.add(sig)
-            self.log.error(
-                "%s: %s, message dropped, service goes on:\n%s",
-                where,
-                type(exc).__name__,
-                traceback.format_exc(),
-            )
-        else:
-            n = self.books.rejected["internal"]
-            self._log_kind("internal", f"{where}: {type(exc).__name__}: {exc}", n)
 
     # -- the loop ----------------------------------------------------------------------------------
 
@@ -597,42 +377,6 @@ class Service:
         self._ready.set()
         self._wake.set()
 
-    def _heartbeat(self) -> None:
-        """While starting, and while the kernels compile: a status every period, from this
-        thread (the main one is busy, or may wait for a kernel)."""
-        period = self.config.general.status_period_s
-        while True:
-            with self._status_lock:
-                if (self.state != "starting" and self.kernels == "ready") or self.stopping:
-                    return
-                msg = self.status()
-            try:
-                self._status_pub.put(msg)
-            except Exception:  # the session is closing
-                return
-            self._ready.wait(period)
-            if self.state != "starting" and self.kernels != "ready":
-                self._ready.clear()  # now live: wait for the next period, or the kernels
-
-    def _on_status_query(self, query) -> None:
-        """Status queries: answered right here while starting (the main loop is not running yet;
-        the starting status reads no service state), from the main loop afterwards."""
-        with self._status_lock:
-            starting = self.state == "starting" or self.kernels != "ready"
-            msg = self.status() if starting else None
-        key = keys.status(self.robot, self.name)
-        if msg is None:
-            self._push(("query", lambda req: self.status(), key, query))
-            return
-        with self.books.lock:
-            self.books.received += 1
-            self.books.accepted += 1
-        try:
-            as_json = _query_form(query)[1]
-            query.reply(key, _reply_bytes(msg, as_json), encoding=_encoding(as_json))
-        except Exception:  # the querier left: nothing to answer
-            pass
-
     def _install_signal_handlers(self) -> None:
         if threading.current_thread() is not threading.main_thread():
             return  # in-process tests run services in threads and call stop()
@@ -665,38 +409,6 @@ class Service:
             h.flush()
         faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
         os._exit(3)
-
-    def _push(self, item) -> None:
-        with self.books.lock:
-            self.books.received += 1
-            if len(self._fifo) >= FIFO_LIMIT:
-                self.books.dropped["queue_full"] += 1
-                return
-            self._fifo.append(item)
-        self._wake.set()
-
-    def _take(self):
-        """The next queued light item, now in flight (None when the queue is empty)."""
-        with self.books.lock:
-            if not self._fifo:
-                return None
-            self.books.in_flight += 1
-            return self._fifo.popleft()
-
-    def _take_latest(self, slot: _Latest):
-        with self.books.lock:
-            payload, self.stale_before = slot.take()
-            if payload is not None:
-                self.books.in_flight += 1
-            return payload
-
-    def _pending_locked(self) -> int:
-        slots = sum(1 for slot, _ in self._latest if slot.item is not None)
-        return len(self._fifo) + slots + self.books.in_flight
-
-    def _drain_fifo(self) -> None:
-        while not self._stop.is_set() and (item := self._take()) is not None:
-            self._dispatch(item)
 
     def _loop(self) -> None:
         next_tick = next_status = time.monotonic()
@@ -757,7 +469,7 @@ class Service:
             self._held_since.pop(id(query), None)
             self.books.settle("dropped", "warming_up")
             try:
-                as_json = _query_form(query)[1]
+                as_json = query_form(query)[1]
             except Exception:  # noqa: BLE001 - unreadable: answered in msgpack
                 as_json = False
             self._reply_err(
@@ -767,218 +479,6 @@ class Service:
                 "start); ask again in a few seconds",
                 as_json,
             )
-
-    def _publish_status(self) -> None:
-        with self._status_lock:
-            msg = self.status()
-        self._status_pub.put(msg)
-
-    def _settle_leftovers(self, drain: bool) -> None:
-        """At stop: handle what is queued (`drain`) or count it dropped as `stopping`."""
-        if drain:
-            while (item := self._take()) is not None:
-                self._dispatch(item)
-            for slot, handle in self._latest:
-                if (payload := self._take_latest(slot)) is not None:
-                    handle(payload)
-        with self.books.lock:
-            left = len(self._fifo) + sum(1 for slot, _ in self._latest if slot.item is not None)
-            self._fifo.clear()
-            for slot, _ in self._latest:
-                slot.take()
-            if left:
-                self.books.dropped["stopping"] += left
-
-    def _dispatch(self, item) -> None:
-        what, handler, expect_or_key, data = item
-        if what == "sample":
-            self._handle_payload(handler, expect_or_key, data, False)
-        else:
-            self._answer(handler, data, expect_or_key)
-
-    def _handle_payload(self, handler, expect, payload: bytes, drop_nonfinite: bool) -> None:
-        """Decode, hand over, settle: whatever happens, the message ends in one counter and the
-        loop goes on."""
-        try:
-            msg = (
-                payload
-                if expect is None
-                else decode(
-                    payload, expect, drop_nonfinite=drop_nonfinite, max_bytes=self.max_payload_bytes
-                )
-            )
-        except MessageError as exc:
-            self._rejected(exc.kind, f"rejected {expect.TYPE}: {exc}")
-            return
-        except Exception as exc:  # noqa: BLE001 - the decoder's own bug: still one message
-            self._internal(exc, f"decoding {getattr(expect, 'TYPE', 'bytes')}")
-            return
-        try:
-            outcome = handler(msg)
-        except (Reject, MessageError) as exc:
-            what = getattr(expect, "TYPE", "message")
-            self._rejected(exc.kind, f"rejected {what}: {exc}")
-        except ValueError as exc:
-            self._rejected("value", f"{type(exc).__name__}: {exc}")
-        except Exception as exc:  # noqa: BLE001 - a bug: counted, logged, the service goes on
-            self._internal(exc, f"handling {getattr(expect, 'TYPE', 'a sample')}")
-        else:
-            # A handler may say a message was dropped for a reason of its own (already covered
-            # by a snapshot, say) by returning ("dropped", reason); anything else is accepted.
-            if isinstance(outcome, tuple) and outcome and outcome[0] == "dropped":
-                self.books.settle("dropped", outcome[1])
-            else:
-                self.books.settle("accepted")
-
-    def _guard(self, fn, where: str) -> None:
-        """Run periodic service code; a failure is logged and the service keeps running."""
-        try:
-            fn()
-        except Exception as exc:  # noqa: BLE001
-            self.note("internal_" + where, f"{where}: {type(exc).__name__}: {exc}")
-            sig = f"{where}:{type(exc).__name__}"
-            if sig not in self._tracebacks_logged:
-                self._tracebacks_logged.add(sig)
-                self.log.error("%s", traceback.format_exc())
-
-    def _answer(self, handler, query, key: str) -> None:
-        """Answer a query on the main loop. Replies go out on the queryable's own key, which a
-        wider query (`smana/r1/**`) matches and an access-control policy allows."""
-        as_json = False
-        try:
-            params, as_json = _query_form(query)
-            size = len(query.payload) if query.payload is not None else 0
-            if size > self.max_payload_bytes:  # refused before the payload is copied
-                raise MessageError("oversize", f"{size} bytes > {self.max_payload_bytes}")
-            payload = query.payload.to_bytes() if query.payload is not None else None
-            att = query.attachment.to_bytes() if query.attachment is not None else None
-            req = Request(str(query.key_expr), params, payload, as_json, att)
-        except MessageError as exc:
-            self._rejected(exc.kind, f"query: {exc}")
-            self._reply_err(query, exc.kind, str(exc), as_json)
-            return
-        except Exception as exc:  # noqa: BLE001 - a query zenoh hands us that we cannot read
-            self._internal(exc, "reading a query")
-            return
-        try:
-            result = handler(req)
-            if isinstance(result, Reply):
-                self.books.settle("accepted")
-                self._send_reply(query, key, result.payload, None, result.attachment)
-                return
-            body = _reply_bytes(result, as_json)
-        except (Reject, MessageError) as exc:
-            self._rejected(exc.kind, f"query {req.key}: {exc}")
-            if getattr(exc, "reply", None) is not None:
-                self._send_reply(query, key, _reply_bytes(exc.reply, as_json), as_json)
-            else:
-                self._reply_err(query, exc.kind, str(exc), as_json)
-            return
-        except Exception as exc:  # noqa: BLE001
-            self._internal(exc, f"query {req.key}")
-            self._reply_err(query, "internal", f"{type(exc).__name__}: {exc}", as_json)
-            return
-        self.books.settle("accepted")
-        self._send_reply(query, key, body, as_json)
-
-    def _send_reply(self, query, key: str, body: bytes, as_json, attachment=None) -> None:
-        """`as_json` None: bytes as they are, with zenoh's default encoding."""
-        try:
-            if as_json is None:
-                query.reply(key, body, attachment=attachment)
-            else:
-                query.reply(key, body, encoding=_encoding(as_json))
-            self.msgs_out += 1
-        except Exception as exc:  # the querier left: the query was still handled
-            self.note("reply_failed", f"query {key}: reply not sent: {exc}")
-
-    def _reply_err(self, query, kind: str, message: str, as_json: bool) -> None:
-        body = {"ok": False, "error": kind, "message": message}
-        try:
-            query.reply_err(_reply_bytes(body, as_json), encoding=_encoding(as_json))
-        except Exception as exc:
-            self.note("reply_failed", f"error reply not sent: {exc}")
-
-    def status(self) -> ServiceStatus:
-        self._status_seq += 1
-        starting = self.state == "starting"
-        with self.books.lock:
-            # Computed between messages, or while answering a status query: then the one
-            # message in flight is that query, which counts itself accepted.
-            b = self.books
-            queued = self._pending_locked() - b.in_flight
-            books = (
-                b.received,
-                b.accepted + b.in_flight,
-                dict(b.dropped),
-                dict(b.rejected),
-                queued,
-            )
-        if starting or self.kernels != "ready":  # no service state read: maybe off the loop
-            details = {"startup_step": self.startup_step}
-        else:
-            details = self.status_details()
-        if self.ready_s is not None:
-            details = {**details, "ready_s": round(self.ready_s, 3)}
-        if self.prepare_in_background:
-            details["kernels"] = self.kernels
-            if self.kernels_s is not None:
-                details["kernels_s"] = round(self.kernels_s, 3)
-        return ServiceStatus(
-            stamp_s=time.time(),
-            seq=self._status_seq,
-            robot=self.robot,
-            service=self.name,
-            pid=os.getpid(),
-            uptime_s=time.monotonic() - self._t0,
-            state=self.state,
-            msgs_in=books[0],
-            msgs_out=self.msgs_out,
-            accepted=books[1],
-            dropped=books[2],
-            rejected=books[3],
-            pending=books[4],
-            events=dict(self.events),
-            details=details,
-        )
-
-
-def _query_form(query) -> tuple[dict[str, str], bool]:
-    """A query's selector parameters, and whether it asked in JSON (a JSON or text payload, or
-    `?format=json`)."""
-    params = dict(query.parameters) if query.parameters else {}
-    enc = str(query.encoding) if query.encoding is not None else ""
-    return params, enc.startswith(("application/json", "text/")) or params.get("format") == "json"
-
-
-def _encoding(as_json: bool):
-    import zenoh
-
-    return zenoh.Encoding.APPLICATION_JSON if as_json else zenoh.Encoding("application/msgpack")
-
-
-def _reply_bytes(result, as_json: bool) -> bytes:
-    if isinstance(result, bytes):
-        return result
-    if isinstance(result, Message):
-        return to_json(result) if as_json else encode(result)
-    if as_json:
-        return json.dumps(result, default=json_default).encode()
-    return msgpack.packb(result, use_bin_type=True, default=json_default)
-
-
-def kernels_loaded(sample) -> tuple[str, bool] | None:
-    """From a status sample (a raw zenoh callback's): the service's name and whether its kernels
-    are loaded (yes for a status that does not say: a service of another kind). A service is
-    live before its kernels compile in the background (answering `warming_up`), so its alive
-    token alone does not say it serves; a consumer that starts a clock on a producer's readiness
-    (the explorer's budget, the replay's first scan) waits for this too. Every status says
-    `kernels` from the session's opening, well before the alive token. None: no status."""
-    try:
-        st = decode(sample.payload.to_bytes(), ServiceStatus)
-    except MessageError:
-        return None
-    return st.service, st.details.get("kernels", "ready") == "ready"
 
 
 def run_service(cls: type[Service], config: SmanaConfig) -> int:

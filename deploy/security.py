@@ -29,8 +29,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import datetime
-import ipaddress
 import json
 import os
 import secrets
@@ -41,6 +39,7 @@ from smana.common import services
 from smana.common.cli import ArgumentParser, UsageError
 from smana.common.keys import check_robot
 from smana.common.zenoh_config import read_credentials
+from smana.deploy.certs import issue_host_cert, new_ca, write_cert, write_key, write_secret
 
 # Who may do what, from the table of services (common/services.py: each row's `acl` and `reads`).
 # Roles become zenoh user names `<robot>.<role>`; `router` is a router's login when it links to
@@ -251,113 +250,6 @@ def router_user(users: dict[str, str]) -> str:
     return mine[0]
 
 
-def _key():
-    from cryptography.hazmat.primitives.asymmetric import ec
-
-    return ec.generate_private_key(ec.SECP256R1())
-
-
-def _write_key(key, path: Path) -> None:
-    from cryptography.hazmat.primitives import serialization
-
-    data = key.private_bytes(
-        serialization.Encoding.PEM,
-        serialization.PrivateFormat.PKCS8,
-        serialization.NoEncryption(),
-    )
-    _write_secret(path, data)
-
-
-def _write_secret(path: Path, data: bytes | str) -> None:
-    """Write a file only its owner can read, from the first byte on."""
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "wb") as f:
-        f.write(data.encode() if isinstance(data, str) else data)
-    os.chmod(path, 0o600)  # a file that existed keeps its old mode through O_CREAT
-
-
-def _write_cert(cert, path: Path) -> None:
-    from cryptography.hazmat.primitives import serialization
-
-    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-
-
-def _ca(days: int):
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes
-    from cryptography.x509.oid import NameOID
-
-    now = datetime.datetime.now(datetime.UTC)
-    key = _key()
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "smana local CA")])
-    usage = dict.fromkeys(
-        (
-            "content_commitment",
-            "key_encipherment",
-            "data_encipherment",
-            "key_agreement",
-            "encipher_only",
-            "decipher_only",
-        ),
-        False,
-    )
-    cert = (
-        x509.CertificateBuilder()
-        .subject_name(name)
-        .issuer_name(name)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - datetime.timedelta(hours=1))
-        .not_valid_after(now + datetime.timedelta(days=days))
-        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-        .add_extension(
-            x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True, **usage),
-            critical=True,
-        )
-        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), False)
-        .sign(key, hashes.SHA256())
-    )
-    return key, cert
-
-
-def _host_cert(ca_key, ca_cert, host: str, days: int):
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes
-    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-
-    now = datetime.datetime.now(datetime.UTC)
-    key = _key()
-    # The common name identifies the host; the names and loopback address let the certificate
-    # also pass a name check where a user turns that on.
-    alt = [
-        x509.DNSName(host),
-        x509.DNSName("localhost"),
-        x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
-    ]
-    cert = (
-        x509.CertificateBuilder()
-        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, host)]))
-        .issuer_name(ca_cert.subject)
-        .public_key(key.public_key())
-        .serial_number(x509.random_serial_number())
-        .not_valid_before(now - datetime.timedelta(hours=1))
-        .not_valid_after(now + datetime.timedelta(days=days))
-        .add_extension(x509.SubjectAlternativeName(alt), critical=False)
-        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-        .add_extension(
-            x509.ExtendedKeyUsage(
-                [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]
-            ),
-            critical=False,
-        )
-        .add_extension(
-            x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), False
-        )
-        .sign(ca_key, hashes.SHA256())
-    )
-    return key, cert
-
-
 def robot_users(robot: str) -> list[str]:
     return [user(robot, role) for role in ROBOT_ROLES]
 
@@ -372,7 +264,7 @@ def base_users(robots: list[str], fleet: str | None) -> list[str]:
 
 
 def _write_users(path: Path, passwords: dict[str, str], users: list[str]) -> None:
-    _write_secret(path, "".join(f"{u}:{passwords[u]}\n" for u in users))
+    write_secret(path, "".join(f"{u}:{passwords[u]}\n" for u in users))
 
 
 def _write_host(
@@ -395,21 +287,6 @@ def _write_host(
             written.append(creds / f"{u}.txt")
     (folder / "acl.json5").write_text(json.dumps(policy, indent=2) + "\n")
     return [*written, folder / "acl.json5"]
-
-
-def _issue_host_cert(out: Path, host: str, days: int) -> list[Path]:
-    from cryptography import x509
-    from cryptography.hazmat.primitives import serialization
-
-    ca_key = serialization.load_pem_private_key((out / "ca.key").read_bytes(), None)
-    ca_cert = x509.load_pem_x509_certificate((out / "ca.pem").read_bytes())
-    key, cert = _host_cert(ca_key, ca_cert, host, days)
-    folder = out / host
-    folder.mkdir(exist_ok=True)
-    os.chmod(folder, 0o700)
-    _write_key(key, folder / "host.key")
-    _write_cert(cert, folder / "host.pem")
-    return [folder / "host.pem", folder / "host.key"]
 
 
 def _books(out: Path) -> tuple[dict, dict[str, str]]:
@@ -479,18 +356,18 @@ def init_certs(
     for name in ("credentials.txt", "dictionary.txt", "acl.json5"):
         (out / name).unlink(missing_ok=True)
     shutil.rmtree(out / "credentials", ignore_errors=True)
-    ca_key, ca = _ca(days)
-    _write_key(ca_key, out / "ca.key")
-    _write_cert(ca, out / "ca.pem")
+    ca_key, ca = new_ca(days)
+    write_key(ca_key, out / "ca.key")
+    write_cert(ca, out / "ca.pem")
     issued = {"robots": robots, "fleet": fleet, "base": base, "days": days, "clients": clients}
     users = base_users(robots, fleet) + [u for r in robots for u in robot_users(r)]
     passwords = {u: secrets.token_urlsafe(18) for u in dict.fromkeys(users)}
     written = [out / "ca.pem", out / "ca.key", _write_books(out, issued, passwords)]
-    written += _issue_host_cert(out, base, days) + _write_base(out, issued, passwords)
+    written += issue_host_cert(out, base, days) + _write_base(out, issued, passwords)
     for r in robots:
-        written += _issue_host_cert(out, r, days) + _write_robot(out, issued, passwords, r)
+        written += issue_host_cert(out, r, days) + _write_robot(out, issued, passwords, r)
     for c in clients:
-        written += _issue_host_cert(out, c, days)
+        written += issue_host_cert(out, c, days)
         shutil.copyfile(out / "ca.pem", out / c / "ca.pem")
         written.append(out / c / "ca.pem")
     return written
@@ -508,7 +385,7 @@ def add_robot(out: Path, robot: str) -> list[Path]:
     for u in robot_users(robot):
         passwords[u] = secrets.token_urlsafe(18)
     written = [_write_books(out, issued, passwords)]
-    written += _issue_host_cert(out, robot, issued["days"])
+    written += issue_host_cert(out, robot, issued["days"])
     written += _write_robot(out, issued, passwords, robot)
     return written + _write_base(out, issued, passwords)
 

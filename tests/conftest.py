@@ -119,6 +119,7 @@ class ZenohStack:
         self.robot = ROBOT
         self.procs: list[tuple[str, subprocess.Popen]] = []
         self._session = None
+        self._probe = None
         self.router = self.start(
             "router", "-m", "smana.deploy.router", "--listen", self.endpoint, *router_args
         )
@@ -182,6 +183,35 @@ class ZenohStack:
             raise TimeoutError(f"no subscriber for {key} after {timeout_s} s")
         return pub
 
+    def subscriber(self, key: str, handler, timeout_s: float = 10.0):
+        """A subscriber on the test's session that the router has passed on (the subscriber side
+        of `publisher`): declared, then held until a publisher on `key` in another session of this
+        stack sees it, so the router holds it and passes it on to the clients that publish on
+        `key`. `tests/test_service.py` checks that a service then publishing on `key` reaches it.
+        `key` must have no other subscriber: the probe cannot tell one subscriber from another."""
+        sub = self.session.declare_subscriber(key, handler)
+        probe = self.probe_session.declare_publisher(key)
+        try:
+            if not wait_for(lambda: probe.matching_status.matching, timeout_s):
+                sub.undeclare()
+                raise TimeoutError(f"the router did not pass on a subscriber to {key}")
+        finally:
+            probe.undeclare()
+        return sub
+
+    @property
+    def probe_session(self):
+        """A second client session: where `subscriber` watches its declarations arrive."""
+        if self._probe is None:
+            import zenoh
+
+            from smana.common.config import ZenohConfig
+            from smana.common.zenoh_config import make_zenoh_config
+
+            zc = ZenohConfig(mode="client", connect=[self.endpoint])
+            self._probe = zenoh.open(make_zenoh_config(zc))
+        return self._probe
+
     def wait_alive(self, service: str, timeout_s: float = 30.0, robot: str | None = None) -> None:
         from smana.common import keys
 
@@ -204,9 +234,10 @@ class ZenohStack:
     def close(self, timeout_s: float = 5.0) -> None:
         """The test's session, then every service at once (SIGINT, SIGKILL after `timeout_s`),
         then the router they were stopping through."""
-        if self._session is not None:
-            self._session.close()
-            self._session = None
+        for session in (self._session, self._probe):
+            if session is not None:
+                session.close()
+        self._session = self._probe = None
         stop_together([p for _, p in self.procs if p is not self.router], timeout_s)
         stop_group(self.router, timeout_s=timeout_s)
 

@@ -45,9 +45,15 @@ def pair(request):
     a.close()
 
 
-def settle():
-    """Real zenoh propagates declarations asynchronously (the fake at once)."""
-    time.sleep(0.3)
+def known_to(session, key: str, timeout_s: float = 5.0) -> bool:
+    """Whether `session` learns of a subscriber to `key` (a publisher of its own matches it).
+    Real zenoh propagates declarations asynchronously, in the order they were made (the fake at
+    once): a later declaration known means the earlier ones are too."""
+    pub = session.declare_publisher(key)
+    try:
+        return wait_for(lambda: pub.matching_status.matching, timeout_s)
+    finally:
+        pub.undeclare()
 
 
 def test_wildcard_subscriptions_get_what_matches(pair):
@@ -57,16 +63,22 @@ def test_wildcard_subscriptions_get_what_matches(pair):
         "t/*/x", lambda s: got.append((str(s.key_expr), s.payload.to_bytes()))
     )
     deep = b.declare_subscriber("t/**")
-    settle()
-    for key in ("t/a/x", "t/b/y", "t/c/x", "u/a/x"):
+    assert known_to(a, "t/b/y")  # only t/** matches: the one declared last
+    # the last put ends the sequence: samples of one session arrive in order, so once it is in,
+    # everything put before it that was going to arrive has
+    for key in ("t/a/x", "t/b/y", "t/c/x", "u/a/x", "t/end/x"):
         a.put(key, key.encode())
-    assert wait_for(lambda: len(got) >= 2, 5)
-    time.sleep(0.1)
-    assert got == [("t/a/x", b"t/a/x"), ("t/c/x", b"t/c/x")]
+    assert wait_for(lambda: got and got[-1][0] == "t/end/x", 5)
+    assert got == [("t/a/x", b"t/a/x"), ("t/c/x", b"t/c/x"), ("t/end/x", b"t/end/x")]
     keys = []
-    while (s := deep.try_recv()) is not None:
-        keys.append(str(s.key_expr))
-    assert keys == ["t/a/x", "t/b/y", "t/c/x"]
+
+    def drain_deep() -> bool:
+        while (s := deep.try_recv()) is not None:
+            keys.append(str(s.key_expr))
+        return bool(keys) and keys[-1] == "t/end/x"
+
+    assert wait_for(drain_deep, 5)
+    assert keys == ["t/a/x", "t/b/y", "t/c/x", "t/end/x"]
     sub.undeclare()
     deep.undeclare()
 
@@ -82,9 +94,10 @@ def test_queries_get_replies_errors_and_parameters(pair):
         else:
             q.reply(q.key_expr, json.dumps([str(q.key_expr), params, body.decode()]).encode())
 
-    qb = b.declare_queryable("t/q/**", on_query)
     ignored = b.declare_queryable("t/silent", lambda q: None)  # keeps no query: ends at once
-    settle()
+    qb = b.declare_queryable("t/q/**", on_query)
+    # the one declared last answers: both are known (declarations arrive in order)
+    assert wait_for(lambda: list(a.get("t/q/probe", timeout=1)), 5)
     replies = list(a.get("t/q/a?format=json;x=1", payload=b"hi", timeout=5))
     assert len(replies) == 1 and replies[0].err is None
     assert json.loads(replies[0].ok.payload.to_bytes()) == [
@@ -106,7 +119,7 @@ def test_queries_get_replies_errors_and_parameters(pair):
 def test_liveliness_tokens_history_and_departure(pair):
     a, b = pair
     token = a.liveliness().declare_token("t/alive/a")
-    settle()
+    assert wait_for(lambda: list(b.liveliness().get("t/alive/a", timeout=1)), 5)
     seen = []
     sub = b.liveliness().declare_subscriber(
         "t/alive/*", lambda s: seen.append((str(s.key_expr), s.kind)), history=True

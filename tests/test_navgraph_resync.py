@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import signal
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -72,9 +71,9 @@ def test_resync_after_the_mapper_comes_back_empty(fake_stack, tmp_path):
     def publish(i, seq):
         s.session.put(keys.cloud(s.robot), encode(patch_cloud(i, seq)))
 
-    for i in range(3):
+    for i in range(3):  # latest wins: each cloud is handled before the next is sent
         publish(i, i + 1)
-        time.sleep(0.3)
+        assert s.drained("mapper")
     assert wait_for(lambda: len(request(s.session, graph_key).cells) >= 300, 20)
     before = graph_nodes(request(s.session, graph_key))
 

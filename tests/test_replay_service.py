@@ -22,6 +22,7 @@ from smana.lab.data import synthetic as syn
 from smana.services.replay.player import END, Pacer, ScanFeed
 from smana.services.replay.prepare import prepare_scan
 from smana.services.replay.readers import open_dataset
+from tests.conftest import wait_for
 
 N_SCANS = 6
 N_RUN = 12  # the --run sequence: scans large enough that the mapper and recorder have work
@@ -275,7 +276,7 @@ def test_feed_reports_a_scan_broken_after_indexing_and_goes_on(dataset, tmp_path
 def test_feed_stops_while_blocked_on_a_full_queue(dataset):
     feed = ScanFeed(open_dataset(dataset), ClassTable.load("rellis3d"), 10.0, 0.5, "lidar", ahead=1)
     feed.start()
-    time.sleep(0.3)  # the thread now waits to put its second scan
+    assert wait_for(feed._queue.full, 10)  # the thread now waits to put its second scan
     t0 = time.monotonic()
     feed.stop()
     assert time.monotonic() - t0 < 2.0 and not feed._thread.is_alive()

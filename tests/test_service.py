@@ -237,3 +237,26 @@ def test_a_starting_service_says_so_and_a_stop_while_starting_is_clean(zenoh_sta
     assert zenoh_stack.stop(proc, timeout_s=10) == 0
     assert "ready in" not in zenoh_stack.log("echo")
     assert not list(ll.get(keys.starting("test", "echo"), timeout=1))
+
+
+@pytest.mark.multiprocess
+def test_a_subscriber_the_stack_passed_on_gets_what_a_service_publishes_next(zenoh_stack):
+    # tests/conftest.py ZenohStack.subscriber: once it returns, the service publishing on its key
+    # knows of it, so the echo of a pose sent at once from another session (another link, with
+    # no order to the declaration's) reaches the test, every round (a new subscriber each time)
+    import zenoh
+
+    from smana.common.config import ZenohConfig
+    from smana.common.zenoh_config import make_zenoh_config
+
+    start_echo(zenoh_stack)
+    out = keys.key(zenoh_stack.robot, "echo", "out")
+    with zenoh.open(make_zenoh_config(ZenohConfig(connect=[zenoh_stack.endpoint]))) as other:
+        pub = other.declare_publisher(keys.key(zenoh_stack.robot, "echo", "pose"))
+        assert wait_for(lambda: pub.matching_status.matching, 10)
+        for i in range(10):
+            got = []
+            sub = zenoh_stack.subscriber(out, got.append)
+            pub.put(encode(Pose.from_xyz_yaw(float(i), 0.0, 0.0, 0.0)))
+            assert wait_for(lambda got=got: got, 5), f"round {i}: the echo did not arrive"
+            sub.undeclare()

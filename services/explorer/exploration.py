@@ -19,6 +19,9 @@ Two ways to choose (`strategy`): "nbv", the paper's next-best view (`frontier.se
 `frontier.ViewScore`), and "nearest_frontier", Yamauchi's baseline: the frontier node nearest by
 travel over free nodes whose view is worth a look (`_nearest_frontier`).
 
+The choice of a view lives in `choosing.py`, the driving in `driving.py`; `Explorer` is put
+together from both and is what the service and the benches use.
+
 Its parameters are the [explorer] config section as it is (`ExplorerConfig`, with its
 [explorer.view] and [explorer.follower] tables); the names above are its keys.
 """
@@ -33,7 +36,9 @@ import numpy as np
 
 from smana.common.config.explorer import ExplorerConfig
 from smana.services.explorer import frontier as fr
-from smana.services.explorer.follower import PurePursuit, wrap_angle
+from smana.services.explorer.choosing import Choosing
+from smana.services.explorer.driving import BACK_OFF_S, Driving
+from smana.services.explorer.follower import PurePursuit
 from smana.services.explorer.team import Team
 
 # path_cost(start_xy, goal_xy) -> (cost, path (K, 2|3)) or None when there is no path
@@ -41,8 +46,6 @@ PathFn = Callable[[np.ndarray, np.ndarray], "tuple[float, np.ndarray] | None"]
 # claim(goal_xy) -> (granted, the member holding a goal too near, that goal) (fleet members)
 ClaimFn = Callable[[np.ndarray], "tuple[bool, str | None, np.ndarray | None]"]
 MAX_CLAIMS_PER_PLAN = 3  # refused this often in one plan: wait for the next one
-BACK_OFF_S = 2.0  # stuck: reverse this long at creep speed (when clear behind) before going on
-BACK_OFF_M = 0.4  # how far behind the robot must be clear of known obstacles to reverse
 GOAL_SEEN_CHECK_S = 1.0  # in a fleet, how often the goal's gain is checked between plans
 
 
@@ -100,7 +103,7 @@ class PlanOutcome:
     gains_m2: np.ndarray
 
 
-class Explorer:
+class Explorer(Choosing, Driving):
     """Next-best-view exploration state machine (see the module docstring)."""
 
     def __init__(
@@ -389,99 +392,6 @@ class Explorer:
         self._set_goal(choice)
         return outcome
 
-    def _keeps(self, keep_goal: bool, choice: fr.ViewChoice) -> bool:
-        """A periodic plan keeps the current goal unless the new view is better by the margin."""
-        return keep_goal and choice.score <= self._current_score() + self.config.switch_margin_share
-
-    def _next_best_view(self, cells, unknown, opaque, xy, goal_cost):
-        """The paper's choice among candidate cells: (cells kept, their best gains, the choice or
-        None). In a fleet, views near another member's goal are left out and the unknown area
-        around it counts for nothing (that member will see it)."""
-        g = self.grid
-        gain_unknown = unknown
-        if self.team is not None:
-            if len(cells):
-                cells = cells[self.team.apart(g.centres(cells))]
-            claimed = self.team.claimed(g.origin_xy, g.resolution_m, unknown.shape)
-            gain_unknown = unknown & ~claimed
-        gains, yaws = fr.view_gains(gain_unknown, opaque, cells, self._fov)
-        best_gain = gains.max(axis=1) if len(cells) else np.zeros(0)
-        choice = fr.select_view(
-            g.centres(cells) if len(cells) else np.zeros((0, 2)),
-            cells,
-            best_gain,
-            yaws,
-            np.asarray(xy, float),
-            goal_cost,
-            self.score,
-            self.config.min_gain_m2,
-            self.cost_per_m_lower_bound,
-            max_queries=self.config.max_queries,
-        )
-        return cells, best_gain, choice
-
-    def control(self) -> tuple[float, float]:
-        """Velocity command (v m/s, w rad/s) for the current tick."""
-        if self.done or self.pose is None:
-            return 0.0, 0.0
-        x, y, yaw = self.pose
-        if self._spin is not None:
-            turned = self._spin["turned"] + abs(wrap_angle(yaw - self._spin["last_yaw"]))
-            self._spin.update(turned=turned, last_yaw=yaw)
-            if turned >= 2 * math.pi - 0.2 or self.t_now - self._spin["t0"] > 30.0:
-                self._spin = None
-                self._empty_plans = 0
-                self._t_last_plan = -math.inf
-                return 0.0, 0.0
-            return 0.0, self.config.follower.max_angular_radps * 0.6
-        if self._back_off_until is not None:
-            if self.t_now < self._back_off_until:
-                p = np.array([x, y])
-                behind = p - BACK_OFF_M * np.array([math.cos(yaw), math.sin(yaw)])
-                # clear of known obstacles, and of fleet members: reversing is blind to them
-                member = self.team is not None and self.team.ahead(x, y, yaw + math.pi, self.t_now)
-                if self._segment_clear(p, behind, OBSTACLE_ONLY) and not member:
-                    return -self.config.creep_speed_mps, 0.0
-            self._back_off_until = None
-            if self.goal is not None:  # the new path starts where the robot now is
-                self._progress_mark = (self.t_now, self.follower.remaining_length_m())
-        if self.goal is None:
-            return self._make_way(x, y, yaw)
-        cmd = self.follower.command(x, y, yaw, self._segment_clear)
-        if cmd.done:
-            self._forget(self.goal.choice.xy, seconds=self.config.dwell_s + 5.0)
-            self._set_goal(None)
-            self._t_arrived = self.t_now
-            return 0.0, 0.0
-        v, w = cmd.linear_mps, cmd.angular_radps
-        if self.team is not None and v > 0:
-            stop, give_way = self.team.hold(x, y, yaw, self.t_now)
-            if stop:
-                v = 0.0  # turning on the spot stays allowed: it may point the robot away
-            self._yield |= give_way
-        if self.grid is not None and v > self.config.creep_speed_mps:
-            here = np.array(self.grid.cell_of((x, y)))
-            if self.grid.inside(here).all() and _blocking(self.grid.flags[here[0], here[1]]):
-                w *= self.config.creep_speed_mps / v  # same arc, slower
-                v = self.config.creep_speed_mps
-        return v, w
-
-    def _make_way(self, x: float, y: float, yaw: float) -> tuple[float, float]:
-        """Idle in a fleet: step away from a member that comes close (team.py), slowly, and
-        only onto ground known to be clear."""
-        away = None if self.team is None else self.team.make_way(x, y, self.t_now)
-        if away is None:
-            return 0.0, 0.0
-        err = wrap_angle(math.atan2(away[1], away[0]) - yaw)
-        fc = self.config.follower
-        w = max(-fc.max_angular_radps, min(fc.max_angular_radps, 2.0 * err))
-        if abs(err) > 0.5:
-            return 0.0, w
-        p = np.array([x, y])
-        if not self._segment_clear(p, p + 0.5 * away):
-            return 0.0, 0.0
-        return self.config.creep_speed_mps, w
-
     # -- state ----------------------------------------------------------------------------------
 
     def state_dict(self) -> dict:
@@ -550,183 +460,6 @@ class Explorer:
         self._progress_mark = (self.t_now, self.follower.remaining_length_m())
         self._t_arrived = None
         self.n_goals += 1
-
-    def _starts(self, free: np.ndarray, xy) -> tuple[np.ndarray, np.ndarray, dict]:
-        """Where paths may start: for every component of free nodes that comes within
-        `start_search_radius_m` of the robot, its node nearest the robot (the robot's own node when
-        free). Returns (component labels, reachable mask, {component id: start node}).
-
-        The nodes right around the robot are often unseen (the camera does not look straight
-        down) or became safety zone, so the robot's own node can be cut off from all it has seen;
-        it then drives a short straight hop to the start node first. Paths never cross unknown
-        space beyond that hop: an unseen obstacle may stand beside the robot, out of view. A hop
-        must not cross an obstacle node: a robot caught in a safety zone that just appeared
-        around it backs out on the open side, not through the obstacle to a nearer node."""
-        from scipy import ndimage  # here, not at import: off the explorer's start
-
-        g = self.grid
-        comp, _ = ndimage.label(free, structure=fr.EIGHT_CONNECTED)
-        cell = np.array(g.cell_of(xy))
-        r = int(math.ceil(self.config.start_search_radius_m / g.resolution_m))
-        lo = np.maximum(cell - r, 0)
-        hi = np.minimum(cell + r + 1, g.shape)
-        starts: dict[int, tuple[int, int]] = {}
-        if (hi > lo).all():
-            sub = np.argwhere(free[lo[0] : hi[0], lo[1] : hi[1]]) + lo
-            d = np.hypot(*(sub - cell).T) if len(sub) else np.zeros(0)
-            p = np.asarray(xy, float)[:2]
-            for k in np.argsort(d, kind="stable"):
-                if d[k] > r:
-                    break
-                cid = int(comp[sub[k, 0], sub[k, 1]])
-                if cid in starts:
-                    continue
-                if d[k] > 0 and not self._segment_clear(p, g.centres(sub[k]), OBSTACLE_ONLY):
-                    continue
-                starts[cid] = (int(sub[k, 0]), int(sub[k, 1]))
-        reach = np.isin(comp, list(starts)) if starts else np.zeros(g.shape, bool)
-        return comp, reach, starts
-
-    def _path_blocked(self) -> bool:
-        g = self.grid
-        rem = self.follower.remaining
-        if len(rem) == 0:
-            return False
-        cells = g.cells_of(rem)
-        cells = cells[g.inside(cells)]
-        bad = _blocking(g.flags[cells[:, 0], cells[:, 1]])
-        # skip the node the robot is on: leaving a safety zone it was put in must stay possible
-        here = g.cell_of(self.pose[:2])
-        mine = (cells[:, 0] == here[0]) & (cells[:, 1] == here[1])
-        return bool((bad & ~mine).any())
-
-    def _segment_clear(self, p: np.ndarray, q: np.ndarray, bits: int | None = None) -> bool:
-        """No known obstacle or safety-zone node (or nodes with `bits`) on the segment p-q, the
-        node of p excepted."""
-        g = self.grid
-        if g is None:
-            return True
-        n = max(2, int(math.ceil(np.hypot(*(q - p)) / (0.5 * g.resolution_m))) + 1)
-        pts = p + (q - p) * np.linspace(0.0, 1.0, n)[:, None]
-        cells = g.cells_of(pts)
-        cells = cells[g.inside(cells)]
-        here = np.array(g.cell_of(p))
-        cells = cells[(cells != here).any(axis=1)]
-        return not _blocking(g.flags[cells[:, 0], cells[:, 1]], bits).any()
-
-    def _stuck(self) -> bool:
-        if self._progress_mark is None:
-            return False
-        t0, rem0 = self._progress_mark
-        rem = self.follower.remaining_length_m()
-        if rem < rem0 - 0.1:
-            self._progress_mark = (self.t_now, rem)
-            return False
-        return self.t_now - t0 > self.config.stuck_timeout_s
-
-    def _goal_exhausted(self) -> bool:
-        return self._goal_gain() < self.config.min_gain_m2
-
-    def _goal_gain(self) -> float:
-        g = self.grid
-        cell = self.goal.choice.cell.reshape(1, 2)
-        opaque = fr.opaque_mask(g.flags)
-        gains, _ = fr.view_gains(
-            fr.unknown_mask(g.flags),
-            opaque if self.config.view.occlusion else None,
-            cell,
-            self._fov,
-        )
-        return float(gains.max()) if gains.size else 0.0
-
-    def _current_score(self) -> float:
-        # the cost left is the planned cost scaled by the share of the path still ahead
-        total = max(self.goal.path_length_m, 1e-6)
-        left = self.goal.choice.path_cost * self.follower.remaining_length_m() / total
-        return float(self.score(self._goal_gain(), left))
-
-    def _nearest_frontier(self, free, front, starts, xy, unknown, opaque, goal_cost):
-        """Yamauchi's choice: the frontier node nearest by travel (metres over free nodes from the
-        robot, class costs ignored) among those whose view is worth a look (`min_gain_m2`, the
-        same test the next-best view applies, so both strategies stop on the same criterion),
-        facing its most unknown heading. Returns (cells whose gain was computed, their gains,
-        the choice or None). Gains are computed in growing batches in distance order: the
-        nearest worthy node is usually among the first few."""
-        g = self.grid
-        cells = self._drop_blacklisted(front)
-        src = np.array(list(starts.values()), np.int64).reshape(-1, 2)
-        hop = np.hypot(*(g.centres(src) - np.asarray(xy, float)).T) if len(src) else np.zeros(0)
-        dist = fr.travel_distance_m(free, src, hop, g.resolution_m)
-        d = dist[cells[:, 0], cells[:, 1]] if len(cells) else np.zeros(0)
-        order = np.argsort(d, kind="stable")
-        order = order[np.isfinite(d[order])]
-        seen_cells, seen_gains = [], []
-        n_queries, lo, batch = 0, 0, 16
-        while lo < len(order) and n_queries < self.config.max_queries:
-            idx = order[lo : lo + batch]
-            gains, yaws = fr.view_gains(unknown, opaque, cells[idx], self._fov)
-            best = gains.max(axis=1)
-            seen_cells.append(cells[idx])
-            seen_gains.append(best)
-            for k in np.flatnonzero(best >= self.config.min_gain_m2):
-                if n_queries >= self.config.max_queries:
-                    break
-                n_queries += 1
-                goal_xy = g.centres(cells[idx[k]])
-                reply = goal_cost(goal_xy)
-                if reply is None or not math.isfinite(reply[0]):
-                    continue
-                choice = fr.ViewChoice(
-                    cells[idx[k]].copy(),
-                    goal_xy,
-                    float(yaws[k]),
-                    float(best[k]),
-                    float(reply[0]),
-                    -float(d[idx[k]]),  # nearer is better
-                    reply[1],
-                    n_queries,
-                    len(order),
-                )
-                return np.concatenate(seen_cells), np.concatenate(seen_gains), choice
-            lo += batch
-            batch *= 2
-        if not seen_cells:
-            return np.zeros((0, 2), np.int64), np.zeros(0), None
-        return np.concatenate(seen_cells), np.concatenate(seen_gains), None
-
-    def _forget(self, xy, seconds: float | None = None) -> None:
-        until = self.t_now + (self.config.blacklist_s if seconds is None else seconds)
-        self._blacklist.append((np.asarray(xy, float).copy(), until))
-
-    def _drop_blacklisted(self, cells: np.ndarray) -> np.ndarray:
-        self._blacklist = [(c, until) for c, until in self._blacklist if until > self.t_now]
-        if not self._blacklist or len(cells) == 0:
-            return cells
-        xy = self.grid.centres(cells)
-        keep = np.ones(len(cells), bool)
-        for c, _ in self._blacklist:
-            keep &= np.hypot(*(xy - c).T) > self.config.blacklist_radius_m
-        return cells[keep]
-
-    def _maybe_spin(self) -> bool:
-        """Turn once on the spot where nothing was found: the camera sees 57 degrees, and what is
-        behind the robot may hold a frontier. Only once per place."""
-        x, y, yaw = self.pose
-        here = np.array([x, y])
-        if any(np.hypot(*(here - p)) < 1.0 for p in self._spun_at):
-            return False
-        self._spun_at.append(here)
-        self._spin = {"t0": self.t_now, "turned": 0.0, "last_yaw": yaw}
-        return True
-
-
-OBSTACLE_ONLY = fr.OBSTACLE
-
-
-def _blocking(flags: np.ndarray, bits: int | None = None) -> np.ndarray:
-    """Known nodes the robot must not enter: obstacles and their safety zone (or `bits`)."""
-    bits = fr.OBSTACLE | fr.SAFETY_ZONE if bits is None else bits
-    return ((flags & fr.KNOWN) != 0) & ((flags & bits) != 0)
 
 
 def _path_xy(path, goal_xy: np.ndarray, pose) -> np.ndarray:

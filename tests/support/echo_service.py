@@ -47,7 +47,7 @@ class EchoService(Service):
         self.out.put(pose)
 
     def on_cloud(self, cloud: SemanticCloud):
-        time.sleep(self.cloud_delay_s)
+        time.sleep(self.cloud_delay_s)  # simulated work: a slow handler
         self.clouds += 1
         self.points += len(cloud.points)
         if cloud.n_dropped_nonfinite:

@@ -20,8 +20,9 @@ transport keep a real router (`tests/conftest.py::ZenohStack`).
 each one's real `cli(argv)` (argument parsing, config, `main(config)`, the `Service` lifecycle with
 its starting token, heartbeat, books and stop) on a thread of its own, with a fake session handed
 to it through `smana.common.service.session_factory`. Its API follows `ZenohStack` (`service`,
-`wait_alive`, `stop`, `log`, `session`, `publisher`), so a process test becomes an in-process one
-by changing its fixture; `status`, `query` and `books` read a service's state directly. The model
+`wait_alive`, `stop`, `log`, `session`, `publisher`, `subscriber`), so a process test becomes an
+in-process one by changing its fixture; `status`, `query` and `books` read a service's state
+directly. The model
 is dora's `MockNode`: feed a node its inputs, capture its outputs, no middleware.
 """
 
@@ -723,6 +724,14 @@ class FakeStack:
         if not wait_for(lambda: pub.matching_status.matching, timeout_s):
             raise TimeoutError(f"no subscriber for {key} after {timeout_s} s")
         return pub
+
+    def subscriber(self, key: str, handler, timeout_s: float = 10.0):
+        """A subscriber on the test's session (as ZenohStack's). Declarations reach the fake
+        network at once: there is nothing to wait for, and that is checked."""
+        sub = self.session.declare_subscriber(key, handler)
+        if not self.network._has_subscriber(key_expr(key)):
+            raise AssertionError(f"the fake network does not see a subscriber to {key}")
+        return sub
 
     # -- starting and stopping
     def start(self, name: str, cli: Callable[[list[str] | None], int | None], *argv: str):

@@ -17,7 +17,7 @@ import zenoh
 
 from smana.common import keys
 from smana.common.config import ZenohConfig
-from smana.common.messages import SemanticCloud, encode
+from smana.common.messages import MapDelta, MessageError, SemanticCloud, decode, encode
 from smana.common.zenoh_config import make_zenoh_config
 
 
@@ -51,13 +51,47 @@ def main() -> int:
     args = p.parse_args()
     zc = ZenohConfig(connect=[args.endpoint], user=args.user, credentials_file=args.credentials)
     with zenoh.open(make_zenoh_config(zc)) as session:
+        mapped = MappedClouds()
+        sub = session.declare_subscriber(keys.map_delta(args.robot), mapped.on_delta)
         pub = session.declare_publisher(keys.cloud(args.robot))
-        time.sleep(0.5)  # let the route to the mapper settle
+        if not wait(lambda: pub.matching_status.matching, TIMEOUT_S):
+            print(f"no mapper subscribes to {keys.cloud(args.robot)}", file=sys.stderr)
+            return 1
+        # The mapper keeps the latest cloud only: each cloud goes once the one before it is
+        # mapped (its delta is out), and the last one is mapped before the session closes.
         for i in range(args.first, args.first + args.count):
             pub.put(encode(patch_cloud(i, i + 1)))
-            time.sleep(0.3)  # the mapper keeps the latest cloud only: give it time for each
-        time.sleep(0.5)
+            if not wait(lambda seq=i + 1: seq in mapped.seqs, TIMEOUT_S):
+                print(f"cloud {i + 1} was not mapped in {TIMEOUT_S} s", file=sys.stderr)
+                return 1
+        sub.undeclare()
     return 0
+
+
+TIMEOUT_S = 30.0
+
+
+class MappedClouds:
+    """The cloud numbers of the mapper's deltas: a subscriber declared before the first cloud is
+    sent reaches the mapper before that cloud does (one link, in order)."""
+
+    def __init__(self):
+        self.seqs: set[int] = set()
+
+    def on_delta(self, sample) -> None:
+        try:
+            self.seqs.add(decode(sample.payload.to_bytes(), MapDelta).cloud_seq)
+        except MessageError:
+            pass
+
+
+def wait(pred, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
 
 
 if __name__ == "__main__":

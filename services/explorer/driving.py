@@ -1,0 +1,139 @@
+"""How the explorer drives to its goal (`Explorer.control`): the follower's command slowed near
+obstacles, reversing out of where it got stuck, one spin on the spot where nothing was found,
+giving way in a fleet; and the checks that a path is blocked or the robot stuck. Part of
+`exploration.Explorer`; no wiring.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from smana.services.explorer import frontier as fr
+from smana.services.explorer.follower import wrap_angle
+
+BACK_OFF_S = 2.0  # stuck: reverse this long at creep speed (when clear behind) before going on
+BACK_OFF_M = 0.4  # how far behind the robot must be clear of known obstacles to reverse
+OBSTACLE_ONLY = fr.OBSTACLE
+
+
+class Driving:
+    """The part of `Explorer` that drives. It uses the state `Explorer.__init__` sets
+    (`config`, `grid`, `pose`, `goal`, `follower`, `team`, `_spin`, `_progress_mark`, ...)."""
+
+    def control(self) -> tuple[float, float]:
+        """Velocity command (v m/s, w rad/s) for the current tick."""
+        if self.done or self.pose is None:
+            return 0.0, 0.0
+        x, y, yaw = self.pose
+        if self._spin is not None:
+            turned = self._spin["turned"] + abs(wrap_angle(yaw - self._spin["last_yaw"]))
+            self._spin.update(turned=turned, last_yaw=yaw)
+            if turned >= 2 * math.pi - 0.2 or self.t_now - self._spin["t0"] > 30.0:
+                self._spin = None
+                self._empty_plans = 0
+                self._t_last_plan = -math.inf
+                return 0.0, 0.0
+            return 0.0, self.config.follower.max_angular_radps * 0.6
+        if self._back_off_until is not None:
+            if self.t_now < self._back_off_until:
+                p = np.array([x, y])
+                behind = p - BACK_OFF_M * np.array([math.cos(yaw), math.sin(yaw)])
+                # clear of known obstacles, and of fleet members: reversing is blind to them
+                member = self.team is not None and self.team.ahead(x, y, yaw + math.pi, self.t_now)
+                if self._segment_clear(p, behind, OBSTACLE_ONLY) and not member:
+                    return -self.config.creep_speed_mps, 0.0
+            self._back_off_until = None
+            if self.goal is not None:  # the new path starts where the robot now is
+                self._progress_mark = (self.t_now, self.follower.remaining_length_m())
+        if self.goal is None:
+            return self._make_way(x, y, yaw)
+        cmd = self.follower.command(x, y, yaw, self._segment_clear)
+        if cmd.done:
+            self._forget(self.goal.choice.xy, seconds=self.config.dwell_s + 5.0)
+            self._set_goal(None)
+            self._t_arrived = self.t_now
+            return 0.0, 0.0
+        v, w = cmd.linear_mps, cmd.angular_radps
+        if self.team is not None and v > 0:
+            stop, give_way = self.team.hold(x, y, yaw, self.t_now)
+            if stop:
+                v = 0.0  # turning on the spot stays allowed: it may point the robot away
+            self._yield |= give_way
+        if self.grid is not None and v > self.config.creep_speed_mps:
+            here = np.array(self.grid.cell_of((x, y)))
+            if self.grid.inside(here).all() and _blocking(self.grid.flags[here[0], here[1]]):
+                w *= self.config.creep_speed_mps / v  # same arc, slower
+                v = self.config.creep_speed_mps
+        return v, w
+
+    def _make_way(self, x: float, y: float, yaw: float) -> tuple[float, float]:
+        """Idle in a fleet: step away from a member that comes close (team.py), slowly, and
+        only onto ground known to be clear."""
+        away = None if self.team is None else self.team.make_way(x, y, self.t_now)
+        if away is None:
+            return 0.0, 0.0
+        err = wrap_angle(math.atan2(away[1], away[0]) - yaw)
+        fc = self.config.follower
+        w = max(-fc.max_angular_radps, min(fc.max_angular_radps, 2.0 * err))
+        if abs(err) > 0.5:
+            return 0.0, w
+        p = np.array([x, y])
+        if not self._segment_clear(p, p + 0.5 * away):
+            return 0.0, 0.0
+        return self.config.creep_speed_mps, w
+
+    def _path_blocked(self) -> bool:
+        g = self.grid
+        rem = self.follower.remaining
+        if len(rem) == 0:
+            return False
+        cells = g.cells_of(rem)
+        cells = cells[g.inside(cells)]
+        bad = _blocking(g.flags[cells[:, 0], cells[:, 1]])
+        # skip the node the robot is on: leaving a safety zone it was put in must stay possible
+        here = g.cell_of(self.pose[:2])
+        mine = (cells[:, 0] == here[0]) & (cells[:, 1] == here[1])
+        return bool((bad & ~mine).any())
+
+    def _segment_clear(self, p: np.ndarray, q: np.ndarray, bits: int | None = None) -> bool:
+        """No known obstacle or safety-zone node (or nodes with `bits`) on the segment p-q, the
+        node of p excepted."""
+        g = self.grid
+        if g is None:
+            return True
+        n = max(2, int(math.ceil(np.hypot(*(q - p)) / (0.5 * g.resolution_m))) + 1)
+        pts = p + (q - p) * np.linspace(0.0, 1.0, n)[:, None]
+        cells = g.cells_of(pts)
+        cells = cells[g.inside(cells)]
+        here = np.array(g.cell_of(p))
+        cells = cells[(cells != here).any(axis=1)]
+        return not _blocking(g.flags[cells[:, 0], cells[:, 1]], bits).any()
+
+    def _stuck(self) -> bool:
+        if self._progress_mark is None:
+            return False
+        t0, rem0 = self._progress_mark
+        rem = self.follower.remaining_length_m()
+        if rem < rem0 - 0.1:
+            self._progress_mark = (self.t_now, rem)
+            return False
+        return self.t_now - t0 > self.config.stuck_timeout_s
+
+    def _maybe_spin(self) -> bool:
+        """Turn once on the spot where nothing was found: the camera sees 57 degrees, and what is
+        behind the robot may hold a frontier. Only once per place."""
+        x, y, yaw = self.pose
+        here = np.array([x, y])
+        if any(np.hypot(*(here - p)) < 1.0 for p in self._spun_at):
+            return False
+        self._spun_at.append(here)
+        self._spin = {"t0": self.t_now, "turned": 0.0, "last_yaw": yaw}
+        return True
+
+
+def _blocking(flags: np.ndarray, bits: int | None = None) -> np.ndarray:
+    """Known nodes the robot must not enter: obstacles and their safety zone (or `bits`)."""
+    bits = fr.OBSTACLE | fr.SAFETY_ZONE if bits is None else bits
+    return ((flags & fr.KNOWN) != 0) & ((flags & bits) != 0)
