@@ -30,7 +30,8 @@ from smana.lab import stats
 ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = ROOT / "docs" / "experiments" / "data"
 DOC = ROOT / "docs" / "experiments.md"
-EXPERIMENTS = ("noise", "exploration", "fleet", "routes")  # the data files a report reads
+# the data files a report reads; routes_<layout>: `routes --layout` in another garden layout
+EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "routes_wheel")
 SECTION = re.compile(
     r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
     re.S,
@@ -88,9 +89,9 @@ def load_data(data_dir: Path) -> dict[str, dict]:
 # -- the sections ---------------------------------------------------------------------------------
 
 
-def _missing(name: str) -> str:
+def _missing(name: str, command: str | None = None) -> str:
     return (
-        f"_No raw results of `smana experiment {name}` are committed yet "
+        f"_No raw results of `smana experiment {command or name}` are committed yet "
         f"(docs/experiments/data/{name}.json): nothing is generated here; the hand-written "
         "tables of this section are transcribed, not yet regenerated._\n"
     )
@@ -103,12 +104,12 @@ def _routes_intervals(data: dict) -> dict[float, stats.Interval]:
     return {f: stats.mean_ci(v) for f, v in sorted(by.items())}
 
 
-def routes_section(data: dict | None) -> str:
+def routes_section(data: dict | None, name: str = "routes") -> str:
     if data is None:
-        return _missing("routes")
+        return _missing(name, name.replace("_", " --layout ", 1))
     seeds = sorted({r["seed"] for r in data["rows"]})
     lines = [
-        f"Generated from docs/experiments/data/routes.json (seeds {seeds[0]} to {seeds[-1]}):",
+        f"Generated from docs/experiments/data/{name}.json (seeds {seeds[0]} to {seeds[-1]}):",
         "",
         "| grass cost | routes between random places, terrain share |",
         "|---|---|",
@@ -201,7 +202,7 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
 def sections(all_data: dict[str, dict]) -> dict[str, str]:
     return {
         "verdicts": verdicts_section(all_data),
-        "routes": routes_section(all_data.get("routes")),
+        **{n: routes_section(all_data.get(n), n) for n in EXPERIMENTS if n.startswith("routes")},
     }
 
 
