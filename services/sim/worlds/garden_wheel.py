@@ -1,17 +1,22 @@
 """The "wheel" layout of the procedural garden (`sim.garden.layout = "wheel"`): the "3drms"
-layout's statistics (48 % of the surface free, 55 % of it terrain) with grass that is a way
-through, built to test whether the grass cost can decide routes (docs/experiments.md, "A garden
-whose grass is a way through").
+layout's statistics (48 % of the surface free, 55 % of it terrain) in a garden where grass is a
+way through, so that the grass cost has something to decide (docs/experiments.md, "A garden where
+the grass cost decides": `smana experiment routes --layout wheel`).
 
 In the "3drms" layout the gravel paths are the only way between places: lawns hang off them, so
 the cheapest routes travel 66 % terrain when grass costs what terrain costs and 82 % from a grass
-cost of x1.25 up (`smana experiment routes`). Here the garden is a wheel: six gravel spokes
-(terrain) from a central plaza with a small lawn at its middle, and a rim of grass walks joining
-the spokes' ends. Between two neighbouring spoke ends the way round on gravel, through the centre,
-is 1 / sin(pi / 6) = 2 times the rim walk's length, so the choice between walk and gravel is still
-open at grass x2 (the planner charges 1.8 times terrain's cost per metre) and made at x4 (3.4
-times). Beds fill the corners and the gaps between spokes, planted as in "3drms" (hedges lining
-them, then plants in the holes).
+cost of x1.25 up: nothing is left for a higher cost to decide. Here the garden is a round lawn:
+a central lawn circle, where the robot starts, seven gravel spokes (terrain) from its edge, and
+grass between the spokes out to a rim of grass walks from spoke end to spoke end. A trip between
+two spokes can cross the grass or follow the gravel round by the central lawn's edge, 1.9 times
+longer between the spokes' ends (4.3 m out) and less further in, and a trip across the garden
+crosses the central lawn or goes round its edge (pi / 2 = 1.6 times longer); the planner charges
+grass at x2 1.8 times and at x4 3.4 times what terrain costs per metre, so the choice moves with
+the grass cost. Beds fill the corners
+and what the grass leaves between the spokes, planted as in "3drms" (hedges lining them, then
+plants in the holes). Made for the experiments' 12 m garden (seeds 3 to 12:
+tests/test_garden_stats.py); a 6 m garden has room for short spokes only (42 % free, 34 % of it
+terrain), and larger gardens get more rims but not the statistics.
 
     ground, objects = layout_wheel(config, heights, rng)    # garden.generate() calls it
 """
@@ -28,10 +33,14 @@ from .garden_3drms import BED_GAPS, _edge_hedges, _fill_beds, _Placer
 from .ground import GroundModel
 from .objects import GRASS, TERRAIN, WorldObject
 
-SPOKES = 6  # a rim walk is 2 sin(pi / SPOKES) = 1 spoke long: half the way round (5: 0.59 of it)
+# a rim walk is 2 sin(pi / SPOKES) = 0.87 spoke long: with the central lawn's radius, the way
+# round on gravel is 1.9 times longer at the spokes' ends (6 spokes: 1.7, 8: 2.1)
+SPOKES = 7
 RIM_SPACING_M = 5.0  # rims about this far apart: a 12 m garden has one, a 30 m garden three
-SPAWN_RADIUS_M = 1.2  # the central plaza: the robot starts on it
-HUB_RADIUS_M = 0.8  # the lawn at the plaza's middle, so a trip across passes grass at x1
+# the central lawn, where the robot starts; the spokes begin at its edge, where neighbours touch
+# (7 spokes 1.4 m wide are 1.35 m apart there): a trip across the garden crosses the lawn or goes
+# round it on the spokes' ends
+HUB_RADIUS_M = 1.5
 WALL_MARGIN_M = 0.5  # beds at least this wide between the outer rim and the walls
 # the beds here are narrower than "3drms"'s: fewer bare gaps, measured 2-3 % of the raster
 GAPS_SHARE = 0.5 * BED_GAPS
@@ -80,8 +89,8 @@ def _fit(area, target: float, lo: float, hi: float) -> float:
 
 
 def _wheel(cfg, gx, gy, half, terrain_target, grass_target, rng):
-    """(terrain, grass) masks: the plaza and the spokes, `path_width_m[0]` wide, their length
-    fitted to `terrain_target` cells; the hub and the rims (walks from spoke end to spoke end),
+    """(terrain, grass) masks: the spokes, `path_width_m[0]` wide, their length fitted to
+    `terrain_target` cells; the central lawn and the rims (walks from spoke end to spoke end),
     their widths fitted to `grass_target` cells within `path_width_m`."""
     w_min, w_max = cfg.path_width_m
     lim = max(half - cfg.wall_thickness_m - WALL_MARGIN_M - w_max / 2, 1.0)
@@ -96,12 +105,12 @@ def _wheel(cfg, gx, gy, half, terrain_target, grass_target, rng):
 
     def spokes(radius_m):
         # narrow, so that the terrain budget makes them long: the rim walks lie far out
-        m = centre <= SPAWN_RADIUS_M
+        m = np.zeros(gx.shape, bool)
         for d, s in zip(dirs, stretch, strict=True):
             m |= _distance_to_segment(gx, gy, np.zeros(2), d * radius_m * s) <= w_min / 2
         return m & ~hub
 
-    radius = _fit(lambda r: spokes(r).sum(), terrain_target, SPAWN_RADIUS_M + 0.5, lim)
+    radius = _fit(lambda r: spokes(r).sum(), terrain_target, HUB_RADIUS_M + 0.5, lim)
     terrain = spokes(radius)
     rim_w = rng.uniform(w_min, w_max, (n_rims, SPOKES))
     rim_d = []
