@@ -119,7 +119,8 @@ def add_parser(sub) -> None:
         "garden at each grass cost, without exploring: what the layout alone decides.",
         epilog="Duration measured once on a 2-core machine: about 1 s per seed (5 seeds x 3 "
         "factors: 4.5 s). "
-        "The worlds are the exploration experiment's (same seeds, size and layout).",
+        "The worlds are the exploration experiment's (same seeds, size and layout; --layout "
+        "another sim.garden.layout, its data in data/routes_<layout>.json).",
     )
     r.add_argument(
         "--out", type=Path, help="output directory (default runs/experiment-routes-<time>)"
