@@ -123,3 +123,39 @@ def test_committed_wheel_routes_lie_inside_the_papers_bands():
     assert sorted(intervals) == sorted(PAPER)
     for f, ci in intervals.items():
         assert PAPER[f] - 0.10 <= ci.lo and ci.hi <= PAPER[f] + 0.10, (f, ci)
+
+
+def test_exploration_verdicts_read_the_routes_of_the_layout_it_ran_in():
+    """An exploration run with --set sim.garden.layout="wheel" is judged against the wheel's
+    routes ("not reproducible in this world" when they rule the paper's figure out), not the
+    default layout's."""
+    rows = [
+        {"seed": s, "arm": f"nbv_x{f:g}", "strategy": "nbv", "grass_cost_factor": f,
+         "path_cost_weight": None, "ok": True, "terrain_share": 0.6 + 0.2 * (f > 1) + 0.01 * s,
+         "distance_m": 20.0}
+        for s in (3, 4, 5) for f in (1.0, 4.0)
+    ]  # fmt: skip
+
+    def routes_rows(x1):
+        return [
+            {
+                "seed": s,
+                "grass_cost_factor": f,
+                "terrain_share": (x1 if f == 1 else 0.85) + 1e-3 * s,
+            }
+            for s in (3, 4, 5)
+            for f in (1.0, 4.0)
+        ]
+
+    def x1_verdict(extra):
+        data = {
+            "exploration": {"meta": {"extra": extra}, "rows": rows},
+            "routes": {"rows": routes_rows(0.60)},  # 3drms: x1 within the paper's band
+            "routes_wheel": {"rows": routes_rows(0.95)},  # far outside it
+        }
+        [x1] = [c for c in report.verdict_claims(data) if "grass x1, about" in c["claim"]]
+        return x1["verdict"]
+
+    assert x1_verdict(["sim.camera.width=320"]) != stats.NOT_REPRODUCIBLE_HERE
+    assert x1_verdict(['sim.garden.layout="wheel"']) == stats.NOT_REPRODUCIBLE_HERE
+    assert x1_verdict(['sim.garden.layout="3drms"']) != stats.NOT_REPRODUCIBLE_HERE

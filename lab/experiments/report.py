@@ -140,7 +140,14 @@ def _exploration_claims(data: dict, routes: dict | None) -> list[dict]:
 
 def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
     """Every claim the committed data decides, Holm-corrected together over the table."""
-    routes = _routes_intervals(all_data["routes"]) if "routes" in all_data else None
+    # the routes of the layout the exploration ran in (its --set sim.garden.layout, if any)
+    name = "routes"
+    for item in all_data.get("exploration", {}).get("meta", {}).get("extra", []):
+        key, _, value = item.partition("=")
+        layout = value.strip().strip("\"'")
+        if key.strip() == "sim.garden.layout" and layout != "3drms":
+            name = f"routes_{layout}"
+    routes = _routes_intervals(all_data[name]) if name in all_data else None
     table = []
     if "noise" in all_data:
         table += _noise_claims(all_data["noise"])
