@@ -106,6 +106,11 @@ def test_exploration_draws_its_starts_in_the_layout_its_sets_choose():
     sets = ex.run_world_sets(["sim.camera.width=160", *WHEEL])
     assert sets == WHEEL  # the default layout replaced, the camera left to the runs
     assert ex.run_world_sets([]) == ex.WORLD_SETS
+    from smana.common.config import SmanaConfig
+
+    # each run's --set items: WORLD_SETS, then the experiment's extras, the later winning
+    cfg = SmanaConfig.load(overrides=[*ex.WORLD_SETS, *WHEEL])
+    assert cfg.sim.garden.layout == "wheel"
     from smana.lab import evaluation as ev
 
     x, y, _ = ex.pick_spawn(3, 12.0, sets)
@@ -123,6 +128,12 @@ def test_committed_wheel_routes_lie_inside_the_papers_bands():
     assert sorted(intervals) == sorted(PAPER)
     for f, ci in intervals.items():
         assert PAPER[f] - 0.10 <= ci.lo and ci.hi <= PAPER[f] + 0.10, (f, ci)
+    # the seeds not looked at while the layout was chosen (7 to 12), as the doc quotes them
+    held_out = {**data, "rows": [r for r in data["rows"] if r["seed"] >= 7]}
+    text = report.DOC.read_text()
+    for f, ci in report._routes_intervals(held_out).items():
+        assert PAPER[f] - 0.10 <= ci.lo and ci.hi <= PAPER[f] + 0.10, (f, ci)
+        assert f"{100 * ci.mean:.1f} % [{100 * ci.lo:.1f}, {100 * ci.hi:.1f}]" in text
 
 
 def test_exploration_verdicts_read_the_routes_of_the_layout_it_ran_in():
