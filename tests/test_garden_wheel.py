@@ -65,6 +65,7 @@ def test_routes_layout_writes_its_own_data_file(tmp_path, capsys):
     assert exp.cli([*argv, "--out", str(tmp_path)]) == 0
     data = report.load_data(tmp_path / "data")
     assert "routes" not in data  # the default layout's file is another experiment's
+    assert data["routes_wheel"]["experiment"] == "routes"  # a variant of the routes' data
     assert data["routes_wheel"]["meta"]["layout"] == "wheel"
     [row] = data["routes_wheel"]["rows"]
     want = routes.world_routes(3, 12.0, [1.0], WHEEL, ROBOT_RADIUS_M)[1.0]
@@ -92,7 +93,7 @@ def test_report_has_a_routes_table_per_layout(tmp_path):
         for s in (3, 4)
         for f in (1.0, 2.0)
     ]
-    report.write_data(tmp_path, "routes_wheel", rows, {"layout": "wheel"})
+    report.write_data(tmp_path, "routes", rows, {"layout": "wheel"}, variant="wheel")
     assert exp.cli(["report", "--doc", str(doc), "--data", str(tmp_path / "data")]) == 0
     wheel = doc.read_text().split("<!-- generated: routes_wheel -->")[1]
     assert "Generated from docs/experiments/data/routes_wheel.json (seeds 3 to 4)" in wheel

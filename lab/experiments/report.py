@@ -30,8 +30,7 @@ from smana.lab import stats
 ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = ROOT / "docs" / "experiments" / "data"
 DOC = ROOT / "docs" / "experiments.md"
-# the data files a report reads; routes_<layout>: `routes --layout` in another garden layout
-EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "routes_wheel")
+EXPERIMENTS = ("noise", "exploration", "fleet", "routes")  # the data files a report reads
 SECTION = re.compile(
     r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
     re.S,
@@ -57,10 +56,15 @@ def compact_rows(rows: list[dict]) -> list[dict]:
     ]
 
 
-def write_data(out: Path, name: str, rows: list[dict], meta: dict | None = None) -> Path:
-    """`<out>/data/<name>.json`: {"experiment", "meta", "rows"}, one row a line so that a diff
-    of two runs reads row by row."""
-    path = Path(out) / "data" / f"{name}.json"
+def write_data(
+    out: Path, name: str, rows: list[dict], meta: dict | None = None, variant: str | None = None
+) -> Path:
+    """`<out>/data/<name>.json` (or `<name>_<variant>.json` for a run of the experiment in other
+    conditions, e.g. a larger garden): {"experiment", "meta", "rows"}, one row a line so that a
+    diff of two runs reads row by row."""
+    if variant is not None and not re.fullmatch(r"[a-z0-9]+", variant):
+        raise ValueError(f"data variant must be lowercase letters and digits, got {variant!r}")
+    path = Path(out) / "data" / (f"{name}_{variant}.json" if variant else f"{name}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     body = ",\n".join("  " + json.dumps(r, sort_keys=True) for r in compact_rows(rows))
     head = json.dumps({"experiment": name, "meta": meta or {}}, sort_keys=True, default=str)
@@ -69,29 +73,34 @@ def write_data(out: Path, name: str, rows: list[dict], meta: dict | None = None)
 
 
 def load_data(data_dir: Path) -> dict[str, dict]:
-    """{experiment: its data} for every committed data file; a file that is not valid data is a
+    """{file stem: its data} for every committed data file of a known experiment: `<name>.json`
+    and its variants `<name>_<variant>.json` (sorted); a file that is not valid data is a
     one-line ValueError naming it."""
     out = {}
     for name in EXPERIMENTS:
-        path = Path(data_dir) / f"{name}.json"
-        if not path.is_file():
-            continue
-        try:
-            data = json.loads(path.read_text())
-            if data.get("experiment") != name or not isinstance(data.get("rows"), list):
-                raise ValueError(f"expected experiment {name!r} and a list of rows")
-        except ValueError as exc:
-            raise ValueError(f"{path}: not experiment data ({exc})") from None
-        out[name] = data
+        variants = sorted(Path(data_dir).glob(f"{name}_*.json"))
+        for path in [Path(data_dir) / f"{name}.json", *variants]:
+            if path.is_file() and re.fullmatch(rf"{name}(_[a-z0-9]+)?", path.stem):
+                out[path.stem] = _read_data(path, name)
     return out
+
+
+def _read_data(path: Path, name: str) -> dict:
+    try:
+        data = json.loads(path.read_text())
+        if data.get("experiment") != name or not isinstance(data.get("rows"), list):
+            raise ValueError(f"expected experiment {name!r} and a list of rows")
+    except ValueError as exc:
+        raise ValueError(f"{path}: not experiment data ({exc})") from None
+    return data
 
 
 # -- the sections ---------------------------------------------------------------------------------
 
 
-def _missing(name: str, command: str | None = None) -> str:
+def _missing(name: str) -> str:
     return (
-        f"_No raw results of `smana experiment {command or name}` are committed yet "
+        f"_No raw results of `smana experiment {name}` are committed yet "
         f"(docs/experiments/data/{name}.json): nothing is generated here; the hand-written "
         "tables of this section are transcribed, not yet regenerated._\n"
     )
@@ -104,9 +113,29 @@ def _routes_intervals(data: dict) -> dict[float, stats.Interval]:
     return {f: stats.mean_ci(v) for f, v in sorted(by.items())}
 
 
+def _layout_routes(all_data: dict[str, dict], exploration: dict) -> dict | None:
+    """The routes' intervals of the garden layout an exploration ran in (its `--set
+    sim.garden.layout`, in its meta's extra items): `routes_<layout>`, or `routes` by default."""
+    name = "routes"
+    for item in exploration.get("meta", {}).get("extra", []):
+        key, _, value = item.partition("=")
+        layout = value.strip().strip("\"'")
+        if key.strip() == "sim.garden.layout" and layout != "3drms":
+            name = f"routes_{layout}"
+    return _routes_intervals(all_data[name]) if name in all_data else None
+
+
 def routes_section(data: dict | None, name: str = "routes") -> str:
+    """The routes' table from `<name>.json`: `routes` (the experiments' layout) or
+    `routes_<layout>` (`smana experiment routes --layout <layout>`)."""
+    if data is None and name != "routes":
+        layout = name.split("_", 1)[1]
+        return (
+            f"_No raw results of `smana experiment routes --layout {layout}` are committed yet "
+            f"(docs/experiments/data/{name}.json): nothing is generated here._\n"
+        )
     if data is None:
-        return _missing(name, name.replace("_", " --layout ", 1))
+        return _missing("routes")
     seeds = sorted({r["seed"] for r in data["rows"]})
     lines = [
         f"Generated from docs/experiments/data/{name}.json (seeds {seeds[0]} to {seeds[-1]}):",
@@ -140,14 +169,7 @@ def _exploration_claims(data: dict, routes: dict | None) -> list[dict]:
 
 def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
     """Every claim the committed data decides, Holm-corrected together over the table."""
-    # the routes of the layout the exploration ran in (its --set sim.garden.layout, if any)
-    name = "routes"
-    for item in all_data.get("exploration", {}).get("meta", {}).get("extra", []):
-        key, _, value = item.partition("=")
-        layout = value.strip().strip("\"'")
-        if key.strip() == "sim.garden.layout" and layout != "3drms":
-            name = f"routes_{layout}"
-    routes = _routes_intervals(all_data[name]) if name in all_data else None
+    routes = _layout_routes(all_data, all_data.get("exploration", {}))
     table = []
     if "noise" in all_data:
         table += _noise_claims(all_data["noise"])
@@ -208,8 +230,9 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
 
 def sections(all_data: dict[str, dict]) -> dict[str, str]:
     return {
+        "routes_wheel": routes_section(all_data.get("routes_wheel"), "routes_wheel"),
         "verdicts": verdicts_section(all_data),
-        **{n: routes_section(all_data.get(n), n) for n in EXPERIMENTS if n.startswith("routes")},
+        "routes": routes_section(all_data.get("routes")),
     }
 
 

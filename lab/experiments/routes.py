@@ -157,8 +157,9 @@ def main(args, parser, out: Path) -> int:
     s = ExplorationExperimentConfig()
     layout = getattr(args, "layout", None)
     sets = run_world_sets([f'sim.garden.layout="{layout}"'] if layout else [])
-    # the exploration experiment's layout keeps its data file's name
-    name = "routes" if layout in (None, "3drms") else f"routes_{layout}"
+    # the exploration experiment's layout keeps its data file's name; another is a variant
+    variant = None if layout in (None, "3drms") else layout
+    name = f"routes_{variant}" if variant else "routes"
     command = f"smana experiment routes --seeds {args.seeds} --factors {args.factors}"
     command += f" --layout {layout}" if layout else ""
     seeds = list(range(3, 3 + args.seeds))
@@ -177,13 +178,14 @@ def main(args, parser, out: Path) -> int:
 
     write_data(
         out,
-        name,
+        "routes",
         [
             {"seed": k, "grass_cost_factor": f, "terrain_share": per_seed[k][f]}
             for k in seeds
             for f in factors
         ],
         {"command": command, "layout": layout or "3drms"},
+        variant=variant,
     )
     (out / f"{name}_results.json").write_text(
         json.dumps({"seeds": seeds, "per_seed": per_seed, "summary": rows}, indent=2)
