@@ -340,7 +340,7 @@ def test_a_failed_run_is_counted_warned_at_the_top_and_exits_non_zero(tmp_path, 
         return 0, m, {}, 1.0, 2.0
 
     monkeypatch.setattr(ex, "exploration_run", fake_run)
-    monkeypatch.setattr(ex, "pick_spawn", lambda seed, size_m: [0.0, 0.0, 0.0])
+    monkeypatch.setattr(ex, "pick_spawn", lambda seed, size_m, sets: [0.0, 0.0, 0.0])
     s = ex.ExplorationExperimentConfig(seeds=(3, 4), arms=arms, jobs=2)
     rows = ex.run_exploration(s, tmp_path, log=lambda _: None)
     assert sum(not r["ok"] for r in rows) == 1

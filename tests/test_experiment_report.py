@@ -145,7 +145,7 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
     assert ex.data_variant(ex.ExplorationExperimentConfig.quick()) == "quick"
     laid = ex.ExplorationExperimentConfig(extra=('sim.garden.layout="paths"',))
     assert ex.data_variant(laid) == "garden12paths"
-    report.write_data(tmp_path, "exploration", _exploration_rows(), {}, "garden20")
+    report.write_data(tmp_path, "exploration", _exploration_rows(), {"size_m": 20.0}, "garden20")
     report.write_data(tmp_path, "routes", [
         {"seed": s, "grass_cost_factor": 1.0, "terrain_share": 0.95} for s in (3, 4, 5)
     ])  # fmt: skip

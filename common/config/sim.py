@@ -150,8 +150,9 @@ class GardenConfig(Section, section="sim.garden"):
     # "classic": straight gravel strips across noise patches, objects scattered with gaps (~78 %
     # free from above); "3drms": the paper's statistics (section 4.3), gravel paths between plazas,
     # lawns and densely planted beds (services/sim/worlds/garden_3drms.py); the default since
-    # issue 14, for `smana up` and the experiments alike
-    layout: Literal["3drms", "classic"] = "3drms"
+    # issue 14, for `smana up` and the experiments alike; "wheel": 3drms's statistics, gravel
+    # spokes from a central lawn, grass between them: a way through (garden_wheel.py)
+    layout: Literal["3drms", "classic", "wheel"] = "3drms"
     size_m: float = param(12.0, ge=2, le=1000)  # side of the square garden
     ground_resolution_m: float = param(0.1, ge=0.01)  # height field / ground class raster cell
     terrain_fraction: float = param(0.5, ge=0, le=0.9)  # of the ground, terrain rather than grass

@@ -144,6 +144,14 @@ def experiment_world(seed: int, size_m: float, world_sets=WORLD_SETS):
     return cfg, generate(cfg.sim.seed, cfg.sim.garden, ClassTable.load("garden3drms"))
 
 
+def run_world_sets(extra=()) -> tuple[str, ...]:
+    """WORLD_SETS with the garden overrides among `extra` (`--set sim.garden.layout="wheel"`)
+    in place of those they override: the world the runs explore, where the starts are drawn."""
+    garden = [e for e in extra if e.strip().startswith("sim.garden.")]
+    keys = {e.split("=", 1)[0].strip() for e in garden}
+    return (*(e for e in WORLD_SETS if e.split("=", 1)[0].strip() not in keys), *garden)
+
+
 def pick_spawn(seed: int, size_m: float, world_sets=WORLD_SETS) -> list[float]:
     """[x, y, yaw]: a free cell with SPAWN_CLEARANCE_M, reachable from the world's own start
     (its free spot nearest the centre), drawn from the seed's generator."""
@@ -291,7 +299,7 @@ def run_exploration(
 ) -> list[dict]:
     """Every arm x seed, `s.jobs` at once; writes the outputs (`write(rows, s, out)`, by default
     the exploration's) and returns the rows."""
-    spawns = {seed: pick_spawn(seed, s.size_m) for seed in s.seeds}
+    spawns = {seed: pick_spawn(seed, s.size_m, run_world_sets(s.extra)) for seed in s.seeds}
     todo = [(seed, arm) for seed in s.seeds for arm in s.arms]
     # a `kill` (SIGTERM) stops the runs as Ctrl-C does: each `smana up` is in its own process
     # group and would otherwise live on without the experiment
@@ -590,7 +598,7 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
         *(f"| {v['claim']} | {v['paper']} | {v['smana']} | {v['verdict']} |" for v in table),
         "",
         f"Seeds {list(s.seeds)}, garden {s.size_m} m, budget {s.budget_s:.0f} s per run, "
-        f"{s.jobs} runs at once. World: {' '.join(WORLD_SETS) or 'default garden'}.",
+        f"{s.jobs} runs at once. World: {' '.join(run_world_sets(s.extra))}.",
         "",
         "| arm | runs (failed) | terrain share | coverage | distance (m) | reached 95 % | "
         "distance to 95 % (m) | time to 95 % (s) | Kaplan-Meier median to 95 % (m, s) |",

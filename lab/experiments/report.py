@@ -113,12 +113,32 @@ def _routes_intervals(data: dict) -> dict[float, stats.Interval]:
     return {f: stats.mean_ci(v) for f, v in sorted(by.items())}
 
 
-def routes_section(data: dict | None) -> str:
+def _layout_routes(all_data: dict[str, dict], exploration: dict) -> dict | None:
+    """The routes' intervals of the garden layout an exploration ran in (its `--set
+    sim.garden.layout`, in its meta's extra items): `routes_<layout>`, or `routes` by default."""
+    name = "routes"
+    for item in exploration.get("meta", {}).get("extra", []):
+        key, _, value = item.partition("=")
+        layout = value.strip().strip("\"'")
+        if key.strip() == "sim.garden.layout" and layout != "3drms":
+            name = f"routes_{layout}"
+    return _routes_intervals(all_data[name]) if name in all_data else None
+
+
+def routes_section(data: dict | None, name: str = "routes") -> str:
+    """The routes' table from `<name>.json`: `routes` (the experiments' layout) or
+    `routes_<layout>` (`smana experiment routes --layout <layout>`)."""
+    if data is None and name != "routes":
+        layout = name.split("_", 1)[1]
+        return (
+            f"_No raw results of `smana experiment routes --layout {layout}` are committed yet "
+            f"(docs/experiments/data/{name}.json): nothing is generated here._\n"
+        )
     if data is None:
         return _missing("routes")
     seeds = sorted({r["seed"] for r in data["rows"]})
     lines = [
-        f"Generated from docs/experiments/data/routes.json (seeds {seeds[0]} to {seeds[-1]}):",
+        f"Generated from docs/experiments/data/{name}.json (seeds {seeds[0]} to {seeds[-1]}):",
         "",
         "| grass cost | routes between random places, terrain share |",
         "|---|---|",
@@ -231,12 +251,15 @@ def _where(key: str, data: dict) -> str:
     return f"{name} ({key[len(name) + 1 :]})"
 
 
-def _exploration_claims(key: str, data: dict, routes: dict | None) -> list[dict]:
-    from .exploration import verdicts
+def _exploration_claims(key: str, data: dict, all_data: dict[str, dict]) -> list[dict]:
+    from .exploration import ExplorationExperimentConfig, verdicts
 
     rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
-    # the routes are the default garden's: they bound only the default run's terrain shares
-    world = routes if key == "exploration" else None
+    # the routes are computed in the experiments' 12 m garden, of the layout the run chose: they
+    # bound the terrain shares of a run in that garden only
+    size = data["meta"].get("size_m", ExplorationExperimentConfig.size_m)
+    same = size == ExplorationExperimentConfig.size_m
+    world = _layout_routes(all_data, data) if same else None
     return [{**v, "experiment": _where(key, data)} for v in verdicts(rows, world)]
 
 
@@ -251,13 +274,12 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
     """Every claim the committed data decides, Holm-corrected together over the table. A claim
     without a p-value (a count, such as the fleet's contacts) is not a test: it is listed, and
     stays out of the correction."""
-    routes = _routes_intervals(all_data["routes"]) if "routes" in all_data else None
     table = []
     for key, data in all_data.items():
         if data["experiment"] == "noise":
             table += _noise_claims(data)
         elif data["experiment"] == "exploration":
-            table += _exploration_claims(key, data, routes)
+            table += _exploration_claims(key, data, all_data)
         elif data["experiment"] == "fleet":
             table += _fleet_claims(key, data)
         elif data["experiment"] == "resources":
@@ -343,6 +365,7 @@ def resources_section(data: dict | None) -> str:
 
 def sections(all_data: dict[str, dict]) -> dict[str, str]:
     return {
+        "routes_wheel": routes_section(all_data.get("routes_wheel"), "routes_wheel"),
         "verdicts": verdicts_section(all_data),
         "routes": routes_section(all_data.get("routes")),
         "exploration": exploration_section(all_data),

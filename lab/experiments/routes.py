@@ -10,7 +10,10 @@ traversable class with `navgraph.robot_radius_m` of clearance), reachable from t
 class cost of the cell entered, scaled to the graph resolution: a 0.1 m step pays half a 0.2 m
 node's class cost; heights left out, the garden is gentle). Seconds per seed, in-process.
 
-    smana experiment routes [--seeds 5] [--factors 1,2,4] [--out DIR]
+    smana experiment routes [--seeds 5] [--factors 1,2,4] [--layout wheel] [--out DIR]
+
+Another garden layout (`--layout`, a `sim.garden.layout` value) writes data/routes_<layout>.json
+instead of data/routes.json: docs/experiments.md has a generated table for each.
 """
 
 from __future__ import annotations
@@ -116,19 +119,34 @@ def add_parser(sub) -> None:
         "garden at each grass cost, without exploring: what the layout alone decides.",
         epilog="Duration measured once on a 2-core machine: about 1 s per seed (5 seeds x 3 "
         "factors: 4.5 s). "
-        "The worlds are the exploration experiment's (same seeds, size and layout).",
+        "The worlds are the exploration experiment's (same seeds, size and layout; --layout "
+        "another sim.garden.layout, its data in data/routes_<layout>.json).",
     )
     r.add_argument(
         "--out", type=Path, help="output directory (default runs/experiment-routes-<time>)"
     )
     r.add_argument("--seeds", type=positive_int, default=5, help="number of seeds (default 5)")
     r.add_argument("--factors", default="1,2,4", help="grass cost factors (default 1,2,4)")
+    r.add_argument(
+        "--layout",
+        choices=garden_layouts(),
+        help="garden layout (sim.garden.layout; default the exploration experiment's, 3drms)",
+    )
+
+
+def garden_layouts() -> tuple[str, ...]:
+    """The values `sim.garden.layout` takes, read from its type (defined once, in the config)."""
+    import typing
+
+    from smana.common.config.sim import GardenConfig
+
+    return typing.get_args(typing.get_type_hints(GardenConfig)["layout"])
 
 
 def main(args, parser, out: Path) -> int:
     from smana.common.config import SmanaConfig
 
-    from .exploration import WORLD_SETS, ExplorationExperimentConfig
+    from .exploration import ExplorationExperimentConfig, run_world_sets
 
     try:
         factors = [float(v) for v in args.factors.split(",") if v.strip()]
@@ -137,12 +155,19 @@ def main(args, parser, out: Path) -> int:
     if not factors or min(factors) <= 0:
         parser.error(f"--factors: expected positive numbers, got {args.factors!r}")
     s = ExplorationExperimentConfig()
+    layout = getattr(args, "layout", None)
+    sets = run_world_sets([f'sim.garden.layout="{layout}"'] if layout else [])
+    # the exploration experiment's layout keeps its data file's name; another is a variant
+    variant = None if layout in (None, "3drms") else layout
+    name = f"routes_{variant}" if variant else "routes"
+    command = f"smana experiment routes --seeds {args.seeds} --factors {args.factors}"
+    command += f" --layout {layout}" if layout else ""
     seeds = list(range(3, 3 + args.seeds))
     clearance = SmanaConfig.load().navgraph.robot_radius_m
     per_seed = {}
     with progress.bar(len(seeds), "routes", unit="seed") as bar:
         for seed in seeds:
-            per_seed[seed] = world_routes(seed, s.size_m, factors, WORLD_SETS, clearance)
+            per_seed[seed] = world_routes(seed, s.size_m, factors, sets, clearance)
             bar.update()
     rows = [
         {"grass_cost_factor": f, **stats.mean_ci([per_seed[k][f] for k in seeds]).as_dict()}
@@ -159,15 +184,16 @@ def main(args, parser, out: Path) -> int:
             for k in seeds
             for f in factors
         ],
-        {"command": f"smana experiment routes --seeds {args.seeds} --factors {args.factors}"},
+        {"command": command, "layout": layout or "3drms"},
+        variant=variant,
     )
-    (out / "routes_results.json").write_text(
+    (out / f"{name}_results.json").write_text(
         json.dumps({"seeds": seeds, "per_seed": per_seed, "summary": rows}, indent=2)
     )
     lines = [
         "# Terrain share of the cheapest routes between random places (no exploration)",
         "",
-        f"Seeds {seeds}, garden {s.size_m} m, {' '.join(WORLD_SETS)}, robot clearance "
+        f"Seeds {seeds}, garden {s.size_m} m, {' '.join(sets)}, robot clearance "
         f"{clearance} m; 200 routes per seed and factor.",
         "",
         "| grass cost | terrain share of routes, mean [95 % CI] (n) |",
@@ -176,6 +202,6 @@ def main(args, parser, out: Path) -> int:
     for f in factors:
         iv = stats.mean_ci([per_seed[k][f] for k in seeds])
         lines.append(f"| x{f:g} | {iv.format(100, unit=' %')} |")
-    (out / "routes_summary.md").write_text("\n".join(lines) + "\n")
+    (out / f"{name}_summary.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

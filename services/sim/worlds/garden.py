@@ -70,6 +70,12 @@ def generate(
         ground, placed = layout_3drms(config, _heights(config, rng), rng)
         objects = walls(ground, config.wall_height_m, config.wall_thickness_m) + placed
         return World(ground, objects, classes, name=f"garden-{seed}", seed=seed)
+    if config.layout == "wheel":
+        from .garden_wheel import layout_wheel
+
+        ground, placed = layout_wheel(config, _heights(config, rng), rng)
+        objects = walls(ground, config.wall_height_m, config.wall_thickness_m) + placed
+        return World(ground, objects, classes, name=f"garden-{seed}", seed=seed)
     ground = _make_ground(config, rng)
     objects = walls(ground, config.wall_height_m, config.wall_thickness_m)
     objects += _place_objects(config, ground, rng)
