@@ -3,6 +3,7 @@
     smana experiment noise [--quick] [--out DIR]
     smana experiment exploration [--quick] [--seeds 3] [--out DIR]
     smana experiment fleet [--quick] [--robots 1,2,3] [--out DIR]
+    smana experiment navnoise [--quick] [--seeds 5] [--out DIR]   # beyond the paper
     smana experiment report [--check]     # docs/experiments.md's tables from the committed data
 
 One module per experiment (`noise.py`, `exploration.py`), each with its `add_parser(sub)` and
@@ -65,6 +66,7 @@ EXPERIMENTS = {
     "ablation": "ablation",
     "routes": "routes",
     "fleet": "fleet",
+    "navnoise": "navnoise",
     "report": "report",  # not an experiment: the docs' tables from the committed data
 }
 

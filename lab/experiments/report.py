@@ -30,7 +30,8 @@ from smana.lab import stats
 ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = ROOT / "docs" / "experiments" / "data"
 DOC = ROOT / "docs" / "experiments.md"
-EXPERIMENTS = ("noise", "exploration", "fleet", "routes")  # the data files a report reads
+# the data files a report reads
+EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "navnoise")
 SECTION = re.compile(
     r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
     re.S,
@@ -137,6 +138,13 @@ def _exploration_claims(data: dict, routes: dict | None) -> list[dict]:
     return [{**v, "experiment": "exploration"} for v in verdicts(rows, routes)]
 
 
+def _navnoise_claims(data: dict) -> list[dict]:
+    from .navnoise import verdicts
+
+    rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
+    return [{**v, "experiment": "navnoise"} for v in verdicts(rows)]
+
+
 def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
     """Every claim the committed data decides, Holm-corrected together over the table."""
     routes = _routes_intervals(all_data["routes"]) if "routes" in all_data else None
@@ -145,6 +153,8 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
         table += _noise_claims(all_data["noise"])
     if "exploration" in all_data:
         table += _exploration_claims(all_data["exploration"], routes)
+    if "navnoise" in all_data:
+        table += _navnoise_claims(all_data["navnoise"])
     # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
     decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in table]
     for c, d in zip(table, stats.holm_table(decisions), strict=True):
@@ -198,10 +208,17 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def navnoise_section(data: dict | None) -> str:
+    from .navnoise import section
+
+    return section(data)
+
+
 def sections(all_data: dict[str, dict]) -> dict[str, str]:
     return {
         "verdicts": verdicts_section(all_data),
         "routes": routes_section(all_data.get("routes")),
+        "navnoise": navnoise_section(all_data.get("navnoise")),
     }
 
 
