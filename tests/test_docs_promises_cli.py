@@ -257,7 +257,10 @@ def test_a_duration_in_a_help_text_says_it_was_measured_once():
     """A time in `--help` is a measurement on one machine, not a promise: each help text that
     gives one says so ("measured once"); the figures are in docs/benchmarks.md."""
     helps = [(name,) for name in COMMANDS] + [("bench", b) for b in BENCHES]
-    helps += [("experiment", e) for e in ("noise", "exploration", "ablation", "routes", "fleet")]
+    helps += [
+        ("experiment", e)
+        for e in ("noise", "exploration", "ablation", "routes", "fleet", "navnoise")
+    ]
     timed = 0
     for argv in helps:
         _, text = help_of(*argv)

@@ -23,13 +23,14 @@ def _rows(true_drop=0.01, cov_drop=0.0, tsdf_gain=0.0, seeds=(3, 4, 5, 6, 7)):
         for s in seeds:
             share = 0.80 + 0.02 * (s - 5)
             cov = 0.99
-            if c.noisy:
+            if c.perception == "noisy":
                 share -= true_drop + 0.002 * (s % 2)
                 cov -= cov_drop
                 if c.backend == "tsdf":
                     share += tsdf_gain + 0.001 * s
             rows.append(
-                {"seed": s, "arm": c.name, "backend": c.backend, "noisy": c.noisy, "ok": True,
+                {"seed": s, "arm": c.name, "backend": c.backend, "perception": c.perception,
+                 "ok": True,
                  "terrain_share_true": share, "coverage": cov, "time_to_95_s": 30.0}
             )  # fmt: skip
     return rows
@@ -51,6 +52,12 @@ def test_the_arms_are_the_two_backends_with_and_without_the_papers_noise():
         "sim.pose_noise_yaw_rad=0.02",
     )
     assert 'sim.noise="none"' in sets["octree_max_clean"]
+    # one noise at a time: arms that `--arms` adds, to tell which noise did what
+    extra = {c.name: c.arm().all_sets for c in nn.EXTRA_CONDITIONS}
+    assert extra["tsdf_label_only"][1:] == ('sim.noise="high"', *sets["tsdf_clean"][2:])
+    assert extra["tsdf_pose_only"][1:] == ('sim.noise="none"', *sets["tsdf_noisy"][2:])
+    args = type("Args", (), {"arms": "octree_max_pose_only, tsdf_clean"})()
+    assert [a.name for a in nn._arms(args)] == ["octree_max_pose_only", "tsdf_clean"]
     assert "sim.pose_noise_xy_m=0.0" in sets["octree_max_clean"]
     # every arm's overrides load as a config (a typo would fail every run)
     from smana.common.config import SmanaConfig
@@ -76,7 +83,7 @@ def test_verdicts_follow_the_rules_declared_before_the_run():
     worse = nn.verdicts(_rows(tsdf_gain=-0.05))[4]
     assert worse["verdict"] == stats.NOT_REPRODUCED
     # paired per seed: the difference's interval, not the arms' overlapping intervals
-    d = nn.paired(_rows(true_drop=0.01), "terrain_share_true", ("tsdf", False), ("tsdf", True))
+    d = nn.paired(_rows(true_drop=0.01), "terrain_share_true", ("tsdf", "clean"), ("tsdf", "noisy"))
     assert d.n == 5 and d.hi < 0 and d.lo > -0.05
 
 
@@ -85,7 +92,7 @@ def test_a_seed_missing_in_one_arm_is_left_out_of_the_pair_and_one_seed_is_incon
     for r in rows:
         if r["seed"] == 7 and r["arm"] == "tsdf_noisy":
             r["terrain_share_true"] = None  # no true trajectory in that run
-    d = nn.paired(rows, "terrain_share_true", ("tsdf", False), ("tsdf", True))
+    d = nn.paired(rows, "terrain_share_true", ("tsdf", "clean"), ("tsdf", "noisy"))
     assert d.n == 4
     one = nn.verdicts(_rows(seeds=(3,)))
     assert {v["verdict"] for v in one} == {stats.INCONCLUSIVE}
@@ -145,7 +152,8 @@ def test_outputs_from_faked_runs_warn_count_and_write_the_data_file(tmp_path, mo
     data = json.loads((tmp_path / "data" / "navnoise.json").read_text())
     by = {(r["seed"], r["arm"]): r for r in data["rows"]}
     assert by[(3, "tsdf_noisy")]["terrain_share_true"] == 0.7
-    assert by[(3, "tsdf_noisy")]["backend"] == "tsdf" and by[(3, "tsdf_noisy")]["noisy"]
+    assert by[(3, "tsdf_noisy")]["backend"] == "tsdf"
+    assert by[(3, "tsdf_noisy")]["perception"] == "noisy"
     assert by[(3, "tsdf_noisy")]["label_noise"] == "high"
     assert by[(4, "octree_max_noisy")]["terrain_share_true"] is None
     # a robot that never moved is a result (counted, no path to score), not a failed run
@@ -208,11 +216,12 @@ def test_navnoise_quick(tmp_path):
     assert [r["arm"] for r in runs] == [a.name for a in nn.ARMS]
     for r in runs:
         # a noisy run may end with the robot standing still (exit 1, a navigation outcome)
-        assert r["ok"] and r["exit_code"] in ((0, 1) if r["noisy"] else (0,)), r
+        noisy = r["perception"] == "noisy"
+        assert r["ok"] and r["exit_code"] in ((0, 1) if noisy else (0,)), r
         # measured on the recorder's true trajectory, not the published (noisy) pose
         assert r["trajectory_source"] == "ground truth", r
         assert r["collisions"] is not None and r["coverage"] > 0.2, r
-        if r["moved"] or not r["noisy"]:
+        if r["moved"] or not noisy:
             assert 0.0 <= r["terrain_share_true"] <= 1.0 and r["distance_m"] > 0.1, r
         else:
             assert r["terrain_share_true"] is None and "did not move" in r["run_warnings"], r

@@ -63,20 +63,44 @@ TRUE_SOURCE = "ground truth"  # lab/report.py _trajectory: the recorder's true p
 NAV_OUTCOMES = ("the robot did not move", "no path query was ever answered")
 
 
+# perception -> (label noise p = 0.7, pose noise); the two single-noise arms are not in the
+# default run (no verdict uses them): `--arms` adds them to tell which noise did what
+PERCEPTIONS = {
+    "clean": (False, False),
+    "noisy": (True, True),
+    "label_only": (True, False),
+    "pose_only": (False, True),
+}
+PERCEPTION_LABEL = {
+    "clean": "noise-free",
+    "noisy": "noisy",
+    "label_only": "label noise only",
+    "pose_only": "pose noise only",
+}
+
+
 @dataclass(frozen=True)
 class Condition:
-    """One arm's back-end and perception."""
+    """One arm's back-end and perception (a PERCEPTIONS key)."""
 
     backend: str
-    noisy: bool
+    perception: str
 
     @property
     def name(self) -> str:
-        return f"{self.backend.replace('-', '_')}_{'noisy' if self.noisy else 'clean'}"
+        return f"{self.backend.replace('-', '_')}_{self.perception}"
+
+    @property
+    def label_noise(self) -> str:
+        return LABEL_NOISE if PERCEPTIONS[self.perception][0] else CLEAN_LABEL_NOISE
+
+    @property
+    def pose_noise(self) -> tuple[float, float]:
+        return POSE_NOISE[POSE_LEVEL] if PERCEPTIONS[self.perception][1] else (0.0, 0.0)
 
     def sets(self) -> tuple[str, ...]:
-        xy, yaw = POSE_NOISE[POSE_LEVEL] if self.noisy else (0.0, 0.0)
-        level = LABEL_NOISE if self.noisy else CLEAN_LABEL_NOISE
+        xy, yaw = self.pose_noise
+        level = self.label_noise
         return (
             f'mapper.backend="{self.backend}"',
             f'sim.noise="{level}"',
@@ -88,9 +112,10 @@ class Condition:
         return ex.Arm(self.name, GRASS_COST_FACTOR, sets=self.sets())
 
 
-CONDITIONS = tuple(Condition(b, n) for b in BACKENDS for n in (False, True))
-ARMS = tuple(c.arm() for c in CONDITIONS)
-_BY_NAME = {c.name: c for c in CONDITIONS}
+CONDITIONS = tuple(Condition(b, p) for b in BACKENDS for p in ("clean", "noisy"))
+EXTRA_CONDITIONS = tuple(Condition(b, p) for b in BACKENDS for p in ("label_only", "pose_only"))
+ARMS = tuple(c.arm() for c in CONDITIONS)  # the default run's
+_BY_NAME = {c.name: c for c in (*CONDITIONS, *EXTRA_CONDITIONS)}
 
 
 def experiment_config(quick: bool = False) -> ex.ExplorationExperimentConfig:
@@ -145,10 +170,10 @@ def with_conditions(rows: list[dict], out: Path) -> list[dict]:
                 "ok": bool(r["ok"] or (outcome and m)),
                 "run_warnings": "; ".join(warnings),
                 "backend": c.backend,
-                "noisy": c.noisy,
-                "label_noise": LABEL_NOISE if c.noisy else CLEAN_LABEL_NOISE,
-                "pose_noise_xy_m": POSE_NOISE[POSE_LEVEL][0] if c.noisy else 0.0,
-                "pose_noise_yaw_rad": POSE_NOISE[POSE_LEVEL][1] if c.noisy else 0.0,
+                "perception": c.perception,
+                "label_noise": c.label_noise,
+                "pose_noise_xy_m": c.pose_noise[0],
+                "pose_noise_yaw_rad": c.pose_noise[1],
                 **ground_truth_fields(m),
             }
         )
@@ -158,19 +183,20 @@ def with_conditions(rows: list[dict], out: Path) -> list[dict]:
 # -- verdicts -------------------------------------------------------------------------------------
 
 
-def _values(rows: list[dict], backend: str, noisy: bool, key: str) -> dict[int, float]:
+def _values(rows: list[dict], backend: str, perception: str, key: str) -> dict[int, float]:
     return {
         r["seed"]: float(r[key])
         for r in rows
         if r["backend"] == backend
-        and bool(r["noisy"]) == noisy
+        and r["perception"] == perception
         and r.get("ok")
         and r.get(key) is not None
     }
 
 
-def paired(rows: list[dict], key: str, a: tuple[str, bool], b: tuple[str, bool]):
-    """Interval of b - a over the seeds where both arms have a value (module docstring)."""
+def paired(rows: list[dict], key: str, a: tuple[str, str], b: tuple[str, str]):
+    """Interval of b - a over the seeds where both arms, each (backend, perception), have a
+    value (module docstring)."""
     va, vb = _values(rows, *a, key), _values(rows, *b, key)
     return stats.mean_ci([vb[s] - va[s] for s in sorted(va.keys() & vb.keys())])
 
@@ -194,12 +220,12 @@ def verdicts(rows: list[dict]) -> list[dict]:
         )
 
     def stood_still(b: str) -> str:
-        runs = [r for r in rows if r["backend"] == b and r["noisy"] and r.get("ok")]
+        runs = [r for r in rows if r["backend"] == b and r["perception"] == "noisy" and r["ok"]]
         k = sum(r.get("moved") is False for r in runs)
         return f"the robot did not move in {k} of {len(runs)} noisy runs (no path)" if k else ""
 
     for b in BACKENDS:
-        ci = paired(rows, "terrain_share_true", (b, False), (b, True))
+        ci = paired(rows, "terrain_share_true", (b, "clean"), (b, "noisy"))
         add(
             f"{b}, grass x{GRASS_COST_FACTOR:g}: label noise p = 0.7 and pose noise do not "
             f"lower the true terrain share of the path by more than {100 * TERRAIN_MARGIN:.0f} "
@@ -211,7 +237,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
             stood_still(b),
         )
     for b in BACKENDS:
-        ci = paired(rows, "coverage", (b, False), (b, True))
+        ci = paired(rows, "coverage", (b, "clean"), (b, "noisy"))
         add(
             f"{b}, grass x{GRASS_COST_FACTOR:g}: the noise does not lower the ground-truth "
             f"coverage by more than {100 * COVERAGE_MARGIN:.0f} points (paired per seed)",
@@ -220,7 +246,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
             stats.decide_not_worse(ci, COVERAGE_MARGIN, higher_is_better=True),
             "not worse",
         )
-    ci = paired(rows, "terrain_share_true", ("octree-max", True), ("tsdf", True))
+    ci = paired(rows, "terrain_share_true", ("octree-max", "noisy"), ("tsdf", "noisy"))
     add(
         "under the noise, TSDF keeps the robot on terrain better than octree-max (claim (c) "
         "carried to navigation): tsdf minus octree-max, true terrain share, paired per seed",
@@ -245,10 +271,10 @@ SUMMARY_KEYS = (
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """Per arm, in CONDITIONS order: runs, failed, totals of contacts and close calls, and the
-    interval of each SUMMARY_KEYS value over its runs."""
+    """Per arm that ran, in _BY_NAME's order: runs, failed, totals of contacts and close calls,
+    and the interval of each SUMMARY_KEYS value over its runs."""
     out = []
-    for c in CONDITIONS:
+    for c in _BY_NAME.values():
         sel = [r for r in rows if r["arm"] == c.name]
         if not sel:
             continue
@@ -257,7 +283,7 @@ def summarise(rows: list[dict]) -> list[dict]:
             {
                 "arm": c.name,
                 "backend": c.backend,
-                "noisy": c.noisy,
+                "perception": c.perception,
                 "runs": len(sel),
                 "failed": len(sel) - len(ok),
                 "no_true_trajectory": sum(r.get("terrain_share_true") is None for r in ok),
@@ -279,7 +305,7 @@ def arm_table(rows: list[dict]) -> list[str]:
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for d in summarise(rows):
-        label = f"{d['backend']}, {'noisy' if d['noisy'] else 'noise-free'}"
+        label = f"{d['backend']}, {PERCEPTION_LABEL[d['perception']]}"
         lines.append(
             f"| {label} | {d['runs']} ({d['failed']}) | "
             f"{d['terrain_share_true'].format(100, unit=' %')} | "
@@ -324,12 +350,18 @@ def _clipped(ci: stats.Interval) -> tuple[float, float]:
 
 def _figure(rows: list[dict], out: Path) -> Path | None:
     summary = summarise(rows)
+    # x positions: the perceptions that ran, noise-free first, both noises last
+    order = [
+        p
+        for p in ("clean", "label_only", "pose_only", "noisy")
+        if p in {d["perception"] for d in summary}
+    ]
     series = []
     for b in BACKENDS:
         arms = [d for d in summary if d["backend"] == b]
         if not arms:
             continue
-        xs = [1.0 if d["noisy"] else 0.0 for d in arms]
+        xs = [float(order.index(d["perception"])) for d in arms]
         cis = [d["terrain_share_true"] for d in arms]
         ys = [None if c.n == 0 else c.mean for c in cis]
         err = [_clipped(c) for c in cis]
@@ -349,7 +381,7 @@ def _figure(rows: list[dict], out: Path) -> Path | None:
             f"True terrain share of the path, NBV at grass x{GRASS_COST_FACTOR:g}",
             "perception",
             "terrain share of travelled nodes (ground truth)",
-            {0.0: "noise-free", 1.0: "label p = 0.7 + pose noise"},
+            {float(k): PERCEPTION_LABEL[p] for k, p in enumerate(order)},
             ylim=(0.0, 1.02),
             note="mean, 95 % CI clipped to [0, 1]",
         ),
@@ -452,19 +484,24 @@ def add_parser(sub) -> None:
     ex.add_common_args(e, quick_help="4 arms x 2 seeds of 20 s in a 6 m garden")
     e.add_argument(
         "--arms",
-        help="comma-separated subset of the arms (default: " + ",".join(a.name for a in ARMS) + ")",
+        help="comma-separated arms (default: "
+        + ",".join(a.name for a in ARMS)
+        + "; also "
+        + ",".join(c.name for c in EXTRA_CONDITIONS)
+        + ": one noise at a time, in no verdict)",
     )
 
 
-def _with_arms(args):
-    """`--arms` chooses among this experiment's arms (exploration's apply_args knows its own)."""
+def _arms(args) -> tuple[ex.Arm, ...] | None:
+    """The arms `--arms` names (any of _BY_NAME), None without it; a bad name: one line."""
     from smana.common.cli import UsageError
 
-    if getattr(args, "arms", None):
-        names = [v.strip() for v in args.arms.split(",") if v.strip()]
-        if not names or any(v not in _BY_NAME for v in names):
-            raise UsageError(f"--arms: expected some of {', '.join(_BY_NAME)}, got {args.arms!r}")
-    return args
+    if not getattr(args, "arms", None):
+        return None
+    names = [v.strip() for v in args.arms.split(",") if v.strip()]
+    if not names or any(v not in _BY_NAME for v in names):
+        raise UsageError(f"--arms: expected some of {', '.join(_BY_NAME)}, got {args.arms!r}")
+    return tuple(_BY_NAME[v].arm() for v in names)
 
 
 def check_args(args, parser=None) -> None:
@@ -472,10 +509,14 @@ def check_args(args, parser=None) -> None:
     from smana.common.config import SmanaConfig
 
     SmanaConfig.load(overrides=[*ex.WORLD_SETS, *ARMS[-1].sets, *args.extra])
-    _with_arms(args)
+    _arms(args)
 
 
 def main(args, parser, out: Path) -> int:
-    s = ex.apply_args(experiment_config(args.quick), _with_arms(args))
+    arms = _arms(args)
+    args.arms = None  # chosen here: exploration's apply_args knows only its own arms
+    s = ex.apply_args(experiment_config(args.quick), args)
+    if arms:
+        s.arms = arms
     rows = ex.run_exploration(s, out, write=write_outputs)
     return ex.finish(rows, out, "navnoise")
