@@ -54,10 +54,16 @@ def test_the_arms_are_the_two_backends_with_and_without_the_papers_noise():
     assert 'sim.noise="none"' in sets["octree_max_clean"]
     # one noise at a time: arms that `--arms` adds, to tell which noise did what
     extra = {c.name: c.arm().all_sets for c in nn.EXTRA_CONDITIONS}
-    assert extra["tsdf_label_only"][1:] == ('sim.noise="high"', *sets["tsdf_clean"][2:])
-    assert extra["tsdf_pose_only"][1:] == ('sim.noise="none"', *sets["tsdf_noisy"][2:])
-    args = type("Args", (), {"arms": "octree_max_pose_only, tsdf_clean"})()
-    assert [a.name for a in nn._arms(args)] == ["octree_max_pose_only", "tsdf_clean"]
+    assert extra["tsdf_label"][1:] == ('sim.noise="high"', *sets["tsdf_clean"][2:])
+    assert extra["tsdf_pose"][1:] == ('sim.noise="none"', *sets["tsdf_noisy"][2:])
+    # each run's robot is named exp<pid>-s<seed>-<arm> (exploration.py), a key chunk of at most
+    # 32 characters: it fits with the largest pid Linux gives and a two-digit seed
+    from smana.common.keys import check_name
+
+    for c in (*nn.CONDITIONS, *nn.EXTRA_CONDITIONS):
+        check_name(f"exp{2**22}-s99-{c.name}")
+    args = type("Args", (), {"arms": "octree_max_pose, tsdf_clean"})()
+    assert [a.name for a in nn._arms(args)] == ["octree_max_pose", "tsdf_clean"]
     assert "sim.pose_noise_xy_m=0.0" in sets["octree_max_clean"]
     # every arm's overrides load as a config (a typo would fail every run)
     from smana.common.config import SmanaConfig

@@ -68,14 +68,14 @@ NAV_OUTCOMES = ("the robot did not move", "no path query was ever answered")
 PERCEPTIONS = {
     "clean": (False, False),
     "noisy": (True, True),
-    "label_only": (True, False),
-    "pose_only": (False, True),
+    "label": (True, False),
+    "pose": (False, True),
 }
 PERCEPTION_LABEL = {
     "clean": "noise-free",
     "noisy": "noisy",
-    "label_only": "label noise only",
-    "pose_only": "pose noise only",
+    "label": "label noise only",
+    "pose": "pose noise only",
 }
 
 
@@ -113,7 +113,7 @@ class Condition:
 
 
 CONDITIONS = tuple(Condition(b, p) for b in BACKENDS for p in ("clean", "noisy"))
-EXTRA_CONDITIONS = tuple(Condition(b, p) for b in BACKENDS for p in ("label_only", "pose_only"))
+EXTRA_CONDITIONS = tuple(Condition(b, p) for b in BACKENDS for p in ("label", "pose"))
 ARMS = tuple(c.arm() for c in CONDITIONS)  # the default run's
 _BY_NAME = {c.name: c for c in (*CONDITIONS, *EXTRA_CONDITIONS)}
 
@@ -352,9 +352,7 @@ def _figure(rows: list[dict], out: Path) -> Path | None:
     summary = summarise(rows)
     # x positions: the perceptions that ran, noise-free first, both noises last
     order = [
-        p
-        for p in ("clean", "label_only", "pose_only", "noisy")
-        if p in {d["perception"] for d in summary}
+        p for p in ("clean", "label", "pose", "noisy") if p in {d["perception"] for d in summary}
     ]
     series = []
     for b in BACKENDS:
