@@ -36,6 +36,13 @@ Rules, fixed before the runs (lab/stats.py; paired per seed, the same seeds in e
    octree-max of the noisy arms' true terrain share lies above 0 (`decide_above`).
 Verdicts are "reproduced" (met), "not reproduced", "inconclusive"; docs/experiments.md corrects
 them with every other claim (Holm). Contacts are counts, reported per arm, not tested.
+
+A run that `smana up` ends with a navigation warning only (NAV_OUTCOMES: the robot did not move,
+no path was ever found) is what the noise did, not a failed run: it is counted per arm ("did not
+move") and in rule 1's evidence, and since a robot that stood still has no path, its seed leaves
+that back-end's terrain-share pair. Two more arms per back-end, `<backend>_label` and
+`<backend>_pose` (one noise at a time), are on `--arms` to tell which noise did what; no verdict
+uses them.
 """
 
 from __future__ import annotations
@@ -138,8 +145,9 @@ def ground_truth_fields(m: dict) -> dict:
 
     e = m.get("exploration") or {}
     source = e.get("trajectory_source")
-    moved = (e.get("distance_m") or 0.0) >= MOVED_M
-    true = source == TRUE_SOURCE and moved
+    dist = e.get("distance_m")
+    moved = None if dist is None else dist >= MOVED_M  # None: no trajectory measured at all
+    true = source == TRUE_SOURCE and bool(moved)
     return {
         "moved": moved,
         "trajectory_source": source,
