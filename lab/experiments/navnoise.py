@@ -195,8 +195,8 @@ def _values(rows: list[dict], backend: str, perception: str, key: str) -> dict[i
     return {
         r["seed"]: float(r[key])
         for r in rows
-        if r["backend"] == backend
-        and r["perception"] == perception
+        if r.get("backend") == backend
+        and r.get("perception") == perception
         and r.get("ok")
         and r.get(key) is not None
     }
@@ -228,7 +228,8 @@ def verdicts(rows: list[dict]) -> list[dict]:
         )
 
     def stood_still(b: str) -> str:
-        runs = [r for r in rows if r["backend"] == b and r["perception"] == "noisy" and r["ok"]]
+        runs = [r for r in rows if (r.get("backend"), r.get("perception")) == (b, "noisy")]
+        runs = [r for r in runs if r.get("ok")]
         k = sum(r.get("moved") is False for r in runs)
         return f"the robot did not move in {k} of {len(runs)} noisy runs (no path)" if k else ""
 
@@ -283,7 +284,7 @@ def summarise(rows: list[dict]) -> list[dict]:
     and the interval of each SUMMARY_KEYS value over its runs."""
     out = []
     for c in _BY_NAME.values():
-        sel = [r for r in rows if r["arm"] == c.name]
+        sel = [r for r in rows if r.get("arm") == c.name]
         if not sel:
             continue
         ok = [r for r in sel if r.get("ok")]
