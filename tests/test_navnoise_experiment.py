@@ -199,6 +199,11 @@ def test_report_generates_the_navnoise_section_and_its_claims(tmp_path):
     assert "| octree-max, noise-free | 5 (0) |" in text
     assert text.count("| navnoise: ") == 5 and "Holm-adjusted p" in text
     assert exp.cli(["report", "--check", "--doc", str(doc), "--data", str(tmp_path / "data")]) == 0
+    assert "quick run" not in text
+    # a quick run's data says so on top of the section
+    report.write_data(tmp_path, "navnoise", _rows(), {"is_quick": True})
+    text, _ = report.regenerate(doc.read_text(), report.load_data(tmp_path / "data"))
+    assert "**A quick run's data** (`--quick`)" in text
 
 
 def test_bad_arms_or_set_is_one_line_and_exit_2(tmp_path, capsys):

@@ -337,7 +337,10 @@ def section(data: dict | None) -> str:
         )
     rows = data["rows"]
     seeds = sorted({r["seed"] for r in rows})
-    lines = [
+    lines = []
+    if (data.get("meta") or {}).get("is_quick"):
+        lines += ["**A quick run's data** (`--quick`): it tests the tooling, not the question.", ""]
+    lines += [
         f"Generated from docs/experiments/data/navnoise.json (seeds {seeds}; mean [95 % CI] (n) "
         "over seeds; contacts and close calls added over the runs; the verdicts are in the "
         "table above):",
