@@ -88,6 +88,14 @@ def test_verdicts_follow_the_rules_declared_before_the_run():
     assert better["verdict"] == stats.REPRODUCED and better["rule"] == "above 0"
     worse = nn.verdicts(_rows(tsdf_gain=-0.05))[4]
     assert worse["verdict"] == stats.NOT_REPRODUCED
+    # the single-noise arms (--arms) change no verdict
+    rows = _rows(true_drop=0.01)
+    extra = [
+        {**r, "arm": f"{r['backend'].replace('-', '_')}_{p}", "perception": p,
+         "terrain_share_true": 0.1, "coverage": 0.1}
+        for r in rows if r["perception"] == "noisy" for p in ("label", "pose")
+    ]  # fmt: skip
+    assert nn.verdicts(rows + extra) == nn.verdicts(rows)
     # paired per seed: the difference's interval, not the arms' overlapping intervals
     d = nn.paired(_rows(true_drop=0.01), "terrain_share_true", ("tsdf", "clean"), ("tsdf", "noisy"))
     assert d.n == 5 and d.hi < 0 and d.lo > -0.05
