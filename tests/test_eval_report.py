@@ -112,6 +112,23 @@ def test_report_counts_a_drive_through_a_wall_and_prefers_the_true_trajectory(ru
     assert ex["min_clearance_m"] == 0.0
 
 
+def test_report_gives_the_maps_terrain_share_of_the_travelled_nodes_beside_the_truth(run):
+    # the same travelled nodes read twice: their class in the world (terrain_share) and their
+    # label in the explorer's graph (terrain_share_map), what the robot believed it drove on
+    run_dir, cfg, world = run
+    report.write_report(run_dir, cfg)
+    ex = json.loads((run_dir / "metrics.json").read_text())["exploration"]
+    truth = ex["terrain_share"]
+    assert ex["terrain_share_map"] == 1.0  # the fixture's graph calls every node terrain
+    with np.load(run_dir / "explorer" / "graph.npz") as g:
+        graph = {k: g[k] for k in g.files}
+    graph["labels"] = np.full_like(graph["labels"], 1)  # now grass everywhere
+    np.savez(run_dir / "explorer" / "graph.npz", **graph)
+    report.write_report(run_dir, cfg)
+    ex = json.loads((run_dir / "metrics.json").read_text())["exploration"]
+    assert ex["terrain_share_map"] == 0.0 and ex["terrain_share"] == truth
+
+
 def test_report_of_an_empty_run_dir_still_writes(tmp_path):
     cfg = SmanaConfig.load(None, ["sim.garden.size_m=6.0"])
     path = report.write_report(tmp_path, cfg)

@@ -160,6 +160,9 @@ def exploration_metrics(
         gt_labels = top.at(centres[:, 0], centres[:, 1])
         out["travelled_nodes"] = int(len(nodes))
         out["terrain_share"] = ev.terrain_share(gt_labels)
+        if graph is not None:
+            # what the robot's own graph called the same nodes: the map's belief beside the truth
+            out["terrain_share_map"] = ev.terrain_share(ev.sample_grid(graph, centres, "labels"))
         out["travelled_label_share"] = ev.label_shares(gt_labels, names)
         # what the robot's body can hit: objects up to its height (it passes under tree crowns)
         if obstacle is None:

@@ -4,6 +4,7 @@
     smana experiment exploration [--quick] [--seeds 3] [--out DIR]
     smana experiment fleet [--quick] [--robots 1,2,3] [--out DIR]
     smana experiment resources [--quick] [--repeats 5] [--out DIR]
+    smana experiment navnoise [--quick] [--seeds 5] [--out DIR]   # beyond the paper
     smana experiment report [--check]     # docs/experiments.md's tables from the committed data
 
 One module per experiment (`noise.py`, `exploration.py`), each with its `add_parser(sub)` and
@@ -67,6 +68,7 @@ EXPERIMENTS = {
     "routes": "routes",
     "fleet": "fleet",
     "resources": "resources",
+    "navnoise": "navnoise",
     "report": "report",  # not an experiment: the docs' tables from the committed data
 }
 

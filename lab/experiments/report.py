@@ -30,7 +30,8 @@ from smana.lab import stats
 ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = ROOT / "docs" / "experiments" / "data"
 DOC = ROOT / "docs" / "experiments.md"
-EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "resources")  # the data files read
+# the data files a report reads
+EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "resources", "navnoise")
 SECTION = re.compile(
     r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
     re.S,
@@ -270,6 +271,13 @@ def _fleet_claims(key: str, data: dict) -> list[dict]:
     return [{**v, "experiment": _where(key, data)} for v in verdicts(rows)]
 
 
+def _navnoise_claims(data: dict) -> list[dict]:
+    from .navnoise import verdicts
+
+    rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
+    return [{**v, "experiment": "navnoise"} for v in verdicts(rows)]
+
+
 def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
     """Every claim the committed data decides, Holm-corrected together over the table. A claim
     without a p-value (a count, such as the fleet's contacts) is not a test: it is listed, and
@@ -288,6 +296,8 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
             table += [
                 {**c, "experiment": _where(key, data)} for c in resources_claims(data["rows"])
             ]
+        elif data["experiment"] == "navnoise":
+            table += [{**c, "experiment": _where(key, data)} for c in _navnoise_claims(data)]
     tested = [c for c in table if c.get("p") is not None]
     # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
     decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in tested]
@@ -363,6 +373,12 @@ def resources_section(data: dict | None) -> str:
     return "\n".join([head, "", *table(data["rows"])]) + "\n"
 
 
+def navnoise_section(data: dict | None) -> str:
+    from .navnoise import section
+
+    return section(data)
+
+
 def sections(all_data: dict[str, dict]) -> dict[str, str]:
     return {
         "routes_wheel": routes_section(all_data.get("routes_wheel"), "routes_wheel"),
@@ -371,6 +387,7 @@ def sections(all_data: dict[str, dict]) -> dict[str, str]:
         "exploration": exploration_section(all_data),
         "fleet": fleet_section(all_data),
         "resources": resources_section(all_data.get("resources")),
+        "navnoise": navnoise_section(all_data.get("navnoise")),
     }
 
 
