@@ -105,18 +105,15 @@ def label_geometric(
     out = np.zeros(pts.shape[0], np.uint16)
     if pts.shape[0] == 0:
         return out
-    window = window_cells(cfg.cell_m, robot_radius_m)
-    _label_kernel(
-        np.ascontiguousarray(pts, np.float32),
-        origin,
+    params = _Params(
         float(cfg.cell_m),
         float(max_step_m),
         math.tan(math.radians(cfg.max_slope_deg)),
-        window,
+        window_cells(cfg.cell_m, robot_radius_m),
         int(cfg.min_points),
         float(cfg.max_distance_m),
-        out,
     )
+    _label_kernel(np.ascontiguousarray(pts, np.float32), origin, params, out)
     return out
 
 
@@ -127,6 +124,17 @@ def window_cells(cell_m: float, robot_radius_m: float) -> int:
 
 
 # -- kernels -----------------------------------------------------------------------------------
+
+
+class _Params(NamedTuple):
+    """The labeller's parameters as the kernels read them."""
+
+    cell_m: float
+    max_step: float  # metres
+    tan_slope: float  # tan(max_slope_deg)
+    window: int  # cells each side of a cell that its slope is measured over
+    min_points: int
+    max_dist: float  # metres from the sensor on x or y
 
 
 @numba.njit(cache=True)
@@ -188,12 +196,12 @@ def _neighbour(cells, i, j):
     return cells.index[i, j]
 
 
-@numba.njit(cache=True)
-def _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window):
-    """Per occupied cell: unknown, ground or obstacle (module docstring, steps 1-3)."""
+@numba.njit(cache=True, inline="always")
+def _pits(cells, known, max_step):
+    """Step 2's pits: known cells lower than most (and at least 2) of their known neighbours by
+    more than the step height."""
     n = cells.count.size
     zmin = cells.zmin
-    known = cells.count >= min_points
     pit = np.zeros(n, np.bool_)
     for c in range(n):
         if not known[c]:
@@ -209,63 +217,93 @@ def _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window):
                     if zmin[e] - zmin[c] > max_step:
                         n_higher += 1
         pit[c] = n_known >= 2 and 2 * n_higher > n_known
+    return pit
+
+
+@numba.njit(cache=True, inline="always")
+def _blocked(cells, known, pit, c, max_step):
+    """Step 2 for known cell c: a pit, something standing in it, or a step above a known
+    neighbour that is not a pit."""
+    zmin = cells.zmin
+    if pit[c] or cells.zmax[c] - zmin[c] > max_step:  # a hole, or something standing
+        return True
+    i, j = cells.ij[c, 0], cells.ij[c, 1]
+    for di in range(-1, 2):
+        for dj in range(-1, 2):
+            e = _neighbour(cells, i + di, j + dj)
+            if e >= 0 and known[e] and not pit[e] and zmin[c] - zmin[e] > max_step:
+                return True
+    return False
+
+
+@numba.njit(cache=True, inline="always")
+def _window_slopes(cells, usable, c, p, win, gx, gy):
+    """Step 3's height differences over run around usable cell c: along x into gx, along y into
+    gy, over the pairs of usable cells in its window (`win`, (2w + 1)^2 scratch). Returns how
+    many of each."""
+    w = p.window
+    cell_m = p.cell_m
+    zmin = cells.zmin
+    i, j = cells.ij[c, 0], cells.ij[c, 1]
+    # the window's usable ground heights (NaN elsewhere), gathered once per cell: every pair
+    # below reads this small array instead of the grid
+    for a in range(2 * w + 1):
+        for b in range(2 * w + 1):
+            e = _neighbour(cells, i + a - w, j + b - w)
+            win[a, b] = zmin[e] if e >= 0 and usable[e] else np.nan
+    nxs = 0
+    nys = 0
+    for u in range(2 * w + 1):  # the row (or column) across the axis
+        for s in range(2 * w + 1):  # first cell of the pair along the axis
+            for d in range(1, min(w, 2 * w - s) + 1):  # the second, d further, in the window
+                # along x: window cells (s, u) and (s + d, u); along y: (u, s), (u, s + d)
+                h0, h1 = win[s, u], win[s + d, u]
+                if h0 == h0 and h1 == h1:
+                    gx[nxs] = (h1 - h0) / (d * cell_m)
+                    nxs += 1
+                h0, h1 = win[u, s], win[u, s + d]
+                if h0 == h0 and h1 == h1:
+                    gy[nys] = (h1 - h0) / (d * cell_m)
+                    nys += 1
+    return nxs, nys
+
+
+@numba.njit(cache=True, inline="always")
+def _slope_kind(gx, nxs, gy, nys, tan_slope):
+    """Step 3's verdict from a cell's slopes: the medians along x and y (reordering gx, gy)."""
+    if nxs + nys == 0:
+        return _CELL_UNKNOWN  # no pair to measure: an isolated return
+    mx = _median(gx, nxs) if nxs else 0.0
+    my = _median(gy, nys) if nys else 0.0
+    if mx * mx + my * my > tan_slope * tan_slope:
+        return _CELL_OBSTACLE
+    return _CELL_GROUND
+
+
+@numba.njit(cache=True)
+def _cell_kinds(cells, p):
+    """Per occupied cell: unknown, ground or obstacle (module docstring, steps 1-3)."""
+    n = cells.count.size
+    known = cells.count >= p.min_points
+    pit = _pits(cells, known, p.max_step)
     kind = np.zeros(n, np.uint8)
     usable = np.zeros(n, np.bool_)
     for c in range(n):
         if not known[c]:
             continue
-        if pit[c] or cells.zmax[c] - zmin[c] > max_step:  # a hole, or something standing
-            kind[c] = _CELL_OBSTACLE
-            continue
-        i, j = cells.ij[c, 0], cells.ij[c, 1]
-        step = False
-        for di in range(-1, 2):
-            for dj in range(-1, 2):
-                e = _neighbour(cells, i + di, j + dj)
-                if e >= 0 and known[e] and not pit[e] and zmin[c] - zmin[e] > max_step:
-                    step = True
-        if step:
+        if _blocked(cells, known, pit, c, p.max_step):
             kind[c] = _CELL_OBSTACLE
         else:
             usable[c] = True
-    w = window
+    w = p.window
     size = (2 * w + 1) * w * (2 * w + 1)  # pairs along one axis in the window, at most
     gx = np.empty(size, np.float64)
     gy = np.empty(size, np.float64)
-    # the window's usable ground heights (NaN elsewhere), gathered once per cell: every pair
-    # below reads this small array instead of the grid
     win = np.empty((2 * w + 1, 2 * w + 1), np.float64)
     for c in range(n):
-        if not usable[c]:
-            continue
-        i, j = cells.ij[c, 0], cells.ij[c, 1]
-        for a in range(2 * w + 1):
-            for b in range(2 * w + 1):
-                e = _neighbour(cells, i + a - w, j + b - w)
-                win[a, b] = zmin[e] if e >= 0 and usable[e] else np.nan
-        nxs = 0
-        nys = 0
-        for u in range(2 * w + 1):  # the row (or column) across the axis
-            for s in range(2 * w + 1):  # first cell of the pair along the axis
-                for d in range(1, min(w, 2 * w - s) + 1):  # the second, d further, in the window
-                    # along x: window cells (s, u) and (s + d, u); along y: (u, s), (u, s + d)
-                    h0, h1 = win[s, u], win[s + d, u]
-                    if h0 == h0 and h1 == h1:
-                        gx[nxs] = (h1 - h0) / (d * cell_m)
-                        nxs += 1
-                    h0, h1 = win[u, s], win[u, s + d]
-                    if h0 == h0 and h1 == h1:
-                        gy[nys] = (h1 - h0) / (d * cell_m)
-                        nys += 1
-        if nxs + nys == 0:
-            kind[c] = _CELL_UNKNOWN
-            continue
-        mx = _median(gx, nxs) if nxs else 0.0
-        my = _median(gy, nys) if nys else 0.0
-        if mx * mx + my * my > tan_slope * tan_slope:
-            kind[c] = _CELL_OBSTACLE
-        else:
-            kind[c] = _CELL_GROUND
+        if usable[c]:
+            nxs, nys = _window_slopes(cells, usable, c, p, win, gx, gy)
+            kind[c] = _slope_kind(gx, nxs, gy, nys, p.tan_slope)
     return kind
 
 
@@ -317,8 +355,10 @@ def _bin_points(points, origin, cell_m, max_dist):
 
 
 @numba.njit(cache=True)
-def _point_labels(points, cells, cell_of, kind, min_points, max_step, out):
+def _point_labels(points, cells, cell_of, kind, p, out):
     """Module docstring, step 4."""
+    min_points = p.min_points
+    max_step = p.max_step
     for k in range(points.shape[0]):
         c = cell_of[k]
         if c < 0 or cells.count[c] < min_points:
@@ -332,7 +372,7 @@ def _point_labels(points, cells, cell_of, kind, min_points, max_step, out):
 
 
 @numba.njit(cache=True)
-def _label_kernel(points, origin, cell_m, max_step, tan_slope, window, min_points, max_dist, out):
-    cells, cell_of = _bin_points(points, origin, cell_m, max_dist)
-    kind = _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window)
-    _point_labels(points, cells, cell_of, kind, min_points, max_step, out)
+def _label_kernel(points, origin, p, out):
+    cells, cell_of = _bin_points(points, origin, p.cell_m, p.max_dist)
+    kind = _cell_kinds(cells, p)
+    _point_labels(points, cells, cell_of, kind, p, out)
