@@ -196,7 +196,11 @@ def _neighbour(cells, i, j):
     return cells.index[i, j]
 
 
-@numba.njit(cache=True, inline="always")
+# Each step below loops over the cells itself: a helper called once per cell would cost numba's
+# reference counting (an atomic increment and decrement per array it reads) on every call.
+
+
+@numba.njit(cache=True)
 def _pits(cells, known, max_step):
     """Step 2's pits: known cells lower than most (and at least 2) of their known neighbours by
     more than the step height."""
@@ -220,90 +224,88 @@ def _pits(cells, known, max_step):
     return pit
 
 
-@numba.njit(cache=True, inline="always")
-def _blocked(cells, known, pit, c, max_step):
-    """Step 2 for known cell c: a pit, something standing in it, or a step above a known
-    neighbour that is not a pit."""
+@numba.njit(cache=True)
+def _blocked(cells, known, pit, max_step, kind):
+    """Step 2's obstacles: a pit, something standing in the cell, or a step above a known
+    neighbour that is not a pit. Sets `kind` of those to obstacle; returns the other known
+    cells (usable: their slope decides)."""
     zmin = cells.zmin
-    if pit[c] or cells.zmax[c] - zmin[c] > max_step:  # a hole, or something standing
-        return True
-    i, j = cells.ij[c, 0], cells.ij[c, 1]
-    for di in range(-1, 2):
-        for dj in range(-1, 2):
-            e = _neighbour(cells, i + di, j + dj)
-            if e >= 0 and known[e] and not pit[e] and zmin[c] - zmin[e] > max_step:
-                return True
-    return False
+    usable = np.zeros(cells.count.size, np.bool_)
+    for c in range(cells.count.size):
+        if not known[c]:
+            continue
+        if pit[c] or cells.zmax[c] - zmin[c] > max_step:  # a hole, or something standing
+            kind[c] = _CELL_OBSTACLE
+            continue
+        i, j = cells.ij[c, 0], cells.ij[c, 1]
+        step = False
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                e = _neighbour(cells, i + di, j + dj)
+                if e >= 0 and known[e] and not pit[e] and zmin[c] - zmin[e] > max_step:
+                    step = True
+        if step:
+            kind[c] = _CELL_OBSTACLE
+        else:
+            usable[c] = True
+    return usable
 
 
-@numba.njit(cache=True, inline="always")
-def _window_slopes(cells, usable, c, p, win, gx, gy):
-    """Step 3's height differences over run around usable cell c: along x into gx, along y into
-    gy, over the pairs of usable cells in its window (`win`, (2w + 1)^2 scratch). Returns how
-    many of each."""
+@numba.njit(cache=True)
+def _slopes(cells, usable, p, kind):
+    """Step 3 for the usable cells: the medians of the height differences over run along x and
+    along y, over the pairs of usable cells in the window around each; `kind` is unknown where
+    no pair exists, an obstacle where steeper than `p.tan_slope`, ground otherwise."""
     w = p.window
     cell_m = p.cell_m
     zmin = cells.zmin
-    i, j = cells.ij[c, 0], cells.ij[c, 1]
+    size = (2 * w + 1) * w * (2 * w + 1)  # pairs along one axis in the window, at most
+    gx = np.empty(size, np.float64)
+    gy = np.empty(size, np.float64)
     # the window's usable ground heights (NaN elsewhere), gathered once per cell: every pair
     # below reads this small array instead of the grid
-    for a in range(2 * w + 1):
-        for b in range(2 * w + 1):
-            e = _neighbour(cells, i + a - w, j + b - w)
-            win[a, b] = zmin[e] if e >= 0 and usable[e] else np.nan
-    nxs = 0
-    nys = 0
-    for u in range(2 * w + 1):  # the row (or column) across the axis
-        for s in range(2 * w + 1):  # first cell of the pair along the axis
-            for d in range(1, min(w, 2 * w - s) + 1):  # the second, d further, in the window
-                # along x: window cells (s, u) and (s + d, u); along y: (u, s), (u, s + d)
-                h0, h1 = win[s, u], win[s + d, u]
-                if h0 == h0 and h1 == h1:
-                    gx[nxs] = (h1 - h0) / (d * cell_m)
-                    nxs += 1
-                h0, h1 = win[u, s], win[u, s + d]
-                if h0 == h0 and h1 == h1:
-                    gy[nys] = (h1 - h0) / (d * cell_m)
-                    nys += 1
-    return nxs, nys
-
-
-@numba.njit(cache=True, inline="always")
-def _slope_kind(gx, nxs, gy, nys, tan_slope):
-    """Step 3's verdict from a cell's slopes: the medians along x and y (reordering gx, gy)."""
-    if nxs + nys == 0:
-        return _CELL_UNKNOWN  # no pair to measure: an isolated return
-    mx = _median(gx, nxs) if nxs else 0.0
-    my = _median(gy, nys) if nys else 0.0
-    if mx * mx + my * my > tan_slope * tan_slope:
-        return _CELL_OBSTACLE
-    return _CELL_GROUND
+    win = np.empty((2 * w + 1, 2 * w + 1), np.float64)
+    for c in range(cells.count.size):
+        if not usable[c]:
+            continue
+        i, j = cells.ij[c, 0], cells.ij[c, 1]
+        for a in range(2 * w + 1):
+            for b in range(2 * w + 1):
+                e = _neighbour(cells, i + a - w, j + b - w)
+                win[a, b] = zmin[e] if e >= 0 and usable[e] else np.nan
+        nxs = 0
+        nys = 0
+        for u in range(2 * w + 1):  # the row (or column) across the axis
+            for s in range(2 * w + 1):  # first cell of the pair along the axis
+                for d in range(1, min(w, 2 * w - s) + 1):  # the second, d further, in the window
+                    # along x: window cells (s, u) and (s + d, u); along y: (u, s), (u, s + d)
+                    h0, h1 = win[s, u], win[s + d, u]
+                    if h0 == h0 and h1 == h1:
+                        gx[nxs] = (h1 - h0) / (d * cell_m)
+                        nxs += 1
+                    h0, h1 = win[u, s], win[u, s + d]
+                    if h0 == h0 and h1 == h1:
+                        gy[nys] = (h1 - h0) / (d * cell_m)
+                        nys += 1
+        if nxs + nys == 0:
+            kind[c] = _CELL_UNKNOWN  # an isolated return
+            continue
+        mx = _median(gx, nxs) if nxs else 0.0
+        my = _median(gy, nys) if nys else 0.0
+        if mx * mx + my * my > p.tan_slope * p.tan_slope:
+            kind[c] = _CELL_OBSTACLE
+        else:
+            kind[c] = _CELL_GROUND
 
 
 @numba.njit(cache=True)
 def _cell_kinds(cells, p):
     """Per occupied cell: unknown, ground or obstacle (module docstring, steps 1-3)."""
-    n = cells.count.size
     known = cells.count >= p.min_points
     pit = _pits(cells, known, p.max_step)
-    kind = np.zeros(n, np.uint8)
-    usable = np.zeros(n, np.bool_)
-    for c in range(n):
-        if not known[c]:
-            continue
-        if _blocked(cells, known, pit, c, p.max_step):
-            kind[c] = _CELL_OBSTACLE
-        else:
-            usable[c] = True
-    w = p.window
-    size = (2 * w + 1) * w * (2 * w + 1)  # pairs along one axis in the window, at most
-    gx = np.empty(size, np.float64)
-    gy = np.empty(size, np.float64)
-    win = np.empty((2 * w + 1, 2 * w + 1), np.float64)
-    for c in range(n):
-        if usable[c]:
-            nxs, nys = _window_slopes(cells, usable, c, p, win, gx, gy)
-            kind[c] = _slope_kind(gx, nxs, gy, nys, p.tan_slope)
+    kind = np.zeros(cells.count.size, np.uint8)
+    usable = _blocked(cells, known, pit, p.max_step, kind)
+    _slopes(cells, usable, p, kind)
     return kind
 
 
