@@ -252,6 +252,28 @@ def _blocked(cells, known, pit, max_step, kind):
 
 
 @numba.njit(cache=True)
+def _pair_slopes(win, w, cell_m, gx, gy):
+    """The height differences over run of every pair of known heights in a window `win` (NaN
+    where unknown) along x into gx and along y into gy; returns how many of each. Takes only
+    arrays and numbers: called once per cell, it reads no tuple field (no reference counting)."""
+    nxs = 0
+    nys = 0
+    for u in range(2 * w + 1):  # the row (or column) across the axis
+        for s in range(2 * w + 1):  # first cell of the pair along the axis
+            for d in range(1, min(w, 2 * w - s) + 1):  # the second, d further, in the window
+                # along x: window cells (s, u) and (s + d, u); along y: (u, s), (u, s + d)
+                h0, h1 = win[s, u], win[s + d, u]
+                if h0 == h0 and h1 == h1:
+                    gx[nxs] = (h1 - h0) / (d * cell_m)
+                    nxs += 1
+                h0, h1 = win[u, s], win[u, s + d]
+                if h0 == h0 and h1 == h1:
+                    gy[nys] = (h1 - h0) / (d * cell_m)
+                    nys += 1
+    return nxs, nys
+
+
+@numba.njit(cache=True)
 def _slopes(cells, usable, p, kind):
     """Step 3 for the usable cells: the medians of the height differences over run along x and
     along y, over the pairs of usable cells in the window around each; `kind` is unknown where
@@ -273,20 +295,7 @@ def _slopes(cells, usable, p, kind):
             for b in range(2 * w + 1):
                 e = _neighbour(cells, i + a - w, j + b - w)
                 win[a, b] = zmin[e] if e >= 0 and usable[e] else np.nan
-        nxs = 0
-        nys = 0
-        for u in range(2 * w + 1):  # the row (or column) across the axis
-            for s in range(2 * w + 1):  # first cell of the pair along the axis
-                for d in range(1, min(w, 2 * w - s) + 1):  # the second, d further, in the window
-                    # along x: window cells (s, u) and (s + d, u); along y: (u, s), (u, s + d)
-                    h0, h1 = win[s, u], win[s + d, u]
-                    if h0 == h0 and h1 == h1:
-                        gx[nxs] = (h1 - h0) / (d * cell_m)
-                        nxs += 1
-                    h0, h1 = win[u, s], win[u, s + d]
-                    if h0 == h0 and h1 == h1:
-                        gy[nys] = (h1 - h0) / (d * cell_m)
-                        nys += 1
+        nxs, nys = _pair_slopes(win, w, cell_m, gx, gy)
         if nxs + nys == 0:
             kind[c] = _CELL_UNKNOWN  # an isolated return
             continue
