@@ -105,18 +105,15 @@ def label_geometric(
     out = np.zeros(pts.shape[0], np.uint16)
     if pts.shape[0] == 0:
         return out
-    window = window_cells(cfg.cell_m, robot_radius_m)
-    _label_kernel(
-        np.ascontiguousarray(pts, np.float32),
-        origin,
+    params = _Params(
         float(cfg.cell_m),
         float(max_step_m),
         math.tan(math.radians(cfg.max_slope_deg)),
-        window,
+        window_cells(cfg.cell_m, robot_radius_m),
         int(cfg.min_points),
         float(cfg.max_distance_m),
-        out,
     )
+    _label_kernel(np.ascontiguousarray(pts, np.float32), origin, params, out)
     return out
 
 
@@ -127,6 +124,17 @@ def window_cells(cell_m: float, robot_radius_m: float) -> int:
 
 
 # -- kernels -----------------------------------------------------------------------------------
+
+
+class _Params(NamedTuple):
+    """The labeller's parameters as the kernels read them."""
+
+    cell_m: float
+    max_step: float  # metres
+    tan_slope: float  # tan(max_slope_deg)
+    window: int  # cells each side of a cell that its slope is measured over
+    min_points: int
+    max_dist: float  # metres from the sensor on x or y
 
 
 @numba.njit(cache=True)
@@ -188,12 +196,16 @@ def _neighbour(cells, i, j):
     return cells.index[i, j]
 
 
+# Each step below loops over the cells itself: a helper called once per cell would cost numba's
+# reference counting (an atomic increment and decrement per array it reads) on every call.
+
+
 @numba.njit(cache=True)
-def _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window):
-    """Per occupied cell: unknown, ground or obstacle (module docstring, steps 1-3)."""
+def _pits(cells, known, max_step):
+    """Step 2's pits: known cells lower than most (and at least 2) of their known neighbours by
+    more than the step height."""
     n = cells.count.size
     zmin = cells.zmin
-    known = cells.count >= min_points
     pit = np.zeros(n, np.bool_)
     for c in range(n):
         if not known[c]:
@@ -209,9 +221,17 @@ def _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window):
                     if zmin[e] - zmin[c] > max_step:
                         n_higher += 1
         pit[c] = n_known >= 2 and 2 * n_higher > n_known
-    kind = np.zeros(n, np.uint8)
-    usable = np.zeros(n, np.bool_)
-    for c in range(n):
+    return pit
+
+
+@numba.njit(cache=True)
+def _blocked(cells, known, pit, max_step, kind):
+    """Step 2's obstacles: a pit, something standing in the cell, or a step above a known
+    neighbour that is not a pit. Sets `kind` of those to obstacle; returns the other known
+    cells (usable: their slope decides)."""
+    zmin = cells.zmin
+    usable = np.zeros(cells.count.size, np.bool_)
+    for c in range(cells.count.size):
         if not known[c]:
             continue
         if pit[c] or cells.zmax[c] - zmin[c] > max_step:  # a hole, or something standing
@@ -228,14 +248,46 @@ def _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window):
             kind[c] = _CELL_OBSTACLE
         else:
             usable[c] = True
-    w = window
+    return usable
+
+
+@numba.njit(cache=True)
+def _pair_slopes(win, w, cell_m, gx, gy):
+    """The height differences over run of every pair of known heights in a window `win` (NaN
+    where unknown) along x into gx and along y into gy; returns how many of each. Takes only
+    arrays and numbers: called once per cell, it reads no tuple field (no reference counting)."""
+    nxs = 0
+    nys = 0
+    for u in range(2 * w + 1):  # the row (or column) across the axis
+        for s in range(2 * w + 1):  # first cell of the pair along the axis
+            for d in range(1, min(w, 2 * w - s) + 1):  # the second, d further, in the window
+                # along x: window cells (s, u) and (s + d, u); along y: (u, s), (u, s + d)
+                h0, h1 = win[s, u], win[s + d, u]
+                if h0 == h0 and h1 == h1:
+                    gx[nxs] = (h1 - h0) / (d * cell_m)
+                    nxs += 1
+                h0, h1 = win[u, s], win[u, s + d]
+                if h0 == h0 and h1 == h1:
+                    gy[nys] = (h1 - h0) / (d * cell_m)
+                    nys += 1
+    return nxs, nys
+
+
+@numba.njit(cache=True)
+def _slopes(cells, usable, p, kind):
+    """Step 3 for the usable cells: the medians of the height differences over run along x and
+    along y, over the pairs of usable cells in the window around each; `kind` is unknown where
+    no pair exists, an obstacle where steeper than `p.tan_slope`, ground otherwise."""
+    w = p.window
+    cell_m = p.cell_m
+    zmin = cells.zmin
     size = (2 * w + 1) * w * (2 * w + 1)  # pairs along one axis in the window, at most
     gx = np.empty(size, np.float64)
     gy = np.empty(size, np.float64)
     # the window's usable ground heights (NaN elsewhere), gathered once per cell: every pair
     # below reads this small array instead of the grid
     win = np.empty((2 * w + 1, 2 * w + 1), np.float64)
-    for c in range(n):
+    for c in range(cells.count.size):
         if not usable[c]:
             continue
         i, j = cells.ij[c, 0], cells.ij[c, 1]
@@ -243,29 +295,26 @@ def _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window):
             for b in range(2 * w + 1):
                 e = _neighbour(cells, i + a - w, j + b - w)
                 win[a, b] = zmin[e] if e >= 0 and usable[e] else np.nan
-        nxs = 0
-        nys = 0
-        for u in range(2 * w + 1):  # the row (or column) across the axis
-            for s in range(2 * w + 1):  # first cell of the pair along the axis
-                for d in range(1, min(w, 2 * w - s) + 1):  # the second, d further, in the window
-                    # along x: window cells (s, u) and (s + d, u); along y: (u, s), (u, s + d)
-                    h0, h1 = win[s, u], win[s + d, u]
-                    if h0 == h0 and h1 == h1:
-                        gx[nxs] = (h1 - h0) / (d * cell_m)
-                        nxs += 1
-                    h0, h1 = win[u, s], win[u, s + d]
-                    if h0 == h0 and h1 == h1:
-                        gy[nys] = (h1 - h0) / (d * cell_m)
-                        nys += 1
+        nxs, nys = _pair_slopes(win, w, cell_m, gx, gy)
         if nxs + nys == 0:
-            kind[c] = _CELL_UNKNOWN
+            kind[c] = _CELL_UNKNOWN  # an isolated return
             continue
         mx = _median(gx, nxs) if nxs else 0.0
         my = _median(gy, nys) if nys else 0.0
-        if mx * mx + my * my > tan_slope * tan_slope:
+        if mx * mx + my * my > p.tan_slope * p.tan_slope:
             kind[c] = _CELL_OBSTACLE
         else:
             kind[c] = _CELL_GROUND
+
+
+@numba.njit(cache=True)
+def _cell_kinds(cells, p):
+    """Per occupied cell: unknown, ground or obstacle (module docstring, steps 1-3)."""
+    known = cells.count >= p.min_points
+    pit = _pits(cells, known, p.max_step)
+    kind = np.zeros(cells.count.size, np.uint8)
+    usable = _blocked(cells, known, pit, p.max_step, kind)
+    _slopes(cells, usable, p, kind)
     return kind
 
 
@@ -317,8 +366,10 @@ def _bin_points(points, origin, cell_m, max_dist):
 
 
 @numba.njit(cache=True)
-def _point_labels(points, cells, cell_of, kind, min_points, max_step, out):
+def _point_labels(points, cells, cell_of, kind, p, out):
     """Module docstring, step 4."""
+    min_points = p.min_points
+    max_step = p.max_step
     for k in range(points.shape[0]):
         c = cell_of[k]
         if c < 0 or cells.count[c] < min_points:
@@ -332,7 +383,7 @@ def _point_labels(points, cells, cell_of, kind, min_points, max_step, out):
 
 
 @numba.njit(cache=True)
-def _label_kernel(points, origin, cell_m, max_step, tan_slope, window, min_points, max_dist, out):
-    cells, cell_of = _bin_points(points, origin, cell_m, max_dist)
-    kind = _cell_kinds(cells, cell_m, min_points, max_step, tan_slope, window)
-    _point_labels(points, cells, cell_of, kind, min_points, max_step, out)
+def _label_kernel(points, origin, p, out):
+    cells, cell_of = _bin_points(points, origin, p.cell_m, p.max_dist)
+    kind = _cell_kinds(cells, p)
+    _point_labels(points, cells, cell_of, kind, p, out)

@@ -206,7 +206,7 @@ def test_ray_keys_match_reference_on_grazing_rays():
         cases.append((tuple(a), tuple(a + np.round(rng.uniform(-3, 3, 3), 1))))
     for o, e in cases:
         o32, e32 = [F32(c) for c in o], [F32(c) for c in e]
-        n = octomap_ray_keys(*o32, *e32, res, 1.0 / res, buf)
+        n = octomap_ray_keys(*o32, *e32, res, buf)
         assert [tuple(r) for r in buf[:n].tolist()] == ref_ray_keys(o32, e32, res), (o, e)
 
 

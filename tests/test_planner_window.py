@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
-from smana.services.planner.planner import _enter_costs, _gather_window
+from smana.services.planner.planner import TilePools, Window, _enter_costs, _gather_window
 
 
 def _grid(rng, nx, ny, tile):
@@ -31,18 +31,7 @@ def test_gather_window_equals_navgrid_box(seed):
     labels = rng.integers(0, 9, shape).astype(np.uint16)
     flags = rng.integers(0, 9, shape).astype(np.uint8)
     known_h = rng.normal(size=shape).astype(np.float32)
-    _gather_window(
-        grid.tile_map,
-        grid.layer("labels"),
-        grid.layer("heights"),
-        grid.layer("flags"),
-        grid.tile_size,
-        x0,
-        y0,
-        labels,
-        flags,
-        known_h,
-    )
+    _gather_window(TilePools.of(grid), x0, y0, Window(labels, flags, known_h))
     want_l, want_h, want_f = grid.box(x0, y0, x1, y1)
     np.testing.assert_array_equal(labels, want_l)
     np.testing.assert_array_equal(flags, want_f)

@@ -12,6 +12,7 @@ flips so that the fusion rules have something to do.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -48,9 +49,20 @@ def _ground_label(x, y):
     return GRASS
 
 
+class _Garden(NamedTuple):
+    """The garden's objects as the kernels read them, and the centre of its ring wall."""
+
+    cyl: np.ndarray  # trees: x, y, radius, height
+    sph: np.ndarray  # x, y, z, radius, label
+    box: np.ndarray  # xmin, ymin, zmin, xmax, ymax, zmax, label
+    wall_x: float
+    wall_y: float
+
+
 @njit(cache=True)
-def _cast(ox, oy, oz, dx, dy, dz, cyl, sph, box, cx, cy):
+def _cast(ox, oy, oz, dx, dy, dz, garden):
     """Distance along the unit ray to the first surface, and its label."""
+    cyl, sph, box, cx, cy = garden
     best = 1e30
     label = OBSTACLE
     # ring wall, seen from inside: |(o + t d)_xy - c| = R
@@ -144,7 +156,7 @@ def _cast(ox, oy, oz, dx, dy, dz, cyl, sph, box, cx, cy):
 
 
 @njit(cache=True)
-def _scan(ox, oy, oz, yaw, elev, n_cols, cyl, sph, box, cx, cy, noise):
+def _scan(ox, oy, oz, yaw, elev, n_cols, garden, noise):
     n = elev.shape[0] * n_cols
     pts = np.empty((n, 3), np.float32)
     labels = np.empty(n, np.uint16)
@@ -157,7 +169,7 @@ def _scan(ox, oy, oz, yaw, elev, n_cols, cyl, sph, box, cx, cy, noise):
             dx = ce * np.cos(az)
             dy = ce * np.sin(az)
             dz = se
-            t, lab = _cast(ox, oy, oz, dx, dy, dz, cyl, sph, box, cx, cy)
+            t, lab = _cast(ox, oy, oz, dx, dy, dz, garden)
             t += noise[i]
             pts[i, 0] = ox + t * dx
             pts[i, 1] = oy + t * dy
@@ -217,11 +229,7 @@ class GardenWorld:
             yaw,
             self.elev,
             self.n_cols,
-            self.cyl,
-            self.sph,
-            self.box,
-            20.0,
-            0.0,
+            _Garden(self.cyl, self.sph, self.box, 20.0, 0.0),
             noise,
         )
         conf = rng.uniform(0.33, 1.0, n).astype(np.float32)

@@ -17,6 +17,7 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -346,27 +347,32 @@ def _wrap(a):
     return (a + np.pi) % (2 * np.pi) - np.pi
 
 
+class _Objects(NamedTuple):
+    """The world's objects as the ray kernel reads them (`_object_tables`)."""
+
+    cylinders: np.ndarray
+    spheres: np.ndarray
+    boxes: np.ndarray
+    bounds: np.ndarray  # (K, 3): x, y, radius of each object's bounding circle
+    kinds: np.ndarray  # (K, 2): 0 cylinder / 1 sphere / 2 box, row in its array
+    labels: np.ndarray  # (K,) i4
+
+
+class _GroundRaster(NamedTuple):
+    labels: np.ndarray  # [gy, gx]
+    origin: np.ndarray
+    res_m: float
+
+
 @numba.njit(cache=True)
-def _cast_rays(
-    origin,
-    dirs,
-    columns,
-    max_range,
-    cyl,
-    sph,
-    box,
-    bounds,
-    ground,
-    g_origin,
-    g_res,
-    kinds,
-    labels_of,
-):
+def _cast_rays(origin, dirs, columns, max_range, objects, ground_raster):
     """Nearest hit per ray: (t or inf, label). Rays are beam-major in `columns` columns.
 
     Objects are culled per column: an object is tested only against columns whose world azimuth
     range overlaps the object's azimuth range seen from the sensor (its bounding circle).
     """
+    cyl, sph, box, bounds, kinds, labels_of = objects
+    ground, g_origin, g_res = ground_raster
     n = dirs.shape[0]
     beams = n // columns
     ts = np.full(n, np.inf)
@@ -473,15 +479,8 @@ def cast_rays(
         dirs,
         columns,
         float(max_range_m),
-        world.cylinders,
-        world.spheres,
-        world.boxes,
-        bounds,
-        world.ground_labels,
-        world.ground_origin,
-        world.ground_res_m,
-        kinds,
-        labels,
+        _Objects(world.cylinders, world.spheres, world.boxes, bounds, kinds, labels),
+        _GroundRaster(world.ground_labels, world.ground_origin, world.ground_res_m),
     )
 
 

@@ -320,10 +320,10 @@ def octomap_ray_next(walk):
 
 
 @njit(cache=True, error_model="numpy")
-def octomap_ray_keys(ox, oy, oz, ex, ey, ez, res, inv_res, out):
+def octomap_ray_keys(ox, oy, oz, ex, ey, ez, res, out):
     """OctoMap's computeRayKeys (`octomap_ray_start`) into `out` (n x 3): returns how many keys,
     or -1 when an end lies outside the key range."""
-    first, walk = octomap_ray_start(ox, oy, oz, ex, ey, ez, res, inv_res)
+    first, walk = octomap_ray_start(ox, oy, oz, ex, ey, ez, res, 1.0 / res)
     if first <= 0:
         return first
     n_max = out.shape[0]

@@ -3,8 +3,20 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+
+
+class DeltaColumns(NamedTuple):
+    """A Delta's columns as one argument of a kernel that fills them (`Delta.columns`)."""
+
+    keys: np.ndarray
+    centres: np.ndarray
+    labels: np.ndarray
+    confidences: np.ndarray
+    occupied: np.ndarray
+    values: np.ndarray
 
 
 @dataclass
@@ -38,6 +50,12 @@ class Delta:
             np.empty(n, np.float32),
             np.empty(n, np.uint8),
             np.empty(n, np.float32),
+        )
+
+    def columns(self) -> DeltaColumns:
+        """The same arrays (not copies), for a kernel to fill."""
+        return DeltaColumns(
+            self.keys, self.centres, self.labels, self.confidences, self.occupied, self.values
         )
 
     def subset(self, mask: np.ndarray) -> Delta:

@@ -25,25 +25,34 @@ nodes of a disc stencil around it change by one. A node is in the safety zone wh
 positive and it is not an obstacle itself. Tiles within the radius of an obstacle are allocated so
 that the zone also covers nodes not seen yet.
 
-The kernels take their state as named tuples of arrays (`GridGeometry`, `NodeLayers`,
-`ColumnStore`, `NodeChanges`): numba unpacks them at no cost, and a helper (the node under a
-point, a column look-up, the safety-zone bit) is written once for every kernel that needs it.
+The numba kernels, and the named tuples of arrays they take as state, are in `kernels.py`.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import NamedTuple
 
-import numba
 import numpy as np
 
 from smana.common.classes import ClassTable
 from smana.common.config.navgraph import NavgraphConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
 
-NO_FLOOR = int(np.iinfo(np.int32).min)  # col_floor of a column that never overflowed
+from .kernels import (
+    NO_FLOOR,
+    ClassLuts,
+    ColumnStore,
+    DiscStencil,
+    Flips,
+    GridGeometry,
+    NodeChanges,
+    NodeLayers,
+    Voxels,
+    _integrate_kernel,
+    _prepare,
+    _safety_zone_kernel,
+)
 
 # What `integrate_delta` reads from each kind of MapDelta.values (common/messages.py VALUES_KINDS):
 # both say everything with `occupied` (a signed-distance map's extracted surface), so neither
@@ -52,11 +61,6 @@ SURFACE_INPUTS = {
     "log_odds": lambda delta: {},
     "signed_distance": lambda delta: {},
 }
-
-# Voxel kinds after `_prepare`.
-CLEARED, SURFACE, UNUSABLE = 0, 1, 2
-# What one voxel did to its column (`_column_update`).
-COLUMN_UNCHANGED, COLUMN_CHANGED, COLUMN_BELOW_FLOOR = 0, 1, 2
 
 
 @dataclass
@@ -76,70 +80,6 @@ class GraphUpdate:
     n_columns_lost: int = 0  # columns emptied above their floor (became unknown)
     n_new_tiles: int = 0
     time_ms: float = 0.0
-
-
-# -- kernel state ----------------------------------------------------------------------------------
-
-
-class GridGeometry(NamedTuple):
-    """Where the nodes are: the NavGrid's layout as the kernels read it (build it after allocating
-    tiles: `tile_coords` is replaced when the tile pool grows)."""
-
-    origin_x: float
-    origin_y: float
-    resolution_m: float
-    nx: int
-    ny: int
-    tile_size: int
-    tile_map: np.ndarray  # (ntx, nty) int32: slot of each tile, < 0 where not allocated
-    tile_coords: np.ndarray  # (capacity, 2) int32: tile (tx, ty) of each slot
-
-
-class NodeLayers(NamedTuple):
-    """The graph grid's per-node state, each layer flat by node index (`NavGrid.flat`)."""
-
-    labels: np.ndarray  # u2, as published
-    heights: np.ndarray  # f4, as published (NaN where unknown)
-    flags: np.ndarray  # u1, as published: FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE
-    col_head: np.ndarray  # i4: the column's highest entry, -1 when empty
-    col_len: np.ndarray  # i4: entries in the column
-    col_floor: np.ndarray  # i4: highest level forgotten on overflow, NO_FLOOR if none
-    obstacle_count: np.ndarray  # i4: obstacle nodes within the robot radius, itself included
-    epoch: np.ndarray  # u4: the integration that last touched the node (see NodeChanges)
-
-
-class ColumnStore(NamedTuple):
-    """The entry pool every column lives in: one linked list per node, highest level first; freed
-    entries form a free list through `next`."""
-
-    level: np.ndarray  # i4: the voxel's map z index
-    sub: np.ndarray  # u2: sub-column id, (gx mod 256) << 8 | (gy mod 256)
-    label: np.ndarray  # u2
-    z: np.ndarray  # f4: the voxel centre's height
-    next: np.ndarray  # i4: the next entry down the column (or the free list), -1 at the end
-    state: np.ndarray  # i8[3]: free-list head, high-water mark, entries in use
-
-
-class NodeChanges(NamedTuple):
-    """The nodes one integration touched, each once (stamped with the epoch), with their state
-    from before, so that only the nodes that really differ are reported."""
-
-    node: np.ndarray  # i8 flat node index
-    label: np.ndarray  # u2
-    height: np.ndarray  # f4
-    flags: np.ndarray  # u1
-
-    @classmethod
-    def empty(cls, n: int) -> NodeChanges:
-        return cls(
-            np.empty(n, np.int64),
-            np.empty(n, np.uint16),
-            np.empty(n, np.float32),
-            np.empty(n, np.uint8),
-        )
-
-    def head(self, n: int) -> NodeChanges:
-        return NodeChanges(*(a[:n] for a in self))
 
 
 def same_nodes(label_a, height_a, flags_a, label_b, height_b, flags_b) -> np.ndarray:
@@ -175,16 +115,17 @@ class NavGraph:
             z=np.zeros(cap, np.float32),
             next=np.full(cap, -1, np.int32),
             state=np.array([-1, 0, 0], np.int64),
+            column_capacity=config.column_capacity,
         )
-        self._obstacle_lut = classes.obstacle_lut.copy()
-        self._ignored_lut = classes.ignored_lut.copy()
+        self._luts = ClassLuts(
+            classes.valid_lut, classes.ignored_lut.copy(), classes.obstacle_lut.copy()
+        )
         res, radius = self.resolution_m, config.robot_radius_m
         r_cells = int(np.floor(radius / res + 1e-9))
         dx, dy = np.meshgrid(np.arange(-r_cells, r_cells + 1), np.arange(-r_cells, r_cells + 1))
         # Centre-to-centre distance; the small slack keeps nodes at exactly the radius inside.
         inside = np.hypot(dx, dy) * res <= radius + 1e-9
-        self._stencil_dx = dx[inside].astype(np.int64)
-        self._stencil_dy = dy[inside].astype(np.int64)
+        self._stencil = DiscStencil(dx[inside].astype(np.int64), dy[inside].astype(np.int64))
         self._stencil_reach = r_cells
         self.n_integrations = 0
         self._kernel_view: tuple[int, GridGeometry, NodeLayers] | None = None
@@ -296,19 +237,12 @@ class NavGraph:
         g = self.grid
         # 1. classify voxels (surface / cleared / unusable row), clean labels, and allocate the
         # tiles of every in-bounds surface voxel, all in one pass.
-        lab = np.empty(m, np.uint16)
-        kind = np.empty(m, np.uint8)
+        vox = Voxels(
+            centres, np.empty(m, np.uint16), np.empty(m, np.uint8), float(map_resolution_m)
+        )
         missing = np.empty(m, np.int64)
         n_missing, n_nonfinite, n_unknown, n_surface = _prepare(
-            centres,
-            labels,
-            occupied,
-            self.classes.valid_lut,
-            self._ignored_lut,
-            self._kernel_state()[0],
-            lab,
-            kind,
-            missing,
+            labels, occupied, self._luts, self._kernel_state()[0], vox, missing
         )
         missing = missing[:n_missing]
         n_new = g.allocate_tiles(missing // g.tiles_shape[1], missing % g.tiles_shape[1])
@@ -321,42 +255,22 @@ class NavGraph:
             self._epoch = 1
         epoch = np.uint32(self._epoch)
         changes = NodeChanges.empty(m)
-        flips = np.empty(m, np.int64)
-        flip_sign = np.empty(m, np.int32)
+        flips = Flips(np.empty(m, np.int64), np.empty(m, np.int32))
         geometry, layers = self._kernel_state()  # after allocating: the pool may have grown
         counts = _integrate_kernel(
-            centres,
-            lab,
-            kind,
-            geometry,
-            float(map_resolution_m),
-            self.config.column_capacity,
-            layers,
-            epoch,
-            self.columns,
-            self._obstacle_lut,
-            changes,
-            flips,
-            flip_sign,
+            vox, geometry, layers, self.columns, self._luts.obstacle, epoch, changes, flips
         )
         n_touched, n_flips, n_oob, n_below, n_lost = (int(c) for c in counts)
         changes = changes.head(n_touched)
-        flips, flip_sign = flips[:n_flips], flip_sign[:n_flips]
+        flips = flips.head(n_flips)
 
         # 3. safety zone: allocate the tiles a new obstacle's disc reaches, then update counts.
         if n_flips:
-            n_new += self._allocate_discs(flips[flip_sign > 0])
-            zone_changes = NodeChanges.empty(n_flips * len(self._stencil_dx))
+            n_new += self._allocate_discs(flips.node[flips.sign > 0])
+            zone_changes = NodeChanges.empty(n_flips * len(self._stencil.dx))
             geometry, layers = self._kernel_state()
             n_zone = _safety_zone_kernel(
-                flips,
-                flip_sign,
-                self._stencil_dx,
-                self._stencil_dy,
-                geometry,
-                layers,
-                epoch,
-                zone_changes,
+                flips, self._stencil, geometry, layers, epoch, zone_changes
             )
             changes = NodeChanges(
                 *(np.concatenate([a, b]) for a, b in zip(changes, zone_changes.head(n_zone)))
@@ -512,352 +426,3 @@ def _tile_ranges(ix, iy, r, t, nx, ny):
         txs.append(gx.ravel())
         tys.append(gy.ravel())
     return np.concatenate(txs), np.concatenate(tys)
-
-
-# -- kernels ---------------------------------------------------------------------------------------
-# Each kernel is a loop over voxels or nodes; the steps of the paper's update are the helpers
-# below it, each written once and inlined (inline="always") into the kernels that use it.
-#
-# The kernels are compiled without numba's reference counting (`_nrt=False`): every array they
-# touch is owned by the caller, and with the state passed as named tuples, counted references
-# cost an atomic increment and decrement per helper call and tuple field read in the hot loops
-# (numba cannot prune them across branches, numba/numba#2350), which made the column update four
-# times slower. Without it the structures are free; a kernel that tried to allocate an array
-# would fail to compile, so the callers allocate every output.
-
-
-@numba.njit(cache=True, inline="always")
-def _cell_of(geo, x, y):
-    """The graph cell (ix, iy) under a world point (may be out of bounds)."""
-    ix = int(np.floor((x - geo.origin_x) / geo.resolution_m))
-    iy = int(np.floor((y - geo.origin_y) / geo.resolution_m))
-    return ix, iy
-
-
-@numba.njit(cache=True, inline="always")
-def _in_bounds(geo, ix, iy):
-    return 0 <= ix < geo.nx and 0 <= iy < geo.ny
-
-
-@numba.njit(cache=True, inline="always")
-def _node_index(geo, ix, iy):
-    """The flat node index of an in-bounds cell, -1 where its tile is not allocated."""
-    t = geo.tile_size
-    slot = geo.tile_map[ix // t, iy // t]
-    if slot < 0:
-        return -1
-    return slot * t * t + (ix % t) * t + (iy % t)
-
-
-@numba.njit(cache=True, inline="always")
-def _cell_of_node(geo, n):
-    """The cell (ix, iy) of a flat node index (`NavGrid.cells_of_flat`)."""
-    t = geo.tile_size
-    slot = n // (t * t)
-    local = n % (t * t)
-    return geo.tile_coords[slot, 0] * t + local // t, geo.tile_coords[slot, 1] * t + local % t
-
-
-@numba.njit(cache=True, inline="always")
-def _voxel_key(geo, map_res, x, y, z):
-    """A map voxel's place in its column: level (map z index) and sub-column id."""
-    gz = np.int32(np.floor(z / map_res))
-    gx = int(np.floor((x - geo.origin_x) / map_res))
-    gy = int(np.floor((y - geo.origin_y) / map_res))
-    return gz, np.uint16(((gx & 255) << 8) | (gy & 255))
-
-
-@numba.njit(cache=True, inline="always")
-def _with_safety_zone(flags, obstacle_count):
-    """A node is in the safety zone when an obstacle is within the robot radius (its count is
-    positive) and it is not an obstacle itself."""
-    if obstacle_count > 0 and not (flags & FLAG_OBSTACLE):
-        return flags | np.uint8(FLAG_SAFETY_ZONE)
-    return flags & ~np.uint8(FLAG_SAFETY_ZONE)
-
-
-@numba.njit(cache=True, inline="always")
-def _touch(nodes, epoch, changes, nd, n):
-    """Record node n's state before this integration changes it, once per integration."""
-    if nodes.epoch[n] != epoch:
-        nodes.epoch[n] = epoch
-        changes.node[nd] = n
-        changes.label[nd] = nodes.labels[n]
-        changes.height[nd] = nodes.heights[n]
-        changes.flags[nd] = nodes.flags[n]
-        return nd + 1
-    return nd
-
-
-@numba.njit(cache=True, _nrt=False)
-def _prepare(
-    cen,
-    labels,
-    occupied,
-    valid_lut,
-    ignored_lut,
-    geo,
-    lab,
-    kind,
-    missing,
-):
-    """Per voxel: clean label `lab` (ids outside the table -> 0), `kind` (CLEARED, SURFACE, or
-    UNUSABLE: a non-finite coordinate), and the ids (tx * nty + ty) of unallocated tiles under
-    in-bounds surface voxels, each once, in `missing`. Returns the counts (missing tiles,
-    non-finite rows, unknown labels, surface voxels)."""
-    m = len(cen)
-    tile_map = geo.tile_map
-    t = geo.tile_size
-    nty = tile_map.shape[1]
-    n_lut = len(valid_lut)
-    n_missing = 0
-    n_nonfinite = 0
-    n_unknown = 0
-    n_surface = 0
-    for i in range(m):
-        x = cen[i, 0]
-        y = cen[i, 1]
-        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(cen[i, 2])):
-            kind[i] = UNUSABLE
-            lab[i] = 0
-            n_nonfinite += 1
-            continue
-        lb = labels[i]
-        if lb >= n_lut or not valid_lut[lb]:
-            lb = 0
-            n_unknown += 1
-        lab[i] = lb
-        surface = occupied[i] != 0
-        # An ignored class (sky, ...) is not ground: treat it as a cleared voxel.
-        if ignored_lut[lb]:
-            surface = False
-        kind[i] = SURFACE if surface else CLEARED
-        if not surface:
-            continue
-        n_surface += 1
-        ix, iy = _cell_of(geo, x, y)
-        if not _in_bounds(geo, ix, iy):
-            continue
-        tx = ix // t
-        ty = iy // t
-        if tile_map[tx, ty] == -1:
-            tile_map[tx, ty] = -2  # mark so each tile is reported once
-            missing[n_missing] = tx * nty + ty
-            n_missing += 1
-    for k in range(n_missing):
-        tile_map[missing[k] // nty, missing[k] % nty] = -1
-    return n_missing, n_nonfinite, n_unknown, n_surface
-
-
-@numba.njit(cache=True, _nrt=False)
-def _integrate_kernel(
-    cen, lab, kind, geo, map_res, capacity, nodes, epoch, cols, obstacle_lut, changes, flips, sign
-):
-    """Column update for every usable voxel, then node head recompute for every touched node.
-    Returns the counts (touched nodes, obstacle flips, out of bounds, below floor, columns lost);
-    the flips (node, +1 became an obstacle / -1 stopped) are for the safety-zone kernel."""
-    nd = 0
-    n_oob = 0
-    n_below = 0
-    for i in range(len(cen)):
-        if kind[i] == UNUSABLE:
-            continue
-        x = cen[i, 0]
-        y = cen[i, 1]
-        ix, iy = _cell_of(geo, x, y)
-        if not _in_bounds(geo, ix, iy):
-            n_oob += 1
-            continue
-        n = _node_index(geo, ix, iy)
-        if n < 0:
-            continue  # a cleared voxel over a region never seen: nothing to recompute
-        gz, sub = _voxel_key(geo, map_res, x, y, cen[i, 2])
-        done = _column_update(cols, nodes, n, gz, sub, lab[i], cen[i, 2], kind[i], capacity)
-        if done == COLUMN_BELOW_FLOOR:
-            n_below += 1
-        elif done == COLUMN_CHANGED:
-            nd = _touch(nodes, epoch, changes, nd, n)
-
-    nf = 0
-    n_lost = 0
-    for k in range(nd):
-        n = changes.node[k]
-        was_known = (changes.flags[k] & FLAG_KNOWN) != 0
-        if nodes.col_head[n] < 0 and nodes.col_floor[n] != NO_FLOOR and was_known:
-            n_lost += 1
-        obstacle = _node_head_recompute(cols, nodes, obstacle_lut, n)
-        was_obstacle = (changes.flags[k] & FLAG_OBSTACLE) != 0
-        if obstacle != was_obstacle:
-            flips[nf] = n
-            sign[nf] = 1 if obstacle else -1
-            nf += 1
-    return nd, nf, n_oob, n_below, n_lost
-
-
-@numba.njit(cache=True, inline="always")
-def _column_update(cols, nodes, n, gz, sub, label, z, kind, capacity):
-    """Apply one voxel to node n's column: a surface voxel is added or relabelled, a cleared one
-    removed. Returns COLUMN_CHANGED, COLUMN_UNCHANGED or COLUMN_BELOW_FLOOR."""
-    prev, found, found_prev = _column_find(cols, nodes.col_head[n], gz, sub)
-    if kind == SURFACE:
-        if found >= 0:
-            if cols.label[found] == label:
-                return COLUMN_UNCHANGED  # same voxel, same label: the node cannot change
-            cols.label[found] = label
-            cols.z[found] = z
-        else:
-            if gz <= nodes.col_floor[n]:
-                return COLUMN_BELOW_FLOOR
-            _column_insert(cols, nodes, n, prev, gz, sub, label, z)
-            if nodes.col_len[n] > capacity:
-                _column_forget_lowest(cols, nodes, n)
-    else:
-        if found < 0:
-            return COLUMN_UNCHANGED  # free voxel that was never in the column
-        _column_unlink(cols, nodes, n, found, found_prev)
-        _entry_free(cols, found)
-        nodes.col_len[n] -= 1
-    return COLUMN_CHANGED
-
-
-@numba.njit(cache=True, inline="always")
-def _column_find(cols, head, gz, sub):
-    """Walk a column (highest level first) to level gz: returns the last entry above it (-1 for
-    none: insert at the head), and the entry of sub-column `sub` at that level with the entry
-    before it (-1, -1 when the voxel is not in the column)."""
-    prev = -1
-    e = head
-    while e >= 0 and cols.level[e] > gz:
-        prev = e
-        e = cols.next[e]
-    before = prev
-    while e >= 0 and cols.level[e] == gz:
-        if cols.sub[e] == sub:
-            return prev, e, before
-        before = e
-        e = cols.next[e]
-    return prev, -1, -1
-
-
-@numba.njit(cache=True, inline="always")
-def _entry_new(cols):
-    """An entry from the free list, or past the high-water mark."""
-    state = cols.state
-    if state[0] >= 0:
-        e = state[0]
-        state[0] = cols.next[e]
-    else:
-        e = state[1]
-        state[1] += 1
-    state[2] += 1
-    return e
-
-
-@numba.njit(cache=True, inline="always")
-def _entry_free(cols, e):
-    cols.next[e] = cols.state[0]
-    cols.state[0] = e
-    cols.state[2] -= 1
-
-
-@numba.njit(cache=True, inline="always")
-def _column_insert(cols, nodes, n, prev, gz, sub, label, z):
-    """A new entry after `prev` (before the first entry of a lower level)."""
-    e = _entry_new(cols)
-    cols.level[e] = gz
-    cols.sub[e] = sub
-    cols.label[e] = label
-    cols.z[e] = z
-    if prev < 0:
-        cols.next[e] = nodes.col_head[n]
-        nodes.col_head[n] = e
-    else:
-        cols.next[e] = cols.next[prev]
-        cols.next[prev] = e
-    nodes.col_len[n] += 1
-
-
-@numba.njit(cache=True, inline="always")
-def _column_unlink(cols, nodes, n, e, before):
-    if before < 0:
-        nodes.col_head[n] = cols.next[e]
-    else:
-        cols.next[before] = cols.next[e]
-
-
-@numba.njit(cache=True, inline="always")
-def _column_forget_lowest(cols, nodes, n):
-    """An overflowing column forgets its lowest level whole, so that the list stays exact above
-    the floor it now remembers."""
-    cur = nodes.col_head[n]
-    lowest = cols.level[cur]
-    while cur >= 0:
-        lowest = cols.level[cur]
-        cur = cols.next[cur]
-    cut = -1
-    cur = nodes.col_head[n]
-    while cur >= 0 and cols.level[cur] > lowest:
-        cut = cur
-        cur = cols.next[cur]
-    if cut < 0:
-        nodes.col_head[n] = -1
-    else:
-        cols.next[cut] = -1
-    while cur >= 0:
-        after = cols.next[cur]
-        _entry_free(cols, cur)
-        nodes.col_len[n] -= 1
-        cur = after
-    nodes.col_floor[n] = lowest
-
-
-@numba.njit(cache=True, inline="always")
-def _node_head_recompute(cols, nodes, obstacle_lut, n):
-    """Node n shows its column's head: label, height and flags from the highest level (among
-    voxels of that level an obstacle wins, the conservative choice, then the larger sub-column
-    id, so the result does not depend on arrival order); an empty column is unknown. Returns
-    whether the node is an obstacle now."""
-    e = nodes.col_head[n]
-    flags = np.uint8(0)
-    obstacle = False
-    if e < 0:
-        nodes.labels[n] = 0
-        nodes.heights[n] = np.nan
-    else:
-        best = e
-        cur = cols.next[e]
-        while cur >= 0 and cols.level[cur] == cols.level[e]:
-            ob_c = obstacle_lut[cols.label[cur]]
-            ob_b = obstacle_lut[cols.label[best]]
-            if (ob_c and not ob_b) or (ob_c == ob_b and cols.sub[cur] > cols.sub[best]):
-                best = cur
-            cur = cols.next[cur]
-        nodes.labels[n] = cols.label[best]
-        nodes.heights[n] = cols.z[best]
-        obstacle = obstacle_lut[cols.label[best]]
-        flags |= np.uint8(FLAG_KNOWN)
-        if obstacle:
-            flags |= np.uint8(FLAG_OBSTACLE)
-    nodes.flags[n] = _with_safety_zone(flags, nodes.obstacle_count[n])
-    return obstacle
-
-
-@numba.njit(cache=True, _nrt=False)
-def _safety_zone_kernel(flips, sign, stencil_dx, stencil_dy, geo, nodes, epoch, changes):
-    """Safety-zone update: each obstacle flip changes the obstacle count of the nodes of its disc
-    by one, and their safety-zone bit with it. Returns how many nodes it touched."""
-    nd = 0
-    for k in range(len(flips)):
-        ix, iy = _cell_of_node(geo, flips[k])
-        for j in range(len(stencil_dx)):
-            jx = ix + stencil_dx[j]
-            jy = iy + stencil_dy[j]
-            if not _in_bounds(geo, jx, jy):
-                continue
-            m = _node_index(geo, jx, jy)
-            if m < 0:
-                continue  # only when removing an obstacle whose disc was never allocated
-            nd = _touch(nodes, epoch, changes, nd, m)
-            nodes.obstacle_count[m] += sign[k]
-            nodes.flags[m] = _with_safety_zone(nodes.flags[m], nodes.obstacle_count[m])
-    return nd

@@ -29,6 +29,7 @@ import threading
 import time
 import typing
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -45,6 +46,21 @@ NODE_STATE = np.dtype([("g", np.float64), ("slot", np.int32), ("parent", np.int3
 # rows share a cache line (24-byte rows of float64 f, g, node were 10 % slower, measured). The
 # popped node's g is read from its state: with decrease-key a heap row is never stale.
 HEAP_ROW = np.dtype([("f", np.float64), ("h", np.float32), ("n", np.int32)], align=True)
+
+
+class Query(NamedTuple):
+    """One search as the kernels read it: the window's flat arrays, the goal, the cost terms."""
+
+    enter: np.ndarray  # f8 (nx * ny,): enter cost of each node, +inf where blocked
+    heights: np.ndarray  # f8 or f4 (nx * ny,): NaN where unknown
+    nx: int
+    ny: int
+    goal: int  # flat node index
+    res: float  # planar distance between neighbours along an axis, metres
+    h_f: float
+    max_step: float  # inf for none
+    mode: int  # 0 euclidean, 1 octile
+    min_enter: float  # the octile heuristic's cheapest enter cost (0.0 for euclidean)
 
 
 @dataclass
@@ -129,20 +145,20 @@ def search(
     t0 = time.perf_counter() if t0 is None else t0
     nx, ny = enter_cost.shape
     st = _work_arrays(nx * ny)
-    cost, path, expanded = _astar_kernel(
-        st,
+    octile = heuristic == "octile"
+    query = Query(
         enter_cost.reshape(-1),
         heights.reshape(-1),
         nx,
         ny,
-        start[0] * ny + start[1],
         goal[0] * ny + goal[1],
         resolution_m,
         h_f,
         max_step,
-        1 if heuristic == "octile" else 0,
-        min_enter if heuristic == "octile" else 0.0,
+        1 if octile else 0,
+        min_enter if octile else 0.0,
     )
+    cost, path, expanded = _astar_kernel(st, query, start[0] * ny + start[1])
     cells = np.stack([path // ny, path % ny], axis=1)
     return AStarResult(float(cost), cells, int(expanded), (time.perf_counter() - t0) * 1e3)
 
@@ -225,29 +241,13 @@ _DY = (-1, 0, 1, -1, 1, -1, 0, 1)
 
 
 @numba.njit(cache=True)
-def _search(
-    enter,
-    heights,
-    nx,
-    ny,
-    goal,
-    res,
-    h_f,
-    max_step,
-    mode,
-    min_enter,
-    st,
-    heap,
-    size,
-    stack,
-    depth,
-    f_min,
-    expanded,
-):
-    """The A* loop proper. It returns when the goal is popped, the open set is empty, or the
-    heap or the stack has no room for one more expansion; the caller then grows them and calls
-    again. Keeping the growth out of here matters: an array variable reassigned inside the hot
-    loop costs numba reference counting on every iteration (2.4x slower when measured).
+def _search(query, st, heap, stack, progress):
+    """The A* loop proper, for `query` from where `progress` (heap size, stack depth, f_min,
+    nodes expanded) left it. It returns (status, progress) when the goal is popped, the open
+    set is empty, or the heap or the stack has no room for one more expansion; the caller then
+    grows them and calls again. Keeping the growth out of here matters: an array variable
+    reassigned inside the hot loop costs numba reference counting on every iteration (2.4x
+    slower when measured).
 
     The open set is two-tier. The heap holds each open node once: `st[node].slot` is its row, so
     an improved node moves up in place (decrease-key) instead of leaving a stale copy behind;
@@ -257,7 +257,11 @@ def _search(
     `stack` (rows (g, node)) instead, and the stack is emptied before the heap is touched
     again: its nodes are still minimal, so the search stays exact, and LIFO takes the deepest
     first as the heap's tie rule does. A stack entry is stale when its node was improved or
-    closed since. `slot` also marks closed nodes (_CLOSED), so no separate closed flags."""
+    closed since. `slot` also marks closed nodes (_CLOSED), so no separate closed flags.
+
+    The query's fields are read into locals once, before the loop."""
+    enter, heights, nx, ny, goal, res, h_f, max_step, mode, min_enter = query
+    size, depth, f_min, expanded = progress
     goal_x = goal // ny
     goal_y = goal - goal_x * ny
     diag = res * SQRT2
@@ -268,7 +272,7 @@ def _search(
     stack_cap = stack.shape[0]
     while size > 0 or depth > 0:
         if size + 8 > cap or depth + 8 > stack_cap:
-            return _FULL, size, depth, f_min, expanded
+            return _FULL, (size, depth, f_min, expanded)
         if depth > 0:
             depth -= 1
             gpop = stack[depth, 0]
@@ -284,7 +288,7 @@ def _search(
             gpop = st[n].g
             size = _pop(heap, st, size)  # closes n; a heap row is never stale
         if n == goal:
-            return _FOUND, size, depth, f_min, expanded
+            return _FOUND, (size, depth, f_min, expanded)
         expanded += 1
         x = n // ny
         y = n - x * ny
@@ -331,7 +335,7 @@ def _search(
                 else:
                     _sift_up(heap, st, size, f, np.float32(h), m)
                     size += 1
-    return _EXHAUSTED, size, depth, f_min, expanded
+    return _EXHAUSTED, (size, depth, f_min, expanded)
 
 
 @numba.njit(cache=True)
@@ -342,8 +346,9 @@ def _grown(a, used):
 
 
 @numba.njit(cache=True)
-def _astar_kernel(st, enter, heights, nx, ny, start, goal, res, h_f, max_step, mode, min_enter):
+def _astar_kernel(st, query, start):
     """`st` is a NODE_STATE work array of nx * ny rows, set here (parent needs none)."""
+    goal = query.goal
     for i in range(len(st)):
         st[i].g = np.inf
         st[i].slot = _NOT_IN_HEAP
@@ -352,30 +357,10 @@ def _astar_kernel(st, enter, heights, nx, ny, start, goal, res, h_f, max_step, m
     stack = np.empty((1 << 12, 2), np.float64)
     st[start].g = 0.0
     _sift_up(heap, st, 0, 0.0, np.float32(0.0), start)
-    size = 1
-    depth = 0
-    f_min = 0.0
-    expanded = 0
+    progress = (1, 0, 0.0, 0)  # heap size, stack depth, f_min, nodes expanded
     while True:
-        state, size, depth, f_min, expanded = _search(
-            enter,
-            heights,
-            nx,
-            ny,
-            goal,
-            res,
-            h_f,
-            max_step,
-            mode,
-            min_enter,
-            st,
-            heap,
-            size,
-            stack,
-            depth,
-            f_min,
-            expanded,
-        )
+        state, progress = _search(query, st, heap, stack, progress)
+        size, depth, _, expanded = progress
         if state != _FULL:
             break
         if size + 8 > len(heap):

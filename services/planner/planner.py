@@ -17,6 +17,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -383,34 +384,18 @@ class Planner:
             cells = self._changed_in(box, self._cache_key, key)
             if cells is not None:  # a patch since: refresh its nodes only
                 _gather_cells(
-                    g.tile_map,
-                    g.layer("labels"),
-                    g.layer("heights"),
-                    g.layer("flags"),
-                    g.tile_size,
-                    cells + np.array([x0, y0], np.int32),
-                    cells,
-                    *self._cache,
+                    TilePools.of(g), cells + np.array([x0, y0], np.int32), cells, self._cache
                 )
                 self._cache_key = key
                 return self._cache
             shape = (x1 - x0, y1 - y0)
             if self._cache is None or self._cache[0].shape != shape:
-                self._cache = (
+                self._cache = Window(
                     np.empty(shape, np.uint16),
                     np.empty(shape, np.uint8),
                     np.empty(shape, np.float32),  # the grid's own heights: half the bytes
                 )
-            _gather_window(
-                g.tile_map,
-                g.layer("labels"),
-                g.layer("heights"),
-                g.layer("flags"),
-                g.tile_size,
-                x0,
-                y0,
-                *self._cache,
-            )
+            _gather_window(TilePools.of(g), x0, y0, self._cache)
             self._cache_key = key
         return self._cache
 
@@ -445,13 +430,35 @@ def _fill_heights(z: np.ndarray) -> np.ndarray:
     return z[idx]
 
 
+class TilePools(NamedTuple):
+    """The NavGrid's node layers as the gather kernels read them: pools of (slot, T, T)."""
+
+    tile_map: np.ndarray  # (ntx, nty) int32: slot of each tile, < 0 where not allocated
+    labels: np.ndarray
+    heights: np.ndarray
+    flags: np.ndarray
+    tile_size: int
+
+    @classmethod
+    def of(cls, g: NavGrid) -> TilePools:
+        return cls(g.tile_map, g.layer("labels"), g.layer("heights"), g.layer("flags"), g.tile_size)
+
+
+class Window(NamedTuple):
+    """The planner's dense copy of a window of the grid."""
+
+    labels: np.ndarray  # u2 (w, h)
+    flags: np.ndarray  # u1 (w, h)
+    known_h: np.ndarray  # f4 (w, h): heights, NaN where not known
+
+
 @numba.njit(cache=True)
-def _gather_window(
-    tile_map, labels_pool, heights_pool, flags_pool, t, ix0, iy0, labels, flags, known_h
-):
-    """Fill dense labels, flags and known heights (float32, NaN where not known) of the w x h
-    nodes from (ix0, iy0), (w, h) their shape, from the tile pools (slot, T, T); unallocated
-    tiles read as unknown. Walks tile by tile along y so that no division happens per node."""
+def _gather_window(pools, ix0, iy0, window):
+    """Fill `window` (dense labels, flags and known heights, NaN where not known) with the w x h
+    nodes from (ix0, iy0), (w, h) its shape, from the tile pools; unallocated tiles read as
+    unknown. Walks tile by tile along y so that no division happens per node."""
+    tile_map, labels_pool, heights_pool, flags_pool, t = pools
+    labels, flags, known_h = window
     w, h = labels.shape
     for i in range(w):
         gx = ix0 + i
@@ -481,10 +488,10 @@ def _gather_window(
 
 
 @numba.njit(cache=True)
-def _gather_cells(
-    tile_map, labels_pool, heights_pool, flags_pool, t, grid_cells, cells, labels, flags, known_h
-):
+def _gather_cells(pools, grid_cells, cells, window):
     """`_gather_window` for a list of nodes: `grid_cells` in the grid, `cells` in the window."""
+    tile_map, labels_pool, heights_pool, flags_pool, t = pools
+    labels, flags, known_h = window
     for k in range(len(cells)):
         gx, gy = grid_cells[k, 0], grid_cells[k, 1]
         i, j = cells[k, 0], cells[k, 1]

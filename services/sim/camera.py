@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -60,27 +61,46 @@ def unproject(depth_m: np.ndarray, focal_px: float, rows=None, cols=None) -> np.
     return pts.reshape(shape)
 
 
+class RenderedImages(NamedTuple):
+    """What TinyRenderer gives, as the kernel reads it."""
+
+    zbuf: np.ndarray  # f4 (H, W): OpenGL depth buffer in [0, 1]
+    seg: np.ndarray  # i4 (H, W): body id per pixel, < 0 for background
+    rgba: np.ndarray  # u1 (H, W, >= 3)
+
+
+class LabelledImages(NamedTuple):
+    """The kernel's outputs (`label_pixels`)."""
+
+    depth_m: np.ndarray  # f4 (H, W)
+    labels: np.ndarray  # i4 (H, W)
+    rgb: np.ndarray  # u1 (H, W, 3)
+
+
+class Pinhole(NamedTuple):
+    near: float
+    far: float
+    focal_px: float
+    max_range_m: float
+
+
+class GroundLookup(NamedTuple):
+    """The ground raster's classes and placement (`worlds.Raster`)."""
+
+    classes: np.ndarray  # i4 (nx, ny)
+    x0: float
+    y0: float
+    resolution_m: float
+
+
 @numba.njit(cache=True, nogil=True)
-def _label_pixels(
-    zbuf,
-    seg,
-    near,
-    far,
-    focal,
-    max_range,
-    rot,
-    trans,
-    lut,
-    ground_classes,
-    g_x0,
-    g_y0,
-    g_res,
-    colour_lut,
-    rgba,
-    depth_out,
-    labels_out,
-    rgb_out,
-):
+def _label_pixels(images, pinhole, world_from_sensor, lut, ground, colour_lut, out):
+    """`label_pixels` on checked arrays; every field is read into a local before the loops."""
+    zbuf, seg, rgba = images
+    near, far, focal, max_range = pinhole
+    ground_classes, g_x0, g_y0, g_res = ground
+    depth_out, labels_out, rgb_out = out
+    pose = world_from_sensor  # rotation in [:3, :3], translation in [:3, 3]
     h, w = zbuf.shape
     nx, ny = ground_classes.shape
     n_lut = lut.shape[0]
@@ -103,8 +123,8 @@ def _label_pixels(
                 continue
             label = lut[body] if body < n_lut else -1
             if label == -2:  # the ground height field: class from the raster under the point
-                wx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * zz + trans[0]
-                wy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * zz + trans[1]
+                wx = pose[0, 0] * x + pose[0, 1] * y + pose[0, 2] * zz + pose[0, 3]
+                wy = pose[1, 0] * x + pose[1, 1] * y + pose[1, 2] * zz + pose[1, 3]
                 ix = min(max(int(np.floor((wx - g_x0) / g_res + 0.5)), 0), nx - 1)
                 iy = min(max(int(np.floor((wy - g_y0) / g_res + 0.5)), 0), ny - 1)
                 label = ground_classes[ix, iy]
@@ -157,30 +177,24 @@ def label_pixels(
     classes = np.ascontiguousarray(ground.data, np.int32)
     if classes.size and (classes.min() < 0 or classes.max() >= len(colour_lut)):
         raise ValueError("ground raster holds ids outside the colour table")
-    depth = np.empty((h, w), np.float32)
-    labels = np.empty((h, w), np.int32)
-    rgb = np.empty((h, w, 3), np.uint8)
-    _label_pixels(
-        zbuf,
-        seg,
-        float(near),
-        float(far),
-        float(focal_px),
-        float(max_range_m),
-        np.ascontiguousarray(m[:3, :3]),
-        np.ascontiguousarray(m[:3, 3]),
-        lut,
-        classes,
-        float(ground.origin_xy[0]),
-        float(ground.origin_xy[1]),
-        float(ground.resolution_m),
-        np.ascontiguousarray(colour_lut, np.float64),
-        rgba,
-        depth,
-        labels,
-        rgb,
+    out = LabelledImages(
+        np.empty((h, w), np.float32), np.empty((h, w), np.int32), np.empty((h, w, 3), np.uint8)
     )
-    return depth, labels, rgb
+    _label_pixels(
+        RenderedImages(zbuf, seg, rgba),
+        Pinhole(float(near), float(far), float(focal_px), float(max_range_m)),
+        np.ascontiguousarray(m),
+        lut,
+        GroundLookup(
+            classes,
+            float(ground.origin_xy[0]),
+            float(ground.origin_xy[1]),
+            float(ground.resolution_m),
+        ),
+        np.ascontiguousarray(colour_lut, np.float64),
+        out,
+    )
+    return out.depth_m, out.labels, out.rgb
 
 
 @dataclass

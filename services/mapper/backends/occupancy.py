@@ -374,8 +374,10 @@ def _octree_apply(st, k, n_touched, changed):
 
 
 @njit(cache=True, error_model="numpy")
-def _delta_rows(st, res, g, keys, centres, labels, confs, occupied, values):
-    """Fill the Delta columns of voxels g in one pass (cheaper than numpy fancy indexing)."""
+def _delta_rows(st, res, g, rows):
+    """Fill the Delta columns (`DeltaColumns`) of voxels g in one pass (cheaper than numpy fancy
+    indexing)."""
+    keys, centres, labels, confs, occupied, values = rows
     for i in range(g.shape[0]):
         gi = g[i]
         put_key_centre(st.grid, gi, res, keys, centres, i)
@@ -476,12 +478,7 @@ class OccupancyBackend(MapBackend):
             self._state(),
             self.resolution_m,
             g,
-            d.keys,
-            d.centres,
-            d.labels,
-            d.confidences,
-            d.occupied,
-            d.values,
+            d.columns(),
         )
         return d
 

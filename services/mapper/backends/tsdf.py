@@ -267,12 +267,16 @@ def _surface_kernel(g, grid, distance, weight, min_weight, out):
 
 
 @njit(cache=True, error_model="numpy")
-def _extract_kernel(changed, grid, flags, distance, weight, min_weight, seen, out_g, out_surf):
+def _extract_kernel(changed, st, min_weight, seen, out_g, out_surf):
     """Surface status after a cloud: of every updated voxel (listed whatever its status does) and
     of their observed face neighbours (listed only when their status flipped: an unchanged
     neighbour tells a consumer nothing). Sets the SURFACE bits; returns (listed, change in the
     surface count). `seen` (7 per updated voxel) holds the voxels examined, marked _SEEN meanwhile
     so that a voxel shared by several updated ones is looked at once."""
+    grid = st.grid
+    flags = st.flags
+    distance = st.distance
+    weight = st.weight
     n_seen = 0
     n_out = 0
     dcount = 0
@@ -330,10 +334,12 @@ def _tsdf_finish(touched, n_touched, flags, changed):
 
 
 @njit(cache=True, error_model="numpy")
-def _tsdf_rows(st, g, res, exp_steps, class_ids, keys, centres, labels, probs, values):
-    """Fill the Delta columns of voxels g in one pass: coordinates, distance, and the label
-    (first most probable class; 0 for a uniform vector) with its probability, 1 / sum over the
-    classes of exp(-(steps behind the top) * log(p / q)) (`exp_steps`, 0 past its end)."""
+def _tsdf_rows(st, g, res, exp_steps, class_ids, rows):
+    """Fill the Delta columns (`DeltaColumns`, but `occupied`) of voxels g in one pass:
+    coordinates, distance, and the label (first most probable class; 0 for a uniform vector)
+    with its probability, 1 / sum over the classes of exp(-(steps behind the top) * log(p / q))
+    (`exp_steps`, 0 past its end)."""
+    keys, centres, labels, probs, _, values = rows
     logp = st.logp
     n_exp = exp_steps.shape[0]
     for i in range(g.shape[0]):
@@ -444,15 +450,11 @@ class Tsdf(MapBackend):
         self.last_updates = nc  # voxels whose distance was fused this cloud
         self.n_observed += int(counts[0])
         # a voxel's status depends on its neighbours: re-extract around every updated voxel
-        c = grid.cols
         out_g = np.empty(7 * nc, np.int64)
         out_surf = np.empty(7 * nc, np.bool_)
         n, dcount = _extract_kernel(
             changed[:nc],
-            grid.state(),
-            c["flags"],
-            c["distance"],
-            c["weight"],
+            self._state(counts),
             self.min_weight,
             np.empty(7 * nc, np.int64),
             out_g,
@@ -529,11 +531,7 @@ class Tsdf(MapBackend):
             self.resolution_m,
             self._exp_steps,
             self.class_ids,
-            d.keys,
-            d.centres,
-            d.labels,
-            d.confidences,
-            d.values,
+            d.columns(),
         )
         return d
 
