@@ -8,8 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from smana.common.config.mapper import OctreeConfig
-from smana.services.mapper.backends.occupancy import logodds, sensor_model
+from smana.services.mapper.backends.occupancy import OctreeConfig, logodds, sensor_model
 from smana.services.mapper.semantic_map import SemanticMap
 
 SEM_IDS = (1, 2, 4, 5, 6, 7, 8)  # garden3drms classes that carry a label

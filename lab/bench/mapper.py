@@ -244,7 +244,7 @@ def run_open3d(cfg: dict, scans) -> dict:
     import open3d as o3d
     import open3d.core as o3c
 
-    from smana.common.config.mapper import TsdfConfig
+    from smana.services.mapper.backends.tsdf import TsdfConfig
 
     trunc = TsdfConfig().truncation_voxels
     cpu = o3c.Device("CPU:0")

@@ -335,7 +335,8 @@ def check_meta(meta: dict, path, trusted_backend: str | None = None) -> dict:
     if not isinstance(version, str) or len(version) > 100:
         raise _fail(path, f"meta.smana_version: expected a short string, got {_show(version)}")
     if fmt == 1:  # the octrees' section was two tables, the TSDF's its own; both checked
-        from smana.common.config.mapper import OctreeConfig, TsdfConfig
+        from smana.services.mapper.backends.occupancy import OctreeConfig
+        from smana.services.mapper.backends.tsdf import TsdfConfig
 
         for key in ("occupancy", "fusion", "tsdf"):
             if not isinstance(meta[key], dict):
