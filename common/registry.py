@@ -68,7 +68,10 @@ def load_spec(
     try:
         return getattr(mod, attr)
     except AttributeError:
-        raise RegistryError(f"{where}: {module} has no {kind or 'attribute'} {attr!r}") from None
+        kind = kind or "attribute"
+        raise RegistryError(
+            f"{where}: {module} has no {kind} {attr!r} ({spec} is not a {kind})"
+        ) from None
 
 
 class Registry:

@@ -22,9 +22,19 @@ from smana.common.config._schema import (
     with_variants,
 )
 
-# the limits of the map's resolution, the core's and the config's (a MapDelta could carry
-# 0.001 .. 100 m, common/messages.py; the block grid's keys hold 0.01 .. 10 m maps)
+# The map's limits, declared once: the config checks them and the core (services/mapper) and its
+# map files use these. Voxel keys lie in [-KEY_LIMIT, KEY_LIMIT) an axis (OctoMap's 16-bit keys;
+# the block grid, services/mapper/_grid.py); resolutions 0.01 .. 10 m (a MapDelta could carry
+# 0.001 .. 100 m, common/messages.py).
+KEY_LIMIT = 32768
 RESOLUTION_RANGE_M = (0.01, 10.0)
+
+
+def max_range_for(resolution_m: float) -> float:
+    """The longest range that means anything at this resolution: twice the map's extent (the
+    key range, +-KEY_LIMIT voxels an axis), past its diagonal. A longer one overflows the
+    kernels' set-up."""
+    return 4.0 * KEY_LIMIT * resolution_m
 
 
 @with_variants("smana.services.mapper.backends:config_sections", "backend")
@@ -32,8 +42,9 @@ RESOLUTION_RANGE_M = (0.01, 10.0)
 class MapperConfig(Section, section="mapper"):
     backend: str = "octree-max"  # a registry name or a module:Class spec (see the docstring)
     resolution_m: float = param(0.1, gt=0, le=RESOLUTION_RANGE_M[1])  # and >= the range's low
-    max_range_m: float = param(10.0, gt=0)
-    raycast_range_m: float = param(1.0, ge=0)  # free space carved before a hit; 0 = whole ray
+    max_range_m: float = param(10.0, gt=0)  # at most max_range_for(resolution_m)
+    # free space carved before a hit (the octrees); 0 = the whole ray; at most max_range_for()
+    raycast_range_m: float = param(1.0, ge=0)
     inputs: list[str] = param(["cloud"])  # "cloud" and/or "scan"
     autosave_period_s: float = param(30.0, ge=0)  # 0 = only on shutdown
     load: str = ""  # resume from this map file; "auto" = save_path when it exists
@@ -53,6 +64,13 @@ class MapperConfig(Section, section="mapper"):
         if self.resolution_m < RESOLUTION_RANGE_M[0]:
             low = RESOLUTION_RANGE_M[0]
             raise ConfigError(f"mapper.resolution_m: at least {low:g} m, got {self.resolution_m!r}")
+        extent = max_range_for(self.resolution_m)
+        for key in ("max_range_m", "raycast_range_m"):
+            if getattr(self, key) > extent:
+                got, res = getattr(self, key), self.resolution_m
+                raise ConfigError(
+                    f"mapper.{key}: must be in (0, {extent:g}] at resolution_m {res:g}, got {got:g}"
+                )
         if not self.backend.strip():
             raise ConfigError("mapper.backend: expected a back-end name, got ''")
         for name in self.inputs:

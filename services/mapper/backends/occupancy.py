@@ -8,8 +8,8 @@ voxel that is some ray's end point is never freed by another ray of the same clo
 float32 and clamped as OctoMap does, so the same rays give the same values.
 
 Two departures from OctoMap, both from the paper's setting:
-- `ray_length_m`: free space is carved only over the last metres before the end point (1 m in
-  the paper); `None` carves the whole ray as OctoMap does. (Semantic Octomap's own generator
+- `raycast_range_m`: free space is carved only over the last metres before the end point (1 m in
+  the paper); 0 carves the whole ray as OctoMap does. (Semantic Octomap's own generator
   instead carves the first metre from the sensor and marks farther end points occupied without a
   ray; carving next to the surface is what clears moved obstacles, so we carve there.)
 - semantics: every point fuses its label into its end voxel (points labelled 0 or with a label
@@ -438,12 +438,12 @@ class OccupancyBackend(MapBackend):
         self.semantic_lut[self.class_ids] = True
         self._touched = np.empty(1 << 16, np.int64)
         self._keybuf = ray_buffer(self.max_range_m, self.resolution_m)
-        ray = self.ray_length_m
+        ray = self.raycast_range_m
         self._consts = OccupancyConsts(
             self.resolution_m,
             1.0 / self.resolution_m,
             self.max_range_m,
-            -1.0 if ray is None else float(ray),
+            -1.0 if ray == 0 else float(ray),
             MAX_RULES[config.max_fusion],
             float(config.max_same_gain),
             float(config.max_disagree_factor),
