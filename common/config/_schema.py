@@ -193,6 +193,7 @@ def build(cls, data: dict, where: str = "", base=None):
     if base is None:
         base = cls()
     kwargs = {}
+    sections = ""  # a section with variants also names their sub-sections when a key is wrong
     if unknown and getattr(cls, "_variants_spec", ""):
         selector = cls._variant_field
         chosen = data.get(selector, getattr(base, selector))
@@ -203,8 +204,9 @@ def build(cls, data: dict, where: str = "", base=None):
             tables[key] = build(classes[key], data[key], f"{where}{key}.", old)
         unknown -= set(tables)
         kwargs[VARIANTS] = {**base.__dict__[VARIANTS], **tables}
+        sections = f"; sub-sections: {', '.join(sorted(classes))}"
     if unknown:
-        known = ", ".join(sorted(fields))
+        known = ", ".join(sorted(fields)) + sections
         name = ", ".join(f"{where}{k}" for k in sorted(unknown))
         raise ConfigError(f"unknown key {name} (known in [{where.rstrip('.') or 'top'}]: {known})")
     for name, value in data.items():
