@@ -168,6 +168,7 @@ def with_variants(spec: str, selector: str):
             return plain and all(self.variant(k) == other.variant(k) for k in keys)
 
         cls.__init__, cls.__eq__ = __init__, __eq__
+        cls.__hash__ = None  # compared by value, as @dataclass makes every other section
         return cls
 
     return wrap
