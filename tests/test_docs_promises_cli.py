@@ -23,6 +23,7 @@ import pytest
 import smana.deploy
 from smana.common import keys
 from smana.common.config import SmanaConfig
+from smana.common.config._schema import items
 from smana.deploy.cli import BENCHES, COMMANDS, _usage, main
 from smana.deploy.router import router_config
 from smana.deploy.supervisor import Supervisor
@@ -199,12 +200,11 @@ def test_set_reaches_nested_tables_and_config_toml_holds_every_key(tmp_path):
     written = tomllib.loads(text)
 
     def paths(obj, prefix=""):
-        for f in dataclasses.fields(obj):
-            value = getattr(obj, f.name)
+        for name, value in items(obj):  # the fields, and the back-ends' and worlds' sections
             if dataclasses.is_dataclass(value):
-                yield from paths(value, f"{prefix}{f.name}.")
+                yield from paths(value, f"{prefix}{name}.")
             else:
-                yield prefix + f.name
+                yield prefix + name
 
     missing = []
     for path in paths(cfg):

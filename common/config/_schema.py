@@ -277,18 +277,27 @@ def to_toml(obj) -> str:
     return "\n".join(lines).lstrip("\n") + "\n"
 
 
-def _emit(obj, prefix: str, lines: list[str]) -> None:
-    scalars, tables = [], []
-    for f in dataclasses.fields(obj):
+def items(section) -> list[tuple[str, Any]]:
+    """What a section holds, (name, value) in file order: its fields, then every variant's
+    sub-section (`with_variants`: smana's and registered ones, given or defaults). What
+    `to_toml` writes, and what a reader of a config walks."""
+    out, tables = [], []
+    for f in dataclasses.fields(section):
         if not f.init:
             continue
-        if f.metadata.get(VARIANTS):  # every variant's section, so that the file shows them all
-            keys = [*obj.variant_classes(obj.selected_variant())]
-            keys += sorted(set(obj.__dict__[VARIANTS]) - set(keys))
-            tables += [(k, obj.variant(k)) for k in keys]
-            continue
-        v = getattr(obj, f.name)
-        (tables if dataclasses.is_dataclass(v) else scalars).append((f.name, v))
+        if f.metadata.get(VARIANTS):
+            keys = [*section.variant_classes(section.selected_variant())]
+            keys += sorted(set(section.__dict__[VARIANTS]) - set(keys))
+            tables += [(k, section.variant(k)) for k in keys]
+        else:
+            out.append((f.name, getattr(section, f.name)))
+    return out + tables
+
+
+def _emit(obj, prefix: str, lines: list[str]) -> None:
+    scalars, tables = [], []
+    for name, v in items(obj):
+        (tables if dataclasses.is_dataclass(v) else scalars).append((name, v))
     if prefix and scalars:
         lines.append(f"\n[{prefix}]")
     for name, v in scalars:
