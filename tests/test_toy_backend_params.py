@@ -5,13 +5,17 @@ smana: named by its module:Class spec or registered in-process."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 
+from smana.common import keys
 from smana.common.config import ConfigError, SmanaConfig
+from smana.common.messages import MapDelta, SemanticCloud, decode, encode
 from smana.services.mapper import backends
 from smana.services.mapper.semantic_map import SemanticMap
 from tests.conftest import REPO
@@ -109,3 +113,43 @@ def test_smana_mapper_refuses_a_bad_value_of_it_in_one_line(tmp_path):
     assert out.stderr.strip().splitlines() == [
         "smana mapper: mapper.toy_count.weight: expected a number > 0, got -1"
     ]
+
+
+@pytest.mark.multiprocess
+def test_a_mapper_process_takes_its_section_from_the_config_file(zenoh_stack, tmp_path):
+    st = zenoh_stack
+    path = tmp_path / "smana.toml"
+    path.write_text(
+        f'[mapper]\nbackend = "{SPEC}"\nresolution_m = 0.5\nautosave_period_s = 0\n\n'
+        "[mapper.toy_count]\nmin_hits = 3\nweight = 0.25\n"
+    )
+    env = {"PYTHONPATH": os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p)}
+    argv = [*st.zenoh_args(), "--robot", st.robot, "--config", str(path)]
+    st.start("mapper", "-m", "smana.services.mapper", *argv, env=env)
+    st.wait_alive("mapper")
+    got: list[MapDelta] = []
+    sub = st.session.declare_subscriber(
+        keys.map_delta(st.robot), lambda s: got.append(decode(s.payload.to_bytes(), MapDelta))
+    )
+    try:
+        pub = st.publisher(keys.cloud(st.robot))
+        cloud = SemanticCloud(
+            stamp_s=1.0,
+            seq=1,
+            points=POINTS,
+            labels=LABELS.astype(np.uint16),
+            confidences=np.ones(len(POINTS), np.float32),
+            sensor_position=np.zeros(3),
+        )
+        deadline = time.monotonic() + 30
+        while not got and time.monotonic() < deadline:  # until the mapper's first delta
+            pub.put(encode(cloud))
+            time.sleep(0.3)
+    finally:
+        sub.undeclare()
+    assert got, st.log("mapper")
+    d = got[0]
+    order = np.lexsort(d.centres.T[::-1])
+    # one cloud: 3 points and 1, weighted 0.25; only the first voxel reaches min_hits = 3
+    assert d.backend == SPEC and d.values[order].tolist() == [0.75, 0.25]
+    assert d.occupied[order].tolist() == [1, 0]
