@@ -11,6 +11,13 @@ each a class or a lazy `"package.module:Class"` imported only when it is first u
     BACKENDS.copy()                                      # an independent table (tests restore)
     BACKENDS.sections()                                  # {config_key: config_class} (below)
 
+    COMMANDS = Registry("command", {"up": "smana.deploy.supervisor:cli"}, check=callable,
+                        kind="command", specs=False)      # any attribute: here a function
+
+`base` (a class the targets subclass) or `check` (a predicate) says what an entry must be;
+`specs=False` refuses unregistered module:Class names; `hints` maps a missing top-level package
+to its install line.
+
 Every failure is one `RegistryError`, a `ConfigError` (so a `ValueError`), whose message starts
 with the config key the name came from (`what`) and never spans two lines: an unknown name lists
 the known ones; a module that is not there says so; a module whose own dependency is missing
