@@ -23,7 +23,6 @@ import pytest
 import smana.deploy
 from smana.common import keys
 from smana.common.config import SmanaConfig
-from smana.common.config._schema import items
 from smana.deploy.cli import BENCHES, COMMANDS, _usage, main
 from smana.deploy.router import router_config
 from smana.deploy.supervisor import Supervisor
@@ -193,6 +192,8 @@ def test_ros2_enabled_turns_gossip_on_in_the_router(tmp_path, monkeypatch):
 def test_set_reaches_nested_tables_and_config_toml_holds_every_key(tmp_path):
     """The README's `--set explorer.follower.lookahead_m=0.3`; the tutorial's "every key of every
     section, with its value, is in the run directory's config.toml"."""
+    from smana.common.config._schema import items
+
     cfg = SmanaConfig.load(None, ["explorer.follower.lookahead_m=0.3"])
     assert cfg.explorer.follower.lookahead_m == 0.3
     sup = Supervisor(cfg, tmp_path / "run", services=[])
