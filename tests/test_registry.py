@@ -151,3 +151,16 @@ def test_smana_mapper_names_a_missing_dependency_in_one_line(tmp_path):
         " it needs 'no_such_dependency_pkg', which is not installed (pip install"
         " no_such_dependency_pkg)"
     ]
+
+
+def test_the_config_imports_no_service_code_until_a_variants_section_is_wanted():
+    code = (
+        "import sys\n"
+        "from smana.common.config import SmanaConfig\n"
+        "cfg = SmanaConfig.load(None, ['mapper.resolution_m=0.2', 'sim.seed=4'])\n"
+        "print(any(m.startswith('smana.services') for m in sys.modules))\n"
+        "cfg.mapper.tsdf\n"
+        "print('smana.services.mapper.backends.tsdf' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.stdout.split() == ["False", "True"], out.stderr
