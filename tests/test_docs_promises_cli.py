@@ -193,6 +193,8 @@ def test_ros2_enabled_turns_gossip_on_in_the_router(tmp_path, monkeypatch):
 def test_set_reaches_nested_tables_and_config_toml_holds_every_key(tmp_path):
     """The README's `--set explorer.follower.lookahead_m=0.3`; the tutorial's "every key of every
     section, with its value, is in the run directory's config.toml"."""
+    from smana.common.config._schema import items
+
     cfg = SmanaConfig.load(None, ["explorer.follower.lookahead_m=0.3"])
     assert cfg.explorer.follower.lookahead_m == 0.3
     sup = Supervisor(cfg, tmp_path / "run", services=[])
@@ -200,12 +202,11 @@ def test_set_reaches_nested_tables_and_config_toml_holds_every_key(tmp_path):
     written = tomllib.loads(text)
 
     def paths(obj, prefix=""):
-        for f in dataclasses.fields(obj):
-            value = getattr(obj, f.name)
+        for name, value in items(obj):  # the fields, and the back-ends' and worlds' sections
             if dataclasses.is_dataclass(value):
-                yield from paths(value, f"{prefix}{f.name}.")
+                yield from paths(value, f"{prefix}{name}.")
             else:
-                yield prefix + f.name
+                yield prefix + name
 
     missing = []
     for path in paths(cfg):

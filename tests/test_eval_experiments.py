@@ -383,8 +383,8 @@ def test_ablation_outputs_from_synthetic_rows(tmp_path):
 def test_noise_backend_variants_and_sweeps():
     """A variant changes the back-end's config section (an ablation on the same frames); a bad
     spec is one line naming what is wrong."""
-    from smana.common.config.mapper import TsdfConfig
     from smana.lab.experiments import noise
+    from smana.services.mapper.backends.tsdf import TsdfConfig
 
     assert noise.parse_backend("octree-max") == ("octree-max", None)
     name, cfg = noise.parse_backend("tsdf@truncation_voxels=4+min_weight=2")

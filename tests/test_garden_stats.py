@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from smana.common.config.sim import GardenConfig
 from smana.services.sim.worlds import BOX, GroundModel, Primitive, World
-from smana.services.sim.worlds.garden import generate
+from smana.services.sim.worlds.garden import GardenConfig, generate
 from smana.services.sim.worlds.garden_3drms import FILL_MIN_RADIUS_M, _fill_beds, _Placer
 from smana.services.sim.worlds.objects import GRASS, OBSTACLE, TERRAIN, WorldObject
 

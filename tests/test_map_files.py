@@ -176,7 +176,7 @@ def test_a_file_never_makes_the_loader_import_the_module_it_names(tmp_path, monk
 
 def test_a_range_beyond_the_maps_extent_is_refused_in_the_library_too():
     # 1e308 overflowed the octree's kernels set-up (OverflowError) from a file or a config
-    for kw in ({"max_range_m": 1e308}, {"max_range_m": 1e20}, {"ray_length_m": 1e308}):
+    for kw in ({"max_range_m": 1e308}, {"max_range_m": 1e20}, {"raycast_range_m": 1e308}):
         with pytest.raises(ValueError, match="must be in"):
             SemanticMap("octree-max", 0.1, **kw)
     SemanticMap("octree-max", 0.1, max_range_m=4 * 32768 * 0.1)  # the limit itself is fine
@@ -331,5 +331,5 @@ def test_smana_mapper_refuses_a_range_beyond_the_maps_extent_in_one_line(tmp_pat
     )
     assert out.returncode == 2, out.stderr
     assert out.stderr.strip().splitlines() == [
-        "smana mapper: max_range_m must be in (0, 13107.2], got 1e+308"
+        "smana mapper: mapper.max_range_m: must be in (0, 13107.2] at resolution_m 0.1, got 1e+308"
     ]

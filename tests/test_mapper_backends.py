@@ -10,7 +10,6 @@ import os
 import subprocess
 import sys
 import time
-import typing
 from pathlib import Path
 
 import numpy as np
@@ -40,11 +39,11 @@ def toy_registered():
 
 def test_every_registered_backend_declares_its_name_values_and_section():
     assert list(BACKENDS) == ["octree-max", "octree-bayes", "tsdf"]
-    hints = typing.get_type_hints(MapperConfig)
+    sections = MapperConfig.variant_classes()  # declared beside each back-end
     for name in BACKENDS:
         cls = backend_class(name)
         assert cls.name == name and cls.values_kind in VALUES_KINDS
-        assert hints[cls.config_key] is cls.config_class  # [mapper.<config_key>]
+        assert sections[cls.config_key] is cls.config_class  # [mapper.<config_key>]
         m = SemanticMap.from_config(MapperConfig(backend=name, resolution_m=0.3))
         assert type(m._core) is cls and type(m.config) is cls.config_class
 
@@ -151,7 +150,7 @@ def test_a_format_1_map_file_still_loads(tmp_path):
 
 
 def test_a_saved_octree_map_keeps_its_max_fusion_rule(tmp_path):
-    from smana.common.config.mapper import OctreeConfig
+    from smana.services.mapper.backends.occupancy import OctreeConfig
 
     gain = SemanticMap("octree-max", 0.2, 4.0, 1.0, config=OctreeConfig(max_fusion="gain"))
     assert SemanticMap.load(gain.save(tmp_path / "gain.npz")).config.max_fusion == "gain"

@@ -39,7 +39,7 @@ def test_save_load_round_trip_is_exact(backend, tmp_path):
         m.integrate(*cloud(s))
     path = m.save(tmp_path / "map.npz")
     n = SemanticMap.load(path)
-    assert (n.backend, n.resolution_m, n.max_range_m, n.ray_length_m) == (backend, 0.2, 4.0, 1.0)
+    assert (n.backend, n.resolution_m, n.max_range_m, n.raycast_range_m) == (backend, 0.2, 4.0, 1.0)
     a, b = columns(m), columns(n)
     assert a.keys() == b.keys()
     for k in a:
@@ -78,7 +78,7 @@ def test_load_rejects_other_files(tmp_path):
 
 def test_export_ply_opens_with_labels_and_colours(tmp_path):
     table = ClassTable.load("garden3drms")
-    m = SemanticMap("octree-max", 0.2, 5.0, None, class_table=table)
+    m = SemanticMap("octree-max", 0.2, 5.0, 0.0, class_table=table)
     m.integrate(*cloud(7))
     n = m.export_ply(tmp_path / "map.ply")
     v = read_ply(tmp_path / "map.ply")
@@ -93,7 +93,7 @@ def test_export_ply_opens_with_labels_and_colours(tmp_path):
 
 
 def test_query_and_box():
-    m = SemanticMap("octree-max", 0.1, 10.0, None)
+    m = SemanticMap("octree-max", 0.1, 10.0, 0.0)
     pts = np.array([[1.05, 0.05, 0.05], [0.05, 1.05, 0.05]], np.float32)
     m.integrate(pts, np.array([1, 4]), np.array([0.9, 0.8], np.float32), (0.05, 0.05, 0.05))
     q = m.query(np.array([[1.06, 0.04, 0.09], [0.5, 0.05, 0.05], [5.0, 5.0, 5.0]]))
@@ -120,7 +120,7 @@ def test_ignored_classes_never_reach_the_map():
             ],
         }
     )
-    m = SemanticMap("octree-bayes", 0.2, 10.0, None, class_table=table)
+    m = SemanticMap("octree-bayes", 0.2, 10.0, 0.0, class_table=table)
     pts = np.array([[1.0, 0.1, 0.1], [0.1, 1.0, 0.1]], np.float32)
     m.integrate(pts, np.array([9, 2]), None, (0.1, 0.1, 0.1))
     q = m.query(pts)

@@ -8,8 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from smana.common.config.mapper import OctreeConfig
-from smana.services.mapper.backends.occupancy import logodds, sensor_model
+from smana.services.mapper.backends.occupancy import OctreeConfig, logodds, sensor_model
 from smana.services.mapper.semantic_map import SemanticMap
 
 SEM_IDS = (1, 2, 4, 5, 6, 7, 8)  # garden3drms classes that carry a label
@@ -166,7 +165,7 @@ def test_octree_matches_slow_reference(fusion, ray_m):
     res, max_range = 0.2, 3.5
     fusion, _, rule = fusion.partition("@")
     config = OctreeConfig(max_fusion=rule or "average")
-    m = SemanticMap(f"octree-{fusion}", res, max_range, ray_m, config=config)
+    m = SemanticMap(f"octree-{fusion}", res, max_range, ray_m or 0.0, config=config)  # 0: whole ray
     ref = RefOctree(res, max_range, ray_m, fusion, config)
     for _ in range(3):
         pts, labels, conf, origin = random_cloud(rng, 400)
@@ -215,7 +214,7 @@ def test_octree_full_rays_equal_octomap():
     pyoctomap = pytest.importorskip("pyoctomap")
     rng = np.random.default_rng(5)
     res, max_range = 0.1, 4.0
-    m = SemanticMap("octree-max", res, max_range, None)
+    m = SemanticMap("octree-max", res, max_range, 0.0)
     tree = pyoctomap.OcTree(res)
     for _ in range(3):
         pts, labels, conf, origin = random_cloud(rng, 1500, spread=5.0)
@@ -232,7 +231,7 @@ def test_octree_full_rays_equal_octomap():
 
 
 def test_points_beyond_range_carve_without_hit():
-    m = SemanticMap("octree-max", 0.1, 2.0, None)
+    m = SemanticMap("octree-max", 0.1, 2.0, 0.0)
     d = m.integrate(
         np.array([[5.05, 0.05, 0.05]], np.float32), np.array([1]), None, (0.05, 0.05, 0.05)
     )
@@ -253,7 +252,7 @@ def test_ray_length_limits_carving_to_last_metre():
 
 
 def test_endpoint_wins_over_free_within_one_cloud():
-    m = SemanticMap("octree-max", 0.1, 10.0, None)
+    m = SemanticMap("octree-max", 0.1, 10.0, 0.0)
     # the second ray passes through the first ray's end voxel
     pts = np.array([[1.05, 0.05, 0.05], [2.05, 0.05, 0.05]], np.float32)
     m.integrate(pts, np.array([1, 1]), None, (0.05, 0.05, 0.05))
@@ -263,7 +262,7 @@ def test_endpoint_wins_over_free_within_one_cloud():
 
 
 def _one_voxel(fusion, observations, config=None):
-    m = SemanticMap(f"octree-{fusion}", 0.1, 10.0, None, config=config)
+    m = SemanticMap(f"octree-{fusion}", 0.1, 10.0, 0.0, config=config)
     p = np.array([[1.05, 0.05, 0.05]], np.float32)
     for lab, conf in observations:
         m.integrate(p, np.array([lab]), np.array([conf], np.float32), (0.05, 0.05, 0.05))
@@ -341,8 +340,8 @@ def test_growth_mid_cloud_gives_the_same_map():
     """Tiny initial storage forces resumes in the middle of clouds; the result must not change."""
     rng = np.random.default_rng(8)
     clouds = [random_cloud(rng, 2000, spread=6.0) for _ in range(2)]
-    a = SemanticMap("octree-max", 0.15, 8.0, None)
-    b = SemanticMap("octree-max", 0.15, 8.0, None)
+    a = SemanticMap("octree-max", 0.15, 8.0, 0.0)
+    b = SemanticMap("octree-max", 0.15, 8.0, 0.0)
     b._core._touched = np.empty(8, np.int64)
     for c in clouds:
         da, db = a.integrate(*c), b.integrate(*c)

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from smana.common.config.mapper import TsdfConfig
+from smana.services.mapper.backends.tsdf import TsdfConfig
 from smana.services.mapper.semantic_map import SemanticMap
 
 SEM_IDS = [1, 2, 4, 5, 6, 7, 8]

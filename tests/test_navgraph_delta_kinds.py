@@ -57,7 +57,7 @@ def test_signed_distances_use_the_extracted_surface_whatever_the_back_end_is_cal
 def test_a_tsdf_delta_gives_the_graph_one_voxel_per_crossing():
     """End to end: a flat floor integrated by the TSDF gives nodes at the floor's height, one
     surface voxel per column, under the old band rule it gave two or three."""
-    from smana.common.config.mapper import TsdfConfig
+    from smana.services.mapper.backends.tsdf import TsdfConfig
     from smana.services.mapper.semantic_map import SemanticMap
 
     # one scan of one ray per floor point: a one-ray surface (the default waits for 3 rays)

@@ -19,7 +19,7 @@ SPEC = "tests.support.toy_reader:ToyReader"
 
 @pytest.fixture
 def toy(tmp_path, monkeypatch):
-    monkeypatch.setattr(readers, "READERS", dict(readers.READERS))  # the registration is undone
+    monkeypatch.setattr(readers, "READERS", readers.READERS.copy())  # the registration is undone
     readers.register("toy", SPEC)
     folder = tmp_path / "toy"
     write_toy_dataset(folder, [(0.1 * i, 0.5 * i, 0.0, 0.0) for i in range(N_SCANS)])

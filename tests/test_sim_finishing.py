@@ -13,9 +13,10 @@ from pathlib import Path
 import pytest
 
 from smana.common import keys
-from smana.common.config.sim import CameraConfig, GardenConfig, SimConfig
+from smana.common.config.sim import CameraConfig, SimConfig
 from smana.services.sim.finishing import FinishedFrame, ShmWorker, _write_result, finished
 from smana.services.sim.simulation import Simulation
+from smana.services.sim.worlds.garden import GardenConfig
 from tests.conftest import wait_for
 
 CFG = SimConfig(

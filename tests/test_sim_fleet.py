@@ -18,7 +18,7 @@ import pytest
 from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config.fleet import FleetConfig
-from smana.common.config.sim import CameraConfig, GardenConfig, LidarConfig, SimConfig
+from smana.common.config.sim import CameraConfig, LidarConfig, SimConfig
 from smana.common.messages import (
     MapDelta,
     Pose,
@@ -33,6 +33,7 @@ from smana.services.sim.finishing import finished, make_worker
 from smana.services.sim.scene import transform_points
 from smana.services.sim.simulation import Simulation, place_members
 from smana.services.sim.worlds import build_world
+from smana.services.sim.worlds.garden import GardenConfig
 from tests.conftest import wait_for
 from tests.test_sim_service import SMALL, Collector
 

@@ -8,11 +8,11 @@ import numpy as np
 import pybullet as p
 import pytest
 
-from smana.common.config.sim import CameraConfig, GardenConfig, SimConfig
+from smana.common.config.sim import CameraConfig, SimConfig
 from smana.services.sim.scene import DROP, GROUND, BulletScene
 from smana.services.sim.simulation import Simulation
 from smana.services.sim.worlds.cloud import from_cloud
-from smana.services.sim.worlds.garden import generate
+from smana.services.sim.worlds.garden import GardenConfig, generate
 
 
 @pytest.fixture(scope="module")

@@ -9,11 +9,12 @@ import pybullet as p
 import pytest
 from scipy.spatial import cKDTree
 
-from smana.common.config.sim import CameraConfig, GardenConfig, LidarConfig, SimConfig
+from smana.common.config.sim import CameraConfig, LidarConfig, SimConfig
 from smana.services.sim.camera import label_pixels, linearise_depth, unproject, view_matrix
 from smana.services.sim.simulation import Simulation
 from smana.services.sim.worlds import BOX, SPHERE, Primitive, Raster, World
 from smana.services.sim.worlds.cloud import from_cloud
+from smana.services.sim.worlds.garden import GardenConfig
 
 GROUND_IDS = (1, 2)
 

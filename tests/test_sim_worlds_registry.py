@@ -31,7 +31,7 @@ PLUGIN = "tests.support.toy_world:ToyWorld"  # importable from the repository ro
 @pytest.fixture
 def registry(monkeypatch):
     """The registry, restored after the test."""
-    monkeypatch.setattr(worlds, "WORLDS", dict(worlds.WORLDS))
+    monkeypatch.setattr(worlds, "WORLDS", worlds.WORLDS.copy())
     return worlds.WORLDS
 
 
@@ -100,7 +100,7 @@ def test_cloud_worlds_take_their_section(tmp_path):
     write_labelled_ply(path, pts, labels, np.zeros((2000, 3), np.uint8))
     cfg = SimConfig(world=str(path))
     assert len(build_world(cfg).objects) == 4  # the walls
-    from smana.common.config.sim import PlyConfig
+    from smana.services.sim.worlds.cloud import PlyConfig
 
     assert build_world(SimConfig(world=str(path), ply=PlyConfig(walls=False))).objects == []
 

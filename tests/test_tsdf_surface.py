@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from smana.common.config.mapper import TsdfConfig
+from smana.services.mapper.backends.tsdf import TsdfConfig
 from smana.services.mapper.semantic_map import SemanticMap
 
 # The surface rule on single rays: min_weight 1e-4 keeps a crossing one ray made (the default, 3,

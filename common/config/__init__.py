@@ -6,11 +6,15 @@
     [sim] [mapper] [navgraph] [planner] [explorer] [replay] [ros2]          one module each
     [geometric] the labeller of clouds without labels (common/geometric)   geometric.py
     [fleet]     several robots, one map, one graph, coordinated views     fleet.py
+    [mapper.<key>] [sim.<key>]  a back-end's or a world's own parameters, declared beside it
+                ([mapper.octree], [mapper.tsdf], [sim.garden], [sim.ply], a plugin's)
 
 Each section is defined once, in its module, as a `Section` dataclass (`_schema.py`): its fields
 carry their limits and the one generic validator checks them, on load and when a core is given a
 section made in Python. A core receives its section as it is (`Explorer(config.explorer)`); parts
-of a core are nested tables (`[explorer.follower]`).
+of a core are nested tables (`[explorer.follower]`). A variant's parameters (a mapping back-end's,
+a world's) are a `Section` beside the variant's code, attached by its registry's name
+(`with_variants`, _schema.py), for smana's variants and plugins alike.
 
 An unknown key, a value of the wrong type or out of range, or a number that is not finite (`1e400`
 reads as inf) is a `ConfigError` that names it (`mapper.resolution_m: expected a number > 0, got

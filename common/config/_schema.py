@@ -10,17 +10,28 @@ A section is validated whenever it is made, from a TOML table (`build`) or in Py
 (`FollowerConfig(lookahead_m=0)`), and the error is one line naming the dotted key:
 `explorer.follower.lookahead_m: expected a number > 0, got 0`. Checks that relate two fields live
 in the section's `validate()`. Cores receive their section as it is: no copies, no renaming.
+
+A section whose variants (back-ends, worlds) declare their own parameters beside their code is
+decorated `@with_variants("package.module:config_sections", "backend")`: that function (in the
+variants' registry, common/registry.py; imported only when a variant's section is needed)
+returns {config_key: Section class}, and each variant's section is read from and written to
+`[<section>.<config_key>]`, reached as an attribute (`config.mapper.tsdf`) and passed by keyword
+(`SimConfig(garden=GardenConfig(size_m=8))`). Left out, it is that class's defaults.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import importlib
 import math
 import numbers
 import types
 import typing
 from dataclasses import field
 from typing import Any, ClassVar, Literal
+
+VARIANTS = "variants"  # the field of a section decorated with `with_variants`
 
 
 class ConfigError(ValueError):
@@ -57,6 +68,9 @@ class Section:
         for f in dataclasses.fields(self):
             if not f.init:
                 continue
+            if f.metadata.get(VARIANTS):
+                self._check_variants(where)
+                continue
             hint = hints[f.name]
             value = getattr(self, f.name)
             if dataclasses.is_dataclass(hint):
@@ -68,6 +82,96 @@ class Section:
 
     def validate(self) -> None:
         """Checks between fields; override in a section that has some."""
+
+    # -- variants' own sections (`with_variants`) ------------------------------------------
+
+    @classmethod
+    def variant_classes(cls, selected: str = "") -> dict[str, type]:
+        """{config_key: Section class} of this section's variants (and of `selected`, a variant
+        named by module:Class); {} for a section without variants."""
+        spec = getattr(cls, "_variants_spec", "")
+        if not spec:
+            return {}
+        module, _, attr = spec.partition(":")
+        return getattr(importlib.import_module(module), attr)(selected)
+
+    def selected_variant(self) -> str:
+        return str(getattr(self, type(self)._variant_field, "") or "")
+
+    def variant(self, key: str):
+        """The `[<section>.<key>]` sub-section: as given, else its class's defaults (kept)."""
+        tables = self.__dict__[VARIANTS]
+        if key not in tables:
+            classes = self.variant_classes(self.selected_variant())
+            if key not in classes:
+                raise KeyError(key)
+            tables[key] = classes[key]()
+        return tables[key]
+
+    def _check_variants(self, where: str) -> None:
+        tables = self.__dict__[VARIANTS] = dict(self.__dict__[VARIANTS])  # never shared
+        if not tables:
+            return
+        classes = self.variant_classes(self.selected_variant())
+        for key, value in tables.items():
+            if key not in classes:
+                known = ", ".join(sorted(classes))
+                raise ConfigError(f"unknown section {where}{key} (variants' sections: {known})")
+            if not isinstance(value, classes[key]):
+                raise ConfigError(f"{where}{key}: expected a [{where}{key}] table")
+
+    def __getattr__(self, name: str):
+        # only reached when normal look-up fails: a variant's section, e.g. config.mapper.tsdf
+        tables = self.__dict__.get(VARIANTS) if not name.startswith("_") else None
+        if tables is None:
+            raise AttributeError(name)
+        try:
+            return self.variant(name)
+        except KeyError:
+            raise AttributeError(
+                f"{type(self).__name__} has no field or variant section {name!r}"
+            ) from None
+
+
+def variant_tables():
+    """The field that holds a section's variants' sections (`with_variants`)."""
+    return field(default_factory=dict, repr=False, compare=False, metadata={VARIANTS: True})
+
+
+def with_variants(spec: str, selector: str):
+    """Class decorator (outside `@dataclass`) of a section whose variants bring their own
+    sub-sections (module docstring): `spec` is the "module:function" that lists them, `selector`
+    the field naming the variant in use. The class declares `variants: dict = variant_tables()`.
+    """
+
+    def wrap(cls):
+        cls._variants_spec, cls._variant_field = spec, selector
+        names = {f.name for f in dataclasses.fields(cls) if f.init}
+        init = cls.__init__
+
+        @functools.wraps(init)
+        def __init__(self, *args, **kwargs):
+            given = {k: kwargs.pop(k) for k in list(kwargs) if k not in names}
+            if given:
+                kwargs[VARIANTS] = {**kwargs.get(VARIANTS, {}), **given}
+            init(self, *args, **kwargs)
+
+        def __eq__(self, other):
+            if type(other) is not type(self):
+                return NotImplemented
+            plain = all(
+                getattr(self, f.name) == getattr(other, f.name)
+                for f in dataclasses.fields(cls)
+                if not f.metadata.get(VARIANTS)
+            )
+            keys = set(self.__dict__[VARIANTS]) | set(other.__dict__[VARIANTS])
+            return plain and all(self.variant(k) == other.variant(k) for k in keys)
+
+        cls.__init__, cls.__eq__ = __init__, __eq__
+        cls.__hash__ = None  # compared by value, as @dataclass makes every other section
+        return cls
+
+    return wrap
 
 
 _HINTS: dict[type, dict[str, Any]] = {}
@@ -85,16 +189,30 @@ def build(cls, data: dict, where: str = "", base=None):
     if not isinstance(data, dict):
         raise ConfigError(f"{where.rstrip('.') or 'config'}: expected a table, got {data!r}")
     hints = _hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init and not f.metadata.get(VARIANTS)}
     unknown = set(data) - set(fields)
-    if unknown:
-        known = ", ".join(sorted(fields))
-        name = ", ".join(f"{where}{k}" for k in sorted(unknown))
-        raise ConfigError(f"unknown key {name} (known in [{where.rstrip('.') or 'top'}]: {known})")
     if base is None:
         base = cls()
     kwargs = {}
+    sections = ""  # a section with variants also names their sub-sections when a key is wrong
+    if unknown and getattr(cls, "_variants_spec", ""):
+        selector = cls._variant_field
+        chosen = data.get(selector, getattr(base, selector))
+        classes = cls.variant_classes(chosen if isinstance(chosen, str) else "")
+        tables = {}
+        for key in sorted(unknown & set(classes)):
+            old = base.variant(key) if key in cls.variant_classes(base.selected_variant()) else None
+            tables[key] = build(classes[key], data[key], f"{where}{key}.", old)
+        unknown -= set(tables)
+        kwargs[VARIANTS] = {**base.__dict__[VARIANTS], **tables}
+        sections = f"; sub-sections: {', '.join(sorted(classes))}"
+    if unknown:
+        known = ", ".join(sorted(fields)) + sections
+        name = ", ".join(f"{where}{k}" for k in sorted(unknown))
+        raise ConfigError(f"unknown key {name} (known in [{where.rstrip('.') or 'top'}]: {known})")
     for name, value in data.items():
+        if name not in fields:
+            continue
         hint = hints[name]
         if dataclasses.is_dataclass(hint):
             kwargs[name] = build(hint, value, f"{where}{name}.", getattr(base, name))
@@ -159,13 +277,27 @@ def to_toml(obj) -> str:
     return "\n".join(lines).lstrip("\n") + "\n"
 
 
-def _emit(obj, prefix: str, lines: list[str]) -> None:
-    scalars, tables = [], []
-    for f in dataclasses.fields(obj):
+def items(section) -> list[tuple[str, Any]]:
+    """What a section holds, (name, value) in file order: its fields, then every variant's
+    sub-section (`with_variants`: smana's and registered ones, given or defaults). What
+    `to_toml` writes, and what a reader of a config walks."""
+    out, tables = [], []
+    for f in dataclasses.fields(section):
         if not f.init:
             continue
-        v = getattr(obj, f.name)
-        (tables if dataclasses.is_dataclass(v) else scalars).append((f.name, v))
+        if f.metadata.get(VARIANTS):
+            keys = [*section.variant_classes(section.selected_variant())]
+            keys += sorted(set(section.__dict__[VARIANTS]) - set(keys))
+            tables += [(k, section.variant(k)) for k in keys]
+        else:
+            out.append((f.name, getattr(section, f.name)))
+    return out + tables
+
+
+def _emit(obj, prefix: str, lines: list[str]) -> None:
+    scalars, tables = [], []
+    for name, v in items(obj):
+        (tables if dataclasses.is_dataclass(v) else scalars).append((name, v))
     if prefix and scalars:
         lines.append(f"\n[{prefix}]")
     for name, v in scalars:

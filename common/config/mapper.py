@@ -1,9 +1,12 @@
-"""[mapper] config section, with one sub-section per back-end family ([mapper.octree],
-[mapper.tsdf]). The back-end cores receive these sub-sections as they are.
+"""[mapper] config section. `SemanticMap` (services/mapper) receives it as it is.
 
 `backend` is a name from the mapper's back-end registry (`services/mapper/backends/`) or a
-`module:Class` spec of an out-of-tree one; the registry checks it (common never imports services):
-`smana mapper` and `smana up` do so before anything starts.
+`module:Class` spec of an out-of-tree one; the registry checks it: `smana mapper` and `smana up`
+do so before anything starts. Each back-end family declares its own parameters beside its code
+(`OctreeConfig` in backends/occupancy.py, `TsdfConfig` in backends/tsdf.py, a plugin's in its
+module) and they are read from `[mapper.<config_key>]` (`[mapper.octree]`, `[mapper.tsdf]`): the
+registry lists them, by name only (`with_variants`), so that common imports no service code
+until a back-end's section is wanted.
 """
 
 from __future__ import annotations
@@ -11,63 +14,37 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from smana.common.config._schema import ConfigError, Section, param, table
+from smana.common.config._schema import (
+    ConfigError,
+    Section,
+    param,
+    variant_tables,
+    with_variants,
+)
+
+# The map's limits, declared once: the config checks them and the core (services/mapper) and its
+# map files use these. Voxel keys lie in [-KEY_LIMIT, KEY_LIMIT) an axis (OctoMap's 16-bit keys;
+# the block grid, services/mapper/_grid.py); resolutions 0.01 .. 10 m (a MapDelta could carry
+# 0.001 .. 100 m, common/messages.py).
+KEY_LIMIT = 32768
+RESOLUTION_RANGE_M = (0.01, 10.0)
 
 
-@dataclass
-class OctreeConfig(Section, section="mapper.octree"):
-    """OctoMap's sensor model (its own defaults) and Semantic Octomap's label fusion constants,
-    for `octree-max` and `octree-bayes`."""
-
-    prob_hit: float = param(0.7, gt=0, lt=1)
-    prob_miss: float = param(0.4, gt=0, lt=1)
-    clamp_min: float = param(0.1192, gt=0, lt=1)
-    clamp_max: float = param(0.971, gt=0, lt=1)
-    # octree-max, same label: "average" is Semantic Octomap's `SemanticsMax::semanticFusion`
-    # (c = (c + c_obs) / 2); "gain" is smana's earlier rule, kept as a variant:
-    # c += max_same_gain * c_obs * (1 - c), agreement always raising c
-    max_fusion: Literal["average", "gain"] = "average"
-    max_same_gain: float = param(0.5, ge=0, le=1)  # used by max_fusion = "gain" only
-    max_disagree_factor: float = param(0.9, gt=0, le=1)  # other label: the winner's c times this
-    # Bayes: keeps c in [eps, 1 - eps] so that no class reaches 0 or 1
-    bayes_min_confidence: float = param(1e-3, gt=0, lt=0.5)
-
-    def validate(self) -> None:
-        if not self.prob_miss < 0.5 < self.prob_hit:
-            raise ConfigError("mapper.octree.prob_miss / prob_hit: need prob_miss < 0.5 < prob_hit")
-        if not self.clamp_min < 0.5 < self.clamp_max:
-            raise ConfigError(
-                "mapper.octree.clamp_min / clamp_max: need clamp_min < 0.5 < clamp_max"
-            )
+def max_range_for(resolution_m: float) -> float:
+    """The longest range that means anything at this resolution: twice the map's extent (the
+    key range, +-KEY_LIMIT voxels an axis), past its diagonal. A longer one overflows the
+    kernels' set-up."""
+    return 4.0 * KEY_LIMIT * resolution_m
 
 
-@dataclass
-class TsdfConfig(Section, section="mapper.tsdf"):
-    """voxblox's fast TSDF integrator and Kimera's semantic label probabilities, for `tsdf`."""
-
-    truncation_voxels: float = param(2.0, gt=0)
-    max_weight: float = param(10000.0, gt=0)
-    min_range_m: float = param(0.1, ge=0)  # closer points are skipped
-    start_voxel_subsampling: float = param(2.0, ge=0)  # voxblox default; 0 disables it
-    use_weight_dropoff: bool = True
-    label_probability: float = param(0.9, gt=0, lt=1)  # Kimera: p of the measured label
-    # Surface extraction: voxels (and their sign-change neighbours) need at least this weight
-    # (about the number of rays that reached them, less the drop-off behind the surface).
-    # voxblox's mesh default is 1e-4, every voxel a ray reached; 3 is the ablation's choice
-    # (docs/experiments.md): under 10 cm / 1.1 deg pose noise a crossing seen once or twice is
-    # mostly a misplaced one, and requiring 3 cut the error the noise adds from 56 to 22 mm
-    # (octree-max: 51 mm) at no cost without noise (18.3 vs 17.8 mm). A surface must then be
-    # seen by 3 rays before it reaches the map and the graph.
-    min_weight: float = param(3.0, gt=0)
-
-
-@dataclass
+@with_variants("smana.services.mapper.backends:config_sections", "backend")
+@dataclass(eq=False)
 class MapperConfig(Section, section="mapper"):
     backend: str = "octree-max"  # a registry name or a module:Class spec (see the docstring)
-    # A MapDelta carries 0.001 .. 100 m (common/messages.py): finer is refused in validate()
-    resolution_m: float = param(0.1, gt=0, le=100.0)
-    max_range_m: float = param(10.0, gt=0)
-    raycast_range_m: float = param(1.0, ge=0)  # free space carved before a hit; 0 = whole ray
+    resolution_m: float = param(0.1, gt=0, le=RESOLUTION_RANGE_M[1])  # and >= the range's low
+    max_range_m: float = param(10.0, gt=0)  # at most max_range_for(resolution_m)
+    # free space carved before a hit (the octrees); 0 = the whole ray; at most max_range_for()
+    raycast_range_m: float = param(1.0, ge=0)
     inputs: list[str] = param(["cloud"])  # "cloud" and/or "scan"
     autosave_period_s: float = param(30.0, ge=0)  # 0 = only on shutdown
     load: str = ""  # resume from this map file; "auto" = save_path when it exists
@@ -80,12 +57,20 @@ class MapperConfig(Section, section="mapper"):
     # deltas of every `fleet.robots` member, merged into one map (services/mapper/fleet.py;
     # run under the fleet's name, `--robot fleet`)
     source: Literal["clouds", "fleet"] = "clouds"
-    octree: OctreeConfig = table(OctreeConfig)
-    tsdf: TsdfConfig = table(TsdfConfig)
+    # [mapper.octree], [mapper.tsdf], a plugin's: each back-end family's own section
+    variants: dict[str, Section] = variant_tables()
 
     def validate(self) -> None:
-        if self.resolution_m < 1e-3:
-            raise ConfigError(f"mapper.resolution_m: at least 0.001 m, got {self.resolution_m!r}")
+        if self.resolution_m < RESOLUTION_RANGE_M[0]:
+            low = RESOLUTION_RANGE_M[0]
+            raise ConfigError(f"mapper.resolution_m: at least {low:g} m, got {self.resolution_m!r}")
+        extent = max_range_for(self.resolution_m)
+        for key in ("max_range_m", "raycast_range_m"):
+            if getattr(self, key) > extent:
+                got, res = getattr(self, key), self.resolution_m
+                raise ConfigError(
+                    f"mapper.{key}: must be in (0, {extent:g}] at resolution_m {res:g}, got {got:g}"
+                )
         if not self.backend.strip():
             raise ConfigError("mapper.backend: expected a back-end name, got ''")
         for name in self.inputs:

@@ -129,14 +129,14 @@ def run_ours(cfg: dict, scans) -> dict:
 
     ray = cfg["ray_m"]
     # Load or compile the kernels outside the timed loop.
-    warm = SemanticMap(cfg["backend"], cfg["res"], MAX_RANGE_M, ray)
+    warm = SemanticMap(cfg["backend"], cfg["res"], MAX_RANGE_M, ray or 0.0)  # 0: full ray
     p, lab, conf, org = scans[0]
     warm.integrate(p[:2000], lab[:2000], conf[:2000], org)
     del warm
     rss0, load0 = _rss_mb(), _load()
     run_medians, cpu_medians, times, updates, deltas = [], [], [], [], []
     for _ in range(cfg.get("repeats", 1)):  # a fresh map each run, the same scans
-        m = SemanticMap(cfg["backend"], cfg["res"], MAX_RANGE_M, ray)
+        m = SemanticMap(cfg["backend"], cfg["res"], MAX_RANGE_M, ray or 0.0)
         run, cpu = [], []
         for p, lab, conf, org in scans:
             t0, c0 = time.perf_counter(), time.process_time()
@@ -244,7 +244,7 @@ def run_open3d(cfg: dict, scans) -> dict:
     import open3d as o3d
     import open3d.core as o3c
 
-    from smana.common.config.mapper import TsdfConfig
+    from smana.services.mapper.backends.tsdf import TsdfConfig
 
     trunc = TsdfConfig().truncation_voxels
     cpu = o3c.Device("CPU:0")
@@ -308,7 +308,7 @@ def run_agreement(cfg: dict, scans) -> dict:
     from smana.services.mapper.semantic_map import SemanticMap
 
     res = cfg["res"]
-    m = SemanticMap("octree-max", res, MAX_RANGE_M, None)
+    m = SemanticMap("octree-max", res, MAX_RANGE_M, 0.0)
     tree = pyoctomap.OcTree(res)
     for p, lab, conf, org in scans:
         m.integrate(p, lab, conf, org)
@@ -363,7 +363,7 @@ def run_sequence(cfg: dict, scans) -> dict:
     )
 
     def fresh():
-        return SemanticMap(cfg["backend"], res, MAX_RANGE_M, ray, classes), NavGraph(
+        return SemanticMap(cfg["backend"], res, MAX_RANGE_M, ray or 0.0, classes), NavGraph(
             classes, graph_cfg
         )
 

@@ -138,7 +138,7 @@ def garden_layouts() -> tuple[str, ...]:
     """The values `sim.garden.layout` takes, read from its type (defined once, in the config)."""
     import typing
 
-    from smana.common.config.sim import GardenConfig
+    from smana.services.sim.worlds.garden import GardenConfig
 
     return typing.get_args(typing.get_type_hints(GardenConfig)["layout"])
 

@@ -27,6 +27,8 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
+from smana.common.config.mapper import KEY_LIMIT as _KEY_LIMIT
+
 # -- status codes returned by the integration kernels ----------------------------------------------
 DONE = 0
 GROW_BLOCKS = 1
@@ -44,7 +46,9 @@ MARK_ANY = np.uint8(14)
 # map's extent anyway, so the packing never overflows.
 _PACK_OFF = 1 << 20
 _PACK_MASK = (1 << 21) - 1
-KEY_LIMIT = 32768  # voxel indices must lie in [-KEY_LIMIT, KEY_LIMIT), as OctoMap's 16-bit keys
+# voxel indices must lie in [-KEY_LIMIT, KEY_LIMIT), as OctoMap's 16-bit keys (declared with the
+# map's other limits in the config section, common/config/mapper.py)
+KEY_LIMIT = _KEY_LIMIT
 EMPTY = np.int64(-1)
 _FIB = np.uint64(0x9E3779B97F4A7C15)
 

@@ -39,6 +39,7 @@ import numpy as np
 from numpy.lib import format as npy
 
 from smana.common.config._schema import build
+from smana.common.config.mapper import RESOLUTION_RANGE_M, max_range_for
 from smana.services.mapper._grid import KEY_LIMIT
 
 MAX_MAP_BYTES = 4 << 30  # a map file (and its arrays together) at most this big: 4 GiB
@@ -315,7 +316,7 @@ def check_meta(meta: dict, path, trusted_backend: str | None = None) -> dict:
     except ValueError as exc:
         raise _fail(path, str(exc)) from None
     out = dict(meta)
-    res = _number(path, "resolution_m", meta["resolution_m"], 0.01, 10.0)
+    res = _number(path, "resolution_m", meta["resolution_m"], *RESOLUTION_RANGE_M)
     extent = max_range_for(res)
     _number(path, "max_range_m", meta["max_range_m"], 1e-9, extent)
     if meta["ray_length_m"] is not None:
@@ -335,7 +336,8 @@ def check_meta(meta: dict, path, trusted_backend: str | None = None) -> dict:
     if not isinstance(version, str) or len(version) > 100:
         raise _fail(path, f"meta.smana_version: expected a short string, got {_show(version)}")
     if fmt == 1:  # the octrees' section was two tables, the TSDF's its own; both checked
-        from smana.common.config.mapper import OctreeConfig, TsdfConfig
+        from smana.services.mapper.backends.occupancy import OctreeConfig
+        from smana.services.mapper.backends.tsdf import TsdfConfig
 
         for key in ("occupancy", "fusion", "tsdf"):
             if not isinstance(meta[key], dict):
@@ -350,12 +352,6 @@ def check_meta(meta: dict, path, trusted_backend: str | None = None) -> dict:
     if "fleet" in meta:
         check_fleet_meta(meta["fleet"], path)
     return out
-
-
-def max_range_for(resolution_m: float) -> float:
-    """The longest range that means anything at this resolution: twice the map's extent (the
-    key range, +-KEY_LIMIT voxels an axis), past its diagonal."""
-    return 4.0 * KEY_LIMIT * resolution_m
 
 
 def check_fleet_meta(fleet, path) -> None:

@@ -1,7 +1,7 @@
 """`SemanticMap`: the mapper's library API (no zenoh), one object for every back-end.
 
-    m = SemanticMap(backend="octree-max", resolution_m=0.1, max_range_m=10.0, ray_length_m=1.0)
-    m = SemanticMap.from_config(config.mapper)   # the same from the [mapper] section
+    m = SemanticMap(backend="octree-max", resolution_m=0.1, max_range_m=10.0, raycast_range_m=1)
+    m = SemanticMap.from_config(config.mapper)   # the same from the [mapper] section, as it is
     delta = m.integrate(points, labels, confidences, origin)   # what changed, voxel by voxel
     m.occupied_voxels(box=((0, 0, -1), (5, 5, 2)))
     m.query(points); m.stats(); m.save("map.npz"); SemanticMap.load("map.npz")
@@ -71,37 +71,59 @@ class SemanticMap:
         backend: str = _DEFAULT.backend,
         resolution_m: float = _DEFAULT.resolution_m,
         max_range_m: float = _DEFAULT.max_range_m,
-        ray_length_m: float | None = _DEFAULT.raycast_range_m or None,
+        raycast_range_m: float = _DEFAULT.raycast_range_m,
         class_table: ClassTable | str | Path = "garden3drms",
         config: Any = None,
         block_bits: int = 3,
     ):
+        """A map from the `[mapper]` section's own fields (`raycast_range_m`: 0 carves the whole
+        ray); they are checked by that section, so the library and the config share one set of
+        limits (a `ConfigError`, a ValueError, naming the key). `config` is the back-end's own
+        section (`[mapper.<config_key>]`); left out, its defaults."""
         cls = backend_class(backend)  # a ValueError naming the known back-ends
-        if not (np.isfinite(resolution_m) and 0.01 <= resolution_m <= 10.0):
-            raise ValueError(f"resolution_m must be in [0.01, 10], got {resolution_m}")
-        extent = mapfile.max_range_for(resolution_m)  # a longer range overflows the kernels
-        if not (np.isfinite(max_range_m) and 0 < max_range_m <= extent):
-            raise ValueError(f"max_range_m must be in (0, {extent:g}], got {max_range_m}")
-        if ray_length_m is not None and not (
-            np.isfinite(ray_length_m) and 0 < ray_length_m <= extent
-        ):
-            raise ValueError(
-                f"ray_length_m must be in (0, {extent:g}] or None (whole ray), got {ray_length_m}"
-            )
-        if config is None:
-            config = cls.default_config()
-        elif cls.config_class is not None and not isinstance(config, cls.config_class):
-            want, got = cls.config_class.__name__, type(config).__name__
-            raise ValueError(f"back-end {backend} takes a {want}, got {got}")
-        self.backend = backend
+        tables = {}
+        if config is not None and cls.config_class is not None:
+            if not isinstance(config, cls.config_class):
+                want, got = cls.config_class.__name__, type(config).__name__
+                raise ValueError(f"back-end {backend} takes a {want}, got {got}")
+            tables[cls.config_key] = config
+        section = MapperConfig(
+            backend=backend,
+            resolution_m=resolution_m,
+            max_range_m=max_range_m,
+            raycast_range_m=raycast_range_m,
+            **tables,
+        )
+        self._setup(section, class_table, block_bits)
+
+    @classmethod
+    def from_config(
+        cls,
+        config: MapperConfig,
+        class_table: ClassTable | str | Path = "garden3drms",
+        block_bits: int = 3,
+    ) -> SemanticMap:
+        """The map a [mapper] section asks for, given the section as it is (its back-end's
+        sub-section included): nothing renamed, nothing checked twice."""
+        m = cls.__new__(cls)
+        m._setup(config, class_table, block_bits)
+        return m
+
+    def _setup(self, section: MapperConfig, class_table, block_bits: int) -> None:
+        cls = backend_class(section.backend)
+        self.section = section  # the [mapper] section the map was made from
+        self.backend = section.backend
         self.values_kind = cls.values_kind  # what the deltas' values hold (MapDelta.values_kind)
-        self.resolution_m = float(resolution_m)
-        self.max_range_m = float(max_range_m)
-        self.ray_length_m = None if ray_length_m is None else float(ray_length_m)
+        self.resolution_m = section.resolution_m
+        self.max_range_m = section.max_range_m
+        self.raycast_range_m = section.raycast_range_m  # 0: the whole ray
         self.class_table = (
             class_table if isinstance(class_table, ClassTable) else ClassTable.load(class_table)
         )
-        self.config = config
+        # the back-end's own section ([mapper.<config_key>]), None for one without parameters
+        self.config = section.variant(cls.config_key) if cls.config_key else None
+        if self.config is None and cls.config_class is not None:
+            self.config = cls.default_config()
         self.block_bits = block_bits
         self.class_ids = _semantic_ids(self.class_table)
         # ignored classes (sky, ...) never reach the map; unknown ids update geometry only
@@ -109,31 +131,15 @@ class SemanticMap:
         self._ignored[: self.class_table.size] = self.class_table.ignored_lut
         self._clip = cls.clip_to_extent
         self._core = cls(
-            config,
+            self.config,
             resolution_m=self.resolution_m,
             max_range_m=self.max_range_m,
-            ray_length_m=self.ray_length_m,
+            raycast_range_m=self.raycast_range_m,
             class_ids=self.class_ids,
             block_bits=block_bits,
         )
         self.n_integrations = 0
         self.n_points = 0
-
-    @classmethod
-    def from_config(
-        cls, config: MapperConfig, class_table: ClassTable | str | Path = "garden3drms"
-    ) -> SemanticMap:
-        """The map a [mapper] section asks for; the back-end gets its sub-section as it is."""
-        backend = backend_class(config.backend)
-        key = backend.config_key
-        return cls(
-            backend=config.backend,
-            resolution_m=config.resolution_m,
-            max_range_m=config.max_range_m,
-            ray_length_m=config.raycast_range_m if config.raycast_range_m > 0 else None,
-            class_table=class_table,
-            config=getattr(config, key) if key is not None else None,
-        )
 
     # -- integration -----------------------------------------------------------------------
 
@@ -310,7 +316,7 @@ class SemanticMap:
             "backend": self.backend,
             "resolution_m": self.resolution_m,
             "max_range_m": self.max_range_m,
-            "ray_length_m": self.ray_length_m,
+            "ray_length_m": self.raycast_range_m or None,  # the file's spelling: None, whole ray
             "class_table": self.class_table.name,
             "class_ids": self.class_ids.tolist(),
             "config": dataclasses.asdict(self.config) if self.config is not None else None,
@@ -409,7 +415,7 @@ class SemanticMap:
                 backend=meta["backend"],
                 resolution_m=meta["resolution_m"],
                 max_range_m=meta["max_range_m"],
-                ray_length_m=meta["ray_length_m"],
+                raycast_range_m=meta["ray_length_m"] or 0.0,
                 class_table=class_table if class_table is not None else meta["class_table"],
                 config=backend.config_class(**saved) if backend.config_class is not None else None,
                 block_bits=meta["block_bits"],

@@ -63,6 +63,9 @@ def _world_args(p: argparse.ArgumentParser) -> None:
 def sim_config_from_args(args: argparse.Namespace):
     """(`[sim]` section, class table name) the flags describe: the config's, with the flags on
     top. The same config with no flags gives the world `smana up` explores."""
+    if args.world is not None or args.ply is not None:  # before loading: its [sim.<key>] is known
+        world = args.world or f"ply:{args.ply}"
+        args.overrides = [*(args.overrides or []), f"sim.world={json.dumps(world)}"]
     cfg = config_file_from_args(args)
     sim = cfg.sim
     garden, ply = {}, {}

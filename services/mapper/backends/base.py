@@ -32,7 +32,8 @@ class MapBackend(ABC):
     # drop points outside the map's key range before `integrate` (a back-end whose kernel does
     # not skip such rays itself)
     clip_to_extent: ClassVar[bool] = False
-    uses_ray_length: ClassVar[bool] = False  # carves free space over `ray_length_m` before a hit
+    # carves free space over `raycast_range_m` before a hit (0: the whole ray)
+    uses_ray_length: ClassVar[bool] = False
 
     def __init__(
         self,
@@ -40,14 +41,14 @@ class MapBackend(ABC):
         *,
         resolution_m: float,
         max_range_m: float,
-        ray_length_m: float | None,
+        raycast_range_m: float,
         class_ids: np.ndarray,
         block_bits: int = 3,
     ):
         self.config = config
         self.resolution_m = float(resolution_m)
         self.max_range_m = float(max_range_m)
-        self.ray_length_m = ray_length_m
+        self.raycast_range_m = float(raycast_range_m)  # [mapper] raycast_range_m; 0: whole ray
         self.class_ids = np.asarray(class_ids, np.uint16)  # the classes worth fusing, sorted
         self.grid = BlockGrid(block_bits, self.fields())
         self.last_updates = 0  # voxel updates of the last cloud (for benchmarks)

@@ -8,8 +8,8 @@ voxel that is some ray's end point is never freed by another ray of the same clo
 float32 and clamped as OctoMap does, so the same rays give the same values.
 
 Two departures from OctoMap, both from the paper's setting:
-- `ray_length_m`: free space is carved only over the last metres before the end point (1 m in
-  the paper); `None` carves the whole ray as OctoMap does. (Semantic Octomap's own generator
+- `raycast_range_m`: free space is carved only over the last metres before the end point (1 m in
+  the paper); 0 carves the whole ray as OctoMap does. (Semantic Octomap's own generator
   instead carves the first metre from the sensor and marks farther end points occupied without a
   ray; carving next to the surface is what clears moved obstacles, so we carve there.)
 - semantics: every point fuses its label into its end voxel (points labelled 0 or with a label
@@ -31,12 +31,13 @@ equal share of the remaining mass. A point (label l, confidence c) is the likeli
 
 from __future__ import annotations
 
-from typing import ClassVar, NamedTuple
+from dataclasses import dataclass
+from typing import ClassVar, Literal, NamedTuple
 
 import numpy as np
 from numba import njit
 
-from smana.common.config.mapper import OctreeConfig
+from smana.common.config._schema import ConfigError, Section, param
 from smana.services.mapper._grid import (
     DONE,
     GROW_TOUCHED,
@@ -393,6 +394,34 @@ def ray_buffer(max_len_m: float, resolution_m: float) -> np.ndarray:
     return np.empty((3 * int(np.ceil(max_len_m / resolution_m)) + 16, 3), np.int64)
 
 
+# its parameters, beside it: [mapper.octree] (common/config/mapper.py attaches them)
+@dataclass
+class OctreeConfig(Section, section="mapper.octree"):
+    """OctoMap's sensor model (its own defaults) and Semantic Octomap's label fusion constants,
+    for `octree-max` and `octree-bayes`."""
+
+    prob_hit: float = param(0.7, gt=0, lt=1)
+    prob_miss: float = param(0.4, gt=0, lt=1)
+    clamp_min: float = param(0.1192, gt=0, lt=1)
+    clamp_max: float = param(0.971, gt=0, lt=1)
+    # octree-max, same label: "average" is Semantic Octomap's `SemanticsMax::semanticFusion`
+    # (c = (c + c_obs) / 2); "gain" is smana's earlier rule, kept as a variant:
+    # c += max_same_gain * c_obs * (1 - c), agreement always raising c
+    max_fusion: Literal["average", "gain"] = "average"
+    max_same_gain: float = param(0.5, ge=0, le=1)  # used by max_fusion = "gain" only
+    max_disagree_factor: float = param(0.9, gt=0, le=1)  # other label: the winner's c times this
+    # Bayes: keeps c in [eps, 1 - eps] so that no class reaches 0 or 1
+    bayes_min_confidence: float = param(1e-3, gt=0, lt=0.5)
+
+    def validate(self) -> None:
+        if not self.prob_miss < 0.5 < self.prob_hit:
+            raise ConfigError("mapper.octree.prob_miss / prob_hit: need prob_miss < 0.5 < prob_hit")
+        if not self.clamp_min < 0.5 < self.clamp_max:
+            raise ConfigError(
+                "mapper.octree.clamp_min / clamp_max: need clamp_min < 0.5 < clamp_max"
+            )
+
+
 class OccupancyBackend(MapBackend):
     """Occupancy + semantic voxel map; `integrate` returns the Delta of one cloud. Subclasses
     pick the fusion rule (`fusion`) and how many top classes a voxel keeps (`n_top`)."""
@@ -411,12 +440,12 @@ class OccupancyBackend(MapBackend):
         self.semantic_lut[self.class_ids] = True
         self._touched = np.empty(1 << 16, np.int64)
         self._keybuf = ray_buffer(self.max_range_m, self.resolution_m)
-        ray = self.ray_length_m
+        ray = self.raycast_range_m
         self._consts = OccupancyConsts(
             self.resolution_m,
             1.0 / self.resolution_m,
             self.max_range_m,
-            -1.0 if ray is None else float(ray),
+            -1.0 if ray == 0 else float(ray),
             MAX_RULES[config.max_fusion],
             float(config.max_same_gain),
             float(config.max_disagree_factor),

@@ -3,27 +3,33 @@
 Reader modules are imported only when their format is used, so that a missing optional package
 (`rosbags` for bags) only matters to whoever replays a bag.
 
-Adding a reader: one module with a `DatasetReader` subclass, plus one line in `READERS` (in this
-package), or `register("name", "package.module:Class")` from outside smana. A format may also be
+Adding a reader: one module with a `DatasetReader` subclass, plus one line in `READERS` (a
+`smana.common.registry.Registry`, in this package), or `register("name", "package.module:Class")`
+(or the class) from outside smana. A format may also be
 given as the spec itself: `--set replay.format=my_pkg.my_reader:MyReader`.
 """
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import inspect
 from pathlib import Path
 
+from smana.common.registry import Registry
+
 from .base import DatasetError, DatasetInfo, DatasetReader, Scan, SkippedScan
 
-# format name -> (module, class); a module starting with "." is one of this package's
-READERS = {
-    "semantickitti": (".semantickitti", "SemanticKittiReader"),
-    "rellis3d": (".rellis3d", "Rellis3dReader"),
-    "rosbag": (".rosbag", "RosbagReader"),
-    "folder": (".folder", "FolderReader"),
-}
+# format name -> "module:Class", imported when a dataset of that format is opened
+READERS = Registry(
+    "replay.format",
+    {
+        "semantickitti": "smana.services.replay.readers.semantickitti:SemanticKittiReader",
+        "rellis3d": "smana.services.replay.readers.rellis3d:Rellis3dReader",
+        "rosbag": "smana.services.replay.readers.rosbag:RosbagReader",
+        "folder": "smana.services.replay.readers.folder:FolderReader",
+    },
+    base=DatasetReader,
+    hints={"rosbags": "pip install 'smana[replay]'"},
+)
 
 __all__ = [
     "READERS",
@@ -39,38 +45,16 @@ __all__ = [
 ]
 
 
-def _spec(spec: str) -> tuple[str, str]:
-    module, sep, cls = spec.partition(":")
-    if not (sep and module and cls):
-        raise ValueError(f"reader {spec!r}: expected package.module:Class")
-    return module, cls
-
-
-def register(fmt: str, spec: str) -> None:
-    """Add (or replace) the reader of format `fmt`, a `DatasetReader` subclass named as
-    "package.module:Class": imported when a dataset of that format is opened."""
-    READERS[fmt] = _spec(spec)
+def register(fmt: str, reader: str | type[DatasetReader]) -> None:
+    """Add (or replace) the reader of format `fmt`: a `DatasetReader` subclass, or its
+    "package.module:Class" (imported when a dataset of that format is opened)."""
+    READERS.register(fmt, reader)
 
 
 def reader_class(fmt: str) -> type[DatasetReader]:
-    """The reader of a format name, or of a "package.module:Class" spec."""
-    if fmt in READERS:
-        module, name = READERS[fmt]
-    elif ":" in fmt:
-        module, name = _spec(fmt)
-    else:
-        raise ValueError(f"unknown dataset format {fmt!r} (known: {', '.join(READERS)})")
-    try:
-        mod = importlib.import_module(module, __name__)
-    except ModuleNotFoundError as exc:
-        absolute = importlib.util.resolve_name(module, __name__)
-        if exc.name and (absolute == exc.name or absolute.startswith(exc.name + ".")):
-            raise ValueError(f"dataset format {fmt!r}: no module {module!r}") from None
-        raise  # the reader's own optional dependency: its message says what to install
-    cls = getattr(mod, name, None)
-    if not (isinstance(cls, type) and issubclass(cls, DatasetReader)):
-        raise ValueError(f"dataset format {fmt!r}: {module}:{name} is not a DatasetReader")
-    return cls
+    """The reader of a format name, or of a "package.module:Class" spec; a one-line
+    `RegistryError` (a `ValueError`) naming the known formats, or what to install."""
+    return READERS.get(fmt)
 
 
 def detect_format(path: str | Path) -> str:

@@ -7,19 +7,22 @@
 
 A kind of world is a `WorldSource` (base.py) whose `build(config, classes)` returns a `World`
 (world.py: ground, objects, and the queries evaluation needs). Its module is imported only when
-it is used. Adding one to smana is one module here plus one line in `WORLDS`; a plugin needs no
-edit of smana (`module:Class`), or calls `register()` in-process. The parts worlds are made of:
+it is used (`WORLDS` is a `smana.common.registry.Registry`). Adding one to smana is one module
+here plus one line in `WORLDS`; a plugin needs no edit of smana (`module:Class`), or calls
+`register()` in-process. A world with knobs declares them beside its code, as `config_key` and
+`config_class` on its source (garden.py's `GardenConfig`): the config loader reads them from
+`[sim.<config_key>]` (`config_sections`), a plugin's too. The parts worlds are made of:
 `geometry.py` (primitives), `ground.py` (height field and rasters), `objects.py` (labelled
 objects and walls); `preview.py` draws a world from above.
 """
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
 from smana.common.classes import ClassTable
 from smana.common.config import SimConfig
+from smana.common.registry import Registry
 
 from .base import WorldError, WorldSource
 from .geometry import BOX, CYLINDER, ELLIPSOID, SHAPES, SPHERE, Primitive
@@ -27,11 +30,22 @@ from .ground import GroundModel, Raster
 from .objects import WorldObject
 from .world import World
 
+
+def _is_source(cls) -> bool:
+    return isinstance(cls, type) and callable(getattr(cls, "build", None))
+
+
 # world name -> "module:Class" of its WorldSource, imported when first used
-WORLDS: dict[str, str | type[WorldSource]] = {
-    "garden": "smana.services.sim.worlds.garden:Garden",
-    "ply": "smana.services.sim.worlds.cloud:PlyWorld",
-}
+WORLDS = Registry(
+    "sim.world",
+    {
+        "garden": "smana.services.sim.worlds.garden:Garden",
+        "ply": "smana.services.sim.worlds.cloud:PlyWorld",
+    },
+    check=_is_source,
+    kind="world class",
+    error=WorldError,
+)
 
 __all__ = [
     "BOX",
@@ -48,6 +62,7 @@ __all__ = [
     "WorldObject",
     "WorldSource",
     "build_world",
+    "config_sections",
     "register",
     "world_source",
 ]
@@ -58,20 +73,20 @@ def register(name: str, source: str | type[WorldSource]) -> None:
     subclass, or its "module:Class")."""
     if not name.isidentifier():
         raise ValueError(f"a world name must be an identifier, got {name!r}")
-    WORLDS[name] = source
+    WORLDS.register(name, source)
 
 
 def world_source(spec: str) -> WorldSource:
     """The source a `sim.world` value names (module docstring); WorldError in one line if none."""
     name, sep, arg = spec.partition(":")
     if name in WORLDS:
-        return _load(WORLDS[name], spec)(arg if sep else None)
+        return WORLDS.get(name)(arg if sep else None)
     cls_name, _, plugin_arg = arg.partition(":")
     if sep and cls_name.isidentifier() and all(p.isidentifier() for p in name.split(".")):
-        return _load(f"{name}:{cls_name}", spec)(plugin_arg or None)
+        return WORLDS.get(f"{name}:{cls_name}")(plugin_arg or None)
     if spec.lower().endswith(".ply") or Path(spec).is_file():
-        return _load(WORLDS["ply"], spec)(spec)
-    known = ", ".join(f"{n}:ARG" if n == "ply" else n for n in WORLDS)
+        return WORLDS.get("ply")(spec)
+    known = ", ".join(f"{n}:ARG" if n == "ply" else n for n in WORLDS.names())
     raise WorldError(
         f"sim.world: {spec!r} is neither 'garden' nor a PLY file, nor a known world "
         f"({known}) or a module:Class"
@@ -87,21 +102,17 @@ def build_world(config: SimConfig, classes: ClassTable | None = None) -> World:
     return world
 
 
-def _load(entry: str | type[WorldSource], spec: str) -> type[WorldSource]:
-    if not isinstance(entry, str):
-        return entry
-    module, _, cls_name = entry.partition(":")
-    try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name is not None and (module == exc.name or module.startswith(exc.name + ".")):
-            raise WorldError(
-                f"sim.world: {spec!r}: no module {module!r} (is its folder on PYTHONPATH?)"
-            ) from None
-        raise WorldError(
-            f"sim.world: {spec!r}: {module} needs {exc.name!r}, which is not installed"
-        ) from None
-    cls = getattr(mod, cls_name, None)
-    if not (isinstance(cls, type) and callable(getattr(cls, "build", None))):
-        raise WorldError(f"sim.world: {spec!r}: {module} has no world class {cls_name!r}")
-    return cls
+def _plugin(spec: str) -> str | None:
+    """The module:Class a `sim.world` value names out of tree, None for a registered world."""
+    name, sep, arg = spec.partition(":")
+    cls_name = arg.partition(":")[0]
+    if name in WORLDS or not (sep and cls_name.isidentifier()):
+        return None
+    return f"{name}:{cls_name}" if all(p.isidentifier() for p in name.split(".")) else None
+
+
+def config_sections(world: str = "") -> dict[str, type]:
+    """{config_key: section class} of every registered world (and of `world`, when it names a
+    plugin by module:Class): what `[sim.<config_key>]` may hold (common/config/sim.py)."""
+    plugin = _plugin(world)
+    return WORLDS.sections((plugin,) if plugin else ())

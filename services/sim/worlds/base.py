@@ -12,7 +12,9 @@ primitives); `scene.BulletScene` turns it into PyBullet bodies.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
+
+from smana.common.registry import RegistryError
 
 if TYPE_CHECKING:
     from smana.common.classes import ClassTable
@@ -21,12 +23,17 @@ if TYPE_CHECKING:
     from .world import World
 
 
-class WorldError(ValueError):
-    """A world cannot be built from the given parameters or data."""
+class WorldError(RegistryError):
+    """A world cannot be built from the given parameters or data, or `sim.world` names none (a
+    `ConfigError`, so a `ValueError`: one line)."""
 
 
 class WorldSource:
     """Base of every kind of world (module docstring). Subclasses implement `build`."""
+
+    # its parameters, beside its code: a config `Section` read from `[sim.<config_key>]`
+    config_key: ClassVar[str | None] = None
+    config_class: ClassVar[type | None] = None
 
     def __init__(self, arg: str | None = None):
         self.arg = arg

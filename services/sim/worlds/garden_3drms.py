@@ -21,8 +21,7 @@ from scipy import ndimage
 from scipy.sparse.csgraph import minimum_spanning_tree
 from scipy.spatial import cKDTree
 
-from smana.common.config.sim import GardenConfig
-
+from .garden import GardenConfig
 from .geometry import BOX, CYLINDER, ELLIPSOID, SPHERE, Primitive
 from .ground import GroundModel
 from .objects import GRASS, HEDGE, OBSTACLE, ROSE, SINK_M, TERRAIN, TOPIARY, TREE, WorldObject

@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from smana.common.config.sim import GardenConfig
+from smana.services.sim.worlds.garden import GardenConfig
 
 from .garden_3drms import BED_GAPS, _edge_hedges, _fill_beds, _Placer
 from .ground import GroundModel
