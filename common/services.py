@@ -17,7 +17,6 @@ appends it after smana's own. tests/test_service_table.py adds a toy service tha
 from __future__ import annotations
 
 import functools
-import importlib
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -163,15 +162,6 @@ TABLE: tuple[ServiceRow, ...] = (
         requires=(("rosbags", "ros2"),),
     ),
 )
-
-
-def load(spec: str) -> Any:
-    """The object a `"module:attr"` spec names, imported when asked for."""
-    module, _, attr = spec.partition(":")
-    obj = importlib.import_module(module)
-    for part in attr.split(".") if attr else ():
-        obj = getattr(obj, part)
-    return obj
 
 
 @functools.cache

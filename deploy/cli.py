@@ -15,7 +15,6 @@ port in use, nothing to connect to) is one line on stderr, `smana <command>: <me
 from __future__ import annotations
 
 import functools
-import importlib
 import sys
 
 from smana.common import services
@@ -83,16 +82,14 @@ def _usage() -> str:
 def call(name: str, target: str, argv: list[str]) -> int:
     """Run `target` ("module:function") as `smana <name>` with `argv`."""
     from smana.common.cli import run_command
+    from smana.common.registry import RegistryError, load_spec
 
-    module, func = target.split(":")
     try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError as exc:
-        if exc.name and exc.name.startswith("smana"):
-            print(f"smana: {module} is not available in this build ({exc})", file=sys.stderr)
-            return 2
-        raise
-    return run_command(name, getattr(mod, func), argv)
+        func = load_spec(target, f"smana {name}", kind="command")
+    except RegistryError as exc:  # not in this build, or a dependency missing: one line
+        print(exc, file=sys.stderr)
+        return 2
+    return run_command(name, func, argv)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,6 +23,7 @@ import time
 
 from smana.common import services
 from smana.common.cli import config_file_from_args, run_command
+from smana.common.registry import load_spec
 
 # service -> its Service class, from the table of services (common/services.py, `warm_up`):
 # `prepare()` compiles its kernels on a throwaway input (no session, no file of the run). The sim
@@ -70,7 +71,7 @@ def warm(service: str, config, profile: bool = False) -> dict:
     """Compile (or load) `service`'s kernels here: its import seconds, its prepare seconds and,
     with `profile`, the seconds per kernel compiled."""
     t0 = time.perf_counter()
-    cls = services.load(WARMUPS[service])
+    cls = load_spec(WARMUPS[service], f"smana warmup {service}", kind="class")
     t1 = time.perf_counter()
     svc = cls(config)
     if profile:

@@ -164,3 +164,20 @@ def test_the_config_imports_no_service_code_until_a_variants_section_is_wanted()
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.stdout.split() == ["False", "True"], out.stderr
+
+
+def test_commands_and_warm_ups_resolve_through_the_one_helper(capsys):
+    """`smana <name>`'s target and `smana warmup`'s classes are `load_spec` look-ups: a target
+    that is not in this build is the helper's one line and exit 2, not a traceback."""
+    from smana.deploy import cli, warmup
+
+    assert cli.call("ghost", "smana.services.no_such_service.__main__:cli", []) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("smana ghost: 'smana.services.no_such_service.__main__:cli'")
+    assert "\n" not in err
+    assert cli.call("ghost", "smana.deploy.status:no_such_function", []) == 2
+    assert "has no command 'no_such_function'" in capsys.readouterr().err
+    from smana.common.registry import load_spec
+
+    for name, spec in warmup.WARMUPS.items():
+        assert load_spec(spec).name == name

@@ -17,6 +17,7 @@ import pytest
 
 from smana.common import keys, services
 from smana.common.config import SmanaConfig
+from smana.common.registry import load_spec
 from smana.deploy import security, supervisor, warmup
 from tests.conftest import REPO, free_port, stop_group, wait_for
 
@@ -75,7 +76,7 @@ def test_the_lists_that_name_services_are_the_table_s():
     assert supervisor.OPTIONAL_NEEDS == {"ros2": (("rosbags", "ros2"),)}
     assert list(warmup.WARMUPS) == ["mapper", "navgraph", "planner", "explorer"]
     for name, spec in warmup.WARMUPS.items():
-        assert services.load(spec).name == name  # the class the row names is that service's
+        assert load_spec(spec).name == name  # the class the row names is that service's
     assert set(keys.SERVICES) == {
         *("sim", "mapper", "navgraph", "planner", "explorer"),
         *("replay", "recorder", "ros2", "coordinator"),
