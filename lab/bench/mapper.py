@@ -69,6 +69,21 @@ def _load_scans(path: Path):
     ]
 
 
+def save_scans(path: Path, scans: list) -> list[int]:
+    """Write `(points, labels, confidences, origin)` scans in the bench's scans file format (one
+    array each, `offsets` splitting them; `_load_scans` reads it back); the point counts."""
+    sizes = [len(s[0]) for s in scans]
+    np.savez(
+        path,
+        points=np.concatenate([s[0] for s in scans]),
+        labels=np.concatenate([s[1] for s in scans]),
+        confidences=np.concatenate([s[2] for s in scans]),
+        origins=np.stack([s[3] for s in scans]),
+        offsets=np.concatenate([[0], np.cumsum(sizes)]),
+    )
+    return sizes
+
+
 def _make_scans(n_scans: int, n_beams: int, n_cols: int, scene: str, path: Path) -> dict:
     """Write the scans of `scene` to `path`; returns its point count and mean range."""
     from smana.lab.data.scans import GardenWorld
@@ -81,15 +96,7 @@ def _make_scans(n_scans: int, n_beams: int, n_cols: int, scene: str, path: Path)
         keep = r <= MAX_RANGE_M if scene == "short" else np.ones(r.shape[0], bool)
         scans.append((s.points[keep], s.labels[keep], s.confidences[keep], s.origin))
         ranges.append(r[keep])
-    sizes = [p.shape[0] for p, _, _, _ in scans]
-    np.savez(
-        path,
-        points=np.concatenate([s[0] for s in scans]),
-        labels=np.concatenate([s[1] for s in scans]),
-        confidences=np.concatenate([s[2] for s in scans]),
-        origins=np.stack([s[3] for s in scans]),
-        offsets=np.concatenate([[0], np.cumsum(sizes)]),
-    )
+    sizes = save_scans(path, scans)
     r = np.concatenate(ranges)
     return {
         "points_per_scan": float(np.mean(sizes)),

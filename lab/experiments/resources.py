@@ -105,15 +105,9 @@ def write_scans(path: Path, n_scans: int, every: int, relabel=None) -> list[int]
         if relabel is not None:
             lab = relabel[lab]
         scans.append((pts, lab, np.ones(len(pts), np.float32), org))
-    np.savez(
-        path,
-        points=np.concatenate([s[0] for s in scans]),
-        labels=np.concatenate([s[1] for s in scans]),
-        confidences=np.concatenate([s[2] for s in scans]),
-        origins=np.stack([s[3] for s in scans]),
-        offsets=np.concatenate([[0], np.cumsum([len(s[0]) for s in scans])]),
-    )
-    return [len(s[0]) for s in scans]
+    from smana.lab.bench.mapper import save_scans
+
+    return save_scans(path, scans)
 
 
 def run(backends, resolutions, repeats: int, n_scans: int, every: int, in_process: bool):

@@ -34,19 +34,25 @@ MAX_CROWN_M = 1.3  # the largest tree crown radius
 PLAZA_RADIUS_M = (0.8, 1.2)  # plazas other than the central one (its radius: plaza_clearance_m)
 
 
-def layout_3drms(
-    cfg: GardenConfig, heights: np.ndarray, rng: np.random.Generator
-) -> tuple[GroundModel, list[WorldObject]]:
-    """The ground (classes on `heights`) and the objects, walls excepted."""
+def raster(cfg: GardenConfig, heights: np.ndarray):
+    """(cell size, half side, x and y of every cell centre, cells inside the walls) of the
+    ground raster a layout classifies: the walls cover cells up to wall_thickness_m in, the one
+    right at it only by rounding."""
     res = cfg.ground_resolution_m
     n = heights.shape[0]
     half = (n - 1) * res / 2
     xs = -half + np.arange(n) * res
     gx, gy = np.meshgrid(xs, xs, indexing="ij")
     edge_m = np.minimum(half - np.abs(gx), half - np.abs(gy))  # distance to the outer edge
-    # the walls cover cells up to wall_thickness_m in, the one right at it only by rounding
-    inner = edge_m > cfg.wall_thickness_m - res / 2
-    n_cells = n * n  # the stats count the whole raster, walls included
+    return res, half, gx, gy, edge_m > cfg.wall_thickness_m - res / 2
+
+
+def layout_3drms(
+    cfg: GardenConfig, heights: np.ndarray, rng: np.random.Generator
+) -> tuple[GroundModel, list[WorldObject]]:
+    """The ground (classes on `heights`) and the objects, walls excepted."""
+    res, half, gx, gy, inner = raster(cfg, heights)
+    n_cells = gx.size  # the stats count the whole raster, walls included
     # beds keep some uncovered gaps (free, terrain underneath): the paths leave room for them
     gaps = BED_GAPS * n_cells
     terrain_target = cfg.free_share * cfg.terrain_share * n_cells - gaps

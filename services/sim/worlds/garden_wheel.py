@@ -29,7 +29,7 @@ import numpy as np
 
 from smana.services.sim.worlds.garden import GardenConfig
 
-from .garden_3drms import BED_GAPS, _edge_hedges, _fill_beds, _Placer
+from .garden_3drms import BED_GAPS, _edge_hedges, _fill_beds, _Placer, raster
 from .ground import GroundModel
 from .objects import GRASS, TERRAIN, WorldObject
 
@@ -50,14 +50,8 @@ def layout_wheel(
     cfg: GardenConfig, heights: np.ndarray, rng: np.random.Generator
 ) -> tuple[GroundModel, list[WorldObject]]:
     """The ground (classes on `heights`) and the objects, walls excepted."""
-    res = cfg.ground_resolution_m
-    n = heights.shape[0]
-    half = (n - 1) * res / 2
-    xs = -half + np.arange(n) * res
-    gx, gy = np.meshgrid(xs, xs, indexing="ij")
-    edge_m = np.minimum(half - np.abs(gx), half - np.abs(gy))
-    inner = edge_m > cfg.wall_thickness_m - res / 2
-    n_cells = n * n  # the stats count the whole raster, walls included
+    res, half, gx, gy, inner = raster(cfg, heights)
+    n_cells = gx.size  # the stats count the whole raster, walls included
     terrain_target = (cfg.free_share * cfg.terrain_share - GAPS_SHARE) * n_cells
     grass_target = cfg.free_share * (1 - cfg.terrain_share) * n_cells
     terrain, grass = _wheel(cfg, gx, gy, half, terrain_target, grass_target, rng)
