@@ -95,6 +95,7 @@ class Registry:
         hints: dict[str, str] | None = None,
         specs: bool = True,
         error: type[RegistryError] | None = None,
+        params: dict[str, str] | None = None,
     ):
         self.what = what  # the config key or command the names come from: "mapper.backend"
         self.base = base
@@ -105,8 +106,12 @@ class Registry:
         self.error = error or RegistryError  # a subclass, for a family that has its own
         self._entries: dict[str, Any] = {}
         self._loaded: dict[str, Any] = {}
+        # name -> "module:Section" of a registered variant's parameters, when they live in a
+        # lighter module than the variant (`sections()` then imports that module only)
+        self._params: dict[str, str] = {}
         for name, target in (entries or {}).items():
             self.register(name, target)
+        self._params = dict(params or {})
 
     # -- the table ---------------------------------------------------------------------------
 
@@ -125,8 +130,10 @@ class Registry:
             raise self.error(f"{self.what}: {name!r}: {target!r} is not a {self.kind}")
         self._entries[name] = target
         self._loaded.pop(name, None)
+        self._params.pop(name, None)  # a new target declares its own parameters
 
     def unregister(self, name: str) -> None:
+        self._params.pop(name, None)
         self._entries.pop(name, None)
         self._loaded.pop(name, None)
 
@@ -142,6 +149,7 @@ class Registry:
         new.hints = self.hints
         new.specs, new.error = self.specs, self.error
         new._entries, new._loaded = dict(self._entries), dict(self._loaded)
+        new._params = dict(self._params)
         return new
 
     def __contains__(self, name: object) -> bool:
@@ -190,6 +198,10 @@ class Registry:
         module cannot be imported is left out here: it fails in one line when it is used."""
         out: dict[str, type] = {}
         for name in [*self._entries, *also]:
+            if name in self._params:
+                section = load_spec(self._params[name], self.what, self.hints, "section")
+                out.setdefault(section.section.rpartition(".")[2], section)
+                continue
             try:
                 cls = self.get(name)
             except RegistryError:

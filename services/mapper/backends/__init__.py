@@ -14,9 +14,14 @@ lives beside its code and is read from `[mapper.<config_key>]` (`config_sections
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from smana.common.registry import Registry
 
-from .base import MapBackend
+from .params import BUILT_IN
+
+if TYPE_CHECKING:
+    from .base import MapBackend
 
 # name -> "module:Class", or, after register(), the class itself
 BACKENDS = Registry(
@@ -26,7 +31,15 @@ BACKENDS = Registry(
         "octree-bayes": "smana.services.mapper.backends.octree_bayes:OctreeBayes",
         "tsdf": "smana.services.mapper.backends.tsdf:Tsdf",
     },
-    base=MapBackend,
+    # a subclass of MapBackend (base.py imports the block grid's kernels: checked when a target is
+    # first used, so that loading a config, which reads the parameters below, needs no numba)
+    check=lambda target: isinstance(target, type) and issubclass(target, _base()),
+    kind="MapBackend class",
+    # their parameters, in a module without numba: a config loads without the kernels
+    params={
+        name: f"smana.services.mapper.backends.params:{section.__name__}"
+        for name, section in BUILT_IN.items()
+    },
 )
 
 __all__ = [
@@ -37,6 +50,18 @@ __all__ = [
     "config_sections",
     "register",
 ]
+
+
+def _base() -> type:
+    from .base import MapBackend
+
+    return MapBackend
+
+
+def __getattr__(name: str):
+    if name == "MapBackend":  # imported when asked for (module docstring of base.py)
+        return _base()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def register(name: str, cls: type[MapBackend] | str) -> None:

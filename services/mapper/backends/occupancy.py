@@ -31,13 +31,11 @@ equal share of the remaining mass. A point (label l, confidence c) is the likeli
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import ClassVar, Literal, NamedTuple
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 from numba import njit
 
-from smana.common.config._schema import ConfigError, Section, param
 from smana.services.mapper._grid import (
     DONE,
     GROW_TOUCHED,
@@ -55,6 +53,7 @@ from smana.services.mapper._grid import (
     voxel_slot,
 )
 from smana.services.mapper.backends.base import MapBackend
+from smana.services.mapper.backends.params import OctreeConfig
 from smana.services.mapper.delta import Delta
 
 FUSION_MAX = 0
@@ -392,34 +391,6 @@ def _delta_rows(st, res, g, rows):
 def ray_buffer(max_len_m: float, resolution_m: float) -> np.ndarray:
     """Key buffer long enough for any DDA walk of `max_len_m` (3 steps per voxel length)."""
     return np.empty((3 * int(np.ceil(max_len_m / resolution_m)) + 16, 3), np.int64)
-
-
-# its parameters, beside it: [mapper.octree] (common/config/mapper.py attaches them)
-@dataclass
-class OctreeConfig(Section, section="mapper.octree"):
-    """OctoMap's sensor model (its own defaults) and Semantic Octomap's label fusion constants,
-    for `octree-max` and `octree-bayes`."""
-
-    prob_hit: float = param(0.7, gt=0, lt=1)
-    prob_miss: float = param(0.4, gt=0, lt=1)
-    clamp_min: float = param(0.1192, gt=0, lt=1)
-    clamp_max: float = param(0.971, gt=0, lt=1)
-    # octree-max, same label: "average" is Semantic Octomap's `SemanticsMax::semanticFusion`
-    # (c = (c + c_obs) / 2); "gain" is smana's earlier rule, kept as a variant:
-    # c += max_same_gain * c_obs * (1 - c), agreement always raising c
-    max_fusion: Literal["average", "gain"] = "average"
-    max_same_gain: float = param(0.5, ge=0, le=1)  # used by max_fusion = "gain" only
-    max_disagree_factor: float = param(0.9, gt=0, le=1)  # other label: the winner's c times this
-    # Bayes: keeps c in [eps, 1 - eps] so that no class reaches 0 or 1
-    bayes_min_confidence: float = param(1e-3, gt=0, lt=0.5)
-
-    def validate(self) -> None:
-        if not self.prob_miss < 0.5 < self.prob_hit:
-            raise ConfigError("mapper.octree.prob_miss / prob_hit: need prob_miss < 0.5 < prob_hit")
-        if not self.clamp_min < 0.5 < self.clamp_max:
-            raise ConfigError(
-                "mapper.octree.clamp_min / clamp_max: need clamp_min < 0.5 < clamp_max"
-            )
 
 
 class OccupancyBackend(MapBackend):

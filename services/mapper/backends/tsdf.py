@@ -31,13 +31,11 @@ voxels and those of their face neighbours whose status flipped, each with its ne
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-from smana.common.config._schema import Section, param
 from smana.services.mapper._grid import (
     DONE,
     GROW_TOUCHED,
@@ -56,6 +54,7 @@ from smana.services.mapper._grid import (
     voxel_slot,
 )
 from smana.services.mapper.backends.base import MapBackend
+from smana.services.mapper.backends.params import TsdfConfig
 from smana.services.mapper.delta import Delta
 
 _RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this (nats)
@@ -361,27 +360,6 @@ def _tsdf_rows(st, g, res, exp_steps, class_ids, rows):
                 z += exp_steps[d]
         probs[i] = 1.0 / z
         labels[i] = 0 if uniform else class_ids[top]
-
-
-# its parameters, beside it: [mapper.tsdf] (common/config/mapper.py attaches them)
-@dataclass
-class TsdfConfig(Section, section="mapper.tsdf"):
-    """voxblox's fast TSDF integrator and Kimera's semantic label probabilities, for `tsdf`."""
-
-    truncation_voxels: float = param(2.0, gt=0)
-    max_weight: float = param(10000.0, gt=0)
-    min_range_m: float = param(0.1, ge=0)  # closer points are skipped
-    start_voxel_subsampling: float = param(2.0, ge=0)  # voxblox default; 0 disables it
-    use_weight_dropoff: bool = True
-    label_probability: float = param(0.9, gt=0, lt=1)  # Kimera: p of the measured label
-    # Surface extraction: voxels (and their sign-change neighbours) need at least this weight
-    # (about the number of rays that reached them, less the drop-off behind the surface).
-    # voxblox's mesh default is 1e-4, every voxel a ray reached; 3 is the ablation's choice
-    # (docs/experiments.md): under 10 cm / 1.1 deg pose noise a crossing seen once or twice is
-    # mostly a misplaced one, and requiring 3 cut the error the noise adds from 56 to 22 mm
-    # (octree-max: 51 mm) at no cost without noise (18.3 vs 17.8 mm). A surface must then be
-    # seen by 3 rays before it reaches the map and the graph.
-    min_weight: float = param(3.0, gt=0)
 
 
 class Tsdf(MapBackend):

@@ -19,16 +19,34 @@ objects and walls); `preview.py` draws a world from above.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from smana.common.classes import ClassTable
 from smana.common.config import SimConfig
 from smana.common.registry import Registry
 
 from .base import WorldError, WorldSource
-from .geometry import BOX, CYLINDER, ELLIPSOID, SHAPES, SPHERE, Primitive
-from .ground import GroundModel, Raster
-from .objects import WorldObject
-from .world import World
+from .params import BUILT_IN
+
+if TYPE_CHECKING:
+    from .world import World
+
+# what the package re-exports, imported when first asked for: loading a config reads the worlds'
+# parameters (params.py) and must not cost scipy and the world's geometry
+_LAZY = {
+    **dict.fromkeys(("BOX", "CYLINDER", "ELLIPSOID", "SHAPES", "SPHERE", "Primitive"), "geometry"),
+    **dict.fromkeys(("GroundModel", "Raster"), "ground"),
+    "WorldObject": "objects",
+    "World": "world",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _is_source(cls) -> bool:
@@ -45,6 +63,11 @@ WORLDS = Registry(
     check=_is_source,
     kind="world class",
     error=WorldError,
+    # their parameters, in a module without scipy: a config loads without the worlds' code
+    params={
+        name: f"smana.services.sim.worlds.params:{section.__name__}"
+        for name, section in BUILT_IN.items()
+    },
 )
 
 __all__ = [
@@ -97,6 +120,8 @@ def build_world(config: SimConfig, classes: ClassTable | None = None) -> World:
     """The world a `[sim]` section describes (`config.world`); the same config, the same world."""
     classes = classes or ClassTable.load("garden3drms")
     world = world_source(config.world).build(config, classes)
+    from .world import World
+
     if not isinstance(world, World):
         raise WorldError(f"sim.world: {config.world!r} built a {type(world).__name__}, not a World")
     return world

@@ -10,7 +10,6 @@ added around it. Knobs: `[sim.ply]` (PlyConfig).
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -18,27 +17,13 @@ from scipy import ndimage
 
 from smana.common.classes import ClassTable
 from smana.common.config import ConfigError, SimConfig
-from smana.common.config._schema import Section, param
 
 from ..ply import read_labelled_ply
 from .base import WorldError, WorldSource
 from .ground import GroundModel
 from .objects import WorldObject, walls
+from .params import PlyConfig
 from .world import World
-
-
-# its knobs, beside it: [sim.ply] (common/config/sim.py attaches them)
-@dataclass
-class PlyConfig(Section, section="sim.ply"):
-    """A world built from a labelled point cloud (`sim.world = "ply:PATH"`,
-    services/sim/worlds/cloud.py): ground from the traversable classes, voxels for the rest."""
-
-    voxel_m: float = param(0.05, gt=0)  # object voxels
-    ground_resolution_m: float = param(0.1, gt=0)  # height field / ground class raster cell
-    label_field: str = ""  # the PLY vertex property holding labels; "" finds a usual name
-    walls: bool = True  # add walls around the cloud's extent
-    wall_height_m: float = 1.0
-    wall_thickness_m: float = 0.2
 
 
 class PlyWorld(WorldSource):
