@@ -483,7 +483,7 @@ def add_parser(sub) -> None:
     e = sub.add_parser(
         "navnoise",
         help="beyond the paper: NBV at grass x4 under label and pose noise, octree-max vs tsdf "
-        "(one seed measured once: 12 min; 5 seeds estimated from it: about 60 min)",
+        "(5 seeds measured once, one run at a time: 51 min)",
         description="Closed-loop exploration (one `smana up` per arm and seed) with octree-max "
         "and tsdf, noise-free and with label noise p = 0.7 plus pose noise (0.10 m, 0.02 rad): "
         "the true terrain share of the driven path, contacts, coverage; verdicts paired per "
@@ -491,8 +491,8 @@ def add_parser(sub) -> None:
         epilog="Duration measured once on a 2-core machine shared with other work (load 12 to "
         "46): one seed of the four arms, one run at a time (--seeds 1 --jobs 1), 11 min 52 s "
         "(three runs 3.3 to 3.6 min each; octree-max under noise 1.3 min: its robot never "
-        "moved). Estimated from it, not measured: the default 5 seeds x 4 arms = 20 runs take "
-        "about 60 min one at a time, less 2 at once (the default --jobs). --quick: 4 arms x 2 "
+        "moved); the 5 seeds x 4 arms = 20 runs, one at a time (--jobs 1), 51 min (2 at once, "
+        "the default --jobs, not measured). --quick: 4 arms x 2 "
         "seeds of 20 s in a 6 m garden; one seed of it (--seeds 1) measured once: 2 to 3.7 "
         "min. Exits 1 if any run failed (a run that ended only because the robot did not move "
         "or found no path is a result, not a failure).",
