@@ -619,9 +619,14 @@ def test_as_tool_no_selector_makes_the_mapper_write_a_file(router, tmp_path):
                 assert not maps.exists() or not saved_maps(maps)
                 st = request(tool, keys.status(robot, "mapper"), timeout_s=60.0)
                 assert "selector" not in st.rejected  # nothing reached it
-        assert saved_maps(maps) == ["map.npz"]  # the exact key's save alone
-        st = request(tool, keys.status(robot, "mapper"), timeout_s=60.0)
-        assert st.rejected.get("selector") == len(SHAPES) - 1, st.rejected
+        # the exact key's save alone writes a file; zenoh may hand the mapper the relay's queries
+        # on more than one thread, so the stats reply above does not prove the save is done:
+        # wait for its file (and for every other shape's rejection), then check nothing else
+        wait_for(lambda: saved_maps(maps) == ["map.npz"], 60.0, 0.2)
+        assert saved_maps(maps) == ["map.npz"]
+        rejected = lambda: request(tool, keys.status(robot, "mapper"), timeout_s=60.0).rejected  # noqa: E731
+        wait_for(lambda: rejected().get("selector") == len(SHAPES) - 1, 60.0, 0.5)
+        assert rejected().get("selector") == len(SHAPES) - 1, rejected()
     finally:
         tool.close()
         relay.close()
