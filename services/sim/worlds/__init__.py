@@ -10,7 +10,8 @@ A kind of world is a `WorldSource` (base.py) whose `build(config, classes)` retu
 it is used (`WORLDS` is a `smana.common.registry.Registry`). Adding one to smana is one module
 here plus one line in `WORLDS`; a plugin needs no edit of smana (`module:Class`), or calls
 `register()` in-process. A world with knobs declares them beside its code, as `config_key` and
-`config_class` on its source (garden.py's `GardenConfig`): the config loader reads them from
+`config_class` on its source (garden.py's `GardenConfig`, kept in params.py so that a config
+loads without scipy): the config loader reads them from
 `[sim.<config_key>]` (`config_sections`), a plugin's too. The parts worlds are made of:
 `geometry.py` (primitives), `ground.py` (height field and rasters), `objects.py` (labelled
 objects and walls); `preview.py` draws a world from above.
