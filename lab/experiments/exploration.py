@@ -152,6 +152,18 @@ def run_world_sets(extra=()) -> tuple[str, ...]:
     return (*(e for e in WORLD_SETS if e.split("=", 1)[0].strip() not in keys), *garden)
 
 
+def layout_of(extra=()) -> str:
+    """The garden layout the last `--set sim.garden.layout=...` among `extra` chose ("" when
+    none did): it names a run's data file (`data_variant`) and the routes it is judged against
+    (report.py)."""
+    layouts = [
+        value.strip().strip("\"'")
+        for key, _, value in (e.partition("=") for e in extra)
+        if key.strip() == "sim.garden.layout"
+    ]
+    return layouts[-1] if layouts else ""
+
+
 def pick_spawn(seed: int, size_m: float, world_sets=WORLD_SETS) -> list[float]:
     """[x, y, yaw]: a free cell with SPAWN_CLEARANCE_M, reachable from the world's own start
     (its free spot nearest the centre), drawn from the seed's generator."""
@@ -543,12 +555,7 @@ def data_variant(s: ExplorationExperimentConfig) -> str | None:
     run is `quick`."""
     if s.is_quick:
         return "quick"
-    layouts = [
-        e.split("=", 1)[1].strip().strip("\"'")
-        for e in s.extra
-        if e.startswith("sim.garden.layout=")
-    ]
-    layout = "".join(c for c in (layouts[-1] if layouts else "") if c.isalnum()).lower()
+    layout = "".join(c for c in layout_of(s.extra) if c.isalnum()).lower()
     if s.size_m == ExplorationExperimentConfig.size_m and not layout:
         return None
     return f"garden{s.size_m:g}".replace(".", "p") + layout

@@ -323,16 +323,12 @@ def target_below(ci: stats.Interval, target: float) -> str:
     return _met(decide_below(ci, target))
 
 
-def decide_not_worse(ci: stats.Interval, lower_is_better: bool, margin: float) -> stats.Decision:
+def not_worse(ci: stats.Interval, lower_is_better: bool, margin: float) -> str:
     """A paired difference (fleet minus one robot) that must not be worse by more than `margin`
     (declared before the runs, `NOT_WORSE_MARGINS`): met when its interval lies on the good side
     of the margin, not met when wholly on the bad side (`stats.decide_not_worse`). An interval
     that merely holds 0 is not enough: it must be narrow enough to rule the margin out."""
-    return stats.decide_not_worse(ci, margin, higher_is_better=not lower_is_better)
-
-
-def not_worse(ci: stats.Interval, lower_is_better: bool, margin: float) -> str:
-    return _met(decide_not_worse(ci, lower_is_better, margin))
+    return _met(stats.decide_not_worse(ci, margin, higher_is_better=not lower_is_better))
 
 
 def time_ratios(rows: list[dict], world: str, n: int) -> tuple[dict[int, float], list[int]]:
@@ -447,7 +443,7 @@ def verdicts(rows: list[dict], large_world: str = LARGE_GARDEN.name) -> list[dic
             ):
                 ci = paired_difference(rows, world, n, key)
                 margin = NOT_WORSE_MARGINS[key]
-                d = decide_not_worse(ci, lower, margin)
+                d = stats.decide_not_worse(ci, margin, higher_is_better=not lower)
                 out.append(
                     {
                         "claim": f"{world}: merged map's {what} with {n} robots minus one "

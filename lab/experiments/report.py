@@ -117,12 +117,10 @@ def _routes_intervals(data: dict) -> dict[float, stats.Interval]:
 def _layout_routes(all_data: dict[str, dict], exploration: dict) -> dict | None:
     """The routes' intervals of the garden layout an exploration ran in (its `--set
     sim.garden.layout`, in its meta's extra items): `routes_<layout>`, or `routes` by default."""
-    name = "routes"
-    for item in exploration.get("meta", {}).get("extra", []):
-        key, _, value = item.partition("=")
-        layout = value.strip().strip("\"'")
-        if key.strip() == "sim.garden.layout" and layout != "3drms":
-            name = f"routes_{layout}"
+    from .exploration import layout_of
+
+    layout = layout_of(exploration.get("meta", {}).get("extra", []))
+    name = f"routes_{layout}" if layout and layout != "3drms" else "routes"
     return _routes_intervals(all_data[name]) if name in all_data else None
 
 
@@ -271,11 +269,11 @@ def _fleet_claims(key: str, data: dict) -> list[dict]:
     return [{**v, "experiment": _where(key, data)} for v in verdicts(rows)]
 
 
-def _navnoise_claims(data: dict) -> list[dict]:
+def _navnoise_claims(key: str, data: dict) -> list[dict]:
     from .navnoise import verdicts
 
     rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
-    return [{**v, "experiment": "navnoise"} for v in verdicts(rows)]
+    return [{**v, "experiment": _where(key, data)} for v in verdicts(rows)]
 
 
 def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
@@ -297,7 +295,7 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
                 {**c, "experiment": _where(key, data)} for c in resources_claims(data["rows"])
             ]
         elif data["experiment"] == "navnoise":
-            table += [{**c, "experiment": _where(key, data)} for c in _navnoise_claims(data)]
+            table += _navnoise_claims(key, data)
     tested = [c for c in table if c.get("p") is not None]
     # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
     decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in tested]
