@@ -219,3 +219,35 @@ def test_argv_and_arguments(tmp_path):
     assert "80 minutes" in sub.choices["fleet"].epilog and "--quick 2 minutes" in (
         sub.choices["fleet"].epilog
     )
+
+
+def test_a_rerun_into_the_same_out_keeps_finished_runs_and_runs_the_rest(tmp_path, monkeypatch):
+    s = fx.FleetExperimentConfig.quick()  # garden12, 1 and 2 robots, seed 3
+    s.seeds = (3, 4)
+    ran = []
+
+    def fake_run(out, seed, world, n, s_, spawn=None):
+        ran.append((seed, n))
+        return 0 if (seed, n) != (4, 2) else 1, {"fleet": {"coverage": 0.9}}, 1.0, 2.0
+
+    monkeypatch.setattr(fx, "fleet_run", fake_run)
+    monkeypatch.setattr(fx, "write_fleet_outputs", lambda rows, s_, out: [])
+    for seed, n in [(3, 1), (3, 2), (4, 1), (4, 2)]:
+        (tmp_path / fx.run_name(seed, "garden12", n)).mkdir(parents=True)
+    first = fx.run_fleet(s, tmp_path, log=lambda *a: None)
+    assert sorted(ran) == [(3, 1), (3, 2), (4, 1), (4, 2)] and len(first) == 4
+    # a corrupt row file and another run's row are not kept: that run runs again
+    (tmp_path / fx.run_name(3, "garden12", 2) / fx.ROW_FILE).write_text("{not json")
+    (tmp_path / fx.run_name(4, "garden12", 1) / fx.ROW_FILE).write_text(
+        (tmp_path / fx.run_name(3, "garden12", 1) / fx.ROW_FILE).read_text()
+    )
+    ran.clear()
+    second = fx.run_fleet(s, tmp_path, log=lambda *a: None)
+    # kept: (3, 1); run again: the corrupt, the foreign and the failed one
+    assert sorted(ran) == [(3, 2), (4, 1), (4, 2)]
+    assert [(r["seed"], r["n_robots"], r["ok"]) for r in second] == [
+        (3, 1, True),
+        (4, 1, True),
+        (3, 2, True),
+        (4, 2, False),
+    ]

@@ -212,6 +212,33 @@ def make_row(seed: int, world: World, n: int, code: int, m: dict, cpu_s: float, 
     }
 
 
+ROW_FILE = "row.json"
+
+
+def _keep_row(out: Path, row: dict) -> None:
+    """A finished run's row beside its outputs, so a rerun into the same --out keeps it."""
+    path = out / run_name(row["seed"], row["world"], row["n_robots"]) / ROW_FILE
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(row))
+    tmp.replace(path)
+
+
+def _kept_row(out: Path, seed: int, world: World, n: int) -> dict | None:
+    """The row a finished run of (seed, world, n) left in `out`, or None (not run, failed, or a
+    file that does not read as that run's row: it runs again)."""
+    path = out / run_name(seed, world.name, n) / ROW_FILE
+    try:
+        row = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    same = isinstance(row, dict) and (row.get("seed"), row.get("world"), row.get("n_robots")) == (
+        seed,
+        world.name,
+        n,
+    )
+    return row if same and row.get("ok") else None
+
+
 def _history(m: dict) -> list:
     """A single robot's explorer history, read back from its run directory."""
     if not m.get("run_dir"):
@@ -223,10 +250,17 @@ def run_fleet(s: FleetExperimentConfig, out: Path, log=progress.say) -> list[dic
     """Every world x N x seed, `s.jobs` at once; writes the outputs and returns the rows."""
     spawns = {(w.name, seed): ex.pick_spawn(seed, w.size_m) for w in s.worlds for seed in s.seeds}
     todo = [(seed, w, n) for w in s.worlds for seed in s.seeds for n in s.robots]
+    rows = []
+    for seed, w, n in list(todo):  # an interrupted experiment, run again into the same --out
+        kept = _kept_row(out, seed, w, n)
+        if kept is not None:
+            rows.append(kept)
+            todo.remove((seed, w, n))
+    if rows:
+        log(f"{len(rows)} finished run(s) kept from {out}; {len(todo)} to run")
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, ex._terminate)
-    rows = []
     bar = progress.bar(len(todo), "fleet", unit="run")
     pool = ThreadPoolExecutor(max_workers=s.jobs)
     try:
@@ -241,6 +275,8 @@ def run_fleet(s: FleetExperimentConfig, out: Path, log=progress.say) -> list[dic
             except Exception as exc:  # a run that could not even start is a failed run
                 row = make_row(seed, w, n, -1, {}, 0.0, 0.0)
                 log(f"{run_name(seed, w.name, n)}: {exc}")
+            if row["ok"]:
+                _keep_row(out, row)
             rows.append(row)
             bar.update()
             log(
@@ -628,7 +664,8 @@ def add_parser(sub) -> None:
         "in all), the 12 m garden's 1 to 3 min each (18 min): about 80 minutes (--seeds 5 about "
         "2 h 10 min). --quick 2 minutes (the 12 m garden, 1 and 2 robots, 1 seed of 40 s). A "
         "progress bar with an ETA shows on a terminal (SMANA_PROGRESS=1 forces it, 0 hides "
-        "it). Exits 1 if any run failed.",
+        "it). Run it again with the same --out to finish an interrupted experiment: the runs "
+        "that finished are kept, the rest run. Exits 1 if any run failed.",
     )
     e.add_argument(
         "--quick", action="store_true", help="1 seed, 1 and 2 robots, 12 m (measured once: 2 min)"
