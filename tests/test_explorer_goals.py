@@ -102,6 +102,14 @@ def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto
         assert r["accepted"] is False and "tolerance_m" in r["reason"]
         raw = s.get(keys.explorer_goal(robot), payload=b"\xc1 not msgpack", timeout=5)
         assert msgpack.unpackb(next(iter(raw)).ok.payload.to_bytes())["accepted"] is False
+        # a wildcard selector reaches the goal queryable too: it drives nothing
+        wild = s.get(
+            f"smana/{robot}/explorer/**", payload=msgpack.packb({"x": 5.0, "y": 4.0}), timeout=5
+        )
+        answers = [msgpack.unpackb(r.ok.payload.to_bytes()) for r in wild if r.ok is not None]
+        mine = [a for a in answers if "reason" in a]  # the goal's and the cancel's replies
+        assert len(mine) == 2 and not any(a.get("accepted") or a.get("canceled") for a in mine)
+        assert wait_for(lambda: status(s, robot).rejected.get("selector") == 2, 5)
         st = status(s, robot)
         assert st.rejected.get("malformed") == 2 and st.rejected.get("value") == 2, st.rejected
         assert st.rejected.get("out_of_bounds") == 1

@@ -285,6 +285,7 @@ class ExplorerService(Service):
         gid = body.get("id") if isinstance(body, dict) else None
         gid = gid if isinstance(gid, str) else None
         try:
+            self._exact(req, keys.explorer_goal(self.robot))
             if isinstance(body, MessageError):
                 raise GoalRefused("malformed", str(body))
             if self.core.done:
@@ -320,6 +321,7 @@ class ExplorerService(Service):
         """A cancel of the running goal: the robot stops at once."""
         gid = None
         try:
+            self._exact(req, keys.explorer_goal_cancel(self.robot))
             try:
                 gid = parse_cancel(req.body())
             except MessageError as exc:
@@ -332,6 +334,13 @@ class ExplorerService(Service):
         self.log.info("goal %s canceled", nav.id)
         self._send_feedback()
         return {"canceled": True, "id": nav.id, "reason": ""}
+
+    @staticmethod
+    def _exact(req: Request, key: str) -> None:
+        # a wildcard selector (`smana/r1/**`, a tool listing everything) reaches this queryable
+        # too: only a query on the exact key drives the robot, whatever the router lets through
+        if req.key != key:
+            raise GoalRefused("selector", f"{req.key} is not {key}")
 
     def _send_feedback(self, now: float | None = None) -> None:
         """Every change of a goal's state, then (while one runs) its progress once a period."""
