@@ -200,3 +200,26 @@ def test_exploration_pauses_during_a_goal_and_resumes_after_it(zenoh_stack):
         bot.close()
         planner.undeclare()
         token.undeclare()
+
+
+def test_a_request_keeps_calling_while_waiting_until_the_reply(zenoh_stack):
+    """What keeps a goal's feedback at its rate while the planner thinks (common/query.py)."""
+    s = zenoh_stack.session
+
+    def slow(query):
+        def answer():
+            time.sleep(0.4)  # a planner thinking
+            query.reply(query.key_expr, msgpack.packb({"ok": True}))
+            query.drop()
+
+        threading.Thread(target=answer, daemon=True).start()
+
+    q = s.declare_queryable("smana/test/slow/path", slow)
+    try:
+        calls = []
+        t0 = time.monotonic()
+        reply = request(s, "smana/test/slow/path", {}, 5.0, while_waiting=lambda: calls.append(1))
+        assert reply == {"ok": True} and time.monotonic() - t0 >= 0.4
+        assert len(calls) >= 5  # every few tens of ms
+    finally:
+        q.undeclare()

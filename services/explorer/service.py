@@ -495,8 +495,14 @@ class ExplorerService(Service):
             allow_unknown=allow_unknown,
         )
         try:
+            # a goal's feedback goes on at its rate while the planner thinks
+            wait = self._send_feedback if self.core.nav_active else None
             reply = request(
-                self.session, keys.path_query(self.robot), req, self.cfg.planner_timeout_s
+                self.session,
+                keys.path_query(self.robot),
+                req,
+                self.cfg.planner_timeout_s,
+                while_waiting=wait,
             )
         except QueryError as exc:
             self._path_error(exc.kind)
