@@ -152,6 +152,12 @@ def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto
         assert "accepted" in out and "m to go" in out and "succeeded" in out, out
         assert math.hypot(bot.x - 5.0, bot.y - 2.0) <= 0.3 + 0.05
 
+        # a goal the explorer refuses: one line, exit 1
+        p = goto(stack, "50", "2")
+        procs.append(p)
+        out, _ = p.communicate(timeout=30)
+        assert p.returncode == 1 and out.startswith("goal refused") and "outside" in out, out
+
         # Ctrl-C cancels its goal and exits 1
         p = goto(stack, "1", "6")
         procs.append(p)
@@ -221,5 +227,26 @@ def test_a_request_keeps_calling_while_waiting_until_the_reply(zenoh_stack):
         reply = request(s, "smana/test/slow/path", {}, 5.0, while_waiting=lambda: calls.append(1))
         assert reply == {"ok": True} and time.monotonic() - t0 >= 0.4
         assert len(calls) >= 5  # every few tens of ms
+    finally:
+        q.undeclare()
+
+
+def test_smana_goto_without_an_explorer_or_without_feedback(zenoh_stack):
+    """No explorer answers: one line, exit 2. An explorer that accepts and then says nothing: exit
+    1 after --feedback-timeout."""
+    stack, s = zenoh_stack, zenoh_stack.session
+    p = goto(stack, "1", "2")
+    out, _ = p.communicate(timeout=30)
+    assert p.returncode == 2 and len(out.strip().splitlines()) == 1, out
+    assert "no service answered" in out and "Traceback" not in out
+
+    def mute(query):
+        query.reply(query.key_expr, msgpack.packb({"accepted": True, "id": "m", "reason": ""}))
+
+    q = s.declare_queryable(keys.explorer_goal(stack.robot), mute)
+    try:
+        p = goto(stack, "1", "2", "--feedback-timeout", "1")
+        out, _ = p.communicate(timeout=30)
+        assert p.returncode == 1 and "no feedback for 1 s" in out, out
     finally:
         q.undeclare()
