@@ -214,7 +214,7 @@ def test_a_request_keeps_calling_while_waiting_until_the_reply(zenoh_stack):
 
     def slow(query):
         def answer():
-            time.sleep(0.4)  # a planner thinking
+            time.sleep(0.4)  # simulated work: a planner thinking
             query.reply(query.key_expr, msgpack.packb({"ok": True}))
             query.drop()
 
