@@ -197,6 +197,8 @@ class Explorer(Choosing, Driving, Navigating):
                 self.distance_m += step
         self.pose = (x, y, yaw)
         self.t_now = t
+        if self.nav is not None and self.nav.t_accepted is None:
+            self.nav.t_accepted = t  # a goal sent before the first pose: its time starts now
         if self._resumed_goal and self.goal is not None:
             self._resumed_goal = False
             self.follower.skip_to_nearest(x, y)

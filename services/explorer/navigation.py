@@ -57,7 +57,7 @@ class GoalSpec:
 @dataclass
 class NavGoal:
     spec: GoalSpec
-    t_accepted: float
+    t_accepted: float | None  # robot time; None: accepted before the first pose (set by it)
     state: str = "active"
     reason: str = ""
     recoveries: int = 0
@@ -153,7 +153,7 @@ class Navigating:
             self._end_nav("preempted", f"pre-empted by goal {spec.id}")
         self._set_goal(None)  # the view (or the old goal's path) is dropped
         self._spin = None
-        self.nav = NavGoal(spec, self.t_now)
+        self.nav = NavGoal(spec, self.t_now if self.pose is not None else None)
         self._t_last_plan = -math.inf  # plan at once
         self.nav_changes.append(self.nav_feedback())
         return self.nav
@@ -184,13 +184,14 @@ class Navigating:
         else:
             remaining = math.nan
         end = n.t_ended if n.t_ended is not None else self.t_now
+        since = end if n.t_accepted is None else n.t_accepted
         return {
             "id": n.id,
             "state": n.state,
             "goal": [s.x, s.y, s.yaw],
             "pose": pose,
             "distance_remaining_m": float(remaining),
-            "navigation_time_s": max(0.0, float(end - n.t_accepted)),
+            "navigation_time_s": max(0.0, float(end - since)),
             "recoveries": n.recoveries,
             "reason": n.reason,
         }
