@@ -62,9 +62,10 @@ def goal(s, robot, **body) -> dict:
     return request(s, keys.explorer_goal(robot), body, timeout_s=5)
 
 
-def start_explorer(stack, *args):
-    stack.service("explorer", *BOUNDS, "--set", "explorer.control_rate_hz=20", *args)
+def start_explorer(stack, *args) -> subprocess.Popen:
+    proc = stack.service("explorer", *BOUNDS, "--set", "explorer.control_rate_hz=20", *args)
     stack.wait_alive("explorer", timeout_s=120)
+    return proc
 
 
 def goto(stack, *args) -> subprocess.Popen:
@@ -185,7 +186,7 @@ def test_exploration_pauses_during_a_goal_and_resumes_after_it(zenoh_stack):
     planner, token = stub_planner(s, robot, [])
     bot = StubRobot(s, robot)
     try:
-        start_explorer(stack)
+        proc = start_explorer(stack)
         s.put(keys.graph_patch(robot), encode(patch(4.0)))  # the frontier: x = 4 m
         fb = Feedback(stack)
         state = lambda: request(s, keys.explorer_state(robot))  # noqa: E731
@@ -202,6 +203,11 @@ def test_exploration_pauses_during_a_goal_and_resumes_after_it(zenoh_stack):
         # then it explores again
         assert wait_for(lambda: state()["n_plans"] > after["n_plans"], 10)
         assert state()["exploring"] and state()["nav_goal"]["state"] == "succeeded"
+        # an explorer stopped while a goal runs says the goal ends there
+        assert goal(s, robot, x=3.0, y=7.0, id="last")["accepted"]
+        assert stack.stop(proc) == 0
+        assert wait_for(lambda: fb.reached("last", "aborted"), 5), fb.states("last")
+        assert "stopped" in fb.of("last")[-1][1]["reason"]
     finally:
         bot.close()
         planner.undeclare()

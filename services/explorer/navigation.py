@@ -169,6 +169,11 @@ class Navigating:
         self._end_nav("canceled", "canceled")
         return self.nav
 
+    def abort_goal(self, reason: str) -> None:
+        """End the running goal "aborted" (the explorer is stopping), if one runs."""
+        if self.nav_active:
+            self._end_nav("aborted", reason)
+
     def nav_feedback(self) -> dict:
         """The feedback of the current (or last) goal, as `explorer/goal/feedback` carries it."""
         n = self.nav

@@ -558,6 +558,9 @@ class ExplorerService(Service):
             return  # stopped before it was ready: the run's checkpoint stays as it was
         try:
             self._send(0.0, 0.0)
+            # a goal's sender hears that it ends here (a restarted explorer does not resume it)
+            self.core.abort_goal("the explorer stopped")
+            self._send_feedback()
         except Exception:  # the session may already be closing
             pass
         self.save()
