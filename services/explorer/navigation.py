@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from smana.services.explorer import frontier as fr
+from smana.services.explorer.driving import BACK_OFF_S
 from smana.services.explorer.follower import wrap_angle
 
 STATES = ("active", "succeeded", "aborted", "canceled", "preempted")
@@ -238,7 +239,7 @@ class Navigating:
         if self._stuck():
             n.recoveries += 1
             self.n_stuck += 1
-            self._back_off_until = t + self._back_off_s
+            self._back_off_until = t + BACK_OFF_S
             return "stuck"
         if t - self._t_last_plan >= self.config.replan_period_s:
             return "periodic"  # the map grew: a better (or the only) path may be there now

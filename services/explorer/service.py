@@ -11,6 +11,10 @@ around the robot and the latest pose to the core, asks the planner (`planner/pat
 for the paths the core wants costed, and publishes a VelocityCommand on `robot/cmd_vel` and its
 state on `explorer/state` (a msgpack map; also answered as a query on the same key).
 
+It also drives to the poses it is sent: queries `explorer/goal` and `explorer/goal/cancel`, the
+feedback on `explorer/goal/feedback` (services/explorer/navigation.py has the contract); a query
+by a wildcard selector drives nothing (refused `selector`).
+
 When exploration is done (no view worth it, or the time budget spent), it stops the robot, saves
 its final state into `<run_dir>/explorer/` (state.json, trajectory.csv, graph.npz) and exits with
 status 0, which tells `smana up` that the run is over.
@@ -390,6 +394,7 @@ class ExplorerService(Service):
             return
         if now - self._last_pose_wall > self.cfg.pose_timeout_s:
             self._send(0.0, 0.0)  # no pose, no driving
+            self._send_feedback(now)  # a goal's sender still hears from it (its pose is stale)
             return
         if self._t_wall0 is None and self.core.grid is not None:
             self._t_wall0 = now
