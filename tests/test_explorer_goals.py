@@ -146,11 +146,15 @@ def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto
         assert request(s, keys.explorer_state(robot))["nav_goal"]["state"] == "canceled"
 
         # `smana goto`: feedback lines, exit 0 once there
+        t0 = time.monotonic()
         p = goto(stack, "5", "2", "--tolerance", "0.3")
         procs.append(p)
         out, _ = p.communicate(timeout=90)
+        took_s = time.monotonic() - t0
         assert p.returncode == 0, out + stack.log("explorer")
         assert "accepted" in out and "m to go" in out and "succeeded" in out, out
+        lines = [line for line in out.splitlines() if ": active," in line]
+        assert 1 <= len(lines) <= took_s + 1, (took_s, out)  # at most a line a second
         assert math.hypot(bot.x - 5.0, bot.y - 2.0) <= 0.3 + 0.05
 
         # a goal the explorer refuses: one line, exit 1

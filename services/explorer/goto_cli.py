@@ -1,11 +1,11 @@
 """`smana goto X Y`: send the robot's explorer a goal and follow it until it ends.
 
-Prints a line of feedback a second (distance remaining along the path, an ETA at the speed made
-so far, time, recoveries) and the end. Exit status: 0 when the goal is reached (succeeded), 1 when
-it ends otherwise (aborted, canceled, preempted), is refused, or no feedback comes for
---feedback-timeout seconds; 2 on a bad argument or when no explorer answers. Ctrl-C cancels the
-goal (the robot stops) and exits 1. The explorer may be exploring (it pauses, then resumes) or run
-with `explorer.mode = "navigate"`.
+Prints the goal's feedback, at most a line a second (distance remaining along the path, an ETA at
+the speed made so far, time, recoveries), and how it ended. Exit status: 0 when the goal is
+reached (succeeded), 1 when it ends otherwise (aborted, canceled, preempted), is refused, or no
+feedback comes for --feedback-timeout seconds; 2 on a bad argument or when no explorer answers.
+Ctrl-C cancels the goal (the robot stops) and exits 1. The explorer may be exploring (it pauses,
+then resumes) or run with `explorer.mode = "navigate"`.
 """
 
 from __future__ import annotations
