@@ -101,6 +101,9 @@ def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto
             assert r["accepted"] is False and r["reason"], (kind, r)
         r = goal(s, robot, x=5.0, y=4.0, tolerance_m=0.0)
         assert r["accepted"] is False and "tolerance_m" in r["reason"]
+        # JSON in, JSON out (any zenoh tool)
+        r = request(s, keys.explorer_goal(robot), {"x": 1.0, "y": -1.0}, 5, as_json=True)
+        assert r["accepted"] is False and "outside" in r["reason"], r
         raw = s.get(keys.explorer_goal(robot), payload=b"\xc1 not msgpack", timeout=5)
         assert msgpack.unpackb(next(iter(raw)).ok.payload.to_bytes())["accepted"] is False
         # a wildcard selector reaches the goal queryable too: it drives nothing
@@ -113,7 +116,7 @@ def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto
         assert wait_for(lambda: status(s, robot).rejected.get("selector") == 2, 5)
         st = status(s, robot)
         assert st.rejected.get("malformed") == 2 and st.rejected.get("value") == 2, st.rejected
-        assert st.rejected.get("out_of_bounds") == 1
+        assert st.rejected.get("out_of_bounds") == 2
         assert request(s, keys.explorer_state(robot))["nav_goal"] is None
         assert bot.max_v == 0.0
 
