@@ -144,6 +144,11 @@ def test_the_simulated_robot_reaches_a_goal_4m_away_and_stops_on_a_cancel(tmp_pa
         times = [t for t, fb in watch.of("second") if fb["state"] == "active"]
         gaps = np.diff(times)
         assert len(times) >= 3 and gaps.max() <= 1.0, gaps
+        print(
+            f"goal {dist:.2f} m away reached in {end[0]['navigation_time_s']:.1f} s robot time, "
+            f"{math.dist(watch.where(), (gx, gy)):.2f} m off (ground truth), "
+            f"{len(times)} feedback samples, largest gap {gaps.max():.2f} s"
+        )
         # a navigator never explores, and its state says so
         st = state()
         assert st["n_plans"] == 0 and not st["exploring"]
