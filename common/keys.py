@@ -93,6 +93,26 @@ def explorer_state(robot: str) -> str:
     return key(robot, "explorer", "state")
 
 
+def explorer_goal(robot: str) -> str:
+    """Queryable: drive to a pose. Query {"x", "y", "yaw"|None, "tolerance_m"|None, "id"|None}
+    (msgpack or JSON) -> {"accepted", "id", "reason"}; a new accepted goal pre-empts the running
+    one (services/explorer/navigation.py)."""
+    return key(robot, "explorer", "goal")
+
+
+def explorer_goal_cancel(robot: str) -> str:
+    """Queryable: cancel a goal. Query {"id"|None} (None: the current goal) ->
+    {"canceled", "id", "reason"}; a cancel stops the robot at once."""
+    return key(robot, "explorer", "goal/cancel")
+
+
+def explorer_goal_feedback(robot: str) -> str:
+    """The running goal's feedback (msgpack map: id, state, goal, pose, distance_remaining_m,
+    navigation_time_s, recoveries, reason), at least once a second while it runs and once at
+    every change of state."""
+    return key(robot, "explorer", "goal/feedback")
+
+
 def claim(fleet: str, member: str) -> str:
     """The coordinator's query for one member's claims: the goal it wants in, granted or not out.
     One key per member, so that an access-control policy lets each member's identity ask its own
