@@ -298,7 +298,7 @@ class Ros2Actions:
         rc, node = svc.config.ros2, svc.node
         self.types = node.types
         self.world_frames = tuple(rc.world_frames)
-        self.speed_mps = float(svc.config.explorer.max_linear_mps)
+        self.speed_mps = float(svc.config.explorer.follower.max_linear_mps)
         self.nav = ActionEndpoints(node, f"{namespace}/{rc.navigate_action}", NAVIGATE)
         self.plan = ActionEndpoints(node, f"{namespace}/{rc.compute_path_action}", COMPUTE_PATH)
         self.jobs = Jobs("ros2-action", ACTION_THREADS, ACTION_WAITING)

@@ -83,8 +83,15 @@ class ActionClient:
             "action_msgs/srv/CancelGoal_Request": CANCEL_REQUEST,
             "action_msgs/srv/CancelGoal_Response": CANCEL_RESPONSE,
         }
+        from rosbags.typesys import get_types_from_msg
+
+        self._keys: dict[str, str] = {}
         for typename, text in own.items():
-            self.sdk.register_message_type(text, typename)
+            # The SDK's store is a rosbags one; rosbags files `<pkg>/srv/<T>` as
+            # `<pkg>/srv/msg/<T>`, so each type is looked up by the key it got.
+            found = get_types_from_msg(text, typename)
+            self.sdk.store.register(found)
+            (self._keys[typename],) = found
         deps.update({k: v for k, v in own.items() if not k.endswith(("_Request", "_Response"))})
         fb_type = f"{action}_FeedbackMessage"
         self.hashes = {
@@ -122,16 +129,23 @@ class ActionClient:
             self.session.declare_subscriber(self.keys["status"], self._on_status),
         ]
 
+    def _key(self, typename: str) -> str:
+        """The store key of a type (a service's parts are under `<pkg>/srv/msg/`)."""
+        return self._keys.get(typename, typename)
+
     def msg(self, typename: str):
-        return self.sdk.store.types[typename]
+        return self.sdk.store.types[self._key(typename)]
+
+    def decode(self, raw: bytes, typename: str):
+        return self.sdk.store.deserialize_cdr(raw, self._key(typename))
 
     def _on_feedback(self, sample) -> None:
-        m = self.sdk.store.deserialize_cdr(sample.payload.to_bytes(), self.types["feedback"])
+        m = self.decode(sample.payload.to_bytes(), self.types["feedback"])
         with self._lock:
             self.feedback.append((bytes(m.goal_id.uuid), m.feedback))
 
     def _on_status(self, sample) -> None:
-        m = self.sdk.store.deserialize_cdr(sample.payload.to_bytes(), self.types["status"])
+        m = self.decode(sample.payload.to_bytes(), self.types["status"])
         with self._lock:
             self.statuses.append(m)
 
@@ -160,7 +174,9 @@ class ActionClient:
         payload = (
             raw
             if raw is not None
-            else bytes(self.sdk.store.serialize_cdr(request, self.types[what] + "_Request"))
+            else bytes(
+                self.sdk.store.serialize_cdr(request, self._key(self.types[what] + "_Request"))
+            )
         )
         att = Attachment(sequence_id=seq, timestamp_ns=time.time_ns(), gid=self.gid).to_bytes()
         replies = list(self.session.get(self.keys[what], payload=payload, attachment=att,
@@ -172,9 +188,7 @@ class ActionClient:
             return Err(r.err.payload.to_bytes())
         back = r.ok.attachment.to_bytes()
         assert np.frombuffer(back[:8], "<i8")[0] == seq and back[-16:] == self.gid, "attachment"
-        return self.sdk.store.deserialize_cdr(
-            r.ok.payload.to_bytes(), self.types[what] + "_Response"
-        )
+        return self.decode(r.ok.payload.to_bytes(), self.types[what] + "_Response")
 
     def uuid_msg(self, uuid: bytes):
         import numpy as np
