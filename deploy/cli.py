@@ -23,6 +23,7 @@ COMMAND_GROUP = "smana.commands"
 
 _TOOLS = {
     "plan": ("smana.services.planner.plan_cli:cli", "ask the planner for a path and print it"),
+    "goto": ("smana.services.explorer.goto_cli:cli", "send the robot to a pose (Ctrl-C cancels)"),
     "world": ("smana.services.sim.world_cli:cli", "export or preview a simulated world"),
     "warmup": ("smana.deploy.warmup:cli", "compile every service's numba kernels ahead, once"),
     "view": ("smana.deploy.view:cli", "open a run's Rerun recording"),

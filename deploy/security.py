@@ -49,7 +49,7 @@ from smana.deploy.certs import issue_host_cert, new_ca, write_cert, write_key, w
 SENSOR_ROLES = (*services.with_acl("sensor"), "driver")
 OWNERS = (*SENSOR_ROLES, *(r for r in services.with_acl("robot") if r not in SENSOR_ROLES))
 ROBOT_ROLES = (*OWNERS, "tool", "router")  # every robot's identities
-DRIVERS = services.with_acl("drive")  # they publish cmd_vel and claim goals
+DRIVERS = services.with_acl("drive")  # they publish cmd_vel, claim goals, send explorer goals
 BASE_RUNS = services.with_acl("base")  # a robot's, that a base may run
 FLEET_ROLES = services.with_acl("fleet")  # the fleet's, on the base
 BASE_ROLES = ("operator", "tool", "router")
@@ -91,6 +91,11 @@ def claim_key(fleet: str, member: str) -> str:
     return f"smana/{fleet}/coordinator/claim/{member}"
 
 
+def goal_keys(robot: str) -> list[str]:
+    """The explorer's goal and cancel queries of one robot (its drive role's)."""
+    return [f"smana/{robot}/explorer/goal", f"smana/{robot}/explorer/goal/cancel"]
+
+
 def _rule(
     id_: str, flows: list[str], messages: list[str], key_exprs: list[str], permission: str = "allow"
 ) -> dict:
@@ -117,11 +122,14 @@ def acl_policy(
       publishes, serves queries, replies and shows liveliness under its own name; the sensor roles
       publish the robot's sensor streams and pose (and `alive/robot`); its explorer publishes its
       velocity commands and claims goals at `smana/<fleet>/coordinator/claim/<robot>`, its own
-      claim key only; `<robot>.tool` only reads; its router relays everything of
-      `smana/<robot>/**` but queries, and its explorer's claim, and nothing of another robot's;
+      claim key only; the robot's drive role (its explorer) may send its explorer goals and
+      cancel them (`explorer/goal`, `explorer/goal/cancel`, exact keys, its own robot's only);
+      `<robot>.tool` only reads; its router relays everything of `smana/<robot>/**` but
+      queries, and its explorer's claim and goal queries, and nothing of another robot's;
     - the fleet's identities write under `smana/<fleet>/` as each service under its own name;
     - with `base_identities` (the base's policy): `operator` may also publish every robot's
-      velocity commands and ask every robot's mapper to save (exact keys); `tool` only reads;
+      velocity commands, send every robot's explorer goals and cancel them, and ask every
+      robot's mapper to save (exact keys); `tool` only reads;
       `router` (the base's router) relays everything.
 
     Routers are named by user and link: user `<name>` on a tcp link, or the same user presenting
@@ -163,7 +171,7 @@ def acl_policy(
                 alive.append(f"smana/{ns}/alive/robot")  # whatever drives the robot shows it
                 ids.append(f"sensors-{ns}")
             if owner in DRIVERS:
-                ids.append(f"cmd_vel-{ns}")
+                ids += [f"cmd_vel-{ns}", f"goal-{ns}"]
                 if fleet:
                     ids.append(f"claim-{ns}")
             rules.append(_rule(ids[1], ["ingress"], ["liveliness_token"], alive))
@@ -178,6 +186,7 @@ def acl_policy(
                 [f"smana/{r}/robot/{t}" for t in SENSOR_TOPICS],
             ),
             _rule(f"cmd_vel-{r}", ["ingress"], ["put"], [f"smana/{r}/robot/cmd_vel"]),
+            _rule(f"goal-{r}", ["ingress"], ["query"], goal_keys(r)),
             # All but queries: those a robot's router passes on are read-only or its claim.
             _rule(f"relay-{r}", ["ingress"], RELAY_MESSAGES, [f"smana/{r}/**"]),
         ]
@@ -185,7 +194,7 @@ def acl_policy(
             rules.append(_rule(f"claim-{r}", ["ingress"], ["query"], [claim_key(fleet, r)]))
         owners(r, OWNERS)
         identity(user(r, "tool"), [])
-        relay = [f"relay-{r}", *([f"claim-{r}"] if fleet else [])]
+        relay = [f"relay-{r}", f"goal-{r}", *([f"claim-{r}"] if fleet else [])]
         router(user(r, "router"), r, ["read", "read-queries", "deliver", *relay])
     if fleet:
         owners(check_robot(fleet), FLEET_ROLES)
@@ -199,8 +208,11 @@ def acl_policy(
                 [f"smana/{r}/robot/cmd_vel" for r in robots],
             ),
             _rule("operator-save", ["ingress"], ["query"], save),
+            _rule(
+                "operator-goal", ["ingress"], ["query"], [k for r in robots for k in goal_keys(r)]
+            ),
         ]
-        identity("operator", ["operator-cmd_vel", "operator-save"])
+        identity("operator", ["operator-cmd_vel", "operator-save", "operator-goal"])
         identity("tool", [])
     router("router", base, ["relay"])
     policies.insert(

@@ -148,6 +148,11 @@ def test_plan_with_no_stack():
     one_line_misuse(r, "plan", "cannot connect to", "smana up")
 
 
+def test_goto_with_no_stack():
+    r = smana("goto", "1", "2", "--connect", f"tcp/127.0.0.1:{free_port()}", NO_SCOUT)
+    one_line_misuse(r, "goto", "cannot connect to", "smana up")
+
+
 # -- arguments, checked before anything starts ---------------------------------------------------
 
 
@@ -251,6 +256,10 @@ def test_bad_config_value_is_one_line(tmp_path):
         ("plan", ["--from", "0,0", "--to", "1,1", "--max-step", "-1"], ["--max-step"]),
         ("plan", ["--from", "0,0", "--to", "1,1", "--timeout", "-2"], ["--timeout"]),
         ("plan", ["--from", "0,0", "--to", "1,1", "--cost", "grass=-1"], ["--cost", ">= 0"]),
+        ("goto", ["1", "nan"], ["argument y", "finite"]),
+        ("goto", ["1", "2", "--tolerance", "0"], ["--tolerance", "> 0"]),
+        ("goto", ["1", "2", "--yaw", "inf"], ["--yaw", "finite"]),
+        ("goto", ["1"], ["required", "y"]),
         ("replay", ["--rate", "0", "x"], ["--rate", "> 0"]),
         ("replay", ["--count", "-1", "x"], ["--count", ">= 0"]),
         ("bench planner", ["--queries", "9"], ["--queries", "<= 4"]),
@@ -264,7 +273,7 @@ def test_bad_config_value_is_one_line(tmp_path):
     ],
 )
 def test_impossible_values_are_refused_up_front(tmp_path, command, args, words):
-    if command in ("status", "plan"):  # were a value let through, nobody would answer anyway
+    if command in ("status", "plan", "goto"):  # were a value let through, nobody would answer
         args = [*args, "--connect", f"tcp/127.0.0.1:{free_port()}", NO_SCOUT]
     r = smana(*command.split(), *args, cwd=tmp_path)
     one_line_misuse(r, command.split()[0], *words)

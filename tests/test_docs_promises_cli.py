@@ -43,6 +43,7 @@ STACK_COMMANDS = (
     "replay",
     "ros2",
     "plan",
+    "goto",
     "view",
     "router",
 )

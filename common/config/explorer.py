@@ -95,5 +95,19 @@ class ExplorerConfig(Section, section="explorer"):
     class_costs: list[str] = param([])
     planner_timeout_s: float = param(2.0, gt=0)
     pose_timeout_s: float = param(1.0, gt=0)  # no pose for this long: stop the robot
+    # "explore": explore until done (and drive to the goals it is sent, pausing exploration);
+    # "navigate": only drive to the goals it is sent (`explorer/goal`), never explore, never end
+    mode: Literal["explore", "navigate"] = "explore"
+    # once a goal has ended, an exploring explorer explores again (false: it waits for goals)
+    resume_after_goal: bool = True
+    # a goal with no path for this long (robot time) is aborted as unreachable
+    goal_timeout_s: float = param(30.0, gt=0)
+    # a goal not reached this long (robot time) after it was accepted is aborted
+    goal_time_budget_s: float = param(600.0, gt=0)
+    # a goal's tolerance may not exceed this (its default is follower.goal_tolerance_m)
+    goal_max_tolerance_m: float = param(5.0, gt=0)
+    # paths to a goal may cross unknown nodes (re-planned as they are mapped), as Nav2's do
+    goal_through_unknown: bool = True
+    goal_feedback_period_s: float = param(0.5, gt=0, le=1.0)  # feedback while a goal runs
     view: ViewConfig = table(ViewConfig)
     follower: FollowerConfig = table(FollowerConfig)

@@ -50,6 +50,9 @@ class Driving:
         if self.goal is None:
             return self._make_way(x, y, yaw)
         cmd = self.follower.command(x, y, yaw, self._segment_clear)
+        if cmd.done and self.nav_active:
+            self._nav_arrived()
+            return 0.0, 0.0
         if cmd.done:
             self._forget(self.goal.choice.xy, seconds=self.config.dwell_s + 5.0)
             self._set_goal(None)

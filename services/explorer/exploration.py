@@ -39,6 +39,7 @@ from smana.services.explorer import frontier as fr
 from smana.services.explorer.choosing import Choosing
 from smana.services.explorer.driving import BACK_OFF_S, Driving
 from smana.services.explorer.follower import PurePursuit
+from smana.services.explorer.navigation import NavGoal, Navigating
 from smana.services.explorer.team import Team
 
 # path_cost(start_xy, goal_xy) -> (cost, path (K, 2|3)) or None when there is no path
@@ -103,7 +104,7 @@ class PlanOutcome:
     gains_m2: np.ndarray
 
 
-class Explorer(Choosing, Driving):
+class Explorer(Choosing, Driving, Navigating):
     """Next-best-view exploration state machine (see the module docstring)."""
 
     def __init__(
@@ -138,6 +139,11 @@ class Explorer(Choosing, Driving):
         self._fov: fr.FovModel | None = None
         self.follower = PurePursuit(config.follower)
         self.goal: Goal | None = None
+        # a goal it was sent (navigation.py): the running one, or the last one, ended
+        self.nav: NavGoal | None = None
+        self.nav_changes: list[dict] = []  # feedback at each change of a goal's state, to send
+        self.exploring = config.mode == "explore"
+        self._back_off_s = BACK_OFF_S
         self._resumed_goal = False  # a goal from a checkpoint: its path found at the next pose
         self.pose: tuple[float, float, float] | None = None
         self.t_start: float | None = None
@@ -229,7 +235,7 @@ class Explorer(Choosing, Driving):
         the same view); the robot has moved on meanwhile, so the path is followed from the point
         nearest the robot's first pose. A checkpoint without a goal's node (older) keeps none."""
         g, path = state.get("goal"), state.get("path")
-        if state.get("done") or not g or not path or "cell" not in g:
+        if state.get("done") or not g or not path or "cell" not in g or g.get("navigate"):
             return
         xy = np.asarray(g["xy"], float)
         choice = fr.ViewChoice(
@@ -263,7 +269,11 @@ class Explorer(Choosing, Driving):
 
     def wants_plan(self) -> str | None:
         """Why a plan is needed now, or None. Also ends the run when the budget is spent."""
-        if self.done or self.pose is None or self.grid is None:
+        if self.done or self.pose is None:
+            return None
+        if self.nav_active:
+            return self._nav_wants_plan()  # exploration pauses while a goal runs
+        if self.grid is None or not self.exploring:
             return None
         t = self.t_now
         if self.elapsed_s() >= self.config.time_budget_s:
@@ -313,6 +323,10 @@ class Explorer(Choosing, Driving):
         the choice is made again without the views near it.
         """
         assert self.grid is not None and self.pose is not None
+        if self.nav_active:
+            self._t_last_plan = self.t_now
+            chosen = self._plan_nav(path_cost, reason)
+            return PlanOutcome(reason, chosen, False, 0, 0, np.zeros((0, 2)), np.zeros(0))
         self.n_plans += 1
         self._t_last_plan = self.t_now
         g = self.grid
@@ -402,6 +416,8 @@ class Explorer(Choosing, Driving):
             "strategy": self.config.strategy,
             "elapsed_s": self.elapsed_s(),
             "mode": self.mode,
+            "exploring": self.exploring,
+            "nav_goal": self.nav_state(),
             "done": self.done,
             "done_reason": self.done_reason,
             "goal": None
@@ -414,6 +430,8 @@ class Explorer(Choosing, Driving):
                 "gain_m2": g.choice.gain_m2,
                 "path_cost": g.choice.path_cost,
                 "score": g.choice.score,
+                # a goal it was sent: not resumed by a restarted explorer (its sender is told)
+                "navigate": self.nav.id if self.nav_active else None,
             },
             "path": [] if g is None else np.round(g.path_xy, 3).tolist(),
             "frontier_size": self.frontier_size,
@@ -437,6 +455,8 @@ class Explorer(Choosing, Driving):
             return "done"
         if self._spin is not None:
             return "spinning"
+        if self.nav_active:
+            return "navigating"
         if self.goal is not None:
             return "following"
         return "waiting"
@@ -444,22 +464,28 @@ class Explorer(Choosing, Driving):
     # -- internals ------------------------------------------------------------------------------
 
     def finish(self, reason: str) -> None:
+        if self.nav_active:
+            self._end_nav("aborted", f"the explorer stopped ({reason})")
         self.done_reason = reason
         self._set_goal(None)
         self._spin = None
 
-    def _set_goal(self, choice: fr.ViewChoice | None) -> None:
+    def _set_goal(
+        self, choice: fr.ViewChoice | None, count: bool = True, tolerance_m: float | None = None
+    ) -> None:
+        """Drive to `choice` (None: stop). `count`: a view of exploration's (n_goals);
+        `tolerance_m`: how near its end is near enough (None: the follower's)."""
         if choice is None:
             self.goal = None
             self.follower = PurePursuit(self.config.follower)
             self._progress_mark = None
             return
         path = _path_xy(choice.path, choice.xy, self.pose)
-        self.follower.set_path(path, final_yaw=choice.yaw)
+        self.follower.set_path(path, final_yaw=choice.yaw, tolerance_m=tolerance_m)
         self.goal = Goal(choice, path, self.t_now, self.follower.remaining_length_m())
         self._progress_mark = (self.t_now, self.follower.remaining_length_m())
         self._t_arrived = None
-        self.n_goals += 1
+        self.n_goals += count
 
 
 def _path_xy(path, goal_xy: np.ndarray, pose) -> np.ndarray:

@@ -41,11 +41,14 @@ class PurePursuit:
     config: FollowerConfig = field(default_factory=FollowerConfig)
     path: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     final_yaw: float | None = None
+    tolerance_m: float | None = None  # this path's goal tolerance (None: config.goal_tolerance_m)
     _progress: int = 0
     _cum: np.ndarray = field(default_factory=lambda: np.zeros(0))
     _arrived: bool = False
 
-    def set_path(self, path_xy: np.ndarray, final_yaw: float | None = None) -> None:
+    def set_path(
+        self, path_xy: np.ndarray, final_yaw: float | None = None, tolerance_m: float | None = None
+    ) -> None:
         path = np.asarray(path_xy, np.float64)
         if path.ndim != 2 or path.shape[1] < 2 or len(path) == 0:
             raise ValueError(f"path must be (K, 2|3) with K >= 1, got shape {path.shape}")
@@ -57,6 +60,7 @@ class PurePursuit:
         self._progress = 0
         self._arrived = False
         self.final_yaw = final_yaw
+        self.tolerance_m = tolerance_m
 
     def skip_to_nearest(self, x: float, y: float) -> None:
         """Go on from the path point nearest (x, y), wherever it is (a path resumed by a process
@@ -101,7 +105,8 @@ class PurePursuit:
         self._progress, cross = self._nearest_ahead(p)
         goal = self.path[-1]
         to_goal = float(np.hypot(*(goal - p)))
-        if self._arrived or to_goal <= cfg.goal_tolerance_m:
+        tol = cfg.goal_tolerance_m if self.tolerance_m is None else self.tolerance_m
+        if self._arrived or to_goal <= tol:
             self._arrived = True
             self._progress = len(self.path) - 1
             if self.final_yaw is None:

@@ -35,6 +35,7 @@ from smana.common.config import ConfigError, SmanaConfig
 from smana.common.graph_copy import GraphCopy
 from smana.common.messages import (
     GraphPatch,
+    MessageError,
     PathReply,
     PathRequest,
     Pose,
@@ -44,9 +45,10 @@ from smana.common.messages import (
 from smana.common.navgrid import NavGrid
 from smana.common.plausibility import PoseGate, StampGate
 from smana.common.query import QueryError, request
-from smana.common.service import Reject, Service, kernels_loaded
+from smana.common.service import Reject, Request, Service, kernels_loaded
 from smana.services.explorer import frontier as fr
 from smana.services.explorer.exploration import Explorer, GridBox
+from smana.services.explorer.navigation import GoalRefused, parse_cancel, parse_goal
 from smana.services.explorer.team import Team
 
 STATE_PERIOD_S = 0.5
@@ -182,6 +184,12 @@ class ExplorerService(Service):
                     self.subscribe(keys.pose(m), lambda p, m=m: self.on_member_pose(m, p), Pose)
             self.subscribe(keys.claims(self.fleet.name), self.on_claims)
         self.queryable(keys.explorer_state(r), lambda req: self.core.state_dict())
+        # goals it is sent (services/explorer/navigation.py); the ACL lets only the robot's
+        # drive role and the base's operator ask these
+        self.feedback_pub = self.publisher(keys.explorer_goal_feedback(r))
+        self.queryable(keys.explorer_goal(r), self.on_goal)
+        self.queryable(keys.explorer_goal_cancel(r), self.on_goal_cancel)
+        self._next_feedback = 0.0
         self._declared.append(
             self.session.liveliness().declare_subscriber(
                 keys.alive(r, "planner"), self._on_planner_token, history=True
@@ -268,6 +276,75 @@ class ExplorerService(Service):
         self.n_patches += 1
         self._grid_dirty = True
 
+    def on_goal(self, req: Request) -> dict:
+        """A goal: accepted (it pre-empts the running one) or refused, counted, nothing changed."""
+        try:
+            body = req.body()
+        except MessageError as exc:
+            body = exc
+        gid = body.get("id") if isinstance(body, dict) else None
+        gid = gid if isinstance(gid, str) else None
+        try:
+            if isinstance(body, MessageError):
+                raise GoalRefused("malformed", str(body))
+            if self.core.done:
+                raise GoalRefused(
+                    "finished", f"the explorer is finishing ({self.core.done_reason})"
+                )
+            nav = self.config.navgraph
+            spec = parse_goal(
+                body,
+                nav.bounds_min_xy,
+                nav.bounds_max_xy,
+                self.cfg.follower.goal_tolerance_m,
+                self.cfg.goal_max_tolerance_m,
+            )
+            self.core.accept_goal(spec)
+        except GoalRefused as exc:
+            reply = {"accepted": False, "id": gid or "", "reason": str(exc)}
+            raise Reject(exc.kind, f"goal refused: {exc}", reply=reply) from None
+        s = spec
+        self.log.info(
+            "goal %s accepted: (%.2f, %.2f)%s within %.2f m",
+            s.id,
+            s.x,
+            s.y,
+            "" if s.yaw is None else f" yaw {math.degrees(s.yaw):.0f} deg",
+            s.tolerance_m,
+        )
+        self._send(*self.core.control())
+        self._send_feedback()
+        return {"accepted": True, "id": s.id, "reason": ""}
+
+    def on_goal_cancel(self, req: Request) -> dict:
+        """A cancel of the running goal: the robot stops at once."""
+        gid = None
+        try:
+            try:
+                gid = parse_cancel(req.body())
+            except MessageError as exc:
+                raise GoalRefused("malformed", str(exc)) from None
+            nav = self.core.cancel_goal(gid)
+        except GoalRefused as exc:
+            reply = {"canceled": False, "id": gid, "reason": str(exc)}
+            raise Reject(exc.kind, f"cancel refused: {exc}", reply=reply) from None
+        self._send(0.0, 0.0)
+        self.log.info("goal %s canceled", nav.id)
+        self._send_feedback()
+        return {"canceled": True, "id": nav.id, "reason": ""}
+
+    def _send_feedback(self, now: float | None = None) -> None:
+        """Every change of a goal's state, then (while one runs) its progress once a period."""
+        for fb in self.core.nav_changes:
+            self.feedback_pub.put(fb)
+            if fb["state"] != "active":
+                self.log.info("goal %s %s %s", fb["id"], fb["state"], fb["reason"])
+        self.core.nav_changes.clear()
+        now = time.monotonic() if now is None else now
+        if self.core.nav_active and now >= self._next_feedback:
+            self._next_feedback = now + self.cfg.goal_feedback_period_s
+            self.feedback_pub.put(self.core.nav_feedback())
+
     def on_pose(self, pose: Pose) -> None:
         stamp = float(pose.stamp_s)
         when = self.stamps.check(stamp)
@@ -307,11 +384,14 @@ class ExplorerService(Service):
             return
         if self._t_wall0 is None and self.core.grid is not None:
             self._t_wall0 = now
-        if self._wall_spent(now) > self.cfg.time_budget_s:
+        # the budget and the start-up's patience are exploration's: a navigator waits for goals
+        exploring = self.core.exploring and not self.core.nav_active
+        if exploring and self._wall_spent(now) > self.cfg.time_budget_s:
             self.core.finish("time_budget")
             return
         waited = now - self._t_created
-        if self._t_wall0 is None and waited > self.cfg.time_budget_s + self.cfg.startup_grace_s:
+        patience = self.cfg.time_budget_s + self.cfg.startup_grace_s
+        if self._t_wall0 is None and waited > patience and self.core.exploring:
             missing = "planner" if self._planner_alive == 0 else "navigation graph"
             self.log.error("no %s after %.0f s: giving up", missing, waited)
             self.core.finish("no_planner" if self._planner_alive == 0 else "no_graph")
@@ -330,7 +410,8 @@ class ExplorerService(Service):
             outcome = self.core.plan(self._path_cost, reason, claim)
             self.plan_time_ms = (time.perf_counter() - t0) * 1e3
             goal = self.core.goal
-            if outcome.chosen is not None and goal is not None and goal.choice is outcome.chosen:
+            mine = outcome.chosen is not None and goal is not None and goal.choice is outcome.chosen
+            if mine and not self.core.nav_active:
                 # a goal was set by this plan (one log entry per goal: the report counts them)
                 c = outcome.chosen
                 self._plan_log.append(
@@ -361,6 +442,7 @@ class ExplorerService(Service):
                 )
         v, w = self.core.control()
         self._send(v, w)
+        self._send_feedback(now)
         if now >= self._next_state:
             self._next_state = now + STATE_PERIOD_S
             self.state_pub.put(self._state())
@@ -394,14 +476,14 @@ class ExplorerService(Service):
         self._box = (ix0, iy0, ix1, iy1)
         self._grid_dirty = False
 
-    def _path_cost(self, start_xy: np.ndarray, goal_xy: np.ndarray):
+    def _path_cost(self, start_xy: np.ndarray, goal_xy: np.ndarray, allow_unknown: bool = False):
         self.n_path_queries += 1
         req = PathRequest(
             request_id=uuid.uuid4().hex[:12],
             start=np.asarray(start_xy, np.float64)[:2],
             goal=np.asarray(goal_xy, np.float64)[:2],
             class_costs=dict(self.class_costs),
-            allow_unknown=False,
+            allow_unknown=allow_unknown,
         )
         try:
             reply = request(
@@ -513,7 +595,10 @@ class ExplorerService(Service):
         )
         if c.goal is not None:
             progress += f", goal ({c.goal.choice.xy[0]:.1f}, {c.goal.choice.xy[1]:.1f})"
+        if c.nav is not None:
+            progress += f", sent goal {c.nav.id} {c.nav.state}"
         return {
+            "nav_goal": c.nav_state(),
             "progress": progress,
             "mode": c.mode,
             "explored_m2": c.explored_m2,

@@ -1,0 +1,194 @@
+"""Goals sent to the explorer over Zenoh (`explorer/goal`, `goal/cancel`, `goal/feedback`) and
+`smana goto`: the explorer's real process on an isolated loopback router, the test standing in for
+the robot (integrates cmd_vel, publishes poses), the navgraph (one GraphPatch) and the planner (a
+queryable answering straight-line paths), as in test_explorer_service.py. The simulator's closed
+loop with every service is test_e2e_goals.py."""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import msgpack
+import pytest
+
+from smana.common import keys
+from smana.common.messages import ServiceStatus, encode
+from smana.common.query import request
+from tests.conftest import wait_for
+from tests.test_explorer_service import BOUNDS, StubRobot, patch, stub_planner
+
+pytestmark = pytest.mark.multiprocess
+
+
+class Feedback:
+    """Every feedback sample, with the time it arrived."""
+
+    def __init__(self, stack):
+        self.items: list[tuple[float, dict]] = []
+        self._lock = threading.Lock()
+        self.sub = stack.subscriber(keys.explorer_goal_feedback(stack.robot), self._on)
+
+    def _on(self, sample) -> None:
+        with self._lock:
+            self.items.append((time.monotonic(), msgpack.unpackb(sample.payload.to_bytes())))
+
+    def of(self, gid: str) -> list[tuple[float, dict]]:
+        with self._lock:
+            return [(t, fb) for t, fb in self.items if fb["id"] == gid]
+
+    def states(self, gid: str) -> list[str]:
+        out = []
+        for _, fb in self.of(gid):
+            if not out or out[-1] != fb["state"]:
+                out.append(fb["state"])
+        return out
+
+    def reached(self, gid: str, state: str) -> bool:
+        return state in self.states(gid)
+
+
+def status(s, robot) -> ServiceStatus:
+    st = request(s, keys.status(robot, "explorer"), timeout_s=5)
+    assert isinstance(st, ServiceStatus) and st.books_add_up(), st
+    return st
+
+
+def goal(s, robot, **body) -> dict:
+    return request(s, keys.explorer_goal(robot), body, timeout_s=5)
+
+
+def start_explorer(stack, *args):
+    stack.service("explorer", *BOUNDS, "--set", "explorer.control_rate_hz=20", *args)
+    stack.wait_alive("explorer", timeout_s=120)
+
+
+def goto(stack, *args) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "smana.services.explorer.goto_cli", *stack.zenoh_args()]
+        + ["--robot", stack.robot, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
+
+
+def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto(zenoh_stack):
+    stack, s, robot = zenoh_stack, zenoh_stack.session, zenoh_stack.robot
+    planner, token = stub_planner(s, robot, [])
+    bot = StubRobot(s, robot)
+    procs = []
+    try:
+        start_explorer(stack, "--set", 'explorer.mode="navigate"')
+        s.put(keys.graph_patch(robot), encode(patch(8.0)))  # all of 8 m x 8 m known terrain
+        fb = Feedback(stack)
+        assert wait_for(lambda: request(s, keys.explorer_state(robot))["pose"] is not None, 10)
+
+        # refused: each one answered, counted, and nothing changes
+        refused = {
+            "malformed": {"x": "one", "y": 2.0},
+            "value": {"x": 1.0, "y": math.nan},
+            "out_of_bounds": {"x": 9.0, "y": 2.0},
+        }
+        for kind, body in refused.items():
+            r = goal(s, robot, **body)
+            assert r["accepted"] is False and r["reason"], (kind, r)
+        r = goal(s, robot, x=5.0, y=4.0, tolerance_m=0.0)
+        assert r["accepted"] is False and "tolerance_m" in r["reason"]
+        raw = s.get(keys.explorer_goal(robot), payload=b"\xc1 not msgpack", timeout=5)
+        assert msgpack.unpackb(next(iter(raw)).ok.payload.to_bytes())["accepted"] is False
+        st = status(s, robot)
+        assert st.rejected.get("malformed") == 2 and st.rejected.get("value") == 2, st.rejected
+        assert st.rejected.get("out_of_bounds") == 1
+        assert request(s, keys.explorer_state(robot))["nav_goal"] is None
+        assert bot.max_v == 0.0
+
+        # accepted, then pre-empted by a second one
+        r = goal(s, robot, x=6.0, y=4.0, id="first")
+        assert r == {"accepted": True, "id": "first", "reason": ""}
+        assert wait_for(lambda: bot.x > 1.5, 20), stack.log("explorer")
+        r = goal(s, robot, x=3.0, y=6.5, id="second")
+        assert r["accepted"] and r["id"] == "second"
+        assert wait_for(lambda: fb.reached("first", "preempted"), 5), fb.states("first")
+        assert wait_for(lambda: fb.reached("second", "active"), 5)
+        state = request(s, keys.explorer_state(robot))
+        assert state["nav_goal"]["id"] == "second" and state["mode"] == "navigating"
+        assert wait_for(lambda: len(fb.of("second")) >= 6, 10)  # 3 s of feedback at least
+
+        # feedback at >= 1 Hz while the goal runs
+        times = [t for t, f in fb.of("second") if f["state"] == "active"]
+        gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+        assert max(gaps) <= 1.0, gaps
+        last = fb.of("second")[-1][1]
+        assert last["goal"] == [3.0, 6.5, None] and last["distance_remaining_m"] > 0
+
+        # a cancel stops the robot at once
+        r = request(s, keys.explorer_goal_cancel(robot), {"id": None}, timeout_s=5)
+        assert r == {"canceled": True, "id": "second", "reason": ""}
+        assert wait_for(lambda: bot.v == 0.0 and bot.w == 0.0, 1.0)
+        assert wait_for(lambda: fb.reached("second", "canceled"), 2)
+        r = request(s, keys.explorer_goal_cancel(robot), {"id": "second"}, timeout_s=5)
+        assert r["canceled"] is False and r["reason"]
+        assert request(s, keys.explorer_state(robot))["nav_goal"]["state"] == "canceled"
+
+        # `smana goto`: feedback lines, exit 0 once there
+        p = goto(stack, "5", "2", "--tolerance", "0.3")
+        procs.append(p)
+        out, _ = p.communicate(timeout=90)
+        assert p.returncode == 0, out + stack.log("explorer")
+        assert "accepted" in out and "m to go" in out and "succeeded" in out, out
+        assert math.hypot(bot.x - 5.0, bot.y - 2.0) <= 0.3 + 0.05
+
+        # Ctrl-C cancels its goal and exits 1
+        p = goto(stack, "1", "6")
+        procs.append(p)
+        line = p.stdout.readline()
+        assert "accepted" in line, line + stack.log("explorer")
+        gid = line.split()[1]
+        assert wait_for(lambda: bot.v != 0.0 or bot.w != 0.0, 10)
+        p.send_signal(signal.SIGINT)
+        out, _ = p.communicate(timeout=20)
+        assert p.returncode == 1 and "canceled" in out, out
+        assert wait_for(lambda: fb.reached(gid, "canceled"), 2)
+        assert wait_for(lambda: bot.v == 0.0 and bot.w == 0.0, 1.0)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        bot.close()
+        planner.undeclare()
+        token.undeclare()
+
+
+def test_exploration_pauses_during_a_goal_and_resumes_after_it(zenoh_stack):
+    stack, s, robot = zenoh_stack, zenoh_stack.session, zenoh_stack.robot
+    planner, token = stub_planner(s, robot, [])
+    bot = StubRobot(s, robot)
+    try:
+        start_explorer(stack)
+        s.put(keys.graph_patch(robot), encode(patch(4.0)))  # the frontier: x = 4 m
+        fb = Feedback(stack)
+        state = lambda: request(s, keys.explorer_state(robot))  # noqa: E731
+        assert wait_for(lambda: state()["n_plans"] >= 1 and bot.max_v > 0, 30)
+        r = goal(s, robot, x=1.0, y=1.0, tolerance_m=0.3, id="aside")
+        assert r["accepted"], r
+        during = state()
+        assert during["mode"] == "navigating" and during["nav_goal"]["id"] == "aside"
+        assert wait_for(lambda: fb.reached("aside", "succeeded"), 60), stack.log("explorer")
+        # no exploration plan while the goal ran
+        after = state()
+        assert after["n_plans"] == during["n_plans"], (during["n_plans"], after["n_plans"])
+        assert math.hypot(bot.x - 1.0, bot.y - 1.0) <= 0.35
+        # then it explores again
+        assert wait_for(lambda: state()["n_plans"] > after["n_plans"], 10)
+        assert state()["exploring"] and state()["nav_goal"]["state"] == "succeeded"
+    finally:
+        bot.close()
+        planner.undeclare()
+        token.undeclare()
