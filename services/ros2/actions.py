@@ -124,6 +124,11 @@ class GoalBook:
             self.goals[uuid] = goal
             return goal
 
+    def discard(self, uuid: bytes) -> None:
+        """Forget a goal that was never announced (its acceptance fell through)."""
+        with self.lock:
+            self.goals.pop(uuid, None)
+
     def get(self, uuid: bytes) -> Goal | None:
         with self.lock:
             return self.goals.get(uuid)
@@ -304,6 +309,7 @@ class Ros2Actions:
         self.jobs = Jobs("ros2-action", ACTION_THREADS, ACTION_WAITING)
         self.counts = dict.fromkeys(("goals", "accepted", "refused", "feedback", "canceled"), 0)
         self._explorer_ids: dict[str, bytes] = {}  # explorer goal id -> uuid
+        self._nav_lock = threading.Lock()
         for endpoints in (self.nav, self.plan):
             for what in ("send_goal", "get_result", "cancel_goal"):
                 key = endpoints.keys[what]
@@ -470,6 +476,19 @@ class Ros2Actions:
             x, y, yaw = goal_pose_checked(goal.pose, self.world_frames)
         except ValueError as exc:
             return False, f"value: {exc}"
+        # One goal at a time, in the order the explorer takes them: the last one it accepted is
+        # the one that runs, here as there.
+        with self._nav_lock:
+            return self._navigate(uuid, goal, reply, x, y, yaw)
+
+    def _navigate(self, uuid: bytes, goal, reply, x: float, y: float, yaw: float):
+        book = self.nav.book
+        stamp_ns = time.time_ns()
+        # In the book (not yet on the status topic) before the explorer is asked: its first
+        # feedback may come before its answer.
+        if book.add(uuid, goal, stamp_ns) is None:
+            return False, "refused: goal id in use, or too many goals held"
+        self._explorer_ids[uuid.hex()] = uuid
         try:
             answer = request(
                 self.svc.session,
@@ -477,17 +496,16 @@ class Ros2Actions:
                 {"x": x, "y": y, "yaw": yaw, "tolerance_m": None, "id": uuid.hex()},
                 QUERY_TIMEOUT_S,
             )
+            why = ""
         except QueryError as exc:
-            return False, f"no_explorer: {exc}"
-        if not (isinstance(answer, dict) and answer.get("accepted")):
+            answer, why = None, f"no_explorer: {exc}"
+        if not why and not (isinstance(answer, dict) and answer.get("accepted")):
             why = answer.get("reason", "") if isinstance(answer, dict) else repr(answer)
-            return False, f"refused: explorer: {why}"
-        book = self.nav.book
-        stamp_ns = time.time_ns()
-        g = book.add(uuid, goal, stamp_ns)
-        if g is None:
-            return False, "refused: goal id in use, or too many goals held"
-        self._explorer_ids[str(answer.get("id") or uuid.hex())] = uuid
+            why = f"refused: explorer: {why}"
+        if why:
+            book.discard(uuid)
+            self._explorer_ids.pop(uuid.hex(), None)
+            return False, why
         self.counts["accepted"] += 1
         reply(self._goal_response(self.nav, True, stamp_ns))
         book.set_status(uuid, STATUS_EXECUTING)
@@ -565,6 +583,9 @@ class Ros2Actions:
         for endpoints in (self.nav, self.plan):
             if endpoints.book.expire():
                 endpoints.publish_status()
+        for gid, uuid in list(self._explorer_ids.items()):
+            if self.nav.book.get(uuid) is None:  # expired (or never accepted)
+                self._explorer_ids.pop(gid, None)
         now = self.nav.book.clock()
         for g in self.nav.book.running():
             if now - g.seen_at > FEEDBACK_TIMEOUT_S:
@@ -631,9 +652,14 @@ class Ros2Actions:
     def status_details(self) -> dict:
         return {
             **self.counts,
-            "navigate_running": len(self.nav.book.running()),
-            "compute_path_running": len(self.plan.book.running()),
+            "navigate_running": _announced(self.nav.book),
+            "compute_path_running": _announced(self.plan.book),
         }
+
+
+def _announced(book: GoalBook) -> int:
+    """Goals running that a client was told of (not one still waiting for the explorer)."""
+    return sum(g.status in (STATUS_EXECUTING, STATUS_CANCELING) for g in book.running())
 
 
 def raise_refused(why: str) -> None:
