@@ -31,6 +31,7 @@ from tests.support.ros2_action_client import (  # noqa: E402
 from tests.support.ros2_sdk import sdk_session  # noqa: E402
 
 NAV = "nav2_msgs/action/NavigateToPose"
+POSE = "geometry_msgs/msg/PoseStamped"
 
 
 @pytest.fixture
@@ -180,6 +181,19 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     assert after.rejected.get("malformed", 0) - before.rejected.get("malformed", 0) == 2
     assert after.rejected.get("value", 0) - before.rejected.get("value", 0) == 2
     assert after.state == "running" and after.books_add_up()
+    # On /goal_pose: CDR that is no PoseStamped, and a pose with NaN: counted, never a goal.
+    from smana.services.ros2 import convert
+
+    goal_pose_key = rmw.data_key(0, "/goal_pose", POSE, types.hash(POSE))
+    bad = convert.pose_stamped(types, (math.nan, 1.0), 0.0, 1.0)
+    s.session.put(goal_pose_key, b"\x00\x01\x00\x00\x07")
+    s.session.put(goal_pose_key, types.serialize(bad, POSE))
+
+    def rejected(kind):
+        return status().rejected.get(kind, 0) - after.rejected.get(kind, 0)
+
+    assert wait_for(lambda: rejected("malformed") == 1 and rejected("value") == 1, 10)
+    assert len(explorer.goals) == n_goals
 
     # /goal_pose (RViz2's "2D Goal Pose", from the SDK's publisher): a NavigateToPose goal.
     pub = ROS2Publisher("/goal_pose", "geometry_msgs/msg/PoseStamped", router_port=s.port)
