@@ -347,3 +347,18 @@ def test_planner_errors_are_nav2s_codes():
     ])  # fmt: skip
     assert consts["NO_VALID_PATH"] == 208 and consts["TIMEOUT"] == 207
     assert consts["START_OUTSIDE_MAP"] == START_OUTSIDE_MAP
+
+
+def test_action_names_in_the_config_are_checked():
+    from smana.common.config import ConfigError, SmanaConfig
+
+    cfg = SmanaConfig.load(None, [])
+    assert (cfg.ros2.navigate_action, cfg.ros2.compute_path_action, cfg.ros2.goal_pose_topic) == (
+        "navigate_to_pose",
+        "compute_path_to_pose",
+        "/goal_pose",
+    )
+    for bad in ('ros2.navigate_action="a/b"', 'ros2.compute_path_action=""',
+                'ros2.goal_pose_topic="goal_pose"'):  # fmt: skip
+        with pytest.raises(ConfigError):
+            SmanaConfig.load(None, [bad])

@@ -141,6 +141,13 @@ def test_actions_drive_smana_in_simulation(ros_stack):
     remaining = [f.distance_remaining for f in fb]
     assert remaining[0] > 2.5 and min(remaining) < 1.0, remaining
     assert fb[-1].current_pose.header.frame_id == "map"
+    gaps = nav.feedback_gaps(g1)
+    assert max(gaps) <= 1.0, f"feedback below 1 Hz: gaps up to {max(gaps):.2f} s"
+    print(
+        f"NavigateToPose 4 m: {fb[-1].navigation_time.sec} s of navigation, {len(fb)} feedback "
+        f"messages, gaps {np.median(gaps):.2f} s median, {max(gaps):.2f} s max; arrived "
+        f"{math.hypot(x - 4.0, y):.3f} m from the goal"
+    )
 
     # 2. Pre-emption and cancel: a goal 4 m back, pre-empted on the way by one to the side
     #    (the first ends ABORTED, as Nav2's); that one canceled: CANCELED, and the robot stops.

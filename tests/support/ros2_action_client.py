@@ -123,6 +123,7 @@ class ActionClient:
         self._seq = 0
         self._lock = threading.Lock()
         self.feedback: list = []  # (uuid, Feedback)
+        self.feedback_times: list = []  # (uuid, monotonic time it arrived)
         self.statuses: list = []  # GoalStatusArray
         self._subs = [
             self.session.declare_subscriber(self.keys["feedback"], self._on_feedback),
@@ -143,6 +144,7 @@ class ActionClient:
         m = self.decode(sample.payload.to_bytes(), self.types["feedback"])
         with self._lock:
             self.feedback.append((bytes(m.goal_id.uuid), m.feedback))
+            self.feedback_times.append((bytes(m.goal_id.uuid), time.monotonic()))
 
     def _on_status(self, sample) -> None:
         m = self.decode(sample.payload.to_bytes(), self.types["status"])
@@ -157,6 +159,12 @@ class ActionClient:
                 if bytes(s.goal_info.goal_id.uuid) == uuid:
                     return int(s.status)
         return None
+
+    def feedback_gaps(self, uuid: bytes) -> list[float]:
+        """Seconds between consecutive feedback messages of a goal."""
+        with self._lock:
+            t = [at for u, at in self.feedback_times if u == uuid]
+        return [b - a for a, b in zip(t, t[1:], strict=False)]
 
     def feedback_of(self, uuid: bytes) -> list:
         with self._lock:
