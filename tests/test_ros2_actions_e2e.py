@@ -221,6 +221,18 @@ def test_actions_drive_smana_in_simulation(ros_stack):
             break
     assert any(agree), (ros_path[:3], cli_path[:3])
     assert r.result.path.header.frame_id == "map" and len(ros_path) >= 10
+    # `use_start = false`: from the robot's pose.
+    uuid, resp = plan.send_goal(
+        goal=pose_stamped(plan, 3.5, 0.5),
+        start=pose_stamped(plan, 0.0, 0.0),
+        planner_id="smana",
+        use_start=False,
+    )
+    r = plan.get_result(uuid, 30.0)
+    assert r.status == n2.STATUS_SUCCEEDED, (r.result.error_code, r.result.error_msg)
+    first = r.result.path.poses[0].pose.position
+    x, y = track.last()
+    assert math.hypot(first.x - x, first.y - y) < 0.3, ((first.x, first.y), (x, y))
     # A goal outside the graph: ABORTED with Nav2's GOAL_OUTSIDE_MAP.
     uuid, resp = plan.send_goal(
         goal=pose_stamped(plan, 50.0, 0.0),

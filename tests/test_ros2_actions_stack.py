@@ -23,6 +23,7 @@ from smana.services.ros2 import nav2_types as n2  # noqa: E402
 from smana.services.ros2 import rmw  # noqa: E402
 from tests.conftest import ZenohStack, wait_for  # noqa: E402
 from tests.support.ros2_action_client import (  # noqa: E402
+    COMPUTE_PATH_TO_POSE,
     NAVIGATE_TO_POSE,
     ActionClient,
     Err,
@@ -32,6 +33,7 @@ from tests.support.ros2_sdk import sdk_session  # noqa: E402
 
 NAV = "nav2_msgs/action/NavigateToPose"
 POSE = "geometry_msgs/msg/PoseStamped"
+PLAN = "nav2_msgs/action/ComputePathToPose"
 
 
 @pytest.fixture
@@ -211,6 +213,49 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     assert wait_for(lambda: status().details["actions"]["navigate_running"] == 1, 10)
     assert status().details["actions"]["feedback"] >= 1
     pub.close()
+
+    # The status topic is transient-local: a client that comes late gets the goals at once.
+    from zenoh import ext
+
+    late: list = []
+    sub = ext.declare_advanced_subscriber(
+        s.session,
+        client.keys["status"],
+        lambda sample: late.append(
+            client.decode(sample.payload.to_bytes(), client.types["status"])
+        ),
+        history=ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+    )
+    assert wait_for(lambda: late, 10), "no status from the transient-local cache"
+    assert uuid in {bytes(st.goal_info.goal_id.uuid) for st in late[-1].status_list}
+    sub.undeclare()
+
+    # ComputePathToPose with no planner running: ABORTED with Nav2's TIMEOUT after 5 s; with
+    # `use_start = false` and no robot pose yet: UNKNOWN; an unknown planner_id: INVALID_PLANNER.
+    plan_hashes = {
+        "send_goal": types.hash(n2.part(PLAN, "SendGoal")),
+        "get_result": types.hash(n2.part(PLAN, "GetResult")),
+    }
+    plan = ActionClient(
+        s.port, "/smana/test/compute_path_to_pose", PLAN, COMPUTE_PATH_TO_POSE, plan_hashes
+    )
+
+    def ask(use_start=True, planner_id=""):
+        uuid, resp = plan.send_goal(
+            goal=pose_stamped(plan, 3.0, 0.0),
+            start=pose_stamped(plan, 0.0, 0.0),
+            planner_id=planner_id,
+            use_start=use_start,
+        )
+        assert resp.accepted
+        r = plan.get_result(uuid, 30.0)
+        assert r.status == n2.STATUS_ABORTED and len(r.result.path.poses) == 0, r
+        return r.result.error_code
+
+    assert ask() == 207
+    assert ask(use_start=False) == 200
+    assert ask(planner_id="GridBased") == 201
+    plan.close()
     client.close()
     assert np.isfinite(after.msgs_in)
     assert s.stop(ros2) == 0, s.log("ros2")
