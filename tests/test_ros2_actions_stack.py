@@ -256,6 +256,12 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     assert ask(use_start=False) == 200
     assert ask(planner_id="GridBased") == 201
     plan.close()
+
+    # An explorer that goes silent on a goal: ABORTED once 5 s pass without its feedback.
+    g5, resp = client.send_goal(**goal(0.5, 0.5))
+    assert resp.accepted
+    r = client.get_result(g5, 30.0)
+    assert r.status == n2.STATUS_ABORTED and "no feedback" in r.result.error_msg, r
     client.close()
     assert np.isfinite(after.msgs_in)
     assert s.stop(ros2) == 0, s.log("ros2")

@@ -8,8 +8,9 @@ rclcpp_action's server and rcl_action (ROS 2 Jazzy):
 
 - send_goal: the goal is accepted (ACCEPTED, then EXECUTING) or refused (`accepted = false`);
 - get_result: answered at once for a finished goal, held until the result exists for a running
-  one, STATUS_UNKNOWN for a goal the server does not know (or whose result expired:
-  RESULT_TIMEOUT_S, rcl_action's default of 10 s);
+  one (rmw_zenoh_cpp's clients wait for a reply without a timeout), STATUS_UNKNOWN for a goal
+  the server does not know (or whose result expired: RESULT_TIMEOUT_S, rcl_action's default of
+  10 s);
 - cancel_goal: rcl_action's policy (one goal by id, all goals, all accepted at or before a
   stamp); an unknown id is ERROR_UNKNOWN_GOAL_ID, a finished goal ERROR_GOAL_TERMINATED;
 - status: every goal the server holds, reliable and transient-local (depth 1), published on
