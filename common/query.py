@@ -6,6 +6,8 @@ planner)."""
 from __future__ import annotations
 
 import json
+import time
+from collections.abc import Callable
 
 import msgpack
 
@@ -35,9 +37,12 @@ def request(
     body: Message | dict | None = None,
     timeout_s: float = 5.0,
     as_json: bool = False,
+    while_waiting: Callable[[], None] | None = None,
 ):
     """Query `key` once and return the first reply: a Message when the reply is a typed message,
-    else the decoded map."""
+    else the decoded map. `while_waiting`, when given, is called every few tens of milliseconds
+    until the query is over, on the caller's thread (the explorer keeps its goal feedback going
+    while the planner thinks)."""
     import zenoh
 
     kw = {}
@@ -51,7 +56,8 @@ def request(
         kw["encoding"] = (
             zenoh.Encoding.APPLICATION_JSON if as_json else zenoh.Encoding("application/msgpack")
         )
-    replies = list(session.get(key, timeout=timeout_s, **kw))
+    handler = session.get(key, timeout=timeout_s, **kw)
+    replies = list(handler) if while_waiting is None else _gather(handler, while_waiting)
     if not replies:
         raise QueryError("no_reply", f"no service answered {key} (is it running?)")
     r = replies[0]
@@ -61,6 +67,24 @@ def request(
         msg = data.get("message", str(data)) if isinstance(data, dict) else str(data)
         raise QueryError(kind, f"{key}: {msg}", data if isinstance(data, dict) else None)
     return _parse(r.ok.payload.to_bytes())
+
+
+def _gather(handler, while_waiting: Callable[[], None]) -> list:
+    """Every reply of a query, calling `while_waiting` between polls until the query is over
+    (zenoh closes the channel then)."""
+    import zenoh
+
+    replies = []
+    while True:
+        try:
+            r = handler.try_recv()
+        except zenoh.ZError:  # empty and closed: the query is over
+            return replies
+        if r is not None:
+            replies.append(r)
+            continue
+        while_waiting()
+        time.sleep(0.02)
 
 
 def _parse(payload: bytes):

@@ -12,7 +12,8 @@ names its sender by its robot segment. For every key family of both robots it pu
 declares a queryable that replies, and declares a liveliness token; an observer logged in as
 `router` (it sees everything the router lets through) subscribes, queries and asks for the tokens.
 
-Then the queries that write (a mapper's save, a member's fleet claim), on both robots, with every
+Then the queries that write (a mapper's save, a member's fleet claim, an explorer's goal and its
+cancel: only the robot's own drive role, its router and the operator), on both robots, with every
 selector shape that once got past a deny rule (`*`, `**`, `$*`, issue 25): the observer's
 queryables on those keys record every query that reaches them, wildcard or not, by the payload
 that names it. What may pass is written below as data, independently of `acl_policy`. Nothing is
@@ -156,6 +157,10 @@ class Who:
                 self.named and self.scope == "robot" and own and self.role in ("explorer", "router")
             )
             out[f"claim@{robot}"] = (f"smana/{FLEET}/coordinator/claim/{robot}", may_claim)
+            # the explorer's goals: the robot's drive role (its explorer), its router, the operator
+            may_goal = self.named and own and self.role in ("explorer", "router", "operator")
+            out[f"goal@{robot}"] = (f"smana/{robot}/explorer/goal", may_goal)
+            out[f"cancel@{robot}"] = (f"smana/{robot}/explorer/goal/cancel", may_goal)
         return out
 
     def may_put(self, key: str) -> bool:
@@ -302,6 +307,8 @@ class Observer:
             # Whatever the selector: `smana/r1/mapper/*` reaches this as surely as the key does.
             session.declare_queryable("smana/*/mapper/save", self._on_write),
             session.declare_queryable(f"smana/{FLEET}/coordinator/claim/*", self._on_write),
+            session.declare_queryable("smana/*/explorer/goal", self._on_write),
+            session.declare_queryable("smana/*/explorer/goal/cancel", self._on_write),
         ]
 
     def _on_sample(self, sample) -> None:
@@ -543,7 +550,7 @@ def test_every_identity_over_every_listener_gets_exactly_its_row(router):
         print(
             f"{len(probes)} sessions open in {ready_s:.1f} s; {cells} cells (sessions x 2 robots "
             f"x {len(TABLE)} key families x put/delete/reply/token) and {len(sent)} queries that "
-            f"write ({len(SESSIONS)} sessions x 4 keys x {len(SHAPES)} selector shapes, "
+            f"write ({len(SESSIONS)} sessions x 8 keys x {len(SHAPES)} selector shapes, "
             f"{len(reached)} reached), {len(wild)} puts on a wildcard key "
             f"({len(observer.wild)} through), checked in {total_s:.1f} s ({rounds} round(s))"
         )

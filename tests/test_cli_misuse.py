@@ -260,6 +260,7 @@ def test_bad_config_value_is_one_line(tmp_path):
         ("goto", ["1", "2", "--tolerance", "0"], ["--tolerance", "> 0"]),
         ("goto", ["1", "2", "--yaw", "inf"], ["--yaw", "finite"]),
         ("goto", ["1"], ["required", "y"]),
+        ("goto", ["1", "2", "--id", "x" * 65], ["--id", "64 printable"]),
         ("replay", ["--rate", "0", "x"], ["--rate", "> 0"]),
         ("replay", ["--count", "-1", "x"], ["--count", ">= 0"]),
         ("bench planner", ["--queries", "9"], ["--queries", "<= 4"]),

@@ -62,9 +62,10 @@ def goal(s, robot, **body) -> dict:
     return request(s, keys.explorer_goal(robot), body, timeout_s=5)
 
 
-def start_explorer(stack, *args):
-    stack.service("explorer", *BOUNDS, "--set", "explorer.control_rate_hz=20", *args)
+def start_explorer(stack, *args) -> subprocess.Popen:
+    proc = stack.service("explorer", *BOUNDS, "--set", "explorer.control_rate_hz=20", *args)
     stack.wait_alive("explorer", timeout_s=120)
+    return proc
 
 
 def goto(stack, *args) -> subprocess.Popen:
@@ -102,6 +103,14 @@ def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto
         assert r["accepted"] is False and "tolerance_m" in r["reason"]
         raw = s.get(keys.explorer_goal(robot), payload=b"\xc1 not msgpack", timeout=5)
         assert msgpack.unpackb(next(iter(raw)).ok.payload.to_bytes())["accepted"] is False
+        # a wildcard selector reaches the goal queryable too: it drives nothing
+        wild = s.get(
+            f"smana/{robot}/explorer/**", payload=msgpack.packb({"x": 5.0, "y": 4.0}), timeout=5
+        )
+        answers = [msgpack.unpackb(r.ok.payload.to_bytes()) for r in wild if r.ok is not None]
+        mine = [a for a in answers if "reason" in a]  # the goal's and the cancel's replies
+        assert len(mine) == 2 and not any(a.get("accepted") or a.get("canceled") for a in mine)
+        assert wait_for(lambda: status(s, robot).rejected.get("selector") == 2, 5)
         st = status(s, robot)
         assert st.rejected.get("malformed") == 2 and st.rejected.get("value") == 2, st.rejected
         assert st.rejected.get("out_of_bounds") == 1
@@ -144,6 +153,12 @@ def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto
         assert "accepted" in out and "m to go" in out and "succeeded" in out, out
         assert math.hypot(bot.x - 5.0, bot.y - 2.0) <= 0.3 + 0.05
 
+        # a goal the explorer refuses: one line, exit 1
+        p = goto(stack, "50", "2")
+        procs.append(p)
+        out, _ = p.communicate(timeout=30)
+        assert p.returncode == 1 and out.startswith("goal refused") and "outside" in out, out
+
         # Ctrl-C cancels its goal and exits 1
         p = goto(stack, "1", "6")
         procs.append(p)
@@ -171,7 +186,7 @@ def test_exploration_pauses_during_a_goal_and_resumes_after_it(zenoh_stack):
     planner, token = stub_planner(s, robot, [])
     bot = StubRobot(s, robot)
     try:
-        start_explorer(stack)
+        proc = start_explorer(stack)
         s.put(keys.graph_patch(robot), encode(patch(4.0)))  # the frontier: x = 4 m
         fb = Feedback(stack)
         state = lambda: request(s, keys.explorer_state(robot))  # noqa: E731
@@ -188,7 +203,56 @@ def test_exploration_pauses_during_a_goal_and_resumes_after_it(zenoh_stack):
         # then it explores again
         assert wait_for(lambda: state()["n_plans"] > after["n_plans"], 10)
         assert state()["exploring"] and state()["nav_goal"]["state"] == "succeeded"
+        # an explorer stopped while a goal runs says the goal ends there
+        assert goal(s, robot, x=3.0, y=7.0, id="last")["accepted"]
+        assert stack.stop(proc) == 0
+        assert wait_for(lambda: fb.reached("last", "aborted"), 5), fb.states("last")
+        assert "stopped" in fb.of("last")[-1][1]["reason"]
     finally:
         bot.close()
         planner.undeclare()
         token.undeclare()
+
+
+def test_a_request_keeps_calling_while_waiting_until_the_reply(zenoh_stack):
+    """What keeps a goal's feedback at its rate while the planner thinks (common/query.py)."""
+    s = zenoh_stack.session
+
+    def slow(query):
+        def answer():
+            time.sleep(0.4)  # simulated work: a planner thinking
+            query.reply(query.key_expr, msgpack.packb({"ok": True}))
+            query.drop()
+
+        threading.Thread(target=answer, daemon=True).start()
+
+    q = s.declare_queryable("smana/test/slow/path", slow)
+    try:
+        calls = []
+        t0 = time.monotonic()
+        reply = request(s, "smana/test/slow/path", {}, 5.0, while_waiting=lambda: calls.append(1))
+        assert reply == {"ok": True} and time.monotonic() - t0 >= 0.4
+        assert len(calls) >= 5  # every few tens of ms
+    finally:
+        q.undeclare()
+
+
+def test_smana_goto_without_an_explorer_or_without_feedback(zenoh_stack):
+    """No explorer answers: one line, exit 2. An explorer that accepts and then says nothing: exit
+    1 after --feedback-timeout."""
+    stack, s = zenoh_stack, zenoh_stack.session
+    p = goto(stack, "1", "2")
+    out, _ = p.communicate(timeout=30)
+    assert p.returncode == 2 and len(out.strip().splitlines()) == 1, out
+    assert "no service answered" in out and "Traceback" not in out
+
+    def mute(query):
+        query.reply(query.key_expr, msgpack.packb({"accepted": True, "id": "m", "reason": ""}))
+
+    q = s.declare_queryable(keys.explorer_goal(stack.robot), mute)
+    try:
+        p = goto(stack, "1", "2", "--feedback-timeout", "1")
+        out, _ = p.communicate(timeout=30)
+        assert p.returncode == 1 and "no feedback for 1 s" in out, out
+    finally:
+        q.undeclare()

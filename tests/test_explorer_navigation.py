@@ -295,3 +295,15 @@ def test_a_stuck_robot_backs_off_counts_a_recovery_and_replans():
         ex.update_pose(1.0, 1.0, 0.0, ex.t_now + 0.1)
     assert ex.nav.recoveries >= 1 and ex.nav.state == "active"
     assert ex.nav_feedback()["recoveries"] == ex.nav.recoveries
+
+
+def test_a_goal_sent_before_the_first_pose_starts_its_clock_at_that_pose():
+    ex = Explorer(ExplorerConfig(mode="navigate", goal_time_budget_s=20.0), TRAV, 5)
+    ex.update_grid(grid())
+    ex.accept_goal(GoalSpec(3.0, 1.0, None, 0.2, "early"))
+    assert ex.nav_feedback()["navigation_time_s"] == 0.0 and ex.nav_feedback()["pose"] is None
+    ex.update_pose(1.0, 1.0, 0.0, 1000.0)  # robot time far from 0
+    assert ex.wants_plan() == "goal" and ex.nav.state == "active"
+    run(ex, straight(), 30.0, until=lambda e: not e.nav_active)
+    assert ex.nav.state == "succeeded", ex.nav_feedback()
+    assert ex.nav_changes[-1]["navigation_time_s"] < 10.0

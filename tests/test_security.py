@@ -367,3 +367,30 @@ def test_the_policy_grants_nothing_outside_smana():
         keys = [k for rule in policy["rules"] for k in rule["key_exprs"]]
         assert keys and all(k.startswith("smana/") for k in keys), keys
         assert all(rule["permission"] == "allow" for rule in policy["rules"])
+
+
+def test_only_a_robots_drive_role_and_the_operator_may_send_its_explorer_goals():
+    """The policy's side of `explorer/goal` and `goal/cancel` (the router's side, every identity
+    on every listener, is test_acl_table.py): exact keys, granted to the robot's explorer, its
+    router and the base's operator; no other robot's identity, no other role of the robot."""
+    policy = acl_policy(["r1", "r2"])
+    rules = {r["id"]: r for r in policy["rules"]}
+    goal_keys = ["smana/r1/explorer/goal", "smana/r1/explorer/goal/cancel"]
+
+    def granted(user: str) -> set[str]:
+        subjects = {s["id"] for s in policy["subjects"] if user in (s.get("usernames") or [])}
+        out = set()
+        for p in policy["policies"]:
+            if subjects & set(p["subjects"]):
+                for rid in p["rules"]:
+                    r = rules[rid]
+                    if "query" in r["messages"] and "ingress" in r["flows"]:
+                        out |= {k for k in r["key_exprs"] if "/explorer/goal" in k}
+        return out
+
+    assert rules["goal-r1"]["key_exprs"] == goal_keys
+    assert granted("r1.explorer") == set(goal_keys)
+    assert granted("r1.router") == set(goal_keys)
+    assert granted("operator") == set(goal_keys) | {k.replace("r1", "r2") for k in goal_keys}
+    for other in ("r2.explorer", "r2.router", "r1.mapper", "r1.tool", "r1.ros2", "tool"):
+        assert not granted(other) & set(goal_keys), other

@@ -2,6 +2,10 @@
 
 Drives the robot (robot/cmd_vel) toward the view that sees most unknown ground for the least path
 cost, until no view is worth it or `explorer.time_budget_s` is spent; then exits with status 0.
+
+It also drives to the poses it is sent (query explorer/goal, or `smana goto X Y`): exploration
+pauses meanwhile and resumes after (`explorer.resume_after_goal`). With
+`--set explorer.mode=navigate` it never explores and only drives to the goals it is sent.
 """
 
 from __future__ import annotations

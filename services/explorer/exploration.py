@@ -19,8 +19,9 @@ Two ways to choose (`strategy`): "nbv", the paper's next-best view (`frontier.se
 `frontier.ViewScore`), and "nearest_frontier", Yamauchi's baseline: the frontier node nearest by
 travel over free nodes whose view is worth a look (`_nearest_frontier`).
 
-The choice of a view lives in `choosing.py`, the driving in `driving.py`; `Explorer` is put
-together from both and is what the service and the benches use.
+The choice of a view lives in `choosing.py`, the driving in `driving.py`, the goals it is sent
+("go to this pose": exploration pauses meanwhile) in `navigation.py`; `Explorer` is put together
+from the three and is what the service and the benches use.
 
 Its parameters are the [explorer] config section as it is (`ExplorerConfig`, with its
 [explorer.view] and [explorer.follower] tables); the names above are its keys.
@@ -143,7 +144,6 @@ class Explorer(Choosing, Driving, Navigating):
         self.nav: NavGoal | None = None
         self.nav_changes: list[dict] = []  # feedback at each change of a goal's state, to send
         self.exploring = config.mode == "explore"
-        self._back_off_s = BACK_OFF_S
         self._resumed_goal = False  # a goal from a checkpoint: its path found at the next pose
         self.pose: tuple[float, float, float] | None = None
         self.t_start: float | None = None
@@ -197,6 +197,8 @@ class Explorer(Choosing, Driving, Navigating):
                 self.distance_m += step
         self.pose = (x, y, yaw)
         self.t_now = t
+        if self.nav is not None and self.nav.t_accepted is None:
+            self.nav.t_accepted = t  # a goal sent before the first pose: its time starts now
         if self._resumed_goal and self.goal is not None:
             self._resumed_goal = False
             self.follower.skip_to_nearest(x, y)

@@ -37,8 +37,20 @@ def finite(text: str) -> float:
     return v
 
 
+def goal_id(text: str) -> str:
+    """An argparse type: a goal id as the explorer takes it."""
+    from smana.services.explorer.navigation import GoalRefused, check_goal_id
+
+    try:
+        return check_goal_id(text)
+    except GoalRefused as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def parser():
-    p = make_parser("smana goto", __doc__.strip().splitlines()[0])
+    lines = __doc__.strip().splitlines()
+    p = make_parser("smana goto", lines[0])
+    p.epilog = " ".join(line.strip() for line in lines[1:] if line.strip())
     p.add_argument("x", type=finite, help="goal x (m, the map frame)")
     p.add_argument("y", type=finite, help="goal y (m)")
     p.add_argument("--yaw", type=finite, metavar="RAD", help="heading to face at the goal")
@@ -48,7 +60,9 @@ def parser():
         metavar="M",
         help="how near is near enough (default: explorer.follower.goal_tolerance_m)",
     )
-    p.add_argument("--id", help="the goal's id (1 to 64 printable characters; default: made up)")
+    p.add_argument(
+        "--id", type=goal_id, help="the goal's id (1 to 64 printable characters; default: made up)"
+    )
     p.add_argument(
         "--feedback-timeout",
         type=positive_float,

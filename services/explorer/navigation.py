@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from smana.services.explorer import frontier as fr
+from smana.services.explorer.driving import BACK_OFF_S
 from smana.services.explorer.follower import wrap_angle
 
 STATES = ("active", "succeeded", "aborted", "canceled", "preempted")
@@ -57,7 +58,7 @@ class GoalSpec:
 @dataclass
 class NavGoal:
     spec: GoalSpec
-    t_accepted: float
+    t_accepted: float | None  # robot time; None: accepted before the first pose (set by it)
     state: str = "active"
     reason: str = ""
     recoveries: int = 0
@@ -153,7 +154,7 @@ class Navigating:
             self._end_nav("preempted", f"pre-empted by goal {spec.id}")
         self._set_goal(None)  # the view (or the old goal's path) is dropped
         self._spin = None
-        self.nav = NavGoal(spec, self.t_now)
+        self.nav = NavGoal(spec, self.t_now if self.pose is not None else None)
         self._t_last_plan = -math.inf  # plan at once
         self.nav_changes.append(self.nav_feedback())
         return self.nav
@@ -168,6 +169,11 @@ class Navigating:
             raise GoalRefused("unknown_goal", f"goal {gid} is not the running one")
         self._end_nav("canceled", "canceled")
         return self.nav
+
+    def abort_goal(self, reason: str) -> None:
+        """End the running goal "aborted" (the explorer is stopping), if one runs."""
+        if self.nav_active:
+            self._end_nav("aborted", reason)
 
     def nav_feedback(self) -> dict:
         """The feedback of the current (or last) goal, as `explorer/goal/feedback` carries it."""
@@ -184,13 +190,14 @@ class Navigating:
         else:
             remaining = math.nan
         end = n.t_ended if n.t_ended is not None else self.t_now
+        since = end if n.t_accepted is None else n.t_accepted
         return {
             "id": n.id,
             "state": n.state,
             "goal": [s.x, s.y, s.yaw],
             "pose": pose,
             "distance_remaining_m": float(remaining),
-            "navigation_time_s": max(0.0, float(end - n.t_accepted)),
+            "navigation_time_s": max(0.0, float(end - since)),
             "recoveries": n.recoveries,
             "reason": n.reason,
         }
@@ -232,7 +239,7 @@ class Navigating:
         if self._stuck():
             n.recoveries += 1
             self.n_stuck += 1
-            self._back_off_until = t + self._back_off_s
+            self._back_off_until = t + BACK_OFF_S
             return "stuck"
         if t - self._t_last_plan >= self.config.replan_period_s:
             return "periodic"  # the map grew: a better (or the only) path may be there now

@@ -11,6 +11,10 @@ around the robot and the latest pose to the core, asks the planner (`planner/pat
 for the paths the core wants costed, and publishes a VelocityCommand on `robot/cmd_vel` and its
 state on `explorer/state` (a msgpack map; also answered as a query on the same key).
 
+It also drives to the poses it is sent: queries `explorer/goal` and `explorer/goal/cancel`, the
+feedback on `explorer/goal/feedback` (services/explorer/navigation.py has the contract); a query
+by a wildcard selector drives nothing (refused `selector`).
+
 When exploration is done (no view worth it, or the time budget spent), it stops the robot, saves
 its final state into `<run_dir>/explorer/` (state.json, trajectory.csv, graph.npz) and exits with
 status 0, which tells `smana up` that the run is over.
@@ -285,6 +289,7 @@ class ExplorerService(Service):
         gid = body.get("id") if isinstance(body, dict) else None
         gid = gid if isinstance(gid, str) else None
         try:
+            self._exact(req, keys.explorer_goal(self.robot))
             if isinstance(body, MessageError):
                 raise GoalRefused("malformed", str(body))
             if self.core.done:
@@ -320,6 +325,7 @@ class ExplorerService(Service):
         """A cancel of the running goal: the robot stops at once."""
         gid = None
         try:
+            self._exact(req, keys.explorer_goal_cancel(self.robot))
             try:
                 gid = parse_cancel(req.body())
             except MessageError as exc:
@@ -332,6 +338,13 @@ class ExplorerService(Service):
         self.log.info("goal %s canceled", nav.id)
         self._send_feedback()
         return {"canceled": True, "id": nav.id, "reason": ""}
+
+    @staticmethod
+    def _exact(req: Request, key: str) -> None:
+        # a wildcard selector (`smana/r1/**`, a tool listing everything) reaches this queryable
+        # too: only a query on the exact key drives the robot, whatever the router lets through
+        if req.key != key:
+            raise GoalRefused("selector", f"{req.key} is not {key}")
 
     def _send_feedback(self, now: float | None = None) -> None:
         """Every change of a goal's state, then (while one runs) its progress once a period."""
@@ -381,6 +394,7 @@ class ExplorerService(Service):
             return
         if now - self._last_pose_wall > self.cfg.pose_timeout_s:
             self._send(0.0, 0.0)  # no pose, no driving
+            self._send_feedback(now)  # a goal's sender still hears from it (its pose is stale)
             return
         if self._t_wall0 is None and self.core.grid is not None:
             self._t_wall0 = now
@@ -486,8 +500,14 @@ class ExplorerService(Service):
             allow_unknown=allow_unknown,
         )
         try:
+            # a goal's feedback goes on at its rate while the planner thinks
+            wait = self._send_feedback if self.core.nav_active else None
             reply = request(
-                self.session, keys.path_query(self.robot), req, self.cfg.planner_timeout_s
+                self.session,
+                keys.path_query(self.robot),
+                req,
+                self.cfg.planner_timeout_s,
+                while_waiting=wait,
             )
         except QueryError as exc:
             self._path_error(exc.kind)
@@ -543,6 +563,9 @@ class ExplorerService(Service):
             return  # stopped before it was ready: the run's checkpoint stays as it was
         try:
             self._send(0.0, 0.0)
+            # a goal's sender hears that it ends here (a restarted explorer does not resume it)
+            self.core.abort_goal("the explorer stopped")
+            self._send_feedback()
         except Exception:  # the session may already be closing
             pass
         self.save()

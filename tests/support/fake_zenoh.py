@@ -162,8 +162,16 @@ class _Channel:
             self.cv.notify_all()
 
     def try_recv(self):
+        """The next item, None when there is none yet; ZError once empty and closed (as zenoh's:
+        a query's channel closes when the query is over)."""
         with self.cv:
-            return self.items.popleft() if self.items else None
+            if self.items:
+                return self.items.popleft()
+            if self.deadline is not None and self.deadline <= time.monotonic():
+                self.closed = True
+            if self.closed:
+                raise zenoh.ZError("fake zenoh: channel is empty and closed")
+            return None
 
     def recv(self):
         with self.cv:
