@@ -311,6 +311,7 @@ class Ros2Actions:
         self.counts = dict.fromkeys(("goals", "accepted", "refused", "feedback", "canceled"), 0)
         self._explorer_ids: dict[str, bytes] = {}  # explorer goal id -> uuid
         self._nav_lock = threading.Lock()
+        self._count_lock = threading.Lock()
         for endpoints in (self.nav, self.plan):
             for what in ("send_goal", "get_result", "cancel_goal"):
                 key = endpoints.keys[what]
@@ -328,6 +329,10 @@ class Ros2Actions:
 
     def close(self) -> None:
         self.jobs.close()
+
+    def _count(self, what: str) -> None:
+        with self._count_lock:  # workers and the loop both count
+            self.counts[what] += 1
 
     # -- queries (zenoh's thread -> a worker) ---------------------------------------------------
 
@@ -420,13 +425,13 @@ class Ros2Actions:
 
     def _send_goal(self, endpoints: ActionEndpoints, msg, reply) -> None:
         uuid = bytes(msg.goal_id.uuid)
-        self.counts["goals"] += 1
+        self._count("goals")
         if endpoints is self.nav:
             ok, why = self.navigate(uuid, msg.goal, reply)
         else:
             ok, why = self.compute_path(uuid, msg.goal, reply)
         if not ok:
-            self.counts["refused"] += 1
+            self._count("refused")
             reply(self._goal_response(endpoints, False, 0))
             raise_refused(why)
 
@@ -462,7 +467,7 @@ class Ros2Actions:
             if not (isinstance(answer, dict) and answer.get("canceled")):
                 why = answer.get("reason", "") if isinstance(answer, dict) else ""
                 self.svc.log.info("explorer did not cancel %s: %s", g.uuid.hex(), why)
-        self.counts["canceled"] += 1
+        self._count("canceled")
         self._end(endpoints, g.uuid, STATUS_CANCELED, self._empty_result(endpoints, 0, "canceled"))
 
     def _end(self, endpoints: ActionEndpoints, uuid: bytes, status: int, result) -> None:
@@ -507,7 +512,7 @@ class Ros2Actions:
             book.discard(uuid)
             self._explorer_ids.pop(uuid.hex(), None)
             return False, why
-        self.counts["accepted"] += 1
+        self._count("accepted")
         reply(self._goal_response(self.nav, True, stamp_ns))
         book.set_status(uuid, STATUS_EXECUTING)
         # Nav2 ends the goal a new one pre-empts ABORTED.
@@ -568,7 +573,7 @@ class Ros2Actions:
             distance_remaining=remaining,
         )
         self.nav.publish_feedback(uuid, fb_msg)
-        self.counts["feedback"] += 1
+        self._count("feedback")
         end = {
             "succeeded": (STATUS_SUCCEEDED, 0),
             "aborted": (STATUS_ABORTED, NAV_UNKNOWN),
@@ -608,7 +613,7 @@ class Ros2Actions:
         stamp_ns = time.time_ns()
         if book.add(uuid, goal, stamp_ns) is None:
             return False, "refused: goal id in use, or too many goals held"
-        self.counts["accepted"] += 1
+        self._count("accepted")
         reply(self._goal_response(self.plan, True, stamp_ns))
         book.set_status(uuid, STATUS_EXECUTING)
         self.plan.publish_status()
@@ -651,8 +656,10 @@ class Ros2Actions:
         self._end(self.plan, uuid, STATUS_SUCCEEDED if code == 0 else STATUS_ABORTED, result)
 
     def status_details(self) -> dict:
+        with self._count_lock:
+            counts = dict(self.counts)
         return {
-            **self.counts,
+            **counts,
             "navigate_running": _announced(self.nav.book),
             "compute_path_running": _announced(self.plan.book),
         }
