@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 
 import msgpack
 import numpy as np
@@ -230,7 +231,7 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     assert uuid in {bytes(st.goal_info.goal_id.uuid) for st in late[-1].status_list}
     sub.undeclare()
 
-    # ComputePathToPose with no planner running: ABORTED with Nav2's TIMEOUT after 5 s; with
+    # ComputePathToPose with no planner answering: ABORTED with Nav2's TIMEOUT; with
     # `use_start = false` and no robot pose yet: UNKNOWN; an unknown planner_id: INVALID_PLANNER.
     plan_hashes = {
         "send_goal": types.hash(n2.part(PLAN, "SendGoal")),
@@ -241,6 +242,7 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     )
 
     def ask(use_start=True, planner_id=""):
+        t0 = time.monotonic()
         uuid, resp = plan.send_goal(
             goal=pose_stamped(plan, 3.0, 0.0),
             start=pose_stamped(plan, 0.0, 0.0),
@@ -248,10 +250,22 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
             use_start=use_start,
         )
         assert resp.accepted
+        # the acceptance comes at once, not when the planner's 5 s are over
+        assert time.monotonic() - t0 < 2.0
         r = plan.get_result(uuid, 30.0)
         assert r.status == n2.STATUS_ABORTED and len(r.result.path.poses) == 0, r
         return r.result.error_code
 
+    # A planner that never answers (its queries held): TIMEOUT once the 5 s are over, and the
+    # goal's acceptance all the same at once.
+    held: list = []
+    silent = s.session.declare_queryable(keys.path_query("test"), held.append)
+    t0 = time.monotonic()
+    assert ask() == 207
+    assert held and time.monotonic() - t0 >= 4.5
+    silent.undeclare()
+    held.clear()
+    # No planner at all: TIMEOUT too (nothing answered).
     assert ask() == 207
     assert ask(use_start=False) == 200
     assert ask(planner_id="GridBased") == 201

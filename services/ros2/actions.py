@@ -370,11 +370,14 @@ class Ros2Actions:
 
             def reply(body: bytes) -> None:
                 svc._send_reply(query, key, body, None, reply_att)
+                # The asker's get ends with the reply, not when the work behind it does (a
+                # ComputePathToPose goal is planned on after its acceptance went out).
+                _finish(query)
 
             if what == "send_goal":
                 self._send_goal(endpoints, msg, reply)
             elif what == "cancel_goal":
-                reply(self._cancel(endpoints, msg))
+                self._cancel(endpoints, msg, reply)
             else:
                 held = self._get_result(endpoints, msg, query, reply)
         except _Answered as exc:  # `accepted = false` went out already
@@ -400,7 +403,6 @@ class Ros2Actions:
                 result = self._empty_result(endpoints)
             body = endpoints.msg("GetResult_Response")(status=status, result=result)
             reply(endpoints.encode("get_result", body))
-            _finish(query)
 
         how = endpoints.book.result(uuid, respond)
         if how == "full":
@@ -435,7 +437,7 @@ class Ros2Actions:
             reply(self._goal_response(endpoints, False, 0))
             raise_refused(why)
 
-    def _cancel(self, endpoints: ActionEndpoints, msg) -> bytes:
+    def _cancel(self, endpoints: ActionEndpoints, msg, reply) -> None:
         uuid = bytes(msg.goal_info.goal_id.uuid)
         stamp = msg.goal_info.stamp
         code, targets = endpoints.book.cancel(uuid, int(stamp.sec) * 10**9 + int(stamp.nanosec))
@@ -447,9 +449,10 @@ class Ros2Actions:
             goals_canceling=[goal_info(self.types, g.uuid, g.stamp_ns) for g in targets],
         )
         # The response goes first (rclcpp_action answers, then executes the cancel).
+        reply(endpoints.encode("cancel_goal", body))
         for g in targets:
-            self.jobs.submit(lambda g=g: self._carry_out_cancel(endpoints, g))
-        return endpoints.encode("cancel_goal", body)
+            if not self.jobs.submit(lambda g=g: self._carry_out_cancel(endpoints, g)):
+                self._carry_out_cancel(endpoints, g)  # never left CANCELING for want of a worker
 
     def _carry_out_cancel(self, endpoints: ActionEndpoints, g: Goal) -> None:
         if endpoints is self.nav:
@@ -634,7 +637,10 @@ class Ros2Actions:
                 self.svc.session, keys.path_query(self.svc.robot), ask, QUERY_TIMEOUT_S
             )
         except QueryError as exc:
-            code = PLAN_TIMEOUT if exc.kind == "no_reply" else PLAN_UNKNOWN
+            # Nothing answered (no planner) or the deadline passed (zenoh's timeout reply):
+            # TIMEOUT; an error reply of the planner's own: UNKNOWN.
+            late = time.monotonic() - t0 >= QUERY_TIMEOUT_S - 0.1
+            code = PLAN_TIMEOUT if exc.kind == "no_reply" or late else PLAN_UNKNOWN
             self._plan_end(uuid, None, code, str(exc), t0)
             return True, ""
         if not isinstance(answer, PathReply):
