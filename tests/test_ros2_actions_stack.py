@@ -48,8 +48,8 @@ def ros_stack(tmp_path, monkeypatch):
 
 
 class FakeExplorer:
-    """The explorer's goal contract on the test's session: accepts every goal, cancels on
-    request, and publishes the feedback the test tells it to."""
+    """The explorer's goal contract on the test's session: accepts every goal but one at x = 99,
+    cancels on request, and publishes the feedback the test tells it to."""
 
     def __init__(self, stack):
         self.goals: list[dict] = []
@@ -65,6 +65,10 @@ class FakeExplorer:
 
     def _goal(self, query):
         body = msgpack.unpackb(query.payload.to_bytes())
+        if body["x"] == 99.0:  # the explorer's refusal (a goal on an obstacle, say)
+            reply = {"accepted": False, "id": body["id"], "reason": "goal on an obstacle"}
+            query.reply(query.key_expr, msgpack.packb(reply))
+            return
         self.goals.append(body)
         reply = {"accepted": True, "id": body["id"], "reason": ""}
         query.reply(query.key_expr, msgpack.packb(reply))
@@ -84,7 +88,7 @@ class FakeExplorer:
             "distance_remaining_m": remaining,
             "navigation_time_s": 2.5,
             "recoveries": 1,
-            "reason": "",
+            "reason": "" if state == "active" else f"the test says {state}",
         }
         self.session.put(self.feedback_key, msgpack.packb(fb))
 
@@ -159,6 +163,19 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     assert wait_for(lambda: explorer.feedback(g3.hex(), "succeeded", 0.1) or g3 in results, 10)
     t3.join(10)
     assert results[g3].status == n2.STATUS_SUCCEEDED and results[g3].result.error_code == 0
+
+    # A goal the explorer gives up on: ABORTED with Nav2's UNKNOWN (9000) and its reason; one
+    # it refuses: `accepted = false`.
+    g4, resp = client.send_goal(**goal(1.5, 1.5))
+    assert resp.accepted
+    t4 = threading.Thread(target=wait_result, args=(g4,))
+    t4.start()
+    assert wait_for(lambda: explorer.feedback(g4.hex(), "aborted", 1.0) or g4 in results, 10)
+    t4.join(10)
+    assert results[g4].status == n2.STATUS_ABORTED and results[g4].result.error_code == 9000
+    assert results[g4].result.error_msg == "the test says aborted"
+    _, refused = client.send_goal(**goal(99.0, 0.0))
+    assert not refused.accepted
 
     # Unknown ids: STATUS_UNKNOWN and ERROR_UNKNOWN_GOAL_ID, as rclcpp_action answers.
     ghost = bytes(range(16))
