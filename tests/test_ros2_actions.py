@@ -1,6 +1,7 @@
 """The ROS 2 actions without a stack: their type hashes against rosidl's known Jazzy values,
-zenoh-ros2-sdk's hashing and keys and pamoja-ros2's keys (two rmw_zenoh implementations nobody
-here wrote); rcl_action's goal book (cancel policy, held results, expiry); goal checks."""
+zenoh-ros2-sdk's hashing and keys and pamoja-ros2's keys, hash strings and CDR (two rmw_zenoh
+implementations nobody here wrote); rcl_action's goal book (cancel policy, held results,
+expiry); goal checks."""
 
 from __future__ import annotations
 
@@ -362,3 +363,39 @@ def test_action_names_in_the_config_are_checked():
                 'ros2.goal_pose_topic="goal_pose"'):  # fmt: skip
         with pytest.raises(ConfigError):
             SmanaConfig.load(None, [bad])
+
+
+def test_cdr_of_the_action_services_agrees_with_pamoja():
+    """pamoja-ros2's CDR reader and writer (32-bit primitives, alignment, the encapsulation
+    header) on the action types made of them: a CancelGoal request (GoalInfo: a 16-byte UUID
+    and a Time) both ways, and a SendGoal response (a bool, then a Time aligned to 4)."""
+    ros2 = pytest.importorskip("pamoja.ros2")
+    T = TYPES.msg
+    uuid_bytes = bytes(range(1, 17))
+    info = T("action_msgs/msg/GoalInfo")(
+        goal_id=T("unique_identifier_msgs/msg/UUID")(uuid=np.frombuffer(uuid_bytes, np.uint8)),
+        stamp=T("builtin_interfaces/msg/Time")(sec=-7, nanosec=123456789),
+    )
+    ours = TYPES.serialize(
+        T("action_msgs/srv/CancelGoal_Request")(goal_info=info),
+        "action_msgs/srv/CancelGoal_Request",
+    )
+    r = ros2.CdrReader(list(ours))
+    words = [r.read_u32() for _ in range(4)]
+    assert b"".join(w.to_bytes(4, "little") for w in words) == uuid_bytes
+    assert (r.read_i32(), r.read_u32(), r.read_u32()) == (-7, 123456789, None)
+
+    w = ros2.CdrWriter()
+    for i in range(4):
+        w.write_u32(int.from_bytes(uuid_bytes[4 * i : 4 * i + 4], "little"))
+    w.write_i32(1_700_000_000)
+    w.write_u32(5)
+    theirs = TYPES.deserialize(bytes(w.bytes), "action_msgs/srv/CancelGoal_Request")
+    assert bytes(theirs.goal_info.goal_id.uuid) == uuid_bytes
+    assert (theirs.goal_info.stamp.sec, theirs.goal_info.stamp.nanosec) == (1_700_000_000, 5)
+
+    a = "nav2_msgs/action/NavigateToPose_SendGoal_Response"
+    resp = T(a)(accepted=True, stamp=T("builtin_interfaces/msg/Time")(sec=42, nanosec=9))
+    r = ros2.CdrReader(list(TYPES.serialize(resp, a)))
+    assert r.read_u32() & 0xFF == 1  # the bool, then padding to the Time's alignment
+    assert (r.read_i32(), r.read_u32()) == (42, 9)
