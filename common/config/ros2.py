@@ -19,6 +19,11 @@ class Ros2Config(Section, section="ros2"):
     cloud_topic: str = "/points"  # sensor_msgs/msg/PointCloud2 in
     odom_topic: str = "/odom"  # nav_msgs/msg/Odometry in
     cmd_vel_topic: str = "/cmd_vel"  # geometry_msgs/msg/Twist out
+    # geometry_msgs/msg/PoseStamped in (RViz2's "2D Goal Pose"): a NavigateToPose goal
+    goal_pose_topic: str = "/goal_pose"
+    # The actions, under the node's namespace (/smana/<robot>/...)
+    navigate_action: str = "navigate_to_pose"  # nav2_msgs/action/NavigateToPose
+    compute_path_action: str = "compute_path_to_pose"  # nav2_msgs/action/ComputePathToPose
     # The integer label field of the clouds. "none": every cloud is labelled by the geometric
     # labeller (class table `geometric`); a cloud without the field is refused otherwise.
     label_field: str = "label"
@@ -45,7 +50,10 @@ class Ros2Config(Section, section="ros2"):
             raise ConfigError(
                 f"ros2.node_name: a ROS 2 node name (letters, digits, '_'), got {self.node_name!r}"
             )
-        for name in ("cloud_topic", "odom_topic", "cmd_vel_topic"):
+        for name in ("navigate_action", "compute_path_action"):
+            if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,63}", getattr(self, name)):
+                raise ConfigError(f"ros2.{name}: one ROS 2 name token, got {getattr(self, name)!r}")
+        for name in ("cloud_topic", "odom_topic", "cmd_vel_topic", "goal_pose_topic"):
             topic = getattr(self, name)
             if not topic.startswith("/") or "//" in topic or topic.endswith("/"):
                 raise ConfigError(f"ros2.{name}: a ROS 2 topic like /points, got {topic!r}")

@@ -51,6 +51,9 @@ class RosTypes:
         _char_as_uint8(self.store, "service_msgs/msg/ServiceEventInfo")
         for name, (request, response) in SERVICES.items():
             self.store.register(_service_types(name, request, response))
+        from . import nav2_types  # the actions smana serves (their services and messages)
+
+        nav2_types.register(self.store, _service_types)
         self._hashes: dict[str, str] = {}
 
     def msg(self, typename: str):

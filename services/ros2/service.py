@@ -10,7 +10,10 @@ Out, for robot R (node `/smana/R/<ros2.node_name>`, frame `map`):
 - `/smana/R/path` nav_msgs/Path and `/smana/R/goal` geometry_msgs/PoseStamped from
   `explorer/state`, when they change;
 - `/smana/R/odom` nav_msgs/Odometry from `robot/pose`;
-- a ROS 2 service `/smana/R/plan` (nav_msgs/srv/GetPlan), answered by smana's planner.
+- a ROS 2 service `/smana/R/plan` (nav_msgs/srv/GetPlan), answered by smana's planner;
+- ROS 2 actions `/smana/R/navigate_to_pose` (nav2_msgs NavigateToPose, driven by the explorer's
+  navigator mode) and `/smana/R/compute_path_to_pose` (ComputePathToPose, smana's planner), and
+  `/goal_pose` (RViz2's "2D Goal Pose") as a NavigateToPose goal (`actions.py`).
 
 In, for a real robot (`ros2.robot_input`; by default when smana's simulator is off):
 `ros2.cloud_topic` PointCloud2 (latest wins) -> `robot/scan`, `ros2.odom_topic` Odometry ->
@@ -60,6 +63,7 @@ from smana.common.query import QueryError, request
 from smana.common.service import Reject, Reply, Request, Service, run_service
 
 from . import bridge, convert
+from .actions import Ros2Actions
 from .bridge import CloudInput, MapCopy, OdometryInput, checked
 from .jobs import Jobs
 from .rmw import LATCHED_QOS, SENSOR_QOS, SERVICE, SUBSCRIPTION, QoS, RosNode, RosTypes
@@ -121,6 +125,7 @@ class Ros2Service(Service):
         self._fetched: queue.SimpleQueue = queue.SimpleQueue()  # (what, snapshot or QueryError)
         self._syncing: set[str] = set()
         self._held: dict[str, list] = {"map": [], "graph": []}
+        self.actions: Ros2Actions | None = None
 
     def prepare(self) -> None:
         self.startup_step = "loading ROS 2 message types"
@@ -164,6 +169,7 @@ class Ros2Service(Service):
         self._declared.append(
             self.session.declare_queryable(self._plan_key, self._on_plan_query, complete=True)
         )
+        self.actions = Ros2Actions(self, ns)
         if self.robot_input:
             cloud_key, _ = node.endpoint(SUBSCRIPTION, rc.cloud_topic, CLOUD, SENSOR_QOS)
             self.subscribe_latest(cloud_key, self.on_cloud)
@@ -228,6 +234,8 @@ class Ros2Service(Service):
         for jobs in (self.plan_jobs, self.sync_jobs):
             if jobs is not None:
                 jobs.close()
+        if self.actions is not None:
+            self.actions.close()
         if self.node is not None:
             self.node.close()
 
@@ -311,6 +319,8 @@ class Ros2Service(Service):
                     self._syncing.discard(what)
         self._publish_latched("map", self.map.version, self._map_message, now)
         self._publish_latched("costmap", self.grid.version, self._costmap_message, now)
+        if self.actions is not None:
+            self.actions.tick()
 
     def _publish_latched(self, what: str, version: int, make, now: float) -> None:
         period = getattr(self.config.ros2, f"{what}_period_s")
@@ -513,6 +523,7 @@ class Ros2Service(Service):
             "static_frames": len(self.cloud_input.static) if self.cloud_input else 0,
             "plans_waiting": self.plan_jobs.waiting() if self.plan_jobs else 0,
             "zid": self.node.zid if self.node is not None else "",
+            "actions": self.actions.status_details() if self.actions is not None else {},
         }
 
 

@@ -18,6 +18,11 @@ MESSAGE_TYPES = (
     "geometry_msgs/msg/Twist",
     "tf2_msgs/msg/TFMessage",
     "service_msgs/msg/ServiceEventInfo",
+    # what the actions' messages are made of (tests/support/ros2_action_client.py)
+    "builtin_interfaces/msg/Duration",
+    "unique_identifier_msgs/msg/UUID",
+    "action_msgs/msg/GoalInfo",
+    "action_msgs/msg/GoalStatusArray",
 )
 GET_PLAN_SRV = (
     "geometry_msgs/PoseStamped start\ngeometry_msgs/PoseStamped goal\nfloat32 tolerance\n"

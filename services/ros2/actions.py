@@ -1,0 +1,693 @@
+"""ROS 2 actions over rmw_zenoh: nav2_msgs' NavigateToPose (driven by the explorer's navigator
+mode) and ComputePathToPose (answered by smana's planner), and `/goal_pose` as RViz2's "2D Goal
+Pose" button sends it.
+
+An action is three services and two topics under `<name>/_action/` (`nav2_types.py`); rmw_zenoh
+carries each like any other service or topic (`rmw.py`). What a server does with them follows
+rclcpp_action's server and rcl_action (ROS 2 Jazzy):
+
+- send_goal: the goal is accepted (ACCEPTED, then EXECUTING) or refused (`accepted = false`);
+- get_result: answered at once for a finished goal, held until the result exists for a running
+  one (rmw_zenoh_cpp's clients wait for a reply without a timeout), STATUS_UNKNOWN for a goal
+  the server does not know (or whose result expired: RESULT_TIMEOUT_S, rcl_action's default of
+  10 s);
+- cancel_goal: rcl_action's policy (one goal by id, all goals, all accepted at or before a
+  stamp); an unknown id is ERROR_UNKNOWN_GOAL_ID, a finished goal ERROR_GOAL_TERMINATED;
+- status: every goal the server holds, reliable and transient-local (depth 1), published on
+  every change.
+
+A second NavigateToPose goal pre-empts the first, which ends ABORTED, as Nav2's
+SimpleActionServer ends it (`accept_pending_goal`: `current_handle_->abort(...)`).
+
+`GoalBook` holds the goals and is tested without zenoh; `Ros2Actions` is the wiring. Queries are
+handled on worker threads (the explorer's and the planner's answers are waited for there, never
+on a zenoh callback nor on the service's loop).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from smana.common import keys
+from smana.common.messages import MessageError, PathReply, PathRequest
+from smana.common.query import QueryError, request
+from smana.common.service import Reject
+
+from . import convert
+from .jobs import Jobs
+from .nav2_types import (
+    CANCEL_GOAL_TERMINATED,
+    CANCEL_NONE,
+    CANCEL_UNKNOWN_GOAL_ID,
+    STATUS_ABORTED,
+    STATUS_ACCEPTED,
+    STATUS_CANCELED,
+    STATUS_CANCELING,
+    STATUS_EXECUTING,
+    STATUS_SUCCEEDED,
+    STATUS_UNKNOWN,
+    TERMINAL,
+    action_names,
+)
+from .rmw import LATCHED_QOS, SERVICE, SUBSCRIPTION, QoS
+
+NAVIGATE = "nav2_msgs/action/NavigateToPose"
+COMPUTE_PATH = "nav2_msgs/action/ComputePathToPose"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+RESULT_TIMEOUT_S = 10.0  # rcl_action's default result_timeout
+MAX_GOALS = 64  # goals held (running, or finished and not expired); one more is refused
+MAX_WAITING_RESULTS = 16  # get_result requests held for one goal
+FEEDBACK_TIMEOUT_S = 5.0  # a navigation goal without explorer feedback this long is aborted
+QUERY_TIMEOUT_S = 5.0  # the explorer's and the planner's answers
+ACTION_THREADS, ACTION_WAITING = 2, 32
+# Nav2's error codes: ComputePathToPose's (Jazzy); NavigateToPose's Jazzy result defines only
+# NONE, 9000 is the UNKNOWN Nav2 defines for it from Kilted on.
+NAV_UNKNOWN = 9000
+PLAN_ERRORS = {
+    "start_blocked": 205,  # START_OCCUPIED
+    "goal_blocked": 206,  # GOAL_OCCUPIED
+    "unreachable": 208,  # NO_VALID_PATH
+    "no_graph": 208,
+}
+PLAN_UNKNOWN, PLAN_INVALID_PLANNER, PLAN_TIMEOUT = 200, 201, 207
+START_OUTSIDE_MAP, GOAL_OUTSIDE_MAP = 203, 204
+PLANNER_IDS = ("", "smana")
+
+
+def plan_error_code(error: str, message: str) -> int:
+    """A planner's PathReply error as ComputePathToPose's error code."""
+    if error == "out_of_bounds":
+        return START_OUTSIDE_MAP if message.startswith("start") else GOAL_OUTSIDE_MAP
+    return PLAN_ERRORS.get(error, PLAN_UNKNOWN)
+
+
+@dataclass
+class Goal:
+    uuid: bytes
+    stamp_ns: int  # when it was accepted (GoalInfo.stamp)
+    status: int
+    request: object  # the action's `_Goal` message
+    result: object = None
+    finished_at: float | None = None
+    seen_at: float = 0.0  # monotonic: accepted, or its last feedback
+    waiting: list = field(default_factory=list)  # held get_result responders
+
+
+class GoalBook:
+    """One action server's goals, as rcl_action keeps them: their statuses, their results (kept
+    `result_timeout_s` after the end), the get_result requests held until a result exists.
+    Thread-safe; no zenoh: a responder is any callable taking (status, result)."""
+
+    def __init__(
+        self,
+        result_timeout_s: float = RESULT_TIMEOUT_S,
+        max_goals: int = MAX_GOALS,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        self.result_timeout_s, self.max_goals, self.clock = result_timeout_s, max_goals, clock
+        self.lock = threading.RLock()
+        self.goals: dict[bytes, Goal] = {}
+
+    def add(self, uuid: bytes, request, stamp_ns: int) -> Goal | None:
+        """A new goal, ACCEPTED; None when its id is taken or the book is full."""
+        with self.lock:
+            self.expire()
+            if uuid in self.goals or len(self.goals) >= self.max_goals:
+                return None
+            goal = Goal(uuid, stamp_ns, STATUS_ACCEPTED, request, seen_at=self.clock())
+            self.goals[uuid] = goal
+            return goal
+
+    def discard(self, uuid: bytes) -> None:
+        """Forget a goal that was never announced (its acceptance fell through)."""
+        with self.lock:
+            self.goals.pop(uuid, None)
+
+    def get(self, uuid: bytes) -> Goal | None:
+        with self.lock:
+            return self.goals.get(uuid)
+
+    def running(self) -> list[Goal]:
+        with self.lock:
+            return [g for g in self.goals.values() if g.status not in TERMINAL]
+
+    def set_status(self, uuid: bytes, status: int) -> bool:
+        """Move a running goal to EXECUTING or CANCELING; False if it is not running."""
+        with self.lock:
+            g = self.goals.get(uuid)
+            if g is None or g.status in TERMINAL or g.status == status:
+                return False
+            g.status = status
+            return True
+
+    def finish(self, uuid: bytes, status: int, result) -> bool:
+        """End a running goal with its result and answer the get_result requests held for it;
+        False (and nothing changes) if it is unknown or already over."""
+        with self.lock:
+            g = self.goals.get(uuid)
+            if g is None or g.status in TERMINAL:
+                return False
+            g.status, g.result, g.finished_at = status, result, self.clock()
+            waiting, g.waiting = g.waiting, []
+        for respond in waiting:
+            respond(status, result)
+        return True
+
+    def result(self, uuid: bytes, respond: Callable) -> str:
+        """A get_result request: answered now ("answered": finished, or "unknown" with
+        STATUS_UNKNOWN), or held until the goal ends ("held"); "full" when too many wait."""
+        with self.lock:
+            self.expire()
+            g = self.goals.get(uuid)
+            if g is not None and g.status not in TERMINAL:
+                if len(g.waiting) >= MAX_WAITING_RESULTS:
+                    return "full"
+                g.waiting.append(respond)
+                return "held"
+        if g is None:
+            respond(STATUS_UNKNOWN, None)
+            return "unknown"
+        respond(g.status, g.result)
+        return "answered"
+
+    def cancel(self, uuid: bytes, stamp_ns: int) -> tuple[int, list[Goal]]:
+        """rcl_action's cancel policy -> (return code, the goals now CANCELING)."""
+        with self.lock:
+            zero_id = not any(uuid)
+            if not zero_id and stamp_ns == 0:
+                g = self.goals.get(uuid)
+                if g is None:
+                    return CANCEL_UNKNOWN_GOAL_ID, []
+                if g.status not in (STATUS_ACCEPTED, STATUS_EXECUTING):
+                    return CANCEL_GOAL_TERMINATED, []
+                targets = [g]
+            else:
+                until = math.inf if zero_id and stamp_ns == 0 else stamp_ns
+                targets = [
+                    g
+                    for g in self.goals.values()
+                    if g.status in (STATUS_ACCEPTED, STATUS_EXECUTING)
+                    and (g.stamp_ns <= until or g.uuid == uuid)
+                ]
+            for g in targets:
+                g.status = STATUS_CANCELING
+            return CANCEL_NONE, targets
+
+    def expire(self) -> int:
+        """Forget finished goals older than the result timeout."""
+        with self.lock:
+            now = self.clock()
+            old = [
+                u
+                for u, g in self.goals.items()
+                if g.finished_at is not None and now - g.finished_at > self.result_timeout_s
+            ]
+            for u in old:
+                del self.goals[u]
+            return len(old)
+
+    def statuses(self) -> list[tuple[bytes, int, int]]:
+        """(uuid, accepted stamp ns, status) of every goal held, oldest first."""
+        with self.lock:
+            return [(g.uuid, g.stamp_ns, g.status) for g in self.goals.values()]
+
+
+def goal_pose_checked(pose_stamped, world_frames) -> tuple[float, float, float]:
+    """(x, y, yaw) of a goal's PoseStamped; ValueError for a pose that is not finite, a
+    degenerate quaternion, or a frame smana's world is not."""
+    frame = pose_stamped.header.frame_id.lstrip("/")
+    if frame and frame not in world_frames:
+        raise ValueError(f"goal in frame {frame!r}: smana navigates in {list(world_frames)}")
+    pos, q = convert.pose_of(pose_stamped.pose)
+    if np.abs(pos).max() > 1e6:
+        raise ValueError("goal further than 1000 km")
+    yaw = math.atan2(2.0 * (q[3] * q[2] + q[0] * q[1]), 1.0 - 2.0 * (q[1] ** 2 + q[2] ** 2))
+    return float(pos[0]), float(pos[1]), yaw
+
+
+def duration(types, seconds: float):
+    s = max(0.0, float(seconds)) if math.isfinite(seconds) else 0.0
+    sec = math.floor(s)
+    return types.msg("builtin_interfaces/msg/Duration")(
+        sec=int(sec), nanosec=min(int(round((s - sec) * 1e9)), 999_999_999)
+    )
+
+
+class ActionEndpoints:
+    """One action's rmw_zenoh endpoints on a `RosNode`: its three services (complete
+    queryables) and its feedback and status publishers."""
+
+    def __init__(self, node, name: str, action: str):
+        self.action, self.types = action, node.types
+        self.names = action_names(action)
+        self.keys: dict[str, str] = {}
+        for what in ("send_goal", "get_result", "cancel_goal"):
+            self.keys[what], _ = node.endpoint(SERVICE, f"{name}/_action/{what}", self.names[what])
+        self.feedback = node.publisher(f"{name}/_action/feedback", self.names["feedback"], QoS())
+        self.status = node.publisher(f"{name}/_action/status", self.names["status"], LATCHED_QOS)
+        self.book = GoalBook()
+        self.lock = threading.Lock()  # the publishers' sequence numbers
+
+    def msg(self, suffix: str):
+        return self.types.msg(f"{self.action}_{suffix}")
+
+    def decode(self, what: str, payload: bytes):
+        typename = self.names[what] + "_Request"
+        try:
+            return self.types.deserialize(payload, typename)
+        except Exception as exc:  # noqa: BLE001 - any CDR that is not this type
+            raise Reject("malformed", f"not a {typename}: {type(exc).__name__}") from None
+
+    def encode(self, what: str, msg) -> bytes:
+        return self.types.serialize(msg, self.names[what] + "_Response")
+
+    def publish_status(self) -> None:
+        T = self.types.msg
+        statuses = [
+            T("action_msgs/msg/GoalStatus")(
+                goal_info=goal_info(self.types, uuid, stamp_ns), status=status
+            )
+            for uuid, stamp_ns, status in self.book.statuses()
+        ]
+        with self.lock:
+            self.status.put(T("action_msgs/msg/GoalStatusArray")(status_list=statuses))
+
+    def publish_feedback(self, uuid: bytes, feedback) -> None:
+        msg = self.msg("FeedbackMessage")(goal_id=uuid_msg(self.types, uuid), feedback=feedback)
+        with self.lock:
+            self.feedback.put(msg)
+
+
+def uuid_msg(types, uuid: bytes):
+    return types.msg("unique_identifier_msgs/msg/UUID")(uuid=np.frombuffer(uuid, np.uint8).copy())
+
+
+def goal_info(types, uuid: bytes, stamp_ns: int):
+    return types.msg("action_msgs/msg/GoalInfo")(
+        goal_id=uuid_msg(types, uuid), stamp=convert.ros_time(types, stamp_ns * 1e-9)
+    )
+
+
+class Ros2Actions:
+    """NavigateToPose, ComputePathToPose and /goal_pose for the ros2 service (`svc`: its
+    session, node, books and config)."""
+
+    def __init__(self, svc, namespace: str):
+        self.svc = svc
+        rc, node = svc.config.ros2, svc.node
+        self.types = node.types
+        self.world_frames = tuple(rc.world_frames)
+        self.speed_mps = float(svc.config.explorer.follower.max_linear_mps)
+        self.nav = ActionEndpoints(node, f"{namespace}/{rc.navigate_action}", NAVIGATE)
+        self.plan = ActionEndpoints(node, f"{namespace}/{rc.compute_path_action}", COMPUTE_PATH)
+        self.jobs = Jobs("ros2-action", ACTION_THREADS, ACTION_WAITING)
+        self.counts = dict.fromkeys(("goals", "accepted", "refused", "feedback", "canceled"), 0)
+        self._explorer_ids: dict[str, bytes] = {}  # explorer goal id -> uuid
+        self._nav_lock = threading.Lock()
+        self._count_lock = threading.Lock()
+        for endpoints in (self.nav, self.plan):
+            for what in ("send_goal", "get_result", "cancel_goal"):
+                key = endpoints.keys[what]
+                svc._declared.append(
+                    svc.session.declare_queryable(
+                        key,
+                        lambda q, e=endpoints, w=what, k=key: self._on_query(e, w, k, q),
+                        complete=True,
+                    )
+                )
+            endpoints.publish_status()
+        goal_key, _ = node.endpoint(SUBSCRIPTION, rc.goal_pose_topic, POSE_STAMPED, QoS())
+        svc.subscribe(goal_key, self.on_goal_pose)
+        svc.subscribe(keys.explorer_goal_feedback(svc.robot), self.on_explorer_feedback)
+
+    def close(self) -> None:
+        self.jobs.close()
+
+    def _count(self, what: str) -> None:
+        with self._count_lock:  # workers and the loop both count
+            self.counts[what] += 1
+
+    # -- queries (zenoh's thread -> a worker) ---------------------------------------------------
+
+    def _on_query(self, endpoints: ActionEndpoints, what: str, key: str, query) -> None:
+        svc = self.svc
+        with svc.books.lock:
+            svc.books.received += 1
+            svc.books.in_flight += 1
+        if not self.jobs.submit(
+            lambda: self._handle(endpoints, what, key, query),
+            lambda: self._dropped(query, "stopping"),
+        ):
+            self._dropped(query, "stopping" if svc.stopping else "queue_full")
+
+    def _dropped(self, query, why: str) -> None:
+        self.svc.books.settle("dropped", why)
+        self.svc._log_kind(why, f"action request dropped: {why}", self.svc.books.dropped[why])
+        self.svc._reply_err(query, why, f"not answered: {why}", False)
+        _finish(query)
+
+    def _handle(self, endpoints: ActionEndpoints, what: str, key: str, query) -> None:
+        svc = self.svc
+        held = False
+        try:
+            size = len(query.payload) if query.payload is not None else 0
+            if size > svc.max_payload_bytes:
+                raise Reject("oversize", f"{size} bytes > {svc.max_payload_bytes}")
+            att = query.attachment.to_bytes() if query.attachment is not None else None
+            try:
+                reply_att = svc.node.reply_attachment(att)
+            except ValueError as exc:
+                raise Reject("malformed", str(exc)) from None
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            msg = endpoints.decode(what, payload)
+
+            def reply(body: bytes) -> None:
+                svc._send_reply(query, key, body, None, reply_att)
+                # The asker's get ends with the reply, not when the work behind it does (a
+                # ComputePathToPose goal is planned on after its acceptance went out).
+                _finish(query)
+
+            if what == "send_goal":
+                self._send_goal(endpoints, msg, reply)
+            elif what == "cancel_goal":
+                self._cancel(endpoints, msg, reply)
+            else:
+                held = self._get_result(endpoints, msg, query, reply)
+        except _Answered as exc:  # `accepted = false` went out already
+            svc._rejected(exc.kind, f"{endpoints.names[what]}: goal refused: {exc}")
+        except (Reject, MessageError) as exc:
+            svc._rejected(exc.kind, f"{endpoints.names[what]}: {exc}")
+            svc._reply_err(query, exc.kind, str(exc), False)
+        except Exception as exc:  # noqa: BLE001 - a bug: counted, logged, the worker goes on
+            svc._internal(exc, endpoints.names[what])
+            svc._reply_err(query, "internal", f"{type(exc).__name__}: {exc}", False)
+        else:
+            svc.books.settle("accepted")
+        finally:
+            if not held:
+                _finish(query)
+
+    def _get_result(self, endpoints: ActionEndpoints, msg, query, reply) -> bool:
+        """Answer or hold; True when held (the query stays open until the goal ends)."""
+        uuid = bytes(msg.goal_id.uuid)
+
+        def respond(status: int, result) -> None:
+            if result is None:
+                result = self._empty_result(endpoints)
+            body = endpoints.msg("GetResult_Response")(status=status, result=result)
+            reply(endpoints.encode("get_result", body))
+
+        how = endpoints.book.result(uuid, respond)
+        if how == "full":
+            raise Reject("queue_full", f"{MAX_WAITING_RESULTS} get_result requests wait already")
+        return how == "held"
+
+    def _empty_result(self, endpoints: ActionEndpoints, code: int = 0, why: str = ""):
+        if endpoints is self.nav:
+            return endpoints.msg("Result")(error_code=code, error_msg=why)
+        return endpoints.msg("Result")(
+            path=convert.path(self.types, np.zeros((0, 3)), self.svc._stamp()),
+            planning_time=duration(self.types, 0.0),
+            error_code=code,
+            error_msg=why,
+        )
+
+    def _goal_response(self, endpoints: ActionEndpoints, accepted: bool, stamp_ns: int) -> bytes:
+        body = endpoints.msg("SendGoal_Response")(
+            accepted=accepted, stamp=convert.ros_time(self.types, stamp_ns * 1e-9)
+        )
+        return endpoints.encode("send_goal", body)
+
+    def _send_goal(self, endpoints: ActionEndpoints, msg, reply) -> None:
+        uuid = bytes(msg.goal_id.uuid)
+        self._count("goals")
+        if endpoints is self.nav:
+            ok, why = self.navigate(uuid, msg.goal, reply)
+        else:
+            ok, why = self.compute_path(uuid, msg.goal, reply)
+        if not ok:
+            self._count("refused")
+            reply(self._goal_response(endpoints, False, 0))
+            raise_refused(why)
+
+    def _cancel(self, endpoints: ActionEndpoints, msg, reply) -> None:
+        uuid = bytes(msg.goal_info.goal_id.uuid)
+        stamp = msg.goal_info.stamp
+        code, targets = endpoints.book.cancel(uuid, int(stamp.sec) * 10**9 + int(stamp.nanosec))
+        if targets:
+            endpoints.publish_status()
+        T = self.types.msg
+        body = T("action_msgs/srv/CancelGoal_Response")(
+            return_code=code,
+            goals_canceling=[goal_info(self.types, g.uuid, g.stamp_ns) for g in targets],
+        )
+        # The response goes first (rclcpp_action answers, then executes the cancel).
+        reply(endpoints.encode("cancel_goal", body))
+        for g in targets:
+            if not self.jobs.submit(lambda g=g: self._carry_out_cancel(endpoints, g)):
+                self._carry_out_cancel(endpoints, g)  # never left CANCELING for want of a worker
+
+    def _carry_out_cancel(self, endpoints: ActionEndpoints, g: Goal) -> None:
+        if endpoints is self.nav:
+            try:
+                answer = request(
+                    self.svc.session,
+                    keys.explorer_goal_cancel(self.svc.robot),
+                    {"id": g.uuid.hex()},
+                    QUERY_TIMEOUT_S,
+                )
+            except QueryError as exc:
+                # The goal stays CANCELING: the explorer's feedback (or its silence) ends it.
+                self.svc.note("cancel_failed", f"NavigateToPose cancel: {exc}")
+                return
+            if not (isinstance(answer, dict) and answer.get("canceled")):
+                why = answer.get("reason", "") if isinstance(answer, dict) else ""
+                self.svc.log.info("explorer did not cancel %s: %s", g.uuid.hex(), why)
+        self._count("canceled")
+        self._end(endpoints, g.uuid, STATUS_CANCELED, self._empty_result(endpoints, 0, "canceled"))
+
+    def _end(self, endpoints: ActionEndpoints, uuid: bytes, status: int, result) -> None:
+        if endpoints.book.finish(uuid, status, result):
+            endpoints.publish_status()
+
+    # -- NavigateToPose -------------------------------------------------------------------------
+
+    def navigate(self, uuid: bytes, goal, reply) -> tuple[bool, str]:
+        """Hand a NavigateToPose goal to the explorer; (accepted, why not)."""
+        try:
+            x, y, yaw = goal_pose_checked(goal.pose, self.world_frames)
+        except ValueError as exc:
+            return False, f"value: {exc}"
+        # One goal at a time, in the order the explorer takes them: the last one it accepted is
+        # the one that runs, here as there.
+        with self._nav_lock:
+            return self._navigate(uuid, goal, reply, x, y, yaw)
+
+    def _navigate(self, uuid: bytes, goal, reply, x: float, y: float, yaw: float):
+        book = self.nav.book
+        stamp_ns = time.time_ns()
+        # In the book (not yet on the status topic) before the explorer is asked: its first
+        # feedback may come before its answer.
+        if book.add(uuid, goal, stamp_ns) is None:
+            return False, "refused: goal id in use, or too many goals held"
+        self._explorer_ids[uuid.hex()] = uuid
+        try:
+            answer = request(
+                self.svc.session,
+                keys.explorer_goal(self.svc.robot),
+                {"x": x, "y": y, "yaw": yaw, "tolerance_m": None, "id": uuid.hex()},
+                QUERY_TIMEOUT_S,
+            )
+            why = ""
+        except QueryError as exc:
+            answer, why = None, f"no_explorer: {exc}"
+        if not why and not (isinstance(answer, dict) and answer.get("accepted")):
+            why = answer.get("reason", "") if isinstance(answer, dict) else repr(answer)
+            why = f"refused: explorer: {why}"
+        if why:
+            book.discard(uuid)
+            self._explorer_ids.pop(uuid.hex(), None)
+            return False, why
+        self._count("accepted")
+        reply(self._goal_response(self.nav, True, stamp_ns))
+        book.set_status(uuid, STATUS_EXECUTING)
+        # Nav2 ends the goal a new one pre-empts ABORTED.
+        for other in book.running():
+            if other.uuid != uuid:
+                why = f"preempted by goal {uuid.hex()}"
+                book.finish(other.uuid, STATUS_ABORTED, self._empty_result(self.nav, 0, why))
+        self.nav.publish_status()
+        return True, ""
+
+    def on_goal_pose(self, payload: bytes) -> None:
+        """/goal_pose (RViz2's "2D Goal Pose"): a NavigateToPose goal of a fresh id."""
+        try:
+            msg = self.types.deserialize(payload, POSE_STAMPED)
+        except Exception as exc:  # noqa: BLE001 - any CDR that is not a PoseStamped
+            raise MessageError("malformed", f"not a {POSE_STAMPED}: {type(exc).__name__}") from None
+        try:
+            goal_pose_checked(msg, self.world_frames)
+        except ValueError as exc:
+            raise Reject("value", f"/goal_pose: {exc}") from None
+        goal = self.nav.msg("Goal")(pose=msg, behavior_tree="")
+        uuid = os.urandom(16)
+
+        def go():
+            ok, why = self.navigate(uuid, goal, lambda body: None)
+            if not ok:
+                self.svc.note("goal_pose_refused", f"/goal_pose: {why}")
+
+        if not self.jobs.submit(go):
+            self.svc.note("goal_pose_refused", "/goal_pose: the action workers are busy")
+
+    def on_explorer_feedback(self, payload: bytes) -> None:
+        """The explorer's goal feedback (main loop): NavigateToPose feedback and its end."""
+        import msgpack
+
+        try:
+            fb = msgpack.unpackb(payload, strict_map_key=False)
+            gid, state = str(fb["id"]), str(fb["state"])
+            pose = [float(v) for v in fb.get("pose") or (0.0, 0.0, 0.0)][:3]
+            remaining = float(fb.get("distance_remaining_m") or 0.0)
+            nav_time = float(fb.get("navigation_time_s") or 0.0)
+            recoveries = int(fb.get("recoveries") or 0)
+            reason = str(fb.get("reason") or "")
+        except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as exc:
+            raise MessageError("malformed", f"explorer goal feedback: {exc}") from None
+        if len(pose) != 3 or not all(math.isfinite(v) for v in pose):
+            raise MessageError("value", "explorer goal feedback: pose must be 3 finite numbers")
+        uuid = self._explorer_ids.get(gid)
+        g = self.nav.book.get(uuid) if uuid is not None else None
+        if g is None or g.status in TERMINAL:
+            return  # another goal's, or one already ended here (pre-empted, canceled)
+        g.seen_at = self.nav.book.clock()
+        fb_msg = self.nav.msg("Feedback")(
+            current_pose=convert.pose_stamped(self.types, pose[:2], pose[2], self.svc._stamp()),
+            navigation_time=duration(self.types, nav_time),
+            estimated_time_remaining=duration(self.types, remaining / self.speed_mps),
+            number_of_recoveries=max(-(2**15), min(recoveries, 2**15 - 1)),
+            distance_remaining=remaining,
+        )
+        self.nav.publish_feedback(uuid, fb_msg)
+        self._count("feedback")
+        end = {
+            "succeeded": (STATUS_SUCCEEDED, 0),
+            "aborted": (STATUS_ABORTED, NAV_UNKNOWN),
+            "preempted": (STATUS_ABORTED, 0),
+            "canceled": (STATUS_CANCELED, 0),
+        }.get(state)
+        if end is not None:
+            self._end(self.nav, uuid, end[0], self._empty_result(self.nav, end[1], reason))
+
+    def tick(self) -> None:
+        """The service's loop: results expire, a navigation goal the explorer went silent on
+        is aborted."""
+        for endpoints in (self.nav, self.plan):
+            if endpoints.book.expire():
+                endpoints.publish_status()
+        for gid, uuid in list(self._explorer_ids.items()):
+            if self.nav.book.get(uuid) is None:  # expired (or never accepted)
+                self._explorer_ids.pop(gid, None)
+        now = self.nav.book.clock()
+        for g in self.nav.book.running():
+            if now - g.seen_at > FEEDBACK_TIMEOUT_S:
+                why = f"no feedback from the explorer for {FEEDBACK_TIMEOUT_S:g} s"
+                self.svc.note("goal_silent", f"NavigateToPose {g.uuid.hex()}: {why}")
+                self._end(self.nav, g.uuid, STATUS_ABORTED, self._empty_result(self.nav, 0, why))
+
+    # -- ComputePathToPose ----------------------------------------------------------------------
+
+    def compute_path(self, uuid: bytes, goal, reply) -> tuple[bool, str]:
+        """Accept a ComputePathToPose goal and plan it on this worker; (accepted, why not)."""
+        try:
+            gx, gy, _ = goal_pose_checked(goal.goal, self.world_frames)
+            if goal.use_start:
+                sx, sy, _ = goal_pose_checked(goal.start, self.world_frames)
+        except ValueError as exc:
+            return False, f"value: {exc}"
+        book = self.plan.book
+        stamp_ns = time.time_ns()
+        if book.add(uuid, goal, stamp_ns) is None:
+            return False, "refused: goal id in use, or too many goals held"
+        self._count("accepted")
+        reply(self._goal_response(self.plan, True, stamp_ns))
+        book.set_status(uuid, STATUS_EXECUTING)
+        self.plan.publish_status()
+        t0 = time.monotonic()
+        if goal.planner_id not in PLANNER_IDS:
+            why = f"planner_id {goal.planner_id!r}: smana's planner is '' or 'smana'"
+            self._plan_end(uuid, None, PLAN_INVALID_PLANNER, why, t0)
+            return True, ""
+        if not goal.use_start:
+            pose = self.svc._last_pose
+            if pose is None:
+                self._plan_end(uuid, None, PLAN_UNKNOWN, "no robot pose yet (use_start)", t0)
+                return True, ""
+            sx, sy = float(pose.position[0]), float(pose.position[1])
+        ask = PathRequest(request_id=f"ros2-{uuid.hex()[:12]}", start=[sx, sy], goal=[gx, gy])
+        try:
+            answer = request(
+                self.svc.session, keys.path_query(self.svc.robot), ask, QUERY_TIMEOUT_S
+            )
+        except QueryError as exc:
+            # Nothing answered (no planner) or the deadline passed (zenoh's timeout reply):
+            # TIMEOUT; an error reply of the planner's own: UNKNOWN.
+            late = time.monotonic() - t0 >= QUERY_TIMEOUT_S - 0.1
+            code = PLAN_TIMEOUT if exc.kind == "no_reply" or late else PLAN_UNKNOWN
+            self._plan_end(uuid, None, code, str(exc), t0)
+            return True, ""
+        if not isinstance(answer, PathReply):
+            self._plan_end(uuid, None, PLAN_UNKNOWN, f"planner answered {type(answer)}", t0)
+        elif not answer.ok:
+            why = f"{answer.error}: {answer.message}"
+            self._plan_end(uuid, None, plan_error_code(answer.error, answer.message), why, t0)
+        else:
+            self._plan_end(uuid, answer.path, 0, "", t0)
+        return True, ""
+
+    def _plan_end(self, uuid: bytes, path, code: int, why: str, t0: float) -> None:
+        result = self.plan.msg("Result")(
+            path=convert.path(self.types, np.zeros((0, 3)) if path is None else path, time.time()),
+            planning_time=duration(self.types, time.monotonic() - t0),
+            error_code=code,
+            error_msg=why,
+        )
+        self._end(self.plan, uuid, STATUS_SUCCEEDED if code == 0 else STATUS_ABORTED, result)
+
+    def status_details(self) -> dict:
+        with self._count_lock:
+            counts = dict(self.counts)
+        return {
+            **counts,
+            "navigate_running": _announced(self.nav.book),
+            "compute_path_running": _announced(self.plan.book),
+        }
+
+
+def _announced(book: GoalBook) -> int:
+    """Goals running that a client was told of (not one still waiting for the explorer)."""
+    return sum(g.status in (STATUS_EXECUTING, STATUS_CANCELING) for g in book.running())
+
+
+def raise_refused(why: str) -> None:
+    """A refused goal is answered (`accepted = false`) and counted rejected of its kind."""
+    kind, _, message = why.partition(": ")
+    raise _Answered(kind if kind in ("value", "refused", "no_explorer") else "refused", message)
+
+
+class _Answered(Reject):
+    """A rejection whose ROS response was already sent: no error reply follows."""
+
+
+def _finish(query) -> None:
+    try:
+        query.drop()
+    except Exception:  # noqa: BLE001 - already finished, or the session is closing
+        pass
