@@ -20,6 +20,11 @@ is reported beside it, through `Planner.plan`, with pyastar2d's time as the yard
 Every A* cost is checked against Dijkstra to 1e-6 relative (and pyastar2d's to 1e-5: it sums in
 float32); a disagreement fails the benchmark. Every row prints the peer's and smana's wall and CPU
 time (time.process_time), their ratio, and the load average.
+
+Workload variants: graph sizes (`--sizes`), obstacle shares of the cluttered graphs
+(`--obstacles`), query spans (`--lengths`, a share of the graph's size). The run ends with the
+spread of each comparison: the ratio's median and range over every query of every variant, CPU
+and wall, and the load average meanwhile.
 """
 
 from __future__ import annotations
