@@ -216,3 +216,33 @@ def test_the_service_prepares_its_planner_on_the_tick_after_a_patch(monkeypatch)
     with monkeypatch.context() as m:
         _no_builds(m)
         assert svc.planner.plan(start, goal).ok
+
+
+def test_prepare_keeps_the_last_querys_window_and_refreshes_a_patch_in_place(monkeypatch):
+    """A query whose goal lies beyond the known area has a larger window; `prepare` after a
+    patch builds that window again, refreshing only the patched nodes, not the known area's."""
+    from smana.common.classes import ClassTable
+    from smana.services.planner import planner as mod
+    from smana.services.planner.planner import Planner
+
+    classes = ClassTable.load("garden3drms")
+    rng = np.random.default_rng(3)
+    grid = NavGrid((0.0, 0.0), (200, 120), 0.2, tile_size=16)
+    ix, iy = np.meshgrid(np.arange(90), np.arange(70), indexing="ij")
+    cells = np.stack([ix.ravel(), iy.ravel()], 1).astype(np.int32)
+    k = len(cells)
+    grid.apply_patch(cells, np.full(k, 2), rng.normal(0, 0.02, k), np.full(k, FLAG_KNOWN, np.uint8))
+    planner = Planner(grid, classes)
+    start, goal = (0.1, 0.1), (35.1, 21.1)  # cell (175, 105): unknown, far outside the known box
+    first = planner.plan(start, goal, allow_unknown=True)
+    assert first.ok
+    pc = cells[rng.choice(k, 100, replace=False)]
+    grid.apply_patch(pc, *grid.read_cells(pc))
+    with monkeypatch.context() as m:
+        for name in ("_gather_window", "_enter_costs"):  # whole builds: not allowed
+            m.setattr(mod, name, lambda *a: (_ for _ in ()).throw(AssertionError("rebuilt")))
+        planner.prepare()
+    with monkeypatch.context() as m:
+        _no_builds(m)
+        again = planner.plan(start, goal, allow_unknown=True)
+    assert again.cost_total == first.cost_total and np.array_equal(again.cells, first.cells)

@@ -410,7 +410,7 @@ def path_costs(
     step = np.diff(cells, axis=0)
     d = resolution_m * np.hypot(step[:, 0], step[:, 1])
     # Index, then convert: converting the whole window first (the planner's heights are float32)
-    # cost a window-sized array per query, 8 MB of page faults at 1000 x 1000.
+    # made a window-sized float64 copy per query (8 MB at 1000 x 1000).
     h = np.asarray(heights)[cells[:, 0], cells[:, 1]].astype(np.float64)
     dh = np.abs(np.diff(h))
     dh = np.where(np.isnan(dh), 0.0, dh)
