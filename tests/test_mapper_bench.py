@@ -59,3 +59,39 @@ def test_quick_bench_reports_all_backends(capsys, tmp_path):
     for p in report["pairs"]:
         assert p["ratio"] > 0 and p["ratio_cpu"] > 0 and len(p["load"]) == 4
     assert "wall x" in text and "load average" in text and not report["failed"]
+
+
+def test_the_spread_of_each_comparison_over_its_variants():
+    pairs = [
+        {
+            "pair": "octree-max full / OctoMap C++",
+            "scene": s,
+            "res": r,
+            "ratio": w,
+            "ratio_cpu": c,
+            "load": [1.0, ld, 2.0, 2.5],
+        }
+        for s, r, w, c, ld in (
+            ("garden", 0.1, 0.2, 0.1, 3.0),
+            ("short", 0.1, 0.3, 0.4, 1.5),
+            ("near", 0.3, 0.6, 0.2, 0.5),
+        )
+    ]
+    (g,) = bench.spread(pairs)
+    assert g["variants"] == ["garden 0.1 m", "short 0.1 m", "near 0.3 m"]
+    assert g["wall"] == [0.3, 0.2, 0.6] and g["cpu"] == [0.2, 0.1, 0.4]
+    assert g["load"] == [0.5, 3.0]
+
+
+def test_the_near_scene_has_shorter_rays_and_the_report_its_spread(capsys, tmp_path):
+    args = ["--quick", "--scenes", "short", "near", "--backends", "octree-max", "--no-open3d"]
+    assert bench.cli([*args, "--out", str(tmp_path / "r.json")]) == 0
+    text = capsys.readouterr().out
+    report = json.loads((tmp_path / "r.json").read_text())
+    near, short = report["scenes"]["near"], report["scenes"]["short"]
+    assert near["mean_range_m"] < short["mean_range_m"] and near["points_per_scan"] > 0
+    assert "spread over the variants" in text
+    if importable("pyoctomap"):
+        (g,) = report["spread"]
+        assert g["pair"] == "octree-max full / OctoMap C++"
+        assert g["variants"] == ["near 0.3 m", "short 0.3 m"]

@@ -4,6 +4,8 @@ with scipy's Dijkstra (and with pyastar2d's when it is installed)."""
 import importlib.util
 import sys
 
+import pytest
+
 from smana.lab.bench.planner import HINT, cli
 
 
@@ -11,14 +13,15 @@ def test_quick_bench_agrees_with_dijkstra(capsys):
     assert cli(["--quick", "--queries", "4"]) == 0
     out = capsys.readouterr().out
     assert "all A* costs equal the Dijkstra optimum" in out
-    rows = [line for line in out.splitlines() if "scipy Dijkstra" in line]
-    assert len(rows) == 2 * 4 * 4  # two sizes, four queries, new / patched / repeat / Euclidean
-    flat = [line for line in out.splitlines() if "paper " in line and "pyastar2d" in line]
+    rows = [line for line in out.splitlines() if "scipy Dijkstra" in line and "->" in line]
+    # two sizes, four queries; build + first, first on a new Planner, patched, repeat, Euclidean
+    assert len(rows) == 2 * 4 * 5
+    flat = [ln for ln in out.splitlines() if "paper" in ln and "pyastar2d" in ln and "->" in ln]
     if importlib.util.find_spec("pyastar2d") is None:
         assert HINT in out
     else:
-        assert len(flat) == 2 * 4 * 2  # first and repeat query under the paper's cost
-        assert sum("A*, pyastar2d's cost" in line for line in out.splitlines()) == 2 * 4
+        assert len(flat) == 2 * 4 * 3  # new Planner, patched, repeat under the paper's cost
+        assert sum("pyastar2d's cost" in ln and "->" in ln for ln in out.splitlines()) == 2 * 4
     assert "load" in out and "cpu" in out and "ratio" in out
 
 
@@ -27,4 +30,62 @@ def test_without_pyastar2d_a_hint_and_no_flat_rows(capsys, monkeypatch):
     assert cli(["--quick", "--queries", "1", "--sizes", "40", "--no-euclidean"]) == 0
     out = capsys.readouterr().out
     assert HINT in out and "A*, pyastar2d's cost" not in out
-    assert sum("scipy Dijkstra" in line for line in out.splitlines()) == 3
+    assert sum("scipy Dijkstra" in ln and "->" in ln for ln in out.splitlines()) == 4
+
+
+def test_the_spread_over_workload_variants(capsys):
+    """Every peer comparison is summarised over the variants run (sizes, obstacle shares, query
+    lengths): the median and range of smana / peer, CPU and wall, and the load meanwhile."""
+    from smana.lab.bench.planner import spread
+
+    def row(work, peer_ms, smana_ms, load):
+        return {
+            "work": work,
+            "peer": "scipy Dijkstra",
+            "peer_ms": peer_ms,
+            "smana_ms": smana_ms,
+            "load": load,
+        }
+
+    results = [
+        {"variant": "a", "queries": [{"rows": [row("repeat", (10, 8), (2, 2), 1.0)]}]},
+        {"variant": "b", "queries": [{"rows": [row("repeat", (10, 10), (5, 4), 3.0)]}]},
+        {"variant": "c", "queries": [{"rows": [row("repeat", (10, 10), (3, 1), 2.0)]}]},
+    ]
+    (g,) = spread(results)
+    assert g["variants"] == 3 and g["queries"] == 3
+    assert g["wall"] == (0.3, 0.2, 0.5)
+    assert g["cpu"] == (0.25, 0.1, 0.4)
+    assert g["load"] == (1.0, 3.0)
+    assert (
+        cli(
+            [
+                "--quick",
+                "--queries",
+                "1",
+                "--sizes",
+                "40",
+                "--no-flat",
+                "--no-euclidean",
+                "--obstacles",
+                "0.05",
+                "0.2",
+                "--lengths",
+                "1",
+                "0.5",
+            ]
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert sum("scipy Dijkstra" in ln and "->" in ln for ln in out.splitlines()) == 4 * 4
+    assert "4 variants" in out and "median [min, max]" in out
+
+
+@pytest.mark.parametrize("bad", [["--lengths", "0"], ["--lengths", "1.5"], ["--obstacles", "x"]])
+def test_a_share_out_of_range_is_one_line_and_exit_2(bad, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli(["--quick", *bad])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "expected a number > 0 and <= 1" in err[0]

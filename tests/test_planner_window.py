@@ -126,3 +126,123 @@ def test_grid_change_log():
     for _ in range(CHANGE_LOG + 1):
         g.apply_patch([[0, 0]], [1], [0.0], [1])
     assert g.changes_since(v1) is None  # the log does not reach back that far
+
+
+def _garden_grid(rng, nx=90, ny=70):
+    grid = NavGrid((0.0, 0.0), (nx, ny), 0.2, tile_size=16)
+    ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    cells = np.stack([ix.ravel(), iy.ravel()], 1).astype(np.int32)
+    n = len(cells)
+    flags = np.where(rng.random(n) < 0.1, FLAG_KNOWN | FLAG_OBSTACLE, FLAG_KNOWN)
+    flags[[0, n - 1]] = FLAG_KNOWN  # the query ends below
+    grid.apply_patch(cells, rng.choice([1, 2], n), rng.normal(0, 0.02, n), flags.astype(np.uint8))
+    return grid, cells
+
+
+def _no_builds(monkeypatch):
+    """Make every window and enter-cost build kernel fail: a query that calls one fails."""
+    from smana.services.planner import planner as mod
+
+    def built(*args):
+        raise AssertionError("the query built its window or enter costs")
+
+    for name in ("_gather_window", "_gather_cells", "_enter_costs", "_enter_cells"):
+        monkeypatch.setattr(mod, name, built)
+
+
+def test_a_prepared_planner_builds_nothing_on_its_first_query(monkeypatch):
+    """Planner() and Planner.prepare() build ahead what the first query after a graph change
+    would build (window, enter costs under the last query's costs), so that query builds
+    nothing; its answer is the kernel's on the grid's dense arrays, to the bit."""
+    from smana.common.classes import ClassTable
+    from smana.services.planner.astar import astar
+    from smana.services.planner.planner import Planner
+
+    classes = ClassTable.load("garden3drms")
+    rng = np.random.default_rng(11)
+    grid, cells = _garden_grid(rng)
+    start, goal = (0.1, 0.1), (17.9, 13.9)
+    planner = Planner(grid, classes)  # prepares
+    with monkeypatch.context() as m:
+        _no_builds(m)
+        first = planner.plan(start, goal)
+    assert first.ok
+    labels, heights, flags = grid.box(0, 0, *grid.shape)
+    lut = classes.costs({}) * planner.config.t_f
+    enter = np.where((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0, np.inf, lut[labels])
+    known_h = np.where(flags & FLAG_KNOWN, heights, np.nan)
+    want = astar(
+        enter,
+        known_h.astype(np.float32).astype(np.float64),
+        (0, 0),
+        (89, 69),
+        0.2,
+        planner.config.h_f,
+        planner.config.max_step_m,
+        planner.config.heuristic,
+    )
+    assert first.cost_total == want.cost and np.array_equal(first.cells, want.cells)
+    # A patch, then prepare (the service's tick): the next query builds nothing either, also
+    # under the last query's costs when they were not the defaults.
+    for kw in ({}, {"t_f": 1.7, "allow_unknown": True}):
+        planner.plan(start, goal, **kw)
+        pc = cells[rng.choice(len(cells), 200, replace=False)]
+        pc = pc[(pc.sum(1) > 0) & (pc.sum(1) < 158)]
+        grid.apply_patch(pc, *grid.read_cells(pc))
+        planner.prepare()
+        with monkeypatch.context() as m:
+            _no_builds(m)
+            got = planner.plan(start, goal, **kw)
+        assert (
+            got.ok and got.cost_total == Planner(grid, classes).plan(start, goal, **kw).cost_total
+        )
+
+
+def test_the_service_prepares_its_planner_on_the_tick_after_a_patch(monkeypatch):
+    from smana.common.config import SmanaConfig
+    from smana.services.planner.service import PlannerService
+
+    svc = PlannerService(SmanaConfig())
+    svc.tick()  # an empty grid: nothing to build
+    assert svc.planner._cache_key is None
+    nx, ny = svc.grid.shape
+    cells = np.argwhere(np.ones((min(nx, 40), min(ny, 40)), bool)).astype(np.int32)
+    k = len(cells)
+    svc.grid.apply_patch(cells, np.full(k, 2), np.zeros(k), np.full(k, FLAG_KNOWN, np.uint8))
+    svc.tick()
+    assert svc.planner._cache_key[0] == svc.grid.version
+    start = svc.grid.cell_centre(1, 1)
+    goal = svc.grid.cell_centre(38, 30)
+    with monkeypatch.context() as m:
+        _no_builds(m)
+        assert svc.planner.plan(start, goal).ok
+
+
+def test_prepare_keeps_the_last_querys_window_and_refreshes_a_patch_in_place(monkeypatch):
+    """A query whose goal lies beyond the known area has a larger window; `prepare` after a
+    patch builds that window again, refreshing only the patched nodes, not the known area's."""
+    from smana.common.classes import ClassTable
+    from smana.services.planner import planner as mod
+    from smana.services.planner.planner import Planner
+
+    classes = ClassTable.load("garden3drms")
+    rng = np.random.default_rng(3)
+    grid = NavGrid((0.0, 0.0), (200, 120), 0.2, tile_size=16)
+    ix, iy = np.meshgrid(np.arange(90), np.arange(70), indexing="ij")
+    cells = np.stack([ix.ravel(), iy.ravel()], 1).astype(np.int32)
+    k = len(cells)
+    grid.apply_patch(cells, np.full(k, 2), rng.normal(0, 0.02, k), np.full(k, FLAG_KNOWN, np.uint8))
+    planner = Planner(grid, classes)
+    start, goal = (0.1, 0.1), (35.1, 21.1)  # cell (175, 105): unknown, far outside the known box
+    first = planner.plan(start, goal, allow_unknown=True)
+    assert first.ok
+    pc = cells[rng.choice(k, 100, replace=False)]
+    grid.apply_patch(pc, *grid.read_cells(pc))
+    with monkeypatch.context() as m:
+        for name in ("_gather_window", "_enter_costs"):  # whole builds: not allowed
+            m.setattr(mod, name, lambda *a: (_ for _ in ()).throw(AssertionError("rebuilt")))
+        planner.prepare()
+    with monkeypatch.context() as m:
+        _no_builds(m)
+        again = planner.plan(start, goal, allow_unknown=True)
+    assert again.cost_total == first.cost_total and np.array_equal(again.cells, first.cells)

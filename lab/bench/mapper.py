@@ -6,7 +6,8 @@ has only its truncation band), with 10 m maximum range, it prints the median and
 (wall and CPU), the microseconds per point, voxel updates per second, peak RAM and bytes per
 allocated voxel. Two scenes: `garden` (every beam returns, most of them beyond the 10 m range, so
 rays are long carving rays) and `short` (the same scans with the returns beyond 10 m dropped: all
-rays end on a surface, mean range about 5 m, the case where the fixed cost per point shows).
+rays end on a surface, mean range about 5 m, the case where the fixed cost per point shows);
+`--scenes` also offers `near` (returns within 5 m only: the shortest rays).
 
 Peers, on the same scans and range, each optional (a one-line hint when missing):
 - OctoMap's C++ `insertPointCloud` (`pyoctomap`), beside `octree-max` with full rays; in the same
@@ -39,7 +40,8 @@ import numpy as np
 from smana.common import progress
 
 MAX_RANGE_M = 10.0
-SCENES = ("garden", "short")
+SCENES = ("garden", "short")  # the default ones
+NEAR_M = 5.0  # the `near` scene keeps the returns within this range
 TARGETS = {
     "octree_max_1m_0.1_ms": 25.0,  # CPU per 131,072-point scan (issue 15)
     "full_ray_vs_octomap_ratio": 0.20,  # short scene, 0.1 m
@@ -93,7 +95,8 @@ def _make_scans(n_scans: int, n_beams: int, n_cols: int, scene: str, path: Path)
     for k in range(n_scans):
         s = world.scan(k)
         r = np.linalg.norm(s.points.astype(np.float64) - s.origin, axis=1)
-        keep = r <= MAX_RANGE_M if scene == "short" else np.ones(r.shape[0], bool)
+        cut = {"short": MAX_RANGE_M, "near": NEAR_M}.get(scene, np.inf)
+        keep = r <= cut
         scans.append((s.points[keep], s.labels[keep], s.confidences[keep], s.origin))
         ranges.append(r[keep])
     sizes = save_scans(path, scans)
@@ -545,6 +548,41 @@ def _pair_table(pairs: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def spread(pairs: list[dict]) -> list[dict]:
+    """Per comparison (`pair`): the smana / peer ratio's median and range, wall and CPU, over
+    its workload variants (scenes: ray lengths; resolutions: voxels per ray), and the load."""
+    groups: dict[str, list[dict]] = {}
+    for p in pairs:
+        groups.setdefault(p["pair"], []).append(p)
+    out = []
+    for name, ps in groups.items():
+        wall = [p["ratio"] for p in ps]
+        cpu = [p["ratio_cpu"] for p in ps]
+        loads = [x for p in ps for x in p["load"]]
+        out.append(
+            {
+                "pair": name,
+                "variants": [f"{p['scene']} {p['res']:g} m" for p in ps],
+                "wall": [float(np.median(wall)), min(wall), max(wall)],
+                "cpu": [float(np.median(cpu)), min(cpu), max(cpu)],
+                "load": [min(loads), max(loads)],
+            }
+        )
+    return out
+
+
+def _spread_lines(groups: list[dict]) -> list[str]:
+    lines = ["spread over the variants: smana / peer, median [min, max]"]
+    for g in groups:
+        w, c, ld = g["wall"], g["cpu"], g["load"]
+        lines.append(
+            f"  {g['pair']:<32} {len(g['variants'])} variants ({', '.join(g['variants'])}): "
+            f"wall {w[0]:.3f} [{w[1]:.3f}, {w[2]:.3f}], CPU {c[0]:.3f} [{c[1]:.3f}, {c[2]:.3f}], "
+            f"load {ld[0]:.1f}-{ld[1]:.1f}"
+        )
+    return lines
+
+
 def _summary(results: list[dict], pairs: list[dict]) -> tuple[list[str], dict]:
     lines, checks = [], {}
     for r in results:
@@ -639,9 +677,10 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--scenes",
         nargs="+",
-        choices=SCENES,
+        choices=(*SCENES, "near"),
         default=list(SCENES),
-        help="garden: every return, most beyond range; short: returns within range only",
+        help=f"garden: every return, most beyond range; short: returns within range only; "
+        f"near: returns within {NEAR_M:g} m only",
     )
     p.add_argument("--no-octomap", action="store_true", help="skip the pyoctomap comparison")
     p.add_argument("--no-open3d", action="store_true", help="skip the Open3D comparison")
@@ -719,6 +758,7 @@ def cli(argv: list[str] | None = None) -> int:
         "wall_s": time.perf_counter() - t_start,
         "results": results,
         "pairs": pairs,
+        "spread": spread(pairs),
         "checks": checks,
         "targets": TARGETS,
         "failed": failed,
@@ -741,6 +781,7 @@ def cli(argv: list[str] | None = None) -> int:
         print()
         print(_pair_table(pairs))
         print("(wall x, cpu x: smana / peer; load: 1-minute load average around both runs)")
+        print("\n".join(_spread_lines(report["spread"])))
         print("\n".join(lines))
         print(f"wall time {report['wall_s']:.0f} s")
     if failed:

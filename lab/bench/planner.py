@@ -20,10 +20,17 @@ is reported beside it, through `Planner.plan`, with pyastar2d's time as the yard
 Every A* cost is checked against Dijkstra to 1e-6 relative (and pyastar2d's to 1e-5: it sums in
 float32); a disagreement fails the benchmark. Every row prints the peer's and smana's wall and CPU
 time (time.process_time), their ratio, and the load average.
+
+Workload variants: graph sizes (`--sizes`), obstacle shares of the cluttered graphs
+(`--obstacles`), query spans (`--lengths`, a share of the graph's size). The run ends with the
+spread of each comparison: the ratio's median and range over every query of every variant, CPU
+and wall, and the load average meanwhile.
 """
 
 from __future__ import annotations
 
+import argparse
+import math
 import os
 import statistics
 import sys
@@ -48,15 +55,18 @@ GRASS, TERRAIN = 1, 2
 OBSTACLES = (4, 5, 6, 8)  # hedge, topiary, rose, tree
 
 
-def make_graph(n: int, seed: int = 0, classes: ClassTable | None = None):
+def make_graph(
+    n: int, seed: int = 0, classes: ClassTable | None = None, obstacle_share: float = 0.12
+):
     """A deterministic cluttered N x N garden: labels, heights, flags (dense arrays)."""
     classes = classes or ClassTable.load("garden3drms")
     rng = np.random.default_rng(seed)
     labels = _grass_patches(rng, n)
-    # Obstacles: discs of 0.3 to 1.5 m radius covering ~12 % of the area.
+    # Obstacles: discs of 0.3 to 1.5 m radius covering about `obstacle_share` of the area
+    # (less where they overlap).
     obstacle = np.zeros((n, n), bool)
     yy, xx = np.mgrid[0:n, 0:n]
-    n_discs = int(0.12 * n * n / (np.pi * (0.8 / RES) ** 2))
+    n_discs = int(obstacle_share * n * n / (np.pi * (0.8 / RES) ** 2))
     centres = rng.integers(0, n, size=(n_discs, 2))
     radii = rng.uniform(0.3, 1.5, n_discs) / RES
     kinds = rng.choice(OBSTACLES, n_discs)
@@ -96,22 +106,28 @@ def grid_from_dense(labels, heights, flags) -> NavGrid:
     return grid
 
 
-def _anchors(n: int):
-    """Query ends near opposite corners, then opposite sides."""
+def _anchors(n: int, length: float = 1.0):
+    """Query ends near opposite corners, then opposite sides; with `length` < 1 both ends are
+    drawn towards the centre, so that the query spans that share of the graph."""
     m = n // 50 + 1
-    return [
+    c = (n - 1) / 2
+    pairs = [
         ((m, m), (n - 1 - m, n - 1 - m)),
         ((n - 1 - m, m), (m, n - 1 - m)),
         ((m, n // 2), (n - 1 - m, n // 2)),
         ((n // 2, m), (n // 2, n - 1 - m)),
     ]
+    return [
+        tuple(tuple(int(round(c + (v - c) * length)) for v in end) for end in pair)
+        for pair in pairs
+    ]
 
 
-def far_free_pairs(flags, graph_csr, n_queries: int):
-    """Start/goal pairs near opposite corners and sides, both free and connected."""
+def far_free_pairs(flags, graph_csr, n_queries: int, length: float = 1.0):
+    """Start/goal pairs near opposite corners and sides (`_anchors`), both free and connected."""
     n = flags.shape[0]
     free = (flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0
-    anchors = _anchors(n)
+    anchors = _anchors(n, length)
     # The largest connected component of the graph, so that every query has an answer.
     _, comp = csgraph.connected_components(graph_csr, directed=True, connection="strong")
     big = np.bincount(comp).argmax()
@@ -171,28 +187,45 @@ def _patch_one_tile(grid: NavGrid):
     return patch
 
 
-# What each smana row times: a new Planner (nothing cached), the planner's first query after a
-# graph patch (the patched nodes of the window and enter costs refreshed), a repeat query on one
-# graph version.
-FIRST_NEW, FIRST_PATCHED, REPEAT = "new", "patched", "repeat"
+# What each smana row times: building a Planner and its first query (nothing cached before),
+# the first query on a Planner built just before (untimed: it builds its window ahead, as the
+# service does on its tick after a graph change), the first query after a graph patch (the
+# patched nodes of the window and enter costs refreshed), a repeat query on one graph version.
+BUILD_FIRST, FIRST_NEW, FIRST_PATCHED, REPEAT = "build", "new", "patched", "repeat"
 
 
-def _query(grid, classes, params, planner, a, b, heuristic):
-    """A query as a call for `timed`; on a new Planner each time (cold) when `planner` is None."""
+def _query(grid, classes, params, planner, a, b, heuristic, when=REPEAT):
+    """(call, setup) for `timed`: a query on `planner`, or on a new Planner per call, built in
+    the call (BUILD_FIRST) or in the untimed setup (FIRST_NEW)."""
+    fresh = {}
+
+    def new_planner():
+        fresh["p"] = Planner(grid, classes, params)
 
     def query():
-        return (planner or Planner(grid, classes, params)).plan(a, b, heuristic=heuristic)
+        if when == BUILD_FIRST:
+            new_planner()
+        p = fresh["p"] if when in (BUILD_FIRST, FIRST_NEW) else planner
+        return p.plan(a, b, heuristic=heuristic)
 
-    return query
+    return query, (new_planner if when == FIRST_NEW else None)
 
 
 def _rel(a: float, b: float) -> float:
     return abs(a - b) / max(abs(b), 1e-300)
 
 
-def run_size(n: int, runs: int, n_queries: int, classes, with_euclidean: bool) -> dict:
+def run_size(
+    n: int,
+    runs: int,
+    n_queries: int,
+    classes,
+    with_euclidean: bool,
+    obstacle_share: float = 0.12,
+    length: float = 1.0,
+) -> dict:
     """The cluttered graph: `Planner.plan` against scipy's Dijkstra on the same graph."""
-    labels, heights, flags = make_graph(n, seed=n, classes=classes)
+    labels, heights, flags = make_graph(n, seed=n, classes=classes, obstacle_share=obstacle_share)
     grid = grid_from_dense(labels, heights, flags)
     params = PlannerConfig(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile")
     planner = Planner(grid, classes, params)
@@ -202,8 +235,9 @@ def run_size(n: int, runs: int, n_queries: int, classes, with_euclidean: bool) -
     t = time.perf_counter()
     csr = build_graph(enter, heights, RES, params.h_f, params.max_step_m)
     build_ms = (time.perf_counter() - t) * 1e3
-    pairs = far_free_pairs(flags, csr, n_queries)
-    out = {"n": n, "edges": csr.nnz, "build_ms": build_ms, "queries": []}
+    pairs = far_free_pairs(flags, csr, n_queries, length)
+    variant = f"{n} obst {obstacle_share:g} len {length:g}"
+    out = {"n": n, "variant": variant, "edges": csr.nnz, "build_ms": build_ms, "queries": []}
     t = time.perf_counter()
     planner._dense(planner._window([pairs[0][0], pairs[0][1]], False))
     out["window_ms"] = (time.perf_counter() - t) * 1e3
@@ -217,6 +251,7 @@ def run_size(n: int, runs: int, n_queries: int, classes, with_euclidean: bool) -
         want = float(dist[g[0] * n + g[1]])
         rows = []
         works = [
+            ("new Planner + first", "octile", BUILD_FIRST),
             ("first, new Planner", "octile", FIRST_NEW),
             ("first after a patch", "octile", FIRST_PATCHED),
             ("repeat query", "octile", REPEAT),
@@ -224,10 +259,8 @@ def run_size(n: int, runs: int, n_queries: int, classes, with_euclidean: bool) -
         if with_euclidean:
             works.append(("repeat, Euclidean", "euclidean", REPEAT))
         for work, heur, when in works:
-            fn = _query(
-                grid, classes, params, None if when == FIRST_NEW else planner, sxy, gxy, heur
-            )
-            sw, sc, res = timed(fn, runs, patch if when == FIRST_PATCHED else None)
+            fn, setup = _query(grid, classes, params, planner, sxy, gxy, heur, when)
+            sw, sc, res = timed(fn, runs, patch if when == FIRST_PATCHED else setup)
             if not res.ok:
                 raise RuntimeError(f"bench query failed: {res.error} {res.message}")
             err = _rel(res.cost_total, want)
@@ -247,7 +280,7 @@ def run_size(n: int, runs: int, n_queries: int, classes, with_euclidean: bool) -
     return out
 
 
-def run_flat(n: int, runs: int, n_queries: int, classes, pyastar) -> dict:
+def run_flat(n: int, runs: int, n_queries: int, classes, pyastar, length: float = 1.0) -> dict:
     """The flat graph: smana's kernel against pyastar2d under pyastar2d's cost, and smana's
     `Planner.plan` under the paper's cost (pyastar2d's time beside it)."""
     labels, heights, flags = make_flat_graph(n, seed=n)
@@ -262,8 +295,8 @@ def run_flat(n: int, runs: int, n_queries: int, classes, pyastar) -> dict:
     # Exactness checks only (not timed here): Dijkstra under both costs.
     csr_eq = build_graph(enter, zeros, 0.0, 0.0)
     csr_paper = build_graph(0.8 * classes.cost_lut[labels], zeros, RES, 0.1, 0.3)
-    out = {"n": n, "queries": [], "peer_err": 0.0}
-    for s, g in _anchors(n)[:n_queries]:
+    out = {"n": n, "variant": f"{n} flat len {length:g}", "queries": [], "peer_err": 0.0}
+    for s, g in _anchors(n, length)[:n_queries]:
         sxy, gxy = grid.cell_centre(*s), grid.cell_centre(*g)
         src, dst = s[0] * n + s[1], g[0] * n + g[1]
         want_eq = float(csgraph.dijkstra(csr_eq, directed=True, indices=src)[dst])
@@ -296,11 +329,12 @@ def run_flat(n: int, runs: int, n_queries: int, classes, pyastar) -> dict:
             )
         )
         for work, when in (
+            ("first, new Planner, paper", FIRST_NEW),
             ("after a patch, paper", FIRST_PATCHED),
             ("repeat query, paper", REPEAT),
         ):
-            fn = _query(grid, classes, params, planner, sxy, gxy, "octile")
-            sw, sc, res = timed(fn, runs, patch if when == FIRST_PATCHED else None)
+            fn, setup = _query(grid, classes, params, planner, sxy, gxy, "octile", when)
+            sw, sc, res = timed(fn, runs, patch if when == FIRST_PATCHED else setup)
             if not res.ok:
                 raise RuntimeError(f"bench query failed: {res.error} {res.message}")
             rows.append(
@@ -319,13 +353,13 @@ def run_flat(n: int, runs: int, n_queries: int, classes, pyastar) -> dict:
 
 
 HEADER = (
-    f"{'graph':>11} {'query':>16} {'work':<22} {'peer':<14} {'peer ms':>8} {'peer cpu':>8} "
+    f"{'graph':>24} {'query':>16} {'work':<26} {'peer':<14} {'peer ms':>8} {'peer cpu':>8} "
     f"{'smana ms':>8} {'smana cpu':>9} {'ratio':>5} {'cpu r.':>6} {'expanded':>8} {'cost':>10} "
     f"{'rel err':>7} {'load':>5}"
 )
 
 
-def _print_row(n: int, q: dict, r: dict) -> None:
+def _print_row(variant: str, q: dict, r: dict) -> None:
     label = f"{q['start'][0]},{q['start'][1]}->{q['goal'][0]},{q['goal'][1]}"
     if r["peer_ms"] is None:
         peer = f"{'-':>8} {'-':>8}"
@@ -336,13 +370,64 @@ def _print_row(n: int, q: dict, r: dict) -> None:
         ratio = f"{sw / pw:5.2f} {sc / max(pc, 1e-9):6.2f}"
     sw, sc = r["smana_ms"]
     print(
-        f"{n:>5}x{n:<5} {label:>16} {r['work']:<22} {r['peer']:<14} {peer} {sw:8.1f} {sc:9.1f} "
+        f"{variant:>24} {label:>16} {r['work']:<26} {r['peer']:<14} {peer} {sw:8.1f} {sc:9.1f} "
         f"{ratio} {r['expanded']:8d} {r['cost']:10.3f} {r['rel_err']:7.0e} {r['load']:5.2f}"
     )
 
 
+def spread(results: list[dict]) -> list[dict]:
+    """Per (peer, work): the smana / peer ratio's median and range (wall and CPU) over every
+    query of every workload variant in `results`, and the load average's range meanwhile."""
+    groups: dict[tuple[str, str], list[tuple[str, dict]]] = {}
+    for r in results:
+        for q in r["queries"]:
+            for row in q["rows"]:
+                if row["peer_ms"] is not None:
+                    groups.setdefault((row["peer"], row["work"]), []).append((r["variant"], row))
+    out = []
+    for (peer, work), rows in groups.items():
+        wall = [row["smana_ms"][0] / row["peer_ms"][0] for _, row in rows]
+        cpu = [row["smana_ms"][1] / max(row["peer_ms"][1], 1e-9) for _, row in rows]
+        loads = [row["load"] for _, row in rows]
+        out.append(
+            {
+                "peer": peer,
+                "work": work,
+                "variants": len({v for v, _ in rows}),
+                "queries": len(rows),
+                "cpu": (statistics.median(cpu), min(cpu), max(cpu)),
+                "wall": (statistics.median(wall), min(wall), max(wall)),
+                "load": (min(loads), max(loads)),
+            }
+        )
+    return out
+
+
+def _print_spread(results: list[dict]) -> None:
+    print(
+        "spread over the workload variants: smana / peer ratio, median [min, max] over every "
+        "query, CPU and wall"
+    )
+    for g in spread(results):
+        c, w, ld = g["cpu"], g["wall"], g["load"]
+        print(
+            f"  {g['peer']:<14} {g['work']:<26} {g['variants']} variants, {g['queries']:2d} "
+            f"queries: CPU {c[0]:.2f} [{c[1]:.2f}, {c[2]:.2f}], wall {w[0]:.2f} "
+            f"[{w[1]:.2f}, {w[2]:.2f}], load {ld[0]:.1f}-{ld[1]:.1f}"
+        )
+
+
 def cli(argv: list[str] | None = None) -> int:
     from smana.common.cli import ArgumentParser, int_in, positive_int
+
+    def share(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            v = math.nan
+        if not 0.0 < v <= 1.0:  # NaN fails too
+            raise argparse.ArgumentTypeError(f"expected a number > 0 and <= 1, got {text!r}")
+        return v
 
     p = ArgumentParser(
         prog="smana bench planner",
@@ -355,6 +440,20 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", type=int_in(4), nargs="+", help="graph sizes N (N x N nodes)")
     p.add_argument("--runs", type=positive_int, help="runs per query (median reported)")
     p.add_argument("--queries", type=int_in(1, 4), default=2, help="queries per graph (1..4)")
+    p.add_argument(
+        "--obstacles",
+        type=share,
+        nargs="+",
+        default=[0.12],
+        help="cluttered graphs: obstacle shares of the area, one graph each (default 0.12)",
+    )
+    p.add_argument(
+        "--lengths",
+        type=share,
+        nargs="+",
+        default=[1.0],
+        help="query spans as a share of the graph's size (default 1: corner to corner)",
+    )
     p.add_argument("--no-euclidean", action="store_true", help="skip the paper's heuristic")
     p.add_argument("--no-flat", action="store_true", help="skip the flat graphs (pyastar2d)")
     args = p.parse_args(argv)
@@ -385,31 +484,40 @@ def cli(argv: list[str] | None = None) -> int:
     )
     print(HEADER)
     failed = False
+    results = []
     if not args.no_flat and pyastar2d is None:
         print(HINT)  # the flat rows exist to compare with pyastar2d: skipped without it
     elif not args.no_flat:
         for n in sizes:
-            r = run_flat(n, runs, args.queries, classes, pyastar2d)
-            for q in r["queries"]:
-                for row in q["rows"]:
-                    failed |= not row["rel_err"] <= 1e-6
-                    _print_row(n, q, row)
-            failed |= not r["peer_err"] <= 1e-5
-            print(
-                f"{'':>11} flat: pyastar2d's path costs {r['peer_err']:.0e} relative off the "
-                "optimum (it sums in float32)"
-            )
+            for length in args.lengths:
+                r = run_flat(n, runs, args.queries, classes, pyastar2d, length)
+                results.append(r)
+                for q in r["queries"]:
+                    for row in q["rows"]:
+                        failed |= not row["rel_err"] <= 1e-6
+                        _print_row(r["variant"], q, row)
+                failed |= not r["peer_err"] <= 1e-5
+                print(
+                    f"{'':>24} flat: pyastar2d's path costs {r['peer_err']:.0e} relative off "
+                    "the optimum (it sums in float32)"
+                )
     for n in sizes:
-        r = run_size(n, runs, args.queries, classes, not args.no_euclidean)
-        for q in r["queries"]:
-            for row in q["rows"]:
-                failed |= not row["rel_err"] <= 1e-6
-                _print_row(n, q, row)
-        print(
-            f"{'':>11} cluttered: window {r['window_ms']:.1f} ms on a new Planner, "
-            f"grid {r['grid_bytes'] / 2**20:.1f} MiB, {r['edges']} edges, "
-            f"scipy graph build {r['build_ms']:.0f} ms (not counted)"
-        )
+        for obstacle_share in args.obstacles:
+            for length in args.lengths:
+                r = run_size(
+                    n, runs, args.queries, classes, not args.no_euclidean, obstacle_share, length
+                )
+                results.append(r)
+                for q in r["queries"]:
+                    for row in q["rows"]:
+                        failed |= not row["rel_err"] <= 1e-6
+                        _print_row(r["variant"], q, row)
+                print(
+                    f"{'':>24} cluttered: window {r['window_ms']:.1f} ms on a new Planner, "
+                    f"grid {r['grid_bytes'] / 2**20:.1f} MiB, {r['edges']} edges, "
+                    f"scipy graph build {r['build_ms']:.0f} ms (not counted)"
+                )
+    _print_spread(results)
     if failed:
         print("FAIL: an A* cost differs from Dijkstra (or pyastar2d's) beyond the tolerance")
         return 1

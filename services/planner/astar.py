@@ -177,6 +177,18 @@ def _work_arrays(n_nodes: int):
     return arrays[:n_nodes]
 
 
+def reserve(n_nodes: int) -> None:
+    """Grow this thread's work array to `n_nodes` and touch its pages now, so that a search of
+    a window that size pays no page faults (the Planner calls it when it builds a window ahead
+    of the queries)."""
+    if n_nodes <= 0:
+        return
+    arrays = getattr(_work, "arrays", None)
+    if arrays is not None and len(arrays) >= n_nodes:
+        return
+    _work_arrays(n_nodes)["g"] = np.inf  # np.empty maps the pages; a write faults them in
+
+
 @numba.njit(cache=True, inline="always")
 def _before(fa, ha, fb, hb):
     """Heap order: smaller f first; on equal f the smaller h (the larger g, nearer the goal),
@@ -397,8 +409,10 @@ def path_costs(
         return 0.0, 0.0, 0.0
     step = np.diff(cells, axis=0)
     d = resolution_m * np.hypot(step[:, 0], step[:, 1])
-    h = np.asarray(heights, np.float64)[cells[:, 0], cells[:, 1]]
+    # Index, then convert: converting the whole window first (the planner's heights are float32)
+    # made a window-sized float64 copy per query (8 MB at 1000 x 1000).
+    h = np.asarray(heights)[cells[:, 0], cells[:, 1]].astype(np.float64)
     dh = np.abs(np.diff(h))
     dh = np.where(np.isnan(dh), 0.0, dh)
-    trav = np.asarray(enter_cost, np.float64)[cells[1:, 0], cells[1:, 1]]
+    trav = np.asarray(enter_cost)[cells[1:, 0], cells[1:, 1]].astype(np.float64)
     return float(d.sum()), float(h_f * dh.sum()), float(trav.sum())

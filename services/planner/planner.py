@@ -25,7 +25,7 @@ import numpy as np
 from smana.common.classes import ClassTable
 from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
-from smana.services.planner.astar import HEURISTICS, path_costs, search
+from smana.services.planner.astar import HEURISTICS, path_costs, reserve, search
 
 # Error codes of PathReply.error
 OUT_OF_BOUNDS = "out_of_bounds"
@@ -77,6 +77,27 @@ class Planner:
         for cid, c in classes.classes.items():
             names[cid] = c.name
         self._names = names
+        # The last query's costs and ends (the defaults and none before any): what `prepare`
+        # builds for. Its ends keep the window the query had, so that a patch is refreshed in
+        # place instead of the window flipping between two boxes.
+        self._last = (classes.costs({}), self.config, False, [])
+        self.prepare()
+
+    def prepare(self) -> float:
+        """Build ahead what a query builds on a new graph version: the dense window of the
+        known area and the last query's ends, its enter costs under that query's costs, and
+        this thread's search work array. The constructor calls it, and the service on its tick
+        after graph patches, so that the first query after a change costs what a repeat query
+        does (a later patch refreshes only its nodes). Nothing to do on an empty grid. Returns
+        the seconds taken."""
+        t0 = time.perf_counter()
+        if self.grid.n_tiles:
+            lut, p, allow_unknown, ends = self._last
+            box = self._window(ends, allow_unknown)
+            labels, flags, _ = self._dense(box)
+            self._enter(box, flags, labels, lut, p, allow_unknown)
+            reserve((box[2] - box[0]) * (box[3] - box[1]))
+        return time.perf_counter() - t0
 
     # -- the query -----------------------------------------------------------------------------
 
@@ -195,6 +216,7 @@ class Planner:
                 )
             cells.append((int(ix), int(iy)))
         box = self._window(cells, bool(allow_unknown))
+        self._last = (lut, p, bool(allow_unknown), cells)
         labels, flags, known_h = self._dense(box)
         enter, min_enter = self._enter(box, flags, labels, lut, p, bool(allow_unknown))
         (sx, sy), (gx, gy) = ((c[0] - box[0], c[1] - box[1]) for c in cells)
