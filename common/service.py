@@ -6,7 +6,7 @@ state in `warm_up()`, declares its inputs and outputs in `setup()` and does its 
 
 - with `prepare_in_background` (services whose `prepare()` only compiles numba kernels), runs
   `prepare()` on a thread of its own once the service is live (alive token, status answered),
-  so it is live in about a second even on a cold numba cache, instead of after a minute of
+  so it is live without waiting for them even on a cold numba cache, instead of after a minute of
   compiling, and five services starting at once do not load kernels while the others import.
   Its status says `details.kernels = "compiling"` until they are loaded (`"ready"`, with
   `kernels_s` from the process's start). Until then the main loop runs nothing that may call

@@ -42,7 +42,15 @@ class Garden(WorldSource):
     """`sim.world = "garden"`: from `sim.seed` and `[sim.garden]`."""
 
     def build(self, config: SimConfig, classes: ClassTable) -> World:
-        return generate(config.seed, config.garden, classes)
+        # generated once per seed, section, class table and world code (worlds/cache.py)
+        from . import cache
+
+        name = cache.key(
+            "garden", int(config.seed), config.garden, classes.name, tuple(classes.classes.values())
+        )
+        world = cache.cached(name, lambda: generate(config.seed, config.garden, classes))
+        world.classes = classes
+        return world
 
 
 def generate(
