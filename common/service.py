@@ -5,16 +5,15 @@ state in `warm_up()`, declares its inputs and outputs in `setup()` and does its 
 `tick()`. The base class does the rest:
 
 - with `prepare_in_background` (services whose `prepare()` only compiles numba kernels), runs
-  `prepare()` on a thread of its own once the service is live (alive token, status answered),
-  so it is live without waiting for them even on a cold numba cache, instead of after a minute of
-  compiling, and five services starting at once do not load kernels while the others import.
-  Its status says `details.kernels = "compiling"` until they are loaded (`"ready"`, with
-  `kernels_s` from the process's start). Until then the main loop runs nothing that may call
+  `prepare()` on a thread of its own from the process's start, so the service is live (alive
+  token, status answered) in seconds even on a cold numba cache, instead of after a minute of
+  compiling. Its status says `details.kernels = "compiling"` until they are loaded (`"ready"`,
+  with `kernels_s` from the process's start). Until then the main loop runs nothing that may call
   a kernel: samples wait in their queues, in order, and ticks wait; a query is answered the
   error `warming_up` (ask again; after `WARMING_UP_HOLD_S`, none by default); status queries are
   answered from the zenoh callback (as while starting). Only `warm_up()` and
-  `setup()` (a map to resume, a graph to sync) may call a kernel before that: it is loaded (or
-  compiled) on its first use, before the service is live.
+  `setup()` (a map to resume, a graph to sync) may call a kernel meanwhile: numba compiles under
+  one lock, so they wait for it, before the service is live.
   `SMANA_KERNELS=foreground` restores the old order (prepare, then live; `smana bench startup`
   compares both);
 - opens the zenoh session (`with zenoh.open(conf) as session`) and at once declares the liveliness
@@ -260,8 +259,9 @@ class Service(Inbox, Answers, Liveliness):
             and not standby
             and os.environ.get(KERNELS_ENV, "") != "foreground"
         )
-        if background:  # the kernel thread starts once the service is live (see below)
+        if background:  # from now: compiling overlaps opening zenoh and loading the run's state
             self.kernels = "compiling"
+            threading.Thread(target=self._prepare_kernels, name="kernels", daemon=True).start()
         if standby:
             t0 = time.monotonic()
             self.prepare()
@@ -311,14 +311,6 @@ class Service(Inbox, Answers, Liveliness):
                     self._ready.set()  # ends the heartbeat thread (unless kernels compile)
                     self._declared.remove(starting)
                     starting.undeclare()
-                    if background:
-                        # Only now: loading kernels (about 0.5 s of CPU a process on a warm
-                        # cache, more than its imports) started at the process's start held
-                        # back every service of a `smana up` on 2 cores from being live. A
-                        # kernel that warm_up() or setup() needs loads on first use meanwhile.
-                        threading.Thread(
-                            target=self._prepare_kernels, name="kernels", daemon=True
-                        ).start()
                     self.log.info(
                         "%s ready in %.1f s (robot %s, pid %d)%s",
                         self.name,

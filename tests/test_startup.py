@@ -101,33 +101,6 @@ def test_live_while_kernels_compile_then_ready(fake_stack, monkeypatch):
         GATE.set()
 
 
-class LateKernels(SlowKernels):
-    """Records what the service was when its background prepare() began."""
-
-    name = "latek"
-    began: list[tuple[str, bool]] = []
-
-    def prepare(self) -> None:
-        alive = keys.alive(self.robot, self.name)
-        declared = bool(list(self.session.liveliness().get(alive))) if self.session else False
-        self.began.append((self.state, declared))
-
-
-def test_kernels_load_only_once_live(fake_stack, monkeypatch):
-    """Five services starting at once on 2 cores: loading kernels is not on the path to live."""
-    monkeypatch.delenv(KERNELS_ENV, raising=False)
-    LateKernels.began.clear()
-
-    def cli(argv=None) -> int:
-        return LateKernels(config_from_args(make_parser("latek", "test").parse_args(argv))).run()
-
-    run = fake_stack.start("latek", cli, "--robot", fake_stack.robot)
-    fake_stack.wait_alive("latek", timeout_s=10)
-    assert wait_for(lambda: LateKernels.began, 10)
-    assert LateKernels.began == [("running", True)]
-    assert fake_stack.stop(run) == 0
-
-
 def test_foreground_kernels_before_live(fake_stack, monkeypatch):
     monkeypatch.setenv(KERNELS_ENV, "foreground")
     GATE.clear()
