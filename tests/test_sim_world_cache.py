@@ -1,6 +1,7 @@
 """The built-world cache (services/sim/worlds/cache.py): a garden read back is the garden generated,
 bit for bit; a key per seed, section, class table and world code; a damaged file is built again;
-`off` writes nothing; and a sim on a warm cache does not import the garden generator at all."""
+`off` writes nothing; the folder keeps the worlds used last and no world too large; and a sim on
+a warm cache does not import the garden generator at all."""
 
 from __future__ import annotations
 
@@ -73,6 +74,23 @@ def test_a_damaged_file_is_built_again(folder):
     assert same_world(build_world(config()), built)
     assert same_world(build_world(config()), built)  # rewritten whole
     assert len(path.read_bytes()) > 100
+
+
+def test_the_folder_keeps_the_worlds_used_last(folder, monkeypatch):
+    monkeypatch.setattr(cache, "KEEP", 2)
+    build_world(config(seed=1))
+    first = set(folder.glob("*.pickle"))
+    build_world(config(seed=2))
+    build_world(config(seed=1))  # read back: used last
+    build_world(config(seed=3))  # a third: seed 2's goes
+    kept = set(folder.glob("*.pickle"))
+    assert len(kept) == 2 and first <= kept
+
+
+def test_a_large_world_is_not_stored(folder, monkeypatch):
+    monkeypatch.setattr(cache, "MAX_BYTES", 1000)
+    assert same_world(build_world(config()), generate(5, SMALL))
+    assert not list(folder.glob("*"))
 
 
 def test_off_writes_nothing(tmp_path, monkeypatch):

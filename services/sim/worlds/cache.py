@@ -12,6 +12,8 @@ made of exactly those and read back on the next start.
   a world an older one wrote. A file that does not load (cut short, another Python) is built again.
 - Files are written to a temporary name and renamed, so two sims starting at once never read half
   a file.
+- The folder keeps the `KEEP` worlds used last (a read touches its file); a world whose ground
+  arrays pass `MAX_BYTES` is not stored (a large world is a file the size of its arrays).
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ if TYPE_CHECKING:
     from .world import World
 
 ENV = "SMANA_WORLD_CACHE"
+KEEP = 64  # worlds kept in the folder, the last used
+MAX_BYTES = 64 << 20  # a world whose ground arrays are larger is built each time
 log = logging.getLogger("smana.sim")
 
 
@@ -72,18 +76,35 @@ def cached(name: str, build: Callable[[], World]) -> World:
     path = where / f"{name}.pickle"
     try:
         with open(path, "rb") as f:
-            return pickle.load(f)
+            world = pickle.load(f)
+        os.utime(path)  # used last: kept when the folder is pruned
+        return world
     except FileNotFoundError:
         pass
     except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: build it again
         log.warning("world cache %s does not load (%s): building the world again", path, exc)
     world = build()
+    if world.ground.heights.nbytes + world.ground.classes.nbytes > MAX_BYTES:
+        return world
     try:
         where.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
         with open(tmp, "wb") as f:
             pickle.dump(world, f, protocol=pickle.HIGHEST_PROTOCOL)
         os.replace(tmp, path)
+        _prune(where)
     except OSError as exc:
         log.info("world cache %s not written (%s)", where, exc)
     return world
+
+
+def _prune(where: Path) -> None:
+    """Keep the `KEEP` files used last; another sim may be pruning too."""
+    files = []
+    for f in where.glob("*.pickle"):
+        try:
+            files.append((f.stat().st_mtime, f))
+        except FileNotFoundError:
+            continue
+    for _, f in sorted(files, reverse=True)[KEEP:]:
+        f.unlink(missing_ok=True)
