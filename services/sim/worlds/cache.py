@@ -77,24 +77,32 @@ def cached(name: str, build: Callable[[], World]) -> World:
     try:
         with open(path, "rb") as f:
             world = pickle.load(f)
-        os.utime(path)  # used last: kept when the folder is pruned
-        return world
     except FileNotFoundError:
         pass
     except Exception as exc:  # noqa: BLE001 - a damaged or foreign file: build it again
         log.warning("world cache %s does not load (%s): building the world again", path, exc)
+    else:
+        try:
+            os.utime(path)  # used last: kept when the folder is pruned
+        except OSError:  # pruned meanwhile by another sim: the world read is whole
+            pass
+        return world
     world = build()
     if world.ground.heights.nbytes + world.ground.classes.nbytes > MAX_BYTES:
         return world
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
     try:
         where.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
         with open(tmp, "wb") as f:
             pickle.dump(world, f, protocol=pickle.HIGHEST_PROTOCOL)
         os.replace(tmp, path)
         _prune(where)
     except OSError as exc:
         log.info("world cache %s not written (%s)", where, exc)
+        try:
+            tmp.unlink(missing_ok=True)  # a disk that filled up: no half file left behind
+        except OSError:
+            pass
     return world
 
 
