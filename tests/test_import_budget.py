@@ -1,7 +1,8 @@
 """What a service imports before it is live (STYLE.md: "a sentence that promises behaviour is a
 test"): the explorer and the sim import no numba (a quarter of a second of CPU a process, five
-processes at once on 2 cores) until they use a kernel, after they are live. Each probe runs in a
-fresh interpreter; a last probe shows the check sees numba when it is imported."""
+processes at once on 2 cores) until they use a kernel, after they are live; the explorer imports
+no scipy. Each probe runs in a fresh interpreter; a last probe shows the check sees numba when it
+is imported."""
 
 from __future__ import annotations
 
@@ -31,6 +32,12 @@ def test_a_service_module_imports_no_numba(module):
     assert "numba" not in mods and "llvmlite" not in mods
     # nor the kernels' modules
     assert not {"smana.services.explorer.kernels", "smana.services.sim.camera_kernel"} & mods
+
+
+def test_the_explorer_imports_no_scipy():
+    """scipy.ndimage is the explorer's only when it plans (0.15 s of CPU). (The sim needs it for
+    its spawn; on a warm world cache, not the generator's modules: test_sim_world_cache.py.)"""
+    assert "scipy" not in imported("import smana.services.explorer.service")
 
 
 def test_the_kernels_load_on_first_use():
