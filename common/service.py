@@ -192,6 +192,9 @@ class Service(Inbox, Answers, Liveliness):
         self.state = "starting"
         self.startup_step = "opening the zenoh session"  # what a starting service is doing
         self.ready_s: float | None = None  # seconds from process start to ready
+        # CPU seconds of the process (every thread, imports included) when it got ready: what a
+        # start costs whatever else runs on the machine
+        self.ready_cpu_s = 0.0
         self.kernels = "ready"  # "compiling" while a background prepare() runs
         self.kernels_s: float | None = None  # seconds from process start to kernels loaded
         self._t0 = time.monotonic()
@@ -303,6 +306,7 @@ class Service(Inbox, Answers, Liveliness):
                     with self._status_lock:
                         self.state = "running"
                         self.ready_s = time.monotonic() - self._t0
+                        self.ready_cpu_s = time.process_time()
                         self.startup_step = "compiling (or loading) the numba kernels"
                     self._ready.set()  # ends the heartbeat thread (unless kernels compile)
                     self._declared.remove(starting)

@@ -37,6 +37,7 @@ class Liveliness:
             details = self.status_details()
         if self.ready_s is not None:
             details = {**details, "ready_s": round(self.ready_s, 3)}
+            details["ready_cpu_s"] = round(self.ready_cpu_s, 3)
         if self.prepare_in_background:
             details["kernels"] = self.kernels
             if self.kernels_s is not None:

@@ -7,6 +7,7 @@ process; `smana bench startup --quick` runs and prints its rows (no timing asser
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -93,6 +94,7 @@ def test_live_while_kernels_compile_then_ready(fake_stack, monkeypatch):
         assert wait_for(lambda: status(fake_stack).details.get("kernels") == "ready", 5)
         st = status(fake_stack)
         assert st.details["kernels_s"] >= st.details["ready_s"] and st.books_add_up()
+        assert 0 < st.details["ready_cpu_s"] <= time.process_time()
         assert st.rejected == {} and st.pending == 0
         assert fake_stack.stop(run) == 0
     finally:
@@ -142,3 +144,6 @@ def test_bench_startup_quick(capsys):
     for start in ("cold", "warm", "kill"):
         assert f"{start:<6}navgraph" in out
     assert "back live s" in out and "load average" in out and "CPU" in out
+    # the CPU each start spent to get live, and what that bounds on this machine's cores
+    assert "back cpu s" in out and "background warm: all 1 live in" in out
+    assert "s of CPU to get there" in out

@@ -12,7 +12,8 @@ the process is spawned:
   before it is live.
 
 Three starts per side, in order, on a numba cache of their own (`NUMBA_CACHE_DIR`, a fresh
-folder, so the cache of the source tree is left alone):
+folder, so the cache of the source tree is left alone) and a cache of built worlds of their own
+(`SMANA_WORLD_CACHE`, in the same folder):
 
 - `cold`: every service at once on the empty cache, as the first `smana up` after an install;
 - `warm`: all stopped (SIGINT) and started again on the cache the cold start filled;
@@ -24,6 +25,10 @@ The table gives, per start and service, both sides' live and kernel times and th
 live times (foreground / background), then the CPU and wall time of the run and the load average.
 `imp s` is the part of `live` before the service object exists (Python, imports, config: from its
 own `ready_s`); the rest is opening zenoh, `warm_up()` and `setup()` (and, foreground, kernels).
+`cpu s` is the CPU time the process had spent when it got live (its status's `ready_cpu_s`: every
+thread, imports included): unlike the wall times it hardly depends on what else the machine runs,
+and its sum over the services started at once, divided by the cores, is the least wall time in
+which they can all be live on an otherwise idle machine.
 A service that never becomes live, or whose kernels never load, fails the run (exit status 1).
 """
 
@@ -62,6 +67,7 @@ class Watch:
         self.alive: dict[str, float] = {}
         self.kernels: dict[str, float] = {}
         self.ready_s: dict[str, float] = {}  # the service's own count: Service() to live
+        self.ready_cpu_s: dict[str, float] = {}  # its CPU seconds, imports included, when live
         self.pids: dict[str, int] = {}
         self._subs = [
             session.liveliness().declare_subscriber(keys.alive_any(ROBOT), self._on_alive),
@@ -73,6 +79,7 @@ class Watch:
             self.alive.pop(service, None)
             self.kernels.pop(service, None)
             self.ready_s.pop(service, None)
+            self.ready_cpu_s.pop(service, None)
 
     def _on_alive(self, sample) -> None:
         service = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -93,6 +100,8 @@ class Watch:
         with self._lock:
             if "ready_s" in st.details:
                 self.ready_s.setdefault(st.service, float(st.details["ready_s"]))
+            if "ready_cpu_s" in st.details:
+                self.ready_cpu_s.setdefault(st.service, float(st.details["ready_cpu_s"]))
             if st.details.get("kernels", "ready") == "ready":
                 self.kernels.setdefault(st.service, now)
 
@@ -103,6 +112,10 @@ class Watch:
     def own_ready_s(self, service: str) -> float | None:
         with self._lock:
             return self.ready_s.get(service)
+
+    def own_ready_cpu_s(self, service: str) -> float | None:
+        with self._lock:
+            return self.ready_cpu_s.get(service)
 
     def close(self) -> None:
         for s in self._subs:
@@ -120,8 +133,11 @@ class Stack:
 
     def start(self, service: str) -> None:
         from smana.common.service import KERNELS_ENV
+        from smana.services.sim.worlds.cache import ENV as WORLD_CACHE_ENV
 
+        # the sim's built world is cached beside the kernels: cold is cold for both
         env = dict(os.environ, NUMBA_CACHE_DIR=str(self.cache))
+        env[WORLD_CACHE_ENV] = str(self.cache / "worlds")
         env[KERNELS_ENV] = self.side
         argv = procs.service_argv(
             service, self.endpoint, ROBOT, "--set", "explorer.time_budget_s=100000"
@@ -152,6 +168,7 @@ class Stack:
                 # spawn to Service(): Python, imports, config (the rest is zenoh and state)
                 "imports_s": None if alive is None or own is None else alive - t0 - own,
                 "live_s": None if alive is None else alive - t0,
+                "cpu_s": self.watch.own_ready_cpu_s(s),
                 "kernels_s": None if kernels is None else max(kernels, alive or 0) - t0,
                 "exit": self.procs[s].poll(),
             }
@@ -194,11 +211,13 @@ def _fmt(x: float | None) -> str:
 
 
 def print_table(results: dict, services) -> bool:
-    """The table; False when a service was never live or its kernels never loaded."""
+    """The table, then per start of all at once the slowest live and the CPU they spent to get
+    live; False when a service was never live or its kernels never loaded."""
     sides = list(results)
     head = f"{'start':<6}{'service':<10}"
     for side in sides:
-        head += f"{side[:4] + ' imp s':>12}{side[:4] + ' live s':>13}{side[:4] + ' kern s':>13}"
+        s4 = side[:4]
+        head += f"{s4 + ' imp s':>12}{s4 + ' live s':>13}{s4 + ' kern s':>13}{s4 + ' cpu s':>12}"
     if len(sides) == 2:
         head += f"{'live ratio':>12}"
     print(head)
@@ -211,11 +230,24 @@ def print_table(results: dict, services) -> bool:
                 r = results[side].get(start, {}).get(s) or {}
                 live, kern, imp = r.get("live_s"), r.get("kernels_s"), r.get("imports_s")
                 ok &= live is not None and kern is not None
-                row += f"{_fmt(imp):>12}{_fmt(live):>13}{_fmt(kern):>13}"
+                row += f"{_fmt(imp):>12}{_fmt(live):>13}{_fmt(kern):>13}{_fmt(r.get('cpu_s')):>12}"
                 lives.append(live)
             if len(sides) == 2 and None not in lives:
                 row += f"{lives[1] / lives[0]:>11.1f}x"
             print(row)
+    cores = os.cpu_count() or 1
+    for side in sides:
+        for start in ("cold", "warm"):
+            rows = [results[side].get(start, {}).get(s) or {} for s in services]
+            lives = [r.get("live_s") for r in rows]
+            cpus = [r.get("cpu_s") for r in rows]
+            if None in lives or None in cpus:
+                continue
+            print(
+                f"{side} {start}: all {len(services)} live in {max(lives):.2f} s; they spent "
+                f"{sum(cpus):.2f} s of CPU to get there, {sum(cpus) / cores:.2f} s on {cores} "
+                "cores with nothing else running"
+            )
     return ok
 
 

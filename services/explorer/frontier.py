@@ -17,17 +17,18 @@ Three steps, each usable alone:
    only a few paths are requested (branch and bound).
 
 The nearest-frontier baseline (Yamauchi 1997) needs `travel_distance_m`: metres over free nodes
-from the robot, 8-connected (a numba Dijkstra, `_travel_distance_kernel`).
+from the robot, 8-connected (a numba Dijkstra, `kernels._travel_distance_kernel`).
+
+The numba kernels live in kernels.py, imported on first use: the explorer service imports this
+module before it is live, and numba's import alone is a quarter of a second of CPU.
 """
 
 from __future__ import annotations
 
-import heapq
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from smana.common.config.explorer import ViewConfig
@@ -169,44 +170,6 @@ class FovModel:
         return float(self.in_sector.sum(axis=1).max()) * self.resolution_m**2
 
 
-@numba.njit(cache=True, nogil=True)
-def _visible_unknown_kernel(
-    unknown: np.ndarray,
-    opaque: np.ndarray,
-    cand: np.ndarray,
-    offsets: np.ndarray,
-    occlusion: bool,
-    samples_per_cell: int,
-) -> np.ndarray:
-    """vis[c, o] = 1 when node cand[c] + offsets[o] is inside the grid, unknown, and (with
-    occlusion) the straight segment between the two node centres crosses no opaque node."""
-    nx, ny = unknown.shape
-    n_c, n_o = cand.shape[0], offsets.shape[0]
-    vis = np.zeros((n_c, n_o), np.uint8)
-    for c in range(n_c):
-        cx, cy = cand[c, 0], cand[c, 1]
-        for o in range(n_o):
-            tx, ty = cx + offsets[o, 0], cy + offsets[o, 1]
-            if tx < 0 or ty < 0 or tx >= nx or ty >= ny or not unknown[tx, ty]:
-                continue
-            if occlusion:
-                length = math.sqrt(float(offsets[o, 0] ** 2 + offsets[o, 1] ** 2))
-                n = int(math.ceil(length * samples_per_cell))
-                blocked = False
-                for s in range(1, n):
-                    t = s / n
-                    # node (i, j) spans [i - 0.5, i + 0.5) in node units around its centre
-                    sx = int(math.floor(cx + t * offsets[o, 0] + 0.5))
-                    sy = int(math.floor(cy + t * offsets[o, 1] + 0.5))
-                    if (sx != tx or sy != ty) and opaque[sx, sy]:
-                        blocked = True
-                        break
-                if blocked:
-                    continue
-            vis[c, o] = 1
-    return vis
-
-
 def view_gains(
     unknown: np.ndarray,
     opaque: np.ndarray | None,
@@ -240,6 +203,8 @@ def view_gains(
         raise ValueError(f"samples_per_cell must be >= 1, got {samples_per_cell}")
     if len(cand) == 0:
         return np.zeros((0, len(fov.yaws))), np.zeros(0)
+    from .kernels import _visible_unknown_kernel  # numba: imported on first use (kernels.py)
+
     vis = _visible_unknown_kernel(
         unknown, opaque_arr, cand, fov.offsets, occlusion, int(samples_per_cell)
     )
@@ -379,40 +344,6 @@ def select_view(
 # -- the nearest-frontier baseline ------------------------------------------------------------
 
 
-@numba.njit(cache=True, nogil=True)
-def _travel_distance_kernel(
-    free: np.ndarray, src: np.ndarray, src_d: np.ndarray, resolution_m: float
-) -> np.ndarray:
-    """Multi-source Dijkstra over `free` nodes, 8-connected, steps res and res * sqrt 2."""
-    nx, ny = free.shape
-    dist = np.full((nx, ny), np.inf)
-    diag = resolution_m * math.sqrt(2.0)
-    heap = [(0.0, np.int64(0))]
-    heap.pop()
-    for k in range(src.shape[0]):
-        i, j = src[k, 0], src[k, 1]
-        if src_d[k] < dist[i, j]:
-            dist[i, j] = src_d[k]
-            heapq.heappush(heap, (src_d[k], np.int64(i * ny + j)))
-    while len(heap) > 0:
-        d, n = heapq.heappop(heap)
-        i, j = n // ny, n % ny
-        if d > dist[i, j]:
-            continue  # a stale entry: the node was settled through a shorter way
-        for a in range(-1, 2):
-            for b in range(-1, 2):
-                if a == 0 and b == 0:
-                    continue
-                p, q = i + a, j + b
-                if p < 0 or q < 0 or p >= nx or q >= ny or not free[p, q]:
-                    continue
-                nd = d + (diag if a != 0 and b != 0 else resolution_m)
-                if nd < dist[p, q]:
-                    dist[p, q] = nd
-                    heapq.heappush(heap, (nd, np.int64(p * ny + q)))
-    return dist
-
-
 def travel_distance_m(
     free: np.ndarray, starts: np.ndarray, start_dist_m: np.ndarray, resolution_m: float
 ) -> np.ndarray:
@@ -437,4 +368,6 @@ def travel_distance_m(
         raise ValueError("start nodes must be free")
     if not (np.isfinite(src_d).all() and (src_d >= 0).all()):
         raise ValueError("start distances must be finite and >= 0")
+    from .kernels import _travel_distance_kernel
+
     return _travel_distance_kernel(free, src, src_d, float(resolution_m))

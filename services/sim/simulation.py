@@ -36,7 +36,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pybullet as p
-from scipy import ndimage
 
 from smana.common.classes import ClassTable
 from smana.common.config import SimConfig
@@ -48,7 +47,7 @@ from .degrade import LabelDegrader, PoseNoise
 from .lidar import Lidar
 from .robot import DiffDriveRobot
 from .scene import DROP, MEMBER, BulletScene, transform_points
-from .worlds import World, build_world
+from .worlds import World, build_world, spawn_clearance_m
 
 
 def _semantic_cloud(frame, source: str) -> SemanticCloud:
@@ -228,6 +227,8 @@ def place_members(
     (ties broken by bearing, so the result is deterministic) that is at least `spacing_m` from
     every spot taken. Free: the world's traversability with `clearance_m`, in the component of
     `first_xy` (so every member can reach every other). ValueError when they do not fit."""
+    from scipy import ndimage  # a fleet's only: a single robot's sim starts without scipy
+
     trav = world.traversability(clearance_m)
     xs, ys = trav.cell_centres()
     comps, _ = ndimage.label(trav.data)
@@ -323,7 +324,7 @@ class Simulation:
                     f"got {len(fleet.start_poses)}"
                 )
             return [(float(x), float(y), float(yaw)) for x, y, yaw in fleet.start_poses]
-        clearance = cfg.robot.radius_m + 0.05
+        clearance = spawn_clearance_m(cfg)
         if cfg.spawn:
             x, y, yaw = (float(v) for v in cfg.spawn)
         else:

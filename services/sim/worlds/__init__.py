@@ -88,6 +88,7 @@ __all__ = [
     "build_world",
     "config_sections",
     "register",
+    "spawn_clearance_m",
     "world_source",
 ]
 
@@ -115,6 +116,11 @@ def world_source(spec: str) -> WorldSource:
         f"sim.world: {spec!r} is neither 'garden' nor a PLY file, nor a known world "
         f"({known}) or a module:Class"
     )
+
+
+def spawn_clearance_m(config: SimConfig) -> float:
+    """The clearance the sim's robot spawns with (`World.spawn_pose`): its radius and 5 cm."""
+    return config.robot.radius_m + 0.05
 
 
 def build_world(config: SimConfig, classes: ClassTable | None = None) -> World:

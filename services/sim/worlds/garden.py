@@ -12,7 +12,6 @@ import dataclasses
 import math
 
 import numpy as np
-from scipy import ndimage
 
 from smana.common.classes import ClassTable
 from smana.common.config import ConfigError, SimConfig
@@ -42,7 +41,29 @@ class Garden(WorldSource):
     """`sim.world = "garden"`: from `sim.seed` and `[sim.garden]`."""
 
     def build(self, config: SimConfig, classes: ClassTable) -> World:
-        return generate(config.seed, config.garden, classes)
+        # generated once per seed, section, class table and world code (worlds/cache.py)
+        from . import cache, spawn_clearance_m
+
+        # with the sim's spawn pose worked out, so that its start needs no scipy either
+        clearance = spawn_clearance_m(config)
+        name = cache.key(
+            "garden",
+            int(config.seed),
+            config.garden,
+            classes.name,
+            tuple(classes.classes.values()),
+            clearance,
+        )
+
+        def build() -> World:
+            world = generate(config.seed, config.garden, classes)
+            if not config.spawn:
+                world.spawn_pose(clearance)
+            return world
+
+        world = cache.cached(name, build)
+        world.classes = classes
+        return world
 
 
 def generate(
@@ -85,6 +106,8 @@ def generate(
 
 
 def _smooth_noise(rng: np.random.Generator, shape, sigma_cells: float) -> np.ndarray:
+    from scipy import ndimage  # only to generate: a cached garden is read without it
+
     f = ndimage.gaussian_filter(rng.standard_normal(shape), sigma_cells, mode="reflect")
     f -= f.mean()
     return f / (f.std() + 1e-12)
@@ -198,6 +221,8 @@ def _place_objects(
     gap_cells = cfg.min_gap_m / res
     # cells an object may not cover: near the walls (plus the gap) and the robot's start disk
     margin = cfg.wall_thickness_m + cfg.min_gap_m
+    from scipy import ndimage
+
     gx, gy = np.meshgrid(xs, xs, indexing="ij")
     x0, y0, x1, y1 = ground.extent
     blocked = (gx < x0 + margin) | (gx > x1 - margin) | (gy < y0 + margin) | (gy > y1 - margin)

@@ -23,7 +23,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from smana.common.classes import ClassTable
 
@@ -55,6 +54,7 @@ class World:
         self.source_cloud = source_cloud
         self._top: tuple[Raster, Raster] | None = None
         self._gt: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+        self._spawn: dict[float, tuple[float, float, float]] = {}  # spawn_pose, per radius
         used = {int(c) for c in np.unique(ground.classes)} | {o.class_id for o in self.objects}
         missing = sorted(c for c in used if c not in self.classes)
         if missing:
@@ -116,6 +116,8 @@ class World:
         top = self.top_class()
         ok = self.classes.traversable_lut[top.data]
         if robot_radius_m > 0:
+            from scipy import ndimage  # here: a sim on a cached world never needs it (spawn_pose)
+
             clearance = ndimage.distance_transform_edt(ok) * top.resolution_m
             ok = clearance > robot_radius_m
         return Raster(top.origin_xy, top.resolution_m, ok)
@@ -142,12 +144,21 @@ class World:
         if not ok.data.any():
             return 0.0
         x, y, _ = self.spawn_pose(robot_radius_m)
+        from scipy import ndimage
+
         labels, _ = ndimage.label(ok.data)
         here = labels[ok.index_of(x, y)]
         return float((labels == here).sum() / ok.data.sum()) if here else 0.0
 
     def spawn_pose(self, robot_radius_m: float = 0.45) -> tuple[float, float, float]:
-        """(x, y, z_ground) of the free spot nearest the centre with that much clearance."""
+        """(x, y, z_ground) of the free spot nearest the centre with that much clearance. Kept
+        per radius: a world read from the world cache carries the sim's (worlds/cache.py)."""
+        key = float(robot_radius_m)
+        if key not in self._spawn:
+            self._spawn[key] = self._find_spawn(key)
+        return self._spawn[key]
+
+    def _find_spawn(self, robot_radius_m: float) -> tuple[float, float, float]:
         trav = self.traversability(robot_radius_m)
         if not trav.data.any():
             raise WorldError(f"no free spot with {robot_radius_m} m clearance in {self.name}")
