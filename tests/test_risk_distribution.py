@@ -17,7 +17,6 @@ from smana.common.graph_copy import GraphCopy
 from smana.common.messages import GraphPatch, MapDelta, decode, encode
 from smana.common.navgrid import RISK_LAYER_NAMES, NavGrid
 from smana.services.mapper.semantic_map import SemanticMap
-from smana.services.navgraph.graph import to_probability_steps
 from smana.services.navgraph.service import to_patch
 from tests.test_mapper_octree import RefOctree, random_cloud
 from tests.test_mapper_tsdf import SEM_IDS, RefTsdf
@@ -115,6 +114,26 @@ def test_a_saved_map_keeps_the_distribution(tmp_path, backend):
 # -- the graph -----------------------------------------------------------------------------
 
 
+def to_probability_steps(labels, confidences, alt_labels, alt_confidences, valid=CLASSES.valid_lut):
+    """The slow reference of the kernel's rule: probabilities x 255, rounded, p_alt capped so the
+    two never pass 255; a second class outside the table or of probability 0 is none; no
+    confidences: certain."""
+    m = len(labels)
+    if confidences is None:
+        return np.zeros(m, np.uint16), np.full(m, 255, np.uint8), np.zeros(m, np.uint8)
+    steps = []
+    for c, a, ac in zip(confidences.tolist(), alt_labels.tolist(), alt_confidences.tolist()):
+        c = 1.0 if math.isnan(c) else min(max(c, 0.0), 1.0)
+        p = int(np.rint(c * 255.0))
+        ac = 0.0 if math.isnan(ac) else min(max(ac, 0.0), 1.0)
+        pa = min(int(np.rint(ac * 255.0)), 255 - p)
+        if a == 0 or a >= len(valid) or not valid[a] or pa == 0:
+            a, pa = 0, 0
+        steps.append((a, p, pa))
+    alt, p, pa = (np.array(v) for v in zip(*steps))
+    return alt.astype(np.uint16), p.astype(np.uint8), pa.astype(np.uint8)
+
+
 class ReferenceRiskGraph(ReferenceGraph):
     """The reference graph, each voxel with its distribution; a node shows the one of the voxel
     that sets its label."""
@@ -183,8 +202,6 @@ def test_nodes_keep_the_distribution_of_the_voxel_that_sets_their_label():
                 alt_confidences=alt_conf,
             )
             risk = to_probability_steps(labels, conf, alt, alt_conf)
-            risk = (np.where(np.isin(risk[0], [3]), 0, risk[0]), risk[1], risk[2])
-            risk = (risk[0], risk[1], np.where(risk[0] == 0, 0, risk[2]))
         ref.apply(centres, labels, occ, risk)
         # what an update reports is the grid's state of those nodes
         for name in RISK_LAYER_NAMES:
@@ -203,15 +220,28 @@ def test_nodes_keep_the_distribution_of_the_voxel_that_sets_their_label():
 
 
 def test_probability_steps_round_and_never_exceed_one():
-    alt, p, pa = to_probability_steps(
-        np.array([1, 1, 2, 2]),
-        np.array([1.0, 0.5, 0.7, 0.2], np.float32),
-        np.array([2, 2, 0, 1], np.uint16),
-        np.array([0.0, 0.5, 0.3, 0.9], np.float32),
+    g = graph((0, 0), (2.4, 2.4), robot_radius_m=0.0)
+    centres = (np.array([[k, 0, 0] for k in range(6)]) * 2 + 0.5) * MAP_RES
+    labels = np.array([1, 1, 2, 2, 1, 2], np.uint16)
+    conf = np.array([1.0, 0.5, 0.7, 0.2, np.nan, 1.5], np.float32)
+    alt = np.array([2, 2, 3, 1, 2, 1], np.uint16)  # 3: not in the table
+    alt_conf = np.array([0.0, 0.5, 0.3, 0.9, 0.5, np.nan], np.float32)
+    up = g.integrate(
+        centres.astype(np.float32),
+        labels,
+        np.ones(6, np.uint8),
+        map_resolution_m=MAP_RES,
+        confidences=conf,
+        alt_labels=alt,
+        alt_confidences=alt_conf,
     )
-    assert p.tolist() == [255, 128, 178, 51]
-    assert alt.tolist() == [0, 2, 0, 1] and pa.tolist() == [0, 127, 0, 204]
-    assert ((p.astype(int) + pa) <= 255).all()
+    order = np.argsort(up.cells[:, 0])
+    assert up.p_label[order].tolist() == [255, 128, 178, 51, 255, 255]
+    assert up.alt_labels[order].tolist() == [0, 2, 0, 1, 0, 0]
+    assert up.p_alt[order].tolist() == [0, 127, 0, 204, 0, 0]
+    want = to_probability_steps(labels, conf, alt, alt_conf)
+    for a, b in zip((up.alt_labels, up.p_label, up.p_alt), want, strict=True):
+        assert a[order].tolist() == b.tolist()
 
 
 def _delta(**over) -> MapDelta:
@@ -247,7 +277,7 @@ def test_an_old_delta_reads_as_certain_and_a_new_one_as_sent():
     new = decode(encode(_delta()), MapDelta)
     assert new.has_distribution
     up = g.integrate_delta(new)  # only the distribution changed: the nodes are reported
-    assert sorted(up.p_label.tolist()) == [153, 230]
+    assert sorted(up.p_label.tolist()) == [153, 229]  # float32 0.9 is 0.89999998
     node = g.node(0.55, 0.55)
     assert (node["alt_labels"], node["p_label"], node["p_alt"]) == (2, 153, 102)
     # a delta made without a distribution travels as one (it stays certain at the receiver)
