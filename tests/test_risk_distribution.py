@@ -124,9 +124,9 @@ def to_probability_steps(labels, confidences, alt_labels, alt_confidences, valid
     steps = []
     for c, a, ac in zip(confidences.tolist(), alt_labels.tolist(), alt_confidences.tolist()):
         c = 1.0 if math.isnan(c) else min(max(c, 0.0), 1.0)
-        p = int(np.rint(c * 255.0))
+        p = math.floor(c * 255.0 + 0.5)
         ac = 0.0 if math.isnan(ac) else min(max(ac, 0.0), 1.0)
-        pa = min(int(np.rint(ac * 255.0)), 255 - p)
+        pa = min(math.floor(ac * 255.0 + 0.5), 255 - p)
         if a == 0 or a >= len(valid) or not valid[a] or pa == 0:
             a, pa = 0, 0
         steps.append((a, p, pa))

@@ -227,19 +227,21 @@ def _touch(nodes, epoch, changes, nd, n):
 
 @numba.njit(cache=True, inline="always")
 def _probability_step(c, nan_as):
-    """A probability as the graph keeps it: x 255, rounded, clipped to 0..255 (NaN: nan_as)."""
+    """A probability as the graph keeps it: x 255 rounded half up, clipped to 0..255 (NaN:
+    nan_as). (Half up, not Python's half to even: a floor is a tenth of its cost here.)"""
     if c != c:
         c = nan_as
     c = min(max(np.float64(c), 0.0), 1.0)
-    return np.uint8(round(c * 255.0))
+    return np.uint8(np.floor(c * 255.0 + 0.5))
 
 
 @numba.njit(cache=True, _nrt=False)
 def _prepare(labels, occupied, luts, geo, vox, missing, dist):
     """Per voxel of `vox.centres`: the clean label `vox.labels` (ids outside the table -> 0), its
-    `vox.kinds` (CLEARED, SURFACE, or UNUSABLE: a non-finite coordinate), its distribution in
-    steps of 1/255 (`vox.alt_labels`, `vox.p_label`, `vox.p_alt` from `dist`: p_alt capped so
-    the two never pass 255; a second class 0, outside the table or of probability 0 is none),
+    `vox.kinds` (CLEARED, SURFACE, or UNUSABLE: a non-finite coordinate), a surface voxel's
+    distribution in steps of 1/255 (`vox.alt_labels`, `vox.p_label`, `vox.p_alt` from `dist`:
+    p_alt capped so the two never pass 255; a second class 0, outside the table or of
+    probability 0 is none; other voxels' are never read and stay unset),
     and the ids (tx * nty + ty) of unallocated tiles under in-bounds surface voxels, each once,
     in `missing`. Returns the counts (missing tiles, non-finite rows, unknown labels, surface
     voxels)."""
@@ -260,20 +262,6 @@ def _prepare(labels, occupied, luts, geo, vox, missing, dist):
     has_p = dist.confidences.shape[0] == m
     has_alt = has_p and dist.alt_labels.shape[0] == m and dist.alt_confidences.shape[0] == m
     for i in range(m):
-        p = np.uint8(255)
-        alt = np.uint16(0)
-        pa = np.uint8(0)
-        if has_p:
-            p = _probability_step(dist.confidences[i], 1.0)
-            if has_alt:
-                alt = dist.alt_labels[i]
-                pa = min(_probability_step(dist.alt_confidences[i], 0.0), np.uint8(255 - p))
-                if alt == 0 or alt >= n_lut or not valid_lut[alt] or pa == 0:
-                    alt = np.uint16(0)  # not counted: the label is what a node shows
-                    pa = np.uint8(0)
-        vox.p_label[i] = p
-        vox.alt_labels[i] = alt
-        vox.p_alt[i] = pa
         x = cen[i, 0]
         y = cen[i, 1]
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(cen[i, 2])):
@@ -294,6 +282,20 @@ def _prepare(labels, occupied, luts, geo, vox, missing, dist):
         if not surface:
             continue
         n_surface += 1
+        p = np.uint8(255)
+        alt = np.uint16(0)
+        pa = np.uint8(0)
+        if has_p:
+            p = _probability_step(dist.confidences[i], 1.0)
+            if has_alt:
+                alt = dist.alt_labels[i]
+                pa = min(_probability_step(dist.alt_confidences[i], 0.0), np.uint8(255 - p))
+                if alt == 0 or alt >= n_lut or not valid_lut[alt] or pa == 0:
+                    alt = np.uint16(0)  # not counted: the label is what a node shows
+                    pa = np.uint8(0)
+        vox.p_label[i] = p
+        vox.alt_labels[i] = alt
+        vox.p_alt[i] = pa
         ix, iy = _cell_of(geo, x, y)
         if not _in_bounds(geo, ix, iy):
             continue
