@@ -313,3 +313,64 @@ def test_patches_carry_the_distribution_to_the_planners_copy_and_old_ones_read_c
     plain = GraphCopy(NavGrid(g.grid.origin_xy, g.grid.shape, g.resolution_m), lambda k, m: None)
     plain.receive(patch)
     assert not plain.grid.has_risk() and (plain.grid.read_risk(cells)[1] == 255).all()
+
+
+def test_the_services_carry_the_distribution_from_map_to_patch(fake_stack):
+    """mapper (octree-bayes) and navgraph on the fake zenoh: the graph navgraph answers with holds
+    the distribution of the mapper's voxels, as a graph built from the mapper's snapshot does."""
+    import dataclasses
+    import sys
+    from pathlib import Path
+
+    from smana.common import keys
+    from smana.common.query import request
+    from tests.conftest import wait_for
+
+    sys.path.insert(0, str(Path(__file__).parent / "support"))
+    from publish_clouds import patch_cloud
+
+    s = fake_stack
+    s.service("mapper", "--set", 'mapper.backend="octree-bayes"', "--set", 'mapper.load=""')
+    s.service("navgraph")
+    s.wait_alive("mapper")
+    s.wait_alive("navgraph")
+    first = patch_cloud(0, 1)
+    ground = first.labels == 2
+    first.confidences = np.where(ground, 0.5, 0.9).astype(np.float32)
+    # the same ground seen again as grass, as sure: each voxel now holds two classes
+    second = dataclasses.replace(
+        first, seq=2, labels=np.where(ground, 1, first.labels).astype(np.uint8)
+    )
+    for cloud in (first, second):
+        s.session.put(keys.cloud(s.robot), encode(cloud))
+        assert s.drained("mapper")
+    graph_key = keys.query(s.robot, "navgraph", "graph")
+
+    def graph_risk():
+        reply = request(s.session, graph_key)
+        return {
+            tuple(c): (int(a), int(p), int(q))
+            for c, a, p, q in zip(reply.cells.tolist(), *reply.risk(), strict=True)
+        }
+
+    def matches_mapper():
+        ref = _default_graph()
+        ref.integrate_delta(request(s.session, keys.query(s.robot, "mapper", "snapshot")))
+        cells = ref.export()[0]
+        want = {
+            tuple(c): (int(a), int(p), int(q))
+            for c, a, p, q in zip(cells.tolist(), *ref.grid.read_risk(cells), strict=True)
+        }
+        # the 2 m patch is 100 nodes, most of them ground that both classes share
+        return graph_risk() == want and sum(1 for _, p, _ in want.values() if p < 200) >= 80
+
+    assert wait_for(matches_mapper, 20), s.log("navgraph")
+    alts = [a for a, _, _ in graph_risk().values()]
+    assert alts.count(1) >= 80  # grass, second to terrain on the ground
+
+
+def _default_graph():
+    from smana.common.config import SmanaConfig
+    from smana.services.navgraph.graph import NavGraph
+
+    return NavGraph(CLASSES, SmanaConfig().navgraph)
