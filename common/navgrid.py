@@ -325,7 +325,7 @@ class NavGrid:
 
         `risk` is (alt_labels, p_label, p_alt) per cell, or None for a patch that carries no
         distribution: its nodes are then certain. Risk layers are added on the first patch that
-        carries them."""
+        carries them; `p_alt` is cut to `255 - p_label`, and to 0 where `alt_labels` is 0."""
         cells = self._check_cells(cells)
         labels = np.asarray(labels)
         heights = np.asarray(heights, np.float32)
@@ -337,6 +337,13 @@ class NavGrid:
             risk = tuple(np.asarray(a) for a in risk)
             if len(risk) != len(RISK_LAYERS) or any(len(a) != k for a in risk):
                 raise ValueError("risk must be (alt_labels, p_label, p_alt), one value per cell")
+            # what a patch from anywhere may hold: a second class 0 has no probability, and the
+            # two probabilities never pass 1
+            alt, p_label, p_alt = (
+                a.astype(d, copy=False) for a, (_, d, _) in zip(risk, RISK_LAYERS)
+            )
+            p_alt = np.where(alt == 0, 0, np.minimum(p_alt, P_SCALE - p_label)).astype(np.uint8)
+            risk = (alt, p_label, p_alt)
             self.add_risk_layers()
         ok = self.in_bounds(cells[:, 0], cells[:, 1])
         n_bad = int(k - ok.sum())

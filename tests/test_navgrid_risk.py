@@ -45,7 +45,7 @@ def test_risk_patches_agree_with_a_dense_array_and_a_patch_without_them_makes_no
         else:
             p = rng.integers(128, 256, k)
             risk = (
-                rng.integers(0, 9, k).astype(np.uint16),
+                rng.integers(1, 9, k).astype(np.uint16),
                 p.astype(np.uint8),
                 rng.integers(0, 256 - p).astype(np.uint8),
             )
@@ -56,6 +56,17 @@ def test_risk_patches_agree_with_a_dense_array_and_a_patch_without_them_makes_no
     got = grid.box(0, 0, *grid.shape, layers=RISK_LAYER_NAMES)
     for name, a in zip(RISK_LAYER_NAMES, got, strict=True):
         np.testing.assert_array_equal(a, dense[name], err_msg=name)
-    probe = np.array([[0, 0], [5, 7], [31, 19]])
+    # a patch whose probabilities pass 1, or give a probability to "no second class"
+    bad = np.array([[1, 1], [2, 2]], np.int32)
+    risk = (
+        np.array([3, 0], np.uint16),
+        np.array([200, 100], np.uint8),
+        np.array([90, 50], np.uint8),
+    )
+    grid.apply_patch(bad, [1, 1], [0.0, 0.0], [FLAG_KNOWN] * 2, risk=risk)
+    assert grid.read_risk(bad)[2].tolist() == [55, 0]
+    for name, a in zip(RISK_LAYER_NAMES, grid.read_risk(bad), strict=True):
+        dense[name][bad[:, 0], bad[:, 1]] = a
+    probe = np.array([[0, 0], [1, 1], [5, 7], [31, 19]])
     for name, a in zip(RISK_LAYER_NAMES, grid.read_risk(probe), strict=True):
         np.testing.assert_array_equal(a, dense[name][probe[:, 0], probe[:, 1]])
