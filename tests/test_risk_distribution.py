@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from smana.common.graph_copy import GraphCopy
-from smana.common.messages import GraphPatch, MapDelta, decode, encode
+from smana.common.messages import GraphPatch, MapDelta, MessageError, decode, encode
 from smana.common.navgrid import RISK_LAYER_NAMES, NavGrid
 from smana.services.mapper.semantic_map import SemanticMap
 from smana.services.navgraph.service import to_patch
@@ -290,6 +290,12 @@ def test_an_old_delta_reads_as_certain_and_a_new_one_as_sent():
         values=np.ones(1, np.float32),
     )
     assert not decode(encode(bare), MapDelta).has_distribution
+    # a version-1 message carrying a version-2 field is refused, not half read
+    raw = msgpack.unpackb(encode(_delta()), raw=False)
+    raw["_v"] = 1
+    with pytest.raises(MessageError) as err:
+        decode(msgpack.packb(raw, use_bin_type=True), MapDelta)
+    assert err.value.kind == "unknown_field"
 
 
 def test_patches_carry_the_distribution_to_the_planners_copy_and_old_ones_read_certain():
