@@ -5,8 +5,9 @@ azimuths = 131,072 rays, 45 degrees vertical field of view, 10 m max range, as i
 a garden: rolling terrain and grass, trees (cylinders) and hedges (boxes). From it the benchmark
 builds the delta an octree mapper would publish at 0.1 m (every hit voxel occupied, the voxels of
 the last 1 m of each ray free: ray casting limited to 1 m as in the paper) and a TSDF-style delta
-(voxels within 2 voxels of each hit, with signed distances), and times `NavGraph.integrate` at
-0.2 m:
+(voxels within 2 voxels of each hit, with signed distances), each voxel with a label
+distribution as a mapper's deltas carry one since issue 29 (`distribution`), and times
+`NavGraph.integrate` at 0.2 m:
 
 - first scan: an empty graph (tile allocation included);
 - next scan: the scan taken 0.5 m further on, integrated into the warm graph;
@@ -178,6 +179,18 @@ def tsdf_delta(origin, points, labels, dirs, t_hit):
     return centres, lab.astype(np.uint16), occupied, values
 
 
+def distribution(delta, seed: int = 0) -> dict:
+    """A label distribution for a delta's voxels, as MapDelta v2 carries one (octree-bayes-like:
+    a confidence in [0.33, 1], a second class for about half the voxels): what `integrate` gets
+    from a mapper since issue 29, so the bench times that path."""
+    rng = np.random.default_rng(seed)
+    m = len(delta[0])
+    conf = rng.uniform(0.33, 1.0, m).astype(np.float32)
+    alt = np.where(rng.uniform(size=m) < 0.5, rng.choice([1, 2], m), 0).astype(np.uint16)
+    alt_conf = np.where(alt > 0, (1 - conf) * rng.uniform(0.3, 1.0, m), 0).astype(np.float32)
+    return {"confidences": conf, "alt_labels": alt, "alt_confidences": alt_conf}
+
+
 def _pack(keys):
     k = keys + (1 << 20)
     return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
@@ -235,6 +248,10 @@ def cli(argv: list[str] | None = None) -> int:
     walled_scan = Garden(seed=1, wall_radius=9.0).scan(origins[0], beams, azimuths)
     walled = octree_delta(origins[0], *walled_scan)
     gen_s = time.perf_counter() - t
+    dist = {id(d): distribution(d, k) for k, d in enumerate([*deltas, tsdf, walled])}
+
+    def integrate(g, d):
+        return g.integrate(*d[:3], map_resolution_m=MAP_RES, **dist[id(d)])
 
     bounds = ((-50.0, -50.0), (50.0, 50.0))
 
@@ -248,31 +265,31 @@ def cli(argv: list[str] | None = None) -> int:
         return NavGraph(classes, config)
 
     warm_up = fresh()
-    warm_up.integrate(*deltas[0][:3], map_resolution_m=MAP_RES)
+    integrate(warm_up, deltas[0])
 
     def first_timed():
         g = fresh()  # construction is not part of an update
         t0 = time.perf_counter()
-        up = g.integrate(*deltas[0][:3], map_resolution_m=MAP_RES)
+        up = integrate(g, deltas[0])
         return (time.perf_counter() - t0) * 1e3, g, up
 
     def next_timed():
         g = fresh()
-        g.integrate(*deltas[0][:3], map_resolution_m=MAP_RES)
+        integrate(g, deltas[0])
         t0 = time.perf_counter()
-        up = g.integrate(*deltas[1][:3], map_resolution_m=MAP_RES)
+        up = integrate(g, deltas[1])
         return (time.perf_counter() - t0) * 1e3, g, up
 
     def tsdf_timed():
         g = fresh()
         t0 = time.perf_counter()
-        up = g.integrate(*tsdf[:3], map_resolution_m=MAP_RES)
+        up = integrate(g, tsdf)
         return (time.perf_counter() - t0) * 1e3, g, up
 
     def walled_timed():
         g = fresh()
         t0 = time.perf_counter()
-        up = g.integrate(*walled[:3], map_resolution_m=MAP_RES)
+        up = integrate(g, walled)
         return (time.perf_counter() - t0) * 1e3, g, up
 
     def median_of(fn):
@@ -298,9 +315,10 @@ def cli(argv: list[str] | None = None) -> int:
 
     big_bounds = ((-1000.0, -1000.0), (1000.0, 1000.0))
     g_big = fresh(big_bounds)
-    g_big.integrate(*deltas[0][:3], map_resolution_m=MAP_RES)
+    integrate(g_big, deltas[0])
     dense_nodes = g_big.grid.shape[0] * g_big.grid.shape[1]
-    per_node = sum(a.itemsize for a in (np.uint16(0), np.float32(0), np.uint8(0))) + 5 * 4
+    # labels, heights, flags, the five int32 bookkeeping layers and the distribution (u2, u1, u1)
+    per_node = sum(np.dtype(d).itemsize for d in ("u2", "f4", "u1", "u2", "u1", "u1")) + 5 * 4
 
     n_pts = len(scans[0][0])
     print(
