@@ -39,9 +39,10 @@ def _array_to_wire(a: np.ndarray) -> dict:
 
 def encode(msg: Message) -> bytes:
     """Serialise a message to msgpack bytes."""
-    out: dict[str, Any] = {"_type": msg.TYPE, "_v": SCHEMA_VERSION}
+    out: dict[str, Any] = {"_type": msg.TYPE, "_v": msg.VERSION}
+    over = msg.wire_overrides()
     for f in _fields(type(msg)):
-        v = getattr(msg, f.name)
+        v = over[f.name] if f.name in over else getattr(msg, f.name)
         out[f.name] = _array_to_wire(np.asarray(v)) if "array" in f.metadata else _plain(v)
     return msgpack.packb(out, use_bin_type=True)
 
@@ -89,9 +90,10 @@ def decode(
 
 def to_json(msg: Message) -> bytes:
     """The JSON form: same fields, arrays as nested lists."""
-    out: dict[str, Any] = {"_type": msg.TYPE, "_v": SCHEMA_VERSION}
+    out: dict[str, Any] = {"_type": msg.TYPE, "_v": msg.VERSION}
+    over = msg.wire_overrides()
     for f in _fields(type(msg)):
-        out[f.name] = _plain(getattr(msg, f.name))
+        out[f.name] = _plain(over[f.name] if f.name in over else getattr(msg, f.name))
     return json.dumps(out, allow_nan=False).encode()
 
 
@@ -108,7 +110,7 @@ def from_json(
         raise MessageError("malformed", f"not JSON: {type(exc).__name__}: {exc}") from None
     if isinstance(raw, dict) and isinstance(expect, type):
         raw.setdefault("_type", expect.TYPE)
-        raw.setdefault("_v", SCHEMA_VERSION)
+        raw.setdefault("_v", expect.VERSION)
     return from_dict(raw, expect, drop_nonfinite=drop_nonfinite, wire=False)
 
 
@@ -134,11 +136,13 @@ def _from_dict(raw, expect, drop_nonfinite: bool, wire: bool) -> Message:
         if cls not in allowed:
             names = ", ".join(c.TYPE for c in allowed)
             raise MessageError("type", f"expected {names}, got {tname}")
-    if type(raw.get("_v")) is not int or raw["_v"] != SCHEMA_VERSION:  # True == 1 == 1.0
-        got = raw.get("_v")
-        raise MessageError("version", f"{tname} v{got!r}, this build speaks v{SCHEMA_VERSION}")
+    version = raw.get("_v")
+    if type(version) is not int or not SCHEMA_VERSION <= version <= cls.VERSION:  # not True, 1.0
+        speaks = f"v{cls.VERSION}" if cls.VERSION == SCHEMA_VERSION else f"v1 to v{cls.VERSION}"
+        raise MessageError("version", f"{tname} v{version!r}, this build speaks {speaks}")
 
-    fields = {f.name: f for f in _fields(cls)}
+    # the fields of this version: a newer field is absent from an older message (then unknown)
+    fields = {f.name: f for f in _fields(cls) if f.metadata.get("since", 1) <= version}
     unknown = set(raw) - set(fields) - {"_type", "_v"}
     if unknown:
         raise MessageError("unknown_field", f"{tname} has no field(s) {sorted(unknown)}")
@@ -155,6 +159,8 @@ def _from_dict(raw, expect, drop_nonfinite: bool, wire: bool) -> Message:
             rng = f.metadata.get("range", (None, None))
             values[name] = _check_scalar(tname, name, raw[name], hints[name], rng)
     msg = cls(**values)
+    if version < cls.VERSION:
+        msg.upgrade(version)
     _check_groups(tname, msg, drop_nonfinite)
     msg.check()
     return msg

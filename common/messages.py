@@ -176,7 +176,17 @@ class MapDelta(Message):
 
     `producer` names the mapper session that numbered the stream (`seq` counts per producer): a
     consumer follows one producer's sequence and resynchronises from its snapshot when it
-    changes (a restarted mapper) or jumps."""
+    changes (a restarted mapper) or jumps.
+
+    The label distribution a voxel holds (version 2): `labels` with its probability
+    `confidences`, the second most likely class `alt_labels` (0: none) with its probability
+    `alt_confidences`; the rest of the mass is "other or unknown". octree-bayes sends its top 2,
+    the TSDF the top 2 of its normalised label vector, octree-max its label and confidence with
+    no second class. A version-1 delta, or one whose two alt arrays are empty, carries no
+    distribution: it reads as certain (`has_distribution` False, a local field that never
+    travels)."""
+
+    VERSION: ClassVar[int] = 2
 
     stamp_s: float = _stamp_field()
     seq: int = _seq_field()
@@ -190,6 +200,27 @@ class MapDelta(Message):
     values: np.ndarray = array(["f4"], [None], group="m", limit=COORD_LIMIT_M)
     producer: str = ""
     values_kind: str = "log_odds"
+    alt_labels: np.ndarray = array(["u2"], [None], group="m", since=2)
+    alt_confidences: np.ndarray = array(["f4"], [None], group="m", since=2)
+    has_distribution: bool = field(default=True, metadata={"local": True})
+
+    def __post_init__(self):
+        # Made without a distribution (version 1, or a writer that has none: both alt arrays
+        # empty while there are voxels): certain.
+        if len(self.labels) and len(self.alt_labels) == 0 and len(self.alt_confidences) == 0:
+            self.upgrade(1)
+
+    def upgrade(self, version: int) -> None:
+        if version < 2:
+            n = len(self.labels)
+            self.alt_labels = np.zeros(n, np.uint16)
+            self.alt_confidences = np.zeros(n, np.float32)
+            self.has_distribution = False
+
+    def wire_overrides(self) -> dict:
+        if self.has_distribution:
+            return {}
+        return {"alt_labels": np.zeros(0, np.uint16), "alt_confidences": np.zeros(0, np.float32)}
 
     def check(self) -> None:
         if self.values_kind not in VALUES_KINDS:
@@ -203,7 +234,14 @@ class MapDelta(Message):
 class GraphPatch(Message):
     """Navigation-graph nodes that changed: grid indices from `origin_xy` at `resolution_m`, and the
     nodes' label, height and flags (FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE).
-    `producer` names the navgraph session that numbered the stream (see MapDelta)."""
+    `producer` names the navgraph session that numbered the stream (see MapDelta).
+
+    Version 2 adds each node's label distribution (`common/navgrid.py` RISK_LAYERS): `p_label`,
+    the probability of `labels` x 255, the second most likely class `alt_labels` (0: none) and
+    its probability x 255 `p_alt`. A version-1 patch, or one whose three distribution arrays are
+    empty, reads as certain (255, 0, 0)."""
+
+    VERSION: ClassVar[int] = 2
 
     stamp_s: float = _stamp_field()
     seq: int = _seq_field()
@@ -214,6 +252,26 @@ class GraphPatch(Message):
     heights: np.ndarray = array(["f4"], [None], group="k", limit=COORD_LIMIT_M)
     flags: np.ndarray = array(["u1"], [None], group="k")
     producer: str = ""
+    alt_labels: np.ndarray = array(["u2"], [None], group="k", since=2)
+    p_label: np.ndarray = array(["u1"], [None], group="k", since=2)
+    p_alt: np.ndarray = array(["u1"], [None], group="k", since=2)
+
+    def __post_init__(self):
+        # Made without a distribution (a version-1 patch, or a writer that has none): certain.
+        n = len(self.cells)
+        if n and len(self.p_label) == 0 and len(self.alt_labels) == 0 and len(self.p_alt) == 0:
+            self.upgrade(1)
+
+    def upgrade(self, version: int) -> None:
+        if version < 2:
+            n = len(self.cells)
+            self.alt_labels = np.zeros(n, np.uint16)
+            self.p_label = np.full(n, 255, np.uint8)
+            self.p_alt = np.zeros(n, np.uint8)
+
+    def risk(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(alt_labels, p_label, p_alt), what `NavGrid.apply_patch(risk=...)` takes."""
+        return self.alt_labels, self.p_label, self.p_alt
 
 
 @dataclass

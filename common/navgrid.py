@@ -10,6 +10,12 @@ Layers every grid has: `labels` (u2 class id), `heights` (f4 metres, NaN where u
 (u1: FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE, the bits GraphPatch carries). Navgraph adds its
 own bookkeeping layers with `add_layer`; the planner only needs the three above.
 
+Optional layers (`RISK_LAYERS`, added by `add_risk_layers`) hold how sure the map is of a node's
+label: `alt_labels` (u2, the second most likely class id, 0 = none), `p_label` (u1, probability of
+the `labels` class x 255, rounded) and `p_alt` (u1, probability of `alt_labels` x 255); the rest,
+`1 - (p_label + p_alt) / 255`, is "other or unknown". A grid without them, or a node never given a
+distribution, reads as certain: p_label 255, p_alt 0.
+
 Cells are integer (ix, iy) indices from `origin_xy` (the bounds' minimum corner): node (ix, iy)
 covers [origin + i * res, origin + (i + 1) * res) and its centre is at origin + (i + 0.5) * res.
 """
@@ -28,6 +34,15 @@ FLAG_OBSTACLE = 2
 FLAG_SAFETY_ZONE = 4
 
 UNALLOCATED = -1
+# The optional label-distribution layers: (name, dtype, fill). The fills read as certain.
+P_SCALE = 255  # p_label and p_alt are probabilities x P_SCALE, rounded
+RISK_LAYERS = (
+    ("alt_labels", np.uint16, 0),
+    ("p_label", np.uint8, P_SCALE),
+    ("p_alt", np.uint8, 0),
+)
+RISK_LAYER_NAMES = tuple(name for name, _, _ in RISK_LAYERS)
+_RISK_SPEC = {name: (dtype, fill) for name, dtype, fill in RISK_LAYERS}
 MAX_NODES_PER_AXIS = 1 << 20  # cells travel as int32; keeps tile arithmetic far from overflow
 
 
@@ -109,6 +124,16 @@ class NavGrid:
         self._layers[name] = np.full((self._capacity, t, t), fill, dtype)
         self._fills[name] = fill
         return self._layers[name]
+
+    def add_risk_layers(self) -> None:
+        """Add the label-distribution layers (`RISK_LAYERS`), every node certain; idempotent."""
+        for name, dtype, fill in RISK_LAYERS:
+            if name not in self._layers:
+                self.add_layer(name, dtype, fill)
+
+    def has_risk(self) -> bool:
+        """Whether the grid holds the label-distribution layers (without them it reads certain)."""
+        return all(name in self._layers for name in RISK_LAYER_NAMES)
 
     def layer(self, name: str) -> np.ndarray:
         """The pool array (capacity, T, T) of a layer. Re-fetch after allocating tiles."""
@@ -278,9 +303,29 @@ class NavGrid:
             f"{self.resolution_m} m from {self.origin_xy.tolist()}"
         )
 
-    def apply_patch(self, cells, labels, heights, flags) -> int:
+    def read_risk(self, cells) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """alt_labels, p_label, p_alt of (K, 2) cells; a grid without the layers, and nodes out of
+        bounds or unallocated, read as certain (0, 255, 0)."""
+        cells = self._check_cells(cells)
+        k = len(cells)
+        out = tuple(np.full(k, fill, dtype) for _, dtype, fill in RISK_LAYERS)
+        if not self.has_risk() or k == 0:
+            return out
+        ok = self.in_bounds(cells[:, 0], cells[:, 1])
+        flat = np.full(k, -1, np.int64)
+        flat[ok] = self.flat_index(cells[ok, 0], cells[ok, 1])
+        have = flat >= 0
+        for a, name in zip(out, RISK_LAYER_NAMES, strict=True):
+            a[have] = self.flat(name)[flat[have]]
+        return out
+
+    def apply_patch(self, cells, labels, heights, flags, risk=None) -> int:
         """Write nodes (allocating their tiles). Returns how many cells were out of bounds and
-        skipped. A patch lists each node once; if one repeats, the last value wins."""
+        skipped. A patch lists each node once; if one repeats, the last value wins.
+
+        `risk` is (alt_labels, p_label, p_alt) per cell, or None for a patch that carries no
+        distribution: its nodes are then certain. Risk layers are added on the first patch that
+        carries them."""
         cells = self._check_cells(cells)
         labels = np.asarray(labels)
         heights = np.asarray(heights, np.float32)
@@ -288,10 +333,17 @@ class NavGrid:
         k = len(cells)
         if not (len(labels) == len(heights) == len(flags) == k):
             raise ValueError("cells, labels, heights and flags must have the same length")
+        if risk is not None:
+            risk = tuple(np.asarray(a) for a in risk)
+            if len(risk) != len(RISK_LAYERS) or any(len(a) != k for a in risk):
+                raise ValueError("risk must be (alt_labels, p_label, p_alt), one value per cell")
+            self.add_risk_layers()
         ok = self.in_bounds(cells[:, 0], cells[:, 1])
         n_bad = int(k - ok.sum())
         if n_bad:
             cells, labels, heights, flags = cells[ok], labels[ok], heights[ok], flags[ok]
+            if risk is not None:
+                risk = tuple(a[ok] for a in risk)
         if len(cells) == 0:
             return n_bad
         self.allocate_cells(cells[:, 0], cells[:, 1])
@@ -299,6 +351,10 @@ class NavGrid:
         self.flat("labels")[flat] = labels
         self.flat("heights")[flat] = heights
         self.flat("flags")[flat] = flags
+        if self.has_risk():
+            for i, name in enumerate(RISK_LAYER_NAMES):
+                fill = _RISK_SPEC[name][1]
+                self.flat(name)[flat] = fill if risk is None else risk[i]
         self.changed(cells)
         return n_bad
 
@@ -335,12 +391,20 @@ class NavGrid:
 
     def box(self, ix0: int, iy0: int, ix1: int, iy1: int, layers=("labels", "heights", "flags")):
         """Dense arrays [ix1 - ix0, iy1 - iy0] of the given layers over a half-open cell box
-        (clipped to the grid); unallocated nodes take the layer's fill value. Returns a tuple."""
+        (clipped to the grid); unallocated nodes take the layer's fill value. Returns a tuple.
+        A risk layer the grid does not hold reads as its fill (certain)."""
         ix0, iy0 = max(0, int(ix0)), max(0, int(iy0))
         ix1, iy1 = min(self.shape[0], int(ix1)), min(self.shape[1], int(iy1))
         w, h = max(0, ix1 - ix0), max(0, iy1 - iy0)
-        if w == 0 or h == 0:
-            return tuple(np.zeros((w, h), self._layers[n].dtype) for n in layers)
+        absent = {n for n in layers if n not in self._layers and n in _RISK_SPEC}
+        if w == 0 or h == 0 or absent:
+            if w == 0 or h == 0:
+                return tuple(np.zeros((w, h), self._dtype(n)) for n in layers)
+            got = iter(self.box(ix0, iy0, ix1, iy1, [n for n in layers if n not in absent]))
+            return tuple(
+                np.full((w, h), _RISK_SPEC[n][1], _RISK_SPEC[n][0]) if n in absent else next(got)
+                for n in layers
+            )
         t = self.tile_size
         tx0, ty0, tx1, ty1 = ix0 // t, iy0 // t, (ix1 - 1) // t + 1, (iy1 - 1) // t + 1
         slots = self.tile_map[tx0:tx1, ty0:ty1]
@@ -355,6 +419,9 @@ class NavGrid:
             ox, oy = ix0 - tx0 * t, iy0 - ty0 * t
             out.append(np.ascontiguousarray(dense[ox : ox + w, oy : oy + h]))
         return tuple(out)
+
+    def _dtype(self, name: str):
+        return self._layers[name].dtype if name in self._layers else np.dtype(_RISK_SPEC[name][0])
 
     def export(self, box: tuple[int, int, int, int] | None = None, known_only: bool = True):
         """Nodes as flat arrays: cells (K, 2) int32, labels, heights, flags. By default only nodes

@@ -11,7 +11,7 @@ from typing import ClassVar
 
 import numpy as np
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 1  # the version of a message type that never changed (Message.VERSION)
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024  # a 131k-point cloud is ~2.2 MB; 64 MB leaves room for maps
 
 # Bounds on values no robot can produce: refused as `value` by the decoder, so no service ever
@@ -62,18 +62,20 @@ class ArraySpec:
         return (self.shape, *self.shapes)
 
 
-def array(dtypes, shape, group=None, finite=True, shapes=(), default=None, limit=None):
-    """A dataclass field holding a numpy array with the given spec."""
+def array(dtypes, shape, group=None, finite=True, shapes=(), default=None, limit=None, since=1):
+    """A dataclass field holding a numpy array with the given spec; `since`: the first version of
+    its message that carries it."""
     spec = ArraySpec(
         tuple(np.dtype(d).str for d in dtypes), tuple(shape), group, finite, shapes, limit
     )
+    meta = {"array": spec, "since": since}
     if default is None:
 
         def empty():
             return np.zeros(tuple(0 if s is None else s for s in shape), spec.dtypes[0])
 
-        return field(default_factory=empty, metadata={"array": spec})
-    return field(default_factory=default, metadata={"array": spec})
+        return field(default_factory=empty, metadata=meta)
+    return field(default_factory=default, metadata=meta)
 
 
 # -- the messages ---------------------------------------------------------------------------------
@@ -86,6 +88,10 @@ class Message:
     """Base of every message. Subclasses are registered by class name."""
 
     TYPE: ClassVar[str] = ""
+    # The version this build writes for the type. It reads every version from 1 up to it: a
+    # field declared `since` a later version than a message's must be absent from it, takes its
+    # default, and `upgrade(version)` then makes the message what the newer form means.
+    VERSION: ClassVar[int] = SCHEMA_VERSION
     # Fields a JSON query may leave out (they take their defaults). The msgpack wire form always
     # carries every field, so there a missing field is an error.
     JSON_OPTIONAL: ClassVar[tuple[str, ...]] = ()
@@ -97,6 +103,13 @@ class Message:
 
     def check(self) -> None:
         """Checks across fields, after each field passed its own (raise MessageError)."""
+
+    def upgrade(self, version: int) -> None:
+        """Fill the fields a message of an older `version` did not carry (they hold defaults)."""
+
+    def wire_overrides(self) -> dict:
+        """Fields sent with another value than they hold (what a local field says on the wire)."""
+        return {}
 
 
 def scalar(default, lo=None, hi=None):

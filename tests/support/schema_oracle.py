@@ -108,6 +108,8 @@ SCHEMA: dict[str, dict[str, object]] = {
         "values": Arr((F4,), ((None,),), "m", COORD),
         "producer": Str(),
         "values_kind": OneOf(("log_odds", "signed_distance")),
+        "alt_labels": Arr((U2,), ((None,),), "m"),
+        "alt_confidences": Arr((F4,), ((None,),), "m"),
     },
     "GraphPatch": {
         "stamp_s": STAMP_S,
@@ -119,6 +121,9 @@ SCHEMA: dict[str, dict[str, object]] = {
         "heights": Arr((F4,), ((None,),), "k", COORD),
         "flags": Arr((U1,), ((None,),), "k"),
         "producer": Str(),
+        "alt_labels": Arr((U2,), ((None,),), "k"),
+        "p_label": Arr((U1,), ((None,),), "k"),
+        "p_alt": Arr((U1,), ((None,),), "k"),
     },
     "PathRequest": {
         "request_id": Str(),
@@ -165,6 +170,21 @@ SCHEMA: dict[str, dict[str, object]] = {
     },
 }
 QUATERNIONS = {"Pose": "orientation_xyzw", "SemanticCloud": "sensor_orientation_xyzw"}
+# Types at a version above 1 (docs/architecture.md): the fields each added. A message of an older
+# version must not carry them; a newer one may leave all of them empty (no distribution: certain).
+VERSIONS = {"MapDelta": 2, "GraphPatch": 2}
+ADDED = {
+    ("MapDelta", 2): ("alt_labels", "alt_confidences"),
+    ("GraphPatch", 2): ("alt_labels", "p_label", "p_alt"),
+}
+# what each added field reads as when a message does not carry it: certain, no second class
+CERTAIN = {
+    ("MapDelta", "alt_labels"): (U2, 0),
+    ("MapDelta", "alt_confidences"): (F4, 0.0),
+    ("GraphPatch", "alt_labels"): (U2, 0),
+    ("GraphPatch", "p_label"): (U1, 255),
+    ("GraphPatch", "p_alt"): (U1, 0),
+}
 
 
 def _is_real(v) -> bool:
@@ -285,9 +305,11 @@ def violations(raw, expect: str | None, drop_nonfinite: bool = False) -> Verdict
     tname = raw["_type"]
     if tname not in SCHEMA or (expect is not None and tname != expect):
         return Verdict({"type"}, {}, {})
-    if not (type(raw.get("_v")) is int and raw["_v"] == 1):  # True and 1.0 are not versions
+    top = VERSIONS.get(tname, 1)
+    if not (type(raw.get("_v")) is int and 1 <= raw["_v"] <= top):  # True and 1.0 are not
         return Verdict({"version"}, {}, {})
-    fields = SCHEMA[tname]
+    newer = [n for (t, v), names in ADDED.items() if t == tname and v > raw["_v"] for n in names]
+    fields = {k: r for k, r in SCHEMA[tname].items() if k not in newer}
     kinds: set[str] = set()
     if set(raw) - set(fields) - {"_type", "_v"}:
         kinds.add("unknown_field")
@@ -314,6 +336,12 @@ def violations(raw, expect: str | None, drop_nonfinite: bool = False) -> Verdict
     for name, rule in fields.items():
         if isinstance(rule, Arr) and rule.group is not None:
             groups.setdefault(rule.group, []).append(name)
+    filled = list(newer)
+    for (t, _), added in ADDED.items():
+        if t == tname and all(n in arrays and len(arrays[n]) == 0 for n in added):
+            filled += added  # left out whole: read as certain
+    for names in groups.values():
+        names[:] = [n for n in names if n not in filled]
     for group, names in groups.items():
         if len({len(arrays[n]) for n in names}) > 1:
             kinds.add("length")
@@ -330,6 +358,10 @@ def violations(raw, expect: str | None, drop_nonfinite: bool = False) -> Verdict
             kinds.add("nonfinite")
         elif beyond.any():
             kinds.add("value")
+    for name in filled:  # what the message reads as: certain, one row per row of its group
+        dtype, fill = CERTAIN[(tname, name)]
+        n = len(arrays[groups[SCHEMA[tname][name].group][0]])
+        arrays[name] = np.full(n, fill, dtype)
     q = QUATERNIONS.get(tname)
     if q and q in arrays and not kinds:
         norm = math.sqrt(sum(float(x) ** 2 for x in arrays[q]))
