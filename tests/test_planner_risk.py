@@ -12,7 +12,7 @@ import pytest
 from smana.common.classes import ClassTable
 from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
-from smana.services.planner.planner import RISK_LAYERS, RISK_MODES, Planner
+from smana.services.planner.planner import RISK_MODES, Planner
 from smana.services.planner.reference import cvar, dijkstra_cost, risk_enter_costs
 
 # The garden's classes plus a flat class that must not be entered (infinite cost, not an obstacle)
@@ -30,31 +30,15 @@ CLASSES = ClassTable.from_dict(
     }
 )
 GRASS, TERRAIN, HEDGE = 1, 2, 4
-DTYPES = {"alt_labels": np.uint16, "p_label": np.uint8, "p_alt": np.uint8}
-FILLS = {"alt_labels": 0, "p_label": 255, "p_alt": 0}
 
 
 def make_grid(labels, heights, flags, risk=None, tile=8) -> NavGrid:
     """A grid of the dense arrays; with `risk` = (alt, p_label, p_alt) its risk layers too."""
     grid = NavGrid((0.0, 0.0), labels.shape, 0.2, tile_size=tile)
     cells = np.argwhere(np.ones(labels.shape, bool))
-    grid.apply_patch(cells, labels.ravel(), heights.ravel(), flags.ravel())
-    if risk is not None:
-        write_risk(grid, cells, [r.ravel() for r in risk])
+    risk = None if risk is None else [r.ravel() for r in risk]
+    grid.apply_patch(cells, labels.ravel(), heights.ravel(), flags.ravel(), risk=risk)
     return grid
-
-
-def write_risk(grid: NavGrid, cells, values) -> None:
-    """Write the risk layers of `cells` (adding the layers when the grid lacks them)."""
-    for name in RISK_LAYERS:
-        try:
-            grid.layer(name)
-        except KeyError:
-            grid.add_layer(name, DTYPES[name], FILLS[name])
-    flat = grid.flat_index(cells[:, 0], cells[:, 1])
-    for name, v in zip(RISK_LAYERS, values, strict=True):
-        grid.flat(name)[flat] = v
-    grid.changed(cells)
 
 
 def random_world(rng, n=24, m=20, certain=False):
@@ -246,7 +230,8 @@ def test_patched_distributions_refresh_the_cached_costs(mode):
     alt[10:13, 12:16] = WATER
     p_label[10:13, 12:16] = rng.integers(100, 255, size=(3, 4))
     p_alt[10:13, 12:16] = 255 - p_label[10:13, 12:16]
-    write_risk(grid, cells, [a[10:13, 12:16].ravel() for a in (alt, p_label, p_alt)])
+    risk = [a[10:13, 12:16].ravel() for a in (alt, p_label, p_alt)]
+    grid.apply_patch(cells, *grid.read_cells(cells), risk=risk)
     assert grid.changes_since(planner._enter_key[0]) is not None  # the incremental path runs
     planner.plan((0.1, 0.1), (7.9, 7.9))
     want = risk_enter_costs(labels, flags, alt, p_label, p_alt, CLASSES, config)

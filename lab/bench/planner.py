@@ -17,6 +17,12 @@ octile heuristic (there min weight x Chebyshev steps, pyastar2d's own heuristic)
 agree. smana under the paper's cost (distance + t_f T, a diagonal 0.283 m) on the same flat graph
 is reported beside it, through `Planner.plan`, with pyastar2d's time as the yardstick.
 
+Risk rows (column "risk"): the cluttered graph again with a class distribution on every free node
+(the graph's risk layers: a doubtful label, a second class, some unnamed mass), planned under each
+`planner.risk` mode on a new Planner (window, risk enter costs, A*); their Dijkstra runs on the
+enter costs that mode gave (the kernels themselves are held to a per-node reference by
+tests/test_planner_risk.py). Rows without risk ("-") are on the graph without the layers, as before.
+
 Every A* cost is checked against Dijkstra to 1e-6 relative (and pyastar2d's to 1e-5: it sums in
 float32); a disagreement fails the benchmark. Every row prints the peer's and smana's wall and CPU
 time (time.process_time), their ratio, and the load average.
@@ -24,6 +30,7 @@ time (time.process_time), their ratio, and the load average.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import statistics
 import sys
@@ -37,7 +44,7 @@ from smana.common.classes import ClassTable
 from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
 from smana.services.planner.astar import search
-from smana.services.planner.planner import Planner
+from smana.services.planner.planner import RISK_MODES, Planner
 from smana.services.planner.reference import build_graph
 
 HINT = "pyastar2d not installed (pip install 'smana[bench]'): no pyastar2d comparison"
@@ -88,12 +95,29 @@ def make_flat_graph(n: int, seed: int = 0):
     return labels, np.zeros((n, n), np.float32), np.full((n, n), FLAG_KNOWN, np.uint8)
 
 
-def grid_from_dense(labels, heights, flags) -> NavGrid:
+def grid_from_dense(labels, heights, flags, risk=None) -> NavGrid:
     n = labels.shape[0]
     grid = NavGrid((0.0, 0.0), labels.shape, RES, tile_size=32)
     cells = np.argwhere(np.ones((n, n), bool))
-    grid.apply_patch(cells, labels.ravel(), heights.ravel(), flags.ravel())
+    risk = None if risk is None else [r.ravel() for r in risk]
+    grid.apply_patch(cells, labels.ravel(), heights.ravel(), flags.ravel(), risk=risk)
     return grid
+
+
+def make_risk(labels, flags, seed: int):
+    """Risk layers (alt_labels, p_label, p_alt) for a graph: on half the free nodes a doubtful
+    label (P 0.7 to 1), a second class (the other ground class, or on 15 % a tree: forbidden)
+    holding most of the rest, the remainder unnamed."""
+    rng = np.random.default_rng(seed)
+    shape = labels.shape
+    doubt = (rng.random(shape) < 0.5) & ((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0)
+    p_label = np.where(doubt, rng.integers(180, 256, shape), 255).astype(np.uint8)
+    other = np.where(labels == GRASS, TERRAIN, GRASS)
+    alt = np.where(rng.random(shape) < 0.15, 8, other)  # 8: tree, infinite cost
+    alt = np.where(doubt, alt, 0).astype(np.uint16)
+    rest = 255 - p_label.astype(np.int64)
+    p_alt = np.where(doubt, rest * rng.uniform(0.7, 1.0, shape), 0).astype(np.uint8)
+    return alt, p_label, p_alt
 
 
 def _anchors(n: int):
@@ -142,10 +166,11 @@ def timed(fn, runs: int, setup=None):
     return statistics.median(walls), statistics.median(cpus), out
 
 
-def _row(work, peer, p, s, expanded, cost, err) -> dict:
+def _row(work, peer, p, s, expanded, cost, err, risk="-") -> dict:
     """One printed row: the peer's and smana's (wall, cpu) ms side by side."""
     return {
         "work": work,
+        "risk": risk,
         "peer": peer,
         "peer_ms": p,
         "smana_ms": s,
@@ -166,7 +191,7 @@ def _patch_one_tile(grid: NavGrid):
     cells = cells[(cells[:, 0] < grid.shape[0]) & (cells[:, 1] < grid.shape[1])]
 
     def patch():
-        grid.apply_patch(cells, *grid.read_cells(cells))
+        grid.apply_patch(cells, *grid.read_cells(cells), risk=grid.read_risk(cells))
 
     return patch
 
@@ -178,10 +203,12 @@ FIRST_NEW, FIRST_PATCHED, REPEAT = "new", "patched", "repeat"
 
 
 def _query(grid, classes, params, planner, a, b, heuristic):
-    """A query as a call for `timed`; on a new Planner each time (cold) when `planner` is None."""
+    """A query as a call for `timed`; on a new Planner each time (cold) when `planner` is None.
+    The Planner that answered is kept in `query.planner`."""
 
     def query():
-        return (planner or Planner(grid, classes, params)).plan(a, b, heuristic=heuristic)
+        query.planner = planner or Planner(grid, classes, params)
+        return query.planner.plan(a, b, heuristic=heuristic)
 
     return query
 
@@ -190,8 +217,11 @@ def _rel(a: float, b: float) -> float:
     return abs(a - b) / max(abs(b), 1e-300)
 
 
-def run_size(n: int, runs: int, n_queries: int, classes, with_euclidean: bool) -> dict:
-    """The cluttered graph: `Planner.plan` against scipy's Dijkstra on the same graph."""
+def run_size(
+    n: int, runs: int, n_queries: int, classes, with_euclidean: bool, with_risk: bool = True
+) -> dict:
+    """The cluttered graph: `Planner.plan` against scipy's Dijkstra on the same graph; with
+    `with_risk` the same queries on the graph with risk layers, one row per mode."""
     labels, heights, flags = make_graph(n, seed=n, classes=classes)
     grid = grid_from_dense(labels, heights, flags)
     params = PlannerConfig(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile")
@@ -244,7 +274,42 @@ def run_size(n: int, runs: int, n_queries: int, classes, with_euclidean: bool) -
             )
         out["queries"].append({"start": s, "goal": g, "rows": rows})
     out["grid_bytes"] = grid.nbytes
+    if with_risk:
+        _risk_rows(out, labels, heights, flags, classes, params, pairs, runs)
     return out
+
+
+def _risk_rows(out, labels, heights, flags, classes, params, pairs, runs) -> None:
+    """Per mode: the queries on a new Planner over the graph with risk layers, against Dijkstra
+    on the enter costs that mode gave (the window is the whole graph)."""
+    n = labels.shape[0]
+    plain = grid_from_dense(labels, heights, flags)
+    grid = grid_from_dense(labels, heights, flags, make_risk(labels, flags, n))
+    ends = list(pairs[0])
+    out["pass_ms"] = {"-": _enter_pass(plain, classes, params, ends, runs)}
+    for mode in RISK_MODES:
+        out["pass_ms"][mode] = _enter_pass(
+            grid, classes, dataclasses.replace(params, risk=mode), ends, runs
+        )
+        p = dataclasses.replace(params, risk=mode)
+        csr = None
+        for q, (s, g) in zip(out["queries"], pairs, strict=True):
+            fn = _query(
+                grid, classes, p, None, grid.cell_centre(*s), grid.cell_centre(*g), "octile"
+            )
+            sw, sc, res = timed(fn, runs)
+            if csr is None:
+                csr = build_graph(fn.planner._enter_cache[0], heights, RES, p.h_f, p.max_step_m)
+            dw, dc, dist = timed(
+                lambda s=s, csr=csr: csgraph.dijkstra(csr, directed=True, indices=s[0] * n + s[1]),
+                1,
+            )
+            want = float(dist[g[0] * n + g[1]])
+            cost = res.cost_total if res.ok else np.inf
+            err = 0.0 if cost == want == np.inf else _rel(cost, want)
+            row = _row("first, new Planner", "scipy Dijkstra", (dw, dc), (sw, sc), 0, cost, err)
+            row.update(expanded=res.nodes_expanded, risk=mode)
+            q["rows"].append(row)
 
 
 def run_flat(n: int, runs: int, n_queries: int, classes, pyastar) -> dict:
@@ -319,7 +384,8 @@ def run_flat(n: int, runs: int, n_queries: int, classes, pyastar) -> dict:
 
 
 HEADER = (
-    f"{'graph':>11} {'query':>16} {'work':<22} {'peer':<14} {'peer ms':>8} {'peer cpu':>8} "
+    f"{'graph':>11} {'query':>16} {'work':<22} {'risk':<8} {'peer':<14} {'peer ms':>8} "
+    f"{'peer cpu':>8} "
     f"{'smana ms':>8} {'smana cpu':>9} {'ratio':>5} {'cpu r.':>6} {'expanded':>8} {'cost':>10} "
     f"{'rel err':>7} {'load':>5}"
 )
@@ -336,8 +402,45 @@ def _print_row(n: int, q: dict, r: dict) -> None:
         ratio = f"{sw / pw:5.2f} {sc / max(pc, 1e-9):6.2f}"
     sw, sc = r["smana_ms"]
     print(
-        f"{n:>5}x{n:<5} {label:>16} {r['work']:<22} {r['peer']:<14} {peer} {sw:8.1f} {sc:9.1f} "
+        f"{n:>5}x{n:<5} {label:>16} {r['work']:<22} {r['risk']:<8} {r['peer']:<14} {peer} "
+        f"{sw:8.1f} {sc:9.1f} "
         f"{ratio} {r['expanded']:8d} {r['cost']:10.3f} {r['rel_err']:7.0e} {r['load']:5.2f}"
+    )
+
+
+def _enter_pass(grid, classes, params, ends, runs) -> float:
+    """Median CPU ms of a new Planner's window gather and enter-cost pass (no search): where
+    risk adds work; the A* after it is the same kernel."""
+
+    def run():
+        planner = Planner(grid, classes, params)
+        box = planner._window(ends, False)
+        w = planner._dense(box)
+        planner._enter(box, w.flags, w.labels, classes.cost_lut, params, False)
+
+    return timed(run, runs)[1]
+
+
+def _risk_ratios(r: dict) -> str:
+    """Per mode, the CPU time of its first query on a new Planner over the same query's without
+    risk: the median over the queries."""
+    out = []
+    for mode in RISK_MODES:
+        ratios = []
+        for q in r["queries"]:
+            first = {
+                row["risk"]: row["smana_ms"][1]
+                for row in q["rows"]
+                if row["work"].startswith("first, new")
+            }
+            ratios.append(first[mode] / max(first["-"], 1e-9))
+        out.append(f"{mode} x{statistics.median(ratios):.2f}")
+    passes = r["pass_ms"]
+    return (
+        ", ".join(out)
+        + "; window and enter costs alone: "
+        + ", ".join(f"{k} {v:.1f} ms" for k, v in passes.items())
+        + " (- = without risk)"
     )
 
 
@@ -357,6 +460,7 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--queries", type=int_in(1, 4), default=2, help="queries per graph (1..4)")
     p.add_argument("--no-euclidean", action="store_true", help="skip the paper's heuristic")
     p.add_argument("--no-flat", action="store_true", help="skip the flat graphs (pyastar2d)")
+    p.add_argument("--no-risk", action="store_true", help="skip the risk rows (planner.risk)")
     args = p.parse_args(argv)
     sizes = args.sizes or ([60, 120] if args.quick else [250, 500, 1000])
     runs = args.runs or (3 if args.quick else 7)
@@ -378,7 +482,8 @@ def cli(argv: list[str] | None = None) -> int:
     print(f"{ROBOT_RADIUS} m, octile heuristic unless said; first = the first query after a graph")
     print("patch (one tile: its nodes refreshed in the cached window), or on a new Planner")
     print("(nothing cached);")
-    print("rel err = |cost - Dijkstra| / Dijkstra")
+    print("rel err = |cost - Dijkstra| / Dijkstra; risk = planner.risk on the graph with risk")
+    print("layers (half the free nodes doubtful), '-' = the graph without them")
     print("flat graphs: pyastar2d's cost = sum of the weights entered (terrain 1.0, grass 1.8; a")
     print(
         "diagonal as a side step); smana's kernel on the same weights, no distance or height term"
@@ -400,7 +505,7 @@ def cli(argv: list[str] | None = None) -> int:
                 "optimum (it sums in float32)"
             )
     for n in sizes:
-        r = run_size(n, runs, args.queries, classes, not args.no_euclidean)
+        r = run_size(n, runs, args.queries, classes, not args.no_euclidean, not args.no_risk)
         for q in r["queries"]:
             for row in q["rows"]:
                 failed |= not row["rel_err"] <= 1e-6
@@ -410,6 +515,11 @@ def cli(argv: list[str] | None = None) -> int:
             f"grid {r['grid_bytes'] / 2**20:.1f} MiB, {r['edges']} edges, "
             f"scipy graph build {r['build_ms']:.0f} ms (not counted)"
         )
+        if not args.no_risk:
+            print(
+                f"{'':>11} risk / no risk, CPU of the first query on a new Planner: "
+                + _risk_ratios(r)
+            )
     if failed:
         print("FAIL: an A* cost differs from Dijkstra (or pyastar2d's) beyond the tolerance")
         return 1

@@ -30,7 +30,14 @@ import numpy as np
 
 from smana.common.classes import ClassTable
 from smana.common.config.planner import PlannerConfig, Risk
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
+from smana.common.navgrid import (
+    FLAG_KNOWN,
+    FLAG_OBSTACLE,
+    FLAG_SAFETY_ZONE,
+    P_SCALE,
+    RISK_LAYER_NAMES,
+    NavGrid,
+)
 from smana.services.planner.astar import HEURISTICS, path_costs, search
 
 # Error codes of PathReply.error
@@ -41,10 +48,6 @@ UNREACHABLE = "unreachable"
 NO_GRAPH = "no_graph"
 MALFORMED = "malformed"
 
-# The NavGrid layers of a node's class distribution (written by navgraph): the second most likely
-# class (u2, 0 = none) and the probabilities x 255 of the label and of it (u1); the rest of the
-# mass is unnamed. A grid without them reads as certain labels.
-RISK_LAYERS = ("alt_labels", "p_label", "p_alt")
 RISK_MODES = typing.get_args(Risk)
 
 
@@ -459,6 +462,13 @@ def warm_up(classes: ClassTable) -> float:
     for heuristic in HEURISTICS:
         planner.plan((0.1, 0.1), (1.5, 1.5), heuristic=heuristic)
     planner.plan((0.1, 0.1), (9.0, 9.0))  # an error path too
+    # the risk kernels: a doubtful label on every node, each mode
+    risk = (np.zeros(64, np.uint16), np.full(64, 200, np.uint8), np.zeros(64, np.uint8))
+    grid.apply_patch(cells, *grid.read_cells(cells), risk=risk)
+    for mode in RISK_MODES:
+        planner.plan((0.1, 0.1), (1.5, 1.5), risk=mode)
+    grid.apply_patch(cells[:1], *grid.read_cells(cells[:1]), risk=[r[:1] for r in risk])
+    planner.plan((0.1, 0.1), (1.5, 1.5))  # the patched nodes only
     return time.perf_counter() - t0
 
 
@@ -601,12 +611,10 @@ class RiskPools(NamedTuple):
 
     @classmethod
     def of(cls, g: NavGrid) -> RiskPools | None:
-        """The pools, or None when the grid has no risk layers."""
-        try:
-            layers = [g.layer(name) for name in RISK_LAYERS]
-        except KeyError:
+        """The pools, or None when the grid has no risk layers (every label certain)."""
+        if not g.has_risk():
             return None
-        return cls(g.tile_map, *layers, g.tile_size)
+        return cls(g.tile_map, *(g.layer(name) for name in RISK_LAYER_NAMES), g.tile_size)
 
 
 class RiskWindow(NamedTuple):
@@ -641,7 +649,7 @@ def _gather_risk_window(pools, ix0, iy0, window):
                     p_alt[i, j + k] = pa_pool[slot, lx, ly0 + k]
                 else:
                     alt[i, j + k] = 0
-                    p_label[i, j + k] = 255
+                    p_label[i, j + k] = P_SCALE
                     p_alt[i, j + k] = 0
             j += run
 
@@ -663,7 +671,7 @@ def _gather_risk_cells(pools, grid_cells, cells, window):
             p_alt[i, j] = pa_pool[slot, lx, ly]
         else:
             alt[i, j] = 0
-            p_label[i, j] = 255
+            p_label[i, j] = P_SCALE
             p_alt[i, j] = 0
 
 
@@ -689,13 +697,13 @@ def _risk_cost(c_label, alt, pl, pa, lut, n_lut, model):
     """Enter cost of a known node whose label costs `c_label` (finite, t_f scaled) given its
     distribution: P(label) = pl / 255, P(alt) = pa / 255 (alt 0 or outside the table: none, its
     mass unnamed), the rest unnamed. See docs/risk.md."""
-    if pl >= 255:
+    if pl >= P_SCALE:
         return c_label  # certain: as without risk, bit for bit
     named_alt = alt > 0 and alt < n_lut
-    pa = min(pa, 255 - pl) if named_alt else 0
-    p1 = pl / 255.0
-    p2 = pa / 255.0
-    r = (255 - pl - pa) / 255.0
+    pa = min(pa, P_SCALE - pl) if named_alt else 0
+    p1 = pl / P_SCALE
+    p2 = pa / P_SCALE
+    r = (P_SCALE - pl - pa) / P_SCALE
     c2 = lut[alt] if named_alt else 0.0
     forbidden = c2 == np.inf
     if forbidden:
