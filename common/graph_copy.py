@@ -3,8 +3,9 @@
 The planner and the explorer each hold one (`GraphCopy`): patches are applied in their producer's
 order (`SequenceFollower`: a gap is applied and a resync asked; another producer, a number that goes
 back or leaps is refused), a patch on another grid geometry is refused, and a whole-graph snapshot
-from `navgraph/graph` (`adopt`) re-anchors the stream. What a service does around it (when it
-asks for a snapshot, what it counts) stays in the service.
+from `navgraph/graph` (`adopt`) re-anchors the stream. A grid with the label-distribution layers
+(`NavGrid.has_risk`, the planner's) receives each node's distribution with it. What a service
+does around it (when it asks for a snapshot, what it counts) stays in the service.
 """
 
 from __future__ import annotations
@@ -28,7 +29,11 @@ class GraphCopy:
             raise Reject("geometry", f"graph patch {patch.seq}: {why}; check [navgraph]")
 
     def apply(self, patch: GraphPatch) -> None:
-        n_out = self.grid.apply_patch(patch.cells, patch.labels, patch.heights, patch.flags)
+        # the label distributions go to a grid that keeps them (NavGrid.add_risk_layers)
+        risk = patch.risk() if self.grid.has_risk() else None
+        n_out = self.grid.apply_patch(
+            patch.cells, patch.labels, patch.heights, patch.flags, risk=risk
+        )
         if n_out:
             self._note("out_of_bounds", f"{n_out} patch cells outside the graph bounds")
 

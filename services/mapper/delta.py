@@ -17,6 +17,8 @@ class DeltaColumns(NamedTuple):
     confidences: np.ndarray
     occupied: np.ndarray
     values: np.ndarray
+    alt_labels: np.ndarray
+    alt_confidences: np.ndarray
 
 
 @dataclass
@@ -27,7 +29,9 @@ class Delta:
     - `centres`: float32 voxel centres in the world frame;
     - `labels`, `confidences`: the voxel's fused label (0 = none yet) and its confidence;
     - `occupied`: octree: log-odds > 0; tsdf: surface voxel (zero crossing, `backends/tsdf.py`);
-    - `values`: octree: occupancy log-odds; tsdf: signed distance in metres.
+    - `values`: octree: occupancy log-odds; tsdf: signed distance in metres;
+    - `alt_labels`, `alt_confidences`: the second most likely class (0 = none) and its
+      probability, as far as the back-end keeps one (octree-max: none).
     """
 
     keys: np.ndarray
@@ -36,6 +40,16 @@ class Delta:
     confidences: np.ndarray
     occupied: np.ndarray
     values: np.ndarray
+    # a back-end that keeps no second class (an out-of-tree one written before) may leave them out
+    alt_labels: np.ndarray | None = None
+    alt_confidences: np.ndarray | None = None
+
+    def __post_init__(self):
+        n = int(self.keys.shape[0])
+        if self.alt_labels is None:
+            self.alt_labels = np.zeros(n, np.uint16)
+        if self.alt_confidences is None:
+            self.alt_confidences = np.zeros(n, np.float32)
 
     def __len__(self) -> int:
         return int(self.keys.shape[0])
@@ -50,12 +64,21 @@ class Delta:
             np.empty(n, np.float32),
             np.empty(n, np.uint8),
             np.empty(n, np.float32),
+            np.empty(n, np.uint16),
+            np.empty(n, np.float32),
         )
 
     def columns(self) -> DeltaColumns:
         """The same arrays (not copies), for a kernel to fill."""
         return DeltaColumns(
-            self.keys, self.centres, self.labels, self.confidences, self.occupied, self.values
+            self.keys,
+            self.centres,
+            self.labels,
+            self.confidences,
+            self.occupied,
+            self.values,
+            self.alt_labels,
+            self.alt_confidences,
         )
 
     def subset(self, mask: np.ndarray) -> Delta:
@@ -66,4 +89,6 @@ class Delta:
             self.confidences[mask],
             self.occupied[mask],
             self.values[mask],
+            self.alt_labels[mask],
+            self.alt_confidences[mask],
         )

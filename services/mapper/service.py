@@ -465,6 +465,8 @@ class MapperService(MapperQueries, Service):
             values=d.values,
             producer=self.producer,
             values_kind=self.map.values_kind,
+            alt_labels=d.alt_labels,
+            alt_confidences=d.alt_confidences,
         )
 
     # -- saving ------------------------------------------------------------------------------

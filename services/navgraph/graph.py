@@ -25,6 +25,11 @@ nodes of a disc stencil around it change by one. A node is in the safety zone wh
 positive and it is not an obstacle itself. Tiles within the radius of an obstacle are allocated so
 that the zone also covers nodes not seen yet.
 
+Each node also keeps the label distribution of the voxel that sets its label (the NavGrid's
+RISK_LAYERS: the second class and both probabilities x 255), as the map delta carried it; a delta
+without one (version 1) gives certain voxels. A node changes, and is published, when its
+distribution moves by at least one step of 1/255.
+
 The numba kernels, and the named tuples of arrays they take as state, are in `kernels.py`.
 """
 
@@ -37,7 +42,14 @@ import numpy as np
 
 from smana.common.classes import ClassTable
 from smana.common.config.navgraph import NavgraphConfig
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
+from smana.common.navgrid import (
+    FLAG_KNOWN,
+    FLAG_OBSTACLE,
+    FLAG_SAFETY_ZONE,
+    P_SCALE,
+    RISK_LAYER_NAMES,
+    NavGrid,
+)
 
 from .kernels import (
     NO_FLOOR,
@@ -71,6 +83,10 @@ class GraphUpdate:
     labels: np.ndarray  # (K,) u2
     heights: np.ndarray  # (K,) f4, NaN where the node is not known
     flags: np.ndarray  # (K,) u1
+    # their label distributions (NavGrid RISK_LAYERS): alt_labels u2, p_label u1, p_alt u1
+    alt_labels: np.ndarray | None = None
+    p_label: np.ndarray | None = None
+    p_alt: np.ndarray | None = None
     n_voxels: int = 0
     n_surface: int = 0  # voxels that add to or update a column
     n_out_of_bounds: int = 0
@@ -86,6 +102,25 @@ def same_nodes(label_a, height_a, flags_a, label_b, height_b, flags_b) -> np.nda
     """Where two node states are equal (two unknown heights, NaN, are equal)."""
     same_h = (height_a == height_b) | (np.isnan(height_a) & np.isnan(height_b))
     return (label_a == label_b) & (flags_a == flags_b) & same_h
+
+
+def to_probability_steps(labels, confidences, alt_labels, alt_confidences):
+    """A voxel distribution as the graph keeps it: (alt_labels u2, p_label u1, p_alt u1), the
+    probabilities x 255 rounded, p_alt capped so that the two never exceed 255. None for the
+    arrays: certain (255, no second class)."""
+    m = len(labels)
+    if confidences is None:
+        return np.zeros(m, np.uint16), np.full(m, P_SCALE, np.uint8), np.zeros(m, np.uint8)
+    conf = np.nan_to_num(np.asarray(confidences, np.float32), nan=1.0)
+    p_label = np.rint(np.clip(conf, 0.0, 1.0) * P_SCALE).astype(np.uint8)
+    if alt_labels is None:
+        return np.zeros(m, np.uint16), p_label, np.zeros(m, np.uint8)
+    alt_c = np.nan_to_num(np.asarray(alt_confidences, np.float32), nan=0.0)
+    p_alt = np.rint(np.clip(alt_c, 0.0, 1.0) * P_SCALE).astype(np.uint8)
+    p_alt = np.minimum(p_alt, P_SCALE - p_label)
+    alt = np.asarray(alt_labels)
+    alt = np.where(p_alt > 0, alt, 0).astype(np.uint16)
+    return alt, p_label, np.where(alt > 0, p_alt, 0).astype(np.uint8)
 
 
 class NavGraph:
@@ -106,6 +141,7 @@ class NavGraph:
         g.add_layer("col_floor", np.int32, NO_FLOOR)
         g.add_layer("obstacle_count", np.int32, 0)
         g.add_layer("epoch", np.uint32, 0)
+        g.add_risk_layers()
         self._epoch = 0
         cap = 1024
         self.columns = ColumnStore(
@@ -114,6 +150,9 @@ class NavGraph:
             label=np.zeros(cap, np.uint16),
             z=np.zeros(cap, np.float32),
             next=np.full(cap, -1, np.int32),
+            alt_label=np.zeros(cap, np.uint16),
+            p_label=np.full(cap, P_SCALE, np.uint8),
+            p_alt=np.zeros(cap, np.uint8),
             state=np.array([-1, 0, 0], np.int64),
             column_capacity=config.column_capacity,
         )
@@ -139,7 +178,8 @@ class NavGraph:
     @property
     def nbytes(self) -> int:
         c = self.columns
-        return self.grid.nbytes + sum(a.nbytes for a in (c.level, c.sub, c.label, c.z, c.next))
+        arrays = (c.level, c.sub, c.label, c.z, c.next, c.alt_label, c.p_label, c.p_alt)
+        return self.grid.nbytes + sum(a.nbytes for a in arrays)
 
     @property
     def n_column_voxels(self) -> int:
@@ -165,6 +205,9 @@ class NavGraph:
             label=grown(c.label, 0),
             z=grown(c.z, 0),
             next=grown(c.next, -1),
+            alt_label=grown(c.alt_label, 0),
+            p_label=grown(c.p_label, P_SCALE),
+            p_alt=grown(c.p_alt, 0),
         )
 
     def _kernel_state(self) -> tuple[GridGeometry, NodeLayers]:
@@ -196,19 +239,36 @@ class NavGraph:
             raise ValueError(
                 f"values_kind must be one of {list(SURFACE_INPUTS)}, got {delta.values_kind!r}"
             )
+        # a delta without a distribution (version 1) reads as certain
+        has = getattr(delta, "has_distribution", False)
         return self.integrate(
             delta.centres,
             delta.labels,
             delta.occupied,
             map_resolution_m=delta.resolution_m,
+            confidences=delta.confidences if has else None,
+            alt_labels=delta.alt_labels if has else None,
+            alt_confidences=delta.alt_confidences if has else None,
             **read(delta),
         )
 
-    def integrate(self, centres, labels, occupied, *, map_resolution_m: float = 0.1) -> GraphUpdate:
+    def integrate(
+        self,
+        centres,
+        labels,
+        occupied,
+        *,
+        map_resolution_m: float = 0.1,
+        confidences=None,
+        alt_labels=None,
+        alt_confidences=None,
+    ) -> GraphUpdate:
         """Integrate the voxels of one map update and return the nodes that changed.
 
         A voxel with `occupied` set is added to (or relabels) its column, one without is removed
-        from it. Rows with non-finite centres are dropped and counted.
+        from it. Rows with non-finite centres are dropped and counted. `confidences` is the
+        probability of each voxel's label, `alt_labels` / `alt_confidences` its second class;
+        left out, the voxels are certain (octree-max sends no second class).
         """
         t0 = time.perf_counter()
         if not (np.isfinite(map_resolution_m) and map_resolution_m > 0):
@@ -226,6 +286,17 @@ class NavGraph:
             raise ValueError(f"labels must be an integer array of length {m}")
         if occupied.shape != (m,):
             raise ValueError(f"occupied must have length {m}")
+        for name, a in (
+            ("confidences", confidences),
+            ("alt_labels", alt_labels),
+            ("alt_confidences", alt_confidences),
+        ):
+            if a is not None and np.shape(a) != (m,):
+                raise ValueError(f"{name} must have length {m}")
+        if (alt_labels is None) != (alt_confidences is None):
+            raise ValueError("alt_labels and alt_confidences go together")
+        if alt_labels is not None and np.asarray(alt_labels).dtype.kind not in "iu":
+            raise ValueError("alt_labels must be integers")
 
         if labels.dtype != np.uint16:
             if labels.dtype.kind == "i" and m and labels.min() < 0:
@@ -237,8 +308,15 @@ class NavGraph:
         g = self.grid
         # 1. classify voxels (surface / cleared / unusable row), clean labels, and allocate the
         # tiles of every in-bounds surface voxel, all in one pass.
+        alt, p_label, p_alt = to_probability_steps(labels, confidences, alt_labels, alt_confidences)
         vox = Voxels(
-            centres, np.empty(m, np.uint16), np.empty(m, np.uint8), float(map_resolution_m)
+            centres,
+            np.empty(m, np.uint16),
+            np.empty(m, np.uint8),
+            float(map_resolution_m),
+            alt,
+            p_label,
+            p_alt,
         )
         missing = np.empty(m, np.int64)
         n_missing, n_nonfinite, n_unknown, n_surface = _prepare(
@@ -281,7 +359,10 @@ class NavGraph:
         n_lab = g.flat("labels")[touched]
         n_h = g.flat("heights")[touched]
         n_f = g.flat("flags")[touched]
+        n_risk = [g.flat(name)[touched] for name in RISK_LAYER_NAMES]
         changed = ~same_nodes(n_lab, n_h, n_f, changes.label, changes.height, changes.flags)
+        for now, before in zip(n_risk, (changes.alt_label, changes.p_label, changes.p_alt)):
+            changed |= now != before
         sel = touched[changed]
         ix, iy = g.cells_of_flat(sel)
         cells = np.stack([ix, iy], axis=1).astype(np.int32)
@@ -293,6 +374,9 @@ class NavGraph:
             labels=n_lab[changed],
             heights=n_h[changed],
             flags=n_f[changed],
+            alt_labels=n_risk[0][changed],
+            p_label=n_risk[1][changed],
+            p_alt=n_risk[2][changed],
             n_voxels=m,
             n_surface=int(n_surface),
             n_out_of_bounds=n_oob,
@@ -345,6 +429,7 @@ class NavGraph:
             "known": bool(f[0] & FLAG_KNOWN),
             "obstacle": bool(f[0] & FLAG_OBSTACLE),
             "safety_zone": bool(f[0] & FLAG_SAFETY_ZONE),
+            **dict(zip(RISK_LAYER_NAMES, (int(a[0]) for a in self.grid.read_risk([[ix, iy]])))),
             "allocated": bool(flat >= 0),
             "column_voxels": len(column),
         }

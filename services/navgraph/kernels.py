@@ -51,6 +51,10 @@ class NodeLayers(NamedTuple):
     col_floor: np.ndarray  # i4: highest level forgotten on overflow, NO_FLOOR if none
     obstacle_count: np.ndarray  # i4: obstacle nodes within the robot radius, itself included
     epoch: np.ndarray  # u4: the integration that last touched the node (see NodeChanges)
+    # the label distribution of the voxel that sets the label (NavGrid RISK_LAYERS), as published
+    alt_labels: np.ndarray  # u2: the second most likely class, 0 for none
+    p_label: np.ndarray  # u1: probability of `labels` x 255
+    p_alt: np.ndarray  # u1: probability of `alt_labels` x 255
 
 
 class ColumnStore(NamedTuple):
@@ -62,6 +66,9 @@ class ColumnStore(NamedTuple):
     label: np.ndarray  # u2
     z: np.ndarray  # f4: the voxel centre's height
     next: np.ndarray  # i4: the next entry down the column (or the free list), -1 at the end
+    alt_label: np.ndarray  # u2: the voxel's second class (0: none)
+    p_label: np.ndarray  # u1: probability of `label` x 255
+    p_alt: np.ndarray  # u1: probability of `alt_label` x 255
     state: np.ndarray  # i8[3]: free-list head, high-water mark, entries in use
     column_capacity: int  # entries a column keeps before it forgets its lowest level
 
@@ -74,6 +81,9 @@ class NodeChanges(NamedTuple):
     label: np.ndarray  # u2
     height: np.ndarray  # f4
     flags: np.ndarray  # u1
+    alt_label: np.ndarray  # u2
+    p_label: np.ndarray  # u1
+    p_alt: np.ndarray  # u1
 
     @classmethod
     def empty(cls, n: int) -> NodeChanges:
@@ -81,6 +91,9 @@ class NodeChanges(NamedTuple):
             np.empty(n, np.int64),
             np.empty(n, np.uint16),
             np.empty(n, np.float32),
+            np.empty(n, np.uint8),
+            np.empty(n, np.uint16),
+            np.empty(n, np.uint8),
             np.empty(n, np.uint8),
         )
 
@@ -95,6 +108,9 @@ class Voxels(NamedTuple):
     labels: np.ndarray  # u2 (M,): class ids, those outside the table read as 0
     kinds: np.ndarray  # u1 (M,): CLEARED, SURFACE or UNUSABLE
     map_resolution_m: float
+    alt_labels: np.ndarray  # u2 (M,): the second class (`_prepare` cleans it like `labels`)
+    p_label: np.ndarray  # u1 (M,): probability of `labels` x 255
+    p_alt: np.ndarray  # u1 (M,): probability of `alt_labels` x 255
 
 
 class ClassLuts(NamedTuple):
@@ -193,6 +209,9 @@ def _touch(nodes, epoch, changes, nd, n):
         changes.label[nd] = nodes.labels[n]
         changes.height[nd] = nodes.heights[n]
         changes.flags[nd] = nodes.flags[n]
+        changes.alt_label[nd] = nodes.alt_labels[n]
+        changes.p_label[nd] = nodes.p_label[n]
+        changes.p_alt[nd] = nodes.p_alt[n]
         return nd + 1
     return nd
 
@@ -231,6 +250,10 @@ def _prepare(labels, occupied, luts, geo, vox, missing):
             lb = 0
             n_unknown += 1
         lab[i] = lb
+        alt = vox.alt_labels[i]
+        if alt >= n_lut or not valid_lut[alt]:
+            vox.alt_labels[i] = 0  # not counted: the label is what a node shows
+            vox.p_alt[i] = 0
         surface = occupied[i] != 0
         # An ignored class (sky, ...) is not ground: treat it as a cleared voxel.
         if ignored_lut[lb]:
@@ -259,7 +282,6 @@ def _integrate_kernel(vox, geo, nodes, cols, obstacle_lut, epoch, changes, flips
     Returns the counts (touched nodes, obstacle flips, out of bounds, below floor, columns lost);
     the flips (node, +1 became an obstacle / -1 stopped) are for the safety-zone kernel."""
     cen = vox.centres
-    lab = vox.labels
     kind = vox.kinds
     map_res = vox.map_resolution_m
     nd = 0
@@ -278,7 +300,7 @@ def _integrate_kernel(vox, geo, nodes, cols, obstacle_lut, epoch, changes, flips
         if n < 0:
             continue  # a cleared voxel over a region never seen: nothing to recompute
         gz, sub = _voxel_key(geo, map_res, x, y, cen[i, 2])
-        done = _column_update(cols, nodes, n, gz, sub, lab[i], cen[i, 2], kind[i])
+        done = _column_update(cols, nodes, n, gz, sub, vox, i)
         if done == COLUMN_BELOW_FLOOR:
             n_below += 1
         elif done == COLUMN_CHANGED:
@@ -301,20 +323,30 @@ def _integrate_kernel(vox, geo, nodes, cols, obstacle_lut, epoch, changes, flips
 
 
 @numba.njit(cache=True, inline="always")
-def _column_update(cols, nodes, n, gz, sub, label, z, kind):
-    """Apply one voxel to node n's column: a surface voxel is added or relabelled, a cleared one
-    removed. Returns COLUMN_CHANGED, COLUMN_UNCHANGED or COLUMN_BELOW_FLOOR."""
+def _column_update(cols, nodes, n, gz, sub, vox, i):
+    """Apply voxel i of `vox` to node n's column: a surface voxel is added or relabelled (its
+    label distribution with it), a cleared one removed. Returns COLUMN_CHANGED,
+    COLUMN_UNCHANGED or COLUMN_BELOW_FLOOR."""
+    label = vox.labels[i]
+    z = vox.centres[i, 2]
     prev, found, found_prev = _column_find(cols, nodes.col_head[n], gz, sub)
-    if kind == SURFACE:
+    if vox.kinds[i] == SURFACE:
         if found >= 0:
-            if cols.label[found] == label:
-                return COLUMN_UNCHANGED  # same voxel, same label: the node cannot change
+            if (
+                cols.label[found] == label
+                and cols.p_label[found] == vox.p_label[i]
+                and cols.alt_label[found] == vox.alt_labels[i]
+                and cols.p_alt[found] == vox.p_alt[i]
+            ):
+                return COLUMN_UNCHANGED  # same voxel, same distribution: the node cannot change
             cols.label[found] = label
             cols.z[found] = z
+            _entry_distribution(cols, found, vox, i)
         else:
             if gz <= nodes.col_floor[n]:
                 return COLUMN_BELOW_FLOOR
-            _column_insert(cols, nodes, n, prev, gz, sub, label, z)
+            e = _column_insert(cols, nodes, n, prev, gz, sub, label, z)
+            _entry_distribution(cols, e, vox, i)
             if nodes.col_len[n] > cols.column_capacity:
                 _column_forget_lowest(cols, nodes, n)
     else:
@@ -324,6 +356,13 @@ def _column_update(cols, nodes, n, gz, sub, label, z, kind):
         _entry_free(cols, found)
         nodes.col_len[n] -= 1
     return COLUMN_CHANGED
+
+
+@numba.njit(cache=True, inline="always")
+def _entry_distribution(cols, e, vox, i):
+    cols.alt_label[e] = vox.alt_labels[i]
+    cols.p_label[e] = vox.p_label[i]
+    cols.p_alt[e] = vox.p_alt[i]
 
 
 @numba.njit(cache=True, inline="always")
@@ -381,6 +420,7 @@ def _column_insert(cols, nodes, n, prev, gz, sub, label, z):
         cols.next[e] = cols.next[prev]
         cols.next[prev] = e
     nodes.col_len[n] += 1
+    return e
 
 
 @numba.njit(cache=True, inline="always")
@@ -421,14 +461,18 @@ def _column_forget_lowest(cols, nodes, n):
 def _node_head_recompute(cols, nodes, obstacle_lut, n):
     """Node n shows its column's head: label, height and flags from the highest level (among
     voxels of that level an obstacle wins, the conservative choice, then the larger sub-column
-    id, so the result does not depend on arrival order); an empty column is unknown. Returns
-    whether the node is an obstacle now."""
+    id, so the result does not depend on arrival order), with that voxel's label distribution;
+    an empty column is unknown (and certain: nothing to be unsure of). Returns whether the node
+    is an obstacle now."""
     e = nodes.col_head[n]
     flags = np.uint8(0)
     obstacle = False
     if e < 0:
         nodes.labels[n] = 0
         nodes.heights[n] = np.nan
+        nodes.alt_labels[n] = 0
+        nodes.p_label[n] = 255
+        nodes.p_alt[n] = 0
     else:
         best = e
         cur = cols.next[e]
@@ -440,6 +484,9 @@ def _node_head_recompute(cols, nodes, obstacle_lut, n):
             cur = cols.next[cur]
         nodes.labels[n] = cols.label[best]
         nodes.heights[n] = cols.z[best]
+        nodes.alt_labels[n] = cols.alt_label[best]
+        nodes.p_label[n] = cols.p_label[best]
+        nodes.p_alt[n] = cols.p_alt[best]
         obstacle = obstacle_lut[cols.label[best]]
         flags |= np.uint8(FLAG_KNOWN)
         if obstacle:

@@ -24,9 +24,11 @@ or the link to a robot dropped and returned). The graph is rebuilt from the snap
 that differ from the old graph go out as one patch, so consumers stay incremental and no voxel is
 lost from the base's view. Resyncs are at most one every `RESYNC_MIN_PERIOD_S`.
 
-Output: one `GraphPatch` on `navgraph/patch` per delta that changed a node (label, height or
-flags, safety-zone changes included), published reliably (congestion control BLOCK). Heights of
-nodes that are not known travel as 0 (the codec carries finite numbers only).
+Output: one `GraphPatch` on `navgraph/patch` per delta that changed a node (label, height,
+flags or label distribution, safety-zone changes included), published reliably (congestion
+control BLOCK). Each node carries the distribution of the voxel that sets its label (GraphPatch
+v2: `alt_labels`, `p_label`, `p_alt`). Heights of nodes that are not known travel as 0 (the codec
+carries finite numbers only).
 
 Queries (msgpack or JSON, see `common/service.py`):
 - `navgraph/graph`: the known nodes as one GraphPatch (seq = the last patch's), optionally in a
@@ -51,15 +53,17 @@ from smana.common.query import QueryError, request
 from smana.common.service import Reject, ReplyError, Request, Service, run_service
 from smana.services.navgraph.graph import NavGraph, same_nodes, warm_up
 
-BYTES_PER_PATCH_NODE = 8 + 2 + 4 + 1  # cell, label, height, flags
+BYTES_PER_PATCH_NODE = 8 + 2 + 4 + 1 + 2 + 1 + 1  # cell, label, height, flags, distribution
 RESYNC_MIN_PERIOD_S = 1.0  # a stream in doubt asks for snapshots at most this often
 
 
 def to_patch(
     graph: NavGraph, cells, labels, heights, flags, seq: int, stamp_s: float, producer: str = ""
 ):
-    """A GraphPatch of nodes; unknown heights (NaN) travel as 0."""
+    """A GraphPatch of nodes, with their label distributions as the graph holds them now;
+    unknown heights (NaN) travel as 0."""
     heights = np.where(np.isnan(heights) | ((flags & FLAG_KNOWN) == 0), 0.0, heights)
+    alt_labels, p_label, p_alt = graph.grid.read_risk(np.asarray(cells).reshape(-1, 2))
     return GraphPatch(
         stamp_s=float(stamp_s),
         seq=int(seq),
@@ -70,6 +74,9 @@ def to_patch(
         heights=heights.astype(np.float32),
         flags=np.ascontiguousarray(flags, np.uint8),
         producer=producer,
+        alt_labels=alt_labels,
+        p_label=p_label,
+        p_alt=p_alt,
     )
 
 
@@ -85,16 +92,20 @@ def parse_numbers(value, n: int, what: str) -> list[float]:
     return out
 
 
-def graph_difference(old, new):
-    """The nodes whose state differs between two exports (cells, labels, heights, flags); nodes
-    only in `old` come out as unknown (flags 0)."""
+def graph_difference(old, new, old_risk=None, new_risk=None):
+    """The nodes whose state differs between two exports (cells, labels, heights, flags), their
+    label distributions (`NavGrid.read_risk` of the exports' cells) compared too when given;
+    nodes only in `old` come out as unknown (flags 0)."""
     oc, ol, oh, of = old
     nc, nl, nh, nf = new
     width = int(max(oc[:, 0].max(initial=0), nc[:, 0].max(initial=0))) + 1
     okey = oc[:, 1].astype(np.int64) * width + oc[:, 0]
     nkey = nc[:, 1].astype(np.int64) * width + nc[:, 0]
     common, oi, ni = np.intersect1d(okey, nkey, assume_unique=True, return_indices=True)
-    changed = ni[~same_nodes(ol[oi], oh[oi], of[oi], nl[ni], nh[ni], nf[ni])]
+    differ = ~same_nodes(ol[oi], oh[oi], of[oi], nl[ni], nh[ni], nf[ni])
+    for a, b in zip(old_risk or (), new_risk or (), strict=True):
+        differ |= a[oi] != b[ni]
+    changed = ni[differ]
     added = np.setdiff1d(np.arange(len(nkey)), ni, assume_unique=True)
     gone = np.setdiff1d(np.arange(len(okey)), oi, assume_unique=True)
     take = np.concatenate([changed, added])
@@ -180,10 +191,12 @@ class NavgraphService(Service):
         if snap is None:
             return False
         old = self.graph.export()
+        old_risk = self.graph.grid.read_risk(old[0])
         self.graph = self._new_graph()
         up = self.graph.integrate_delta(snap)
         new = self.graph.export()
-        cells, labels, heights, flags = graph_difference(old, new)
+        new_risk = self.graph.grid.read_risk(new[0])
+        cells, labels, heights, flags = graph_difference(old, new, old_risk, new_risk)
         self.deltas_in.synced(snap.producer, snap.seq)
         self.resyncs += 1
         self.log.info(

@@ -1,7 +1,8 @@
 """The planner service: zenoh wiring around `Planner` (the algorithm lives in `planner.py` and
 `astar.py`).
 
-Input: `navgraph/patch` (GraphPatch), applied in order to the planner's own `NavGrid` copy. The
+Input: `navgraph/patch` (GraphPatch), applied in order to the planner's own `NavGrid` copy, label
+distributions included (its RISK_LAYERS; a version-1 patch reads as certain). The
 patch stream is followed per producer (the navgraph session that numbered it,
 `common/plausibility.py::SequenceFollower`). At start, on a gap in the patch sequence, when a
 patch comes from another producer (navgraph restarted) or its number goes back or jumps far ahead
@@ -106,6 +107,7 @@ class PlannerService(Service):
         self.grid = NavGrid.from_bounds(
             nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.tile_size
         )
+        self.grid.add_risk_layers()  # the patches' label distributions (planner risk modes)
         self.planner = Planner(self.grid, self.classes, config.planner)
         self.graph = GraphCopy(self.grid, self.note)
         self._next_sync = 0.0
@@ -184,6 +186,7 @@ class PlannerService(Service):
     def _reset_grid(self) -> None:
         g = self.grid
         self.grid = self.graph.grid = NavGrid(g.origin_xy, g.shape, g.resolution_m, g.tile_size)
+        self.grid.add_risk_layers()
         self.planner = Planner(self.grid, self.classes, self.planner.config)
 
     def on_patch(self, patch: GraphPatch):

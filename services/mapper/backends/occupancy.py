@@ -376,8 +376,9 @@ def _octree_apply(st, k, n_touched, changed):
 @njit(cache=True, error_model="numpy")
 def _delta_rows(st, res, g, rows):
     """Fill the Delta columns (`DeltaColumns`) of voxels g in one pass (cheaper than numpy fancy
-    indexing)."""
-    keys, centres, labels, confs, occupied, values = rows
+    indexing). The distribution is the voxel's top two classes (octree-max: its one label)."""
+    keys, centres, labels, confs, occupied, values, alt_labels, alt_confs = rows
+    second = st.label.shape[1] > 1  # bayes keeps its top 3; max one label, the rest unknown
     for i in range(g.shape[0]):
         gi = g[i]
         put_key_centre(st.grid, gi, res, keys, centres, i)
@@ -386,6 +387,12 @@ def _delta_rows(st, res, g, rows):
         occupied[i] = 1 if v > 0 else 0
         labels[i] = st.label[gi, 0]
         confs[i] = st.prob[gi, 0]
+        if second:
+            alt_labels[i] = st.label[gi, 1]
+            alt_confs[i] = st.prob[gi, 1]
+        else:
+            alt_labels[i] = 0
+            alt_confs[i] = 0.0
 
 
 def ray_buffer(max_len_m: float, resolution_m: float) -> np.ndarray:

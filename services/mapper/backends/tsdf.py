@@ -338,19 +338,25 @@ def _tsdf_rows(st, g, res, exp_steps, class_ids, rows):
     """Fill the Delta columns (`DeltaColumns`, but `occupied`) of voxels g in one pass:
     coordinates, distance, and the label (first most probable class; 0 for a uniform vector)
     with its probability, 1 / sum over the classes of exp(-(steps behind the top) * log(p / q))
-    (`exp_steps`, 0 past its end)."""
-    keys, centres, labels, probs, _, values = rows
+    (`exp_steps`, 0 past its end), and the second class (the first most probable of the others;
+    0 when the vector is uniform or its probability is 0) with its probability."""
+    keys, centres, labels, probs, _, values, alt_labels, alt_probs = rows
     logp = st.logp
     n_exp = exp_steps.shape[0]
     for i in range(g.shape[0]):
         gi = g[i]
         put_key_centre(st.grid, gi, res, keys, centres, i)
         values[i] = st.distance[gi]
+        # the first most probable class, then the first most probable of the others
         top = 0
+        alt = -1
         uniform = True
         for c in range(1, logp.shape[1]):
             if logp[gi, c] > logp[gi, top]:
+                alt = top
                 top = c
+            elif alt < 0 or logp[gi, c] > logp[gi, alt]:
+                alt = c
             if logp[gi, c] != logp[gi, 0]:
                 uniform = False
         z = 0.0
@@ -360,6 +366,13 @@ def _tsdf_rows(st, g, res, exp_steps, class_ids, rows):
                 z += exp_steps[d]
         probs[i] = 1.0 / z
         labels[i] = 0 if uniform else class_ids[top]
+        d_alt = np.int64(logp[gi, top]) - np.int64(logp[gi, alt])
+        if uniform or d_alt >= n_exp:
+            alt_labels[i] = 0
+            alt_probs[i] = 0.0
+        else:
+            alt_labels[i] = class_ids[alt]
+            alt_probs[i] = exp_steps[d_alt] / z
 
 
 class Tsdf(MapBackend):
