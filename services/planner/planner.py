@@ -754,26 +754,20 @@ def _enter_cells_risk(labels, flags, risk, lut, allow_unknown, unknown_cost, mod
 
 @numba.njit(cache=True)
 def _enter_costs_risk(labels, flags, risk, lut, allow_unknown, unknown_cost, model, out):
-    """`_enter_costs` with the nodes' class distributions (`risk`, a RiskWindow)."""
+    """`_enter_costs` with the nodes' class distributions (`risk`, a RiskWindow). Two passes:
+    the costs without risk (a loop LLVM vectorises: 0.7 ms at 1000 x 1000, measured), then the
+    doubtful known nodes only (one pass doing both was 13 ms)."""
+    _enter_costs(labels, flags, lut, allow_unknown, unknown_cost, out)
     alt, p_label, p_alt = risk
     nx, ny = labels.shape
     lowest = np.inf
     n_lut = len(lut)
     for i in range(nx):
         for j in range(ny):
-            c = _enter_cost_risk(
-                flags[i, j],
-                labels[i, j],
-                alt[i, j],
-                p_label[i, j],
-                p_alt[i, j],
-                lut,
-                n_lut,
-                allow_unknown,
-                unknown_cost,
-                model,
-            )
-            out[i, j] = c
+            c = out[i, j]
+            if p_label[i, j] < P_SCALE and c < np.inf and flags[i, j] & FLAG_KNOWN:
+                c = _risk_cost(c, alt[i, j], p_label[i, j], p_alt[i, j], lut, n_lut, model)
+                out[i, j] = c
             if c < lowest:
                 lowest = c
     return lowest if lowest < np.inf else 0.0
