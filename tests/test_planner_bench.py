@@ -5,6 +5,7 @@ import importlib.util
 import sys
 
 from smana.lab.bench.planner import HINT, cli
+from smana.services.planner.planner import RISK_MODES
 
 
 def test_quick_bench_agrees_with_dijkstra(capsys):
@@ -13,7 +14,7 @@ def test_quick_bench_agrees_with_dijkstra(capsys):
     assert "all A* costs equal the Dijkstra optimum" in out
     rows = [line for line in out.splitlines() if "scipy Dijkstra" in line]
     # two sizes, four queries: new / patched / repeat / Euclidean, then a new Planner per risk mode
-    assert len(rows) == 2 * 4 * (4 + 3)
+    assert len(rows) == 2 * 4 * (4 + len(RISK_MODES))
     assert sum(" cvar " in line for line in rows) == 2 * 4
     assert out.count("risk / no risk") == 2 and "window and enter costs alone" in out
     flat = [line for line in out.splitlines() if "paper " in line and "pyastar2d" in line]

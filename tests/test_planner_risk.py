@@ -118,6 +118,20 @@ def test_certain_or_absent_distributions_give_todays_paths_bit_for_bit(mode):
             np.testing.assert_array_equal(r.cells, today.cells)
 
 
+def test_label_mode_ignores_the_distribution_bit_for_bit():
+    """risk "label" on a graph of doubtful nodes plans exactly as the planner without the layers."""
+    rng = np.random.default_rng(30)
+    for _ in range(3):
+        labels, heights, flags, risk = random_world(rng)
+        config = random_config(rng, "label")
+        plain = Planner(make_grid(labels, heights, flags), CLASSES, config)
+        today = plain.plan((0.1, 0.1), (4.7, 3.9), allow_unknown=True)
+        grid = make_grid(labels, heights, flags, risk)
+        r = Planner(grid, CLASSES, config).plan((0.1, 0.1), (4.7, 3.9), allow_unknown=True)
+        assert r.ok == today.ok and r.cost_total == today.cost_total
+        np.testing.assert_array_equal(r.cells, today.cells)
+
+
 def one_node(p_label, alt, p_alt, **config):
     """Enter cost of one grass node with the given distribution, beside certain terrain."""
     labels = np.array([[TERRAIN, GRASS]], np.uint16)
@@ -142,7 +156,8 @@ def test_worked_example_60_percent_grass_40_percent_water():
     )
     assert one_node(*node, risk="chance", max_risk=0.1) == np.inf
     assert one_node(*node, risk="chance", max_risk=0.4) == pytest.approx(7.36)
-    # without the layers (or certain) it is planned as grass, whatever the mode: 0.8 x 2
+    # without the layers (or certain), or under "label", it is planned as grass: 0.8 x 2
+    assert one_node(*node, risk="label") == pytest.approx(1.6)
     assert one_node(255, WATER, 102, risk="cvar") == pytest.approx(1.6)
     # unnamed mass: 90 % grass and 10 % nobody knows what, priced at unknown_cost 2 in expected,
     # counted as forbidden in the chance constraint as risk_other_forbidden says

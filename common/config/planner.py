@@ -16,7 +16,7 @@ from smana.common.config._schema import Section, param
 # the A* heuristics (services/planner/astar.py implements each)
 Heuristic = Literal["octile", "euclidean"]
 # how a node's class distribution becomes its enter cost (services/planner/planner.py, docs/risk.md)
-Risk = Literal["expected", "cvar", "chance"]
+Risk = Literal["expected", "cvar", "chance", "label"]
 
 
 @dataclass
@@ -30,7 +30,8 @@ class PlannerConfig(Section, section="planner"):
     # (octile distance + cheapest enter cost per step) expands 3-5x fewer nodes.
     heuristic: Heuristic = "octile"
     # "expected": sum of p * T over the node's classes; "cvar": mean T of its worst risk_alpha
-    # probability mass; "chance": closed when P(forbidden class) > max_risk, else "expected".
+    # probability mass; "chance": closed when P(forbidden class) > max_risk, else "expected";
+    # "label": the label's T alone, the distribution ignored (the planner before issue 29).
     # A node whose distribution is certain (or a graph without risk layers) costs t_f * T(l) in
     # every mode, as before.
     risk: Risk = "expected"

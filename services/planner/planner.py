@@ -357,7 +357,7 @@ class Planner:
         """Per-node enter costs t_f * T(l) of the window (from the class distribution when the
         grid has risk layers) and their finite minimum, cached until the grid or the costs change
         (an explorer asks many paths on one graph version)."""
-        risk = self._risk
+        risk = None if p.risk == "label" else self._risk  # "label": as without the layers
         model = None if risk is None else risk_model(p)
         key = (self.grid.version, box, lut.tobytes(), p.t_f, p.unknown_cost, allow_unknown, model)
         if self._enter_key != key:

@@ -86,6 +86,9 @@ def risk_enter_costs(labels, flags, alt, p_label, p_alt, classes, config, allow_
             T = config.unknown_cost
         if not np.isfinite(T):
             continue  # a label that cannot be entered: closed in every mode
+        if config.risk == "label":
+            out[i, j] = t_f * T
+            continue
         dist = {lab: int(p_label[i, j]) / 255}
         a = int(alt[i, j])
         if 0 < a < classes.size and int(p_label[i, j]) < 255:
