@@ -14,7 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-KINDS = ("unknown", "traversable", "obstacle", "ignored")
+# "forbidden": flat and geometrically traversable, but never to be entered (water): not an obstacle
+# (no safety zone round it, the robot may pass beside it) and not traversable (cost +inf).
+KINDS = ("unknown", "traversable", "obstacle", "ignored", "forbidden")
 UNKNOWN_ID = 0
 MAX_CLASS_ID = 65535  # labels travel as uint8 or uint16
 
@@ -55,6 +57,10 @@ class SemanticClass:
     def obstacle(self) -> bool:
         return self.kind == "obstacle"
 
+    @property
+    def forbidden(self) -> bool:
+        return self.kind == "forbidden"
+
 
 class ClassTable:
     """Classes by id, plus dense per-id lookup arrays for vectorised code.
@@ -62,7 +68,8 @@ class ClassTable:
     `size` is one more than the largest id; every array below has that length:
     - `valid_lut[id]`: the id is in the table;
     - `cost_lut[id]`: traversability cost T(l), +inf where the class is not traversable;
-    - `obstacle_lut[id]`, `traversable_lut[id]`, `ignored_lut[id]`: booleans;
+    - `obstacle_lut[id]`, `traversable_lut[id]`, `ignored_lut[id]`, `forbidden_lut[id]`:
+      booleans;
     - `colour_lut[id]`: RGB uint8 (unknown ids are magenta so they stand out).
     """
 
@@ -82,12 +89,14 @@ class ClassTable:
         self.obstacle_lut = np.zeros(self.size, bool)
         self.traversable_lut = np.zeros(self.size, bool)
         self.ignored_lut = np.zeros(self.size, bool)
+        self.forbidden_lut = np.zeros(self.size, bool)
         self.colour_lut = np.tile(np.array([255, 0, 255], np.uint8), (self.size, 1))
         for c in classes:
             self.valid_lut[c.id] = True
             self.obstacle_lut[c.id] = c.obstacle
             self.traversable_lut[c.id] = c.traversable
             self.ignored_lut[c.id] = c.kind == "ignored"
+            self.forbidden_lut[c.id] = c.forbidden
             self.colour_lut[c.id] = c.colour
             if c.traversable:
                 self.cost_lut[c.id] = c.cost

@@ -58,9 +58,8 @@ class QueryResult:
 
 def _semantic_ids(table: ClassTable) -> np.ndarray:
     """Classes that carry a label worth fusing: not `unknown`, not `ignored`."""
-    return np.array(
-        [c.id for c in table.classes.values() if c.kind in ("traversable", "obstacle")], np.int64
-    )
+    fused = ("traversable", "obstacle", "forbidden")
+    return np.array([c.id for c in table.classes.values() if c.kind in fused], np.int64)
 
 
 class SemanticMap:

@@ -56,6 +56,7 @@ from .kernels import (
     ClassLuts,
     ColumnStore,
     DiscStencil,
+    Distribution,
     Flips,
     GridGeometry,
     NodeChanges,
@@ -104,23 +105,12 @@ def same_nodes(label_a, height_a, flags_a, label_b, height_b, flags_b) -> np.nda
     return (label_a == label_b) & (flags_a == flags_b) & same_h
 
 
-def to_probability_steps(labels, confidences, alt_labels, alt_confidences):
-    """A voxel distribution as the graph keeps it: (alt_labels u2, p_label u1, p_alt u1), the
-    probabilities x 255 rounded, p_alt capped so that the two never exceed 255. None for the
-    arrays: certain (255, no second class)."""
-    m = len(labels)
-    if confidences is None:
-        return np.zeros(m, np.uint16), np.full(m, P_SCALE, np.uint8), np.zeros(m, np.uint8)
-    conf = np.nan_to_num(np.asarray(confidences, np.float32), nan=1.0)
-    p_label = np.rint(np.clip(conf, 0.0, 1.0) * P_SCALE).astype(np.uint8)
-    if alt_labels is None:
-        return np.zeros(m, np.uint16), p_label, np.zeros(m, np.uint8)
-    alt_c = np.nan_to_num(np.asarray(alt_confidences, np.float32), nan=0.0)
-    p_alt = np.rint(np.clip(alt_c, 0.0, 1.0) * P_SCALE).astype(np.uint8)
-    p_alt = np.minimum(p_alt, P_SCALE - p_label)
-    alt = np.asarray(alt_labels)
-    alt = np.where(p_alt > 0, alt, 0).astype(np.uint16)
-    return alt, p_label, np.where(alt > 0, p_alt, 0).astype(np.uint8)
+# what an update without a distribution passes (read-only, as a decoded delta's arrays are, so
+# that both kinds of update use the kernel compiled for decoded deltas)
+_NO_F4 = np.zeros(0, np.float32)
+_NO_U2 = np.zeros(0, np.uint16)
+_NO_F4.flags.writeable = False
+_NO_U2.flags.writeable = False
 
 
 class NavGraph:
@@ -308,19 +298,23 @@ class NavGraph:
         g = self.grid
         # 1. classify voxels (surface / cleared / unusable row), clean labels, and allocate the
         # tiles of every in-bounds surface voxel, all in one pass.
-        alt, p_label, p_alt = to_probability_steps(labels, confidences, alt_labels, alt_confidences)
         vox = Voxels(
             centres,
             np.empty(m, np.uint16),
             np.empty(m, np.uint8),
             float(map_resolution_m),
-            alt,
-            p_label,
-            p_alt,
+            np.empty(m, np.uint16),
+            np.empty(m, np.uint8),
+            np.empty(m, np.uint8),
+        )
+        dist = Distribution(
+            _NO_F4 if confidences is None else _readonly(confidences, np.float32),
+            _NO_U2 if alt_labels is None else _readonly(alt_labels, np.uint16),
+            _NO_F4 if alt_confidences is None else _readonly(alt_confidences, np.float32),
         )
         missing = np.empty(m, np.int64)
         n_missing, n_nonfinite, n_unknown, n_surface = _prepare(
-            labels, occupied, self._luts, self._kernel_state()[0], vox, missing
+            labels, occupied, self._luts, self._kernel_state()[0], vox, missing, dist
         )
         missing = missing[:n_missing]
         n_new = g.allocate_tiles(missing // g.tiles_shape[1], missing % g.tiles_shape[1])
@@ -476,6 +470,17 @@ class NavGraph:
         }
 
 
+def _readonly(a, dtype) -> np.ndarray:
+    """A contiguous read-only array of `dtype` (no copy when it is one already): one kernel type."""
+    a = np.asarray(a)
+    if a.dtype != dtype or not a.flags.c_contiguous:
+        a = np.ascontiguousarray(a, dtype)
+    if a.flags.writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
+
+
 def warm_up(classes: ClassTable) -> float:
     """Compile (or load from numba's cache) the kernels for the array types a decoded MapDelta
     has (read-only views), so the first real delta is not slow. Returns the seconds it took."""
@@ -497,6 +502,9 @@ def warm_up(classes: ClassTable) -> float:
             ro(np.array([lab, 0], np.uint16)),
             ro(np.array([occ, occ], np.uint8)),
             map_resolution_m=0.1,
+            confidences=ro(np.array([0.7, 1.0], np.float32)),
+            alt_labels=ro(np.array([lab, 0], np.uint16)),
+            alt_confidences=ro(np.array([0.2, 0.0], np.float32)),
         )
     return time.perf_counter() - t0
 

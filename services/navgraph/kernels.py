@@ -108,9 +108,18 @@ class Voxels(NamedTuple):
     labels: np.ndarray  # u2 (M,): class ids, those outside the table read as 0
     kinds: np.ndarray  # u1 (M,): CLEARED, SURFACE or UNUSABLE
     map_resolution_m: float
-    alt_labels: np.ndarray  # u2 (M,): the second class (`_prepare` cleans it like `labels`)
+    alt_labels: np.ndarray  # u2 (M,): the second class (`_prepare` fills it from Distribution)
     p_label: np.ndarray  # u1 (M,): probability of `labels` x 255
     p_alt: np.ndarray  # u1 (M,): probability of `alt_labels` x 255
+
+
+class Distribution(NamedTuple):
+    """The label distribution a map update carries per voxel (MapDelta v2), as sent; empty
+    arrays where it carries none (the voxels are then certain)."""
+
+    confidences: np.ndarray  # f4 (M,) or (0,): probability of the label
+    alt_labels: np.ndarray  # u2 (M,) or (0,): the second class, 0 for none
+    alt_confidences: np.ndarray  # f4 (M,) or (0,): its probability
 
 
 class ClassLuts(NamedTuple):
@@ -216,12 +225,23 @@ def _touch(nodes, epoch, changes, nd, n):
     return nd
 
 
+@numba.njit(cache=True, inline="always")
+def _probability_step(c, nan_as):
+    """A probability as the graph keeps it: x 255, rounded, clipped to 0..255 (NaN: nan_as)."""
+    if c != c:
+        c = nan_as
+    c = min(max(np.float64(c), 0.0), 1.0)
+    return np.uint8(round(c * 255.0))
+
+
 @numba.njit(cache=True, _nrt=False)
-def _prepare(labels, occupied, luts, geo, vox, missing):
+def _prepare(labels, occupied, luts, geo, vox, missing, dist):
     """Per voxel of `vox.centres`: the clean label `vox.labels` (ids outside the table -> 0), its
-    `vox.kinds` (CLEARED, SURFACE, or UNUSABLE: a non-finite coordinate), and the ids
-    (tx * nty + ty) of unallocated tiles under in-bounds surface voxels, each once, in
-    `missing`. Returns the counts (missing tiles, non-finite rows, unknown labels, surface
+    `vox.kinds` (CLEARED, SURFACE, or UNUSABLE: a non-finite coordinate), its distribution in
+    steps of 1/255 (`vox.alt_labels`, `vox.p_label`, `vox.p_alt` from `dist`: p_alt capped so
+    the two never pass 255; a second class 0, outside the table or of probability 0 is none),
+    and the ids (tx * nty + ty) of unallocated tiles under in-bounds surface voxels, each once,
+    in `missing`. Returns the counts (missing tiles, non-finite rows, unknown labels, surface
     voxels)."""
     cen = vox.centres
     lab = vox.labels
@@ -237,7 +257,23 @@ def _prepare(labels, occupied, luts, geo, vox, missing):
     n_nonfinite = 0
     n_unknown = 0
     n_surface = 0
+    has_p = dist.confidences.shape[0] == m
+    has_alt = has_p and dist.alt_labels.shape[0] == m and dist.alt_confidences.shape[0] == m
     for i in range(m):
+        p = np.uint8(255)
+        alt = np.uint16(0)
+        pa = np.uint8(0)
+        if has_p:
+            p = _probability_step(dist.confidences[i], 1.0)
+            if has_alt:
+                alt = dist.alt_labels[i]
+                pa = min(_probability_step(dist.alt_confidences[i], 0.0), np.uint8(255 - p))
+                if alt == 0 or alt >= n_lut or not valid_lut[alt] or pa == 0:
+                    alt = np.uint16(0)  # not counted: the label is what a node shows
+                    pa = np.uint8(0)
+        vox.p_label[i] = p
+        vox.alt_labels[i] = alt
+        vox.p_alt[i] = pa
         x = cen[i, 0]
         y = cen[i, 1]
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(cen[i, 2])):
@@ -250,10 +286,6 @@ def _prepare(labels, occupied, luts, geo, vox, missing):
             lb = 0
             n_unknown += 1
         lab[i] = lb
-        alt = vox.alt_labels[i]
-        if alt >= n_lut or not valid_lut[alt]:
-            vox.alt_labels[i] = 0  # not counted: the label is what a node shows
-            vox.p_alt[i] = 0
         surface = occupied[i] != 0
         # An ignored class (sky, ...) is not ground: treat it as a cleared voxel.
         if ignored_lut[lb]:

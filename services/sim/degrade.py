@@ -2,8 +2,9 @@
 
 Labels: SLIC superpixels on the ground-truth semantic image; each superpixel takes the most
 frequent label of its pixels, then that label is redrawn from the row of the confusion matrix
-(paper Table 2, reconstructed in REFERENCE.md) for the noise level; every point gets a
-confidence drawn uniformly in [0.33, 1.0]. Level "off" (not in the paper) skips all of it: true
+(paper Table 2, reconstructed in REFERENCE.md; extended by water in the wet garden, see
+WET_CONFUSABLE) for the noise level; every point gets a confidence drawn uniformly in
+[0.33, 1.0]. Level "off" (not in the paper) skips all of it: true
 labels, confidence 1, for tests and ground-truth runs.
 
 Localisation: Gaussian noise of set standard deviation on the published x, y and yaw.
@@ -34,6 +35,19 @@ GARDEN_CONFUSABLE: dict[int, tuple[int, int]] = {
     8: (6, 7),  # tree -> rose, obstacle
 }
 GARDEN_IDS = (0, 1, 2, 4, 5, 6, 7, 8)
+
+# The wet garden (sim.garden.water_share > 0, class table garden3drms_wet) extends Table 2 by
+# water (9), the class only semantics can see: water is mistaken for grass or terrain (q each, as
+# every row), and grass and terrain for water (a third share each: q' = (1 - p) / 3 for their
+# three confusions). The paper's world keeps Table 2 as it is: no grass ever turns into water.
+WATER_ID = 9
+WET_CONFUSABLE: dict[int, tuple[int, ...]] = {
+    **GARDEN_CONFUSABLE,
+    1: (2, 4, WATER_ID),  # grass -> terrain, hedge, water
+    2: (1, 4, WATER_ID),  # terrain -> grass, hedge, water
+    WATER_ID: (1, 2),  # water -> grass, terrain
+}
+WET_IDS = (*GARDEN_IDS, WATER_ID)
 
 
 def confusion_matrix(

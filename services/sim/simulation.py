@@ -44,7 +44,14 @@ from smana.common.config.fleet import FleetConfig
 from smana.common.messages import Pose, SemanticCloud, matrix_to_quat
 
 from .camera import CameraCapture, SemanticCamera
-from .degrade import LabelDegrader, PoseNoise
+from .degrade import (
+    GARDEN_CONFUSABLE,
+    GARDEN_IDS,
+    WET_CONFUSABLE,
+    WET_IDS,
+    LabelDegrader,
+    PoseNoise,
+)
 from .lidar import Lidar
 from .robot import DiffDriveRobot
 from .scene import DROP, MEMBER, BulletScene, transform_points
@@ -138,12 +145,16 @@ class FrameFinisher:
     def __init__(self, config: SimConfig, colour_lut: np.ndarray, member: int = 0):
         labels_ss, conf_ss, _ = _seed_sequences(config.seed, member)
         self.stride = config.camera.stride
+        # the wet garden's water joins Table 2's confusions (degrade.py WET_CONFUSABLE)
+        wet = config.world == "garden" and getattr(config.garden, "water_share", 0.0) > 0
         self.degrader = LabelDegrader(
             config.noise,
             np.random.default_rng(labels_ss),
             colour_lut,
             region_px=config.slic_region_px,
             iterations=config.slic_iterations,
+            ids=WET_IDS if wet else GARDEN_IDS,
+            confusable=WET_CONFUSABLE if wet else GARDEN_CONFUSABLE,
         )
         self._conf_rng = np.random.default_rng(conf_ss)
 

@@ -65,22 +65,29 @@ def generate(
             raise WorldError(
                 f"procedural gardens use 3DRMS ids; class {cid} missing from {classes.name}"
             )
+    if config.water_share > 0:
+        from .water import check_water_class
+
+        check_water_class(classes)  # before the work, not after
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5EED]))
     if config.layout == "3drms":
         from .garden_3drms import layout_3drms
 
         ground, placed = layout_3drms(config, _heights(config, rng), rng)
         objects = walls(ground, config.wall_height_m, config.wall_thickness_m) + placed
-        return World(ground, objects, classes, name=f"garden-{seed}", seed=seed)
-    if config.layout == "wheel":
+    elif config.layout == "wheel":
         from .garden_wheel import layout_wheel
 
         ground, placed = layout_wheel(config, _heights(config, rng), rng)
         objects = walls(ground, config.wall_height_m, config.wall_thickness_m) + placed
-        return World(ground, objects, classes, name=f"garden-{seed}", seed=seed)
-    ground = _make_ground(config, rng)
-    objects = walls(ground, config.wall_height_m, config.wall_thickness_m)
-    objects += _place_objects(config, ground, rng)
+    else:
+        ground = _make_ground(config, rng)
+        objects = walls(ground, config.wall_height_m, config.wall_thickness_m)
+        objects += _place_objects(config, ground, rng)
+    if config.water_share > 0:  # the wet garden: its dry twin with ponds on the lawns
+        from .water import add_water
+
+        ground = add_water(ground, objects, config, classes, seed)
     return World(ground, objects, classes, name=f"garden-{seed}", seed=seed)
 
 

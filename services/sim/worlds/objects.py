@@ -17,6 +17,7 @@ from .ground import GroundModel
 
 # 3DRMS class ids of the garden table; a procedural world needs to know which is which.
 GRASS, TERRAIN, HEDGE, TOPIARY, ROSE, OBSTACLE, TREE = 1, 2, 4, 5, 6, 7, 8
+WATER = 9  # the wet garden's forbidden class (class table garden3drms_wet, sim.garden.water_share)
 SINK_M = 0.05  # objects are sunk a little so that no gap shows between them and a sloped ground
 
 

@@ -51,6 +51,11 @@ class GardenConfig(Section, section="sim.garden"):
     terrain_share: float = param(0.55, ge=0, le=1)  # terrain / traversable (paper: 55 %)
     path_width_m: list[float] = param([1.4, 2.0], gt=0)  # [min, max]; >= 1.2 to be followable
     plaza_clearance_m: float = param(2.6, ge=0)  # object-free disk around the spawn (the centre)
+    # the wet garden (issue 29, the risk experiment): share of the whole raster, seen from above,
+    # turned from lawn into water (class 9, kind "forbidden": flat, traversable by geometry,
+    # never to be entered), in ponds beside the paths and across the lawns. Needs a class table
+    # with water (general.class_table = "garden3drms_wet"). 0, the default, is the paper's world.
+    water_share: float = param(0.0, ge=0, le=0.3)
 
     def validate(self) -> None:
         if len(self.path_width_m) != 2 or self.path_width_m[0] > self.path_width_m[1]:

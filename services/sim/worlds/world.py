@@ -231,6 +231,13 @@ class World:
         for o in self.objects:
             counts[o.kind] = counts.get(o.kind, 0) + 1
         ground = self.ground.classes
+        top = self.top_class().data
+        # each forbidden class (the wet garden's water): its share of the raster seen from above
+        forbidden = {
+            f"{c.name}_share": float(np.mean(top == c.id))
+            for c in self.classes.classes.values()
+            if c.forbidden
+        }
         return {
             "name": self.name,
             "bounds": self.bounds,
@@ -242,4 +249,5 @@ class World:
             "terrain_share_of_traversable": self.terrain_share(),
             f"reachable_share_r{r:g}": self.reachable_fraction(r),
             f"terrain_reachable_share_r{r:g}": self.reachable_fraction(r, TERRAIN),
+            **forbidden,
         }
