@@ -6,8 +6,8 @@ This form is in-process and synthetic: it does not render frames nor run the map
 label and pose noise, and closed-loop exploration, is not built yet). Per seed:
 
 - the ground truth: a flat N x N graph (0.2 m nodes) of terrain, grass patches, patches of a
-  forbidden flat class (infinite cost, not an obstacle: the class table's, or "water" added to
-  it) and tree discs with their safety zone;
+  forbidden flat class (water of the wet garden's table, garden3drms_wet: infinite cost, not an
+  obstacle) and tree discs with their safety zone;
 - per label-noise level p: every free node is seen in 1 to 6 frames (smooth over the map); in each
   frame, 3 x 3-node superpixels keep their true class with probability p, else are redrawn to
   another ground class (terrain, grass, forbidden), a stand-in for SLIC + Table 2's confusions
@@ -46,7 +46,7 @@ import numpy as np
 from scipy import ndimage
 
 from smana.common import progress
-from smana.common.classes import ClassTable, SemanticClass
+from smana.common.classes import ClassTable
 from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, P_SCALE, NavGrid
 from smana.lab import stats
@@ -75,15 +75,9 @@ GRASS, TERRAIN, TREE = 1, 2, 8
 
 
 def risk_classes() -> tuple[ClassTable, int]:
-    """garden3drms and its forbidden flat class (infinite cost, not an obstacle): the table's own
-    when it has one, else "water" added after its last id."""
-    base = ClassTable.load("garden3drms")
-    for c in base.classes.values():
-        if c.id != 0 and not c.obstacle and not np.isfinite(base.cost_lut[c.id]):
-            if c.kind != "ignored":
-                return base, c.id
-    water = SemanticClass(base.size, "water", "traversable", float("inf"), (40, 90, 230))
-    return ClassTable(base.name + "+water", [*base.classes.values(), water]), water.id
+    """The wet garden's class table (garden3drms_wet) and its forbidden flat class, water."""
+    classes = ClassTable.load("garden3drms_wet")
+    return classes, int(np.flatnonzero(classes.forbidden_lut)[0])
 
 
 def true_world(seed: int, n: int, forbidden: int):
