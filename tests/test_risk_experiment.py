@@ -103,3 +103,11 @@ def test_risk_quick(tmp_path, capsys):
     summary = (out / "risk_summary.md").read_text()
     assert "| 0.7 | chance |" in summary and "Verdicts at p = 0.7" in summary
     assert "Verdicts at p = 0.7" in capsys.readouterr().out
+
+
+def test_one_seed_is_refused_in_one_line_before_any_output(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        cli(["risk", "--seeds", "1", "--out", str(tmp_path / "risk")])
+    assert exc.value.code == 2 and not (tmp_path / "risk").exists()
+    err = capsys.readouterr().err.strip()
+    assert "--seeds" in err and "\n" not in err
