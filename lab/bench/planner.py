@@ -17,11 +17,13 @@ octile heuristic (there min weight x Chebyshev steps, pyastar2d's own heuristic)
 agree. smana under the paper's cost (distance + t_f T, a diagonal 0.283 m) on the same flat graph
 is reported beside it, through `Planner.plan`, with pyastar2d's time as the yardstick.
 
-Risk rows (column "risk"): the cluttered graph again with a class distribution on every free node
-(the graph's risk layers: a doubtful label, a second class, some unnamed mass), planned under each
-`planner.risk` mode on a new Planner (window, risk enter costs, A*); their Dijkstra runs on the
-enter costs that mode gave (the kernels themselves are held to a per-node reference by
-tests/test_planner_risk.py). Rows without risk ("-") are on the graph without the layers, as before.
+Risk rows (`--risk`, column "risk"): the cluttered graph again with a class distribution on half
+its free nodes (the graph's risk layers: a doubtful label, a second class, some unnamed mass),
+planned under each `planner.risk` mode on a new Planner (window, risk enter costs, A*), and once
+with the layers there but every node certain ("certain": the costs of the graph without them);
+their Dijkstra runs on the enter costs that mode gave (the kernels themselves are held to a
+per-node reference by tests/test_planner_risk.py). Rows without risk ("-") are on the graph
+without the layers, as before.
 
 Every A* cost is checked against Dijkstra to 1e-6 relative (and pyastar2d's to 1e-5: it sums in
 float32); a disagreement fails the benchmark. Every row prints the peer's and smana's wall and CPU
@@ -218,7 +220,7 @@ def _rel(a: float, b: float) -> float:
 
 
 def run_size(
-    n: int, runs: int, n_queries: int, classes, with_euclidean: bool, with_risk: bool = True
+    n: int, runs: int, n_queries: int, classes, with_euclidean: bool, with_risk: bool = False
 ) -> dict:
     """The cluttered graph: `Planner.plan` against scipy's Dijkstra on the same graph; with
     `with_risk` the same queries on the graph with risk layers, one row per mode."""
@@ -279,19 +281,23 @@ def run_size(
     return out
 
 
+CERTAIN = "certain"  # the risk column of the rows on risk layers whose nodes are all certain
+
+
 def _risk_rows(out, labels, heights, flags, classes, params, pairs, runs) -> None:
     """Per mode: the queries on a new Planner over the graph with risk layers, against Dijkstra
     on the enter costs that mode gave (the window is the whole graph)."""
     n = labels.shape[0]
     plain = grid_from_dense(labels, heights, flags)
-    grid = grid_from_dense(labels, heights, flags, make_risk(labels, flags, n))
+    alt, p_label, p_alt = make_risk(labels, flags, n)
+    grid = grid_from_dense(labels, heights, flags, (alt, p_label, p_alt))
+    sure = grid_from_dense(labels, heights, flags, (alt, np.full_like(p_label, 255), p_alt))
     ends = list(pairs[0])
     out["pass_ms"] = {"-": _enter_pass(plain, classes, params, ends, runs)}
-    for mode in RISK_MODES:
-        out["pass_ms"][mode] = _enter_pass(
-            grid, classes, dataclasses.replace(params, risk=mode), ends, runs
-        )
+    # "certain": the layers there, every node certain: the costs (and the search) of "-"
+    for name, grid, mode in [(CERTAIN, sure, "expected")] + [(m, grid, m) for m in RISK_MODES]:
         p = dataclasses.replace(params, risk=mode)
+        out["pass_ms"][name] = _enter_pass(grid, classes, p, ends, runs)
         csr = None
         for q, (s, g) in zip(out["queries"], pairs, strict=True):
             fn = _query(
@@ -308,7 +314,7 @@ def _risk_rows(out, labels, heights, flags, classes, params, pairs, runs) -> Non
             cost = res.cost_total if res.ok else np.inf
             err = 0.0 if cost == want == np.inf else _rel(cost, want)
             row = _row("first, new Planner", "scipy Dijkstra", (dw, dc), (sw, sc), 0, cost, err)
-            row.update(expanded=res.nodes_expanded, risk=mode)
+            row.update(expanded=res.nodes_expanded, risk=name)
             q["rows"].append(row)
 
 
@@ -425,7 +431,7 @@ def _risk_ratios(r: dict) -> str:
     """Per mode, the CPU time of its first query on a new Planner over the same query's without
     risk: the median over the queries."""
     out = []
-    for mode in RISK_MODES:
+    for mode in (CERTAIN, *RISK_MODES):
         ratios = []
         for q in r["queries"]:
             first = {
@@ -460,7 +466,11 @@ def cli(argv: list[str] | None = None) -> int:
     p.add_argument("--queries", type=int_in(1, 4), default=2, help="queries per graph (1..4)")
     p.add_argument("--no-euclidean", action="store_true", help="skip the paper's heuristic")
     p.add_argument("--no-flat", action="store_true", help="skip the flat graphs (pyastar2d)")
-    p.add_argument("--no-risk", action="store_true", help="skip the risk rows (planner.risk)")
+    p.add_argument(
+        "--risk",
+        action="store_true",
+        help="add the risk rows (planner.risk) to the cluttered graphs",
+    )
     args = p.parse_args(argv)
     sizes = args.sizes or ([60, 120] if args.quick else [250, 500, 1000])
     runs = args.runs or (3 if args.quick else 7)
@@ -483,7 +493,8 @@ def cli(argv: list[str] | None = None) -> int:
     print("patch (one tile: its nodes refreshed in the cached window), or on a new Planner")
     print("(nothing cached);")
     print("rel err = |cost - Dijkstra| / Dijkstra; risk = planner.risk on the graph with risk")
-    print("layers (half the free nodes doubtful), '-' = the graph without them")
+    print("layers (half the free nodes doubtful; 'certain': every node certain), '-' = the graph")
+    print("without them")
     print("flat graphs: pyastar2d's cost = sum of the weights entered (terrain 1.0, grass 1.8; a")
     print(
         "diagonal as a side step); smana's kernel on the same weights, no distance or height term"
@@ -505,7 +516,7 @@ def cli(argv: list[str] | None = None) -> int:
                 "optimum (it sums in float32)"
             )
     for n in sizes:
-        r = run_size(n, runs, args.queries, classes, not args.no_euclidean, not args.no_risk)
+        r = run_size(n, runs, args.queries, classes, not args.no_euclidean, args.risk)
         for q in r["queries"]:
             for row in q["rows"]:
                 failed |= not row["rel_err"] <= 1e-6
@@ -515,7 +526,7 @@ def cli(argv: list[str] | None = None) -> int:
             f"grid {r['grid_bytes'] / 2**20:.1f} MiB, {r['edges']} edges, "
             f"scipy graph build {r['build_ms']:.0f} ms (not counted)"
         )
-        if not args.no_risk:
+        if args.risk:
             print(
                 f"{'':>11} risk / no risk, CPU of the first query on a new Planner: "
                 + _risk_ratios(r)
