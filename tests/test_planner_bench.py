@@ -7,15 +7,21 @@ import sys
 import pytest
 
 from smana.lab.bench.planner import HINT, cli
+from smana.services.planner.planner import RISK_MODES
 
 
 def test_quick_bench_agrees_with_dijkstra(capsys):
-    assert cli(["--quick", "--queries", "4"]) == 0
+    assert cli(["--quick", "--queries", "4", "--risk"]) == 0
     out = capsys.readouterr().out
     assert "all A* costs equal the Dijkstra optimum" in out
     rows = [line for line in out.splitlines() if "scipy Dijkstra" in line and "->" in line]
-    # two sizes, four queries; build + first, first on a new Planner, patched, repeat, Euclidean
-    assert len(rows) == 2 * 4 * 5
+    # two sizes, four queries; without risk ("-"): build + first, first on a new Planner,
+    # patched, repeat, Euclidean; then on certain risk layers and per risk mode: build + first
+    # and first on a new Planner (built just before: its risk enter costs prepared)
+    assert len(rows) == 2 * 4 * (5 + 2 * (1 + len(RISK_MODES)))
+    assert sum(" cvar " in line for line in rows) == 2 * 4 * 2
+    assert sum(" certain " in line for line in rows) == 2 * 4 * 2
+    assert out.count("risk / no risk") == 2 * 2 and "window and enter costs alone" in out
     flat = [ln for ln in out.splitlines() if "paper" in ln and "pyastar2d" in ln and "->" in ln]
     if importlib.util.find_spec("pyastar2d") is None:
         assert HINT in out

@@ -148,6 +148,9 @@ def _no_builds(monkeypatch):
 
     for name in ("_gather_window", "_gather_cells", "_enter_costs", "_enter_cells"):
         monkeypatch.setattr(mod, name, built)
+    for name in ("_gather_risk_window", "_gather_risk_cells", "_enter_costs_risk"):
+        monkeypatch.setattr(mod, name, built)
+    monkeypatch.setattr(mod, "_enter_cells_risk", built)
 
 
 def test_a_prepared_planner_builds_nothing_on_its_first_query(monkeypatch):
@@ -196,6 +199,60 @@ def test_a_prepared_planner_builds_nothing_on_its_first_query(monkeypatch):
         assert (
             got.ok and got.cost_total == Planner(grid, classes).plan(start, goal, **kw).cost_total
         )
+
+
+def _risk_layers(rng, n):
+    """Half the nodes doubtful (P 0.5 to 1), a second class (grass, terrain or an obstacle
+    class) holding part of the rest."""
+    p_label = np.where(rng.random(n) < 0.5, rng.integers(128, 256, n), 255).astype(np.uint8)
+    alt = rng.choice([1, 2, 8], n).astype(np.uint16)
+    p_alt = ((255 - p_label.astype(np.int64)) * rng.uniform(0, 1, n)).astype(np.uint8)
+    return alt, p_label, p_alt
+
+
+@pytest.mark.parametrize("mode", ["expected", "cvar", "chance", "label"])
+def test_a_prepared_planner_builds_nothing_on_its_first_query_in_every_risk_mode(mode, monkeypatch):
+    """On a graph with risk layers, Planner() and Planner.prepare() also gather the layers and
+    run the risk enter-cost pass ahead, under the configured mode and under the last query's
+    mode: the first query builds nothing, and its cost is Dijkstra's on the reference's costs."""
+    from smana.common.classes import ClassTable
+    from smana.common.config.planner import PlannerConfig
+    from smana.services.planner.planner import RISK_MODES, Planner
+    from smana.services.planner.reference import dijkstra_cost, risk_enter_costs
+
+    assert mode in RISK_MODES
+    classes = ClassTable.load("garden3drms")
+    rng = np.random.default_rng(12)
+    grid, cells = _garden_grid(rng)
+    grid.apply_patch(cells, *grid.read_cells(cells), risk=_risk_layers(rng, len(cells)))
+    start, goal = (0.1, 0.1), (17.9, 13.9)
+    config = PlannerConfig(risk=mode, max_risk=0.3)
+
+    def want(p):
+        labels, heights, flags = grid.box(0, 0, *grid.shape)
+        risk = [grid.read_risk(cells)[k].reshape(grid.shape) for k in range(3)]
+        enter = risk_enter_costs(labels, flags, *risk, classes, p)
+        known_h = np.where(flags & FLAG_KNOWN, heights, np.nan).astype(np.float64)
+        return dijkstra_cost(enter, known_h, (0, 0), (89, 69), 0.2, p.h_f, p.max_step_m)
+
+    planner = Planner(grid, classes, config)  # prepares
+    with monkeypatch.context() as m:
+        _no_builds(m)
+        first = planner.plan(start, goal)
+    assert first.ok and first.cost_total == pytest.approx(want(config), rel=1e-9)
+    # A query in another mode, a patch with distributions, prepare (the service's tick): the
+    # next query in that mode builds nothing either.
+    other = RISK_MODES[(RISK_MODES.index(mode) + 1) % len(RISK_MODES)]
+    planner.plan(start, goal, risk=other)
+    pc = cells[rng.choice(len(cells), 200, replace=False)]
+    pc = pc[(pc.sum(1) > 0) & (pc.sum(1) < 158)]
+    grid.apply_patch(pc, *grid.read_cells(pc), risk=_risk_layers(rng, len(pc)))
+    planner.prepare()
+    with monkeypatch.context() as m:
+        _no_builds(m)
+        got = planner.plan(start, goal, risk=other)
+    p = PlannerConfig(risk=other, max_risk=0.3)
+    assert got.ok and got.cost_total == pytest.approx(want(p), rel=1e-9)
 
 
 def test_the_service_prepares_its_planner_on_the_tick_after_a_patch(monkeypatch):

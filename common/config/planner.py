@@ -1,7 +1,9 @@
 """[planner] config section: what `Planner` (services/planner/planner.py) receives as it is.
 
 h_f, t_f, max_step_m, unknown_cost and heuristic are the defaults of every path query; a
-PathRequest may override them one by one (checked by these same limits)."""
+PathRequest may override them one by one (checked by these same limits). The risk_* fields and
+max_risk say how a node's class distribution (the graph's risk layers) becomes its enter cost:
+docs/risk.md."""
 
 from __future__ import annotations
 
@@ -13,6 +15,8 @@ from smana.common.config._schema import Section, param
 
 # the A* heuristics (services/planner/astar.py implements each)
 Heuristic = Literal["octile", "euclidean"]
+# how a node's class distribution becomes its enter cost (services/planner/planner.py, docs/risk.md)
+Risk = Literal["expected", "cvar", "chance", "label"]
 
 
 @dataclass
@@ -25,4 +29,18 @@ class PlannerConfig(Section, section="planner"):
     # Both are exact (admissible and consistent). "euclidean" is the paper's d(n, g); "octile"
     # (octile distance + cheapest enter cost per step) expands 3-5x fewer nodes.
     heuristic: Heuristic = "octile"
+    # "expected": sum of p * T over the node's classes; "cvar": mean T of its worst risk_alpha
+    # probability mass; "chance": closed when P(forbidden class) > max_risk, else "expected";
+    # "label": the label's T alone, the distribution ignored (the planner before issue 29).
+    # A node whose distribution is certain (or a graph without risk layers) costs t_f * T(l) in
+    # every mode, as before.
+    risk: Risk = "expected"
+    risk_alpha: float = param(0.2, gt=0, le=1)  # CVaR level: the worst share of probability mass
+    max_risk: float = param(0.1, ge=0, le=1)  # chance: the largest P(forbidden) a node may have
+    # T given to the mass of a forbidden class (infinite cost, e.g. water) in "expected" and
+    # "cvar": infinity would close any node with the least doubt (and make CVaR all-or-nothing)
+    risk_forbidden_cost: float = param(20.0, ge=0, lt=math.inf)
+    # the share of a node's unnamed mass (1 - p_label - p_alt) that "chance" counts as forbidden:
+    # 1 bounds P(forbidden) whatever that mass is; "expected" and "cvar" price it at unknown_cost
+    risk_other_forbidden: float = param(1.0, ge=0, le=1)
     graph_sync_timeout_s: float = param(5.0, gt=0)  # asking navgraph for the graph at start

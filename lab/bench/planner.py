@@ -17,6 +17,23 @@ octile heuristic (there min weight x Chebyshev steps, pyastar2d's own heuristic)
 agree. smana under the paper's cost (distance + t_f T, a diagonal 0.283 m) on the same flat graph
 is reported beside it, through `Planner.plan`, with pyastar2d's time as the yardstick.
 
+Risk rows (`--risk`, column "risk"): the cluttered graph again with a class distribution on half
+its free nodes (the graph's risk layers: a doubtful label, a second class, some unnamed mass),
+planned under each `planner.risk` mode on a new Planner (window, risk enter costs, A*), and once
+with the layers there but every node certain ("certain": the costs of the graph without them);
+their Dijkstra runs on the enter costs that mode gave (the kernels themselves are held to a
+per-node reference by tests/test_planner_risk.py). Rows without risk ("-") are on the graph
+without the layers, as before.
+
+Risk rows (`--risk`, column "risk"): the cluttered graph again with a class distribution on half
+its free nodes (the graph's risk layers: a doubtful label, a second class, some unnamed mass),
+planned under each `planner.risk` mode on a new Planner, built in the timed call (window, risk
+enter costs, A*) and built just before (it prepares the window and the risk enter costs ahead:
+the A* alone), and once with the layers there but every node certain ("certain": the costs of the
+graph without them); their Dijkstra runs on the enter costs that mode gave (the kernels themselves
+are held to a per-node reference by tests/test_planner_risk.py). Rows without risk ("-") are on
+the graph without the layers, as before.
+
 Every A* cost is checked against Dijkstra to 1e-6 relative (and pyastar2d's to 1e-5: it sums in
 float32); a disagreement fails the benchmark. Every row prints the peer's and smana's wall and CPU
 time (time.process_time), their ratio, and the load average.
@@ -30,6 +47,7 @@ and wall, and the load average meanwhile.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import statistics
@@ -44,7 +62,7 @@ from smana.common.classes import ClassTable
 from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
 from smana.services.planner.astar import search
-from smana.services.planner.planner import Planner
+from smana.services.planner.planner import RISK_MODES, Planner
 from smana.services.planner.reference import build_graph
 
 HINT = "pyastar2d not installed (pip install 'smana[bench]'): no pyastar2d comparison"
@@ -98,12 +116,29 @@ def make_flat_graph(n: int, seed: int = 0):
     return labels, np.zeros((n, n), np.float32), np.full((n, n), FLAG_KNOWN, np.uint8)
 
 
-def grid_from_dense(labels, heights, flags) -> NavGrid:
+def grid_from_dense(labels, heights, flags, risk=None) -> NavGrid:
     n = labels.shape[0]
     grid = NavGrid((0.0, 0.0), labels.shape, RES, tile_size=32)
     cells = np.argwhere(np.ones((n, n), bool))
-    grid.apply_patch(cells, labels.ravel(), heights.ravel(), flags.ravel())
+    risk = None if risk is None else [r.ravel() for r in risk]
+    grid.apply_patch(cells, labels.ravel(), heights.ravel(), flags.ravel(), risk=risk)
     return grid
+
+
+def make_risk(labels, flags, seed: int):
+    """Risk layers (alt_labels, p_label, p_alt) for a graph: on half the free nodes a doubtful
+    label (P 0.7 to 1), a second class (the other ground class, or on 15 % a tree: forbidden)
+    holding most of the rest, the remainder unnamed."""
+    rng = np.random.default_rng(seed)
+    shape = labels.shape
+    doubt = (rng.random(shape) < 0.5) & ((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0)
+    p_label = np.where(doubt, rng.integers(180, 256, shape), 255).astype(np.uint8)
+    other = np.where(labels == GRASS, TERRAIN, GRASS)
+    alt = np.where(rng.random(shape) < 0.15, 8, other)  # 8: tree, infinite cost
+    alt = np.where(doubt, alt, 0).astype(np.uint16)
+    rest = 255 - p_label.astype(np.int64)
+    p_alt = np.where(doubt, rest * rng.uniform(0.7, 1.0, shape), 0).astype(np.uint8)
+    return alt, p_label, p_alt
 
 
 def _anchors(n: int, length: float = 1.0):
@@ -158,10 +193,11 @@ def timed(fn, runs: int, setup=None):
     return statistics.median(walls), statistics.median(cpus), out
 
 
-def _row(work, peer, p, s, expanded, cost, err) -> dict:
+def _row(work, peer, p, s, expanded, cost, err, risk="-") -> dict:
     """One printed row: the peer's and smana's (wall, cpu) ms side by side."""
     return {
         "work": work,
+        "risk": risk,
         "peer": peer,
         "peer_ms": p,
         "smana_ms": s,
@@ -182,7 +218,7 @@ def _patch_one_tile(grid: NavGrid):
     cells = cells[(cells[:, 0] < grid.shape[0]) & (cells[:, 1] < grid.shape[1])]
 
     def patch():
-        grid.apply_patch(cells, *grid.read_cells(cells))
+        grid.apply_patch(cells, *grid.read_cells(cells), risk=grid.read_risk(cells))
 
     return patch
 
@@ -196,7 +232,8 @@ BUILD_FIRST, FIRST_NEW, FIRST_PATCHED, REPEAT = "build", "new", "patched", "repe
 
 def _query(grid, classes, params, planner, a, b, heuristic, when=REPEAT):
     """(call, setup) for `timed`: a query on `planner`, or on a new Planner per call, built in
-    the call (BUILD_FIRST) or in the untimed setup (FIRST_NEW)."""
+    the call (BUILD_FIRST) or in the untimed setup (FIRST_NEW). The Planner that answered is
+    kept in `call.planner`."""
     fresh = {}
 
     def new_planner():
@@ -205,8 +242,8 @@ def _query(grid, classes, params, planner, a, b, heuristic, when=REPEAT):
     def query():
         if when == BUILD_FIRST:
             new_planner()
-        p = fresh["p"] if when in (BUILD_FIRST, FIRST_NEW) else planner
-        return p.plan(a, b, heuristic=heuristic)
+        query.planner = fresh["p"] if when in (BUILD_FIRST, FIRST_NEW) else planner
+        return query.planner.plan(a, b, heuristic=heuristic)
 
     return query, (new_planner if when == FIRST_NEW else None)
 
@@ -223,8 +260,10 @@ def run_size(
     with_euclidean: bool,
     obstacle_share: float = 0.12,
     length: float = 1.0,
+    with_risk: bool = False,
 ) -> dict:
-    """The cluttered graph: `Planner.plan` against scipy's Dijkstra on the same graph."""
+    """The cluttered graph: `Planner.plan` against scipy's Dijkstra on the same graph; with
+    `with_risk` the same queries on the graph with risk layers, rows per mode."""
     labels, heights, flags = make_graph(n, seed=n, classes=classes, obstacle_share=obstacle_share)
     grid = grid_from_dense(labels, heights, flags)
     params = PlannerConfig(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile")
@@ -277,7 +316,52 @@ def run_size(
             )
         out["queries"].append({"start": s, "goal": g, "rows": rows})
     out["grid_bytes"] = grid.nbytes
+    if with_risk:
+        _risk_rows(out, labels, heights, flags, classes, params, pairs, runs)
     return out
+
+
+CERTAIN = "certain"  # the risk column of the rows on risk layers whose nodes are all certain
+
+
+def _risk_rows(out, labels, heights, flags, classes, params, pairs, runs) -> None:
+    """Per mode, the queries on the graph with risk layers on a new Planner, built in the timed
+    call (the window's risk enter pass counted) and built just before (untimed: it prepares
+    that pass ahead, as the service does on its tick), against Dijkstra on the enter costs that
+    mode gave (the window is the whole graph)."""
+    n = labels.shape[0]
+    plain = grid_from_dense(labels, heights, flags)
+    alt, p_label, p_alt = make_risk(labels, flags, n)
+    grid = grid_from_dense(labels, heights, flags, (alt, p_label, p_alt))
+    sure = grid_from_dense(labels, heights, flags, (alt, np.full_like(p_label, 255), p_alt))
+    out["pass_ms"] = {"-": _enter_pass(plain, classes, params, runs)}
+    works = [("new Planner + first", BUILD_FIRST), ("first, new Planner", FIRST_NEW)]
+    # "certain": the layers there, every node certain: the costs (and the search) of "-"
+    for name, grid, mode in [(CERTAIN, sure, "expected")] + [(m, grid, m) for m in RISK_MODES]:
+        p = dataclasses.replace(params, risk=mode)
+        out["pass_ms"][name] = _enter_pass(grid, classes, p, runs)
+        csr = None
+        for q, (s, g) in zip(out["queries"], pairs, strict=True):
+            sxy, gxy = grid.cell_centre(*s), grid.cell_centre(*g)
+            for work, when in works:
+                fn, setup = _query(grid, classes, p, None, sxy, gxy, "octile", when)
+                sw, sc, res = timed(fn, runs, setup)
+                if csr is None:
+                    enter = fn.planner._enter_cache[0]
+                    assert enter.shape == (n, n), "the risk rows' window is the whole graph"
+                    csr = build_graph(enter, heights, RES, p.h_f, p.max_step_m)
+                dw, dc, dist = timed(
+                    lambda s=s, csr=csr: csgraph.dijkstra(
+                        csr, directed=True, indices=s[0] * n + s[1]
+                    ),
+                    1,
+                )
+                want = float(dist[g[0] * n + g[1]])
+                cost = res.cost_total if res.ok else np.inf
+                err = 0.0 if cost == want == np.inf else _rel(cost, want)
+                row = _row(work, "scipy Dijkstra", (dw, dc), (sw, sc), 0, cost, err, name)
+                row.update(expanded=res.nodes_expanded)
+                q["rows"].append(row)
 
 
 def run_flat(n: int, runs: int, n_queries: int, classes, pyastar, length: float = 1.0) -> dict:
@@ -353,7 +437,8 @@ def run_flat(n: int, runs: int, n_queries: int, classes, pyastar, length: float 
 
 
 HEADER = (
-    f"{'graph':>24} {'query':>16} {'work':<26} {'peer':<14} {'peer ms':>8} {'peer cpu':>8} "
+    f"{'graph':>24} {'query':>16} {'work':<26} {'risk':<8} {'peer':<14} {'peer ms':>8} "
+    f"{'peer cpu':>8} "
     f"{'smana ms':>8} {'smana cpu':>9} {'ratio':>5} {'cpu r.':>6} {'expanded':>8} {'cost':>10} "
     f"{'rel err':>7} {'load':>5}"
 )
@@ -370,22 +455,24 @@ def _print_row(variant: str, q: dict, r: dict) -> None:
         ratio = f"{sw / pw:5.2f} {sc / max(pc, 1e-9):6.2f}"
     sw, sc = r["smana_ms"]
     print(
-        f"{variant:>24} {label:>16} {r['work']:<26} {r['peer']:<14} {peer} {sw:8.1f} {sc:9.1f} "
+        f"{variant:>24} {label:>16} {r['work']:<26} {r['risk']:<8} {r['peer']:<14} {peer} "
+        f"{sw:8.1f} {sc:9.1f} "
         f"{ratio} {r['expanded']:8d} {r['cost']:10.3f} {r['rel_err']:7.0e} {r['load']:5.2f}"
     )
 
 
 def spread(results: list[dict]) -> list[dict]:
-    """Per (peer, work): the smana / peer ratio's median and range (wall and CPU) over every
-    query of every workload variant in `results`, and the load average's range meanwhile."""
-    groups: dict[tuple[str, str], list[tuple[str, dict]]] = {}
+    """Per (peer, work, risk): the smana / peer ratio's median and range (wall and CPU) over
+    every query of every workload variant in `results`, and the load average's range meanwhile."""
+    groups: dict[tuple[str, str, str], list[tuple[str, dict]]] = {}
     for r in results:
         for q in r["queries"]:
             for row in q["rows"]:
                 if row["peer_ms"] is not None:
-                    groups.setdefault((row["peer"], row["work"]), []).append((r["variant"], row))
+                    key = (row["peer"], row["work"], row.get("risk", "-"))
+                    groups.setdefault(key, []).append((r["variant"], row))
     out = []
-    for (peer, work), rows in groups.items():
+    for (peer, work, risk), rows in groups.items():
         wall = [row["smana_ms"][0] / row["peer_ms"][0] for _, row in rows]
         cpu = [row["smana_ms"][1] / max(row["peer_ms"][1], 1e-9) for _, row in rows]
         loads = [row["load"] for _, row in rows]
@@ -393,6 +480,7 @@ def spread(results: list[dict]) -> list[dict]:
             {
                 "peer": peer,
                 "work": work,
+                "risk": risk,
                 "variants": len({v for v, _ in rows}),
                 "queries": len(rows),
                 "cpu": (statistics.median(cpu), min(cpu), max(cpu)),
@@ -411,10 +499,39 @@ def _print_spread(results: list[dict]) -> None:
     for g in spread(results):
         c, w, ld = g["cpu"], g["wall"], g["load"]
         print(
-            f"  {g['peer']:<14} {g['work']:<26} {g['variants']} variants, {g['queries']:2d} "
-            f"queries: CPU {c[0]:.2f} [{c[1]:.2f}, {c[2]:.2f}], wall {w[0]:.2f} "
+            f"  {g['peer']:<14} {g['work']:<26} {g['risk']:<8} {g['variants']} variants, "
+            f"{g['queries']:2d} queries: CPU {c[0]:.2f} [{c[1]:.2f}, {c[2]:.2f}], wall {w[0]:.2f} "
             f"[{w[1]:.2f}, {w[2]:.2f}], load {ld[0]:.1f}-{ld[1]:.1f}"
         )
+
+
+def _enter_pass(grid, classes, params, runs) -> float:
+    """Median CPU ms of building a new Planner: it prepares the window gather and enter-cost
+    pass of the known area (no search): where risk adds work; the A* after it is the same
+    kernel."""
+    return timed(lambda: Planner(grid, classes, params), runs)[1]
+
+
+def _risk_ratios(r: dict, work: str) -> str:
+    """Per mode, the CPU time of its `work` row over the same query's without risk: the
+    median over the queries."""
+    out = []
+    for mode in (CERTAIN, *RISK_MODES):
+        ratios = []
+        for q in r["queries"]:
+            cpu = {row["risk"]: row["smana_ms"][1] for row in q["rows"] if row["work"] == work}
+            ratios.append(cpu[mode] / max(cpu["-"], 1e-9))
+        out.append(f"{mode} x{statistics.median(ratios):.2f}")
+    return ", ".join(out)
+
+
+def _print_risk(r: dict) -> None:
+    passes = ", ".join(f"{k} {v:.1f} ms" for k, v in r["pass_ms"].items())
+    for work in ("new Planner + first", "first, new Planner"):
+        print(f"{'':>24} risk / no risk, CPU of '{work}': " + _risk_ratios(r, work))
+    print(
+        f"{'':>24} risk: window and enter costs alone (a new Planner): {passes} (- = without risk)"
+    )
 
 
 def cli(argv: list[str] | None = None) -> int:
@@ -456,6 +573,11 @@ def cli(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--no-euclidean", action="store_true", help="skip the paper's heuristic")
     p.add_argument("--no-flat", action="store_true", help="skip the flat graphs (pyastar2d)")
+    p.add_argument(
+        "--risk",
+        action="store_true",
+        help="add the risk rows (planner.risk) to the cluttered graphs",
+    )
     args = p.parse_args(argv)
     sizes = args.sizes or ([60, 120] if args.quick else [250, 500, 1000])
     runs = args.runs or (3 if args.quick else 7)
@@ -477,7 +599,9 @@ def cli(argv: list[str] | None = None) -> int:
     print(f"{ROBOT_RADIUS} m, octile heuristic unless said; first = the first query after a graph")
     print("patch (one tile: its nodes refreshed in the cached window), or on a new Planner")
     print("(nothing cached);")
-    print("rel err = |cost - Dijkstra| / Dijkstra")
+    print("rel err = |cost - Dijkstra| / Dijkstra; risk = planner.risk on the graph with risk")
+    print("layers (half the free nodes doubtful; 'certain': every node certain), '-' = the graph")
+    print("without them")
     print("flat graphs: pyastar2d's cost = sum of the weights entered (terrain 1.0, grass 1.8; a")
     print(
         "diagonal as a side step); smana's kernel on the same weights, no distance or height term"
@@ -505,7 +629,14 @@ def cli(argv: list[str] | None = None) -> int:
         for obstacle_share in args.obstacles:
             for length in args.lengths:
                 r = run_size(
-                    n, runs, args.queries, classes, not args.no_euclidean, obstacle_share, length
+                    n,
+                    runs,
+                    args.queries,
+                    classes,
+                    not args.no_euclidean,
+                    obstacle_share,
+                    length,
+                    args.risk,
                 )
                 results.append(r)
                 for q in r["queries"]:
@@ -517,6 +648,8 @@ def cli(argv: list[str] | None = None) -> int:
                     f"grid {r['grid_bytes'] / 2**20:.1f} MiB, {r['edges']} edges, "
                     f"scipy graph build {r['build_ms']:.0f} ms (not counted)"
                 )
+                if args.risk:
+                    _print_risk(r)
     _print_spread(results)
     if failed:
         print("FAIL: an A* cost differs from Dijkstra (or pyastar2d's) beyond the tolerance")

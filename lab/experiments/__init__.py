@@ -5,6 +5,7 @@
     smana experiment fleet [--quick] [--robots 1,2,3] [--out DIR]
     smana experiment resources [--quick] [--repeats 5] [--out DIR]
     smana experiment navnoise [--quick] [--seeds 5] [--out DIR]   # beyond the paper
+    smana experiment risk [--quick] [--seeds 10] [--out DIR]      # issue 29, synthetic maps
     smana experiment report [--check]     # docs/experiments.md's tables from the committed data
 
 One module per experiment (`noise.py`, `exploration.py`), each with its `add_parser(sub)` and
@@ -69,6 +70,7 @@ EXPERIMENTS = {
     "fleet": "fleet",
     "resources": "resources",
     "navnoise": "navnoise",
+    "risk": "risk",
     "report": "report",  # not an experiment: the docs' tables from the committed data
 }
 

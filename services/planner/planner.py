@@ -7,6 +7,11 @@ a frontier can go round the known area). The window's dense arrays are cached un
 changes. A node can be entered when it is known and traversable (cost t_f * T(l)); an obstacle or
 safety-zone node never; an unknown node only when the request allows it, at `unknown_cost`.
 
+When the graph has the risk layers (a node's second most likely class and the probabilities of
+both), a known node's enter cost is taken from its class distribution as `risk` says (expected
+cost, CVaR, or a chance constraint; docs/risk.md); a node whose label is certain, or a graph
+without the layers, costs t_f * T(l) in every mode, exactly as without risk.
+
 Its parameters are the [planner] config section as it is (`PlannerConfig`): the defaults of every
 query, which a request may override one by one (h_f, t_f, max_step_m, unknown_cost, heuristic).
 """
@@ -16,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import typing
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -23,8 +29,15 @@ import numba
 import numpy as np
 
 from smana.common.classes import ClassTable
-from smana.common.config.planner import PlannerConfig
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
+from smana.common.config.planner import PlannerConfig, Risk
+from smana.common.navgrid import (
+    FLAG_KNOWN,
+    FLAG_OBSTACLE,
+    FLAG_SAFETY_ZONE,
+    P_SCALE,
+    RISK_LAYER_NAMES,
+    NavGrid,
+)
 from smana.services.planner.astar import HEURISTICS, path_costs, reserve, search
 
 # Error codes of PathReply.error
@@ -34,6 +47,8 @@ GOAL_BLOCKED = "goal_blocked"
 UNREACHABLE = "unreachable"
 NO_GRAPH = "no_graph"
 MALFORMED = "malformed"
+
+RISK_MODES = typing.get_args(Risk)
 
 
 @dataclass
@@ -71,6 +86,7 @@ class Planner:
         self.config = PlannerConfig() if config is None else config
         self._cache_key = None
         self._cache = None
+        self._risk = None  # RiskWindow beside the Window when the grid has the risk layers
         self._enter_key = None
         self._enter_cache = None
         names = ["unknown"] * classes.size
@@ -130,10 +146,12 @@ class Planner:
         heuristic: str | None = None,
         avoid=None,
         avoid_radius_m: float = 0.0,
+        risk: str | None = None,
     ) -> PlanResult:
         """`avoid`: positions (K, 2) of moving obstacles (other fleet members): nodes within
         `avoid_radius_m` of one are not entered, except by a path moving away from it (a robot
-        already that close may still leave)."""
+        already that close may still leave). `risk`: this query's risk mode (the config's when
+        None)."""
         t0 = time.perf_counter()
         try:
             result = self._plan(
@@ -148,6 +166,7 @@ class Planner:
                 heuristic,
                 avoid,
                 avoid_radius_m,
+                risk,
             )
         except PlanError as exc:
             nf = np.zeros(0) if exc.nearest_free is None else np.asarray(exc.nearest_free, float)
@@ -155,7 +174,7 @@ class Planner:
         result.time_ms = (time.perf_counter() - t0) * 1e3
         return result
 
-    def _params(self, h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic):
+    def _params(self, h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic, risk=None):
         """The config with this query's overrides, checked by the section's own limits."""
         given = {
             "h_f": h_f,
@@ -163,6 +182,7 @@ class Planner:
             "max_step_m": max_step_m,
             "unknown_cost": unknown_cost,
             "heuristic": heuristic,
+            "risk": risk,
         }
         # a PathRequest always carries unknown_cost: values equal to the config's need no check
         overrides = {
@@ -197,8 +217,9 @@ class Planner:
         heuristic,
         avoid=None,
         avoid_radius_m=0.0,
+        risk=None,
     ) -> PlanResult:
-        p, lut = self._params(h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic)
+        p, lut = self._params(h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic, risk)
         s_xy, g_xy = self._point("start", start), self._point("goal", goal)
         g = self.grid
         if g.n_tiles == 0:
@@ -221,7 +242,8 @@ class Planner:
         enter, min_enter = self._enter(box, flags, labels, lut, p, bool(allow_unknown))
         (sx, sy), (gx, gy) = ((c[0] - box[0], c[1] - box[1]) for c in cells)
         self._check_end("start", sx, sy, flags, enter, box, s_xy, allow_unknown=True)
-        self._check_end("goal", gx, gy, flags, enter, box, g_xy, allow_unknown)
+        goal_cost = lut[labels[gx, gy]] if labels[gx, gy] < len(lut) else np.inf
+        self._check_end("goal", gx, gy, flags, enter, box, g_xy, allow_unknown, goal_cost)
         step = float(p.max_step_m)
         # Moving obstacles block nodes for this query only: the cached enter costs are put back
         # after the search. Raising costs keeps min_enter a lower bound: still exact.
@@ -315,7 +337,9 @@ class Planner:
             return None
         return np.concatenate(rows), np.concatenate(cols)
 
-    def _check_end(self, name, ix, iy, flags, enter, box, xy, allow_unknown) -> None:
+    def _check_end(self, name, ix, iy, flags, enter, box, xy, allow_unknown, cost=np.inf) -> None:
+        """Refuse an end in an obstacle or safety zone, or a goal that cannot be entered; `cost`
+        is T of the goal's label (finite for a node the risk closed)."""
         f = int(flags[ix, iy])
         code = START_BLOCKED if name == "start" else GOAL_BLOCKED
         if f & FLAG_OBSTACLE:
@@ -323,7 +347,9 @@ class Planner:
         elif f & FLAG_SAFETY_ZONE:
             why = "in the safety zone (within the robot radius of an obstacle)"
         elif name == "goal" and not np.isfinite(enter[ix, iy]):
-            if f & FLAG_KNOWN:
+            if f & FLAG_KNOWN and np.isfinite(cost):
+                why = "on a node too likely of a forbidden class (max_risk)"
+            elif f & FLAG_KNOWN:
                 why = "on a node whose class is not traversable"
             else:
                 why = "in unknown space (allow_unknown is off)"
@@ -350,9 +376,12 @@ class Planner:
         return max(0, x0), max(0, y0), min(g.shape[0], x1), min(g.shape[1], y1)
 
     def _enter(self, box, flags, labels, lut, p: PlannerConfig, allow_unknown: bool):
-        """Per-node enter costs t_f * T(l) of the window and their finite minimum, cached until
-        the grid or the costs change (an explorer asks many paths on one graph version)."""
-        key = (self.grid.version, box, lut.tobytes(), p.t_f, p.unknown_cost, allow_unknown)
+        """Per-node enter costs t_f * T(l) of the window (from the class distribution when the
+        grid has risk layers) and their finite minimum, cached until the grid or the costs change
+        (an explorer asks many paths on one graph version)."""
+        risk = None if p.risk == "label" else self._risk  # "label": as without the layers
+        model = None if risk is None else risk_model(p)
+        key = (self.grid.version, box, lut.tobytes(), p.t_f, p.unknown_cost, allow_unknown, model)
         if self._enter_key != key:
             # Scale the finite costs only: inf * 0 would be NaN when t_f = 0.
             scaled = np.where(np.isfinite(lut), lut * p.t_f, np.inf)
@@ -361,18 +390,26 @@ class Planner:
                 # Only the patched nodes: their enter costs, and a minimum that can only fall
                 # (a minimum that is too low keeps the heuristic a lower bound: still exact).
                 out, lowest = self._enter_cache
-                low = _enter_cells(
-                    labels, flags, scaled, allow_unknown, float(p.unknown_cost * p.t_f), cells, out
-                )
+                unknown = float(p.unknown_cost * p.t_f)
+                if risk is None:
+                    low = _enter_cells(labels, flags, scaled, allow_unknown, unknown, cells, out)
+                else:
+                    low = _enter_cells_risk(
+                        labels, flags, risk, scaled, allow_unknown, unknown, model, cells, out
+                    )
                 self._enter_cache = (out, min(lowest, low))
                 self._enter_key = key
                 return self._enter_cache
             old = self._enter_cache
             out = old[0] if old is not None and old[0].shape == labels.shape else None
             out = np.empty(labels.shape) if out is None else out  # refilled: no page faults
-            lowest = _enter_costs(
-                labels, flags, scaled, allow_unknown, float(p.unknown_cost * p.t_f), out
-            )
+            unknown = float(p.unknown_cost * p.t_f)
+            if risk is None:
+                lowest = _enter_costs(labels, flags, scaled, allow_unknown, unknown, out)
+            else:
+                lowest = _enter_costs_risk(
+                    labels, flags, risk, scaled, allow_unknown, unknown, model, out
+                )
             self._enter_cache = (out, lowest)
             self._enter_key = key
         return self._enter_cache
@@ -399,15 +436,17 @@ class Planner:
         `np.where` took 13 ms at 1000 x 1000 (five full-size temporaries). After a graph change
         the window's arrays are refilled in place when its size did not change: fresh ones cost
         page faults, about 1 ms per 1 MB (measured on the A* work arrays)."""
-        key = (self.grid.version, box)
+        g = self.grid
+        pools = RiskPools.of(g)
+        key = (g.version, box, pools is not None)
         if self._cache_key != key:
-            g = self.grid
             x0, y0, x1, y1 = box
             cells = self._changed_in(box, self._cache_key, key)
             if cells is not None:  # a patch since: refresh its nodes only
-                _gather_cells(
-                    TilePools.of(g), cells + np.array([x0, y0], np.int32), cells, self._cache
-                )
+                gcells = cells + np.array([x0, y0], np.int32)
+                _gather_cells(TilePools.of(g), gcells, cells, self._cache)
+                if pools is not None:
+                    _gather_risk_cells(pools, gcells, cells, self._risk)
                 self._cache_key = key
                 return self._cache
             shape = (x1 - x0, y1 - y0)
@@ -418,6 +457,16 @@ class Planner:
                     np.empty(shape, np.float32),  # the grid's own heights: half the bytes
                 )
             _gather_window(TilePools.of(g), x0, y0, self._cache)
+            if pools is None:
+                self._risk = None
+            else:
+                if self._risk is None or self._risk.alt.shape != shape:
+                    self._risk = RiskWindow(
+                        np.empty(shape, np.uint16),
+                        np.empty(shape, np.uint8),
+                        np.empty(shape, np.uint8),
+                    )
+                _gather_risk_window(pools, x0, y0, self._risk)
             self._cache_key = key
         return self._cache
 
@@ -435,6 +484,13 @@ def warm_up(classes: ClassTable) -> float:
     for heuristic in HEURISTICS:
         planner.plan((0.1, 0.1), (1.5, 1.5), heuristic=heuristic)
     planner.plan((0.1, 0.1), (9.0, 9.0))  # an error path too
+    # the risk kernels: a doubtful label on every node, each mode
+    risk = (np.zeros(64, np.uint16), np.full(64, 200, np.uint8), np.zeros(64, np.uint8))
+    grid.apply_patch(cells, *grid.read_cells(cells), risk=risk)
+    for mode in RISK_MODES:
+        planner.plan((0.1, 0.1), (1.5, 1.5), risk=mode)
+    grid.apply_patch(cells[:1], *grid.read_cells(cells[:1]), risk=[r[:1] for r in risk])
+    planner.plan((0.1, 0.1), (1.5, 1.5))  # the patched nodes only
     return time.perf_counter() - t0
 
 
@@ -540,6 +596,203 @@ def _enter_cost(f, lab, lut, n_lut, allow_unknown, unknown_cost):
             c = unknown_cost  # a known node of the "unknown" class
         return c
     return unknown_cost if allow_unknown else np.inf
+
+
+class RiskModel(NamedTuple):
+    """How the risk kernels turn a node's class distribution into its enter cost: the
+    [planner] risk fields, costs already scaled by t_f."""
+
+    mode: int  # index in RISK_MODES: 0 expected, 1 cvar, 2 chance
+    alpha: float  # CVaR level
+    max_risk: float  # chance: largest P(forbidden) of an open node
+    forbidden_cost: float  # t_f * T of a forbidden class's mass (expected, cvar)
+    other_cost: float  # t_f * T of the unnamed mass (expected, cvar): unknown_cost
+    other_forbidden: float  # share of the unnamed mass counted as forbidden (chance)
+
+
+def risk_model(p: PlannerConfig) -> RiskModel:
+    """The kernels' view of a (checked) PlannerConfig."""
+    return RiskModel(
+        RISK_MODES.index(p.risk),
+        float(p.risk_alpha),
+        float(p.max_risk),
+        float(p.risk_forbidden_cost * p.t_f),
+        float(p.unknown_cost * p.t_f),
+        float(p.risk_other_forbidden),
+    )
+
+
+class RiskPools(NamedTuple):
+    """The grid's risk layers as the gather kernels read them: pools of (slot, T, T)."""
+
+    tile_map: np.ndarray
+    alt: np.ndarray  # u2: second most likely class, 0 = none
+    p_label: np.ndarray  # u1: P(label) x 255
+    p_alt: np.ndarray  # u1: P(alt) x 255
+    tile_size: int
+
+    @classmethod
+    def of(cls, g: NavGrid) -> RiskPools | None:
+        """The pools, or None when the grid has no risk layers (every label certain)."""
+        if not g.has_risk():
+            return None
+        return cls(g.tile_map, *(g.layer(name) for name in RISK_LAYER_NAMES), g.tile_size)
+
+
+class RiskWindow(NamedTuple):
+    """The planner's dense copy of the risk layers over its window (unknown nodes: certain)."""
+
+    alt: np.ndarray  # u2 (w, h)
+    p_label: np.ndarray  # u1 (w, h)
+    p_alt: np.ndarray  # u1 (w, h)
+
+
+@numba.njit(cache=True)
+def _gather_risk_window(pools, ix0, iy0, window):
+    """`_gather_window` for the risk layers; unallocated tiles read as certain (p_label 255)."""
+    tile_map, alt_pool, pl_pool, pa_pool, t = pools
+    alt, p_label, p_alt = window
+    w, h = alt.shape
+    for i in range(w):
+        gx = ix0 + i
+        tx = gx // t
+        lx = gx - tx * t
+        j = 0
+        while j < h:
+            gy = iy0 + j
+            ty = gy // t
+            ly0 = gy - ty * t
+            run = min(t - ly0, h - j)
+            slot = tile_map[tx, ty]
+            for k in range(run):
+                if slot >= 0:
+                    alt[i, j + k] = alt_pool[slot, lx, ly0 + k]
+                    p_label[i, j + k] = pl_pool[slot, lx, ly0 + k]
+                    p_alt[i, j + k] = pa_pool[slot, lx, ly0 + k]
+                else:
+                    alt[i, j + k] = 0
+                    p_label[i, j + k] = P_SCALE
+                    p_alt[i, j + k] = 0
+            j += run
+
+
+@numba.njit(cache=True)
+def _gather_risk_cells(pools, grid_cells, cells, window):
+    """`_gather_risk_window` for a list of nodes: `grid_cells` in the grid, `cells` in the
+    window."""
+    tile_map, alt_pool, pl_pool, pa_pool, t = pools
+    alt, p_label, p_alt = window
+    for k in range(len(cells)):
+        gx, gy = grid_cells[k, 0], grid_cells[k, 1]
+        i, j = cells[k, 0], cells[k, 1]
+        slot = tile_map[gx // t, gy // t]
+        if slot >= 0:
+            lx, ly = gx % t, gy % t
+            alt[i, j] = alt_pool[slot, lx, ly]
+            p_label[i, j] = pl_pool[slot, lx, ly]
+            p_alt[i, j] = pa_pool[slot, lx, ly]
+        else:
+            alt[i, j] = 0
+            p_label[i, j] = P_SCALE
+            p_alt[i, j] = 0
+
+
+@numba.njit(cache=True)
+def _cvar3(c0, p0, c1, p1, c2, p2, alpha):
+    """CVaR at level alpha of three cost atoms (cost, probability; the probabilities sum to 1):
+    the mean cost of the worst alpha of the probability mass."""
+    # sort the atoms by cost, dearest first (three compare-and-swaps)
+    if c1 > c0:
+        c0, p0, c1, p1 = c1, p1, c0, p0
+    if c2 > c1:
+        c1, p1, c2, p2 = c2, p2, c1, p1
+    if c1 > c0:
+        c0, p0, c1, p1 = c1, p1, c0, p0
+    take0 = min(p0, alpha)
+    take1 = min(p1, alpha - take0)
+    take2 = max(0.0, alpha - take0 - take1)  # what rounding left is the cheapest atom's
+    return (take0 * c0 + take1 * c1 + take2 * c2) / alpha
+
+
+@numba.njit(cache=True)
+def _risk_cost(c_label, alt, pl, pa, lut, n_lut, model):
+    """Enter cost of a known node whose label costs `c_label` (finite, t_f scaled) given its
+    distribution: P(label) = pl / 255, P(alt) = pa / 255 (alt 0 or outside the table: none, its
+    mass unnamed), the rest unnamed. See docs/risk.md."""
+    if pl >= P_SCALE:
+        return c_label  # certain: as without risk, bit for bit
+    named_alt = alt > 0 and alt < n_lut
+    pa = min(pa, P_SCALE - pl) if named_alt else 0
+    p1 = pl / P_SCALE
+    p2 = pa / P_SCALE
+    r = (P_SCALE - pl - pa) / P_SCALE
+    c2 = lut[alt] if named_alt else 0.0
+    forbidden = c2 == np.inf
+    if forbidden:
+        c2 = model.forbidden_cost
+    if model.mode == 2:
+        pf = (p2 if forbidden else 0.0) + r * model.other_forbidden
+        if pf > model.max_risk:
+            return np.inf
+    if model.mode == 1:
+        return _cvar3(c_label, p1, c2, p2, model.other_cost, r, model.alpha)
+    return p1 * c_label + p2 * c2 + r * model.other_cost
+
+
+@numba.njit(cache=True)
+def _enter_cost_risk(f, lab, alt, pl, pa, lut, n_lut, allow_unknown, unknown_cost, model):
+    c = _enter_cost(f, lab, lut, n_lut, allow_unknown, unknown_cost)
+    # Obstacles, safety zones, unknown nodes and a label that cannot be entered: as without risk.
+    if c == np.inf or not f & FLAG_KNOWN:
+        return c
+    return _risk_cost(c, alt, pl, pa, lut, n_lut, model)
+
+
+@numba.njit(cache=True)
+def _enter_cells_risk(labels, flags, risk, lut, allow_unknown, unknown_cost, model, cells, out):
+    """`_enter_cells` with the nodes' class distributions (`risk`, a RiskWindow)."""
+    alt, p_label, p_alt = risk
+    lowest = np.inf
+    n_lut = len(lut)
+    for k in range(len(cells)):
+        i, j = cells[k, 0], cells[k, 1]
+        c = _enter_cost_risk(
+            flags[i, j],
+            labels[i, j],
+            alt[i, j],
+            p_label[i, j],
+            p_alt[i, j],
+            lut,
+            n_lut,
+            allow_unknown,
+            unknown_cost,
+            model,
+        )
+        out[i, j] = c
+        if c < lowest:
+            lowest = c
+    return lowest
+
+
+@numba.njit(cache=True)
+def _enter_costs_risk(labels, flags, risk, lut, allow_unknown, unknown_cost, model, out):
+    """`_enter_costs` with the nodes' class distributions (`risk`, a RiskWindow). Two passes:
+    the costs without risk (a loop LLVM vectorises: 0.7 ms at 1000 x 1000, measured), then the
+    doubtful known nodes only (one pass doing both was 13 ms)."""
+    _enter_costs(labels, flags, lut, allow_unknown, unknown_cost, out)
+    alt, p_label, p_alt = risk
+    nx, ny = labels.shape
+    lowest = np.inf
+    n_lut = len(lut)
+    for i in range(nx):
+        for j in range(ny):
+            c = out[i, j]
+            if p_label[i, j] < P_SCALE and c < np.inf and flags[i, j] & FLAG_KNOWN:
+                c = _risk_cost(c, alt[i, j], p_label[i, j], p_alt[i, j], lut, n_lut, model)
+                out[i, j] = c
+            if c < lowest:
+                lowest = c
+    return lowest if lowest < np.inf else 0.0
 
 
 @numba.njit(cache=True)
