@@ -253,3 +253,24 @@ def test_patched_distributions_refresh_the_cached_costs(mode):
     got = planner._enter_cache[0]
     assert (np.isinf(got) == np.isinf(want)).all()
     np.testing.assert_allclose(got[np.isfinite(want)], want[np.isfinite(want)], rtol=1e-12)
+
+
+def test_the_default_risk_is_label_so_doubtful_graphs_plan_as_before():
+    """planner.risk defaults to "label" until the risk experiment chooses a mode: a default
+    Planner on a graph of doubtful nodes plans exactly as on the graph without the layers (the
+    paper's experiments' data regenerate identically), and "expected" would not here."""
+    assert PlannerConfig().risk == "label"
+    rng = np.random.default_rng(31)
+    changed = 0
+    for _ in range(3):
+        labels, heights, flags, risk = random_world(rng)
+        today = Planner(make_grid(labels, heights, flags), CLASSES).plan(
+            (0.1, 0.1), (4.7, 3.9), allow_unknown=True
+        )
+        grid = make_grid(labels, heights, flags, risk)
+        r = Planner(grid, CLASSES).plan((0.1, 0.1), (4.7, 3.9), allow_unknown=True)
+        assert r.ok == today.ok and r.cost_total == today.cost_total
+        np.testing.assert_array_equal(r.cells, today.cells)
+        e = Planner(grid, CLASSES).plan((0.1, 0.1), (4.7, 3.9), allow_unknown=True, risk="expected")
+        changed += e.ok != today.ok or e.cost_total != today.cost_total
+    assert changed  # the graphs are doubtful enough for the mode to matter

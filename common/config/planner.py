@@ -31,10 +31,11 @@ class PlannerConfig(Section, section="planner"):
     heuristic: Heuristic = "octile"
     # "expected": sum of p * T over the node's classes; "cvar": mean T of its worst risk_alpha
     # probability mass; "chance": closed when P(forbidden class) > max_risk, else "expected";
-    # "label": the label's T alone, the distribution ignored (the planner before issue 29).
+    # "label" (the default until the risk experiment chooses a mode): the label's T alone, the
+    # distribution ignored (the planner before issue 29, so the paper's results are unchanged).
     # A node whose distribution is certain (or a graph without risk layers) costs t_f * T(l) in
     # every mode, as before.
-    risk: Risk = "expected"
+    risk: Risk = "label"
     risk_alpha: float = param(0.2, gt=0, le=1)  # CVaR level: the worst share of probability mass
     max_risk: float = param(0.1, ge=0, le=1)  # chance: the largest P(forbidden) a node may have
     # T given to the mass of a forbidden class (infinite cost, e.g. water) in "expected" and
