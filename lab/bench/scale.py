@@ -27,7 +27,9 @@ import argparse
 import json
 import os
 import resource
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -119,8 +121,14 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     }
     rss0 = _rss_mb()
     t_start = time.perf_counter()
+    stop = threading.Event()
+    # SIGINT ends the drive early: the map is still saved and loaded and the figures reported
+    previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
     with progress.bar(n, "driving", unit="scan") as bar:
         for k in range(n):
+            if stop.is_set():
+                progress.say(f"stopped by SIGINT after {k} of {n} scans")
+                break
             pts, lab, origin = drive.scan(k)
             t0 = time.perf_counter()
             delta = mapper.integrate(pts, lab, origin=origin)
@@ -162,6 +170,9 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                     f"{rec['rss'][-1][2]:.0f} MB, last {sum(_last(rec)):.1f} ms"
                 )
             bar.update()
+    signal.signal(signal.SIGINT, previous)
+    rec["scans_done"] = len(rec["map_ms"])
+    rec["km_done"] = drive.distance_m(rec["scans_done"]) / 1000.0
     rec["wall_s"] = time.perf_counter() - t_start
     rec["rss_start_mb"] = rss0
     rec["peak_rss_mb"] = _peak_rss_mb()
@@ -207,7 +218,8 @@ def summarise(rec: dict) -> dict:
 def report(rec: dict, s: dict, load: tuple, load_end: float) -> str:
     ms = rec["map_stats"]
     lines = [
-        f"smana bench scale: {rec['km']:g} km at {rec['speed_mps']:g} m/s, {rec['scans']} scans "
+        f"smana bench scale: {rec['km_done']:.3f} of {rec['km']:g} km at {rec['speed_mps']:g} m/s, "
+        f"{rec['scans_done']} of {rec['scans']} scans "
         f"of {rec['points_in_scan']:,} rays ({s['points_mean']:,.0f} returns on average), "
         f"{rec['wall_s']:.0f} s; load average {load[0]:.2f} -> {load_end:.2f}",
         "",
@@ -221,7 +233,7 @@ def report(rec: dict, s: dict, load: tuple, load_end: float) -> str:
         )
     lines += [
         "",
-        f"drops at 10 Hz (latest wins): {s['drops']} of {rec['scans'] - 1}"
+        f"drops at 10 Hz (latest wins): {s['drops']} of {rec['scans_done'] - 1}"
         + (f" (first: {s['first_drops']})" if s["drops"] else ""),
         f"plans: {rec['plan_ok']} found, {len(rec['plan_failed'])} failed",
         f"RSS: start {rec['rss_start_mb']:.0f} MB, max sampled {s['rss_max_mb']:.0f} MB, peak "
