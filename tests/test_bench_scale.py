@@ -32,10 +32,13 @@ def test_quick_run_prints_every_row(tmp_path, capsys):
     assert raw["scans_done"] == raw["scans"] == 100
     assert raw["plan_ok"] > 0 and not raw["plan_failed"]  # the drive is free: every plan found
     assert raw["rss"] and all(r[2] > 0 for r in raw["rss"])
+    assert raw["store"]["regions_written"] > 0  # the quick drive leaves blocks behind on disk
     assert not (tmp_path / "scale_map.npz").exists()
 
 
-@pytest.mark.parametrize("argv", [["--km", "0"], ["--speed", "fast"], ["--backend", "nope"]])
+@pytest.mark.parametrize(
+    "argv", [["--km", "0"], ["--speed", "fast"], ["--backend", "nope"], ["--window-m", "5"]]
+)
 def test_bad_options_exit_2(argv, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         scale.cli([*argv, "--out", str(tmp_path)])

@@ -27,6 +27,7 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import signal
 import sys
 import threading
@@ -40,7 +41,7 @@ from smana.common import progress
 RATE_HZ = 10.0
 GOAL_RSS_MB = 2048.0
 GOAL_SAVE_LOAD_S = 5.0
-QUICK = {"km": 0.015, "beams": 16, "columns": 256, "plan_back_m": 5.0}
+QUICK = {"km": 0.015, "beams": 16, "columns": 256, "plan_back_m": 5.0, "window_m": 12.0}
 
 
 def _rss_mb() -> float:
@@ -105,6 +106,12 @@ def run(args: argparse.Namespace, out: Path) -> dict:
         ),
     )
     planner = Planner(graph.grid, classes)
+    store = None
+    if args.window_m > 0:
+        from smana.services.mapper.blockstore import BlockStore
+
+        shutil.rmtree(out / "blockstore", ignore_errors=True)  # a previous run's regions
+        store = BlockStore(mapper, out / "blockstore", keep_radius_m=args.window_m)
     rss_every = max(1, int(round(args.rss_every_s * RATE_HZ)))
     rec: dict = {
         "scans": n,
@@ -131,7 +138,11 @@ def run(args: argparse.Namespace, out: Path) -> dict:
                 break
             pts, lab, origin = drive.scan(k)
             t0 = time.perf_counter()
+            if store is not None:
+                store.before(origin)
             delta = mapper.integrate(pts, lab, origin=origin)
+            if store is not None:
+                store.after(origin)
             t1 = time.perf_counter()
             graph.integrate(
                 delta.centres, delta.labels, delta.occupied, map_resolution_m=mapper.resolution_m
@@ -177,6 +188,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     rec["rss_start_mb"] = rss0
     rec["peak_rss_mb"] = _peak_rss_mb()
     rec["map_stats"] = mapper.stats()
+    rec["store"] = None if store is None else store.stats()
     rec["graph_stats"] = graph.stats()
     # Save and load the map as the mapper service does (SemanticMap.save / load).
     path = out / "scale_map.npz"
@@ -190,6 +202,7 @@ def run(args: argparse.Namespace, out: Path) -> dict:
     rec["load_same"] = loaded.stats()["voxels_observed"] == mapper.stats()["voxels_observed"]
     if not args.keep_map:
         path.unlink()
+        shutil.rmtree(out / "blockstore", ignore_errors=True)
     return rec
 
 
@@ -242,7 +255,15 @@ def report(rec: dict, s: dict, load: tuple, load_end: float) -> str:
         f"{ms['bytes_reserved'] / 2**20:.0f} MB; graph "
         f"{rec['graph_stats']['bytes'] / 2**20:.0f} MB "
         f"({rec['graph_stats']['tiles']:,} tiles)",
-        f"map file {rec['map_file_mb']:.0f} MB: save {rec['save_s']:.2f} s, load "
+        (
+            "block store: off (--window-m 0): the whole map is resident"
+            if rec["store"] is None
+            else f"block store: {rec['store']['resident_blocks']:,} blocks resident, "
+            f"{rec['store']['stored_blocks']:,} on disk in {rec['store']['stored_regions']:,} "
+            f"regions ({rec['store']['stored_bytes'] / 2**20:.0f} MB); regions written "
+            f"{rec['store']['regions_written']:,}, read back {rec['store']['regions_read']:,}"
+        ),
+        f"map file (resident part) {rec['map_file_mb']:.0f} MB: save {rec['save_s']:.2f} s, load "
         f"{rec['load_s']:.2f} s (same voxels after load: {rec['load_same']})",
         "",
         "| drive s | RSS MB | map MB | graph MB | planner window MB |",
@@ -271,7 +292,7 @@ def goals(rec: dict, s: dict) -> list[str]:
 def main(args: argparse.Namespace) -> int:
     if args.quick:
         args.km, args.beams, args.columns = QUICK["km"], QUICK["beams"], QUICK["columns"]
-        args.plan_back_m = QUICK["plan_back_m"]
+        args.plan_back_m, args.window_m = QUICK["plan_back_m"], QUICK["window_m"]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     load = os.getloadavg()
@@ -323,12 +344,26 @@ def cli(argv: list[str] | None = None) -> int:
         "--plan-back-m", type=positive, default=20.0, help="plan back to this far along the drive"
     )
     p.add_argument("--rss-every-s", type=positive, default=10.0, help="RSS sample period, drive s")
-    p.add_argument("--keep-map", action="store_true", help="keep <out>/scale_map.npz")
+    p.add_argument(
+        "--window-m",
+        type=float,
+        default=40.0,
+        help="keep the map's blocks within this of the robot in memory, the rest on disk in "
+        "<out>/blockstore (services/mapper/blockstore.py); 0 keeps the whole map (default 40)",
+    )
+    p.add_argument(
+        "--keep-map", action="store_true", help="keep <out>/scale_map.npz and <out>/blockstore"
+    )
     p.add_argument("--no-goals", action="store_true", help="exit 0 even when a goal is missed")
     p.add_argument("--quick", action="store_true", help="15 m of 4,096-ray scans (for tests)")
     p.add_argument("--out", default="runs/bench-scale", help="default: runs/bench-scale")
     args = p.parse_args(argv)
     args.beams, args.columns = 64, 2048
+    from smana.common.config import MapperConfig
+
+    reach = MapperConfig().max_range_m + 8 * args.map_res  # the block store's load radius
+    if not (np.isfinite(args.window_m) and (args.window_m == 0 or args.window_m > reach)):
+        p.error(f"--window-m: expected 0 or a number > {reach:g} m, got {args.window_m}")
     output_dir(args.out, "output directory", "--out")
     return main(args)
 
