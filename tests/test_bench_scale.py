@@ -4,6 +4,10 @@ row (no timing asserted: the machine is shared); the drop model on made-up times
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
 
 import pytest
 
@@ -29,7 +33,8 @@ def test_quick_run_prints_every_row(tmp_path, capsys):
         assert row in text
     assert "same voxels after load: True" in text
     raw = json.loads((tmp_path / "scale_bench.json").read_text())
-    assert raw["scans_done"] == raw["scans"] == 100
+    assert raw["scans_done"] == raw["scans"] == 100  # --quick: 15 m at 1.5 m/s and 10 Hz
+    assert raw["points_in_scan"] == 4096
     assert raw["plan_ok"] > 0 and not raw["plan_failed"]  # the drive is free: every plan found
     assert raw["rss"] and all(r[2] > 0 for r in raw["rss"])
     assert raw["store"]["regions_written"] > 0  # the quick drive leaves blocks behind on disk
@@ -44,3 +49,28 @@ def test_bad_options_exit_2(argv, tmp_path, capsys):
         scale.cli([*argv, "--out", str(tmp_path)])
     assert e.value.code == 2
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_sigint_ends_the_drive_and_still_saves_loads_and_reports(tmp_path):
+    """The run stops at the next scan after SIGINT, then saves, loads and reports what it drove."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "smana.lab.bench.scale", "--km", "1", "--window-m", "0"]
+        + ["--rss-every-s", "0.1", "--no-goals", "--out", str(tmp_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "SMANA_PROGRESS": "0"},
+    )
+    try:
+        line = proc.stdout.readline()  # the first RSS line: the drive is under way
+        assert "km, scan 0/6667" in line, line + proc.stderr.read()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "stopped by SIGINT after" in out and "Traceback" not in err
+    raw = json.loads((tmp_path / "scale_bench.json").read_text())
+    assert 1 <= raw["scans_done"] < 6667
+    assert raw["load_same"] and raw["save_s"] > 0
