@@ -42,7 +42,14 @@ def test_quick_run_prints_every_row(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(
-    "argv", [["--km", "0"], ["--speed", "fast"], ["--backend", "nope"], ["--window-m", "5"]]
+    "argv",
+    [
+        ["--km", "0"],
+        ["--speed", "fast"],
+        ["--backend", "nope"],
+        ["--window-m", "5"],
+        ["--planner-box-m", "2x20"],
+    ],
 )
 def test_bad_options_exit_2(argv, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
