@@ -13,6 +13,7 @@ BENCHES = {
     "explorer": "smana.lab.bench.explorer:cli",
     "replay": "smana.lab.bench.replay:cli",
     "pipeline": "smana.lab.bench.pipeline:cli",
+    "scale": "smana.lab.bench.scale:cli",
     "restart": "smana.lab.bench.restart:cli",
     "startup": "smana.lab.bench.startup:cli",
     "fuzz": "smana.lab.bench.fuzz:cli",
