@@ -46,14 +46,6 @@ NODE_STATE = np.dtype([("g", np.float64), ("slot", np.int32), ("parent", np.int3
 # rows share a cache line (24-byte rows of float64 f, g, node were 10 % slower, measured). The
 # popped node's g is read from its state: with decrease-key a heap row is never stale.
 HEAP_ROW = np.dtype([("f", np.float64), ("h", np.float32), ("n", np.int32)], align=True)
-# A node whose f lies beyond the heap's band waits in a bucket: one FAR_ROW in a linked list,
-# (g, node, next row). The ring has _RING buckets of `width` in f; a farther f waits in the last
-# one and is sorted on when that bucket's turn comes.
-FAR_ROW = np.dtype([("g", np.float64), ("n", np.int32), ("next", np.int32)], align=True)
-_RING = 1 << 12
-# The bucket width in units of the cheapest straight step (res + min enter cost): the heap then
-# holds the open nodes of a narrow band of f (measured, see docs/benchmarks.md).
-BUCKET_STEPS = 1.0
 
 
 class Query(NamedTuple):
@@ -69,7 +61,6 @@ class Query(NamedTuple):
     max_step: float  # inf for none
     mode: int  # 0 euclidean, 1 octile
     min_enter: float  # the octile heuristic's cheapest enter cost (0.0 for euclidean)
-    inv_width: float  # 1 / the f width of a bucket of the open set; 0: one heap, no buckets
 
 
 @dataclass
@@ -144,24 +135,13 @@ def astar(
 
 
 def search(
-    enter_cost,
-    heights,
-    start,
-    goal,
-    resolution_m,
-    h_f,
-    max_step,
-    heuristic,
-    min_enter,
-    t0=None,
-    bucket_steps=BUCKET_STEPS,
+    enter_cost, heights, start, goal, resolution_m, h_f, max_step, heuristic, min_enter, t0=None
 ) -> AStarResult:
     """`astar` without the input checks, for a caller that built the arrays itself and knows
     their smallest finite enter cost (the Planner caches both per graph version): C-contiguous
     arrays, enter costs float64, heights float64 or float32 (the grid's; a height difference is
     taken in float64 either way, so the cost is the same to the bit), in-window cells,
-    `max_step` a float (inf for none). `bucket_steps` is the open set's bucket width in
-    cheapest straight steps (0: one heap, as before the buckets; for tests and benchmarks)."""
+    `max_step` a float (inf for none)."""
     t0 = time.perf_counter() if t0 is None else t0
     nx, ny = enter_cost.shape
     st = _work_arrays(nx * ny)
@@ -177,19 +157,10 @@ def search(
         max_step,
         1 if octile else 0,
         min_enter if octile else 0.0,
-        _inv_width(resolution_m, min_enter if octile else 0.0, bucket_steps),
     )
     cost, path, expanded = _astar_kernel(st, query, start[0] * ny + start[1])
     cells = np.stack([path // ny, path % ny], axis=1)
     return AStarResult(float(cost), cells, int(expanded), (time.perf_counter() - t0) * 1e3)
-
-
-def _inv_width(resolution_m: float, min_enter: float, bucket_steps: float) -> float:
-    """1 / the bucket width in f: `bucket_steps` cheapest straight steps (0: no buckets)."""
-    step = resolution_m + min_enter
-    if not bucket_steps > 0 or not step > 0 or not math.isfinite(step):
-        return 0.0
-    return 1.0 / (bucket_steps * step)
 
 
 _work = threading.local()
@@ -276,131 +247,60 @@ def _pop(heap, st, size):
 
 
 _FOUND, _EXHAUSTED, _FULL = 0, 1, 2
-_NOT_IN_HEAP, _CLOSED, _IN_FAR = -1, -2, -3  # st[node].slot when it has no heap row
+_NOT_IN_HEAP, _CLOSED = -1, -2  # st[node].slot when it has no heap row
 _DX = (-1, -1, -1, 0, 0, 1, 1, 1)
 _DY = (-1, 0, 1, -1, 1, -1, 0, 1)
 
 
-@numba.njit(cache=True, inline="always")
-def _h(ax, ay, res, mode, min_enter, diag_extra):
-    """The heuristic for a node `ax`, `ay` cells from the goal (one copy, so that a bucketed
-    node's f is recomputed to the bit when it moves into the heap)."""
-    if mode == 0:
-        return res * math.sqrt(ax * ax + ay * ay)
-    lo = min(ax, ay)
-    hi = max(ax, ay)
-    return res * (hi + diag_extra * lo) + min_enter * hi
-
-
-@numba.njit(cache=True, inline="always")
-def _band(f, base, inv_width):
-    """The bucket of f: monotone in f (floor of monotone float operations), so a node of a
-    lower bucket never has a larger f than one of a higher bucket. inv_width 0: all in bucket 0,
-    a plain heap."""
-    return np.int64(math.floor((f - base) * inv_width))
-
-
 @numba.njit(cache=True)
-def _search(query, st, heap, stack, far, heads, counts, progress):
-    """The A* loop proper, for `query` from where `progress` left it. It returns (status,
-    progress) when the goal is popped, the open set is empty, or an array has no room for one
-    more step; the caller then grows it and calls again. Keeping the growth out of here
-    matters: an array variable reassigned inside the hot loop costs numba reference counting on
-    every iteration (2.4x slower when measured).
+def _search(query, st, heap, stack, progress):
+    """The A* loop proper, for `query` from where `progress` (heap size, stack depth, f_min,
+    nodes expanded) left it. It returns (status, progress) when the goal is popped, the open
+    set is empty, or the heap or the stack has no room for one more expansion; the caller then
+    grows them and calls again. Keeping the growth out of here matters: an array variable
+    reassigned inside the hot loop costs numba reference counting on every iteration (2.4x
+    slower when measured).
 
-    The open set has three tiers, taken in this order:
+    The open set is two-tier. The heap holds each open node once: `st[node].slot` is its row, so
+    an improved node moves up in place (decrease-key) instead of leaving a stale copy behind;
+    on the cluttered benchmark graphs half the pops were such copies, and decrease-key made
+    the search 1.3x faster (measured). `f_min` is the f of the last node taken from the heap;
+    every heap entry has f >= f_min. A node not in the heap whose new f <= f_min goes on
+    `stack` (rows (g, node)) instead, and the stack is emptied before the heap is touched
+    again: its nodes are still minimal, so the search stays exact, and LIFO takes the deepest
+    first as the heap's tie rule does. A stack entry is stale when its node was improved or
+    closed since. `slot` also marks closed nodes (_CLOSED), so no separate closed flags.
 
-    - `stack` (rows (g, node)): a node not in the heap whose new f <= f_min, the f of the last
-      node taken from the heap. Its nodes are still minimal, so the search stays exact, and
-      LIFO takes the deepest first as the heap's tie rule does; on open ground most nodes never
-      go further. A stack entry is stale when its node was improved or closed since.
-    - the heap, a binary heap with decrease-key (`st[node].slot` is its row: an improved node
-      moves up in place instead of leaving a stale copy; 1.3x faster than stale copies on the
-      cluttered graphs, measured), holding the open nodes whose f lies in the buckets up to the
-      current one, `cur`;
-    - the buckets beyond `cur` (`_band`), linked lists of FAR_ROW rows in a ring: pushing there
-      is O(1), and a node that is improved again before its bucket's turn costs no heap work
-      (its old row turns stale: slot no longer _IN_FAR or g changed). When the stack and the
-      heap are empty the next non-empty bucket's live rows move into the heap.
-
-    Every f in a later bucket is larger than every f in the heap (`_band` is monotone), so the
-    heap's root is the open set's minimum in (f, h) as with one heap: the nodes expanded are
-    the same, only the order of exact (f, h) ties may differ. `slot` also marks closed nodes
-    (_CLOSED), so no separate closed flags. The query's fields are read into locals once."""
-    enter, heights, nx, ny, goal, res, h_f, max_step, mode, min_enter, inv_width = query
-    size, depth, f_min, expanded, cur, base, top, free, n_free, n_far, need = progress
+    The query's fields are read into locals once, before the loop."""
+    enter, heights, nx, ny, goal, res, h_f, max_step, mode, min_enter = query
+    size, depth, f_min, expanded = progress
     goal_x = goal // ny
     goal_y = goal - goal_x * ny
     diag = res * SQRT2
     diag_extra = SQRT2 - 1.0
-    mask = _RING - 1
     # Without a height term or a step limit the heights need not be read at all.
     use_heights = h_f != 0.0 or max_step != np.inf
     cap = len(heap)
     stack_cap = stack.shape[0]
-    far_cap = len(far)
-    while True:
-        if size + 8 > cap or depth + 8 > stack_cap or far_cap - top + n_free < 8:
-            return _FULL, (size, depth, f_min, expanded, cur, base, top, free, n_free, n_far, 0)
+    while size > 0 or depth > 0:
+        if size + 8 > cap or depth + 8 > stack_cap:
+            return _FULL, (size, depth, f_min, expanded)
         if depth > 0:
             depth -= 1
             gpop = stack[depth, 0]
             n = np.int64(stack[depth, 1])
             # Stale when the node was closed or improved since (then on the stack again, or
-            # with a heap row or a bucket row).
+            # with a heap row).
             if st[n].slot != _NOT_IN_HEAP or gpop != st[n].g:
                 continue
             st[n].slot = _CLOSED
-        elif size > 0:
+        else:
             f_min = heap[0].f
             n = np.int64(heap[0].n)
             gpop = st[n].g
             size = _pop(heap, st, size)  # closes n; a heap row is never stale
-        else:
-            if n_far == 0:
-                break
-            b = cur + 1
-            while heads[b & mask] < 0:
-                b += 1
-            if counts[b & mask] + 8 > cap:  # the caller grows the heap for this bucket first
-                out = (size, depth, f_min, expanded, cur, base, top, free, n_free, n_far)
-                return _FULL, (*out, counts[b & mask] + 8)
-            cur = b
-            e = heads[b & mask]
-            heads[b & mask] = -1
-            counts[b & mask] = 0
-            while e >= 0:
-                nxt = far[e].next
-                n = far[e].n
-                g = far[e].g
-                n_far -= 1
-                if st[n].slot == _IN_FAR and st[n].g == g:
-                    mx = n // ny
-                    my = n - mx * ny
-                    h = _h(abs(mx - goal_x), abs(my - goal_y), res, mode, min_enter, diag_extra)
-                    f = g + h
-                    k = _band(f, base, inv_width)
-                    if k <= cur:
-                        _sift_up(heap, st, size, f, np.float32(h), n)
-                        size += 1
-                        e_free = True
-                    else:  # beyond the ring when it was pushed: on to its own bucket
-                        k = min(k, cur + _RING - 1)
-                        far[e].next = heads[k & mask]
-                        heads[k & mask] = e
-                        counts[k & mask] += 1
-                        n_far += 1
-                        e_free = False
-                else:
-                    e_free = True  # stale
-                if e_free:
-                    far[e].next = free
-                    free = e
-                    n_free += 1
-                e = nxt
-            continue
         if n == goal:
-            return _FOUND, (size, depth, f_min, expanded, cur, base, top, free, n_free, n_far, 0)
+            return _FOUND, (size, depth, f_min, expanded)
         expanded += 1
         x = n // ny
         y = n - x * ny
@@ -429,37 +329,25 @@ def _search(query, st, heap, stack, far, heads, counts, progress):
             if ng < st[m].g:
                 st[m].g = ng
                 st[m].parent = n
-                h = _h(abs(mx - goal_x), abs(my - goal_y), res, mode, min_enter, diag_extra)
+                ax = abs(mx - goal_x)
+                ay = abs(my - goal_y)
+                if mode == 0:
+                    h = res * math.sqrt(ax * ax + ay * ay)
+                else:
+                    lo = min(ax, ay)
+                    hi = max(ax, ay)
+                    h = res * (hi + diag_extra * lo) + min_enter * hi
                 f = ng + h
                 if sm >= 0:
                     _sift_up(heap, st, sm, f, np.float32(h), m)  # decrease-key
                 elif f <= f_min:
-                    st[m].slot = _NOT_IN_HEAP  # a bucket row it had turns stale
                     stack[depth, 0] = ng
                     stack[depth, 1] = m
                     depth += 1
                 else:
-                    b = _band(f, base, inv_width)
-                    if b <= cur:
-                        _sift_up(heap, st, size, f, np.float32(h), m)
-                        size += 1
-                    else:
-                        b = min(b, cur + _RING - 1)
-                        if free >= 0:
-                            e = free
-                            free = far[e].next
-                            n_free -= 1
-                        else:
-                            e = top
-                            top += 1
-                        far[e].g = ng
-                        far[e].n = m
-                        far[e].next = heads[b & mask]
-                        heads[b & mask] = e
-                        counts[b & mask] += 1
-                        n_far += 1
-                        st[m].slot = _IN_FAR
-    return _EXHAUSTED, (size, depth, f_min, expanded, cur, base, top, free, n_free, n_far, 0)
+                    _sift_up(heap, st, size, f, np.float32(h), m)
+                    size += 1
+    return _EXHAUSTED, (size, depth, f_min, expanded)
 
 
 @numba.njit(cache=True)
@@ -473,40 +361,26 @@ def _grown(a, used):
 def _astar_kernel(st, query, start):
     """`st` is a NODE_STATE work array of nx * ny rows, set here (parent needs none)."""
     goal = query.goal
-    ny = query.ny
     for i in range(len(st)):
         st[i].g = np.inf
         st[i].slot = _NOT_IN_HEAP
+    # A binary heap with decrease-key (see _search).
     heap = np.empty(1 << 14, HEAP_ROW)
     stack = np.empty((1 << 12, 2), np.float64)
-    far = np.empty(1 << 14, FAR_ROW)
-    heads = np.full(_RING, -1, np.int32)
-    counts = np.zeros(_RING, np.int64)
     st[start].g = 0.0
     _sift_up(heap, st, 0, 0.0, np.float32(0.0), start)
-    # Buckets count from the start's f, the smallest f of the search (the heuristic is
-    # consistent), so that the first ones are used.
-    ax = abs(start // ny - goal // ny)
-    ay = abs(start % ny - goal % ny)
-    base = _h(ax, ay, query.res, query.mode, query.min_enter, SQRT2 - 1.0)
-    # heap size, stack depth, f_min, nodes expanded, current bucket, bucket origin, far rows
-    # used, free far row, free rows, far rows in buckets, heap rows needed
-    progress = (1, 0, 0.0, 0, np.int64(0), base, 0, -1, 0, 0, 0)
+    progress = (1, 0, 0.0, 0)  # heap size, stack depth, f_min, nodes expanded
     while True:
-        state, progress = _search(query, st, heap, stack, far, heads, counts, progress)
-        size, depth, _, expanded, _, _, top, _, n_free, _, need = progress
+        state, progress = _search(query, st, heap, stack, progress)
+        size, depth, _, expanded = progress
         if state != _FULL:
             break
-        if size + 8 > len(heap) or need > len(heap):
-            heap2 = np.empty(max(2 * len(heap), 2 * need), HEAP_ROW)
+        if size + 8 > len(heap):
+            heap2 = np.empty(2 * len(heap), HEAP_ROW)
             heap2[:size] = heap[:size]
             heap = heap2
         if depth + 8 > stack.shape[0]:
             stack = _grown(stack, depth)
-        if len(far) - top + n_free < 8:
-            far2 = np.empty(2 * len(far), FAR_ROW)
-            far2[:top] = far[:top]
-            far = far2
     if state != _FOUND:
         return np.inf, np.empty(0, np.int64), expanded
     k = 1
