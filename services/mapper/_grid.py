@@ -248,6 +248,77 @@ def key_in_range(kx, ky, kz):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def octomap_ray_origin(ox, oy, oz, res, inv_res):
+    """The part of OctoMap's DDA set-up that depends on the ray's start only, computed once for
+    all the rays of a scan (they all start at the sensor): the start's keys, whether they are in
+    the key range, and per axis the tMax numerator for a positive and for a negative step,
+    `(key + 0.5) * res +- res / 2 - start`, in double, in OctoMap's order of operations.
+    Coordinates must be float32."""
+    kox = coord_to_key(ox, inv_res)
+    koy = coord_to_key(oy, inv_res)
+    koz = coord_to_key(oz, inv_res)
+    half = np.float64(np.float32(res * 0.5))
+    cx = (np.float64(kox) + 0.5) * res
+    cy = (np.float64(koy) + 0.5) * res
+    cz = (np.float64(koz) + 0.5) * res
+    fx = np.float64(ox)
+    fy = np.float64(oy)
+    fz = np.float64(oz)
+    # OctoMap adds step * half with step = +-1: exactly +half or -half
+    return (
+        kox,
+        koy,
+        koz,
+        key_in_range(kox, koy, koz),
+        cx + half - fx,
+        cx - half - fx,
+        cy + half - fy,
+        cy - half - fy,
+        cz + half - fz,
+        cz - half - fz,
+    )
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def octomap_ray_from(origin, ex, ey, ez, dx, dy, dz, length, res, inv_res):
+    """`octomap_ray_start` from a start's `octomap_ray_origin`, the end, and the ray's float32
+    difference end - start and its float32 length, as `octomap_ray_start` computes them (a caller
+    that has them already saves a square root)."""
+    kox, koy, koz, o_in, npx, nnx, npy, nny, npz, nnz = origin
+    kex = coord_to_key(ex, inv_res)
+    key_ = coord_to_key(ey, inv_res)
+    kez = coord_to_key(ez, inv_res)
+    big = np.finfo(np.float64).max
+    first = 1
+    if not (o_in and key_in_range(kex, key_, kez)):
+        first = -1
+    elif kox == kex and koy == key_ and koz == kez:
+        first = 0
+    if first <= 0:
+        z = np.int64(0)
+        return first, (z, z, z, z, z, z, z, z, z, big, big, big, big, big, big, big)
+    dx = np.float32(dx / length)
+    dy = np.float32(dy / length)
+    dz = np.float32(dz / length)
+    sx = np.int64(1 if dx > 0 else (-1 if dx < 0 else 0))
+    sy = np.int64(1 if dy > 0 else (-1 if dy < 0 else 0))
+    sz = np.int64(1 if dz > 0 else (-1 if dz < 0 else 0))
+    tmx = tmy = tmz = big
+    tdx = tdy = tdz = big
+    if sx != 0:
+        tmx = (npx if sx > 0 else nnx) / np.float64(dx)
+        tdx = res / abs(np.float64(dx))
+    if sy != 0:
+        tmy = (npy if sy > 0 else nny) / np.float64(dy)
+        tdy = res / abs(np.float64(dy))
+    if sz != 0:
+        tmz = (npz if sz > 0 else nnz) / np.float64(dz)
+        tdz = res / abs(np.float64(dz))
+    walk = (kox, koy, koz, kex, key_, kez, sx, sy, sz, tmx, tmy, tmz, tdx, tdy, tdz)
+    return first, (*walk, np.float64(length))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def octomap_ray_start(ox, oy, oz, ex, ey, ez, res, inv_res):
     """OctoMap's computeRayKeys, as a walk: (first, walk). `first` is -1 when an end lies outside
     the key range (OctoMap skips the ray), 0 when both ends share a voxel (no key), else 1: the
@@ -258,48 +329,17 @@ def octomap_ray_start(ox, oy, oz, ex, ey, ez, res, inv_res):
     float (point3d) and double (tMax, tDelta) arithmetic, so that both walk the same voxels even
     when a ray grazes a voxel corner. Coordinates must be float32. A kernel walking the keys as
     they come (no buffer) saves a store and a load per voxel and keeps the walk in registers.
+    Split in two (`octomap_ray_origin`, `octomap_ray_from`) so that a scan's rays, which share
+    their start, compute its part once.
     """
-    kox = coord_to_key(ox, inv_res)
-    koy = coord_to_key(oy, inv_res)
-    koz = coord_to_key(oz, inv_res)
-    kex = coord_to_key(ex, inv_res)
-    key_ = coord_to_key(ey, inv_res)
-    kez = coord_to_key(ez, inv_res)
-    big = np.finfo(np.float64).max
-    first = 1
-    if not (key_in_range(kox, koy, koz) and key_in_range(kex, key_, kez)):
-        first = -1
-    elif kox == kex and koy == key_ and koz == kez:
-        first = 0
-    if first <= 0:
-        z = np.int64(0)
-        return first, (z, z, z, z, z, z, z, z, z, big, big, big, big, big, big, big)
     # float32 direction and length, exactly as point3d computes them
     dx = np.float32(ex - ox)
     dy = np.float32(ey - oy)
     dz = np.float32(ez - oz)
     nsq = np.float32(np.float32(dx * dx + dy * dy) + dz * dz)
     length = np.float32(np.sqrt(np.float64(nsq)))
-    dx = np.float32(dx / length)
-    dy = np.float32(dy / length)
-    dz = np.float32(dz / length)
-    half = np.float64(np.float32(res * 0.5))
-    sx = np.int64(1 if dx > 0 else (-1 if dx < 0 else 0))
-    sy = np.int64(1 if dy > 0 else (-1 if dy < 0 else 0))
-    sz = np.int64(1 if dz > 0 else (-1 if dz < 0 else 0))
-    tmx = tmy = tmz = big
-    tdx = tdy = tdz = big
-    if sx != 0:
-        tmx = ((np.float64(kox) + 0.5) * res + sx * half - np.float64(ox)) / np.float64(dx)
-        tdx = res / abs(np.float64(dx))
-    if sy != 0:
-        tmy = ((np.float64(koy) + 0.5) * res + sy * half - np.float64(oy)) / np.float64(dy)
-        tdy = res / abs(np.float64(dy))
-    if sz != 0:
-        tmz = ((np.float64(koz) + 0.5) * res + sz * half - np.float64(oz)) / np.float64(dz)
-        tdz = res / abs(np.float64(dz))
-    walk = (kox, koy, koz, kex, key_, kez, sx, sy, sz, tmx, tmy, tmz, tdx, tdy, tdz)
-    return first, (*walk, np.float64(length))
+    origin = octomap_ray_origin(ox, oy, oz, res, inv_res)
+    return octomap_ray_from(origin, ex, ey, ez, dx, dy, dz, length, res, inv_res)
 
 
 @njit(cache=True, error_model="numpy", inline="always")

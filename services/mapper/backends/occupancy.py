@@ -47,7 +47,9 @@ from smana.services.mapper._grid import (
     Grid,
     coord_to_key,
     key_in_range,
+    octomap_ray_from,
     octomap_ray_next,
+    octomap_ray_origin,
     octomap_ray_start,
     put_key_centre,
     voxel_slot,
@@ -261,6 +263,9 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
     n_cap = touched.shape[0]
     last_key = np.int64(-1)
     last_b = np.int64(-1)
+    # Every full ray starts at the sensor: its keys and tMax numerators are computed once here,
+    # not once per ray (the set-up is most of a short ray's cost).
+    at_origin = octomap_ray_origin(ox, oy, oz, res, inv_res)
     for i in range(i0, points.shape[0]):
         px = points[i, 0]
         py = points[i, 1]
@@ -278,13 +283,22 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
             ex = np.float32(ox + np.float32(np.float32(dx / ln) * mr))
             ey = np.float32(oy + np.float32(np.float32(dy / ln) * mr))
             ez = np.float32(oz + np.float32(np.float32(dz / ln) * mr))
-        sx, sy, sz = ox, oy, oz
-        if ray_m > 0 and (dist if hit else max_range) > ray_m:
+        if ray_m > 0 and (dist if hit else max_range) > ray_m:  # the ray's last ray_m only
             rm = np.float32(ray_m)
             sx = np.float32(ex - np.float32(np.float32(dx / ln) * rm))
             sy = np.float32(ey - np.float32(np.float32(dy / ln) * rm))
             sz = np.float32(ez - np.float32(np.float32(dz / ln) * rm))
-        first, walk = octomap_ray_start(sx, sy, sz, ex, ey, ez, res, inv_res)
+            first, walk = octomap_ray_start(sx, sy, sz, ex, ey, ez, res, inv_res)
+        elif hit:  # from the sensor to the point: dx, dy, dz and ln are the walk's own
+            first, walk = octomap_ray_from(at_origin, ex, ey, ez, dx, dy, dz, ln, res, inv_res)
+        else:  # from the sensor to max_range along the ray
+            cx = np.float32(ex - ox)
+            cy = np.float32(ey - oy)
+            cz = np.float32(ez - oz)
+            c_len = np.float32(
+                np.sqrt(np.float64(np.float32(np.float32(cx * cx + cy * cy) + cz * cz)))
+            )
+            first, walk = octomap_ray_from(at_origin, ex, ey, ez, cx, cy, cz, c_len, res, inv_res)
         n_keys = 0
         while first > 0:  # the ray's keys as the walk yields them
             g, last_key, last_b = voxel_slot(grid, walk[0], walk[1], walk[2], last_key, last_b)
