@@ -17,6 +17,7 @@ from . import costmap_types as nav2
 
 POINT_FIELD_FLOAT32, POINT_FIELD_UINT16 = 7, 4
 LETHAL, UNKNOWN = 100, -1
+_AXIS = 1 << 20  # cell indices of within_budget's packing are offset by this
 MAX_TRAVERSABLE = 98  # the dearest class; 99 is "inscribed" to nav2, 100 lethal
 
 
@@ -109,7 +110,9 @@ def within_budget(centres, labels, resolution_m: float, max_points: int):
     while True:
         cell = float(resolution_m) * factor
         idx = np.floor(c / cell).astype(np.int64)
-        _, first = np.unique(idx, axis=0, return_index=True)
+        # One int64 per cell (21 bits an axis: +-100 km at 0.1 m) for a fast 1-D unique.
+        packed = ((idx[:, 0] + _AXIS) << 42) | ((idx[:, 1] + _AXIS) << 21) | (idx[:, 2] + _AXIS)
+        _, first = np.unique(packed, return_index=True)
         if len(first) <= max_points:
             first.sort()
             return ((idx[first] + 0.5) * cell).astype(np.float32), labels[first], cell
