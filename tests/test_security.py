@@ -55,7 +55,7 @@ def test_each_host_holds_only_its_own_secrets(certs):
     for robot in ROBOTS:
         folder = certs / robot
         mine = read_credentials(str(folder / "dictionary.txt"))
-        assert set(mine) == {f"{robot}.{r}" for r in (*OWNERS, "tool", "router")}
+        assert set(mine) == {f"{robot}.{r}" for r in (*OWNERS, "tool", "router", "ros2peer")}
         # No other robot's, no operator's, no base router's password, in any file of the folder
         text = b"".join(p.read_bytes() for p in every_file(folder))
         leaked = [u for u, pw in every.items() if u not in mine and pw.encode() in text]
@@ -90,7 +90,7 @@ def test_adding_or_revoking_a_robot_leaves_the_others_alone(tmp_path):
     assert "r3.router" in base and "r3.explorer" in base
     assert "smana/r3/robot/cmd_vel" in (tmp_path / "base" / "acl.json5").read_text()
     r3 = read_credentials(str(tmp_path / "r3" / "dictionary.txt"))
-    assert set(r3) == {f"r3.{r}" for r in (*OWNERS, "tool", "router")}
+    assert set(r3) == {f"r3.{r}" for r in (*OWNERS, "tool", "router", "ros2peer")}
     revoke_robot(tmp_path, "r2")
     assert not (tmp_path / "r2").exists()
     base = read_credentials(str(tmp_path / "base" / "dictionary.txt"))
