@@ -277,11 +277,7 @@ def test_nav2_costmap_hash_and_key_agree_with_the_sdk_and_pamoja(tmp_path, monke
             ros2_to_dds_type,
         )
 
-        registry = get_registry()
-        root = tmp_path / "msgs" / "nav2_msgs" / "msg"
-        root.mkdir(parents=True)
-        for name, text in costmap_types.DEFINITIONS.items():
-            (root / f"{name.rsplit('/', 1)[1]}.msg").write_text(text)
+        registry = get_registry()  # its .msg files: tests/support/ros2_sdk.py
         for t in (costmap_types.COSTMAP_META, COSTMAP):
             text = registry.get_msg_file_path(t).read_text()
             deps = load_dependencies_recursive(t, text, registry)
