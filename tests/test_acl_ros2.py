@@ -123,7 +123,7 @@ class Robot:
             self.ros2.declare_subscriber(f"*/{robot}/**", self._on_sample),
             self.ros2.declare_subscriber(f"*/smana/{robot}/**", self._on_sample),
             self.ros2.declare_queryable(send_goal(robot), self._on_call, complete=True),
-            self.ros2.liveliness().declare_subscriber("@ros2_lv/**", self._on_token),
+            self.ros2.liveliness().declare_subscriber("@ros2_lv/**", self._on_token, history=True),
             self.explorer.declare_queryable(f"smana/{robot}/explorer/goal", self._on_call),
             self.explorer.declare_queryable(f"smana/{robot}/explorer/goal/cancel", self._on_call),
         ]
@@ -150,6 +150,16 @@ class Robot:
             d.undeclare()
         self.ros2.close()
         self.explorer.close()
+
+
+def _routed(session, key: str, query: bool = False) -> None:
+    """Wait until the router has passed on the subscriber (queryable) on `key` to `session`: a
+    put or query sent before that would not reach it."""
+    probe = session.declare_querier(key) if query else session.declare_publisher(key)
+    try:
+        assert wait_for(lambda: probe.matching_status.matching, 30), key
+    finally:
+        probe.undeclare()
 
 
 def _put(session, key: str, payload: str) -> None:
@@ -191,6 +201,10 @@ def test_a_robots_ros2_peer_drives_its_own_robot_only(router):
     peer1, peer2 = router.open("r1", "ros2peer"), router.open("r2", "ros2peer")
     held = []
     try:
+        for peer, robot in ((peer1, "r1"), (peer2, "r2")):
+            _routed(peer, goal_pose(robot))
+            _routed(peer, send_goal(robot), query=True)
+            _routed(peer, f"smana/{robot}/explorer/goal", query=True)
         # r1's peer: its topics, r1's action and goal queries, a token in /r1.
         held.append(peer1.liveliness().declare_token(token("r1", "rviz", "goal_pose")))
         for topic in ("points", "odom", "tf_static", "goal_pose"):
@@ -261,6 +275,9 @@ def test_the_ros2_service_publishes_under_smana_r_and_nothing_of_another_robot(r
     ]
     smana1, smana2 = router.open("r1", "ros2"), router.open("r2", "ros2")
     try:
+        for session, key in ((smana1, "0/smana/r1/map/"), (smana1, "0/r1/cmd_vel/")):
+            _routed(session, key + POSE)
+        _routed(smana2, f"0/smana/r2/map/{POSE}")
         _put(smana2, f"0/smana/r1/map/{POSE}", "r2 map on r1")
         _put(smana2, f"0/r1/cmd_vel/{POSE}", "r2 cmd_vel on r1")
         _put(smana1, f"0/smana/r1/map/{POSE}", "r1 map")
@@ -293,6 +310,7 @@ def test_a_transient_local_publisher_works_through_the_secured_router(router):
         pub.put(convert.path(types, [[0.0, 0.0], [1.0, 2.0]], 3.0))
         beats, history = [], []
         peer.declare_subscriber(f"{pub.key}/@adv/pub/**", lambda s: beats.append(s.payload))
+        _routed(smana1, f"{pub.key}/@adv/pub/probe/0/_")
         assert wait_for(lambda: _history(peer, pub.key, history), 30)
         msg = types.deserialize(history[0], "nav_msgs/msg/Path")
         assert [p.pose.position.y for p in msg.poses] == [0.0, 2.0]

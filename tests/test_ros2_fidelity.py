@@ -56,7 +56,7 @@ def test_gid_is_xxh3_128_of_the_token_low_then_high_little_endian():
     assert rmw.gid_of(token) != rmw.gid_of(token + "x")
 
 
-def test_a_publishers_gid_is_that_of_its_own_token():
+def test_a_publishers_gid_is_that_of_its_own_token_and_its_qos_rmw_zenohs():
     pytest.importorskip("zenoh")
     session = _Session()
     node = rmw.RosNode(session, TYPES, 0, "smana", "/smana/r1")
@@ -68,12 +68,27 @@ def test_a_publishers_gid_is_that_of_its_own_token():
         def put(self, payload, attachment):
             tokens.append(attachment)
 
-    node.session.declare_publisher = lambda key, **kw: Pub()
+    declared = []
+    node.session.declare_publisher = lambda key, **kw: declared.append(kw) or Pub()
     pub = node.publisher("/smana/r1/odom", "nav_msgs/msg/Odometry")
     assert session.tokens[-1].split("/")[5] == rmw.PUBLISHER
     assert pub.gid == rmw.gid_of(session.tokens[-1])
     other = node.publisher("/smana/r1/odom2", "nav_msgs/msg/Odometry")
     assert other.gid != pub.gid
+    # Reliability and congestion control as rmw_zenoh_cpp's rmw_publisher_data.cpp sets them:
+    # DROP but for a reliable KEEP_ALL publisher.
+    import zenoh
+
+    node.publisher("/a", "nav_msgs/msg/Odometry", rmw.SENSOR_QOS)
+    node.publisher("/b", "nav_msgs/msg/Odometry", rmw.QoS(keep_all=True))
+    got = [(d["reliability"], d["congestion_control"]) for d in declared]
+    R, C = zenoh.Reliability, zenoh.CongestionControl
+    assert got == [
+        (R.RELIABLE, C.DROP),
+        (R.RELIABLE, C.DROP),
+        (R.BEST_EFFORT, C.DROP),
+        (R.RELIABLE, C.BLOCK),
+    ]
 
 
 # -- QoS tokens ----------------------------------------------------------------------------------
@@ -148,8 +163,9 @@ def test_reliable_transient_local_publishers_send_rmw_zenohs_heartbeat(zenoh_sta
     smana, watcher = _client(zenoh_stack.endpoint), zenoh_stack.session
     try:
         tokens, beats, samples = [], [], []
+        # history: the tokens declared before this subscriber reached the router too
         watcher.liveliness().declare_subscriber(
-            "@ros2_lv/0/**", lambda s: tokens.append(str(s.key_expr))
+            "@ros2_lv/0/**", lambda s: tokens.append(str(s.key_expr)), history=True
         )
         node = rmw.RosNode(smana, TYPES, 0, "smana", "/smana/test")
         latched = node.publisher("/smana/test/costmap_raw", COSTMAP, rmw.LATCHED_QOS)
@@ -159,7 +175,7 @@ def test_reliable_transient_local_publishers_send_rmw_zenohs_heartbeat(zenoh_sta
                 f"{pub.key}/@adv/pub/**", lambda s: beats.append((str(s.key_expr), s.payload))
             )
             watcher.declare_subscriber(pub.key, lambda s: samples.append(s))
-        assert wait_for(lambda: len([t for t in tokens if "/MP/" in t]) == 2, 10)
+        assert wait_for(lambda: len({t for t in tokens if "/MP/" in t}) == 2, 10)
         grid = _grid()
         msg = convert.nav2_costmap(TYPES, grid, _LUT, 5.0, 5.0)
         probe = smana.declare_publisher(latched.key)  # waits until the subscriber is routed
