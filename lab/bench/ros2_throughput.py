@@ -43,8 +43,9 @@ NS = "/smana/bench"
 DRAIN_S = 10.0  # after the last cloud: what is still on its way gets this long to arrive
 
 
-def _cloud_fields(types, n: int):
-    field = types.msg("sensor_msgs/msg/PointField")
+def _cloud_fields(msg):
+    """x, y, z, intensity: float32 each; `msg` maps a type name to its message class."""
+    field = msg("sensor_msgs/msg/PointField")
     fields = [field(name=c, offset=4 * i, datatype=7, count=1) for i, c in enumerate("xyz")]
     fields.append(field(name="intensity", offset=12, datatype=7, count=1))
     return fields
@@ -93,7 +94,7 @@ def sdk_side(
 
     _write_msgdefs(work / "msgs")
     message_registry.get_registry(str(work / "msgs"))
-    map_in: list[tuple[int, float]] = []  # (stamp ns, latency s)
+    map_in: list[tuple[int, float, int]] = []  # (stamp ns, latency s, points)
 
     def on_map(msg) -> None:
         now = time.time_ns()
@@ -120,12 +121,7 @@ def sdk_side(
     from rosbags.typesys import Stores, get_typestore
 
     types_store = get_typestore(Stores.ROS2_JAZZY)
-
-    class _Types:  # what _cloud_fields reads
-        def msg(self, name):
-            return types_store.types[name]
-
-    fields = _cloud_fields(_Types(), points)
+    fields = _cloud_fields(types_store.types.__getitem__)
     rng = np.random.default_rng(0)
     data = rng.random((points, 4), dtype=np.float32).view(np.uint8).reshape(-1)
     deadline = time.monotonic() + 30.0
