@@ -56,7 +56,7 @@ SENSORS = (
     "robot/image/rgb",
 )
 TABLE = {
-    **{family: {"sim": "p", "replay": "p", "driver": "p"} for family in SENSORS},
+    **{family: {"sim": "p", "replay": "p", "driver": "p", "ros2": "p"} for family in SENSORS},
     "robot/cmd_vel": {"explorer": "p", "operator": "p"},
     "robot/status": {},  # the robot's key space holds only the streams above
     "sim/status": {"sim": "pdr"},
@@ -74,7 +74,7 @@ TABLE = {
     "ros2/status": {"ros2": "pdr"},
     "tool/status": {},  # tools and operators own no key space
     "operator/status": {},
-    "alive/robot": {"sim": "t", "replay": "t", "driver": "t"},
+    "alive/robot": {"sim": "t", "replay": "t", "driver": "t", "ros2": "t"},
     **{f"alive/{owner}": {owner: "t"} for owner in OWNERS},
     "alive/tool": {},
     "nobody/x": {},  # a segment no role owns
