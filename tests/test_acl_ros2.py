@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 import pytest
 
@@ -339,3 +340,103 @@ def test_the_policy_names_the_ros2_roles():
         "@ros2_lv/*/*/*/*/*/*/%smana%r1/**",
         "@ros2_lv/*/*/*/*/*/*/%smana%r1%$*/**",
     ]
+
+
+def test_the_ros2_service_reads_its_robots_peer_over_tls_and_no_other(router, tmp_path):
+    """`smana ros2` logged in as `r1.ros2` over TLS, reading robot r1's topics in `/r1`: r1's
+    peer's odometry reaches `smana/r1/robot/pose` and comes back as `/smana/r1/odom`; r2's
+    peer's odometry on `/r1/odom` never reaches it."""
+    pytest.importorskip("rosbags")
+    import numpy as np
+
+    from smana.common.messages import Pose, decode
+    from smana.services.ros2 import convert, rmw
+    from tests.conftest import kernels_ready
+
+    types = rmw.RosTypes()
+    odom_t = "nav_msgs/msg/Odometry"
+    c = router.certs
+    sets = {
+        "zenoh.tls_ca": c / "ca.pem",
+        "zenoh.tls_cert": c / "r1" / "host.pem",
+        "zenoh.tls_key": c / "r1" / "host.key",
+        "zenoh.credentials_file": c / "users.txt",
+        "zenoh.user": "r1.ros2",
+        "deploy.sim.enabled": "false",
+        "ros2.odom_topic": "/r1/odom",
+        "ros2.cloud_topic": "/r1/points",
+        "ros2.cmd_vel_topic": "/r1/cmd_vel",
+    }
+    argv = [sys.executable, "-m", "smana.services.ros2", "--mode", "client"]
+    argv += ["--connect", router.endpoint, "--robot", "r1"]
+    for k, v in sets.items():
+        argv += ["--set", f"{k}={v}"]
+    log = open(tmp_path / "ros2.log", "ab")  # noqa: SIM115 - the child owns it
+    proc = subprocess.Popen(
+        argv,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        start_new_session=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        cwd=tmp_path,
+        preexec_fn=die_with_parent,
+    )
+    log.close()
+    tool = router.open("r1", "tool")
+    peer1, peer2 = router.open("r1", "ros2peer"), router.open("r2", "ros2peer")
+    poses, odoms = [], []
+    try:
+        tool.declare_subscriber(
+            "smana/r1/robot/pose", lambda s: poses.append(decode(s.payload.to_bytes(), Pose))
+        )
+        node1 = rmw.RosNode(peer1, types, 0, "base", "/r1")
+        odom_key = rmw.data_key(0, "/smana/r1/odom", odom_t, types.hash(odom_t))
+        peer1.declare_subscriber(odom_key, lambda s: odoms.append(s.payload.to_bytes()))
+
+        def alive():
+            assert proc.poll() is None, (tmp_path / "ros2.log").read_text()
+            return bool(list(tool.liveliness().get("smana/r1/alive/ros2", timeout=1.0)))
+
+        assert wait_for(lambda: alive() and kernels_ready(tool, "r1", "ros2"), 120)
+        pub1 = node1.publisher("/r1/odom", odom_t)
+        node2 = rmw.RosNode(peer2, types, 0, "base", "/r2")
+        pub2 = node2.publisher("/r1/odom", odom_t)  # r2's peer, on r1's topic
+        _routed(peer1, pub1.key)
+        t0 = time.time()
+
+        def odometry(t, x):
+            msg = convert.odometry(types, Pose(t, 1, np.array([x, 0.0, 0.0]), np.eye(4)[3]))
+            msg.header.frame_id = "odom"
+            return msg
+
+        for i in range(20):
+            pub2.put(odometry(t0 + 0.05 * i, 50.0))  # r2 claims r1 is 50 m away
+            pub1.put(odometry(t0 + 0.05 * i, 0.01 * i))
+            time.sleep(0.05)
+        assert wait_for(lambda: len(poses) >= 15 and len(odoms) >= 15, 30), (
+            tmp_path / "ros2.log"
+        ).read_text()
+        assert max(abs(p.position[0]) for p in poses) < 1.0  # none of r2's came through
+        assert all(types.deserialize(o, odom_t).pose.pose.position.x < 1.0 for o in odoms)
+        # Nor did any reach it to be refused by its own gates (the first two of r1's are, while
+        # the odometry's place settles): 20 odometry messages in all, r1's.
+        from smana.common.query import request
+
+        def odometry_in():
+            st = request(tool, "smana/r1/ros2/status", None, 3.0)
+            return st.details["received"]["odometry"] + sum(st.rejected.values()), st
+
+        assert wait_for(lambda: odometry_in()[0] >= 20, 30), odometry_in()
+        n, st = odometry_in()
+        assert n == 20 and set(st.rejected) <= {"settling"} and st.books_add_up(), st
+    finally:
+        for s in (tool, peer1, peer2):
+            s.close()
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
