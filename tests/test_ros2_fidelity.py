@@ -332,3 +332,38 @@ def test_map_within_budget_bounds_the_message_and_keeps_its_extent():
     assert first == kept
     msg = convert.map_cloud(TYPES, out, lab, np.zeros((16, 3), np.uint8), 0.0)
     assert len(TYPES.serialize(msg, "sensor_msgs/msg/PointCloud2")) <= 20 * 10_000 + 1000
+
+
+def test_an_rmw_zenoh_transient_local_subscriber_gets_the_cached_map_and_the_next(zenoh_stack):
+    """A subscriber declared as rmw_zenoh_cpp declares a reliable transient-local subscription
+    (rmw_subscription_data.cpp: an AdvancedSubscriber with history, late-publisher detection,
+    `depth` samples, heartbeat recovery and subscriber detection), joining after smana's map went
+    out: it gets that map from the cache, then the next one, each with its publisher's gid."""
+    from zenoh import ext
+
+    smana, ros = _client(zenoh_stack.endpoint), _client(zenoh_stack.endpoint)
+    try:
+        node = rmw.RosNode(smana, TYPES, 0, "smana", "/smana/test")
+        pub = node.publisher("/smana/test/costmap_raw", COSTMAP, rmw.LATCHED_QOS)
+        grid = _grid()
+        pub.put(convert.nav2_costmap(TYPES, grid, _LUT, 5.0, 5.0))
+        got = []
+        sub = ext.declare_advanced_subscriber(
+            ros,
+            pub.key,
+            lambda s: got.append((s.payload.to_bytes(), s.attachment.to_bytes())),
+            history=ext.HistoryConfig(detect_late_publishers=True, max_samples=1),
+            recovery=ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+            subscriber_detection=True,
+        )
+        assert wait_for(lambda: len(got) >= 1, 10)
+        pub.put(convert.nav2_costmap(TYPES, grid, _LUT, 6.0, 5.0))
+        assert wait_for(lambda: len(got) >= 2, 10)
+        stamps = [TYPES.deserialize(p, COSTMAP).header.stamp.sec for p, _ in got]
+        assert stamps[:2] == [5, 6]
+        assert {rmw.parse_attachment(a)[2] for _, a in got} == {pub.gid}
+        assert [rmw.parse_attachment(a)[0] for _, a in got][:2] == [1, 2]
+        sub.undeclare()
+    finally:
+        ros.close()
+        smana.close()
