@@ -408,8 +408,8 @@ def cli(argv: list[str] | None = None) -> int:
         prog="smana bench ros2-throughput",
         description=__doc__.strip().splitlines()[0],
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Takes --duration plus about 10 s. Needs zenoh-ros2-sdk (pip install "
-        "'smana[test]').",
+        epilog="Takes --duration, plus the start-up and up to 10 s for the last clouds. Needs "
+        "zenoh-ros2-sdk (pip install 'smana[test]').",
     )
     p.add_argument("--duration", type=positive_float, default=60.0, metavar="S")
     p.add_argument("--points", type=int, default=131_072, help="points per cloud")
