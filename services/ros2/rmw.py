@@ -18,12 +18,13 @@
   '/' in names becomes '%'.
 - A TRANSIENT_LOCAL publisher is a zenoh-ext AdvancedPublisher with a cache of `depth` samples:
   a late subscriber (RViz2) queries it for the last ones. A RELIABLE one also sends the sample-miss
-  heartbeat (`rmw_publisher_data.cpp`: sporadic, every 500 ms): on `<key>/@adv/pub/<zid>/<eid>/_`
+  heartbeat (`rmw_publisher_data.cpp`: sporadic, period 500 ms): on `<key>/@adv/pub/<zid>/<eid>/_`
   the last sequence number (u32, little-endian), only when it changed, so that a subscriber that
   missed the latest sample fetches it from the cache.
 - Publishers are reliable or best effort as their QoS says; congestion control is DROP, BLOCK only
-  for a reliable KEEP_ALL publisher (rmw_zenoh_cpp's choice: a slow subscriber never stalls a
-  keep-last publisher; a transient-local one recovers what was dropped through the heartbeat).
+  for a reliable KEEP_ALL publisher (rmw_zenoh_cpp's choice: a slow subscriber does not hold up
+  a keep-last publisher; an rmw_zenoh transient-local subscriber recovers the latest sample it
+  missed through the heartbeat).
 
 Message types, CDR and type hashes come from rosbags' typestore (ROS 2 Jazzy definitions);
 smana writes only this mapping. No ROS install is needed.
