@@ -160,6 +160,9 @@ TABLE: tuple[ServiceRow, ...] = (
         service_class="smana.services.ros2.service:Ros2Service",
         deploy={"enabled": False},  # off unless asked: --set deploy.ros2.enabled=true
         requires=(("rosbags", "ros2"),),
+        # With a real robot's topics it publishes the robot's clouds and pose (robot/scan,
+        # robot/pose) as a driver does: the secured profile lets it.
+        acl=("robot", "sensor"),
     ),
 )
 

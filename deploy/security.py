@@ -48,8 +48,11 @@ from smana.deploy.certs import issue_host_cert, new_ca, write_cert, write_key, w
 # of smana, which publishes the robot's sensors as the sim and the replay do.
 SENSOR_ROLES = (*services.with_acl("sensor"), "driver")
 OWNERS = (*SENSOR_ROLES, *(r for r in services.with_acl("robot") if r not in SENSOR_ROLES))
-ROBOT_ROLES = (*OWNERS, "tool", "router")  # every robot's identities
+# `ros2peer`: the robot's own ROS 2 nodes over rmw_zenoh (its drivers, RViz2, a Nav2 client).
+ROBOT_ROLES = (*OWNERS, "tool", "router", "ros2peer")  # every robot's identities
 DRIVERS = services.with_acl("drive")  # they publish cmd_vel, claim goals, send explorer goals
+# the ros2 service sends the explorer the goals of the Nav2 actions it serves (NavigateToPose)
+GOAL_SENDERS = (*DRIVERS, "ros2")
 BASE_RUNS = services.with_acl("base")  # a robot's, that a base may run
 FLEET_ROLES = services.with_acl("fleet")  # the fleet's, on the base
 BASE_ROLES = ("operator", "tool", "router")
@@ -76,6 +79,34 @@ ALL_MESSAGES = [
 ]
 
 RELAY_MESSAGES = [m for m in ALL_MESSAGES if m != "query"]
+
+# ROS 2 over rmw_zenoh (docs/ros2.md, "The secured profile"). Data keys are `<domain>/<topic>/
+# <type>/<hash>` (any domain: `*`); a robot's own topics are in its ROS namespace `/<robot>`
+# (Nav2's multi-robot convention), smana's in `/smana/<robot>`. Liveliness tokens are
+# `@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/...`: scoped by
+# their namespace chunk, `%<robot>` or below it. A transient-local publisher's cache, heartbeat
+# and detection token hang below its data key under `@adv/`, which `**` never matches (a chunk
+# that starts with `@` is matched only by itself), so each rule names them too.
+ROS2_PEER_TOPICS = ("points", "odom", "tf_static", "goal_pose")  # the robot's peer publishes
+ROS2_CALLS = ("navigate_to_pose/_action", "compute_path_to_pose/_action", "plan")  # /smana/<r>/
+EXPLORER_GOAL_QUERIES = ("explorer/goal", "explorer/goal/cancel")  # smana/<robot>/...
+ROS2_ADV = "**/@adv/**"
+
+
+def ROS2_PEER_RULES(r: str) -> list[str]:  # noqa: N802 - the ids of `_ros2_rules`
+    return [f"ros2-peer-{r}{part}" for part in ("", "-own", "-tokens", "-calls")]
+
+
+def ROS2_SMANA_RULES(r: str) -> list[str]:  # noqa: N802
+    return [f"ros2-smana-{r}", f"ros2-smana-{r}-tokens"]
+
+
+def ros2_tokens(namespace: str) -> list[str]:
+    """The liveliness tokens of nodes (and their endpoints) in ROS namespace `namespace` and
+    below it: the namespace chunk is `%a%b` for `/a/b`."""
+    ns = namespace.strip("/").replace("/", "%")
+    head = "@ros2_lv/" + "/".join(["*"] * 6)  # domain, zid, node id, entity id, kind, enclave
+    return [f"{head}/%{ns}/**", f"{head}/%{ns}%$*/**"]
 
 
 def user(robot: str, role: str) -> str:
@@ -144,6 +175,12 @@ def acl_policy(
         # What routers send out to their clients: samples, replies, queries to queryables.
         _rule("deliver", ["egress"], ALL_MESSAGES, ["smana/**"]),
         _rule("relay", ["ingress", "egress"], ALL_MESSAGES, ["smana/**"]),
+        # ROS 2: every identity may see the graph, subscribe to every topic and ask a
+        # transient-local publisher's cache (a query under `@adv/` only: `*/**` would include
+        # the selectors of the queries that write, `smana/<robot>/mapper/save` among them).
+        _rule("ros2-read", ["ingress"], READ, ["@ros2_lv/**", "*/**", f"*/{ROS2_ADV}"]),
+        _rule("ros2-history", ["ingress"], ["query"], [f"*/{ROS2_ADV}"]),
+        _rule("ros2-deliver", ["egress"], ALL_MESSAGES, ["@ros2_lv/**", "*/**", f"*/{ROS2_ADV}"]),
     ]
     subjects: list[dict] = []
     policies: list[dict] = []
@@ -171,13 +208,16 @@ def acl_policy(
                 alive.append(f"smana/{ns}/alive/robot")  # whatever drives the robot shows it
                 ids.append(f"sensors-{ns}")
             if owner in DRIVERS:
-                ids += [f"cmd_vel-{ns}", f"goal-{ns}"]
+                ids.append(f"cmd_vel-{ns}")
                 if fleet:
                     ids.append(f"claim-{ns}")
+            if owner in GOAL_SENDERS:
+                ids.append(f"goal-{ns}")
             rules.append(_rule(ids[1], ["ingress"], ["liveliness_token"], alive))
             identity(u, ids)
 
     for r in robots:
+        rules += _ros2_rules(r)
         rules += [
             _rule(
                 f"sensors-{r}",
@@ -193,6 +233,10 @@ def acl_policy(
         if fleet:
             rules.append(_rule(f"claim-{r}", ["ingress"], ["query"], [claim_key(fleet, r)]))
         owners(r, OWNERS)
+        policies.append(
+            {"id": f"ros2-{r}", "rules": ROS2_SMANA_RULES(r), "subjects": [user(r, "ros2")]}
+        )
+        identity(user(r, "ros2peer"), ROS2_PEER_RULES(r))
         identity(user(r, "tool"), [])
         relay = [f"relay-{r}", f"goal-{r}", *([f"claim-{r}"] if fleet else [])]
         router(user(r, "router"), r, ["read", "read-queries", "deliver", *relay])
@@ -216,7 +260,15 @@ def acl_policy(
         identity("tool", [])
     router("router", base, ["relay"])
     policies.insert(
-        0, {"id": "read", "rules": ["read", "read-queries", "deliver"], "subjects": readers}
+        0,
+        {
+            "id": "read",
+            "rules": [
+                *("read", "read-queries", "deliver"),
+                *("ros2-read", "ros2-history", "ros2-deliver"),
+            ],
+            "subjects": readers,
+        },
     )
     return {
         "enabled": True,
@@ -225,6 +277,40 @@ def acl_policy(
         "subjects": subjects,
         "policies": policies,
     }
+
+
+def _ros2_rules(r: str) -> list[dict]:
+    """Robot `r`'s ROS 2 rules: `ros2-peer-<r>` for its ROS 2 peer (`<r>.ros2peer`), which
+    publishes the robot's topics in `/<r>` and calls smana's actions, plan service and explorer
+    goal queries for `r`; `ros2-smana-<r>` for smana's ros2 service of `r` (`<r>.ros2`), which
+    publishes and serves everything under `/smana/<r>` and sends `/<r>/cmd_vel`."""
+    peer_topics = [f"*/{r}/{t}/**" for t in ROS2_PEER_TOPICS]
+    smana_ns = [f"*/smana/{r}/**", f"*/smana/{r}/{ROS2_ADV}"]
+    calls = [f"*/smana/{r}/{c}/**" for c in ROS2_CALLS]
+    adv = [f"*/{r}/{t}/{ROS2_ADV}" for t in ROS2_PEER_TOPICS]
+    return [
+        _rule(f"ros2-peer-{r}", ["ingress"], ["put"], peer_topics + adv),
+        _rule(f"ros2-peer-{r}-own", ["ingress"], OWN + ["liveliness_token"], adv),
+        _rule(f"ros2-peer-{r}-tokens", ["ingress"], ["liveliness_token"], ros2_tokens(f"/{r}")),
+        _rule(
+            f"ros2-peer-{r}-calls",
+            ["ingress"],
+            ["query"],
+            calls + [f"smana/{r}/{q}" for q in EXPLORER_GOAL_QUERIES],
+        ),
+        _rule(
+            f"ros2-smana-{r}",
+            ["ingress"],
+            OWN + ["liveliness_token"],
+            smana_ns + [f"*/{r}/cmd_vel/**", f"*/{r}/cmd_vel/{ROS2_ADV}"],
+        ),
+        _rule(
+            f"ros2-smana-{r}-tokens",
+            ["ingress"],
+            ["liveliness_token"],
+            ros2_tokens(f"/smana/{r}"),
+        ),
+    ]
 
 
 def uplink_policy(policy: dict) -> dict:

@@ -13,12 +13,12 @@ declares a queryable that replies, and declares a liveliness token; an observer 
 `router` (it sees everything the router lets through) subscribes, queries and asks for the tokens.
 
 Then the queries that write (a mapper's save, a member's fleet claim, an explorer's goal and its
-cancel: only the robot's own drive role, its router and the operator), on both robots, with every
-selector shape that once got past a deny rule (`*`, `**`, `$*`, issue 25): the observer's
-queryables on those keys record every query that reaches them, wildcard or not, by the payload
-that names it. What may pass is written below as data, independently of `acl_policy`. Nothing is
-taken as denied before the same session's later, allowed traffic was seen to arrive (a positive
-control), so a loaded machine cannot fake a denial.
+cancel: only the robot's own drive role, its ros2 service, its router and the operator), on both
+robots, with every selector shape that once got past a deny rule (`*`, `**`, `$*`, issue 25): the
+observer's queryables on those keys record every query that reaches them, wildcard or not, by the
+payload that names it. What may pass is written below as data, independently of `acl_policy`.
+Nothing is taken as denied before the same session's later, allowed traffic was seen to arrive (a
+positive control), so a loaded machine cannot fake a denial.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ SENSORS = (
     "robot/image/rgb",
 )
 TABLE = {
-    **{family: {"sim": "p", "replay": "p", "driver": "p"} for family in SENSORS},
+    **{family: {"sim": "p", "replay": "p", "driver": "p", "ros2": "p"} for family in SENSORS},
     "robot/cmd_vel": {"explorer": "p", "operator": "p"},
     "robot/status": {},  # the robot's key space holds only the streams above
     "sim/status": {"sim": "pdr"},
@@ -75,7 +75,7 @@ TABLE = {
     "ros2/status": {"ros2": "pdr"},
     "tool/status": {},  # tools and operators own no key space
     "operator/status": {},
-    "alive/robot": {"sim": "t", "replay": "t", "driver": "t"},
+    "alive/robot": {"sim": "t", "replay": "t", "driver": "t", "ros2": "t"},
     **{f"alive/{owner}": {owner: "t"} for owner in OWNERS},
     "alive/tool": {},
     "nobody/x": {},  # a segment no role owns
@@ -157,8 +157,11 @@ class Who:
                 self.named and self.scope == "robot" and own and self.role in ("explorer", "router")
             )
             out[f"claim@{robot}"] = (f"smana/{FLEET}/coordinator/claim/{robot}", may_claim)
-            # the explorer's goals: the robot's drive role (its explorer), its router, the operator
-            may_goal = self.named and own and self.role in ("explorer", "router", "operator")
+            # the explorer's goals: the robot's drive role (its explorer), its ros2 service (the
+            # Nav2 actions it serves), its router, the operator
+            may_goal = (
+                self.named and own and self.role in ("explorer", "ros2", "router", "operator")
+            )
             out[f"goal@{robot}"] = (f"smana/{robot}/explorer/goal", may_goal)
             out[f"cancel@{robot}"] = (f"smana/{robot}/explorer/goal/cancel", may_goal)
         return out

@@ -131,6 +131,7 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
     want = {
         f"{NS}/map": "sensor_msgs/msg/PointCloud2",
         f"{NS}/costmap": "nav_msgs/msg/OccupancyGrid",
+        f"{NS}/costmap_raw": "nav2_msgs/msg/Costmap",
         f"{NS}/path": "nav_msgs/msg/Path",
         f"{NS}/goal": "geometry_msgs/msg/PoseStamped",
         f"{NS}/odom": "nav_msgs/msg/Odometry",
@@ -147,7 +148,8 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
         30,
     ), topics
 
-    got: dict[str, list] = {k: [] for k in ("map", "costmap", "odom", "path", "goal", "cmd_vel")}
+    names = ("map", "costmap", "costmap_raw", "odom", "path", "goal", "cmd_vel")
+    got: dict[str, list] = {k: [] for k in names}
     lock = threading.Lock()
 
     def keep(name):
@@ -163,6 +165,7 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
         for n, t in (
             ("map", want[f"{NS}/map"]),
             ("costmap", want[f"{NS}/costmap"]),
+            ("costmap_raw", want[f"{NS}/costmap_raw"]),
             ("path", want[f"{NS}/path"]),
             ("goal", want[f"{NS}/goal"]),
         )
@@ -200,7 +203,7 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
 
     def ready():
         with lock:
-            return all(got[k] for k in ("map", "costmap", "odom", "cmd_vel", "path"))
+            return all(got[k] for k in ("map", "costmap", "costmap_raw", "odom", "cmd_vel", "path"))
 
     deadline = time.monotonic() + 120
     i = 0
@@ -258,6 +261,18 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
     assert grid[iy, ix] == 0  # 1 m ahead: terrain
     ix = int((2.55 - ox) / 0.2)
     assert grid[iy, ix] == 100  # the hedge
+
+    # The same graph as nav2_msgs/Costmap, decoded by the SDK: Nav2's scale (0 free, 254
+    # lethal, 255 unknown), row-major from cell (0, 0).
+    r = got["costmap_raw"][-1]
+    meta = r.metadata
+    assert r.header.frame_id == "map" and meta.layer == "master"
+    assert meta.resolution == pytest.approx(0.2)
+    raw = np.asarray(r.data, np.uint8).reshape(meta.size_y, meta.size_x)
+    assert {0, 254, 255} <= set(np.unique(raw).tolist())
+    ox, oy = meta.origin.position.x, meta.origin.position.y
+    ix, iy = int((1.0 - ox) / 0.2), int((0.0 - oy) / 0.2)
+    assert raw[iy, ix] == 0 and raw[iy, int((2.55 - ox) / 0.2)] == 254
 
     assert got["odom"][-1].child_frame_id == "base_link"
     assert got["cmd_vel"], "the explorer's commands reached /cmd_vel"

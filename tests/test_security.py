@@ -55,7 +55,7 @@ def test_each_host_holds_only_its_own_secrets(certs):
     for robot in ROBOTS:
         folder = certs / robot
         mine = read_credentials(str(folder / "dictionary.txt"))
-        assert set(mine) == {f"{robot}.{r}" for r in (*OWNERS, "tool", "router")}
+        assert set(mine) == {f"{robot}.{r}" for r in (*OWNERS, "tool", "router", "ros2peer")}
         # No other robot's, no operator's, no base router's password, in any file of the folder
         text = b"".join(p.read_bytes() for p in every_file(folder))
         leaked = [u for u, pw in every.items() if u not in mine and pw.encode() in text]
@@ -90,7 +90,7 @@ def test_adding_or_revoking_a_robot_leaves_the_others_alone(tmp_path):
     assert "r3.router" in base and "r3.explorer" in base
     assert "smana/r3/robot/cmd_vel" in (tmp_path / "base" / "acl.json5").read_text()
     r3 = read_credentials(str(tmp_path / "r3" / "dictionary.txt"))
-    assert set(r3) == {f"r3.{r}" for r in (*OWNERS, "tool", "router")}
+    assert set(r3) == {f"r3.{r}" for r in (*OWNERS, "tool", "router", "ros2peer")}
     revoke_robot(tmp_path, "r2")
     assert not (tmp_path / "r2").exists()
     base = read_credentials(str(tmp_path / "base" / "dictionary.txt"))
@@ -186,8 +186,18 @@ def test_no_certificate_alone_names_a_subject():
 
 def test_no_rule_but_a_routers_grants_a_wildcard_query_that_could_reach_a_write():
     """The static half of the selector matrix in test_acl_table.py: every query rule's key either
-    names a query that only reads or is one exact key; only a router's relays `**`."""
+    names a query that only reads or is one exact key; only a router's relays `**`. A ROS 2 rule's
+    wildcard key (`*/**/@adv/**`, `*/smana/<robot>/<action>/**`) includes no selector of a
+    query that writes, its wildcard forms included."""
+    import zenoh
+
     policy = acl_policy(ROBOTS)
+    writes = [
+        w
+        for r in ROBOTS
+        for key in (f"smana/{r}/mapper/save", f"smana/fleet/coordinator/claim/{r}")
+        for w in (key, key.rsplit("/", 1)[0] + "/*", "smana/**", f"smana/{r}/**", "**")
+    ]
     assert {rule["permission"] for rule in policy["rules"]} == {"allow"}  # no deny to get past
     for rule in policy["rules"]:
         if "query" not in rule["messages"] or "ingress" not in rule["flows"]:
@@ -197,6 +207,8 @@ def test_no_rule_but_a_routers_grants_a_wildcard_query_that_could_reach_a_write(
                 assert k.startswith("smana/*/") and "save" not in k and "claim/" not in k, k
             elif rule["id"] in ("relay",) or rule["id"].startswith("relay-"):
                 continue
+            elif rule["id"].startswith("ros2-") and k.startswith("*/"):
+                assert not [w for w in writes if zenoh.KeyExpr(k).includes(w)], (rule["id"], k)
             else:
                 assert "*" not in k and "$" not in k, (rule["id"], k)
 
@@ -358,13 +370,19 @@ def test_a_client_host_gets_a_certificate_and_no_password(tmp_path):
         add_robot(tmp_path, "laptop")
 
 
-def test_the_policy_grants_nothing_outside_smana():
-    """Default deny, and every allow rule's key is under `smana/`: the secured profile admits
-    only smana's keys (docs/ros2.md, docs/deployment.md)."""
+def test_the_policy_grants_nothing_outside_smana_and_ros2():
+    """Default deny, and every allow rule's key is under `smana/` or one of ROS 2's (a data key
+    `<domain>/...`, a liveliness token `@ros2_lv/...`) in a rule named `ros2-*`: the secured
+    profile admits smana's keys and ROS 2's (docs/ros2.md, docs/deployment.md)."""
     for base_identities in (True, False):
         policy = acl_policy(["r1", "r2"], "fleet", "base", base_identities=base_identities)
         assert policy["enabled"] is True and policy["default_permission"] == "deny"
-        keys = [k for rule in policy["rules"] for k in rule["key_exprs"]]
+        keys = [
+            k
+            for rule in policy["rules"]
+            for k in rule["key_exprs"]
+            if not (rule["id"].startswith("ros2-") and k.startswith(("*/", "@ros2_lv/")))
+        ]
         assert keys and all(k.startswith("smana/") for k in keys), keys
         assert all(rule["permission"] == "allow" for rule in policy["rules"])
 

@@ -41,6 +41,9 @@ class Ros2Config(Section, section="ros2"):
     base_frame: str = "base_link"
     max_pose_gap_s: float = param(0.2, gt=0)  # odometry interpolated at most this far
     map_period_s: float = param(1.0, gt=0)  # /smana/<robot>/map at most this often
+    # The map message's voxel budget (20 bytes each): past it, voxels are merged into cells of
+    # 2, 4, 8 ... times the map's resolution until they fit, so one message stays under 4 MB.
+    map_max_points: int = param(200_000, ge=1000)
     costmap_period_s: float = param(1.0, gt=0)
     min_range_m: float = param(0.3, ge=0)  # cloud points nearer the sensor are dropped
     max_range_m: float = param(20.0, gt=0)  # and farther ones

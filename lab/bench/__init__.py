@@ -17,6 +17,7 @@ BENCHES = {
     "restart": "smana.lab.bench.restart:cli",
     "startup": "smana.lab.bench.startup:cli",
     "fuzz": "smana.lab.bench.fuzz:cli",
+    "ros2-throughput": "smana.lab.bench.ros2_throughput:cli",
 }
 
 

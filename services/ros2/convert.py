@@ -13,8 +13,11 @@ import numpy as np
 from smana.common.messages import Pose, quat_to_matrix
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 
+from . import costmap_types as nav2
+
 POINT_FIELD_FLOAT32, POINT_FIELD_UINT16 = 7, 4
 LETHAL, UNKNOWN = 100, -1
+_AXIS = 1 << 20  # cell indices of within_budget's packing are offset by this
 MAX_TRAVERSABLE = 98  # the dearest class; 99 is "inscribed" to nav2, 100 lethal
 
 
@@ -94,6 +97,28 @@ def map_cloud(types, centres, labels, colour_lut, t_s: float, frame: str = "map"
     )
 
 
+def within_budget(centres, labels, resolution_m: float, max_points: int):
+    """At most `max_points` voxels: (centres, labels, cell size). A map over the budget is merged
+    into cells of 2, 4, 8 ... times `resolution_m` (each cell at its centre, with the label of
+    one voxel in it, the first in the input's order) until it fits."""
+    centres = np.asarray(centres, np.float32).reshape(-1, 3)
+    labels = np.asarray(labels)
+    if len(centres) <= max_points:
+        return centres, labels, float(resolution_m)
+    c = centres.astype(np.float64)
+    factor = 2
+    while True:
+        cell = float(resolution_m) * factor
+        idx = np.floor(c / cell).astype(np.int64)
+        # One int64 per cell (21 bits an axis: +-100 km at 0.1 m) for a fast 1-D unique.
+        packed = ((idx[:, 0] + _AXIS) << 42) | ((idx[:, 1] + _AXIS) << 21) | (idx[:, 2] + _AXIS)
+        _, first = np.unique(packed, return_index=True)
+        if len(first) <= max_points:
+            first.sort()
+            return ((idx[first] + 0.5) * cell).astype(np.float32), labels[first], cell
+        factor *= 2
+
+
 def costmap_values(labels, flags, cost_lut) -> np.ndarray:
     """OccupancyGrid values of graph nodes: obstacles and safety zone 100, unknown -1, known
     traversable nodes their class's traversability cost scaled to 0 (cheapest class of the table)
@@ -132,6 +157,55 @@ def occupancy_grid(types, grid, cost_lut, t_s: float, frame: str = "map"):
     return types.msg("nav_msgs/msg/OccupancyGrid")(
         header=header(types, t_s, frame),
         info=info,
+        data=np.ascontiguousarray(values.T).reshape(-1),
+    )
+
+
+def nav2_costmap_values(labels, flags, cost_lut) -> np.ndarray:
+    """nav2_msgs/Costmap values of graph nodes, on Nav2's scale (nav2_costmap_2d's
+    cost_values.hpp): obstacles 254 (LETHAL_OBSTACLE), the robot-radius safety zone 253
+    (INSCRIBED_INFLATED_OBSTACLE), unknown 255 (NO_INFORMATION); known traversable nodes their
+    class's traversability cost scaled from 0 (FREE_SPACE: the cheapest class of the table) to
+    252 (MAX_NON_OBSTACLE: the dearest); a known node of a class that is not traversable 254."""
+    finite = cost_lut[np.isfinite(cost_lut)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
+    cost = cost_lut[np.minimum(labels, len(cost_lut) - 1)]
+    scaled = np.zeros(labels.shape, np.float64)
+    ok = np.isfinite(cost)
+    if hi > lo:
+        scaled[ok] = (cost[ok] - lo) / (hi - lo) * nav2.MAX_NON_OBSTACLE
+    out = np.where(ok, np.rint(scaled), nav2.LETHAL_OBSTACLE).astype(np.uint8)
+    out[(flags & FLAG_KNOWN) == 0] = nav2.NO_INFORMATION
+    out[(flags & FLAG_SAFETY_ZONE) != 0] = nav2.INSCRIBED_INFLATED_OBSTACLE
+    out[(flags & FLAG_OBSTACLE) != 0] = nav2.LETHAL_OBSTACLE
+    return out
+
+
+def nav2_costmap(types, grid, cost_lut, t_s: float, load_t_s: float, frame: str = "map"):
+    """The navigation graph's known box as a nav2_msgs/Costmap (`data` row-major from cell
+    (0, 0), x fastest; `origin` the corner of that cell, as Nav2's costmap publisher writes it;
+    layer "master", Nav2's name for the combined costmap); None while the graph is empty.
+    `load_t_s` is when the costmap this one updates was first published."""
+    box = grid.known_box()
+    if box is None:
+        return None
+    ix0, iy0, ix1, iy1 = box
+    labels, flags = grid.box(ix0, iy0, ix1, iy1, layers=("labels", "flags"))
+    values = nav2_costmap_values(labels, flags, cost_lut)  # [x, y]
+    res = grid.resolution_m
+    origin = grid.origin_xy + np.array([ix0, iy0]) * res
+    meta = types.msg(nav2.COSTMAP_META)(
+        map_load_time=ros_time(types, load_t_s),
+        update_time=ros_time(types, t_s),
+        layer="master",
+        resolution=float(res),
+        size_x=int(ix1 - ix0),
+        size_y=int(iy1 - iy0),
+        origin=_pose(types, (origin[0], origin[1], 0.0), (0.0, 0.0, 0.0, 1.0)),
+    )
+    return types.msg(nav2.COSTMAP)(
+        header=header(types, t_s, frame),
+        metadata=meta,
         data=np.ascontiguousarray(values.T).reshape(-1),
     )
 

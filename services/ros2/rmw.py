@@ -7,13 +7,24 @@
   encapsulation header). A service is a queryable on the same form of key.
 - Every sample and query carries an attachment: sequence number (int64), source timestamp
   (int64, ns) and the 16-byte source gid, in zenoh-ext's serialisation (a length-prefixed gid).
-  A service reply repeats the request's sequence number and client gid.
+  A service reply repeats the request's sequence number and client gid. The gid is what
+  rmw_zenoh_cpp computes (`liveliness_utils.cpp`, `Entity::Entity`): the 128-bit XXH3 hash (seed
+  0) of the entity's whole liveliness token, its low 64 bits then its high 64 bits, each in the
+  host's (little-endian) byte order; so `message_info.publication_gid` is the gid `ros2 topic
+  info -v` shows for smana's publisher.
 - Discovery is liveliness tokens: `@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/
   <enclave>/<namespace>/<node>` for a node (kind NN) and the same followed by
   `/<topic>/<dds type>/<hash>/<qos>` for a publisher (MP), subscription (MS) or service (SS);
   '/' in names becomes '%'.
 - A TRANSIENT_LOCAL publisher is a zenoh-ext AdvancedPublisher with a cache of `depth` samples:
-  a late subscriber (RViz2) queries it for the last ones.
+  a late subscriber (RViz2) queries it for the last ones. A RELIABLE one also sends the sample-miss
+  heartbeat (`rmw_publisher_data.cpp`: sporadic, period 500 ms): on `<key>/@adv/pub/<zid>/<eid>/_`
+  the last sequence number (u32, little-endian), only when it changed, so that a subscriber that
+  missed the latest sample fetches it from the cache.
+- Publishers are reliable or best effort as their QoS says; congestion control is DROP, BLOCK only
+  for a reliable KEEP_ALL publisher (rmw_zenoh_cpp's choice: a slow subscriber does not hold up
+  a keep-last publisher; an rmw_zenoh transient-local subscriber recovers the latest sample it
+  missed through the heartbeat).
 
 Message types, CDR and type hashes come from rosbags' typestore (ROS 2 Jazzy definitions);
 smana writes only this mapping. No ROS install is needed.
@@ -21,14 +32,17 @@ smana writes only this mapping. No ROS install is needed.
 
 from __future__ import annotations
 
-import hashlib
 import struct
 import time
 from dataclasses import dataclass
 
+from . import costmap_types
+
 ADMIN_SPACE = "@ros2_lv"
 GID_SIZE = 16
 NODE, PUBLISHER, SUBSCRIPTION, SERVICE = "NN", "MP", "MS", "SS"
+DEFAULT_DEPTH = 42  # rmw_zenoh_cpp's default history depth (qos.cpp): left out of a QoS token
+HEARTBEAT_PERIOD_S = 0.5  # SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD (rmw_publisher_data.cpp)
 
 # Services smana answers. rosbags' typestore holds messages only: a service type is described
 # the way rosidl describes it (request, response and event messages) so that its RIHS01 hash is
@@ -48,6 +62,7 @@ class RosTypes:
         from rosbags.typesys import Stores, get_typestore
 
         self.store = get_typestore(Stores.ROS2_JAZZY)
+        costmap_types.register(self.store)
         _char_as_uint8(self.store, "service_msgs/msg/ServiceEventInfo")
         for name, (request, response) in SERVICES.items():
             self.store.register(_service_types(name, request, response))
@@ -136,21 +151,35 @@ def data_key(domain_id: int, name: str, typename: str, type_hash: str) -> str:
 
 @dataclass(frozen=True)
 class QoS:
-    """The QoS smana's endpoints declare, in rmw_zenoh's token form: fields equal to the
-    default profile (reliable, volatile, keep-last) are left empty."""
+    """The QoS smana's endpoints declare, in rmw_zenoh's token form (`qos_to_keyexpr`):
+    `reliability:durability:history,depth:deadline s,ns:lifespan s,ns:liveliness,lease s,ns`,
+    each policy as its rmw enum value and left empty when it equals rmw_zenoh's default
+    (reliable, volatile, keep-last 42, infinite deadline, lifespan and lease, automatic)."""
 
     reliable: bool = True
     transient_local: bool = False
     depth: int = 10
+    keep_all: bool = False
 
     def token(self) -> str:
-        reliability = "" if self.reliable else "2"
-        durability = "1" if self.transient_local else ""
-        return f"{reliability}:{durability}:,{self.depth}:,:,:,,"
+        reliability = "" if self.reliable else "2"  # RMW_QOS_POLICY_RELIABILITY_BEST_EFFORT
+        durability = "1" if self.transient_local else ""  # ..._DURABILITY_TRANSIENT_LOCAL
+        history = "2" if self.keep_all else ""  # RMW_QOS_POLICY_HISTORY_KEEP_ALL
+        depth = "" if self.depth == DEFAULT_DEPTH else str(self.depth)
+        return f"{reliability}:{durability}:{history},{depth}:,:,:,,"
 
 
 SENSOR_QOS = QoS(reliable=False, depth=5)
 LATCHED_QOS = QoS(transient_local=True, depth=1)
+
+
+def gid_of(token: str) -> bytes:
+    """The gid rmw_zenoh_cpp gives the entity whose liveliness token is `token`: XXH3-128 of the
+    token, low 64 bits then high 64 bits, little-endian (xxhash's digest is the canonical,
+    big-endian form of the same 128-bit number)."""
+    import xxhash
+
+    return xxhash.xxh3_128_digest(token.encode())[::-1]
 
 
 def attachment(seq: int, stamp_ns: int, gid: bytes) -> bytes:
@@ -189,11 +218,12 @@ class RosNode:
             f"{mangle(self.namespace)}/{mangle(self.name)}"
         )
 
-    def gid(self, entity_id: int) -> bytes:
-        return hashlib.blake2b(f"{self.zid}/{entity_id}".encode(), digest_size=GID_SIZE).digest()
-
     def endpoint(self, kind: str, name: str, typename: str, qos: QoS = QoS()) -> tuple[str, int]:
         """Declare an endpoint's liveliness token; returns its data key and entity id."""
+        key, entity_id, _ = self._endpoint(kind, name, typename, qos)
+        return key, entity_id
+
+    def _endpoint(self, kind: str, name: str, typename: str, qos: QoS) -> tuple[str, int, bytes]:
         entity_id = self._next_entity
         self._next_entity += 1
         type_hash = self.types.hash(typename)
@@ -202,27 +232,36 @@ class RosNode:
             f"{type_hash}/{qos.token()}"
         )
         self._declared.append(self.session.liveliness().declare_token(token))
-        return data_key(self.domain_id, name, typename, type_hash), entity_id
+        return data_key(self.domain_id, name, typename, type_hash), entity_id, gid_of(token)
 
     def publisher(self, topic: str, typename: str, qos: QoS = QoS()) -> RosPublisher:
         import zenoh
+        from zenoh import ext
 
-        key, entity_id = self.endpoint(PUBLISHER, topic, typename, qos)
-        cc = zenoh.CongestionControl.BLOCK if qos.reliable else zenoh.CongestionControl.DROP
-        if qos.transient_local:
-            from zenoh import ext
-
-            zpub = ext.declare_advanced_publisher(
-                self.session,
-                key,
-                congestion_control=cc,
-                cache=ext.CacheConfig(max_samples=qos.depth),
-                publisher_detection=True,
-            )
+        key, _, gid = self._endpoint(PUBLISHER, topic, typename, qos)
+        block = qos.reliable and qos.keep_all
+        options = {
+            "congestion_control": zenoh.CongestionControl.BLOCK
+            if block
+            else zenoh.CongestionControl.DROP,
+            "reliability": zenoh.Reliability.RELIABLE
+            if qos.reliable
+            else zenoh.Reliability.BEST_EFFORT,
+        }
+        if not qos.transient_local:
+            # rmw_zenoh_cpp declares an AdvancedPublisher without cache or heartbeat here: on
+            # the wire, a plain publisher.
+            zpub = self.session.declare_publisher(key, **options)
         else:
-            zpub = self.session.declare_publisher(key, congestion_control=cc)
+            options["cache"] = ext.CacheConfig(max_samples=qos.depth)
+            options["publisher_detection"] = True
+            if qos.reliable:
+                options["sample_miss_detection"] = ext.MissDetectionConfig(
+                    heartbeat=None, sporadic_heartbeat=HEARTBEAT_PERIOD_S
+                )
+            zpub = ext.declare_advanced_publisher(self.session, key, **options)
         self._declared.append(zpub)
-        return RosPublisher(self.types, zpub, typename, self.gid(entity_id))
+        return RosPublisher(self.types, zpub, typename, gid)
 
     def reply_attachment(self, request_attachment: bytes | None) -> bytes:
         """The attachment of a service reply: the request's sequence number and client gid, the

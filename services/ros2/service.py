@@ -6,7 +6,8 @@ Out, for robot R (node `/smana/R/<ros2.node_name>`, frame `map`):
   `ros2.map_period_s` when the map changed; kept from `mapper/delta` (resynchronised from
   `mapper/snapshot` at start, on a gap and when the mapper restarts);
 - `/smana/R/costmap` nav_msgs/OccupancyGrid of the navigation graph, transient-local; kept from
-  `navgraph/patch` (`common/graph_copy.py`, synced from `navgraph/graph`);
+  `navgraph/patch` (`common/graph_copy.py`, synced from `navgraph/graph`); the same graph as a
+  nav2_msgs/Costmap on Nav2's scale on `/smana/R/costmap_raw` (Nav2's name for it);
 - `/smana/R/path` nav_msgs/Path and `/smana/R/goal` geometry_msgs/PoseStamped from
   `explorer/state`, when they change;
 - `/smana/R/odom` nav_msgs/Odometry from `robot/pose`;
@@ -62,7 +63,7 @@ from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, Reply, Request, Service, run_service
 
-from . import bridge, convert
+from . import bridge, convert, costmap_types
 from .actions import Ros2Actions
 from .bridge import CloudInput, MapCopy, OdometryInput, checked
 from .jobs import Jobs
@@ -76,6 +77,7 @@ MAX_HELD = 1000  # deltas (patches) kept while their snapshot is being fetched
 CLOUD = "sensor_msgs/msg/PointCloud2"
 ODOM = "nav_msgs/msg/Odometry"
 TF = "tf2_msgs/msg/TFMessage"
+COSTMAP = costmap_types.COSTMAP
 
 
 def robot_input_on(config: SmanaConfig) -> bool:
@@ -112,11 +114,14 @@ class Ros2Service(Service):
         self.node: RosNode | None = None
         self._next_sync = {"map": 0.0, "graph": 0.0}
         self._want_sync = {"map": True, "graph": True}
-        self._next_pub = {"map": 0.0, "costmap": 0.0}
-        self._published = {"map": -1, "costmap": -1}
+        self._next_pub = {"map": 0.0, "costmap": 0.0, "costmap_raw": 0.0}
+        self._published = {"map": -1, "costmap": -1, "costmap_raw": -1}
+        self._costmap_load_t: float | None = None  # nav2 Costmap's map_load_time
         self._last_state: tuple | None = None
         self._last_pose: Pose | None = None
-        self.sent = dict.fromkeys(("map", "costmap", "path", "goal", "odom", "tf", "cmd_vel"), 0)
+        self.sent = dict.fromkeys(
+            ("map", "costmap", "costmap_raw", "path", "goal", "odom", "tf", "cmd_vel"), 0
+        )
         self.received = {"clouds": 0, "odometry": 0, "tf_static": 0, "plans": 0}
         self.odometry_input = OdometryInput(config.general)
         self.plan_jobs: Jobs | None = None
@@ -148,6 +153,7 @@ class Ros2Service(Service):
         self.pubs = {
             "map": node.publisher(f"{ns}/map", CLOUD, LATCHED_QOS),
             "costmap": node.publisher(f"{ns}/costmap", "nav_msgs/msg/OccupancyGrid", LATCHED_QOS),
+            "costmap_raw": node.publisher(f"{ns}/costmap_raw", COSTMAP, LATCHED_QOS),
             "path": node.publisher(f"{ns}/path", "nav_msgs/msg/Path", LATCHED_QOS),
             "goal": node.publisher(f"{ns}/goal", "geometry_msgs/msg/PoseStamped", LATCHED_QOS),
             "odom": node.publisher(f"{ns}/odom", ODOM, QoS()),
@@ -319,11 +325,12 @@ class Ros2Service(Service):
                     self._syncing.discard(what)
         self._publish_latched("map", self.map.version, self._map_message, now)
         self._publish_latched("costmap", self.grid.version, self._costmap_message, now)
+        self._publish_latched("costmap_raw", self.grid.version, self._costmap_raw_message, now)
         if self.actions is not None:
             self.actions.tick()
 
     def _publish_latched(self, what: str, version: int, make, now: float) -> None:
-        period = getattr(self.config.ros2, f"{what}_period_s")
+        period = getattr(self.config.ros2, f"{what.removesuffix('_raw')}_period_s")
         if version == self._published[what] or now < self._next_pub[what]:
             return
         msg = make()
@@ -337,12 +344,25 @@ class Ros2Service(Service):
         return self._last_pose.stamp_s if self._last_pose is not None else time.time()
 
     def _map_message(self):
+        centres, labels, _ = convert.within_budget(
+            self.map.centres,
+            self.map.labels,
+            self.map.resolution_m,
+            self.config.ros2.map_max_points,
+        )
         return convert.map_cloud(
-            self.types, self.map.centres, self.map.labels, self.classes.colour_lut, self._stamp()
+            self.types, centres, labels, self.classes.colour_lut, self._stamp()
         )
 
     def _costmap_message(self):
         return convert.occupancy_grid(self.types, self.grid, self.classes.cost_lut, self._stamp())
+
+    def _costmap_raw_message(self):
+        t = self._stamp()
+        if self._costmap_load_t is None:
+            self._costmap_load_t = t
+        cost_lut = self.classes.cost_lut
+        return convert.nav2_costmap(self.types, self.grid, cost_lut, t, self._costmap_load_t)
 
     def _fetch(self, what: str) -> None:
         """The sync worker: ask the map's or the graph's producer for its snapshot."""
@@ -395,7 +415,7 @@ class Ros2Service(Service):
             g = self.grid
             self.grid = self.graph.grid = NavGrid(g.origin_xy, g.shape, g.resolution_m, g.tile_size)
             self.graph.adopt(reply)
-            self._published["costmap"] = -1
+            self._published["costmap"] = self._published["costmap_raw"] = -1
         return True
 
     # -- ROS -> smana (a real robot) -----------------------------------------------------------

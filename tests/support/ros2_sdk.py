@@ -32,6 +32,7 @@ GET_PLAN_SRV = (
 
 def write_msgdefs(root: Path) -> Path:
     """One `<pkg>/msg/<Name>.msg` per type (and its dependencies), as ROS 2 packages ship them;
+    nav2_msgs' Costmap and CostmapMetaData (smana's copy of Nav2's definitions);
     `nav_msgs/srv/GetPlan.srv`. The text comes from rosbags, the parsing and hashing from the
     SDK: the hashes the tests compare are computed twice, independently."""
     from rosbags.typesys import Stores, get_typestore
@@ -48,6 +49,12 @@ def write_msgdefs(root: Path) -> Path:
             path = root / pkg / "msg" / f"{msg}.msg"
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(block.rstrip("\n") + "\n")
+    from smana.services.ros2 import costmap_types  # rosbags' store has no nav2_msgs
+
+    for typename, text in costmap_types.DEFINITIONS.items():
+        pkg, _, msg = typename.split("/")
+        (root / pkg / "msg").mkdir(parents=True, exist_ok=True)
+        (root / pkg / "msg" / f"{msg}.msg").write_text(text)
     srv = root / "nav_msgs" / "srv" / "GetPlan.srv"
     srv.parent.mkdir(parents=True, exist_ok=True)
     srv.write_text(GET_PLAN_SRV)
