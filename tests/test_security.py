@@ -387,7 +387,7 @@ def test_the_policy_grants_nothing_outside_smana_and_ros2():
         assert all(rule["permission"] == "allow" for rule in policy["rules"])
 
 
-def test_only_a_robots_drive_role_and_the_operator_may_send_its_explorer_goals():
+def test_only_a_robots_drive_role_its_ros2_identities_and_the_operator_may_send_its_explorer_goals():
     """The policy's side of `explorer/goal` and `goal/cancel` (the router's side, every identity
     on every listener, is test_acl_table.py): exact keys, granted to the robot's explorer, its
     router and the base's operator; no other robot's identity, no other role of the robot."""
@@ -410,5 +410,16 @@ def test_only_a_robots_drive_role_and_the_operator_may_send_its_explorer_goals()
     assert granted("r1.explorer") == set(goal_keys)
     assert granted("r1.router") == set(goal_keys)
     assert granted("operator") == set(goal_keys) | {k.replace("r1", "r2") for k in goal_keys}
-    for other in ("r2.explorer", "r2.router", "r1.mapper", "r1.tool", "r1.ros2", "tool"):
+    # the ros2 service forwards its Nav2 actions' goals; the robot's ROS 2 peer may send them too
+    assert granted("r1.ros2") == set(goal_keys)
+    assert granted("r1.ros2peer") == set(goal_keys)
+    for other in (
+        "r2.explorer",
+        "r2.router",
+        "r2.ros2",
+        "r2.ros2peer",
+        "r1.mapper",
+        "r1.tool",
+        "tool",
+    ):
         assert not granted(other) & set(goal_keys), other
