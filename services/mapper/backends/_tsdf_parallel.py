@@ -38,7 +38,7 @@ from smana.services.mapper._grid import (
     voxel_index,
     voxel_slot,
 )
-from smana.services.mapper.backends.tsdf import _fuse, _ray, _set_slot, _start_key
+from smana.services.mapper.backends.tsdf import _fuse, _ray, _set_slot, _start_key, _tsdf_row
 
 
 @njit(cache=True, error_model="numpy")
@@ -207,3 +207,15 @@ def _fuse_claimed(
                 label_idx,
             )
     return new
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _rows_parallel(
+    grid, distance, logp, g, res, exp_steps, class_ids, keys, centres, labels, probs, values
+):
+    """tsdf.py's `_tsdf_rows` over the threads: each row is its own."""
+    for i in prange(g.shape[0]):
+        _tsdf_row(
+            grid, distance, logp, g[i], i, res, exp_steps, class_ids,
+            keys, centres, labels, probs, values,
+        )  # fmt: skip

@@ -31,6 +31,7 @@ voxels and those of their face neighbours whose status flipped, each with its ne
 
 from __future__ import annotations
 
+import os
 from typing import NamedTuple
 
 import numpy as np
@@ -60,6 +61,7 @@ from smana.services.mapper.delta import Delta
 _RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this (nats)
 _STEPS_MIN = -32767  # saturation of the int16 step counts
 _CHUNK_RAYS = 1 << 15  # rays per pass of the parallel integration (bounds its buffers)
+_PARALLEL_ROWS = 4096  # fewer Delta rows are built on one thread (waking the others costs more)
 # A flag bit of this back-end: the voxel was a surface voxel after the last cloud. Only the
 # incremental surface count reads it; the surface itself is always recomputed from distances.
 SURFACE = np.uint8(16)
@@ -371,33 +373,43 @@ def _tsdf_finish(touched, n_touched, flags, changed):
     return nc
 
 
-@njit(cache=True, error_model="numpy")
-def _tsdf_rows(st, g, res, exp_steps, class_ids, rows):
-    """Fill the Delta columns (`DeltaColumns`, but `occupied`) of voxels g in one pass:
-    coordinates, distance, and the label (first most probable class; 0 for a uniform vector)
-    with its probability, 1 / sum over the classes of exp(-(steps behind the top) * log(p / q))
-    (`exp_steps`, 0 past its end)."""
-    keys, centres, labels, probs, _, values = rows
-    logp = st.logp
+@njit(cache=True, error_model="numpy", inline="always")
+def _tsdf_row(
+    grid, distance, logp, g, i, res, exp_steps, class_ids, keys, centres, labels, probs, values
+):
+    """Row i of the Delta columns, voxel g: coordinates, distance, and the label (first most
+    probable class; 0 for a uniform vector) with its probability, 1 / sum over the classes of
+    exp(-(steps behind the top) * log(p / q)) (`exp_steps`, 0 past its end). Output columns
+    one by one: a numba parallel loop loses writes through arrays unpacked from a tuple."""
     n_exp = exp_steps.shape[0]
+    put_key_centre(grid, g, res, keys, centres, i)
+    values[i] = distance[g]
+    top = 0
+    uniform = True
+    for c in range(1, logp.shape[1]):
+        if logp[g, c] > logp[g, top]:
+            top = c
+        if logp[g, c] != logp[g, 0]:
+            uniform = False
+    z = 0.0
+    for c in range(logp.shape[1]):
+        d = np.int64(logp[g, top]) - np.int64(logp[g, c])
+        if d < n_exp:
+            z += exp_steps[d]
+    probs[i] = 1.0 / z
+    labels[i] = 0 if uniform else class_ids[top]
+
+
+@njit(cache=True, error_model="numpy")
+def _tsdf_rows(
+    grid, distance, logp, g, res, exp_steps, class_ids, keys, centres, labels, probs, values
+):
+    """The Delta columns (`DeltaColumns`, but `occupied`) of voxels g in one pass."""
     for i in range(g.shape[0]):
-        gi = g[i]
-        put_key_centre(st.grid, gi, res, keys, centres, i)
-        values[i] = st.distance[gi]
-        top = 0
-        uniform = True
-        for c in range(1, logp.shape[1]):
-            if logp[gi, c] > logp[gi, top]:
-                top = c
-            if logp[gi, c] != logp[gi, 0]:
-                uniform = False
-        z = 0.0
-        for c in range(logp.shape[1]):
-            d = np.int64(logp[gi, top]) - np.int64(logp[gi, c])
-            if d < n_exp:
-                z += exp_steps[d]
-        probs[i] = 1.0 / z
-        labels[i] = 0 if uniform else class_ids[top]
+        _tsdf_row(
+            grid, distance, logp, g[i], i, res, exp_steps, class_ids,
+            keys, centres, labels, probs, values,
+        )  # fmt: skip
 
 
 class Tsdf(MapBackend):
@@ -522,6 +534,10 @@ class Tsdf(MapBackend):
 
     def _integrate_parallel(self, points, labels, origin, startset, counts, threads) -> int:
         """The same map on `threads` threads (_tsdf_parallel.py), chunk by chunk of rays."""
+        # OpenMP threads that spin between the short parallel passes burn a core the other
+        # services need (CPU per scan doubled on a loaded 2-core machine): sleep instead, unless
+        # the user chose. Read when numba first loads its OpenMP layer, so set before that.
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
         import numba
 
         from smana.services.mapper.backends import _tsdf_parallel as par
@@ -621,14 +637,19 @@ class Tsdf(MapBackend):
     def _rows(self, g: np.ndarray, surface: np.ndarray) -> Delta:
         d = Delta.empty(g.shape[0])
         d.occupied = surface.astype(np.uint8)
-        _tsdf_rows(
-            self._state(np.zeros(1, np.int64)),
-            g,
-            self.resolution_m,
-            self._exp_steps,
-            self.class_ids,
-            d.columns(),
-        )
+        keys, centres, labels, probs, _, values = d.columns()
+        c = self.grid.cols
+        rows = _tsdf_rows
+        if g.shape[0] >= _PARALLEL_ROWS and self.threads > 1:
+            import numba
+
+            from smana.services.mapper.backends._tsdf_parallel import _rows_parallel as rows
+
+            numba.set_num_threads(self.threads)
+        rows(
+            self.grid.state(), c["distance"], c["logp"], g, self.resolution_m, self._exp_steps,
+            self.class_ids, keys, centres, labels, probs, values,
+        )  # fmt: skip
         return d
 
     # -- queries ---------------------------------------------------------------------------
