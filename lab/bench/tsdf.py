@@ -120,8 +120,8 @@ def cli(argv: list[str] | None = None) -> int:
         description=__doc__.splitlines()[0],
         epilog=(
             "Default: 8 workloads x 4 runs (smana and Open3D on 1 and 2 threads), 8 scans x 2 "
-            "repeats each, in child processes: about 15 minutes on a quiet 2-core machine. "
-            "--quick: 2 tiny workloads, 2 scans, for the test suite. Exit status 1 when a run "
+            "repeats each, in child processes. Duration measured once on a 2-core machine under "
+            "a load average of about 10: DURATION; --quick about 40 s. Exit status 1 when a run "
             "failed; a missed goal is reported, not an error. Needs open3d (smana[bench])."
         ),
     )
