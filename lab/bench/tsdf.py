@@ -12,7 +12,9 @@ its `depth_max` and casts no clearing rays, so that every ray ends on a surface 
 Each side runs in its own child process per thread count: smana with `mapper.tsdf.threads` 1 or
 2 (labels fused, a surface and a Delta per scan), Open3D with OMP_NUM_THREADS 1 or 2 (tsdf and
 weight, no labels, on 4 pinhole depth images per scan projected beforehand, untimed:
-`mapper.depth_images`). Per workload it prints wall and CPU medians per scan, the ratios smana /
+`mapper.depth_images`). Both maps start with room for 20,000 blocks of 8^3 voxels, made before
+the timing (Open3D's `block_count`; smana's columns grown to it and their pages touched). Per
+workload it prints wall and CPU medians per scan, the ratios smana /
 Open3D (CPU on 1 thread, wall on 2 threads: the issue's goals, and the other two) and the 1-minute
 load average around the runs; then each ratio's median and range over the workloads.
 """
@@ -43,6 +45,7 @@ WORKLOADS = {
     "kitti 50m 0.1": ("kitti", 64, 50.0, 0.1),
 }
 QUICK = {"os1-16 20m 0.3": ("garden", 16, 20.0, 0.3), "kitti 20m 0.3": ("kitti", 64, 20.0, 0.3)}
+O3D_BLOCKS = 20000  # `mapper.run_open3d`'s block_count: smana's map gets the same room
 GOALS = {"cpu_1t": 0.8, "wall_2t": 1.0}  # issue 30: smana / Open3D
 RATIOS = {  # column -> (smana threads, Open3D threads, measure), smana / Open3D
     "cpu_1t": (1, 1, "cpu_median_ms"),
@@ -164,6 +167,7 @@ def cli(argv: list[str] | None = None) -> int:
                         "max_range_m": max_range,
                         "threads": threads,
                         "repeats": args.repeats,
+                        "reserve_blocks": O3D_BLOCKS,
                     }
                     progress.say(
                         f"running {kind} {name} on {threads} thread(s) ...", file=sys.stderr
