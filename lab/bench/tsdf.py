@@ -124,8 +124,8 @@ def cli(argv: list[str] | None = None) -> int:
         epilog=(
             "Default: 8 workloads x 4 runs (smana and Open3D on 1 and 2 threads), 8 scans x 2 "
             "repeats each, in child processes. Duration measured once on a 2-core machine under "
-            "a load average of about 10: DURATION; --quick about 40 s. Exit status 1 when a run "
-            "failed; a missed goal is reported, not an error. Needs open3d (smana[bench])."
+            "a load average of 6 to 20: about 6 minutes; --quick about 40 s. Exit status 1 when "
+            "a run failed; a missed goal is reported, not an error. Needs open3d (smana[bench])."
         ),
     )
     p.add_argument("--quick", action="store_true", help="2 tiny workloads, 2 scans each")
