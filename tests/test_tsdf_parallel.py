@@ -155,3 +155,21 @@ def test_parallel_integration_runs_on_numbas_threading_layers(layer):
     assert n == "2"
     if layer == "workqueue":
         assert got_layer == "workqueue"
+
+
+@two_threads
+def test_a_three_point_warm_up_loads_every_parallel_kernel():
+    """The mapper service's warm-up integrates 3 points: on the parallel path that must reach
+    every parallel kernel, or the first real scan would load (or compile) the rest."""
+    from numba.core.registry import CPUDispatcher
+
+    from smana.services.mapper.backends import _tsdf_parallel as par
+
+    m = SemanticMap("tsdf", 0.2, 20.0, 0.0, config=TsdfConfig(threads=2))
+    pts = np.array([[1.0, 0.1, 0.1], [0.1, 1.0, 0.2], [20.0, 0.1, 0.1]], np.float32)
+    m.integrate(pts, np.array([1, 0, 0], np.uint16), np.ones(3, np.float32), (0.0, 0.0, 0.0))
+    kernels = {n: f for n, f in vars(par).items() if isinstance(f, CPUDispatcher)}
+    assert len(kernels) >= 8
+    for name, f in kernels.items():
+        if f.py_func.__module__ == par.__name__:
+            assert f.signatures, f"{name} not loaded by the warm-up"

@@ -432,6 +432,7 @@ class Tsdf(MapBackend):
         self.log_ratio = float(np.log(p / ((1.0 - p) / (k - 1))))  # nats per step of `logp`
         self.trunc_m = config.truncation_voxels * self.resolution_m
         self.min_weight = float(config.min_weight)
+        self._parallel_loaded = False  # the parallel kernels were called once (`_rows`)
         self._touched = np.empty(1 << 16, np.int64)
         band = 2 * self.trunc_m + self.resolution_m
         n_buf = 3 * int(np.ceil(band / self.resolution_m)) + 16
@@ -502,7 +503,7 @@ class Tsdf(MapBackend):
         # a voxel's status depends on its neighbours: re-extract around every updated voxel
         out_g = np.empty(7 * nc, np.int64)
         out_surf = np.empty(7 * nc, np.bool_)
-        if threads > 1 and nc >= _PARALLEL_ROWS:
+        if threads > 1 and (nc >= _PARALLEL_ROWS or not self._parallel_loaded):
             n, dcount = self._extract_parallel(changed[:nc], out_g, out_surf)
         else:
             n, dcount = _extract_kernel(
@@ -664,7 +665,9 @@ class Tsdf(MapBackend):
         keys, centres, labels, probs, _, values = d.columns()
         c = self.grid.cols
         rows = _tsdf_rows
-        if g.shape[0] >= _PARALLEL_ROWS and self.threads > 1:
+        if self.threads > 1 and (g.shape[0] >= _PARALLEL_ROWS or not self._parallel_loaded):
+            # the first cloud takes every parallel kernel: a service's warm-up loads them all
+            self._parallel_loaded = True
             import numba
 
             from smana.services.mapper.backends._tsdf_parallel import _rows_parallel as rows
