@@ -18,8 +18,11 @@ and which ray that is depends on the order. The work splits in three passes:
 This is the order-preserving half of voxblox's own answer: its fast integrator spreads the rays
 over threads and takes a voxel's first ray *in time* (not reproducible), its merged integrator
 groups the rays of a voxel (another result); nvblox projects voxels into a depth image (no
-rays). The serial passes (1 and 3) bound the gain on two cores; the surface status and the Delta
-rows, also per voxel, run in parallel as well (`_surface_tests`, `_rows_parallel`).
+rays). The serial passes (1 and 3) bound the gain on two cores. The Delta rows, one per voxel,
+run in parallel as well (`_rows_parallel`). The surface extraction stays serial: in parallel,
+a neighbour shared by several updated voxels is tested once by each (the serial pass marks it
+seen), which cost more CPU than the second core saved in wall time (26 against 17 ms per 50 m
+scan, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -36,22 +39,9 @@ from smana.services.mapper._grid import (
     unpack_block,
     voxblox_ray_keys,
     voxel_index,
-    voxel_key,
     voxel_slot,
 )
-from smana.services.mapper.backends.tsdf import (
-    _FACES,
-    _SEEN,
-    OBSERVED,
-    SURFACE,
-    _fuse,
-    _is_surface,
-    _near_voxel,
-    _ray,
-    _set_slot,
-    _start_key,
-    _tsdf_row,
-)
+from smana.services.mapper.backends.tsdf import _fuse, _ray, _set_slot, _start_key, _tsdf_row
 
 
 @njit(cache=True, error_model="numpy")
@@ -232,69 +222,3 @@ def _rows_parallel(
             grid, distance, logp, g[i], i, res, exp_steps, class_ids,
             keys, centres, labels, probs, values,
         )  # fmt: skip
-
-
-@njit(cache=True, error_model="numpy")
-def _mark_seen(changed, flags):
-    for i in range(changed.shape[0]):
-        flags[changed[i]] |= _SEEN
-
-
-@njit(cache=True, error_model="numpy", parallel=True)
-def _surface_tests(changed, grid, flags, distance, weight, min_weight, s_self, nbs, s_nb):
-    """Surface status of each updated voxel, and the face neighbours (`nbs`, -1: none to test)
-    that the serial extraction would test: observed and not updated. Reads only."""
-    for i in prange(changed.shape[0]):
-        g = changed[i]
-        ix, iy, iz = voxel_key(grid, g)
-        own_key, _ = voxel_index(ix, iy, iz, grid.bits)
-        s_self[i] = _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz)
-        for f in range(6):
-            jx = ix + _FACES[f, 0]
-            jy = iy + _FACES[f, 1]
-            jz = iz + _FACES[f, 2]
-            nb = _near_voxel(grid, g, own_key, jx, jy, jz)
-            if nb < 0 or flags[nb] & _SEEN or not flags[nb] & OBSERVED:
-                nbs[i, f] = -1
-                continue
-            nbs[i, f] = nb
-            s_nb[i, f] = _is_surface(grid, distance, weight, min_weight, nb, jx, jy, jz)
-
-
-@njit(cache=True, error_model="numpy")
-def _extract_apply(changed, flags, s_self, nbs, s_nb, seen, out_g, out_surf):
-    """tsdf.py's `_extract_kernel` on the statuses of `_surface_tests`: the same rows in the same
-    order, the same SURFACE bits and count change; clears the _SEEN marks."""
-    n_seen = 0
-    for i in range(changed.shape[0]):
-        seen[n_seen] = changed[i]
-        n_seen += 1
-    n_out = 0
-    dcount = 0
-    for i in range(changed.shape[0]):
-        g = changed[i]
-        s = s_self[i]
-        was = (flags[g] & SURFACE) != 0
-        dcount += np.int64(s) - np.int64(was)
-        flags[g] = (flags[g] | SURFACE) if s else (flags[g] & ~SURFACE)
-        out_g[n_out] = g
-        out_surf[n_out] = s
-        n_out += 1
-        for f in range(6):
-            nb = nbs[i, f]
-            if nb < 0 or flags[nb] & _SEEN:  # a neighbour shared with an earlier voxel
-                continue
-            flags[nb] |= _SEEN
-            seen[n_seen] = nb
-            n_seen += 1
-            s = s_nb[i, f]
-            was = (flags[nb] & SURFACE) != 0
-            if s != was:
-                dcount += 1 if s else -1
-                flags[nb] = (flags[nb] | SURFACE) if s else (flags[nb] & ~SURFACE)
-                out_g[n_out] = nb
-                out_surf[n_out] = s
-                n_out += 1
-    for i in range(n_seen):
-        flags[seen[i]] &= ~_SEEN
-    return n_out, dcount

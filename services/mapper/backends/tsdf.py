@@ -503,17 +503,14 @@ class Tsdf(MapBackend):
         # a voxel's status depends on its neighbours: re-extract around every updated voxel
         out_g = np.empty(7 * nc, np.int64)
         out_surf = np.empty(7 * nc, np.bool_)
-        if threads > 1 and (nc >= _PARALLEL_ROWS or not self._parallel_loaded):
-            n, dcount = self._extract_parallel(changed[:nc], out_g, out_surf)
-        else:
-            n, dcount = _extract_kernel(
-                changed[:nc],
-                self._state(counts),
-                self.min_weight,
-                np.empty(7 * nc, np.int64),
-                out_g,
-                out_surf,
-            )
+        n, dcount = _extract_kernel(
+            changed[:nc],
+            self._state(counts),
+            self.min_weight,
+            np.empty(7 * nc, np.int64),
+            out_g,
+            out_surf,
+        )
         self.n_occupied += dcount
         return self._rows(out_g[:n], out_surf[:n])
 
@@ -578,27 +575,6 @@ class Tsdf(MapBackend):
                 self.sem_idx, self.grid.block_keys, self.grid.bits, sel, r0, r1, gbuf, claimed,
             )  # fmt: skip
         return n_touched
-
-    def _extract_parallel(self, changed, out_g, out_surf):
-        """`_extract_kernel`'s result with the surface tests over the threads: the updated
-        voxels marked (serial), every updated voxel's status and those of its observed face
-        neighbours not updated themselves (parallel: distances and weights only), then the
-        serial kernel's bookkeeping in its order, on those values."""
-        from smana.services.mapper.backends import _tsdf_parallel as par
-
-        c = self.grid.cols
-        nc = changed.shape[0]
-        s_self = np.empty(nc, np.bool_)
-        nbs = np.empty((nc, 6), np.int64)
-        s_nb = np.empty((nc, 6), np.bool_)
-        par._mark_seen(changed, c["flags"])
-        par._surface_tests(
-            changed, self.grid.state(), c["flags"], c["distance"], c["weight"], self.min_weight,
-            s_self, nbs, s_nb,
-        )  # fmt: skip
-        return par._extract_apply(
-            changed, c["flags"], s_self, nbs, s_nb, np.empty(7 * nc, np.int64), out_g, out_surf
-        )
 
     # -- surface extraction ----------------------------------------------------------------
 
