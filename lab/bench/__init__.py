@@ -7,6 +7,7 @@ import sys
 
 BENCHES = {
     "mapper": "smana.lab.bench.mapper:cli",
+    "tsdf": "smana.lab.bench.tsdf:cli",
     "navgraph": "smana.lab.bench.navgraph:cli",
     "planner": "smana.lab.bench.planner:cli",
     "sim": "smana.lab.bench.sim:cli",

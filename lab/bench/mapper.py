@@ -135,18 +135,37 @@ def _timings(cfg: dict, scans, run_medians, cpu_medians, times, rss0: float) -> 
 
 
 def run_ours(cfg: dict, scans) -> dict:
+    from smana.services.mapper.backends.params import TsdfConfig
     from smana.services.mapper.semantic_map import SemanticMap
 
     ray = cfg["ray_m"]
+    max_range = cfg.get("max_range_m", MAX_RANGE_M)
+    # the TSDF's integration threads (`smana bench tsdf`); left out, the default: every core
+    tsdf_conf = TsdfConfig(threads=cfg["threads"]) if "threads" in cfg else None
+
+    def new_map():
+        m = SemanticMap(cfg["backend"], cfg["res"], max_range, ray or 0.0, config=tsdf_conf)
+        if cfg.get("reserve_blocks"):
+            # room for as many blocks as Open3D's grid is built with (`smana bench tsdf`),
+            # before the timing as Open3D's, pages touched: on a host where a page fault costs
+            # microseconds, growing the columns otherwise dominates the long ranges' scans.
+            grid = m._core.grid
+            grid.grow_blocks(cfg["reserve_blocks"])
+            for col in grid.cols.values():
+                col.fill(0)
+            while grid.h_keys.shape[0] < 4 * cfg["reserve_blocks"]:
+                grid.grow_table()
+        return m
+
     # Load or compile the kernels outside the timed loop.
-    warm = SemanticMap(cfg["backend"], cfg["res"], MAX_RANGE_M, ray or 0.0)  # 0: full ray
+    warm = new_map()  # ray None: 0, the full ray
     p, lab, conf, org = scans[0]
     warm.integrate(p[:2000], lab[:2000], conf[:2000], org)
     del warm
     rss0, load0 = _rss_mb(), _load()
     run_medians, cpu_medians, times, updates, deltas = [], [], [], [], []
     for _ in range(cfg.get("repeats", 1)):  # a fresh map each run, the same scans
-        m = SemanticMap(cfg["backend"], cfg["res"], MAX_RANGE_M, ray or 0.0)
+        m = new_map()
         run, cpu = [], []
         for p, lab, conf, org in scans:
             t0, c0 = time.perf_counter(), time.process_time()
@@ -257,6 +276,7 @@ def run_open3d(cfg: dict, scans) -> dict:
     from smana.services.mapper.backends.tsdf import TsdfConfig
 
     trunc = TsdfConfig().truncation_voxels
+    max_range = cfg.get("max_range_m", MAX_RANGE_M)
     cpu = o3c.Device("CPU:0")
     intr = o3c.Tensor(
         np.array([[O3D_F, 0, O3D_W / 2], [0, O3D_F, O3D_H / 2], [0, 0, 1]]), o3c.float64
@@ -283,9 +303,9 @@ def run_open3d(cfg: dict, scans) -> dict:
     def integrate(vbg, frame):
         for depth, ext in frame:
             blocks = vbg.compute_unique_block_coordinates(
-                depth, intr, ext, 1.0, MAX_RANGE_M, trunc_voxel_multiplier=trunc
+                depth, intr, ext, 1.0, max_range, trunc_voxel_multiplier=trunc
             )
-            vbg.integrate(blocks, depth, intr, ext, 1.0, MAX_RANGE_M, trunc_voxel_multiplier=trunc)
+            vbg.integrate(blocks, depth, intr, ext, 1.0, max_range, trunc_voxel_multiplier=trunc)
 
     integrate(grid(), frames[0])  # warm-up (first-call costs) outside the timed loop
     rss0, load0 = _rss_mb(), _load()
@@ -437,7 +457,10 @@ def _run(cfg: dict, scans_path: Path, in_process: bool) -> dict:
         "--scans-file",
         str(scans_path),
     ]
-    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    env = None
+    if "threads" in cfg:  # Open3D's OpenMP threads (smana's come from its config)
+        env = {**os.environ, "OMP_NUM_THREADS": str(cfg["threads"])}
+    out = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
     if out.returncode != 0:
         return {**cfg, "error": out.stderr.strip().splitlines()[-1:] or ["failed"]}
     return json.loads(out.stdout.strip().splitlines()[-1])

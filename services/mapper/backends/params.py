@@ -57,6 +57,9 @@ class TsdfConfig(Section, section="mapper.tsdf"):
     # (octree-max: 51 mm) at no cost without noise (18.3 vs 17.8 mm). A surface must then be
     # seen by 3 rays before it reaches the map and the graph.
     min_weight: float = param(3.0, gt=0)
+    # Integration threads: 0 is numba's thread count (every core, or NUMBA_NUM_THREADS), 1 the
+    # serial kernel; more than numba's count is capped at it. The map is the same bit for bit.
+    threads: int = param(0, ge=0)
 
 
 BUILT_IN = {"octree-max": OctreeConfig, "octree-bayes": OctreeConfig, "tsdf": TsdfConfig}

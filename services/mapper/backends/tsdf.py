@@ -31,6 +31,7 @@ voxels and those of their face neighbours whose status flipped, each with its ne
 
 from __future__ import annotations
 
+import os
 from typing import NamedTuple
 
 import numpy as np
@@ -59,6 +60,8 @@ from smana.services.mapper.delta import Delta
 
 _RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this (nats)
 _STEPS_MIN = -32767  # saturation of the int16 step counts
+_CHUNK_RAYS = 1 << 15  # rays per pass of the parallel integration (bounds its buffers)
+_PARALLEL_ROWS = 4096  # fewer Delta rows are built on one thread (waking the others costs more)
 # A flag bit of this back-end: the voxel was a surface voxel after the last cloud. Only the
 # incremental surface count reads it; the surface itself is always recomputed from distances.
 SURFACE = np.uint8(16)
@@ -109,23 +112,94 @@ def _set_slot(keys, key):
         s = (s + 1) & mask
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _ray(points, i, ox, oy, oz, k):
+    """Ray i's geometry: (dist, dx, dy, dz, clearing, ex, ey, ez, sx, sy, sz), the point's
+    offset from the origin and its length, and the band from e (behind the surface) to s."""
+    dx = np.float64(points[i, 0]) - ox
+    dy = np.float64(points[i, 1]) - oy
+    dz = np.float64(points[i, 2]) - oz
+    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+    ux = dx / dist
+    uy = dy / dist
+    uz = dz / dist
+    trunc = k.trunc
+    clearing = dist > k.max_range
+    if clearing:
+        ex = ox + ux * k.max_range
+        ey = oy + uy * k.max_range
+        ez = oz + uz * k.max_range
+        sx = ex - ux * trunc
+        sy = ey - uy * trunc
+        sz = ez - uz * trunc
+    else:
+        px = np.float64(points[i, 0])
+        py = np.float64(points[i, 1])
+        pz = np.float64(points[i, 2])
+        ex = px + ux * trunc
+        ey = py + uy * trunc
+        ez = pz + uz * trunc
+        sx = px - ux * trunc
+        sy = py - uy * trunc
+        sz = pz - uz * trunc
+    return dist, dx, dy, dz, clearing, ex, ey, ez, sx, sy, sz
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _fuse(flags, distance, weight, logp, k, g, kx, ky, kz, ox, oy, oz, dist, dx, dy, dz, label_idx):
+    """Fuse one ray into voxel g (key kx, ky, kz), already marked MARK_FREE by that ray: the
+    projective distance with its weight, and the label step. Returns 1 when the voxel is newly
+    observed. A voxel takes at most one ray per cloud, so voxels are independent here. The
+    columns come one by one: arrays unpacked from a tuple inside a numba parallel loop are
+    copies there (numba 0.68), and the writes would be lost."""
+    res = k.res
+    trunc = k.trunc
+    cx = (np.float64(kx) + 0.5) * res
+    cy = (np.float64(ky) + 0.5) * res
+    cz = (np.float64(kz) + 0.5) * res
+    sdf = dist - ((cx - ox) * dx + (cy - oy) * dy + (cz - oz) * dz) / dist
+    w = 1.0
+    if k.dropoff and sdf < -res:
+        w = max((trunc + sdf) / (trunc - res), 0.0)
+    w_old = np.float64(weight[g])
+    w_new = w_old + w
+    if w_new < 1e-6:
+        return 0
+    d_new = (sdf * w + np.float64(distance[g]) * w_old) / w_new
+    f = flags[g]
+    distance[g] = min(trunc, d_new) if d_new > 0 else max(-trunc, d_new)
+    weight[g] = min(k.max_weight, w_new)
+    flags[g] = f | MARK_FREE | MARK_HIT | OBSERVED
+    if label_idx >= 0:
+        v = np.int64(logp[g, label_idx]) + 1
+        if v >= k.renorm_steps:
+            for c in range(logp.shape[1]):
+                logp[g, c] = max(np.int64(logp[g, c]) - v, _STEPS_MIN)
+            logp[g, label_idx] = 0
+        else:
+            logp[g, label_idx] = v
+    return 1 if f & OBSERVED == 0 else 0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _start_key(points, i, sub_inv):
+    """Key of point i's start-voxel subsampling cell."""
+    return pack_block(
+        np.int64(np.floor(np.float64(points[i, 0]) * sub_inv)),
+        np.int64(np.floor(np.float64(points[i, 1]) * sub_inv)),
+        np.int64(np.floor(np.float64(points[i, 2]) * sub_inv)),
+    )
+
+
 @njit(cache=True, error_model="numpy")
 def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
     """Integrate points i0.. ; resumable: every block is allocated before a ray updates anything.
     Returns (status, i, n_touched); `st.counts` accumulates the counters."""
-    res = k.res
     inv_res = k.inv_res
-    max_range = k.max_range
-    trunc = k.trunc
-    max_weight = k.max_weight
     min_range = k.min_range
     sub_inv = k.sub_inv
-    dropoff = k.dropoff
     grid = st.grid
     flags = st.flags
-    dist_ = st.distance
-    weight_ = st.weight
-    logp = st.logp
     touched = st.touched
     keybuf = st.keybuf
     gbuf = st.gbuf
@@ -136,41 +210,13 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
     last_key = np.int64(-1)
     last_b = np.int64(-1)
     for i in range(i0, points.shape[0]):
-        px = np.float64(points[i, 0])
-        py = np.float64(points[i, 1])
-        pz = np.float64(points[i, 2])
-        dx = px - ox
-        dy = py - oy
-        dz = pz - oz
-        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        dist, dx, dy, dz, clearing, ex, ey, ez, sx, sy, sz = _ray(points, i, ox, oy, oz, k)
         if dist < min_range or dist == 0.0:
             continue
-        ux = dx / dist
-        uy = dy / dist
-        uz = dz / dist
-        clearing = dist > max_range
-        if clearing:
-            ex = ox + ux * max_range
-            ey = oy + uy * max_range
-            ez = oz + uz * max_range
-            sx = ex - ux * trunc
-            sy = ey - uy * trunc
-            sz = ez - uz * trunc
-        else:
-            ex = px + ux * trunc
-            ey = py + uy * trunc
-            ez = pz + uz * trunc
-            sx = px - ux * trunc
-            sy = py - uy * trunc
-            sz = pz - uz * trunc
         skey = np.int64(-1)
         sslot = np.int64(-1)
         if sub_inv > 0:
-            skey = pack_block(
-                np.int64(np.floor(px * sub_inv)),
-                np.int64(np.floor(py * sub_inv)),
-                np.int64(np.floor(pz * sub_inv)),
-            )
+            skey = _start_key(points, i, sub_inv)
             sslot = _set_slot(startset, skey)
             if startset[sslot] == skey:
                 continue
@@ -196,31 +242,25 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
             flags[g] = f | MARK_FREE
             touched[n_touched] = g
             n_touched += 1
-            cx = (np.float64(keybuf[j, 0]) + 0.5) * res
-            cy = (np.float64(keybuf[j, 1]) + 0.5) * res
-            cz = (np.float64(keybuf[j, 2]) + 0.5) * res
-            sdf = dist - ((cx - ox) * dx + (cy - oy) * dy + (cz - oz) * dz) / dist
-            w = 1.0
-            if dropoff and sdf < -res:
-                w = max((trunc + sdf) / (trunc - res), 0.0)
-            w_old = np.float64(weight_[g])
-            w_new = w_old + w
-            if w_new < 1e-6:
-                continue
-            d_new = (sdf * w + np.float64(dist_[g]) * w_old) / w_new
-            if f & OBSERVED == 0:
-                counts[0] += 1
-            dist_[g] = min(trunc, d_new) if d_new > 0 else max(-trunc, d_new)
-            weight_[g] = min(max_weight, w_new)
-            flags[g] = f | MARK_FREE | MARK_HIT | OBSERVED
-            if label_idx >= 0:
-                v = np.int64(logp[g, label_idx]) + 1
-                if v >= k.renorm_steps:
-                    for c in range(logp.shape[1]):
-                        logp[g, c] = max(np.int64(logp[g, c]) - v, _STEPS_MIN)
-                    logp[g, label_idx] = 0
-                else:
-                    logp[g, label_idx] = v
+            counts[0] += _fuse(
+                flags,
+                st.distance,
+                st.weight,
+                st.logp,
+                k,
+                g,
+                keybuf[j, 0],
+                keybuf[j, 1],
+                keybuf[j, 2],
+                ox,
+                oy,
+                oz,
+                dist,
+                dx,
+                dy,
+                dz,
+                label_idx,
+            )
     return DONE, points.shape[0], n_touched
 
 
@@ -333,46 +373,59 @@ def _tsdf_finish(touched, n_touched, flags, changed):
     return nc
 
 
-@njit(cache=True, error_model="numpy")
-def _tsdf_rows(st, g, res, exp_steps, class_ids, rows):
-    """Fill the Delta columns (`DeltaColumns`, but `occupied`) of voxels g in one pass:
-    coordinates, distance, and the label (first most probable class; 0 for a uniform vector)
-    with its probability, 1 / sum over the classes of exp(-(steps behind the top) * log(p / q))
-    (`exp_steps`, 0 past its end), and the second class (the first most probable of the others;
-    0 when the vector is uniform or its probability is 0) with its probability."""
-    keys, centres, labels, probs, _, values, alt_labels, alt_probs = rows
-    logp = st.logp
+@njit(cache=True, error_model="numpy", inline="always")
+def _tsdf_row(
+    grid, distance, logp, g, i, res, exp_steps, class_ids,
+    keys, centres, labels, probs, values, alt_labels, alt_probs,
+):  # fmt: skip
+    """Row i of the Delta columns, voxel g: coordinates, distance, and the label (first most
+    probable class; 0 for a uniform vector) with its probability, 1 / sum over the classes of
+    exp(-(steps behind the top) * log(p / q)) (`exp_steps`, 0 past its end), and the second class
+    (the first most probable of the others; 0 when the vector is uniform or its probability is 0)
+    with its probability. Output columns one by one: a numba parallel loop loses writes through
+    arrays unpacked from a tuple."""
     n_exp = exp_steps.shape[0]
+    put_key_centre(grid, g, res, keys, centres, i)
+    values[i] = distance[g]
+    # the first most probable class, then the first most probable of the others
+    top = 0
+    alt = -1
+    uniform = True
+    for c in range(1, logp.shape[1]):
+        if logp[g, c] > logp[g, top]:
+            alt = top
+            top = c
+        elif alt < 0 or logp[g, c] > logp[g, alt]:
+            alt = c
+        if logp[g, c] != logp[g, 0]:
+            uniform = False
+    z = 0.0
+    for c in range(logp.shape[1]):
+        d = np.int64(logp[g, top]) - np.int64(logp[g, c])
+        if d < n_exp:
+            z += exp_steps[d]
+    probs[i] = 1.0 / z
+    labels[i] = 0 if uniform else class_ids[top]
+    d_alt = np.int64(logp[g, top]) - np.int64(logp[g, alt]) if alt >= 0 else n_exp
+    if uniform or d_alt >= n_exp:
+        alt_labels[i] = 0
+        alt_probs[i] = 0.0
+    else:
+        alt_labels[i] = class_ids[alt]
+        alt_probs[i] = exp_steps[d_alt] / z
+
+
+@njit(cache=True, error_model="numpy")
+def _tsdf_rows(
+    grid, distance, logp, g, res, exp_steps, class_ids,
+    keys, centres, labels, probs, values, alt_labels, alt_probs,
+):  # fmt: skip
+    """The Delta columns (`DeltaColumns`, but `occupied`) of voxels g in one pass."""
     for i in range(g.shape[0]):
-        gi = g[i]
-        put_key_centre(st.grid, gi, res, keys, centres, i)
-        values[i] = st.distance[gi]
-        # the first most probable class, then the first most probable of the others
-        top = 0
-        alt = -1
-        uniform = True
-        for c in range(1, logp.shape[1]):
-            if logp[gi, c] > logp[gi, top]:
-                alt = top
-                top = c
-            elif alt < 0 or logp[gi, c] > logp[gi, alt]:
-                alt = c
-            if logp[gi, c] != logp[gi, 0]:
-                uniform = False
-        z = 0.0
-        for c in range(logp.shape[1]):
-            d = np.int64(logp[gi, top]) - np.int64(logp[gi, c])
-            if d < n_exp:
-                z += exp_steps[d]
-        probs[i] = 1.0 / z
-        labels[i] = 0 if uniform else class_ids[top]
-        d_alt = np.int64(logp[gi, top]) - np.int64(logp[gi, alt])
-        if uniform or d_alt >= n_exp:
-            alt_labels[i] = 0
-            alt_probs[i] = 0.0
-        else:
-            alt_labels[i] = class_ids[alt]
-            alt_probs[i] = exp_steps[d_alt] / z
+        _tsdf_row(
+            grid, distance, logp, g[i], i, res, exp_steps, class_ids,
+            keys, centres, labels, probs, values, alt_labels, alt_probs,
+        )  # fmt: skip
 
 
 class Tsdf(MapBackend):
@@ -395,6 +448,7 @@ class Tsdf(MapBackend):
         self.log_ratio = float(np.log(p / ((1.0 - p) / (k - 1))))  # nats per step of `logp`
         self.trunc_m = config.truncation_voxels * self.resolution_m
         self.min_weight = float(config.min_weight)
+        self._parallel_loaded = False  # the parallel kernels were called once (`_rows`)
         self._touched = np.empty(1 << 16, np.int64)
         band = 2 * self.trunc_m + self.resolution_m
         n_buf = 3 * int(np.ceil(band / self.resolution_m)) + 16
@@ -439,25 +493,25 @@ class Tsdf(MapBackend):
             counts,
         )
 
+    @property
+    def threads(self) -> int:
+        """Threads the integration runs on (`threads` of the config, capped at numba's)."""
+        import numba
+
+        n = numba.config.NUMBA_NUM_THREADS
+        return n if self.config.threads == 0 else min(self.config.threads, n)
+
     def integrate(self, points, labels, confs, origin) -> Delta:
         del confs  # Kimera's fast integrator uses a fixed measurement probability
         grid = self.grid
         size = 1 << max(4, int(2 * points.shape[0]).bit_length())
         startset = np.full(size, -1, np.int64)
         counts = np.zeros(1, np.int64)
-        i, n_touched = 0, 0
-        while True:
-            status, i, n_touched = _tsdf_integrate(
-                points, labels, origin, self._state(counts), self._consts, startset, i, n_touched
-            )
-            if status == DONE:
-                break
-            if status == GROW_TOUCHED:
-                new = np.empty(self._touched.shape[0] * 2, np.int64)
-                new[:n_touched] = self._touched[:n_touched]
-                self._touched = new
-            else:
-                grid.handle(status)
+        threads = self.threads
+        if threads > 1:
+            n_touched = self._integrate_parallel(points, labels, origin, startset, counts, threads)
+        else:
+            n_touched = self._integrate_serial(points, labels, origin, startset, counts)
         changed = np.empty(n_touched, np.int64)
         nc = _tsdf_finish(self._touched, n_touched, grid.cols["flags"], changed)
         self.last_updates = nc  # voxels whose distance was fused this cloud
@@ -475,6 +529,68 @@ class Tsdf(MapBackend):
         )
         self.n_occupied += dcount
         return self._rows(out_g[:n], out_surf[:n])
+
+    def _grow(self, status: int, n_touched: int) -> None:
+        """Make room after a kernel returned `status` (resumed afterwards)."""
+        if status == GROW_TOUCHED:
+            new = np.empty(self._touched.shape[0] * 2, np.int64)
+            new[:n_touched] = self._touched[:n_touched]
+            self._touched = new
+        else:
+            self.grid.handle(status)
+
+    def _integrate_serial(self, points, labels, origin, startset, counts) -> int:
+        i, n_touched = 0, 0
+        while True:
+            status, i, n_touched = _tsdf_integrate(
+                points, labels, origin, self._state(counts), self._consts, startset, i, n_touched
+            )
+            if status == DONE:
+                return n_touched
+            self._grow(status, n_touched)
+
+    def _integrate_parallel(self, points, labels, origin, startset, counts, threads) -> int:
+        """The same map on `threads` threads (_tsdf_parallel.py), chunk by chunk of rays."""
+        # OpenMP threads that spin between the short parallel passes burn a core the other
+        # services need (CPU per scan doubled on a loaded 2-core machine): sleep instead, unless
+        # the user chose. Read when numba first loads its OpenMP layer, so set before that.
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+        import numba
+
+        from smana.services.mapper.backends import _tsdf_parallel as par
+
+        numba.set_num_threads(threads)
+        k = self._consts
+        sel = np.empty(points.shape[0], np.int64)
+        n_sel = par._select(points, origin, k, startset, sel)
+        chunk = min(n_sel, _CHUNK_RAYS)
+        n_buf = self._keybuf.shape[0]
+        gbuf = np.empty((chunk, n_buf), np.int64)
+        nks = np.empty(chunk, np.int64)
+        missing = np.empty(chunk, np.bool_)
+        claimed = np.empty(chunk, np.int64)
+        keybufs = np.empty((4 * threads, n_buf, 3), np.int64)  # one per block of rays
+        n_touched = 0
+        for r0 in range(0, n_sel, chunk):
+            r1 = min(r0 + chunk, n_sel)
+            par._cast(
+                points, origin, k, self.grid.state(), sel, r0, r1, keybufs, gbuf, nks, missing
+            )
+            r = r0
+            while True:
+                status, r, n_touched = par._claim(
+                    points, origin, k, self._state(counts), sel, r0, r1, r,
+                    gbuf, nks, missing, claimed, n_touched,
+                )  # fmt: skip
+                if status == DONE:
+                    break
+                self._grow(status, n_touched)
+            c = self.grid.cols
+            counts[0] += par._fuse_claimed(
+                points, labels, origin, k, c["flags"], c["distance"], c["weight"], c["logp"],
+                self.sem_idx, self.grid.block_keys, self.grid.bits, sel, r0, r1, gbuf, claimed,
+            )  # fmt: skip
+        return n_touched
 
     # -- surface extraction ----------------------------------------------------------------
 
@@ -538,14 +654,21 @@ class Tsdf(MapBackend):
     def _rows(self, g: np.ndarray, surface: np.ndarray) -> Delta:
         d = Delta.empty(g.shape[0])
         d.occupied = surface.astype(np.uint8)
-        _tsdf_rows(
-            self._state(np.zeros(1, np.int64)),
-            g,
-            self.resolution_m,
-            self._exp_steps,
-            self.class_ids,
-            d.columns(),
-        )
+        keys, centres, labels, probs, _, values, alt_labels, alt_probs = d.columns()
+        c = self.grid.cols
+        rows = _tsdf_rows
+        if self.threads > 1 and (g.shape[0] >= _PARALLEL_ROWS or not self._parallel_loaded):
+            # the first cloud takes every parallel kernel: a service's warm-up loads them all
+            self._parallel_loaded = True
+            import numba
+
+            from smana.services.mapper.backends._tsdf_parallel import _rows_parallel as rows
+
+            numba.set_num_threads(self.threads)
+        rows(
+            self.grid.state(), c["distance"], c["logp"], g, self.resolution_m, self._exp_steps,
+            self.class_ids, keys, centres, labels, probs, values, alt_labels, alt_probs,
+        )  # fmt: skip
         return d
 
     # -- queries ---------------------------------------------------------------------------

@@ -1,0 +1,225 @@
+"""The TSDF's integration on several cores, bit-identical to the serial kernel of tsdf.py.
+
+The serial kernel is voxblox's fast integrator: rays in cloud order, each stopping at the first
+voxel that an earlier ray of the same cloud reached. So a voxel takes at most one ray per cloud,
+and which ray that is depends on the order. The work splits in three passes:
+
+1. serial, `_select`: the rays the serial kernel casts (range limits, start-voxel subsampling:
+   the first point of each cell, in cloud order), a cheap probe per point;
+2. parallel over ray blocks, `_cast`: each ray's band, its voxblox walk and the block look-up of
+   every voxel (read-only on the block hash; a voxel whose block is missing is left to pass 3);
+3. serial, `_claim`: in cloud order, blocks allocated as the serial kernel allocates them (same
+   order, so the same block indices), and each ray marks the voxels of its walk up to the first
+   one already marked: the ray that owns each voxel this cloud, a flag read per voxel;
+4. parallel over rays, `_fuse_claimed`: distance, weight and label step of every claimed voxel.
+   Each voxel has one owner, so no two threads write the same voxel and every voxel sees the
+   same arithmetic on the same inputs as in the serial kernel: identical bits.
+
+This is the order-preserving half of voxblox's own answer: its fast integrator spreads the rays
+over threads and takes a voxel's first ray *in time* (not reproducible), its merged integrator
+groups the rays of a voxel (another result); nvblox projects voxels into a depth image (no
+rays). The serial passes (1 and 3) bound the gain on two cores. The Delta rows, one per voxel,
+run in parallel as well (`_rows_parallel`). The surface extraction stays serial: in parallel,
+a neighbour shared by several updated voxels is tested once by each (the serial pass marks it
+seen), which cost more CPU than the second core saved in wall time (26 against 17 ms per 50 m
+scan, docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from smana.services.mapper._grid import (
+    DONE,
+    GROW_TOUCHED,
+    MARK_ANY,
+    MARK_FREE,
+    table_find,
+    unpack_block,
+    voxblox_ray_keys,
+    voxel_index,
+    voxel_slot,
+)
+from smana.services.mapper.backends.tsdf import _fuse, _ray, _set_slot, _start_key, _tsdf_row
+
+
+@njit(cache=True, error_model="numpy")
+def _select(points, origin, k, startset, sel):
+    """Indices of the rays the serial kernel casts, in cloud order; returns their number."""
+    ox = np.float64(origin[0])
+    oy = np.float64(origin[1])
+    oz = np.float64(origin[2])
+    n = 0
+    for i in range(points.shape[0]):
+        dx = np.float64(points[i, 0]) - ox
+        dy = np.float64(points[i, 1]) - oy
+        dz = np.float64(points[i, 2]) - oz
+        dist = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if dist < k.min_range or dist == 0.0:
+            continue
+        if k.sub_inv > 0:
+            skey = _start_key(points, i, k.sub_inv)
+            s = _set_slot(startset, skey)
+            if startset[s] == skey:
+                continue
+            startset[s] = skey
+        sel[n] = i
+        n += 1
+    return n
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _cast(points, origin, k, grid, sel, r0, r1, keybuf, gbuf, nks, missing):
+    """Rays sel[r0:r1], in `keybuf.shape[0]` blocks: each ray's voxel count and global indices
+    (row r - r0 of `gbuf`), -1 where the block does not exist yet (`missing` set)."""
+    ox = np.float64(origin[0])
+    oy = np.float64(origin[1])
+    oz = np.float64(origin[2])
+    n_blocks = keybuf.shape[0]
+    n = r1 - r0
+    vb = 3 * grid.bits
+    for b in prange(n_blocks):
+        keys = keybuf[b]
+        last_key = np.int64(-1)
+        last_b = np.int64(-1)
+        for r in range(r0 + b * n // n_blocks, r0 + (b + 1) * n // n_blocks):
+            _, _, _, _, _, ex, ey, ez, sx, sy, sz = _ray(points, sel[r], ox, oy, oz, k)
+            nk = voxblox_ray_keys(ex, ey, ez, sx, sy, sz, k.inv_res, keys)
+            row = r - r0
+            nks[row] = nk
+            miss = False
+            for j in range(nk):
+                bkey, local = voxel_index(keys[j, 0], keys[j, 1], keys[j, 2], grid.bits)
+                if bkey != last_key:
+                    last_b = table_find(grid, bkey)
+                    last_key = bkey
+                if last_b < 0:
+                    gbuf[row, j] = -1
+                    miss = True
+                else:
+                    gbuf[row, j] = (last_b << vb) | local
+            missing[row] = miss
+
+
+@njit(cache=True, error_model="numpy")
+def _claim(points, origin, k, st, sel, r0, r1, r, gbuf, nks, missing, claimed, n_touched):
+    """Rays sel[r:r1] of the chunk starting at r0, in order: allocate the blocks their walks
+    need, then mark each walk up to the first voxel already marked (`claimed`: how many voxels
+    ray r owns). Resumable like the serial kernel: (status, next ray, n_touched)."""
+    grid = st.grid
+    flags = st.flags
+    touched = st.touched
+    keybuf = st.keybuf
+    ox = np.float64(origin[0])
+    oy = np.float64(origin[1])
+    oz = np.float64(origin[2])
+    last_key = np.int64(-1)
+    last_b = np.int64(-1)
+    while r < r1:
+        row = r - r0
+        nk = nks[row]
+        if n_touched + nk > touched.shape[0]:
+            return GROW_TOUCHED, r, n_touched
+        if missing[row]:  # walk again with allocation, in the serial kernel's order
+            _, _, _, _, _, ex, ey, ez, sx, sy, sz = _ray(points, sel[r], ox, oy, oz, k)
+            voxblox_ray_keys(ex, ey, ez, sx, sy, sz, k.inv_res, keybuf)
+            for j in range(nk):
+                g, last_key, last_b = voxel_slot(
+                    grid, keybuf[j, 0], keybuf[j, 1], keybuf[j, 2], last_key, last_b
+                )
+                if g < 0:
+                    return -g, r, n_touched
+                gbuf[row, j] = g
+            missing[row] = False
+        c = 0
+        for j in range(nk):
+            g = gbuf[row, j]
+            f = flags[g]
+            if f & MARK_ANY:  # the fast integrator drops the rest of this ray
+                break
+            flags[g] = f | MARK_FREE
+            touched[n_touched] = g
+            n_touched += 1
+            c += 1
+        claimed[row] = c
+        r += 1
+    return DONE, r1, n_touched
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _fuse_claimed(
+    points,
+    labels,
+    origin,
+    k,
+    flags,
+    distance,
+    weight,
+    logp,
+    sem_idx,
+    block_keys,
+    bits,
+    sel,
+    r0,
+    r1,
+    gbuf,
+    claimed,
+):
+    """Fuse rays sel[r0:r1] into the voxels they own; returns the newly observed count. Arrays
+    and scalars only: a parallel loop takes no tuple of arrays nested in another."""
+    ox = np.float64(origin[0])
+    oy = np.float64(origin[1])
+    oz = np.float64(origin[2])
+    vb = 3 * bits
+    bm = (1 << bits) - 1
+    new = 0
+    for r in prange(r0, r1):
+        row = r - r0
+        c = claimed[row]
+        if c == 0:
+            continue
+        i = sel[r]
+        ray = _ray(points, i, ox, oy, oz, k)
+        dist, dx, dy, dz = ray[0], ray[1], ray[2], ray[3]
+        label_idx = np.int64(-1) if ray[4] else np.int64(sem_idx[labels[i]])
+        for j in range(c):
+            g = gbuf[row, j]
+            bx, by, bz = unpack_block(block_keys[g >> vb])
+            local = g & ((1 << vb) - 1)
+            kx = (bx << bits) | (local & bm)
+            ky = (by << bits) | ((local >> bits) & bm)
+            kz = (bz << bits) | ((local >> (2 * bits)) & bm)
+            new += _fuse(
+                flags,
+                distance,
+                weight,
+                logp,
+                k,
+                g,
+                kx,
+                ky,
+                kz,
+                ox,
+                oy,
+                oz,
+                dist,
+                dx,
+                dy,
+                dz,
+                label_idx,
+            )
+    return new
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _rows_parallel(
+    grid, distance, logp, g, res, exp_steps, class_ids,
+    keys, centres, labels, probs, values, alt_labels, alt_probs,
+):  # fmt: skip
+    """tsdf.py's `_tsdf_rows` over the threads: each row is its own."""
+    for i in prange(g.shape[0]):
+        _tsdf_row(
+            grid, distance, logp, g[i], i, res, exp_steps, class_ids,
+            keys, centres, labels, probs, values, alt_labels, alt_probs,
+        )  # fmt: skip
