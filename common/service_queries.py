@@ -78,13 +78,31 @@ class ReplyError(Reject):
     """A query handler's refusal (the name query handlers have always used)."""
 
 
+def end_query(query) -> None:
+    """Send a query's final reply now (zenoh's `Query.drop`), not when its object is collected."""
+    try:
+        query.drop()
+    except Exception:  # noqa: BLE001 - already ended, or a stand-in without drop()
+        pass
+
+
 class Answers:
     """The part of `Service` that answers a query on the main loop and settles it in the books
     (`Inbox`): a handler's result, its `Reject`, or a bug, each as one reply."""
 
     def _answer(self, handler, query, key: str) -> None:
-        """Answer a query on the main loop. Replies go out on the queryable's own key, which a
-        wider query (`smana/r1/**`) matches and an access-control policy allows."""
+        """Answer a query on the main loop, then end it: the querier's get() returns at once.
+        Zenoh ends a query when its object is dropped; a handler that raised from inside an
+        `except` block leaves a frame cycle that holds the query until the garbage collector runs
+        (seconds: a refused explorer goal took 5 to 10 s), so it is dropped here explicitly."""
+        try:
+            self._answer_once(handler, query, key)
+        finally:
+            end_query(query)
+
+    def _answer_once(self, handler, query, key: str) -> None:
+        """Answer a query. Replies go out on the queryable's own key, which a wider query
+        (`smana/r1/**`) matches and an access-control policy allows."""
         as_json = False
         try:
             params, as_json = query_form(query)

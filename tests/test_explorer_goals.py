@@ -263,3 +263,28 @@ def test_smana_goto_without_an_explorer_or_without_feedback(zenoh_stack):
         assert p.returncode == 1 and "no feedback for 1 s" in out, out
     finally:
         q.undeclare()
+
+
+def test_a_refused_goal_query_ends_at_once_and_echoes_no_oversized_id(zenoh_stack):
+    """A goal query the explorer cannot read is answered and ended at once (a querier's get()
+    returns, it does not wait for its timeout), counted once; a refusal echoes no invalid id."""
+    stack, s, robot = zenoh_stack, zenoh_stack.session, zenoh_stack.robot
+    start_explorer(stack, "--set", 'explorer.mode="navigate"')
+    unreadable = [
+        b"\xc1 not msgpack",
+        msgpack.packb([1.0, 2.0]),
+        b"\x91" * 100_000 + b"\xc0",  # a deep nest
+        b"\xdd\xff\xff\xff\xff",  # an array declaring 4 G items
+    ]
+    long_id = msgpack.packb({"x": 1.0, "y": 1.0, "id": "a" * 10_240})
+    for payload in [*unreadable, long_id]:
+        t0 = time.monotonic()
+        replies = list(s.get(keys.explorer_goal(robot), payload=payload, timeout=10.0))
+        took_s = time.monotonic() - t0
+        assert took_s < 3.0, (payload[:20], took_s)  # ended, not timed out
+        assert len(replies) == 1 and replies[0].ok is not None, replies
+        r = msgpack.unpackb(replies[0].ok.payload.to_bytes())
+        assert r["accepted"] is False and r["reason"] and r["id"] == "", r
+    st = status(s, robot)
+    assert st.rejected.get("malformed") == len(unreadable) + 1, st.rejected
+    assert request(s, keys.explorer_state(robot))["nav_goal"] is None

@@ -81,13 +81,15 @@ def test_the_lists_that_name_services_are_the_table_s():
         *("sim", "mapper", "navgraph", "planner", "explorer"),
         *("replay", "recorder", "ros2", "coordinator"),
     }
+    # the ros2 service publishes a ROS 2 robot's sensor streams as a driver does (issue 28)
     assert security.OWNERS == (
-        *("sim", "replay", "driver", "mapper", "navgraph"),
-        *("planner", "explorer", "recorder", "ros2"),
+        *("sim", "replay", "ros2", "driver", "mapper", "navgraph"),
+        *("planner", "explorer", "recorder"),
     )
     assert security.BASE_RUNS == ("navgraph", "planner", "explorer", "recorder")
     assert security.FLEET_ROLES == ("mapper", "navgraph", "planner", "coordinator", "recorder")
-    assert security.SENSOR_ROLES == ("sim", "replay", "driver")
+    assert security.SENSOR_ROLES == ("sim", "replay", "ros2", "driver")
+    assert security.GOAL_SENDERS == ("explorer", "ros2")
     assert security.DRIVERS == ("explorer",)
     assert security.READ_QUERIES == (
         *("mapper/stats", "mapper/snapshot", "mapper/point"),

@@ -52,7 +52,12 @@ from smana.common.query import QueryError, request
 from smana.common.service import Reject, Request, Service, kernels_loaded
 from smana.services.explorer import frontier as fr
 from smana.services.explorer.exploration import Explorer, GridBox
-from smana.services.explorer.navigation import GoalRefused, parse_cancel, parse_goal
+from smana.services.explorer.navigation import (
+    GoalRefused,
+    check_goal_id,
+    parse_cancel,
+    parse_goal,
+)
 from smana.services.explorer.team import Team
 
 STATE_PERIOD_S = 0.5
@@ -287,7 +292,10 @@ class ExplorerService(Service):
         except MessageError as exc:
             body = exc
         gid = body.get("id") if isinstance(body, dict) else None
-        gid = gid if isinstance(gid, str) else None
+        try:  # a refusal echoes the goal's id only when it is a valid one
+            gid = check_goal_id(gid)
+        except GoalRefused:
+            gid = None
         try:
             self._exact(req, keys.explorer_goal(self.robot))
             if isinstance(body, MessageError):
