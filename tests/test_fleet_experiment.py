@@ -212,6 +212,12 @@ def test_argv_and_arguments(tmp_path):
     s = fx.apply_args(fx.FleetExperimentConfig(), args)
     assert s.robots == (1, 3) and [w.name for w in s.worlds] == ["garden22"]
     assert s.budget(W22) == 90
+    assert s.seeds == (3, 4, 5)
+    # a share of the seeds: --first-seed alone keeps the number, with --seeds it is both
+    seeds = fx.apply_args(fx.FleetExperimentConfig(), p.parse_args(["fleet", "--first-seed", "7"]))
+    assert seeds.seeds == (7, 8, 9)
+    both = p.parse_args(["fleet", "--first-seed", "7", "--seeds", "4"])
+    assert fx.apply_args(fx.FleetExperimentConfig(), both).seeds == (7, 8, 9, 10)
     from smana.common.cli import UsageError
 
     with pytest.raises(UsageError):

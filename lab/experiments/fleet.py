@@ -675,6 +675,13 @@ def add_parser(sub) -> None:
     )
     e.add_argument("--seeds", type=positive_int, help="number of seeds, from 3 up (default 3)")
     e.add_argument(
+        "--first-seed",
+        type=positive_int,
+        help="the first seed (default 3): two machines, or two runs at once, each take a share "
+        "of the seeds; copy one's run directories into the other's --out and run it again with "
+        "every seed to get the whole experiment's outputs",
+    )
+    e.add_argument(
         "--robots", help="comma-separated fleet sizes (default 1,2,3; 1 is the reference)"
     )
     e.add_argument(
@@ -695,8 +702,9 @@ def add_parser(sub) -> None:
 def apply_args(s: FleetExperimentConfig, args) -> FleetExperimentConfig:
     from smana.common.cli import UsageError
 
-    if args.seeds:
-        s.seeds = tuple(range(3, 3 + args.seeds))
+    first = getattr(args, "first_seed", None) or 3
+    if args.seeds or first != 3:
+        s.seeds = tuple(range(first, first + (args.seeds or len(s.seeds))))
     if args.budget:
         s.budget_s = args.budget
     if args.jobs:
