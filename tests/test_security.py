@@ -387,7 +387,7 @@ def test_the_policy_grants_nothing_outside_smana_and_ros2():
         assert all(rule["permission"] == "allow" for rule in policy["rules"])
 
 
-def test_only_a_robots_drive_role_its_ros2_identities_and_the_operator_may_send_its_explorer_goals():
+def test_only_a_robots_drive_role_ros2_identities_and_operator_may_send_its_goals():
     """The policy's side of `explorer/goal` and `goal/cancel` (the router's side, every identity
     on every listener, is test_acl_table.py): exact keys, granted to the robot's explorer, its
     router and the base's operator; no other robot's identity, no other role of the robot."""
