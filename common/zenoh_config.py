@@ -126,6 +126,22 @@ def free_loopback_port() -> int:
         return s.getsockname()[1]
 
 
+def wait_port(port: int, timeout_s: float = 15.0) -> None:
+    """Return once something listens on 127.0.0.1:`port` (a router started for a stack of its
+    own); TimeoutError after `timeout_s`."""
+    import socket
+    import time
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"nothing listens on 127.0.0.1:{port} after {timeout_s} s")
+
+
 def make_zenoh_config(zc: ZenohConfig):
     """Build a `zenoh.Config` from the [zenoh] section (ConfigError for what cannot work)."""
     import zenoh  # imported here so that cores and config code never need zenoh

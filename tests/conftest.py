@@ -9,7 +9,6 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from smana.common.zenoh_config import free_loopback_port
+from smana.common.zenoh_config import free_loopback_port, wait_port
 from smana.deploy.supervisor import die_with_parent
 
 REPO = Path(__file__).resolve().parents[1]
@@ -96,17 +95,6 @@ def kernels_ready(session, robot: str, service: str) -> bool:
     except QueryError:
         return False
     return st.details.get("kernels", "ready") == "ready"
-
-
-def wait_port(port: int, timeout_s: float = 15.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.05)
-    raise TimeoutError(f"nothing listens on 127.0.0.1:{port} after {timeout_s} s")
 
 
 class ZenohStack:

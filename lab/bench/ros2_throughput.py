@@ -51,24 +51,6 @@ def _cloud_fields(msg):
     return fields
 
 
-def _write_msgdefs(root: Path) -> None:
-    """The PointCloud2 definitions (and their dependencies) as .msg files for the SDK's
-    registry, from rosbags' typestore: the SDK would otherwise download them."""
-    from rosbags.typesys import Stores, get_typestore
-
-    store = get_typestore(Stores.ROS2_JAZZY)
-    text, _ = store.generate_msgdef(CLOUD, ros_version=2)
-    name = CLOUD
-    for i, block in enumerate(text.split("=" * 80 + "\n")):
-        if i:
-            head, block = block.split("\n", 1)
-            name = head.removeprefix("MSG: ")
-        pkg, msg = name.replace("/msg/", "/").split("/")
-        path = root / pkg / "msg" / f"{msg}.msg"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(block.rstrip("\n") + "\n")
-
-
 def _percentiles(values_s: list[float]) -> dict:
     if not values_s:
         return {"p50_ms": None, "p99_ms": None, "max_ms": None}
@@ -92,7 +74,9 @@ def sdk_side(
     from zenoh_ros2_sdk import ROS2Publisher, ROS2Subscriber, message_registry
     from zenoh_ros2_sdk.qos import QosDurability, QosProfile
 
-    _write_msgdefs(work / "msgs")
+    from smana.services.ros2.rmw import write_msg_files
+
+    write_msg_files(work / "msgs", [CLOUD])
     message_registry.get_registry(str(work / "msgs"))
     map_in: list[tuple[int, float, int]] = []  # (stamp ns, latency s, points)
 
@@ -256,7 +240,7 @@ class SmanaSide:
 
 
 def run(args, out: Path) -> dict:
-    from smana.common.zenoh_config import free_loopback_port
+    from smana.common.zenoh_config import free_loopback_port, wait_port
 
     out.mkdir(parents=True, exist_ok=True)
     port = free_loopback_port()
@@ -267,7 +251,7 @@ def run(args, out: Path) -> dict:
     )
     side = sdk = None
     try:
-        _wait_port(port)
+        wait_port(port, timeout_s=30.0)
         side = SmanaSide(endpoint, args.map_voxels, args.map_max_points)
         sdk = procs.spawn(
             [
@@ -348,19 +332,6 @@ def run(args, out: Path) -> dict:
     }
     (out / "result.json").write_text(json.dumps(result, indent=1))
     return result
-
-
-def _wait_port(port: int, timeout_s: float = 30.0) -> None:
-    import socket
-
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.05)
-    raise RuntimeError(f"the router did not listen on 127.0.0.1:{port} within {timeout_s} s")
 
 
 def _wait_file(path: Path, proc, timeout_s: float) -> bool:

@@ -87,6 +87,28 @@ class RosTypes:
         return self.store.deserialize_cdr(raw, typename)
 
 
+def write_msg_files(root, typenames) -> None:
+    """`<root>/<pkg>/msg/<Name>.msg` for each type and every type it uses, as ROS 2 packages ship
+    them, from rosbags' Jazzy typestore: what an rmw_zenoh client that parses .msg files
+    (zenoh-ros2-sdk) reads instead of downloading them."""
+    from pathlib import Path
+
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for typename in typenames:
+        text, _ = store.generate_msgdef(typename, ros_version=2)
+        name = typename
+        for i, block in enumerate(text.split("=" * 80 + "\n")):
+            if i:
+                head, block = block.split("\n", 1)
+                name = head.removeprefix("MSG: ")
+            pkg, msg = name.replace("/msg/", "/").split("/")
+            path = Path(root) / pkg / "msg" / f"{msg}.msg"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(block.rstrip("\n") + "\n")
+
+
 def _char_as_uint8(store, typename: str) -> None:
     """rosidl reads a .msg `char` as IDL `uint8` (rosidl_adapter's MSG_TYPE_TO_IDL), so a type
     hash sees uint8; rosbags' store keeps `char` and would hash it as FIELD_TYPE_CHAR. Same

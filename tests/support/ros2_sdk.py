@@ -35,20 +35,9 @@ def write_msgdefs(root: Path) -> Path:
     nav2_msgs' Costmap and CostmapMetaData (smana's copy of Nav2's definitions);
     `nav_msgs/srv/GetPlan.srv`. The text comes from rosbags, the parsing and hashing from the
     SDK: the hashes the tests compare are computed twice, independently."""
-    from rosbags.typesys import Stores, get_typestore
+    from smana.services.ros2.rmw import write_msg_files
 
-    store = get_typestore(Stores.ROS2_JAZZY)
-    for typename in MESSAGE_TYPES:
-        text, _ = store.generate_msgdef(typename, ros_version=2)
-        name = typename
-        for i, block in enumerate(text.split("=" * 80 + "\n")):
-            if i:
-                head, block = block.split("\n", 1)
-                name = head.removeprefix("MSG: ")
-            pkg, msg = name.replace("/msg/", "/").split("/")
-            path = root / pkg / "msg" / f"{msg}.msg"
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(block.rstrip("\n") + "\n")
+    write_msg_files(root, MESSAGE_TYPES)
     from smana.services.ros2 import costmap_types  # rosbags' store has no nav2_msgs
 
     for typename, text in costmap_types.DEFINITIONS.items():
