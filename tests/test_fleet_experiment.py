@@ -181,6 +181,22 @@ def test_rows_from_a_fleet_run_and_a_single_robot_run():
     assert not failed["ok"] and failed["robot_contacts"] is None
 
 
+def test_a_run_whose_only_warning_is_a_contact_is_data_and_its_contacts_count():
+    """`smana up` exits 1 for a robot-robot contact; the experiment keeps that run (dropping it
+    would leave the contact count to the runs that had none), but not one that failed otherwise."""
+    fleet = {"coverage": 0.97, "sim": {"robot_contacts_total": 1}, "curve": {}}
+    contact = {"fleet": fleet, "warnings": ["1 robot-robot contact(s) (r1-r2 x1)"]}
+    r = fx.make_row(7, W22, 3, 1, contact, 10.0, 20.0)
+    assert r["ok"] and r["robot_contacts"] == 1 and r["warnings"] == contact["warnings"]
+    crashed = dict(contact, warnings=[*contact["warnings"], "r2: the robot did not move (0 m)"])
+    assert not fx.make_row(7, W22, 3, 1, crashed, 10.0, 20.0)["ok"]
+    assert not fx.make_row(7, W22, 3, -9, contact, 10.0, 20.0)["ok"]  # killed: not a finished run
+    assert not fx.make_row(7, W22, 3, 1, {"fleet": fleet}, 10.0, 20.0)["ok"]  # 1, but no reason
+    rows = [_row(W12, n, s, 50) for n in (1, 2) for s in (3, 4, 5)] + [r]
+    v = _verdict(fx.verdicts(rows), "robot-robot contacts")
+    assert v["verdict"] == fx.NOT_MET and v["smana"].startswith("1 in 7 runs"), v
+
+
 def test_outputs_say_quick_on_top_and_draw_one_curve_per_fleet_size(tmp_path):
     s = fx.FleetExperimentConfig.quick()
     rows = [_row(W12, n, 3 + k, 50 / n) for n in (1, 2) for k in range(2)]

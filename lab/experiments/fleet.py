@@ -31,6 +31,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -160,6 +161,19 @@ def fleet_run(out: Path, seed: int, world: World, n: int, s: FleetExperimentConf
     return code, ex._load(run_dir / "metrics.json"), usage.ru_utime + usage.ru_stime, wall
 
 
+# A warning that is one of the experiment's outcomes, not a failure of the run: a run whose only
+# warnings are robot-robot contacts exits 1 but is data (its contacts are counted, its coverage
+# and map scored). Dropping it would leave the contact count to runs that had none.
+OUTCOME_WARNING = re.compile(r"^\d+ robot-robot contact\(s\)")
+
+
+def run_ok(code: int, m: dict) -> bool:
+    """A run is data when it left its figures and exited 0, or exited 1 for outcomes only."""
+    warnings = m.get("warnings") or [] if m else []
+    outcomes_only = bool(warnings) and all(OUTCOME_WARNING.match(str(w)) for w in warnings)
+    return bool(m) and (code == 0 or (code == 1 and outcomes_only))
+
+
 def make_row(seed: int, world: World, n: int, code: int, m: dict, cpu_s: float, wall_s: float):
     """One run's figures from its metrics.json: the "fleet" section, or for a run of one robot
     without it, the single robot's exploration and map (the same curve, exploration.py's)."""
@@ -201,7 +215,8 @@ def make_row(seed: int, world: World, n: int, code: int, m: dict, cpu_s: float, 
         "size_m": world.size_m,
         "n_robots": n,
         "exit_code": code,
-        "ok": code == 0 and bool(m),
+        "ok": run_ok(code, m),
+        "warnings": list(m.get("warnings") or []) if m else [],
         **row,
         "map_error_m": mp.get("reconstruction_error_mean_m"),
         "classification_ratio": mp.get("classification_ratio"),
