@@ -30,8 +30,11 @@ def test_the_arms_differ_only_in_noise_and_risk_and_their_config_loads():
         assert cfg.planner.risk == ("expected" if name == "clean" else name)
     assert SmanaConfig.load(overrides=list(sets["cvar"])).planner.risk_alpha == 0.2
     assert SmanaConfig.load(overrides=list(sets["chance"])).planner.max_risk == 0.25
+    # docs/experiments.md's protocol: seeds 3 to 12, a 10 m garden, water over 10 %, 75 s a run
     full = rl.experiment_config()
-    assert len(full.seeds) >= 10 and [a.name for a in full.arms] == list(sets)
+    assert full.seeds == tuple(range(3, 13)) and [a.name for a in full.arms] == list(sets)
+    assert (full.size_m, full.budget_s, rl.WATER_SHARE) == (10.0, 75.0, 0.1)
+    assert rl.experiment_config(quick=True).seeds == (3,)
 
 
 def _wet_world_and_config():
@@ -218,3 +221,21 @@ def test_risk_quick_runs_the_whole_stack_in_every_arm(tmp_path, capsys):
     results = json.loads((out / "risk_results.json").read_text())
     assert len(results["verdicts"]) == 6
     assert "| cvar: >= 50 % fewer" in capsys.readouterr().out
+
+
+def test_the_label_arm_is_on_arms_only_and_misuse_is_refused_before_any_output(tmp_path):
+    from smana.common.cli import UsageError
+
+    assert "label" not in {a.name for a in rl.experiment_config().arms}
+    label = rl.arms_of("expected, label")[1]
+    assert label.name == "label" and 'planner.risk="label"' in label.sets
+    assert 'sim.noise="high"' in label.sets
+    out = tmp_path / "risk"
+    for argv, what in (
+        (["--arms", "expected,argmax"], "--arms: expected some of clean, expected"),
+        (["--synthetic", "--budget", "3"], "--budget: an option of the closed loop only"),
+        (["--pairs", "3"], "--pairs: an option of --synthetic only"),
+    ):
+        with pytest.raises(UsageError, match=what):
+            cli(["risk", *argv, "--out", str(out)])
+        assert not out.exists()

@@ -280,7 +280,7 @@ def claims(rows) -> list[dict]:
 
 # -- command line --------------------------------------------------------------------------------
 
-CLOSED_LOOP_ONLY = ("budget", "jobs", "size")
+CLOSED_LOOP_ONLY = ("budget", "jobs", "size", "arms")
 SYNTHETIC_ONLY = ("pairs", "nodes")
 
 
@@ -290,21 +290,22 @@ def add_parser(sub) -> None:
     r = sub.add_parser(
         "risk",
         help="risk-aware navigation (issue 29): closed-loop exploration of the wet garden under "
-        "label and pose noise, planner.risk expected vs cvar vs chance (estimated: 50 min; "
-        "--quick 2 to 4 min)",
+        "label and pose noise, planner.risk expected vs cvar vs chance (measured once: 2 seeds "
+        "in 6.5 min, so 10 seeds about 33 min at that load; --quick 1.5 min)",
         description="Closed loop (the default): one `smana up` per arm (noise-free reference; "
         "expected, cvar, chance under label noise p = 0.7 and pose noise) and seed in the wet "
         "garden, measured against ground truth: forbidden-class entries and time, true path "
         "cost, length, contacts, coverage; verdicts on issue 29's target "
         "(lab/experiments/riskloop.py). --synthetic: the first form, in-process on synthetic "
         "maps (lab/experiments/risk.py).",
-        epilog="Duration on this 2-core machine, shared with other work (load 16 to 20): one "
-        "run of the full form (10 m garden, 90 s of robot time) took about 2 to 2.5 min of "
-        "wall time, two at once; 4 arms x 10 seeds = 40 runs, 2 at once: estimated 50 min, "
-        "not measured in full. --quick: 4 arms x 2 seeds of 20 s in a 6 m garden, measured "
-        "once: see docs/risk.md. --synthetic: 25 s (10 seeds). A rerun into the same --out "
-        "keeps the runs that finished and runs the rest. Exits 1 if any run failed (a run "
-        "that ended only because the robot did not move or found no path is a result).",
+        epilog="Duration on a 2-core machine shared with other work, measured once: 2 seeds of the "
+        "full form (8 runs of smana up, 2 at once, 10 m garden, 75 s of robot time each) took 6"
+        " min 30 s at load 7 to 8, so the default 10 seeds (40 runs) take about 33 min at that "
+        "load (not run in full); a noisy probe run (80 s) took 3 min 10 s at load 16 to 20, "
+        "where the 40 runs would take about 60 min. --quick (the 4 arms of 1 seed, 20 s each in"
+        " a 6 m garden): 1 min 34 s. --synthetic: 25 s (10 seeds). A rerun into the same --out "
+        "keeps the runs that finished and runs the rest. Exits 1 if any run failed (a run that "
+        "ended only because the robot did not move or found no path is a result).",
     )
     r.add_argument(
         "--out", type=Path, help="output directory (default runs/experiment-risk-<time>)"
@@ -320,10 +321,17 @@ def add_parser(sub) -> None:
         "--size", type=positive_float, help="side of the wet garden, m (default 10; quick 6)"
     )
     r.add_argument(
-        "--budget", type=positive_float, help="time budget per run, s of robot time (default 90)"
+        "--budget",
+        type=positive_float,
+        help="time budget per run, s of robot time (default 75; quick 20)",
     )
     r.add_argument("--jobs", type=positive_int, help="runs of smana up at once (default 2)")
     r.add_argument("--set", dest="extra", action="append", default=[], help="extra config override")
+    r.add_argument(
+        "--arms",
+        help="comma-separated arms (default clean,expected,cvar,chance; also label: the default "
+        "planner under the same noise, in no verdict)",
+    )
     r.add_argument(
         "--synthetic",
         action="store_true",
@@ -351,9 +359,11 @@ def check_args(args, parser=None) -> None:
         from smana.common.config import SmanaConfig
 
         from . import exploration as ex
-        from .riskloop import ARMS
+        from .riskloop import ARMS, arms_of
 
         SmanaConfig.load(overrides=[*ex.WORLD_SETS, *ARMS[-1].sets, *args.extra])
+        if args.arms:
+            arms_of(args.arms)
 
 
 def main(args, parser, out: Path) -> int:

@@ -40,6 +40,9 @@ and for `chance` against `expected` (the issue's target at p = 0.7):
 The six verdicts are corrected together (Holm) in the run's summary, and with every other claim
 in docs/experiments.md. Contacts are counts, reported per arm, not tested.
 
+One more arm, `label` (the default planner: the label's cost alone, under the same noise), is on
+`--arms` to show what planning on the distribution changes at all; no verdict uses it.
+
 A run that `smana up` ended with a navigation warning only (the robot did not move, no path was
 ever found) is what the arm did, not a failed run (as in navnoise): it is kept, with no entries
 and its distance. A rerun into the same --out keeps the finished runs (`row.json` beside each).
@@ -102,8 +105,11 @@ CONDITIONS = (
     # 0.25, not the default 0.1: the synthetic form closed every node at 0.1 (lab/.../risk.py)
     Condition("chance", True, (("risk", "chance"), ("max_risk", 0.25))),
 )
+# not in the default run, in no verdict (`--arms` adds it): the default planner, the label's cost
+# alone, under the same noise; what the distribution itself changes
+EXTRA_CONDITIONS = (Condition("label", True, (("risk", "label"),)),)
 ARMS = tuple(c.arm() for c in CONDITIONS)
-_BY_NAME = {c.name: c for c in CONDITIONS}
+_BY_NAME = {c.name: c for c in (*CONDITIONS, *EXTRA_CONDITIONS)}
 TESTED = ("cvar", "chance")
 
 
@@ -334,12 +340,12 @@ SUMMARY_KEYS = (
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """Per arm that ran, in CONDITIONS' order: runs, failed, did not move, contacts (a total), and
+    """Per arm that ran, in _BY_NAME's order: runs, failed, did not move, contacts (a total), and
     the interval of each SUMMARY_KEYS value over its runs."""
     from smana.deploy.report.measures import MOVED_M
 
     out = []
-    for c in CONDITIONS:
+    for c in _BY_NAME.values():
         sel = [r for r in rows if r.get("arm") == c.name]
         if not sel:
             continue
@@ -485,6 +491,16 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
     print("\n".join(verdict_lines))
 
 
+def arms_of(text: str) -> tuple[ex.Arm, ...]:
+    """The arms `--arms` names (comma-separated, any of _BY_NAME); a bad name: one line."""
+    from smana.common.cli import UsageError
+
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    if not names or any(v not in _BY_NAME for v in names):
+        raise UsageError(f"--arms: expected some of {', '.join(_BY_NAME)}, got {text!r}")
+    return tuple(_BY_NAME[v].arm() for v in names)
+
+
 def run(args, out: Path) -> int:
     """The closed loop as `smana experiment risk` runs it (risk.py parses the arguments)."""
     s = experiment_config(args.quick)
@@ -496,6 +512,8 @@ def run(args, out: Path) -> int:
         s.size_m = args.size
     if args.jobs:
         s.jobs = args.jobs
+    if args.arms:
+        s.arms = arms_of(args.arms)
     s.extra = (*s.extra, *args.extra)
     rows = ex.run_exploration(s, out, write=write_outputs, keep=finished)
     return ex.finish(rows, out, "risk")
