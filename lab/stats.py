@@ -81,6 +81,36 @@ def mean_ci(values, confidence: float = 0.95) -> Interval:
     return Interval(m, m - h, m + h, n, confidence)
 
 
+def ratio_ci(a, b, confidence: float = 0.95) -> Interval:
+    """mean(a) / mean(b) of paired values (a[i] and b[i] from one seed) with Fieller's interval:
+    the ratios R for which the paired t test of a - R b does not reject mean(a - R b) = 0 at
+    `confidence`. The interval is defined only when mean(b) is itself clearly away from 0 (the
+    set is then bounded); otherwise lo and hi are NaN ("no interval"), as with fewer than two
+    pairs. Pairs with a missing value are left out."""
+    pairs = [
+        (float(x), float(y))
+        for x, y in zip(a, b, strict=True)
+        if x is not None and y is not None and math.isfinite(x) and math.isfinite(y)
+    ]
+    n = len(pairs)
+    x = np.array([p[0] for p in pairs])
+    y = np.array([p[1] for p in pairs])
+    ratio = float(x.mean() / y.mean()) if n and y.mean() != 0 else math.nan
+    if n < 2 or not math.isfinite(ratio):
+        return Interval(ratio, math.nan, math.nan, n, confidence)
+    t2 = float(_st.t.ppf(0.5 + confidence / 2, n - 1)) ** 2
+    cov = np.cov(x, y, ddof=1) / n  # of the two means
+    # (mean_x - R mean_y)^2 <= t^2 var(mean_x - R mean_y): a quadratic in R, <= 0 inside
+    qa = y.mean() ** 2 - t2 * cov[1, 1]
+    qb = -2 * (x.mean() * y.mean() - t2 * cov[0, 1])
+    qc = x.mean() ** 2 - t2 * cov[0, 0]
+    disc = qb * qb - 4 * qa * qc
+    if qa <= 0 or disc < 0:
+        return Interval(ratio, math.nan, math.nan, n, confidence)
+    root = math.sqrt(disc)
+    return Interval(ratio, (-qb - root) / (2 * qa), (-qb + root) / (2 * qa), n, confidence)
+
+
 def verdict_near(ci: Interval, target: float, tolerance: float) -> str:
     """The claim "the value is `target` within `tolerance`": reproduced when the whole interval
     lies within [target - tolerance, target + tolerance], not reproduced when it lies wholly

@@ -262,7 +262,16 @@ def test_a_duration_in_a_help_text_says_it_was_measured_once():
     helps = [(name,) for name in COMMANDS] + [("bench", b) for b in BENCHES]
     helps += [
         ("experiment", e)
-        for e in ("noise", "exploration", "ablation", "routes", "fleet", "resources", "navnoise")
+        for e in (
+            "noise",
+            "exploration",
+            "ablation",
+            "routes",
+            "fleet",
+            "resources",
+            "navnoise",
+            "risk",
+        )
     ]
     timed = 0
     for argv in helps:

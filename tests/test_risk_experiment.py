@@ -1,5 +1,6 @@
-"""`smana experiment risk` (issue 29, synthetic maps): its noise model, the judge against the
-truth, the rules decided on synthetic rows, and the quick form end to end."""
+"""`smana experiment risk --synthetic` (issue 29, the first form, on synthetic maps): its noise
+model, the judge against the truth, the rules decided on synthetic rows, and the quick form end
+to end. The closed loop: tests/test_risk_loop.py."""
 
 from __future__ import annotations
 
@@ -84,8 +85,8 @@ def test_risk_quick(tmp_path, capsys):
     the forbidden class, the map's labels alone plan as the truth when there is no noise, and six
     verdicts."""
     out = tmp_path / "risk"
-    assert cli(["risk", "--quick", "--out", str(out)]) == 0
-    data = json.loads((out / "data" / "risk.json").read_text())
+    assert cli(["risk", "--synthetic", "--quick", "--out", str(out)]) == 0
+    data = json.loads((out / "data" / "risk_synthetic.json").read_text())
     rows = data["rows"]
     assert {r["arm"] for r in rows} == set(rk.ARMS) and {r["p"] for r in rows} == {1.0, 0.7}
     assert len(rows) == 2 * 2 * len(rk.ARMS) * 6

@@ -253,3 +253,23 @@ def test_logrank_matches_scipy_and_decides_which_arm_is_sooner():
     assert d.verdict == stats.REPRODUCED and "not reached" not in d.evidence
     assert stats.decide_sooner_censored(slow, no, fast, no).verdict == stats.NOT_REPRODUCED
     assert stats.decide_sooner_censored(fast, no, fast, no).verdict == stats.INCONCLUSIVE
+
+
+def test_ratio_ci_is_fiellers_the_ratios_the_paired_t_test_keeps():
+    """ratio_ci against the slow definition: R is inside the interval exactly when the interval
+    of the per-seed differences a - R b holds 0 (a scan of R)."""
+    rng = np.random.default_rng(5)
+    b = rng.uniform(2, 6, 10)
+    a = 0.4 * b + rng.normal(0, 0.5, 10)
+    ci = stats.ratio_ci(a, b)
+    assert ci.n == 10 and ci.mean == pytest.approx(a.mean() / b.mean())
+    assert ci.lo < ci.mean < ci.hi
+    for r in np.linspace(ci.lo - 0.3, ci.hi + 0.3, 301):
+        d = stats.mean_ci(a - r * b)
+        kept = d.lo <= 0 <= d.hi
+        if min(abs(r - ci.lo), abs(r - ci.hi)) > 1e-6:
+            assert kept == (ci.lo <= r <= ci.hi), r
+    # a denominator whose mean is not clearly away from 0: no interval, as with one pair
+    assert not stats.ratio_ci([1.0, 2.0, 0.5], [1.0, -1.0, 0.2]).defined
+    assert not stats.ratio_ci([1.0], [2.0]).defined and stats.ratio_ci([1.0], [2.0]).mean == 0.5
+    assert stats.ratio_ci([1.0, None, 3.0], [2.0, 1.0, 6.0]).n == 2

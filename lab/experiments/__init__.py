@@ -5,7 +5,7 @@
     smana experiment fleet [--quick] [--robots 1,2,3] [--out DIR]
     smana experiment resources [--quick] [--repeats 5] [--out DIR]
     smana experiment navnoise [--quick] [--seeds 5] [--out DIR]   # beyond the paper
-    smana experiment risk [--quick] [--seeds 10] [--out DIR]      # issue 29, synthetic maps
+    smana experiment risk [--quick] [--seeds 10] [--out DIR]      # issue 29, closed loop
     smana experiment report [--check]     # docs/experiments.md's tables from the committed data
 
 One module per experiment (`noise.py`, `exploration.py`), each with its `add_parser(sub)` and

@@ -306,19 +306,51 @@ def _terminate(signum, frame):
     raise KeyboardInterrupt(f"signal {signum}")
 
 
+ROW_FILE = "row.json"  # a finished run's row, beside its outputs (a rerun keeps it)
+
+
+def _keep_row(out: Path, row: dict, arm: Arm) -> None:
+    path = out / run_name(row["seed"], arm) / ROW_FILE
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(row))
+    tmp.replace(path)
+
+
+def _kept_row(out: Path, seed: int, arm: Arm) -> dict | None:
+    """The row a finished run of (seed, arm) left in `out`, or None (not run, not kept, or a file
+    that does not read as that run's row: it runs again)."""
+    try:
+        row = json.loads((out / run_name(seed, arm) / ROW_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    same = isinstance(row, dict) and (row.get("seed"), row.get("arm")) == (seed, arm.name)
+    return row if same else None
+
+
 def run_exploration(
-    s: ExplorationExperimentConfig, out: Path, log=progress.say, write=None
+    s: ExplorationExperimentConfig, out: Path, log=progress.say, write=None, keep=None
 ) -> list[dict]:
     """Every arm x seed, `s.jobs` at once; writes the outputs (`write(rows, s, out)`, by default
-    the exploration's) and returns the rows."""
+    the exploration's) and returns the rows. `keep(row, run_dir)`: a run whose row it accepts is
+    finished, its row saved beside its outputs (`row.json`), and a rerun into the same `out`
+    reads it back instead of running it again (an interrupted experiment resumes, as the fleet
+    experiment does); without `keep` every run runs."""
     spawns = {seed: pick_spawn(seed, s.size_m, run_world_sets(s.extra)) for seed in s.seeds}
     todo = [(seed, arm) for seed in s.seeds for arm in s.arms]
+    rows = []
+    if keep is not None:
+        for seed, arm in list(todo):
+            kept = _kept_row(out, seed, arm)
+            if kept is not None:
+                rows.append(kept)
+                todo.remove((seed, arm))
+        if rows:
+            log(f"{len(rows)} finished run(s) kept from {out}; {len(todo)} to run")
     # a `kill` (SIGTERM) stops the runs as Ctrl-C does: each `smana up` is in its own process
     # group and would otherwise live on without the experiment
     previous = None
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _terminate)
-    rows = []
     runs = progress.bar(len(todo), "exploration", unit="run")
     pool = ThreadPoolExecutor(max_workers=s.jobs)
     try:
@@ -333,6 +365,8 @@ def run_exploration(
             except Exception as exc:  # a run that could not even start is a failed run
                 row = make_row(seed, arm, -1, {}, {}, 0.0, 0.0)
                 log(f"{run_name(seed, arm)}: {exc}")
+            if keep is not None and keep(row, out / run_name(seed, arm)):
+                _keep_row(out, row, arm)
             rows.append(row)
             runs.update()
             log(

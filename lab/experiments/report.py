@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = ROOT / "docs" / "experiments" / "data"
 DOC = ROOT / "docs" / "experiments.md"
 # the data files a report reads
-EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "resources", "navnoise")
+EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "resources", "navnoise", "risk")
 SECTION = re.compile(
     r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
     re.S,
@@ -276,6 +276,31 @@ def _navnoise_claims(key: str, data: dict) -> list[dict]:
     return [{**v, "experiment": _where(key, data)} for v in verdicts(rows)]
 
 
+def _risk_claims(key: str, data: dict) -> list[dict]:
+    """The closed loop's verdicts (riskloop.py); a committed synthetic run (`--synthetic`,
+    `risk_synthetic.json`) gives its own six (risk.py)."""
+    rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
+    if (data.get("meta") or {}).get("form") != "synthetic":
+        from .riskloop import verdicts
+
+        return [{**v, "experiment": _where(key, data)} for v in verdicts(rows)]
+    from .risk import TARGET_P, claims
+
+    return [
+        {
+            "claim": c["claim"],
+            "paper": "(issue 29, synthetic maps)",
+            "smana": c["interval"].format(fmt=".3f"),
+            "verdict": c["verdict"],
+            "p": c["p"],
+            "rule": f"at p = {TARGET_P}",
+            "evidence": "",
+            "experiment": _where(key, data),
+        }
+        for c in claims(rows)
+    ]
+
+
 def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
     """Every claim the committed data decides, Holm-corrected together over the table. A claim
     without a p-value (a count, such as the fleet's contacts) is not a test: it is listed, and
@@ -296,6 +321,8 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
             ]
         elif data["experiment"] == "navnoise":
             table += _navnoise_claims(key, data)
+        elif data["experiment"] == "risk":
+            table += _risk_claims(key, data)
     tested = [c for c in table if c.get("p") is not None]
     # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
     decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in tested]
@@ -377,6 +404,12 @@ def navnoise_section(data: dict | None) -> str:
     return section(data)
 
 
+def risk_section(data: dict | None) -> str:
+    from .riskloop import section
+
+    return section(data)
+
+
 def sections(all_data: dict[str, dict]) -> dict[str, str]:
     return {
         "routes_wheel": routes_section(all_data.get("routes_wheel"), "routes_wheel"),
@@ -386,6 +419,7 @@ def sections(all_data: dict[str, dict]) -> dict[str, str]:
         "fleet": fleet_section(all_data),
         "resources": resources_section(all_data.get("resources")),
         "navnoise": navnoise_section(all_data.get("navnoise")),
+        "risk": risk_section(all_data.get("risk")),
     }
 
 

@@ -1,9 +1,10 @@
-"""`smana experiment risk` (issue 29, item 4; a first form): does planning on the map's label
-distribution keep the robot out of a class that only semantics can see?
+"""`smana experiment risk` (issue 29, item 4): does planning on the map's label distribution keep
+the robot out of a class that only semantics can see? This module holds the command line and
+the first form, `--synthetic`; the default form, the closed loop (`smana up` in the wet garden
+under the paper's label and pose noise), is lab/experiments/riskloop.py.
 
-This form is in-process and synthetic: it does not render frames nor run the mapper's back-ends
-(the full form, on the garden with its water class, maps built by the back-ends under the paper's
-label and pose noise, and closed-loop exploration, is not built yet). Per seed:
+The synthetic form is in-process: it does not render frames nor run the mapper's back-ends. Per
+seed:
 
 - the ground truth: a flat N x N graph (0.2 m nodes) of terrain, grass patches, patches of a
   forbidden flat class (water of the wet garden's table, garden3drms_wet: infinite cost, not an
@@ -279,33 +280,106 @@ def claims(rows) -> list[dict]:
 
 # -- command line --------------------------------------------------------------------------------
 
+CLOSED_LOOP_ONLY = ("budget", "jobs", "size", "arms")
+SYNTHETIC_ONLY = ("pairs", "nodes")
+
 
 def add_parser(sub) -> None:
-    from smana.common.cli import int_in, positive_int
+    from smana.common.cli import int_in, positive_float, positive_int
 
     r = sub.add_parser(
         "risk",
-        help="risk-aware planning under label noise on synthetic maps (issue 29)",
-        description=__doc__.split("\n\n")[0],
-        epilog="Duration measured once on a 2-core machine: see docs/risk.md. The maps are "
-        "synthetic (per-node label noise on a synthetic garden), not built by the back-ends.",
+        help="risk-aware navigation (issue 29): closed-loop exploration of the wet garden under "
+        "label and pose noise, planner.risk expected vs cvar vs chance (measured once: 2 seeds "
+        "in 6.5 min, so 10 seeds about 33 min at that load; --quick 1.5 min)",
+        description="Closed loop (the default): one `smana up` per arm (noise-free reference; "
+        "expected, cvar, chance under label noise p = 0.7 and pose noise) and seed in the wet "
+        "garden, measured against ground truth: forbidden-class entries and time, true path "
+        "cost, length, contacts, coverage; verdicts on issue 29's target "
+        "(lab/experiments/riskloop.py). --synthetic: the first form, in-process on synthetic "
+        "maps (lab/experiments/risk.py).",
+        epilog="Duration on a 2-core machine shared with other work, measured once: 2 seeds of the "
+        "full form (8 runs of smana up, 2 at once, 10 m garden, 75 s of robot time each) took 6"
+        " min 30 s at load 7 to 8, so the default 10 seeds (40 runs) take about 33 min at that "
+        "load (not run in full); a noisy probe run (80 s) took 3 min 10 s at load 16 to 20, "
+        "where the 40 runs would take about 60 min. --quick (the 4 arms of 1 seed, 20 s each in"
+        " a 6 m garden): 1 min 34 s. --synthetic: 25 s (10 seeds). A rerun into the same --out "
+        "keeps the runs that finished and runs the rest. Exits 1 if any run failed (a run that "
+        "ended only because the robot did not move or found no path is a result).",
     )
     r.add_argument(
         "--out", type=Path, help="output directory (default runs/experiment-risk-<time>)"
     )
     r.add_argument(
-        "--quick", action="store_true", help="test-sized: 2 seeds, small maps, p 1 and 0.7"
+        "--quick",
+        action="store_true",
+        help="test-sized: the 4 arms of 1 seed, 20 s each in a 6 m garden (synthetic: 2 seeds, "
+        "small maps, p 1 and 0.7)",
     )
     r.add_argument("--seeds", type=int_in(2), help="number of seeds (default 10; 2 or more)")
-    r.add_argument("--pairs", type=positive_int, help="start/goal pairs per seed (default 20)")
-    r.add_argument("--size", type=int_in(30, 1000), help="map size in nodes a side (default 150)")
+    r.add_argument(
+        "--size", type=positive_float, help="side of the wet garden, m (default 10; quick 6)"
+    )
+    r.add_argument(
+        "--budget",
+        type=positive_float,
+        help="time budget per run, s of robot time (default 75; quick 20)",
+    )
+    r.add_argument("--jobs", type=positive_int, help="runs of smana up at once (default 2)")
+    r.add_argument("--set", dest="extra", action="append", default=[], help="extra config override")
+    r.add_argument(
+        "--arms",
+        help="comma-separated arms (default clean,expected,cvar,chance; also label: the default "
+        "planner under the same noise, in no verdict)",
+    )
+    r.add_argument(
+        "--synthetic",
+        action="store_true",
+        help="the first form: planning between random pairs on synthetic maps, in-process",
+    )
+    r.add_argument(
+        "--pairs", type=positive_int, help="synthetic: start/goal pairs per seed (default 20)"
+    )
+    r.add_argument(
+        "--nodes", type=int_in(30, 1000), help="synthetic: map size in nodes a side (default 150)"
+    )
+
+
+def check_args(args, parser=None) -> None:
+    """Refuse options of the other form and a bad --set now, in one line."""
+    from smana.common.cli import UsageError
+
+    other = SYNTHETIC_ONLY if not args.synthetic else (*CLOSED_LOOP_ONLY, "extra")
+    given = [k for k in other if getattr(args, k)]
+    if given:
+        names = ", ".join(f"--{'set' if k == 'extra' else k}" for k in given)
+        form = "the closed loop" if args.synthetic else "--synthetic"
+        raise UsageError(f"{names}: an option of {form} only")
+    if not args.synthetic:
+        from smana.common.config import SmanaConfig
+
+        from . import exploration as ex
+        from .riskloop import ARMS, arms_of
+
+        SmanaConfig.load(overrides=[*ex.WORLD_SETS, *ARMS[-1].sets, *args.extra])
+        if args.arms:
+            arms_of(args.arms)
 
 
 def main(args, parser, out: Path) -> int:
+    if args.synthetic:
+        return synthetic_main(args, out)
+    from .riskloop import run
+
+    return run(args, out)
+
+
+def synthetic_main(args, out: Path) -> int:
+    """The first form (`--synthetic`): in-process, on synthetic maps."""
     from .report import write_data
 
     seeds = list(range(3, 3 + (args.seeds or (2 if args.quick else 10))))
-    n = args.size or (60 if args.quick else 150)
+    n = args.nodes or (60 if args.quick else 150)
     n_pairs = args.pairs or (6 if args.quick else 20)
     levels = (1.0, TARGET_P) if args.quick else LEVELS
     rows = []
@@ -321,7 +395,7 @@ def main(args, parser, out: Path) -> int:
         "levels": list(levels),
         "form": "synthetic",
     }
-    write_data(out, "risk", rows, meta)
+    write_data(out, "risk", rows, meta, "synthetic")
     decided = claims(rows)
     lines = [
         "# Risk-aware planning under label noise (synthetic maps)",

@@ -11,7 +11,8 @@ import math
 import numpy as np
 
 from smana.common.messages import Pose, quat_to_matrix
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, RISK_LAYER_NAMES
+from smana.common.risk import risk_class_costs
 
 from . import costmap_types as nav2
 
@@ -119,32 +120,64 @@ def within_budget(centres, labels, resolution_m: float, max_points: int):
         factor *= 2
 
 
-def costmap_values(labels, flags, cost_lut) -> np.ndarray:
-    """OccupancyGrid values of graph nodes: obstacles and safety zone 100, unknown -1, known
-    traversable nodes their class's traversability cost scaled to 0 (cheapest class of the table)
-    .. 98 (dearest); a known node of a class that is not traversable is 100."""
+def _scaled(labels, cost_lut, costs, planner, top: int) -> tuple[np.ndarray, np.ndarray]:
+    """(T of each node scaled from 0, the cheapest class of the table, to `top`, the dearest;
+    where T is finite). `costs`: each node's T when the caller has them (under the planner's
+    risk, `node_costs`), else T(label). Under a risk mode the scale reaches up to what a
+    forbidden class's mass costs (`planner.risk_forbidden_cost`), so a node as dear as that
+    shows at the top."""
     finite = cost_lut[np.isfinite(cost_lut)]
     lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
-    cost = cost_lut[np.minimum(labels, len(cost_lut) - 1)]
+    if costs is None:
+        cost = cost_lut[np.minimum(labels, len(cost_lut) - 1)]
+    else:
+        cost = np.asarray(costs, np.float64)
+        if planner is not None and planner.risk != "label":
+            hi = max(hi, planner.risk_forbidden_cost, planner.unknown_cost)
     scaled = np.zeros(labels.shape, np.float64)
     ok = np.isfinite(cost)
     if hi > lo:
-        scaled[ok] = (cost[ok] - lo) / (hi - lo) * MAX_TRAVERSABLE
-    out = np.where(ok, np.rint(scaled), LETHAL).astype(np.int8)
+        scaled[ok] = (np.clip(cost[ok], lo, hi) - lo) / (hi - lo) * top
+    return np.rint(scaled), ok
+
+
+def costmap_values(labels, flags, cost_lut, costs=None, planner=None) -> np.ndarray:
+    """OccupancyGrid values of graph nodes: obstacles and safety zone 100, unknown -1, known
+    traversable nodes their class's traversability cost scaled to 0 (cheapest class of the table)
+    .. 98 (dearest); a known node of a class that is not traversable is 100. `costs` and
+    `planner`: each node's T under the planner's risk mode (`node_costs`); a node that mode
+    closes is 100."""
+    scaled, ok = _scaled(labels, cost_lut, costs, planner, MAX_TRAVERSABLE)
+    out = np.where(ok, scaled, LETHAL).astype(np.int8)
     out[(flags & FLAG_KNOWN) == 0] = UNKNOWN
     out[(flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0] = LETHAL
     return out
 
 
-def occupancy_grid(types, grid, cost_lut, t_s: float, frame: str = "map"):
+def node_costs(grid, box, cost_lut, planner=None):
+    """(labels, flags, T) of the nodes of `box` ([x, y] arrays). T is what the planner charges
+    for each node's class: under `planner.risk` (a PlannerConfig) from the node's label
+    distribution when the mode is not "label" (common/risk.py; a grid without distributions
+    reads as certain: T(label)), else None (the callers' T(label))."""
+    ix0, iy0, ix1, iy1 = box
+    if planner is None or planner.risk == "label":
+        labels, flags = grid.box(ix0, iy0, ix1, iy1, layers=("labels", "flags"))
+        return labels, flags, None
+    layers = ("labels", "flags", *RISK_LAYER_NAMES)
+    labels, flags, *risk = grid.box(ix0, iy0, ix1, iy1, layers=layers)
+    return labels, flags, risk_class_costs(labels, *risk, cost_lut, planner)
+
+
+def occupancy_grid(types, grid, cost_lut, t_s: float, frame: str = "map", planner=None):
     """The navigation graph's known box as an OccupancyGrid (row-major, x fastest); None while
-    the graph is empty."""
+    the graph is empty. `planner` (a PlannerConfig): its risk mode prices each node
+    (`node_costs`)."""
     box = grid.known_box()
     if box is None:
         return None
     ix0, iy0, ix1, iy1 = box
-    labels, flags = grid.box(ix0, iy0, ix1, iy1, layers=("labels", "flags"))
-    values = costmap_values(labels, flags, cost_lut)  # [x, y]
+    labels, flags, costs = node_costs(grid, box, cost_lut, planner)
+    values = costmap_values(labels, flags, cost_lut, costs, planner)  # [x, y]
     res = grid.resolution_m
     origin = grid.origin_xy + np.array([ix0, iy0]) * res
     info = types.msg("nav_msgs/msg/MapMetaData")(
@@ -161,37 +194,36 @@ def occupancy_grid(types, grid, cost_lut, t_s: float, frame: str = "map"):
     )
 
 
-def nav2_costmap_values(labels, flags, cost_lut) -> np.ndarray:
+def nav2_costmap_values(labels, flags, cost_lut, costs=None, planner=None) -> np.ndarray:
     """nav2_msgs/Costmap values of graph nodes, on Nav2's scale (nav2_costmap_2d's
     cost_values.hpp): obstacles 254 (LETHAL_OBSTACLE), the robot-radius safety zone 253
     (INSCRIBED_INFLATED_OBSTACLE), unknown 255 (NO_INFORMATION); known traversable nodes their
     class's traversability cost scaled from 0 (FREE_SPACE: the cheapest class of the table) to
-    252 (MAX_NON_OBSTACLE: the dearest); a known node of a class that is not traversable 254."""
-    finite = cost_lut[np.isfinite(cost_lut)]
-    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 0.0)
-    cost = cost_lut[np.minimum(labels, len(cost_lut) - 1)]
-    scaled = np.zeros(labels.shape, np.float64)
-    ok = np.isfinite(cost)
-    if hi > lo:
-        scaled[ok] = (cost[ok] - lo) / (hi - lo) * nav2.MAX_NON_OBSTACLE
-    out = np.where(ok, np.rint(scaled), nav2.LETHAL_OBSTACLE).astype(np.uint8)
+    252 (MAX_NON_OBSTACLE: the dearest); a known node of a class that is not traversable 254.
+    `costs` and `planner`: each node's T under the planner's risk mode (`node_costs`); a node
+    that mode closes is 254."""
+    scaled, ok = _scaled(labels, cost_lut, costs, planner, nav2.MAX_NON_OBSTACLE)
+    out = np.where(ok, scaled, nav2.LETHAL_OBSTACLE).astype(np.uint8)
     out[(flags & FLAG_KNOWN) == 0] = nav2.NO_INFORMATION
     out[(flags & FLAG_SAFETY_ZONE) != 0] = nav2.INSCRIBED_INFLATED_OBSTACLE
     out[(flags & FLAG_OBSTACLE) != 0] = nav2.LETHAL_OBSTACLE
     return out
 
 
-def nav2_costmap(types, grid, cost_lut, t_s: float, load_t_s: float, frame: str = "map"):
+def nav2_costmap(
+    types, grid, cost_lut, t_s: float, load_t_s: float, frame: str = "map", planner=None
+):
     """The navigation graph's known box as a nav2_msgs/Costmap (`data` row-major from cell
     (0, 0), x fastest; `origin` the corner of that cell, as Nav2's costmap publisher writes it;
     layer "master", Nav2's name for the combined costmap); None while the graph is empty.
-    `load_t_s` is when the costmap this one updates was first published."""
+    `load_t_s` is when the costmap this one updates was first published. `planner` (a
+    PlannerConfig): its risk mode prices each node (`node_costs`)."""
     box = grid.known_box()
     if box is None:
         return None
     ix0, iy0, ix1, iy1 = box
-    labels, flags = grid.box(ix0, iy0, ix1, iy1, layers=("labels", "flags"))
-    values = nav2_costmap_values(labels, flags, cost_lut)  # [x, y]
+    labels, flags, costs = node_costs(grid, box, cost_lut, planner)
+    values = nav2_costmap_values(labels, flags, cost_lut, costs, planner)  # [x, y]
     res = grid.resolution_m
     origin = grid.origin_xy + np.array([ix0, iy0]) * res
     meta = types.msg(nav2.COSTMAP_META)(

@@ -105,6 +105,10 @@ class Ros2Service(Service):
         self.grid = NavGrid.from_bounds(
             nc.bounds_min_xy, nc.bounds_max_xy, nc.resolution_m, nc.tile_size
         )
+        # under a risk mode the costmap shows what the planner pays: keep the distributions
+        self.risk = config.planner.risk != "label"
+        if self.risk:
+            self.grid.add_risk_layers()
         self.graph = GraphCopy(self.grid, self.note)
         self.map = MapCopy()
         self.deltas_in = SequenceFollower()
@@ -355,14 +359,18 @@ class Ros2Service(Service):
         )
 
     def _costmap_message(self):
-        return convert.occupancy_grid(self.types, self.grid, self.classes.cost_lut, self._stamp())
+        return convert.occupancy_grid(
+            self.types, self.grid, self.classes.cost_lut, self._stamp(), planner=self.config.planner
+        )
 
     def _costmap_raw_message(self):
         t = self._stamp()
         if self._costmap_load_t is None:
             self._costmap_load_t = t
         cost_lut = self.classes.cost_lut
-        return convert.nav2_costmap(self.types, self.grid, cost_lut, t, self._costmap_load_t)
+        return convert.nav2_costmap(
+            self.types, self.grid, cost_lut, t, self._costmap_load_t, planner=self.config.planner
+        )
 
     def _fetch(self, what: str) -> None:
         """The sync worker: ask the map's or the graph's producer for its snapshot."""
@@ -414,6 +422,8 @@ class Ros2Service(Service):
                 return False
             g = self.grid
             self.grid = self.graph.grid = NavGrid(g.origin_xy, g.shape, g.resolution_m, g.tile_size)
+            if self.risk:
+                self.grid.add_risk_layers()
             self.graph.adopt(reply)
             self._published["costmap"] = self._published["costmap_raw"] = -1
         return True
