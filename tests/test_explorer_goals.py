@@ -142,8 +142,8 @@ def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto
         # a cancel stops the robot at once
         r = request(s, keys.explorer_goal_cancel(robot), {"id": None}, timeout_s=5)
         assert r == {"canceled": True, "id": "second", "reason": ""}
-        assert wait_for(lambda: bot.v == 0.0 and bot.w == 0.0, 1.0)
-        assert wait_for(lambda: fb.reached("second", "canceled"), 2)
+        assert wait_for(lambda: bot.v == 0.0 and bot.w == 0.0, 5.0)
+        assert wait_for(lambda: fb.reached("second", "canceled"), 10)
         r = request(s, keys.explorer_goal_cancel(robot), {"id": "second"}, timeout_s=5)
         assert r["canceled"] is False and r["reason"]
         assert request(s, keys.explorer_state(robot))["nav_goal"]["state"] == "canceled"
@@ -176,8 +176,8 @@ def test_goals_are_checked_preempted_canceled_reached_and_followed_by_smana_goto
         p.send_signal(signal.SIGINT)
         out, _ = p.communicate(timeout=20)
         assert p.returncode == 1 and "canceled" in out, out
-        assert wait_for(lambda: fb.reached(gid, "canceled"), 2)
-        assert wait_for(lambda: bot.v == 0.0 and bot.w == 0.0, 1.0)
+        assert wait_for(lambda: fb.reached(gid, "canceled"), 10)
+        assert wait_for(lambda: bot.v == 0.0 and bot.w == 0.0, 5.0)
     finally:
         for p in procs:
             if p.poll() is None:
