@@ -165,7 +165,7 @@ def test_actions_drive_smana_in_simulation(ros_stack):
     assert c.return_code == n2.CANCEL_NONE and len(c.goals_canceling) == 1
     assert wait_for(lambda: g3 in results, 10)
     assert results[g3].status == n2.STATUS_CANCELED
-    # Stopped: within 10 s of the cancel (a loaded machine), a whole second in which it moved less than 2 cm.
+    # Stopped: within 10 s of the cancel (a loaded machine), a second in which it moved < 2 cm.
     assert wait_for(lambda: track.still(1.0, 0.02), 10.0), "the robot kept moving after the cancel"
 
     # 3. /goal_pose (RViz2's "2D Goal Pose"): drives like a NavigateToPose goal.
