@@ -440,3 +440,35 @@ def test_the_ros2_service_reads_its_robots_peer_over_tls_and_no_other(router, tm
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
+
+
+def test_an_rmw_zenoh_node_logs_in_with_mtls_on_only(router, tmp_path):
+    """The session config docs/ros2.md gives an rmw_zenoh node (rmw_zenoh's default with the
+    robot's TLS files and `<r>.ros2peer`'s password) opens a link to the secured router with
+    `enable_mtls: true`; with rmw_zenoh's default, false, it shows no certificate and the
+    router refuses the link."""
+    pytest.importorskip("zenoh_ros2_sdk")
+    import zenoh
+
+    from tests.support.ros2_sdk import rmw_zenoh_session_config
+
+    host = router.certs / "r1"
+    opened = {}
+    for mtls in (True, False):
+        path = rmw_zenoh_session_config(
+            tmp_path / f"mtls-{mtls}.json5",
+            host,
+            host / "credentials" / "r1.ros2peer.txt",
+            router.endpoint,
+            mtls,
+            timeout_ms=10000,
+        )
+        try:
+            session = zenoh.open(zenoh.Config.from_file(str(path)))
+        except zenoh.ZError as exc:
+            opened[mtls] = str(exc)
+        else:
+            opened[mtls] = "open"
+            session.close()
+    assert opened[True] == "open", opened
+    assert "Unable to connect" in opened[False], opened

@@ -45,9 +45,12 @@ DEPENDENCIES = (
 
 class ActionClient:
     """One action `name` (e.g. /smana/test/navigate_to_pose) of type `action` on the SDK's
-    session to the router on `router_port`."""
+    session to the router on `router_port`, or on `sdk`, an SDK session of the caller's (a
+    `ZenohSession`: one per identity when a test logs in twice)."""
 
-    def __init__(self, router_port: int, name: str, action: str, texts, service_hashes: dict):
+    def __init__(
+        self, router_port: int, name: str, action: str, texts, service_hashes: dict, sdk=None
+    ):
         from zenoh_ros2_sdk import get_registry
         from zenoh_ros2_sdk.keyexpr import topic_keyexpr
         from zenoh_ros2_sdk.session import ZenohSession
@@ -58,7 +61,7 @@ class ActionClient:
             ros2_to_dds_type,
         )
 
-        self.sdk = ZenohSession.get_instance(router_port=router_port)
+        self.sdk = sdk or ZenohSession.get_instance(router_port=router_port)
         self.session, self.action = self.sdk.session, action
         registry = get_registry()
         deps: dict[str, str] = {}
@@ -205,24 +208,24 @@ class ActionClient:
             uuid=np.frombuffer(uuid, np.uint8).copy()
         )
 
-    def send_goal(self, uuid: bytes | None = None, **goal):
+    def send_goal(self, uuid: bytes | None = None, timeout_s: float = 10.0, **goal):
         """-> (uuid, SendGoal response)."""
         uuid = uuid or os.urandom(16)
         g = self.msg(f"{self.action}_Goal")(**goal)
         req = self.msg(f"{self.action}_SendGoal_Request")(goal_id=self.uuid_msg(uuid), goal=g)
-        return uuid, self.call("send_goal", req)
+        return uuid, self.call("send_goal", req, timeout_s)
 
     def get_result(self, uuid: bytes, timeout_s: float = 60.0):
         req = self.msg(f"{self.action}_GetResult_Request")(goal_id=self.uuid_msg(uuid))
         return self.call("get_result", req, timeout_s)
 
-    def cancel(self, uuid: bytes, sec: int = 0, nanosec: int = 0):
+    def cancel(self, uuid: bytes, sec: int = 0, nanosec: int = 0, timeout_s: float = 10.0):
         info = self.msg("action_msgs/msg/GoalInfo")(
             goal_id=self.uuid_msg(uuid),
             stamp=self.msg("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec),
         )
         return self.call(
-            "cancel_goal", self.msg("action_msgs/srv/CancelGoal_Request")(goal_info=info)
+            "cancel_goal", self.msg("action_msgs/srv/CancelGoal_Request")(goal_info=info), timeout_s
         )
 
     def close(self) -> None:

@@ -72,6 +72,39 @@ def sdk_session(tmp: Path, monkeypatch):
         message_registry._registry = None
 
 
+def rmw_zenoh_session_config(
+    out: Path, host: Path, user_file: Path, endpoint: str, mtls: bool = True, timeout_ms=30000
+) -> Path:
+    """The session config docs/ros2.md gives an rmw_zenoh node on the secured profile, written to
+    `out`: rmw_zenoh's default (the SDK's copy of DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5) with the
+    router's `endpoint`, the CA, certificate and key of the host folder `host` (`certs/<r>/`) in
+    `transport/link/tls`, `enable_mtls` as given (rmw_zenoh's default is false), and the user
+    and password of `user_file` (`credentials/<r>.ros2peer.txt`) in `transport/auth/usrpwd`.
+    Unlike rmw_zenoh's, a link the router refuses fails the open after `timeout_ms` instead of
+    being retried for ever."""
+    import json
+
+    import json5
+    from zenoh_ros2_sdk import session as sdk
+
+    from smana.common.zenoh_config import read_credentials
+
+    conf = json5.loads(sdk._DEFAULT_SESSION_CONFIG_PATH.read_text())
+    conf["connect"]["endpoints"] = [endpoint]
+    conf["connect"]["timeout_ms"]["peer"] = timeout_ms
+    conf["connect"]["exit_on_failure"]["peer"] = True
+    conf["transport"]["link"]["tls"].update(
+        root_ca_certificate=str(host / "ca.pem"),
+        connect_certificate=str(host / "host.pem"),
+        connect_private_key=str(host / "host.key"),
+        enable_mtls=mtls,
+    )
+    ((user, password),) = read_credentials(str(user_file)).items()
+    conf["transport"]["auth"]["usrpwd"].update(user=user, password=password)
+    out.write_text(json.dumps(conf, indent=1))
+    return out
+
+
 def pointcloud2(types, points, labels=None, frame="velodyne", t_s=0.5):
     """A PointCloud2 (rosbags message of `types`, a `services.ros2.rmw.RosTypes`) of x, y, z
     float32 and, when given, a uint32 `label`, as a LiDAR driver publishes them."""
