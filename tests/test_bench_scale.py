@@ -32,6 +32,8 @@ def test_quick_run_prints_every_row(tmp_path, capsys):
     for row in ("| map |", "| graph |", "| plan |", "| total |", "drops at 10 Hz", "RSS:"):
         assert row in text
     assert "same voxels after load: True" in text
+    # --help: "the tables on stdout and in <out>/scale_bench.md, the figures in <out>/...json"
+    assert "| map |" in (tmp_path / "scale_bench.md").read_text()
     raw = json.loads((tmp_path / "scale_bench.json").read_text())
     assert raw["scans_done"] == raw["scans"] == 100  # --quick: 15 m at 1.5 m/s and 10 Hz
     assert raw["points_in_scan"] == 4096

@@ -19,6 +19,7 @@ DOCUMENTS = {
     "docs/tutorial.md": REPO / "docs" / "tutorial.md",
     "docs/deployment.md": REPO / "docs" / "deployment.md",
     "docs/ros2.md": REPO / "docs" / "ros2.md",
+    "docs/risk.md": REPO / "docs" / "risk.md",
     "`--help` texts": None,
 }
 TEST_ID = re.compile(r"`(tests/[\w/]+\.py)::(\w+)(\[[^\]`]*\])?`")

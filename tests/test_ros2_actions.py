@@ -329,6 +329,9 @@ def test_goal_pose_checks():
         goal_pose_checked(nan, ("map",))
     with pytest.raises(ValueError, match="frame"):
         goal_pose_checked(convert.pose_stamped(TYPES, (1.0, 0.0), 0.0, 0.0, "base_link"), ("map",))
+    # an empty frame is taken as the world frame
+    unframed = convert.pose_stamped(TYPES, (1.0, 0.0), 0.0, 0.0, "")
+    assert goal_pose_checked(unframed, ("map",))[:2] == (1.0, 0.0)
     zero_q = convert.pose_stamped(TYPES, (1.0, 0.0), 0.0, 0.0)
     zero_q.pose.orientation.w = 0.0
     with pytest.raises(ValueError):
@@ -339,6 +342,9 @@ def test_planner_errors_are_nav2s_codes():
     assert plan_error_code("out_of_bounds", "start (1.00, 2.00) is outside") == START_OUTSIDE_MAP
     assert plan_error_code("out_of_bounds", "goal (1.00, 2.00) is outside") == GOAL_OUTSIDE_MAP
     assert plan_error_code("unreachable", "") == 208  # NO_VALID_PATH
+    from smana.services.planner.planner import NO_GRAPH
+
+    assert plan_error_code(NO_GRAPH, "") == 208  # the planner's reply before any graph
     assert (
         plan_error_code("start_blocked", "") == 205 and plan_error_code("goal_blocked", "") == 206
     )

@@ -63,6 +63,8 @@ def test_each_host_holds_only_its_own_secrets(certs):
         for f in (folder / "credentials").iterdir():
             assert read_credentials(str(f)) == {f.stem: mine[f.stem]} and mode(f) == 0o600
         assert not (folder / "credentials" / f"{robot}.router.txt").exists()
+        # the robot's own ROS 2 nodes log in with this one (docs/ros2.md)
+        assert (folder / "credentials" / f"{robot}.ros2peer.txt").is_file()
         assert mode(folder / "dictionary.txt") == 0o600 and mode(folder / "host.key") == 0o600
         assert mode(folder) == 0o700 and mode(folder / "credentials") == 0o700
     base = read_credentials(str(certs / "base" / "dictionary.txt"))
@@ -423,3 +425,38 @@ def test_only_a_robots_drive_role_ros2_identities_and_operator_may_send_its_goal
         "tool",
     ):
         assert not granted(other) & set(goal_keys), other
+
+
+def test_no_router_is_granted_a_ros2_key():
+    """docs/deployment.md: "Routers do not relay ROS 2 keys between hosts": no policy that names
+    a router (the base's `router`, a robot's `<r>.router`) holds a ROS 2 rule, and every key of
+    its rules is smana's."""
+    for base_identities in (True, False):
+        policy = acl_policy(["r1", "r2"], "fleet", "base", base_identities=base_identities)
+        rules = {r["id"]: r for r in policy["rules"]}
+        routers = {
+            s["id"]
+            for s in policy["subjects"]
+            if any(u == "router" or u.endswith(".router") for u in s.get("usernames") or [])
+        }
+        assert routers
+        names = [p for p in policy["policies"] if routers & set(p["subjects"])]
+        assert names
+        for p in names:
+            assert not [r for r in p["rules"] if r.startswith("ros2-")], p
+            keys = [k for r in p["rules"] for k in rules[r]["key_exprs"]]
+            assert keys and all(k.startswith("smana/") for k in keys), (p["id"], keys)
+
+
+def test_every_identity_but_a_router_may_read_ros2():
+    """docs/deployment.md and docs/ros2.md: every identity but a router may subscribe to every ROS
+    2 topic, list the ROS graph and ask a cache for its history (the real router's side, for the
+    ros2 service, a robot's peer and its tool: tests/test_acl_ros2.py)."""
+    policy = acl_policy(["r1", "r2"], "fleet", "base")
+    rules = {r["id"]: r for r in policy["rules"]}
+    (read,) = [p for p in policy["policies"] if p["id"] == "read"]
+    assert {"ros2-read", "ros2-history", "ros2-deliver"} <= set(read["rules"])
+    assert {"@ros2_lv/**", "*/**"} <= set(rules["ros2-read"]["key_exprs"])
+    users = {u for s in policy["subjects"] for u in s.get("usernames") or []}
+    routers = {u for u in users if u == "router" or u.endswith(".router")}
+    assert routers and set(read["subjects"]) == users - routers
