@@ -86,6 +86,12 @@ def config_file_from_args(args: argparse.Namespace, layers=()) -> SmanaConfig:
     return SmanaConfig.load(args.config, list(args.overrides or []), layers)
 
 
+def doc_summary(doc: str | None) -> str:
+    """A module docstring's first paragraph as one line: a command's --help description (its
+    first line alone may stop mid-sentence)."""
+    return " ".join((doc or "").strip().split("\n\n")[0].split())
+
+
 def make_parser(prog: str, description: str) -> argparse.ArgumentParser:
     p = ArgumentParser(prog=prog, description=description)
     add_config_args(p)

@@ -22,6 +22,7 @@ import pytest
 
 import smana.deploy
 from smana.common import keys
+from smana.common.cli import doc_summary
 from smana.common.config import SmanaConfig
 from smana.deploy.cli import COMMANDS, _usage, main
 from smana.deploy.router import router_config
@@ -294,3 +295,21 @@ def test_world_info_gives_bounds_objects_and_free_space(capsys):
     assert 0 < info["free_fraction"] < 1, info
     # "First steps, in the default world (a 12 m garden, seed 3; ...)"
     assert info["name"] == "garden-3" and info["bounds"] == [-6.0, -6.0, 6.0, 6.0], info
+
+
+@pytest.mark.parametrize("name", sorted(BENCHES))
+def test_a_benchs_help_says_what_it_does_in_whole_sentences(name, capsys):
+    """`smana bench <name> --help` describes the bench by its module's first paragraph, not a
+    first line that may stop mid-sentence ("... through mapper, navgraph and")."""
+    import importlib
+
+    module, func = BENCHES[name].split(":")
+    with pytest.raises(SystemExit) as e:
+        getattr(importlib.import_module(module), func)(["--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    description = " ".join(out.split("\n\n")[1].split())
+    assert description.startswith(f"`smana bench {name}"), description
+    whole = doc_summary(importlib.import_module(module).__doc__)
+    assert description.replace(" ", "") == whole.replace(" ", ""), description  # argparse wraps
+    assert description.endswith((".", ")")), description

@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from smana.common.cli import doc_summary
 from smana.common.config.explorer import ExplorerConfig, ViewConfig
 from smana.services.explorer import frontier as fr
 from smana.services.explorer.exploration import Explorer, GridBox
@@ -142,7 +143,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = ArgumentParser(
         prog="smana bench explorer",
-        description=__doc__.splitlines()[0],
+        description=doc_summary(__doc__),
         epilog="Duration measured once on a 2-core machine: about 5 s.",
     )
     p.add_argument("--repeats", type=positive_int, default=5)

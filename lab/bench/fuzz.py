@@ -63,6 +63,7 @@ import numpy as np
 
 from smana.common import keys
 from smana.common import messages as m
+from smana.common.cli import doc_summary
 from smana.common.config import SmanaConfig
 from smana.common.zenoh_config import free_loopback_port
 from smana.lab import fuzz
@@ -1467,7 +1468,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = ArgumentParser(
         prog="smana bench fuzz",
-        description=__doc__.split("\n\n")[0],
+        description=doc_summary(__doc__),
         epilog=(
             "Duration measured once on a 2-core machine: about 1.5 minutes for the default "
             "10,000 inputs (a stack without the sim; docs/benchmarks.md), plus 10 to 20 s for the "

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from smana.common import progress
+from smana.common.cli import doc_summary
 
 MAX_RANGE_M = 10.0
 SCENES = ("garden", "short")  # the default ones
@@ -677,7 +678,7 @@ def cli(argv: list[str] | None = None) -> int:
     backends = list(BACKENDS)
     p = ArgumentParser(
         prog="smana bench mapper",
-        description=__doc__.splitlines()[0],
+        description=doc_summary(__doc__),
         epilog=(
             "Duration measured once on a 2-core machine: about 10 minutes by default (20 scans x "
             "3 repeats "

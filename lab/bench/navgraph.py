@@ -30,6 +30,7 @@ import time
 import numpy as np
 
 from smana.common.classes import ClassTable
+from smana.common.cli import doc_summary
 from smana.common.config.navgraph import NavgraphConfig
 from smana.services.navgraph.graph import NavGraph
 
@@ -227,7 +228,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = ArgumentParser(
         prog="smana bench navgraph",
-        description=__doc__.split("\n")[0],
+        description=doc_summary(__doc__),
         epilog="Duration measured once on a 2-core machine: about 20 s by default; --quick about "
         "2 s.",
     )

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from smana.common import progress
+from smana.common.cli import doc_summary
 from smana.lab.bench.replay import Stack, stack_settings
 
 E2E_TARGET_MS = 100.0
@@ -480,7 +481,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = ArgumentParser(
         prog="smana bench pipeline",
-        description=__doc__.splitlines()[0],
+        description=doc_summary(__doc__),
         epilog=(
             "Duration measured once on a 2-core machine: 1 to 3 minutes by default (the 100-scan "
             "sequence "

@@ -59,6 +59,7 @@ from scipy import ndimage
 from scipy.sparse import csgraph
 
 from smana.common.classes import ClassTable
+from smana.common.cli import doc_summary
 from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
 from smana.services.planner.astar import search
@@ -548,7 +549,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = ArgumentParser(
         prog="smana bench planner",
-        description=__doc__.split("\n")[0],
+        description=doc_summary(__doc__),
         epilog="Duration measured once on a 2-core machine: about 60 s by default; --quick a few "
         "seconds.",
     )

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from smana.common import progress
+from smana.common.cli import doc_summary
 from smana.common.zenoh_config import free_loopback_port
 from smana.lab.bench import procs
 from smana.services.mapper.backends import BACKENDS as _REGISTRY
@@ -643,7 +644,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = ArgumentParser(
         prog="smana bench replay",
-        description=__doc__.splitlines()[0],
+        description=doc_summary(__doc__),
         epilog=(
             "Duration measured once on a 2-core machine: about 5 minutes by default (a synthetic "
             "100-scan "

@@ -31,7 +31,7 @@ from pathlib import Path
 
 from smana.common import keys
 from smana.common import progress as bars
-from smana.common.cli import ArgumentParser, positive_float, positive_int, run_command
+from smana.common.cli import ArgumentParser, doc_summary, positive_float, positive_int, run_command
 from smana.common.config import SmanaConfig
 from smana.common.messages import ServiceStatus
 from smana.common.query import QueryError, request
@@ -174,7 +174,7 @@ def _summary(r: dict) -> dict:
 def cli(argv: list[str] | None = None) -> int:
     p = ArgumentParser(
         prog="smana bench restart",
-        description=__doc__.strip().splitlines()[0],
+        description=doc_summary(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Duration measured once on a 2-core machine: about 5 minutes by default (5 kills "
         "per service,\n"

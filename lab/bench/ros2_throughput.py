@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from smana.common.cli import ArgumentParser, positive_float
+from smana.common.cli import ArgumentParser, doc_summary, positive_float
 from smana.lab.bench import procs
 
 CLOUD = "sensor_msgs/msg/PointCloud2"
@@ -377,7 +377,7 @@ def _report(r: dict) -> str:
 def cli(argv: list[str] | None = None) -> int:
     p = ArgumentParser(
         prog="smana bench ros2-throughput",
-        description=__doc__.strip().splitlines()[0],
+        description=doc_summary(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Takes --duration, plus the start-up and up to 10 s for the last clouds. Needs "
         "zenoh-ros2-sdk (pip install 'smana[test]').",

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from smana.common import progress
+from smana.common.cli import doc_summary
 
 RATE_HZ = 10.0
 GOAL_RSS_MB = 2048.0
@@ -389,7 +390,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = ArgumentParser(
         prog="smana bench scale",
-        description=__doc__.splitlines()[0],
+        description=doc_summary(__doc__),
         epilog=(
             "Duration measured once on a shared 2-core machine (load average 8 to 11): about 60 s "
             "per 100 scans of 131,072 rays, scan generation included (1 km is 6,667 scans); "

@@ -378,11 +378,11 @@ def report(r: dict) -> str:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    from smana.common.cli import ArgumentParser, int_in, output_file, positive_int
+    from smana.common.cli import ArgumentParser, doc_summary, int_in, output_file, positive_int
 
     p = ArgumentParser(
         prog="smana bench sim",
-        description=__doc__.splitlines()[0],
+        description=doc_summary(__doc__),
         epilog=(
             "Duration measured once on a 2-core machine: about 1 minute with --quick, about 2 "
             "minutes by "

@@ -46,7 +46,7 @@ import time
 from pathlib import Path
 
 from smana.common import keys
-from smana.common.cli import ArgumentParser, positive_float, run_command
+from smana.common.cli import ArgumentParser, doc_summary, positive_float, run_command
 from smana.lab.bench import procs
 
 SERVICES = ("sim", "mapper", "navgraph", "planner", "explorer")
@@ -254,7 +254,7 @@ def print_table(results: dict, services) -> bool:
 def cli(argv: list[str] | None = None) -> int:
     p = ArgumentParser(
         prog="smana bench startup",
-        description=__doc__.strip().splitlines()[0],
+        description=doc_summary(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Duration measured once on a 2-core machine: about 3 minutes by default (two "
         "sides, each a cold\n"

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from smana.common import progress
+from smana.common.cli import doc_summary
 from smana.lab.bench import mapper as mb
 
 # name -> (scans source, beams, range m, voxel m)
@@ -120,7 +121,7 @@ def cli(argv: list[str] | None = None) -> int:
 
     p = ArgumentParser(
         prog="smana bench tsdf",
-        description=__doc__.splitlines()[0],
+        description=doc_summary(__doc__),
         epilog=(
             "Default: 8 workloads x 4 runs (smana and Open3D on 1 and 2 threads), 8 scans x 2 "
             "repeats each, in child processes. Duration measured once on a 2-core machine under "
