@@ -298,14 +298,12 @@ def add_parser(sub) -> None:
         "cost, length, contacts, coverage; verdicts on issue 29's target "
         "(lab/experiments/riskloop.py). --synthetic: the first form, in-process on synthetic "
         "maps (lab/experiments/risk.py).",
-        epilog="Duration on a 2-core machine shared with other work, measured once: 2 seeds of the "
-        "full form (8 runs of smana up, 2 at once, 10 m garden, 75 s of robot time each) took 6"
-        " min 30 s at load 7 to 8, so the default 10 seeds (40 runs) take about 33 min at that "
-        "load (not run in full); a noisy probe run (80 s) took 3 min 10 s at load 16 to 20, "
-        "where the 40 runs would take about 60 min. --quick (the 4 arms of 1 seed, 20 s each in"
-        " a 6 m garden): 1 min 34 s. --synthetic: 25 s (10 seeds). A rerun into the same --out "
-        "keeps the runs that finished and runs the rest. Exits 1 if any run failed (a run that "
-        "ended only because the robot did not move or found no path is a result).",
+        epilog="Duration on a 2-core machine shared with other work, measured once: the full "
+        "form (10 seeds x 4 arms = 40 runs of smana up, 2 at once, 10 m garden, 75 s of robot "
+        "time each) took 31 min at load 9 to 12 (2026-12-03). --quick (the 4 arms of 1 seed, 20 s "
+        "each in a 6 m garden): 1 min 34 s. --synthetic: 25 s (10 seeds). A rerun into the same "
+        "--out keeps the runs that finished and runs the rest. Exits 1 if any run failed (a run "
+        "that ended only because the robot did not move or found no path is a result).",
     )
     r.add_argument(
         "--out", type=Path, help="output directory (default runs/experiment-risk-<time>)"
