@@ -237,7 +237,10 @@ def _rows_parallel(grid, distance, logp, tables, g, out):
     values = out.values
     alt_labels = out.alt_labels
     alt_probs = out.alt_confidences
+    res, exp_steps, class_ids = tables  # read only: unpacking is safe, and no tuple per row
     for i in prange(g.shape[0]):
-        put_key_centre(grid, g[i], tables.res, keys, centres, i)
-        values[i] = distance[g[i]]
-        labels[i], probs[i], alt_labels[i], alt_probs[i] = _row_labels(logp, g[i], tables)
+        gi = g[i]
+        put_key_centre(grid, gi, res, keys, centres, i)
+        values[i] = distance[gi]
+        row = _row_labels(logp, gi, exp_steps, class_ids)
+        labels[i], probs[i], alt_labels[i], alt_probs[i] = row

@@ -381,14 +381,12 @@ def _tsdf_finish(touched, n_touched, flags, changed):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _row_labels(logp, g, tables):
+def _row_labels(logp, g, exp_steps, class_ids):
     """Voxel g's label columns: (label, probability, second class, probability). The label is
     the first most probable class (0 for a uniform vector), its probability 1 / sum over the
-    classes of exp(-(steps behind the top) * log(p / q)) (`tables.exp_steps`, 0 past its end);
+    classes of exp(-(steps behind the top) * log(p / q)) (`RowTables.exp_steps`, 0 past its end);
     the second class is the first most probable of the others (0 when the vector is uniform or
     its probability is 0)."""
-    exp_steps = tables.exp_steps
-    class_ids = tables.class_ids
     n_exp = exp_steps.shape[0]
     top = 0
     alt = -1
@@ -418,10 +416,13 @@ def _tsdf_rows(grid, distance, logp, tables, g, out):
     """The Delta columns `out` (`DeltaColumns`, but `occupied`) of voxels g in one pass:
     coordinates, distance and `_row_labels`."""
     keys, centres, labels, probs, _, values, alt_labels, alt_probs = out
+    res, exp_steps, class_ids = tables
     for i in range(g.shape[0]):
-        put_key_centre(grid, g[i], tables.res, keys, centres, i)
-        values[i] = distance[g[i]]
-        labels[i], probs[i], alt_labels[i], alt_probs[i] = _row_labels(logp, g[i], tables)
+        gi = g[i]
+        put_key_centre(grid, gi, res, keys, centres, i)
+        values[i] = distance[gi]
+        row = _row_labels(logp, gi, exp_steps, class_ids)
+        labels[i], probs[i], alt_labels[i], alt_probs[i] = row
 
 
 class Tsdf(MapBackend):
