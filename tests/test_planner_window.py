@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
-from smana.services.planner.planner import TilePools, Window, _enter_costs, _gather_window
+from smana.services.planner.planner import (
+    EnterCosts,
+    TilePools,
+    Window,
+    _enter_costs,
+    _gather_window,
+)
 
 
 def _grid(rng, nx, ny, tile):
@@ -47,7 +53,7 @@ def test_enter_costs_and_their_minimum(allow_unknown):
     flags = flags.astype(np.uint8)
     lut = np.array([np.inf, 1.6, 0.8, 2.4, np.inf, np.inf, 0.4, np.inf, np.inf, 3.0])
     enter = np.full(labels.shape, -1.0)
-    lowest = _enter_costs(labels, flags, lut, allow_unknown, 2.0, enter)
+    lowest = _enter_costs(labels, flags, EnterCosts(lut, allow_unknown, 2.0), enter)
     blocked = (flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0
     known = (flags & FLAG_KNOWN) != 0
     want = np.where(labels < len(lut), lut[np.minimum(labels, len(lut) - 1)], np.inf)
@@ -58,7 +64,8 @@ def test_enter_costs_and_their_minimum(allow_unknown):
     np.testing.assert_array_equal(enter, want)
     assert lowest == want[np.isfinite(want)].min()
     blocked_all = np.full_like(flags, FLAG_OBSTACLE)
-    none = _enter_costs(labels, blocked_all, lut, allow_unknown, 2.0, np.empty(labels.shape))
+    costs = EnterCosts(lut, allow_unknown, 2.0)
+    none = _enter_costs(labels, blocked_all, costs, np.empty(labels.shape))
     assert none == 0.0
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -176,3 +177,49 @@ def test_a_three_point_warm_up_loads_every_parallel_kernel():
     for name, f in kernels.items():
         if f.py_func.__module__ == par.__name__:
             assert f.signatures, f"{name} not loaded by the warm-up"
+
+
+class _Cols(NamedTuple):
+    a: np.ndarray
+    b: np.ndarray
+
+
+@numba.njit(parallel=True)
+def _named_in_the_loop(cols):
+    for i in numba.prange(cols.a.shape[0]):
+        cols.a[i] = 1.0
+        cols.b[i] = 1
+
+
+@numba.njit(parallel=True)
+def _unpacked_before_the_loop(cols):
+    a, b = cols
+    for i in numba.prange(a.shape[0]):
+        a[i] = 1.0
+        b[i] = 1
+
+
+@numba.njit(parallel=True)
+def _named_before_the_loop(cols):
+    a = cols.a
+    b = cols.b
+    for i in numba.prange(a.shape[0]):
+        a[i] = 1.0
+        b[i] = 1
+
+
+def test_numba_parallel_loops_and_arrays_taken_from_a_tuple():
+    """What the parallel passes' arguments rest on (_tsdf_parallel.py's docstring), on the numba
+    installed: in a parallel loop, writes through an array taken from a tuple inside the loop,
+    or unpacked from it before, are lost (numba issues 7135, 10338); through one named from it
+    before the loop (`a = cols.a`), they land. Should numba keep the first writes one day, the
+    passes may take their outputs as tuples too, and their docstrings must change."""
+    for kernel, lands in (
+        (_named_in_the_loop, False),
+        (_unpacked_before_the_loop, False),
+        (_named_before_the_loop, True),
+    ):
+        cols = _Cols(np.zeros(1000), np.zeros(1000, np.int64))
+        kernel(cols)
+        assert (cols.a == 1).all() == lands and (cols.b == 1).all() == lands, kernel.__name__
+        assert (cols.a == 1).any() == lands, kernel.__name__  # all or nothing

@@ -247,11 +247,29 @@ def key_in_range(kx, ky, kz):
     return -lim <= kx < lim and -lim <= ky < lim and -lim <= kz < lim
 
 
+class RayOrigin(NamedTuple):
+    """The part of OctoMap's DDA set-up that depends on a ray's start only (`octomap_ray_origin`),
+    with the voxel size it was computed at."""
+
+    kx: int  # the start's keys
+    ky: int
+    kz: int
+    in_range: bool  # the start's keys lie in the key range
+    npx: float  # per axis, the tMax numerator for a positive and for a negative step
+    nnx: float
+    npy: float
+    nny: float
+    npz: float
+    nnz: float
+    res: float
+    inv_res: float
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def octomap_ray_origin(ox, oy, oz, res, inv_res):
-    """The part of OctoMap's DDA set-up that depends on the ray's start only, computed once for
-    all the rays of a scan (they all start at the sensor): the start's keys, whether they are in
-    the key range, and per axis the tMax numerator for a positive and for a negative step,
+    """The set-up of the rays from (ox, oy, oz), a `RayOrigin`, computed once for all the rays of
+    a scan (they all start at the sensor): the start's keys, whether they are in the key range,
+    and per axis the tMax numerator for a positive and for a negative step,
     `(key + 0.5) * res +- res / 2 - start`, in double, in OctoMap's order of operations.
     Coordinates must be float32."""
     kox = coord_to_key(ox, inv_res)
@@ -265,7 +283,7 @@ def octomap_ray_origin(ox, oy, oz, res, inv_res):
     fy = np.float64(oy)
     fz = np.float64(oz)
     # OctoMap adds step * half with step = +-1: exactly +half or -half
-    return (
+    return RayOrigin(
         kox,
         koy,
         koz,
@@ -276,15 +294,17 @@ def octomap_ray_origin(ox, oy, oz, res, inv_res):
         cy - half - fy,
         cz + half - fz,
         cz - half - fz,
+        res,
+        inv_res,
     )
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def octomap_ray_from(origin, ex, ey, ez, dx, dy, dz, length, res, inv_res):
-    """`octomap_ray_start` from a start's `octomap_ray_origin`, the end, and the ray's float32
-    difference end - start and its float32 length, as `octomap_ray_start` computes them (a caller
-    that has them already saves a square root)."""
-    kox, koy, koz, o_in, npx, nnx, npy, nny, npz, nnz = origin
+def octomap_ray_from(origin, ex, ey, ez, dx, dy, dz, length):
+    """`octomap_ray_start` from a start's `RayOrigin`, the end, and the ray's float32 difference
+    end - start and its float32 length, as `octomap_ray_start` computes them (a caller that has
+    them already saves a square root)."""
+    kox, koy, koz, o_in, npx, nnx, npy, nny, npz, nnz, res, inv_res = origin
     kex = coord_to_key(ex, inv_res)
     key_ = coord_to_key(ey, inv_res)
     kez = coord_to_key(ez, inv_res)
@@ -339,7 +359,7 @@ def octomap_ray_start(ox, oy, oz, ex, ey, ez, res, inv_res):
     nsq = np.float32(np.float32(dx * dx + dy * dy) + dz * dz)
     length = np.float32(np.sqrt(np.float64(nsq)))
     origin = octomap_ray_origin(ox, oy, oz, res, inv_res)
-    return octomap_ray_from(origin, ex, ey, ez, dx, dy, dz, length, res, inv_res)
+    return octomap_ray_from(origin, ex, ey, ez, dx, dy, dz, length)
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -390,26 +390,22 @@ class Planner:
                 # Only the patched nodes: their enter costs, and a minimum that can only fall
                 # (a minimum that is too low keeps the heuristic a lower bound: still exact).
                 out, lowest = self._enter_cache
-                unknown = float(p.unknown_cost * p.t_f)
+                costs = EnterCosts(scaled, bool(allow_unknown), float(p.unknown_cost * p.t_f))
                 if risk is None:
-                    low = _enter_cells(labels, flags, scaled, allow_unknown, unknown, cells, out)
+                    low = _enter_cells(labels, flags, costs, cells, out)
                 else:
-                    low = _enter_cells_risk(
-                        labels, flags, risk, scaled, allow_unknown, unknown, model, cells, out
-                    )
+                    low = _enter_cells_risk(labels, flags, risk, costs, model, cells, out)
                 self._enter_cache = (out, min(lowest, low))
                 self._enter_key = key
                 return self._enter_cache
             old = self._enter_cache
             out = old[0] if old is not None and old[0].shape == labels.shape else None
             out = np.empty(labels.shape) if out is None else out  # refilled: no page faults
-            unknown = float(p.unknown_cost * p.t_f)
+            costs = EnterCosts(scaled, bool(allow_unknown), float(p.unknown_cost * p.t_f))
             if risk is None:
-                lowest = _enter_costs(labels, flags, scaled, allow_unknown, unknown, out)
+                lowest = _enter_costs(labels, flags, costs, out)
             else:
-                lowest = _enter_costs_risk(
-                    labels, flags, risk, scaled, allow_unknown, unknown, model, out
-                )
+                lowest = _enter_costs_risk(labels, flags, risk, costs, model, out)
             self._enter_cache = (out, lowest)
             self._enter_key = key
         return self._enter_cache
@@ -586,6 +582,14 @@ def _gather_cells(pools, grid_cells, cells, window):
             known_h[i, j] = np.nan
 
 
+class EnterCosts(NamedTuple):
+    """What the enter-cost kernels turn a node's flags and label into its cost with."""
+
+    lut: np.ndarray  # f8 per label id: t_f * T(l), +inf where not traversable
+    allow_unknown: bool  # unknown nodes (and known ones of the "unknown" class) may be entered
+    unknown_cost: float  # t_f * their cost
+
+
 @numba.njit(cache=True)
 def _enter_cost(f, lab, lut, n_lut, allow_unknown, unknown_cost):
     if f & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
@@ -739,8 +743,11 @@ def _risk_cost(c_label, alt, pl, pa, lut, n_lut, model):
     return p1 * c_label + p2 * c2 + r * model.other_cost
 
 
-@numba.njit(cache=True)
-def _enter_cost_risk(f, lab, alt, pl, pa, lut, n_lut, allow_unknown, unknown_cost, model):
+@numba.njit(cache=True, inline="always")
+def _enter_cost_risk(f, lab, alt, pl, pa, costs, model):
+    # inlined: called per node, it measured 10 % slower than with the table as an argument
+    lut, allow_unknown, unknown_cost = costs
+    n_lut = len(lut)
     c = _enter_cost(f, lab, lut, n_lut, allow_unknown, unknown_cost)
     # Obstacles, safety zones, unknown nodes and a label that cannot be entered: as without risk.
     if c == np.inf or not f & FLAG_KNOWN:
@@ -749,24 +756,14 @@ def _enter_cost_risk(f, lab, alt, pl, pa, lut, n_lut, allow_unknown, unknown_cos
 
 
 @numba.njit(cache=True)
-def _enter_cells_risk(labels, flags, risk, lut, allow_unknown, unknown_cost, model, cells, out):
+def _enter_cells_risk(labels, flags, risk, costs, model, cells, out):
     """`_enter_cells` with the nodes' class distributions (`risk`, a RiskWindow)."""
     alt, p_label, p_alt = risk
     lowest = np.inf
-    n_lut = len(lut)
     for k in range(len(cells)):
         i, j = cells[k, 0], cells[k, 1]
         c = _enter_cost_risk(
-            flags[i, j],
-            labels[i, j],
-            alt[i, j],
-            p_label[i, j],
-            p_alt[i, j],
-            lut,
-            n_lut,
-            allow_unknown,
-            unknown_cost,
-            model,
+            flags[i, j], labels[i, j], alt[i, j], p_label[i, j], p_alt[i, j], costs, model
         )
         out[i, j] = c
         if c < lowest:
@@ -775,11 +772,12 @@ def _enter_cells_risk(labels, flags, risk, lut, allow_unknown, unknown_cost, mod
 
 
 @numba.njit(cache=True)
-def _enter_costs_risk(labels, flags, risk, lut, allow_unknown, unknown_cost, model, out):
+def _enter_costs_risk(labels, flags, risk, costs, model, out):
     """`_enter_costs` with the nodes' class distributions (`risk`, a RiskWindow). Two passes:
     the costs without risk (a loop LLVM vectorises: 0.7 ms at 1000 x 1000, measured), then the
     doubtful known nodes only (one pass doing both was 13 ms)."""
-    _enter_costs(labels, flags, lut, allow_unknown, unknown_cost, out)
+    _enter_costs(labels, flags, costs, out)
+    lut = costs.lut
     alt, p_label, p_alt = risk
     nx, ny = labels.shape
     lowest = np.inf
@@ -796,9 +794,10 @@ def _enter_costs_risk(labels, flags, risk, lut, allow_unknown, unknown_cost, mod
 
 
 @numba.njit(cache=True)
-def _enter_cells(labels, flags, lut, allow_unknown, unknown_cost, cells, out):
+def _enter_cells(labels, flags, costs, cells, out):
     """`_enter_costs` for a list of window cells; returns their smallest finite cost (+inf
     when none is finite, so that it leaves the cached minimum as it was)."""
+    lut, allow_unknown, unknown_cost = costs
     lowest = np.inf
     n_lut = len(lut)
     for k in range(len(cells)):
@@ -811,10 +810,11 @@ def _enter_cells(labels, flags, lut, allow_unknown, unknown_cost, cells, out):
 
 
 @numba.njit(cache=True)
-def _enter_costs(labels, flags, lut, allow_unknown, unknown_cost, out):
-    """Fill `out` with t_f * T(l) per node; +inf for obstacles, safety zones, non-traversable
-    classes, and unknown nodes unless allowed. `lut` is already scaled by t_f (and +inf where
-    not traversable). Returns the smallest finite cost (0 when none is finite)."""
+def _enter_costs(labels, flags, costs, out):
+    """Fill `out` with t_f * T(l) per node (`EnterCosts`); +inf for obstacles, safety zones,
+    non-traversable classes, and unknown nodes unless allowed. Returns the smallest finite cost
+    (0 when none is finite)."""
+    lut, allow_unknown, unknown_cost = costs
     nx, ny = labels.shape
     lowest = np.inf
     n_lut = len(lut)

@@ -23,9 +23,19 @@ run in parallel as well (`_rows_parallel`). The surface extraction stays serial:
 a neighbour shared by several updated voxels is tested once by each (the serial pass marks it
 seen), which cost more CPU than the second core saved in wall time (26 against 17 ms per 50 m
 scan, docs/benchmarks.md).
+
+The passes take their inputs as named tuples (`RayChunk`, `Walks`, tsdf.py's `TsdfConsts`, the
+`Grid`), but a parallel pass takes the arrays it writes one by one: inside a numba parallel
+loop, writes through an array taken from a tuple there are lost (numba 0.68.1, numba issues
+7135 and 10338), and a parallel loop takes no tuple nested in another (numba issue 10139), so
+`TsdfState`, which holds the `Grid`, stays with the serial passes. `_rows_parallel`, with seven
+output columns, takes them as one tuple and names each from it before its loop, a form whose
+writes land (`tests/test_tsdf_parallel.py` checks the forms that lose writes and this one).
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -35,13 +45,41 @@ from smana.services.mapper._grid import (
     GROW_TOUCHED,
     MARK_ANY,
     MARK_FREE,
+    put_key_centre,
     table_find,
     unpack_block,
     voxblox_ray_keys,
     voxel_index,
     voxel_slot,
 )
-from smana.services.mapper.backends.tsdf import _fuse, _ray, _set_slot, _start_key, _tsdf_row
+from smana.services.mapper.backends.tsdf import (
+    FusedRay,
+    _fuse,
+    _ray,
+    _row_labels,
+    _set_slot,
+    _start_key,
+)
+
+
+class RayChunk(NamedTuple):
+    """The rays sel[r0:r1] of a cloud, the part of it a pass works on."""
+
+    points: np.ndarray  # f4 [N, 3]: the cloud
+    labels: np.ndarray  # u2 [N]
+    origin: np.ndarray  # [3]: the sensor's position
+    sel: np.ndarray  # i8: the rays the serial kernel casts, in cloud order (`_select`)
+    r0: int
+    r1: int
+
+
+class Walks(NamedTuple):
+    """The walks of a chunk's rays, row r - r0 for ray sel[r]."""
+
+    gbuf: np.ndarray  # i8 [chunk, n]: global index of each voxel of the walk, -1: no block yet
+    nks: np.ndarray  # i8 [chunk]: voxels in the walk
+    missing: np.ndarray  # bool [chunk]: a voxel's block did not exist when the walk was cast
+    claimed: np.ndarray  # i8 [chunk]: voxels the ray owns this cloud (the first ones)
 
 
 @njit(cache=True, error_model="numpy")
@@ -70,9 +108,10 @@ def _select(points, origin, k, startset, sel):
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def _cast(points, origin, k, grid, sel, r0, r1, keybuf, gbuf, nks, missing):
-    """Rays sel[r0:r1], in `keybuf.shape[0]` blocks: each ray's voxel count and global indices
-    (row r - r0 of `gbuf`), -1 where the block does not exist yet (`missing` set)."""
+def _cast(rays, k, grid, keybuf, gbuf, nks, missing):
+    """The rays of a `RayChunk`, in `keybuf.shape[0]` blocks: each ray's voxel count and global
+    indices (`Walks`' nks and gbuf), -1 where the block does not exist yet (`missing` set)."""
+    points, _, origin, sel, r0, r1 = rays
     ox = np.float64(origin[0])
     oy = np.float64(origin[1])
     oz = np.float64(origin[2])
@@ -103,10 +142,12 @@ def _cast(points, origin, k, grid, sel, r0, r1, keybuf, gbuf, nks, missing):
 
 
 @njit(cache=True, error_model="numpy")
-def _claim(points, origin, k, st, sel, r0, r1, r, gbuf, nks, missing, claimed, n_touched):
-    """Rays sel[r:r1] of the chunk starting at r0, in order: allocate the blocks their walks
-    need, then mark each walk up to the first voxel already marked (`claimed`: how many voxels
-    ray r owns). Resumable like the serial kernel: (status, next ray, n_touched)."""
+def _claim(rays, k, st, walks, r, n_touched):
+    """Rays sel[r:r1] of a `RayChunk`, in order: allocate the blocks their walks need, then mark
+    each walk up to the first voxel already marked (`walks.claimed`: how many voxels ray r owns).
+    Resumable like the serial kernel: (status, next ray, n_touched)."""
+    points, _, origin, sel, r0, r1 = rays
+    gbuf, nks, missing, claimed = walks
     grid = st.grid
     flags = st.flags
     touched = st.touched
@@ -148,26 +189,14 @@ def _claim(points, origin, k, st, sel, r0, r1, r, gbuf, nks, missing, claimed, n
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def _fuse_claimed(
-    points,
-    labels,
-    origin,
-    k,
-    flags,
-    distance,
-    weight,
-    logp,
-    sem_idx,
-    block_keys,
-    bits,
-    sel,
-    r0,
-    r1,
-    gbuf,
-    claimed,
-):
-    """Fuse rays sel[r0:r1] into the voxels they own; returns the newly observed count. Arrays
-    and scalars only: a parallel loop takes no tuple of arrays nested in another."""
+def _fuse_claimed(rays, k, grid, walks, flags, distance, weight, logp):
+    """Fuse the rays of a `RayChunk` into the voxels they own (`walks`); returns the newly
+    observed count. The columns written come one by one (module docstring)."""
+    points, labels, origin, sel, r0, r1 = rays
+    gbuf = walks.gbuf
+    claimed = walks.claimed
+    block_keys = grid.block_keys
+    bits = grid.bits
     ox = np.float64(origin[0])
     oy = np.float64(origin[1])
     oz = np.float64(origin[2])
@@ -180,46 +209,38 @@ def _fuse_claimed(
         if c == 0:
             continue
         i = sel[r]
-        ray = _ray(points, i, ox, oy, oz, k)
-        dist, dx, dy, dz = ray[0], ray[1], ray[2], ray[3]
-        label_idx = np.int64(-1) if ray[4] else np.int64(sem_idx[labels[i]])
+        dist, dx, dy, dz, clearing, _, _, _, _, _, _ = _ray(points, i, ox, oy, oz, k)
+        ray = FusedRay(ox, oy, oz, dx, dy, dz, dist, -1 if clearing else k.sem_idx[labels[i]])
         for j in range(c):
             g = gbuf[row, j]
             bx, by, bz = unpack_block(block_keys[g >> vb])
             local = g & ((1 << vb) - 1)
-            kx = (bx << bits) | (local & bm)
-            ky = (by << bits) | ((local >> bits) & bm)
-            kz = (bz << bits) | ((local >> (2 * bits)) & bm)
-            new += _fuse(
-                flags,
-                distance,
-                weight,
-                logp,
-                k,
-                g,
-                kx,
-                ky,
-                kz,
-                ox,
-                oy,
-                oz,
-                dist,
-                dx,
-                dy,
-                dz,
-                label_idx,
+            key = (
+                (bx << bits) | (local & bm),
+                (by << bits) | ((local >> bits) & bm),
+                (bz << bits) | ((local >> (2 * bits)) & bm),
             )
+            new += _fuse(flags, distance, weight, logp, k, g, key, ray)
     return new
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def _rows_parallel(
-    grid, distance, logp, g, res, exp_steps, class_ids,
-    keys, centres, labels, probs, values, alt_labels, alt_probs,
-):  # fmt: skip
-    """tsdf.py's `_tsdf_rows` over the threads: each row is its own."""
+def _rows_parallel(grid, distance, logp, tables, g, out):
+    """tsdf.py's `_tsdf_rows` over the threads: each row is its own. Its seven output columns
+    would not fit as arguments: each is taken from `out` by its name before the loop, a form
+    whose writes land (`a, b = out` there, or `out.keys` inside the loop, would lose them;
+    tests/test_tsdf_parallel.py checks the three forms)."""
+    keys = out.keys
+    centres = out.centres
+    labels = out.labels
+    probs = out.confidences
+    values = out.values
+    alt_labels = out.alt_labels
+    alt_probs = out.alt_confidences
+    res, exp_steps, class_ids = tables  # read only: unpacking is safe, and no tuple per row
     for i in prange(g.shape[0]):
-        _tsdf_row(
-            grid, distance, logp, g[i], i, res, exp_steps, class_ids,
-            keys, centres, labels, probs, values, alt_labels, alt_probs,
-        )  # fmt: skip
+        gi = g[i]
+        put_key_centre(grid, gi, res, keys, centres, i)
+        values[i] = distance[gi]
+        row = _row_labels(logp, gi, exp_steps, class_ids)
+        labels[i], probs[i], alt_labels[i], alt_probs[i] = row

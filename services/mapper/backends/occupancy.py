@@ -290,7 +290,7 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
             sz = np.float32(ez - np.float32(np.float32(dz / ln) * rm))
             first, walk = octomap_ray_start(sx, sy, sz, ex, ey, ez, res, inv_res)
         elif hit:  # from the sensor to the point: dx, dy, dz and ln are the walk's own
-            first, walk = octomap_ray_from(at_origin, ex, ey, ez, dx, dy, dz, ln, res, inv_res)
+            first, walk = octomap_ray_from(at_origin, ex, ey, ez, dx, dy, dz, ln)
         else:  # from the sensor to max_range along the ray
             cx = np.float32(ex - ox)
             cy = np.float32(ey - oy)
@@ -298,7 +298,7 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
             c_len = np.float32(
                 np.sqrt(np.float64(np.float32(np.float32(cx * cx + cy * cy) + cz * cz)))
             )
-            first, walk = octomap_ray_from(at_origin, ex, ey, ez, cx, cy, cz, c_len, res, inv_res)
+            first, walk = octomap_ray_from(at_origin, ex, ey, ez, cx, cy, cz, c_len)
         n_keys = 0
         while first > 0:  # the ray's keys as the walk yields them
             g, last_key, last_b = voxel_slot(grid, walk[0], walk[1], walk[2], last_key, last_b)

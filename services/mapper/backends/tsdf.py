@@ -80,12 +80,11 @@ class TsdfState(NamedTuple):
     touched: np.ndarray  # i8: voxels marked this cloud, in order
     keybuf: np.ndarray  # i8 [n, 3]: one ray's voxel keys
     gbuf: np.ndarray  # i8 [n]: their global indices
-    sem_idx: np.ndarray  # i2 [65536]: label -> class column, -1 for none
     counts: np.ndarray  # i8 [1]: newly observed voxels
 
 
 class TsdfConsts(NamedTuple):
-    """Per-map constants of the kernel."""
+    """Per-map constants of the kernels."""
 
     res: float
     inv_res: float
@@ -96,6 +95,29 @@ class TsdfConsts(NamedTuple):
     sub_inv: float  # 1 / start-voxel subsampling cell, 0: off
     dropoff: bool
     renorm_steps: int  # shift the vector once its top entry reaches this many steps
+    sem_idx: np.ndarray  # i2 [65536]: label -> class column, -1 for none
+
+
+class FusedRay(NamedTuple):
+    """A ray as `_fuse` takes it: the sensor's position, the point's offset from it and that
+    offset's length, and the class column of the point's label (-1: none, a clearing ray)."""
+
+    ox: float
+    oy: float
+    oz: float
+    dx: float
+    dy: float
+    dz: float
+    dist: float
+    label_idx: int
+
+
+class RowTables(NamedTuple):
+    """Per-map constants of the Delta rows (`_tsdf_rows`)."""
+
+    res: float
+    exp_steps: np.ndarray  # f8: exp(-d log(p / q)) for d steps behind the top class
+    class_ids: np.ndarray  # u2: the class id of each column of `logp`
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -146,17 +168,19 @@ def _ray(points, i, ox, oy, oz, k):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _fuse(flags, distance, weight, logp, k, g, kx, ky, kz, ox, oy, oz, dist, dx, dy, dz, label_idx):
-    """Fuse one ray into voxel g (key kx, ky, kz), already marked MARK_FREE by that ray: the
-    projective distance with its weight, and the label step. Returns 1 when the voxel is newly
-    observed. A voxel takes at most one ray per cloud, so voxels are independent here. The
-    columns come one by one: arrays unpacked from a tuple inside a numba parallel loop are
-    copies there (numba 0.68), and the writes would be lost."""
+def _fuse(flags, distance, weight, logp, k, g, key, ray):
+    """Fuse a `FusedRay` into voxel g (key: its (kx, ky, kz)), already marked MARK_FREE by that
+    ray: the projective distance with its weight, and the label step. Returns 1 when the voxel is
+    newly observed. A voxel takes at most one ray per cloud, so voxels are independent here. The
+    columns come one by one: inside a numba parallel loop, writes through an array taken from a
+    tuple there are lost (numba 0.68.1, numba issues 7135 and 10338; tests/test_tsdf_parallel.py
+    checks this still holds), and this function is inlined into one (`_fuse_claimed`)."""
     res = k.res
     trunc = k.trunc
-    cx = (np.float64(kx) + 0.5) * res
-    cy = (np.float64(ky) + 0.5) * res
-    cz = (np.float64(kz) + 0.5) * res
+    ox, oy, oz, dx, dy, dz, dist, label_idx = ray
+    cx = (np.float64(key[0]) + 0.5) * res
+    cy = (np.float64(key[1]) + 0.5) * res
+    cz = (np.float64(key[2]) + 0.5) * res
     sdf = dist - ((cx - ox) * dx + (cy - oy) * dy + (cz - oz) * dz) / dist
     w = 1.0
     if k.dropoff and sdf < -res:
@@ -233,7 +257,7 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
             gbuf[j] = g
         if sub_inv > 0:
             startset[sslot] = skey
-        label_idx = -1 if clearing else st.sem_idx[labels[i]]
+        ray = FusedRay(ox, oy, oz, dx, dy, dz, dist, -1 if clearing else k.sem_idx[labels[i]])
         for j in range(nk):
             g = gbuf[j]
             f = flags[g]
@@ -242,25 +266,8 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
             flags[g] = f | MARK_FREE
             touched[n_touched] = g
             n_touched += 1
-            counts[0] += _fuse(
-                flags,
-                st.distance,
-                st.weight,
-                st.logp,
-                k,
-                g,
-                keybuf[j, 0],
-                keybuf[j, 1],
-                keybuf[j, 2],
-                ox,
-                oy,
-                oz,
-                dist,
-                dx,
-                dy,
-                dz,
-                label_idx,
-            )
+            key = (keybuf[j, 0], keybuf[j, 1], keybuf[j, 2])
+            counts[0] += _fuse(flags, st.distance, st.weight, st.logp, k, g, key, ray)
     return DONE, points.shape[0], n_touched
 
 
@@ -374,20 +381,13 @@ def _tsdf_finish(touched, n_touched, flags, changed):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _tsdf_row(
-    grid, distance, logp, g, i, res, exp_steps, class_ids,
-    keys, centres, labels, probs, values, alt_labels, alt_probs,
-):  # fmt: skip
-    """Row i of the Delta columns, voxel g: coordinates, distance, and the label (first most
-    probable class; 0 for a uniform vector) with its probability, 1 / sum over the classes of
-    exp(-(steps behind the top) * log(p / q)) (`exp_steps`, 0 past its end), and the second class
-    (the first most probable of the others; 0 when the vector is uniform or its probability is 0)
-    with its probability. Output columns one by one: a numba parallel loop loses writes through
-    arrays unpacked from a tuple."""
+def _row_labels(logp, g, exp_steps, class_ids):
+    """Voxel g's label columns: (label, probability, second class, probability). The label is
+    the first most probable class (0 for a uniform vector), its probability 1 / sum over the
+    classes of exp(-(steps behind the top) * log(p / q)) (`RowTables.exp_steps`, 0 past its end);
+    the second class is the first most probable of the others (0 when the vector is uniform or
+    its probability is 0)."""
     n_exp = exp_steps.shape[0]
-    put_key_centre(grid, g, res, keys, centres, i)
-    values[i] = distance[g]
-    # the first most probable class, then the first most probable of the others
     top = 0
     alt = -1
     uniform = True
@@ -404,28 +404,25 @@ def _tsdf_row(
         d = np.int64(logp[g, top]) - np.int64(logp[g, c])
         if d < n_exp:
             z += exp_steps[d]
-    probs[i] = 1.0 / z
-    labels[i] = 0 if uniform else class_ids[top]
+    label = 0 if uniform else class_ids[top]
     d_alt = np.int64(logp[g, top]) - np.int64(logp[g, alt]) if alt >= 0 else n_exp
     if uniform or d_alt >= n_exp:
-        alt_labels[i] = 0
-        alt_probs[i] = 0.0
-    else:
-        alt_labels[i] = class_ids[alt]
-        alt_probs[i] = exp_steps[d_alt] / z
+        return label, 1.0 / z, 0, 0.0
+    return label, 1.0 / z, class_ids[alt], exp_steps[d_alt] / z
 
 
 @njit(cache=True, error_model="numpy")
-def _tsdf_rows(
-    grid, distance, logp, g, res, exp_steps, class_ids,
-    keys, centres, labels, probs, values, alt_labels, alt_probs,
-):  # fmt: skip
-    """The Delta columns (`DeltaColumns`, but `occupied`) of voxels g in one pass."""
+def _tsdf_rows(grid, distance, logp, tables, g, out):
+    """The Delta columns `out` (`DeltaColumns`, but `occupied`) of voxels g in one pass:
+    coordinates, distance and `_row_labels`."""
+    keys, centres, labels, probs, _, values, alt_labels, alt_probs = out
+    res, exp_steps, class_ids = tables
     for i in range(g.shape[0]):
-        _tsdf_row(
-            grid, distance, logp, g[i], i, res, exp_steps, class_ids,
-            keys, centres, labels, probs, values, alt_labels, alt_probs,
-        )  # fmt: skip
+        gi = g[i]
+        put_key_centre(grid, gi, res, keys, centres, i)
+        values[i] = distance[gi]
+        row = _row_labels(logp, gi, exp_steps, class_ids)
+        labels[i], probs[i], alt_labels[i], alt_probs[i] = row
 
 
 class Tsdf(MapBackend):
@@ -465,10 +462,12 @@ class Tsdf(MapBackend):
             sub / self.resolution_m if sub > 0 else 0.0,
             bool(config.use_weight_dropoff),
             int(np.floor(_RENORM_AT / self.log_ratio)) + 1,
+            self.sem_idx,
         )
         self.grid.loaders["logp"] = self._logp_from_nats
         # exp(-d log(p / q)) for d steps behind the top class, down to float64's underflow
         self._exp_steps = np.exp(-np.arange(int(750 / self.log_ratio) + 1) * self.log_ratio)
+        self._row_tables = RowTables(self.resolution_m, self._exp_steps, self.class_ids)
 
     def fields(self):
         return {
@@ -489,7 +488,6 @@ class Tsdf(MapBackend):
             self._touched,
             self._keybuf,
             self._gbuf,
-            self.sem_idx,
             counts,
         )
 
@@ -565,31 +563,27 @@ class Tsdf(MapBackend):
         n_sel = par._select(points, origin, k, startset, sel)
         chunk = min(n_sel, _CHUNK_RAYS)
         n_buf = self._keybuf.shape[0]
-        gbuf = np.empty((chunk, n_buf), np.int64)
-        nks = np.empty(chunk, np.int64)
-        missing = np.empty(chunk, np.bool_)
-        claimed = np.empty(chunk, np.int64)
+        walks = par.Walks(
+            np.empty((chunk, n_buf), np.int64),
+            np.empty(chunk, np.int64),
+            np.empty(chunk, np.bool_),
+            np.empty(chunk, np.int64),
+        )
         keybufs = np.empty((4 * threads, n_buf, 3), np.int64)  # one per block of rays
         n_touched = 0
         for r0 in range(0, n_sel, chunk):
-            r1 = min(r0 + chunk, n_sel)
-            par._cast(
-                points, origin, k, self.grid.state(), sel, r0, r1, keybufs, gbuf, nks, missing
-            )
+            rays = par.RayChunk(points, labels, origin, sel, r0, min(r0 + chunk, n_sel))
+            par._cast(rays, k, self.grid.state(), keybufs, walks.gbuf, walks.nks, walks.missing)
             r = r0
             while True:
-                status, r, n_touched = par._claim(
-                    points, origin, k, self._state(counts), sel, r0, r1, r,
-                    gbuf, nks, missing, claimed, n_touched,
-                )  # fmt: skip
+                status, r, n_touched = par._claim(rays, k, self._state(counts), walks, r, n_touched)
                 if status == DONE:
                     break
                 self._grow(status, n_touched)
             c = self.grid.cols
             counts[0] += par._fuse_claimed(
-                points, labels, origin, k, c["flags"], c["distance"], c["weight"], c["logp"],
-                self.sem_idx, self.grid.block_keys, self.grid.bits, sel, r0, r1, gbuf, claimed,
-            )  # fmt: skip
+                rays, k, self.grid.state(), walks, c["flags"], c["distance"], c["weight"], c["logp"]
+            )
         return n_touched
 
     # -- surface extraction ----------------------------------------------------------------
@@ -654,7 +648,6 @@ class Tsdf(MapBackend):
     def _rows(self, g: np.ndarray, surface: np.ndarray) -> Delta:
         d = Delta.empty(g.shape[0])
         d.occupied = surface.astype(np.uint8)
-        keys, centres, labels, probs, _, values, alt_labels, alt_probs = d.columns()
         c = self.grid.cols
         rows = _tsdf_rows
         if self.threads > 1 and (g.shape[0] >= _PARALLEL_ROWS or not self._parallel_loaded):
@@ -665,10 +658,7 @@ class Tsdf(MapBackend):
             from smana.services.mapper.backends._tsdf_parallel import _rows_parallel as rows
 
             numba.set_num_threads(self.threads)
-        rows(
-            self.grid.state(), c["distance"], c["logp"], g, self.resolution_m, self._exp_steps,
-            self.class_ids, keys, centres, labels, probs, values, alt_labels, alt_probs,
-        )  # fmt: skip
+        rows(self.grid.state(), c["distance"], c["logp"], self._row_tables, g, d.columns())
         return d
 
     # -- queries ---------------------------------------------------------------------------
