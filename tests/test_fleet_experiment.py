@@ -265,11 +265,14 @@ def test_a_rerun_into_the_same_out_keeps_finished_runs_and_runs_the_rest(tmp_pat
     )
     ran.clear()
     second = fx.run_fleet(s, tmp_path, log=lambda *a: None)
-    # kept: (3, 1); run again: the corrupt, the foreign and the failed one
-    assert sorted(ran) == [(3, 2), (4, 1), (4, 2)]
+    # kept: (3, 1) and the failed (4, 2), which finished; run again: the corrupt and the foreign
+    assert sorted(ran) == [(3, 2), (4, 1)]
     assert [(r["seed"], r["n_robots"], r["ok"]) for r in second] == [
         (3, 1, True),
         (4, 1, True),
         (3, 2, True),
         (4, 2, False),
     ]
+    # a run killed (or one that could not start) did not finish: not kept, it runs again
+    assert not fx.make_row(4, fx.DEFAULT_GARDEN, 2, -9, {"fleet": {}}, 1.0, 2.0)["finished"]
+    assert not fx.make_row(4, fx.DEFAULT_GARDEN, 2, 1, {}, 1.0, 2.0)["finished"]

@@ -216,6 +216,9 @@ def make_row(seed: int, world: World, n: int, code: int, m: dict, cpu_s: float, 
         "n_robots": n,
         "exit_code": code,
         "ok": run_ok(code, m),
+        # it ran to its end and left its figures (failed or not): a rerun keeps it, so that a
+        # failure is not traded for another try (delete its directory to run it again)
+        "finished": bool(m) and code >= 0,
         "warnings": list(m.get("warnings") or []) if m else [],
         **row,
         "map_error_m": mp.get("reconstruction_error_mean_m"),
@@ -239,8 +242,8 @@ def _keep_row(out: Path, row: dict) -> None:
 
 
 def _kept_row(out: Path, seed: int, world: World, n: int) -> dict | None:
-    """The row a finished run of (seed, world, n) left in `out`, or None (not run, failed, or a
-    file that does not read as that run's row: it runs again)."""
+    """The row a finished run of (seed, world, n) left in `out`, failed or not, or None (not run,
+    interrupted, or a file that does not read as that run's row: it runs again)."""
     path = out / run_name(seed, world.name, n) / ROW_FILE
     try:
         row = json.loads(path.read_text())
@@ -251,7 +254,7 @@ def _kept_row(out: Path, seed: int, world: World, n: int) -> dict | None:
         world.name,
         n,
     )
-    return row if same and row.get("ok") else None
+    return row if same and row.get("finished", row.get("ok")) else None
 
 
 def _history(m: dict) -> list:
@@ -290,7 +293,7 @@ def run_fleet(s: FleetExperimentConfig, out: Path, log=progress.say) -> list[dic
             except Exception as exc:  # a run that could not even start is a failed run
                 row = make_row(seed, w, n, -1, {}, 0.0, 0.0)
                 log(f"{run_name(seed, w.name, n)}: {exc}")
-            if row["ok"]:
+            if row["finished"]:
                 _keep_row(out, row)
             rows.append(row)
             bar.update()
@@ -675,12 +678,15 @@ def add_parser(sub) -> None:
         "seed: time and total distance to 95 % coverage, overlap, merged map's accuracy, "
         "robot-robot contacts; verdicts on the speed-up in the larger world.",
         epilog="Duration measured once on a 2-core machine, one run at a time (2026-11-27): 3 "
-        "seeds x 2 worlds x 3 fleet sizes = 18 runs; the 22 m garden's 5 to 9 min each (59 min "
-        "in all), the 12 m garden's 1 to 3 min each (18 min): about 80 minutes (--seeds 5 about "
-        "2 h 10 min). --quick 2 minutes (the 12 m garden, 1 and 2 robots, 1 seed of 40 s). A "
-        "progress bar with an ETA shows on a terminal (SMANA_PROGRESS=1 forces it, 0 hides "
-        "it). Run it again with the same --out to finish an interrupted experiment: the runs "
-        "that finished are kept, the rest run. Exits 1 if any run failed.",
+        "seeds x 2 worlds x 3 fleet sizes = 18 runs; the 22 m garden's 5 to 9 min each (59 min in "
+        "all), the 12 m garden's 1 to 3 min each (18 min): about 80 minutes (--seeds 5 about "
+        "2 h 10 min). The 22 m garden alone at 8 seeds (24 runs), as two experiments of 12 at "
+        "once (--first-seed 3 and 7, --seeds 4 each): 1 h 40 min (2026-12-03). --quick 2 "
+        "minutes (the 12 m garden, 1 and 2 robots, 1 seed of 40 s). A progress bar with an "
+        "ETA shows on a terminal (SMANA_PROGRESS=1 forces it, 0 hides it). Run it again with "
+        "the same --out to finish an interrupted experiment: the runs that finished are kept, "
+        "the rest run; a run that finished and failed is kept as failed (delete its directory "
+        "to run it again). Exits 1 if any run failed.",
     )
     e.add_argument(
         "--quick", action="store_true", help="1 seed, 1 and 2 robots, 12 m (measured once: 2 min)"
