@@ -3,6 +3,7 @@ verdicts (paired ratios, censoring, not-worse map, contacts) and the outputs."""
 
 from __future__ import annotations
 
+import csv
 import json
 
 import numpy as np
@@ -201,7 +202,11 @@ def test_outputs_say_quick_on_top_and_draw_one_curve_per_fleet_size(tmp_path):
     s = fx.FleetExperimentConfig.quick()
     rows = [_row(W12, n, 3 + k, 50 / n) for n in (1, 2) for k in range(2)]
     rows.append(_row(W12, 2, 5, None, ok=False))
+    rows[-1]["warnings"] = ["r2: the robot did not move (0.00 m travelled)"]  # a newer row's field
     figures = fx.write_fleet_outputs(rows, s, tmp_path)
+    with open(tmp_path / "fleet.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    assert len(table) == len(rows) and table[0]["warnings"] == "" and table[-1]["warnings"]
     text = (tmp_path / "fleet.md").read_text()
     assert text.splitlines()[2].startswith("**Quick run**")
     assert "**WARNING: 1 of 5 runs failed**" in text and "garden12_n2_seed5 (exit 1)" in text

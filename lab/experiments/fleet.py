@@ -550,7 +550,9 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
     flat = [{k: v for k, v in r.items() if k != "curve"} for r in rows]
     if flat:
         with open(out / "fleet.csv", "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(flat[0]))
+            # every row's fields (a row kept from an older run may lack the newer ones)
+            fields = list(dict.fromkeys(k for r in flat for k in r))
+            w = csv.DictWriter(f, fieldnames=fields, restval="")
             w.writeheader()
             w.writerows(flat)
     summary = summarise_fleet(rows)
