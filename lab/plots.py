@@ -153,13 +153,19 @@ def band_plot(
     ylabel: str,
     note: str | None = None,
     hline: float | None = None,
+    clip: tuple[float, float] | None = None,
 ) -> Figure:
     """Mean curves with a shaded interval band: each curve is (label, x, mean, lo, hi); NaN in
     lo/hi (fewer than two runs there) leaves the band out at those x. `hline` marks a target
-    (95 % coverage)."""
+    (95 % coverage). `clip`: the range a value can take (a share: (0, 1)); the band is cut to it,
+    and the legend's note says so."""
     fig = _figure()
     ax = fig.add_subplot()
+    if clip is not None and note is not None:
+        note = f"{note}, cut to [{clip[0]:g}, {clip[1]:g}]"
     for k, (label, x, mean, lo, hi) in enumerate(curves):
+        if clip is not None:
+            lo, hi = np.clip(lo, *clip), np.clip(hi, *clip)
         (line,) = ax.plot(x, mean, label=label, linestyle=LINESTYLES[k % len(LINESTYLES)])
         ok = np.isfinite(lo) & np.isfinite(hi)
         ax.fill_between(x, lo, hi, where=ok, color=line.get_color(), alpha=0.2, linewidth=0)

@@ -281,3 +281,17 @@ def test_a_rerun_into_the_same_out_keeps_finished_runs_and_runs_the_rest(tmp_pat
     # a run killed (or one that could not start) did not finish: not kept, it runs again
     assert not fx.make_row(4, fx.DEFAULT_GARDEN, 2, -9, {"fleet": {}}, 1.0, 2.0)["finished"]
     assert not fx.make_row(4, fx.DEFAULT_GARDEN, 2, 1, {}, 1.0, 2.0)["finished"]
+
+
+def test_the_committed_data_decides_as_the_run_did_censored_seeds_included(tmp_path):
+    """The data file has no curves; the censored bounds need each run's end time, so it keeps
+    `end_time_s`: the verdicts `smana experiment report` computes from it are the run's own."""
+    rows = _rows({1: [300, None, 250, 280], 2: [150, 140, None, 150], 3: [100, 90, 80, None]})
+    s = fx.FleetExperimentConfig(seeds=(3, 4, 5, 6), worlds=(W22,))
+    fx.write_fleet_outputs(rows, s, tmp_path)
+    ran = json.loads((tmp_path / "fleet.json").read_text())["verdicts"]
+    compact = json.loads((tmp_path / "data" / "fleet.json").read_text())["rows"]
+    assert all("curve" not in r and r["end_time_s"] == 100.0 for r in compact)
+    again = fx.verdicts(compact)
+    assert [v["smana"] for v in again] == [v["smana"] for v in ran]
+    assert "kept as bounds: seed 4: < " in again[0]["smana"]  # the lone robot's censored seed

@@ -292,3 +292,19 @@ def test_replay_bench_figures_and_world_preview(tmp_path, saved):
     assert names <= {c.name for c in ClassTable.load("garden3drms").classes.values()} | {
         "object outline (seen from above)"
     }
+
+
+def test_a_shares_band_is_cut_to_0_1_and_the_legend_says_so():
+    """Issue 26: an interval of a share is clipped to [0, 1] in a figure."""
+    x = np.arange(3.0)
+    mean = np.array([0.5, 0.9, 0.98])
+    lo, hi = mean - 0.2, mean + 0.2  # 1.18 at the end: no share is above 1
+    fig = plots.band_plot(
+        [("1 robot (n = 3)", x, mean, lo, hi)], "t", "x", "y", "mean", clip=(0, 1)
+    )
+    ax = fig.axes[0]
+    band = ax.collections[0].get_paths()[0].vertices
+    assert band[:, 1].max() <= 1.0 and band[:, 1].min() >= 0.0
+    assert ax.get_legend().get_title().get_text() == "mean, cut to [0, 1]"
+    unclipped = plots.band_plot([("a", x, mean, lo, hi)], "t", "x", "y", "mean").axes[0]
+    assert unclipped.collections[0].get_paths()[0].vertices[:, 1].max() > 1.1

@@ -768,6 +768,7 @@ def _figures(rows: list[dict], out: Path) -> list[Path]:
                         "coverage (rescaled to ground truth at the end)",
                         note="mean and 95 % CI over seeds",
                         hline=COVERAGE_TARGET,
+                        clip=(0.0, 1.0),  # a share
                     ),
                     out / name,
                 )

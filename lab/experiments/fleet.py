@@ -400,6 +400,10 @@ def time_ratios(rows: list[dict], world: str, n: int) -> tuple[dict[int, float],
 
 
 def _end_time(row: dict) -> float | None:
+    """A run's robot time at its end: `end_time_s` (what the committed data keeps, having no
+    curves), or the last time of its curve."""
+    if row.get("end_time_s") is not None:
+        return float(row["end_time_s"])
     t = (row.get("curve") or {}).get("t_s") or []
     return float(t[-1]) if t else None
 
@@ -547,6 +551,8 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
     """fleet.md (verdicts on top), fleet.json (settings, runs, summary, verdicts), fleet.csv and a
     coverage-vs-time figure per world; returns the figures."""
     out.mkdir(parents=True, exist_ok=True)
+    # the end time beside the curve: the censored bounds need it, and the data file has no curves
+    rows = [dict(r, end_time_s=_end_time(r)) for r in rows]
     flat = [{k: v for k, v in r.items() if k != "curve"} for r in rows]
     if flat:
         with open(out / "fleet.csv", "w", newline="") as f:
@@ -658,6 +664,7 @@ def _figures(rows: list[dict], out: Path) -> list[Path]:
                         "coverage (rescaled to ground truth at the end)",
                         note="mean and 95 % CI over seeds",
                         hline=COVERAGE_TARGET,
+                        clip=(0.0, 1.0),  # a share
                     ),
                     out / f"fleet_coverage_time_{world}.png",
                 )
