@@ -113,3 +113,15 @@ def test_wheel_smoke(tmp_path):
     )
     assert r.returncode == 0 and r.stdout.strip().endswith("wheel smoke: ok"), r.stdout + r.stderr
     assert json.loads((tmp_path / "elsewhere" / "run" / "metrics.json").read_text())
+
+
+def test_the_smoke_takes_subcommands_not_an_options_choices():
+    """`smana goto`'s usage has `[--mode {peer,client,router}]` and positionals x y: the wheel
+    smoke once ran `smana goto peer --help` (exit 2) as if `peer` were a subcommand."""
+    goto = (
+        "usage: smana goto [-h] [--mode {peer,client,router}] [--yaw RAD]\n"
+        "                  [--workloads {a b,c d} [{a b,c d} ...]] x y\n\nsend a goal"
+    )
+    assert wheel_smoke.subcommands(goto) == []
+    world = "usage: smana world [-h] [--mode {peer,client}] {export,preview,info} ...\n\nworlds"
+    assert wheel_smoke.subcommands(world) == ["export", "preview", "info"]

@@ -111,8 +111,12 @@ def clean_env(constraints: Path | None) -> dict:
 
 
 def subcommands(help_text: str) -> list[str]:
-    """The choices of an argparse subparser (`{info,export,preview}`) in a usage line."""
-    m = re.search(r"\{([a-z0-9_,-]+)\}", help_text)
+    """The choices of an argparse subparser (`{info,export,preview}`) in a usage line; an
+    option's choices (`[--mode {peer,client,router}]`) are not subcommands."""
+    usage = help_text.split("\n\n")[0]
+    while (bare := re.sub(r"\[[^\[\]]*\]", "", usage)) != usage:  # optional groups, innermost first
+        usage = bare
+    m = re.search(r"\{([a-z0-9_,-]+)\}", usage)
     return m.group(1).split(",") if m else []
 
 
