@@ -25,8 +25,9 @@ class ReferenceGraph:
     """Every occupied voxel by node; a node shows the highest (obstacle first on a tie, then the
     larger sub-column id), the safety zone is recomputed from scratch by distances."""
 
-    def __init__(self, nx, ny, res, radius, map_res):
+    def __init__(self, nx, ny, res, radius, map_res, classes=CLASSES, forbidden_margin=True):
         self.nx, self.ny, self.res, self.radius, self.map_res = nx, ny, res, radius, map_res
+        self.classes, self.forbidden_margin = classes, forbidden_margin
         self.columns: dict[tuple[int, int], dict[tuple[int, int], tuple[int, float]]] = {}
 
     def apply(self, centres, labels, surface):
@@ -50,13 +51,16 @@ class ReferenceGraph:
         for (ix, iy), col in self.columns.items():
             if not col:
                 continue
+            ob = self.classes.obstacle_lut
             (gz, sub), (lab, z) = max(
-                col.items(), key=lambda kv: (kv[0][0], CLASSES.obstacle_lut[kv[1][0]], kv[0][1])
+                col.items(), key=lambda kv: (kv[0][0], ob[kv[1][0]], kv[0][1])
             )
             labels[ix, iy], heights[ix, iy], known[ix, iy] = lab, z, True
-            obstacle[ix, iy] = CLASSES.obstacle_lut[lab]
+            obstacle[ix, iy] = ob[lab]
         safety = np.zeros_like(obstacle)
-        ox, oy = np.nonzero(obstacle)
+        # the zone's centres: obstacles, and forbidden nodes (water) with the margin
+        centre = obstacle | (known & self.classes.forbidden_lut[labels] & self.forbidden_margin)
+        ox, oy = np.nonzero(centre)
         for ix in range(self.nx):
             for iy in range(self.ny):
                 d = np.hypot(ox - ix, oy - iy) * self.res
@@ -243,3 +247,42 @@ def test_safety_zone_matches_brute_force_on_a_bigger_field():
         ref.apply(vox.astype(np.float64), labels, occ)
         want = ref.state()
         np.testing.assert_array_equal(graph_state(g)[2], want[2])
+
+
+@pytest.mark.parametrize("margin", [True, False])
+def test_safety_zone_surrounds_forbidden_nodes_as_obstacles(margin):
+    """`forbidden_margin`: a node labelled water (a forbidden class) is a centre of the safety
+    zone like an obstacle, and stops being one when its label changes; without the margin only
+    obstacles are, against the brute-force reference, over relabelling and clearing."""
+    wet = ClassTable.load("garden3drms_wet")
+    water = next(c.id for c in wet.classes.values() if c.forbidden)
+    rng = np.random.default_rng(7)
+    config = NavgraphConfig(
+        bounds_min_xy=(0, 0),
+        bounds_max_xy=(6, 6),
+        resolution_m=RES,
+        robot_radius_m=0.45,
+        tile_size=8,
+        forbidden_margin=margin,
+    )
+    g = NavGraph(wet, config)
+    ref = ReferenceGraph(30, 30, RES, 0.45, MAP_RES, classes=wet, forbidden_margin=margin)
+    n_zone = []
+    for _ in range(5):
+        xy = rng.integers(0, 60, size=(300, 2))
+        vox = np.array([voxel(x, y, int(rng.integers(0, 2))) for x, y in xy], np.float32)
+        labels = rng.choice([GRASS, TERRAIN, HEDGE, water], size=len(vox), p=[0.4, 0.4, 0.02, 0.18])
+        occ = rng.random(len(vox)) < 0.85
+        g.integrate(vox, labels.astype(np.uint16), occ.astype(np.uint8))
+        ref.apply(vox.astype(np.float64), labels, occ)
+        want = ref.state()
+        np.testing.assert_array_equal(graph_state(g)[2], want[2])
+        n_zone.append(int((want[2] & FLAG_SAFETY_ZONE).astype(bool).sum()))
+    # a lone water node: its neighbours within the radius are in the zone with the margin only
+    g = NavGraph(wet, config)
+    integrate(g, [voxel(20, 20, 0), voxel(24, 20, 0)], [water, GRASS], [1, 1])
+    assert g.node(2.05, 2.05)["safety_zone"] == margin  # the water node (closed by its label)
+    assert g.node(2.45, 2.05)["safety_zone"] == margin  # 2 nodes = 0.4 m away
+    integrate(g, [voxel(20, 20, 0)], [GRASS], [1])  # relabelled grass: the zone goes
+    assert not g.node(2.45, 2.05)["safety_zone"] and not g.node(2.05, 2.05)["safety_zone"]
+    assert min(n_zone) > 0

@@ -17,6 +17,9 @@ class NavgraphConfig(Section, section="navgraph"):
     bounds_min_xy: list[float] = param([-50.0, -50.0])
     bounds_max_xy: list[float] = param([50.0, 50.0])
     robot_radius_m: float = param(0.4, ge=0, lt=math.inf)  # sizes the safety-zone stencil
+    # The safety zone surrounds a node labelled with a forbidden class (water) as it surrounds an
+    # obstacle: a path keeps the robot's radius from it. False: only the node itself is closed.
+    forbidden_margin: bool = True
     tile_size: int = param(32, ge=1, le=256)  # nodes per tile side; memory is allocated per tile
     # Occupied voxels remembered per node column (to recompute the node when the top one is
     # cleared); a 1.7 m person over ground at 0.1 m / 0.2 m fills ~70. Beyond it the lowest

@@ -2,7 +2,8 @@
 
 Each map voxel is projected to the 2.5D node under it. A node shows the highest occupied voxel of
 its column (the first voxel sets label and height, afterwards the highest wins), obstacle classes
-come from the class table, and the safety zone marks nodes within `robot_radius_m` of an obstacle.
+come from the class table, and the safety zone marks nodes within `robot_radius_m` of an obstacle
+(and, with `forbidden_margin`, the default, of a node whose label is a forbidden class: water).
 
 A voxel is a surface voxel when the map says it is occupied. A map that carries signed distances
 (`MapDelta.values_kind == "signed_distance"`) marks its extracted surface in `occupied` (the zero
@@ -19,9 +20,9 @@ that level as its `floor`; voxels at or below the floor are then ignored. The li
 always exactly "every occupied voxel above the floor", and a column that loses all its tracked
 voxels while it has a floor becomes unknown rather than showing a ghost or a guess.
 
-The safety zone is kept current incrementally: every node counts the obstacle nodes within the
-robot radius (itself included); when a node becomes or stops being an obstacle, the counts of the
-nodes of a disc stencil around it change by one. A node is in the safety zone when its count is
+The safety zone is kept current incrementally: every node counts the zone centres (obstacle nodes,
+and forbidden ones with `forbidden_margin`) within the robot radius (itself included); when a node
+becomes or stops being a centre, the counts of the nodes of a disc stencil around it change by one. A node is in the safety zone when its count is
 positive and it is not an obstacle itself. Tiles within the radius of an obstacle are allocated so
 that the zone also covers nodes not seen yet.
 
@@ -53,6 +54,8 @@ from smana.common.navgrid import (
 
 from .kernels import (
     NO_FLOOR,
+    LUT_OBSTACLE,
+    LUT_ZONE,
     ClassLuts,
     ColumnStore,
     DiscStencil,
@@ -146,9 +149,10 @@ class NavGraph:
             state=np.array([-1, 0, 0], np.int64),
             column_capacity=config.column_capacity,
         )
-        self._luts = ClassLuts(
-            classes.valid_lut, classes.ignored_lut.copy(), classes.obstacle_lut.copy()
-        )
+        kind = classes.obstacle_lut * np.uint8(LUT_OBSTACLE | LUT_ZONE)
+        if config.forbidden_margin:
+            kind |= classes.forbidden_lut * np.uint8(LUT_ZONE)
+        self._luts = ClassLuts(classes.valid_lut, classes.ignored_lut.copy(), kind.astype(np.uint8))
         res, radius = self.resolution_m, config.robot_radius_m
         r_cells = int(np.floor(radius / res + 1e-9))
         dx, dy = np.meshgrid(np.arange(-r_cells, r_cells + 1), np.arange(-r_cells, r_cells + 1))
@@ -330,13 +334,13 @@ class NavGraph:
         flips = Flips(np.empty(m, np.int64), np.empty(m, np.int32))
         geometry, layers = self._kernel_state()  # after allocating: the pool may have grown
         counts = _integrate_kernel(
-            vox, geometry, layers, self.columns, self._luts.obstacle, epoch, changes, flips
+            vox, geometry, layers, self.columns, self._luts.kind, epoch, changes, flips
         )
         n_touched, n_flips, n_oob, n_below, n_lost = (int(c) for c in counts)
         changes = changes.head(n_touched)
         flips = flips.head(n_flips)
 
-        # 3. safety zone: allocate the tiles a new obstacle's disc reaches, then update counts.
+        # 3. safety zone: allocate the tiles a new centre's disc reaches, then update counts.
         if n_flips:
             n_new += self._allocate_discs(flips.node[flips.sign > 0])
             zone_changes = NodeChanges.empty(n_flips * len(self._stencil.dx))

@@ -123,15 +123,22 @@ class Distribution(NamedTuple):
 
 
 class ClassLuts(NamedTuple):
-    """What the class table says about a label id, as bool look-up tables."""
+    """What the class table says about a label id, as look-up tables."""
 
-    valid: np.ndarray  # the id is in the table
-    ignored: np.ndarray  # not ground (sky, ...): its voxels count as cleared
-    obstacle: np.ndarray
+    valid: np.ndarray  # bool: the id is in the table
+    ignored: np.ndarray  # bool: not ground (sky, ...): its voxels count as cleared
+    kind: np.ndarray  # u1: LUT_OBSTACLE | LUT_ZONE bits
+
+
+# The bits of ClassLuts.kind: an obstacle class, and a class whose nodes the safety zone surrounds
+# (every obstacle class, and with `navgraph.forbidden_margin` every forbidden one).
+LUT_OBSTACLE = 1
+LUT_ZONE = 2
 
 
 class Flips(NamedTuple):
-    """Nodes that became (+1) or stopped being (-1) an obstacle: the safety zone's input."""
+    """Nodes that became (+1) or stopped being (-1) a centre of the safety zone (an obstacle, or a
+    forbidden class with `navgraph.forbidden_margin`): the safety zone's input."""
 
     node: np.ndarray  # i8 flat node index
     sign: np.ndarray  # i4 +1 or -1
@@ -202,8 +209,9 @@ def _voxel_key(geo, map_res, x, y, z):
 
 @numba.njit(cache=True, inline="always")
 def _with_safety_zone(flags, obstacle_count):
-    """A node is in the safety zone when an obstacle is within the robot radius (its count is
-    positive) and it is not an obstacle itself."""
+    """A node is in the safety zone when a zone centre (an obstacle, or a forbidden class with
+    `forbidden_margin`) is within the robot radius (its count is positive) and it is not an
+    obstacle itself (a forbidden node is in its own zone: never entered either way)."""
     if obstacle_count > 0 and not (flags & FLAG_OBSTACLE):
         return flags | np.uint8(FLAG_SAFETY_ZONE)
     return flags & ~np.uint8(FLAG_SAFETY_ZONE)
@@ -311,10 +319,10 @@ def _prepare(labels, occupied, luts, geo, vox, missing, dist):
 
 
 @numba.njit(cache=True, _nrt=False)
-def _integrate_kernel(vox, geo, nodes, cols, obstacle_lut, epoch, changes, flips):
+def _integrate_kernel(vox, geo, nodes, cols, kind_lut, epoch, changes, flips):
     """Column update for every usable voxel, then node head recompute for every touched node.
-    Returns the counts (touched nodes, obstacle flips, out of bounds, below floor, columns lost);
-    the flips (node, +1 became an obstacle / -1 stopped) are for the safety-zone kernel."""
+    Returns the counts (touched nodes, zone flips, out of bounds, below floor, columns lost);
+    the flips (node, +1 became a zone centre / -1 stopped) are for the safety-zone kernel."""
     cen = vox.centres
     kind = vox.kinds
     map_res = vox.map_resolution_m
@@ -347,11 +355,11 @@ def _integrate_kernel(vox, geo, nodes, cols, obstacle_lut, epoch, changes, flips
         was_known = (changes.flags[k] & FLAG_KNOWN) != 0
         if nodes.col_head[n] < 0 and nodes.col_floor[n] != NO_FLOOR and was_known:
             n_lost += 1
-        obstacle = _node_head_recompute(cols, nodes, obstacle_lut, n)
-        was_obstacle = (changes.flags[k] & FLAG_OBSTACLE) != 0
-        if obstacle != was_obstacle:
+        centre = _node_head_recompute(cols, nodes, kind_lut, n)
+        was_centre = _zone_centre(kind_lut, changes.label[k], changes.flags[k])
+        if centre != was_centre:
             flips.node[nf] = n
-            flips.sign[nf] = 1 if obstacle else -1
+            flips.sign[nf] = 1 if centre else -1
             nf += 1
     return nd, nf, n_oob, n_below, n_lost
 
@@ -492,12 +500,19 @@ def _column_forget_lowest(cols, nodes, n):
 
 
 @numba.njit(cache=True, inline="always")
-def _node_head_recompute(cols, nodes, obstacle_lut, n):
+def _zone_centre(kind_lut, label, flags):
+    """Whether a node with this label and flags is a centre of the safety zone: known, and of an
+    obstacle class (or a forbidden one, with `forbidden_margin`)."""
+    return (flags & FLAG_KNOWN) != 0 and (kind_lut[label] & LUT_ZONE) != 0
+
+
+@numba.njit(cache=True, inline="always")
+def _node_head_recompute(cols, nodes, kind_lut, n):
     """Node n shows its column's head: label, height and flags from the highest level (among
     voxels of that level an obstacle wins, the conservative choice, then the larger sub-column
     id, so the result does not depend on arrival order), with that voxel's label distribution;
     an empty column is unknown (and certain: nothing to be unsure of). Returns whether the node
-    is an obstacle now."""
+    is a centre of the safety zone now."""
     e = nodes.col_head[n]
     flags = np.uint8(0)
     obstacle = False
@@ -511,8 +526,8 @@ def _node_head_recompute(cols, nodes, obstacle_lut, n):
         best = e
         cur = cols.next[e]
         while cur >= 0 and cols.level[cur] == cols.level[e]:
-            ob_c = obstacle_lut[cols.label[cur]]
-            ob_b = obstacle_lut[cols.label[best]]
+            ob_c = (kind_lut[cols.label[cur]] & LUT_OBSTACLE) != 0
+            ob_b = (kind_lut[cols.label[best]] & LUT_OBSTACLE) != 0
             if (ob_c and not ob_b) or (ob_c == ob_b and cols.sub[cur] > cols.sub[best]):
                 best = cur
             cur = cols.next[cur]
@@ -521,18 +536,17 @@ def _node_head_recompute(cols, nodes, obstacle_lut, n):
         nodes.alt_labels[n] = cols.alt_label[best]
         nodes.p_label[n] = cols.p_label[best]
         nodes.p_alt[n] = cols.p_alt[best]
-        obstacle = obstacle_lut[cols.label[best]]
         flags |= np.uint8(FLAG_KNOWN)
-        if obstacle:
+        if kind_lut[cols.label[best]] & LUT_OBSTACLE:
             flags |= np.uint8(FLAG_OBSTACLE)
     nodes.flags[n] = _with_safety_zone(flags, nodes.obstacle_count[n])
-    return obstacle
+    return _zone_centre(kind_lut, nodes.labels[n], flags)
 
 
 @numba.njit(cache=True, _nrt=False)
 def _safety_zone_kernel(flips, stencil, geo, nodes, epoch, changes):
-    """Safety-zone update: each obstacle flip changes the obstacle count of the nodes of its disc
-    by one, and their safety-zone bit with it. Returns how many nodes it touched."""
+    """Safety-zone update: each zone-centre flip changes the count of the nodes of its disc by
+    one, and their safety-zone bit with it. Returns how many nodes it touched."""
     stencil_dx = stencil.dx
     stencil_dy = stencil.dy
     sign = flips.sign
