@@ -82,6 +82,23 @@ def test_smana_help_lists_every_command_and_each_has_help():
         assert text.startswith("usage: smana "), (argv, text[:200])
 
 
+def test_every_commands_help_describes_it_in_whole_sentences():
+    """`smana <command> --help` (and `smana experiment <name> --help`) describes the command in
+    whole sentences: a description cut at its docstring's first line ("... into the") fails."""
+    argv = [(name,) for name in COMMANDS] + [("experiment", "resources")]
+    cut = []
+    for args in argv:
+        code, text = help_of(*args)
+        assert code == 0, (args, text)
+        paragraphs = [" ".join(p.split()) for p in text.split("\n\n")]
+        description = paragraphs[1] if len(paragraphs) > 1 else ""
+        if description.startswith(("positional arguments:", "options:")):
+            description = ""  # none given
+        if description and not description.endswith((".", ")", ".)")):
+            cut.append((args, description))
+    assert not cut, cut
+
+
 @pytest.mark.parametrize("command", STACK_COMMANDS)
 def test_the_commands_that_talk_to_the_stack_take_the_shared_options(command):
     code, text = help_of(command)

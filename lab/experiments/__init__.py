@@ -78,9 +78,9 @@ EXPERIMENTS = {
 def cli(argv: list[str] | None = None) -> int:
     import importlib
 
-    from smana.common.cli import ArgumentParser, output_dir
+    from smana.common.cli import ArgumentParser, doc_summary, output_dir
 
-    p = ArgumentParser(prog="smana experiment", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="smana experiment", description=doc_summary(__doc__))
     sub = p.add_subparsers(dest="which", required=True)
     modules = {k: importlib.import_module(f"{__name__}.{m}") for k, m in EXPERIMENTS.items()}
     for mod in modules.values():
