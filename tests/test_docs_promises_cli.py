@@ -207,6 +207,15 @@ def test_ros2_enabled_turns_gossip_on_in_the_router(tmp_path, monkeypatch):
     _, zc, _ = router_args(monkeypatch, on)
     assert zc.gossip is True
     assert json.loads(router_config(["tcp/127.0.0.1:7447"], zc).get_json("scouting/gossip/enabled"))
+    # under access control (the secured profile's router) gossip stays off: peers that learnt
+    # each other's locators could link directly and bypass the policy
+    policy = tmp_path / "acl.json5"
+    policy.write_text("{}")
+    acl = supervisor_of(
+        "local", tmp_path / "acl", "deploy.ros2.enabled=true", f'zenoh.acl_file="{policy}"'
+    )
+    _, zc, _ = router_args(monkeypatch, acl)
+    assert zc.gossip is False
 
 
 def test_set_reaches_nested_tables_and_config_toml_holds_every_key(tmp_path):
