@@ -73,6 +73,11 @@ def test_the_titles_count_the_water_entries_the_experiments_rows_give():
     argmax = [r["forbidden"] for r in sorted(rows, key=lambda r: r["pair"]) if r["arm"] == "argmax"]
     assert case["pair"] == int(np.argmax(argmax))
     assert counts["truth"] == 0 and counts["argmax"] > 0  # a figure where the counts mean something
+    # the three cost panels: one log scale from 1 (terrain) to risk_forbidden_cost
+    for arm in ("expected", "cvar", "chance"):
+        ax = next(ax for ax in fig.axes if ax.get_label() == arm)
+        norm = ax.get_images()[0].norm
+        assert type(norm).__name__ == "LogNorm" and (norm.vmin, norm.vmax) == (1.0, 20.0)
 
 
 def test_p_forbidden_is_what_the_chance_constraint_closes_on():
@@ -112,4 +117,18 @@ def test_docs_describe_the_figure_the_command_draws():
     assert score["expected"]["forbidden"] == 0 and score["cvar"]["forbidden"] == 2
     assert not score["chance"]["found"] and score["truth"]["forbidden"] == 0
     assert "smana experiment risk --synthetic --figure docs/risk_map.png" in doc
+    # "`cvar` prices 46 % of the nodes it may enter at 10 or more", "`chance` closes 43 % of the
+    # nodes the other modes may enter"
+    w, labels, (alt, p_label, p_alt) = case["world"], case["labels"], case["risk"]
+    lut = w.classes.cost_lut
+    enterable = ((w.flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0) & np.isfinite(lut[labels])
+
+    def costs(arm):
+        return risk_class_costs(labels, alt, p_label, p_alt, lut, case["configs"][arm])[enterable]
+
+    dear = round(100 * np.mean(costs("cvar") >= 10))
+    closed = round(100 * np.mean(~np.isfinite(costs("chance"))))
+    assert np.isfinite(costs("cvar")).all() and np.isfinite(costs("expected")).all()
+    assert f"`cvar` prices {dear} % of the nodes it may enter at 10 or more" in doc
+    assert f"`chance` closes {closed} % of the nodes the other modes may enter" in doc
     assert (Path(__file__).parents[1] / "docs" / "risk_map.png").stat().st_size < 300_000
