@@ -121,3 +121,19 @@ def test_a_share_out_of_range_is_one_line_and_exit_2(bad, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "expected a number > 0 and <= 1" in err[0]
+
+
+def test_the_doubtful_share_of_a_real_map(capsys):
+    """`--map-doubt`: the wet garden mapped in-process by the TSDF under label noise p = 0.7 has
+    doubtful known free nodes (p_label < 255), and the share printed is their count over the
+    known free nodes."""
+    from smana.lab.bench.planner import map_doubt
+
+    r = map_doubt(3, 6.0, 160)
+    assert r["frames"] > 0 and r["free"] > 0 and 0 < len(r["p_label"]) < r["free"]
+    assert (r["p_label"] < 255).all()
+    assert cli(["--map-doubt", "3", "--quick"]) == 0
+    out = capsys.readouterr().out
+    share = len(r["p_label"]) / r["free"]
+    assert f"{r['free']} known free nodes, {len(r['p_label'])} doubtful: share {share:.3f}" in out
+    assert "P(label) min / quartiles / max" in out

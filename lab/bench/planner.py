@@ -27,6 +27,13 @@ graph without them); their Dijkstra runs on the enter costs that mode gave (the 
 are held to a per-node reference by tests/test_planner_risk.py). Rows without risk ("-") are on
 the graph without the layers, as before.
 
+`--map-doubt SEED ...` measures instead what share of a real map's free nodes is doubtful: the
+wet garden (10 m, water 10 %, class table garden3drms_wet) seen along the noise experiment's fixed
+trajectory (44 m, 640 px; `--quick`: 6 m, 160 px), label noise p = 0.7 (SLIC + Table 2 with water,
+as the simulator degrades the wet garden) and the highest pose noise, integrated in-process into
+the TSDF back-end and the navigation graph (their default sections): per seed, the share of known
+free graph nodes whose p_label < 255 and the spread of their p_label.
+
 Every A* cost is checked against Dijkstra to 1e-6 relative (and pyastar2d's to 1e-5: it sums in
 float32); a disagreement fails the benchmark. Every row prints the peer's and smana's wall and CPU
 time (time.process_time), their ratio, and the load average.
@@ -133,6 +140,77 @@ def make_risk(labels, flags, seed: int, doubt_share: float = 0.5):
     rest = 255 - p_label.astype(np.int64)
     p_alt = np.where(doubt, rest * rng.uniform(0.7, 1.0, shape), 0).astype(np.uint8)
     return alt, p_label, p_alt
+
+
+def map_doubt(seed: int, length_m: float = 44.0, image_px: int = 640) -> dict:
+    """The doubtful share of a real map's known free nodes (see the module's docstring): the
+    frames integrated, the known free nodes, and the p_label of the doubtful ones."""
+    import types
+
+    from smana.common.config import SmanaConfig
+    from smana.lab.experiments.noise import POSE_NOISE, _cloud, fixed_trajectory, render_frames
+    from smana.services.mapper.semantic_map import SemanticMap
+    from smana.services.navgraph.graph import NavGraph
+    from smana.services.sim.degrade import WET_CONFUSABLE, WET_IDS, LabelDegrader, PoseNoise
+    from smana.services.sim.worlds.garden import generate
+
+    table = "garden3drms_wet"
+    config = SmanaConfig.load(overrides=[f'general.class_table="{table}"', 'mapper.backend="tsdf"'])
+    classes = ClassTable.load(table)
+    world = generate(seed, classes=classes, size_m=10.0, water_share=0.1)
+    frames = render_frames(world, fixed_trajectory(world, length_m, 0.25), image_px)
+    rng = np.random.default_rng(seed)
+    degrade = LabelDegrader("high", rng, classes.colour_lut, ids=WET_IDS, confusable=WET_CONFUSABLE)
+    pose_noise = PoseNoise(*POSE_NOISE["high"], rng)
+    semantic_map = SemanticMap.from_config(config.mapper, table)
+    graph = NavGraph(classes, config.navgraph)
+    for base, capture, mount in frames:
+        labels = degrade.degrade(capture.labels).labels
+        pts, lab, origin = _cloud((base, capture, mount), labels, pose_noise.apply(base), 2)
+        d = semantic_map.integrate(pts, lab, degrade.confidences(len(pts)), origin)
+        # what the mapper publishes (services/mapper/service.py, `_message`)
+        graph.integrate_delta(
+            types.SimpleNamespace(
+                centres=d.centres,
+                labels=d.labels,
+                confidences=d.confidences,
+                occupied=d.occupied,
+                values=d.values,
+                values_kind=semantic_map.values_kind,
+                alt_labels=d.alt_labels,
+                alt_confidences=d.alt_confidences,
+                has_distribution=True,
+                resolution_m=semantic_map.resolution_m,
+            )
+        )
+    grid = graph.grid
+    x0, y0, x1, y1 = grid.known_box()
+    _, _, flags = grid.box(x0, y0, x1, y1)
+    cells = np.argwhere(np.ones((x1 - x0, y1 - y0), bool)) + (x0, y0)
+    p_label = grid.read_risk(cells)[1].reshape(flags.shape)
+    free = ((flags & FLAG_KNOWN) != 0) & ((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0)
+    doubtful = free & (p_label < 255)
+    return {"frames": len(frames), "free": int(free.sum()), "p_label": p_label[doubtful]}
+
+
+def _print_map_doubt(seeds, quick: bool) -> None:
+    length_m, image_px = (6.0, 160) if quick else (44.0, 640)
+    print(
+        f"doubtful share of a real map's known free nodes: wet garden 10 m, TSDF, label noise "
+        f"p = 0.7 and pose noise, {length_m:g} m of trajectory, {image_px} px"
+    )
+    for seed in seeds:
+        r = map_doubt(seed, length_m, image_px)
+        p = r["p_label"]
+        share = len(p) / max(1, r["free"])
+        spread = ""
+        if len(p):
+            q = np.percentile(p, [0, 25, 50, 75, 100]) / 255
+            spread = ", their P(label) min / quartiles / max " + " / ".join(f"{v:.2f}" for v in q)
+        print(
+            f"  seed {seed}: {r['frames']} frames, {r['free']} known free nodes, {len(p)} "
+            f"doubtful: share {share:.3f}{spread}"
+        )
 
 
 def _anchors(n: int, length: float = 1.0):
@@ -595,7 +673,18 @@ def cli(argv: list[str] | None = None) -> int:
         help="risk rows: shares of the free nodes whose label is doubtful, drawn at random, one "
         "set of rows each (default 0.5)",
     )
+    p.add_argument(
+        "--map-doubt",
+        type=int,
+        nargs="+",
+        metavar="SEED",
+        help="instead: the share of a real map's known free nodes whose label is doubtful, per "
+        "wet-garden seed (TSDF under label noise p = 0.7; see the module's help)",
+    )
     args = p.parse_args(argv)
+    if args.map_doubt:
+        _print_map_doubt(args.map_doubt, args.quick)
+        return 0
     sizes = args.sizes or ([60, 120] if args.quick else [250, 500, 1000])
     runs = args.runs or (3 if args.quick else 7)
     classes = ClassTable.load("garden3drms")
