@@ -740,6 +740,9 @@ def _enter_costs_risk(window, pools, ix0, iy0, costs, prices, out):
     _enter_costs(labels, flags, costs, out)
     w, h = labels.shape
     doubtful = np.empty(t, np.int64)
+    run_alt = np.empty(t, alt_pool.dtype)
+    run_pl = np.empty(t, pl_pool.dtype)
+    run_pa = np.empty(t, pa_pool.dtype)
     for i in range(w):
         gx = ix0 + i
         tx = gx // t
@@ -752,20 +755,26 @@ def _enter_costs_risk(window, pools, ix0, iy0, costs, prices, out):
             run = min(t - ly0, h - j)
             slot = tile_map[tx, ty]
             if slot >= 0:  # an unallocated tile reads as certain
+                # The run's three layers copied whole first: loads that depend on nothing, so
+                # their cache misses overlap (read only at the doubtful nodes, each missed on
+                # its own: 5.5 against 3.2 ms with 5 % of the nodes doubtful).
+                for k in range(run):
+                    run_pl[k] = pl_pool[slot, lx, ly0 + k]
+                    run_alt[k] = alt_pool[slot, lx, ly0 + k]
+                    run_pa[k] = pa_pool[slot, lx, ly0 + k]
                 m = 0
                 for k in range(run):
                     doubtful[m] = k
-                    m += pl_pool[slot, lx, ly0 + k] < P_SCALE
+                    m += run_pl[k] < P_SCALE
                 for q in range(m):
                     k = doubtful[q]
                     c = out[i, j + k]
                     # obstacles, safety zones, unknown nodes and closed labels: as without risk
                     if c < np.inf and flags[i, j + k] & FLAG_KNOWN:
-                        ly = ly0 + k
-                        pl = pl_pool[slot, lx, ly]
-                        a = alt_pool[slot, lx, ly]
+                        pl = run_pl[k]
+                        a = run_alt[k]
                         a = a if a < n_lut else 0  # outside the table: no class named
-                        pa = min(pa_pool[slot, lx, ly], P_SCALE - pl) if a > 0 else 0
+                        pa = min(run_pa[k], P_SCALE - pl) if a > 0 else 0
                         out[i, j + k] = _risk_cost(c, alt_cost[a], alt_forbidden[a], pl, pa, model)
             j += run
     lowest = np.inf
