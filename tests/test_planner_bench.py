@@ -88,10 +88,52 @@ def test_the_spread_over_workload_variants(capsys):
     assert "4 variants" in out and "median [min, max]" in out
 
 
-@pytest.mark.parametrize("bad", [["--lengths", "0"], ["--lengths", "1.5"], ["--obstacles", "x"]])
+def test_the_risk_rows_per_doubt_share(capsys):
+    """`--doubt`: a set of risk rows per share of doubtful free nodes (the mode and the share in
+    the risk column, their ratios to the rows without risk), each share of the graph's free nodes
+    doubtful as asked."""
+    from smana.common.navgrid import FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+    from smana.lab.bench.planner import make_graph, make_risk
+
+    labels, _, flags = make_graph(200, seed=3)
+    free = (flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0
+    for share in (0.05, 0.2, 0.5):
+        _, p_label, _ = make_risk(labels, flags, 3, share)
+        assert abs((p_label[free] < 255).mean() - share) < 0.01
+        assert (p_label[~free] == 255).all()
+    argv = ["--quick", "--queries", "1", "--sizes", "40", "--no-flat", "--no-euclidean", "--risk"]
+    assert cli([*argv, "--doubt", "0.05", "0.2"]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if "scipy Dijkstra" in line and "->" in line]
+    for mode in RISK_MODES:
+        for share in ("0.05", "0.2"):
+            assert sum(f" {mode} {share} " in line for line in rows) == 2
+    assert sum(" certain " in line for line in rows) == 2
+    assert "expected 0.05 x" in out and "cvar 0.2 x" in out
+
+
+@pytest.mark.parametrize(
+    "bad", [["--lengths", "0"], ["--lengths", "1.5"], ["--obstacles", "x"], ["--doubt", "0"]]
+)
 def test_a_share_out_of_range_is_one_line_and_exit_2(bad, capsys):
     with pytest.raises(SystemExit) as exc:
         cli(["--quick", *bad])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "expected a number > 0 and <= 1" in err[0]
+
+
+def test_the_doubtful_share_of_a_real_map(capsys):
+    """`--map-doubt`: the wet garden mapped in-process by the TSDF under label noise p = 0.7 has
+    doubtful known free nodes (p_label < 255), and the share printed is their count over the
+    known free nodes."""
+    from smana.lab.bench.planner import map_doubt
+
+    r = map_doubt(3, 6.0, 160)
+    assert r["frames"] > 0 and r["free"] > 0 and 0 < len(r["p_label"]) < r["free"]
+    assert (r["p_label"] < 255).all()
+    assert cli(["--map-doubt", "3", "--quick"]) == 0
+    out = capsys.readouterr().out
+    share = len(r["p_label"]) / r["free"]
+    assert f"{r['free']} known free nodes, {len(r['p_label'])} doubtful: share {share:.3f}" in out
+    assert "P(label) min / quartiles / max" in out

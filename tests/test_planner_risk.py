@@ -274,3 +274,111 @@ def test_the_default_risk_is_label_so_doubtful_graphs_plan_as_before():
         e = Planner(grid, CLASSES).plan((0.1, 0.1), (4.7, 3.9), allow_unknown=True, risk="expected")
         changed += e.ok != today.ok or e.cost_total != today.cost_total
     assert changed  # the graphs are doubtful enough for the mode to matter
+
+
+@pytest.mark.parametrize("mode", RISK_MODES)
+def test_the_risk_pass_reads_the_layers_in_place_across_tiles_and_offsets(mode):
+    """The risk kernels read the grid's tile pools directly: a known area that starts off the
+    tile grid, inside bounds with unallocated tiles (read as unknown and certain), a window
+    grown past it (allow_unknown), every tile size; the costs equal the reference's on the
+    window, after a patch too."""
+    rng = np.random.default_rng(40 + RISK_MODES.index(mode))
+    for tile in (4, 8, 16):
+        labels, heights, flags, risk = random_world(rng, 37, 29)
+        config = random_config(rng, mode)
+        grid = NavGrid((0.0, 0.0), (70, 60), 0.2, tile_size=tile)
+        at = np.array([13 + tile // 2, 9 + tile // 3])
+        cells = np.argwhere(np.ones(labels.shape, bool)) + at
+        grid.apply_patch(
+            cells, labels.ravel(), heights.ravel(), flags.ravel(), risk=[r.ravel() for r in risk]
+        )
+        planner = Planner(grid, CLASSES, config)
+        a, b = grid.cell_centre(*at), grid.cell_centre(*(at + (36, 28)))
+        for allow_unknown in (False, True):
+            planner.plan(a, b, allow_unknown=allow_unknown)
+            x0, y0, x1, y1 = planner._cache_key[1]
+            assert (x0, y0) != (0, 0) or allow_unknown  # the window starts inside the grid
+            w_labels, _, w_flags = grid.box(x0, y0, x1, y1)
+            window = np.argwhere(np.ones((x1 - x0, y1 - y0), bool)) + (x0, y0)
+            w_risk = [r.reshape(x1 - x0, y1 - y0) for r in grid.read_risk(window)]
+            want = risk_enter_costs(w_labels, w_flags, *w_risk, CLASSES, config, allow_unknown)
+            got = planner._enter_cache[0]
+            assert got.shape == want.shape and (np.isinf(got) == np.isinf(want)).all()
+            finite = np.isfinite(want)
+            np.testing.assert_allclose(got[finite], want[finite], rtol=1e-12)
+            assert planner._enter_cache[1] == pytest.approx(want[finite].min(), rel=1e-12)
+        # a patch of distributions on a few nodes: the incremental path, then the same check
+        few = cells[rng.choice(len(cells), 30, replace=False)]
+        new_risk = (
+            rng.choice([0, GRASS, TERRAIN, WATER, 200], 30).astype(np.uint16),
+            rng.integers(0, 256, 30).astype(np.uint8),
+            rng.integers(0, 256, 30).astype(np.uint8),
+        )
+        grid.apply_patch(few, *grid.read_cells(few), risk=new_risk)
+        assert grid.changes_since(planner._enter_key[0]) is not None
+        planner.plan(a, b, allow_unknown=True)
+        x0, y0, x1, y1 = planner._cache_key[1]
+        w_labels, _, w_flags = grid.box(x0, y0, x1, y1)
+        window = np.argwhere(np.ones((x1 - x0, y1 - y0), bool)) + (x0, y0)
+        w_risk = [r.reshape(x1 - x0, y1 - y0) for r in grid.read_risk(window)]
+        want = risk_enter_costs(w_labels, w_flags, *w_risk, CLASSES, config, True)
+        got = planner._enter_cache[0]
+        assert (np.isinf(got) == np.isinf(want)).all()
+        finite = np.isfinite(want)
+        np.testing.assert_allclose(got[finite], want[finite], rtol=1e-12)
+
+
+def _divided_risk_cost(c_label, alt, pl, pa, lut, model):
+    """A doubtful node's enter cost as the kernels computed it before their tables: a division
+    per probability and the second class looked up in the cost table (Python floats are the
+    same IEEE doubles, with no fused multiply-add)."""
+    named = 0 < alt < len(lut)
+    pa = min(pa, 255 - pl) if named else 0
+    p1, p2, r = pl / 255, pa / 255, (255 - pl - pa) / 255
+    c2 = float(lut[alt]) if named else 0.0
+    forbidden = c2 == np.inf
+    if forbidden:
+        c2 = model.forbidden_cost
+    if model.mode == 2 and (p2 if forbidden else 0.0) + r * model.other_forbidden > model.max_risk:
+        return np.inf
+    if model.mode == 1:
+        atoms = [(c_label, p1), (c2, p2), (model.other_cost, r)]
+        for a, b in ((0, 1), (1, 2), (0, 1)):  # the kernel's three compare-and-swaps
+            if atoms[b][0] > atoms[a][0]:
+                atoms[a], atoms[b] = atoms[b], atoms[a]
+        (c0, q0), (c1, q1), (c2_, q2) = atoms
+        take0 = min(q0, model.alpha)
+        take1 = min(q1, model.alpha - take0)
+        take2 = max(0.0, model.alpha - take0 - take1)
+        return (take0 * c0 + take1 * c1 + take2 * c2_) / model.alpha
+    return p1 * c_label + p2 * c2 + r * model.other_cost
+
+
+@pytest.mark.parametrize("mode", ["expected", "cvar", "chance"])
+def test_the_tables_give_the_divided_costs_bit_for_bit(mode):
+    """The risk pass reads k / 255 and the second class's cost from tables: every doubtful
+    node's cost equals, to the bit, the per-node divisions and look-ups it replaced."""
+    from smana.services.planner.planner import risk_model
+
+    rng = np.random.default_rng(50 + RISK_MODES.index(mode))
+    for _ in range(3):
+        labels, heights, flags, risk = random_world(rng, 40, 40)
+        config = random_config(rng, mode)
+        planner = Planner(make_grid(labels, heights, flags, risk), CLASSES, config)
+        planner.plan((0.1, 0.1), (7.9, 7.9))
+        got = planner._enter_cache[0]
+        plain = Planner(make_grid(labels, heights, flags), CLASSES, config)
+        plain.plan((0.1, 0.1), (7.9, 7.9))
+        c_label = plain._enter_cache[0]  # t_f * T(label), or closed
+        lut = np.where(np.isfinite(CLASSES.cost_lut), CLASSES.cost_lut * config.t_f, np.inf)
+        model = risk_model(config)
+        alt, p_label, p_alt = risk
+        doubtful = 0
+        for (i, j), c in np.ndenumerate(c_label):
+            want = c
+            if np.isfinite(c) and flags[i, j] & FLAG_KNOWN and p_label[i, j] < 255:
+                args = (int(alt[i, j]), int(p_label[i, j]), int(p_alt[i, j]))
+                want = _divided_risk_cost(float(c), *args, lut, model)
+                doubtful += 1
+            assert got[i, j] == want or (np.isnan(want) and np.isnan(got[i, j])), (i, j)
+        assert doubtful > 500

@@ -155,9 +155,8 @@ def _no_builds(monkeypatch):
 
     for name in ("_gather_window", "_gather_cells", "_enter_costs", "_enter_cells"):
         monkeypatch.setattr(mod, name, built)
-    for name in ("_gather_risk_window", "_gather_risk_cells", "_enter_costs_risk"):
+    for name in ("_enter_costs_risk", "_enter_cells_risk"):
         monkeypatch.setattr(mod, name, built)
-    monkeypatch.setattr(mod, "_enter_cells_risk", built)
 
 
 def test_a_prepared_planner_builds_nothing_on_its_first_query(monkeypatch):

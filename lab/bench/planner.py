@@ -17,22 +17,22 @@ octile heuristic (there min weight x Chebyshev steps, pyastar2d's own heuristic)
 agree. smana under the paper's cost (distance + t_f T, a diagonal 0.283 m) on the same flat graph
 is reported beside it, through `Planner.plan`, with pyastar2d's time as the yardstick.
 
-Risk rows (`--risk`, column "risk"): the cluttered graph again with a class distribution on half
-its free nodes (the graph's risk layers: a doubtful label, a second class, some unnamed mass),
-planned under each `planner.risk` mode on a new Planner (window, risk enter costs, A*), and once
-with the layers there but every node certain ("certain": the costs of the graph without them);
-their Dijkstra runs on the enter costs that mode gave (the kernels themselves are held to a
-per-node reference by tests/test_planner_risk.py). Rows without risk ("-") are on the graph
-without the layers, as before.
-
-Risk rows (`--risk`, column "risk"): the cluttered graph again with a class distribution on half
-its free nodes (the graph's risk layers: a doubtful label, a second class, some unnamed mass),
-planned under each `planner.risk` mode on a new Planner, built in the timed call (window, risk
+Risk rows (`--risk`, column "risk": the mode and the doubt share): the cluttered graph again with
+a class distribution on a share of its free nodes drawn at random (`--doubt`, default 0.5; the
+graph's risk layers: a doubtful label, a second class, some unnamed mass), planned under each
+`planner.risk` mode on a new Planner, built in the timed call (window, risk
 enter costs, A*) and built just before (it prepares the window and the risk enter costs ahead:
 the A* alone), and once with the layers there but every node certain ("certain": the costs of the
 graph without them); their Dijkstra runs on the enter costs that mode gave (the kernels themselves
 are held to a per-node reference by tests/test_planner_risk.py). Rows without risk ("-") are on
 the graph without the layers, as before.
+
+`--map-doubt SEED ...` measures instead what share of a real map's free nodes is doubtful: the
+wet garden (10 m, water 10 %, class table garden3drms_wet) seen along the noise experiment's fixed
+trajectory (44 m, 640 px; `--quick`: 6 m, 160 px), label noise p = 0.7 (SLIC + Table 2 with water,
+as the simulator degrades the wet garden) and the highest pose noise, integrated in-process into
+the TSDF back-end and the navigation graph (their default sections): per seed, the share of known
+free graph nodes whose p_label < 255 and the spread of their p_label.
 
 Every A* cost is checked against Dijkstra to 1e-6 relative (and pyastar2d's to 1e-5: it sums in
 float32); a disagreement fails the benchmark. Every row prints the peer's and smana's wall and CPU
@@ -126,13 +126,13 @@ def grid_from_dense(labels, heights, flags, risk=None) -> NavGrid:
     return grid
 
 
-def make_risk(labels, flags, seed: int):
-    """Risk layers (alt_labels, p_label, p_alt) for a graph: on half the free nodes a doubtful
-    label (P 0.7 to 1), a second class (the other ground class, or on 15 % a tree: forbidden)
-    holding most of the rest, the remainder unnamed."""
+def make_risk(labels, flags, seed: int, doubt_share: float = 0.5):
+    """Risk layers (alt_labels, p_label, p_alt) for a graph: on `doubt_share` of the free nodes,
+    drawn at random, a doubtful label (P 0.7 to 1), a second class (the other ground class, or on
+    15 % a tree: forbidden) holding most of the rest, the remainder unnamed."""
     rng = np.random.default_rng(seed)
     shape = labels.shape
-    doubt = (rng.random(shape) < 0.5) & ((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0)
+    doubt = (rng.random(shape) < doubt_share) & ((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0)
     p_label = np.where(doubt, rng.integers(180, 256, shape), 255).astype(np.uint8)
     other = np.where(labels == GRASS, TERRAIN, GRASS)
     alt = np.where(rng.random(shape) < 0.15, 8, other)  # 8: tree, infinite cost
@@ -140,6 +140,77 @@ def make_risk(labels, flags, seed: int):
     rest = 255 - p_label.astype(np.int64)
     p_alt = np.where(doubt, rest * rng.uniform(0.7, 1.0, shape), 0).astype(np.uint8)
     return alt, p_label, p_alt
+
+
+def map_doubt(seed: int, length_m: float = 44.0, image_px: int = 640) -> dict:
+    """The doubtful share of a real map's known free nodes (see the module's docstring): the
+    frames integrated, the known free nodes, and the p_label of the doubtful ones."""
+    import types
+
+    from smana.common.config import SmanaConfig
+    from smana.lab.experiments.noise import POSE_NOISE, _cloud, fixed_trajectory, render_frames
+    from smana.services.mapper.semantic_map import SemanticMap
+    from smana.services.navgraph.graph import NavGraph
+    from smana.services.sim.degrade import WET_CONFUSABLE, WET_IDS, LabelDegrader, PoseNoise
+    from smana.services.sim.worlds.garden import generate
+
+    table = "garden3drms_wet"
+    config = SmanaConfig.load(overrides=[f'general.class_table="{table}"', 'mapper.backend="tsdf"'])
+    classes = ClassTable.load(table)
+    world = generate(seed, classes=classes, size_m=10.0, water_share=0.1)
+    frames = render_frames(world, fixed_trajectory(world, length_m, 0.25), image_px)
+    rng = np.random.default_rng(seed)
+    degrade = LabelDegrader("high", rng, classes.colour_lut, ids=WET_IDS, confusable=WET_CONFUSABLE)
+    pose_noise = PoseNoise(*POSE_NOISE["high"], rng)
+    semantic_map = SemanticMap.from_config(config.mapper, table)
+    graph = NavGraph(classes, config.navgraph)
+    for base, capture, mount in frames:
+        labels = degrade.degrade(capture.labels).labels
+        pts, lab, origin = _cloud((base, capture, mount), labels, pose_noise.apply(base), 2)
+        d = semantic_map.integrate(pts, lab, degrade.confidences(len(pts)), origin)
+        # what the mapper publishes (services/mapper/service.py, `_message`)
+        graph.integrate_delta(
+            types.SimpleNamespace(
+                centres=d.centres,
+                labels=d.labels,
+                confidences=d.confidences,
+                occupied=d.occupied,
+                values=d.values,
+                values_kind=semantic_map.values_kind,
+                alt_labels=d.alt_labels,
+                alt_confidences=d.alt_confidences,
+                has_distribution=True,
+                resolution_m=semantic_map.resolution_m,
+            )
+        )
+    grid = graph.grid
+    x0, y0, x1, y1 = grid.known_box()
+    _, _, flags = grid.box(x0, y0, x1, y1)
+    cells = np.argwhere(np.ones((x1 - x0, y1 - y0), bool)) + (x0, y0)
+    p_label = grid.read_risk(cells)[1].reshape(flags.shape)
+    free = ((flags & FLAG_KNOWN) != 0) & ((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0)
+    doubtful = free & (p_label < 255)
+    return {"frames": len(frames), "free": int(free.sum()), "p_label": p_label[doubtful]}
+
+
+def _print_map_doubt(seeds, quick: bool) -> None:
+    length_m, image_px = (6.0, 160) if quick else (44.0, 640)
+    print(
+        f"doubtful share of a real map's known free nodes: wet garden 10 m, TSDF, label noise "
+        f"p = 0.7 and pose noise, {length_m:g} m of trajectory, {image_px} px"
+    )
+    for seed in seeds:
+        r = map_doubt(seed, length_m, image_px)
+        p = r["p_label"]
+        share = len(p) / max(1, r["free"])
+        spread = ""
+        if len(p):
+            q = np.percentile(p, [0, 25, 50, 75, 100]) / 255
+            spread = ", their P(label) min / quartiles / max " + " / ".join(f"{v:.2f}" for v in q)
+        print(
+            f"  seed {seed}: {r['frames']} frames, {r['free']} known free nodes, {len(p)} "
+            f"doubtful: share {share:.3f}{spread}"
+        )
 
 
 def _anchors(n: int, length: float = 1.0):
@@ -262,9 +333,11 @@ def run_size(
     obstacle_share: float = 0.12,
     length: float = 1.0,
     with_risk: bool = False,
+    doubt_shares: tuple[float, ...] = (0.5,),
 ) -> dict:
     """The cluttered graph: `Planner.plan` against scipy's Dijkstra on the same graph; with
-    `with_risk` the same queries on the graph with risk layers, rows per mode."""
+    `with_risk` the same queries on the graph with risk layers, rows per mode and share of
+    doubtful free nodes (`doubt_shares`)."""
     labels, heights, flags = make_graph(n, seed=n, classes=classes, obstacle_share=obstacle_share)
     grid = grid_from_dense(labels, heights, flags)
     params = PlannerConfig(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile")
@@ -318,27 +391,40 @@ def run_size(
         out["queries"].append({"start": s, "goal": g, "rows": rows})
     out["grid_bytes"] = grid.nbytes
     if with_risk:
-        _risk_rows(out, labels, heights, flags, classes, params, pairs, runs)
+        _risk_rows(out, labels, heights, flags, classes, params, pairs, runs, doubt_shares)
     return out
 
 
 CERTAIN = "certain"  # the risk column of the rows on risk layers whose nodes are all certain
 
 
-def _risk_rows(out, labels, heights, flags, classes, params, pairs, runs) -> None:
-    """Per mode, the queries on the graph with risk layers on a new Planner, built in the timed
-    call (the window's risk enter pass counted) and built just before (untimed: it prepares
-    that pass ahead, as the service does on its tick), against Dijkstra on the enter costs that
-    mode gave (the window is the whole graph)."""
+def _risk_graphs(labels, heights, flags, doubt_shares):
+    """(name, graph, mode) of the risk rows: "certain" (the layers there, every node certain:
+    the costs and the search of the graph without them), then per doubt share each mode, named
+    "mode share"; each share's graph is built when its rows come."""
+    n = labels.shape[0]
+    alt, p_label, p_alt = make_risk(labels, flags, n)
+    yield (
+        CERTAIN,
+        grid_from_dense(labels, heights, flags, (alt, np.full_like(p_label, 255), p_alt)),
+        "expected",
+    )
+    for share in doubt_shares:
+        grid = grid_from_dense(labels, heights, flags, make_risk(labels, flags, n, share))
+        for mode in RISK_MODES:
+            yield f"{mode} {share:g}", grid, mode
+
+
+def _risk_rows(out, labels, heights, flags, classes, params, pairs, runs, doubt_shares) -> None:
+    """Per mode and doubt share, the queries on the graph with risk layers on a new Planner,
+    built in the timed call (the window's risk enter pass counted) and built just before
+    (untimed: it prepares that pass ahead, as the service does on its tick), against Dijkstra on
+    the enter costs that mode gave (the window is the whole graph)."""
     n = labels.shape[0]
     plain = grid_from_dense(labels, heights, flags)
-    alt, p_label, p_alt = make_risk(labels, flags, n)
-    grid = grid_from_dense(labels, heights, flags, (alt, p_label, p_alt))
-    sure = grid_from_dense(labels, heights, flags, (alt, np.full_like(p_label, 255), p_alt))
     out["pass_ms"] = {"-": _enter_pass(plain, classes, params, runs)}
     works = [("new Planner + first", BUILD_FIRST), ("first, new Planner", FIRST_NEW)]
-    # "certain": the layers there, every node certain: the costs (and the search) of "-"
-    for name, grid, mode in [(CERTAIN, sure, "expected")] + [(m, grid, m) for m in RISK_MODES]:
+    for name, grid, mode in _risk_graphs(labels, heights, flags, doubt_shares):
         p = dataclasses.replace(params, risk=mode)
         out["pass_ms"][name] = _enter_pass(grid, classes, p, runs)
         csr = None
@@ -438,7 +524,7 @@ def run_flat(n: int, runs: int, n_queries: int, classes, pyastar, length: float 
 
 
 HEADER = (
-    f"{'graph':>24} {'query':>16} {'work':<26} {'risk':<8} {'peer':<14} {'peer ms':>8} "
+    f"{'graph':>24} {'query':>16} {'work':<26} {'risk':<14} {'peer':<14} {'peer ms':>8} "
     f"{'peer cpu':>8} "
     f"{'smana ms':>8} {'smana cpu':>9} {'ratio':>5} {'cpu r.':>6} {'expanded':>8} {'cost':>10} "
     f"{'rel err':>7} {'load':>5}"
@@ -456,7 +542,7 @@ def _print_row(variant: str, q: dict, r: dict) -> None:
         ratio = f"{sw / pw:5.2f} {sc / max(pc, 1e-9):6.2f}"
     sw, sc = r["smana_ms"]
     print(
-        f"{variant:>24} {label:>16} {r['work']:<26} {r['risk']:<8} {r['peer']:<14} {peer} "
+        f"{variant:>24} {label:>16} {r['work']:<26} {r['risk']:<14} {r['peer']:<14} {peer} "
         f"{sw:8.1f} {sc:9.1f} "
         f"{ratio} {r['expanded']:8d} {r['cost']:10.3f} {r['rel_err']:7.0e} {r['load']:5.2f}"
     )
@@ -500,7 +586,7 @@ def _print_spread(results: list[dict]) -> None:
     for g in spread(results):
         c, w, ld = g["cpu"], g["wall"], g["load"]
         print(
-            f"  {g['peer']:<14} {g['work']:<26} {g['risk']:<8} {g['variants']} variants, "
+            f"  {g['peer']:<14} {g['work']:<26} {g['risk']:<14} {g['variants']} variants, "
             f"{g['queries']:2d} queries: CPU {c[0]:.2f} [{c[1]:.2f}, {c[2]:.2f}], wall {w[0]:.2f} "
             f"[{w[1]:.2f}, {w[2]:.2f}], load {ld[0]:.1f}-{ld[1]:.1f}"
         )
@@ -514,10 +600,10 @@ def _enter_pass(grid, classes, params, runs) -> float:
 
 
 def _risk_ratios(r: dict, work: str) -> str:
-    """Per mode, the CPU time of its `work` row over the same query's without risk: the
-    median over the queries."""
+    """Per mode (and doubt share), the CPU time of its `work` row over the same query's without
+    risk: the median over the queries."""
     out = []
-    for mode in (CERTAIN, *RISK_MODES):
+    for mode in (name for name in r["pass_ms"] if name != "-"):
         ratios = []
         for q in r["queries"]:
             cpu = {row["risk"]: row["smana_ms"][1] for row in q["rows"] if row["work"] == work}
@@ -579,7 +665,26 @@ def cli(argv: list[str] | None = None) -> int:
         action="store_true",
         help="add the risk rows (planner.risk) to the cluttered graphs",
     )
+    p.add_argument(
+        "--doubt",
+        type=share,
+        nargs="+",
+        default=[0.5],
+        help="risk rows: shares of the free nodes whose label is doubtful, drawn at random, one "
+        "set of rows each (default 0.5)",
+    )
+    p.add_argument(
+        "--map-doubt",
+        type=int,
+        nargs="+",
+        metavar="SEED",
+        help="instead: the share of a real map's known free nodes whose label is doubtful, per "
+        "wet-garden seed (TSDF under label noise p = 0.7; see the module's help)",
+    )
     args = p.parse_args(argv)
+    if args.map_doubt:
+        _print_map_doubt(args.map_doubt, args.quick)
+        return 0
     sizes = args.sizes or ([60, 120] if args.quick else [250, 500, 1000])
     runs = args.runs or (3 if args.quick else 7)
     classes = ClassTable.load("garden3drms")
@@ -591,6 +696,10 @@ def cli(argv: list[str] | None = None) -> int:
     warm = Planner(grid_from_dense(*make_graph(40, 1, classes)), classes)
     warm.plan((1.0, 1.0), (6.0, 6.0))
     warm.plan((1.0, 1.0), (6.0, 6.0), heuristic="euclidean")
+    small = make_graph(40, 1, classes)
+    risky = Planner(grid_from_dense(*small, make_risk(small[0], small[2], 1)), classes)
+    for mode in RISK_MODES:
+        risky.plan((1.0, 1.0), (6.0, 6.0), risk=mode)
     search(np.ones((4, 4)), np.zeros((4, 4)), (0, 0), (3, 3), 0.0, 0.0, np.inf, "octile", 1.0)
 
     print(f"planner benchmark: {runs} runs per query, median wall and CPU (process_time) ms;")
@@ -601,8 +710,8 @@ def cli(argv: list[str] | None = None) -> int:
     print("patch (one tile: its nodes refreshed in the cached window), or on a new Planner")
     print("(nothing cached);")
     print("rel err = |cost - Dijkstra| / Dijkstra; risk = planner.risk on the graph with risk")
-    print("layers (half the free nodes doubtful; 'certain': every node certain), '-' = the graph")
-    print("without them")
+    print("layers and the share of its free nodes doubtful ('certain': every node certain), '-' =")
+    print("the graph without them")
     print("flat graphs: pyastar2d's cost = sum of the weights entered (terrain 1.0, grass 1.8; a")
     print(
         "diagonal as a side step); smana's kernel on the same weights, no distance or height term"
@@ -638,6 +747,7 @@ def cli(argv: list[str] | None = None) -> int:
                     obstacle_share,
                     length,
                     args.risk,
+                    tuple(args.doubt),
                 )
                 results.append(r)
                 for q in r["queries"]:

@@ -86,7 +86,6 @@ class Planner:
         self.config = PlannerConfig() if config is None else config
         self._cache_key = None
         self._cache = None
-        self._risk = None  # RiskWindow beside the Window when the grid has the risk layers
         self._enter_key = None
         self._enter_cache = None
         names = ["unknown"] * classes.size
@@ -379,22 +378,26 @@ class Planner:
         """Per-node enter costs t_f * T(l) of the window (from the class distribution when the
         grid has risk layers) and their finite minimum, cached until the grid or the costs change
         (an explorer asks many paths on one graph version)."""
-        risk = None if p.risk == "label" else self._risk  # "label": as without the layers
-        model = None if risk is None else risk_model(p)
+        # "label", or a grid without the layers: as without risk
+        pools = None if p.risk == "label" else RiskPools.of(self.grid)
+        model = None if pools is None else risk_model(p)
         key = (self.grid.version, box, lut.tobytes(), p.t_f, p.unknown_cost, allow_unknown, model)
         if self._enter_key != key:
             # Scale the finite costs only: inf * 0 would be NaN when t_f = 0.
             scaled = np.where(np.isfinite(lut), lut * p.t_f, np.inf)
+            prices = None if pools is None else risk_prices(model, scaled)
+            window = self._cache
             cells = self._changed_in(box, self._enter_key, key)
             if cells is not None:
                 # Only the patched nodes: their enter costs, and a minimum that can only fall
                 # (a minimum that is too low keeps the heuristic a lower bound: still exact).
                 out, lowest = self._enter_cache
                 costs = EnterCosts(scaled, bool(allow_unknown), float(p.unknown_cost * p.t_f))
-                if risk is None:
+                if pools is None:
                     low = _enter_cells(labels, flags, costs, cells, out)
                 else:
-                    low = _enter_cells_risk(labels, flags, risk, costs, model, cells, out)
+                    gcells = cells + np.array(box[:2], np.int32)
+                    low = _enter_cells_risk(window, pools, gcells, cells, costs, prices, out)
                 self._enter_cache = (out, min(lowest, low))
                 self._enter_key = key
                 return self._enter_cache
@@ -402,10 +405,10 @@ class Planner:
             out = old[0] if old is not None and old[0].shape == labels.shape else None
             out = np.empty(labels.shape) if out is None else out  # refilled: no page faults
             costs = EnterCosts(scaled, bool(allow_unknown), float(p.unknown_cost * p.t_f))
-            if risk is None:
+            if pools is None:
                 lowest = _enter_costs(labels, flags, costs, out)
             else:
-                lowest = _enter_costs_risk(labels, flags, risk, costs, model, out)
+                lowest = _enter_costs_risk(window, pools, box[0], box[1], costs, prices, out)
             self._enter_cache = (out, lowest)
             self._enter_key = key
         return self._enter_cache
@@ -433,16 +436,13 @@ class Planner:
         the window's arrays are refilled in place when its size did not change: fresh ones cost
         page faults, about 1 ms per 1 MB (measured on the A* work arrays)."""
         g = self.grid
-        pools = RiskPools.of(g)
-        key = (g.version, box, pools is not None)
+        key = (g.version, box)
         if self._cache_key != key:
             x0, y0, x1, y1 = box
             cells = self._changed_in(box, self._cache_key, key)
             if cells is not None:  # a patch since: refresh its nodes only
                 gcells = cells + np.array([x0, y0], np.int32)
                 _gather_cells(TilePools.of(g), gcells, cells, self._cache)
-                if pools is not None:
-                    _gather_risk_cells(pools, gcells, cells, self._risk)
                 self._cache_key = key
                 return self._cache
             shape = (x1 - x0, y1 - y0)
@@ -453,16 +453,6 @@ class Planner:
                     np.empty(shape, np.float32),  # the grid's own heights: half the bytes
                 )
             _gather_window(TilePools.of(g), x0, y0, self._cache)
-            if pools is None:
-                self._risk = None
-            else:
-                if self._risk is None or self._risk.alt.shape != shape:
-                    self._risk = RiskWindow(
-                        np.empty(shape, np.uint16),
-                        np.empty(shape, np.uint8),
-                        np.empty(shape, np.uint8),
-                    )
-                _gather_risk_window(pools, x0, y0, self._risk)
             self._cache_key = key
         return self._cache
 
@@ -627,7 +617,8 @@ def risk_model(p: PlannerConfig) -> RiskModel:
 
 
 class RiskPools(NamedTuple):
-    """The grid's risk layers as the gather kernels read them: pools of (slot, T, T)."""
+    """The grid's risk layers as the risk kernels read them: pools of (slot, T, T). The kernels
+    read them in place: no dense copy of the window is kept (unallocated tiles: certain)."""
 
     tile_map: np.ndarray
     alt: np.ndarray  # u2: second most likely class, 0 = none
@@ -643,62 +634,28 @@ class RiskPools(NamedTuple):
         return cls(g.tile_map, *(g.layer(name) for name in RISK_LAYER_NAMES), g.tile_size)
 
 
-class RiskWindow(NamedTuple):
-    """The planner's dense copy of the risk layers over its window (unknown nodes: certain)."""
+class RiskPrices(NamedTuple):
+    """What the risk kernels price a distribution with: the model and, per class id, what its
+    mass as the second class costs, so that no node looks its second class up twice."""
 
-    alt: np.ndarray  # u2 (w, h)
-    p_label: np.ndarray  # u1 (w, h)
-    p_alt: np.ndarray  # u1 (w, h)
-
-
-@numba.njit(cache=True)
-def _gather_risk_window(pools, ix0, iy0, window):
-    """`_gather_window` for the risk layers; unallocated tiles read as certain (p_label 255)."""
-    tile_map, alt_pool, pl_pool, pa_pool, t = pools
-    alt, p_label, p_alt = window
-    w, h = alt.shape
-    for i in range(w):
-        gx = ix0 + i
-        tx = gx // t
-        lx = gx - tx * t
-        j = 0
-        while j < h:
-            gy = iy0 + j
-            ty = gy // t
-            ly0 = gy - ty * t
-            run = min(t - ly0, h - j)
-            slot = tile_map[tx, ty]
-            for k in range(run):
-                if slot >= 0:
-                    alt[i, j + k] = alt_pool[slot, lx, ly0 + k]
-                    p_label[i, j + k] = pl_pool[slot, lx, ly0 + k]
-                    p_alt[i, j + k] = pa_pool[slot, lx, ly0 + k]
-                else:
-                    alt[i, j + k] = 0
-                    p_label[i, j + k] = P_SCALE
-                    p_alt[i, j + k] = 0
-            j += run
+    model: RiskModel
+    alt_cost: np.ndarray  # f8 per class id: t_f * T, a forbidden class's at forbidden_cost; id 0: 0
+    alt_forbidden: np.ndarray  # f8 per class id: 1 where the class is forbidden, else 0
 
 
-@numba.njit(cache=True)
-def _gather_risk_cells(pools, grid_cells, cells, window):
-    """`_gather_risk_window` for a list of nodes: `grid_cells` in the grid, `cells` in the
-    window."""
-    tile_map, alt_pool, pl_pool, pa_pool, t = pools
-    alt, p_label, p_alt = window
-    for k in range(len(cells)):
-        gx, gy = grid_cells[k, 0], grid_cells[k, 1]
-        i, j = cells[k, 0], cells[k, 1]
-        slot = tile_map[gx // t, gy // t]
-        if slot >= 0:
-            lx, ly = gx % t, gy % t
-            alt[i, j] = alt_pool[slot, lx, ly]
-            p_label[i, j] = pl_pool[slot, lx, ly]
-            p_alt[i, j] = pa_pool[slot, lx, ly]
-        else:
-            alt[i, j] = 0
-            p_label[i, j] = P_SCALE
-            p_alt[i, j] = 0
+def risk_prices(model: RiskModel, lut: np.ndarray) -> RiskPrices:
+    """The tables of `RiskPrices` for the scaled costs `lut` (+inf where forbidden). Id 0 (and an
+    id outside the table, which the kernels read as 0) names no class: its mass is unnamed."""
+    forbidden = ~np.isfinite(lut)
+    cost = np.where(forbidden, model.forbidden_cost, lut)
+    cost[0] = 0.0
+    forbidden[0] = False
+    return RiskPrices(model, np.ascontiguousarray(cost, np.float64), forbidden.astype(np.float64))
+
+
+# P(k) = k / 255 for every stored probability k: the division the kernels did per node, done
+# once (the same float64 division, so the same bits).
+_PROB = np.arange(P_SCALE + 1) / P_SCALE
 
 
 @numba.njit(cache=True)
@@ -718,53 +675,52 @@ def _cvar3(c0, p0, c1, p1, c2, p2, alpha):
     return (take0 * c0 + take1 * c1 + take2 * c2) / alpha
 
 
-@numba.njit(cache=True)
-def _risk_cost(c_label, alt, pl, pa, lut, n_lut, model):
-    """Enter cost of a known node whose label costs `c_label` (finite, t_f scaled) given its
-    distribution: P(label) = pl / 255, P(alt) = pa / 255 (alt 0 or outside the table: none, its
-    mass unnamed), the rest unnamed. See docs/risk.md."""
-    if pl >= P_SCALE:
-        return c_label  # certain: as without risk, bit for bit
-    named_alt = alt > 0 and alt < n_lut
-    pa = min(pa, P_SCALE - pl) if named_alt else 0
-    p1 = pl / P_SCALE
-    p2 = pa / P_SCALE
-    r = (P_SCALE - pl - pa) / P_SCALE
-    c2 = lut[alt] if named_alt else 0.0
-    forbidden = c2 == np.inf
-    if forbidden:
-        c2 = model.forbidden_cost
+@numba.njit(cache=True, inline="always")
+def _risk_cost(c_label, c_alt, alt_forbidden, pl, pa, model):
+    """Enter cost of a known node whose label costs `c_label` (finite, t_f scaled) and is
+    doubtful (pl < 255), given its distribution: P(label) = pl / 255, P(alt) = pa / 255 (0 when
+    no class is named; pa + pl <= 255), the rest unnamed; the second class costs `c_alt` and is
+    forbidden when `alt_forbidden` is 1. See docs/risk.md. Numbers only: a helper called per node
+    that takes an array (or a tuple holding one) pays numba's reference counting per call, which
+    was most of the pass (14 ms at 1000 x 1000, half the nodes doubtful)."""
+    p1 = _PROB[pl]
+    p2 = _PROB[pa]
+    r = _PROB[P_SCALE - pl - pa]
     if model.mode == 2:
-        pf = (p2 if forbidden else 0.0) + r * model.other_forbidden
+        pf = p2 * alt_forbidden + r * model.other_forbidden
         if pf > model.max_risk:
             return np.inf
     if model.mode == 1:
-        return _cvar3(c_label, p1, c2, p2, model.other_cost, r, model.alpha)
-    return p1 * c_label + p2 * c2 + r * model.other_cost
-
-
-@numba.njit(cache=True, inline="always")
-def _enter_cost_risk(f, lab, alt, pl, pa, costs, model):
-    # inlined: called per node, it measured 10 % slower than with the table as an argument
-    lut, allow_unknown, unknown_cost = costs
-    n_lut = len(lut)
-    c = _enter_cost(f, lab, lut, n_lut, allow_unknown, unknown_cost)
-    # Obstacles, safety zones, unknown nodes and a label that cannot be entered: as without risk.
-    if c == np.inf or not f & FLAG_KNOWN:
-        return c
-    return _risk_cost(c, alt, pl, pa, lut, n_lut, model)
+        return _cvar3(c_label, p1, c_alt, p2, model.other_cost, r, model.alpha)
+    return p1 * c_label + p2 * c_alt + r * model.other_cost
 
 
 @numba.njit(cache=True)
-def _enter_cells_risk(labels, flags, risk, costs, model, cells, out):
-    """`_enter_cells` with the nodes' class distributions (`risk`, a RiskWindow)."""
-    alt, p_label, p_alt = risk
+def _enter_cells_risk(window, pools, grid_cells, cells, costs, prices, out):
+    """`_enter_cells` with the nodes' class distributions, read from the grid's risk `pools` at
+    `grid_cells` (`cells` in the window)."""
+    labels, flags, _ = window
+    tile_map, alt_pool, pl_pool, pa_pool, t = pools
+    lut, allow_unknown, unknown_cost = costs
+    model, alt_cost, alt_forbidden = prices
+    n_lut = len(lut)
     lowest = np.inf
     for k in range(len(cells)):
         i, j = cells[k, 0], cells[k, 1]
-        c = _enter_cost_risk(
-            flags[i, j], labels[i, j], alt[i, j], p_label[i, j], p_alt[i, j], costs, model
-        )
+        f = flags[i, j]
+        c = _enter_cost(f, labels[i, j], lut, n_lut, allow_unknown, unknown_cost)
+        gx, gy = grid_cells[k, 0], grid_cells[k, 1]
+        slot = tile_map[gx // t, gy // t]
+        # Obstacles, safety zones, unknown nodes, a label that cannot be entered and a certain
+        # label: as without risk.
+        if slot >= 0 and c < np.inf and f & FLAG_KNOWN:
+            lx, ly = gx % t, gy % t
+            pl = pl_pool[slot, lx, ly]
+            if pl < P_SCALE:
+                a = alt_pool[slot, lx, ly]
+                a = a if a < n_lut else 0  # outside the table: no class named
+                pa = min(pa_pool[slot, lx, ly], P_SCALE - pl) if a > 0 else 0
+                c = _risk_cost(c, alt_cost[a], alt_forbidden[a], pl, pa, model)
         out[i, j] = c
         if c < lowest:
             lowest = c
@@ -772,24 +728,59 @@ def _enter_cells_risk(labels, flags, risk, costs, model, cells, out):
 
 
 @numba.njit(cache=True)
-def _enter_costs_risk(labels, flags, risk, costs, model, out):
-    """`_enter_costs` with the nodes' class distributions (`risk`, a RiskWindow). Two passes:
-    the costs without risk (a loop LLVM vectorises: 0.7 ms at 1000 x 1000, measured), then the
-    doubtful known nodes only (one pass doing both was 13 ms)."""
+def _enter_costs_risk(window, pools, ix0, iy0, costs, prices, out):
+    """`_enter_costs` with the nodes' class distributions, read from the grid's risk `pools`
+    (the window's node (0, 0) is the grid's (ix0, iy0)): the costs without risk (a loop LLVM
+    vectorises), then tile run by tile run the doubtful nodes, listed first without a branch
+    (half the nodes doubtful at random defeats the branch predictor), then the minimum."""
+    labels, flags, _ = window
+    tile_map, alt_pool, pl_pool, pa_pool, t = pools
+    model, alt_cost, alt_forbidden = prices
+    n_lut = len(alt_cost)
     _enter_costs(labels, flags, costs, out)
-    lut = costs.lut
-    alt, p_label, p_alt = risk
-    nx, ny = labels.shape
+    w, h = labels.shape
+    doubtful = np.empty(t, np.int64)
+    run_alt = np.empty(t, alt_pool.dtype)
+    run_pl = np.empty(t, pl_pool.dtype)
+    run_pa = np.empty(t, pa_pool.dtype)
+    for i in range(w):
+        gx = ix0 + i
+        tx = gx // t
+        lx = gx - tx * t
+        j = 0
+        while j < h:
+            gy = iy0 + j
+            ty = gy // t
+            ly0 = gy - ty * t
+            run = min(t - ly0, h - j)
+            slot = tile_map[tx, ty]
+            if slot >= 0:  # an unallocated tile reads as certain
+                # The run's three layers copied whole first: loads that depend on nothing, so
+                # their cache misses overlap (read only at the doubtful nodes, each missed on
+                # its own: 5.5 against 3.2 ms with 5 % of the nodes doubtful).
+                for k in range(run):
+                    run_pl[k] = pl_pool[slot, lx, ly0 + k]
+                    run_alt[k] = alt_pool[slot, lx, ly0 + k]
+                    run_pa[k] = pa_pool[slot, lx, ly0 + k]
+                m = 0
+                for k in range(run):
+                    doubtful[m] = k
+                    m += run_pl[k] < P_SCALE
+                for q in range(m):
+                    k = doubtful[q]
+                    c = out[i, j + k]
+                    # obstacles, safety zones, unknown nodes and closed labels: as without risk
+                    if c < np.inf and flags[i, j + k] & FLAG_KNOWN:
+                        pl = run_pl[k]
+                        a = run_alt[k]
+                        a = a if a < n_lut else 0  # outside the table: no class named
+                        pa = min(run_pa[k], P_SCALE - pl) if a > 0 else 0
+                        out[i, j + k] = _risk_cost(c, alt_cost[a], alt_forbidden[a], pl, pa, model)
+            j += run
     lowest = np.inf
-    n_lut = len(lut)
-    for i in range(nx):
-        for j in range(ny):
-            c = out[i, j]
-            if p_label[i, j] < P_SCALE and c < np.inf and flags[i, j] & FLAG_KNOWN:
-                c = _risk_cost(c, alt[i, j], p_label[i, j], p_alt[i, j], lut, n_lut, model)
-                out[i, j] = c
-            if c < lowest:
-                lowest = c
+    for i in range(w):
+        for j in range(h):
+            lowest = min(lowest, out[i, j])
     return lowest if lowest < np.inf else 0.0
 
 
