@@ -257,7 +257,8 @@ def test_noise_section_is_the_data_per_sweep_back_end_and_level():
     # older rows without a metric: no number is invented
     old = [{k: v for k, v in r.items() if k != "f_score"} for r in rows]
     text = noise.section({"experiment": "noise", "meta": {}, "rows": old})
-    assert "- (n = 0)" in text
+    assert "- (n = 0)" in text and "F-score (5 cm) lost to high |" in text
+    assert "left out: error, precision, completeness:" in text  # not "unchanged": not measured
 
 
 def _noise_doc(tmp_path, *names):

@@ -883,9 +883,10 @@ def _section_head(data: dict, key: str) -> str:
         + f"; back-ends {', '.join(backends)}"
         + (f" ({', '.join(absent)} not run: not in this data)" if absent else "")
         + (f"; {meta['note']}" if meta.get("note") else "")
-        + '. Mean [95 % CI] (n) over seeds; the pose sweep\'s "none" maps are the label '
-        "sweep's (no noise at all)."
-    )
+        + ". Mean [95 % CI] (n) over seeds"
+        + ('; the pose sweep\'s "none" maps are the label sweep\'s (no noise at all).'
+           if any(r["sweep"] == "pose" for r in rows) else ".")
+    )  # fmt: skip
 
 
 def _sweeps_shown(rows) -> list[str]:
@@ -947,8 +948,10 @@ def _paired_table(rows, sweep, kind, lo, hi, backends) -> list[str]:
     for k, *_ in SECTION_METRICS:
         sign = 1.0 if k == "error_mean_m" else -1.0  # error added; shares lost
         deltas[k] = {b: [sign * v for v in _deltas(rows, sweep, b, k).values()] for b in backends}
-    moved = [m for m in SECTION_METRICS if any(v != 0 for d in deltas[m[0]].values() for v in d)]
-    same = [m[1].split(" (")[0] for m in SECTION_METRICS if m not in moved]
+    values = {k: [v for d in deltas[k].values() for v in d] for k in deltas}
+    same = [m for m in SECTION_METRICS if values[m[0]] and not any(values[m[0]])]
+    moved = [m for m in SECTION_METRICS if m not in same]  # with no value at all: "-" is said
+    same = [m[1].split(" (")[0] for m in same]
     lines = [
         f"From {kind} noise {lo} to {hi}, paired per seed ({hi} minus {lo} for the error, "
         f"{lo} minus {hi} for the shares, in points)"
