@@ -392,7 +392,7 @@ def test_ablation_outputs_from_synthetic_rows(tmp_path):
     doc = report.sections({"ablation": data})["ablation"]
     table = [ln for ln in text.splitlines() if ln.startswith("| ")]
     assert table and all(ln in doc.splitlines() for ln in table)
-    assert "seeds 3, 4" in doc and "10 min wall" in doc and "none failed" in doc
+    assert "seeds 3, 4" in doc and "10 min 0 s wall" in doc and "none failed" in doc
     # a failed run is said, and left out of the intervals
     rows[0] = _run(3, arms[0], code=1)
     ablation.write_ablation_outputs(rows, s, tmp_path)

@@ -70,7 +70,9 @@ def section(data: dict | None) -> str:
         )
     meta, rows = data.get("meta") or {}, [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
     seeds = sorted({r["seed"] for r in rows})
-    done = [f"{meta['wall_s'] / 60:.0f} min wall"] if meta.get("wall_s") else []
+    from .report import duration
+
+    done = [f"{duration(meta['wall_s'])} wall"] if meta.get("wall_s") else []
     done += [meta["date"]] if meta.get("date") else []
     head = (
         "Generated from docs/experiments/data/ablation.json"

@@ -853,15 +853,9 @@ SECTION_METRICS = (
 )
 
 
-def _duration(wall_s) -> str:
-    """ "8 min 11 s" (a list of walls, one per run merged into the file: "27 min 27 s + ...")."""
-    if isinstance(wall_s, list):
-        return " + ".join(_duration(w) for w in wall_s)
-    m, s = divmod(round(float(wall_s)), 60)
-    return f"{m} min {s} s" if m else f"{s} s"
-
-
 def _section_head(data: dict, key: str) -> str:
+    from .report import duration
+
     meta, rows = data.get("meta") or {}, data["rows"]
     seeds = sorted({r["seed"] for r in rows})
     commands = [meta["command"]] if meta.get("command") else list(meta.get("commands") or [])
@@ -869,7 +863,7 @@ def _section_head(data: dict, key: str) -> str:
     done = []
     if meta.get("wall_s") is not None:
         jobs = f" with {meta['jobs']} job{'s' * (meta['jobs'] != 1)}" if meta.get("jobs") else ""
-        done.append(f"{_duration(meta['wall_s'])} wall{jobs}")
+        done.append(f"{duration(meta['wall_s'])} wall{jobs}")
     if meta.get("date"):
         done.append(meta["date"])
     backends = sorted({r["backend"] for r in rows}, key=_order)

@@ -124,6 +124,14 @@ def _read_data(path: Path, name: str) -> dict:
 # -- the sections ---------------------------------------------------------------------------------
 
 
+def duration(wall_s) -> str:
+    """ "8 min 11 s" (a list of walls, one per run merged into one file: "27 min 27 s + ...")."""
+    if isinstance(wall_s, list):
+        return " + ".join(duration(w) for w in wall_s)
+    m, s = divmod(round(float(wall_s)), 60)
+    return f"{m} min {s} s" if m else f"{s} s"
+
+
 def _missing(name: str) -> str:
     return (
         f"_No raw results of `smana experiment {name}` are committed yet "
