@@ -292,7 +292,10 @@ class Supervisor(ProcessControl, Outcome):
 
         d = self.config.deploy
         zc = self.config.zenoh
-        if d.ros2.enabled:  # ROS 2 nodes are peers that find each other through the router
+        if d.ros2.enabled and not zc.acl_file:
+            # ROS 2 nodes are peers that find each other through the router. Not under access
+            # control: gossip would tell each peer where the others listen, and two peers linked
+            # directly exchange what the router's policy would refuse (docs/ros2.md).
             zc = dataclasses.replace(zc, gossip=True)
         self._t0 = time.monotonic()
         self.session = open_router(d.router_listen, zc, d.router_connect)

@@ -182,9 +182,16 @@ def _stop(proc: subprocess.Popen) -> None:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    from smana.common.cli import config_from_args, int_in, make_parser, output_dir, setup_logging
+    from smana.common.cli import (
+        config_from_args,
+        doc_summary,
+        int_in,
+        make_parser,
+        output_dir,
+        setup_logging,
+    )
 
-    p = make_parser("smana view", __doc__.strip().splitlines()[0])
+    p = make_parser("smana view", doc_summary(__doc__))
     p.add_argument("run_dir", nargs="?", type=Path, help="a run directory or an .rrd file")
     p.add_argument("--web", action="store_true", help="serve the web viewer instead")
     p.add_argument(

@@ -87,11 +87,11 @@ def warm(service: str, config, profile: bool = False) -> dict:
 def cli(argv: list[str] | None = None) -> int:
     import argparse
 
-    from smana.common.cli import ArgumentParser, add_config_args
+    from smana.common.cli import ArgumentParser, add_config_args, doc_summary
 
     p = ArgumentParser(
         prog="smana warmup",
-        description=__doc__.strip().splitlines()[0],
+        description=doc_summary(__doc__),
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Duration measured once on a 2-core machine: about a minute on an empty cache, 3 "
         "s on a full one.",

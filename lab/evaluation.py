@@ -139,9 +139,9 @@ def eval_map_run(
 
 
 def cli(argv: list[str] | None = None) -> int:
-    from smana.common.cli import ArgumentParser, positive_float
+    from smana.common.cli import ArgumentParser, doc_summary, positive_float
 
-    p = ArgumentParser(prog="smana eval", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="smana eval", description=doc_summary(__doc__))
     sub = p.add_subparsers(dest="what", required=True)
     m = sub.add_parser(
         "map",

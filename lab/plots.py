@@ -6,7 +6,8 @@ metres, class colours from the table, `save` refusing a figure without a legend)
 `smana.common.figures`; this module adds what only the lab draws:
 - `bar_plot(groups, series, values, errors, ...)`: grouped bars (`figure_11`, `figure_12`);
 - `figure_11(rows, path)`, `figure_12(rows, path)`: the replay benchmark's Figures 11 and 12;
-- `band_plot(curves, ...)`: mean curves with an interval band (the experiments' summaries).
+- `band_plot(curves, ...)`: mean curves with an interval band (the experiments' summaries);
+- `risk_map_figure(case, ...)`: a synthetic wet garden coloured by risk (docs/risk.md).
 
 matplotlib is imported inside the functions, never at import time.
 """
@@ -26,6 +27,7 @@ from smana.common.figures import (  # noqa: F401 - the lab's figures and its cal
     PlotError,
     Series,
     _figure,
+    _halo,
     class_handles,
     class_rgb,
     draw_lines,
@@ -176,4 +178,157 @@ def band_plot(
     ax.set_ylabel(ylabel)
     ax.grid(True, alpha=0.3)
     ax.legend(title=note, title_fontsize="small", fontsize="small")
+    return fig
+
+
+def save_palette(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
+    """`save`, then a PNG's colours cut to a 256-colour palette: a map of noisy rasters (one
+    colour per node, antialiased edges) is three times smaller so, for a figure kept in the
+    repository (docs/risk_map.png)."""
+    from PIL import Image
+
+    path = save(fig, path, dpi=dpi)
+    if path.suffix.lower() == ".png":
+        with Image.open(path) as im:
+            small = im.convert("RGB").quantize(256)
+        small.save(path, optimize=True)
+    return path
+
+
+def risk_map_figure(case: dict, seed: int, resolution_m: float) -> Figure:
+    """`smana experiment risk --synthetic --figure` (docs/risk.md): one seed's synthetic wet
+    garden and its map at p = 0.7 (`lab/experiments/risk.py`, `figure_case`) in six panels: the
+    true classes, the map's most likely class, P(forbidden) as `chance` counts it, and the node
+    cost T under `expected`, `cvar` and `chance` (common/risk.py, as the planner prices a node)
+    on one log colour scale, each arm's path between the same start and goal drawn over its
+    panel with its true water entries (`judge`) in the title. The true water is outlined on
+    every panel."""
+    from matplotlib.colors import LogNorm, Normalize
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    from smana.common.navgrid import FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+    from smana.common.risk import forbidden_probability, risk_class_costs
+
+    w, labels, configs = case["world"], case["labels"], case["configs"]
+    alt, p_label, p_alt = case["risk"]
+    classes, truth, flags = w.classes, w.truth, w.flags
+    water = classes[w.forbidden].name
+    n = truth.shape[0]
+    extent = (0.0, n * resolution_m, 0.0, truth.shape[1] * resolution_m)
+    blocked = (flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0
+    obstacle = (flags & FLAG_OBSTACLE) != 0
+    lut = classes.cost_lut
+    closed_label = ~np.isfinite(lut[np.minimum(labels, classes.size - 1)]) & ~blocked
+    closed_rgb = {
+        "obstacle": OVERLAY["obstacle"],
+        "safety zone": OVERLAY["safety zone"],
+        "chance": (1.0, 0.0, 0.8),
+        "label": rgb01(classes[w.forbidden].colour),
+    }
+
+    fig = _figure(15.0, 10.5)
+    axes = fig.subplots(2, 3).ravel()
+
+    def show(ax, img, **kw):
+        return ax.imshow(
+            np.swapaxes(img, 0, 1), origin="lower", extent=extent, interpolation="nearest", **kw
+        )
+
+    def paint(ax, mask, colour):
+        rgba = np.zeros((*mask.shape, 4))
+        rgba[mask] = (*colour, 1.0)
+        show(ax, rgba)
+
+    def path_title(arm):
+        res, score = case["paths"][arm]
+        if not res.ok:
+            return "none found"
+        k = score["forbidden"]
+        return f"{k} {water} entr{'y' if k == 1 else 'ies'}, {score['length_m']:.1f} m"
+
+    start_goal = w.pairs[case["pair"]]
+    xs = (np.arange(n) + 0.5) * resolution_m
+
+    def overlay(ax, arm=None):
+        wet = (truth == w.forbidden).T.astype(float)
+        ax.contour(xs, xs, wet, levels=[0.5], colors=[OVERLAY["frontier"]], linewidths=1.4)
+        if arm is not None:
+            ax.set_label(arm)  # which arm's path the panel draws (tests read its title)
+        if arm is not None and case["paths"][arm][0].ok:
+            xy = case["paths"][arm][0].path
+            (line,) = ax.plot(xy[:, 0], xy[:, 1], color=OVERLAY["trajectory"], linewidth=1.8)
+            line.set_path_effects(_halo())
+        (a, b) = start_goal
+        ax.plot(*a, "o", markersize=8, color="white", markeredgecolor="black")
+        ax.plot(*b, "*", markersize=12, color="white", markeredgecolor="black")
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+
+    # 1, 2: classes
+    show(axes[0], class_rgb(classes, truth))
+    axes[0].set_title(
+        f"Ground truth: classes ({water}: forbidden)\npath on the truth: {path_title('truth')}"
+    )
+    overlay(axes[0], "truth")
+    show(axes[1], class_rgb(classes, labels))
+    axes[1].set_title(
+        "Map at p = 0.7: most likely class\n"
+        f"path on its labels alone (argmax): {path_title('argmax')}"
+    )
+    overlay(axes[1], "argmax")
+    # 3: P(forbidden)
+    chance = configs["chance"]
+    pf = forbidden_probability(labels, alt, p_label, p_alt, lut, chance)
+    im_p = show(axes[2], np.where(blocked, np.nan, pf), cmap="Greys", norm=Normalize(0.0, 1.0))
+    paint(axes[2], obstacle, closed_rgb["obstacle"])
+    paint(axes[2], blocked & ~obstacle, closed_rgb["safety zone"])
+    axes[2].set_title(
+        f"P(forbidden) per node as chance counts it\n({water} + unnamed mass x "
+        f"{chance.risk_other_forbidden:g}; chance closes > {chance.max_risk:g})"
+    )
+    overlay(axes[2])
+    fig.colorbar(im_p, ax=axes[2], shrink=0.8, label="P(forbidden)")
+    # 4-6: node costs, one scale
+    norm = LogNorm(1.0, chance.risk_forbidden_cost)
+    names = {
+        "expected": "expected: sum of P(k) T(k)",
+        "cvar": f"cvar: CVaR at alpha {configs['cvar'].risk_alpha:g}",
+        "chance": f"chance: expected, closed if P(forbidden) > {chance.max_risk:g}",
+    }
+    for ax, arm in zip(axes[3:], ("expected", "cvar", "chance"), strict=True):
+        t = risk_class_costs(labels, alt, p_label, p_alt, lut, configs[arm])
+        im = show(ax, np.where(np.isfinite(t) & ~blocked, t, np.nan), cmap="Greys", norm=norm)
+        paint(ax, obstacle, closed_rgb["obstacle"])
+        paint(ax, blocked & ~obstacle, closed_rgb["safety zone"])
+        paint(ax, closed_label, closed_rgb["label"])
+        paint(ax, ~np.isfinite(t) & ~blocked & ~closed_label, closed_rgb["chance"])
+        ax.set_title(f"Node cost T under {names[arm]}\npath: {path_title(arm)}")
+        overlay(ax, arm)
+    ticks = [v for v in (1, 2, 5, 10, 20, 50, 100) if v <= chance.risk_forbidden_cost]
+    bar = fig.colorbar(im, ax=list(axes[3:]), shrink=0.8, ticks=ticks)
+    bar.set_label("node cost T before t_f (log scale)")
+    bar.ax.set_yticklabels([f"{v:g}" for v in ticks])
+    handles = [
+        *class_handles(classes, np.unique(truth)),
+        Line2D([], [], color=OVERLAY["frontier"], label=f"true {water} (outline)"),
+        Patch(facecolor=closed_rgb["obstacle"], label="obstacle (never entered)"),
+        Patch(facecolor=closed_rgb["safety zone"], label="safety zone (never entered)"),
+        Patch(facecolor=closed_rgb["label"], label=f"most likely {water}: closed in every mode"),
+        Patch(facecolor=closed_rgb["chance"], label="closed by chance"),
+        Line2D([], [], color=OVERLAY["trajectory"], linewidth=1.8, label="planned path"),
+        Line2D([], [], marker="o", color="white", markeredgecolor="black", linestyle="none",
+               label="start"),
+        Line2D([], [], marker="*", markersize=12, color="white", markeredgecolor="black",
+               linestyle="none", label="goal"),
+    ]  # fmt: skip
+    fig.legend(handles=handles, loc="outside lower center", ncol=6, fontsize="small")
+    fig.suptitle(
+        f"Risk-aware planning on one synthetic wet garden (seed {seed}, label noise p = 0.7): "
+        f"one start and goal, the one of the seed's {len(w.pairs)} pairs that the labels alone "
+        "plan into water most often"
+    )
     return fig

@@ -82,6 +82,23 @@ def test_smana_help_lists_every_command_and_each_has_help():
         assert text.startswith("usage: smana "), (argv, text[:200])
 
 
+def test_every_commands_help_describes_it_in_whole_sentences():
+    """`smana <command> --help` (and `smana experiment <name> --help`) describes the command in
+    whole sentences: a description cut at its docstring's first line ("... into the") fails."""
+    argv = [(name,) for name in COMMANDS] + [("experiment", "resources")]
+    cut = []
+    for args in argv:
+        code, text = help_of(*args)
+        assert code == 0, (args, text)
+        paragraphs = [" ".join(p.split()) for p in text.split("\n\n")]
+        description = paragraphs[1] if len(paragraphs) > 1 else ""
+        if description.startswith(("positional arguments:", "options:")):
+            description = ""  # none given
+        if description and not description.endswith((".", ")", ".)")):
+            cut.append((args, description))
+    assert not cut, cut
+
+
 @pytest.mark.parametrize("command", STACK_COMMANDS)
 def test_the_commands_that_talk_to_the_stack_take_the_shared_options(command):
     code, text = help_of(command)
@@ -190,6 +207,15 @@ def test_ros2_enabled_turns_gossip_on_in_the_router(tmp_path, monkeypatch):
     _, zc, _ = router_args(monkeypatch, on)
     assert zc.gossip is True
     assert json.loads(router_config(["tcp/127.0.0.1:7447"], zc).get_json("scouting/gossip/enabled"))
+    # under access control (the secured profile's router) gossip stays off: peers that learnt
+    # each other's locators could link directly and bypass the policy
+    policy = tmp_path / "acl.json5"
+    policy.write_text("{}")
+    acl = supervisor_of(
+        "local", tmp_path / "acl", "deploy.ros2.enabled=true", f'zenoh.acl_file="{policy}"'
+    )
+    _, zc, _ = router_args(monkeypatch, acl)
+    assert zc.gossip is False
 
 
 def test_set_reaches_nested_tables_and_config_toml_holds_every_key(tmp_path):

@@ -286,3 +286,4 @@ def test_safety_zone_surrounds_forbidden_nodes_as_obstacles(margin):
     integrate(g, [voxel(20, 20, 0)], [GRASS], [1])  # relabelled grass: the zone goes
     assert not g.node(2.45, 2.05)["safety_zone"] and not g.node(2.05, 2.05)["safety_zone"]
     assert min(n_zone) > 0
+    assert NavgraphConfig().forbidden_margin  # the default (docs/risk.md)

@@ -21,9 +21,12 @@ def test_the_arms_differ_only_in_noise_and_risk_and_their_config_loads():
     sets = {c.name: c.sets() for c in rl.CONDITIONS}
     assert list(sets) == ["clean", "expected", "cvar", "chance"]
     common = set.intersection(*(set(v) for v in sets.values()))
-    assert 'general.class_table="garden3drms_wet"' in common and 'mapper.backend="tsdf"' in common
+    assert 'mapper.backend="tsdf"' in common
+    # the wet garden is the experiment's world (where the starts are drawn), not an arm's
+    assert set(rl.WET_GARDEN) <= set(rl.experiment_config().extra)
+    assert 'general.class_table="garden3drms_wet"' in rl.WET_GARDEN
     for name, items in sets.items():
-        cfg = SmanaConfig.load(overrides=[*ex.WORLD_SETS, *items])
+        cfg = SmanaConfig.load(overrides=[*ex.WORLD_SETS, *rl.WET_GARDEN, *items])
         assert cfg.sim.garden.water_share == rl.WATER_SHARE
         noisy = name != "clean"
         assert (cfg.sim.noise == "high") == noisy and (cfg.sim.pose_noise_xy_m > 0) == noisy
@@ -38,7 +41,8 @@ def test_the_arms_differ_only_in_noise_and_risk_and_their_config_loads():
 
 
 def _wet_world_and_config():
-    sets = [*ex.WORLD_SETS, *rl.CONDITIONS[1].sets(), "sim.seed=3", "sim.garden.size_m=10"]
+    sets = [*ex.WORLD_SETS, *rl.WET_GARDEN, *rl.CONDITIONS[1].sets(), "sim.seed=3"]
+    sets.append("sim.garden.size_m=10")
     cfg = SmanaConfig.load(overrides=sets)
     from smana.deploy.report import ground_truth as gt
 
@@ -239,3 +243,27 @@ def test_the_label_arm_is_on_arms_only_and_misuse_is_refused_before_any_output(t
         with pytest.raises(UsageError, match=what):
             cli(["risk", *argv, "--out", str(out)])
         assert not out.exists()
+
+
+def test_the_starts_are_drawn_in_the_wet_garden_away_from_water():
+    """The starts come from the wet garden itself (its class table and water), not from the dry
+    garden of the same seed: seed 9's start was once drawn in the dry garden and fell in water,
+    so its robot sat in water from the first second in every arm. Each start now has 0.6 m of
+    dry, traversable ground around it."""
+    from smana.lab.experiments import exploration as ex
+    from smana.lab.experiments import riskloop as rl
+
+    s = rl.experiment_config(False)
+    sets = ex.run_world_sets(s.extra)
+    for seed in (9, 11):
+        x, y, _ = ex.pick_spawn(seed, s.size_m, sets)
+        _, world = ex.experiment_world(seed, s.size_m, sets)
+        top = world.top_class()
+        water = world.classes.forbidden_lut[top.data]
+        assert water.any()  # the wet garden
+        ix, iy = top.index_of(x, y)
+        r = int(round(ex.SPAWN_CLEARANCE_M / top.resolution_m))
+        assert not water[max(ix - r, 0) : ix + r + 1, max(iy - r, 0) : iy + r + 1].any(), seed
+    dry = ex.pick_spawn(9, s.size_m, ex.run_world_sets(()))
+    _, wet = ex.experiment_world(9, s.size_m, sets)
+    assert wet.classes.forbidden_lut[wet.top_class().at(dry[0], dry[1])]  # the old start: water

@@ -359,3 +359,27 @@ def test_robots_flag_makes_a_fleet_under_its_name(monkeypatch):
     assert seen[-1].fleet.robots == ["r1", "r2"] and seen[-1].general.robot == "f2"
     assert sim_main.cli([]) == 0
     assert seen[-1].fleet.robots == [] and seen[-1].general.robot == "r1"
+
+
+def test_members_start_with_room_the_navigation_graph_leaves_open():
+    """`fleet.member_clearance_m`: in the 12 m garden of seed 8 (the fleet experiment's), with
+    the first member starting at (3.2, -4.3), the second once spawned at (4.4, -4.3), 0.47 m from
+    a hedge in a pocket that the navigation graph's safety zone closed, and never moved. Now every
+    member has the member clearance and is joined to the first through passages that wide; with
+    the robot's own clearance the old spot comes back."""
+    from scipy import ndimage
+
+    from smana.common.config import SmanaConfig
+
+    cfg = SmanaConfig.load(None, ["sim.seed=8", "sim.garden.size_m=12.0"]).sim
+    world = build_world(cfg, ClassTable.load("garden3drms"))
+    first = (3.2, -4.3)
+    room = FleetConfig().member_clearance_m
+    spots = place_members(world, first, 3, 1.2, max(cfg.robot.radius_m + 0.05, room))
+    trav = world.traversability(room)
+    comps, _ = ndimage.label(trav.data)
+    assert all(trav.at(*s) for s in spots)
+    assert len({int(comps[trav.index_of(*s)]) for s in spots}) == 1
+    assert all(math.dist(s, (4.4, -4.3)) > 0.5 for s in spots)
+    old = place_members(world, first, 3, 1.2, cfg.robot.radius_m + 0.05)
+    assert any(math.dist(s, (4.4, -4.3)) < 0.1 for s in old)  # the spot that never moved

@@ -27,6 +27,12 @@ class FleetConfig(Section, section="fleet"):
     frame: Literal["world", "start_pose"] = "world"
     start_poses: list[list[float]] = param([])  # [x, y, yaw] per member, in `robots` order
     spawn_spacing_m: float = param(1.2, gt=0)  # the simulator: members start this far apart
+    # ...where the ground truth leaves them this much room from any obstacle, in the first
+    # member's part of the garden joined by passages that wide: the navigation graph's safety
+    # zone (robot_radius_m between node centres, over a map that rounds obstacles out to its
+    # voxels and nodes) closes narrower spots, and a member spawned 0.47 m from a hedge in a
+    # pocket so joined never moved.
+    member_clearance_m: float = param(0.6, ge=0)
     # Coordination (the coordinator and each member's explorer):
     goal_separation_m: float = param(2.5, ge=0)  # no two members' goals closer than this
     # Unknown area within this of another member's goal counts for nothing in a view's gain:

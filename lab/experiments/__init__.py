@@ -12,7 +12,9 @@ One module per experiment (`noise.py`, `exploration.py`), each with its `add_par
 `main(args, parser, out)`; this module only dispatches. Every experiment writes raw results (CSV
 and JSON), PNG plots and a markdown summary into `--out`; `--quick` runs a small version that the
 test suite runs. Each also writes its compact raw rows into `--out`/data/<name>.json
-(`report.write_data`), the file docs/experiments/data/ holds once committed.
+(`report.write_data`), the file docs/experiments/data/ holds once committed. A module whose
+`needs_output(args)` is false for a call gets no `--out` (`risk --synthetic --figure PNG` draws
+one file).
 """
 
 from __future__ import annotations
@@ -79,11 +81,11 @@ def cli(argv: list[str] | None = None) -> int:
     import importlib
     import shlex
 
-    from smana.common.cli import ArgumentParser, output_dir
+    from smana.common.cli import ArgumentParser, doc_summary, output_dir
 
     from .report import COMMAND
 
-    p = ArgumentParser(prog="smana experiment", description=__doc__.splitlines()[0])
+    p = ArgumentParser(prog="smana experiment", description=doc_summary(__doc__))
     sub = p.add_subparsers(dest="which", required=True)
     modules = {k: importlib.import_module(f"{__name__}.{m}") for k, m in EXPERIMENTS.items()}
     for mod in modules.values():
@@ -96,6 +98,8 @@ def cli(argv: list[str] | None = None) -> int:
         return mod.main(args, parser, None)
     if hasattr(mod, "check_args"):
         mod.check_args(args, parser)  # a misuse is refused before the output directory exists
+    if not getattr(mod, "needs_output", lambda args: True)(args):  # e.g. risk --figure: a file
+        return mod.main(args, parser, None)
     stamp = time.strftime("%Y%m%d-%H%M%S")
     out = args.out or Path("runs") / f"experiment-{args.which}-{stamp}"
     output_dir(out, "output directory", "--out")

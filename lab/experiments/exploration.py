@@ -141,13 +141,14 @@ def experiment_world(seed: int, size_m: float, world_sets=WORLD_SETS):
     cfg = SmanaConfig.load(
         overrides=[f"sim.seed={seed}", f"sim.garden.size_m={size_m}", *world_sets]
     )
-    return cfg, generate(cfg.sim.seed, cfg.sim.garden, ClassTable.load("garden3drms"))
+    return cfg, generate(cfg.sim.seed, cfg.sim.garden, ClassTable.load(cfg.general.class_table))
 
 
 def run_world_sets(extra=()) -> tuple[str, ...]:
-    """WORLD_SETS with the garden overrides among `extra` (`--set sim.garden.layout="wheel"`)
-    in place of those they override: the world the runs explore, where the starts are drawn."""
-    garden = [e for e in extra if e.strip().startswith("sim.garden.")]
+    """WORLD_SETS with the garden overrides among `extra` (`--set sim.garden.layout="wheel"`,
+    and the class table the garden's classes need: the wet garden's water) in place of those
+    they override: the world the runs explore, where the starts are drawn."""
+    garden = [e for e in extra if e.strip().startswith(("sim.garden.", "general.class_table"))]
     keys = {e.split("=", 1)[0].strip() for e in garden}
     return (*(e for e in WORLD_SETS if e.split("=", 1)[0].strip() not in keys), *garden)
 

@@ -302,12 +302,12 @@ def table(rows: list[dict]) -> list[str]:
 
 
 def add_parser(sub) -> None:
-    from smana.common.cli import positive_int
+    from smana.common.cli import doc_summary, positive_int
 
     r = sub.add_parser(
         "resources",
         help="section 5: time per point, CPU and memory of the back-ends on real KITTI scans",
-        description=__doc__.splitlines()[0],
+        description=doc_summary(__doc__),
         epilog="Duration measured once on a 2-core machine (load 13 to 44): about 150 s with the "
         "default 5 repeats (12 configurations of 5 scans, a child process each); --quick (2 "
         "scans, every 8th point, 0.3 m, in-process) a few seconds. Exit status 1 when a "

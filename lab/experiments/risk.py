@@ -42,6 +42,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
@@ -73,6 +74,8 @@ PRIOR = 0.5  # Jeffreys: the map's posterior is (count + 0.5) / (frames + 1.5)
 SUPERPIXEL = 3  # nodes a side
 MAX_FRAMES = 6
 GRASS, TERRAIN, TREE = 1, 2, 8
+FIRST_SEED = 3  # the seeds are 3, 4, ...; --figure draws this one
+FIGURE_DPI = 80
 
 
 def risk_classes() -> tuple[ClassTable, int]:
@@ -182,33 +185,101 @@ def judge(res, truth, forbidden, classes, config: PlannerConfig) -> dict:
     }
 
 
-def seed_rows(seed: int, n: int, n_pairs: int, levels) -> list[dict]:
-    """Every arm's paths at every level on one seed's world: one row per (level, arm, pair)."""
+def arm_planners(truth_planner: Planner, labels, flags, risk, classes, base) -> dict:
+    """{arm: Planner} of every arm (ARMS) on one noisy map (labels and its risk layers)."""
+    planners = {
+        "truth": truth_planner,
+        "argmax": Planner(make_grid(labels, flags), classes, base),
+    }
+    risky = make_grid(labels, flags, risk)
+    for arm, fields in RISK_ARMS.items():
+        planners[arm] = Planner(risky, classes, dataclasses.replace(base, **fields))
+    return planners
+
+
+class SeedWorld(NamedTuple):
+    """One seed's ground truth, the planner on it and the seed's start/goal pairs."""
+
+    classes: ClassTable
+    forbidden: int
+    truth: np.ndarray
+    flags: np.ndarray
+    base: PlannerConfig
+    truth_planner: Planner
+    pairs: list
+
+
+def seed_world(seed: int, n: int, n_pairs: int) -> SeedWorld:
     classes, forbidden = risk_classes()
     truth, flags = true_world(seed, n, forbidden)
     base = PlannerConfig()
     truth_planner = Planner(make_grid(truth, flags), classes, base)
     rng = np.random.default_rng(1000 + seed)
     pairs = pairs_of(truth_planner, truth, flags, forbidden, n_pairs, rng)
-    ground = [TERRAIN, GRASS, forbidden]
+    return SeedWorld(classes, forbidden, truth, flags, base, truth_planner, pairs)
+
+
+def seed_map(w: SeedWorld, seed: int, p: float):
+    """The map (labels, risk layers) of a seed's world at label-noise level p."""
+    ground = [TERRAIN, GRASS, w.forbidden]
+    return noisy_map(w.truth, w.flags, ground, p, np.random.default_rng([seed, int(p * 100)]))
+
+
+def seed_rows(seed: int, n: int, n_pairs: int, levels) -> list[dict]:
+    """Every arm's paths at every level on one seed's world: one row per (level, arm, pair)."""
+    w = seed_world(seed, n, n_pairs)
     rows = []
     for p in levels:
-        labels, risk = noisy_map(
-            truth, flags, ground, p, np.random.default_rng([seed, int(p * 100)])
-        )
-        planners = {
-            "truth": truth_planner,
-            "argmax": Planner(make_grid(labels, flags), classes, base),
-        }
-        risky = make_grid(labels, flags, risk)
-        for arm, fields in RISK_ARMS.items():
-            planners[arm] = Planner(risky, classes, dataclasses.replace(base, **fields))
+        labels, risk = seed_map(w, seed, p)
+        planners = arm_planners(w.truth_planner, labels, w.flags, risk, w.classes, w.base)
         for arm in ARMS:
-            for i, (a, b) in enumerate(pairs):
+            for i, (a, b) in enumerate(w.pairs):
                 res = planners[arm].plan(a, b)
                 row = {"seed": seed, "p": p, "arm": arm, "pair": i}
-                rows.append(row | judge(res, truth, forbidden, classes, base))
+                rows.append(row | judge(res, w.truth, w.forbidden, w.classes, w.base))
     return rows
+
+
+# -- the figure ----------------------------------------------------------------------------------
+
+
+def figure_case(seed: int, n: int, n_pairs: int) -> dict:
+    """What `--figure` draws: one seed's world and its map at p = TARGET_P, and every arm's path
+    between one of the seed's pairs, the one the map's labels alone (`argmax`) plan into the
+    forbidden class most often (the first such pair on a tie), each judged by `judge`."""
+    w = seed_world(seed, n, n_pairs)
+    labels, risk = seed_map(w, seed, TARGET_P)
+    planners = arm_planners(w.truth_planner, labels, w.flags, risk, w.classes, w.base)
+
+    def scored(arm, pair):
+        res = planners[arm].plan(*pair)
+        return res, judge(res, w.truth, w.forbidden, w.classes, w.base)
+
+    worst = max(
+        range(len(w.pairs)), key=lambda i: (scored("argmax", w.pairs[i])[1]["forbidden"], -i)
+    )
+    paths = {arm: scored(arm, w.pairs[worst]) for arm in ARMS}
+    return {
+        "world": w,
+        "labels": labels,
+        "risk": risk,
+        "configs": {arm: planners[arm].config for arm in ARMS},
+        "pair": worst,
+        "paths": paths,
+    }
+
+
+def figure_main(args) -> int:
+    """`--figure PATH`: the figure of the first seed, written to PATH; no experiment, no --out."""
+    from smana.lab.plots import risk_map_figure, save_palette
+
+    seed = FIRST_SEED
+    n = args.nodes or 150
+    case = figure_case(seed, n, args.pairs or 20)
+    fig = risk_map_figure(case, seed, RES_M)
+    path = save_palette(fig, args.figure, dpi=FIGURE_DPI)
+    print(f"{path}: seed {seed}, {n} x {n} nodes, p = {TARGET_P}, pair {case['pair']}")
+    return 0
 
 
 # -- the verdicts --------------------------------------------------------------------------------
@@ -281,7 +352,7 @@ def claims(rows) -> list[dict]:
 # -- command line --------------------------------------------------------------------------------
 
 CLOSED_LOOP_ONLY = ("budget", "jobs", "size", "arms")
-SYNTHETIC_ONLY = ("pairs", "nodes")
+SYNTHETIC_ONLY = ("pairs", "nodes", "figure")
 
 
 def add_parser(sub) -> None:
@@ -301,8 +372,9 @@ def add_parser(sub) -> None:
         epilog="Duration on a 2-core machine shared with other work, measured once: the full "
         "form (10 seeds x 4 arms = 40 runs of smana up, 2 at once, 10 m garden, 75 s of robot "
         "time each) took 31 min at load 9 to 12 (2026-12-03). --quick (the 4 arms of 1 seed, 20 s "
-        "each in a 6 m garden): 1 min 34 s. --synthetic: 25 s (10 seeds). A rerun into the same "
-        "--out keeps the runs that finished and runs the rest. Exits 1 if any run failed (a run "
+        "each in a 6 m garden): 1 min 34 s. --synthetic: 25 s (10 seeds); --figure: 5 s of CPU, "
+        "12 to 56 s wall. A rerun into the same --out keeps the runs that finished and runs the "
+        "rest. Exits 1 if any run failed (a run "
         "that ended only because the robot did not move or found no path is a result).",
     )
     r.add_argument(
@@ -341,6 +413,15 @@ def add_parser(sub) -> None:
     r.add_argument(
         "--nodes", type=int_in(30, 1000), help="synthetic: map size in nodes a side (default 150)"
     )
+    r.add_argument(
+        "--figure",
+        type=Path,
+        metavar="PNG",
+        help="synthetic: instead of the experiment, draw its first seed at p = 0.7 coloured by "
+        "risk into this file (docs/risk_map.png): the true classes, the map's most likely class, "
+        "P(forbidden), the node costs under expected, cvar and chance, each arm's path between "
+        "one start and goal with its true water entries",
+    )
 
 
 def check_args(args, parser=None) -> None:
@@ -353,6 +434,13 @@ def check_args(args, parser=None) -> None:
         names = ", ".join(f"--{'set' if k == 'extra' else k}" for k in given)
         form = "the closed loop" if args.synthetic else "--synthetic"
         raise UsageError(f"{names}: an option of {form} only")
+    if args.figure is not None:
+        from smana.common.cli import output_file
+
+        given = [k for k in ("out", "quick", "seeds") if getattr(args, k)]
+        if given:
+            raise UsageError(f"--{given[0]}: not with --figure, which draws one seed into a file")
+        output_file(args.figure, "--figure")
     if not args.synthetic:
         from smana.common.config import SmanaConfig
 
@@ -364,7 +452,14 @@ def check_args(args, parser=None) -> None:
             arms_of(args.arms)
 
 
-def main(args, parser, out: Path) -> int:
+def needs_output(args) -> bool:
+    """Whether `smana experiment` makes the run directory: not for `--figure`, one file."""
+    return args.figure is None
+
+
+def main(args, parser, out: Path | None) -> int:
+    if args.figure is not None:
+        return figure_main(args)
     if args.synthetic:
         return synthetic_main(args, out)
     from .riskloop import run
@@ -376,7 +471,7 @@ def synthetic_main(args, out: Path) -> int:
     """The first form (`--synthetic`): in-process, on synthetic maps."""
     from .report import write_data
 
-    seeds = list(range(3, 3 + (args.seeds or (2 if args.quick else 10))))
+    seeds = list(range(FIRST_SEED, FIRST_SEED + (args.seeds or (2 if args.quick else 10))))
     n = args.nodes or (60 if args.quick else 150)
     n_pairs = args.pairs or (6 if args.quick else 20)
     levels = (1.0, TARGET_P) if args.quick else LEVELS

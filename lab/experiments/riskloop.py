@@ -65,6 +65,7 @@ from .navnoise import NAV_OUTCOMES
 from .noise import POSE_NOISE
 
 WATER_SHARE = 0.1  # of the garden seen from above (services/sim/worlds/water.py)
+WET_GARDEN = ('general.class_table="garden3drms_wet"', f"sim.garden.water_share={WATER_SHARE}")
 BACKEND = "tsdf"
 GRASS_COST_FACTOR = 2.0  # the class table's own grass cost (x2 terrain's)
 LABEL_NOISE = "high"  # services/sim/degrade.py NOISE_LEVELS: p = 0.7
@@ -86,8 +87,6 @@ class Condition:
     def sets(self) -> tuple[str, ...]:
         xy, yaw = POSE_NOISE[POSE_LEVEL] if self.noisy else (0.0, 0.0)
         return (
-            'general.class_table="garden3drms_wet"',
-            f"sim.garden.water_share={WATER_SHARE}",
             f'mapper.backend="{BACKEND}"',
             f'sim.noise="{LABEL_NOISE if self.noisy else "none"}"',
             f"sim.pose_noise_xy_m={xy}",
@@ -134,6 +133,9 @@ def experiment_config(quick: bool = False) -> ex.ExplorationExperimentConfig:
                 "deploy.standby_delay_s=3600",  # no hot spares in a run this short
             ),
         )
+    # the wet garden is the experiment's world, not an arm's: the starts are drawn in it
+    # (`exploration.pick_spawn`), so that no robot starts in water
+    s.extra = (*s.extra, *WET_GARDEN)
     s.arms = ARMS
     return s
 

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import sys
 
-from smana.common.cli import config_from_args, make_parser, run_command, setup_logging
+from smana.common.cli import config_from_args, doc_summary, make_parser, run_command, setup_logging
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana coordinator", __doc__.strip().splitlines()[0])
+    p = make_parser("smana coordinator", doc_summary(__doc__))
     args = p.parse_args(argv)
     cfg = config_from_args(args)
     setup_logging(cfg.general.log_level, "coordinator")

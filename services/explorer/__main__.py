@@ -14,6 +14,7 @@ import sys
 
 from smana.common.cli import (
     config_from_args,
+    doc_summary,
     make_parser,
     positive_float,
     run_command,
@@ -22,7 +23,7 @@ from smana.common.cli import (
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana explorer", __doc__.strip().splitlines()[0])
+    p = make_parser("smana explorer", doc_summary(__doc__))
     p.add_argument("--budget", type=positive_float, metavar="S", help="time budget, seconds")
     args = p.parse_args(argv)
     if args.budget is not None:

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import sys
 
-from smana.common.cli import config_from_args, make_parser, run_command, setup_logging
+from smana.common.cli import config_from_args, doc_summary, make_parser, run_command, setup_logging
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana mapper", __doc__.strip().splitlines()[0])
+    p = make_parser("smana mapper", doc_summary(__doc__))
     p.add_argument("--load", metavar="FILE", help='resume from a saved map ("auto": save_path)')
     p.add_argument("--save", metavar="FILE", help="where to autosave the map (mapper.save_path)")
     args = p.parse_args(argv)

@@ -15,6 +15,7 @@ import numpy as np
 from smana.common import keys
 from smana.common.cli import (
     config_from_args,
+    doc_summary,
     make_parser,
     non_negative_float,
     point,
@@ -51,7 +52,7 @@ def format_reply(reply: PathReply, show_path: bool) -> str:
 
 def parser():
     """`smana plan`'s arguments (the coordinates accept negative values: `--to -1.9,5.3`)."""
-    p = make_parser("smana plan", __doc__.strip().splitlines()[0])
+    p = make_parser("smana plan", doc_summary(__doc__))
     p.add_argument(
         "--from", dest="start", type=point, required=True, metavar="X,Y", help="start (m)"
     )

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from smana.common.cli import (
     config_from_args,
+    doc_summary,
     make_parser,
     non_negative_int,
     positive_float,
@@ -31,7 +32,7 @@ STACK = ("mapper", "navgraph", "planner")
 def cli(argv: list[str] | None = None) -> int:
     from smana.services.replay.readers import READERS
 
-    p = make_parser("smana replay", __doc__.strip().splitlines()[0])
+    p = make_parser("smana replay", doc_summary(__doc__))
     p.epilog = (
         "Duration measured once on a 2-core machine: --info takes seconds. --run spends about 10 "
         "s starting "

@@ -16,7 +16,14 @@ import json
 import sys
 from pathlib import Path
 
-from smana.common.cli import UsageError, config_from_args, make_parser, run_command, setup_logging
+from smana.common.cli import (
+    UsageError,
+    config_from_args,
+    doc_summary,
+    make_parser,
+    run_command,
+    setup_logging,
+)
 
 
 def _pair(text: str, sep: str, name: str) -> tuple[float, float]:
@@ -50,7 +57,7 @@ def _toml(v) -> str:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana sim", __doc__.strip().splitlines()[0])
+    p = make_parser("smana sim", doc_summary(__doc__))
     g = p.add_argument_group("simulation")
     g.add_argument(
         "--world", help="'garden' (procedural), ply:PATH (a labelled cloud) or module:Class"

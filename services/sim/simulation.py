@@ -237,14 +237,22 @@ def place_members(
     """`count` spots on free ground: `first_xy`, then, one by one, the free cell nearest to it
     (ties broken by bearing, so the result is deterministic) that is at least `spacing_m` from
     every spot taken. Free: the world's traversability with `clearance_m`, in the component of
-    `first_xy` (so every member can reach every other). ValueError when they do not fit."""
+    `first_xy` (so every member can reach every other through passages with that clearance; when
+    `first_xy` itself has less, the component of the free cell nearest to it). ValueError when
+    they do not fit."""
     from scipy import ndimage  # a fleet's only: a single robot's sim starts without scipy
 
     trav = world.traversability(clearance_m)
     xs, ys = trav.cell_centres()
     comps, _ = ndimage.label(trav.data)
     here = comps[trav.index_of(*first_xy)]
-    free = comps == here if here else trav.data
+    if not here and trav.data.any():
+        ii, jj = np.nonzero(trav.data)
+        k = np.argmin(np.hypot(xs[ii] - first_xy[0], ys[jj] - first_xy[1]))
+        here = comps[ii[k], jj[k]]
+    if not here:
+        raise ValueError(f"no free ground with {clearance_m:g} m clearance in world {world.name!r}")
+    free = comps == here
     ii, jj = np.nonzero(free)
     px, py = xs[ii], ys[jj]
     dx, dy = px - first_xy[0], py - first_xy[1]
@@ -345,9 +353,8 @@ class Simulation:
             return [(x, y, yaw)]
         # two bodies closer than twice their radius could start inside each other
         spacing = max(fleet.spawn_spacing_m, 2 * cfg.robot.radius_m + 0.05)
-        return [
-            (sx, sy, yaw) for sx, sy in place_members(self.world, (x, y), n, spacing, clearance)
-        ]
+        room = max(clearance, fleet.member_clearance_m)
+        return [(sx, sy, yaw) for sx, sy in place_members(self.world, (x, y), n, spacing, room)]
 
     def member(self, which: int | str = 0) -> Member:
         """A member by index or name."""

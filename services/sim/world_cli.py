@@ -26,6 +26,7 @@ from smana.common.cli import (
     ArgumentParser,
     add_config_args,
     config_file_from_args,
+    doc_summary,
     int_in,
     non_negative_int,
     output_file,
@@ -118,7 +119,7 @@ def write_preview(world: World, out: Path, pixels: int, seed: int | None = None)
 
 
 def cli(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(prog="smana world", description=__doc__.splitlines()[0])
+    parser = ArgumentParser(prog="smana world", description=doc_summary(__doc__))
     sub = parser.add_subparsers(dest="command", required=True)
     exp = sub.add_parser("export", help="write the ground-truth labelled cloud as PLY")
     _world_args(exp)
