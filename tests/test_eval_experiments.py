@@ -93,6 +93,10 @@ def test_noise_quick(tmp_path):
     assert len(verdicts) == 5 and set(verdicts) <= set(stats.VERDICTS)
     assert "(n = 2)" in lines[6] and "WARNING" not in text
     assert "Classification loss" in text and "CPU time per seed" in text
+    # the data file records the command that made it, how long it took and when
+    meta = json.loads((tmp_path / "data" / "noise.json").read_text())["meta"]
+    assert meta["command"] == f"smana experiment noise --quick --out {tmp_path}"
+    assert meta["jobs"] >= 1 and meta["wall_s"] > 0 and len(meta["date"]) == 10
     # the compact raw rows docs/experiments/data/ would hold, one per seed, back-end and level
     compact = json.loads((tmp_path / "data" / "noise.json").read_text())["rows"]
     assert len(compact) == len(rows) and {"f_score", "completeness"} <= set(compact[0])
@@ -374,10 +378,26 @@ def test_ablation_outputs_from_synthetic_rows(tmp_path):
     arms = ablation.weight_arms(4.0, (0.0, 1.0))
     assert arms[1].all_sets == (f"{ex.WEIGHT_KEY}=1.0",)
     rows = [_run(s, a, 0.7 + 0.1 * a.path_cost_weight, dist=30.0) for a in arms for s in (3, 4)]
-    ablation.write_ablation_outputs(rows, ex.ExplorationExperimentConfig(seeds=(3, 4)), tmp_path)
+    s = ex.ExplorationExperimentConfig(seeds=(3, 4))
+    ablation.write_ablation_outputs(rows, s, tmp_path, wall_s=600.0)
     text = (tmp_path / "ablation_summary.md").read_text()
     assert "| 0 | x4 | 2 (0) | 70.0 %" in text and "| 1 | x4 | 2 (0) | 80.0 %" in text
     assert (tmp_path / "ablation.png").stat().st_size > 1000
+    # the compact rows the doc's table is generated from: the same table, from the data alone
+    from smana.lab.experiments import report
+
+    data = report.load_data(tmp_path / "data")["ablation"]
+    assert set(data["rows"][0]) == set(ablation.DATA_KEYS)
+    assert data["meta"]["budget_s"] == s.budget_s and data["meta"]["wall_s"] == 600.0
+    doc = report.sections({"ablation": data})["ablation"]
+    table = [ln for ln in text.splitlines() if ln.startswith("| ")]
+    assert table and all(ln in doc.splitlines() for ln in table)
+    assert "seeds 3, 4" in doc and "10 min 0 s wall" in doc and "none failed" in doc
+    # a failed run is said, and left out of the intervals
+    rows[0] = _run(3, arms[0], code=1)
+    ablation.write_ablation_outputs(rows, s, tmp_path)
+    doc = report.ablation_section(report.load_data(tmp_path / "data")["ablation"])
+    assert "**1 failed**" in doc and "| 0 | x4 | 2 (1) | 70.0 % (n = 1, no interval)" in doc
 
 
 def test_noise_backend_variants_and_sweeps():

@@ -14,7 +14,8 @@ def test_the_committed_doc_is_what_the_committed_data_generates(capsys):
     assert exp.cli(["report", "--check"]) == 0, capsys.readouterr().out
     text = report.DOC.read_text()
     names = [m.group("name") for m in report.SECTION.finditer(text)]
-    assert sorted(names) == sorted(report.sections({}))  # every section is in the doc, once
+    # every section is in the doc, once: the fixed ones and one per noise data file
+    assert sorted(names) == sorted(report.sections(report.load_data(report.DATA_DIR)))
 
 
 def _doc(tmp_path):
@@ -184,3 +185,131 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
         assert "fleet_x.json: not experiment data" in str(exc)
     else:
         raise AssertionError("a fleet variant holding another experiment's data was accepted")
+
+
+def _noise_rows(seeds=(3, 4, 5), backends=("octree-max", "tsdf@min_weight=0.0001"), label=True):
+    """Synthetic noise rows: the label sweep at none (always: the pose sweep's "none") and high,
+    the pose sweep at high; each value moves with the seed so that intervals have a width."""
+    rows = []
+    for seed in seeds:
+        for k, b in enumerate(backends):
+            for sweep, level in [("label", "none"), *([("label", "high")] * label),
+                                 ("pose", "high")]:  # fmt: skip
+                noisy = level == "high"
+                rows.append(
+                    {"seed": seed, "backend": b, "sweep": sweep, "level": level,
+                     "error_mean_m": 0.02 + 0.001 * seed + (0.03 + 0.01 * k) * (sweep == "pose"
+                                                                                 and noisy),
+                     "precision": 0.99 - 0.3 * (sweep == "pose" and noisy),
+                     "completeness": 0.25 + 0.01 * seed - 0.02 * k,
+                     "f_score": 0.4 + 0.01 * seed - 0.05 * (sweep == "pose" and noisy),
+                     "classification_ratio": 0.99 - (0.3 - 0.2 * k + 0.001 * seed)
+                     * (sweep == "label" and noisy)}
+                )  # fmt: skip
+    return rows
+
+
+def test_noise_section_is_the_data_per_sweep_back_end_and_level():
+    from smana.lab.experiments import noise
+
+    rows = _noise_rows()
+    meta = {"command": "smana experiment noise --sweeps label,pose", "wall_s": 491.0,
+            "jobs": 2, "date": "2026-12-03"}  # fmt: skip
+    text = noise.section({"experiment": "noise", "meta": meta, "rows": rows}, "noise_x")
+    assert text.startswith(
+        "Generated from docs/experiments/data/noise_x.json, made by `smana experiment noise "
+        "--sweeps label,pose` (8 min 11 s wall with 2 jobs, 2026-12-03): seeds 3, 4, 5; "
+        "back-ends octree-max, tsdf@min_weight=0.0001 (octree-bayes, tsdf not run: not in this "
+        "data)."
+    )
+    lines = text.splitlines()
+    assert "Label noise sweep, levels none, high:" in lines
+    assert "Localisation (pose) noise sweep, levels none, high:" in lines
+
+    def ci(values, scale=100.0, unit=" %"):
+        return stats.mean_ci(values).format(scale, ".1f", unit)
+
+    # a cell is the interval over seeds of that back-end, sweep and level; the pose sweep's
+    # "none" row is the label sweep's noise-free map
+    none = [0.02 + 0.001 * s for s in (3, 4, 5)]
+    pose_none = f"| octree-max | none | {ci(none, 1000.0, '')} | 99.0 % [99.0, 99.0] (n = 3) |"
+    assert sum(ln.startswith(pose_none) for ln in lines) == 2  # once per sweep
+    high = [e + 0.04 for e in none]
+    assert f"| tsdf@min_weight=0.0001 | high | {ci(high, 1000.0, '')} | 69.0 %" in text
+    # the paired table: what the highest level adds (error) or loses (shares), per seed
+    pose_head = lines.index("Localisation (pose) noise sweep, levels none, high:")
+    paired = [ln for ln in lines[pose_head:] if ln.startswith("| tsdf@")][-1]
+    assert paired.startswith(f"| tsdf@min_weight=0.0001 | {ci([0.04] * 3, 1000.0, '')} | ")
+    assert f"| {ci([0.05] * 3, unit='')} |" in paired  # the F-score lost, in points
+    label_lost = [0.3 + 0.001 * s for s in (3, 4, 5)]
+    assert f"| octree-max | {ci(label_lost, unit='')} |" in lines[:pose_head]
+    # a metric no seed changed is left out of the paired table, and said so: label noise moves
+    # no point; this pose noise changes no completeness and no label
+    assert "left out: error, precision, completeness, F-score:" in lines[pose_head - 7]
+    assert (
+        "| back-end | error added by high (mm) | precision (5 cm) lost to high | F-score " in text
+    )
+    assert lines[-1].startswith("| tsdf@") and "left out: completeness, classification" in text
+    # a pose sweep alone (its "none" is a label row): no label table of one level
+    alone = noise.section({"experiment": "noise", "meta": {}, "rows": _noise_rows(label=False)})
+    assert "Label noise sweep" not in alone and "pose) noise sweep, levels none, high" in alone
+    assert "made by a command it does not record" in alone
+    # older rows without a metric: no number is invented
+    old = [{k: v for k, v in r.items() if k != "f_score"} for r in rows]
+    text = noise.section({"experiment": "noise", "meta": {}, "rows": old})
+    assert "- (n = 0)" in text and "F-score (5 cm) lost to high |" in text
+    assert "left out: error, precision, completeness:" in text  # not "unchanged": not measured
+
+
+def _noise_doc(tmp_path, *names):
+    doc = tmp_path / "experiments.md"
+    doc.write_text(
+        "# page\n\n<!-- generated: verdicts -->\n<!-- end generated: verdicts -->\n"
+        + "".join(f"\n{n}:\n<!-- generated: {n} -->\n<!-- end generated: {n} -->\n" for n in names)
+    )
+    return doc
+
+
+def test_noise_data_files_each_fill_their_section_and_a_hand_edit_is_caught(tmp_path, capsys):
+    data = tmp_path / "data"
+    report.write_data(tmp_path, "noise", _noise_rows(backends=("octree-max", "tsdf")))
+    report.write_data(tmp_path, "noise", _noise_rows(seeds=(8, 9)), {}, "heldout")
+    doc = _noise_doc(tmp_path, "noise", "noise_heldout", "noise_spacing1")
+    args = ["--doc", str(doc), "--data", str(data)]
+    assert exp.cli(["report", *args]) == 0
+    text = doc.read_text()
+    held = text.split("<!-- generated: noise_heldout -->\n")[1].split("<!-- end generated")[0]
+    assert held.startswith("Generated from docs/experiments/data/noise_heldout.json")
+    assert "seeds 8, 9;" in held and "seeds 3, 4, 5" not in held
+    assert "data/noise_spacing1.json: nothing is generated here" in text  # no file, no number
+    assert exp.cli(["report", "--check", *args]) == 0
+    # a number changed by hand in a generated noise table: --check fails and names the section
+    cell = held.splitlines()[6]
+    assert cell.startswith("| octree-max | none | ")
+    doc.write_text(text.replace(cell, cell.replace("| none |", "| none | 1.0 |"), 1))
+    capsys.readouterr()
+    assert exp.cli(["report", "--check", *args]) == 1
+    assert "noise_heldout (run `smana experiment report`)" in capsys.readouterr().out
+    # the paper's claims come from noise.json alone: a variant (here seeds 8 and 9 of both
+    # sweeps) is an ablation, it adds no claim to the table and no test to Holm's correction
+    alone = report.verdict_claims({"noise": report.load_data(data)["noise"]})
+    assert len(report.verdict_claims(report.load_data(data))) == len(alone) == 5
+    # a noise data file with no section in the doc: its table would be nowhere
+    report.write_data(tmp_path, "noise", _noise_rows(), {}, "spacing2")
+    assert exp.cli(["report", "--check", *args]) == 2
+    assert "no generated section for noise_spacing2.json" in capsys.readouterr().err
+
+
+def test_write_data_records_the_command_that_made_it(tmp_path):
+    token = report.COMMAND.set("smana experiment routes --seeds 1")
+    try:
+        report.write_data(tmp_path, "routes", [{"seed": 3}])
+        report.write_data(tmp_path, "noise", [{"seed": 3}], {"command": "given"})
+    finally:
+        report.COMMAND.reset(token)
+    data = report.load_data(tmp_path / "data")
+    assert data["routes"]["meta"]["command"] == "smana experiment routes --seeds 1"
+    assert data["routes"]["meta"]["date"][:2] == "20"
+    assert data["noise"]["meta"]["command"] == "given"  # an experiment's own is kept
+    report.write_data(tmp_path, "routes", [{"seed": 3}])  # outside `smana experiment`
+    assert report.load_data(tmp_path / "data")["routes"]["meta"] == {}

@@ -67,10 +67,11 @@ class ExplorerConfig(Section, section="explorer"):
     min_gain_m2: float = param(0.4, ge=0)
     # score = gain / full view area - w * path cost / cost of one view range on the cheapest
     # flat ground; w = the share of a full view worth driving one max_range_m there. 2: a full
-    # view is worth half a view range (2 m) of terrain, or ~0.6 m of grass at cost 4. From the
-    # ablation in docs/experiments.md (w 0 / 0.5 / 2, grass x4, 3 seeds, cluttered garden): the
-    # same coverage and terrain share, about half the distance at 2 (0.05 on the old
-    # m^2-per-cost scale was worth ~32 m of terrain: the gain alone chose the goal).
+    # view is worth half a view range (2 m) of terrain, or ~0.6 m of grass at cost 4. The
+    # ablation in docs/experiments.md (w 0 / 0.5 / 2, grass x4, 3 seeds, cluttered garden) gives
+    # the same coverage at every weight; its first run had about half the distance at 2, its
+    # rerun (issue 26) tells the weights apart on neither distance nor terrain share (0.05 on
+    # the old m^2-per-cost scale was worth ~32 m of terrain: the gain alone chose the goal).
     path_cost_weight: float = param(2.0, ge=0)
     max_queries: int = param(10, gt=0)  # path queries per plan (branch and bound cap)
     # when to choose again

@@ -79,15 +79,19 @@ EXPERIMENTS = {
 
 def cli(argv: list[str] | None = None) -> int:
     import importlib
+    import shlex
 
     from smana.common.cli import ArgumentParser, doc_summary, output_dir
+
+    from .report import COMMAND
 
     p = ArgumentParser(prog="smana experiment", description=doc_summary(__doc__))
     sub = p.add_subparsers(dest="which", required=True)
     modules = {k: importlib.import_module(f"{__name__}.{m}") for k, m in EXPERIMENTS.items()}
     for mod in modules.values():
         mod.add_parser(sub)
-    args = p.parse_args(argv)
+    words = sys.argv[1:] if argv is None else list(argv)
+    args = p.parse_args(words)
     mod = modules[args.which]
     parser = sub.choices[args.which]  # errors point at `smana experiment <which> --help`
     if getattr(mod, "NO_OUTPUT", False):  # writes into the repo's docs, no run directory
@@ -99,7 +103,12 @@ def cli(argv: list[str] | None = None) -> int:
     stamp = time.strftime("%Y%m%d-%H%M%S")
     out = args.out or Path("runs") / f"experiment-{args.which}-{stamp}"
     output_dir(out, "output directory", "--out")
-    return mod.main(args, parser, out)
+    # the data file records the command that made it (report.write_data)
+    token = COMMAND.set(shlex.join(["smana", "experiment", *words]))
+    try:
+        return mod.main(args, parser, out)
+    finally:
+        COMMAND.reset(token)
 
 
 if __name__ == "__main__":

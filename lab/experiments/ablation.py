@@ -1,12 +1,14 @@
 """`smana experiment ablation`: NBV at one grass cost factor (x4 by default) for several path-cost
 weights (`explorer.path_cost_weight`), over seeds: terrain share, distance and coverage per weight,
 each with its 95 % interval, and a plot. It reuses the exploration runner (same worlds, starts,
-parallel runs, failure accounting).
+parallel runs, failure accounting). Its compact rows go into `<out>/data/ablation.json`, from
+which `smana experiment report` generates the table of docs/experiments.md (`section`).
 """
 
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -23,13 +25,86 @@ def weight_arms(factor: float, weights) -> tuple[ex.Arm, ...]:
     )
 
 
-def write_ablation_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path):
-    """CSV/JSON of the runs, a table of intervals per weight and a plot of the three metrics."""
+# what ablation.json keeps of a run's row: enough for the table (`summarise_exploration`)
+DATA_KEYS = (
+    "seed",
+    "arm",
+    "strategy",
+    "grass_cost_factor",
+    "path_cost_weight",
+    "ok",
+    "exit_code",
+    "terrain_share",
+    "distance_m",
+    "coverage",
+    "distance_to_95_m",
+    "time_to_95_s",
+    "robot_time_s",
+)
+
+
+def table(rows: list[dict]) -> list[str]:
+    """The markdown table of intervals per weight (the summary's and the doc's)."""
+    lines = [
+        "| weight | grass | runs (failed) | terrain share | distance (m) | coverage | "
+        "reached 95 % |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for d in ex.summarise_exploration(rows):
+        iv = {k: ex._interval(d[k]) for k in ("terrain_share", "distance_m", "coverage")}
+        lines.append(
+            f"| {d['path_cost_weight']:g} | x{d['grass_cost_factor']:g} | {d['runs']} "
+            f"({d['failed']}) | {iv['terrain_share'].format(100, unit=' %')} | "
+            f"{iv['distance_m'].format()} | {iv['coverage'].format(100, unit=' %')} | "
+            f"{d['reached_95']} of {d['runs'] - d['failed']} |"
+        )
+    return lines
+
+
+def section(data: dict | None) -> str:
+    """docs/experiments.md's ablation table, from docs/experiments/data/ablation.json."""
+    if data is None:
+        return (
+            "_No raw results of `smana experiment ablation` are committed yet "
+            "(docs/experiments/data/ablation.json): nothing is generated here._\n"
+        )
+    meta, rows = data.get("meta") or {}, [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
+    seeds = sorted({r["seed"] for r in rows})
+    from .report import duration
+
+    done = [f"{duration(meta['wall_s'])} wall"] if meta.get("wall_s") else []
+    done += [meta["date"]] if meta.get("date") else []
+    head = (
+        "Generated from docs/experiments/data/ablation.json"
+        + (f", made by `{meta['command']}`" if meta.get("command") else "")
+        + (f" ({', '.join(done)})" if done else "")
+        + f": seeds {', '.join(map(str, seeds))}, garden {meta.get('size_m', '?')} m, budget "
+        f"{meta.get('budget_s', 0):.0f} s of robot time per run, {len(rows)} runs, "
+        + (f"**{sum(not r['ok'] for r in rows)} failed** (left out of every figure)"
+           if any(not r["ok"] for r in rows) else "none failed")
+        + ". Mean [95 % CI] (n) over seeds."
+    )  # fmt: skip
+    return "\n".join([head, "", *table(rows)]) + "\n"
+
+
+def write_ablation_outputs(
+    rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path, wall_s: float | None = None
+):
+    """CSV/JSON of the runs, a table of intervals per weight, a plot of the three metrics, and
+    the compact rows (`data/ablation.json`) the doc's table is generated from."""
+    from .report import write_data
+
     out.mkdir(parents=True, exist_ok=True)
     summary = ex.summarise_exploration(rows)
     (out / "ablation_results.json").write_text(
         json.dumps({"settings": asdict(s), "runs": rows, "summary": summary}, indent=2)
     )
+    meta = {"seeds": list(s.seeds), "size_m": s.size_m, "budget_s": s.budget_s, "jobs": s.jobs}
+    meta.update({"extra": list(s.extra), "is_quick": s.is_quick})
+    if wall_s is not None:
+        meta["wall_s"] = round(wall_s, 1)
+    compact = [{k: r.get(k) for k in DATA_KEYS} for r in rows]
+    write_data(out, "ablation", compact, meta, "quick" if s.is_quick else None)
     failed = [r for r in rows if not r["ok"]]
     lines = ["# Path-cost weight ablation (NBV)", ""]
     if failed:
@@ -42,18 +117,8 @@ def write_ablation_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, 
         f"Seeds {list(s.seeds)}, garden {s.size_m} m, budget {s.budget_s:.0f} s per run, key "
         f"`{ex.WEIGHT_KEY}`. Mean [95 % CI] (n) over seeds.",
         "",
-        "| weight | grass | runs (failed) | terrain share | distance (m) | coverage | "
-        "reached 95 % |",
-        "|---|---|---|---|---|---|---|",
+        *table(rows),
     ]
-    for d in summary:
-        iv = {k: ex._interval(d[k]) for k in ("terrain_share", "distance_m", "coverage")}
-        lines.append(
-            f"| {d['path_cost_weight']:g} | x{d['grass_cost_factor']:g} | {d['runs']} "
-            f"({d['failed']}) | {iv['terrain_share'].format(100, unit=' %')} | "
-            f"{iv['distance_m'].format()} | {iv['coverage'].format(100, unit=' %')} | "
-            f"{d['reached_95']} |"
-        )
     weights = [d["path_cost_weight"] for d in summary]
     series = []
     for key, label, scale in (
@@ -136,5 +201,10 @@ def main(args, parser, out: Path) -> int:
         weights = args.weights or DEFAULT_WEIGHTS
     s.arms = weight_arms(args.grass, weights)
     s = ex.apply_args(s, args)
-    rows = ex.run_exploration(s, out, write=write_ablation_outputs)
+    t0 = time.perf_counter()
+
+    def write(rows, s, out):
+        write_ablation_outputs(rows, s, out, wall_s=time.perf_counter() - t0)
+
+    rows = ex.run_exploration(s, out, write=write)
     return ex.finish(rows, out, "ablation")

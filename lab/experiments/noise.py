@@ -670,7 +670,8 @@ def write_noise_outputs(rows: list[dict], meta: dict, out: Path) -> None:
         w.writerows(flat)
     from .report import write_data
 
-    write_data(out, "noise", rows, meta.get("settings") or {})
+    run = {k: meta[k] for k in ("jobs", "wall_s", "failures") if k in meta}
+    write_data(out, "noise", rows, {**(meta.get("settings") or {}), **run})
     agg = aggregate(rows)
     decided = claims(rows)
     losses = label_losses(rows)
@@ -838,6 +839,136 @@ def _noise_summary(rows, agg, decided, meta, out: Path) -> None:
         "",
     ]
     (out / "noise_summary.md").write_text("\n".join(lines))
+
+
+# -- the tables of docs/experiments.md ------------------------------------------------------------
+
+# what a section's tables show per map: (row key, column, scale, unit, format)
+SECTION_METRICS = (
+    ("error_mean_m", "error (mm)", 1000.0, "", ".1f"),
+    ("precision", "precision (5 cm)", 100.0, " %", ".1f"),
+    ("completeness", "completeness (5 cm)", 100.0, " %", ".1f"),
+    ("f_score", "F-score (5 cm)", 100.0, " %", ".1f"),
+    ("classification_ratio", "classification ratio", 100.0, " %", ".1f"),
+)
+
+
+def _section_head(data: dict, key: str) -> str:
+    from .report import duration
+
+    meta, rows = data.get("meta") or {}, data["rows"]
+    seeds = sorted({r["seed"] for r in rows})
+    commands = [meta["command"]] if meta.get("command") else list(meta.get("commands") or [])
+    made = " and ".join(f"`{c}`" for c in commands) or "a command it does not record"
+    done = []
+    if meta.get("wall_s") is not None:
+        jobs = f" with {meta['jobs']} job{'s' * (meta['jobs'] != 1)}" if meta.get("jobs") else ""
+        done.append(f"{duration(meta['wall_s'])} wall{jobs}")
+    if meta.get("date"):
+        done.append(meta["date"])
+    backends = sorted({r["backend"] for r in rows}, key=_order)
+    absent = [b for b in BACKENDS if b not in backends]
+    failures = meta.get("failures") or {}
+    return (
+        f"Generated from docs/experiments/data/{key}.json, made by {made}"
+        + (f" ({', '.join(done)})" if done else "")
+        + f": seeds {', '.join(map(str, seeds))}"
+        + (f" (**seed(s) {', '.join(failures)} failed**, left out)" if failures else "")
+        + f"; back-ends {', '.join(backends)}"
+        + (f" ({', '.join(absent)} not run: not in this data)" if absent else "")
+        + (f"; {meta['note']}" if meta.get("note") else "")
+        + ". Mean [95 % CI] (n) over seeds"
+        + ('; the pose sweep\'s "none" maps are the label sweep\'s (no noise at all).'
+           if any(r["sweep"] == "pose" for r in rows) else ".")
+    )  # fmt: skip
+
+
+def _sweeps_shown(rows) -> list[str]:
+    """The sweeps a section shows: the pose sweep when it ran; the label sweep when it has a
+    level above "none" or is all there is (a pose sweep alone maps "none" once, as a label row,
+    which its own table shows)."""
+    label = _levels(rows, "label")
+    pose = [lv for lv in _levels(rows, "pose") if lv != "none"]
+    out = ["label"] if (len(label) > 1 or not pose) and label else []
+    return out + (["pose"] if pose else [])
+
+
+def section(data: dict | None, key: str = "noise") -> str:
+    """docs/experiments.md's tables of one noise data file (`noise.json`, `noise_<variant>.json`):
+    per sweep, per back-end and level, the mean [95 % CI] over seeds of each of SECTION_METRICS;
+    then, where the sweep has two levels or more, per back-end the change from its lowest level
+    to its highest, paired per seed: the error added, the shares lost (in points)."""
+    if data is None:
+        return (
+            f"_No raw results are committed in docs/experiments/data/{key}.json: nothing is "
+            "generated here._\n"
+        )
+    rows = data["rows"]
+    lines = [_section_head(data, key), ""]
+    for sweep in _sweeps_shown(rows):
+        levels = _levels(rows, sweep)
+        # the back-ends this sweep ran (a pose sweep's "none" rows are the label sweep's)
+        ran = {r["backend"] for r in rows if r["sweep"] == sweep and r["level"] != "none"}
+        backends = sorted(ran or {r["backend"] for r in rows}, key=_order)
+        kind = "localisation (pose)" if sweep == "pose" else "label"
+        lines += [
+            f"{kind.capitalize()} noise sweep, levels {', '.join(levels)}:",
+            "",
+            "| back-end | level | " + " | ".join(m[1] for m in SECTION_METRICS) + " |",
+            "|---|---|" + "---|" * len(SECTION_METRICS),
+        ]
+        for b in backends:
+            for level in levels:
+                runs = _runs(rows, sweep, b, level)
+                if not runs:
+                    continue
+                cells = [
+                    stats.mean_ci([r.get(k) for r in runs]).format(scale, fmt, unit)
+                    for k, _, scale, unit, fmt in SECTION_METRICS
+                ]
+                lines.append(f"| {b} | {level} | " + " | ".join(cells) + " |")
+        lines.append("")
+        if len(levels) < 2:
+            continue
+        lines += _paired_table(rows, sweep, kind, levels[0], levels[-1], backends)
+    return "\n".join(lines)
+
+
+def _paired_table(rows, sweep, kind, lo, hi, backends) -> list[str]:
+    """Per back-end, each metric's change from `lo` to `hi` paired per seed: the error added,
+    the shares lost (points). A metric that no seed of any back-end changed is left out, said
+    so (label noise moves no point: the geometry is the same at every label level)."""
+    deltas = {}
+    for k, *_ in SECTION_METRICS:
+        sign = 1.0 if k == "error_mean_m" else -1.0  # error added; shares lost
+        deltas[k] = {b: [sign * v for v in _deltas(rows, sweep, b, k).values()] for b in backends}
+    values = {k: [v for d in deltas[k].values() for v in d] for k in deltas}
+    same = [m for m in SECTION_METRICS if values[m[0]] and not any(values[m[0]])]
+    moved = [m for m in SECTION_METRICS if m not in same]  # with no value at all: "-" is said
+    same = [m[1].split(" (")[0] for m in same]
+    lines = [
+        f"From {kind} noise {lo} to {hi}, paired per seed ({hi} minus {lo} for the error, "
+        f"{lo} minus {hi} for the shares, in points)"
+        + (f"; unchanged in every seed, left out: {', '.join(same)}" if same else "")
+        + ":",
+        "",
+    ]
+    if not moved:
+        return lines
+    lines += [
+        "| back-end | "
+        + " | ".join(
+            f"error added by {hi} (mm)" if k == "error_mean_m" else f"{col} lost to {hi}"
+            for k, col, *_ in moved
+        )
+        + " |",
+        "|---|" + "---|" * len(moved),
+    ]
+    for b in backends:
+        cells = [_ci(deltas[k][b]).format(scale, fmt) for k, _, scale, _u, fmt in moved]
+        if any(c != "- (n = 0)" for c in cells):
+            lines.append(f"| {b} | " + " | ".join(cells) + " |")
+    return lines + [""]
 
 
 def _iv(d: dict) -> dict:

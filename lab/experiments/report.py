@@ -10,19 +10,23 @@ the text between
     <!-- end generated: NAME -->
 
 from the data alone: `verdicts` (every claim of every experiment with data, by the rules of
-lab/stats.py, Holm-corrected together), `routes`. An experiment with no committed data says so
-in its section instead of a number. `--check` changes nothing and exits 1 when the doc differs
-from what the data generates (tests/test_experiment_report.py runs it on the committed doc).
+lab/stats.py, Holm-corrected together), `routes`, `noise` and one `noise_<variant>` per noise
+data file (its tables per sweep: lab/experiments/noise.py `section`), `ablation`, ... An
+experiment with no committed data says so in its section instead of a number. `--check` changes
+nothing and exits 1 when the doc differs from what the data generates
+(tests/test_experiment_report.py runs it on the committed doc).
 
     smana experiment report [--data DIR] [--doc FILE] [--check]
 """
 
 from __future__ import annotations
 
+import contextvars
 import json
 import math
 import re
 import sys
+import time
 from pathlib import Path
 
 from smana.lab import stats
@@ -31,12 +35,28 @@ ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = ROOT / "docs" / "experiments" / "data"
 DOC = ROOT / "docs" / "experiments.md"
 # the data files a report reads
-EXPERIMENTS = ("noise", "exploration", "fleet", "routes", "resources", "navnoise", "risk")
+EXPERIMENTS = (
+    "noise",
+    "exploration",
+    "ablation",
+    "fleet",
+    "routes",
+    "resources",
+    "navnoise",
+    "risk",
+)
+# the noise experiment's tables are one section per data file, each where its prose is: `noise`
+# for noise.json, `noise_<variant>` for noise_<variant>.json
+NOISE_SECTION = re.compile(r"noise(_[a-z0-9]+)?")
 SECTION = re.compile(
-    r"(<!-- generated: (?P<name>[a-z_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
+    r"(<!-- generated: (?P<name>[a-z0-9_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
     re.S,
 )
 NO_OUTPUT = True  # `smana experiment` makes no output directory for this one
+
+# The command line of the `smana experiment` running in this context (set by `cli`), which
+# `write_data` records in the data's meta: what made a data file is then in the file.
+COMMAND: contextvars.ContextVar[str | None] = contextvars.ContextVar("command", default=None)
 
 
 # -- the data -------------------------------------------------------------------------------------
@@ -62,13 +82,18 @@ def write_data(
 ) -> Path:
     """`<out>/data/<name>.json` (or `<name>_<variant>.json` for a run of the experiment in other
     conditions, e.g. a larger garden): {"experiment", "meta", "rows"}, one row a line so that a
-    diff of two runs reads row by row."""
+    diff of two runs reads row by row. Run by `smana experiment`, the meta also records its
+    command line ("command", unless the experiment gave one) and the UTC date ("date")."""
     if variant is not None and not re.fullmatch(r"[a-z0-9]+", variant):
         raise ValueError(f"data variant must be lowercase letters and digits, got {variant!r}")
     path = Path(out) / "data" / (f"{name}_{variant}.json" if variant else f"{name}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
+    meta = dict(meta or {})
+    if COMMAND.get() is not None:
+        meta.setdefault("command", COMMAND.get())
+        meta.setdefault("date", time.strftime("%Y-%m-%d", time.gmtime()))
     body = ",\n".join("  " + json.dumps(r, sort_keys=True) for r in compact_rows(rows))
-    head = json.dumps({"experiment": name, "meta": meta or {}}, sort_keys=True, default=str)
+    head = json.dumps({"experiment": name, "meta": meta}, sort_keys=True, default=str)
     path.write_text(head[:-1] + ', "rows": [\n' + body + "\n]}\n")
     return path
 
@@ -97,6 +122,14 @@ def _read_data(path: Path, name: str) -> dict:
 
 
 # -- the sections ---------------------------------------------------------------------------------
+
+
+def duration(wall_s) -> str:
+    """ "8 min 11 s" (a list of walls, one per run merged into one file: "27 min 27 s + ...")."""
+    if isinstance(wall_s, list):
+        return " + ".join(duration(w) for w in wall_s)
+    m, s = divmod(round(float(wall_s)), 60)
+    return f"{m} min {s} s" if m else f"{s} s"
 
 
 def _missing(name: str) -> str:
@@ -307,7 +340,7 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
     stays out of the correction."""
     table = []
     for key, data in all_data.items():
-        if data["experiment"] == "noise":
+        if key == "noise":  # a variant (noise_<variant>.json) is an ablation, with no claims
             table += _noise_claims(data)
         elif data["experiment"] == "exploration":
             table += _exploration_claims(key, data, all_data)
@@ -410,34 +443,66 @@ def risk_section(data: dict | None) -> str:
     return section(data)
 
 
+def noise_section(data: dict | None, key: str = "noise") -> str:
+    from .noise import section
+
+    return section(data, key)
+
+
+def ablation_section(data: dict | None) -> str:
+    from .ablation import section
+
+    return section(data)
+
+
 def sections(all_data: dict[str, dict]) -> dict[str, str]:
-    return {
+    """{section name: its generated text}: the fixed sections, and one per noise data file."""
+    made = {
         "routes_wheel": routes_section(all_data.get("routes_wheel"), "routes_wheel"),
         "verdicts": verdicts_section(all_data),
+        "noise": noise_section(all_data.get("noise")),
         "routes": routes_section(all_data.get("routes")),
         "exploration": exploration_section(all_data),
+        "ablation": ablation_section(all_data.get("ablation")),
         "fleet": fleet_section(all_data),
         "resources": resources_section(all_data.get("resources")),
         "navnoise": navnoise_section(all_data.get("navnoise")),
         "risk": risk_section(all_data.get("risk")),
     }
+    for key, data in all_data.items():
+        if data["experiment"] == "noise":
+            made[key] = noise_section(data, key)
+    return made
 
 
 def regenerate(doc_text: str, all_data: dict[str, dict]) -> tuple[str, list[str]]:
     """(the doc with every generated section rewritten, the names of sections that changed). A
-    section the report does not know is an error (a misspelt marker would never be checked)."""
+    section the report does not know is an error (a misspelt marker would never be checked), and
+    so is a noise data file whose section is not in the doc (its table would be nowhere); a
+    `noise_<variant>` section without its data file says so."""
     made = sections(all_data)
     changed: list[str] = []
+    seen: set[str] = set()
 
     def sub(m: re.Match) -> str:
         name = m.group("name")
+        if name not in made and NOISE_SECTION.fullmatch(name):
+            made[name] = noise_section(None, name)
         if name not in made:
             raise ValueError(f"unknown generated section {name!r}; known: {', '.join(made)}")
+        seen.add(name)
         if m.group("body") != made[name]:
             changed.append(name)
         return m.group(1) + made[name] + m.group(4)
 
-    return SECTION.sub(sub, doc_text), changed
+    text = SECTION.sub(sub, doc_text)
+    lost = [k for k, d in all_data.items() if d["experiment"] == "noise" and k not in seen]
+    if lost:
+        raise ValueError(
+            f"no generated section for {', '.join(f'{k}.json' for k in lost)} in the doc "
+            f"(add <!-- generated: {lost[0]} --> and <!-- end generated: {lost[0]} -->)"
+        )
+    return text, changed
 
 
 # -- command line ---------------------------------------------------------------------------------
