@@ -22,9 +22,10 @@ voxels while it has a floor becomes unknown rather than showing a ghost or a gue
 
 The safety zone is kept current incrementally: every node counts the zone centres (obstacle nodes,
 and forbidden ones with `forbidden_margin`) within the robot radius (itself included); when a node
-becomes or stops being a centre, the counts of the nodes of a disc stencil around it change by one. A node is in the safety zone when its count is
-positive and it is not an obstacle itself. Tiles within the radius of an obstacle are allocated so
-that the zone also covers nodes not seen yet.
+becomes or stops being a centre, the counts of the nodes of a disc stencil around it change by
+one. A node is in the safety zone when its count is positive and it is not an obstacle itself.
+Tiles within the radius of a centre are allocated so that the zone also covers nodes not seen
+yet.
 
 Each node also keeps the label distribution of the voxel that sets its label (the NavGrid's
 RISK_LAYERS: the second class and both probabilities x 255), as the map delta carried it; a delta
@@ -53,9 +54,9 @@ from smana.common.navgrid import (
 )
 
 from .kernels import (
-    NO_FLOOR,
     LUT_OBSTACLE,
     LUT_ZONE,
+    NO_FLOOR,
     ClassLuts,
     ColumnStore,
     DiscStencil,

@@ -515,7 +515,6 @@ def _node_head_recompute(cols, nodes, kind_lut, n):
     is a centre of the safety zone now."""
     e = nodes.col_head[n]
     flags = np.uint8(0)
-    obstacle = False
     if e < 0:
         nodes.labels[n] = 0
         nodes.heights[n] = np.nan
