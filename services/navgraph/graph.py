@@ -387,14 +387,14 @@ class NavGraph:
             time_ms=(time.perf_counter() - t0) * 1e3,
         )
 
-    def _allocate_discs(self, new_obstacles: np.ndarray) -> int:
-        """Allocate every tile the safety-zone disc of a new obstacle node reaches."""
-        if not len(new_obstacles):
+    def _allocate_discs(self, new_centres: np.ndarray) -> int:
+        """Allocate every tile the safety-zone disc of a new zone centre reaches."""
+        if not len(new_centres):
             return 0
         g = self.grid
         nx, ny = g.shape
         t = g.tile_size
-        ix, iy = g.cells_of_flat(new_obstacles)
+        ix, iy = g.cells_of_flat(new_centres)
         r = self._stencil_reach
         if 2 * r >= t:
             txs, tys = _tile_ranges(ix, iy, r, t, nx, ny)

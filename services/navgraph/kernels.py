@@ -49,7 +49,8 @@ class NodeLayers(NamedTuple):
     col_head: np.ndarray  # i4: the column's highest entry, -1 when empty
     col_len: np.ndarray  # i4: entries in the column
     col_floor: np.ndarray  # i4: highest level forgotten on overflow, NO_FLOOR if none
-    obstacle_count: np.ndarray  # i4: obstacle nodes within the robot radius, itself included
+    obstacle_count: np.ndarray  # i4: zone centres (obstacles; forbidden with the margin) within
+    # the robot radius, itself included
     epoch: np.ndarray  # u4: the integration that last touched the node (see NodeChanges)
     # the label distribution of the voxel that sets the label (NavGrid RISK_LAYERS), as published
     alt_labels: np.ndarray  # u2: the second most likely class, 0 for none
