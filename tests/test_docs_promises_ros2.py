@@ -253,6 +253,13 @@ def test_navigate_to_pose_ignores_the_behavior_tree_gives_an_eta_and_keeps_a_res
         assert eta.sec + eta.nanosec * 1e-9 == pytest.approx(3.0 / speed, abs=1e-6)
         assert sent[-1].feedback.distance_remaining == pytest.approx(3.0)
 
+        # before the explorer has a pose: no feedback (no made-up pose, no NaN distance), counted
+        n_sent = len(sent)
+        no_pose = fb | {"pose": None, "distance_remaining_m": float("nan")}
+        actions.on_explorer_feedback(msgpack.packb(no_pose))
+        assert len(sent) == n_sent
+        assert actions.status_details()["feedback_without_pose"] == 1
+
         # the result: kept 10 s after the goal ends, then STATUS_UNKNOWN
         actions.on_explorer_feedback(msgpack.packb(fb | {"state": "succeeded"}))
 

@@ -308,7 +308,9 @@ class Ros2Actions:
         self.nav = ActionEndpoints(node, f"{namespace}/{rc.navigate_action}", NAVIGATE)
         self.plan = ActionEndpoints(node, f"{namespace}/{rc.compute_path_action}", COMPUTE_PATH)
         self.jobs = Jobs("ros2-action", ACTION_THREADS, ACTION_WAITING)
-        self.counts = dict.fromkeys(("goals", "accepted", "refused", "feedback", "canceled"), 0)
+        self.counts = dict.fromkeys(
+            ("goals", "accepted", "refused", "feedback", "feedback_without_pose", "canceled"), 0
+        )
         self._explorer_ids: dict[str, bytes] = {}  # explorer goal id -> uuid
         self._nav_lock = threading.Lock()
         self._count_lock = threading.Lock()
@@ -554,29 +556,36 @@ class Ros2Actions:
         try:
             fb = msgpack.unpackb(payload, strict_map_key=False)
             gid, state = str(fb["id"]), str(fb["state"])
-            pose = [float(v) for v in fb.get("pose") or (0.0, 0.0, 0.0)][:3]
-            remaining = float(fb.get("distance_remaining_m") or 0.0)
+            raw_pose = fb.get("pose")
+            pose = None if raw_pose is None else [float(v) for v in raw_pose][:3]
+            remaining = fb.get("distance_remaining_m")
+            remaining = math.nan if remaining is None else float(remaining)
             nav_time = float(fb.get("navigation_time_s") or 0.0)
             recoveries = int(fb.get("recoveries") or 0)
             reason = str(fb.get("reason") or "")
         except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as exc:
             raise MessageError("malformed", f"explorer goal feedback: {exc}") from None
-        if len(pose) != 3 or not all(math.isfinite(v) for v in pose):
+        if pose is not None and (len(pose) != 3 or not all(math.isfinite(v) for v in pose)):
             raise MessageError("value", "explorer goal feedback: pose must be 3 finite numbers")
         uuid = self._explorer_ids.get(gid)
         g = self.nav.book.get(uuid) if uuid is not None else None
         if g is None or g.status in TERMINAL:
             return  # another goal's, or one already ended here (pre-empted, canceled)
         g.seen_at = self.nav.book.clock()
-        fb_msg = self.nav.msg("Feedback")(
-            current_pose=convert.pose_stamped(self.types, pose[:2], pose[2], self.svc._stamp()),
-            navigation_time=duration(self.types, nav_time),
-            estimated_time_remaining=duration(self.types, remaining / self.speed_mps),
-            number_of_recoveries=max(-(2**15), min(recoveries, 2**15 - 1)),
-            distance_remaining=remaining,
-        )
-        self.nav.publish_feedback(uuid, fb_msg)
-        self._count("feedback")
+        if pose is None or not math.isfinite(remaining):
+            # the explorer has no pose yet: Nav2's navigator skips its feedback when it cannot
+            # read the robot's pose, rather than send a made-up pose or a NaN distance
+            self._count("feedback_without_pose")
+        else:
+            fb_msg = self.nav.msg("Feedback")(
+                current_pose=convert.pose_stamped(self.types, pose[:2], pose[2], self.svc._stamp()),
+                navigation_time=duration(self.types, nav_time),
+                estimated_time_remaining=duration(self.types, remaining / self.speed_mps),
+                number_of_recoveries=max(-(2**15), min(recoveries, 2**15 - 1)),
+                distance_remaining=remaining,
+            )
+            self.nav.publish_feedback(uuid, fb_msg)
+            self._count("feedback")
         end = {
             "succeeded": (STATUS_SUCCEEDED, 0),
             "aborted": (STATUS_ABORTED, NAV_UNKNOWN),
