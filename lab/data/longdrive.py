@@ -19,6 +19,7 @@ return are left out.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -161,45 +162,57 @@ def _ground_label(x, y, w):
 
 
 @numba.njit(cache=True)
+def _cast_one(ox, oy, oz, dx, dy, dz, max_range, w, obs):
+    """Nearest hit of one world-frame unit ray from (ox, oy, oz): (t, label), label -1 for none."""
+    cell = w[3]
+    best, lab = max_range, -1
+    # Walk the obstacle cells the ray's xy crosses, nearest first: an obstacle lies wholly
+    # in its cell, so the first cell with a hit holds the nearest one.
+    i, j = int(math.floor(ox / cell)), int(math.floor(oy / cell))
+    step_i = 1 if dx > 0 else -1
+    step_j = 1 if dy > 0 else -1
+    t_di = cell / abs(dx) if abs(dx) > 1e-12 else np.inf
+    t_dj = cell / abs(dy) if abs(dy) > 1e-12 else np.inf
+    nx = (i + (1 if dx > 0 else 0)) * cell
+    ny = (j + (1 if dy > 0 else 0)) * cell
+    t_i = (nx - ox) / dx if abs(dx) > 1e-12 else np.inf
+    t_j = (ny - oy) / dy if abs(dy) > 1e-12 else np.inf
+    t_cell = 0.0
+    while t_cell < best:
+        if _cell_obstacle(i, j, w, obs):
+            t = _ray_cylinder(ox, oy, oz, dx, dy, dz, obs)
+            if t < best:
+                best, lab = t, int(obs[5])
+                break
+        if t_i < t_j:
+            t_cell, t_i, i = t_i, t_i + t_di, i + step_i
+        else:
+            t_cell, t_j, j = t_j, t_j + t_dj, j + step_j
+    tg = _ray_ground(ox, oy, oz, dx, dy, dz, best)
+    if tg < best:
+        best, lab = tg, _ground_label(ox + dx * tg, oy + dy * tg, w)
+    return best, lab
+
+
+CAST_TASKS = 64  # parallel tasks; each ray's result depends on that ray alone
+
+
+@numba.njit(cache=True, parallel=True)
 def _cast(origin, dirs, max_range, w):
-    """Nearest hit per world-frame unit ray: (t or inf, label)."""
+    """Nearest hit per world-frame unit ray: (t or inf, label), over every core."""
     n = dirs.shape[0]
     ts = np.full(n, np.inf)
     labels = np.zeros(n, np.int32)
-    cell = w[3]
     ox, oy, oz = origin[0], origin[1], origin[2]
-    obs = np.empty(6)
-    for r in range(n):
-        dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
-        best, lab = max_range, -1
-        # Walk the obstacle cells the ray's xy crosses, nearest first: an obstacle lies wholly
-        # in its cell, so the first cell with a hit holds the nearest one.
-        i, j = int(math.floor(ox / cell)), int(math.floor(oy / cell))
-        step_i = 1 if dx > 0 else -1
-        step_j = 1 if dy > 0 else -1
-        t_di = cell / abs(dx) if abs(dx) > 1e-12 else np.inf
-        t_dj = cell / abs(dy) if abs(dy) > 1e-12 else np.inf
-        nx = (i + (1 if dx > 0 else 0)) * cell
-        ny = (j + (1 if dy > 0 else 0)) * cell
-        t_i = (nx - ox) / dx if abs(dx) > 1e-12 else np.inf
-        t_j = (ny - oy) / dy if abs(dy) > 1e-12 else np.inf
-        t_cell = 0.0
-        while t_cell < best:
-            if _cell_obstacle(i, j, w, obs):
-                t = _ray_cylinder(ox, oy, oz, dx, dy, dz, obs)
-                if t < best:
-                    best, lab = t, int(obs[5])
-                    break
-            if t_i < t_j:
-                t_cell, t_i, i = t_i, t_i + t_di, i + step_i
-            else:
-                t_cell, t_j, j = t_j, t_j + t_dj, j + step_j
-        tg = _ray_ground(ox, oy, oz, dx, dy, dz, best)
-        if tg < best:
-            best, lab = tg, _ground_label(ox + dx * tg, oy + dy * tg, w)
-        if lab >= 0:
-            ts[r] = best
-            labels[r] = lab
+    # Task c takes every CAST_TASKS-th ray from c: a scan's rays come beam by beam, and a beam
+    # looking up costs many times one looking down, so contiguous blocks would load one core.
+    for c in numba.prange(CAST_TASKS):
+        obs = np.empty(6)  # one scratch obstacle per task
+        for r in range(c, n, CAST_TASKS):
+            best, lab = _cast_one(ox, oy, oz, dirs[r, 0], dirs[r, 1], dirs[r, 2], max_range, w, obs)
+            if lab >= 0:
+                ts[r] = best
+                labels[r] = lab
     return ts, labels
 
 
@@ -208,9 +221,16 @@ def sensor_origin(world: DriveWorld, d_m: float) -> tuple[np.ndarray, float]:
     return np.array([x, y, float(terrain_height(x, y)) + SENSOR_HEIGHT_M]), heading
 
 
+@functools.lru_cache(maxsize=4)
+def _sensor_rays(beams: int, columns: int) -> np.ndarray:
+    d = beam_directions(beams, columns)
+    d.flags.writeable = False  # shared by every scan
+    return d
+
+
 def world_rays(heading: float, beams: int = 64, columns: int = 2048) -> np.ndarray:
     """The sensor's unit rays rotated to `heading` (level sensor), f8[beams * columns, 3]."""
-    d = beam_directions(beams, columns)
+    d = _sensor_rays(int(beams), int(columns))
     c, s = math.cos(heading), math.sin(heading)
     return np.ascontiguousarray(
         np.column_stack([c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1], d[:, 2]])
