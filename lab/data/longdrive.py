@@ -162,8 +162,9 @@ def _ground_label(x, y, w):
 
 
 @numba.njit(cache=True)
-def _cast_one(ox, oy, oz, dx, dy, dz, max_range, w, obs):
-    """Nearest hit of one world-frame unit ray from (ox, oy, oz): (t, label), label -1 for none."""
+def _cast_one(origin, dx, dy, dz, max_range, w, obs):
+    """Nearest hit of one world-frame unit ray from `origin`: (t, label), label -1 for none."""
+    ox, oy, oz = origin[0], origin[1], origin[2]
     cell = w[3]
     best, lab = max_range, -1
     # Walk the obstacle cells the ray's xy crosses, nearest first: an obstacle lies wholly
@@ -203,13 +204,12 @@ def _cast(origin, dirs, max_range, w):
     n = dirs.shape[0]
     ts = np.full(n, np.inf)
     labels = np.zeros(n, np.int32)
-    ox, oy, oz = origin[0], origin[1], origin[2]
     # Task c takes every CAST_TASKS-th ray from c: a scan's rays come beam by beam, and a beam
     # looking up costs many times one looking down, so contiguous blocks would load one core.
     for c in numba.prange(CAST_TASKS):
         obs = np.empty(6)  # one scratch obstacle per task
         for r in range(c, n, CAST_TASKS):
-            best, lab = _cast_one(ox, oy, oz, dirs[r, 0], dirs[r, 1], dirs[r, 2], max_range, w, obs)
+            best, lab = _cast_one(origin, dirs[r, 0], dirs[r, 1], dirs[r, 2], max_range, w, obs)
             if lab >= 0:
                 ts[r] = best
                 labels[r] = lab
