@@ -429,3 +429,68 @@ def test_octree_on_a_real_scan_matches_slow_reference(res, max_range, ray_m):
     state = map_state(m)
     assert set(state) == set(ref.logodds)
     assert all(lo == ref.logodds[k] for k, (lo, _, _) in state.items())
+
+
+def _carved_by_the_walk(points, origin, res, max_range, ray_m):
+    """The voxels the carving kernel must mark for one cloud, in the order it first meets them,
+    built ray by ray from `octomap_ray_keys` (the walk of `octomap_ray_next`, which the kernel
+    transcribes inline) and OctoMap's end-point rule: key -> hit or not, and how many rays
+    stopped on their length (every next crossing beyond the end) before the end's key."""
+    from smana.services.mapper._grid import octomap_ray_keys
+
+    o = np.asarray(origin, F32)
+    inv_res = 1.0 / res
+    buf = np.empty((4096, 3), np.int64)
+    voxels: dict[tuple, bool] = {}
+    stopped_on_length = 0
+    for p in points:
+        d = (p - o).astype(F32)
+        dist = math.sqrt(float(F32(F32(d[0] * d[0] + d[1] * d[1]) + d[2] * d[2])))
+        hit = dist <= max_range
+        with np.errstate(invalid="ignore"):  # a ray of length 0 needs no direction
+            u = (d / F32(dist)).astype(F32)
+        e = p if hit else (o + (u * F32(max_range)).astype(F32)).astype(F32)
+        s = o
+        if ray_m and (dist if hit else max_range) > ray_m:
+            s = (e - (u * F32(ray_m)).astype(F32)).astype(F32)
+        n = octomap_ray_keys(*s, *e, res, buf)
+        for key in map(tuple, buf[: max(n, 0)].tolist()):
+            voxels.setdefault(key, False)
+        end = tuple(math.floor(float(c) * inv_res) for c in e)
+        if n > 0 and np.abs(buf[n - 1] - end).sum() != 1:
+            stopped_on_length += 1
+        if hit:
+            voxels[tuple(math.floor(float(c) * inv_res) for c in p)] = True
+    return voxels, stopped_on_length
+
+
+@pytest.mark.parametrize("res", [0.1, 0.3])
+@pytest.mark.parametrize("ray_m", [None, 1.0])
+def test_carving_kernel_walks_what_the_ray_walk_yields(res, ray_m):
+    """The carving kernel's inline walk (index strides, a block look-up only on entering a
+    block) against the walk it replaced, ray by ray: the same voxels in the same order, the same
+    log-odds, the same Delta. Rays of every length from 0 (the end in the sensor's voxel) to
+    beyond the range, along the axes and the diagonals, ending on voxel faces and corners
+    (where the walk stops on its length, not on the end's key), from origins on and off the
+    grid."""
+    rng = np.random.default_rng(17)
+    max_range = 6.0
+    l_hit, l_miss, _, _ = sensor_model(OctreeConfig())
+    axes = np.concatenate([np.eye(3), -np.eye(3), [[1, 1, 1], [-1, 1, -1], [1, -1, 0]]])
+    total_on_length = 0
+    for origin in ((0.0, 0.0, 0.8), (0.137, -0.42, 1.73), (-0.3, 0.6, 0.0)):
+        o = np.array(origin, F32)
+        lengths = rng.choice([0.0, 0.01, 0.05, 0.5, 1.0, 2.5, 5.0, 9.0], (len(axes), 4))
+        along = o + (axes[:, None, :] * lengths[:, :, None]).reshape(-1, 3)
+        on_grid = np.round((o + rng.uniform(-7, 7, (700, 3))) / res) * res  # faces, corners
+        anywhere = o + rng.uniform(-7, 7, (300, 3))
+        near = o + rng.uniform(-res, res, (50, 3))  # often in the sensor's own voxel
+        pts = np.concatenate([along, on_grid, anywhere, near, [o, o]]).astype(F32)
+        m = SemanticMap("octree-max", res, max_range, ray_m or 0.0)
+        d = m.integrate(pts, np.zeros(len(pts), np.uint16), None, origin)
+        want, on_length = _carved_by_the_walk(pts, origin, res, max_range, ray_m)
+        total_on_length += on_length
+        assert [tuple(k) for k in d.keys.tolist()] == list(want)
+        assert m._core.last_updates == len(want)
+        np.testing.assert_array_equal(d.values, [l_hit if h else l_miss for h in want.values()])
+    assert total_on_length > 100  # the length rule decided often enough to be tested

@@ -48,7 +48,6 @@ from smana.services.mapper._grid import (
     coord_to_key,
     key_in_range,
     octomap_ray_from,
-    octomap_ray_next,
     octomap_ray_origin,
     octomap_ray_start,
     put_key_centre,
@@ -261,11 +260,16 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
     oy = np.float32(origin[1])
     oz = np.float32(origin[2])
     n_cap = touched.shape[0]
+    side = 1 << grid.bits  # voxels along a block's edge
     last_key = np.int64(-1)
     last_b = np.int64(-1)
     # Every full ray starts at the sensor: its keys and tMax numerators are computed once here,
-    # not once per ray (the set-up is most of a short ray's cost).
+    # not once per ray.
     at_origin = octomap_ray_origin(ox, oy, oz, res, inv_res)
+    # the sensor's voxel (its index and block), looked up by the first walk that starts there
+    origin_g = np.int64(-1)
+    origin_key = np.int64(-1)
+    origin_b = np.int64(-1)
     for i in range(i0, points.shape[0]):
         px = points[i, 0]
         py = points[i, 1]
@@ -289,8 +293,10 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
             sy = np.float32(ey - np.float32(np.float32(dy / ln) * rm))
             sz = np.float32(ez - np.float32(np.float32(dz / ln) * rm))
             first, walk = octomap_ray_start(sx, sy, sz, ex, ey, ez, res, inv_res)
+            from_origin = False
         elif hit:  # from the sensor to the point: dx, dy, dz and ln are the walk's own
             first, walk = octomap_ray_from(at_origin, ex, ey, ez, dx, dy, dz, ln)
+            from_origin = True
         else:  # from the sensor to max_range along the ray
             cx = np.float32(ex - ox)
             cy = np.float32(ey - oy)
@@ -299,22 +305,78 @@ def _octree_collect(points, labels, confs, origin, st, k, i0, n_touched):
                 np.sqrt(np.float64(np.float32(np.float32(cx * cx + cy * cy) + cz * cz)))
             )
             first, walk = octomap_ray_from(at_origin, ex, ey, ez, cx, cy, cz, c_len)
-        n_keys = 0
-        while first > 0:  # the ray's keys as the walk yields them
-            g, last_key, last_b = voxel_slot(grid, walk[0], walk[1], walk[2], last_key, last_b)
-            if g < 0:
-                return -g, i, n_touched
-            f = flags[g]
-            if f & MARK_ANY == 0:  # first time this cloud: remember it for phase 2
-                if n_touched >= n_cap:
-                    return GROW_TOUCHED, i, n_touched
-                flags[g] = f | MARK_FREE
-                touched[n_touched] = g
-                n_touched += 1
-            n_keys += 1
-            done, walk = octomap_ray_next(walk)
-            if done or n_keys >= max_keys:
-                break
+            from_origin = True
+        if first > 0:
+            if from_origin and origin_g >= 0:  # every walk from the sensor starts in its voxel
+                g, last_key, last_b = origin_g, origin_key, origin_b
+            else:
+                g, last_key, last_b = voxel_slot(grid, walk[0], walk[1], walk[2], last_key, last_b)
+                if g < 0:
+                    return -g, i, n_touched
+                if from_origin:
+                    origin_g, origin_key, origin_b = g, last_key, last_b
+            # Mark the walk's voxels free: the keys of `octomap_ray_next`, in its order, with
+            # its stops, cheaper per voxel. A step moves the voxel's index by one stride (1,
+            # the block side or its square); only a step into the next block looks one up.
+            _, _, _, kex, key_, kez, stx, sty, stz, tmx, tmy, tmz, tdx, tdy, tdz, flen = walk
+            kx, ky, kz = walk[0], walk[1], walk[2]
+            # the local coordinate a step lands on when it enters the next block, and a step's
+            # stride in voxel indices (x, y, z: 1, side, side**2 voxels a block)
+            enter_x = 0 if stx > 0 else side - 1
+            enter_y = 0 if sty > 0 else side - 1
+            enter_z = 0 if stz > 0 else side - 1
+            stride_y = sty * side
+            stride_z = stz * side * side
+            n_keys = 0
+            while True:
+                f = flags[g]
+                if f & MARK_ANY == 0:  # first time this cloud: remember it for phase 2
+                    if n_touched >= n_cap:
+                        return GROW_TOUCHED, i, n_touched
+                    flags[g] = f | MARK_FREE
+                    touched[n_touched] = g
+                    n_touched += 1
+                n_keys += 1
+                if n_keys >= max_keys:
+                    break
+                # OctoMap's step: along the axis of the smallest tMax (a tie goes to the later
+                # axis); the walk stops at the end's key or when every next crossing lies
+                # beyond the ray's length, both tested on the moved axis first (the others
+                # rarely decide). OctoMap tests after the step, before the key is used: so here
+                # (a block looked up early would be allocated for nothing).
+                if tmx < tmy and tmx < tmz:
+                    kx += stx
+                    tmx += tdx
+                    if tmx > flen and tmy > flen and tmz > flen:
+                        break
+                    if kx == kex and ky == key_ and kz == kez:
+                        break
+                    if kx & (side - 1) != enter_x:  # still in the block
+                        g += stx
+                        continue
+                elif tmy <= tmx and tmy < tmz:
+                    ky += sty
+                    tmy += tdy
+                    if tmy > flen and tmx > flen and tmz > flen:
+                        break
+                    if ky == key_ and kx == kex and kz == kez:
+                        break
+                    if ky & (side - 1) != enter_y:
+                        g += stride_y
+                        continue
+                else:
+                    kz += stz
+                    tmz += tdz
+                    if tmz > flen and tmx > flen and tmy > flen:
+                        break
+                    if kz == kez and kx == kex and ky == key_:
+                        break
+                    if kz & (side - 1) != enter_z:
+                        g += stride_z
+                        continue
+                g, last_key, last_b = voxel_slot(grid, kx, ky, kz, last_key, last_b)
+                if g < 0:
+                    return -g, i, n_touched
         if not hit:
             continue
         kx = coord_to_key(px, inv_res)
