@@ -53,7 +53,12 @@ def test_report_fails_on_drops():
     args = argparse.Namespace(backend="octree-max", res=(0.1, 0.2))
     result = made_up_result()
     text, failures = bench.report(result, args, (0.2, 0.2, 0.2))
-    assert failures == [] and "p95" in text and "| mapper | 0.20 |" in text
+    assert (
+        failures == []
+        and "| p99 ms |" in text
+        and "p99 <= 30 ms" in text
+        and "| mapper | 0.20 |" in text
+    )
     result["summary"] |= {"lost": 1, "overtaken": 1, "acknowledged": 3}
     result["status"]["planner"] = {"dropped": {"queue_full": 2}, "rejected": {}}
     _, failures = bench.report(result, args, (0.2, 0.2, 0.2))

@@ -13,8 +13,8 @@ primes the stack, as in `smana bench replay`). Per scan, in milliseconds:
   patch N. The query is first pose -> current pose, unknown space allowed;
 - end to end: the sum, i.e. scan published -> updated path available.
 
-p50 / p95 / max over the scans after the first (which loads every kernel), and the drops: scans
-published, integrated (MapDeltas), stale or lost at the mapper, deltas and patches each next
+p50 / p95 / p99 / max over the scans after the first (which loads every kernel), and the drops:
+scans published, integrated (MapDeltas), stale or lost at the mapper, deltas and patches each next
 service received, from the replay's summary and the services' status books. CPU per stage is
 each process's CPU time (psutil, user + system) over the replay, per scan and as a share of one
 core. `--pin` sets each process's cores (`os.sched_setaffinity`, inherited at fork): by default one
@@ -44,6 +44,7 @@ from smana.common.cli import doc_summary
 from smana.lab.bench.replay import Stack, stack_settings
 
 E2E_TARGET_MS = 100.0
+E2E_GOAL_P99_MS = 30.0  # issue 30's goal for 131k-point scans; reported, the exit code ignores it
 SERVICES = ("mapper", "navgraph", "planner")
 QUICK = {"scans": 20, "beams": 16, "columns": 512}
 
@@ -305,11 +306,13 @@ def per_scan_ms(result: dict) -> dict[str, dict[int, float]]:
     return stages
 
 
-def _pct(values) -> tuple[float, float, float]:
+def _pct(values) -> tuple[float, float, float, float]:
+    """p50, p95, p99 and max (nan when there are none)."""
     v = np.asarray(list(values), float)
     if v.size == 0:
-        return (float("nan"),) * 3
-    return float(np.median(v)), float(np.percentile(v, 95)), float(v.max())
+        return (float("nan"),) * 4
+    p50, p95, p99 = np.percentile(v, [50, 95, 99])
+    return float(p50), float(p95), float(p99), float(v.max())
 
 
 def report(result: dict, args: argparse.Namespace, load: tuple) -> tuple[str, list[str]]:
@@ -330,8 +333,8 @@ def report(result: dict, args: argparse.Namespace, load: tuple) -> tuple[str, li
         + f"; pinning: {_pins_text(result['pins'])}. The first scan (kernels loading) is "
         "left out of the latencies.",
         "",
-        "| stage | scans | p50 ms | p95 ms | max ms |",
-        "|---|---:|---:|---:|---:|",
+        "| stage | scans | p50 ms | p95 ms | p99 ms | max ms |",
+        "|---|---:|---:|---:|---:|---:|",
     ]
     names = {
         "map": "scan published -> MapDelta (mapper)",
@@ -340,8 +343,10 @@ def report(result: dict, args: argparse.Namespace, load: tuple) -> tuple[str, li
         "e2e": "scan published -> updated path (end to end)",
     }
     for k, name in names.items():
-        p50, p95, mx = _pct(steady[k].values())
-        lines.append(f"| {name} | {len(steady[k])} | {p50:.1f} | {p95:.1f} | {mx:.1f} |")
+        p50, p95, p99, mx = _pct(steady[k].values())
+        lines.append(
+            f"| {name} | {len(steady[k])} | {p50:.1f} | {p95:.1f} | {p99:.1f} | {mx:.1f} |"
+        )
     cpu = result["cpu_s"]
     wall = result["wall_s"]
     lines += [
@@ -395,14 +400,16 @@ def report(result: dict, args: argparse.Namespace, load: tuple) -> tuple[str, li
         f"planner had not applied the patch yet), {len(result['answered'])} graph versions "
         f"answered of {len(result['patches'])} patches; round trip (stats + path) p50 "
         f"{_pct(trip)[0]:.1f} ms, p95 {_pct(trip)[1]:.1f} ms; planner's own time p50 "
-        f"{_pct(plan)[0]:.1f} ms, max {_pct(plan)[2]:.1f} ms. Wall "
+        f"{_pct(plan)[0]:.1f} ms, max {_pct(plan)[3]:.1f} ms. Wall "
         f"{wall:.1f} s after the first scan, CPU {sum(cpu.values()):.1f} s for the four processes."
     )
-    p95 = _pct(steady["e2e"].values())[1]
+    _, p95, p99, _ = _pct(steady["e2e"].values())
     verdict = "met" if p95 <= E2E_TARGET_MS and s["lost"] == 0 else "NOT met"
     lines.append(
         f"Target p95 end to end <= {E2E_TARGET_MS:.0f} ms with no scan dropped at 10 Hz: "
-        f"{verdict} (p95 {p95:.1f} ms, {s['lost']} dropped)."
+        f"{verdict} (p95 {p95:.1f} ms, {s['lost']} dropped). Issue 30's goal, p99 <= "
+        f"{E2E_GOAL_P99_MS:.0f} ms: {'met' if p99 <= E2E_GOAL_P99_MS else 'NOT met'} (p99 "
+        f"{p99:.1f} ms; a goal, not a failure of the run)."
     )
     if s["lost"]:
         failures.append(f"{s['lost']} scans dropped or lost")
