@@ -125,8 +125,21 @@ def test_sim_publishes_drives_and_stops(zenoh_stack):
         assert driven_s > 0.5
         heading = start.matrix()[:2, 0]
         travelled = float(heading @ (moved.position[:2] - start.position[:2]))
-        # at most 0.4 m/s; at least that less the acceleration ramp and command latency
-        assert 0.4 * driven_s - 0.25 < travelled < 0.4 * driven_s + 0.05
+        # never faster than 0.4 m/s
+        assert 0 < travelled < 0.4 * driven_s + 0.05, (travelled, driven_s)
+        # and at 0.4 m/s while commanded: some 0.5 s of simulated time covers 0.4 x 0.5 m less a
+        # ramp. (Over the whole drive it need not: a test thread the machine held back leaves a
+        # gap over the 0.5 s command timeout, and the robot rightly brakes.)
+        track = [m for m in c.get(truth) if start.stamp_s <= m.stamp_s <= moved.stamp_s]
+        best = 0.0
+        for i, p in enumerate(track):
+            for q in track[i + 1 :]:
+                if q.stamp_s - p.stamp_s >= 0.5:
+                    dx = float(heading @ (q.position[:2] - p.position[:2]))
+                    best = max(best, dx / (q.stamp_s - p.stamp_s))
+                    break
+        # (0.407 measured on a quiet machine and under load: the drive overshoots a little)
+        assert 0.3 < best < 0.43, (best, len(track))
         # past the 0.5 s command timeout and the braking, the robot stands still
         assert wait_for(lambda: c.get(truth)[-1].stamp_s > moved.stamp_s + 1.2)
         a = c.get(truth)[-1]
