@@ -259,6 +259,12 @@ def test_navigate_to_pose_ignores_the_behavior_tree_gives_an_eta_and_keeps_a_res
         actions.on_explorer_feedback(msgpack.packb(no_pose))
         assert len(sent) == n_sent
         assert actions.status_details()["feedback_without_pose"] == 1
+        # a pose without a finite distance is a bad message, not a missing pose
+        from smana.common.messages import MessageError
+
+        with pytest.raises(MessageError, match="finite distance"):
+            actions.on_explorer_feedback(msgpack.packb(fb | {"distance_remaining_m": None}))
+        assert len(sent) == n_sent
 
         # the result: kept 10 s after the goal ends, then STATUS_UNKNOWN
         actions.on_explorer_feedback(msgpack.packb(fb | {"state": "succeeded"}))

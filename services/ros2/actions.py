@@ -567,12 +567,14 @@ class Ros2Actions:
             raise MessageError("malformed", f"explorer goal feedback: {exc}") from None
         if pose is not None and (len(pose) != 3 or not all(math.isfinite(v) for v in pose)):
             raise MessageError("value", "explorer goal feedback: pose must be 3 finite numbers")
+        if pose is not None and not math.isfinite(remaining):
+            raise MessageError("value", "explorer goal feedback: a pose without a finite distance")
         uuid = self._explorer_ids.get(gid)
         g = self.nav.book.get(uuid) if uuid is not None else None
         if g is None or g.status in TERMINAL:
             return  # another goal's, or one already ended here (pre-empted, canceled)
         g.seen_at = self.nav.book.clock()
-        if pose is None or not math.isfinite(remaining):
+        if pose is None:
             # the explorer has no pose yet: Nav2's navigator skips its feedback when it cannot
             # read the robot's pose, rather than send a made-up pose or a NaN distance
             self._count("feedback_without_pose")
