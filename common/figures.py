@@ -41,6 +41,7 @@ OVERLAY = {
     "unknown": (0.82, 0.82, 0.82),
     "obstacle": (0.85, 0.0, 0.0),
     "safety zone": (1.0, 0.55, 0.0),
+    "doubtful (unconfirmed obstacle class)": (0.55, 0.35, 0.75),
     "frontier": (0.0, 0.85, 1.0),
     "trajectory": (1.0, 0.9, 0.0),
     "start": (1.0, 1.0, 1.0),
@@ -361,23 +362,25 @@ def graph_map(
     goals: np.ndarray | None = None,
     trajectories: dict[str, np.ndarray] | None = None,
 ) -> Figure:
-    """The navigation graph (labels, flags: bit 1 known, 2 obstacle, 4 safety zone; cells
-    corner-anchored at `origin_xy`): known nodes in their class colour, unknown, obstacle and
-    safety-zone nodes and the frontier (known free nodes next to unknown ones) labelled."""
+    """The navigation graph (labels, flags: bit 1 known, 2 obstacle, 4 safety zone, 8 doubtful;
+    cells corner-anchored at `origin_xy`): known nodes in their class colour, unknown, obstacle,
+    safety-zone and doubtful nodes and the frontier (known free nodes next to unknown ones)
+    labelled."""
     from scipy import ndimage
 
     labels, flags = np.asarray(labels), np.asarray(flags)
     known = (flags & 1) != 0
     obstacle = known & ((flags & 2) != 0)
     safety = known & ((flags & 4) != 0) & ~obstacle
+    doubtful = known & ((flags & 8) != 0) & ~obstacle & ~safety
     free = known & ~obstacle & ~safety
-    free &= classes.traversable_lut[np.minimum(labels, classes.size - 1)]
+    free &= classes.traversable_lut[np.minimum(labels, classes.size - 1)] | doubtful
     # unknown space around the box too: the box is cut at the last known node
     unknown_padded = np.pad(~known, 1, constant_values=True)
     near_unknown = ndimage.binary_dilation(unknown_padded, np.ones((3, 3), bool))[1:-1, 1:-1]
     frontier = free & near_unknown
     rgb = class_rgb(classes, labels).copy()
-    shown = known & ~obstacle & ~safety & ~frontier
+    shown = known & ~obstacle & ~safety & ~frontier & ~doubtful
     return map_figure(
         rgb,
         np.asarray(origin_xy, float) + 0.5 * resolution_m,
@@ -390,6 +393,7 @@ def graph_map(
             "unknown": ~known,
             "obstacle": obstacle,
             "safety zone": safety,
+            "doubtful (unconfirmed obstacle class)": doubtful & ~frontier,
             "frontier": frontier,
         },
         trajectories=trajectories,

@@ -233,7 +233,8 @@ class MapDelta(Message):
 @dataclass
 class GraphPatch(Message):
     """Navigation-graph nodes that changed: grid indices from `origin_xy` at `resolution_m`, and the
-    nodes' label, height and flags (FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE).
+    nodes' label, height and flags (FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE |
+    FLAG_DOUBTFUL).
     `producer` names the navgraph session that numbered the stream (see MapDelta).
 
     Version 2 adds each node's label distribution (`common/navgrid.py` RISK_LAYERS): `p_label`,

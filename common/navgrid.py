@@ -7,8 +7,8 @@ points into a pool of allocated tiles; every per-node layer is a pool array of s
 (capacity, T, T), so a node's flat index `slot * T * T + lx * T + ly` stays valid as the pool grows.
 
 Layers every grid has: `labels` (u2 class id), `heights` (f4 metres, NaN where unknown) and `flags`
-(u1: FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE, the bits GraphPatch carries). Navgraph adds its
-own bookkeeping layers with `add_layer`; the planner only needs the three above.
+(u1: FLAG_KNOWN | FLAG_OBSTACLE | FLAG_SAFETY_ZONE | FLAG_DOUBTFUL, the bits GraphPatch carries).
+Navgraph adds its own bookkeeping layers with `add_layer`; the planner only needs the three above.
 
 Optional layers (`RISK_LAYERS`, added by `add_risk_layers`) hold how sure the map is of a node's
 label: `alt_labels` (u2, the second most likely class id, 0 = none), `p_label` (u1, probability of
@@ -32,6 +32,10 @@ CHANGE_LOG = 64  # versions whose changed cells a NavGrid remembers
 FLAG_KNOWN = 1
 FLAG_OBSTACLE = 2
 FLAG_SAFETY_ZONE = 4
+# A known node whose class is an obstacle class without the evidence to block (no height over its
+# column's ground, fewer agreeing observations than `navgraph.semantic_confirm`): passable, at the
+# planner's `doubtful_cost`, and no centre of the safety zone (services/navgraph/graph.py).
+FLAG_DOUBTFUL = 8
 
 UNALLOCATED = -1
 # The optional label-distribution layers: (name, dtype, fill). The fills read as certain.

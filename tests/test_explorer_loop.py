@@ -410,3 +410,73 @@ def test_nearest_frontier_goes_by_travel_distance_not_straight_line():
     again = ex.plan(straight, "periodic")
     assert ex.goal.choice is c and not again.switched
     assert ex.state_dict()["strategy"] == "nearest_frontier"
+
+
+def _walled_in(false_wall: bool):
+    """A 40 x 40 lawn, all of it known, cut at x = 2.8-3.0 m by a hedge row: labels the map got
+    wrong (`false_wall`: the lawn is really there) or a real one. The robot starts left of it in a
+    pocket smaller than the lawn beyond."""
+    truth = np.full((40, 40), 1, np.uint16)
+    truth[:, 0] = truth[:, -1] = truth[0, :] = truth[-1, :] = 4
+    world = ToyWorld(truth.copy())
+    world.known[:] = True
+    seen = truth.copy()
+    seen[14:15, :] = 4  # the row the map sees
+    if not false_wall:
+        world = ToyWorld(seen.copy())
+        world.known[:] = True
+    return world, seen
+
+
+def _loop_with_a_map_that_clears(world, seen, t_max=240.0):
+    """The explorer against a map holding `seen`, which clears a false obstacle node once the
+    robot has stood within 1.2 m of it facing it (the graph's evidence, in short)."""
+    ex = _explorer(_params(empty_retry_s=0.2))
+    x, y, yaw, t = 0.8, 4.0, math.pi, 0.0
+    looked = []
+    while t < t_max and not ex.done:
+        cells = np.argwhere(OBST[seen] & ~world.obstacle)
+        if len(cells):
+            d = (cells + 0.5) * RES - (x, y)
+            facing = np.cos(np.arctan2(d[:, 1], d[:, 0]) - yaw) > 0.8
+            cleared = (np.hypot(*d.T) < 1.2) & facing
+            seen[tuple(cells[cleared].T)] = world.gt[tuple(cells[cleared].T)]
+        w = ToyWorld(seen.copy())
+        w.known[:] = True
+        ex.update_grid(w.grid())
+        ex.update_pose(x, y, yaw, t)
+        if ex.wants_plan():
+            ex.plan(w.path_cost(ex.grid))
+            if ex._looking and (not looked or looked[-1] is not ex.goal):
+                looked.append(ex.goal)
+        v, om = ex.control()
+        x += v * math.cos(yaw) * 0.1
+        y += v * math.sin(yaw) * 0.1
+        yaw = wrap_angle(yaw + om * 0.1)
+        t += 0.1
+    return ex, looked, seen
+
+
+def test_a_robot_walled_in_by_wrong_labels_looks_again_and_the_wall_clears():
+    """No view is left (the whole lawn is known) but free lawn lies beyond a hedge row the map
+    got wrong: the explorer drives up to the row and faces it, the map clears it, and the run
+    ends as a finished one (no frontier), not as a robot closed in."""
+    world, seen = _walled_in(false_wall=True)
+    ex, looked, seen = _loop_with_a_map_that_clears(world, seen)
+    assert looked, "it never went to look again"
+    assert abs(looked[0].choice.xy[0] - 2.7) < 0.5  # the reachable side of the row
+    assert abs(wrap_angle(looked[0].choice.yaw)) < 0.5  # facing the row (+x)
+    assert (~OBST[seen[14]]).sum() >= 4  # the row seen again: a gap the robot can pass
+    assert ex.done_reason in ("no_frontier", "no_view_worth_it")
+
+
+def test_a_robot_closed_in_by_its_map_says_so_after_its_looks():
+    """The same, but the map keeps the row (a real hedge the robot cannot pass, or labels that
+    stay wrong): after `recoveries` looks from places `recovery_spacing_m` apart, it ends
+    `closed_in` (more seen ground beyond than within reach)."""
+    world, seen = _walled_in(false_wall=False)
+    ex, looked, _ = _loop_with_a_map_that_clears(world, seen)
+    assert ex.done_reason == "closed_in"
+    assert len(looked) == ex.config.recoveries == 3
+    xy = np.array([g.choice.xy for g in looked])
+    assert (np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)) + np.eye(3) * 9 >= 1.0).all()

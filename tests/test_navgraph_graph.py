@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from smana.common.classes import ClassTable
 from smana.common.config.navgraph import NavgraphConfig
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+from smana.common.navgrid import FLAG_DOUBTFUL, FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 from smana.services.navgraph.graph import NavGraph
 
 CLASSES = ClassTable.load("garden3drms")
@@ -23,10 +23,14 @@ RES, MAP_RES = 0.2, 0.1
 
 class ReferenceGraph:
     """Every occupied voxel by node; a node shows the highest (obstacle first on a tie, then the
-    larger sub-column id), the safety zone is recomputed from scratch by distances."""
+    larger sub-column id), is an obstacle by its class or by its column's rise over its lowest
+    voxel, and the safety zone is recomputed from scratch by distances."""
 
-    def __init__(self, nx, ny, res, radius, map_res, classes=CLASSES, forbidden_margin=True):
+    def __init__(
+        self, nx, ny, res, radius, map_res, classes=CLASSES, forbidden_margin=True, step_m=0.25
+    ):
         self.nx, self.ny, self.res, self.radius, self.map_res = nx, ny, res, radius, map_res
+        self.step_m = step_m
         self.classes, self.forbidden_margin = classes, forbidden_margin
         self.columns: dict[tuple[int, int], dict[tuple[int, int], tuple[int, float]]] = {}
 
@@ -56,7 +60,10 @@ class ReferenceGraph:
                 col.items(), key=lambda kv: (kv[0][0], ob[kv[1][0]], kv[0][1])
             )
             labels[ix, iy], heights[ix, iy], known[ix, iy] = lab, z, True
-            obstacle[ix, iy] = ob[lab]
+            # certain labels (no distribution): an obstacle class blocks at once, and so does a
+            # column rising more than the step over its lowest voxel, whatever its label
+            rise = z - min(zz for _, zz in col.values())
+            obstacle[ix, iy] = ob[lab] or rise > self.step_m
         safety = np.zeros_like(obstacle)
         # the zone's centres: obstacles, and forbidden nodes (water) with the margin
         centre = obstacle | (known & self.classes.forbidden_lut[labels] & self.forbidden_margin)
@@ -287,3 +294,130 @@ def test_safety_zone_surrounds_forbidden_nodes_as_obstacles(margin):
     assert not g.node(2.45, 2.05)["safety_zone"] and not g.node(2.05, 2.05)["safety_zone"]
     assert min(n_zone) > 0
     assert NavgraphConfig().forbidden_margin  # the default (docs/risk.md)
+
+
+class DoubtingReference:
+    """The doubt rule, slowly: per node a dict of voxels with their label and probability step,
+    and an evidence count moved once per integration that changed the node's column."""
+
+    def __init__(self, n, confirm=4, miss=2, step_m=0.25, classes=CLASSES):
+        self.n, self.confirm, self.miss, self.step_m = n, confirm, miss, step_m
+        self.ob = classes.obstacle_lut
+        self.columns: dict[tuple[int, int], dict] = {}
+        self.evidence: dict[tuple[int, int], int] = {}
+
+    def apply(self, centres, labels, confs, occupied):
+        changed = set()
+        for (x, y, z), lab, c, occ in zip(
+            centres.tolist(), labels.tolist(), confs.tolist(), occupied.tolist()
+        ):
+            ix, iy = math.floor(x / RES), math.floor(y / RES)
+            sub = ((math.floor(x / MAP_RES) & 255) << 8) | (math.floor(y / MAP_RES) & 255)
+            key = (math.floor(np.float32(z) / MAP_RES), sub)
+            col = self.columns.setdefault((ix, iy), {})
+            step = math.floor(min(max(c, 0.0), 1.0) * 255 + 0.5)
+            if occ:
+                if col.get(key) != (lab, step, float(np.float32(z))):
+                    col[key] = (lab, step, float(np.float32(z)))
+                    changed.add((ix, iy))
+            elif col.pop(key, None) is not None:
+                changed.add((ix, iy))
+        cap = 2 * self.confirm
+        for node in changed:
+            col = self.columns[node]
+            if not col:
+                self.evidence[node] = 0
+                continue
+            top = max(col.items(), key=lambda kv: (kv[0][0], self.ob[kv[1][0]], kv[0][1]))[1]
+            ev = self.evidence.get(node, 0)
+            if self.ob[top[0]]:
+                ev = cap if top[1] == 255 else min(ev + 1, cap)
+            else:
+                ev = max(ev - self.miss, -cap)
+            self.evidence[node] = ev
+
+    def flags(self):
+        out = np.zeros((self.n, self.n), np.uint8)
+        for (ix, iy), col in self.columns.items():
+            if not col:
+                continue
+            top = max(col.items(), key=lambda kv: (kv[0][0], self.ob[kv[1][0]], kv[0][1]))[1]
+            rise = top[2] - min(v[2] for v in col.values())
+            f = FLAG_KNOWN
+            if rise > self.step_m:
+                f |= FLAG_OBSTACLE
+            elif self.ob[top[0]]:
+                blocks = self.evidence[(ix, iy)] >= self.confirm
+                f |= FLAG_OBSTACLE if blocks else FLAG_DOUBTFUL
+            out[ix, iy] = f
+        return out
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    deltas=st.lists(
+        st.lists(
+            st.tuples(
+                st.integers(0, 7),
+                st.integers(0, 7),
+                st.integers(0, 3),
+                st.sampled_from([GRASS, TERRAIN, HEDGE, TREE]),
+                st.sampled_from([0.4, 0.7, 1.0]),
+                st.booleans(),
+            ),
+            min_size=1,
+            max_size=40,
+        ),
+        min_size=1,
+        max_size=10,
+    ),
+    confirm=st.sampled_from([0, 1, 3]),
+    miss=st.sampled_from([1, 2]),
+)
+def test_uncertain_obstacle_labels_doubt_until_the_evidence_confirms_them(deltas, confirm, miss):
+    """Obstacle, doubtful and free nodes against the slow rule, over uncertain labels: a column
+    rising over the step blocks; an obstacle class blocks when certain or when its evidence (+1 an
+    update whose top is an obstacle class, -miss one whose is not) reaches `semantic_confirm`."""
+    g = graph(
+        (0, 0),
+        (0.8, 0.8),
+        robot_radius_m=0.0,
+        tile_size=4,
+        semantic_confirm=confirm,
+        semantic_miss_weight=miss,
+    )
+    ref = DoubtingReference(4, confirm, miss)
+    mask = FLAG_KNOWN | FLAG_OBSTACLE | FLAG_DOUBTFUL
+    for delta in deltas:
+        vox = np.array([voxel(x, y, z) for x, y, z, *_ in delta], np.float32)
+        labels = np.array([d[3] for d in delta], np.uint16)
+        confs = np.array([d[4] for d in delta], np.float32)
+        occ = np.array([d[5] for d in delta], np.uint8)
+        g.integrate(vox, labels, occ, map_resolution_m=MAP_RES, confidences=confs)
+        ref.apply(vox.astype(np.float64), labels, confs, occ.astype(bool))
+        np.testing.assert_array_equal(graph_state(g)[2] & mask, ref.flags())
+
+
+def test_one_wrong_label_on_the_lawn_is_doubtful_and_clears_when_views_disagree():
+    """A single uncertain hedge label on flat ground makes no obstacle and no safety zone; the
+    hedge seen again and again is confirmed; the lawn seen again clears it; a real step (a column
+    rising 0.4 m) blocks at once whatever its label."""
+    g = graph((0, 0), (4, 4), robot_radius_m=0.4)
+    lawn = [voxel(10, 10, 0)]
+    integrate(g, lawn, [HEDGE], [1], confidences=np.array([0.9], np.float32))
+    n = g.node(1.05, 1.05)
+    assert n["doubtful"] and not n["obstacle"]
+    assert not g.node(1.25, 1.05)["safety_zone"]  # no zone round a doubtful node
+    for c in (0.8, 0.7, 0.6):  # three more views agree: evidence 4 = semantic_confirm
+        integrate(g, lawn, [HEDGE], [1], confidences=np.array([c], np.float32))
+    n = g.node(1.05, 1.05)
+    assert n["obstacle"] and not n["doubtful"] and n["obstacle_evidence"] == 4
+    assert g.node(1.25, 1.05)["safety_zone"]
+    for c in (0.5, 0.6):  # the lawn seen twice: 4 - 2 x 2 = 0 < 4
+        integrate(g, lawn, [GRASS], [1], confidences=np.array([c], np.float32))
+    n = g.node(1.05, 1.05)
+    assert not n["obstacle"] and not n["doubtful"] and not g.node(1.25, 1.05)["safety_zone"]
+    # a step: ground and a voxel 0.4 m over it, labelled grass, uncertain
+    step = [voxel(20, 20, 0), voxel(20, 20, 4)]
+    integrate(g, step, [GRASS, GRASS], [1, 1], confidences=np.array([0.5, 0.5], np.float32))
+    assert g.node(2.05, 2.05)["obstacle"]

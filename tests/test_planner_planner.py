@@ -146,3 +146,28 @@ def test_window_cache_follows_grid_changes():
     grid.apply_patch(np.array([[8, 0], [8, 1]]), [HEDGE, HEDGE], [0, 0], [3, 3])
     r = planner.plan((0.1, 0.1), (3.1, 0.1))
     assert r.ok and r.cost_distance > 3.0
+
+
+def test_a_doubtful_wall_is_dear_but_passable():
+    """Doubtful nodes (an obstacle class the graph has not confirmed) cost `doubtful_cost`: a path
+    goes round a doubtful wall when the detour is cheaper, and through it when there is none;
+    the cost matches Dijkstra over the same enter costs."""
+    from smana.common.navgrid import FLAG_DOUBTFUL
+
+    labels = np.full((30, 20), TERRAIN, np.uint16)
+    labels[14:16, :] = HEDGE  # a wall of hedge labels across the whole width
+    nx, ny = labels.shape
+    grid = NavGrid((0.0, 0.0), (nx, ny), 0.2, tile_size=16)
+    flags = np.full(labels.shape, FLAG_KNOWN, np.uint8)
+    flags[labels == HEDGE] |= FLAG_DOUBTFUL
+    grid.apply_patch(np.argwhere(flags > 0), labels.ravel(), np.zeros(nx * ny), flags.ravel())
+    planner = Planner(grid, CLASSES, PlannerConfig(doubtful_cost=10.0))
+    r = planner.plan((0.5, 2.0), (5.5, 2.0))
+    assert r.ok, r.message
+    enter = np.where(labels == HEDGE, 0.8 * 10.0, 0.8 * CLASSES.cost_lut[labels])
+    want = dijkstra_cost(enter, np.zeros(labels.shape), (2, 10), (27, 10), 0.2, 0.0)
+    assert r.cost_total == pytest.approx(want, rel=1e-6)
+    # confirmed, the same wall closes the way
+    flags[labels == HEDGE] = FLAG_KNOWN | FLAG_OBSTACLE
+    grid.apply_patch(np.argwhere(flags > 0), labels.ravel(), np.zeros(nx * ny), flags.ravel())
+    assert not Planner(grid, CLASSES).plan((0.5, 2.0), (5.5, 2.0)).ok

@@ -53,7 +53,7 @@ def test_enter_costs_and_their_minimum(allow_unknown):
     flags = flags.astype(np.uint8)
     lut = np.array([np.inf, 1.6, 0.8, 2.4, np.inf, np.inf, 0.4, np.inf, np.inf, 3.0])
     enter = np.full(labels.shape, -1.0)
-    lowest = _enter_costs(labels, flags, EnterCosts(lut, allow_unknown, 2.0), enter)
+    lowest = _enter_costs(labels, flags, EnterCosts(lut, allow_unknown, 2.0, 10.0), enter)
     blocked = (flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0
     known = (flags & FLAG_KNOWN) != 0
     want = np.where(labels < len(lut), lut[np.minimum(labels, len(lut) - 1)], np.inf)
@@ -64,7 +64,7 @@ def test_enter_costs_and_their_minimum(allow_unknown):
     np.testing.assert_array_equal(enter, want)
     assert lowest == want[np.isfinite(want)].min()
     blocked_all = np.full_like(flags, FLAG_OBSTACLE)
-    costs = EnterCosts(lut, allow_unknown, 2.0)
+    costs = EnterCosts(lut, allow_unknown, 2.0, 10.0)
     none = _enter_costs(labels, blocked_all, costs, np.empty(labels.shape))
     assert none == 0.0
 

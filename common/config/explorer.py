@@ -91,6 +91,14 @@ class ExplorerConfig(Section, section="explorer"):
     # an obstacle was mapped late): it backs out slowly
     creep_speed_mps: float = param(0.15, gt=0)
     done_after_empty: int = param(3, gt=0)  # plans finding no view before it is done
+    # then, before it gives up: drive to look again at what cuts it off from free ground it has
+    # seen (services/explorer/recovery.py), at most this many times while no view is found, each
+    # from a place this far from the earlier ones
+    recoveries: int = param(3, ge=0)
+    recovery_spacing_m: float = param(1.0, gt=0)
+    # seen but unreachable free ground of at least this, and more than the reachable: the robot's
+    # own map closed it in (the run ends `closed_in`, a failure)
+    closed_in_min_m2: float = param(2.0, gt=0)
     empty_retry_s: float = param(1.0, gt=0)  # wait between plans that found no view
     # traversability cost overrides sent with every path request, "grass=4" or "1=4"
     class_costs: list[str] = param([])

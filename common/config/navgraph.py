@@ -20,6 +20,17 @@ class NavgraphConfig(Section, section="navgraph"):
     # The safety zone surrounds a node labelled with a forbidden class (water) as it surrounds an
     # obstacle: a path keeps the robot's radius from it. False: only the node itself is closed.
     forbidden_margin: bool = True
+    # A map that doubts before it blocks (docs/architecture.md, "Obstacles"): a node is an
+    # obstacle when its column stands more than `obstacle_step_m` over its lowest voxel (the robot
+    # cannot drive over it, whatever its label), or when its class is an obstacle class and either
+    # the label is certain (p = 1) or the node's evidence reached `semantic_confirm`: +1 for each
+    # update whose top voxel has an obstacle class, -`semantic_miss_weight` for each that has not,
+    # kept within +/- 2 x semantic_confirm. Until then the node is doubtful: passable at the
+    # planner's `doubtful_cost`, no safety zone round it. semantic_confirm = 0: every obstacle
+    # label blocks at once (the paper's rule); obstacle_step_m = inf: no geometric obstacles.
+    obstacle_step_m: float = param(0.25, gt=0)
+    semantic_confirm: int = param(4, ge=0, le=60)
+    semantic_miss_weight: int = param(2, ge=1, le=60)
     tile_size: int = param(32, ge=1, le=256)  # nodes per tile side; memory is allocated per tile
     # Occupied voxels remembered per node column (to recompute the node when the top one is
     # cleared); a 1.7 m person over ground at 0.1 m / 0.2 m fills ~70. Beyond it the lowest

@@ -26,6 +26,10 @@ class PlannerConfig(Section, section="planner"):
     max_step_m: float = param(0.3, gt=0, lt=math.inf)  # a steeper step is not traversable
     # T(l) of unknown nodes when a request allows them
     unknown_cost: float = param(2.0, ge=0, lt=math.inf)
+    # T(l) of a doubtful node: an obstacle class the navigation graph has not confirmed (no height,
+    # too few agreeing views; navgraph.semantic_confirm). Dear, so that paths go round it when
+    # they can, but passable, so that a few wrong labels do not wall the robot in.
+    doubtful_cost: float = param(10.0, ge=0, lt=math.inf)
     # Both are exact (admissible and consistent). "euclidean" is the paper's d(n, g); "octile"
     # (octile distance + cheapest enter cost per step) expands 3-5x fewer nodes.
     heuristic: Heuristic = "octile"

@@ -12,8 +12,11 @@ Decisions, in the order they are checked:
 - the goal's own view gain fell under `min_gain_m2` (seen on the way) -> plan;
 - every `replan_period_s` -> plan, and switch only to a view better by `switch_margin_share`
   (nearest_frontier: keep the goal while it is still worth a look);
-- no view worth it: spin once on the spot to look around, then give up after
-  `done_after_empty` empty plans; or the time budget is over -> done.
+- no view worth it: spin once on the spot to look around; after `done_after_empty` empty plans,
+  look again at what cuts the robot off from free ground it has seen (`recovery.py`, up to
+  `recoveries` times), then give up: `closed_in` when that ground is larger than what it can
+  reach (its own map closed it in), else `no_view_worth_it` / `no_frontier`; or the time budget
+  is over -> done.
 
 Two ways to choose (`strategy`): "nbv", the paper's next-best view (`frontier.select_view` with
 `frontier.ViewScore`), and "nearest_frontier", Yamauchi's baseline: the frontier node nearest by
@@ -41,6 +44,7 @@ from smana.services.explorer.choosing import Choosing
 from smana.services.explorer.driving import BACK_OFF_S, Driving
 from smana.services.explorer.follower import PurePursuit
 from smana.services.explorer.navigation import NavGoal, Navigating
+from smana.services.explorer.recovery import Recovering
 from smana.services.explorer.team import Team
 
 # path_cost(start_xy, goal_xy) -> (cost, path (K, 2|3)) or None when there is no path
@@ -105,7 +109,7 @@ class PlanOutcome:
     gains_m2: np.ndarray
 
 
-class Explorer(Choosing, Driving, Navigating):
+class Explorer(Choosing, Driving, Navigating, Recovering):
     """Next-best-view exploration state machine (see the module docstring)."""
 
     def __init__(
@@ -157,6 +161,9 @@ class Explorer(Choosing, Driving, Navigating):
         self._empty_plans = 0
         self._spin: dict | None = None
         self._spun_at: list[np.ndarray] = []
+        self._looked_at: list[np.ndarray] = []  # where it went to look again (recovery.py)
+        self.n_recoveries = 0
+        self._looking = False  # the goal is a look again (no view gain of its own)
         self._blacklist: list[tuple[np.ndarray, float]] = []
         self._progress_mark: tuple[float, float] | None = None  # (t, remaining length)
         self.done_reason: str | None = None
@@ -341,7 +348,8 @@ class Explorer(Choosing, Driving, Navigating):
         front = fr.frontier_cells(reach, unknown)
         self.frontier_size = len(front)
         self.history.append((self.t_now, self.explored_m2, self.frontier_size, self.distance_m))
-        keep_goal = reason == "periodic" and self.goal is not None and not self._goal_exhausted()
+        keep_goal = reason == "periodic" and self.goal is not None
+        keep_goal = keep_goal and (self._looking or not self._goal_exhausted())
 
         def goal_cost(goal_xy):
             gc = g.cell_of(goal_xy)
@@ -399,9 +407,16 @@ class Explorer(Choosing, Driving, Navigating):
             if self._maybe_spin():
                 return outcome
             if self._empty_plans >= self.config.done_after_empty:
-                self.finish("no_view_worth_it" if len(cells) else "no_frontier")
+                if self._maybe_look_again(free, reach, goal_cost):
+                    self._empty_plans = 0
+                    return outcome
+                if self._closed_in(free, reach):
+                    self.finish("closed_in")
+                else:
+                    self.finish("no_view_worth_it" if len(cells) else "no_frontier")
             return outcome
         self._empty_plans = 0
+        self.n_recoveries = 0  # a view again: the looks were worth it
         if self._keeps(keep_goal, choice):
             return outcome
         outcome.switched = self.goal is not None
@@ -445,6 +460,8 @@ class Explorer(Choosing, Driving, Navigating):
             "n_goals": self.n_goals,
             "n_blocked": self.n_replans_blocked,
             "n_stuck": self.n_stuck,
+            "n_recoveries": self.n_recoveries,
+            "n_looks": len(self._looked_at),
             "n_claims_refused": self.n_claims_refused,
             "n_yields": self.n_yields,
             "n_team_stops": 0 if self.team is None else self.team.n_stops,
@@ -477,6 +494,7 @@ class Explorer(Choosing, Driving, Navigating):
     ) -> None:
         """Drive to `choice` (None: stop). `count`: a view of exploration's (n_goals);
         `tolerance_m`: how near its end is near enough (None: the follower's)."""
+        self._looking = False
         if choice is None:
             self.goal = None
             self.follower = PurePursuit(self.config.follower)

@@ -1,7 +1,8 @@
 """Next-best-view frontier exploration on the 2.5D navigation grid (paper 4.3, after Achat 2022).
 
 The explorer works on a box of the navigation graph exported as dense arrays indexed `[ix, iy]`
-at the graph resolution: `labels` (class ids), `flags` (bit 1 KNOWN, 2 OBSTACLE, 4 SAFETY_ZONE).
+at the graph resolution: `labels` (class ids), `flags` (bit 1 KNOWN, 2 OBSTACLE, 4 SAFETY_ZONE,
+8 DOUBTFUL).
 Three steps, each usable alone:
 
 1. `traversable_mask` / `reachable_mask` / `frontier_cells`: candidate views are known, free,
@@ -32,10 +33,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from smana.common.config.explorer import ViewConfig
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+from smana.common.navgrid import FLAG_DOUBTFUL, FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 
 # the navigation graph's node flags, under the short names this module has always used
-KNOWN, OBSTACLE, SAFETY_ZONE = FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+KNOWN, OBSTACLE, SAFETY_ZONE, DOUBTFUL = FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, FLAG_DOUBTFUL
 
 EIGHT_CONNECTED = np.ones((3, 3), bool)  # the planner's graph: what is reachable here is there
 
@@ -53,7 +54,9 @@ def _check_grid(labels: np.ndarray, flags: np.ndarray) -> None:
 def traversable_mask(
     labels: np.ndarray, flags: np.ndarray, traversable_lut: np.ndarray
 ) -> np.ndarray:
-    """Known nodes the robot may stand on: a traversable class, no obstacle, not in the safety zone.
+    """Known nodes the robot may stand on: a traversable class, or a doubtful node (an obstacle
+    class the graph has not confirmed: the planner's paths may cross it, dearly); no obstacle,
+    not in the safety zone.
 
     Labels outside the lookup table count as not traversable (a corrupt id must never open a
     way through an obstacle).
@@ -66,7 +69,7 @@ def traversable_mask(
     trav = np.zeros(labels.shape, bool)
     trav[inside] = lut[labels[inside]]
     free = (flags & KNOWN).astype(bool) & ~(flags & (OBSTACLE | SAFETY_ZONE)).astype(bool)
-    return trav & free
+    return (trav | ((flags & DOUBTFUL) != 0)) & free
 
 
 def reachable_mask(free: np.ndarray, start: tuple[int, int]) -> np.ndarray:

@@ -1,9 +1,20 @@
 """The navigation graph builder (paper 3.3.1): map deltas in, changed nodes out. No zenoh here.
 
 Each map voxel is projected to the 2.5D node under it. A node shows the highest occupied voxel of
-its column (the first voxel sets label and height, afterwards the highest wins), obstacle classes
-come from the class table, and the safety zone marks nodes within `robot_radius_m` of an obstacle
-(and, with `forbidden_margin`, the default, of a node whose label is a forbidden class: water).
+its column (the first voxel sets label and height, afterwards the highest wins), and the safety
+zone marks nodes within `robot_radius_m` of an obstacle (and, with `forbidden_margin`, the default,
+of a node whose label is a forbidden class: water).
+
+A node doubts before it blocks (STYLE: a single observation sets a cost, not a wall). It is an
+obstacle when geometry says so: its column rises more than `obstacle_step_m` over its lowest
+voxel, whatever the label; or when its label is an obstacle class of the class table and either
+certain (p = 1, as labels without a distribution are) or confirmed by the node's evidence, a
+count of the updates whose top voxel had an obstacle class against those whose had not
+(`semantic_confirm`, `semantic_miss_weight`; kept in the `obstacle_evidence` layer). An obstacle
+class short of that is FLAG_DOUBTFUL: passable at the planner's `doubtful_cost`, and no centre of
+the safety zone, so a few wrong labels on the ground no longer wall the robot in; a false obstacle
+clears when later views disagree (each one takes `semantic_miss_weight` off the evidence), as
+Nav2's obstacle layer clears what its rays see through.
 
 A voxel is a surface voxel when the map says it is occupied. A map that carries signed distances
 (`MapDelta.values_kind == "signed_distance"`) marks its extracted surface in `occupied` (the zero
@@ -45,6 +56,7 @@ import numpy as np
 from smana.common.classes import ClassTable
 from smana.common.config.navgraph import NavgraphConfig
 from smana.common.navgrid import (
+    FLAG_DOUBTFUL,
     FLAG_KNOWN,
     FLAG_OBSTACLE,
     FLAG_SAFETY_ZONE,
@@ -65,6 +77,7 @@ from .kernels import (
     GridGeometry,
     NodeChanges,
     NodeLayers,
+    NodeRule,
     Voxels,
     _integrate_kernel,
     _prepare,
@@ -135,6 +148,7 @@ class NavGraph:
         g.add_layer("col_floor", np.int32, NO_FLOOR)
         g.add_layer("obstacle_count", np.int32, 0)
         g.add_layer("epoch", np.uint32, 0)
+        g.add_layer("obstacle_evidence", np.int8, 0)
         g.add_risk_layers()
         self._epoch = 0
         cap = 1024
@@ -150,10 +164,17 @@ class NavGraph:
             state=np.array([-1, 0, 0], np.int64),
             column_capacity=config.column_capacity,
         )
-        kind = classes.obstacle_lut * np.uint8(LUT_OBSTACLE | LUT_ZONE)
+        kind = classes.obstacle_lut * np.uint8(LUT_OBSTACLE)
         if config.forbidden_margin:
             kind |= classes.forbidden_lut * np.uint8(LUT_ZONE)
         self._luts = ClassLuts(classes.valid_lut, classes.ignored_lut.copy(), kind.astype(np.uint8))
+        self._rule = NodeRule(
+            self._luts.kind,
+            float(config.obstacle_step_m),
+            int(config.semantic_confirm),
+            int(config.semantic_miss_weight),
+            2 * int(config.semantic_confirm),
+        )
         res, radius = self.resolution_m, config.robot_radius_m
         r_cells = int(np.floor(radius / res + 1e-9))
         dx, dy = np.meshgrid(np.arange(-r_cells, r_cells + 1), np.arange(-r_cells, r_cells + 1))
@@ -335,7 +356,7 @@ class NavGraph:
         flips = Flips(np.empty(m, np.int64), np.empty(m, np.int32))
         geometry, layers = self._kernel_state()  # after allocating: the pool may have grown
         counts = _integrate_kernel(
-            vox, geometry, layers, self.columns, self._luts.kind, epoch, changes, flips
+            vox, geometry, layers, self.columns, self._rule, epoch, changes, flips
         )
         n_touched, n_flips, n_oob, n_below, n_lost = (int(c) for c in counts)
         changes = changes.head(n_touched)
@@ -428,6 +449,8 @@ class NavGraph:
             "known": bool(f[0] & FLAG_KNOWN),
             "obstacle": bool(f[0] & FLAG_OBSTACLE),
             "safety_zone": bool(f[0] & FLAG_SAFETY_ZONE),
+            "doubtful": bool(f[0] & FLAG_DOUBTFUL),
+            "obstacle_evidence": int(self.grid.flat("obstacle_evidence")[flat]) if flat >= 0 else 0,
             **dict(zip(RISK_LAYER_NAMES, (int(a[0]) for a in self.grid.read_risk([[ix, iy]])))),
             "allocated": bool(flat >= 0),
             "column_voxels": len(column),

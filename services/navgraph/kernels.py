@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+from smana.common.navgrid import FLAG_DOUBTFUL, FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 
 NO_FLOOR = int(np.iinfo(np.int32).min)  # col_floor of a column that never overflowed
 
@@ -56,6 +56,9 @@ class NodeLayers(NamedTuple):
     alt_labels: np.ndarray  # u2: the second most likely class, 0 for none
     p_label: np.ndarray  # u1: probability of `labels` x 255
     p_alt: np.ndarray  # u1: probability of `alt_labels` x 255
+    # i1: the node's semantic evidence for an obstacle class (NodeRule): +1 per update whose top
+    # voxel has one, -miss_weight per update whose has not, within +/- cap
+    obstacle_evidence: np.ndarray
 
 
 class ColumnStore(NamedTuple):
@@ -123,6 +126,18 @@ class Distribution(NamedTuple):
     alt_confidences: np.ndarray  # f4 (M,) or (0,): its probability
 
 
+class NodeRule(NamedTuple):
+    """When a node blocks (the [navgraph] obstacle_step_m / semantic_* fields): its class's kind
+    bits, the column height over its lowest voxel that blocks whatever the label, and the evidence
+    an uncertain obstacle label needs."""
+
+    kind: np.ndarray  # u1 per label id: LUT_OBSTACLE | LUT_ZONE bits (ClassLuts.kind)
+    step_m: float
+    confirm: int  # evidence at which an uncertain obstacle label blocks (0: at once)
+    miss_weight: int
+    cap: int  # evidence is kept within [-cap, cap]
+
+
 class ClassLuts(NamedTuple):
     """What the class table says about a label id, as look-up tables."""
 
@@ -132,7 +147,8 @@ class ClassLuts(NamedTuple):
 
 
 # The bits of ClassLuts.kind: an obstacle class, and a class whose nodes the safety zone surrounds
-# (every obstacle class, and with `navgraph.forbidden_margin` every forbidden one).
+# by their label alone (with `navgraph.forbidden_margin`, every forbidden one); an obstacle node
+# (FLAG_OBSTACLE: confirmed, not doubtful) is always a centre of the zone.
 LUT_OBSTACLE = 1
 LUT_ZONE = 2
 
@@ -212,7 +228,8 @@ def _voxel_key(geo, map_res, x, y, z):
 def _with_safety_zone(flags, obstacle_count):
     """A node is in the safety zone when a zone centre (an obstacle, or a forbidden class with
     `forbidden_margin`) is within the robot radius (its count is positive) and it is not an
-    obstacle itself (a forbidden node is in its own zone: never entered either way)."""
+    obstacle itself (a forbidden node is in its own zone: never entered either way). A doubtful
+    node is no centre, but may lie within a real obstacle's zone."""
     if obstacle_count > 0 and not (flags & FLAG_OBSTACLE):
         return flags | np.uint8(FLAG_SAFETY_ZONE)
     return flags & ~np.uint8(FLAG_SAFETY_ZONE)
@@ -320,7 +337,7 @@ def _prepare(labels, occupied, luts, geo, vox, missing, dist):
 
 
 @numba.njit(cache=True, _nrt=False)
-def _integrate_kernel(vox, geo, nodes, cols, kind_lut, epoch, changes, flips):
+def _integrate_kernel(vox, geo, nodes, cols, rule, epoch, changes, flips):
     """Column update for every usable voxel, then node head recompute for every touched node.
     Returns the counts (touched nodes, zone flips, out of bounds, below floor, columns lost);
     the flips (node, +1 became a zone centre / -1 stopped) are for the safety-zone kernel."""
@@ -356,8 +373,8 @@ def _integrate_kernel(vox, geo, nodes, cols, kind_lut, epoch, changes, flips):
         was_known = (changes.flags[k] & FLAG_KNOWN) != 0
         if nodes.col_head[n] < 0 and nodes.col_floor[n] != NO_FLOOR and was_known:
             n_lost += 1
-        centre = _node_head_recompute(cols, nodes, kind_lut, n)
-        was_centre = _zone_centre(kind_lut, changes.label[k], changes.flags[k])
+        centre = _node_head_recompute(cols, nodes, rule, n)
+        was_centre = _zone_centre(rule.kind, changes.label[k], changes.flags[k])
         if centre != was_centre:
             flips.node[nf] = n
             flips.sign[nf] = 1 if centre else -1
@@ -502,18 +519,22 @@ def _column_forget_lowest(cols, nodes, n):
 
 @numba.njit(cache=True, inline="always")
 def _zone_centre(kind_lut, label, flags):
-    """Whether a node with this label and flags is a centre of the safety zone: known, and of an
-    obstacle class (or a forbidden one, with `forbidden_margin`)."""
+    """Whether a node with this label and flags is a centre of the safety zone: an obstacle (a
+    doubtful one is not), or known and of a forbidden class with `forbidden_margin`."""
+    if flags & FLAG_OBSTACLE:
+        return True
     return (flags & FLAG_KNOWN) != 0 and (kind_lut[label] & LUT_ZONE) != 0
 
 
 @numba.njit(cache=True, inline="always")
-def _node_head_recompute(cols, nodes, kind_lut, n):
+def _node_head_recompute(cols, nodes, rule, n):
     """Node n shows its column's head: label, height and flags from the highest level (among
     voxels of that level an obstacle wins, the conservative choice, then the larger sub-column
     id, so the result does not depend on arrival order), with that voxel's label distribution;
-    an empty column is unknown (and certain: nothing to be unsure of). Returns whether the node
+    an empty column is unknown (and certain: nothing to be unsure of). Called once per node an
+    update changed, so it also counts the node's evidence (`_blocks`). Returns whether the node
     is a centre of the safety zone now."""
+    kind_lut = rule.kind
     e = nodes.col_head[n]
     flags = np.uint8(0)
     if e < 0:
@@ -522,6 +543,7 @@ def _node_head_recompute(cols, nodes, kind_lut, n):
         nodes.alt_labels[n] = 0
         nodes.p_label[n] = 255
         nodes.p_alt[n] = 0
+        nodes.obstacle_evidence[n] = 0
     else:
         best = e
         cur = cols.next[e]
@@ -531,16 +553,42 @@ def _node_head_recompute(cols, nodes, kind_lut, n):
             if (ob_c and not ob_b) or (ob_c == ob_b and cols.sub[cur] > cols.sub[best]):
                 best = cur
             cur = cols.next[cur]
+        low_z = cols.z[e]  # the column is sorted from the highest level down: its last entry
+        while cur >= 0:
+            low_z = cols.z[cur]
+            cur = cols.next[cur]
         nodes.labels[n] = cols.label[best]
         nodes.heights[n] = cols.z[best]
         nodes.alt_labels[n] = cols.alt_label[best]
         nodes.p_label[n] = cols.p_label[best]
         nodes.p_alt[n] = cols.p_alt[best]
         flags |= np.uint8(FLAG_KNOWN)
-        if kind_lut[cols.label[best]] & LUT_OBSTACLE:
-            flags |= np.uint8(FLAG_OBSTACLE)
+        flags |= _blocks(rule, nodes, n, cols.label[best], cols.p_label[best], cols.z[e] - low_z)
     nodes.flags[n] = _with_safety_zone(flags, nodes.obstacle_count[n])
     return _zone_centre(kind_lut, nodes.labels[n], flags)
+
+
+@numba.njit(cache=True, inline="always")
+def _blocks(rule, nodes, n, label, p_label, rise_m):
+    """FLAG_OBSTACLE, FLAG_DOUBTFUL or 0 for a known node whose top voxel has `label` (its
+    probability x 255 `p_label`) and whose column rises `rise_m` over its lowest voxel; counts
+    this update into the node's evidence. Geometry blocks whatever the label (a step the robot
+    cannot climb); an obstacle class blocks when its label is certain or the evidence reached
+    `rule.confirm`, and is doubtful until then."""
+    semantic = (rule.kind[label] & LUT_OBSTACLE) != 0
+    ev = np.int64(nodes.obstacle_evidence[n])
+    if semantic:
+        ev = rule.cap if p_label == 255 else min(ev + 1, rule.cap)
+    else:
+        ev = max(ev - rule.miss_weight, -rule.cap)
+    nodes.obstacle_evidence[n] = ev
+    if rise_m > rule.step_m:
+        return np.uint8(FLAG_OBSTACLE)
+    if not semantic:
+        return np.uint8(0)
+    if ev >= rule.confirm:
+        return np.uint8(FLAG_OBSTACLE)
+    return np.uint8(FLAG_DOUBTFUL)
 
 
 @numba.njit(cache=True, _nrt=False)

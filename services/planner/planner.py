@@ -31,6 +31,7 @@ import numpy as np
 from smana.common.classes import ClassTable
 from smana.common.config.planner import PlannerConfig, Risk
 from smana.common.navgrid import (
+    FLAG_DOUBTFUL,
     FLAG_KNOWN,
     FLAG_OBSTACLE,
     FLAG_SAFETY_ZONE,
@@ -381,7 +382,8 @@ class Planner:
         # "label", or a grid without the layers: as without risk
         pools = None if p.risk == "label" else RiskPools.of(self.grid)
         model = None if pools is None else risk_model(p)
-        key = (self.grid.version, box, lut.tobytes(), p.t_f, p.unknown_cost, allow_unknown, model)
+        key = (self.grid.version, box, lut.tobytes(), p.t_f, p.unknown_cost, p.doubtful_cost)
+        key += (allow_unknown, model)
         if self._enter_key != key:
             # Scale the finite costs only: inf * 0 would be NaN when t_f = 0.
             scaled = np.where(np.isfinite(lut), lut * p.t_f, np.inf)
@@ -392,7 +394,7 @@ class Planner:
                 # Only the patched nodes: their enter costs, and a minimum that can only fall
                 # (a minimum that is too low keeps the heuristic a lower bound: still exact).
                 out, lowest = self._enter_cache
-                costs = EnterCosts(scaled, bool(allow_unknown), float(p.unknown_cost * p.t_f))
+                costs = _enter_costs_of(scaled, allow_unknown, p)
                 if pools is None:
                     low = _enter_cells(labels, flags, costs, cells, out)
                 else:
@@ -404,7 +406,7 @@ class Planner:
             old = self._enter_cache
             out = old[0] if old is not None and old[0].shape == labels.shape else None
             out = np.empty(labels.shape) if out is None else out  # refilled: no page faults
-            costs = EnterCosts(scaled, bool(allow_unknown), float(p.unknown_cost * p.t_f))
+            costs = _enter_costs_of(scaled, allow_unknown, p)
             if pools is None:
                 lowest = _enter_costs(labels, flags, costs, out)
             else:
@@ -578,12 +580,24 @@ class EnterCosts(NamedTuple):
     lut: np.ndarray  # f8 per label id: t_f * T(l), +inf where not traversable
     allow_unknown: bool  # unknown nodes (and known ones of the "unknown" class) may be entered
     unknown_cost: float  # t_f * their cost
+    doubtful_cost: float  # t_f * the cost of a doubtful node (an unconfirmed obstacle class)
+
+
+def _enter_costs_of(scaled_lut, allow_unknown, p: PlannerConfig) -> EnterCosts:
+    return EnterCosts(
+        scaled_lut,
+        bool(allow_unknown),
+        float(p.unknown_cost * p.t_f),
+        float(p.doubtful_cost * p.t_f),
+    )
 
 
 @numba.njit(cache=True)
-def _enter_cost(f, lab, lut, n_lut, allow_unknown, unknown_cost):
+def _enter_cost(f, lab, lut, n_lut, allow_unknown, unknown_cost, doubtful_cost):
     if f & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
         return np.inf
+    if f & FLAG_DOUBTFUL:
+        return doubtful_cost  # dear but passable: the graph has not confirmed the obstacle
     if f & FLAG_KNOWN:
         c = lut[lab] if lab < n_lut else np.inf
         if c == np.inf and lab == 0 and allow_unknown:
@@ -701,19 +715,19 @@ def _enter_cells_risk(window, pools, grid_cells, cells, costs, prices, out):
     `grid_cells` (`cells` in the window)."""
     labels, flags, _ = window
     tile_map, alt_pool, pl_pool, pa_pool, t = pools
-    lut, allow_unknown, unknown_cost = costs
+    lut, allow_unknown, unknown_cost, doubtful_cost = costs
     model, alt_cost, alt_forbidden = prices
     n_lut = len(lut)
     lowest = np.inf
     for k in range(len(cells)):
         i, j = cells[k, 0], cells[k, 1]
         f = flags[i, j]
-        c = _enter_cost(f, labels[i, j], lut, n_lut, allow_unknown, unknown_cost)
+        c = _enter_cost(f, labels[i, j], lut, n_lut, allow_unknown, unknown_cost, doubtful_cost)
         gx, gy = grid_cells[k, 0], grid_cells[k, 1]
         slot = tile_map[gx // t, gy // t]
-        # Obstacles, safety zones, unknown nodes, a label that cannot be entered and a certain
-        # label: as without risk.
-        if slot >= 0 and c < np.inf and f & FLAG_KNOWN:
+        # Obstacles, safety zones, unknown and doubtful nodes, a label that cannot be entered and
+        # a certain label: as without risk.
+        if slot >= 0 and c < np.inf and (f & (FLAG_KNOWN | FLAG_DOUBTFUL)) == FLAG_KNOWN:
             lx, ly = gx % t, gy % t
             pl = pl_pool[slot, lx, ly]
             if pl < P_SCALE:
@@ -769,8 +783,12 @@ def _enter_costs_risk(window, pools, ix0, iy0, costs, prices, out):
                 for q in range(m):
                     k = doubtful[q]
                     c = out[i, j + k]
-                    # obstacles, safety zones, unknown nodes and closed labels: as without risk
-                    if c < np.inf and flags[i, j + k] & FLAG_KNOWN:
+                    # obstacles, safety zones, unknown and doubtful nodes and closed labels: as
+                    # without risk
+                    if (
+                        c < np.inf
+                        and (flags[i, j + k] & (FLAG_KNOWN | FLAG_DOUBTFUL)) == FLAG_KNOWN
+                    ):
                         pl = run_pl[k]
                         a = run_alt[k]
                         a = a if a < n_lut else 0  # outside the table: no class named
@@ -788,12 +806,14 @@ def _enter_costs_risk(window, pools, ix0, iy0, costs, prices, out):
 def _enter_cells(labels, flags, costs, cells, out):
     """`_enter_costs` for a list of window cells; returns their smallest finite cost (+inf
     when none is finite, so that it leaves the cached minimum as it was)."""
-    lut, allow_unknown, unknown_cost = costs
+    lut, allow_unknown, unknown_cost, doubtful_cost = costs
     lowest = np.inf
     n_lut = len(lut)
     for k in range(len(cells)):
         i, j = cells[k, 0], cells[k, 1]
-        c = _enter_cost(flags[i, j], labels[i, j], lut, n_lut, allow_unknown, unknown_cost)
+        c = _enter_cost(
+            flags[i, j], labels[i, j], lut, n_lut, allow_unknown, unknown_cost, doubtful_cost
+        )
         out[i, j] = c
         if c < lowest:
             lowest = c
@@ -805,14 +825,14 @@ def _enter_costs(labels, flags, costs, out):
     """Fill `out` with t_f * T(l) per node (`EnterCosts`); +inf for obstacles, safety zones,
     non-traversable classes, and unknown nodes unless allowed. Returns the smallest finite cost
     (0 when none is finite)."""
-    lut, allow_unknown, unknown_cost = costs
+    lut, allow_unknown, unknown_cost, doubtful_cost = costs
     nx, ny = labels.shape
     lowest = np.inf
     n_lut = len(lut)
     for i in range(nx):
         for j in range(ny):
             out[i, j] = _enter_cost(
-                flags[i, j], labels[i, j], lut, n_lut, allow_unknown, unknown_cost
+                flags[i, j], labels[i, j], lut, n_lut, allow_unknown, unknown_cost, doubtful_cost
             )
             if out[i, j] < lowest:
                 lowest = out[i, j]

@@ -69,13 +69,16 @@ def cvar(atoms, alpha) -> float:
 def risk_enter_costs(labels, flags, alt, p_label, p_alt, classes, config, allow_unknown=False):
     """Enter cost of every node of dense windows (labels, flags and the risk layers) under
     `config` (a PlannerConfig), one node at a time: the definitions of docs/risk.md as written."""
-    from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+    from smana.common.navgrid import FLAG_DOUBTFUL, FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 
     t_f = config.t_f
     out = np.full(np.shape(labels), np.inf)
     for (i, j), lab in np.ndenumerate(labels):
         f = int(flags[i, j])
         if f & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
+            continue
+        if f & FLAG_DOUBTFUL:  # an unconfirmed obstacle class: dear, whatever the risk mode
+            out[i, j] = t_f * config.doubtful_cost
             continue
         if not f & FLAG_KNOWN:
             out[i, j] = config.unknown_cost * t_f if allow_unknown else np.inf

@@ -11,7 +11,13 @@ import math
 import numpy as np
 
 from smana.common.messages import Pose, quat_to_matrix
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, RISK_LAYER_NAMES
+from smana.common.navgrid import (
+    FLAG_DOUBTFUL,
+    FLAG_KNOWN,
+    FLAG_OBSTACLE,
+    FLAG_SAFETY_ZONE,
+    RISK_LAYER_NAMES,
+)
 from smana.common.risk import risk_class_costs
 
 from . import costmap_types as nav2
@@ -144,12 +150,14 @@ def _scaled(labels, cost_lut, costs, planner, top: int) -> tuple[np.ndarray, np.
 def costmap_values(labels, flags, cost_lut, costs=None, planner=None) -> np.ndarray:
     """OccupancyGrid values of graph nodes: obstacles and safety zone 100, unknown -1, known
     traversable nodes their class's traversability cost scaled to 0 (cheapest class of the table)
-    .. 98 (dearest); a known node of a class that is not traversable is 100. `costs` and
+    .. 98 (dearest); a known node of a class that is not traversable is 100, a doubtful one (an
+    obstacle class the graph has not confirmed: passable for the planner) 98. `costs` and
     `planner`: each node's T under the planner's risk mode (`node_costs`); a node that mode
     closes is 100."""
     scaled, ok = _scaled(labels, cost_lut, costs, planner, MAX_TRAVERSABLE)
     out = np.where(ok, scaled, LETHAL).astype(np.int8)
     out[(flags & FLAG_KNOWN) == 0] = UNKNOWN
+    out[(flags & FLAG_DOUBTFUL) != 0] = MAX_TRAVERSABLE  # dear but passable, as the planner has it
     out[(flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0] = LETHAL
     return out
 
@@ -199,12 +207,14 @@ def nav2_costmap_values(labels, flags, cost_lut, costs=None, planner=None) -> np
     cost_values.hpp): obstacles 254 (LETHAL_OBSTACLE), the robot-radius safety zone 253
     (INSCRIBED_INFLATED_OBSTACLE), unknown 255 (NO_INFORMATION); known traversable nodes their
     class's traversability cost scaled from 0 (FREE_SPACE: the cheapest class of the table) to
-    252 (MAX_NON_OBSTACLE: the dearest); a known node of a class that is not traversable 254.
+    252 (MAX_NON_OBSTACLE: the dearest); a known node of a class that is not traversable 254, a
+    doubtful one 252.
     `costs` and `planner`: each node's T under the planner's risk mode (`node_costs`); a node
     that mode closes is 254."""
     scaled, ok = _scaled(labels, cost_lut, costs, planner, nav2.MAX_NON_OBSTACLE)
     out = np.where(ok, scaled, nav2.LETHAL_OBSTACLE).astype(np.uint8)
     out[(flags & FLAG_KNOWN) == 0] = nav2.NO_INFORMATION
+    out[(flags & FLAG_DOUBTFUL) != 0] = nav2.MAX_NON_OBSTACLE
     out[(flags & FLAG_SAFETY_ZONE) != 0] = nav2.INSCRIBED_INFLATED_OBSTACLE
     out[(flags & FLAG_OBSTACLE) != 0] = nav2.LETHAL_OBSTACLE
     return out

@@ -1,0 +1,86 @@
+"""What the explorer does when no view is left but its map may be wrong (`Explorer.plan` calls
+these): go and look again before giving up, and tell a robot its own map closed in from one that
+has seen all it can reach. Part of `exploration.Explorer`; no wiring.
+
+A perception-driven map can close a robot in: wrong labels confirmed into obstacles, safety zones
+round them, ground seen beyond them that no path reaches. Nav2's navigator answers a planner that
+fails with recovery behaviours (clear the costmap, spin, back up, wait) before it aborts; here the
+map clears itself when the camera sees the same ground again (navgraph's evidence), so recovery
+means looking again: drive to the reachable node nearest the free ground seen beyond the blockage,
+face it (the camera looks ahead and down), and plan again. Each look goes to a new place
+(`recovery_spacing_m` from the earlier ones), at most `recoveries` times while no view is found.
+
+A robot is closed in when, with its looks spent, the free ground it has seen but cannot reach is
+larger than the ground it can reach (and at least `closed_in_min_m2`): the run then ends with
+`closed_in`, which the run's report calls a failure. A robot that explored its part of the world,
+where a few beds or pockets behind hedges stay out of reach, ends as before.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from smana.services.explorer import frontier as fr
+
+
+class Recovering:
+    """The part of `Explorer` that looks again. It uses the state `Explorer.__init__` sets
+    (`config`, `grid`, `pose`, `_looked_at`, `n_recoveries`, ...) and `_set_goal`."""
+
+    def _seen_beyond(self, free: np.ndarray, reach: np.ndarray) -> np.ndarray:
+        """Free nodes the robot cannot reach, in pieces of at least `closed_in_min_m2` / 4 (a
+        pocket of a node or two inside a bed is no way on)."""
+        from scipy import ndimage  # here, not at import: off the explorer's start
+
+        others = free & ~reach
+        if not others.any():
+            return others
+        comp, n = ndimage.label(others, structure=fr.EIGHT_CONNECTED)
+        size = np.bincount(comp.ravel(), minlength=n + 1)
+        cell_m2 = self.grid.resolution_m**2
+        big = size * cell_m2 >= self.config.closed_in_min_m2 / 4
+        big[0] = False
+        return big[comp]
+
+    def _closed_in(self, free: np.ndarray, reach: np.ndarray) -> bool:
+        beyond_m2 = float(self._seen_beyond(free, reach).sum()) * self.grid.resolution_m**2
+        reach_m2 = float(reach.sum()) * self.grid.resolution_m**2
+        return beyond_m2 >= self.config.closed_in_min_m2 and beyond_m2 > reach_m2
+
+    def _maybe_look_again(self, free: np.ndarray, reach: np.ndarray, goal_cost) -> bool:
+        """Drive to look again at what cuts the robot off from free ground it has seen; False
+        when there is nothing to look at, no new place to look from, or the looks are spent."""
+        if self.n_recoveries >= self.config.recoveries or not reach.any():
+            return False
+        beyond = self._seen_beyond(free, reach)
+        if not beyond.any():
+            return False
+        g = self.grid
+        far = np.argwhere(beyond)
+        near = np.argwhere(reach)
+        far_xy, near_xy = g.centres(far), g.centres(near)
+        from scipy.spatial import cKDTree
+
+        # each reachable node's distance to the nearest free node beyond the blockage
+        d, k = cKDTree(far_xy).query(near_xy)
+        x, y, _ = self.pose
+        spacing = self.config.recovery_spacing_m
+        for i in np.argsort(d, kind="stable")[:50]:
+            xy = near_xy[i]
+            if any(math.hypot(*(xy - p)) < spacing for p in self._looked_at):
+                continue
+            toward = far_xy[k[i]] - xy
+            yaw = math.atan2(toward[1], toward[0])
+            reply = goal_cost(xy) if math.hypot(xy[0] - x, xy[1] - y) > 0.05 else (0.0, None)
+            if reply is None:
+                continue
+            cost, path = reply
+            self._looked_at.append(xy.copy())
+            self.n_recoveries += 1
+            choice = fr.ViewChoice(near[i], xy, yaw, 0.0, float(cost), 0.0, path, 0, 0)
+            self._set_goal(choice, count=False, tolerance_m=0.15)
+            self._looking = True
+            return True
+        return False
