@@ -167,7 +167,8 @@ def test_persistent_errors_are_the_same_from_any_view_of_a_cell():
     """Two views see the same places through different points: every point of a (cell, class)
     gets the one label that cell and class keep, whoever looks."""
     ids = GARDEN_IDS
-    pers, _ = split_matrix(perception_matrix(PerceptionConfig().resolved("high"), ids, False), 1)
+    table2 = PerceptionConfig(confusion="table2", accuracy=0.7)
+    pers, _ = split_matrix(perception_matrix(table2, ids, False), 1)
     errors = PersistentErrors(pers, ids, 0.75, key=99)
     rng = np.random.default_rng(1)
     cells = rng.integers(-8, 8, (400, 2))
@@ -193,11 +194,14 @@ def test_persistence_holds_across_two_camera_views_in_the_simulation():
         None,
         [
             "sim.seed=4",
-            "sim.noise=high",
+            "sim.noise=realistic",
             "sim.camera.width=128",
             "sim.camera.height=128",
+            "sim.perception.confusion=table2",
+            "sim.perception.accuracy=0.7",
             "sim.perception.persistent_share=1.0",
             "sim.perception.cell_m=0.5",
+            "sim.perception.bleed_px=0",
         ],
     ).sim
     with Simulation(cfg) as sim:
@@ -246,12 +250,13 @@ def test_the_rellis3d_matrix_follows_the_published_rows_and_mapping():
 
 
 def test_pairs_confuse_only_the_listed_pairs():
-    m = perception_matrix(PerceptionConfig(confusion="pairs").resolved("medium"), GARDEN_IDS, False)
+    pairs = PerceptionConfig(confusion="pairs", accuracy=0.8)
+    m = perception_matrix(pairs, GARDEN_IDS, False)
     i = {c: k for k, c in enumerate(GARDEN_IDS)}
     assert m[i[1], i[2]] == pytest.approx(0.2) and m[i[2], i[1]] == pytest.approx(0.2)
     assert m[i[4], i[5]] == pytest.approx(0.1) and m[i[4], i[8]] == pytest.approx(0.1)
     assert m[i[6], i[6]] == 1.0 and m[i[7], i[7]] == 1.0  # rose and obstacle: not in a pair
-    wet = perception_matrix(PerceptionConfig(confusion="pairs").resolved("medium"), WET_IDS, True)
+    wet = perception_matrix(pairs, WET_IDS, True)
     w = {c: k for k, c in enumerate(WET_IDS)}
     assert wet[w[9], w[1]] == pytest.approx(0.2) and wet[w[1], w[9]] == pytest.approx(0.1)
 
@@ -325,16 +330,33 @@ def test_drift_leaves_the_white_noise_draws_alone():
 # -- config --------------------------------------------------------------------------------------
 
 
-def test_presets_fill_the_perception_section_and_given_keys_win():
-    r = PerceptionConfig().resolved("realistic")
-    assert (r.confusion, r.persistent_share, r.bleed_px) == ("rellis3d", 0.5, 2)
-    for level in ("none", "low", "medium", "high"):
-        r = PerceptionConfig().resolved(level)
-        assert r.confusion == "table2" and r.persistent_share == 0 and r.bleed_px == 0
-    r = PerceptionConfig(bleed_px=0, persistent_share=0.2).resolved("realistic")
-    assert (r.bleed_px, r.persistent_share) == (0, 0.2)
-    cfg = SmanaConfig.load(None, ["sim.noise=realistic", "sim.pose_drift_xy_m_per_sqrt_s=0.02"])
-    assert cfg.sim.noise == "realistic" and cfg.sim.pose_drift_xy_m_per_sqrt_s == 0.02
+def test_the_realistic_preset_is_the_sections_defaults_and_keys_override_it():
+    r = PerceptionConfig()
+    assert (r.confusion, r.persistent_share, r.cell_m, r.bleed_px) == ("rellis3d", 0.5, 0.75, 2)
+    cfg = SmanaConfig.load(
+        None,
+        [
+            "sim.noise=realistic",
+            "sim.perception.bleed_px=0",
+            "sim.pose_drift_xy_m_per_sqrt_s=0.02",
+            "sim.pose_drift_yaw_rad_per_sqrt_s=0.005",
+        ],
+    )
+    assert cfg.sim.noise == "realistic" and cfg.sim.perception.bleed_px == 0
+    assert cfg.sim.perception.persistent_share == 0.5
+    assert cfg.sim.pose_drift_xy_m_per_sqrt_s == 0.02
+    assert cfg.sim.pose_drift_yaw_rad_per_sqrt_s == 0.005
+
+
+def test_the_papers_levels_ignore_the_perception_section():
+    from smana.services.sim.simulation import FrameFinisher
+
+    cfg = SmanaConfig.load(None, ["sim.noise=high", "sim.perception.persistent_share=1"]).sim
+    f = FrameFinisher(cfg, LUT)
+    assert f.noise is None
+    assert np.array_equal(f.degrader.matrix, LabelDegrader("high", None, LUT).matrix)
+    realistic = FrameFinisher(SmanaConfig.load(None, ["sim.noise=realistic"]).sim, LUT)
+    assert realistic.noise is not None and realistic.noise.bleed_px == 2
 
 
 @pytest.mark.parametrize(
@@ -353,12 +375,6 @@ def test_bad_perception_values_name_the_key(override, message):
     with pytest.raises(ConfigError) as info:
         SmanaConfig.load(None, [override])
     assert message in str(info.value)
-
-
-def test_accuracy_with_the_measured_matrix_is_refused():
-    with pytest.raises(ConfigError, match="sim.perception.accuracy"):
-        SmanaConfig.load(None, ["sim.noise=realistic", "sim.perception.accuracy=0.8"])
-    SmanaConfig.load(None, ["sim.noise=high", "sim.perception.accuracy=0.8"])
 
 
 def test_a_bad_noise_on_the_command_line_is_one_line_and_exit_2():

@@ -148,49 +148,23 @@ class RobotConfig(Section, section="sim.robot"):
         return self.wheel_radius_m + self.chassis_half_extents[2] * 0.6
 
 
-# What each `sim.noise` preset gives the `[sim.perception]` keys left out: the paper's levels
-# none of the new noise (their labels are the paper's, bit for bit), "realistic" the confusion
-# matrix of a published segmentation network (services/sim/confusion_rellis3d.py, where its source
-# is cited) with half of every class's errors persistent and a 2-pixel bleed.
-NOISE_PRESETS: dict[str, dict] = {
-    "off": {"confusion": "table2", "accuracy": 1.0},
-    "none": {"confusion": "table2", "accuracy": 1.0},
-    "low": {"confusion": "table2", "accuracy": 0.9},
-    "medium": {"confusion": "table2", "accuracy": 0.8},
-    "high": {"confusion": "table2", "accuracy": 0.7},
-    "realistic": {"confusion": "rellis3d", "persistent_share": 0.5, "bleed_px": 2},
-}
-_PERCEPTION_DEFAULTS = {"accuracy": 1.0, "persistent_share": 0.0, "cell_m": 0.75, "bleed_px": 0}
-
-
 @dataclass
 class PerceptionConfig(Section, section="sim.perception"):
-    """Label noise as a segmentation network makes it (services/sim/perception.py). A key left
-    out takes its value from the `sim.noise` preset (`NOISE_PRESETS`); `resolved(noise)` is the
-    section with every key filled, what the simulator uses. Level "off" ignores the section."""
+    """Label noise as a segmentation network makes it (services/sim/perception.py), used when
+    `sim.noise = "realistic"` (the paper's levels ignore this section). The defaults are the
+    realistic preset: the confusion matrix of a published network (services/sim/
+    confusion_rellis3d.py cites it), half of every class's errors persistent, a 2-pixel bleed."""
 
-    # the confusion rows: "table2" (the paper's), "pairs" (grass<->terrain; hedge, topiary and
-    # tree among themselves; water<->grass in the wet garden), "rellis3d" (a published network's,
-    # measured: `accuracy` does not apply), "preset" (the noise level's)
-    confusion: Literal["preset", "table2", "pairs", "rellis3d"] = "preset"
-    accuracy: float | None = param(None, ge=0, le=1)  # p of "table2" and "pairs"
+    # the confusion rows: "rellis3d" (a published network's, measured), "table2" (the paper's at
+    # `accuracy`), "pairs" (grass <-> terrain; hedge, topiary and tree among themselves; water
+    # <-> grass in the wet garden, at `accuracy`)
+    confusion: Literal["rellis3d", "table2", "pairs"] = "rellis3d"
+    accuracy: float = param(0.8, ge=0, le=1)  # p of "table2" and "pairs" ("rellis3d": unused)
     # share of each class's errors that is persistent: the same wrong label from every view, for
     # every point of that class in a cell of the ground plane (the rest is redrawn every frame)
-    persistent_share: float | None = param(None, ge=0, le=1)
-    cell_m: float | None = param(None, gt=0)  # side of the persistent errors' cells, m
-    bleed_px: int | None = param(None, ge=0, le=16)  # labels spill this far over class edges
-
-    def resolved(self, noise: str) -> PerceptionConfig:
-        """Every key filled: as given, else the preset's, else the default (no extra noise)."""
-        preset = {**_PERCEPTION_DEFAULTS, **NOISE_PRESETS[noise]}
-        given = {k: getattr(self, k) for k in _PERCEPTION_DEFAULTS if getattr(self, k) is not None}
-        confusion = preset["confusion"] if self.confusion == "preset" else self.confusion
-        return PerceptionConfig(**{**preset, **given, "confusion": confusion})
-
-    @property
-    def enabled(self) -> bool:
-        """Persistent errors or bleed (a resolved section's)."""
-        return bool(self.persistent_share) or bool(self.bleed_px)
+    persistent_share: float = param(0.5, ge=0, le=1)
+    cell_m: float = param(0.75, gt=0)  # side of the persistent errors' cells, m
+    bleed_px: int = param(2, ge=0, le=16)  # labels spill this far over class edges, pixels
 
 
 @with_variants("smana.services.sim.worlds:config_sections", "world")
@@ -204,8 +178,8 @@ class SimConfig(Section, section="sim"):
     seed: int = 3  # world layout; noise streams derive from it too
     # label noise: "off" = true labels, confidence 1; "none".."high" = paper 4.2.1 (SLIC,
     # confusion redraw with p = 1.0 / 0.9 / 0.8 / 0.7, confidence uniform in [0.33, 1]);
-    # "realistic" = a published network's confusions, persistent errors and bleed
-    # ([sim.perception], NOISE_PRESETS)
+    # "realistic" = [sim.perception]: a published network's confusions, persistent errors and
+    # boundary bleed
     noise: Literal["off", "none", "low", "medium", "high", "realistic"] = "none"
     slic_region_px: int = param(20, ge=2)
     slic_iterations: int = param(3, gt=0)
@@ -234,9 +208,3 @@ class SimConfig(Section, section="sim"):
     def validate(self) -> None:
         if self.spawn and len(self.spawn) != 3:
             raise ConfigError(f"sim.spawn: expected [x, y, yaw] or [], got {self.spawn!r}")
-        p = self.perception
-        if p.accuracy is not None and p.resolved(self.noise).confusion == "rellis3d":
-            raise ConfigError(
-                "sim.perception.accuracy: the rellis3d confusion is measured, it takes no "
-                'accuracy (choose sim.perception.confusion = "table2" or "pairs")'
-            )

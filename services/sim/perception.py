@@ -1,6 +1,7 @@
 """Label noise as a segmentation network makes it, beside the paper's per-frame redraw
-(degrade.py). Configured by `[sim.perception]` (common/config/sim.py), filled by the `sim.noise`
-preset; the paper's levels use none of it, so their labels stay the paper's bit for bit.
+(degrade.py), for `sim.noise = "realistic"`. Configured by `[sim.perception]`
+(common/config/sim.py), whose defaults are the realistic preset; the paper's levels use none of
+it, so their labels stay the paper's bit for bit.
 
 - Confusion rows: the paper's Table 2 (`table2`), class pairs (`pairs`: grass <-> terrain;
   hedge, topiary and tree among themselves; water <-> grass in the wet garden) at accuracy p, or
@@ -42,7 +43,7 @@ WET_PAIR_CONFUSABLE: dict[int, tuple[int, ...]] = {
 
 
 def perception_matrix(perception: PerceptionConfig, ids: tuple[int, ...], wet: bool) -> np.ndarray:
-    """The confusion matrix of a resolved `[sim.perception]` over the class ids."""
+    """The confusion matrix of `[sim.perception]` over the class ids."""
     if perception.confusion == "rellis3d":
         from .confusion_rellis3d import garden_matrix
 

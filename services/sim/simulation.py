@@ -159,11 +159,11 @@ class FrameFinisher:
         # the wet garden's water joins Table 2's confusions (degrade.py WET_CONFUSABLE)
         wet = _wet(config)
         ids = WET_IDS if wet else GARDEN_IDS
-        self.perception = perception = config.perception.resolved(config.noise)
-        # the paper's levels redraw from Table 2 exactly as they always have (the same function,
-        # the same floats); a persistent share splits the matrix (perception.py)
+        # the paper's levels redraw from Table 2 as they always have; "realistic" from
+        # [sim.perception]'s matrix, split by its persistent share (perception.py)
+        perception = config.perception
         matrix = persistent = None
-        if config.noise != "off":
+        if config.noise == "realistic":
             matrix = perception_matrix(perception, ids, wet)
             if perception.persistent_share > 0:
                 persistent, matrix = split_matrix(matrix, perception.persistent_share)
@@ -179,7 +179,7 @@ class FrameFinisher:
         )
         self._conf_rng = np.random.default_rng(conf_ss)
         self.noise: LabelNoise | None = None
-        if config.noise != "off" and (persistent is not None or perception.bleed_px > 0):
+        if persistent is not None or (matrix is not None and perception.bleed_px > 0):
             self.noise = LabelNoise(
                 perception,
                 persistent,
