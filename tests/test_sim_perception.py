@@ -382,3 +382,26 @@ def test_a_bad_noise_on_the_command_line_is_one_line_and_exit_2():
     one_line_misuse(r, "up", "sim.noise", "realistic")
     r = smana("up", "--set", "sim.perception.bleed_px=100", "--duration", "1")
     one_line_misuse(r, "up", "sim.perception.bleed_px")
+
+
+def test_the_lidar_carries_the_cameras_persistent_errors():
+    from smana.common.config.sim import LidarConfig
+    from smana.services.sim.scene import transform_points
+    from smana.services.sim.simulation import Simulation
+
+    cfg = SimConfig(
+        seed=3,
+        noise="realistic",
+        camera=CameraConfig(width=32, height=32),
+        lidar=LidarConfig(enabled=True, channels=16, columns=256),
+    )
+    with Simulation(cfg) as sim:
+        scan = sim.lidar_scan()
+        hits = sim.lidar.scan(sim.true_pose())  # the same pose: the same rays, true labels
+        xy = transform_points(hits.points_sensor, hits.world_from_sensor)[:, :2]
+        expected = sim.finisher.noise.persistent.labels(hits.labels, xy)
+        assert np.array_equal(scan.labels, expected.astype(np.uint16))
+        assert (expected != hits.labels).any()
+    with Simulation(SimConfig(seed=3, noise="high", lidar=cfg.lidar)) as sim:
+        scan, hits = sim.lidar_scan(), sim.lidar.scan(sim.true_pose())
+        assert np.array_equal(scan.labels, hits.labels.astype(np.uint16))  # the paper's: true
