@@ -148,6 +148,25 @@ class RobotConfig(Section, section="sim.robot"):
         return self.wheel_radius_m + self.chassis_half_extents[2] * 0.6
 
 
+@dataclass
+class PerceptionConfig(Section, section="sim.perception"):
+    """Label noise as a segmentation network makes it (services/sim/perception.py), used when
+    `sim.noise = "realistic"` (the paper's levels ignore this section). The defaults are the
+    realistic preset: the confusion matrix of a published network (services/sim/
+    confusion_rellis3d.py cites it), half of every class's errors persistent, a 2-pixel bleed."""
+
+    # the confusion rows: "rellis3d" (a published network's, measured), "table2" (the paper's at
+    # `accuracy`), "pairs" (grass <-> terrain; hedge, topiary and tree among themselves; water
+    # <-> grass in the wet garden, at `accuracy`)
+    confusion: Literal["rellis3d", "table2", "pairs"] = "rellis3d"
+    accuracy: float = param(0.8, ge=0, le=1)  # p of "table2" and "pairs" ("rellis3d": unused)
+    # share of each class's errors that is persistent: the same wrong label from every view, for
+    # every point of that class in a cell of the ground plane (the rest is redrawn every frame)
+    persistent_share: float = param(0.5, ge=0, le=1)
+    cell_m: float = param(0.75, gt=0)  # side of the persistent errors' cells, m
+    bleed_px: int = param(2, ge=0, le=16)  # labels spill this far over class edges, pixels
+
+
 @with_variants("smana.services.sim.worlds:config_sections", "world")
 @dataclass(eq=False)
 class SimConfig(Section, section="sim"):
@@ -158,12 +177,18 @@ class SimConfig(Section, section="sim"):
     world: str = "garden"
     seed: int = 3  # world layout; noise streams derive from it too
     # label noise: "off" = true labels, confidence 1; "none".."high" = paper 4.2.1 (SLIC,
-    # confusion redraw with p = 1.0 / 0.9 / 0.8 / 0.7, confidence uniform in [0.33, 1])
-    noise: Literal["off", "none", "low", "medium", "high"] = "none"
+    # confusion redraw with p = 1.0 / 0.9 / 0.8 / 0.7, confidence uniform in [0.33, 1]);
+    # "realistic" = [sim.perception]: a published network's confusions, persistent errors and
+    # boundary bleed
+    noise: Literal["off", "none", "low", "medium", "high", "realistic"] = "none"
     slic_region_px: int = param(20, ge=2)
     slic_iterations: int = param(3, gt=0)
     pose_noise_xy_m: float = param(0.0, ge=0)  # std dev of the published x and of y
     pose_noise_yaw_rad: float = param(0.0, ge=0)  # std dev of the published yaw
+    # pose drift: a random walk added to the published pose, its std dev after t seconds is
+    # this times sqrt(t) (in x and in y; in yaw)
+    pose_drift_xy_m_per_sqrt_s: float = param(0.0, ge=0)
+    pose_drift_yaw_rad_per_sqrt_s: float = param(0.0, ge=0)
     pose_rate_hz: float = param(20.0, gt=0)
     clock_rate_hz: float = param(10.0, gt=0)
     physics_hz: float = param(240.0, ge=50)
@@ -176,6 +201,7 @@ class SimConfig(Section, section="sim"):
     camera: CameraConfig = table(CameraConfig)
     lidar: LidarConfig = table(LidarConfig)
     robot: RobotConfig = table(RobotConfig)
+    perception: PerceptionConfig = table(PerceptionConfig)
     # [sim.garden], [sim.ply], a plugin's: each world's own section
     variants: dict[str, Section] = variant_tables()
 

@@ -66,8 +66,8 @@ def cli(argv: list[str] | None = None) -> int:
     g.add_argument("--size", type=float, help="side of the procedural garden, m")
     g.add_argument(
         "--noise",
-        choices=["off", "none", "low", "medium", "high"],
-        help="label noise level (paper Table 2)",
+        choices=["off", "none", "low", "medium", "high", "realistic"],
+        help="label noise: a level of the paper's Table 2, or realistic (docs/tutorial.md)",
     )
     g.add_argument("--pose-noise", metavar="XY,YAW", help="std devs: metres, radians")
     g.add_argument("--camera", metavar="WxH", help="camera resolution, e.g. 320x320")

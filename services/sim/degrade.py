@@ -7,7 +7,11 @@ WET_CONFUSABLE) for the noise level; every point gets a confidence drawn uniform
 [0.33, 1.0]. Level "off" (not in the paper) skips all of it: true
 labels, confidence 1, for tests and ground-truth runs.
 
-Localisation: Gaussian noise of set standard deviation on the published x, y and yaw.
+Localisation: Gaussian noise of set standard deviation on the published x, y and yaw, and
+optionally a drift: a random walk in x, y and yaw (not in the paper).
+
+Level "realistic" (not in the paper) redraws from a published network's confusion matrix and
+adds persistent errors and boundary bleed: perception.py.
 
 All randomness comes from the `numpy.random.Generator` passed in, so a seed repeats a run.
 """
@@ -21,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 NOISE_LEVELS = {"none": 1.0, "low": 0.9, "medium": 0.8, "high": 0.7}
-LABEL_NOISE_CHOICES = ("off", *NOISE_LEVELS)
+LABEL_NOISE_CHOICES = ("off", *NOISE_LEVELS, "realistic")
 
 # Table 2's structure: the classes a true class may be mistaken for (each with q = (1 - p) / 2).
 # Ids are 3DRMS garden ids; a class not listed here is never confused.
@@ -106,7 +110,10 @@ class LabelDegrader:
         confidence_range: tuple[float, float] = (0.33, 1.0),
         ids: tuple[int, ...] = GARDEN_IDS,
         confusable: dict[int, tuple[int, ...]] | None = None,
+        matrix: np.ndarray | None = None,
     ):
+        """`matrix`: the redraw's confusion matrix over `ids`, in place of the level's Table 2
+        (perception.py gives it for the other confusions and the persistent errors' split)."""
         if level not in LABEL_NOISE_CHOICES:
             raise ValueError(f"label noise must be one of {LABEL_NOISE_CHOICES}, got {level!r}")
         if region_px < 2 or iterations < 1:
@@ -123,8 +130,11 @@ class LabelDegrader:
         self.confidence_range = (float(lo), float(hi))
         self.ids = tuple(ids)
         self.size = max(len(self.colour_lut), max(self.ids) + 1)
-        p = NOISE_LEVELS.get(level, 1.0)
-        self.matrix = confusion_matrix(p, self.ids, confusable)
+        if matrix is None:
+            matrix = confusion_matrix(NOISE_LEVELS.get(level, 1.0), self.ids, confusable)
+        elif np.shape(matrix) != (len(self.ids), len(self.ids)):
+            raise ValueError(f"matrix must be {len(self.ids)} x {len(self.ids)} over ids")
+        self.matrix = np.asarray(matrix, float)
         self._cum = _cumulative_lut(self.matrix, self.ids, self.size)
         self._ids = np.array(self.ids, np.int64)
         self._in_table = np.zeros(self.size, bool)
@@ -216,26 +226,69 @@ def superpixel_majority(superpixels: np.ndarray, labels: np.ndarray, n_labels: i
 
 class PoseNoise:
     """Gaussian noise on the published x, y (each with `sigma_xy_m`) and yaw (`sigma_yaw_rad`).
-    Each call draws afresh: white noise, as the paper adds it to every ground-truth pose."""
+    Each call draws afresh: white noise, as the paper adds it to every ground-truth pose.
 
-    def __init__(self, sigma_xy_m: float, sigma_yaw_rad: float, rng: np.random.Generator):
+    Drift (not in the paper): a random walk added under the white noise, as odometry drifts. Its
+    offsets in x, y (each) and yaw after t seconds have standard deviations `drift_xy_m_per_sqrt_s`
+    * sqrt(t) and `drift_yaw_rad_per_sqrt_s` * sqrt(t); each call with a later `time_s` walks on
+    by the time since the last, drawn from `drift_rng` (its own stream: switching drift on does
+    not change the white noise's draws)."""
+
+    def __init__(
+        self,
+        sigma_xy_m: float,
+        sigma_yaw_rad: float,
+        rng: np.random.Generator,
+        drift_xy_m_per_sqrt_s: float = 0.0,
+        drift_yaw_rad_per_sqrt_s: float = 0.0,
+        drift_rng: np.random.Generator | None = None,
+    ):
         if not (sigma_xy_m >= 0 and sigma_yaw_rad >= 0):
             raise ValueError("pose noise standard deviations must be >= 0")
+        if not (drift_xy_m_per_sqrt_s >= 0 and drift_yaw_rad_per_sqrt_s >= 0):
+            raise ValueError("pose drift rates must be >= 0")
         self.sigma_xy_m = float(sigma_xy_m)
         self.sigma_yaw_rad = float(sigma_yaw_rad)
         self.rng = rng
+        self.drift_xy = float(drift_xy_m_per_sqrt_s)
+        self.drift_yaw = float(drift_yaw_rad_per_sqrt_s)
+        if self.drifts and drift_rng is None:
+            raise ValueError("pose drift needs its random stream (drift_rng)")
+        self.drift_rng = drift_rng
+        self.drift = np.zeros(3)  # x, y, yaw offsets of the walk so far
+        self._drift_t: float | None = None
+
+    @property
+    def drifts(self) -> bool:
+        return self.drift_xy > 0 or self.drift_yaw > 0
 
     @property
     def enabled(self) -> bool:
-        return self.sigma_xy_m > 0 or self.sigma_yaw_rad > 0
+        return self.sigma_xy_m > 0 or self.sigma_yaw_rad > 0 or self.drifts
 
-    def apply(self, world_from_base: np.ndarray) -> np.ndarray:
-        """A noisy copy of a 4x4 pose: shifted in x, y and turned about the world z axis."""
+    def walk_to(self, time_s: float) -> np.ndarray:
+        """Advance the drift to `time_s` (an earlier or equal time leaves it); its (x, y, yaw)."""
+        if self.drifts:
+            if self._drift_t is None:
+                self._drift_t = float(time_s)
+            elif time_s > self._drift_t:
+                dt = float(time_s) - self._drift_t
+                sd = np.array([self.drift_xy, self.drift_xy, self.drift_yaw]) * math.sqrt(dt)
+                self.drift += self.drift_rng.normal(0.0, 1.0, 3) * sd
+                self._drift_t = float(time_s)
+        return self.drift.copy()
+
+    def apply(self, world_from_base: np.ndarray, time_s: float | None = None) -> np.ndarray:
+        """A noisy copy of a 4x4 pose: shifted in x, y and turned about the world z axis. With
+        drift, `time_s` (simulated) moves the walk on first; without it the walk stays."""
         m = np.array(world_from_base, float)
         if not self.enabled:
             return m
         dx, dy = self.rng.normal(0.0, self.sigma_xy_m, 2) if self.sigma_xy_m > 0 else (0.0, 0.0)
         dyaw = self.rng.normal(0.0, self.sigma_yaw_rad) if self.sigma_yaw_rad > 0 else 0.0
+        if self.drifts:
+            wx, wy, wyaw = self.walk_to(time_s) if time_s is not None else self.drift
+            dx, dy, dyaw = dx + wx, dy + wy, dyaw + wyaw
         c, s = math.cos(dyaw), math.sin(dyaw)
         m[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ m[:3, :3]
         m[0, 3] += dx

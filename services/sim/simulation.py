@@ -52,6 +52,7 @@ from .degrade import (
     PoseNoise,
 )
 from .lidar import Lidar
+from .perception import LabelNoise, perception_matrix, split_matrix
 from .robot import DiffDriveRobot
 from .scene import DROP, MEMBER, BulletScene, transform_points
 from .worlds import World, build_world, spawn_clearance_m
@@ -126,11 +127,22 @@ def pose_message(m: np.ndarray, stamp_s: float, seq: int) -> Pose:
 
 
 def _seed_sequences(seed: int, member: int = 0) -> list[np.random.SeedSequence]:
-    """The label, confidence and pose-noise streams of a seed (the same ones in any process).
-    Member 0 of a fleet keeps the single robot's; member k > 0 draws from (seed, k)."""
+    """The label, confidence, pose-noise, bleed and pose-drift streams of a seed (the same ones
+    in any process; children by index, so the first three are what they were before the last
+    two). Member 0 of a fleet keeps the single robot's; member k > 0 draws from (seed, k)."""
     if member == 0:
-        return np.random.SeedSequence([int(seed), 0x51A]).spawn(3)
-    return np.random.SeedSequence([int(seed), 0x51A, int(member)]).spawn(3)
+        return np.random.SeedSequence([int(seed), 0x51A]).spawn(5)
+    return np.random.SeedSequence([int(seed), 0x51A, int(member)]).spawn(5)
+
+
+def _persistent_key(seed: int) -> int:
+    """The persistent errors' hash key: the seed's, the same for every member of a fleet (one
+    network, one mistake about a place)."""
+    return int(np.random.SeedSequence([int(seed), 0x51A, 0xE44]).generate_state(1, np.uint64)[0])
+
+
+def _wet(config: SimConfig) -> bool:
+    return config.world == "garden" and getattr(config.garden, "water_share", 0.0) > 0
 
 
 class FrameFinisher:
@@ -142,20 +154,40 @@ class FrameFinisher:
     """
 
     def __init__(self, config: SimConfig, colour_lut: np.ndarray, member: int = 0):
-        labels_ss, conf_ss, _ = _seed_sequences(config.seed, member)
+        labels_ss, conf_ss, _, bleed_ss, _ = _seed_sequences(config.seed, member)
         self.stride = config.camera.stride
         # the wet garden's water joins Table 2's confusions (degrade.py WET_CONFUSABLE)
-        wet = config.world == "garden" and getattr(config.garden, "water_share", 0.0) > 0
+        wet = _wet(config)
+        ids = WET_IDS if wet else GARDEN_IDS
+        # the paper's levels redraw from Table 2 as they always have; "realistic" from
+        # [sim.perception]'s matrix, split by its persistent share (perception.py)
+        perception = config.perception
+        matrix = persistent = None
+        if config.noise == "realistic":
+            matrix = perception_matrix(perception, ids, wet)
+            if perception.persistent_share > 0:
+                persistent, matrix = split_matrix(matrix, perception.persistent_share)
         self.degrader = LabelDegrader(
             config.noise,
             np.random.default_rng(labels_ss),
             colour_lut,
             region_px=config.slic_region_px,
             iterations=config.slic_iterations,
-            ids=WET_IDS if wet else GARDEN_IDS,
+            ids=ids,
             confusable=WET_CONFUSABLE if wet else GARDEN_CONFUSABLE,
+            matrix=matrix,
         )
         self._conf_rng = np.random.default_rng(conf_ss)
+        self.noise: LabelNoise | None = None
+        if persistent is not None or (matrix is not None and perception.bleed_px > 0):
+            self.noise = LabelNoise(
+                perception,
+                persistent,
+                ids,
+                self.degrader.size,
+                _persistent_key(config.seed),
+                np.random.default_rng(bleed_ss),
+            )
 
     def finish(
         self, pending: PendingFrame, stride: int | None = None, timings: dict | None = None
@@ -165,6 +197,8 @@ class FrameFinisher:
             raise ValueError(f"stride must be >= 1, got {stride}")
         cap = pending.capture
         sem = self.degrader.degrade(cap.labels, timings).labels
+        if self.noise is not None:
+            sem = self.noise.apply(sem, cap.labels, lambda: _world_xy(cap), timings)
         t0 = time.perf_counter()
         rows, cols = np.nonzero(sem[::stride, ::stride] >= 0)
         rows, cols = rows * stride, cols * stride
@@ -187,6 +221,15 @@ class FrameFinisher:
         if timings is not None:
             timings["cloud_ms"] = 1e3 * (time.perf_counter() - t0)
         return frame
+
+
+def _world_xy(cap: CameraCapture) -> np.ndarray:
+    """The true world x, y of every pixel with a point, row-major (f4[N, 2])."""
+    rows, cols = np.nonzero(cap.labels >= 0)
+    pts = cap.points_sensor(rows, cols)
+    m = cap.world_from_sensor
+    r = np.asarray(m[:2, :3], np.float32)
+    return np.einsum("ij,kj->ik", pts, r) + np.asarray(m[:2, 3], np.float32)
 
 
 class FleetFinisher:
@@ -305,9 +348,14 @@ class Simulation:
             robot = DiffDriveRobot(self.scene.client, cfg.robot, xy=(x, y), ground_z=z, yaw=yaw)
             # a fleet's members see each other (depth) but map none of them
             self.scene.register(robot.body, MEMBER if len(names) > 1 else DROP)
-            pose_ss = _seed_sequences(cfg.seed, i)[2]
+            streams = _seed_sequences(cfg.seed, i)
             noise = PoseNoise(
-                cfg.pose_noise_xy_m, cfg.pose_noise_yaw_rad, np.random.default_rng(pose_ss)
+                cfg.pose_noise_xy_m,
+                cfg.pose_noise_yaw_rad,
+                np.random.default_rng(streams[2]),
+                cfg.pose_drift_xy_m_per_sqrt_s,
+                cfg.pose_drift_yaw_rad_per_sqrt_s,
+                np.random.default_rng(streams[4]),
             )
             finisher = FrameFinisher(cfg, self.world.classes.colour_lut, i)
             self.members.append(Member(names[i], i, robot, finisher, noise))
@@ -446,7 +494,7 @@ class Simulation:
     def published_pose(self, member: int | str = 0) -> np.ndarray:
         """The pose as localisation would give it: the truth with fresh pose noise."""
         m = self.member(member)
-        return m.pose_noise.apply(m.robot.matrix())
+        return m.pose_noise.apply(m.robot.matrix(), self.time_s)
 
     # -- sensors ------------------------------------------------------------------------------
 
@@ -481,7 +529,7 @@ class Simulation:
         on the thread that owns the simulation)."""
         m = self.member(member)
         base_true = m.robot.matrix()
-        base_pub = m.pose_noise.apply(base_true)
+        base_pub = m.pose_noise.apply(base_true, self.time_s)
         mount = self.config.camera.mount_matrix()
         others = self._others(m) if len(self.members) > 1 else None
         cap = self.camera.capture(base_true @ mount, timings, count_bodies=others)
@@ -502,10 +550,16 @@ class Simulation:
         """Cast one LiDAR scan; labels are the hit bodies' true classes (confidence 1)."""
         m = self.member(member)
         base_true = m.robot.matrix()
-        base_pub = m.pose_noise.apply(base_true)
+        base_pub = m.pose_noise.apply(base_true, self.time_s)
         lidar = self.lidar_of(m.index)
         others = self._others(m) if len(self.members) > 1 else None
         hits = lidar.scan(base_true, timings, count_bodies=others)
+        labels = hits.labels
+        noise = m.finisher.noise
+        if noise is not None and noise.persistent is not None:
+            # the places the camera gets wrong for good, the LiDAR's labels get wrong too
+            xy = transform_points(hits.points_sensor, hits.world_from_sensor)[:, :2]
+            labels = noise.persistent.labels(labels, xy)
         world_from_sensor = base_pub @ self.config.lidar.mount_matrix()
         m.cloud_seq += 1
         m.lidar_scans += 1
@@ -514,7 +568,7 @@ class Simulation:
             stamp_s=self.time_s,
             seq=m.cloud_seq,
             points=transform_points(hits.points_sensor, world_from_sensor),
-            labels=hits.labels.astype(np.uint16),
+            labels=labels.astype(np.uint16),
             confidences=np.ones(len(hits.labels), "f4"),
             world_from_sensor=world_from_sensor,
             true_world_from_sensor=hits.world_from_sensor,
