@@ -232,3 +232,17 @@ def test_navnoise_counts_a_robot_that_sat_still_as_a_failure_not_missing_data():
     line = next(r for r in nn.arm_table(rows) if r.startswith("| octree-max, noisy"))
     assert "- (n = 0)" in line  # the map's share of a path never driven stays undefined
     assert "0.0 % [0.0, 0.0] (n = 5)" in line
+
+
+@pytest.mark.parametrize("doc", ["README.md", "docs/tutorial.md"])
+def test_the_docs_sample_summary_has_the_rows_the_summary_gives(doc):
+    """The sample `smana up: ok` block of the README and the tutorial shows the rows
+    `summary_rows` gives a simulated run today, in its order, headed by usable coverage."""
+    from smana.deploy.report.render import summary_rows
+    from tests.conftest import REPO
+
+    block = (REPO / doc).read_text().split("\nsmana up: ok\n", 1)[1].split("```", 1)[0]
+    shown = [line.strip().split("  ")[0] for line in block.splitlines() if line.strip()]
+    m = {"exploration": _metrics()["exploration"], "explorer": {"explored_m2": 1.0}}
+    assert shown == [a for a, _ in summary_rows(m)][1:]
+    assert shown[0] == "usable coverage (against ground truth)"

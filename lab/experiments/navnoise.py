@@ -508,8 +508,9 @@ def add_parser(sub) -> None:
         "moved); the 5 seeds x 4 arms = 20 runs, one at a time (--jobs 1), 51 min (2 at once, "
         "the default --jobs, not measured). --quick: 4 arms x 2 "
         "seeds of 20 s in a 6 m garden; one seed of it (--seeds 1) measured once: 2 to 3.7 "
-        "min. Exits 1 if any run failed (a run that ended only because the robot did not move "
-        "or found no path is a result, not a failure).",
+        "min. Exits 1 if any run failed to run (a run that `smana up` ended FAILED only on "
+        "what its robot did, such as not moving or finding no path, is a result, counted as a "
+        "failure: a robot that stood still scores 0).",
     )
     ex.add_common_args(
         e, quick_help="4 arms x 2 seeds of 20 s in a 6 m garden (one seed measured once: 2-4 min)"
