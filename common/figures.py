@@ -407,8 +407,8 @@ def progress_plot(
     report_explored_m2: float | None = None,
 ) -> Figure:
     """The explorer's progress over robot time, on two panels: its explored area (its own graph's
-    known free nodes) and the distance it drove. `report_explored_m2`: the report's explored
-    reachable area against ground truth, drawn as a reference line (it measures another thing)."""
+    known free nodes) and the distance it drove. `report_explored_m2`: the report's usable
+    coverage against ground truth (m2), drawn as a reference line (it measures another thing)."""
     fig = _figure(7.2, 5.6)
     top, bottom = fig.subplots(2, 1, sharex=True)
     top.plot(
@@ -425,7 +425,7 @@ def progress_plot(
             color="black",
             linestyle="--",
             linewidth=1,
-            label=f"report: known ∩ reachable ground truth ({report_explored_m2:.1f} m²)",
+            label=f"report: usable ∩ reachable ground truth ({report_explored_m2:.1f} m²)",
         )
     top.set_ylabel("explored area (m²)")
     top.set_title("Exploration progress (one run)")

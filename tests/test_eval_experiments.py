@@ -211,7 +211,13 @@ def _run(seed, arm, share=0.6, dist=40.0, reach_at=None, code=0, n=11):
     end = 0.97 if reach_at is not False else 0.9
     hist = [(10.0 * k, 5.0 * k, 3, dist * k / (n - 1)) for k in range(n)]
     m = {
-        "exploration": {"terrain_share": share, "coverage": end, "distance_m": dist},
+        # the curve ends at the known share; the usable coverage (`coverage`) a little under it
+        "exploration": {
+            "terrain_share": share,
+            "coverage": end - 0.05,
+            "known_reachable_share": end,
+            "distance_m": dist,
+        },
         "explorer": {
             "explored_m2": hist[-1][1],
             "done_reason": "no_frontier",
@@ -341,6 +347,7 @@ def test_a_failed_run_is_counted_warned_at_the_top_and_exits_non_zero(tmp_path, 
             return 1, {}, {}, 1.0, 2.0  # crashed: non-zero exit, no metrics
         r = _run(seed, arm, 0.6 if arm.grass_cost_factor == 1 else 0.8)
         m = {"exploration": {k: r[k] for k in ("terrain_share", "coverage", "distance_m")}}
+        m["exploration"]["known_reachable_share"] = r["known_share"]
         return 0, m, {}, 1.0, 2.0
 
     monkeypatch.setattr(ex, "exploration_run", fake_run)

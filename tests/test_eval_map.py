@@ -144,6 +144,7 @@ def test_cli_on_a_run_directory(tmp_path, capsys):
 
 def test_coverage_counts_known_nodes_over_reachable_cells():
     grid = {"origin_xy": np.zeros(2), "resolution_m": 1.0, "flags": np.zeros((4, 4), np.uint8)}
+    grid["labels"] = np.full((4, 4), 2, np.uint16)  # terrain
     grid["flags"][:2, :] = 1  # x in [0, 2) known
     xs, ys = np.meshgrid(np.arange(8) * 0.5 + 0.25, np.arange(8) * 0.5 + 0.25, indexing="ij")
     cell_xy = np.stack([xs, ys], axis=-1)
@@ -151,7 +152,7 @@ def test_coverage_counts_known_nodes_over_reachable_cells():
     trav[:, 6] = False  # a wall at y = 3.25 cuts off the last row
     reach = ev.reachable_traversable(trav, (0, 0))
     assert reach.sum() == 48
-    cov = ev.exploration_coverage(grid, cell_xy, reach, 0.25)
+    cov = ev.exploration_coverage(grid, cell_xy, reach, 0.25, np.array([False, True, True]))
     assert cov["reachable_area_m2"] == 12.0
     assert cov["coverage"] == pytest.approx(24 / 48)
     assert not ev.reachable_traversable(trav, (0, 6)).any()

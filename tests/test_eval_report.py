@@ -74,8 +74,10 @@ def test_report_measures_a_run(run):
     path = report.write_report(run_dir, cfg)
     m = json.loads((run_dir / "metrics.json").read_text())
     ex = m["exploration"]
-    # the graph knows x < 0 only: about half the reachable area
+    # the graph knows x < 0 only, all of it terrain: about half the reachable area, all usable
     assert 0.3 < ex["coverage"] < 0.7
+    assert ex["coverage"] == ex["usable_share"] == ex["known_reachable_share"]
+    assert ex["false_obstacle_area_m2"] == 0.0
     assert ex["reachable_area_m2"] > 5
     assert ex["distance_m"] == 0.0 and ex["travelled_nodes"] == 1
     assert ex["min_clearance_m"] >= 0.35  # the spawn point has 0.4 m clearance (a cell's slack)
@@ -88,7 +90,7 @@ def test_report_measures_a_run(run):
     for png in m["files"]["plots"].values():
         assert (run_dir / png).stat().st_size > 1000
     text = path.read_text()
-    assert "explored share of the reachable traversable area" in text
+    assert "usable coverage: reachable traversable area (ground truth)" in text
     assert "classification ratio" in text and "![graph](plots/graph.png)" in text
     assert (run_dir / "graph.npz").is_file() and (run_dir / "gt.ply").is_file()
 

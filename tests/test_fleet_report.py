@@ -154,7 +154,7 @@ def test_fleet_section_measures_the_run(fleet_run):
     # the summary table and report.md carry the fleet
     rows = dict(report.summary_rows(m))
     assert rows["fleet"] == "2 members: r1, r2" and "r2" in rows
-    assert rows["to 95 % coverage"].startswith("15 s robot time, 5.0 m")
+    assert rows["to 95 % known (any label)"].startswith("15 s robot time, 5.0 m")
     text = path.read_text()
     assert "## Fleet" in text and "| merged map |" in text
     for name in ("fleet_map", "graph", "fleet_progress"):

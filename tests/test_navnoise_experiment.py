@@ -180,12 +180,15 @@ def test_outputs_from_faked_runs_warn_count_and_write_the_data_file(tmp_path, mo
     assert by[(3, "octree_max_clean")]["pose_noise_xy_m"] == 0.0
     # the arm table: contacts added over the arm's runs, true share beside the map's
     table = "\n".join(nn.arm_table(rows))
-    # octree-max under noise: seed 3 stood still, seed 4 has no true trajectory
-    assert (
-        "| octree-max, noisy | 2 (0) | - (n = 0) | - (n = 0) | 98.0 % [98.0, 98.0] (n = 2)" in table
+    # octree-max under noise: seed 3 stood still (a failure: 0 true share, 0 coverage), seed 4
+    # has no true trajectory
+    still_row = next(r for r in table.splitlines() if r.startswith("| octree-max, noisy |"))
+    assert still_row.startswith(
+        "| octree-max, noisy | 2 (0) | 0.0 % (n = 1, no interval) | - (n = 0) | 49.0 % ["
     )
     assert "| 2 (1) | 70.0 % (n = 1, no interval) |" in table  # tsdf noisy: seed 4 crashed
-    assert table.count("| 1 | 2 | 4 |") == 1  # octree-max noisy: 1 stood still, 2 contacts, 4 calls
+    # octree-max noisy: 1 FAILED, 1 stood still, 2 contacts, 4 calls
+    assert still_row.endswith("| 1 | 1 | 2 | 4 |")
     assert (tmp_path / "navnoise_terrain_share.png").stat().st_size > 1000
 
 

@@ -161,7 +161,9 @@ def test_a_doubtful_wall_is_dear_but_passable():
     flags = np.full(labels.shape, FLAG_KNOWN, np.uint8)
     flags[labels == HEDGE] |= FLAG_DOUBTFUL
     grid.apply_patch(np.argwhere(flags > 0), labels.ravel(), np.zeros(nx * ny), flags.ravel())
-    planner = Planner(grid, CLASSES, PlannerConfig(doubtful_cost=10.0))
+    assert PlannerConfig().doubtful_cost == 10.0
+    assert CLASSES.cost_lut[TERRAIN] == 1.0 and CLASSES.cost_lut[GRASS] == 2.0
+    planner = Planner(grid, CLASSES, PlannerConfig())
     r = planner.plan((0.5, 2.0), (5.5, 2.0))
     assert r.ok, r.message
     enter = np.where(labels == HEDGE, 0.8 * 10.0, 0.8 * CLASSES.cost_lut[labels])

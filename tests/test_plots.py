@@ -164,7 +164,7 @@ def test_the_reports_pngs_all_go_through_the_module(tmp_path, saved):
     }
     state = {"plans": [{"goal": [1.0, 1.0]}], "history": [[0, 1, 5, 0], [2, 4, 3, 0.6]]}
     replay = {"per_scan": [[i, i, f"s{i}", 0.1 * i, 100, 5.0 + i] for i in range(4)]}
-    exploration = {"explored_reachable_area_m2": 4.5}
+    exploration = {"usable_area_m2": 4.5}
     classes = ClassTable.load("garden3drms")
     files = _plots(tmp_path, classes, world, graph, traj, state, replay, exploration)
     assert set(files) == {"map", "graph", "progress", "replay_latency"}
@@ -175,7 +175,7 @@ def test_the_reports_pngs_all_go_through_the_module(tmp_path, saved):
     # the world's classes in their table colours, the start and goals labelled
     texts = _legend_texts(by_name["world_trajectory.png"])
     assert {"grass", "terrain", "start", "trajectory", "goals (n = 1)"} <= set(texts)
-    assert "report: known ∩ reachable ground truth (4.5 m²)" in _legend_texts(
+    assert "report: usable ∩ reachable ground truth (4.5 m²)" in _legend_texts(
         by_name["progress.png"]
     )
     assert "wall time" in by_name["replay_latency.png"].axes[0].get_ylabel()
@@ -246,6 +246,7 @@ def test_the_experiments_figures_say_n_and_draw_spread_only_with_several_runs(tm
                     "exploration": {
                         "terrain_share": 0.5 + 0.05 * f + 0.01 * seed,
                         "coverage": 0.9,
+                        "known_reachable_share": 0.9,  # what the curves end at
                         "distance_m": 30.0,
                     },
                     "explorer": {"explored_m2": 40.0},

@@ -31,10 +31,16 @@ def test_summary_in_the_terminal_and_report_md_is_metrics_json(run):  # noqa: F8
     ex, ee = m["exploration"], m["explorer"]
     rows = dict(report.summary_rows(m))
     assert rows["outcome"] == "ok" and not m["warnings"]
-    assert rows["explored area (against ground truth)"] == (
-        f"{ex['explored_reachable_area_m2']:.1f} m2 = {100 * ex['coverage']:.1f} % of the "
-        f"reachable {ex['reachable_area_m2']:.1f} m2"
-    )
+    for row, name in (
+        ("usable coverage (against ground truth)", "usable"),
+        ("false obstacles (free, blocked in the map)", "false_obstacle"),
+        ("false free (obstacle, free in the map)", "false_free"),
+    ):
+        assert rows[row] == (
+            f"{ex[f'{name}_area_m2']:.1f} m2 = {100 * ex[f'{name}_share']:.1f} % of the "
+            f"reachable {ex['reachable_area_m2']:.1f} m2"
+        )
+    assert ex["coverage"] == ex["usable_share"]
     assert rows["explored area (explorer's own count)"] == f"{ee['explored_m2']:.1f} m2"
     assert rows["distance travelled"] == f"{ex['distance_m']:.1f} m"
     assert rows["collisions"].startswith(f"{ex['collisions']} ({ex['close_calls']} close calls")
@@ -85,9 +91,15 @@ def test_the_report_names_both_explored_areas_and_says_which_is_which(run):  # n
     md = report.write_report(run_dir, cfg).read_text()
     m = _metrics(run_dir)
     rows = _table(md, "Exploration")
-    truth = [v for k, v in rows.items() if k.startswith("explored area, against ground truth")]
+    truth = [v for k, v in rows.items() if k.startswith("usable coverage: reachable traversable")]
+    known = [v for k, v in rows.items() if k.startswith("known (any label)")]
     own = [v for k, v in rows.items() if k.startswith("explored area, the explorer's own count")]
-    assert truth == [f"{m['exploration']['explored_reachable_area_m2']:.1f} m2"]
+    ex = m["exploration"]
+    assert truth == [
+        f"{ex['usable_area_m2']:.1f} m2 = {100 * ex['usable_share']:.1f} % of the reachable "
+        f"{ex['reachable_area_m2']:.1f} m2"
+    ]
+    assert known and known[0].startswith(f"{ex['known_reachable_area_m2']:.1f} m2 = ")
     assert own == [f"{m['explorer']['explored_m2']:.1f} m2"]
     assert report.EXPLORED_AREAS in md and "explored_m2" in report.EXPLORED_AREAS
 
@@ -99,6 +111,6 @@ def test_a_replay_summary_has_no_ground_truth_figures(tmp_path):
     replay = {"mode": "lockstep", "published": 4, "acknowledged": 4, "scans": 4}
     md = report.write_report(tmp_path, cfg, replay=replay).read_text()
     rows = dict(report.summary_rows(_metrics(tmp_path)))
-    assert "explored area (against ground truth)" not in rows
+    assert "usable coverage (against ground truth)" not in rows
     assert rows["scans published / integrated"] == "4 / 4"
     assert _table(md, "Summary") == rows

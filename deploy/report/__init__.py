@@ -8,8 +8,10 @@
 - for a replayed dataset, `replay.json` (passed in) and `replay_trajectory.csv` (every pose the
   replay published);
 and measures the run against the simulated world's ground truth (rebuilt from the config):
-explored share of the reachable traversable area, travelled labels (terrain vs grass), clearance
-from obstacles along the trajectory, and the map's reconstruction error and classification ratio.
+usable coverage (the share of the reachable traversable area the final graph knows as
+traversable), the false-obstacle and false-free areas, travelled labels (terrain vs grass),
+clearance from obstacles along the trajectory, and the map's reconstruction error and
+classification ratio.
 
 A fleet's run (`fleet.robots` set) is laid out per member instead: `robots/<r>/map.npz` (the
 member's own map), `robots/<r>/explorer/{state.json,trajectory.csv,graph.npz}`,
@@ -17,7 +19,8 @@ member's own map), `robots/<r>/explorer/{state.json,trajectory.csv,graph.npz}`,
 `sim.json` (robot-robot contacts, separations). Its report adds a "fleet" section
 (`fleet_metrics`): per member, contacts, merged coverage, the overlap of the members' maps, time
 and total distance to 95 % coverage, the merged map's scores beside each member's own map's; and
-its warnings (`fleet_warnings`): a contact, a member without state or that did not move.
+its warnings (`fleet_warnings`): a contact, under half the reachable area usable, a member
+without state or that did not move.
 
 Also a command: `python -m smana.deploy.report RUN_DIR` re-writes the report of a finished run.
 
@@ -42,10 +45,12 @@ _WHERE = {
     "MAP_SCORES": "fleet",
     "MOVED_M": "measures",
     "NO_SIMULATOR": "measures",
+    "OUTCOME_WARNINGS": "checks",
     "PLOT_FILES": "figures",
     "RECORDED_POSES": "measures",
     "REPLAY_TRAJECTORY": "measures",
     "SIM_SUMMARY": "measures",
+    "USABLE_FLOOR": "measures",
     "exploration_metrics": "measures",
     "first_reach": "fleet",
     "fleet_coverage_curve": "fleet",
@@ -66,6 +71,7 @@ _WHERE = {
     "run_warnings": "checks",
     "summary_lines": "render",
     "summary_rows": "render",
+    "usable_warnings": "checks",
     "write_report": "write",
 }
 __all__ = sorted(_WHERE)

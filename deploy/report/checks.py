@@ -3,12 +3,32 @@ end the terminal summary and make `smana up` / `smana replay` exit 1."""
 
 from __future__ import annotations
 
-from smana.deploy.report.measures import COVERAGE_TARGET, MOVED_M, SIM_SUMMARY, _f
+from smana.deploy.report.measures import (
+    COVERAGE_TARGET,
+    KNOWN_CURVE,
+    MOVED_M,
+    SIM_SUMMARY,
+    USABLE_FLOOR,
+    _f,
+    _pct,
+)
+
+# How the warnings about what the robot did (not about a service) begin: the experiments
+# (lab/experiments/) count a run that ends with these alone as a measured failure, not as
+# missing data.
+OUTCOME_WARNINGS = (
+    "the robot did not move",
+    "no path query was ever answered",
+    "the robot knows only",
+    "the robot's own map closed it in",
+)
 
 
 def run_warnings(metrics: dict, explored: bool) -> list[str]:
     """What in a finished run's figures says it did not do its job. `explored`: the run was an
-    exploration (the explorer ran), so it should have answered paths and moved the robot."""
+    exploration (the explorer ran), so it should have answered paths, moved the robot and come
+    to know at least half the reachable area as usable; an explorer that ended `closed_in` (its
+    own map left it no reachable view) failed too."""
     out = []
     ee = metrics.get("explorer")
     if explored and ee is None:
@@ -23,12 +43,29 @@ def run_warnings(metrics: dict, explored: bool) -> list[str]:
             out.append("the explorer never received a navigation graph (ended `no_graph`)")
         if ee.get("done_reason") == "no_planner":
             out.append("the explorer never saw a planner (ended `no_planner`)")
+        if ee.get("done_reason") == "closed_in":
+            out.append("the robot's own map closed it in (explorer ended: closed_in)")
     if explored:
         ex = metrics.get("exploration") or {}
         dist = ex.get("distance_m", (ee or {}).get("distance_m"))
         if dist is None or dist < MOVED_M:
             out.append(f"the robot did not move ({_f(dist, '.2f', ' m')} travelled)")
+        out += usable_warnings(ex)
     return out + replay_warnings(metrics.get("replay") or {})
+
+
+def usable_warnings(ex: dict) -> list[str]:
+    """A run (or a fleet) that stopped while it knew under USABLE_FLOOR of the reachable area as
+    usable (`usable_share`, measured against ground truth; nothing without one)."""
+    share = ex.get("usable_share")
+    if share is None or share >= USABLE_FLOOR:
+        return []
+    return [
+        f"the robot knows only {_pct(share)} of the reachable area as usable (under "
+        f"{100 * USABLE_FLOOR:.0f} %: {_f(ex.get('usable_area_m2'), '.1f', ' m2')} of "
+        f"{_f(ex.get('reachable_area_m2'), '.1f', ' m2')}; "
+        f"{_pct(ex.get('false_obstacle_share'))} of it is an obstacle or a safety zone in its map)"
+    ]
 
 
 def replay_warnings(rp: dict) -> list[str]:
@@ -56,9 +93,9 @@ def replay_warnings(rp: dict) -> list[str]:
 
 
 def fleet_warnings(fleet: dict) -> list[str]:
-    """What in a fleet's figures says it did not do its job: a robot-robot contact, a member
-    whose explorer left no state or that did not move while the fleet fell short of 95 %
-    coverage (and each member's explorer checks)."""
+    """What in a fleet's figures says it did not do its job: a robot-robot contact, a fleet that
+    knows under half the reachable area as usable, a member whose explorer left no state or that
+    did not move while the fleet knew less than 95 % of it (and each member's explorer checks)."""
     out = []
     sim = fleet.get("sim") or {}
     total = sim.get("robot_contacts_total")
@@ -67,9 +104,10 @@ def fleet_warnings(fleet: dict) -> list[str]:
     elif total:
         pairs = ", ".join(f"{k} x{v}" for k, v in sorted(sim["robot_contacts"].items()) if v)
         out.append(f"{total} robot-robot contact(s) ({pairs or 'no pair named'})")
+    out += [w.replace("the robot knows", "the fleet knows") for w in usable_warnings(fleet)]
     # A member left nothing to do (the others saw its part: a small world, a spawn that sees it
     # all) may stay put: its standing still is a failure only when the fleet fell short.
-    covered = (fleet.get("coverage") or 0.0) >= COVERAGE_TARGET
+    covered = (fleet.get(KNOWN_CURVE) or 0.0) >= COVERAGE_TARGET
     for r, m in (fleet.get("members") or {}).items():
         ee = None
         if m.get("state"):

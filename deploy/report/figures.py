@@ -69,7 +69,7 @@ def _plots(
                 hist[:, 0] - hist[0, 0],
                 hist[:, 1],
                 hist[:, 3],
-                (exploration or {}).get("explored_reachable_area_m2"),
+                (exploration or {}).get("usable_area_m2"),
             ),
         )
     rows = [r for r in (replay or {}).get("per_scan") or [] if r[5] is not None]

@@ -14,7 +14,9 @@ import numpy as np
 
 from smana.deploy.report import ground_truth as ev
 from smana.deploy.report.measures import (
+    COVERAGE_KEYS,
     COVERAGE_TARGET,
+    KNOWN_CURVE,
     SIM_SUMMARY,
     _load_json,
     _trajectory,
@@ -44,8 +46,8 @@ def fleet_coverage_curve(histories: dict[str, list], coverage_end: float | None)
     simulated time all members share). The fleet's explored area at t is the largest any member
     reported up to t (they count the same shared graph); its distance at t the sum of each
     member's last distance up to t. Rescaled as a single robot's (exploration.py's
-    `coverage_curve`): the last value equals the ground-truth coverage. Empty arrays when there
-    is no history or no end to rescale to."""
+    `coverage_curve`): the last value equals `coverage_end`, the ground truth's known share.
+    Empty arrays when there is no history or no end to rescale to."""
     hs = [np.asarray(h or [], float).reshape(-1, 4) for h in histories.values()]
     hs = [h[np.argsort(h[:, 0], kind="stable")] for h in hs if len(h)]
     empty = np.zeros(0)
@@ -172,10 +174,10 @@ def fleet_metrics(run_dir: Path, config, world, gt=None, names=None) -> dict:
         trav, cell_xy, reach = reachable_area(world, start, radius)
         area = trav.resolution_m**2
         if graph is not None:
-            out.update(ev.exploration_coverage(graph, cell_xy, reach, area))
+            lut, gt_obstacle = world.classes.traversable_lut, ev.gt_obstacle_cells(world)
+            out.update(ev.exploration_coverage(graph, cell_xy, reach, area, lut, gt_obstacle))
         else:
-            out.update(coverage=0.0, reachable_area_m2=float(reach.sum() * area))
-            out.update(explored_reachable_area_m2=0.0, known_area_m2=0.0)
+            out.update(ev.no_coverage(float(reach.sum() * area)))
         observed = {}
         for r in robots:
             path = member_dir(run_dir, r) / "map.npz"
@@ -189,7 +191,8 @@ def fleet_metrics(run_dir: Path, config, world, gt=None, names=None) -> dict:
                     log.warning("%s: %s", path, exc)
         out.update(map_overlap(observed, reach, area))
         out["maps_read"] = sorted(observed)
-    t, dist, cov = fleet_coverage_curve(histories, out.get("coverage"))
+    # the curve ends at the known share, any label (measures.py KNOWN_CURVE)
+    t, dist, cov = fleet_coverage_curve(histories, out.get(KNOWN_CURVE))
     out["time_to_95_s"] = first_reach(t, cov)
     out["distance_to_95_m"] = first_reach(dist, cov)
     out["curve"] = {"t_s": t.tolist(), "distance_m": dist.tolist(), "coverage": cov.tolist()}
@@ -219,8 +222,7 @@ def fleet_exploration(fleet: dict) -> dict:
     """The run's "exploration" section for a fleet: the merged coverage, and the members'
     distances and collisions added (what the summary table shows of any run)."""
     members = fleet.get("members") or {}
-    keys = ("coverage", "reachable_area_m2", "explored_reachable_area_m2", "known_area_m2")
-    out = {k: fleet[k] for k in keys if k in fleet}
+    out = {k: fleet[k] for k in COVERAGE_KEYS if k in fleet}
     out["distance_m"] = fleet.get("total_distance_m")
     for k in ("collisions", "close_calls"):
         vals = [m.get(k) for m in members.values() if m.get(k) is not None]

@@ -15,9 +15,11 @@ the other way round, as Tanks and Temples scores a reconstruction (Knapitsch et 
 `f_score` their harmonic mean. The ground truth is the whole world's surface, seen or not, so a
 map of part of the world is that incomplete; compare maps of the same views.
 
-Exploration: the share of the reachable traversable area that the navigation graph came to know,
-the labels of the graph nodes the robot travelled over (terrain vs grass, paper 4.3), and the
-robot's clearance from obstacles along its trajectory.
+Exploration: the share of the reachable traversable area that the final navigation graph knows as
+traversable (usable coverage), beside the reachable area it calls an obstacle (false obstacle) and
+the obstacles it calls traversable (false free); the labels of the graph nodes the robot
+travelled over (terrain vs grass, paper 4.3), and the robot's clearance from obstacles along its
+trajectory.
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
+
+from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 
 # -- map precision ------------------------------------------------------------------------------
 
@@ -175,22 +179,76 @@ def reachable_traversable(trav: np.ndarray, start_ij: tuple[int, int]) -> np.nda
     return comp == c if c > 0 else np.zeros(trav.shape, bool)
 
 
-def exploration_coverage(
-    grid: dict, cell_xy: np.ndarray, reachable: np.ndarray, cell_area_m2: float
-) -> dict:
-    """Share of the reachable traversable area whose graph node is known.
+def graph_layers(
+    grid: dict, cell_xy: np.ndarray, traversable_lut: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(known, usable, blocked) masks of the raster cells centred at `cell_xy` (..., 2), as the
+    graph node over each calls it: `known` its node is FLAG_KNOWN; `blocked` known and
+    FLAG_OBSTACLE or FLAG_SAFETY_ZONE; `usable` known, not blocked and labelled a traversable
+    class (`traversable_lut[label]`, the class table's: a finite cost), what the robot could
+    drive on. A label outside the table is not traversable."""
+    flags = sample_grid(grid, cell_xy)
+    known = (flags & FLAG_KNOWN) != 0
+    blocked = known & ((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0)
+    lut = np.asarray(traversable_lut, bool)
+    labels = sample_grid(grid, cell_xy, "labels").astype(np.int64)
+    inside = (labels >= 0) & (labels < len(lut))
+    traversable = np.zeros(labels.shape, bool)
+    traversable[inside] = lut[labels[inside]]
+    return known, known & ~blocked & traversable, blocked
 
-    `cell_xy` (..., 2) are the world centres of the raster cells and `reachable` the GT mask of
-    cells the robot could reach; a cell counts as explored when the graph node over it is KNOWN."""
-    known = (sample_grid(grid, cell_xy) & 1).astype(bool)
+
+def gt_obstacle_cells(world) -> np.ndarray:
+    """Cells of the world's top-down class raster (`world.top_class()`, the one its
+    traversability and the report's reachable area come from) whose class is an obstacle: not
+    traversable because an object stands there (not water, not a clearance margin)."""
+    return world.classes.obstacle_lut[world.top_class().data]
+
+
+def exploration_coverage(
+    grid: dict,
+    cell_xy: np.ndarray,
+    reachable: np.ndarray,
+    cell_area_m2: float,
+    traversable_lut: np.ndarray,
+    gt_obstacle: np.ndarray | None = None,
+) -> dict:
+    """What the final navigation graph knows of the ground truth, per raster cell.
+
+    `cell_xy` (..., 2) are the world centres of the raster cells, `reachable` the GT mask of the
+    traversable cells the robot could reach and `gt_obstacle` the GT mask of obstacle cells
+    (`gt_obstacle_cells`; none when not given). Against the graph's `graph_layers`:
+    - usable: reachable and usable in the graph, what the robot could drive on (`coverage` is
+      its share of the reachable area, the report's headline);
+    - false obstacle: reachable, but an obstacle or a safety zone in the graph;
+    - false free: an obstacle in ground truth that the graph calls usable (the dangerous one);
+    - known: reachable under a known node whatever its label (obstacles included).
+    Every share is of the reachable area, so that they compare."""
+    known, usable, blocked = graph_layers(grid, cell_xy, traversable_lut)
+    obstacle = np.zeros(reachable.shape, bool) if gt_obstacle is None else gt_obstacle
     n_reach = int(reachable.sum())
-    n_seen = int((known & reachable).sum())
-    return {
-        "reachable_area_m2": n_reach * cell_area_m2,
-        "explored_reachable_area_m2": n_seen * cell_area_m2,
-        "coverage": n_seen / n_reach if n_reach else 0.0,
-        "known_area_m2": float((sample_grid(grid, cell_xy) & 1).astype(bool).sum() * cell_area_m2),
+    counts = {
+        "usable": int((usable & reachable).sum()),
+        "false_obstacle": int((blocked & reachable).sum()),
+        "false_free": int((usable & obstacle).sum()),
+        "known_reachable": int((known & reachable).sum()),
     }
+    out = {"reachable_area_m2": n_reach * cell_area_m2}
+    for name, n in counts.items():
+        out[f"{name}_area_m2"] = n * cell_area_m2
+        out[f"{name}_share"] = n / n_reach if n_reach else 0.0
+    out["coverage"] = out["usable_share"]
+    out["known_area_m2"] = float(known.sum() * cell_area_m2)
+    return out
+
+
+def no_coverage(reachable_area_m2: float) -> dict:
+    """`exploration_coverage`'s keys for a run that left no graph: nothing known."""
+    out = {"reachable_area_m2": reachable_area_m2, "coverage": 0.0, "known_area_m2": 0.0}
+    for name in ("usable", "false_obstacle", "false_free", "known_reachable"):
+        out[f"{name}_area_m2"] = 0.0
+        out[f"{name}_share"] = 0.0
+    return out
 
 
 def travelled_nodes(traj_xy: np.ndarray, resolution_m: float, origin_xy=(0.0, 0.0)) -> np.ndarray:

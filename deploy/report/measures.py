@@ -1,7 +1,7 @@
 """A finished run's figures measured from its run directory, for one robot: its trajectory
-(the best source there is), its navigation graph, its final map, the explored share of the
-reachable area, travelled labels and clearance against ground truth, a replay's own summary; and
-the file names and thresholds the rest of the report shares."""
+(the best source there is), its navigation graph, its final map, the usable, false-obstacle and
+false-free shares of the reachable area, travelled labels and clearance against ground truth, a
+replay's own summary; and the file names and thresholds the rest of the report shares."""
 
 from __future__ import annotations
 
@@ -32,6 +32,24 @@ MOVED_M = 0.1  # a robot that travelled less did not move
 FLEET_DIR = "robots"  # <run>/robots/<member>/: the member's map.npz, explorer/, trajectories
 SIM_SUMMARY = "sim.json"  # the fleet simulator's: robot-robot contacts and separations
 COVERAGE_TARGET = 0.95
+# A run that stops while its robot knows less than this share of the reachable area as usable
+# (usable coverage) did not do its job (checks.py)
+USABLE_FLOOR = 0.5
+# What ground_truth.exploration_coverage gives (a fleet's "exploration" section copies them)
+COVERAGE_KEYS = (
+    "coverage",
+    "reachable_area_m2",
+    *(f"{n}_{u}" for n in ("usable", "false_obstacle", "false_free") for u in ("area_m2", "share")),
+    "known_reachable_area_m2",
+    "known_reachable_share",
+    "known_area_m2",
+)
+# Coverage curves (the explorer's explored_m2 over time, rescaled to the ground truth at the end)
+# and the time and distance to COVERAGE_TARGET count the known area, any label: the usable share
+# stays well under 95 % even noise-free (the safety zones round true obstacles take their
+# margin), so a usable target would never be reached. Usable coverage is the run's outcome;
+# this is its speed.
+KNOWN_CURVE = "known_reachable_share"
 
 
 NO_SIMULATOR = (
@@ -129,7 +147,8 @@ def reachable_area(world, traj: np.ndarray, radius_m: float):
 def exploration_metrics(
     world, graph: dict | None, traj: np.ndarray, config, obstacle: np.ndarray | None = None
 ) -> dict:
-    """Coverage, travelled labels and clearance of a run, against the world's ground truth.
+    """Coverage (usable, false obstacle, false free: `ev.exploration_coverage`), travelled labels
+    and clearance of a run, against the world's ground truth.
     `obstacle`: the world's `ev.collision_raster` when the caller has it already (a fleet's
     members share it)."""
     classes = world.classes
@@ -139,17 +158,11 @@ def exploration_metrics(
     _, cell_xy, reach = reachable_area(world, traj, radius)
     out: dict = {"robot_radius_m": radius}
     if graph is not None:
-        out.update(ev.exploration_coverage(graph, cell_xy, reach, res * res))
+        lut = classes.traversable_lut
+        gt_obstacle = ev.gt_obstacle_cells(world)
+        out.update(ev.exploration_coverage(graph, cell_xy, reach, res * res, lut, gt_obstacle))
     else:
-        # no graph: nothing explored (the same keys exploration_coverage gives)
-        out.update(
-            {
-                "coverage": 0.0,
-                "reachable_area_m2": float(reach.sum() * res * res),
-                "explored_reachable_area_m2": 0.0,
-                "known_area_m2": 0.0,
-            }
-        )
+        out.update(ev.no_coverage(float(reach.sum() * res * res)))  # no graph: nothing known
     names = {i: c.name for i, c in classes.classes.items()}
     gres = config.navgraph.resolution_m
     if len(traj) >= 2:

@@ -15,14 +15,25 @@ from smana.deploy.report.measures import (
 
 # Why the two explored areas differ (the explorer's is in its progress plot, the report's here).
 EXPLORED_AREAS = (
-    "Two explored areas, measuring different things: *against ground truth* counts the cells of "
-    "the world the robot could reach (traversable, with its radius of clearance, connected to its "
-    "start) whose node in the final graph is known; *the explorer's own count* "
-    "(`explorer/state.json` `explored_m2`, its progress plot) counts the known nodes its graph "
-    "calls traversable (a traversable class, no obstacle, outside the safety zone) when it last "
-    "planned, reachable or not, in the robot's own (possibly "
-    "noisy) frame, and misses what the map learned after that plan."
+    "Two explored areas, measuring different things: *usable coverage* counts the cells of the "
+    "world the robot could reach (traversable, with its radius of clearance, connected to its "
+    "start) whose node in the final graph is known as traversable (a traversable class, no "
+    "obstacle, outside the safety zone): what the robot could drive on; *the explorer's own "
+    "count* (`explorer/state.json` `explored_m2`, its progress plot) counts the known nodes its "
+    "graph calls traversable when it last planned, reachable or not, in the robot's own "
+    "(possibly noisy) frame, and misses what the map learned after that plan. *Known (any "
+    "label)* counts the reachable cells under a known node whatever the graph calls it, "
+    "obstacles included: a robot whose map is a field of false obstacles knows much and can "
+    "use little of it."
 )
+
+
+def _area(ex: dict, name: str) -> str:
+    """`A m2 = S % of the reachable R m2` for one of exploration_coverage's areas."""
+    return (
+        f"{_f(ex.get(f'{name}_area_m2'), '.1f', ' m2')} = {_pct(ex.get(f'{name}_share'))} of "
+        f"the reachable {_f(ex.get('reachable_area_m2'), '.1f', ' m2')}"
+    )
 
 
 def summary_rows(metrics: dict) -> list[tuple[str, str]]:
@@ -39,15 +50,9 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
     if metrics.get("ground_truth") == NO_SIMULATOR:
         rows.append(("ground truth", "none: the simulator was off"))
     if ex:
-        area = ex.get("explored_reachable_area_m2")
-        rows.append(
-            (
-                "explored area (against ground truth)",
-                f"{_f(area, '.1f', ' m2')} = "
-                f"{_pct(ex.get('coverage'))} of the reachable "
-                f"{_f(ex.get('reachable_area_m2'), '.1f', ' m2')}",
-            )
-        )
+        rows.append(("usable coverage (against ground truth)", _area(ex, "usable")))
+        rows.append(("false obstacles (free, blocked in the map)", _area(ex, "false_obstacle")))
+        rows.append(("false free (obstacle, free in the map)", _area(ex, "false_free")))
     if ee:
         rows.append(
             ("explored area (explorer's own count)", _f(ee.get("explored_m2"), ".1f", " m2"))
@@ -113,7 +118,7 @@ def fleet_summary_rows(fleet: dict) -> list[tuple[str, str]]:
     t95, d95 = fleet.get("time_to_95_s"), fleet.get("distance_to_95_m")
     rows.append(
         (
-            f"to {100 * COVERAGE_TARGET:.0f} % coverage",
+            f"to {100 * COVERAGE_TARGET:.0f} % known (any label)",
             "not reached"
             if t95 is None
             else f"{t95:.0f} s robot time, {_f(d95, '.1f', ' m')} total distance",
@@ -204,17 +209,24 @@ def render_markdown(m: dict) -> str:
             ),
             ("robot time", _f(ex.get("duration_robot_s"), ".0f", " s")),
             (
-                "explored share of the reachable traversable area",
-                _f(100 * ex["coverage"] if ex.get("coverage") is not None else None, ".1f", " %"),
+                "usable coverage: reachable traversable area (ground truth) under a node the "
+                "final graph knows as traversable",
+                _area(ex, "usable"),
             ),
             (
-                "reachable traversable area (ground truth)",
-                _f(ex.get("reachable_area_m2"), ".1f", " m2"),
+                "false obstacles: reachable traversable area under an obstacle or a safety zone "
+                "of the final graph",
+                _area(ex, "false_obstacle"),
             ),
             (
-                "explored area, against ground truth (reachable traversable area under a known "
-                "node of the final graph)",
-                _f(ex.get("explored_reachable_area_m2"), ".1f", " m2"),
+                "false free: obstacle area (ground truth) under a node the final graph knows as "
+                "traversable",
+                _area(ex, "false_free"),
+            ),
+            (
+                "known (any label): reachable traversable area under a known node of the final "
+                "graph, obstacles included",
+                _area(ex, "known_reachable"),
             ),
             (
                 "explored area, the explorer's own count (known nodes its graph calls "

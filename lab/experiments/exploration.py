@@ -10,16 +10,21 @@ Reported, each as a mean with its 95 % Student-t interval over seeds (lab/stats.
 by the intervals: the share of travelled graph nodes on terrain (paper: 60/70/88 %), its rise from
 x1 to x4, and the distance to 95 % coverage of NBV against nearest-frontier.
 
-Coverage curve. The report's coverage (metrics.json `exploration.coverage`) is ground truth, but
-only at the end of the run: the share of the reachable traversable area (cells with the robot's
-radius of clearance, connected to the start) whose final graph node is known. The explorer's
-history gives `explored_m2` over time, but counts something else: known nodes its graph called
-traversable at each plan, reachable or not, in its own frame. The curve is the explorer's count
-rescaled so that its last value equals the ground-truth coverage:
-`coverage(t) = explored_m2(t) / explored_m2(end) * coverage_gt(end)`; that assumes the share of
-the explorer's count that is reachable ground truth stays the same over the run (an
-approximation, exact at the end). "Distance (time) to 95 %" is the first history row where that
-curve reaches 0.95; a run that never does is censored ("not reached"), never a number.
+Coverage. The report's coverage (metrics.json `exploration.coverage`) is ground truth, at the end
+of the run: usable coverage, the share of the reachable traversable area (cells with the robot's
+radius of clearance, connected to the start) whose final graph node is known as traversable. A
+run that `smana up` ended FAILED on what its robot did alone (`outcome_failure`) is a result,
+flagged `run_failed`; a robot that did not move scores 0 coverage and terrain share (`counted`).
+
+Coverage curve. The explorer's history gives `explored_m2` over time, but counts something else:
+known nodes its graph called traversable at each plan, reachable or not, in its own frame. The
+curve is the explorer's count rescaled so that its last value equals the ground truth's known
+share at the end (reachable cells under a known node, any label: deploy/report/measures.py
+KNOWN_CURVE says why not the usable share): `coverage(t) = explored_m2(t) / explored_m2(end) *
+known_gt(end)`; that assumes the share of the explorer's count that is reachable ground truth
+stays the same over the run (an approximation, exact at the end). "Distance (time) to 95 %" is
+the first history row where that curve reaches 0.95; a run that never does is censored ("not
+reached"), never a number.
 """
 
 from __future__ import annotations
@@ -266,11 +271,49 @@ def first_reach(x: np.ndarray, cov: np.ndarray, target: float = COVERAGE_TARGET)
     return float(x[hit[0]]) if len(hit) else None
 
 
+def outcome_failure(code: int, m: dict) -> bool:
+    """`smana up` exited 1 on what the robot did alone (deploy/report/checks.py
+    OUTCOME_WARNINGS: it did not move, found no path, knew under half the reachable area as
+    usable, was closed in by its own map): a measured failure, not a run that failed to run."""
+    from smana.deploy.report.checks import OUTCOME_WARNINGS
+
+    warnings = m.get("warnings") or []
+    return code == 1 and bool(warnings) and all(w.startswith(OUTCOME_WARNINGS) for w in warnings)
+
+
+# A run whose robot did not move explored nothing: it counts as a failure, scoring 0 on these
+# (what its sensors saw from the start is not exploration), never as missing data.
+STILL_SCORES = ("coverage", "terrain_share", "terrain_share_true")
+
+
+def stood_still(r: dict) -> bool:
+    """The row's robot did not move (`moved` False, or a distance under MOVED_M)."""
+    from smana.deploy.report.measures import MOVED_M
+
+    moved = r.get("moved")
+    if moved is None and r.get("distance_m") is not None:
+        moved = r["distance_m"] >= MOVED_M
+    return moved is False
+
+
+def counted(r: dict, key: str):
+    """The value a row counts with in every table and verdict: its own, except that a measured
+    run whose robot stood still scores 0 on STILL_SCORES (a failure, not missing data)."""
+    if key in STILL_SCORES and r.get("ok") and stood_still(r):
+        return 0.0
+    return r.get(key)
+
+
 def make_row(seed: int, arm: Arm, code: int, m: dict, state: dict, cpu_s: float, wall_s: float):
+    from smana.deploy.report.measures import KNOWN_CURVE, MOVED_M
+
     ex = m.get("exploration") or {}
     ee = m.get("explorer") or {}
-    t, d, cov = coverage_curve(state.get("history"), ee.get("explored_m2"), ex.get("coverage"))
-    ok = code == 0 and bool(m)
+    t, d, cov = coverage_curve(state.get("history"), ee.get("explored_m2"), ex.get(KNOWN_CURVE))
+    failed = bool(m) and outcome_failure(code, m)
+    # a run that FAILED on what its robot did is a result (flagged `run_failed`), not a gap
+    ok = (code == 0 and bool(m)) or failed
+    dist = ex.get("distance_m")
     return {
         "seed": seed,
         "arm": arm.name,
@@ -279,11 +322,16 @@ def make_row(seed: int, arm: Arm, code: int, m: dict, state: dict, cpu_s: float,
         "path_cost_weight": arm.path_cost_weight,
         "exit_code": code,
         "ok": ok,
+        "run_failed": failed,
+        "moved": None if dist is None else dist >= MOVED_M,
         "terrain_share": ex.get("terrain_share"),
         "coverage": ex.get("coverage"),
-        "explored_area_m2": ex.get("explored_reachable_area_m2"),
+        "usable_area_m2": ex.get("usable_area_m2"),
+        "false_obstacle_share": ex.get("false_obstacle_share"),
+        "false_free_share": ex.get("false_free_share"),
+        "known_share": ex.get(KNOWN_CURVE),
         "reachable_area_m2": ex.get("reachable_area_m2"),
-        "distance_m": ex.get("distance_m"),
+        "distance_m": dist,
         "min_clearance_m": ex.get("min_clearance_m"),
         "done_reason": ee.get("done_reason"),
         "robot_time_s": float(t[-1]) if len(t) else None,
@@ -397,7 +445,7 @@ def run_exploration(
 
 
 def _ci(rows, key) -> stats.Interval:
-    return stats.mean_ci([r[key] for r in rows if r["ok"]])
+    return stats.mean_ci([counted(r, key) for r in rows if r["ok"]])
 
 
 def _km(rows: list[dict], key: str, bound: str) -> float | None:
@@ -456,8 +504,8 @@ def _interval(d: dict) -> stats.Interval:
 def _paired(a_rows: list[dict], b_rows: list[dict], key: str) -> stats.Interval:
     """Interval of b - a over the seeds both arms ran with a value: every arm runs the same
     worlds from the same starts, so a per-seed difference removes the world-to-world spread."""
-    a = {r["seed"]: r[key] for r in a_rows if r["ok"] and r[key] is not None}
-    b = {r["seed"]: r[key] for r in b_rows if r["ok"] and r[key] is not None}
+    a = {r["seed"]: counted(r, key) for r in a_rows if r["ok"] and counted(r, key) is not None}
+    b = {r["seed"]: counted(r, key) for r in b_rows if r["ok"] and counted(r, key) is not None}
     return stats.mean_ci([b[k] - a[k] for k in sorted(a.keys() & b.keys())])
 
 

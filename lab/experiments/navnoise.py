@@ -37,12 +37,13 @@ Rules, fixed before the runs (lab/stats.py; paired per seed, the same seeds in e
 Verdicts are "reproduced" (met), "not reproduced", "inconclusive"; docs/experiments.md corrects
 them with every other claim (Holm). Contacts are counts, reported per arm, not tested.
 
-A run that `smana up` ends with a navigation warning only (NAV_OUTCOMES: the robot did not move,
-no path was ever found) is what the noise did, not a failed run: it is counted per arm ("did not
-move") and in rule 1's evidence, and since a robot that stood still has no path, its seed leaves
-that back-end's terrain-share pair. Two more arms per back-end, `<backend>_label` and
-`<backend>_pose` (one noise at a time), are on `--arms` to tell which noise did what; no verdict
-uses them.
+A run that `smana up` ends FAILED on what its robot did alone (exploration.py `outcome_failure`:
+the robot did not move, no path was ever found, under half the reachable area usable, closed in
+by its own map) is what the noise did, not a failed run: it is counted per arm ("FAILED", "did
+not move") and in every rule. A robot that stood still scores 0 on the true terrain share and
+the coverage (exploration.py `counted`): a failure in the pair, never a seed left out. Two more
+arms per back-end, `<backend>_label` and `<backend>_pose` (one noise at a time), are on `--arms`
+to tell which noise did what; no verdict uses them.
 """
 
 from __future__ import annotations
@@ -65,9 +66,6 @@ BACKENDS = ("octree-max", "tsdf")
 TERRAIN_MARGIN = 0.05  # rule 1: noise may lower the true terrain share by at most 5 points
 COVERAGE_MARGIN = 0.05  # rule 2: and the coverage by at most 5 points
 TRUE_SOURCE = "ground truth"  # lab/report.py _trajectory: the recorder's true poses
-# `smana up` exits 1 on these run warnings (lab/report.py run_warnings); here they are what the
-# noise did to the navigation, a result to count, not a failed run to leave out
-NAV_OUTCOMES = ("the robot did not move", "no path query was ever answered")
 
 
 # perception -> (label noise p = 0.7, pose noise); the two single-noise arms are not in the
@@ -168,14 +166,13 @@ def with_conditions(rows: list[dict], out: Path) -> list[dict]:
         run_dir = out / ex.run_name(r["seed"], c.arm())
         m = ex._load(run_dir / "metrics.json")
         warnings = m.get("warnings") or []
-        # a run ended by a navigation outcome alone is a measurement (NAV_OUTCOMES)
-        outcome = (
-            r["exit_code"] == 1 and warnings and all(w.startswith(NAV_OUTCOMES) for w in warnings)
-        )
+        # a run that FAILED on what its robot did alone is a measurement (module docstring)
+        outcome = bool(m) and ex.outcome_failure(r["exit_code"], m)
         full.append(
             {
                 **r,
-                "ok": bool(r["ok"] or (outcome and m)),
+                "ok": bool(r["ok"] or outcome),
+                "run_failed": outcome,
                 "run_warnings": "; ".join(warnings),
                 "backend": c.backend,
                 "perception": c.perception,
@@ -193,12 +190,12 @@ def with_conditions(rows: list[dict], out: Path) -> list[dict]:
 
 def _values(rows: list[dict], backend: str, perception: str, key: str) -> dict[int, float]:
     return {
-        r["seed"]: float(r[key])
+        r["seed"]: float(ex.counted(r, key))
         for r in rows
         if r.get("backend") == backend
         and r.get("perception") == perception
         and r.get("ok")
-        and r.get(key) is not None
+        and ex.counted(r, key) is not None
     }
 
 
@@ -230,8 +227,13 @@ def verdicts(rows: list[dict]) -> list[dict]:
     def stood_still(b: str) -> str:
         runs = [r for r in rows if (r.get("backend"), r.get("perception")) == (b, "noisy")]
         runs = [r for r in runs if r.get("ok")]
-        k = sum(r.get("moved") is False for r in runs)
-        return f"the robot did not move in {k} of {len(runs)} noisy runs (no path)" if k else ""
+        k = sum(ex.stood_still(r) for r in runs)
+        if not k:
+            return ""
+        return (
+            f"{b}: the robot did not move in {k} of {len(runs)} noisy runs, each counted as a "
+            "failure (0)"
+        )
 
     for b in BACKENDS:
         ci = paired(rows, "terrain_share_true", (b, "clean"), (b, "noisy"))
@@ -254,6 +256,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
             ci,
             stats.decide_not_worse(ci, COVERAGE_MARGIN, higher_is_better=True),
             "not worse",
+            stood_still(b),
         )
     ci = paired(rows, "terrain_share_true", ("octree-max", "noisy"), ("tsdf", "noisy"))
     add(
@@ -263,6 +266,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
         ci,
         stats.decide_above(ci),
         "above 0",
+        "; ".join(e for e in (stood_still(b) for b in BACKENDS) if e),
     )
     return out
 
@@ -279,9 +283,17 @@ SUMMARY_KEYS = (
 )
 
 
+def _run_failed(r: dict) -> bool:
+    """A measured run that `smana up` ended FAILED (exit 1): on what its robot did alone, or it
+    would not be measured (data written before `run_failed` was recorded say so by the exit)."""
+    return bool(r.get("run_failed", r.get("exit_code") == 1))
+
+
 def summarise(rows: list[dict]) -> list[dict]:
-    """Per arm that ran, in _BY_NAME's order: runs, failed, totals of contacts and close calls,
-    and the interval of each SUMMARY_KEYS value over its runs."""
+    """Per arm that ran, in _BY_NAME's order: runs, failed (not measured), FAILED (measured, the
+    run's outcome a failure), did not move, totals of contacts and close calls, and the interval
+    of each SUMMARY_KEYS value over its measured runs, a robot that stood still at 0
+    (`ex.counted`)."""
     out = []
     for c in _BY_NAME.values():
         sel = [r for r in rows if r.get("arm") == c.name]
@@ -297,10 +309,11 @@ def summarise(rows: list[dict]) -> list[dict]:
                 "failed": len(sel) - len(ok),
                 "no_true_trajectory": sum(r.get("terrain_share_true") is None for r in ok),
                 "reached_95": sum(r.get("time_to_95_s") is not None for r in ok),
-                "did_not_move": sum(r.get("moved") is False for r in ok),
+                "run_failed": sum(_run_failed(r) for r in ok),
+                "did_not_move": sum(ex.stood_still(r) for r in ok),
                 "collisions": sum(int(r.get("collisions") or 0) for r in ok),
                 "close_calls": sum(int(r.get("close_calls") or 0) for r in ok),
-                **{k: stats.mean_ci([r.get(k) for r in ok]) for k in SUMMARY_KEYS},
+                **{k: stats.mean_ci([ex.counted(r, k) for r in ok]) for k in SUMMARY_KEYS},
             }
         )
     return out
@@ -310,8 +323,9 @@ def arm_table(rows: list[dict]) -> list[str]:
     """The markdown table of `summarise` (the run's summary and the doc's generated section)."""
     lines = [
         "| arm | runs (failed) | true terrain share | map's terrain share of the same path | "
-        "coverage | distance (m) | time to 95 % (s) | did not move | contacts | close calls |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "coverage | distance (m) | time to 95 % (s) | FAILED | did not move | contacts | "
+        "close calls |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for d in summarise(rows):
         label = f"{d['backend']}, {PERCEPTION_LABEL[d['perception']]}"
@@ -321,7 +335,7 @@ def arm_table(rows: list[dict]) -> list[str]:
             f"{d['terrain_share_map'].format(100, unit=' %')} | "
             f"{d['coverage'].format(100, unit=' %')} | {d['distance_m'].format()} | "
             f"{d['time_to_95_s'].format(fmt='.0f')} ({d['reached_95']} reached) | "
-            f"{d['did_not_move']} | {d['collisions']} | {d['close_calls']} |"
+            f"{d['run_failed']} | {d['did_not_move']} | {d['collisions']} | {d['close_calls']} |"
         )
     return lines
 
@@ -494,8 +508,9 @@ def add_parser(sub) -> None:
         "moved); the 5 seeds x 4 arms = 20 runs, one at a time (--jobs 1), 51 min (2 at once, "
         "the default --jobs, not measured). --quick: 4 arms x 2 "
         "seeds of 20 s in a 6 m garden; one seed of it (--seeds 1) measured once: 2 to 3.7 "
-        "min. Exits 1 if any run failed (a run that ended only because the robot did not move "
-        "or found no path is a result, not a failure).",
+        "min. Exits 1 if any run failed to run (a run that `smana up` ended FAILED only on "
+        "what its robot did, such as not moving or finding no path, is a result, counted as a "
+        "failure: a robot that stood still scores 0).",
     )
     ex.add_common_args(
         e, quick_help="4 arms x 2 seeds of 20 s in a 6 m garden (one seed measured once: 2-4 min)"

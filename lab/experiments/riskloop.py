@@ -61,7 +61,6 @@ import numpy as np
 from smana.lab import stats
 
 from . import exploration as ex
-from .navnoise import NAV_OUTCOMES
 from .noise import POSE_NOISE
 
 WATER_SHARE = 0.1  # of the garden seen from above (services/sim/worlds/water.py)
@@ -195,10 +194,8 @@ def run_truth(run_dir: Path, worlds: dict) -> dict:
 
 
 def nav_outcome_only(row: dict, m: dict) -> bool:
-    """A run that `smana up` ended (exit 1) with navigation warnings alone: a result."""
-    warnings = m.get("warnings") or []
-    nav_only = all(w.startswith(NAV_OUTCOMES) for w in warnings)
-    return row["exit_code"] == 1 and bool(warnings) and nav_only
+    """A run that `smana up` ended (exit 1) on what its robot did alone: a result."""
+    return ex.outcome_failure(row["exit_code"], m)
 
 
 def finished(row: dict, run_dir: Path) -> bool:
@@ -242,9 +239,9 @@ def with_truth(rows: list[dict], out: Path) -> list[dict]:
 
 def _by_seed(rows: list[dict], arm: str, key: str) -> dict[int, float]:
     return {
-        r["seed"]: float(r[key])
+        r["seed"]: float(ex.counted(r, key))
         for r in rows
-        if r.get("arm") == arm and r.get("ok") and r.get(key) is not None
+        if r.get("arm") == arm and r.get("ok") and ex.counted(r, key) is not None
     }
 
 
@@ -360,7 +357,7 @@ def summarise(rows: list[dict]) -> list[dict]:
                 "failed": len(sel) - len(ok),
                 "did_not_move": sum((r.get("length_m") or 0.0) < MOVED_M for r in ok),
                 "collisions": sum(int(r.get("collisions") or 0) for r in ok),
-                **{k: stats.mean_ci([r.get(k) for r in ok]) for k in SUMMARY_KEYS},
+                **{k: stats.mean_ci([ex.counted(r, k) for r in ok]) for k in SUMMARY_KEYS},
             }
         )
     return out
