@@ -328,7 +328,7 @@ class DoubtingReference:
             if not col:
                 self.evidence[node] = 0
                 continue
-            top = max(col.items(), key=lambda kv: (kv[0][0], self.ob[kv[1][0]], kv[0][1]))[1]
+            top = self.top(col)
             ev = self.evidence.get(node, 0)
             if self.ob[top[0]]:
                 ev = cap if top[1] == 255 else min(ev + 1, cap)
@@ -336,12 +336,24 @@ class DoubtingReference:
                 ev = max(ev - self.miss, -cap)
             self.evidence[node] = ev
 
+    def top(self, col):
+        """The voxel a node shows: the highest level's; an obstacle class when every label there
+        is certain and one has it, or when at least half of them have one; then the larger
+        sub-column id."""
+        level = max(k[0] for k in col)
+        at = {k: v for k, v in col.items() if k[0] == level}
+        n_ob = sum(bool(self.ob[v[0]]) for v in at.values())
+        certain = all(v[1] == 255 for v in at.values())
+        want_ob = n_ob > 0 and (certain or 2 * n_ob >= len(at))
+        pick = {k: v for k, v in at.items() if bool(self.ob[v[0]]) == want_ob}
+        return pick[max(pick)]
+
     def flags(self):
         out = np.zeros((self.n, self.n), np.uint8)
         for (ix, iy), col in self.columns.items():
             if not col:
                 continue
-            top = max(col.items(), key=lambda kv: (kv[0][0], self.ob[kv[1][0]], kv[0][1]))[1]
+            top = self.top(col)
             rise = top[2] - min(v[2] for v in col.values())
             f = FLAG_KNOWN
             if rise > self.step_m:

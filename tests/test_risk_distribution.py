@@ -136,7 +136,8 @@ def to_probability_steps(labels, confidences, alt_labels, alt_confidences, valid
 
 class ReferenceRiskGraph(ReferenceGraph):
     """The reference graph, each voxel with its distribution; a node shows the one of the voxel
-    that sets its label."""
+    that sets its label (with uncertain labels, an obstacle class wins the top level only when
+    at least half of its voxels have one)."""
 
     def apply(self, centres, labels, surface, risk):
         for (x, y, z), lab, s, r in zip(
@@ -159,9 +160,15 @@ class ReferenceRiskGraph(ReferenceGraph):
         for (ix, iy), col in self.columns.items():
             if not col:
                 continue
-            _, (_, _, r) = max(
-                col.items(), key=lambda kv: (kv[0][0], CLASSES.obstacle_lut[kv[1][0]], kv[0][1])
-            )
+            # the highest level's voxels; an obstacle class wins when all of them are certain,
+            # else when at least half have one; then the larger sub-column id
+            level = max(k[0] for k in col)
+            at = {k: v for k, v in col.items() if k[0] == level}
+            n_ob = sum(bool(CLASSES.obstacle_lut[v[0]]) for v in at.values())
+            certain = all(v[2][1] == 255 for v in at.values())
+            want_ob = n_ob > 0 and (certain or 2 * n_ob >= len(at))
+            pick = {k: v for k, v in at.items() if bool(CLASSES.obstacle_lut[v[0]]) == want_ob}
+            r = pick[max(pick)][2]
             for a, v in zip(out, r, strict=True):
                 a[ix, iy] = v
         return out

@@ -528,12 +528,14 @@ def _zone_centre(kind_lut, label, flags):
 
 @numba.njit(cache=True, inline="always")
 def _node_head_recompute(cols, nodes, rule, n):
-    """Node n shows its column's head: label, height and flags from the highest level (among
-    voxels of that level an obstacle wins, the conservative choice, then the larger sub-column
-    id, so the result does not depend on arrival order), with that voxel's label distribution;
-    an empty column is unknown (and certain: nothing to be unsure of). Called once per node an
-    update changed, so it also counts the node's evidence (`_blocks`). Returns whether the node
-    is a centre of the safety zone now."""
+    """Node n shows its column's head: label, height and flags from the highest level, with
+    that voxel's label distribution; an empty column is unknown (and certain: nothing to be
+    unsure of). Among the voxels of that level an obstacle wins, the conservative choice, when
+    every label there is certain; with an uncertain one, when at least half of them have an
+    obstacle class (one wrong label among four ground voxels does not make the node's label);
+    then the larger sub-column id, so the result does not depend on arrival order. Called once
+    per node an update changed, so it also counts the node's evidence (`_blocks`). Returns
+    whether the node is a centre of the safety zone now."""
     kind_lut = rule.kind
     e = nodes.col_head[n]
     flags = np.uint8(0)
@@ -545,14 +547,23 @@ def _node_head_recompute(cols, nodes, rule, n):
         nodes.p_alt[n] = 0
         nodes.obstacle_evidence[n] = 0
     else:
-        best = e
-        cur = cols.next[e]
+        best_ob = -1  # the top level's obstacle voxel and other voxel of largest sub-column id
+        best_other = -1
+        n_top = 0
+        n_ob = 0
+        certain = True
+        cur = e
         while cur >= 0 and cols.level[cur] == cols.level[e]:
-            ob_c = (kind_lut[cols.label[cur]] & LUT_OBSTACLE) != 0
-            ob_b = (kind_lut[cols.label[best]] & LUT_OBSTACLE) != 0
-            if (ob_c and not ob_b) or (ob_c == ob_b and cols.sub[cur] > cols.sub[best]):
-                best = cur
+            n_top += 1
+            certain = certain and cols.p_label[cur] == 255
+            if (kind_lut[cols.label[cur]] & LUT_OBSTACLE) != 0:
+                n_ob += 1
+                if best_ob < 0 or cols.sub[cur] > cols.sub[best_ob]:
+                    best_ob = cur
+            elif best_other < 0 or cols.sub[cur] > cols.sub[best_other]:
+                best_other = cur
             cur = cols.next[cur]
+        best = best_ob if n_ob > 0 and (certain or 2 * n_ob >= n_top) else best_other
         low_z = cols.z[e]  # the column is sorted from the highest level down: its last entry
         while cur >= 0:
             low_z = cols.z[cur]
