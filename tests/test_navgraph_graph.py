@@ -297,71 +297,85 @@ def test_safety_zone_surrounds_forbidden_nodes_as_obstacles(margin):
 
 
 class DoubtingReference:
-    """The doubt rule, slowly: per node a dict of voxels with their label and probability step,
-    and an evidence count moved once per integration that changed the node's column."""
+    """The doubt rule, slowly: per node a dict of voxels (label, probability step, height and
+    the voxel's distribution (alt label, p_label, p_alt) steps), and an evidence count moved once
+    per integration that changed the node's column."""
 
-    def __init__(self, n, confirm=4, miss=2, step_m=0.25, classes=CLASSES):
+    def __init__(self, n, confirm=0, miss=2, step_m=0.25, classes=CLASSES):
         self.n, self.confirm, self.miss, self.step_m = n, confirm, miss, step_m
+        self.cap = max(2 * confirm, 8)
         self.ob = classes.obstacle_lut
         self.columns: dict[tuple[int, int], dict] = {}
         self.evidence: dict[tuple[int, int], int] = {}
 
-    def apply(self, centres, labels, confs, occupied):
+    def apply(self, centres, labels, dists, occupied):
+        """`dists`: per voxel (alt label, p_label, p_alt) in steps of 1/255."""
         changed = set()
-        for (x, y, z), lab, c, occ in zip(
-            centres.tolist(), labels.tolist(), confs.tolist(), occupied.tolist()
+        for (x, y, z), lab, d, occ in zip(
+            centres.tolist(), labels.tolist(), dists, occupied.tolist()
         ):
             ix, iy = math.floor(x / RES), math.floor(y / RES)
+            if not (0 <= ix < self.n and 0 <= iy < self.n):
+                continue
             sub = ((math.floor(x / MAP_RES) & 255) << 8) | (math.floor(y / MAP_RES) & 255)
             key = (math.floor(np.float32(z) / MAP_RES), sub)
             col = self.columns.setdefault((ix, iy), {})
-            step = math.floor(min(max(c, 0.0), 1.0) * 255 + 0.5)
+            value = (lab, int(d[1]), float(np.float32(z)), tuple(int(v) for v in d))
             if occ:
-                if col.get(key) != (lab, step, float(np.float32(z))):
-                    col[key] = (lab, step, float(np.float32(z)))
+                old = col.get(key)
+                if old is None or (old[0], old[3]) != (lab, value[3]):
+                    col[key] = value
                     changed.add((ix, iy))
             elif col.pop(key, None) is not None:
                 changed.add((ix, iy))
-        cap = 2 * self.confirm
         for node in changed:
             col = self.columns[node]
             if not col:
                 self.evidence[node] = 0
                 continue
-            top = self.top(col)
+            vote, certain, _, _ = self._top_level(col)
             ev = self.evidence.get(node, 0)
-            if self.ob[top[0]]:
-                ev = cap if top[1] == 255 else min(ev + 1, cap)
+            if vote:
+                ev = self.cap if certain else min(ev + 1, self.cap)
             else:
-                ev = max(ev - self.miss, -cap)
+                ev = max(ev - self.miss, -self.cap)
             self.evidence[node] = ev
 
-    def top(self, col):
-        """The voxel a node shows: the highest level's; an obstacle class when every label there
-        is certain and one has it, or when at least half of them have one; then the larger
-        sub-column id."""
+    def _top_level(self, col):
+        """(votes for an obstacle class, all certain, obstacle voxels, other voxels) of the
+        highest level: a vote when all are certain and one has an obstacle class, or when at
+        least half of them have one."""
         level = max(k[0] for k in col)
         at = {k: v for k, v in col.items() if k[0] == level}
-        n_ob = sum(bool(self.ob[v[0]]) for v in at.values())
+        obs = {k: v for k, v in at.items() if self.ob[v[0]]}
+        others = {k: v for k, v in at.items() if not self.ob[v[0]]}
         certain = all(v[1] == 255 for v in at.values())
-        want_ob = n_ob > 0 and (certain or 2 * n_ob >= len(at))
-        pick = {k: v for k, v in at.items() if bool(self.ob[v[0]]) == want_ob}
+        vote = bool(obs) and (certain or 2 * len(obs) >= len(at))
+        return vote, certain, obs, others
+
+    def shown(self, node):
+        """The voxel node shows: the vote's side when the vote is certain, the evidence positive
+        or there is no other voxel; then the larger sub-column id."""
+        col = self.columns[node]
+        vote, certain, obs, others = self._top_level(col)
+        pick = obs if vote and (certain or self.evidence[node] > 0 or not others) else others
         return pick[max(pick)]
 
     def flags(self):
         out = np.zeros((self.n, self.n), np.uint8)
-        for (ix, iy), col in self.columns.items():
+        for node, col in self.columns.items():
             if not col:
                 continue
-            top = self.top(col)
+            top = self.shown(node)
             rise = top[2] - min(v[2] for v in col.values())
             f = FLAG_KNOWN
             if rise > self.step_m:
                 f |= FLAG_OBSTACLE
             elif self.ob[top[0]]:
-                blocks = self.evidence[(ix, iy)] >= self.confirm
+                ev = self.evidence[node]
+                blocks = top[1] == 255 or (self.confirm > 0 and ev >= self.confirm)
                 f |= FLAG_OBSTACLE if blocks else FLAG_DOUBTFUL
-            out[ix, iy] = f
+            out[node] = f
         return out
 
 
@@ -383,13 +397,16 @@ class DoubtingReference:
         min_size=1,
         max_size=10,
     ),
-    confirm=st.sampled_from([0, 1, 3]),
+    confirm=st.sampled_from([0, 1, 3, 5]),
     miss=st.sampled_from([1, 2]),
 )
 def test_uncertain_obstacle_labels_doubt_until_the_evidence_confirms_them(deltas, confirm, miss):
-    """Obstacle, doubtful and free nodes against the slow rule, over uncertain labels: a column
-    rising over the step blocks; an obstacle class blocks when certain or when its evidence (+1 an
-    update whose top is an obstacle class, -miss one whose is not) reaches `semantic_confirm`."""
+    """Obstacle, doubtful and free nodes against the slow rule, over certain and uncertain
+    labels: a column rising over the step blocks; the top level votes for an obstacle class (all
+    certain and one has it, or half of them have one), the vote moves the evidence (+1, or -miss),
+    the node shows the vote's side when certain, the evidence positive or nothing else is there;
+    an obstacle class blocks when certain or, with `semantic_confirm` > 0, once its evidence
+    reaches it."""
     g = graph(
         (0, 0),
         (0.8, 0.8),
@@ -406,15 +423,19 @@ def test_uncertain_obstacle_labels_doubt_until_the_evidence_confirms_them(deltas
         confs = np.array([d[4] for d in delta], np.float32)
         occ = np.array([d[5] for d in delta], np.uint8)
         g.integrate(vox, labels, occ, map_resolution_m=MAP_RES, confidences=confs)
-        ref.apply(vox.astype(np.float64), labels, confs, occ.astype(bool))
+        steps = [(0, math.floor(min(max(c, 0.0), 1.0) * 255 + 0.5), 0) for c in confs.tolist()]
+        ref.apply(vox.astype(np.float64), labels, steps, occ.astype(bool))
         np.testing.assert_array_equal(graph_state(g)[2] & mask, ref.flags())
+        for node in ref.columns:
+            if ref.columns[node]:
+                assert graph_state(g)[0][node] == ref.shown(node)[0]
 
 
 def test_one_wrong_label_on_the_lawn_is_doubtful_and_clears_when_views_disagree():
-    """A single uncertain hedge label on flat ground makes no obstacle and no safety zone; the
-    hedge seen again and again is confirmed; the lawn seen again clears it; a real step (a column
-    rising 0.4 m) blocks at once whatever its label."""
-    g = graph((0, 0), (4, 4), robot_radius_m=0.4)
+    """A single uncertain hedge label on flat ground makes no obstacle and no safety zone; with
+    `semantic_confirm` 4, the hedge seen again and again is confirmed; the lawn seen again clears
+    it; a real step (a column rising 0.4 m) blocks at once whatever its label."""
+    g = graph((0, 0), (4, 4), robot_radius_m=0.4, semantic_confirm=4)
     lawn = [voxel(10, 10, 0)]
     integrate(g, lawn, [HEDGE], [1], confidences=np.array([0.9], np.float32))
     n = g.node(1.05, 1.05)
@@ -424,6 +445,7 @@ def test_one_wrong_label_on_the_lawn_is_doubtful_and_clears_when_views_disagree(
         integrate(g, lawn, [HEDGE], [1], confidences=np.array([c], np.float32))
     n = g.node(1.05, 1.05)
     assert n["obstacle"] and not n["doubtful"] and n["obstacle_evidence"] == 4
+    assert NavgraphConfig().semantic_confirm == 0  # by default it would stay doubtful
     assert g.node(1.25, 1.05)["safety_zone"]
     for c in (0.5, 0.6):  # the lawn seen twice: 4 - 2 x 2 = 0 < 4
         integrate(g, lawn, [GRASS], [1], confidences=np.array([c], np.float32))

@@ -20,7 +20,7 @@ from smana.services.mapper.semantic_map import SemanticMap
 from smana.services.navgraph.service import to_patch
 from tests.test_mapper_octree import RefOctree, random_cloud
 from tests.test_mapper_tsdf import SEM_IDS, RefTsdf
-from tests.test_navgraph_graph import CLASSES, MAP_RES, RES, ReferenceGraph, graph
+from tests.test_navgraph_graph import CLASSES, MAP_RES, DoubtingReference, graph
 
 
 def _rows_by_key(m: SemanticMap):
@@ -134,43 +134,18 @@ def to_probability_steps(labels, confidences, alt_labels, alt_confidences, valid
     return alt.astype(np.uint16), p.astype(np.uint8), pa.astype(np.uint8)
 
 
-class ReferenceRiskGraph(ReferenceGraph):
-    """The reference graph, each voxel with its distribution; a node shows the one of the voxel
-    that sets its label (with uncertain labels, an obstacle class wins the top level only when
-    at least half of its voxels have one)."""
-
-    def apply(self, centres, labels, surface, risk):
-        for (x, y, z), lab, s, r in zip(
-            centres.tolist(), labels.tolist(), surface.tolist(), zip(*risk, strict=True)
-        ):
-            ix, iy = math.floor(x / self.res), math.floor(y / self.res)
-            if not (0 <= ix < self.nx and 0 <= iy < self.ny):
-                continue
-            gz = math.floor(np.float32(z) / self.map_res)
-            sub = ((math.floor(x / self.map_res) & 255) << 8) | (math.floor(y / self.map_res) & 255)
-            col = self.columns.setdefault((ix, iy), {})
-            if s:
-                col[(gz, sub)] = (lab, float(np.float32(z)), tuple(int(v) for v in r))
-            else:
-                col.pop((gz, sub), None)
+class ReferenceRiskGraph(DoubtingReference):
+    """The doubting reference graph (tests/test_navgraph_graph.py), each voxel with its
+    distribution; a node shows the one of the voxel that sets its label."""
 
     def risk(self):
-        out = [np.zeros((self.nx, self.ny), np.uint16), np.full((self.nx, self.ny), 255, np.uint8)]
-        out.append(np.zeros((self.nx, self.ny), np.uint8))
-        for (ix, iy), col in self.columns.items():
+        out = [np.zeros((self.n, self.n), np.uint16), np.full((self.n, self.n), 255, np.uint8)]
+        out.append(np.zeros((self.n, self.n), np.uint8))
+        for node, col in self.columns.items():
             if not col:
                 continue
-            # the highest level's voxels; an obstacle class wins when all of them are certain,
-            # else when at least half have one; then the larger sub-column id
-            level = max(k[0] for k in col)
-            at = {k: v for k, v in col.items() if k[0] == level}
-            n_ob = sum(bool(CLASSES.obstacle_lut[v[0]]) for v in at.values())
-            certain = all(v[2][1] == 255 for v in at.values())
-            want_ob = n_ob > 0 and (certain or 2 * n_ob >= len(at))
-            pick = {k: v for k, v in at.items() if bool(CLASSES.obstacle_lut[v[0]]) == want_ob}
-            r = pick[max(pick)][2]
-            for a, v in zip(out, r, strict=True):
-                a[ix, iy] = v
+            for a, v in zip(out, self.shown(node)[3], strict=True):
+                a[node] = v
         return out
 
 
@@ -191,7 +166,7 @@ def test_nodes_keep_the_distribution_of_the_voxel_that_sets_their_label():
     rng = np.random.default_rng(9)
     g = graph((0, 0), (2.4, 2.4), robot_radius_m=0.2)
     nx = g.grid.shape[0]
-    ref = ReferenceRiskGraph(nx, nx, RES, 0.2, MAP_RES)
+    ref = ReferenceRiskGraph(nx)
     seen = {}
     for step in range(12):
         centres, labels, conf, alt, alt_conf, occ = _random_update(rng, 60, 2 * nx)
@@ -209,7 +184,7 @@ def test_nodes_keep_the_distribution_of_the_voxel_that_sets_their_label():
                 alt_confidences=alt_conf,
             )
             risk = to_probability_steps(labels, conf, alt, alt_conf)
-        ref.apply(centres, labels, occ, risk)
+        ref.apply(centres, labels, list(zip(*risk, strict=True)), occ)
         # what an update reports is the grid's state of those nodes
         for name in RISK_LAYER_NAMES:
             now = g.grid.read_risk(up.cells)[RISK_LAYER_NAMES.index(name)]

@@ -22,14 +22,16 @@ class NavgraphConfig(Section, section="navgraph"):
     forbidden_margin: bool = True
     # A map that doubts before it blocks (docs/architecture.md, "Obstacles"): a node is an
     # obstacle when its column stands more than `obstacle_step_m` over its lowest voxel (the robot
-    # cannot drive over it, whatever its label), or when its class is an obstacle class and either
-    # the label is certain (p = 1) or the node's evidence reached `semantic_confirm`: +1 for each
-    # update whose top voxel has an obstacle class, -`semantic_miss_weight` for each that has not,
-    # kept within +/- 2 x semantic_confirm. Until then the node is doubtful: passable at the
-    # planner's `doubtful_cost`, no safety zone round it. semantic_confirm = 0: every obstacle
-    # label blocks at once (the paper's rule); obstacle_step_m = inf: no geometric obstacles.
+    # cannot drive over it, whatever its label), or when it shows an obstacle class whose label
+    # is certain (p = 1). An uncertain obstacle class without that height is doubtful: passable
+    # at the planner's `doubtful_cost`, no safety zone round it. Each node keeps evidence: +1 for
+    # each update whose top level votes for an obstacle class, -`semantic_miss_weight` for each
+    # that does not, kept within +/- max(2 x semantic_confirm, 8); a node whose evidence is not
+    # positive shows its top level's other class. semantic_confirm > 0: a doubtful node whose
+    # evidence reaches it blocks too (0: never by an uncertain label alone); obstacle_step_m =
+    # inf: no geometric obstacles.
     obstacle_step_m: float = param(0.25, gt=0)
-    semantic_confirm: int = param(4, ge=0, le=60)
+    semantic_confirm: int = param(0, ge=0, le=60)
     semantic_miss_weight: int = param(2, ge=1, le=60)
     tile_size: int = param(32, ge=1, le=256)  # nodes per tile side; memory is allocated per tile
     # Occupied voxels remembered per node column (to recompute the node when the top one is

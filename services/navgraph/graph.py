@@ -84,6 +84,10 @@ from .kernels import (
     _safety_zone_kernel,
 )
 
+# The least bound of a node's evidence (+/-): enough memory that a lawn mislabelled for a few
+# updates stays a lawn, short enough that a real change shows within a few more.
+EVIDENCE_CAP = 8
+
 # What `integrate_delta` reads from each kind of MapDelta.values (common/messages.py VALUES_KINDS):
 # both say everything with `occupied` (a signed-distance map's extracted surface), so neither
 # passes anything more; a future kind that needs its values names them here.
@@ -173,7 +177,7 @@ class NavGraph:
             float(config.obstacle_step_m),
             int(config.semantic_confirm),
             int(config.semantic_miss_weight),
-            2 * int(config.semantic_confirm),
+            max(2 * int(config.semantic_confirm), EVIDENCE_CAP),
         )
         res, radius = self.resolution_m, config.robot_radius_m
         r_cells = int(np.floor(radius / res + 1e-9))

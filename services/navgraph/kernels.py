@@ -133,7 +133,7 @@ class NodeRule(NamedTuple):
 
     kind: np.ndarray  # u1 per label id: LUT_OBSTACLE | LUT_ZONE bits (ClassLuts.kind)
     step_m: float
-    confirm: int  # evidence at which an uncertain obstacle label blocks (0: at once)
+    confirm: int  # evidence at which an uncertain obstacle label blocks (0: never alone)
     miss_weight: int
     cap: int  # evidence is kept within [-cap, cap]
 
@@ -530,12 +530,17 @@ def _zone_centre(kind_lut, label, flags):
 def _node_head_recompute(cols, nodes, rule, n):
     """Node n shows its column's head: label, height and flags from the highest level, with
     that voxel's label distribution; an empty column is unknown (and certain: nothing to be
-    unsure of). Among the voxels of that level an obstacle wins, the conservative choice, when
-    every label there is certain; with an uncertain one, when at least half of them have an
-    obstacle class (one wrong label among four ground voxels does not make the node's label);
-    then the larger sub-column id, so the result does not depend on arrival order. Called once
-    per node an update changed, so it also counts the node's evidence (`_blocks`). Returns
-    whether the node is a centre of the safety zone now."""
+    unsure of). Called once per node an update changed, so it also counts the node's evidence.
+    Returns whether the node is a centre of the safety zone now.
+
+    The top level votes for an obstacle class when every label there is certain and one has it
+    (the paper's conservative rule), or when at least half of its voxels have one (one wrong
+    label among four lawn voxels is no vote). The vote moves the evidence (+1, or
+    -`rule.miss_weight` against; a certain vote sets it to the cap). The node shows an obstacle
+    voxel when the vote says so and the label is certain, the evidence is positive, or no other
+    voxel is there; otherwise the level's other voxel: a lawn that the map mislabels now and
+    then stays a lawn. Among voxels of one kind the larger sub-column id wins, so the result
+    does not depend on arrival order. `_blocks` then sets the flags."""
     kind_lut = rule.kind
     e = nodes.col_head[n]
     flags = np.uint8(0)
@@ -563,41 +568,41 @@ def _node_head_recompute(cols, nodes, rule, n):
             elif best_other < 0 or cols.sub[cur] > cols.sub[best_other]:
                 best_other = cur
             cur = cols.next[cur]
-        best = best_ob if n_ob > 0 and (certain or 2 * n_ob >= n_top) else best_other
         low_z = cols.z[e]  # the column is sorted from the highest level down: its last entry
         while cur >= 0:
             low_z = cols.z[cur]
             cur = cols.next[cur]
+        vote = n_ob > 0 and (certain or 2 * n_ob >= n_top)
+        ev = np.int64(nodes.obstacle_evidence[n])
+        if vote:
+            ev = rule.cap if certain else min(ev + 1, rule.cap)
+        else:
+            ev = max(ev - rule.miss_weight, -rule.cap)
+        nodes.obstacle_evidence[n] = ev
+        best = best_ob if vote and (certain or ev > 0 or best_other < 0) else best_other
         nodes.labels[n] = cols.label[best]
         nodes.heights[n] = cols.z[best]
         nodes.alt_labels[n] = cols.alt_label[best]
         nodes.p_label[n] = cols.p_label[best]
         nodes.p_alt[n] = cols.p_alt[best]
         flags |= np.uint8(FLAG_KNOWN)
-        flags |= _blocks(rule, nodes, n, cols.label[best], cols.p_label[best], cols.z[e] - low_z)
+        flags |= _blocks(rule, cols.label[best], cols.p_label[best], ev, cols.z[e] - low_z)
     nodes.flags[n] = _with_safety_zone(flags, nodes.obstacle_count[n])
     return _zone_centre(kind_lut, nodes.labels[n], flags)
 
 
 @numba.njit(cache=True, inline="always")
-def _blocks(rule, nodes, n, label, p_label, rise_m):
-    """FLAG_OBSTACLE, FLAG_DOUBTFUL or 0 for a known node whose top voxel has `label` (its
-    probability x 255 `p_label`) and whose column rises `rise_m` over its lowest voxel; counts
-    this update into the node's evidence. Geometry blocks whatever the label (a step the robot
-    cannot climb); an obstacle class blocks when its label is certain or the evidence reached
-    `rule.confirm`, and is doubtful until then."""
-    semantic = (rule.kind[label] & LUT_OBSTACLE) != 0
-    ev = np.int64(nodes.obstacle_evidence[n])
-    if semantic:
-        ev = rule.cap if p_label == 255 else min(ev + 1, rule.cap)
-    else:
-        ev = max(ev - rule.miss_weight, -rule.cap)
-    nodes.obstacle_evidence[n] = ev
+def _blocks(rule, label, p_label, evidence, rise_m):
+    """FLAG_OBSTACLE, FLAG_DOUBTFUL or 0 for a known node showing `label` (its probability x
+    255 `p_label`) whose column rises `rise_m` over its lowest voxel. Geometry blocks whatever
+    the label (a step the robot cannot climb); an obstacle class blocks when its label is
+    certain, or when `rule.confirm` > 0 and the node's evidence reached it; it is doubtful
+    otherwise (with `rule.confirm` 0, the default, an uncertain label never blocks alone)."""
     if rise_m > rule.step_m:
         return np.uint8(FLAG_OBSTACLE)
-    if not semantic:
+    if (rule.kind[label] & LUT_OBSTACLE) == 0:
         return np.uint8(0)
-    if ev >= rule.confirm:
+    if p_label == 255 or (rule.confirm > 0 and evidence >= rule.confirm):
         return np.uint8(FLAG_OBSTACLE)
     return np.uint8(FLAG_DOUBTFUL)
 
