@@ -455,3 +455,21 @@ def test_one_wrong_label_on_the_lawn_is_doubtful_and_clears_when_views_disagree(
     step = [voxel(20, 20, 0), voxel(20, 20, 4)]
     integrate(g, step, [GRASS, GRASS], [1, 1], confidences=np.array([0.5, 0.5], np.float32))
     assert g.node(2.05, 2.05)["obstacle"]
+
+
+def test_a_lawn_mislabelled_now_and_then_stays_a_lawn():
+    """Four lawn voxels seen four times, then for one update three of them come back as hedge
+    (max fusion keeps such a label a while): the node's evidence is negative, so it shows its
+    lawn voxel and is neither doubtful nor an obstacle; the hedge labels kept for three more
+    updates do not turn it either (the evidence climbs from -8 by one a time)."""
+    g = graph((0, 0), (4, 4), robot_radius_m=0.4)
+    lawn = [voxel(10, 10, 0), voxel(11, 10, 0), voxel(10, 11, 0), voxel(11, 11, 0)]
+    for c in (0.5, 0.6, 0.7, 0.8):
+        integrate(g, lawn, [GRASS] * 4, [1] * 4, confidences=np.full(4, c, np.float32))
+    assert g.node(1.05, 1.05)["obstacle_evidence"] == -8
+    for c in (0.9, 0.8, 0.7, 0.6):
+        conf = np.array([c, c, c, 0.5], np.float32)
+        integrate(g, lawn, [HEDGE, HEDGE, HEDGE, GRASS], [1] * 4, confidences=conf)
+        n = g.node(1.05, 1.05)
+        assert n["label"] == GRASS and not n["doubtful"] and not n["obstacle"]
+    assert g.node(1.05, 1.05)["obstacle_evidence"] == -4
