@@ -480,3 +480,17 @@ def test_a_robot_closed_in_by_its_map_says_so_after_its_looks():
     assert len(looked) == ex.config.recoveries == 3
     xy = np.array([g.choice.xy for g in looked])
     assert (np.hypot(*(xy[:, None] - xy[None]).transpose(2, 0, 1)) + np.eye(3) * 9 >= 1.0).all()
+
+
+def test_no_look_for_pockets_smaller_than_the_reach():
+    """A finished run whose unreachable seen ground (a bed behind a hedge) is smaller than what it
+    can reach ends at once, without a look: the same walled lawn with the row moved near the far
+    edge, so that the lawn beyond it is the smaller part."""
+    truth = np.full((40, 40), 1, np.uint16)
+    truth[:, 0] = truth[:, -1] = truth[0, :] = truth[-1, :] = 4
+    truth[28:29, :] = 4  # a real row: the pocket beyond is 10 x 38 nodes, the reach far more
+    world = ToyWorld(truth)
+    world.known[:] = True
+    ex, looked, _ = _loop_with_a_map_that_clears(world, truth.copy())
+    assert not looked and ex.n_recoveries == 0
+    assert ex.done_reason in ("no_frontier", "no_view_worth_it")

@@ -10,10 +10,11 @@ means looking again: drive to the reachable node nearest the free ground seen be
 face it (the camera looks ahead and down), and plan again. Each look goes to a new place
 (`recovery_spacing_m` from the earlier ones), at most `recoveries` times while no view is found.
 
-A robot is closed in when, with its looks spent, the free ground it has seen but cannot reach is
-larger than the ground it can reach (and at least `closed_in_min_m2`): the run then ends with
-`closed_in`, which the run's report calls a failure. A robot that explored its part of the world,
-where a few beds or pockets behind hedges stay out of reach, ends as before.
+It looks again only when the robot seems closed in: the free ground it has seen but cannot reach
+is larger than the ground it can reach (and at least `closed_in_min_m2`). A robot that explored
+its part of the world, where a few beds or pockets behind hedges stay out of reach, ends as before
+without a detour. Closed in still with its looks spent, the run ends `closed_in`, which the run's
+report calls a failure.
 """
 
 from __future__ import annotations
@@ -54,9 +55,9 @@ class Recovering:
         when there is nothing to look at, no new place to look from, or the looks are spent."""
         if self.n_recoveries >= self.config.recoveries or not reach.any():
             return False
+        if not self._closed_in(free, reach):
+            return False  # a finished run's pockets behind hedges are no reason to drive on
         beyond = self._seen_beyond(free, reach)
-        if not beyond.any():
-            return False
         g = self.grid
         far = np.argwhere(beyond)
         near = np.argwhere(reach)
