@@ -473,3 +473,32 @@ def test_a_lawn_mislabelled_now_and_then_stays_a_lawn():
         n = g.node(1.05, 1.05)
         assert n["label"] == GRASS and not n["doubtful"] and not n["obstacle"]
     assert g.node(1.05, 1.05)["obstacle_evidence"] == -4
+
+
+def test_a_voxel_hit_once_makes_no_geometric_obstacle():
+    """An occupancy map's voxel 0.4 m over the lawn (a wall smeared there by one noisy pose) makes
+    no obstacle while its log-odds are under `solid_log_odds` (one hit: 0.85), and does once they
+    reach it (a second hit: 1.69); a signed-distance map's surface is solid as it is."""
+    g = graph((0, 0), (4, 4), robot_radius_m=0.4)
+    assert g.config.solid_log_odds == 1.0
+
+    def delta(values, kind="log_odds"):
+        centres = np.array([voxel(10, 10, 0), voxel(10, 10, 4)], np.float32)
+        return SimpleNamespace(
+            values_kind=kind,
+            centres=centres,
+            labels=np.array([GRASS, GRASS], np.uint16),
+            occupied=np.ones(2, np.uint8),
+            resolution_m=MAP_RES,
+            values=np.array(values, np.float32),
+        )
+
+    g.integrate_delta(delta([3.5, 0.85]))
+    assert not g.node(1.05, 1.05)["obstacle"]
+    g.integrate_delta(delta([3.5, 1.69]))
+    assert g.node(1.05, 1.05)["obstacle"]
+    g.integrate_delta(delta([3.5, 0.44]))  # missed since: no longer solid
+    assert not g.node(1.05, 1.05)["obstacle"]
+    tsdf = graph((0, 0), (4, 4), robot_radius_m=0.4)
+    tsdf.integrate_delta(delta([0.01, -0.02], "signed_distance"))
+    assert tsdf.node(1.05, 1.05)["obstacle"]

@@ -31,6 +31,10 @@ class NavgraphConfig(Section, section="navgraph"):
     # evidence reaches it blocks too (0: never by an uncertain label alone); obstacle_step_m =
     # inf: no geometric obstacles.
     obstacle_step_m: float = param(0.25, gt=0)
+    # An occupancy map's voxel makes a geometric obstacle only once its log-odds reach this
+    # (OctoMap's hit adds 0.85, a miss takes 0.41: two hits, net of a miss): a wall smeared onto
+    # the lawn by one noisy pose is hit once and then seen through. -inf: every occupied voxel.
+    solid_log_odds: float = param(1.0)
     semantic_confirm: int = param(0, ge=0, le=60)
     semantic_miss_weight: int = param(2, ge=1, le=60)
     tile_size: int = param(32, ge=1, le=256)  # nodes per tile side; memory is allocated per tile

@@ -88,12 +88,13 @@ from .kernels import (
 # updates stays a lawn, short enough that a real change shows within a few more.
 EVIDENCE_CAP = 8
 
-# What `integrate_delta` reads from each kind of MapDelta.values (common/messages.py VALUES_KINDS):
-# both say everything with `occupied` (a signed-distance map's extracted surface), so neither
-# passes anything more; a future kind that needs its values names them here.
+# What `integrate_delta` reads from each kind of MapDelta.values (common/messages.py VALUES_KINDS),
+# given the [navgraph] section: both say where the surface is with `occupied` (a signed-distance
+# map's extracted surface); an occupancy map's log-odds also say which surface voxels are solid
+# enough to make a geometric obstacle (`solid_log_odds`); a future kind names its inputs here.
 SURFACE_INPUTS = {
-    "log_odds": lambda delta: {},
-    "signed_distance": lambda delta: {},
+    "log_odds": lambda delta, config: {"solid": np.asarray(delta.values) >= config.solid_log_odds},
+    "signed_distance": lambda delta, config: {},
 }
 
 
@@ -165,6 +166,7 @@ class NavGraph:
             alt_label=np.zeros(cap, np.uint16),
             p_label=np.full(cap, P_SCALE, np.uint8),
             p_alt=np.zeros(cap, np.uint8),
+            solid=np.ones(cap, np.uint8),
             state=np.array([-1, 0, 0], np.int64),
             column_capacity=config.column_capacity,
         )
@@ -198,7 +200,7 @@ class NavGraph:
     @property
     def nbytes(self) -> int:
         c = self.columns
-        arrays = (c.level, c.sub, c.label, c.z, c.next, c.alt_label, c.p_label, c.p_alt)
+        arrays = (c.level, c.sub, c.label, c.z, c.next, c.alt_label, c.p_label, c.p_alt, c.solid)
         return self.grid.nbytes + sum(a.nbytes for a in arrays)
 
     @property
@@ -228,6 +230,7 @@ class NavGraph:
             alt_label=grown(c.alt_label, 0),
             p_label=grown(c.p_label, P_SCALE),
             p_alt=grown(c.p_alt, 0),
+            solid=grown(c.solid, 1),
         )
 
     def _kernel_state(self) -> tuple[GridGeometry, NodeLayers]:
@@ -269,7 +272,7 @@ class NavGraph:
             confidences=delta.confidences if has else None,
             alt_labels=delta.alt_labels if has else None,
             alt_confidences=delta.alt_confidences if has else None,
-            **read(delta),
+            **read(delta, self.config),
         )
 
     def integrate(
@@ -282,13 +285,15 @@ class NavGraph:
         confidences=None,
         alt_labels=None,
         alt_confidences=None,
+        solid=None,
     ) -> GraphUpdate:
         """Integrate the voxels of one map update and return the nodes that changed.
 
         A voxel with `occupied` set is added to (or relabels) its column, one without is removed
         from it. Rows with non-finite centres are dropped and counted. `confidences` is the
         probability of each voxel's label, `alt_labels` / `alt_confidences` its second class;
-        left out, the voxels are certain (octree-max sends no second class).
+        left out, the voxels are certain (octree-max sends no second class). `solid`: where a
+        surface voxel may make a geometric obstacle (left out: everywhere).
         """
         t0 = time.perf_counter()
         if not (np.isfinite(map_resolution_m) and map_resolution_m > 0):
@@ -310,6 +315,7 @@ class NavGraph:
             ("confidences", confidences),
             ("alt_labels", alt_labels),
             ("alt_confidences", alt_confidences),
+            ("solid", solid),
         ):
             if a is not None and np.shape(a) != (m,):
                 raise ValueError(f"{name} must have length {m}")
@@ -336,6 +342,7 @@ class NavGraph:
             np.empty(m, np.uint16),
             np.empty(m, np.uint8),
             np.empty(m, np.uint8),
+            np.ones(m, np.uint8) if solid is None else (np.asarray(solid) != 0).view(np.uint8),
         )
         dist = Distribution(
             _NO_F4 if confidences is None else _readonly(confidences, np.float32),

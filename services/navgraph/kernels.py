@@ -73,6 +73,7 @@ class ColumnStore(NamedTuple):
     alt_label: np.ndarray  # u2: the voxel's second class (0: none)
     p_label: np.ndarray  # u1: probability of `label` x 255
     p_alt: np.ndarray  # u1: probability of `alt_label` x 255
+    solid: np.ndarray  # u1: the voxel may support a geometric obstacle (Voxels.solid)
     state: np.ndarray  # i8[3]: free-list head, high-water mark, entries in use
     column_capacity: int  # entries a column keeps before it forgets its lowest level
 
@@ -115,6 +116,7 @@ class Voxels(NamedTuple):
     alt_labels: np.ndarray  # u2 (M,): the second class (`_prepare` fills it from Distribution)
     p_label: np.ndarray  # u1 (M,): probability of `labels` x 255
     p_alt: np.ndarray  # u1 (M,): probability of `alt_labels` x 255
+    solid: np.ndarray  # u1 (M,): 1 where the voxel may support a geometric obstacle (graph.py)
 
 
 class Distribution(NamedTuple):
@@ -397,6 +399,7 @@ def _column_update(cols, nodes, n, gz, sub, vox, i):
                 and cols.p_label[found] == vox.p_label[i]
                 and cols.alt_label[found] == vox.alt_labels[i]
                 and cols.p_alt[found] == vox.p_alt[i]
+                and cols.solid[found] == vox.solid[i]
             ):
                 return COLUMN_UNCHANGED  # same voxel, same distribution: the node cannot change
             cols.label[found] = label
@@ -423,6 +426,7 @@ def _entry_distribution(cols, e, vox, i):
     cols.alt_label[e] = vox.alt_labels[i]
     cols.p_label[e] = vox.p_label[i]
     cols.p_alt[e] = vox.p_alt[i]
+    cols.solid[e] = vox.solid[i]
 
 
 @numba.njit(cache=True, inline="always")
@@ -568,8 +572,14 @@ def _node_head_recompute(cols, nodes, rule, n):
             elif best_other < 0 or cols.sub[cur] > cols.sub[best_other]:
                 best_other = cur
             cur = cols.next[cur]
-        low_z = cols.z[e]  # the column is sorted from the highest level down: its last entry
+        # the column is sorted from the highest level down: its first solid entry is its highest
+        # solid voxel, its last entry its lowest voxel
+        solid_z = np.nan
+        low_z = cols.z[e]
+        cur = e
         while cur >= 0:
+            if solid_z != solid_z and cols.solid[cur]:
+                solid_z = cols.z[cur]
             low_z = cols.z[cur]
             cur = cols.next[cur]
         vote = n_ob > 0 and (certain or 2 * n_ob >= n_top)
@@ -586,7 +596,8 @@ def _node_head_recompute(cols, nodes, rule, n):
         nodes.p_label[n] = cols.p_label[best]
         nodes.p_alt[n] = cols.p_alt[best]
         flags |= np.uint8(FLAG_KNOWN)
-        flags |= _blocks(rule, cols.label[best], cols.p_label[best], ev, cols.z[e] - low_z)
+        rise = solid_z - low_z if solid_z == solid_z else 0.0
+        flags |= _blocks(rule, cols.label[best], cols.p_label[best], ev, rise)
     nodes.flags[n] = _with_safety_zone(flags, nodes.obstacle_count[n])
     return _zone_centre(kind_lut, nodes.labels[n], flags)
 
@@ -594,8 +605,8 @@ def _node_head_recompute(cols, nodes, rule, n):
 @numba.njit(cache=True, inline="always")
 def _blocks(rule, label, p_label, evidence, rise_m):
     """FLAG_OBSTACLE, FLAG_DOUBTFUL or 0 for a known node showing `label` (its probability x
-    255 `p_label`) whose column rises `rise_m` over its lowest voxel. Geometry blocks whatever
-    the label (a step the robot cannot climb); an obstacle class blocks when its label is
+    255 `p_label`) whose highest solid voxel rises `rise_m` over its lowest. Geometry blocks
+    whatever the label (a step the robot cannot climb); an obstacle class blocks when its label is
     certain, or when `rule.confirm` > 0 and the node's evidence reached it; it is doubtful
     otherwise (with `rule.confirm` 0, the default, an uncertain label never blocks alone)."""
     if rise_m > rule.step_m:
