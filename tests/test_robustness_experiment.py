@@ -142,6 +142,29 @@ def test_a_robot_that_did_not_move_is_a_measured_failure(tmp_path):
     assert lost["measured"] is False and lost["usable_share"] is None
 
 
+def test_a_run_without_a_report_exits_1_and_a_rerun_keeps_the_measured_one(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_run(out, seed, arm, s, spawn=None):
+        calls.append(arm.name)
+        if arm.name == "max_high":  # its robot stood still: FAILED, measured
+            _fake_run(out / ex.run_name(seed, arm), 0.02, ["the robot did not move (0.02 m)"])
+            return 1, ex._load(out / ex.run_name(seed, arm) / "metrics.json"), {}, 1.0, 30.0
+        return -9, {}, {}, 1.0, 30.0  # killed before its report
+
+    monkeypatch.setattr(ex, "exploration_run", fake_run)
+    argv = ["robustness", "--quick", "--arms", "max_high,max_realistic", "--out", str(tmp_path)]
+    assert exp.cli(argv) == 1
+    text = (tmp_path / "robustness_summary.md").read_text()
+    assert "**WARNING: 1 of 2 runs did not run to their report**" in text
+    assert "seed21_max_realistic (exit -9)" in text
+    assert "| octree-max | high labels + pose noise | 1 (0) |" in text  # FAILED, measured
+    assert sorted(calls) == ["max_high", "max_realistic"]
+    calls.clear()
+    assert exp.cli(argv) == 1
+    assert calls == ["max_realistic"]  # the measured run is kept, the lost one runs again
+
+
 def test_outputs_data_file_and_resume_from_it(tmp_path):
     rows = _rows(seeds=(21, 22))
     s = rb.experiment_config()
