@@ -5,6 +5,7 @@ section and claims, and (multi-process, slow) the quick form of the whole stack.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -96,6 +97,13 @@ def test_the_rules_count_seeds_and_every_run():
     _row(rows, 25, "tsdf_realistic")["false_free_share"] = 0.012
     assert rb.verdicts(rows)[2]["verdict"] == "not met"
     assert "largest 1.20 %" in rb.verdicts(rows)[2]["smana"]
+    # a run without the measure cannot show it was under: inconclusive, never met
+    rows = _rows()
+    _row(rows, 25, "tsdf_realistic")["false_free_share"] = None
+    assert rb.verdicts(rows)[2]["verdict"] == stats.INCONCLUSIVE
+    assert "; 1 without the measure" in rb.verdicts(rows)[2]["smana"]
+    # and no figure without a usable coverage to draw
+    assert rb.figure([{**r, "usable_share": None} for r in rows], Path("unused.png")) is None
 
 
 def _fake_run(run_dir, distance_m, exit_code_warnings):

@@ -69,9 +69,6 @@ FALSE_FREE_MAX = 0.01  # rule 3: false-free area under 1 % of the reachable area
 # pilot's noise-free run in the 16 m garden (seed 21) ended `no_view_worth_it` after ...
 BUDGET_S = 360.0
 TIME_TO_SHARE = 0.90  # time and distance to 90 % of the run's final usable area
-# How the warnings about what the robot did begin (deploy/report/checks.py): a run `smana up`
-# ended with these alone is a measured failure. Those a newer report adds are its OUTCOME_WARNINGS.
-_OUTCOMES = ("the robot did not move", "no path query was ever answered")
 
 
 def default_backend() -> str:
@@ -157,12 +154,6 @@ def experiment_config(quick: bool = False) -> ex.ExplorationExperimentConfig:
 # -- rows ----------------------------------------------------------------------------------------
 
 
-def _outcome_prefixes() -> tuple[str, ...]:
-    from smana.deploy.report import checks
-
-    return (*_OUTCOMES, *getattr(checks, "OUTCOME_WARNINGS", ()))
-
-
 def time_to_share(history, end_m2: float | None, share: float = TIME_TO_SHARE):
     """(robot time s from the first history row, that row's absolute time) for the first row
     (t, explored_m2, frontier, distance_m) at which explored_m2 reached `share` of `end_m2` (the
@@ -211,7 +202,7 @@ def run_fields(row: dict, run_dir: Path) -> dict:
     measured = bool(e)  # it ran to its report
     dist = e.get("distance_m")
     t90, at = time_to_share(state.get("history"), ee.get("explored_m2"))
-    outcome = row["exit_code"] == 1 and all(w.startswith(_outcome_prefixes()) for w in warnings)
+    outcome = bool(m) and ex.outcome_failure(row["exit_code"], m)
     return {
         "backend": c.backend,
         "perception": c.perception,
@@ -327,18 +318,20 @@ def verdicts(rows: list[dict]) -> list[dict]:
             }
         )
     measured = [r for r in rows if r.get("measured")]
-    over = [r for r in measured if not (r.get("false_free_share") or 0.0) < FALSE_FREE_MAX]
-    unknown = [r for r in measured if r.get("false_free_share") is None]
-    worst = max((r.get("false_free_share") or 0.0 for r in measured), default=None)
+    known = [r for r in measured if r.get("false_free_share") is not None]
+    over = [r for r in known if not r["false_free_share"] < FALSE_FREE_MAX]
+    unknown = len(measured) - len(known)
+    worst = max((r["false_free_share"] for r in known), default=None)
     out.append(
         {
             "claim": f"false-free area under {100 * FALSE_FREE_MAX:.0f} % of the reachable area "
             "in every run (every arm)",
             "paper": "(beyond the paper) every run",
-            "smana": f"{len(measured) - len(over)} of {len(measured)} runs"
+            "smana": f"{len(known) - len(over)} of {len(measured)} runs"
             + ("" if worst is None else f" (largest {100 * worst:.2f} %)")
-            + (f"; {len(unknown)} without the measure" if unknown else ""),
-            "verdict": NOT_MET if over else (MET if measured else stats.INCONCLUSIVE),
+            + (f"; {unknown} without the measure" if unknown else ""),
+            # a run without the measure cannot show it was under
+            "verdict": NOT_MET if over else (MET if known and not unknown else stats.INCONCLUSIVE),
             "p": None,
             "rule": "a count",
             "evidence": "",
@@ -425,7 +418,7 @@ def arm_table(rows: list[dict]) -> list[str]:
 
 def setting(meta: dict) -> str:
     """One sentence: the garden, seeds, budget and noise the data was made with."""
-    seeds = meta.get("seeds") or []
+    seeds = list(meta.get("seeds") or [])
     span = f"seeds {seeds[0]} to {seeds[-1]}" if len(seeds) > 1 else f"seed {seeds}"
     return (
         f"garden {float(meta.get('size_m', 0)):g} m, {span}, {float(meta.get('budget_s', 0)):.0f}"
@@ -479,6 +472,8 @@ def figure(rows: list[dict], path: Path) -> Path | None:
     for backend in dict.fromkeys(d["backend"] for d in summary):
         arms = [d for d in summary if d["backend"] == backend]
         cis = [d["usable_share"] for d in arms]
+        if not any(c.n for c in cis):
+            continue  # no run of this back-end has the measure: no line to draw
         err = [_clipped(c) for c in cis]
         ns = "-".join(sorted({str(c.n) for c in cis}))
         series.append(
