@@ -66,8 +66,9 @@ TARGETS = {"high": 0.90, "realistic": 0.80}  # share of the noise-free usable co
 PASS_SEEDS, OF_SEEDS = 9, 10  # rules 1 and 2: in at least 9 of 10 seeds
 FALSE_FREE_MAX = 0.01  # rule 3: false-free area under 1 % of the reachable area, every run
 # Robot time a run may take (the explorer's time_budget_s, which bounds its wall time too). In
-# the pilot (seed 21) the noise-free run ended `no_view_worth_it` after 240 s, octree-max under
-# high and realistic noise after 200 and 254 s; tsdf at realistic drove to the end of 360 s
+# the pilot (seed 21) the noise-free runs ended `no_view_worth_it` after 230 and 240 s,
+# octree-max under high noise after 200 and 327 s, at realistic after 254 s; tsdf at realistic
+# drove to the end of 360 s
 BUDGET_S = 360.0
 TIME_TO_SHARE = 0.90  # time and distance to 90 % of the run's final usable area
 
@@ -484,7 +485,7 @@ def figure(rows: list[dict], path: Path) -> Path | None:
         ns = "-".join(sorted({str(c.n) for c in cis}))
         series.append(
             plots.Series(
-                f"{backend} (n = {ns} seeds)",
+                f"{backend} (n = {ns} seed{'s' * (ns != '1')})",
                 [float(order.index(d["perception"])) for d in arms],
                 [None if c.n == 0 else c.mean for c in cis],
                 ([e[0] for e in err], [e[1] for e in err]),
@@ -517,6 +518,10 @@ def figure(rows: list[dict], path: Path) -> Path | None:
         ),
         path,
     )
+
+
+def _pct2(v) -> str:
+    return "-" if v is None else f"{100 * v:.2f} %"
 
 
 def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path) -> None:
@@ -574,7 +579,7 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
         lines.append(
             f"| seed{r['seed']}_{r['arm']} | {r['exit_code']} | {r.get('done_reason') or '-'} | "
             f"{ex._pct(r.get('usable_share'))} | {ex._pct(r.get('false_obstacle_share'))} | "
-            f"{ex._pct(r.get('false_free_share'))} | {ex._num(r.get('distance_m'))} | "
+            f"{_pct2(r.get('false_free_share'))} | {ex._num(r.get('distance_m'))} | "
             f"{ex._num(r.get('time_to_90_s'), '.0f')} | "
             f"{'-' if r.get('collisions') is None else r['collisions']} | "
             f"{ex._num(r.get('wall_time_s'), '.0f')} | {r.get('run_warnings') or '-'} |"
@@ -620,8 +625,9 @@ def add_parser(sub) -> None:
 
 DURATION = (
     "Duration measured once, in a pilot on a 2-core machine shared with other work (seed 21, "
-    "two runs at once): 280 to 400 s of wall a run (noise-free 316 s, octree-max under high "
-    "and realistic noise 278 and 280 s, tsdf at realistic 396 s: its whole budget). The 90 "
+    "two runs at once): 257 to 396 s of wall a run (noise-free 257 and 316 s, octree-max under "
+    "high noise 278 and 348 s, at realistic 280 s, tsdf at realistic 396 s: its whole budget). "
+    "The 90 "
     "runs, 2 at once: about 4 to 5 hours by that measure (not itself measured). --quick, "
     "measured once: 32 s."
 )
