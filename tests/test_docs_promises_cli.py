@@ -298,6 +298,7 @@ def test_a_duration_in_a_help_text_says_it_was_measured_once():
             "resources",
             "navnoise",
             "risk",
+            "robustness",
         )
     ]
     timed = 0

@@ -6,6 +6,7 @@
     smana experiment resources [--quick] [--repeats 5] [--out DIR]
     smana experiment navnoise [--quick] [--seeds 5] [--out DIR]   # beyond the paper
     smana experiment risk [--quick] [--seeds 10] [--out DIR]      # issue 29, closed loop
+    smana experiment robustness [--quick] [--seeds 10] [--out DIR]  # under perception noise
     smana experiment report [--check]     # docs/experiments.md's tables from the committed data
 
 One module per experiment (`noise.py`, `exploration.py`), each with its `add_parser(sub)` and
@@ -73,6 +74,7 @@ EXPERIMENTS = {
     "resources": "resources",
     "navnoise": "navnoise",
     "risk": "risk",
+    "robustness": "robustness",
     "report": "report",  # not an experiment: the docs' tables from the committed data
 }
 

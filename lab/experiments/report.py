@@ -44,6 +44,7 @@ EXPERIMENTS = (
     "resources",
     "navnoise",
     "risk",
+    "robustness",
 )
 # the noise experiment's tables are one section per data file, each where its prose is: `noise`
 # for noise.json, `noise_<variant>` for noise_<variant>.json
@@ -356,6 +357,12 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
             table += _navnoise_claims(key, data)
         elif data["experiment"] == "risk":
             table += _risk_claims(key, data)
+        elif data["experiment"] == "robustness":
+            from .robustness import verdicts as robustness_verdicts
+
+            table += [
+                {**v, "experiment": _where(key, data)} for v in robustness_verdicts(data["rows"])
+            ]
     tested = [c for c in table if c.get("p") is not None]
     # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
     decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in tested]
@@ -443,6 +450,12 @@ def risk_section(data: dict | None) -> str:
     return section(data)
 
 
+def robustness_section(data: dict | None) -> str:
+    from .robustness import section
+
+    return section(data)
+
+
 def noise_section(data: dict | None, key: str = "noise") -> str:
     from .noise import section
 
@@ -468,6 +481,7 @@ def sections(all_data: dict[str, dict]) -> dict[str, str]:
         "resources": resources_section(all_data.get("resources")),
         "navnoise": navnoise_section(all_data.get("navnoise")),
         "risk": risk_section(all_data.get("risk")),
+        "robustness": robustness_section(all_data.get("robustness")),
     }
     for key, data in all_data.items():
         if data["experiment"] == "noise":
