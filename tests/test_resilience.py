@@ -122,14 +122,18 @@ def test_first_start_on_a_cold_cache_and_busy_cores_kills_nothing_and_the_robot_
     seen_starting = set()
 
     def ready() -> bool:
-        # `smana status` sees the services that are still compiling, and what they are doing
+        # `smana status` sees the services that are still starting or compiling their kernels
+        # (live already: they compile on a thread), and what they are doing. Ready once every
+        # one is alive and has either been seen at it or is done compiling.
         from smana.deploy.status import collect
 
+        compiling = False
         for row in collect(up.session, up.robot, 1.0):
-            st = row.get("status") or {}
-            if st.get("state") == "starting" and st["details"].get("startup_step"):
+            details = (row.get("status") or {}).get("details") or {}
+            if details.get("startup_step"):
                 seen_starting.add(row["service"])
-        return all(up.alive(s) for s in SERVICES)
+            compiling |= details.get("kernels") not in (None, "ready")
+        return all(up.alive(s) for s in SERVICES) and (bool(seen_starting) or not compiling)
 
     try:
         # (or the stack ended: then something was not ready, and the log says what)
@@ -138,8 +142,13 @@ def test_first_start_on_a_cold_cache_and_busy_cores_kills_nothing_and_the_robot_
             h.kill()
         assert all_ready and up.proc.poll() is None, up.log()
         assert seen_starting, "no service was ever seen starting"
-        # The robot moves: the explorer reports distance before its budget ends.
-        assert up.proc.wait(600) == 0, up.log()
+        # The robot moves: the explorer reports distance before its budget ends. A 6 s budget
+        # leaves most of the garden unseen, which the report calls a failure (under half of the
+        # reachable area usable): that warning alone is allowed.
+        rc = up.proc.wait(600)
+        warnings = [ln for ln in up.log().splitlines() if ln.startswith("  warning:")]
+        assert rc in (0, 1) and "did not move" not in up.log(), up.log()
+        assert all("as usable" in w for w in warnings) and (rc == 1) == bool(warnings), up.log()
     finally:
         for h in hogs:
             h.kill()
@@ -150,7 +159,7 @@ def test_first_start_on_a_cold_cache_and_busy_cores_kills_nothing_and_the_robot_
         assert "ready in" in up.log(s), up.log(s)
     state = json.loads((up.run_dir / "explorer" / "state.json").read_text())
     assert state["distance_m"] > 0.2, state
-    assert "## Warnings" not in (up.run_dir / "report.md").read_text()
+    assert "did not move" not in (up.run_dir / "report.md").read_text()
 
 
 def test_kill9_of_each_service_comes_back_with_the_map_and_the_run_completes(tmp_path):
