@@ -183,7 +183,7 @@ def smoke(python: str, constraints: Path | None, up: bool, work: Path) -> None:
         tail = (r.stdout + r.stderr).strip().splitlines()[-20:]
         raise SmokeError(f"smana up exited {r.returncode}:\n" + "\n".join(tail))
     check_versions(run_dir, version, py, outside, env)
-    line = next(x for x in r.stdout.splitlines() if "explored area (against" in x)
+    line = next(x for x in r.stdout.splitlines() if "usable coverage (against" in x)
     step(f"smana up: ok ({' '.join(line.split())})")
 
 
