@@ -44,6 +44,13 @@ class Interval:
     def defined(self) -> bool:
         return self.n >= 2 and math.isfinite(self.lo) and math.isfinite(self.hi)
 
+    def share_error_bars(self) -> tuple[float, float]:
+        """Error bar lengths below and above the mean of a share, its interval clipped to
+        [0, 1] (a t interval can pass 100 %); none without an interval."""
+        if not self.defined:
+            return 0.0, 0.0
+        return self.mean - max(self.lo, 0.0), min(self.hi, 1.0) - self.mean
+
     def format(self, scale: float = 1.0, fmt: str = ".1f", unit: str = "") -> str:
         """ "61.2 % [55.0, 67.4] (n = 5)" with scale=100, unit=" %"."""
         if self.n == 0:

@@ -367,13 +367,6 @@ def section(data: dict | None) -> str:
 # -- outputs -------------------------------------------------------------------------------------
 
 
-def _clipped(ci: stats.Interval) -> tuple[float, float]:
-    """Error bar lengths of a share's interval clipped to [0, 1] (a t interval can pass 100 %)."""
-    if not ci.defined:
-        return 0.0, 0.0
-    return ci.mean - max(ci.lo, 0.0), min(ci.hi, 1.0) - ci.mean
-
-
 def _figure(rows: list[dict], out: Path) -> Path | None:
     summary = summarise(rows)
     # x positions: the perceptions that ran, noise-free first, both noises last
@@ -388,7 +381,7 @@ def _figure(rows: list[dict], out: Path) -> Path | None:
         xs = [float(order.index(d["perception"])) for d in arms]
         cis = [d["terrain_share_true"] for d in arms]
         ys = [None if c.n == 0 else c.mean for c in cis]
-        err = [_clipped(c) for c in cis]
+        err = [c.share_error_bars() for c in cis]
         series.append(
             plots.Series(
                 f"{b} (n = {'-'.join(sorted({str(c.n) for c in cis}))})",

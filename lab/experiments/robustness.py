@@ -463,12 +463,6 @@ def section(data: dict | None) -> str:
 # -- outputs -------------------------------------------------------------------------------------
 
 
-def _clipped(ci: stats.Interval) -> tuple[float, float]:
-    if not ci.defined:
-        return 0.0, 0.0
-    return ci.mean - max(ci.lo, 0.0), min(ci.hi, 1.0) - ci.mean
-
-
 def figure(rows: list[dict], path: Path) -> Path | None:
     """Usable coverage against perception noise, one line per back-end (mean and 95 % CI over
     seeds), the noise-free reference and the targets of rules 1 and 2."""
@@ -481,7 +475,7 @@ def figure(rows: list[dict], path: Path) -> Path | None:
         cis = [d["usable_share"] for d in arms]
         if not any(c.n for c in cis):
             continue  # no run of this back-end has the measure: no line to draw
-        err = [_clipped(c) for c in cis]
+        err = [c.share_error_bars() for c in cis]
         ns = "-".join(sorted({str(c.n) for c in cis}))
         series.append(
             plots.Series(
