@@ -66,7 +66,7 @@ CLASSES = "geometric"  # the labeller's table: 3 classes
 WIDE_CLASSES = "rellis3d"
 WIDE_LABELS = np.array([0, 2, 10], np.uint16)  # geometric id -> rellis3d id
 WIDE_BACKENDS = ("tsdf",)
-# Paper, RELLIS-3D 00000, map + graph a scan (ms), Xeon W-2123 8 cores, C++ (REFERENCE.md)
+# Paper, RELLIS-3D 00000, map + graph a scan (ms), Xeon W-2123 8 cores, C++ (its table of times)
 PAPER_SCAN_MS = {("octree-max", 0.1): 560.0, ("tsdf", 0.1): 7200.0}
 PAPER_SCAN_MS |= {("octree-max", 0.3): 100.0, ("tsdf", 0.3): 1400.0}
 

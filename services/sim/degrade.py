@@ -1,10 +1,10 @@
-"""Degraded inputs, as the paper makes them (section 4.2.1 and REFERENCE.md).
+"""Degraded inputs, as the paper makes them (section 4.2.1).
 
 Labels: SLIC superpixels on the ground-truth semantic image; each superpixel takes the most
 frequent label of its pixels, then that label is redrawn from the row of the confusion matrix
-(paper Table 2, reconstructed in REFERENCE.md; extended by water in the wet garden, see
-WET_CONFUSABLE) for the noise level; every point gets a confidence drawn uniformly in
-[0.33, 1.0]. Level "off" (not in the paper) skips all of it: true
+(paper Table 2, its structure as GARDEN_CONFUSABLE holds it; extended by water in the wet
+garden, see WET_CONFUSABLE) for the noise level; every point gets a confidence drawn uniformly
+in [0.33, 1.0]. Level "off" (not in the paper) skips all of it: true
 labels, confidence 1, for tests and ground-truth runs.
 
 Localisation: Gaussian noise of set standard deviation on the published x, y and yaw, and
