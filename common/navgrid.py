@@ -32,9 +32,9 @@ CHANGE_LOG = 64  # versions whose changed cells a NavGrid remembers
 FLAG_KNOWN = 1
 FLAG_OBSTACLE = 2
 FLAG_SAFETY_ZONE = 4
-# A known node whose class is an obstacle class without the evidence to block (no height over its
-# column's ground, fewer agreeing observations than `navgraph.semantic_confirm`): passable, at the
-# planner's `doubtful_cost`, and no centre of the safety zone (services/navgraph/graph.py).
+# A known node showing an obstacle class with an uncertain label and no height over its column's
+# lowest voxel: passable, at the planner's `doubtful_cost`, and no centre of the safety zone
+# (services/navgraph/graph.py).
 FLAG_DOUBTFUL = 8
 
 UNALLOCATED = -1

@@ -407,10 +407,14 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
             if self._maybe_spin():
                 return outcome
             if self._empty_plans >= self.config.done_after_empty:
-                if self._maybe_look_again(free, reach, goal_cost):
+                beyond = self._seen_beyond(free, reach)
+                # a finished run's pockets behind hedges are no reason to drive on: only a robot
+                # that seems closed in looks again
+                closed_in = self._closed_in(beyond, reach)
+                if closed_in and self._maybe_look_again(beyond, reach, goal_cost):
                     self._empty_plans = 0
                     return outcome
-                if self._closed_in(free, reach):
+                if closed_in:
                     self.finish("closed_in")
                 else:
                     self.finish("no_view_worth_it" if len(cells) else "no_frontier")

@@ -45,19 +45,18 @@ class Recovering:
         big[0] = False
         return big[comp]
 
-    def _closed_in(self, free: np.ndarray, reach: np.ndarray) -> bool:
-        beyond_m2 = float(self._seen_beyond(free, reach).sum()) * self.grid.resolution_m**2
+    def _closed_in(self, beyond: np.ndarray, reach: np.ndarray) -> bool:
+        """More free ground seen `beyond` the reach (`_seen_beyond`) than within it."""
+        beyond_m2 = float(beyond.sum()) * self.grid.resolution_m**2
         reach_m2 = float(reach.sum()) * self.grid.resolution_m**2
         return beyond_m2 >= self.config.closed_in_min_m2 and beyond_m2 > reach_m2
 
-    def _maybe_look_again(self, free: np.ndarray, reach: np.ndarray, goal_cost) -> bool:
-        """Drive to look again at what cuts the robot off from free ground it has seen; False
-        when there is nothing to look at, no new place to look from, or the looks are spent."""
+    def _maybe_look_again(self, beyond: np.ndarray, reach: np.ndarray, goal_cost) -> bool:
+        """Drive to look again at what cuts a closed-in robot off from the free ground it has
+        seen `beyond` its reach; False when there is no new place to look from or the looks are
+        spent."""
         if self.n_recoveries >= self.config.recoveries or not reach.any():
             return False
-        if not self._closed_in(free, reach):
-            return False  # a finished run's pockets behind hedges are no reason to drive on
-        beyond = self._seen_beyond(free, reach)
         g = self.grid
         far = np.argwhere(beyond)
         near = np.argwhere(reach)

@@ -6,15 +6,16 @@ zone marks nodes within `robot_radius_m` of an obstacle (and, with `forbidden_ma
 of a node whose label is a forbidden class: water).
 
 A node doubts before it blocks (STYLE: a single observation sets a cost, not a wall). It is an
-obstacle when geometry says so: its column rises more than `obstacle_step_m` over its lowest
-voxel, whatever the label; or when its label is an obstacle class of the class table and either
-certain (p = 1, as labels without a distribution are) or confirmed by the node's evidence, a
-count of the updates whose top voxel had an obstacle class against those whose had not
-(`semantic_confirm`, `semantic_miss_weight`; kept in the `obstacle_evidence` layer). An obstacle
-class short of that is FLAG_DOUBTFUL: passable at the planner's `doubtful_cost`, and no centre of
-the safety zone, so a few wrong labels on the ground no longer wall the robot in; a false obstacle
-clears when later views disagree (each one takes `semantic_miss_weight` off the evidence), as
-Nav2's obstacle layer clears what its rays see through.
+obstacle when geometry says so: its highest solid voxel (`solid_log_odds` for an occupancy map)
+rises more than `obstacle_step_m` over its lowest voxel, whatever the label; or when it shows an
+obstacle class of the class table whose label is certain (p = 1, as labels without a
+distribution are), or, with `semantic_confirm` > 0, confirmed by the node's evidence. What it
+shows is weighed over updates: the top level votes, the vote moves the evidence (the
+`obstacle_evidence` layer: +1, or -`semantic_miss_weight`), and an obstacle voxel is shown only
+while the evidence is positive. An uncertain obstacle class short of blocking is FLAG_DOUBTFUL:
+passable at the planner's `doubtful_cost`, and no centre of the safety zone, so a few wrong
+labels on the ground no longer wall the robot in; a wrong label fades when later views disagree,
+as Nav2's obstacle layer clears what its rays see through.
 
 A voxel is a surface voxel when the map says it is occupied. A map that carries signed distances
 (`MapDelta.values_kind == "signed_distance"`) marks its extracted surface in `occupied` (the zero

@@ -56,8 +56,8 @@ class NodeLayers(NamedTuple):
     alt_labels: np.ndarray  # u2: the second most likely class, 0 for none
     p_label: np.ndarray  # u1: probability of `labels` x 255
     p_alt: np.ndarray  # u1: probability of `alt_labels` x 255
-    # i1: the node's semantic evidence for an obstacle class (NodeRule): +1 per update whose top
-    # voxel has one, -miss_weight per update whose has not, within +/- cap
+    # i1: the node's evidence for an obstacle class (NodeRule): +1 per update whose top level
+    # votes for one, -miss_weight per update whose does not, within +/- cap
     obstacle_evidence: np.ndarray
 
 
@@ -561,23 +561,21 @@ def _node_head_recompute(cols, nodes, rule, n):
         n_top = 0
         n_ob = 0
         certain = True
-        cur = e
-        while cur >= 0 and cols.level[cur] == cols.level[e]:
-            n_top += 1
-            certain = certain and cols.p_label[cur] == 255
-            if (kind_lut[cols.label[cur]] & LUT_OBSTACLE) != 0:
-                n_ob += 1
-                if best_ob < 0 or cols.sub[cur] > cols.sub[best_ob]:
-                    best_ob = cur
-            elif best_other < 0 or cols.sub[cur] > cols.sub[best_other]:
-                best_other = cur
-            cur = cols.next[cur]
-        # the column is sorted from the highest level down: its first solid entry is its highest
-        # solid voxel, its last entry its lowest voxel
+        # one walk down the column, sorted from the highest level: the top level's voxels, the
+        # first solid entry (the highest solid voxel) and the last one (the lowest voxel)
         solid_z = np.nan
         low_z = cols.z[e]
         cur = e
         while cur >= 0:
+            if cols.level[cur] == cols.level[e]:
+                n_top += 1
+                certain = certain and cols.p_label[cur] == 255
+                if (kind_lut[cols.label[cur]] & LUT_OBSTACLE) != 0:
+                    n_ob += 1
+                    if best_ob < 0 or cols.sub[cur] > cols.sub[best_ob]:
+                        best_ob = cur
+                elif best_other < 0 or cols.sub[cur] > cols.sub[best_other]:
+                    best_other = cur
             if solid_z != solid_z and cols.solid[cur]:
                 solid_z = cols.z[cur]
             low_z = cols.z[cur]
