@@ -12,7 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+from smana.common.navgrid import FLAG_DOUBTFUL, FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 from smana.deploy.report import ground_truth as ev
 from smana.deploy.report.checks import OUTCOME_WARNINGS, fleet_warnings, run_warnings
 from smana.deploy.report.finish import finish
@@ -27,7 +27,7 @@ def _reference(grid, cell_xy, reach, gt_obstacle, lut, area):
     """The same figures, one cell at a time, reading the node over each cell centre by hand."""
     res, (ox, oy) = float(grid["resolution_m"]), grid["origin_xy"]
     nx, ny = grid["flags"].shape
-    n = {"usable": 0, "false_obstacle": 0, "false_free": 0, "known_reachable": 0}
+    n = {"usable": 0, "false_obstacle": 0, "false_free": 0, "known_reachable": 0, "doubtful": 0}
     for i in range(reach.shape[0]):
         for j in range(reach.shape[1]):
             x, y = cell_xy[i, j]
@@ -37,11 +37,14 @@ def _reference(grid, cell_xy, reach, gt_obstacle, lut, area):
                 flags, label = int(grid["flags"][a, b]), int(grid["labels"][a, b])
             known = bool(flags & FLAG_KNOWN)
             blocked = known and bool(flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE))
-            usable = known and not blocked and label < len(lut) and bool(lut[label])
+            doubtful = known and not blocked and bool(flags & FLAG_DOUBTFUL)
+            traversable = label < len(lut) and bool(lut[label])
+            usable = known and not blocked and (traversable or doubtful)
             n["usable"] += usable and reach[i, j]
             n["false_obstacle"] += blocked and reach[i, j]
             n["false_free"] += usable and gt_obstacle[i, j]
             n["known_reachable"] += known and reach[i, j]
+            n["doubtful"] += doubtful and reach[i, j]
     total = int(reach.sum())
     return {k: (v * area, v / total) for k, v in n.items()}
 
@@ -50,7 +53,7 @@ def _grid(rng, shape=(6, 5)):
     return {
         "origin_xy": np.array([-0.5, 0.0]),
         "resolution_m": 1.0,
-        "flags": rng.integers(0, 8, shape).astype(np.uint8),
+        "flags": rng.integers(0, 16, shape).astype(np.uint8),  # doubtful (8) included
         "labels": rng.integers(0, 7, shape).astype(np.uint16),  # 5, 6: outside the table
     }
 
@@ -94,6 +97,26 @@ def test_a_field_of_false_obstacles_is_known_but_not_usable():
     assert got["usable_share"] == pytest.approx(27 / 63)
     assert got["false_free_area_m2"] == pytest.approx(0.25)
     assert got["false_free_share"] == pytest.approx(1 / 63)
+
+
+def test_a_doubtful_node_is_usable_and_counted_apart():
+    # 2 x 1 nodes of 1 m, both labelled hedge (not traversable); node 0 doubtful (passable at
+    # the planner's doubtful cost), node 1 a plain hedge node; raster of 0.5 m cells
+    flags = np.array([[FLAG_KNOWN | FLAG_DOUBTFUL], [FLAG_KNOWN]], np.uint8)
+    labels = np.full((2, 1), 3, np.uint16)
+    grid = {"origin_xy": np.zeros(2), "resolution_m": 1.0, "flags": flags, "labels": labels}
+    xs, ys = np.meshgrid(np.arange(4) * 0.5 + 0.25, np.arange(2) * 0.5 + 0.25, indexing="ij")
+    cell_xy = np.stack([xs, ys], axis=-1)
+    gt_obstacle = np.zeros((4, 2), bool)
+    gt_obstacle[0, 0] = True  # a true hedge under the doubtful node: the robot could drive in
+    reach = ~gt_obstacle
+    got = ev.exploration_coverage(grid, cell_xy, reach, 0.25, TRAVERSABLE, gt_obstacle)
+    assert got["usable_area_m2"] == pytest.approx(3 * 0.25)  # node 0's reachable cells
+    assert got["doubtful_area_m2"] == pytest.approx(3 * 0.25)
+    assert got["false_free_area_m2"] == pytest.approx(0.25)  # the hedge cell under it
+    flags[0, 0] |= FLAG_SAFETY_ZONE  # doubtful inside a zone: blocked, neither usable nor doubtful
+    got = ev.exploration_coverage(grid, cell_xy, reach, 0.25, TRAVERSABLE, gt_obstacle)
+    assert got["usable_area_m2"] == got["doubtful_area_m2"] == 0.0
 
 
 def test_a_run_without_a_graph_knows_nothing():

@@ -3,6 +3,7 @@
     [explorer]           the exploration loop: budget, candidates, scoring, replanning, giving up
     [explorer.view]      the camera footprint a candidate view is scored with (`FovModel`)
     [explorer.follower]  pure pursuit toward the chosen view (`PurePursuit`)
+    [explorer.pose_filter]  the pose it steers by: the localisation's, filtered (`PoseFilter`)
 
 The service-only keys (control rate, timeouts, class cost overrides) live in [explorer] too.
 """
@@ -49,6 +50,22 @@ class FollowerConfig(Section, section="explorer.follower"):
     # heading error at which the forward speed has fallen to zero (linear taper up to there)
     slow_down_rad: float = param(math.radians(45), gt=0)
     final_yaw_tolerance_rad: float = param(math.radians(10), ge=0)
+
+
+@dataclass
+class PoseFilterConfig(Section, section="explorer.pose_filter"):
+    """The pose the explorer steers by: a Kalman filter of the localisation's poses, predicted
+    with the commanded twist, its measurement noise estimated from the innovations
+    (services/explorer/pose_filter.py). Noise-free poses pass through it as they are."""
+
+    enabled: bool = True
+    # how far the robot's motion strays from the commanded twist, per second (acceleration
+    # limits, wheel slip, an obstacle holding it)
+    motion_sd_mps: float = param(0.2, gt=0)
+    motion_sd_radps: float = param(0.2, gt=0)
+    window_s: float = param(5.0, gt=0)  # the innovations averaged for the noise estimate
+    reset_m: float = param(1.0, gt=0)  # a pose this far from the prediction resets the filter
+    max_gap_s: float = param(1.0, gt=0)  # so does a pose after a longer gap
 
 
 @dataclass
@@ -120,3 +137,4 @@ class ExplorerConfig(Section, section="explorer"):
     goal_feedback_period_s: float = param(0.5, gt=0, le=1.0)  # feedback while a goal runs
     view: ViewConfig = table(ViewConfig)
     follower: FollowerConfig = table(FollowerConfig)
+    pose_filter: PoseFilterConfig = table(PoseFilterConfig)

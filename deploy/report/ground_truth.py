@@ -31,7 +31,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+from smana.common.navgrid import FLAG_DOUBTFUL, FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 
 # -- map precision ------------------------------------------------------------------------------
 
@@ -182,20 +182,23 @@ def reachable_traversable(trav: np.ndarray, start_ij: tuple[int, int]) -> np.nda
 def graph_layers(
     grid: dict, cell_xy: np.ndarray, traversable_lut: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(known, usable, blocked) masks of the raster cells centred at `cell_xy` (..., 2), as the
-    graph node over each calls it: `known` its node is FLAG_KNOWN; `blocked` known and
-    FLAG_OBSTACLE or FLAG_SAFETY_ZONE; `usable` known, not blocked and labelled a traversable
-    class (`traversable_lut[label]`, the class table's: a finite cost), what the robot could
-    drive on. A label outside the table is not traversable."""
+    """(known, usable, blocked, doubtful) masks of the raster cells centred at `cell_xy`
+    (..., 2), as the graph node over each calls it: `known` its node is FLAG_KNOWN; `blocked`
+    known and FLAG_OBSTACLE or FLAG_SAFETY_ZONE; `usable` known, not blocked, and labelled a
+    traversable class (`traversable_lut[label]`, the class table's: a finite cost) or doubtful
+    (FLAG_DOUBTFUL: an unconfirmed obstacle class, which the planner prices at its
+    `doubtful_cost` and drives through): what the robot could drive on; `doubtful` the usable
+    cells that are doubtful. A label outside the table is not traversable."""
     flags = sample_grid(grid, cell_xy)
     known = (flags & FLAG_KNOWN) != 0
     blocked = known & ((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0)
+    doubtful = known & ~blocked & ((flags & FLAG_DOUBTFUL) != 0)
     lut = np.asarray(traversable_lut, bool)
     labels = sample_grid(grid, cell_xy, "labels").astype(np.int64)
     inside = (labels >= 0) & (labels < len(lut))
     traversable = np.zeros(labels.shape, bool)
     traversable[inside] = lut[labels[inside]]
-    return known, known & ~blocked & traversable, blocked
+    return known, known & ~blocked & (traversable | doubtful), blocked, doubtful
 
 
 def gt_obstacle_cells(world) -> np.ndarray:
@@ -222,9 +225,10 @@ def exploration_coverage(
       its share of the reachable area, the report's headline);
     - false obstacle: reachable, but an obstacle or a safety zone in the graph;
     - false free: an obstacle in ground truth that the graph calls usable (the dangerous one);
-    - known: reachable under a known node whatever its label (obstacles included).
+    - known: reachable under a known node whatever its label (obstacles included);
+    - doubtful: the part of usable under doubtful nodes (passable at a cost).
     Every share is of the reachable area, so that they compare."""
-    known, usable, blocked = graph_layers(grid, cell_xy, traversable_lut)
+    known, usable, blocked, doubtful = graph_layers(grid, cell_xy, traversable_lut)
     obstacle = np.zeros(reachable.shape, bool) if gt_obstacle is None else gt_obstacle
     n_reach = int(reachable.sum())
     counts = {
@@ -232,6 +236,7 @@ def exploration_coverage(
         "false_obstacle": int((blocked & reachable).sum()),
         "false_free": int((usable & obstacle).sum()),
         "known_reachable": int((known & reachable).sum()),
+        "doubtful": int((doubtful & reachable).sum()),
     }
     out = {"reachable_area_m2": n_reach * cell_area_m2}
     for name, n in counts.items():
@@ -245,7 +250,7 @@ def exploration_coverage(
 def no_coverage(reachable_area_m2: float) -> dict:
     """`exploration_coverage`'s keys for a run that left no graph: nothing known."""
     out = {"reachable_area_m2": reachable_area_m2, "coverage": 0.0, "known_area_m2": 0.0}
-    for name in ("usable", "false_obstacle", "false_free", "known_reachable"):
+    for name in ("usable", "false_obstacle", "false_free", "known_reachable", "doubtful"):
         out[f"{name}_area_m2"] = 0.0
         out[f"{name}_share"] = 0.0
     return out

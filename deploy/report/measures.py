@@ -43,6 +43,8 @@ COVERAGE_KEYS = (
     "known_reachable_area_m2",
     "known_reachable_share",
     "known_area_m2",
+    "doubtful_area_m2",
+    "doubtful_share",
 )
 # Coverage curves (the explorer's explored_m2 over time, rescaled to the ground truth at the end)
 # and the time and distance to COVERAGE_TARGET count the known area, any label: the usable share

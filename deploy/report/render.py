@@ -17,8 +17,9 @@ from smana.deploy.report.measures import (
 EXPLORED_AREAS = (
     "Two explored areas, measuring different things: *usable coverage* counts the cells of the "
     "world the robot could reach (traversable, with its radius of clearance, connected to its "
-    "start) whose node in the final graph is known as traversable (a traversable class, no "
-    "obstacle, outside the safety zone): what the robot could drive on; *the explorer's own "
+    "start) whose node in the final graph is known as traversable (a traversable class or a "
+    "doubtful one, which the planner drives through at a cost; no obstacle, outside the safety "
+    "zone): what the robot could drive on; *the explorer's own "
     "count* (`explorer/state.json` `explored_m2`, its progress plot) counts the known nodes its "
     "graph calls traversable when it last planned, reachable or not, in the robot's own "
     "(possibly noisy) frame, and misses what the map learned after that plan. *Known (any "
@@ -222,6 +223,10 @@ def render_markdown(m: dict) -> str:
                 "false free: obstacle area (ground truth) under a node the final graph knows as "
                 "traversable",
                 _area(ex, "false_free"),
+            ),
+            (
+                "of which doubtful: under an unconfirmed obstacle class (passable at a cost)",
+                _area(ex, "doubtful"),
             ),
             (
                 "known (any label): reachable traversable area under a known node of the final "

@@ -31,7 +31,8 @@ Measured per run against the world's ground truth (the run's report, metrics.jso
   measured coverage, never missing data. A run that did not run to its report (no metrics.json:
   a crash, a timeout) is not a measurement: listed, and the command exits 1.
 
-Rules, fixed before the runs, on seeds 21 to 30 (worlds the docs use nowhere else):
+Rules, fixed before the runs, on seeds 31 to 40 (worlds the docs use nowhere else, and that the
+development did not look at: its pilots ran seeds 21 to 25 and 41 to 45, `--first-seed`):
 1. at `high` label noise with pose noise, the default back-end reaches at least 90 % of its own
    noise-free usable coverage (the `clean` run of the same seed), with 0 collisions, without
    FAILED and having moved, in at least 9 of the 10 seeds;
@@ -53,7 +54,7 @@ from smana.lab import plots, stats
 
 from . import exploration as ex
 
-SEEDS = tuple(range(21, 31))  # worlds and starts no other experiment in the docs uses
+SEEDS = tuple(range(31, 41))  # worlds and starts no other experiment, and no pilot, used
 SIZE_M = 16.0
 GRASS_COST_FACTOR = 2.0  # the class table's own grass cost (x2 terrain's)
 POSE_NOISE = (0.10, 0.02)  # white, per published pose: x and y (m), yaw (rad)
@@ -607,6 +608,12 @@ def add_parser(sub) -> None:
         quick_help="one run of 20 s in a 6 m garden (the default back-end, realistic noise)",
     )
     e.add_argument("--arms", help=f"comma-separated arms (default: all nine: {names})")
+    e.add_argument(
+        "--first-seed",
+        type=int,
+        help=f"the first seed (default {SEEDS[0]}, the rules' seeds; a pilot or a trial of a "
+        "change takes others, so that the rules' seeds stay unseen until the runs)",
+    )
     # the shared flags' defaults are the exploration experiment's: say this one's
     own = {
         "seeds": f"number of seeds, from {SEEDS[0]} up (default {len(SEEDS)}; quick 1)",
@@ -651,8 +658,9 @@ def check_args(args, parser=None) -> None:
 def main(args, parser, out: Path) -> int:
     arms = _arms(args)
     s = experiment_config(args.quick)
-    if args.seeds:
-        s.seeds = tuple(range(SEEDS[0], SEEDS[0] + args.seeds))
+    first = SEEDS[0] if args.first_seed is None else args.first_seed
+    if args.seeds or args.first_seed is not None:
+        s.seeds = tuple(range(first, first + (args.seeds or len(s.seeds))))
     if args.budget:
         s.budget_s = args.budget
     if args.size:

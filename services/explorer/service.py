@@ -58,6 +58,7 @@ from smana.services.explorer.navigation import (
     parse_cancel,
     parse_goal,
 )
+from smana.services.explorer.pose_filter import PoseFilter
 from smana.services.explorer.team import Team
 
 STATE_PERIOD_S = 0.5
@@ -87,6 +88,8 @@ class ExplorerService(Service):
         self.core = Explorer(
             self.cfg, self.table.traversable_lut, self.table.size, bound, flat, team=self.team
         )
+        # the pose it steers by: the localisation's, filtered with the twist it commands
+        self.pose_filter = PoseFilter(self.cfg.pose_filter)
         self.claims_asked = 0  # asked of the coordinator (its books count them as received)
         self.claim_errors: dict[str, int] = {}
         self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
@@ -390,7 +393,9 @@ class ExplorerService(Service):
         x, y, yaw = self.fleet.to_fleet_frame(
             self.robot, float(pose.position[0]), float(pose.position[1]), pose.yaw
         )
-        self.core.update_pose(x, y, yaw, t)
+        if where.reset:
+            self.pose_filter.state = None  # the robot reappeared: start the filter afresh
+        self.core.update_pose(*self.pose_filter.update(x, y, yaw, t), t)
         self._last_pose_wall = time.monotonic()
 
     # -- the control loop -------------------------------------------------------------------------
@@ -536,6 +541,7 @@ class ExplorerService(Service):
             self.log.warning("the planner does not answer (%d times)", self.path_errors[kind])
 
     def _send(self, v: float, w: float) -> None:
+        self.pose_filter.set_command(v, w)
         self._seq += 1
         self.cmd_pub.put(VelocityCommand(time.time(), self._seq, float(v), float(w), "explorer"))
 
@@ -548,6 +554,9 @@ class ExplorerService(Service):
         else:
             st["candidates"], st["candidate_gains_m2"] = [], []
         st["label_names"] = {str(i): c.name for i, c in self.table.classes.items()}
+        # the localisation's noise as the pose filter estimates it (standard deviations)
+        xy_sd, yaw_sd = self.pose_filter.noise_sd
+        st["pose_noise_sd"] = {"xy_m": round(xy_sd, 4), "yaw_rad": round(yaw_sd, 5)}
         return st
 
     def _finish(self) -> None:
