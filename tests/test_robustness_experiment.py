@@ -94,12 +94,12 @@ def test_the_rules_count_seeds_and_every_run():
     # false free: every run of every arm under 1 %
     rows = _rows()
     assert rb.verdicts(rows)[2]["verdict"] == "met"
-    _row(rows, 25, "tsdf_realistic")["false_free_share"] = 0.012
+    _row(rows, 35, "tsdf_realistic")["false_free_share"] = 0.012
     assert rb.verdicts(rows)[2]["verdict"] == "not met"
     assert "largest 1.20 %" in rb.verdicts(rows)[2]["smana"]
     # a run without the measure cannot show it was under: inconclusive, never met
     rows = _rows()
-    _row(rows, 25, "tsdf_realistic")["false_free_share"] = None
+    _row(rows, 35, "tsdf_realistic")["false_free_share"] = None
     assert rb.verdicts(rows)[2]["verdict"] == stats.INCONCLUSIVE
     assert "; 1 without the measure" in rb.verdicts(rows)[2]["smana"]
     # and no figure without a usable coverage to draw
