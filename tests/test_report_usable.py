@@ -269,3 +269,94 @@ def test_the_docs_sample_summary_has_the_rows_the_summary_gives(doc):
     m = {"exploration": _metrics()["exploration"], "explorer": {"explored_m2": 1.0}}
     assert shown == [a for a, _ in summary_rows(m)][1:]
     assert shown[0] == "usable coverage (against ground truth)"
+
+
+def _drivable_reference(grid, lut, drove_xy, max_step, radius):
+    """Breadth-first search node by node, the planner's rules written out by hand."""
+    from collections import deque
+
+    flags, labels, heights = grid["flags"], grid["labels"], grid["heights"]
+    nx, ny = flags.shape
+    res, (ox, oy) = float(grid["resolution_m"]), grid["origin_xy"]
+
+    def passable(a, b):
+        f, lab = int(flags[a, b]), int(labels[a, b])
+        if not f & FLAG_KNOWN or f & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
+            return False
+        return bool(f & FLAG_DOUBTFUL) or (lab < len(lut) and bool(lut[lab]))
+
+    seen, queue = set(), deque()
+    r = int(radius / res)
+    for x, y in drove_xy:
+        i, j = int(np.floor((x - ox) / res)), int(np.floor((y - oy) / res))
+        for a in range(i - r, i + r + 1):
+            for b in range(j - r, j + r + 1):
+                near = (a - i) ** 2 + (b - j) ** 2 <= r * r
+                if near and 0 <= a < nx and 0 <= b < ny and passable(a, b) and (a, b) not in seen:
+                    seen.add((a, b))
+                    queue.append((a, b))
+    while queue:
+        i, j = queue.popleft()
+        for a in (i - 1, i, i + 1):
+            for b in (j - 1, j, j + 1):
+                if (a, b) in seen or not (0 <= a < nx and 0 <= b < ny) or not passable(a, b):
+                    continue
+                if abs(float(heights[a, b]) - float(heights[i, j])) <= max_step:
+                    seen.add((a, b))
+                    queue.append((a, b))
+    out = np.zeros((nx, ny), bool)
+    for a, b in seen:
+        out[a, b] = True
+    return out
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_drivable_nodes_match_a_breadth_first_search(seed):
+    rng = np.random.default_rng(100 + seed)
+    shape = (14, 11)
+    grid = {
+        "origin_xy": np.array([-1.0, 0.5]),
+        "resolution_m": 0.5,
+        "flags": np.where(rng.random(shape) < 0.8, FLAG_KNOWN, 0).astype(np.uint8)
+        | np.where(rng.random(shape) < 0.1, FLAG_OBSTACLE, 0).astype(np.uint8)
+        | np.where(rng.random(shape) < 0.1, FLAG_SAFETY_ZONE, 0).astype(np.uint8)
+        | np.where(rng.random(shape) < 0.15, FLAG_DOUBTFUL, 0).astype(np.uint8),
+        "labels": rng.integers(0, 7, shape).astype(np.uint16),
+        "heights": (rng.random(shape) * 0.6).astype(np.float32),  # steps of 0 to 0.6 m
+    }
+    grid["heights"][rng.random(shape) < 0.05] = np.nan
+    drove = rng.uniform([-1.0, 0.5], [6.0, 6.0], (int(rng.integers(1, 4)), 2))
+    radius = [0.0, 0.5, 1.0][seed % 3]
+    got = ev.drivable_nodes(grid, TRAVERSABLE, drove, 0.3, radius)
+    want = _drivable_reference(grid, TRAVERSABLE, drove, 0.3, radius)
+    assert np.array_equal(got, want)
+
+
+def test_a_hedge_top_the_map_doubts_is_not_drivable():
+    # a row of nodes: lawn at 0 m, a hedge edge (obstacle), hedge tops at 1 m the map doubts
+    flags = np.array(
+        [[FLAG_KNOWN], [FLAG_KNOWN], [FLAG_KNOWN | FLAG_OBSTACLE]]
+        + [[FLAG_KNOWN | FLAG_DOUBTFUL]] * 3,
+        np.uint8,
+    )
+    labels = np.array([[1], [1], [3], [3], [3], [3]], np.uint16)
+    heights = np.array([[0.0], [0.05], [0.9], [1.0], [1.0], [1.0]], np.float32)
+    grid = {
+        "origin_xy": np.zeros(2),
+        "resolution_m": 1.0,
+        "flags": flags,
+        "labels": labels,
+        "heights": heights,
+    }
+    drivable = ev.drivable_nodes(grid, TRAVERSABLE, np.array([[0.5, 0.5]]), 0.3)
+    assert drivable[:, 0].tolist() == [True, True, False, False, False, False]
+    xs = np.arange(6) + 0.5
+    cell_xy = np.stack([xs, np.full(6, 0.5)], axis=-1)[:, None, :]
+    reach = np.zeros((6, 1), bool)
+    reach[:2] = True
+    gt_obstacle = ~reach
+    got = ev.exploration_coverage(grid, cell_xy, reach, 1.0, TRAVERSABLE, gt_obstacle, drivable)
+    assert got["usable_area_m2"] == 2.0 and got["false_free_area_m2"] == 0.0
+    # without the step rule the hedge tops were usable: three cells falsely free
+    got = ev.exploration_coverage(grid, cell_xy, reach, 1.0, TRAVERSABLE, gt_obstacle)
+    assert got["false_free_area_m2"] == 3.0

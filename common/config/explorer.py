@@ -54,15 +54,15 @@ class FollowerConfig(Section, section="explorer.follower"):
 
 @dataclass
 class PoseFilterConfig(Section, section="explorer.pose_filter"):
-    """The pose the explorer steers by: a Kalman filter of the localisation's poses, predicted
-    with the commanded twist, its measurement noise estimated from the innovations
-    (services/explorer/pose_filter.py). Noise-free poses pass through it as they are."""
+    """The position the explorer steers by: a Kalman filter of the localisation's x and y,
+    predicted with the commanded speed, its measurement noise estimated from the innovations
+    (services/explorer/pose_filter.py); the yaw passes as it comes. Noise-free poses pass
+    through it as they are."""
 
     enabled: bool = True
-    # how far the robot's motion strays from the commanded twist, per second (acceleration
+    # how far the robot's motion strays from the commanded speed, per second (acceleration
     # limits, wheel slip, an obstacle holding it)
     motion_sd_mps: float = param(0.2, gt=0)
-    motion_sd_radps: float = param(0.2, gt=0)
     window_s: float = param(5.0, gt=0)  # the innovations averaged for the noise estimate
     reset_m: float = param(1.0, gt=0)  # a pose this far from the prediction resets the filter
     max_gap_s: float = param(1.0, gt=0)  # so does a pose after a longer gap

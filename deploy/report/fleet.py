@@ -20,6 +20,7 @@ from smana.deploy.report.measures import (
     SIM_SUMMARY,
     _load_json,
     _trajectory,
+    drivable_nodes,
     exploration_metrics,
     member_dir,
     reachable_area,
@@ -175,7 +176,12 @@ def fleet_metrics(run_dir: Path, config, world, gt=None, names=None) -> dict:
         area = trav.resolution_m**2
         if graph is not None:
             lut, gt_obstacle = world.classes.traversable_lut, ev.gt_obstacle_cells(world)
-            out.update(ev.exploration_coverage(graph, cell_xy, reach, area, lut, gt_obstacle))
+            drove = [t[:, 1:3] for t in trajectories.values() if len(t)]
+            drove_xy = np.concatenate(drove) if drove else np.zeros((0, 2))
+            drivable = drivable_nodes(graph, lut, drove_xy, config)
+            out.update(
+                ev.exploration_coverage(graph, cell_xy, reach, area, lut, gt_obstacle, drivable)
+            )
         else:
             out.update(ev.no_coverage(float(reach.sum() * area)))
         observed = {}

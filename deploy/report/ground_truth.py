@@ -179,6 +179,70 @@ def reachable_traversable(trav: np.ndarray, start_ij: tuple[int, int]) -> np.nda
     return comp == c if c > 0 else np.zeros(trav.shape, bool)
 
 
+def passable_nodes(grid: dict, traversable_lut: np.ndarray) -> np.ndarray:
+    """The nodes of a saved navigation-grid box the planner may enter: known, neither obstacle
+    nor safety zone, and of a traversable class or doubtful (`graph_layers`'s usable, per node)."""
+    flags = np.asarray(grid["flags"])
+    labels = np.asarray(grid["labels"]).astype(np.int64)
+    lut = np.asarray(traversable_lut, bool)
+    inside = (labels >= 0) & (labels < len(lut))
+    traversable = np.zeros(labels.shape, bool)
+    traversable[inside] = lut[labels[inside]]
+    known = (flags & FLAG_KNOWN) != 0
+    blocked = (flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0
+    return known & ~blocked & (traversable | ((flags & FLAG_DOUBTFUL) != 0))
+
+
+# the 8 neighbours of a node, as the planner connects them
+_NEIGHBOURS = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj]
+
+
+def drivable_nodes(
+    grid: dict,
+    traversable_lut: np.ndarray,
+    drove_xy: np.ndarray,
+    max_step_m: float,
+    start_radius_m: float = 0.0,
+) -> np.ndarray:
+    """The passable nodes (`passable_nodes`) the robot could drive to from where it drove: the
+    ones within `start_radius_m` of a point of `drove_xy` (its trajectory; the explorer starts
+    its paths from a node that near, the one under the robot being often unseen) and every
+    passable node joined to them through 8-neighbours whose heights differ by at most
+    `max_step_m` (the planner's step rule). A passable island behind false obstacles, or the
+    top of a hedge whose label the map doubts, is known but not drivable. Grown one ring of
+    neighbours at a time (vectorised)."""
+    passable = passable_nodes(grid, traversable_lut)
+    heights = np.asarray(grid["heights"], np.float64)
+    nx, ny = passable.shape
+    ij = np.floor(
+        (np.asarray(drove_xy, float).reshape(-1, 2) - np.asarray(grid["origin_xy"], float))
+        / float(grid["resolution_m"])
+    ).astype(np.int64)
+    ok = (ij >= 0).all(axis=1) & (ij[:, 0] < nx) & (ij[:, 1] < ny)
+    seen = np.zeros(passable.shape, bool)
+    seen[ij[ok, 0], ij[ok, 1]] = True
+    r = int(start_radius_m / float(grid["resolution_m"]))
+    if r > 0:
+        ax = np.arange(-r, r + 1)
+        disc = ax[:, None] ** 2 + ax[None, :] ** 2 <= r * r
+        seen = ndimage.binary_dilation(seen, structure=disc)
+    seen &= passable
+    # per direction, whether the edge from a node to its neighbour may be taken
+    edges = []
+    for di, dj in _NEIGHBOURS:
+        src = (slice(max(0, -di), nx - max(0, di)), slice(max(0, -dj), ny - max(0, dj)))
+        dst = (slice(max(0, di), nx + min(0, di)), slice(max(0, dj), ny + min(0, dj)))
+        step = np.abs(heights[dst] - heights[src]) <= max_step_m  # NaN: no edge
+        edges.append((src, dst, step & passable[dst]))
+    while True:
+        grown = seen.copy()
+        for src, dst, edge in edges:
+            grown[dst] |= seen[src] & edge
+        if np.array_equal(grown, seen):
+            return seen
+        seen = grown
+
+
 def graph_layers(
     grid: dict, cell_xy: np.ndarray, traversable_lut: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -215,20 +279,26 @@ def exploration_coverage(
     cell_area_m2: float,
     traversable_lut: np.ndarray,
     gt_obstacle: np.ndarray | None = None,
+    drivable: np.ndarray | None = None,
 ) -> dict:
     """What the final navigation graph knows of the ground truth, per raster cell.
 
     `cell_xy` (..., 2) are the world centres of the raster cells, `reachable` the GT mask of the
     traversable cells the robot could reach and `gt_obstacle` the GT mask of obstacle cells
-    (`gt_obstacle_cells`; none when not given). Against the graph's `graph_layers`:
-    - usable: reachable and usable in the graph, what the robot could drive on (`coverage` is
-      its share of the reachable area, the report's headline);
+    (`gt_obstacle_cells`; none when not given), `drivable` the graph's nodes the robot could
+    drive to (`drivable_nodes`; when not given, every passable node). Against the graph's
+    `graph_layers`:
+    - usable: reachable, usable in the graph and under a drivable node, what the robot could
+      drive on (`coverage` is its share of the reachable area, the report's headline);
     - false obstacle: reachable, but an obstacle or a safety zone in the graph;
     - false free: an obstacle in ground truth that the graph calls usable (the dangerous one);
     - known: reachable under a known node whatever its label (obstacles included);
     - doubtful: the part of usable under doubtful nodes (passable at a cost).
     Every share is of the reachable area, so that they compare."""
     known, usable, blocked, doubtful = graph_layers(grid, cell_xy, traversable_lut)
+    if drivable is not None:
+        usable &= sample_grid({**grid, "drivable": drivable}, cell_xy, "drivable")
+        doubtful &= usable
     obstacle = np.zeros(reachable.shape, bool) if gt_obstacle is None else gt_obstacle
     n_reach = int(reachable.sum())
     counts = {

@@ -146,6 +146,18 @@ def reachable_area(world, traj: np.ndarray, radius_m: float):
     return trav, cell_xy, reach
 
 
+def drivable_nodes(graph: dict, lut: np.ndarray, drove_xy: np.ndarray, config) -> np.ndarray:
+    """`ev.drivable_nodes` with the run's own rules: the planner's step, the explorer's start
+    search radius."""
+    return ev.drivable_nodes(
+        graph,
+        lut,
+        drove_xy,
+        config.planner.max_step_m,
+        config.explorer.start_search_radius_m,
+    )
+
+
 def exploration_metrics(
     world, graph: dict | None, traj: np.ndarray, config, obstacle: np.ndarray | None = None
 ) -> dict:
@@ -162,7 +174,10 @@ def exploration_metrics(
     if graph is not None:
         lut = classes.traversable_lut
         gt_obstacle = ev.gt_obstacle_cells(world)
-        out.update(ev.exploration_coverage(graph, cell_xy, reach, res * res, lut, gt_obstacle))
+        drivable = drivable_nodes(graph, lut, traj[:, 1:3], config)
+        out.update(
+            ev.exploration_coverage(graph, cell_xy, reach, res * res, lut, gt_obstacle, drivable)
+        )
     else:
         out.update(ev.no_coverage(float(reach.sum() * res * res)))  # no graph: nothing known
     names = {i: c.name for i, c in classes.classes.items()}

@@ -555,8 +555,7 @@ class ExplorerService(Service):
             st["candidates"], st["candidate_gains_m2"] = [], []
         st["label_names"] = {str(i): c.name for i, c in self.table.classes.items()}
         # the localisation's noise as the pose filter estimates it (standard deviations)
-        xy_sd, yaw_sd = self.pose_filter.noise_sd
-        st["pose_noise_sd"] = {"xy_m": round(xy_sd, 4), "yaw_rad": round(yaw_sd, 5)}
+        st["pose_noise_sd_m"] = round(self.pose_filter.noise_sd_m, 4)
         return st
 
     def _finish(self) -> None:
