@@ -477,10 +477,11 @@ def test_a_lawn_mislabelled_now_and_then_stays_a_lawn():
 
 def test_a_voxel_hit_once_makes_no_geometric_obstacle():
     """An occupancy map's voxel 0.4 m over the lawn (a wall smeared there by one noisy pose) makes
-    no obstacle while its log-odds are under `solid_log_odds` (one hit: 0.85), and does once they
-    reach it (a second hit: 1.69); a signed-distance map's surface is solid as it is."""
+    no obstacle while its log-odds are under `solid_log_odds` (one hit: 0.85, two: 1.69), and
+    does once they reach it (a third hit: 2.54); a signed-distance map's surface is solid as it
+    is."""
     g = graph((0, 0), (4, 4), robot_radius_m=0.4)
-    assert g.config.solid_log_odds == 1.0
+    assert g.config.solid_log_odds == 2.0
 
     def delta(values, kind="log_odds"):
         centres = np.array([voxel(10, 10, 0), voxel(10, 10, 4)], np.float32)
@@ -496,8 +497,10 @@ def test_a_voxel_hit_once_makes_no_geometric_obstacle():
     g.integrate_delta(delta([3.5, 0.85]))
     assert not g.node(1.05, 1.05)["obstacle"]
     g.integrate_delta(delta([3.5, 1.69]))
+    assert not g.node(1.05, 1.05)["obstacle"]
+    g.integrate_delta(delta([3.5, 2.54]))
     assert g.node(1.05, 1.05)["obstacle"]
-    g.integrate_delta(delta([3.5, 0.44]))  # missed since: no longer solid
+    g.integrate_delta(delta([3.5, 1.69]))  # missed twice since: no longer solid
     assert not g.node(1.05, 1.05)["obstacle"]
     tsdf = graph((0, 0), (4, 4), robot_radius_m=0.4)
     tsdf.integrate_delta(delta([0.01, -0.02], "signed_distance"))

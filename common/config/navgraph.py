@@ -32,9 +32,11 @@ class NavgraphConfig(Section, section="navgraph"):
     # inf: no geometric obstacles.
     obstacle_step_m: float = param(0.25, gt=0)
     # An occupancy map's voxel makes a geometric obstacle only once its log-odds reach this
-    # (OctoMap's hit adds 0.85, a miss takes 0.41: two hits, net of a miss): a wall smeared onto
-    # the lawn by one noisy pose is hit once and then seen through. -inf: every occupied voxel.
-    solid_log_odds: float = param(1.0)
+    # (OctoMap's hit adds 0.85, a miss takes 0.41: three hits, net of a miss): a wall smeared
+    # onto the lawn by noisy poses is hit now and then and seen through in between. 1.0 (two
+    # hits) let 0.1 m of white pose noise grow the hedges by a node each side and close 1.4 m
+    # passages (docs/architecture.md, "Obstacles"). -inf: every occupied voxel.
+    solid_log_odds: float = param(2.0)
     semantic_confirm: int = param(0, ge=0, le=60)
     semantic_miss_weight: int = param(2, ge=1, le=60)
     tile_size: int = param(32, ge=1, le=256)  # nodes per tile side; memory is allocated per tile
