@@ -428,9 +428,10 @@ def _walled_in(false_wall: bool):
     return world, seen
 
 
-def _loop_with_a_map_that_clears(world, seen, t_max=240.0):
+def _loop_with_a_map_that_clears(world, seen, t_max=240.0, known=None):
     """The explorer against a map holding `seen`, which clears a false obstacle node once the
-    robot has stood within 1.2 m of it facing it (the graph's evidence, in short)."""
+    robot has stood within 1.2 m of it facing it (the graph's evidence, in short); `known`: the
+    nodes the map knows (default: all)."""
     ex = _explorer(_params(empty_retry_s=0.2))
     x, y, yaw, t = 0.8, 4.0, math.pi, 0.0
     looked = []
@@ -442,7 +443,7 @@ def _loop_with_a_map_that_clears(world, seen, t_max=240.0):
             cleared = (np.hypot(*d.T) < 1.2) & facing
             seen[tuple(cells[cleared].T)] = world.gt[tuple(cells[cleared].T)]
         w = ToyWorld(seen.copy())
-        w.known[:] = True
+        w.known[:] = True if known is None else known
         ex.update_grid(w.grid())
         ex.update_pose(x, y, yaw, t)
         if ex.wants_plan():
@@ -493,4 +494,19 @@ def test_no_look_for_pockets_smaller_than_the_reach():
     world.known[:] = True
     ex, looked, _ = _loop_with_a_map_that_clears(world, truth.copy())
     assert not looked and ex.n_recoveries == 0
+    assert ex.done_reason in ("no_frontier", "no_view_worth_it")
+
+
+def test_a_frontier_beyond_the_reach_is_worth_a_look():
+    """The same small pocket beyond a real row, but part of it not seen yet (a frontier the robot
+    cannot reach): it looks again, `recoveries` times, and ends as a finished run, not closed
+    in (the pocket is smaller than the reach)."""
+    truth = np.full((40, 40), 1, np.uint16)
+    truth[:, 0] = truth[:, -1] = truth[0, :] = truth[-1, :] = 4
+    truth[28:29, :] = 4
+    world = ToyWorld(truth)
+    known = np.ones(truth.shape, bool)
+    known[34:39, 1:39] = False  # the far end of the pocket, never seen
+    ex, looked, _ = _loop_with_a_map_that_clears(world, truth.copy(), known=known)
+    assert len(looked) == ex.n_recoveries == ex.config.recoveries
     assert ex.done_reason in ("no_frontier", "no_view_worth_it")

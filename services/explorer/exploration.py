@@ -408,10 +408,11 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
                 return outcome
             if self._empty_plans >= self.config.done_after_empty:
                 beyond = self._seen_beyond(free, reach)
-                # a finished run's pockets behind hedges are no reason to drive on: only a robot
-                # that seems closed in looks again
+                # a finished run's pockets behind hedges, seen whole, are no reason to drive on:
+                # a robot looks again when it seems closed in or a frontier lies beyond its reach
                 closed_in = self._closed_in(beyond, reach)
-                if closed_in and self._maybe_look_again(beyond, reach, goal_cost):
+                stuck = closed_in or self._unexplored_beyond(beyond, unknown)
+                if stuck and self._maybe_look_again(beyond, reach, goal_cost):
                     self._empty_plans = 0
                     return outcome
                 if closed_in:

@@ -10,11 +10,13 @@ means looking again: drive to the reachable node nearest the free ground seen be
 face it (the camera looks ahead and down), and plan again. Each look goes to a new place
 (`recovery_spacing_m` from the earlier ones), at most `recoveries` times while no view is found.
 
-It looks again only when the robot seems closed in: the free ground it has seen but cannot reach
-is larger than the ground it can reach (and at least `closed_in_min_m2`). A robot that explored
-its part of the world, where a few beds or pockets behind hedges stay out of reach, ends as before
-without a detour. Closed in still with its looks spent, the run ends `closed_in`, which the run's
-report calls a failure.
+It looks again when the robot seems closed in: the free ground it has seen but cannot reach is
+larger than the ground it can reach (and at least `closed_in_min_m2`), or at least
+`closed_in_min_m2` of it borders unknown ground (a frontier beyond the blockage: more to explore
+there, as Nav2 goes on when its goal is still out there). A robot that explored its part of the
+world, where a few beds or pockets behind hedges stay out of reach, seen whole, ends as before
+without a detour. Closed in still with its looks spent (the first test), the run ends
+`closed_in`, which the run's report calls a failure.
 """
 
 from __future__ import annotations
@@ -50,6 +52,19 @@ class Recovering:
         beyond_m2 = float(beyond.sum()) * self.grid.resolution_m**2
         reach_m2 = float(reach.sum()) * self.grid.resolution_m**2
         return beyond_m2 >= self.config.closed_in_min_m2 and beyond_m2 > reach_m2
+
+    def _unexplored_beyond(self, beyond: np.ndarray, unknown: np.ndarray) -> bool:
+        """Whether the pieces of free ground `beyond` the reach that border unknown ground (a
+        frontier the robot cannot reach) add up to `closed_in_min_m2`."""
+        from scipy import ndimage
+
+        if not beyond.any():
+            return False
+        comp, n = ndimage.label(beyond, structure=fr.EIGHT_CONNECTED)
+        near_unknown = ndimage.binary_dilation(unknown, structure=fr.EIGHT_CONNECTED)
+        open_ids = np.unique(comp[beyond & near_unknown])
+        area = float(np.isin(comp, open_ids[open_ids > 0]).sum()) * self.grid.resolution_m**2
+        return area >= self.config.closed_in_min_m2
 
     def _maybe_look_again(self, beyond: np.ndarray, reach: np.ndarray, goal_cost) -> bool:
         """Drive to look again at what cuts a closed-in robot off from the free ground it has
