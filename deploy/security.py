@@ -506,6 +506,14 @@ def _names(text: str) -> list[str]:
     return [n.strip() for n in text.split(",") if n.strip()]
 
 
+def _robot_names(text: str) -> list[str]:
+    """An argparse type: one robot name or more, comma-separated (`''` is no robot at all)."""
+    names = _names(text)
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected comma-separated robot names, got {text!r}")
+    return names
+
+
 HANDOUT = (
     "Copy each host's folder to that host as certs/: {base}/ to the base, <robot>/ to each robot. "
     "ca.key, users.txt and issued.json go nowhere."
@@ -521,7 +529,12 @@ def cli(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
     ic = sub.add_parser("init-certs", help="create a CA, host folders (certificates, users, ACL)")
     ic.add_argument("--out", default="certs", help="folder to write into (default ./certs)")
-    ic.add_argument("--robots", default="r1", help="comma-separated robot names (default r1)")
+    ic.add_argument(
+        "--robots",
+        type=_robot_names,
+        default="r1",
+        help="comma-separated robot names (default r1)",
+    )
     ic.add_argument("--fleet", default="fleet", help="the fleet's name (fleet.name)")
     ic.add_argument("--base", default="base", help="the base station's host name")
     ic.add_argument(
@@ -537,20 +550,22 @@ def cli(argv: list[str] | None = None) -> int:
         sp.add_argument("robot")
         sp.add_argument("--out", default="certs", help="the set's folder (default ./certs)")
     acl = sub.add_parser("acl", help="print the access-control policy (JSON5)")
-    acl.add_argument("--robots", default="r1", help="comma-separated robot names")
+    acl.add_argument(
+        "--robots", type=_robot_names, default="r1", help="comma-separated robot names"
+    )
     acl.add_argument("--fleet", default="fleet", help="the fleet's name")
     acl.add_argument("--base", default="base", help="the base station's host name")
     args = p.parse_args(argv)
     if args.cmd == "acl":
-        _check_names(_names(args.robots), args.fleet, args.base)
-        print(json.dumps(acl_policy(_names(args.robots), args.fleet, args.base), indent=2))
+        _check_names(args.robots, args.fleet, args.base)
+        print(json.dumps(acl_policy(args.robots, args.fleet, args.base), indent=2))
         return 0
     out = Path(args.out)
     try:
         if args.cmd == "init-certs":
             files = init_certs(
                 out,
-                _names(args.robots),
+                args.robots,
                 args.fleet,
                 args.base,
                 args.days,
