@@ -168,3 +168,18 @@ def test_bench_scale_refuses_a_planner_box_beyond_memory_in_one_line(capsys):
     assert run_command("bench scale", cli, ["--planner-box-m", "100000x100000"]) == 2
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and "GiB" in err and "Traceback" not in err, err
+
+
+def test_a_policy_in_the_zenoh_config_file_is_refused_in_one_line(tmp_path):
+    # it was applied to every process, clients too: each denied its own traffic, never ready
+    from smana.common.config import ConfigError, ZenohConfig
+    from smana.common.zenoh_config import make_zenoh_config
+    from smana.deploy.security import acl_policy
+
+    f = tmp_path / "zenoh.json5"
+    f.write_text('{"access_control": ' + __import__("json").dumps(acl_policy()) + "}")
+    with pytest.raises(ConfigError) as err:
+        make_zenoh_config(ZenohConfig(mode="client", config_file=str(f)))
+    assert "zenoh.acl_file" in str(err.value) and "\n" not in str(err.value)
+    f.write_text('{"access_control": {"enabled": false}}')  # a disabled block is harmless
+    make_zenoh_config(ZenohConfig(mode="client", config_file=str(f)))
