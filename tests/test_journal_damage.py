@@ -105,3 +105,26 @@ def test_the_writer_refuses_a_state_the_reader_would_refuse(tmp_path):
     with pytest.raises(ValueError, match="not finite"):
         w.append(d.keys, {})
     assert w.bytes == size == (tmp_path / "m.journal").stat().st_size
+
+
+def test_a_follower_that_sleeps_through_a_whole_journal_knows_it(tmp_path):
+    # two rotations between two polls (an autosave, then a clean stop's save): the middle
+    # file's records reach the follower's map never; it must notice and reload the autosave
+    m = fj.small_map()
+    path = tmp_path / "map.journal"
+    w = JournalWriter(path, m, {"clouds": 0}, generation=3)
+    reader = JournalReader(path)
+    reader.attach(fj.small_map())
+    d = m.integrate(*fj.small_cloud(1))
+    w.append(d.keys, {"clouds": 1})
+    reader.poll()
+    assert not reader.missed and reader.generation == 3
+    w.rotate({"clouds": 1})  # one rotation between polls: followed
+    reader.poll()
+    assert not reader.missed and reader.generation == 4
+    w.rotate({"clouds": 1})
+    d = m.integrate(*fj.small_cloud(2))
+    w.append(d.keys, {"clouds": 2})  # in generation 5, which the follower will never read
+    w.rotate({"clouds": 2})
+    reader.poll()
+    assert reader.missed and reader.generation == 6

@@ -22,7 +22,8 @@ Records are written with `os.write` and no fsync: a process killed with -9 loses
 has accepted; a power cut may lose the page cache's last seconds (the autosave is fsynced).
 
 File layout: records of `<4s magic><u32 length><u32 crc32>` followed by a msgpack map. The first
-record is the header `{"kind": "header", "backend", "resolution_m", "fields", "service"}`, the rest
+record is the header `{"kind": "header", "generation", "backend", "resolution_m", "fields",
+"service"}` (`generation`: one more than the journal file before it), the rest
 `{"kind": "voxels", "keys": N x 3 int32, "cols": {name: rows}, "service": {counters}}`.
 """
 
@@ -62,9 +63,10 @@ def frame(payload: dict) -> bytes:
     return _FRAME.pack(MAGIC, len(body), zlib.crc32(body)) + body
 
 
-def _header(m, service: dict) -> dict:
+def _header(m, service: dict, generation: int) -> dict:
     return {
         "kind": "header",
+        "generation": generation,
         "backend": m.backend,
         "resolution_m": m.resolution_m,
         "fields": sorted(m.column_names()),
@@ -75,11 +77,16 @@ def _header(m, service: dict) -> dict:
 class JournalWriter:
     """Appends records to a journal file (opened at `offset`: what follows is cut off)."""
 
-    def __init__(self, path: Path, m, service: dict, offset: int | None = None):
+    def __init__(
+        self, path: Path, m, service: dict, offset: int | None = None, generation: int = 0
+    ):
         self.path = Path(path)
         self.map = m
         self.records = 0
         self.bytes = 0
+        # each new file's header numbers it one more than the last (a follower that sees a
+        # number skipped missed a whole file between two polls: it reloads the autosave)
+        self.generation = generation
         if offset is None:
             self._fd = None
             self.rotate(service)
@@ -114,7 +121,9 @@ class JournalWriter:
         rest). Written beside and renamed over, so a reader sees the old file or the new one."""
         tmp = self.path.with_name(self.path.name + ".tmp")
         tmp.parent.mkdir(parents=True, exist_ok=True)  # a run directory not made yet
-        head = frame(_header(self.map, service))
+        if self._fd is not None:  # the first file of this writer keeps the number it was given
+            self.generation += 1
+        head = frame(_header(self.map, service, self.generation))
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         os.write(fd, head)
         os.replace(tmp, self.path)
@@ -176,6 +185,11 @@ class JournalReader:
         self._ino = None
         self.offset = 0  # end of the last whole record in the current file
         self._header_ok: bool | None = None  # None: no header read (yet) in this file
+        self.generation: int | None = None  # the current file's, from its header
+        self._prev_generation: int | None = None
+        # a rotation skipped between two polls (two autosaves, or an autosave and a clean stop,
+        # within one): records of a whole file never applied; reopen and reload the autosave
+        self.missed = False
         self._open()
 
     def _open(self) -> bool:
@@ -194,6 +208,7 @@ class JournalReader:
             os.close(self._fd)
         self._fd, self._ino = fd, os.fstat(fd).st_ino
         self._buf, self.offset, self._header_ok = b"", 0, None
+        self._prev_generation, self.generation = self.generation, None
         self.books.files += 1
         return True
 
@@ -313,6 +328,12 @@ class JournalReader:
                 f"is {m.backend} at {m.resolution_m} m"
             )
             return
+        gen = rec.get("generation")
+        if type(gen) is int:
+            self.generation = gen
+            prev = self._prev_generation
+            if prev is not None and gen != prev + 1:
+                self.missed = True
         service = rec.get("service")
         if service:
             self.books.service = check_counters(service)

@@ -191,6 +191,7 @@ class MapperService(MapperQueries, Service):
         self.journal: JournalWriter | None = None
         self._reader: JournalReader | None = None  # followed while a hot spare stands by
         self.takeover: dict = {}  # what the replay at start found (stats()["takeover"])
+        self._generation: int | None = None  # of the journal file replayed last
 
     def prepare(self) -> None:
         # (Compile or) load the kernels before the token says we are ready.
@@ -218,6 +219,10 @@ class MapperService(MapperQueries, Service):
             self.log.info("standing by: following %s", self.journal_path)
         else:
             self._reader.poll()
+            if self._reader.missed:  # a whole journal went by between two polls: start over
+                self._reader.close()
+                self._reader = self._open_journal(take_over=False)
+                self.log.info("standing by: a journal went by unread; reloaded the autosave")
 
     def _replays(self) -> bool:
         """Whether this start resumes the run's own map, its autosave and its journal:
@@ -288,7 +293,12 @@ class MapperService(MapperQueries, Service):
         reader, self._reader = self._reader or self._open_journal(take_over=True), None
         self.startup_step = "replaying the map's journal"
         offset = reader.finish()
+        if reader.missed:  # the spare slept through a whole journal: the autosave holds it
+            reader.close()
+            reader = self._open_journal(take_over=True)
+            offset = reader.finish()
         exists = reader.exists  # (before close(), which forgets the file)
+        self._generation = reader.generation
         reader.close()
         self.map = reader.map
         self.map.recount()
@@ -353,8 +363,13 @@ class MapperService(MapperQueries, Service):
     def _start_journal(self, offset: int | None) -> None:
         if self.journal_path is None:
             return
+        # go on with the file's number, or number a new file one more than the one replayed
+        gen = self._generation
+        gen = (gen or 0) if offset is not None else (0 if gen is None else gen + 1)
         try:
-            self.journal = JournalWriter(self.journal_path, self.map, self._counters(), offset)
+            self.journal = JournalWriter(
+                self.journal_path, self.map, self._counters(), offset, generation=gen
+            )
         except OSError as exc:  # the map goes on; only a take-over would lose more
             self.note("journal_failed", f"journal {self.journal_path}: {exc}; mapping without")
 
