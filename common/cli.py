@@ -36,10 +36,17 @@ def run_command(name: str, cli: Callable[[list[str] | None], int | None], argv=N
     printed as `smana <name>: <message>` on one line and gives status 2; anything else is a bug and
     propagates with its traceback. Used by `smana <command>` and by every `python -m` entry."""
     try:
-        return int(cli(argv) or 0)
+        status = int(cli(argv) or 0)
+        sys.stdout.flush()  # here, not at exit: a reader gone by then is the case below
+        return status
     except USER_ERRORS as exc:
         print(f"smana {name}: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader went away (`smana deploy acl | head -1`): nothing more to tell it, and no
+        # traceback; what is still buffered goes nowhere, not into a second error at exit
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 # A number or a comma-separated list of numbers (`-1.9,5.3`, `-2`, `-.5,1e3,-4`): a value, never

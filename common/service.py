@@ -189,6 +189,9 @@ class Service(Inbox, Answers, Liveliness):
         self.books = Books()
         self.msgs_out = 0
         self.events: collections.Counter[str] = collections.Counter()
+        # counters that worker threads bump beside the main loop (events, msgs_out): += is a read
+        # and a write, so two threads can lose one without it
+        self._counter_lock = threading.RLock()
         self.state = "starting"
         self.startup_step = "opening the zenoh session"  # what a starting service is doing
         self.ready_s: float | None = None  # seconds from process start to ready

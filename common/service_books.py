@@ -85,7 +85,8 @@ class Publisher:
         else:
             payload = msg
         self._zpub.put(payload)
-        self._service.msgs_out += 1
+        with self._service._counter_lock:  # action workers publish beside the main loop
+            self._service.msgs_out += 1
 
     def undeclare(self):
         self._zpub.undeclare()
@@ -176,8 +177,10 @@ class Inbox:
     def note(self, kind: str, message: str, n: int = 1) -> None:
         """Count an event that is not a message's fate (points dropped inside an accepted cloud,
         a gap in a sequence, a timeout) and log it: the first few of a kind, then one in 100."""
-        self.events[kind] += n
-        self._log_kind(kind, message, self.events[kind])
+        with self._counter_lock:
+            self.events[kind] += n
+            count = self.events[kind]
+        self._log_kind(kind, message, count)
 
     def _log_kind(self, kind: str, message: str, n: int | None = None) -> None:
         if n is None:

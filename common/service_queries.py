@@ -147,7 +147,8 @@ class Answers:
                 query.reply(key, body, attachment=attachment)
             else:
                 query.reply(key, body, encoding=reply_encoding(as_json))
-            self.msgs_out += 1
+            with self._counter_lock:  # plan workers reply beside the main loop
+                self.msgs_out += 1
         except Exception as exc:  # the querier left: the query was still handled
             self.note("reply_failed", f"query {key}: reply not sent: {exc}")
 

@@ -149,6 +149,13 @@ def make_zenoh_config(zc: ZenohConfig):
     for endpoint in [*zc.connect, *zc.listen]:
         check_endpoint(endpoint)
     conf = _read_zenoh_file(Path(zc.config_file)) if zc.config_file else zenoh.Config()
+    if zc.config_file and json.loads(conf.get_json("access_control")).get("enabled"):
+        # every process reads that file, clients too, and a client given the policy denies its
+        # own traffic (the stack never got ready): the policy goes where links arrive
+        raise ConfigError(
+            f"zenoh config file {zc.config_file} enables access_control: give the policy as "
+            "zenoh.acl_file (smana sets it on routers only, where links arrive)"
+        )
     conf.insert_json5("mode", json.dumps(zc.mode))
     if zc.connect:
         conf.insert_json5("connect/endpoints", json.dumps(zc.connect))

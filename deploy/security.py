@@ -144,6 +144,7 @@ def acl_policy(
     fleet: str | None = "fleet",
     base: str = "base",
     base_identities: bool = True,
+    revoked: list[str] = (),
 ) -> dict:
     """The access-control policy (the table in docs/deployment.md), default deny:
 
@@ -162,6 +163,10 @@ def acl_policy(
       velocity commands, send every robot's explorer goals and cancel them, and ask every
       robot's mapper to save (exact keys); `tool` only reads;
       `router` (the base's router) relays everything.
+
+    - `revoked` robots: every message of a session presenting such a robot's certificate (its
+      common name) is denied, both ways, whatever user it logs in as: zenoh checks certificates
+      against the CA alone (no revocation list), and its explicit deny rules win over allows.
 
     Routers are named by user and link: user `<name>` on a tcp link, or the same user presenting
     its host's certificate (common name `<robot>`, or `base`) on TLS; a certificate alone grants
@@ -259,6 +264,13 @@ def acl_policy(
         identity("operator", ["operator-cmd_vel", "operator-save", "operator-goal"])
         identity("tool", [])
     router("router", base, ["relay"])
+    if revoked:
+        rules.append(
+            _rule("revoked", ["ingress", "egress"], ALL_MESSAGES, ["**"], permission="deny")
+        )
+        names = [check_robot(r) for r in revoked]
+        subjects.append({"id": "revoked-certs", "cert_common_names": names})
+        policies.append({"id": "revoked", "rules": ["revoked"], "subjects": ["revoked-certs"]})
     policies.insert(
         0,
         {
@@ -403,7 +415,7 @@ def _write_books(out: Path, issued: dict, passwords: dict[str, str]) -> Path:
 
 def _write_base(out: Path, issued: dict, passwords: dict[str, str]) -> list[Path]:
     robots, fleet, base = issued["robots"], issued["fleet"], issued["base"]
-    policy = acl_policy(robots, fleet, base)
+    policy = acl_policy(robots, fleet, base, revoked=issued.get("revoked", []))
     return _write_host(out, base, passwords, base_users(robots, fleet), policy)
 
 
@@ -476,6 +488,8 @@ def add_robot(out: Path, robot: str) -> list[Path]:
     issued, passwords = _books(out)
     if robot in issued["robots"]:
         raise UsageError(f"{robot} is issued already (revoke-robot it first to re-issue it)")
+    if robot in issued.get("revoked", []):  # its old certificate carries the same name
+        raise UsageError(f"{robot} was revoked: its name stays denied; issue it under a new name")
     _check_names(
         [*issued["robots"], *issued.get("clients", []), robot], issued["fleet"], issued["base"]
     )
@@ -490,12 +504,14 @@ def add_robot(out: Path, robot: str) -> list[Path]:
 
 def revoke_robot(out: Path, robot: str) -> list[Path]:
     """Forget a robot: its passwords leave the base's dictionary and its rules the base's policy,
-    so its router and services can no longer log in. Its certificate stays signed (there is no
-    revocation list), which grants nothing without a password."""
+    so its router and services can no longer log in; and its certificate's common name joins the
+    base policy's `revoked` subjects, whose every message is denied both ways (zenoh has no
+    revocation list: the certificate still completes a TLS handshake, and carries nothing)."""
     issued, passwords = _books(out)
     if robot not in issued["robots"]:
         raise UsageError(f"{robot} is not issued (issued: {', '.join(issued['robots'])})")
     issued["robots"].remove(robot)
+    issued["revoked"] = sorted({*issued.get("revoked", []), robot})
     for u in robot_users(robot):
         passwords.pop(u, None)
     shutil.rmtree(out / robot, ignore_errors=True)
@@ -504,6 +520,14 @@ def revoke_robot(out: Path, robot: str) -> list[Path]:
 
 def _names(text: str) -> list[str]:
     return [n.strip() for n in text.split(",") if n.strip()]
+
+
+def _robot_names(text: str) -> list[str]:
+    """An argparse type: one robot name or more, comma-separated (`''` is no robot at all)."""
+    names = _names(text)
+    if not names:
+        raise argparse.ArgumentTypeError(f"expected comma-separated robot names, got {text!r}")
+    return names
 
 
 HANDOUT = (
@@ -521,7 +545,12 @@ def cli(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="cmd", required=True)
     ic = sub.add_parser("init-certs", help="create a CA, host folders (certificates, users, ACL)")
     ic.add_argument("--out", default="certs", help="folder to write into (default ./certs)")
-    ic.add_argument("--robots", default="r1", help="comma-separated robot names (default r1)")
+    ic.add_argument(
+        "--robots",
+        type=_robot_names,
+        default="r1",
+        help="comma-separated robot names (default r1)",
+    )
     ic.add_argument("--fleet", default="fleet", help="the fleet's name (fleet.name)")
     ic.add_argument("--base", default="base", help="the base station's host name")
     ic.add_argument(
@@ -537,20 +566,22 @@ def cli(argv: list[str] | None = None) -> int:
         sp.add_argument("robot")
         sp.add_argument("--out", default="certs", help="the set's folder (default ./certs)")
     acl = sub.add_parser("acl", help="print the access-control policy (JSON5)")
-    acl.add_argument("--robots", default="r1", help="comma-separated robot names")
+    acl.add_argument(
+        "--robots", type=_robot_names, default="r1", help="comma-separated robot names"
+    )
     acl.add_argument("--fleet", default="fleet", help="the fleet's name")
     acl.add_argument("--base", default="base", help="the base station's host name")
     args = p.parse_args(argv)
     if args.cmd == "acl":
-        _check_names(_names(args.robots), args.fleet, args.base)
-        print(json.dumps(acl_policy(_names(args.robots), args.fleet, args.base), indent=2))
+        _check_names(args.robots, args.fleet, args.base)
+        print(json.dumps(acl_policy(args.robots, args.fleet, args.base), indent=2))
         return 0
     out = Path(args.out)
     try:
         if args.cmd == "init-certs":
             files = init_certs(
                 out,
-                _names(args.robots),
+                args.robots,
                 args.fleet,
                 args.base,
                 args.days,

@@ -143,6 +143,20 @@ def test_recording_holds_every_stream(tmp_path):
     assert truth.shape == (5, 5) and truth[-1, 1] == pytest.approx(0.4)
 
 
+def test_an_explorer_state_whose_goal_has_no_yaw_is_recorded_whole(tmp_path):
+    # `smana goto X Y` sets no heading: the state was dropped at float(None), metrics and all
+    rrd = tmp_path / "run.rrd"
+    rec = recmod.RunRecorder(ClassTable.load("garden3drms"), rrd)
+    for i in range(3):
+        rec.on_explorer_state(
+            {"t_s": float(i), "goal": {"xy": [0.5, 0.2], "yaw": None}, "explored_m2": 1.0 + i}
+        )
+    rec.close()
+    ents = _entities(rrd)
+    assert "/world/explorer/goal" in ents and "/metrics/explored_m2" in ents, sorted(ents)
+    assert rec.counts["explorer_state"] == 3
+
+
 def test_recorder_core_keeps_every_pose_as_it_comes(tmp_path):
     """Every pose is a row, whatever it holds (repeated, out of order, a zero stamp, a jump): in
     memory and in the trajectory file at once, before the recorder is closed or killed."""

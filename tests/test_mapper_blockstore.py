@@ -90,3 +90,50 @@ def test_resident_blocks_stay_bounded_on_a_long_drive(tmp_path):
 def test_keep_radius_must_exceed_the_sensor_reach(tmp_path):
     with pytest.raises(ValueError, match="keep_radius_m"):
         BlockStore(_map(), tmp_path, keep_radius_m=8.0)
+
+
+def _strip_map():
+    """Ground along x over 0..24 m: blocks in four regions of 6.4 m."""
+    m = _map()
+    rng = np.random.default_rng(3)
+    for x0 in range(0, 24, 2):
+        pts = np.c_[rng.uniform(x0 - 2, x0 + 2, 300), rng.uniform(-2, 2, 300), np.zeros(300)]
+        m.integrate(pts.astype(np.float32), np.full(300, 1, np.uint16), origin=(x0, 0.0, 1.0))
+    return m
+
+
+@pytest.mark.parametrize(
+    "damage", ["truncated", "flipped", "nan", "foreign_blocks", "missing_column", "not_a_file"]
+)
+def test_a_damaged_region_file_costs_that_region_only(tmp_path, damage):
+    from smana.lab import fuzz_journals as fj
+    from smana.services.mapper.blockstore import _block_xy
+
+    plain, paged = _strip_map(), _strip_map()
+    store = BlockStore(paged, tmp_path / "store", keep_radius_m=12.0, region_m=6.4)
+    assert store.after((300.0, 0.0), force=True) >= 3  # every region on disk
+    bad = (1, 0)  # the region under (12, 0), read back below
+    bad_path = store.stored[bad][0]
+    fj.region_file(bad_path, damage, bad_path.read_bytes())
+    store.before((12.0, 0.0))  # reads back what is within reach, the damaged one among them
+    assert store.stats()["regions_damaged"] == 1 and bad not in store.stored, store.problems
+    assert str(bad_path) in store.problems[0]
+    # the damaged file is kept, renamed; every region still stored still has its file
+    kept = bad_path.with_name(bad_path.name + ".damaged")
+    assert kept.exists() or (damage == "not_a_file" and bad_path.is_dir())
+    assert all(p.is_file() for p, _, _ in store.stored.values())
+    # the reference: the plain map's blocks less those of the damaged region, in plain Python
+    keys_a, cols_a = _content(plain)
+    bx, by = _block_xy(keys_a)
+    keep = np.array(
+        [
+            (int(x) // store.region_blocks, int(y) // store.region_blocks) != bad
+            for x, y in zip(bx, by, strict=True)
+        ]
+    )
+    keys_b, cols_b = _content(store.full_map())
+    assert np.array_equal(keys_a[keep], keys_b)
+    v = plain._core.grid.voxels_per_block
+    rows = (np.flatnonzero(keep)[:, None] * v + np.arange(v)).ravel()
+    for k in cols_a:
+        assert np.array_equal(cols_a[k][rows], cols_b[k]), k

@@ -309,13 +309,28 @@ def test_goal_book_holds_results_until_they_exist_then_expires_them():
     assert got[-1] == (STATUS_ABORTED, "why")
     book.add(uuid(2), None, 2)
     book.add(uuid(3), None, 3)
-    assert book.add(uuid(4), None, 4) is None  # full
     clock.t = 10.5
     assert book.add(uuid(4), None, 4) is not None  # goal 1's result expired: room again
     assert book.result(uuid(1), lambda s, r: got.append((s, r))) == "unknown"
+    assert book.add(uuid(5), None, 5) is None  # full of goals that have not ended
     for _ in range(16):
         book.result(uuid(2), lambda s, r: None)
     assert book.result(uuid(2), lambda s, r: None) == "full"
+
+
+def test_a_flood_of_ended_goals_leaves_room_for_the_next_one():
+    # 64 goals flooded and ended: a valid goal was refused until their results expired (10 s)
+    clock = Clock()
+    book = GoalBook(result_timeout_s=10.0, max_goals=4, clock=clock)
+    for i in range(1, 5):
+        book.add(uuid(i), None, i)
+        book.finish(uuid(i), STATUS_ABORTED, f"r{i}")
+        clock.t += 0.1
+    assert book.add(uuid(9), None, 9) is not None  # at once, not 10 s later
+    assert book.get(uuid(1)) is None and book.get(uuid(2)) is not None  # the oldest made room
+    for i in (10, 11, 12):
+        assert book.add(uuid(i), None, i) is not None
+    assert book.add(uuid(13), None, 13) is None  # four goals that have not ended: full
 
 
 def test_goal_pose_checks():
@@ -329,9 +344,10 @@ def test_goal_pose_checks():
         goal_pose_checked(nan, ("map",))
     with pytest.raises(ValueError, match="frame"):
         goal_pose_checked(convert.pose_stamped(TYPES, (1.0, 0.0), 0.0, 0.0, "base_link"), ("map",))
-    # an empty frame is taken as the world frame
+    # an empty frame is refused, as Nav2 cannot transform it either
     unframed = convert.pose_stamped(TYPES, (1.0, 0.0), 0.0, 0.0, "")
-    assert goal_pose_checked(unframed, ("map",))[:2] == (1.0, 0.0)
+    with pytest.raises(ValueError, match="no frame_id"):
+        goal_pose_checked(unframed, ("map",))
     zero_q = convert.pose_stamped(TYPES, (1.0, 0.0), 0.0, 0.0)
     zero_q.pose.orientation.w = 0.0
     with pytest.raises(ValueError):
@@ -405,3 +421,22 @@ def test_cdr_of_the_action_services_agrees_with_pamoja():
     r = ros2.CdrReader(list(TYPES.serialize(resp, a)))
     assert r.read_u32() & 0xFF == 1  # the bool, then padding to the Time's alignment
     assert (r.read_i32(), r.read_u32()) == (42, 9)
+
+
+def test_a_navigate_goal_with_a_huge_behavior_tree_or_no_frame_is_refused_before_the_explorer():
+    import types
+
+    from smana.services.ros2 import convert
+    from smana.services.ros2.actions import Ros2Actions
+
+    a = "nav2_msgs/action/NavigateToPose"
+    me = types.SimpleNamespace(world_frames=("map",))  # navigate() refuses before anything else
+
+    def goal(frame="map", tree=""):
+        pose = convert.pose_stamped(TYPES, (1.0, 0.0), 0.0, 0.0, frame)
+        return TYPES.msg(a + "_Goal")(pose=pose, behavior_tree=tree)
+
+    ok, why = Ros2Actions.navigate(me, b"u" * 16, goal(tree="x" * 10_000_000), None)
+    assert not ok and why.startswith("value: behavior_tree of 10000000 characters"), why
+    ok, why = Ros2Actions.navigate(me, b"u" * 16, goal(frame=""), None)
+    assert not ok and "no frame_id" in why, why

@@ -460,3 +460,33 @@ def test_every_identity_but_a_router_may_read_ros2():
     users = {u for s in policy["subjects"] for u in s.get("usernames") or []}
     routers = {u for u in users if u == "router" or u.endswith(".router")}
     assert routers and set(read["subjects"]) == users - routers
+
+
+def test_a_revoked_robots_certificate_is_denied_everything_at_the_base(tmp_path):
+    # zenoh checks a certificate against the CA only: the base's policy denies the revoked
+    # robot's common name every message, both ways, and zenoh's explicit denies win over allows
+    init_certs(tmp_path, ["r1", "r2"])
+    revoke_robot(tmp_path, "r2")
+    policy = json.loads((tmp_path / "base" / "acl.json5").read_text())
+    subject = next(s for s in policy["subjects"] if s["id"] == "revoked-certs")
+    assert subject == {"id": "revoked-certs", "cert_common_names": ["r2"]}
+    rule = next(r for r in policy["rules"] if r["id"] == "revoked")
+    assert rule["permission"] == "deny" and rule["key_exprs"] == ["**"]
+    assert set(rule["flows"]) == {"ingress", "egress"} and set(rule["messages"]) >= {
+        "put",
+        "query",
+        "declare_subscriber",
+        "reply",
+        "liveliness_token",
+    }
+    assert {"id": "revoked", "rules": ["revoked"], "subjects": ["revoked-certs"]} in policy[
+        "policies"
+    ]
+    # no subject of r1 names r2's certificate; and r2 cannot be issued again under its name
+    assert not [s for s in policy["subjects"] if "r2" in s.get("cert_common_names", [])][1:]
+    with pytest.raises(UsageError, match="revoked"):
+        add_robot(tmp_path, "r2")
+    revoke_robot(tmp_path, "r1")
+    policy = json.loads((tmp_path / "base" / "acl.json5").read_text())
+    subject = next(s for s in policy["subjects"] if s["id"] == "revoked-certs")
+    assert subject["cert_common_names"] == ["r1", "r2"]

@@ -294,6 +294,11 @@ def goals(rec: dict, s: dict) -> list[str]:
     return missed
 
 
+# what planner_over_box holds per node of its box at its peak (cell indices in int64 twice and
+# int32, the patch's columns, the graph's and the planner's window), a bound for refusing a box
+BOX_BYTES_PER_NODE = 64
+
+
 def planner_over_box(w_m: float, h_m: float, graph_res: float, side_m: float) -> dict:
     """The planner on a graph whose known part is one w_m x h_m box (what a lawnmower has
     seen after w_m * h_m / lane spacing metres): a 20 m query, its repeat, and a query after a
@@ -337,8 +342,23 @@ def planner_over_box(w_m: float, h_m: float, graph_res: float, side_m: float) ->
 
 def main(args: argparse.Namespace) -> int:
     if args.planner_box_m:
+        from smana.common.cli import UsageError
+
         w, h = args.planner_box_m
-        r = planner_over_box(w, h, args.graph_res, args.side_m)
+        nodes = int(w / args.graph_res) * int(h / args.graph_res)
+        need = nodes * BOX_BYTES_PER_NODE
+        have = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+        if need > have:  # refused before numpy tries (and the kernel's OOM killer answers)
+            raise UsageError(
+                f"--planner-box-m {w:g}x{h:g}: {nodes:.3g} nodes at {args.graph_res:g} m need "
+                f"about {need / 2**30:.3g} GiB, this machine has {have / 2**30:.3g} GiB"
+            )
+        try:
+            r = planner_over_box(w, h, args.graph_res, args.side_m)
+        except MemoryError:
+            raise UsageError(
+                f"--planner-box-m {w:g}x{h:g}: {nodes:.3g} nodes do not fit in memory"
+            ) from None
         print(
             f"planner over a known box of {w:g} x {h:g} m ({r['nodes'] / 1e6:.1f} M nodes at "
             f"{args.graph_res:g} m): a 20 m query {r['first_ms']:.0f} ms first (kernels "

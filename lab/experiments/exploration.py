@@ -894,7 +894,7 @@ def apply_args(s: ExplorationExperimentConfig, args) -> ExplorationExperimentCon
         s.budget_s = args.budget
     if getattr(args, "size", None):
         s.size_m = args.size
-    if getattr(args, "arms", None):
+    if getattr(args, "arms", None) is not None:  # `--arms ""` is no arm, not all
         known = {a.name: a for a in (*FULL_ARMS, *s.arms)}
         names = [v.strip() for v in args.arms.split(",") if v.strip()]
         bad = [v for v in names if v not in known]

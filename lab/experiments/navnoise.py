@@ -522,7 +522,7 @@ def _arms(args) -> tuple[ex.Arm, ...] | None:
     """The arms `--arms` names (any of _BY_NAME), None without it; a bad name: one line."""
     from smana.common.cli import UsageError
 
-    if not getattr(args, "arms", None):
+    if getattr(args, "arms", None) is None:  # `--arms ""` is refused below, not all arms
         return None
     names = [v.strip() for v in args.arms.split(",") if v.strip()]
     if not names or any(v not in _BY_NAME for v in names):

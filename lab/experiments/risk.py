@@ -448,7 +448,7 @@ def check_args(args, parser=None) -> None:
         from .riskloop import ARMS, arms_of
 
         SmanaConfig.load(overrides=[*ex.WORLD_SETS, *ARMS[-1].sets, *args.extra])
-        if args.arms:
+        if args.arms is not None:
             arms_of(args.arms)
 
 

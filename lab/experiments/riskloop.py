@@ -512,7 +512,7 @@ def run(args, out: Path) -> int:
         s.size_m = args.size
     if args.jobs:
         s.jobs = args.jobs
-    if args.arms:
+    if args.arms is not None:
         s.arms = arms_of(args.arms)
     s.extra = (*s.extra, *args.extra)
     rows = ex.run_exploration(s, out, write=write_outputs, keep=finished)

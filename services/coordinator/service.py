@@ -85,8 +85,8 @@ class CoordinatorService(Service):
                 if not isinstance(goal, list | tuple) or len(goal) != 2:
                     raise ValueError(f"goal must be [x, y], got {goal!r}")
                 granted, holder = self.book.claim(robot, goal, now)
-        except (TypeError, ValueError) as exc:
-            raise Reject("value", f"claim: {exc}") from None
+        except (TypeError, ValueError, OverflowError) as exc:  # 1e400 as a JSON integer
+            raise Reject("value", f"claim: {str(exc)[:200]}") from None
         self._publish()
         claims = self.book.snapshot(now)
         return {"ok": True, "granted": granted, "holder": holder, "claims": claims}

@@ -4,8 +4,8 @@ Prints the goal's feedback, at most a line a second (distance remaining along th
 the speed made so far, time, recoveries), and how it ended. Exit status: 0 when the goal is
 reached (succeeded), 1 when it ends otherwise (aborted, canceled, preempted), is refused, or no
 feedback comes for --feedback-timeout seconds; 2 on a bad argument or when no explorer answers.
-Ctrl-C cancels the goal (the robot stops) and exits 1. The explorer may be exploring (it pauses,
-then resumes) or run with `explorer.mode = "navigate"`.
+Ctrl-C (or SIGTERM, SIGHUP) cancels the goal (the robot stops) and exits 1. The explorer may be
+exploring (it pauses, then resumes) or run with `explorer.mode = "navigate"`.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import math
 import queue
+import signal
 import sys
 import time
 
@@ -122,6 +123,9 @@ def cli(argv: list[str] | None = None) -> int:
                 return 1
             gid = reply["id"]
             print(f"goal {gid} accepted: ({args.x:g}, {args.y:g})", flush=True)
+            # SIGTERM (kill, a closing terminal's SIGHUP) cancels as Ctrl-C does: a goto that
+            # ends must not leave its robot driving
+            old = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
             try:
                 return follow(feedback, gid, args.feedback_timeout)
             except KeyboardInterrupt:
@@ -131,8 +135,15 @@ def cli(argv: list[str] | None = None) -> int:
                 except QueryError as exc:
                     print(f"goal {gid}: cancel not answered ({exc})")
                 return 1
+            finally:
+                for sig, handler in old.items():
+                    signal.signal(sig, handler)
         finally:
             sub.undeclare()
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def follow(feedback: queue.Queue, gid: str, timeout_s: float) -> int:

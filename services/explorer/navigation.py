@@ -74,6 +74,12 @@ class NavGoal:
         return self.spec.id
 
 
+# A heading beyond this many radians is no heading anyone meant (1e308 wraps to noise), and a
+# tolerance under a millimetre is one the robot can never meet (5e-324 m): both refused.
+YAW_MAX_RAD = 100.0
+TOLERANCE_MIN_M = 1e-3
+
+
 def _number(body: dict, name: str, optional: bool) -> float | None:
     v = body.get(name)
     if v is None:
@@ -82,9 +88,15 @@ def _number(body: dict, name: str, optional: bool) -> float | None:
         raise GoalRefused("malformed", f"{name} is missing")
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise GoalRefused("malformed", f"{name} must be a number, got {type(v).__name__}")
-    if not math.isfinite(v):
-        raise GoalRefused("value", f"{name} must be finite, got {v}")
-    return float(v)
+    try:
+        f = float(v)  # a JSON integer past 1e308 does not fit a float
+    except OverflowError:
+        f = math.inf
+    if not math.isfinite(f):
+        raise GoalRefused(
+            "value", f"{name} must be finite, got {'a huge integer' if isinstance(v, int) else v}"
+        )
+    return f
 
 
 def check_goal_id(v) -> str:
@@ -97,7 +109,8 @@ def parse_goal(
     body, bounds_min_xy, bounds_max_xy, default_tolerance_m: float, max_tolerance_m: float
 ) -> GoalSpec:
     """A goal query's map, checked: x and y finite and inside the navigation graph's bounds, yaw
-    finite or None, tolerance_m in (0, max_tolerance_m] or None (the default), id 1 to 64
+    finite within +-YAW_MAX_RAD or None, tolerance_m in [TOLERANCE_MIN_M, max_tolerance_m] or None
+    (the default), id 1 to 64
     printable characters or None (one is made up). GoalRefused otherwise; unknown keys are
     refused too (a misspelt "tolerance" must not pass for the default)."""
     if not isinstance(body, dict):
@@ -108,6 +121,8 @@ def parse_goal(
     x, y = _number(body, "x", False), _number(body, "y", False)
     yaw = _number(body, "yaw", True)
     tol = _number(body, "tolerance_m", True)
+    if yaw is not None and abs(yaw) > YAW_MAX_RAD:
+        raise GoalRefused("value", f"yaw must be within +-{YAW_MAX_RAD:g} rad, got {yaw:g}")
     lo, hi = bounds_min_xy, bounds_max_xy
     if not (lo[0] <= x < hi[0] and lo[1] <= y < hi[1]):
         raise GoalRefused(
@@ -117,9 +132,10 @@ def parse_goal(
         )
     if tol is None:
         tol = float(default_tolerance_m)
-    elif not 0 < tol <= max_tolerance_m:
+    elif not TOLERANCE_MIN_M <= tol <= max_tolerance_m:
         raise GoalRefused(
-            "value", f"tolerance_m must be in (0, {max_tolerance_m:g}] m, got {tol:g}"
+            "value",
+            f"tolerance_m must be in [{TOLERANCE_MIN_M:g}, {max_tolerance_m:g}] m, got {tol:g}",
         )
     gid = body.get("id")
     gid = uuid.uuid4().hex[:12] if gid is None else check_goal_id(gid)

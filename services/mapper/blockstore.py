@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from smana.services.mapper import mapfile
 from smana.services.mapper._grid import _PACK_MASK, _PACK_OFF
 
 
@@ -72,6 +73,7 @@ class BlockStore:
         self.directory.mkdir(parents=True, exist_ok=True)
         self.stored: dict[tuple[int, int], tuple[Path, int, int]] = {}  # region -> file, blocks, B
         self.n_loaded = self.n_evicted = 0  # regions read back, regions written
+        self.problems: list[str] = []  # one line per region file that could not be used
         self._calls = 0
 
     # -- geometry ------------------------------------------------------------------------------
@@ -89,7 +91,9 @@ class BlockStore:
     # -- moving blocks -------------------------------------------------------------------------
 
     def before(self, origin) -> int:
-        """Read back every stored region within `load_radius_m` of the origin; returns how many."""
+        """Read back every stored region within `load_radius_m` of the origin; returns how many.
+        A region file that cannot be used costs that region only: it leaves the index, its file
+        is kept (renamed `.damaged`), the reason goes to `problems`; the others load."""
         if not self.stored:
             return 0
         ox, oy = float(origin[0]), float(origin[1])
@@ -104,17 +108,49 @@ class BlockStore:
         grid = self.map._core.grid
         keys = [grid.block_keys[: grid.n_blocks].copy()]
         cols = {k: [grid.used(k)] for k in grid.cols}
+        loaded = []
         for region in want:
-            path, _, _ = self.stored.pop(region)
-            with np.load(path) as f:
-                keys.append(f["block_keys"])
-                for k in cols:
-                    cols[k].append(f[f"col_{k}"])
-            path.unlink()
+            got = self._read_region(region, keys[0])
+            if got is None:
+                continue
+            keys.append(got[0])
+            for k in cols:
+                cols[k].append(got[1][k])
+            loaded.append(region)
+        if not loaded:
+            return 0
         grid.restore(np.concatenate(keys), {k: np.concatenate(v) for k, v in cols.items()})
         self.map._core.recount()
-        self.n_loaded += len(want)
-        return len(want)
+        for region in loaded:  # resident now: only then is the file let go
+            self.stored.pop(region)[0].unlink()
+        self.n_loaded += len(loaded)
+        return len(loaded)
+
+    def _read_region(self, region, resident: np.ndarray):
+        """A stored region's block keys and columns, checked as a map file's are (`mapfile`:
+        container, dtypes, shapes, values) and against the store (every block in that region,
+        none resident); None, and the region dropped, when its file cannot be used."""
+        path = self.stored[region][0]
+        grid = self.map._core.grid
+        try:
+            with mapfile.MapFile(path) as f:
+                mapfile.check_members(f, {"block_keys", *(f"col_{k}" for k in grid.fields)})
+                bk, cols = mapfile.read_grid(f, "block_keys", "col_", grid.fields, grid.bits)
+            bx, by = _block_xy(bk)
+            rb = self.region_blocks
+            if bk.size and ((bx // rb != region[0]).any() or (by // rb != region[1]).any()):
+                raise ValueError(f"{path}: blocks outside region {region}")
+            if np.isin(bk, resident).any():
+                raise ValueError(f"{path}: blocks that are resident already")
+        except (ValueError, OSError) as exc:  # MapFileError included: one line, the file
+            self.stored.pop(region)
+            self.problems.append(" ".join(str(exc).split()))
+            try:
+                path.rename(path.with_name(path.name + ".damaged"))
+            except OSError:
+                pass
+            return None
+        return bk, cols
 
     def after(self, origin, force: bool = False) -> int:
         """Every `check_every` calls (or when `force`): write out the regions whose square lies
@@ -171,11 +207,12 @@ class BlockStore:
         grid = m._core.grid
         keys = [grid.block_keys[: grid.n_blocks]]
         cols = {k: [grid.used(k)] for k in grid.cols}
-        for path, _, _ in self.stored.values():
-            with np.load(path) as f:
-                keys.append(f["block_keys"])
+        for region in list(self.stored):
+            got = self._read_region(region, keys[0])
+            if got is not None:
+                keys.append(got[0])
                 for k in cols:
-                    cols[k].append(f[f"col_{k}"])
+                    cols[k].append(got[1][k])
         out = SemanticMap.from_config(m.section, m.class_table, m.block_bits)
         out._core.grid.restore(
             np.concatenate(keys), {k: np.concatenate(c) for k, c in cols.items()}
@@ -192,4 +229,5 @@ class BlockStore:
             "stored_bytes": sum(n for _, _, n in self.stored.values()),
             "regions_written": self.n_evicted,
             "regions_read": self.n_loaded,
+            "regions_damaged": len(self.problems),
         }

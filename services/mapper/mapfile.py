@@ -443,15 +443,26 @@ def read_grid(
     cols = {}
     for k in fields:
         col = f.array(prefix + k)
-        if col.dtype.kind == "f":
-            bad = np.isnan(col) if k in legacy else ~np.isfinite(col)
-            if bad.any():
-                raise _fail(f.path, f"{prefix}{k}: {int(bad.sum())} values not finite")
-            lo, hi = _RANGES.get(k, (-math.inf, math.inf))
-            if col.size and (col.min() < lo or col.max() > hi):
-                raise _fail(f.path, f"{prefix}{k}: values outside [{lo:g}, {hi:g}]")
+        try:
+            check_values(col, k, prefix, k in legacy)
+        except ValueError as exc:
+            raise _fail(f.path, str(exc)) from None
         cols[k] = col
     return block_keys, cols
+
+
+def check_values(col: np.ndarray, field: str, prefix: str = "", legacy: bool = False) -> None:
+    """A voxel column's values: finite floats, within the field's range (`_RANGES`); else a
+    ValueError of one line. The one check for every way into a map: map files, journal records
+    (journal.py), block-store regions (blockstore.py)."""
+    if col.dtype.kind != "f":
+        return
+    bad = np.isnan(col) if legacy else ~np.isfinite(col)
+    if bad.any():
+        raise ValueError(f"{prefix}{field}: {int(bad.sum())} values not finite")
+    lo, hi = _RANGES.get(field, (-math.inf, math.inf))
+    if col.size and (col.min() < lo or col.max() > hi):
+        raise ValueError(f"{prefix}{field}: values outside [{lo:g}, {hi:g}]")
 
 
 def check_block_keys(keys: np.ndarray, bits: int, path, name: str = "block_keys") -> None:
@@ -479,6 +490,7 @@ __all__ = [
     "layer_names",
     "check_members",
     "check_meta",
+    "check_values",
     "max_range_for",
     "read_grid",
 ]

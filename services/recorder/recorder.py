@@ -379,15 +379,21 @@ class RunRecorder:
         goal = st.get("goal")
         if goal:
             gx, gy = goal["xy"]
-            yaw = float(goal.get("yaw", 0.0))
-            self.rec.log(
-                f"{ex}/goal",
-                rr.Arrows3D(
-                    origins=[[gx, gy, 0.15]],
-                    vectors=[[0.5 * math.cos(yaw), 0.5 * math.sin(yaw), 0]],
-                    colors=[colour],
-                ),
-            )
+            yaw = goal.get("yaw")
+            if yaw is None:  # a goal with no heading (`smana goto X Y`): a point, no arrow
+                self.rec.log(
+                    f"{ex}/goal", rr.Points3D([[gx, gy, 0.15]], colors=[colour], radii=0.12)
+                )
+            else:
+                yaw = float(yaw)
+                self.rec.log(
+                    f"{ex}/goal",
+                    rr.Arrows3D(
+                        origins=[[gx, gy, 0.15]],
+                        vectors=[[0.5 * math.cos(yaw), 0.5 * math.sin(yaw), 0]],
+                        colors=[colour],
+                    ),
+                )
         else:
             self.rec.log(f"{ex}/goal", rr.Clear(recursive=False))
         for name in ("explored_m2", "distance_m", "frontier_size"):

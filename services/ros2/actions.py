@@ -63,6 +63,7 @@ COMPUTE_PATH = "nav2_msgs/action/ComputePathToPose"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 RESULT_TIMEOUT_S = 10.0  # rcl_action's default result_timeout
 MAX_GOALS = 64  # goals held (running, or finished and not expired); one more is refused
+MAX_BEHAVIOR_TREE_CHARS = 4096  # NavigateToPose's behavior_tree: a path (PATH_MAX), not a tree
 MAX_WAITING_RESULTS = 16  # get_result requests held for one goal
 FEEDBACK_TIMEOUT_S = 5.0  # a navigation goal without explorer feedback this long is aborted
 QUERY_TIMEOUT_S = 5.0  # the explorer's and the planner's answers
@@ -116,11 +117,20 @@ class GoalBook:
         self.goals: dict[bytes, Goal] = {}
 
     def add(self, uuid: bytes, request, stamp_ns: int) -> Goal | None:
-        """A new goal, ACCEPTED; None when its id is taken or the book is full."""
+        """A new goal, ACCEPTED; None when its id is taken or the book is full of goals that have
+        not ended."""
         with self.lock:
             self.expire()
-            if uuid in self.goals or len(self.goals) >= self.max_goals:
+            if uuid in self.goals:
                 return None
+            if len(self.goals) >= self.max_goals:
+                # the oldest ended goal makes room: its result was kept for a late get_result,
+                # never at the cost of a new goal (a flood ended 64 goals, and refused valid
+                # ones for the next 10 s)
+                ended = [u for u, g in self.goals.items() if g.finished_at is not None]
+                if not ended:
+                    return None
+                del self.goals[min(ended, key=lambda u: self.goals[u].finished_at)]
             goal = Goal(uuid, stamp_ns, STATUS_ACCEPTED, request, seen_at=self.clock())
             self.goals[uuid] = goal
             return goal
@@ -223,7 +233,9 @@ def goal_pose_checked(pose_stamped, world_frames) -> tuple[float, float, float]:
     """(x, y, yaw) of a goal's PoseStamped; ValueError for a pose that is not finite, a
     degenerate quaternion, or a frame smana's world is not."""
     frame = pose_stamped.header.frame_id.lstrip("/")
-    if frame and frame not in world_frames:
+    if not frame:  # Nav2 cannot transform a pose of no frame either
+        raise ValueError(f"goal has no frame_id: smana navigates in {list(world_frames)}")
+    if frame not in world_frames:
         raise ValueError(f"goal in frame {frame!r}: smana navigates in {list(world_frames)}")
     pos, q = convert.pose_of(pose_stamped.pose)
     if np.abs(pos).max() > 1e6:
@@ -485,6 +497,11 @@ class Ros2Actions:
         """Hand a NavigateToPose goal to the explorer; (accepted, why not)."""
         try:
             x, y, yaw = goal_pose_checked(goal.pose, self.world_frames)
+            if len(goal.behavior_tree) > MAX_BEHAVIOR_TREE_CHARS:
+                raise ValueError(
+                    f"behavior_tree of {len(goal.behavior_tree)} characters: a file name of at "
+                    f"most {MAX_BEHAVIOR_TREE_CHARS} (smana runs none: it is ignored)"
+                )
         except ValueError as exc:
             return False, f"value: {exc}"
         # One goal at a time, in the order the explorer takes them: the last one it accepted is

@@ -253,8 +253,9 @@ class Ros2Service(Service):
 
     def _send(self, what: str, msg) -> None:
         self.pubs[what].put(msg)
-        self.sent[what] += 1
-        self.msgs_out += 1
+        with self._counter_lock:
+            self.sent[what] += 1
+            self.msgs_out += 1
 
     def _hold(self, what: str, msg):
         """Keep a delta (patch) that came while its snapshot is on its way: applied after it."""

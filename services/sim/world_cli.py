@@ -148,6 +148,8 @@ def cli(argv: list[str] | None = None) -> int:
         else:
             radius_m = config_file_from_args(args).navgraph.robot_radius_m
             print(json.dumps(world.summary(radius_m), indent=2))
+    except BrokenPipeError:
+        raise  # the reader went away (`| head`): run_command ends it quietly
     except (WorldError, OSError, ValueError) as exc:
         print(f"smana world: error: {exc}", file=sys.stderr)
         return 2
