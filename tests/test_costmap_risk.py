@@ -45,8 +45,10 @@ def _windows(rng, n=40):
 @pytest.mark.parametrize("fields", MODES, ids=lambda f: "-".join(map(str, f.values())))
 def test_the_costmaps_class_costs_are_the_planners_node_by_node(fields):
     """common/risk.py against services/planner/reference.py (the planner kernels' reference):
-    the enter cost of every open node is t_f x the T the costmap shows, closed nodes are inf."""
-    config = dataclasses.replace(PlannerConfig(), **fields)
+    the enter cost of every open node is t_f x the T the costmap shows, closed nodes are inf.
+    The planner's clearance cost beside the safety zone is off: the costmap's class costs are
+    the classes' (a Nav2 stack inflates in its own inflation layer)."""
+    config = dataclasses.replace(PlannerConfig(clearance_cost=0.0), **fields)
     labels, flags, alt, p_label, p_alt = _windows(np.random.default_rng(7))
     want = risk_enter_costs(labels, flags, alt, p_label, p_alt, WET, config)
     got = risk_class_costs(labels, alt, p_label, p_alt, WET.cost_lut, config) * config.t_f

@@ -11,7 +11,7 @@ from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, NavGrid
 from smana.services.navgraph.graph import NavGraph
 from smana.services.planner.planner import Planner
-from smana.services.planner.reference import dijkstra_cost
+from smana.services.planner.reference import add_clearance, dijkstra_cost
 
 CLASSES = ClassTable.load("garden3drms")
 GRASS, TERRAIN, HEDGE = 1, 2, 4
@@ -58,6 +58,9 @@ def test_cost_breakdown_adds_up_and_matches_dijkstra():
     parts = r.cost_distance + r.cost_height + r.cost_traversability
     assert parts == pytest.approx(r.cost_total, rel=1e-9)
     enter = np.where(labels == HEDGE, np.inf, 0.8 * CLASSES.cost_lut[np.minimum(labels, 8)])
+    # plus the clearance cost beside the hedges' nodes, node by node
+    flags = np.asarray(grid.box(0, 0, 30, 25)[2])
+    enter = add_clearance(enter, flags, planner.config, 0.2)
     want = dijkstra_cost(enter, heights, (0, 0), (29, 24), 0.2, 0.5, 0.1)
     assert r.cost_total == pytest.approx(want, rel=1e-9)
     assert sum(r.label_share.values()) == pytest.approx(1.0)
@@ -173,3 +176,25 @@ def test_a_doubtful_wall_is_dear_but_passable():
     flags[labels == HEDGE] = FLAG_KNOWN | FLAG_OBSTACLE
     grid.apply_patch(np.argwhere(flags > 0), labels.ravel(), np.zeros(nx * ny), flags.ravel())
     assert not Planner(grid, CLASSES).plan((0.5, 2.0), (5.5, 2.0)).ok
+
+
+def test_paths_keep_off_an_obstacle_where_there_is_room():
+    """The clearance cost: along a hedge, with room beside it, a path keeps more than
+    `clearance_m` from the hedge; with the cost off it runs along its side. In a passage too
+    narrow for that it still goes through (the cost is dear, not closed)."""
+    labels = np.full((40, 12), TERRAIN, np.uint16)
+    labels[5:35, 0] = HEDGE  # a hedge along x at the bottom edge
+    grid = dense_grid(labels)
+    start, goal = (0.3, 0.3), (7.7, 0.3)
+    hug = Planner(grid, CLASSES, PlannerConfig(clearance_cost=0.0)).plan(start, goal)
+    keep = Planner(grid, CLASSES).plan(start, goal)  # clearance 1 over 0.4 m: the defaults
+    assert hug.ok and keep.ok
+    beside = (hug.cells[:, 0] >= 5) & (hug.cells[:, 0] < 35)
+    assert hug.cells[beside, 1].min() == 1  # right beside the hedge
+    beside = (keep.cells[:, 0] >= 5) & (keep.cells[:, 0] < 35)
+    assert keep.cells[beside, 1].min() >= 3  # beyond the 2-node ring of the clearance cost
+    # a passage one node wide between two hedges: dear, still the way
+    labels = np.full((40, 3), TERRAIN, np.uint16)
+    labels[5:35, 0] = labels[5:35, 2] = HEDGE
+    narrow = Planner(dense_grid(labels), CLASSES).plan((0.3, 0.3), (7.7, 0.3))
+    assert narrow.ok

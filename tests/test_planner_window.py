@@ -164,6 +164,7 @@ def test_a_prepared_planner_builds_nothing_on_its_first_query(monkeypatch):
     would build (window, enter costs under the last query's costs), so that query builds
     nothing; its answer is the kernel's on the grid's dense arrays, to the bit."""
     from smana.common.classes import ClassTable
+    from smana.common.config.planner import PlannerConfig
     from smana.services.planner.astar import astar
     from smana.services.planner.planner import Planner
 
@@ -171,7 +172,9 @@ def test_a_prepared_planner_builds_nothing_on_its_first_query(monkeypatch):
     rng = np.random.default_rng(11)
     grid, cells = _garden_grid(rng)
     start, goal = (0.1, 0.1), (17.9, 13.9)
-    planner = Planner(grid, classes)  # prepares
+    # prepares; the clearance cost off, so that the answer compares with the kernel's on the
+    # class costs alone
+    planner = Planner(grid, classes, PlannerConfig(clearance_cost=0.0))
     with monkeypatch.context() as m:
         _no_builds(m)
         first = planner.plan(start, goal)
@@ -192,7 +195,9 @@ def test_a_prepared_planner_builds_nothing_on_its_first_query(monkeypatch):
     )
     assert first.cost_total == want.cost and np.array_equal(first.cells, want.cells)
     # A patch, then prepare (the service's tick): the next query builds nothing either, also
-    # under the last query's costs when they were not the defaults.
+    # under the last query's costs when they were not the defaults; with the clearance cost on
+    # (the default), whose ring round each patched node the patch refreshes too.
+    planner = Planner(grid, classes)
     for kw in ({}, {"t_f": 1.7, "allow_unknown": True}):
         planner.plan(start, goal, **kw)
         pc = cells[rng.choice(len(cells), 200, replace=False)]

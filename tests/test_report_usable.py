@@ -287,8 +287,12 @@ def _drivable_reference(grid, lut, drove_xy, max_step, radius):
 
     seen, queue = set(), deque()
     r = int(radius / res)
-    for x, y in drove_xy:
-        i, j = int(np.floor((x - ox) / res)), int(np.floor((y - oy) / res))
+    under = [(int(np.floor((x - ox) / res)), int(np.floor((y - oy) / res))) for x, y in drove_xy]
+    for i, j in under:
+        if 0 <= i < nx and 0 <= j < ny and passable(i, j) and (i, j) not in seen:
+            seen.add((i, j))
+            queue.append((i, j))
+    for i, j in under if not seen else []:  # no passable node under it: those near it
         for a in range(i - r, i + r + 1):
             for b in range(j - r, j + r + 1):
                 near = (a - i) ** 2 + (b - j) ** 2 <= r * r

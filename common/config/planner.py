@@ -30,6 +30,12 @@ class PlannerConfig(Section, section="planner"):
     # too few agreeing views; navgraph.semantic_confirm). Dear, so that paths go round it when
     # they can, but passable, so that a few wrong labels do not wall the robot in.
     doubtful_cost: float = param(10.0, ge=0, lt=math.inf)
+    # T(l) added to a node beside the safety zone (or an obstacle), falling linearly to 0 at
+    # clearance_m from it: paths keep off the zone's edge where there is room (Nav2's inflation
+    # cost beyond the inscribed radius), so that a robot whose pose is a few centimetres off does
+    # not put its body on what the zone was drawn round. 0: paths hug the zone as before.
+    clearance_cost: float = param(1.0, ge=0, lt=math.inf)
+    clearance_m: float = param(0.4, ge=0, le=2.0)
     # Both are exact (admissible and consistent). "euclidean" is the paper's d(n, g); "octile"
     # (octile distance + cheapest enter cost per step) expands 3-5x fewer nodes.
     heuristic: Heuristic = "octile"

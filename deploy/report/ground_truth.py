@@ -205,10 +205,10 @@ def drivable_nodes(
     start_radius_m: float = 0.0,
 ) -> np.ndarray:
     """The passable nodes (`passable_nodes`) the robot could drive to from where it drove: the
-    ones within `start_radius_m` of a point of `drove_xy` (its trajectory; the explorer starts
-    its paths from a node that near, the one under the robot being often unseen) and every
-    passable node joined to them through 8-neighbours whose heights differ by at most
-    `max_step_m` (the planner's step rule). A passable island behind false obstacles, or the
+    passable ones under `drove_xy` (its trajectory; when none is, a robot that never left an
+    unseen node, those within `start_radius_m` of it, as the explorer starts its paths from a
+    node that near) and every passable node joined to them through 8-neighbours whose heights
+    differ by at most `max_step_m` (the planner's step rule). A passable island behind false obstacles, or the
     top of a hedge whose label the map doubts, is known but not drivable. Grown one ring of
     neighbours at a time (vectorised)."""
     passable = passable_nodes(grid, traversable_lut)
@@ -219,14 +219,14 @@ def drivable_nodes(
         / float(grid["resolution_m"])
     ).astype(np.int64)
     ok = (ij >= 0).all(axis=1) & (ij[:, 0] < nx) & (ij[:, 1] < ny)
-    seen = np.zeros(passable.shape, bool)
-    seen[ij[ok, 0], ij[ok, 1]] = True
+    under = np.zeros(passable.shape, bool)
+    under[ij[ok, 0], ij[ok, 1]] = True
+    seen = under & passable
     r = int(start_radius_m / float(grid["resolution_m"]))
-    if r > 0:
+    if not seen.any() and r > 0:
         ax = np.arange(-r, r + 1)
         disc = ax[:, None] ** 2 + ax[None, :] ** 2 <= r * r
-        seen = ndimage.binary_dilation(seen, structure=disc)
-    seen &= passable
+        seen = ndimage.binary_dilation(under, structure=disc) & passable
     # per direction, whether the edge from a node to its neighbour may be taken
     edges = []
     for di, dj in _NEIGHBOURS:

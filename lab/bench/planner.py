@@ -340,7 +340,9 @@ def run_size(
     doubtful free nodes (`doubt_shares`)."""
     labels, heights, flags = make_graph(n, seed=n, classes=classes, obstacle_share=obstacle_share)
     grid = grid_from_dense(labels, heights, flags)
-    params = PlannerConfig(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile")
+    # the paper's cost, as the peer computes it: smana's clearance cost (beside the safety
+    # zone) off, so that both search the same graph
+    params = PlannerConfig(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile", clearance_cost=0)
     planner = Planner(grid, classes, params)
     patch = _patch_one_tile(grid)
     lut = classes.cost_lut
@@ -460,7 +462,9 @@ def run_flat(n: int, runs: int, n_queries: int, classes, pyastar, length: float 
     enter = weights.astype(np.float64)  # the very same numbers as pyastar2d's
     zeros = np.zeros((n, n))
     grid = grid_from_dense(labels, heights, flags)
-    params = PlannerConfig(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile")
+    # the paper's cost, as the peer computes it: smana's clearance cost (beside the safety
+    # zone) off, so that both search the same graph
+    params = PlannerConfig(h_f=0.1, t_f=0.8, max_step_m=0.3, heuristic="octile", clearance_cost=0)
     planner = Planner(grid, classes, params)
     patch = _patch_one_tile(grid)
     # Exactness checks only (not timed here): Dijkstra under both costs.

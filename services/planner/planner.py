@@ -383,7 +383,8 @@ class Planner:
         pools = None if p.risk == "label" else RiskPools.of(self.grid)
         model = None if pools is None else risk_model(p)
         key = (self.grid.version, box, lut.tobytes(), p.t_f, p.unknown_cost, p.doubtful_cost)
-        key += (allow_unknown, model)
+        ring, clearance = clearance_of(p, self.grid.resolution_m)
+        key += (allow_unknown, model, ring, clearance)
         if self._enter_key != key:
             # Scale the finite costs only: inf * 0 would be NaN when t_f = 0.
             scaled = np.where(np.isfinite(lut), lut * p.t_f, np.inf)
@@ -395,11 +396,15 @@ class Planner:
                 # (a minimum that is too low keeps the heuristic a lower bound: still exact).
                 out, lowest = self._enter_cache
                 costs = _enter_costs_of(scaled, allow_unknown, p)
+                # a changed node changes the clearance cost of the nodes round it too
+                cells = _with_ring(cells, ring, labels.shape)
                 if pools is None:
                     low = _enter_cells(labels, flags, costs, cells, out)
                 else:
                     gcells = cells + np.array(box[:2], np.int32)
                     low = _enter_cells_risk(window, pools, gcells, cells, costs, prices, out)
+                if clearance > 0:
+                    _add_clearance(flags, out, cells, ring, clearance)
                 self._enter_cache = (out, min(lowest, low))
                 self._enter_key = key
                 return self._enter_cache
@@ -411,6 +416,11 @@ class Planner:
                 lowest = _enter_costs(labels, flags, costs, out)
             else:
                 lowest = _enter_costs_risk(window, pools, box[0], box[1], costs, prices, out)
+            if clearance > 0:
+                # the clearance cost only adds: the minimum stays a lower bound (exact A*)
+                _add_clearance(
+                    flags, out, np.argwhere(np.isfinite(out)).astype(np.int32), ring, clearance
+                )
             self._enter_cache = (out, lowest)
             self._enter_key = key
         return self._enter_cache
@@ -590,6 +600,46 @@ def _enter_costs_of(scaled_lut, allow_unknown, p: PlannerConfig) -> EnterCosts:
         float(p.unknown_cost * p.t_f),
         float(p.doubtful_cost * p.t_f),
     )
+
+
+def clearance_of(p: PlannerConfig, resolution_m: float) -> tuple[int, float]:
+    """(ring, cost): how many nodes beyond a blocked node the clearance cost reaches
+    (`clearance_m` in nodes, rounded) and its t_f-scaled value beside it (0: none)."""
+    ring = int(round(p.clearance_m / resolution_m))
+    cost = p.clearance_cost * p.t_f if ring > 0 else 0.0
+    return ring, (cost if np.isfinite(cost) else 0.0)
+
+
+def _with_ring(cells: np.ndarray, ring: int, shape) -> np.ndarray:
+    """`cells` (K, 2) and every window cell within `ring` nodes of one, each once."""
+    if ring <= 0 or len(cells) == 0:
+        return cells
+    r = np.arange(-ring, ring + 1, dtype=np.int32)
+    off = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
+    out = (cells[:, None, :] + off[None]).reshape(-1, 2)
+    inside = (out >= 0).all(axis=1) & (out[:, 0] < shape[0]) & (out[:, 1] < shape[1])
+    return np.ascontiguousarray(np.unique(out[inside], axis=0).astype(np.int32))
+
+
+@numba.njit(cache=True)
+def _add_clearance(flags, out, cells, ring, cost):
+    """Add the clearance cost to the finite enter costs at `cells`: `cost` for a node beside a
+    blocked one (obstacle or safety zone), falling linearly with the distance d (in nodes, to
+    the nearest blocked node within `ring`) to 0 at d = ring + 1: cost * (ring + 1 - d) / ring."""
+    nx, ny = flags.shape
+    for k in range(len(cells)):
+        i, j = cells[k, 0], cells[k, 1]
+        if not out[i, j] < np.inf:
+            continue
+        best = np.inf
+        for a in range(max(0, i - ring), min(nx, i + ring + 1)):
+            for b in range(max(0, j - ring), min(ny, j + ring + 1)):
+                if flags[a, b] & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
+                    d = np.sqrt((a - i) ** 2 + (b - j) ** 2)
+                    if d < best:
+                        best = d
+        if best < ring + 1:
+            out[i, j] += cost * (ring + 1 - best) / ring
 
 
 @numba.njit(cache=True)

@@ -66,9 +66,12 @@ def cvar(atoms, alpha) -> float:
     return total / alpha
 
 
-def risk_enter_costs(labels, flags, alt, p_label, p_alt, classes, config, allow_unknown=False):
+def risk_enter_costs(
+    labels, flags, alt, p_label, p_alt, classes, config, allow_unknown=False, resolution_m=0.2
+):
     """Enter cost of every node of dense windows (labels, flags and the risk layers) under
-    `config` (a PlannerConfig), one node at a time: the definitions of docs/risk.md as written."""
+    `config` (a PlannerConfig), one node at a time: the definitions of docs/risk.md as written,
+    plus the clearance cost (`add_clearance`) for nodes of `resolution_m`."""
     from smana.common.navgrid import FLAG_DOUBTFUL, FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 
     t_f = config.t_f
@@ -114,4 +117,26 @@ def risk_enter_costs(labels, flags, alt, p_label, p_alt, classes, config, allow_
             out[i, j] = np.inf if p_forbidden > config.max_risk else expected
         else:
             out[i, j] = expected
+    return add_clearance(out, flags, config, resolution_m)
+
+
+def add_clearance(enter, flags, config, resolution_m):
+    """The clearance cost added to finite enter costs, node by node: t_f * clearance_cost at a
+    blocked node's side, falling linearly to 0 at (ring + 1) nodes from the nearest one (ring =
+    clearance_m in nodes, rounded)."""
+    from smana.common.navgrid import FLAG_OBSTACLE, FLAG_SAFETY_ZONE
+
+    ring = int(round(config.clearance_m / resolution_m))
+    if ring <= 0 or config.clearance_cost == 0:
+        return enter
+    out = np.array(enter, float)
+    blocked = np.argwhere((np.asarray(flags) & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0)
+    for (i, j), c in np.ndenumerate(out):
+        if not np.isfinite(c) or len(blocked) == 0:
+            continue
+        near = np.abs(blocked - (i, j)).max(axis=1) <= ring  # within the ring's square
+        if near.any():
+            d = float(np.hypot(*(blocked[near] - (i, j)).T).min())
+            if d < ring + 1:
+                out[i, j] = c + config.t_f * config.clearance_cost * (ring + 1 - d) / ring
     return out
