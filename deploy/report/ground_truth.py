@@ -208,9 +208,9 @@ def drivable_nodes(
     passable ones under `drove_xy` (its trajectory; when none is, a robot that never left an
     unseen node, those within `start_radius_m` of it, as the explorer starts its paths from a
     node that near) and every passable node joined to them through 8-neighbours whose heights
-    differ by at most `max_step_m` (the planner's step rule). A passable island behind false obstacles, or the
-    top of a hedge whose label the map doubts, is known but not drivable. Grown one ring of
-    neighbours at a time (vectorised)."""
+    differ by at most `max_step_m` (the planner's step rule). A passable island behind false
+    obstacles, or the top of a hedge whose label the map doubts, is known but not drivable.
+    Grown one ring of neighbours at a time (vectorised)."""
     passable = passable_nodes(grid, traversable_lut)
     heights = np.asarray(grid["heights"], np.float64)
     nx, ny = passable.shape
