@@ -625,12 +625,11 @@ def add_parser(sub) -> None:
 
 
 DURATION = (
-    "Duration measured once, in a pilot on a 2-core machine shared with other work (seed 21, "
-    "two runs at once): 257 to 396 s of wall a run (noise-free 257 and 316 s, octree-max under "
-    "high noise 278 and 348 s, at realistic 280 s, tsdf at realistic 396 s: its whole budget). "
-    "The 90 "
-    "runs, 2 at once: about 4 to 5 hours by that measure (not itself measured). --quick, "
-    "measured once: 32 s."
+    "Duration measured in trials on a 2-core machine shared with other work (seeds 41 to 45, "
+    "octree-max, two runs at once): 98 to 373 s of wall a run, 260 s on average (a robot "
+    "that ends early takes less; tsdf at realistic drove to the end of its 360 s in the first "
+    "pilot). The 90 runs, 2 at once: about 3 to 4 hours by that measure. --quick, measured "
+    "once: 32 s."
 )
 
 
