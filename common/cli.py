@@ -41,6 +41,14 @@ def run_command(name: str, cli: Callable[[list[str] | None], int | None], argv=N
         return status
     except USER_ERRORS as exc:
         print(f"smana {name}: {' '.join(str(exc).split())}", file=sys.stderr)
+        if isinstance(exc, SessionError):
+            # zenoh failed to open a session (a taken port, a bad endpoint): its runtime's
+            # threads can abort the interpreter's exit ("terminate called without an active
+            # exception", status -6 under load), so this process ends here, with the status
+            # it owes; nothing of smana's is left to tear down
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(2)
         return 2
     except BrokenPipeError:
         # the reader went away (`smana deploy acl | head -1`): nothing more to tell it, and no
