@@ -497,16 +497,26 @@ def test_no_look_for_pockets_smaller_than_the_reach():
     assert ex.done_reason in ("no_frontier", "no_view_worth_it")
 
 
-def test_a_frontier_beyond_the_reach_is_worth_a_look():
-    """The same small pocket beyond a real row, but part of it not seen yet (a frontier the robot
-    cannot reach): it looks again, `recoveries` times, and ends as a finished run, not closed
-    in (the pocket is smaller than the reach)."""
+def _pocket_with_unknown(row):
+    """A lawn cut by a real hedge row at `row`, the far end of the pocket beyond it unseen."""
     truth = np.full((40, 40), 1, np.uint16)
     truth[:, 0] = truth[:, -1] = truth[0, :] = truth[-1, :] = 4
-    truth[28:29, :] = 4
-    world = ToyWorld(truth)
+    truth[row : row + 1, :] = 4
     known = np.ones(truth.shape, bool)
     known[34:39, 1:39] = False  # the far end of the pocket, never seen
+    return ToyWorld(truth), truth, known
+
+
+def test_a_frontier_beyond_the_reach_is_worth_a_look():
+    """A pocket beyond a real row, smaller than the reach but more than a quarter of it, part of
+    it not seen yet (a frontier the robot cannot reach): it looks again, `recoveries` times, and
+    ends as a finished run, not closed in. A pocket under a quarter of the reach (the inside of a
+    hedge is unknown too: a finished run's pockets border unknown ground) is no reason to look."""
+    world, truth, known = _pocket_with_unknown(20)  # 13 x 38 known beyond, 19 x 38 within
     ex, looked, _ = _loop_with_a_map_that_clears(world, truth.copy(), known=known)
     assert len(looked) == ex.n_recoveries == ex.config.recoveries
+    assert ex.done_reason in ("no_frontier", "no_view_worth_it")
+    world, truth, known = _pocket_with_unknown(28)  # 5 x 38 known beyond, 27 x 38 within
+    ex, looked, _ = _loop_with_a_map_that_clears(world, truth.copy(), known=known)
+    assert not looked and ex.n_recoveries == 0
     assert ex.done_reason in ("no_frontier", "no_view_worth_it")

@@ -411,7 +411,7 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
                 # a finished run's pockets behind hedges, seen whole, are no reason to drive on:
                 # a robot looks again when it seems closed in or a frontier lies beyond its reach
                 closed_in = self._closed_in(beyond, reach)
-                stuck = closed_in or self._unexplored_beyond(beyond, unknown)
+                stuck = closed_in or self._unexplored_beyond(beyond, unknown, reach)
                 if stuck and self._maybe_look_again(beyond, reach, goal_cost):
                     self._empty_plans = 0
                     return outcome

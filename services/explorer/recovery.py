@@ -11,9 +11,9 @@ face it (the camera looks ahead and down), and plan again. Each look goes to a n
 (`recovery_spacing_m` from the earlier ones), at most `recoveries` times while no view is found.
 
 It looks again when the robot seems closed in: the free ground it has seen but cannot reach is
-larger than the ground it can reach (and at least `closed_in_min_m2`), or at least
-`closed_in_min_m2` of it borders unknown ground (a frontier beyond the blockage: more to explore
-there, as Nav2 goes on when its goal is still out there). A robot that explored its part of the
+larger than the ground it can reach (and at least `closed_in_min_m2`), or the part of it that
+borders unknown ground (a frontier beyond the blockage: more to explore there) is at least a
+quarter of what it can reach (and `closed_in_min_m2`). A robot that explored its part of the
 world, where a few beds or pockets behind hedges stay out of reach, seen whole, ends as before
 without a detour. Closed in still with its looks spent (the first test), the run ends
 `closed_in`, which the run's report calls a failure.
@@ -26,6 +26,10 @@ import math
 import numpy as np
 
 from smana.services.explorer import frontier as fr
+
+# a frontier beyond the reach is worth a look when the free ground round it is at least this
+# share of the ground within reach (and `closed_in_min_m2`)
+BEYOND_SHARE = 0.25
 
 
 class Recovering:
@@ -53,9 +57,13 @@ class Recovering:
         reach_m2 = float(reach.sum()) * self.grid.resolution_m**2
         return beyond_m2 >= self.config.closed_in_min_m2 and beyond_m2 > reach_m2
 
-    def _unexplored_beyond(self, beyond: np.ndarray, unknown: np.ndarray) -> bool:
+    def _unexplored_beyond(
+        self, beyond: np.ndarray, unknown: np.ndarray, reach: np.ndarray
+    ) -> bool:
         """Whether the pieces of free ground `beyond` the reach that border unknown ground (a
-        frontier the robot cannot reach) add up to `closed_in_min_m2`."""
+        frontier the robot cannot reach) add up to `closed_in_min_m2` and to `BEYOND_SHARE` of
+        the reach: the inside of a hedge is unknown too, so a finished run's pockets behind
+        hedges border unknown ground, but they are a small part of what it reaches."""
         from scipy import ndimage
 
         if not beyond.any():
@@ -63,8 +71,10 @@ class Recovering:
         comp, n = ndimage.label(beyond, structure=fr.EIGHT_CONNECTED)
         near_unknown = ndimage.binary_dilation(unknown, structure=fr.EIGHT_CONNECTED)
         open_ids = np.unique(comp[beyond & near_unknown])
-        area = float(np.isin(comp, open_ids[open_ids > 0]).sum()) * self.grid.resolution_m**2
-        return area >= self.config.closed_in_min_m2
+        cell_m2 = self.grid.resolution_m**2
+        area = float(np.isin(comp, open_ids[open_ids > 0]).sum()) * cell_m2
+        reach_m2 = float(reach.sum()) * cell_m2
+        return area >= max(self.config.closed_in_min_m2, BEYOND_SHARE * reach_m2)
 
     def _maybe_look_again(self, beyond: np.ndarray, reach: np.ndarray, goal_cost) -> bool:
         """Drive to look again at what cuts a closed-in robot off from the free ground it has
