@@ -145,6 +145,7 @@ def acl_policy(
     base: str = "base",
     base_identities: bool = True,
     revoked: list[str] = (),
+    certified: list[str] | None = None,
 ) -> dict:
     """The access-control policy (the table in docs/deployment.md), default deny:
 
@@ -165,8 +166,12 @@ def acl_policy(
       `router` (the base's router) relays everything.
 
     - `revoked` robots: every message of a session presenting such a robot's certificate (its
-      common name) is denied, both ways, whatever user it logs in as: zenoh checks certificates
-      against the CA alone (no revocation list), and its explicit deny rules win over allows.
+      common name) is denied, both ways, whatever user it logs in as. zenoh checks certificates
+      against the CA alone (no revocation list), and its deny rules win only within one subject:
+      a session that matches several subjects is allowed what any of them allows. So with
+      revoked names every identity's subject is bound to the links that carry no certificate
+      (tcp, ...) or to the certificates still valid (`certified`: the robots' and the base's
+      unless given), and a revoked certificate matches no subject but `revoked-certs`.
 
     Routers are named by user and link: user `<name>` on a tcp link, or the same user presenting
     its host's certificate (common name `<robot>`, or `base`) on TLS; a certificate alone grants
@@ -265,10 +270,12 @@ def acl_policy(
         identity("tool", [])
     router("router", base, ["relay"])
     if revoked:
+        names = [check_robot(r) for r in revoked]
+        valid = [c for c in (certified or [*robots, base]) if c not in names]
+        _bind_to_certificates(subjects, policies, readers, valid)
         rules.append(
             _rule("revoked", ["ingress", "egress"], ALL_MESSAGES, ["**"], permission="deny")
         )
-        names = [check_robot(r) for r in revoked]
         subjects.append({"id": "revoked-certs", "cert_common_names": names})
         policies.append({"id": "revoked", "rules": ["revoked"], "subjects": ["revoked-certs"]})
     policies.insert(
@@ -289,6 +296,29 @@ def acl_policy(
         "subjects": subjects,
         "policies": policies,
     }
+
+
+# zenoh's link kinds (`InterceptorLink`) whose sessions carry no certificate name.
+PLAIN_LINKS = ["tcp", "udp", "ws", "unixsock-stream", "unixpipe", "serial", "vsock"]
+
+
+def _bind_to_certificates(
+    subjects: list[dict], policies: list[dict], readers: list[str], valid: list[str]
+) -> None:
+    """Split every subject that names no certificate and no link in two: on a plain link (no
+    certificate to check), and on a link carrying one of the `valid` certificates. A session
+    over tls or quic with any other certificate then matches neither."""
+    split: dict[str, list[str]] = {}
+    for s in list(subjects):
+        if "cert_common_names" in s or "link_protocols" in s:
+            continue
+        tls = {**s, "id": f"{s['id']}@cert", "cert_common_names": list(valid)}
+        s["link_protocols"] = list(PLAIN_LINKS)
+        subjects.insert(subjects.index(s) + 1, tls)
+        split[s["id"]] = [s["id"], tls["id"]]
+    for pol in policies:
+        pol["subjects"] = [x for sid in pol["subjects"] for x in split.get(sid, [sid])]
+    readers[:] = [x for sid in readers for x in split.get(sid, [sid])]
 
 
 def _ros2_rules(r: str) -> list[dict]:
@@ -415,7 +445,8 @@ def _write_books(out: Path, issued: dict, passwords: dict[str, str]) -> Path:
 
 def _write_base(out: Path, issued: dict, passwords: dict[str, str]) -> list[Path]:
     robots, fleet, base = issued["robots"], issued["fleet"], issued["base"]
-    policy = acl_policy(robots, fleet, base, revoked=issued.get("revoked", []))
+    certified = [*robots, *issued.get("clients", []), base]
+    policy = acl_policy(robots, fleet, base, revoked=issued.get("revoked", []), certified=certified)
     return _write_host(out, base, passwords, base_users(robots, fleet), policy)
 
 

@@ -4,11 +4,12 @@ host with its own folder of the set (`certs/r1/`, `certs/base/`), as if copied t
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
 
-from smana.deploy.security import init_certs
+from smana.deploy.security import init_certs, revoke_robot
 from tests.multihost import BASE_IP, make_two_hosts, wait_for
 
 pytestmark = pytest.mark.multiprocess
@@ -145,3 +146,64 @@ def test_wrong_password_or_certificate_gets_no_link(hosts):
     assert hosts.call("robot", "probe-tls-foreign", PROBE, "open", TLS, *good, *foreign) == 3
     # Nor does a plain TCP connection to the TLS port.
     assert hosts.call("robot", "probe-plain", PROBE, "open", f"tcp/{BASE_IP}:7448", *good) == 3
+
+
+def test_a_revoked_robots_certificate_gets_nothing_through_while_r1_still_works(hosts):
+    """r2 is revoked while its folder is in a thief's hands: its certificate still completes a
+    TLS handshake (zenoh has no revocation list), so the base's policy must deny it. Each probe
+    of the stolen certificate is paired with the same probe, same login, with r1's certificate:
+    only the certificate differs, and r1's gets through."""
+    certs, stolen = hosts.tmp / "certs", hosts.tmp / "stolen"
+    stolen.mkdir()
+    shutil.copyfile(certs / "ca.pem", stolen / "ca.pem")
+    shutil.copytree(certs / "r2", stolen / "r2")  # revoke_robot deletes the set's copy
+    revoke_robot(certs, "r2")
+    start_routers(hosts)
+    r2_cert = ["--tls-dir", "stolen", "--host", "r2"]
+    r1_cert = ["--tls-dir", "certs", "--host", "r1"]
+    # Its own logins are gone from the base: no session at all, over TLS or to the router.
+    for user in ("r2.explorer", "r2.tool"):
+        auth = ["--user", user, "--credentials", f"stolen/r2/credentials/{user}.txt"]
+        assert hosts.call("robot", f"r2-own-{user}", PROBE, "open", TLS, *auth, *r2_cert) == 3
+    r2_router = ["--user", "r2.router", "--credentials", "stolen/r2/dictionary.txt"]
+    assert hosts.call("robot", "r2-router", PROBE, "open", TLS, *r2_router, *r2_cert) == 3
+    # With a login the base does accept (a leaked password: r1's explorer, which commands r1),
+    # the certificate's name alone must deny every message, both ways.
+    leaked = login("r1.explorer", "r1")
+    key = "smana/r1/robot/cmd_vel"
+    out = {n: hosts.tmp / f"{n}.txt" for n in ("sim", "sub-r2", "sub-r1", "get-r1", "get-r2")}
+    hosts.run("robot", "sim", PROBE, "sub", LOCAL, key, str(out["sim"]), *login("r1.sim", "r1"))
+    status = "smana/r1/mapper/status"
+    hosts.run("robot", "serve", PROBE, "serve", LOCAL, status, "r1-ok", *login("r1.mapper", "r1"))
+    hosts.run("robot", "sub-r2", PROBE, "sub", TLS, key, str(out["sub-r2"]), *leaked, *r2_cert)
+    hosts.run("robot", "sub-r1", PROBE, "sub", TLS, key, str(out["sub-r1"]), *leaked, *r1_cert)
+    for name in ("sim", "serve", "sub-r2", "sub-r1"):
+        assert wait_for(lambda n=name: "subscribed" in hosts.log(n) or "serving" in hosts.log(n))
+
+    def received(name: str) -> set[str]:
+        return set(out[name].read_text().split()) if out[name].exists() else set()
+
+    # publish: the stolen certificate first, then r1's on the same path until it arrives
+    hosts.call("robot", "pub-r2", PROBE, "pub", TLS, key, "stolen", *leaked, *r2_cert)
+
+    def r1_through() -> bool:
+        hosts.call("robot", "pub-r1", PROBE, "pub", TLS, key, "r1-cert", *leaked, *r1_cert)
+        return "r1-cert" in received("sim")
+
+    assert wait_for(r1_through, 30, 0.5), hosts.log("router-base")
+    # subscribe: a publisher on the robot reaches r1's TLS subscriber, not the stolen one
+    sim = login("r1.explorer", "r1")
+    pub = (PROBE, "pub", LOCAL, key, "local", *sim)
+    assert wait_for(
+        lambda: hosts.call("robot", "pub-local", *pub) == 0 and "local" in received("sub-r1"),
+        30,
+        0.5,
+    )
+    # query: r1's certificate gets the mapper's answer, the stolen one none (exit 4: no reply)
+    get = (PROBE, "get", TLS, status)
+    assert hosts.call("robot", "get-r1", *get, str(out["get-r1"]), *leaked, *r1_cert) == 0
+    assert "r1-ok" in out["get-r1"].read_text()
+    assert hosts.call("robot", "get-r2", *get, str(out["get-r2"]), *leaked, *r2_cert) in (3, 4)
+    assert "r1-ok" not in (out["get-r2"].read_text() if out["get-r2"].exists() else "")
+    assert "stolen" not in received("sim"), "the revoked certificate published a velocity command"
+    assert received("sub-r2") == set(), "the revoked certificate received samples"

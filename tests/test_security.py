@@ -490,3 +490,29 @@ def test_a_revoked_robots_certificate_is_denied_everything_at_the_base(tmp_path)
     policy = json.loads((tmp_path / "base" / "acl.json5").read_text())
     subject = next(s for s in policy["subjects"] if s["id"] == "revoked-certs")
     assert subject["cert_common_names"] == ["r1", "r2"]
+
+
+def test_with_a_revoked_name_every_identity_is_bound_to_plain_links_or_valid_certificates(tmp_path):
+    # zenoh allows a session what any subject it matches allows (a deny wins only inside one
+    # subject): a subject naming neither a link nor a certificate would let a revoked
+    # certificate in with any password it got hold of. Checked on two hosts in
+    # tests/test_multihost_security.py.
+    init_certs(tmp_path, ["r1", "r2"], clients=["laptop"])
+    revoke_robot(tmp_path, "r2")
+    policy = json.loads((tmp_path / "base" / "acl.json5").read_text())
+    by_id = {s["id"]: s for s in policy["subjects"]}
+    for s in policy["subjects"]:
+        assert "cert_common_names" in s or set(s["link_protocols"]) <= {
+            "tcp",
+            "udp",
+            "ws",
+            "unixsock-stream",
+            "unixpipe",
+            "serial",
+            "vsock",
+        }, s
+        assert "r2" not in s.get("cert_common_names", []) or s["id"] == "revoked-certs"
+    assert set(by_id["r1.explorer@cert"]["cert_common_names"]) == {"r1", "laptop", "base"}
+    for pol in policy["policies"]:  # every identity keeps its rules on both variants
+        ids = set(pol["subjects"])
+        assert all(f"{i}@cert" in ids for i in ids if f"{i}@cert" in by_id), pol["id"]

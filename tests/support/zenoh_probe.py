@@ -4,6 +4,7 @@
     zenoh_probe.py sub ENDPOINT KEY OUT [auth]    write received payloads to OUT, one per line
     zenoh_probe.py pub ENDPOINT KEY PAYLOAD [auth]
     zenoh_probe.py get ENDPOINT KEY OUT [--json BODY] [auth]
+    zenoh_probe.py serve ENDPOINT KEY PAYLOAD [auth]   reply PAYLOAD to every query on KEY
 
 auth: --user U --credentials FILE, and for tls/ endpoints --tls-dir DIR --host NAME (the
 folder of `smana deploy init-certs` and the host whose certificate to present).
@@ -43,7 +44,7 @@ def config(args) -> zenoh.Config:
 
 def main() -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("what", choices=["open", "sub", "pub", "get"])
+    p.add_argument("what", choices=["open", "sub", "pub", "get", "serve"])
     p.add_argument("endpoint")
     p.add_argument("rest", nargs="*")
     p.add_argument("--user")
@@ -80,10 +81,17 @@ def main() -> int:
                     body = r.ok.payload.to_bytes() if r.ok else r.err.payload.to_bytes()
                     f.write(json.dumps({"ok": r.ok is not None, "body": body.decode()}) + "\n")
             return 0 if replies else 4
-        key, out = args.rest
         stop = threading.Event()
         signal.signal(signal.SIGINT, lambda *_: stop.set())
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
+        if args.what == "serve":
+            key, payload = args.rest
+            q = session.declare_queryable(key, lambda query: query.reply(key, payload.encode()))
+            print("serving", flush=True)
+            stop.wait()
+            q.undeclare()
+            return 0
+        key, out = args.rest
         with open(out, "a") as f:
 
             def on(sample):
