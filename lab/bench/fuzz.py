@@ -45,6 +45,7 @@ Output: a table, and the raw figures as JSON (`--out`). Exit status 1 when a che
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import hashlib
 import json
@@ -67,7 +68,7 @@ from smana.common.cli import doc_summary
 from smana.common.config import SmanaConfig
 from smana.common.zenoh_config import free_loopback_port
 from smana.lab import fuzz
-from smana.lab.bench import procs
+from smana.lab.bench import fuzz_campaign, procs
 
 SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim", "coordinator")
 # Rejection kinds only the codec produces: the books must match the prediction exactly. Others
@@ -1463,6 +1464,42 @@ def _load(la) -> str:
     return "/".join(f"{x:.2f}" for x in la) if la else "?"
 
 
+def _campaign_cli(p, args) -> int:
+    from smana.common.cli import output_dir
+
+    total = len(fuzz_campaign.FAMILIES) * fuzz_campaign.QUICK_INPUTS if args.quick else None
+    total = total or args.campaign
+    if args.resume:
+        run_dir = Path(args.resume)
+        spec = run_dir / "campaign-spec.json"
+        if not spec.is_file():
+            p.error(f"--resume: {run_dir} holds no campaign (no campaign-spec.json)")
+        was = json.loads(spec.read_text())
+        total, args.seed, args.chunk = was["total"], was["seed"], was["chunk"]
+    else:
+        if not total:
+            p.error("--campaign: give a number of inputs over 0 (or --quick)")
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        run_dir = output_dir(Path(args.out) / f"campaign-{stamp}", "output folder", "--out")
+    if args.chunk < 1 or args.hang_s <= 0:
+        p.error("--chunk and --hang-s must be over 0")
+    s = fuzz_campaign.campaign(
+        run_dir,
+        total,
+        args.seed,
+        args.chunk,
+        args.hang_s,
+        args.plant,
+        progress=lambda line: print(line, file=sys.stderr, flush=True),
+    )
+    text = fuzz_campaign.table(s)
+    print(text)
+    (run_dir / "campaign.md").write_text(text + "\n")
+    verdict = "ok" if s["ok"] else "FAILED: a crash, a hang or counters that do not add up"
+    print(f"\n{verdict} ({s['seconds']} s); written: {run_dir / 'campaign.json'}")
+    return 0 if s["ok"] else 1
+
+
 def cli(argv: list[str] | None = None) -> int:
     from smana.common.cli import ArgumentParser, non_negative_int, output_dir
 
@@ -1508,7 +1545,41 @@ def cli(argv: list[str] | None = None) -> int:
         "router of its own, after the stack (default 2000; 0: none)",
     )
     p.add_argument("--out", default="runs/fuzz", help="folder for logs and fuzz.json")
+    p.add_argument(
+        "--campaign",
+        type=non_negative_int,
+        metavar="N",
+        help="instead of the stack: N inputs over every family (zenoh keys and selectors, "
+        "smana's messages, map files, journals, block files, ROS 2 topics, actions and smana's "
+        "messages into the ROS 2 bridge), in chunks, each input ending in one counter; "
+        "lab/bench/fuzz_campaign.py",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"the campaign with {fuzz_campaign.QUICK_INPUTS} inputs per family (seconds)",
+    )
+    p.add_argument(
+        "--chunk",
+        type=non_negative_int,
+        default=fuzz_campaign.DEFAULT_CHUNK,
+        help=f"campaign inputs per worker process (default {fuzz_campaign.DEFAULT_CHUNK})",
+    )
+    p.add_argument(
+        "--resume",
+        metavar="DIR",
+        help="go on with the campaign in DIR (a run folder it wrote): done chunks are kept",
+    )
+    p.add_argument(
+        "--hang-s",
+        type=float,
+        default=60.0,
+        help="campaign: an input not answered within this many seconds is a hang (default 60)",
+    )
+    p.add_argument("--plant", default="", help=argparse.SUPPRESS)  # the tests: FAMILY:I:crash
     args = p.parse_args(argv)
+    if args.campaign is not None or args.quick or args.resume:
+        return _campaign_cli(p, args)
     services = tuple(s.strip() for s in args.services.split(",") if s.strip())
     unknown = set(services) - set(SERVICES)
     if not (args.inputs or args.map_files or args.ros2):

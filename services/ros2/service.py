@@ -295,6 +295,9 @@ class Ros2Service(Service):
             raise MessageError("malformed", f"explorer state: {exc}") from None
         if path.ndim != 2 or path.shape[-1] not in (2, 3) or not np.isfinite(path).all():
             raise MessageError("value", "explorer state: path must be finite (x, y) points")
+        if xy is not None and (len(xy) not in (2, 3) or not np.isfinite([*xy, yaw]).all()):
+            # a goal of one number reached convert.pose_stamped and failed there (the campaign)
+            raise MessageError("value", "explorer state: a goal must be finite x, y and yaw")
         key = (None if xy is None else tuple(xy), yaw, path.tobytes())
         if key == self._last_state:
             return
