@@ -496,10 +496,14 @@ def test_a_voxel_hit_once_makes_no_geometric_obstacle():
 
     g.integrate_delta(delta([3.5, 0.85]))
     assert not g.node(1.05, 1.05)["obstacle"]
+    # and it does not set the node's height: the lawn's solid voxel does (a step to a smeared
+    # voxel would cut the planner's edges on flat ground)
+    assert g.node(1.05, 1.05)["height"] == pytest.approx(voxel(10, 10, 0)[2])
     g.integrate_delta(delta([3.5, 1.69]))
     assert not g.node(1.05, 1.05)["obstacle"]
     g.integrate_delta(delta([3.5, 2.54]))
     assert g.node(1.05, 1.05)["obstacle"]
+    assert g.node(1.05, 1.05)["height"] == pytest.approx(voxel(10, 10, 4)[2])
     g.integrate_delta(delta([3.5, 1.69]))  # missed twice since: no longer solid
     assert not g.node(1.05, 1.05)["obstacle"]
     tsdf = graph((0, 0), (4, 4), robot_radius_m=0.4)

@@ -49,7 +49,7 @@ def test_the_arms_seeds_and_noise_are_the_declared_ones():
         "bayes_realistic", "tsdf_high", "tsdf_realistic",
     ]  # fmt: skip
     s = rb.experiment_config()
-    assert [a.name for a in s.arms] == names and s.seeds == tuple(range(31, 41))
+    assert [a.name for a in s.arms] == names and s.seeds == tuple(range(51, 61))
     assert 15 <= s.size_m <= 20 and s.jobs == 2 and s.budget_s == rb.BUDGET_S
     # no committed experiment of the docs uses these worlds
     for data in report.load_data(report.DATA_DIR).values():
@@ -82,24 +82,24 @@ def test_the_rules_count_seeds_and_every_run():
     assert rb.verdicts(_rows(realistic=0.75))[1]["verdict"] == "not met"
     # one seed short is allowed (9 of 10), two are not
     rows = _rows()
-    _row(rows, 31, "max_high")["collisions"] = 1
+    _row(rows, 51, "max_high")["collisions"] = 1
     assert rb.verdicts(rows)[0]["verdict"] == "met"
-    assert "9 of 10 seeds (short: seeds 31)" in rb.verdicts(rows)[0]["smana"]
-    _row(rows, 32, "max_high")["moved"] = False  # did not move: a failure, whatever
+    assert "9 of 10 seeds (short: seeds 51)" in rb.verdicts(rows)[0]["smana"]
+    _row(rows, 52, "max_high")["moved"] = False  # did not move: a failure, whatever
     assert rb.verdicts(rows)[0]["verdict"] == "not met"
     # a seed without its reference counts against; too few seeds to decide: inconclusive
-    rows = [r for r in _rows() if not (r["seed"] in (31, 32) and r["perception"] == rb.CLEAN)]
+    rows = [r for r in _rows() if not (r["seed"] in (51, 52) and r["perception"] == rb.CLEAN)]
     assert rb.verdicts(rows)[0]["verdict"] == "not met"
-    assert rb.verdicts(_rows(seeds=(31,)))[0]["verdict"] == stats.INCONCLUSIVE
+    assert rb.verdicts(_rows(seeds=(51,)))[0]["verdict"] == stats.INCONCLUSIVE
     # false free: every run of every arm under 1 %
     rows = _rows()
     assert rb.verdicts(rows)[2]["verdict"] == "met"
-    _row(rows, 35, "tsdf_realistic")["false_free_share"] = 0.012
+    _row(rows, 55, "tsdf_realistic")["false_free_share"] = 0.012
     assert rb.verdicts(rows)[2]["verdict"] == "not met"
     assert "largest 1.20 %" in rb.verdicts(rows)[2]["smana"]
     # a run without the measure cannot show it was under: inconclusive, never met
     rows = _rows()
-    _row(rows, 35, "tsdf_realistic")["false_free_share"] = None
+    _row(rows, 55, "tsdf_realistic")["false_free_share"] = None
     assert rb.verdicts(rows)[2]["verdict"] == stats.INCONCLUSIVE
     assert "; 1 without the measure" in rb.verdicts(rows)[2]["smana"]
     # and no figure without a usable coverage to draw
@@ -127,9 +127,9 @@ def _fake_run(run_dir, distance_m, exit_code_warnings):
 
 def test_a_robot_that_did_not_move_is_a_measured_failure(tmp_path):
     arm = rb.Condition("octree-max", "realistic").arm()
-    run_dir = tmp_path / ex.run_name(31, arm)
+    run_dir = tmp_path / ex.run_name(51, arm)
     _fake_run(run_dir, 0.04, ["the robot did not move (0.04 m travelled)"])
-    row = {"seed": 31, "arm": arm.name, "exit_code": 1, "ok": False, "distance_m": 0.04,
+    row = {"seed": 51, "arm": arm.name, "exit_code": 1, "ok": False, "distance_m": 0.04,
            "done_reason": "closed_in"}  # fmt: skip
     assert rb.finished(row, run_dir)  # kept: a result, not a gap
     assert row["measured"] and row["ok"] and row["run_failed"] and row["moved"] is False
@@ -165,7 +165,7 @@ def test_a_run_without_a_report_exits_1_and_a_rerun_keeps_the_measured_one(tmp_p
     assert exp.cli(argv) == 1
     text = (tmp_path / "robustness_summary.md").read_text()
     assert "**WARNING: 1 of 2 runs did not run to their report**" in text
-    assert "seed31_max_realistic (exit -9)" in text
+    assert "seed51_max_realistic (exit -9)" in text
     assert "| octree-max | high labels + pose noise | 1 (0) |" in text  # FAILED, measured
     assert sorted(calls) == ["max_high", "max_realistic"]
     calls.clear()
@@ -174,9 +174,9 @@ def test_a_run_without_a_report_exits_1_and_a_rerun_keeps_the_measured_one(tmp_p
 
 
 def test_outputs_data_file_and_resume_from_it(tmp_path):
-    rows = _rows(seeds=(31, 32))
+    rows = _rows(seeds=(51, 52))
     s = rb.experiment_config()
-    s.seeds = (31, 32)
+    s.seeds = (51, 52)
     rb.write_outputs([dict(r, wall_time_s=300.0) for r in rows], s, tmp_path)
     data = json.loads((tmp_path / "data" / "robustness.json").read_text())
     assert data["experiment"] == "robustness" and len(data["rows"]) == len(rows)
@@ -194,7 +194,7 @@ def test_report_generates_the_section_and_its_claims(tmp_path):
                       "budget_s": rb.BUDGET_S, "jobs": 2})  # fmt: skip
     all_data = report.load_data(tmp_path / "data")
     text = report.sections(all_data)["robustness"]
-    assert "Generated from docs/experiments/data/robustness.json (garden 16 m, seeds 31 to 40" in (
+    assert "Generated from docs/experiments/data/robustness.json (garden 16 m, seeds 51 to 60" in (
         text
     )
     assert "| tsdf | realistic labels + pose noise | 10 (0) |" in text
@@ -229,11 +229,11 @@ def test_robustness_quick_counts_a_robot_that_did_not_move_as_a_failure(tmp_path
     (r,) = runs
     assert r["measured"] and r["exit_code"] == 1 and r["run_failed"], r
     assert r["moved"] is False and "did not move" in r["run_warnings"], r
-    metrics = json.loads((tmp_path / "seed31_max_realistic" / "metrics.json").read_text())
+    metrics = json.loads((tmp_path / "seed51_max_realistic" / "metrics.json").read_text())
     e = metrics["exploration"]
     assert r["usable_share"] == e.get("usable_share") and r["collisions"] == e["collisions"]
     assert r["reachable_area_m2"] == e["reachable_area_m2"] > 0
-    cfg = (tmp_path / "seed31_max_realistic" / "config.toml").read_text()
+    cfg = (tmp_path / "seed51_max_realistic" / "config.toml").read_text()
     assert 'noise = "realistic"' in cfg and "pose_drift_xy_m_per_sqrt_s = 0.01" in cfg
     data = json.loads((tmp_path / "data" / "robustness_quick.json").read_text())
     assert data["experiment"] == "robustness" and len(data["rows"]) == 1

@@ -535,7 +535,8 @@ def _node_head_recompute(cols, nodes, rule, n):
     """Node n shows its column's head: label, height and flags from the highest level, with
     that voxel's label distribution; an empty column is unknown (and certain: nothing to be
     unsure of). Called once per node an update changed, so it also counts the node's evidence.
-    Returns whether the node is a centre of the safety zone now.
+    Returns whether the node is a centre of the safety zone now. Its height is the highest
+    solid voxel's (the top's while none is solid).
 
     The top level votes for an obstacle class when every label there is certain and one has it
     (the paper's conservative rule), or when at least half of its voxels have one (one wrong
@@ -589,7 +590,10 @@ def _node_head_recompute(cols, nodes, rule, n):
         nodes.obstacle_evidence[n] = ev
         best = best_ob if vote and (certain or ev > 0 or best_other < 0) else best_other
         nodes.labels[n] = cols.label[best]
-        nodes.heights[n] = cols.z[best]
+        # the height the robot drives at: the highest solid voxel's, not a voxel above it that
+        # noisy poses smeared there and views since saw through (its step would cut the
+        # planner's edges where the ground is flat); the top's when nothing is solid yet
+        nodes.heights[n] = solid_z if solid_z == solid_z else cols.z[best]
         nodes.alt_labels[n] = cols.alt_label[best]
         nodes.p_label[n] = cols.p_label[best]
         nodes.p_alt[n] = cols.p_alt[best]
