@@ -10,11 +10,10 @@ pauses meanwhile and resumes after (`explorer.resume_after_goal`). With
 
 from __future__ import annotations
 
-import sys
-
 from smana.common.cli import (
     config_from_args,
     doc_summary,
+    exit_process,
     make_parser,
     positive_float,
     run_command,
@@ -36,4 +35,5 @@ def cli(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(run_command("explorer", cli))
+    # its state, trajectory and graph are written and closed when the service stops
+    exit_process(run_command("explorer", cli))
