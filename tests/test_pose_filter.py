@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from smana.common.config.explorer import PoseFilterConfig
-from smana.services.explorer.pose_filter import PoseFilter, wrap
+from smana.services.explorer.follower import wrap_angle as wrap
+from smana.services.explorer.pose_filter import PoseFilter
 
 
 def _drive(sd_xy, sd_yaw, seed=0, seconds=60.0, hz=20.0, stall=None, config=None):
@@ -25,7 +26,7 @@ def _drive(sd_xy, sd_yaw, seed=0, seconds=60.0, hz=20.0, stall=None, config=None
     for k in range(int(seconds * hz)):
         t = k * dt
         cmd = (0.4 if (t // 7) % 3 else 0.0, 0.6 * math.sin(0.3 * t))
-        f.set_command(*cmd)
+        f.set_speed(cmd[0])
         v += float(np.clip(cmd[0] - v, -1.5 * dt, 1.5 * dt))
         w += float(np.clip(cmd[1] - w, -4.0 * dt, 4.0 * dt))
         held = stall is not None and stall[0] <= t < stall[1]

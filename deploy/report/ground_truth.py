@@ -257,12 +257,8 @@ def graph_layers(
     known = (flags & FLAG_KNOWN) != 0
     blocked = known & ((flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0)
     doubtful = known & ~blocked & ((flags & FLAG_DOUBTFUL) != 0)
-    lut = np.asarray(traversable_lut, bool)
-    labels = sample_grid(grid, cell_xy, "labels").astype(np.int64)
-    inside = (labels >= 0) & (labels < len(lut))
-    traversable = np.zeros(labels.shape, bool)
-    traversable[inside] = lut[labels[inside]]
-    return known, known & ~blocked & (traversable | doubtful), blocked, doubtful
+    passable = {**grid, "passable": passable_nodes(grid, traversable_lut)}
+    return known, sample_grid(passable, cell_xy, "passable"), blocked, doubtful
 
 
 def gt_obstacle_cells(world) -> np.ndarray:

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from smana.common.config.explorer import PoseFilterConfig
+from smana.services.explorer.follower import wrap_angle
 
 # the smallest and largest measurement variance the estimate may take (standard deviations of
 # 1 mm and 0.5 m): the floor keeps the gain below 1 by a hair, the ceiling keeps a robot held by
@@ -36,26 +37,26 @@ from smana.common.config.explorer import PoseFilterConfig
 R_MIN, R_MAX = 1e-6, 0.25
 
 
-def wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
 @dataclass
 class PoseFilter:
-    """`set_command(v, w)` after each command sent; `update(x, y, yaw, t)` with each pose, which
-    returns the filtered (x, y, yaw)."""
+    """`set_speed(v)` after each command sent; `update(x, y, yaw, t)` with each pose, which
+    returns the filtered (x, y, yaw); `forget()` when the robot reappeared elsewhere."""
 
     config: PoseFilterConfig = field(default_factory=PoseFilterConfig)
     state: np.ndarray | None = None  # x, y
     var: np.ndarray = field(default_factory=lambda: np.zeros(2))  # of the state, per coordinate
     meas_var: np.ndarray = field(default_factory=lambda: np.full(2, R_MIN))  # the estimated R
     t: float | None = None
-    command: tuple[float, float] = (0.0, 0.0)
+    speed: float = 0.0  # the forward speed last commanded, m/s
     n_resets: int = 0
     _yaw: float = 0.0
 
-    def set_command(self, linear_mps: float, angular_radps: float) -> None:
-        self.command = (float(linear_mps), float(angular_radps))
+    def set_speed(self, linear_mps: float) -> None:
+        self.speed = float(linear_mps)
+
+    def forget(self) -> None:
+        """Start afresh from the next pose."""
+        self.state = None
 
     def reset(self, x: float, y: float, yaw: float, t: float) -> None:
         self.state = np.array([x, y], np.float64)
@@ -74,10 +75,9 @@ class PoseFilter:
         dt = t - self.t
         self.t = t
         # predict with the commanded speed along the heading at mid-step
-        mid = self._yaw + 0.5 * wrap(yaw - self._yaw)
+        mid = self._yaw + 0.5 * wrap_angle(yaw - self._yaw)
         self._yaw = yaw
-        v = self.command[0]
-        pred = self.state + v * dt * np.array([math.cos(mid), math.sin(mid)])
+        pred = self.state + self.speed * dt * np.array([math.cos(mid), math.sin(mid)])
         p_pred = self.var + (c.motion_sd_mps * dt) ** 2
         nu = np.array([x, y]) - pred
         if math.hypot(nu[0], nu[1]) > c.reset_m:

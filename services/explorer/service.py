@@ -394,7 +394,7 @@ class ExplorerService(Service):
             self.robot, float(pose.position[0]), float(pose.position[1]), pose.yaw
         )
         if where.reset:
-            self.pose_filter.state = None  # the robot reappeared: start the filter afresh
+            self.pose_filter.forget()  # the robot reappeared elsewhere
         self.core.update_pose(*self.pose_filter.update(x, y, yaw, t), t)
         self._last_pose_wall = time.monotonic()
 
@@ -541,7 +541,7 @@ class ExplorerService(Service):
             self.log.warning("the planner does not answer (%d times)", self.path_errors[kind])
 
     def _send(self, v: float, w: float) -> None:
-        self.pose_filter.set_command(v, w)
+        self.pose_filter.set_speed(v)
         self._seq += 1
         self.cmd_pub.put(VelocityCommand(time.time(), self._seq, float(v), float(w), "explorer"))
 

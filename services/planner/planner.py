@@ -418,9 +418,7 @@ class Planner:
                 lowest = _enter_costs_risk(window, pools, box[0], box[1], costs, prices, out)
             if clearance > 0:
                 # the clearance cost only adds: the minimum stays a lower bound (exact A*)
-                _add_clearance(
-                    flags, out, np.argwhere(np.isfinite(out)).astype(np.int32), ring, clearance
-                )
+                _add_clearance_all(flags, out, ring, clearance)
             self._enter_cache = (out, lowest)
             self._enter_key = key
         return self._enter_cache
@@ -640,6 +638,37 @@ def _add_clearance(flags, out, cells, ring, cost):
                         best = d
         if best < ring + 1:
             out[i, j] += cost * (ring + 1 - best) / ring
+
+
+@numba.njit(cache=True)
+def _add_clearance_all(flags, out, ring, cost):
+    """`_add_clearance` over the whole window, the other way round: each blocked node on the
+    edge of a blocked area (one with an open 8-neighbour; an inner one is never the nearest)
+    lowers the distance of the nodes within `ring` of it, then every finite cost gets its
+    share. The same distances and sums as `_add_clearance`, without a list of every node."""
+    nx, ny = flags.shape
+    blocked = FLAG_OBSTACLE | FLAG_SAFETY_ZONE
+    near = np.full((nx, ny), np.inf)
+    for i in range(nx):
+        for j in range(ny):
+            if not flags[i, j] & blocked:
+                continue
+            edge = False
+            for a in range(max(0, i - 1), min(nx, i + 2)):
+                for b in range(max(0, j - 1), min(ny, j + 2)):
+                    if not flags[a, b] & blocked:
+                        edge = True
+            if not edge:
+                continue
+            for a in range(max(0, i - ring), min(nx, i + ring + 1)):
+                for b in range(max(0, j - ring), min(ny, j + ring + 1)):
+                    d = np.sqrt((a - i) ** 2 + (b - j) ** 2)
+                    if d < near[a, b]:
+                        near[a, b] = d
+    for i in range(nx):
+        for j in range(ny):
+            if out[i, j] < np.inf and near[i, j] < ring + 1:
+                out[i, j] += cost * (ring + 1 - near[i, j]) / ring
 
 
 @numba.njit(cache=True)
