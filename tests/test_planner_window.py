@@ -314,3 +314,27 @@ def test_prepare_keeps_the_last_querys_window_and_refreshes_a_patch_in_place(mon
         _no_builds(m)
         again = planner.plan(start, goal, allow_unknown=True)
     assert again.cost_total == first.cost_total and np.array_equal(again.cells, first.cells)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_whole_window_clearance_pass_equals_the_per_node_one(seed):
+    """`_add_clearance_all` (from the blocked areas' edges) gives the per-node pass's costs to
+    the bit, on windows whose blocked nodes are closed, as the enter costs always have them."""
+    from smana.services.planner.planner import _add_clearance, _add_clearance_all
+
+    rng = np.random.default_rng(seed)
+    n = 60
+    flags = np.where(rng.random((n, n)) < 0.12, FLAG_OBSTACLE, 0)
+    flags = (flags | np.where(rng.random((n, n)) < 0.1 * seed, FLAG_SAFETY_ZONE, 0)).astype(
+        np.uint8
+    )
+    out = np.where(rng.random((n, n)) < 0.05, np.inf, rng.random((n, n)))
+    out[(flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0] = np.inf
+    for ring in (1, 2, 3):
+        per_node = out.copy()
+        cells = np.argwhere(np.isfinite(out)).astype(np.int32)
+        _add_clearance(flags, per_node, cells, ring, 0.8)
+        whole = out.copy()
+        _add_clearance_all(flags, whole, ring, 0.8)
+        assert np.array_equal(per_node, whole)
+        assert (whole >= out).all() and (whole > out).any()
