@@ -196,6 +196,7 @@ def test_the_feedback_holds_every_field_of_the_contract():
         "navigation_time_s",
         "recoveries",
         "reason",
+        "error",
     }
     assert fb["id"] == "fb" and fb["state"] == "active" and fb["goal"] == [5.0, 1.0, 0.5]
     assert len(fb["pose"]) == 3 and fb["recoveries"] == 0 and fb["reason"] == ""
@@ -307,3 +308,43 @@ def test_a_goal_sent_before_the_first_pose_starts_its_clock_at_that_pose():
     run(ex, straight(), 30.0, until=lambda e: not e.nav_active)
     assert ex.nav.state == "succeeded", ex.nav_feedback()
     assert ex.nav_changes[-1]["navigation_time_s"] < 10.0
+
+
+def test_a_goal_that_accepts_the_unreachable_is_accepted_and_aborted_with_its_error():
+    """`accept_unreachable` (the ROS 2 actions, as Nav2's navigator): a goal outside the graph or
+    on a known obstacle is accepted, pre-empts the running one, and ends "aborted" at once with
+    the reason a refusal would give and its error kind; without it, both are refused."""
+    with pytest.raises(GoalRefused) as exc:
+        parse({"x": 50.0, "y": 0.0})
+    assert exc.value.kind == "out_of_bounds"
+    far = parse({"x": 50.0, "y": 0.0, "accept_unreachable": True, "id": "far"})
+    assert far.unreachable[0] == "out_of_bounds" and "outside" in far.unreachable[1]
+    for bad in ({"accept_unreachable": 1}, {"no_path_timeout_s": -1.0},
+                {"no_path_timeout_s": 1e9}, {"no_path_timeout_s": "3"}):  # fmt: skip
+        with pytest.raises(GoalRefused):
+            parse({"x": 1.0, "y": 1.0, **bad})
+    ex = Explorer(ExplorerConfig(), TRAV, 5)
+    ex.update_grid(grid(hedge=(20, 20)))
+    ex.update_pose(1.0, 1.0, 0.0, 100.0)
+    ex.accept_goal(GoalSpec(6.0, 6.0, None, 0.2, "first"))
+    ex.accept_goal(far)
+    assert ex.nav.id == "far" and ex.nav.state == "aborted" and ex.nav.error == "out_of_bounds"
+    assert [c["state"] for c in ex.nav_changes[-3:]] == ["preempted", "active", "aborted"]
+    assert ex.nav_changes[-1]["error"] == "out_of_bounds"
+    on_hedge = parse({"x": 4.1, "y": 4.1, "accept_unreachable": True, "id": "hedge"})
+    ex.accept_goal(on_hedge)
+    assert ex.nav.state == "aborted" and ex.nav.error == "goal_blocked", ex.nav
+    assert "obstacle" in ex.nav.reason and ex.goal is None
+
+
+def test_a_goal_s_own_no_path_timeout_replaces_the_config_s():
+    ex = explorer(mode="navigate", goal_timeout_s=30.0)
+    spec = parse({"x": 6.0, "y": 6.0, "no_path_timeout_s": 1.0, "id": "soon"})
+    ex.accept_goal(spec)
+    run(ex, straight(reachable=lambda g: False), 10.0, until=lambda e: e.nav.t_ended)
+    assert ex.nav.state == "aborted" and ex.nav.error == "no_path", ex.nav
+    assert 1.0 <= ex.nav_changes[-1]["navigation_time_s"] < 1.5
+    # 0: aborted at the first plan that finds no path
+    ex.accept_goal(parse({"x": 6.0, "y": 6.0, "no_path_timeout_s": 0.0, "id": "at-once"}))
+    run(ex, straight(reachable=lambda g: False), 10.0, until=lambda e: e.nav.t_ended)
+    assert ex.nav.error == "no_path" and ex.nav_changes[-1]["navigation_time_s"] < 0.2

@@ -198,3 +198,35 @@ def test_paths_keep_off_an_obstacle_where_there_is_room():
     labels[5:35, 0] = labels[5:35, 2] = HEDGE
     narrow = Planner(dense_grid(labels), CLASSES).plan((0.3, 0.3), (7.7, 0.3))
     assert narrow.ok
+
+
+def test_an_empty_graph_is_planned_across_as_unknown_ground():
+    """With allow_unknown (Nav2's default for its planners) a graph with no node yet is all
+    unknown ground: the straight path across it, every node at unknown_cost."""
+    empty = Planner(NavGrid((0, 0), (20, 20), 0.2, tile_size=16), CLASSES)
+    r = empty.plan((0.5, 0.5), (3.5, 0.5), allow_unknown=True, unknown_cost=2.0)
+    assert r.ok and r.label_share == {"unknown": 1.0}, r.message
+    assert r.cost_distance == pytest.approx(3.0)
+    assert r.cost_traversability == pytest.approx(15 * 0.8 * 2.0)  # t_f * unknown_cost
+    assert empty.plan((0.5, 0.5), (3.5, 0.5)).error == "no_graph"
+
+
+def test_a_start_not_seen_yet_leaves_from_the_nearest_known_free_node():
+    """Without allow_unknown, a robot on a node not seen yet (the ground under it at start) is
+    planned from the nearest known free node within SNAP_START_M; the path still begins at the
+    start. Farther than that, the start stays closed in."""
+    labels = np.full((20, 20), TERRAIN, np.uint16)
+    known = np.ones((20, 20), bool)
+    known[:4, :4] = False  # a hole around the start at node (1, 1)
+    planner = Planner(dense_grid(labels, known=known), CLASSES)
+    r = planner.plan((0.3, 0.3), (3.5, 3.5))
+    assert r.ok, r.message
+    np.testing.assert_array_equal(r.cells[0], [1, 1])
+    assert known[tuple(r.cells[1])]  # the second node is a known one: the nearest
+    d = np.hypot(*(np.argwhere(known) - np.array([1, 1])).T).min()
+    assert np.hypot(*(r.cells[1] - np.array([1, 1]))) == pytest.approx(d)
+    parts = r.cost_distance + r.cost_height + r.cost_traversability
+    assert parts == pytest.approx(r.cost_total, rel=1e-9)
+    known[:8, :8] = False  # the nearest known node 1.4 m away: no snap, no path
+    far = Planner(dense_grid(labels, known=known), CLASSES).plan((0.3, 0.3), (3.5, 3.5))
+    assert not far.ok and far.error == "unreachable"

@@ -19,6 +19,7 @@ from smana.services.ros2.actions import (  # noqa: E402
     GoalBook,
     goal_pose_checked,
     plan_error_code,
+    to_world,
 )
 from smana.services.ros2.nav2_types import (  # noqa: E402
     CANCEL_GOAL_TERMINATED,
@@ -337,8 +338,10 @@ def test_goal_pose_checks():
     from smana.services.ros2 import convert
 
     ok = convert.pose_stamped(TYPES, (3.0, -2.0), 1.2, 0.0)
-    x, y, yaw = goal_pose_checked(ok, ("map", "odom"))
-    assert (x, y) == (3.0, -2.0) and yaw == pytest.approx(1.2)
+    frame, x, y, yaw = goal_pose_checked(ok, ("map", "odom"))
+    assert (frame, x, y) == ("map", 3.0, -2.0) and yaw == pytest.approx(1.2)
+    in_base = convert.pose_stamped(TYPES, (1.0, 0.0), 0.0, 0.0, "base_link")
+    assert goal_pose_checked(in_base, ("map", "odom", "base_link"))[0] == "base_link"
     nan = convert.pose_stamped(TYPES, (math.nan, 0.0), 0.0, 0.0)
     with pytest.raises(ValueError, match="non-finite"):
         goal_pose_checked(nan, ("map",))
@@ -430,7 +433,7 @@ def test_a_navigate_goal_with_a_huge_behavior_tree_or_no_frame_is_refused_before
     from smana.services.ros2.actions import Ros2Actions
 
     a = "nav2_msgs/action/NavigateToPose"
-    me = types.SimpleNamespace(world_frames=("map",))  # navigate() refuses before anything else
+    me = types.SimpleNamespace(frames=("map",))  # navigate() refuses before anything else
 
     def goal(frame="map", tree=""):
         pose = convert.pose_stamped(TYPES, (1.0, 0.0), 0.0, 0.0, frame)
@@ -440,3 +443,21 @@ def test_a_navigate_goal_with_a_huge_behavior_tree_or_no_frame_is_refused_before
     assert not ok and why.startswith("value: behavior_tree of 10000000 characters"), why
     ok, why = Ros2Actions.navigate(me, b"u" * 16, goal(frame=""), None)
     assert not ok and "no frame_id" in why, why
+
+
+def test_a_goal_in_the_base_frame_is_placed_by_the_robot_pose():
+    """tf's odom -> base_link for a planar robot, against the 4 x 4 product written out."""
+    rng = np.random.default_rng(5)
+    for _ in range(50):
+        base = rng.uniform(-10, 10), rng.uniform(-10, 10), rng.uniform(-math.pi, math.pi)
+        x, y, yaw = rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(-math.pi, math.pi)
+
+        def m(px, py, a):
+            return np.array([[math.cos(a), -math.sin(a), px], [math.sin(a), math.cos(a), py],
+                             [0.0, 0.0, 1.0]])  # fmt: skip
+
+        want = m(*base) @ m(x, y, yaw)
+        wx, wy, wyaw = to_world(x, y, yaw, base)
+        np.testing.assert_allclose([wx, wy], want[:2, 2], atol=1e-9)
+        np.testing.assert_allclose(m(wx, wy, wyaw)[:2, :2], want[:2, :2], atol=1e-9)
+        assert -math.pi <= wyaw <= math.pi

@@ -79,7 +79,7 @@ class FakeExplorer:
         reply = {"canceled": True, "id": body["id"], "reason": ""}
         query.reply(query.key_expr, msgpack.packb(reply))
 
-    def feedback(self, gid: str, state: str, remaining: float, pose=(1.0, 0.5, 0.2)):
+    def feedback(self, gid: str, state: str, remaining: float, pose=(1.0, 0.5, 0.2), error=""):
         fb = {
             "id": gid,
             "state": state,
@@ -89,6 +89,7 @@ class FakeExplorer:
             "navigation_time_s": 2.5,
             "recoveries": 1,
             "reason": "" if state == "active" else f"the test says {state}",
+            "error": error,
         }
         self.session.put(self.feedback_key, msgpack.packb(fb))
 
@@ -129,7 +130,12 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     fb = client.feedback_of(g1)[-1]
     assert fb.distance_remaining == pytest.approx(3.0)
     assert fb.current_pose.pose.position.x == pytest.approx(1.0)
-    assert fb.navigation_time.sec == 2 and fb.number_of_recoveries == 1
+    assert fb.navigation_time.sec >= 2 and fb.number_of_recoveries == 1
+    # Feedback at 10 Hz (FEEDBACK_HZ), though the explorer said it once: counted over 2 s
+    n0, t0 = len(client.feedback_of(g1)), time.monotonic()
+    assert wait_for(lambda: time.monotonic() - t0 >= 2.0, 5, 0.05)
+    rate = (len(client.feedback_of(g1)) - n0) / (time.monotonic() - t0)
+    assert 5.0 <= rate <= 11.0, rate
     assert fb.estimated_time_remaining.sec + fb.estimated_time_remaining.nanosec * 1e-9 > 0
     assert g1 not in results
 
@@ -164,8 +170,9 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     t3.join(10)
     assert results[g3].status == n2.STATUS_SUCCEEDED and results[g3].result.error_code == 0
 
-    # A goal the explorer gives up on: ABORTED with Nav2's UNKNOWN (9000) and its reason; one
-    # it refuses: `accepted = false`.
+    # A goal the explorer gives up on: ABORTED with Kilted's UNKNOWN (9000) and its reason,
+    # or with the planner's code when the explorer says why (NO_VALID_PATH here); one it
+    # refuses: `accepted = false`.
     g4, resp = client.send_goal(**goal(1.5, 1.5))
     assert resp.accepted
     t4 = threading.Thread(target=wait_result, args=(g4,))
@@ -174,6 +181,11 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     t4.join(10)
     assert results[g4].status == n2.STATUS_ABORTED and results[g4].result.error_code == 9000
     assert results[g4].result.error_msg == "the test says aborted"
+    g6, resp = client.send_goal(**goal(1.5, 1.5))
+    assert resp.accepted
+    assert wait_for(lambda: explorer.feedback(g6.hex(), "aborted", 1.0, error="no_path") or
+                    client.status_of(g6) == n2.STATUS_ABORTED, 10)  # fmt: skip
+    assert client.get_result(g6, 10.0).result.error_code == 208
     _, refused = client.send_goal(**goal(99.0, 0.0))
     assert not refused.accepted
 
@@ -191,8 +203,16 @@ def test_navigate_to_pose_goal_feedback_preemption_cancel_and_goal_pose(ros_stac
     assert isinstance(client.call("send_goal", None, raw=b"\x00\x01\x00\x00\xff\xff"), Err)
     _, nan = client.send_goal(**goal(math.nan, 0.0))
     assert not nan.accepted
-    _, elsewhere = client.send_goal(**goal(1.0, 0.0, frame="base_link"))
+    _, elsewhere = client.send_goal(**goal(1.0, 0.0, frame="odd_frame"))
     assert not elsewhere.accepted
+    # base_link is a frame smana publishes; before the robot's first pose there is no transform
+    # to it: accepted and aborted, Kilted's TF_ERROR, as Nav2's navigator fails a goal it
+    # cannot transform
+    in_base, resp = client.send_goal(**goal(1.0, 0.0, frame="base_link"))
+    assert resp.accepted
+    r = client.get_result(in_base, 10.0)
+    assert r.status == n2.STATUS_ABORTED and r.result.error_code == 9002, r
+    assert "no transform" in r.result.error_msg
     assert len(explorer.goals) == n_goals  # none of them reached the explorer
     no_att = list(s.session.get(client.keys["get_result"], payload=b"\x00\x01\x00\x00",
                                 timeout=5.0))  # fmt: skip

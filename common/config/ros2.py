@@ -24,6 +24,13 @@ class Ros2Config(Section, section="ros2"):
     # The actions, under the node's namespace (/smana/<robot>/...)
     navigate_action: str = "navigate_to_pose"  # nav2_msgs/action/NavigateToPose
     compute_path_action: str = "compute_path_to_pose"  # nav2_msgs/action/ComputePathToPose
+    # A NavigateToPose goal the planner finds no path to for this long (robot time) is aborted
+    # NO_VALID_PATH, as Nav2's navigator aborts once its planner fails (the explorer's own goals
+    # wait explorer.goal_timeout_s)
+    navigate_no_path_s: float = param(3.0, ge=0, le=3600)
+    # ComputePathToPose plans through unknown ground at planner.unknown_cost (Nav2's planners'
+    # allow_unknown, on by default); off: known free ground only
+    plan_through_unknown: bool = True
     # The integer label field of the clouds. "none": every cloud is labelled by the geometric
     # labeller (class table `geometric`); a cloud without the field is refused otherwise.
     label_field: str = "label"

@@ -489,7 +489,7 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
 
     def finish(self, reason: str) -> None:
         if self.nav_active:
-            self._end_nav("aborted", f"the explorer stopped ({reason})")
+            self._end_nav("aborted", f"the explorer stopped ({reason})", "stopped")
         self.done_reason = reason
         self._set_goal(None)
         self._spin = None

@@ -2,17 +2,25 @@
 their feedback. Part of `exploration.Explorer`; no wiring.
 
 A goal is accepted or refused at once (`parse_goal`, then `Navigating.accept_goal`, which also
-refuses a goal on a node known to be an obstacle, a safety zone or not traversable). An accepted
-goal pre-empts the running one, which ends "preempted". While a goal runs, exploration pauses: the
-explorer's own machinery drives to it (`plan` asks for a path, `control` follows it, and it
-re-plans as it does for a view: the path blocked, stuck, every `replan_period_s` as the map grows).
+refuses a goal on a node known to be an obstacle, a safety zone or not traversable). A goal that
+asks `accept_unreachable` (the ROS 2 actions do: Nav2's navigator accepts every well-formed goal
+and aborts the ones it cannot reach) is accepted there instead and ends "aborted" at once.
+
+An accepted goal pre-empts the running one, which ends "preempted". While a goal runs,
+exploration pauses: the explorer's own machinery drives to it (`plan` asks for a path, `control`
+follows it, and it re-plans as it does for a view: the path blocked, stuck, every
+`replan_period_s` as the map grows).
 A goal ends:
 
 - "succeeded": the robot is within the goal's tolerance (and faces its yaw, when it has one);
-- "aborted": no path to it for `goal_timeout_s`, or not reached `goal_time_budget_s` after it was
-  accepted, or its node became an obstacle;
+- "aborted": no path to it for `goal_timeout_s` (or the goal's own `no_path_timeout_s`), or not
+  reached `goal_time_budget_s` after it was accepted, or its node became an obstacle (outside the
+  graph or on an obstacle from the start, with `accept_unreachable`);
 - "canceled": a cancel for it (the robot stops at once);
 - "preempted": a newer goal was accepted.
+
+An aborted goal says why in `error` as well as in words: "out_of_bounds", "goal_blocked",
+"no_path", "time_budget" or "stopped" (ERRORS).
 
 Then exploration resumes if the explorer was exploring and `resume_after_goal`; an explorer in
 `mode = "navigate"` never explores and waits for the next goal. Times are robot time.
@@ -31,8 +39,10 @@ from smana.services.explorer.driving import BACK_OFF_S
 from smana.services.explorer.follower import wrap_angle
 
 STATES = ("active", "succeeded", "aborted", "canceled", "preempted")
+ERRORS = ("out_of_bounds", "goal_blocked", "no_path", "time_budget", "stopped")
 ID_MAX_CHARS = 64
-GOAL_KEYS = {"x", "y", "yaw", "tolerance_m", "id"}
+GOAL_KEYS = {"x", "y", "yaw", "tolerance_m", "id", "no_path_timeout_s", "accept_unreachable"}
+NO_PATH_TIMEOUT_MAX_S = 3600.0
 
 
 class GoalRefused(ValueError):
@@ -53,6 +63,10 @@ class GoalSpec:
     yaw: float | None
     tolerance_m: float
     id: str
+    no_path_timeout_s: float | None = None  # None: the config's goal_timeout_s
+    accept_unreachable: bool = False
+    # (error, reason) of a goal accepted although it cannot be reached (outside the graph)
+    unreachable: tuple[str, str] | None = None
 
 
 @dataclass
@@ -61,6 +75,7 @@ class NavGoal:
     t_accepted: float | None  # robot time; None: accepted before the first pose (set by it)
     state: str = "active"
     reason: str = ""
+    error: str = ""  # why it was aborted (ERRORS), "" otherwise
     recoveries: int = 0
     t_no_path: float | None = None  # robot time since when no path to it was found
     t_ended: float | None = None
@@ -110,9 +125,11 @@ def parse_goal(
 ) -> GoalSpec:
     """A goal query's map, checked: x and y finite and inside the navigation graph's bounds, yaw
     finite within +-YAW_MAX_RAD or None, tolerance_m in [TOLERANCE_MIN_M, max_tolerance_m] or None
-    (the default), id 1 to 64
-    printable characters or None (one is made up). GoalRefused otherwise; unknown keys are
-    refused too (a misspelt "tolerance" must not pass for the default)."""
+    (the default), id 1 to 64 printable characters or None (one is made up), no_path_timeout_s in
+    [0, NO_PATH_TIMEOUT_MAX_S] or None, accept_unreachable a bool or None. GoalRefused otherwise;
+    unknown keys are refused too (a misspelt "tolerance" must not pass for the default). With
+    `accept_unreachable`, a goal outside the bounds is not refused: its spec carries why it
+    cannot be reached (`unreachable`)."""
     if not isinstance(body, dict):
         raise GoalRefused("malformed", "a goal is a map {x, y, yaw, tolerance_m, id}")
     extra = sorted(str(k) for k in body if k not in GOAL_KEYS)
@@ -121,15 +138,27 @@ def parse_goal(
     x, y = _number(body, "x", False), _number(body, "y", False)
     yaw = _number(body, "yaw", True)
     tol = _number(body, "tolerance_m", True)
+    no_path = _number(body, "no_path_timeout_s", True)
+    accept = body.get("accept_unreachable")
+    if accept is not None and not isinstance(accept, bool):
+        raise GoalRefused("malformed", "accept_unreachable must be true or false")
     if yaw is not None and abs(yaw) > YAW_MAX_RAD:
         raise GoalRefused("value", f"yaw must be within +-{YAW_MAX_RAD:g} rad, got {yaw:g}")
-    lo, hi = bounds_min_xy, bounds_max_xy
-    if not (lo[0] <= x < hi[0] and lo[1] <= y < hi[1]):
+    if no_path is not None and not 0.0 <= no_path <= NO_PATH_TIMEOUT_MAX_S:
         raise GoalRefused(
-            "out_of_bounds",
-            f"({x:g}, {y:g}) is outside the navigation graph "
-            f"[{lo[0]:g}, {hi[0]:g}) x [{lo[1]:g}, {hi[1]:g})",
+            "value",
+            f"no_path_timeout_s must be in [0, {NO_PATH_TIMEOUT_MAX_S:g}] s, got {no_path:g}",
         )
+    lo, hi = bounds_min_xy, bounds_max_xy
+    unreachable = None
+    if not (lo[0] <= x < hi[0] and lo[1] <= y < hi[1]):
+        why = (
+            f"({x:g}, {y:g}) is outside the navigation graph "
+            f"[{lo[0]:g}, {hi[0]:g}) x [{lo[1]:g}, {hi[1]:g})"
+        )
+        if not accept:
+            raise GoalRefused("out_of_bounds", why)
+        unreachable = ("out_of_bounds", why)
     if tol is None:
         tol = float(default_tolerance_m)
     elif not TOLERANCE_MIN_M <= tol <= max_tolerance_m:
@@ -139,7 +168,8 @@ def parse_goal(
         )
     gid = body.get("id")
     gid = uuid.uuid4().hex[:12] if gid is None else check_goal_id(gid)
-    return GoalSpec(x, y, None if yaw is None else wrap_angle(yaw), tol, gid)
+    yaw = None if yaw is None else wrap_angle(yaw)
+    return GoalSpec(x, y, yaw, tol, gid, no_path, bool(accept), unreachable)
 
 
 def parse_cancel(body) -> str | None:
@@ -164,8 +194,17 @@ class Navigating:
 
     def accept_goal(self, spec: GoalSpec) -> NavGoal:
         """Start driving to `spec` (exploration pauses); the running goal ends "preempted".
-        GoalRefused, with nothing changed, when the goal's node is known and not traversable."""
-        self._check_goal_node(spec.x, spec.y)
+        GoalRefused, with nothing changed, when the goal's node is known and not traversable,
+        unless the goal accepts that: then it is accepted and ends "aborted" at once, as one
+        outside the graph does (`spec.unreachable`)."""
+        unreachable = spec.unreachable
+        if unreachable is None:
+            try:
+                self._check_goal_node(spec.x, spec.y)
+            except GoalRefused as exc:
+                if not spec.accept_unreachable:
+                    raise
+                unreachable = (exc.kind, str(exc))
         if self.nav_active:
             self._end_nav("preempted", f"pre-empted by goal {spec.id}")
         self._set_goal(None)  # the view (or the old goal's path) is dropped
@@ -173,6 +212,8 @@ class Navigating:
         self.nav = NavGoal(spec, self.t_now if self.pose is not None else None)
         self._t_last_plan = -math.inf  # plan at once
         self.nav_changes.append(self.nav_feedback())
+        if unreachable is not None:
+            self._end_nav("aborted", unreachable[1], unreachable[0])
         return self.nav
 
     def cancel_goal(self, gid: str | None) -> NavGoal:
@@ -189,7 +230,7 @@ class Navigating:
     def abort_goal(self, reason: str) -> None:
         """End the running goal "aborted" (the explorer is stopping), if one runs."""
         if self.nav_active:
-            self._end_nav("aborted", reason)
+            self._end_nav("aborted", reason, "stopped")
 
     def nav_feedback(self) -> dict:
         """The feedback of the current (or last) goal, as `explorer/goal/feedback` carries it."""
@@ -216,6 +257,7 @@ class Navigating:
             "navigation_time_s": max(0.0, float(end - since)),
             "recoveries": n.recoveries,
             "reason": n.reason,
+            "error": n.error,
         }
 
     def nav_state(self) -> dict | None:
@@ -235,13 +277,17 @@ class Navigating:
             self._end_nav("succeeded", "")
             return None
         if t - n.t_accepted > self.config.goal_time_budget_s:
-            self._end_nav("aborted", f"not reached in {self.config.goal_time_budget_s:g} s")
+            why = f"not reached in {self.config.goal_time_budget_s:g} s"
+            self._end_nav("aborted", why, "time_budget")
             return None
-        if n.t_no_path is not None and t - n.t_no_path > self.config.goal_timeout_s:
-            self._end_nav("aborted", f"no path for {self.config.goal_timeout_s:g} s")
+        no_path_s = self.config.goal_timeout_s
+        if s.no_path_timeout_s is not None:
+            no_path_s = s.no_path_timeout_s
+        if n.t_no_path is not None and t - n.t_no_path >= no_path_s:
+            self._end_nav("aborted", f"no path for {no_path_s:g} s", "no_path")
             return None
         if self._goal_node_blocked(s.x, s.y):
-            self._end_nav("aborted", "the goal's node is an obstacle now")
+            self._end_nav("aborted", "the goal's node is an obstacle now", "goal_blocked")
             return None
         if self._spin is not None or self._back_off_until is not None:
             return None
@@ -318,10 +364,10 @@ class Navigating:
         tol = self.config.follower.final_yaw_tolerance_rad
         return s.yaw is None or abs(wrap_angle(s.yaw - yaw)) <= tol + 1e-9
 
-    def _end_nav(self, state: str, reason: str) -> None:
-        assert state in STATES[1:]
+    def _end_nav(self, state: str, reason: str, error: str = "") -> None:
+        assert state in STATES[1:] and (error in ERRORS if state == "aborted" else not error)
         n = self.nav
-        n.state, n.reason, n.t_ended = state, reason, self.t_now
+        n.state, n.reason, n.error, n.t_ended = state, reason, error, self.t_now
         self._set_goal(None, count=False)
         self._spin = None
         self._back_off_until = None if state in ("canceled", "preempted") else self._back_off_until

@@ -317,16 +317,17 @@ class ExplorerService(Service):
             )
             self.core.accept_goal(spec)
         except GoalRefused as exc:
-            reply = {"accepted": False, "id": gid or "", "reason": str(exc)}
+            reply = {"accepted": False, "id": gid or "", "reason": str(exc), "kind": exc.kind}
             raise Reject(exc.kind, f"goal refused: {exc}", reply=reply) from None
         s = spec
         self.log.info(
-            "goal %s accepted: (%.2f, %.2f)%s within %.2f m",
+            "goal %s accepted: (%.2f, %.2f)%s within %.2f m%s",
             s.id,
             s.x,
             s.y,
             "" if s.yaw is None else f" yaw {math.degrees(s.yaw):.0f} deg",
             s.tolerance_m,
+            "" if self.core.nav.active else f", and aborted: {self.core.nav.reason}",
         )
         self._send(*self.core.control())
         self._send_feedback()

@@ -50,6 +50,9 @@ NO_GRAPH = "no_graph"
 MALFORMED = "malformed"
 
 RISK_MODES = typing.get_args(Risk)
+# A start on a node not seen yet leaves from the nearest known free node this near (without
+# allow_unknown; with it, the unknown node is entered like any other)
+SNAP_START_M = 1.0
 
 
 @dataclass
@@ -222,7 +225,9 @@ class Planner:
         p, lut = self._params(h_f, t_f, class_costs, unknown_cost, max_step_m, heuristic, risk)
         s_xy, g_xy = self._point("start", start), self._point("goal", goal)
         g = self.grid
-        if g.n_tiles == 0:
+        if g.n_tiles == 0 and not allow_unknown:
+            # through the unknown, an empty graph is all unknown ground: planned across, as
+            # Nav2's planners plan across an empty costmap (allow_unknown)
             raise PlanError(NO_GRAPH, "no navigation graph yet (no patch received)")
         cells = []
         for name, xy in (("start", s_xy), ("goal", g_xy)):
@@ -242,6 +247,14 @@ class Planner:
         enter, min_enter = self._enter(box, flags, labels, lut, p, bool(allow_unknown))
         (sx, sy), (gx, gy) = ((c[0] - box[0], c[1] - box[1]) for c in cells)
         self._check_end("start", sx, sy, flags, enter, box, s_xy, allow_unknown=True)
+        snapped = None
+        if not allow_unknown and not flags[sx, sy] & FLAG_KNOWN:
+            # a robot on a node not seen yet (the ground under it, at start) leaves from the
+            # nearest known free node, if one is within SNAP_START_M; the path begins at the
+            # start itself
+            nf = _nearest_free(enter, sx, sy)
+            if nf is not None and math.dist(nf, (sx, sy)) * g.resolution_m <= SNAP_START_M:
+                snapped, (sx, sy) = (sx, sy), nf
         goal_cost = lut[labels[gx, gy]] if labels[gx, gy] < len(lut) else np.inf
         self._check_end("goal", gx, gy, flags, enter, box, g_xy, allow_unknown, goal_cost)
         step = float(p.max_step_m)
@@ -274,6 +287,9 @@ class Planner:
                 + ("" if allow_unknown else "; unknown nodes not allowed")
                 + ")",
             )
+        if snapped is not None:
+            res.cells = np.vstack([np.array([snapped], res.cells.dtype), res.cells])
+            res.cost += sum(path_costs(res.cells[:2], enter, known_h, g.resolution_m, p.h_f))
         d, hgt, trav = path_costs(res.cells, enter, known_h, g.resolution_m, p.h_f)
         gcells = res.cells + np.array([box[0], box[1]])
         xy = g.cell_centre(gcells[:, 0], gcells[:, 1])
@@ -367,7 +383,10 @@ class Planner:
 
     def _window(self, cells, allow_unknown: bool) -> tuple[int, int, int, int]:
         g = self.grid
-        x0, y0, x1, y1 = g.known_box()
+        known = g.known_box()
+        if known is None:  # an empty graph (planned through only as unknown)
+            known = (cells[0][0], cells[0][1], cells[0][0] + 1, cells[0][1] + 1)
+        x0, y0, x1, y1 = known
         for ix, iy in cells:
             x0, y0, x1, y1 = min(x0, ix), min(y0, iy), max(x1, ix + 1), max(y1, iy + 1)
         if allow_unknown:

@@ -6,7 +6,8 @@ An action is three services and two topics under `<name>/_action/` (`nav2_types.
 carries each like any other service or topic (`rmw.py`). What a server does with them follows
 rclcpp_action's server and rcl_action (ROS 2 Jazzy):
 
-- send_goal: the goal is accepted (ACCEPTED, then EXECUTING) or refused (`accepted = false`);
+- send_goal: a well-formed goal is accepted (ACCEPTED, then EXECUTING), one that is not is
+  refused (`accepted = false`) and counted;
 - get_result: answered at once for a finished goal, held until the result exists for a running
   one (rmw_zenoh_cpp's clients wait for a reply without a timeout), STATUS_UNKNOWN for a goal
   the server does not know (or whose result expired: RESULT_TIMEOUT_S, rcl_action's default of
@@ -18,6 +19,16 @@ rclcpp_action's server and rcl_action (ROS 2 Jazzy):
 
 A second NavigateToPose goal pre-empts the first, which ends ABORTED, as Nav2's
 SimpleActionServer ends it (`accept_pending_goal`: `current_handle_->abort(...)`).
+
+What Nav2's navigator and planner server do with a goal, smana does too: a goal in any frame of
+the tree smana publishes (the world frames, and the robot's base frame through the robot's
+latest pose) is accepted, also one outside the navigation graph or on an obstacle; the ones that
+cannot be reached are then aborted with an error code (ERROR CODES below) and an `error_msg`.
+Refused (and counted) is only what Nav2 could not even read: a pose that is not finite, an empty
+or unknown frame, a behaviour tree name over MAX_BEHAVIOR_TREE_CHARS. ComputePathToPose plans
+through unknown ground (`ros2.plan_through_unknown`, Nav2's `allow_unknown`). NavigateToPose's
+feedback goes out at FEEDBACK_HZ from the robot's latest pose and the explorer's last word on the
+path (which comes at the explorer's own, slower, feedback period).
 
 `GoalBook` holds the goals and is tested without zenoh; `Ros2Actions` is the wiring. Queries are
 handled on worker threads (the explorer's and the planner's answers are waited for there, never
@@ -68,18 +79,30 @@ MAX_WAITING_RESULTS = 16  # get_result requests held for one goal
 FEEDBACK_TIMEOUT_S = 5.0  # a navigation goal without explorer feedback this long is aborted
 QUERY_TIMEOUT_S = 5.0  # the explorer's and the planner's answers
 ACTION_THREADS, ACTION_WAITING = 2, 32
-# Nav2's error codes: ComputePathToPose's (Jazzy); NavigateToPose's Jazzy result defines only
-# NONE, 9000 is the UNKNOWN Nav2 defines for it from Kilted on.
-NAV_UNKNOWN = 9000
+FEEDBACK_HZ = 10.0  # Nav2's navigator sends one per behaviour-tree tick (100 Hz): 10 is enough
+# ERROR CODES. smana serves Jazzy's definitions. ComputePathToPose's are Jazzy's own. Jazzy's
+# NavigateToPose result defines only NONE: its navigator fills error_code with the failing
+# planner's code (ComputePathToPose's 2xx: GOAL_OUTSIDE_MAP, GOAL_OCCUPIED, NO_VALID_PATH), and
+# smana does the same. Where Jazzy has no code (no transform, out of time, the explorer
+# stopped), Kilted's NavigateToPose codes: the same fields, so the same wire type and hash.
+NAV_UNKNOWN, NAV_TF_ERROR, NAV_TIMEOUT = 9000, 9002, 9003
 PLAN_ERRORS = {
     "start_blocked": 205,  # START_OCCUPIED
     "goal_blocked": 206,  # GOAL_OCCUPIED
     "unreachable": 208,  # NO_VALID_PATH
     "no_graph": 208,
 }
-PLAN_UNKNOWN, PLAN_INVALID_PLANNER, PLAN_TIMEOUT = 200, 201, 207
+PLAN_UNKNOWN, PLAN_INVALID_PLANNER, PLAN_TF_ERROR, PLAN_TIMEOUT = 200, 201, 202, 207
 START_OUTSIDE_MAP, GOAL_OUTSIDE_MAP = 203, 204
 PLANNER_IDS = ("", "smana")
+# The explorer's reasons for aborting a goal (services/explorer/navigation.py ERRORS) as codes
+NAV_ERRORS = {
+    "out_of_bounds": GOAL_OUTSIDE_MAP,
+    "goal_blocked": PLAN_ERRORS["goal_blocked"],
+    "no_path": PLAN_ERRORS["unreachable"],
+    "time_budget": NAV_TIMEOUT,
+    "stopped": NAV_UNKNOWN,
+}
 
 
 def plan_error_code(error: str, message: str) -> int:
@@ -229,19 +252,31 @@ class GoalBook:
             return [(g.uuid, g.stamp_ns, g.status) for g in self.goals.values()]
 
 
-def goal_pose_checked(pose_stamped, world_frames) -> tuple[float, float, float]:
-    """(x, y, yaw) of a goal's PoseStamped; ValueError for a pose that is not finite, a
-    degenerate quaternion, or a frame smana's world is not."""
+def goal_pose_checked(pose_stamped, frames) -> tuple[str, float, float, float]:
+    """(frame, x, y, yaw) of a goal's PoseStamped; ValueError for a pose that is not finite, a
+    degenerate quaternion, a place beyond 1000 km, or a frame not in `frames`."""
     frame = pose_stamped.header.frame_id.lstrip("/")
     if not frame:  # Nav2 cannot transform a pose of no frame either
-        raise ValueError(f"goal has no frame_id: smana navigates in {list(world_frames)}")
-    if frame not in world_frames:
-        raise ValueError(f"goal in frame {frame!r}: smana navigates in {list(world_frames)}")
+        raise ValueError(f"goal has no frame_id: smana's frames are {list(frames)}")
+    if frame not in frames:
+        raise ValueError(f"goal in frame {frame!r}: smana's frames are {list(frames)}")
     pos, q = convert.pose_of(pose_stamped.pose)
     if np.abs(pos).max() > 1e6:
         raise ValueError("goal further than 1000 km")
     yaw = math.atan2(2.0 * (q[3] * q[2] + q[0] * q[1]), 1.0 - 2.0 * (q[1] ** 2 + q[2] ** 2))
-    return float(pos[0]), float(pos[1]), yaw
+    return frame, float(pos[0]), float(pos[1]), yaw
+
+
+def to_world(x: float, y: float, yaw: float, base) -> tuple[float, float, float]:
+    """A pose in the robot's base frame, in the world frame, the robot being at `base` = (x, y,
+    yaw) there (a planar robot: tf's odom -> base_link)."""
+    bx, by, byaw = base
+    c, s = math.cos(byaw), math.sin(byaw)
+    return bx + c * x - s * y, by + s * x + c * y, math.remainder(byaw + yaw, math.tau)
+
+
+class NoTransform(ValueError):
+    """A goal in the robot's base frame before any pose of the robot: tf has no transform yet."""
 
 
 def duration(types, seconds: float):
@@ -316,6 +351,11 @@ class Ros2Actions:
         rc, node = svc.config.ros2, svc.node
         self.types = node.types
         self.world_frames = tuple(rc.world_frames)
+        self.base_frame = rc.base_frame
+        self.frames = (*self.world_frames, self.base_frame)
+        self.no_path_s = float(rc.navigate_no_path_s)
+        self.through_unknown = bool(rc.plan_through_unknown)
+        self.unknown_cost = float(svc.config.planner.unknown_cost)
         self.speed_mps = float(svc.config.explorer.follower.max_linear_mps)
         self.nav = ActionEndpoints(node, f"{namespace}/{rc.navigate_action}", NAVIGATE)
         self.plan = ActionEndpoints(node, f"{namespace}/{rc.compute_path_action}", COMPUTE_PATH)
@@ -324,6 +364,10 @@ class Ros2Actions:
             ("goals", "accepted", "refused", "feedback", "feedback_without_pose", "canceled"), 0
         )
         self._explorer_ids: dict[str, bytes] = {}  # explorer goal id -> uuid
+        # the running goal's progress as the explorer last told it (its feedback period), from
+        # which `tick` sends NavigateToPose feedback at FEEDBACK_HZ
+        self._progress: _Progress | None = None
+        self._next_feedback = 0.0
         self._nav_lock = threading.Lock()
         self._count_lock = threading.Lock()
         for endpoints in (self.nav, self.plan):
@@ -493,10 +537,22 @@ class Ros2Actions:
 
     # -- NavigateToPose -------------------------------------------------------------------------
 
+    def world_pose(self, frame: str, x: float, y: float, yaw: float):
+        """A goal's pose in the world frame; NoTransform for one in the base frame before the
+        robot's first pose."""
+        if frame in self.world_frames:  # one world: map -> odom is the identity
+            return x, y, yaw
+        pose = self.svc._last_pose
+        if pose is None:
+            raise NoTransform(
+                f"no transform from {frame} to {self.world_frames[0]}: no pose of the robot yet"
+            )
+        return to_world(x, y, yaw, (float(pose.position[0]), float(pose.position[1]), pose.yaw))
+
     def navigate(self, uuid: bytes, goal, reply) -> tuple[bool, str]:
         """Hand a NavigateToPose goal to the explorer; (accepted, why not)."""
         try:
-            x, y, yaw = goal_pose_checked(goal.pose, self.world_frames)
+            frame, x, y, yaw = goal_pose_checked(goal.pose, self.frames)
             if len(goal.behavior_tree) > MAX_BEHAVIOR_TREE_CHARS:
                 raise ValueError(
                     f"behavior_tree of {len(goal.behavior_tree)} characters: a file name of at "
@@ -507,22 +563,39 @@ class Ros2Actions:
         # One goal at a time, in the order the explorer takes them: the last one it accepted is
         # the one that runs, here as there.
         with self._nav_lock:
-            return self._navigate(uuid, goal, reply, x, y, yaw)
+            return self._navigate(uuid, goal, reply, frame, x, y, yaw)
 
-    def _navigate(self, uuid: bytes, goal, reply, x: float, y: float, yaw: float):
+    def _navigate(self, uuid: bytes, goal, reply, frame: str, x: float, y: float, yaw: float):
         book = self.nav.book
         stamp_ns = time.time_ns()
         # In the book (not yet on the status topic) before the explorer is asked: its first
         # feedback may come before its answer.
         if book.add(uuid, goal, stamp_ns) is None:
             return False, "refused: goal id in use, or too many goals held"
+        try:
+            x, y, yaw = self.world_pose(frame, x, y, yaw)
+        except NoTransform as exc:
+            # Nav2's navigator accepts it, fails to transform it and aborts it
+            self._count("accepted")
+            reply(self._goal_response(self.nav, True, stamp_ns))
+            self._end(
+                self.nav, uuid, STATUS_ABORTED, self._empty_result(self.nav, NAV_TF_ERROR, str(exc))
+            )
+            return True, ""
         self._explorer_ids[uuid.hex()] = uuid
+        body = {
+            "x": x,
+            "y": y,
+            "yaw": yaw,
+            "tolerance_m": None,
+            "id": uuid.hex(),
+            # as Nav2: accepted, and aborted with a code when it cannot be reached
+            "accept_unreachable": True,
+            "no_path_timeout_s": self.no_path_s,
+        }
         try:
             answer = request(
-                self.svc.session,
-                keys.explorer_goal(self.svc.robot),
-                {"x": x, "y": y, "yaw": yaw, "tolerance_m": None, "id": uuid.hex()},
-                QUERY_TIMEOUT_S,
+                self.svc.session, keys.explorer_goal(self.svc.robot), body, QUERY_TIMEOUT_S
             )
             why = ""
         except QueryError as exc:
@@ -536,7 +609,7 @@ class Ros2Actions:
             return False, why
         self._count("accepted")
         reply(self._goal_response(self.nav, True, stamp_ns))
-        book.set_status(uuid, STATUS_EXECUTING)
+        book.set_status(uuid, STATUS_EXECUTING)  # unless its feedback has ended it already
         # Nav2 ends the goal a new one pre-empts ABORTED.
         for other in book.running():
             if other.uuid != uuid:
@@ -552,7 +625,7 @@ class Ros2Actions:
         except Exception as exc:  # noqa: BLE001 - any CDR that is not a PoseStamped
             raise MessageError("malformed", f"not a {POSE_STAMPED}: {type(exc).__name__}") from None
         try:
-            goal_pose_checked(msg, self.world_frames)
+            goal_pose_checked(msg, self.frames)
         except ValueError as exc:
             raise Reject("value", f"/goal_pose: {exc}") from None
         goal = self.nav.msg("Goal")(pose=msg, behavior_tree="")
@@ -580,6 +653,7 @@ class Ros2Actions:
             nav_time = float(fb.get("navigation_time_s") or 0.0)
             recoveries = int(fb.get("recoveries") or 0)
             reason = str(fb.get("reason") or "")
+            error = str(fb.get("error") or "")
         except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as exc:
             raise MessageError("malformed", f"explorer goal feedback: {exc}") from None
         if pose is not None and (len(pose) != 3 or not all(math.isfinite(v) for v in pose)):
@@ -590,29 +664,59 @@ class Ros2Actions:
         g = self.nav.book.get(uuid) if uuid is not None else None
         if g is None or g.status in TERMINAL:
             return  # another goal's, or one already ended here (pre-empted, canceled)
-        g.seen_at = self.nav.book.clock()
+        now = self.nav.book.clock()
+        g.seen_at = now
         if pose is None:
             # the explorer has no pose yet: Nav2's navigator skips its feedback when it cannot
             # read the robot's pose, rather than send a made-up pose or a NaN distance
             self._count("feedback_without_pose")
-        else:
-            fb_msg = self.nav.msg("Feedback")(
-                current_pose=convert.pose_stamped(self.types, pose[:2], pose[2], self.svc._stamp()),
-                navigation_time=duration(self.types, nav_time),
-                estimated_time_remaining=duration(self.types, remaining / self.speed_mps),
-                number_of_recoveries=max(-(2**15), min(recoveries, 2**15 - 1)),
-                distance_remaining=remaining,
-            )
-            self.nav.publish_feedback(uuid, fb_msg)
-            self._count("feedback")
         end = {
             "succeeded": (STATUS_SUCCEEDED, 0),
-            "aborted": (STATUS_ABORTED, NAV_UNKNOWN),
+            "aborted": (STATUS_ABORTED, NAV_ERRORS.get(error, NAV_UNKNOWN)),
             "preempted": (STATUS_ABORTED, 0),
             "canceled": (STATUS_CANCELED, 0),
         }.get(state)
         if end is not None:
+            if self._progress is not None and self._progress.uuid == uuid:
+                self._progress = None
             self._end(self.nav, uuid, end[0], self._empty_result(self.nav, end[1], reason))
+            return
+        if pose is not None:
+            self._progress = _Progress(uuid, pose, remaining, nav_time, recoveries, now)
+            self._send_feedback(now)  # at once: the ticks go on from it
+
+    def on_pose(self, x: float, y: float) -> None:
+        """The robot's pose (the service's loop): how far it has gone since the explorer's
+        last feedback."""
+        p = self._progress
+        if p is not None:
+            if p.last_xy is not None:
+                p.travelled += math.hypot(x - p.last_xy[0], y - p.last_xy[1])
+            p.last_xy = (x, y)
+
+    def _send_feedback(self, now: float) -> None:
+        """NavigateToPose feedback for the running goal: the robot's latest pose, and the
+        explorer's remaining distance less the way driven since it said so."""
+        p = self._progress
+        g = self.nav.book.get(p.uuid) if p is not None else None
+        if g is None or g.status not in (STATUS_EXECUTING, STATUS_CANCELING):
+            return
+        self._next_feedback = now + 1.0 / FEEDBACK_HZ
+        pose = self.svc._last_pose
+        if pose is not None:
+            xy, yaw = pose.position[:2], pose.yaw
+        else:
+            xy, yaw = p.pose[:2], p.pose[2]
+        remaining = max(0.0, p.remaining - p.travelled)
+        fb_msg = self.nav.msg("Feedback")(
+            current_pose=convert.pose_stamped(self.types, xy, yaw, self.svc._stamp()),
+            navigation_time=duration(self.types, p.nav_time + (now - p.at)),
+            estimated_time_remaining=duration(self.types, remaining / self.speed_mps),
+            number_of_recoveries=max(-(2**15), min(p.recoveries, 2**15 - 1)),
+            distance_remaining=remaining,
+        )
+        self.nav.publish_feedback(p.uuid, fb_msg)
+        self._count("feedback")
 
     def tick(self) -> None:
         """The service's loop: results expire, a navigation goal the explorer went silent on
@@ -624,6 +728,8 @@ class Ros2Actions:
             if self.nav.book.get(uuid) is None:  # expired (or never accepted)
                 self._explorer_ids.pop(gid, None)
         now = self.nav.book.clock()
+        if self._progress is not None and now >= self._next_feedback:
+            self._send_feedback(now)
         for g in self.nav.book.running():
             if now - g.seen_at > FEEDBACK_TIMEOUT_S:
                 why = f"no feedback from the explorer for {FEEDBACK_TIMEOUT_S:g} s"
@@ -635,9 +741,9 @@ class Ros2Actions:
     def compute_path(self, uuid: bytes, goal, reply) -> tuple[bool, str]:
         """Accept a ComputePathToPose goal and plan it on this worker; (accepted, why not)."""
         try:
-            gx, gy, _ = goal_pose_checked(goal.goal, self.world_frames)
+            ends = [goal_pose_checked(goal.goal, self.frames)]
             if goal.use_start:
-                sx, sy, _ = goal_pose_checked(goal.start, self.world_frames)
+                ends.append(goal_pose_checked(goal.start, self.frames))
         except ValueError as exc:
             return False, f"value: {exc}"
         book = self.plan.book
@@ -653,13 +759,26 @@ class Ros2Actions:
             why = f"planner_id {goal.planner_id!r}: smana's planner is '' or 'smana'"
             self._plan_end(uuid, None, PLAN_INVALID_PLANNER, why, t0)
             return True, ""
+        try:
+            gx, gy, gyaw = self.world_pose(*ends[0])
+            if goal.use_start:
+                sx, sy, _ = self.world_pose(*ends[1])
+        except NoTransform as exc:
+            self._plan_end(uuid, None, PLAN_TF_ERROR, str(exc), t0)
+            return True, ""
         if not goal.use_start:
             pose = self.svc._last_pose
             if pose is None:
                 self._plan_end(uuid, None, PLAN_UNKNOWN, "no robot pose yet (use_start)", t0)
                 return True, ""
             sx, sy = float(pose.position[0]), float(pose.position[1])
-        ask = PathRequest(request_id=f"ros2-{uuid.hex()[:12]}", start=[sx, sy], goal=[gx, gy])
+        ask = PathRequest(
+            request_id=f"ros2-{uuid.hex()[:12]}",
+            start=[sx, sy],
+            goal=[gx, gy],
+            allow_unknown=self.through_unknown,
+            unknown_cost=self.unknown_cost,
+        )
         try:
             answer = request(
                 self.svc.session, keys.path_query(self.svc.robot), ask, QUERY_TIMEOUT_S
@@ -677,12 +796,15 @@ class Ros2Actions:
             why = f"{answer.error}: {answer.message}"
             self._plan_end(uuid, None, plan_error_code(answer.error, answer.message), why, t0)
         else:
-            self._plan_end(uuid, answer.path, 0, "", t0)
+            self._plan_end(uuid, answer.path, 0, "", t0, gyaw)
         return True, ""
 
-    def _plan_end(self, uuid: bytes, path, code: int, why: str, t0: float) -> None:
+    def _plan_end(self, uuid: bytes, path, code: int, why: str, t0: float, yaw=None) -> None:
+        """End a ComputePathToPose goal; its path's last pose faces `yaw` (the goal's), as
+        Nav2's planners leave it."""
+        path = np.zeros((0, 3)) if path is None else path
         result = self.plan.msg("Result")(
-            path=convert.path(self.types, np.zeros((0, 3)) if path is None else path, time.time()),
+            path=convert.path(self.types, path, time.time(), final_yaw=yaw),
             planning_time=duration(self.types, time.monotonic() - t0),
             error_code=code,
             error_msg=why,
@@ -697,6 +819,21 @@ class Ros2Actions:
             "navigate_running": _announced(self.nav.book),
             "compute_path_running": _announced(self.plan.book),
         }
+
+
+@dataclass
+class _Progress:
+    """A NavigateToPose goal's progress as the explorer last reported it (`at`, monotonic), and
+    the way the robot has driven since."""
+
+    uuid: bytes
+    pose: list  # x, y, yaw
+    remaining: float
+    nav_time: float
+    recoveries: int
+    at: float
+    travelled: float = 0.0
+    last_xy: tuple | None = None
 
 
 def _announced(book: GoalBook) -> int:

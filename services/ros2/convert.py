@@ -259,13 +259,16 @@ def pose_stamped(types, xy, yaw: float, t_s: float, frame: str = "map", z: float
     )
 
 
-def path(types, path_xy, t_s: float, frame: str = "map"):
-    """A path of (x, y[, z]) waypoints; each pose faces the next waypoint."""
+def path(types, path_xy, t_s: float, frame: str = "map", final_yaw: float | None = None):
+    """A path of (x, y[, z]) waypoints; each pose faces the next waypoint, the last one
+    `final_yaw` when given (a goal's heading, as Nav2's planners end a path)."""
     pts = np.asarray(path_xy, np.float64).reshape(-1, np.shape(path_xy)[-1] if len(path_xy) else 2)
     poses = []
     for i, p in enumerate(pts):
         q = pts[min(i + 1, len(pts) - 1)] - pts[max(i - 1, 0)] if len(pts) > 1 else (1.0, 0.0)
         yaw = math.atan2(q[1], q[0])
+        if final_yaw is not None and i == len(pts) - 1:
+            yaw = float(final_yaw)
         poses.append(pose_stamped(types, p[:2], yaw, t_s, frame, p[2] if len(p) > 2 else 0.0))
     return types.msg("nav_msgs/msg/Path")(header=header(types, t_s, frame), poses=poses)
 

@@ -226,13 +226,25 @@ class RosNode:
     and gids. Receiving stays with the caller (a smana `Service` subscribes to `key` itself, so
     its books count ROS messages like any other); publishing goes through `RosPublisher`."""
 
-    def __init__(self, session, types: RosTypes, domain_id: int, name: str, namespace: str):
+    def __init__(
+        self,
+        session,
+        types: RosTypes,
+        domain_id: int,
+        name: str,
+        namespace: str,
+        announce: bool = True,
+    ):
+        """`announce=False`: the endpoints' tokens wait for `announce()`, so that a ROS 2 client
+        that sees a server's tokens finds its queryables and subscribers already declared
+        (rmw_zenoh_cpp declares the zenoh entity first, then its token)."""
         self.session, self.types, self.domain_id = session, types, int(domain_id)
         self.name, self.namespace = name, namespace
         self.zid = str(session.zid())
         self.node_id = 0
         self._next_entity = 1
         self._declared: list = [session.liveliness().declare_token(self._prefix(0, NODE))]
+        self._pending: list[str] | None = None if announce else []
 
     def _prefix(self, entity_id: int, kind: str) -> str:
         return (
@@ -241,7 +253,8 @@ class RosNode:
         )
 
     def endpoint(self, kind: str, name: str, typename: str, qos: QoS = QoS()) -> tuple[str, int]:
-        """Declare an endpoint's liveliness token; returns its data key and entity id."""
+        """Declare an endpoint's liveliness token (or hold it for `announce`); returns its data
+        key and entity id."""
         key, entity_id, _ = self._endpoint(kind, name, typename, qos)
         return key, entity_id
 
@@ -253,8 +266,19 @@ class RosNode:
             f"{self._prefix(entity_id, kind)}/{mangle(name)}/{dds_type_name(typename)}/"
             f"{type_hash}/{qos.token()}"
         )
-        self._declared.append(self.session.liveliness().declare_token(token))
+        if self._pending is None:
+            self._declared.append(self.session.liveliness().declare_token(token))
+        else:
+            self._pending.append(token)
         return data_key(self.domain_id, name, typename, type_hash), entity_id, gid_of(token)
+
+    def announce(self) -> int:
+        """Declare the endpoints' tokens held back (`announce=False`), in the order their
+        endpoints were made; endpoints made afterwards are announced at once. Returns how many."""
+        pending, self._pending = self._pending or [], None
+        for token in pending:
+            self._declared.append(self.session.liveliness().declare_token(token))
+        return len(pending)
 
     def publisher(self, topic: str, typename: str, qos: QoS = QoS()) -> RosPublisher:
         import zenoh

@@ -152,7 +152,10 @@ class Ros2Service(Service):
     def setup(self) -> None:
         r, rc = self.robot, self.config.ros2
         ns = f"/smana/{r}"
-        self.node = RosNode(self.session, self.types, rc.domain_id, rc.node_name, ns)
+        # Every endpoint's token waits until the whole node can answer (the end of setup).
+        self.node = RosNode(
+            self.session, self.types, rc.domain_id, rc.node_name, ns, announce=False
+        )
         node = self.node
         self.pubs = {
             "map": node.publisher(f"{ns}/map", CLOUD, LATCHED_QOS),
@@ -205,6 +208,7 @@ class Ros2Service(Service):
         self._declared.append(
             self.session.liveliness().declare_subscriber(keys.alive(r, "*"), self._on_alive)
         )
+        node.announce()
         self.log.info(
             "ROS 2 node %s/%s on domain %d (zenoh %s)%s",
             ns,
@@ -315,6 +319,8 @@ class Ros2Service(Service):
             dyaw = math.remainder(pose.yaw - last.yaw, math.tau)
             twist = (float(d @ [math.cos(pose.yaw), math.sin(pose.yaw)]) / dt, dyaw / dt)
         self._last_pose = pose
+        if self.actions is not None:
+            self.actions.on_pose(float(pose.position[0]), float(pose.position[1]))
         self._send("odom", convert.odometry(self.types, pose, twist=twist))
         if "tf" in self.pubs:
             self._send("tf", convert.robot_frames(self.types, pose))
