@@ -192,6 +192,7 @@ class _Svc:
         self.node, self.session, self.robot = _Node(), _Session(), "r1"
         self._declared: list = []
         self.notes: list = []
+        self._last_pose = None  # no robot pose: feedback carries the explorer's
 
     def subscribe(self, key, callback) -> None:
         pass

@@ -3,9 +3,13 @@ navigator mode, ros2) on an isolated router with gossip on, driven through the R
 an action client made of zenoh-ros2-sdk's parts (tests/support/ros2_action_client.py), as a Nav2
 user's client or RViz2 would drive it.
 
-NavigateToPose to a free place 4 m away arrives within the goal tolerance with feedback; a goal
-pre-empted by a second ends ABORTED and a canceled one CANCELED with the robot stopped; a
-`/goal_pose` message drives like a goal; ComputePathToPose returns the path `smana plan` prints."""
+The ros2 service joins a running stack: ComputePathToPose asked the moment its server's tokens
+appear returns a path over ground not seen yet within 3 s. NavigateToPose to a free place 4 m
+away arrives within the goal tolerance with feedback at 5 Hz or more; a goal in `base_link`
+arrives where the robot's pose put it; a goal far outside the map is accepted and aborted
+GOAL_OUTSIDE_MAP within 10 s; a goal pre-empted by a second ends ABORTED and a canceled one
+CANCELED with the robot stopped; a `/goal_pose` message drives like a goal; ComputePathToPose
+returns the path `smana plan --allow-unknown` prints."""
 
 from __future__ import annotations
 
@@ -71,16 +75,20 @@ class Track:
     """The robot's true pose (the simulator's `robot/pose_truth`), with arrival times."""
 
     def __init__(self, stack):
-        self.poses: list[tuple[float, float, float]] = []  # (monotonic, x, y)
+        self.poses: list[tuple[float, float, float, float]] = []  # (monotonic, x, y, yaw)
         self._lock = threading.Lock()
         self.sub = stack.session.declare_subscriber(keys.pose_truth(stack.robot), self._on)
 
     def _on(self, sample) -> None:
         p = decode(sample.payload.to_bytes(), Pose)
         with self._lock:
-            self.poses.append((time.monotonic(), float(p.position[0]), float(p.position[1])))
+            self.poses.append((time.monotonic(), float(p.position[0]), float(p.position[1]), p.yaw))
 
     def last(self) -> tuple[float, float]:
+        with self._lock:
+            return self.poses[-1][1:3]
+
+    def pose(self) -> tuple[float, float, float]:
         with self._lock:
             return self.poses[-1][1:]
 
@@ -92,7 +100,7 @@ class Track:
             recent = [p for p in self.poses if p[0] >= now - window_s]
         if len(recent) < 2 or recent[-1][0] - recent[0][0] < 0.9 * window_s:
             return False
-        xy = np.array([p[1:] for p in recent])
+        xy = np.array([p[1:3] for p in recent])
         return float(np.hypot(*(xy.max(0) - xy.min(0)))) < within_m
 
 
@@ -101,7 +109,7 @@ def test_actions_drive_smana_in_simulation(ros_stack):
 
     s = ros_stack
     sets = [a for kv in SETS for a in ("--set", kv)]
-    names = ("sim", "mapper", "navgraph", "planner", "explorer", "ros2")
+    names = ("sim", "mapper", "navgraph", "planner", "explorer")
     for name in names:
         s.service(name, *sets)
     for name in names:
@@ -116,6 +124,39 @@ def test_actions_drive_smana_in_simulation(ros_stack):
             "get_result": types.hash(n2.part(action, "GetResult")),
         }
         return ActionClient(s.port, f"{NS}/{name}", action, texts, hashes)
+
+    # 0. The ros2 service joins the running stack. The moment its ComputePathToPose server's
+    #    send_goal token appears (rmw_zenoh's discovery), a path over ground not seen yet is
+    #    asked for: the server answers (its queryables came before its tokens) and plans
+    #    through the unknown (Nav2's allow_unknown), within 3 s of the token.
+    plan = client(PLAN, "compute_path_to_pose", COMPUTE_PATH_TO_POSE)
+    seen: list[float] = []
+    watch = s.session.liveliness().declare_subscriber(
+        "@ros2_lv/**",
+        lambda sample: (
+            "compute_path_to_pose%_action%send_goal" in str(sample.key_expr)
+            and seen.append(time.monotonic())
+        ),
+    )
+    s.service("ros2", *sets)
+    assert wait_for(lambda: seen, 240), s.log("ros2")
+    uuid, resp = plan.send_goal(
+        goal=pose_stamped(plan, 5.0, 5.0, math.pi / 2),
+        start=pose_stamped(plan, 0.0, 0.0),
+        planner_id="",
+        use_start=True,
+    )
+    assert resp.accepted
+    r = plan.get_result(uuid, 30.0)
+    took = time.monotonic() - seen[0]
+    watch.undeclare()
+    assert r.status == n2.STATUS_SUCCEEDED, (r.result.error_code, r.result.error_msg)
+    assert took <= 3.0, f"a path {took:.2f} s after the server appeared"
+    end = r.result.path.poses[-1].pose
+    assert (end.position.x, end.position.y) == pytest.approx((5.0, 5.0), abs=0.1)
+    assert 2 * math.atan2(end.orientation.z, end.orientation.w) == pytest.approx(math.pi / 2)
+    print(f"ComputePathToPose over unseen ground: {took:.2f} s after the server's tokens")
+    s.wait_alive("ros2", timeout_s=240)
 
     nav = client(NAV, "navigate_to_pose", NAVIGATE_TO_POSE)
     results: dict[bytes, object] = {}
@@ -143,11 +184,33 @@ def test_actions_drive_smana_in_simulation(ros_stack):
     assert fb[-1].current_pose.header.frame_id == "map"
     gaps = nav.feedback_gaps(g1)
     assert max(gaps) <= 1.0, f"feedback below 1 Hz: gaps up to {max(gaps):.2f} s"
+    assert np.median(gaps) <= 0.2, f"feedback below 5 Hz: median gap {np.median(gaps):.2f} s"
     print(
         f"NavigateToPose 4 m: {fb[-1].navigation_time.sec} s of navigation, {len(fb)} feedback "
         f"messages, gaps {np.median(gaps):.2f} s median, {max(gaps):.2f} s max; arrived "
         f"{math.hypot(x - 4.0, y):.3f} m from the goal"
     )
+
+    # 1b. A goal in base_link, 1 m behind and 1 m to the left of where the robot stands:
+    #     placed by the robot's pose when it was sent, and reached there.
+    rx, ry, ryaw = track.pose()
+    want = (rx - 1.0 * math.cos(ryaw) - 1.0 * math.sin(ryaw),
+            ry - 1.0 * math.sin(ryaw) + 1.0 * math.cos(ryaw))  # fmt: skip
+    gb, resp = nav.send_goal(pose=pose_stamped(nav, -1.0, 1.0, 0.0, "base_link"), behavior_tree="")
+    assert resp.accepted
+    r = nav.get_result(gb, 240.0)
+    assert r.status == n2.STATUS_SUCCEEDED, (r.result.error_code, r.result.error_msg)
+    x, y = track.last()
+    assert math.hypot(x - want[0], y - want[1]) <= TOLERANCE_M + 0.1, ((x, y), want)
+
+    # 1c. A goal 50 m away, far outside the map: accepted, then aborted GOAL_OUTSIDE_MAP (the
+    #     code Nav2's navigator takes from its planner) within 10 s.
+    t0 = time.monotonic()
+    gf, resp = nav.send_goal(**goal(50.0, 0.0))
+    assert resp.accepted
+    r = nav.get_result(gf, 30.0)
+    assert r.status == n2.STATUS_ABORTED and r.result.error_code == 204, r
+    assert "outside" in r.result.error_msg and time.monotonic() - t0 <= 10.0
 
     # 2. Pre-emption and cancel: a goal 4 m back, pre-empted on the way by one to the side
     #    (the first ends ABORTED, as Nav2's); that one canceled: CANCELED, and the robot stops.
@@ -191,9 +254,8 @@ def test_actions_drive_smana_in_simulation(ros_stack):
     assert math.hypot(x - 1.0, y + 2.0) <= TOLERANCE_M + 0.05, (x, y)
     pub.close()
 
-    # 4. ComputePathToPose: the path `smana plan` prints for the same start and goal (on ground
-    #    the robot has seen: neither crosses unknown nodes by default).
-    plan = client(PLAN, "compute_path_to_pose", COMPUTE_PATH_TO_POSE)
+    # 4. ComputePathToPose: the path `smana plan --allow-unknown` prints for the same start and
+    #    goal (both through unknown ground at the planner's unknown_cost).
     agree = []
     for _ in range(5):  # the graph may change between the two asks while the map grows
         uuid, resp = plan.send_goal(
@@ -210,7 +272,7 @@ def test_actions_drive_smana_in_simulation(ros_stack):
                              for p in r.result.path.poses])  # fmt: skip
         done = subprocess.run(
             [sys.executable, "-m", "smana.deploy", "plan", "--from", "0.5,-0.5", "--to", "3.5,0.5",
-             "--json", *s.zenoh_args(), "--robot", s.robot],
+             "--allow-unknown", "--json", *s.zenoh_args(), "--robot", s.robot],
             capture_output=True, text=True, timeout=60,
         )  # fmt: skip
         assert done.returncode == 0, done.stderr

@@ -78,6 +78,7 @@ MAX_BEHAVIOR_TREE_CHARS = 4096  # NavigateToPose's behavior_tree: a path (PATH_M
 MAX_WAITING_RESULTS = 16  # get_result requests held for one goal
 FEEDBACK_TIMEOUT_S = 5.0  # a navigation goal without explorer feedback this long is aborted
 QUERY_TIMEOUT_S = 5.0  # the explorer's and the planner's answers
+PLANNER_RETRY_S = 0.2  # a planner not answering at all (starting) is asked again this often
 ACTION_THREADS, ACTION_WAITING = 2, 32
 FEEDBACK_HZ = 10.0  # Nav2's navigator sends one per behaviour-tree tick (100 Hz): 10 is enough
 # ERROR CODES. smana serves Jazzy's definitions. ComputePathToPose's are Jazzy's own. Jazzy's
@@ -676,14 +677,13 @@ class Ros2Actions:
             "preempted": (STATUS_ABORTED, 0),
             "canceled": (STATUS_CANCELED, 0),
         }.get(state)
+        if pose is not None:
+            self._progress = _Progress(uuid, pose, remaining, nav_time, recoveries, now)
+            self._send_feedback(now)  # at once (the last word too): the ticks go on from it
         if end is not None:
             if self._progress is not None and self._progress.uuid == uuid:
                 self._progress = None
             self._end(self.nav, uuid, end[0], self._empty_result(self.nav, end[1], reason))
-            return
-        if pose is not None:
-            self._progress = _Progress(uuid, pose, remaining, nav_time, recoveries, now)
-            self._send_feedback(now)  # at once: the ticks go on from it
 
     def on_pose(self, x: float, y: float) -> None:
         """The robot's pose (the service's loop): how far it has gone since the explorer's
@@ -780,9 +780,7 @@ class Ros2Actions:
             unknown_cost=self.unknown_cost,
         )
         try:
-            answer = request(
-                self.svc.session, keys.path_query(self.svc.robot), ask, QUERY_TIMEOUT_S
-            )
+            answer = self._ask_planner(ask, t0)
         except QueryError as exc:
             # Nothing answered (no planner) or the deadline passed (zenoh's timeout reply):
             # TIMEOUT; an error reply of the planner's own: UNKNOWN.
@@ -798,6 +796,19 @@ class Ros2Actions:
         else:
             self._plan_end(uuid, answer.path, 0, "", t0, gyaw)
         return True, ""
+
+    def _ask_planner(self, ask: PathRequest, t0: float):
+        """The planner's answer within QUERY_TIMEOUT_S of `t0`. While no planner answers at all
+        (it is still starting), asked again until then, as Nav2's behaviour tree waits for its
+        planner server (`wait_for_service_timeout`)."""
+        while True:
+            left = QUERY_TIMEOUT_S - (time.monotonic() - t0)
+            try:
+                return request(self.svc.session, keys.path_query(self.svc.robot), ask, left)
+            except QueryError as exc:
+                if exc.kind != "no_reply" or left < PLANNER_RETRY_S or self.svc.stopping:
+                    raise
+            time.sleep(PLANNER_RETRY_S)
 
     def _plan_end(self, uuid: bytes, path, code: int, why: str, t0: float, yaw=None) -> None:
         """End a ComputePathToPose goal; its path's last pose faces `yaw` (the goal's), as
