@@ -107,6 +107,11 @@ class ExplorerConfig(Section, section="explorer"):
     # speed cap while the robot stands on a safety-zone or obstacle node (it got there because
     # an obstacle was mapped late): it backs out slowly
     creep_speed_mps: float = param(0.15, gt=0)
+    # turning on the spot sweeps a circle of this radius (the footprint's circumscribed radius:
+    # the simulated robot's is 0.42 m). With a known obstacle node inside it the robot creeps
+    # along its path (forward, or in reverse towards what lies behind) until it can turn, and
+    # takes no look-around spin there. 0: it turns anywhere.
+    turn_clearance_m: float = param(0.45, ge=0)
     done_after_empty: int = param(3, gt=0)  # plans finding no view before it is done
     # then, before it gives up: drive to look again at what cuts it off from free ground it has
     # seen (services/explorer/recovery.py), at most this many times while no view is found, each

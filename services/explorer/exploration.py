@@ -171,6 +171,7 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
         self.n_goals = 0
         self.n_replans_blocked = 0
         self.n_stuck = 0
+        self.n_turns_avoided = 0  # control ticks that crept instead of turning into an obstacle
         self.last_outcome: PlanOutcome | None = None
         self.explored_m2 = 0.0
         self.frontier_size = 0
@@ -465,6 +466,7 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
             "n_goals": self.n_goals,
             "n_blocked": self.n_replans_blocked,
             "n_stuck": self.n_stuck,
+            "n_turns_avoided": self.n_turns_avoided,
             "n_recoveries": self.n_recoveries,
             "n_looks": len(self._looked_at),
             "n_claims_refused": self.n_claims_refused,

@@ -32,6 +32,10 @@ class FollowCommand:
     done: bool
     progress_index: int
     cross_track_m: float
+    # the point a turn on the spot turns towards (None for any other command): the explorer
+    # creeps towards it instead where the turn would sweep an obstacle
+    turn_target: tuple[float, float] | None = None
+    final_turn: bool = False  # turning on the spot to the path's final heading
 
 
 @dataclass
@@ -115,7 +119,7 @@ class PurePursuit:
             if abs(err) <= cfg.final_yaw_tolerance_rad:
                 return FollowCommand(0.0, 0.0, True, self._progress, cross)
             w = math.copysign(min(cfg.max_angular_radps, max(0.3, 2.0 * abs(err))), err)
-            return FollowCommand(0.0, w, False, self._progress, cross)
+            return FollowCommand(0.0, w, False, self._progress, cross, final_turn=True)
 
         # lookahead point: the first path point at least L along the path from the nearest point,
         # and at least L away from the robot (otherwise a robot off the path chases its own foot)
@@ -133,7 +137,8 @@ class PurePursuit:
         alpha = wrap_angle(math.atan2(dy, dx) - yaw)
         if abs(alpha) > cfg.turn_in_place_rad:
             w = math.copysign(cfg.max_angular_radps, alpha)
-            return FollowCommand(0.0, w, False, self._progress, cross)
+            turn_target = (float(target[0]), float(target[1]))
+            return FollowCommand(0.0, w, False, self._progress, cross, turn_target)
         taper = max(0.0, 1.0 - abs(alpha) / cfg.slow_down_rad)
         # slow down on the last metre so the goal is not overshot at full speed
         v = cfg.max_linear_mps * taper * min(1.0, 0.3 + to_goal)
