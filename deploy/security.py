@@ -82,11 +82,13 @@ RELAY_MESSAGES = [m for m in ALL_MESSAGES if m != "query"]
 
 # ROS 2 over rmw_zenoh (docs/ros2.md, "The secured profile"). Data keys are `<domain>/<topic>/
 # <type>/<hash>` (any domain: `*`); a robot's own topics are in its ROS namespace `/<robot>`
-# (Nav2's multi-robot convention), smana's in `/smana/<robot>`. Liveliness tokens are
-# `@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/<namespace>/...`: scoped by
-# their namespace chunk, `%<robot>` or below it. A transient-local publisher's cache, heartbeat
-# and detection token hang below its data key under `@adv/`, which `**` never matches (a chunk
-# that starts with `@` is matched only by itself), so each rule names them too.
+# (Nav2's multi-robot convention), smana's in `/smana/<robot>`, a simulated robot's frames too
+# (`/smana/<robot>/tf`, ros2.tf_topic "auto": a shared /tf any robot could write is granted to
+# none). Liveliness tokens are `@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<kind>/<enclave>/
+# <namespace>/...`: scoped by their namespace chunk, `%<robot>` or below it. A transient-local
+# publisher's cache, heartbeat and detection token hang below its data key under `@adv/`, which
+# `**` never matches (a chunk that starts with `@` is matched only by itself), so each rule
+# names them too.
 ROS2_PEER_TOPICS = ("points", "odom", "tf_static", "goal_pose")  # the robot's peer publishes
 ROS2_CALLS = ("navigate_to_pose/_action", "compute_path_to_pose/_action", "plan")  # /smana/<r>/
 EXPLORER_GOAL_QUERIES = ("explorer/goal", "explorer/goal/cancel")  # smana/<robot>/...

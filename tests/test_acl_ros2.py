@@ -32,6 +32,7 @@ pytestmark = pytest.mark.multiprocess
 
 POSE = "geometry_msgs::msg::dds_::PoseStamped_/RIHS01_" + "1" * 64
 SEND_GOAL = "nav2_msgs::action::dds_::NavigateToPose_SendGoal_/RIHS01_" + "2" * 64
+TF = "tf2_msgs::msg::dds_::TFMessage_/RIHS01_" + "3" * 64
 
 
 def goal_pose(robot: str) -> str:
@@ -40,6 +41,11 @@ def goal_pose(robot: str) -> str:
 
 def send_goal(robot: str) -> str:
     return f"0/smana/{robot}/navigate_to_pose/_action/send_goal/{SEND_GOAL}"
+
+
+def tf_key(robot: str) -> str:
+    """Robot `robot`'s simulated frames under the secured profile (`ros2.tf_topic` "auto")."""
+    return f"0/smana/{robot}/tf/{TF}"
 
 
 def token(robot: str, node: str, topic: str) -> str:
@@ -293,6 +299,70 @@ def test_the_ros2_service_publishes_under_smana_r_and_nothing_of_another_robot(r
             s.close()
 
 
+# Puts of r1's ros2 service on r2's tf topic and on the shared /tf: every shape.
+TF_PUTS_OF_R1 = {
+    "r2's tf": tf_key("r2"),
+    "r2's tf/**": "0/smana/r2/tf/**",
+    "*/smana/r2/tf": f"*/smana/r2/tf/{TF}",
+    "smana/*/tf": f"0/smana/*/tf/{TF}",
+    "smana/r$*/tf": f"0/smana/r$*/tf/{TF}",
+    "smana/**": "0/smana/**",
+    "**": "**",
+    "/tf": f"0/tf/{TF}",
+    "*/tf": f"*/tf/{TF}",
+    "*/tf/**": "*/tf/**",
+}
+
+
+def test_a_robots_ros2_service_publishes_its_own_tf_topic_only(router):
+    """`r1.ros2` publishes its robot's frames on `/smana/r1/tf`; on r2's tf topic and on the
+    shared /tf it gets nothing through, by the exact key or by `*`, `**` or `$*`, while its own
+    put made afterwards, and r2's on r2's, arrive."""
+    watcher = router.open("r2", "ros2peer")  # every identity but a router may read
+    got: list[str] = []
+    subs = [
+        watcher.declare_subscriber(key, lambda s: got.append(s.payload.to_string()))
+        for key in ("*/smana/*/tf/**", "*/tf/**")
+    ]
+    smana1, smana2 = router.open("r1", "ros2"), router.open("r2", "ros2")
+    try:
+        for session, robot in ((smana1, "r1"), (smana2, "r2")):
+            _routed(session, tf_key(robot))
+        _routed(smana1, f"0/tf/{TF}")
+        for shape, key in TF_PUTS_OF_R1.items():
+            _put(smana1, key, f"r1 on {shape}")
+        _put(smana1, tf_key("r1"), "r1 own")
+        _put(smana2, tf_key("r2"), "r2 own")
+        assert wait_for(lambda: {"r1 own", "r2 own"} <= set(got), 30), got
+        assert sorted(got) == ["r1 own", "r2 own"], got
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        for session in (watcher, smana1, smana2):
+            session.close()
+
+
+def test_the_policy_lets_no_identity_put_on_the_shared_tf():
+    """No allow rule that takes a put in (ingress) intersects `/tf`'s keys, in the base's policy
+    of two robots and a fleet (each robot's own is a part of it)."""
+    import zenoh
+
+    from smana.deploy.security import acl_policy
+
+    shared = [zenoh.KeyExpr(f"{d}/tf/{TF}") for d in ("0", "42")]
+    policy = acl_policy(["r1", "r2"], "fleet", "base")
+    puts = [
+        k
+        for rule in policy["rules"]
+        if rule["permission"] == "allow"
+        and "put" in rule["messages"]
+        and "ingress" in rule["flows"]
+        for k in rule["key_exprs"]
+    ]
+    assert any(k == "*/smana/r1/**" for k in puts), puts  # where r1's frames go instead
+    assert not [k for k in puts for tf in shared if zenoh.KeyExpr(k).intersects(tf)], puts
+
+
 def test_a_transient_local_publisher_works_through_the_secured_router(router):
     """smana's map publisher (reliable, transient-local: an AdvancedPublisher with its cache,
     heartbeat and detection token under `@adv/`) as `r1.ros2`: a late subscriber logged in as
@@ -345,7 +415,8 @@ def test_the_policy_names_the_ros2_roles():
 def test_the_ros2_service_reads_its_robots_peer_over_tls_and_no_other(router, tmp_path):
     """`smana ros2` logged in as `r1.ros2` over TLS, reading robot r1's topics in `/r1`: r1's
     peer's odometry reaches `smana/r1/robot/pose` and comes back as `/smana/r1/odom`; r2's
-    peer's odometry on `/r1/odom` never reaches it."""
+    peer's odometry on `/r1/odom` never reaches it. The peer's static transforms on
+    `/r1/tf_static` (`ros2.tf_static_topic`) are taken."""
     pytest.importorskip("rosbags")
     import numpy as np
 
@@ -366,6 +437,7 @@ def test_the_ros2_service_reads_its_robots_peer_over_tls_and_no_other(router, tm
         "ros2.odom_topic": "/r1/odom",
         "ros2.cloud_topic": "/r1/points",
         "ros2.cmd_vel_topic": "/r1/cmd_vel",
+        "ros2.tf_static_topic": "/r1/tf_static",
     }
     argv = [sys.executable, "-m", "smana.services.ros2", "--mode", "client"]
     argv += ["--connect", router.endpoint, "--robot", "r1"]
@@ -430,6 +502,15 @@ def test_the_ros2_service_reads_its_robots_peer_over_tls_and_no_other(router, tm
         assert wait_for(lambda: odometry_in()[0] >= 20, 30), odometry_in()
         n, st = odometry_in()
         assert n == 20 and set(st.rejected) <= {"settling"} and st.books_add_up(), st
+        static_pub = node1.publisher("/r1/tf_static", "tf2_msgs/msg/TFMessage")
+        _routed(peer1, static_pub.key)
+        mount = Pose(t0, 1, np.array([0.2, 0.0, 0.5]), np.eye(4)[3])
+        static_pub.put(convert.robot_frames(types, mount, "base_link", "mount", "lidar"))
+
+        def static_frames():
+            return request(tool, "smana/r1/ros2/status", None, 3.0).details["static_frames"]
+
+        assert wait_for(lambda: static_frames() == 2, 30), static_frames()
     finally:
         for s in (tool, peer1, peer2):
             s.close()

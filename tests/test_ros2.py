@@ -130,6 +130,34 @@ def test_attachment_is_rmw_zenohs():
             rmw.parse_attachment(bad)
 
 
+def test_the_attachment_of_rmw_zenoh_before_its_compact_format_is_refused():
+    """rmw_zenoh_cpp before 0.2.4 (Jazzy), 0.1.2 (Humble) and 0.6.0 (Rolling) named each field
+    in the attachment ("sequence_number", int64, "source_timestamp", int64, "source_gid", the
+    gid), in zenoh-ext's serialisation; smana reads the compact form only, and a GetPlan with the
+    named one is refused `malformed`."""
+    from types import SimpleNamespace
+
+    from zenoh import ext
+
+    from smana.common.config import SmanaConfig
+    from smana.common.service_queries import Request
+    from smana.services.ros2.service import Ros2Service
+
+    gid = bytes(range(16))
+    named = ext.z_serialize(
+        ("sequence_number", ext.Int64(7), "source_timestamp", ext.Int64(9), "source_gid", gid)
+    ).to_bytes()
+    assert named.startswith(b"\x0fsequence_number") and named.endswith(b"\x10" + gid)
+    with pytest.raises(ValueError, match="not an rmw_zenoh attachment"):
+        rmw.parse_attachment(named)
+    svc = Ros2Service(SmanaConfig.load())
+    svc.types = TYPES
+    svc.node = SimpleNamespace(reply_attachment=lambda a: rmw.RosNode.reply_attachment(None, a))
+    with pytest.raises(Reject) as e:
+        svc.on_plan(Request("plan", {}, b"", False, named))
+    assert e.value.kind == "malformed" and "not an rmw_zenoh attachment" in str(e.value)
+
+
 def _delta(rng, seq, res=0.1):
     n = int(rng.integers(0, 60))
     idx = rng.integers(-8, 8, size=(n, 3))

@@ -396,3 +396,95 @@ def test_r1s_peer_drives_r1_and_r2s_peer_cannot(secured):
     pub2.close()
     pub2_own.close()
     print(f"secured e2e: {time.monotonic() - track.poses[0][0]:.0f} s from the first pose")
+
+
+def test_r1s_frames_reach_a_ros2_subscriber_and_r1_cannot_publish_r2s(secured):
+    """r1's ros2 service on the secured profile (simulation, logged in as `r1.ros2`) puts its
+    robot's frames on `/smana/r1/tf` (`ros2.tf_topic` "auto": the policy grants no robot the
+    shared /tf). A ROS 2 subscriber logged in as `r1.ros2peer` gets map -> odom -> base_link at
+    r1's pose. A TFMessage a session of `r1.ros2` publishes on `/smana/r2/tf` never reaches a
+    subscriber of that topic logged in as `r2.ros2peer`, after the router declared it to that
+    session; r2's own, and the same session's later one on `/smana/r1/tf`, arrive."""
+    import zenoh
+    from zenoh_ros2_sdk import ROS2Subscriber
+
+    from smana.common.messages import Pose, encode
+    from smana.services.ros2 import convert
+
+    s = secured
+    s.service("ros2", "--set", "ros2.robot_input=off")
+    s.wait_alive("ros2", timeout_s=240)
+    details = request(s.session, keys.status(ROBOT, "ros2"), None, 5.0).details
+    assert details["frames"]["tf_topic"] == f"{NS}/tf", details
+    tf_type = "tf2_msgs/msg/TFMessage"
+    got: dict[str, list] = {ROBOT: [], OTHER: []}
+    lock = threading.Lock()
+
+    def keep(robot):
+        def cb(msg):
+            with lock:
+                got[robot].append(msg)
+
+        return cb
+
+    subs = []
+    for robot in (ROBOT, OTHER):
+        s.ros2_peer(robot)  # the SDK's current session: a subscriber takes it
+        subs.append(
+            ROS2Subscriber(f"/smana/{robot}/tf", tf_type, keep(robot), namespace=f"/{robot}")
+        )
+
+    def frames(robot) -> dict[str, tuple[str, float]]:
+        with lock:
+            msgs = list(got[robot])
+        return {
+            t.child_frame_id: (t.header.frame_id, t.transform.translation.x)
+            for m in msgs
+            for t in m.transforms
+        }
+
+    # r1's pose, as its simulator (`r1.sim`) publishes it, until its frames arrive.
+    sim = s.open(ROBOT, "sim")
+    pose_pub = sim.declare_publisher(
+        keys.pose(ROBOT), congestion_control=zenoh.CongestionControl.BLOCK
+    )
+    assert wait_for(lambda: pose_pub.matching_status.matching, 30)
+    n = [0]
+
+    def r1_frames() -> bool:
+        n[0] += 1
+        pose_pub.put(encode(Pose.from_xyz_yaw(1.5, -0.5, 0.0, 0.4, 50.0 + 0.1 * n[0], n[0])))
+        return "base_link" in frames(ROBOT)
+
+    assert wait_for(r1_frames, 60, step_s=0.1), s.log("ros2")[-2000:]
+    f1 = frames(ROBOT)
+    assert f1["odom"][0] == "map" and f1["base_link"] == ("odom", 1.5), f1
+
+    # A session of `r1.ros2` on r2's tf topic, once the router has declared r2's subscriber
+    # to it; then r2's own and the same session's on r1's.
+    types = rmw.RosTypes()
+
+    def tf_of(child: str) -> bytes:
+        pose = Pose.from_xyz_yaw(9.0, 9.0, 0.0, 0.0, stamp_s=60.0)
+        msg = convert.robot_frames(types, pose, "map", "odom", child)
+        return types.serialize(msg, tf_type)
+
+    def tf_key(robot: str) -> str:
+        return rmw.data_key(0, f"/smana/{robot}/tf", tf_type, types.hash(tf_type))
+
+    smana1, smana2 = s.open(ROBOT, "ros2"), s.open(OTHER, "ros2")
+    probe = smana1.declare_publisher(tf_key(OTHER))
+    assert wait_for(lambda: probe.matching_status.matching, 30)
+    probe.undeclare()
+    att = rmw.attachment(1, time.time_ns(), bytes(16))
+    block = zenoh.CongestionControl.BLOCK
+    smana1.put(tf_key(OTHER), tf_of("intruder"), attachment=att, congestion_control=block)
+    smana2.put(tf_key(OTHER), tf_of("r2_own"), attachment=att, congestion_control=block)
+    smana1.put(tf_key(ROBOT), tf_of("r1_later"), attachment=att, congestion_control=block)
+    assert wait_for(lambda: "r2_own" in frames(OTHER) and "r1_later" in frames(ROBOT), 30), (
+        frames(OTHER),
+        frames(ROBOT),
+    )
+    assert "intruder" not in frames(OTHER), frames(OTHER)
+    for sub in subs:
+        sub.close()

@@ -3,10 +3,28 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
 from smana.common.config._schema import ConfigError, Section, param
+
+# A tf frame prefix: what robot_state_publisher's `frame_prefix` prepends (tf2 refuses a frame id
+# that starts with '/'; a robot name of smana's is letters, digits, '_' and '-').
+_FRAME_PREFIX = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_./-]{0,63}")
+
+
+@dataclass(frozen=True)
+class Ros2Frames:
+    """The frame names the ros2 service of one robot publishes and accepts
+    (`Ros2Config.frames`): each is the configured name with the prefix in front."""
+
+    prefix: str
+    map: str  # smana's world frame as published (REP-105's map; map -> odom is the identity)
+    odom: str
+    base: str  # `ros2.base_frame`: the robot's body
+    # `ros2.world_frames`: a cloud or a goal in one of them is in smana's world
+    world: tuple[str, ...]
 
 
 @dataclass
@@ -37,15 +55,27 @@ class Ros2Config(Section, section="ros2"):
     # "auto": read the robot's topics when smana's simulator is not running ([deploy.sim]
     # enabled = false), "on" / "off" to force.
     robot_input: Literal["auto", "on", "off"] = "auto"
-    # Frames a cloud may already be in: used as it is (REP-105: smana's world is the odom frame).
     # The mapper input the robot's clouds go to: robot/scan (LiDAR) or robot/cloud (a depth
     # camera); the mapper listens to it when it is in mapper.inputs.
     cloud_input: Literal["scan", "cloud"] = "scan"
+    # Frames a cloud or a goal may already be in: used as it is (REP-105: smana's world is the
+    # odom frame). With a frame prefix these are prefixed too.
     world_frames: list[str] = param(["map", "odom"])
     # Clouds in a sensor frame: the sensor's pose on the robot (x, y, z, roll, pitch, yaw) when
-    # /tf_static does not give it; [] = from /tf_static only.
+    # the robot's static transforms do not give it; [] = from them only.
     sensor_extrinsic: list[float] = param([])
     base_frame: str = "base_link"
+    # Put in front of every frame name smana publishes or expects (`frames`), so that robots on
+    # one /tf keep disjoint trees (r1/map -> r1/odom -> r1/base_link). "auto": "<robot>/" when
+    # smana simulates the robot (robot_input off) and the config names two robots or more
+    # (fleet.robots, deploy.robots), "" otherwise; any other value is used as it is ("" = none).
+    frame_prefix: str = "auto"
+    # Where the simulated robot's frames go (tf2_msgs/TFMessage). "auto": /smana/<robot>/tf when
+    # the service logs in with a user (zenoh.credentials_file: the secured profiles, whose policy
+    # lets no robot write the shared /tf), /tf otherwise.
+    tf_topic: str = "auto"
+    # The robot's static transforms in (transient-local), for a cloud in a sensor frame.
+    tf_static_topic: str = "/tf_static"
     max_pose_gap_s: float = param(0.2, gt=0)  # odometry interpolated at most this far
     map_period_s: float = param(1.0, gt=0)  # /smana/<robot>/map at most this often
     # The map message's voxel budget (20 bytes each): past it, voxels are merged into cells of
@@ -63,11 +93,45 @@ class Ros2Config(Section, section="ros2"):
         for name in ("navigate_action", "compute_path_action"):
             if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,63}", getattr(self, name)):
                 raise ConfigError(f"ros2.{name}: one ROS 2 name token, got {getattr(self, name)!r}")
-        for name in ("cloud_topic", "odom_topic", "cmd_vel_topic", "goal_pose_topic"):
+        topics = ("cloud_topic", "odom_topic", "cmd_vel_topic", "goal_pose_topic", "tf_topic")
+        for name in (*topics, "tf_static_topic"):
             topic = getattr(self, name)
+            if name == "tf_topic" and topic == "auto":
+                continue
             if not topic.startswith("/") or "//" in topic or topic.endswith("/"):
                 raise ConfigError(f"ros2.{name}: a ROS 2 topic like /points, got {topic!r}")
+        p = self.frame_prefix
+        if p != "auto" and p and (not _FRAME_PREFIX.fullmatch(p) or "//" in p):
+            raise ConfigError(
+                'ros2.frame_prefix: auto, "" or a tf frame prefix like "r1/" (letters, digits, '
+                f"'_', '-', '.', '/'; not starting with '/', no '//'), got {p!r}"
+            )
         if self.sensor_extrinsic and len(self.sensor_extrinsic) != 6:
             raise ConfigError("ros2.sensor_extrinsic: [x, y, z, roll, pitch, yaw] or []")
         if not self.label_field:
             raise ConfigError("ros2.label_field: a field name, or none")
+
+    def frames(
+        self, robot: str, robots: Sequence[str] = (), robot_input: bool = False
+    ) -> Ros2Frames:
+        """The frame names robot `robot`'s ros2 service publishes and accepts, as a `Ros2Frames`:
+        each configured name with the frame prefix in front (`frame_prefix`). `robots`: the
+        robots the config names (fleet.robots and deploy.robots); `robot_input`: the service
+        reads a real robot's topics, whose frames are the robot's, so "auto" adds nothing."""
+        p = self.frame_prefix
+        if p == "auto":
+            p = f"{robot}/" if len(set(robots)) >= 2 and not robot_input else ""
+        return Ros2Frames(
+            prefix=p,
+            map=p + "map",
+            odom=p + "odom",
+            base=p + self.base_frame,
+            world=tuple(p + f for f in self.world_frames),
+        )
+
+    def tf_topic_for(self, robot: str, secured: bool = False) -> str:
+        """The topic the simulated robot's frames go on (see `tf_topic`); `secured`: the service
+        logs in with a user (zenoh.credentials_file)."""
+        if self.tf_topic != "auto":
+            return self.tf_topic
+        return f"/smana/{robot}/tf" if secured else "/tf"

@@ -282,7 +282,8 @@ class Ros2Family:
         from smana.services.ros2 import rmw
 
         typename = fuzz_ros2.TYPES_OF["tf_static"]
-        tf_key = rmw.data_key(config.ros2.domain_id, "/tf_static", typename, types.hash(typename))
+        rc = config.ros2
+        tf_key = rmw.data_key(rc.domain_id, rc.tf_static_topic, typename, types.hash(typename))
         cases = [self.inputs.case("tf_static") for _ in range(HISTORY)]
         f = self.fig
         for case in cases:  # handled in the service's set-up, before any live input
@@ -307,7 +308,7 @@ class Ros2Family:
         for topic, name in (
             ("odom", rc.odom_topic),
             ("cloud", rc.cloud_topic),
-            ("tf_static", "/tf_static"),
+            ("tf_static", rc.tf_static_topic),
         ):
             typename = fuzz_ros2.TYPES_OF[topic]
             key = rmw.data_key(rc.domain_id, name, typename, types.hash(typename))

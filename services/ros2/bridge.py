@@ -160,12 +160,16 @@ class CloudInput:
     """A ROS 2 robot's PointCloud2 -> SemanticCloud in the world frame.
 
     A cloud in a world frame (`ros2.world_frames`) is used as it is; one in a sensor frame is
-    placed with the odometry at its stamp and the sensor's pose on the robot (from /tf_static or
-    `ros2.sensor_extrinsic`). Labels come from the cloud's label field, or from the geometric
-    labeller (`label_field = none`). Each refusal is a `Reject` whose kind says why."""
+    placed with the odometry at its stamp and the sensor's pose on the robot (from the robot's
+    static transforms or `ros2.sensor_extrinsic`). Frame names are `frames`' (`Ros2Config.frames`:
+    prefixed when the config sets `ros2.frame_prefix`). Labels come from the cloud's label field,
+    or from the geometric labeller (`label_field = none`). Each refusal is a `Reject` whose kind
+    says why."""
 
-    def __init__(self, config, labeller: Callable | None):
+    def __init__(self, config, labeller: Callable | None, frames=None):
         self.rc = config.ros2
+        # a robot's input: "auto" adds no prefix (the frames are the robot's), a set one does
+        self.frames = frames or self.rc.frames("", robot_input=True)
         self.labeller = labeller  # (points_world, sensor_origin) -> labels, or None
         self.field = None if self.rc.label_field == "none" else self.rc.label_field
         self.poses = PoseHistory()
@@ -205,7 +209,7 @@ class CloudInput:
         return n
 
     def sensor_on_robot(self, frame: str) -> np.ndarray | None:
-        m = convert.chain(self.static, self.rc.base_frame, frame)
+        m = convert.chain(self.static, self.frames.base, frame)
         return m if m is not None else self.extrinsic
 
     def convert(self, msg) -> SemanticCloud:
@@ -222,7 +226,7 @@ class CloudInput:
             raise Reject("no_pose", f"cloud at {t:.3f} s: {what} on {self.rc.odom_topic}")
         points, labels, conf = decode_cloud(msg, self.field)
         ok = np.isfinite(points).all(axis=1)
-        if frame in self.rc.world_frames:
+        if frame in self.frames.world:
             # Already placed: the sensor is taken at the robot's odometry pose (plus the
             # extrinsic when known) so the mapper can carve free space along the rays.
             world_sensor = base @ (self.extrinsic if self.extrinsic is not None else np.eye(4))
@@ -232,8 +236,8 @@ class CloudInput:
             if on_robot is None:
                 raise Reject(
                     "no_transform",
-                    f"cloud in frame {frame!r}: no /tf_static chain from {self.rc.base_frame!r} "
-                    "and no ros2.sensor_extrinsic",
+                    f"cloud in frame {frame!r}: no static transforms from {self.frames.base!r} "
+                    f"on {self.rc.tf_static_topic} and no ros2.sensor_extrinsic",
                 )
             world_sensor = base @ on_robot
             world = (points @ world_sensor[:3, :3].T + world_sensor[:3, 3]).astype(np.float32)

@@ -2,6 +2,8 @@
 
 Frames follow REP-105: smana's world frame is the robot's `odom` frame, published as `map`
 (smana does no loop closure, so map -> odom is the identity); the robot body is `base_link`.
+Those are the defaults; the service passes the names of `Ros2Config.frames` (prefixed, `r1/map`,
+when robots share one /tf).
 """
 
 from __future__ import annotations

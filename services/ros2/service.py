@@ -1,7 +1,8 @@
 """The ros2 service: smana as a ROS 2 node over rmw_zenoh (the mapping is in `rmw.py`, the
 conversions in `convert.py`, the state in `bridge.py`; this file is the wiring).
 
-Out, for robot R (node `/smana/R/<ros2.node_name>`, frame `map`):
+Out, for robot R (node `/smana/R/<ros2.node_name>`, frame `map`; every frame name with the
+prefix of `Ros2Config.frames`, `R/map` in a simulated fleet):
 - `/smana/R/map` sensor_msgs/PointCloud2 (x, y, z, rgb, label), transient-local, at most every
   `ros2.map_period_s` when the map changed; kept from `mapper/delta` (resynchronised from
   `mapper/snapshot` at start, on a gap and when the mapper restarts);
@@ -10,7 +11,8 @@ Out, for robot R (node `/smana/R/<ros2.node_name>`, frame `map`):
   nav2_msgs/Costmap on Nav2's scale on `/smana/R/costmap_raw` (Nav2's name for it);
 - `/smana/R/path` nav_msgs/Path and `/smana/R/goal` geometry_msgs/PoseStamped from
   `explorer/state`, when they change;
-- `/smana/R/odom` nav_msgs/Odometry from `robot/pose`;
+- `/smana/R/odom` nav_msgs/Odometry from `robot/pose`, and in simulation the robot's frames
+  (map -> odom -> base_link) on `ros2.tf_topic` (/tf, or /smana/R/tf when logged in as a user);
 - a ROS 2 service `/smana/R/plan` (nav_msgs/srv/GetPlan), answered by smana's planner;
 - ROS 2 actions `/smana/R/navigate_to_pose` (nav2_msgs NavigateToPose, driven by the explorer's
   navigator mode) and `/smana/R/compute_path_to_pose` (ComputePathToPose, smana's planner), and
@@ -18,7 +20,7 @@ Out, for robot R (node `/smana/R/<ros2.node_name>`, frame `map`):
 
 In, for a real robot (`ros2.robot_input`; by default when smana's simulator is off):
 `ros2.cloud_topic` PointCloud2 (latest wins) -> `robot/scan`, `ros2.odom_topic` Odometry ->
-`robot/pose`, `/tf_static` for the sensor's pose on the robot, and `robot/cmd_vel` ->
+`robot/pose`, `ros2.tf_static_topic` for the sensor's pose on the robot, and `robot/cmd_vel` ->
 `ros2.cmd_vel_topic` geometry_msgs/Twist.
 
 Every message in is counted once (`common/service.py`); a ROS message that does not decode as
@@ -48,6 +50,7 @@ import numpy as np
 from smana.common import keys
 from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
+from smana.common.config.ros2 import Ros2Frames
 from smana.common.graph_copy import GraphCopy
 from smana.common.messages import (
     GraphPatch,
@@ -85,6 +88,27 @@ def robot_input_on(config: SmanaConfig) -> bool:
     return mode == "on" or (mode == "auto" and not config.deploy.sim.enabled)
 
 
+def frames_of(config: SmanaConfig) -> Ros2Frames:
+    """The frame names `config`'s robot's ros2 service publishes and accepts
+    (`Ros2Config.frames`, with the robots the config names and whether it reads a real robot)."""
+    robots = [*config.fleet.robots, *config.deploy.robots]
+    return config.ros2.frames(config.general.robot, robots, robot_input_on(config))
+
+
+def tf_topic_dropped(config: SmanaConfig) -> str | None:
+    """Why the router of a secured profile would drop the simulated robot's frames (a tf topic
+    set outside /smana/<robot> while the service logs in as a user: the policy grants its ros2
+    identity /smana/<robot>/** only, and the robot's cmd_vel); None when it would not."""
+    rc, robot = config.ros2, config.general.robot
+    topic = rc.tf_topic_for(robot, secured=True)
+    if not config.zenoh.credentials_file or topic.startswith(f"/smana/{robot}/"):
+        return None
+    return (
+        f"ros2.tf_topic {topic} is outside /smana/{robot}: the secured profile's policy lets "
+        f"{robot}'s ros2 service publish only there, so its router drops these frames"
+    )
+
+
 class Ros2Service(Service):
     name = "ros2"
     tick_period_s = 0.1
@@ -113,6 +137,10 @@ class Ros2Service(Service):
         self.map = MapCopy()
         self.deltas_in = SequenceFollower()
         self.robot_input = robot_input_on(config)
+        self.frames = frames_of(config)
+        # the simulated robot's frames: none with a real robot's input (the robot owns them)
+        secured = bool(config.zenoh.credentials_file)
+        self.tf_topic = None if self.robot_input else rc.tf_topic_for(self.robot, secured)
         self.cloud_input: CloudInput | None = None
         self.types: RosTypes | None = None
         self.node: RosNode | None = None
@@ -147,7 +175,7 @@ class Ros2Service(Service):
             labeller = GeometricLabeller.from_config(self.config).label
             labeller(np.zeros((1, 3), np.float32), np.zeros(3))  # compile before going live
         if self.robot_input:
-            self.cloud_input = CloudInput(self.config, labeller)
+            self.cloud_input = CloudInput(self.config, labeller, self.frames)
 
     def setup(self) -> None:
         r, rc = self.robot, self.config.ros2
@@ -165,11 +193,13 @@ class Ros2Service(Service):
             "goal": node.publisher(f"{ns}/goal", "geometry_msgs/msg/PoseStamped", LATCHED_QOS),
             "odom": node.publisher(f"{ns}/odom", ODOM, QoS()),
         }
-        if not self.robot_input:
+        if self.tf_topic is not None:
             # In simulation nobody else owns the robot's frames: map -> odom (identity) and
-            # odom -> base_link go on /tf, so RViz2 can show the robot in any fixed frame. A
-            # real robot publishes its own odom -> base_link; smana then stays off /tf.
-            self.pubs["tf"] = node.publisher("/tf", TF, QoS(depth=100))
+            # odom -> base_link go on the tf topic, so RViz2 can show the robot in any fixed
+            # frame. A real robot publishes its own odom -> base_link; smana then stays off /tf.
+            self.pubs["tf"] = node.publisher(self.tf_topic, TF, QoS(depth=100))
+            if why := tf_topic_dropped(self.config):
+                self.log.warning("%s", why)
         self.subscribe(keys.map_delta(r), self.on_delta, MapDelta)
         self.subscribe(keys.graph_patch(r), self.on_patch, GraphPatch)
         self.subscribe(keys.explorer_state(r), self.on_explorer_state)
@@ -189,7 +219,7 @@ class Ros2Service(Service):
             odom_key, _ = node.endpoint(SUBSCRIPTION, rc.odom_topic, ODOM, QoS())
             self.subscribe(odom_key, self.on_odometry)
             tf_qos = QoS(transient_local=True, depth=100)
-            tf_key, _ = node.endpoint(SUBSCRIPTION, "/tf_static", TF, tf_qos)
+            tf_key, _ = node.endpoint(SUBSCRIPTION, rc.tf_static_topic, TF, tf_qos)
             self.subscribe(tf_key, self.on_tf_static)
             self._query_history(tf_key, self.on_tf_static)
             self.pubs["cmd_vel"] = node.publisher(rc.cmd_vel_topic, "geometry_msgs/msg/Twist")
@@ -210,12 +240,13 @@ class Ros2Service(Service):
         )
         node.announce()
         self.log.info(
-            "ROS 2 node %s/%s on domain %d (zenoh %s)%s",
+            "ROS 2 node %s/%s on domain %d (zenoh %s), frames %s%s",
             ns,
             rc.node_name,
             rc.domain_id,
             node.zid,
-            ", reading the robot's topics" if self.robot_input else "",
+            f"{self.frames.map} -> {self.frames.odom} -> {self.frames.base}",
+            ", reading the robot's topics" if self.robot_input else f" on {self.tf_topic}",
         )
 
     def _query_history(self, key: str, handler) -> None:
@@ -306,9 +337,10 @@ class Ros2Service(Service):
         if key == self._last_state:
             return
         self._last_state = key
-        self._send("path", convert.path(self.types, path, t))
+        frame = self.frames.map
+        self._send("path", convert.path(self.types, path, t, frame))
         if xy is not None:
-            self._send("goal", convert.pose_stamped(self.types, xy, yaw, t))
+            self._send("goal", convert.pose_stamped(self.types, xy, yaw, t, frame))
 
     def on_pose(self, pose: Pose) -> None:
         twist = (0.0, 0.0)
@@ -321,9 +353,10 @@ class Ros2Service(Service):
         self._last_pose = pose
         if self.actions is not None:
             self.actions.on_pose(float(pose.position[0]), float(pose.position[1]))
-        self._send("odom", convert.odometry(self.types, pose, twist=twist))
+        f = self.frames
+        self._send("odom", convert.odometry(self.types, pose, f.map, f.base, twist))
         if "tf" in self.pubs:
-            self._send("tf", convert.robot_frames(self.types, pose))
+            self._send("tf", convert.robot_frames(self.types, pose, f.map, f.odom, f.base))
 
     def tick(self) -> None:
         now = time.monotonic()
@@ -365,12 +398,17 @@ class Ros2Service(Service):
             self.config.ros2.map_max_points,
         )
         return convert.map_cloud(
-            self.types, centres, labels, self.classes.colour_lut, self._stamp()
+            self.types, centres, labels, self.classes.colour_lut, self._stamp(), self.frames.map
         )
 
     def _costmap_message(self):
         return convert.occupancy_grid(
-            self.types, self.grid, self.classes.cost_lut, self._stamp(), planner=self.config.planner
+            self.types,
+            self.grid,
+            self.classes.cost_lut,
+            self._stamp(),
+            self.frames.map,
+            planner=self.config.planner,
         )
 
     def _costmap_raw_message(self):
@@ -378,8 +416,9 @@ class Ros2Service(Service):
         if self._costmap_load_t is None:
             self._costmap_load_t = t
         cost_lut = self.classes.cost_lut
+        load_t, frame = self._costmap_load_t, self.frames.map
         return convert.nav2_costmap(
-            self.types, self.grid, cost_lut, t, self._costmap_load_t, planner=self.config.planner
+            self.types, self.grid, cost_lut, t, load_t, frame, planner=self.config.planner
         )
 
     def _fetch(self, what: str) -> None:
@@ -466,8 +505,9 @@ class Ros2Service(Service):
         if refused := self.cloud_input.static_refused - before:
             self.note(
                 "tf_static_refused",
-                f"/tf_static: {refused} transform(s) refused (not finite, a frame name over "
-                f"{bridge.MAX_FRAME_NAME} characters, or past {bridge.MAX_STATIC_FRAMES} frames)",
+                f"{self.config.ros2.tf_static_topic}: {refused} transform(s) refused (not "
+                f"finite, a frame name over {bridge.MAX_FRAME_NAME} characters, or past "
+                f"{bridge.MAX_STATIC_FRAMES} frames)",
                 refused,
             )
 
@@ -550,12 +590,18 @@ class Ros2Service(Service):
         except QueryError as exc:
             self.log.info("GetPlan: planner did not answer (%s)", exc.kind)
             path = np.zeros((0, 3))
-        body = convert.plan_response(self.types, path, self._stamp())
+        body = convert.plan_response(self.types, path, self._stamp(), self.frames.map)
         return Reply(self.types.serialize(body, "nav_msgs/srv/GetPlan_Response"), reply_attachment)
 
     def status_details(self) -> dict:
         return {
             "robot_input": self.robot_input,
+            "frames": {
+                "map": self.frames.map,
+                "odom": self.frames.odom,
+                "base": self.frames.base,
+                "tf_topic": self.tf_topic or "",
+            },
             "map_voxels": len(self.map),
             "graph_nodes_known": self.grid.n_known(),
             "sent": dict(self.sent),
