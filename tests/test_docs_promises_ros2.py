@@ -187,9 +187,10 @@ class _Session:
 class _Svc:
     """What Ros2Actions uses of the ros2 service: its config, node, session and books."""
 
-    def __init__(self):
+    def __init__(self, robots=()):
         self.config = SmanaConfig.load()
         self.node, self.session, self.robot = _Node(), _Session(), "r1"
+        self.frames = self.config.ros2.frames("r1", robots)
         self._declared: list = []
         self.notes: list = []
         self._last_pose = None  # no robot pose: feedback carries the explorer's
@@ -307,3 +308,44 @@ def test_a_coarsened_map_puts_each_cell_at_its_centre_and_leaves_the_map_alone()
     # the map it was given is as it was
     np.testing.assert_array_equal(centres, before[0])
     np.testing.assert_array_equal(labels, before[1])
+
+
+def test_the_actions_read_and_stamp_the_fleet_s_prefixed_frames(monkeypatch):
+    """docs/ros2.md: "The Nav2 actions (below) take it too: a goal is read in `r1/map`,
+    `r1/odom` or `r1/base_link`, and feedback and paths are stamped in `r1/map`." """
+    import msgpack
+
+    from smana.common.messages import Pose
+    from smana.services.ros2 import actions as act
+    from smana.services.ros2 import convert
+
+    asked: list[dict] = []
+
+    def explorer(session, key, body, timeout_s):
+        asked.append(dict(body))
+        return {"accepted": True, "id": body["id"], "reason": ""}
+
+    monkeypatch.setattr(act, "request", explorer)
+    svc = _Svc(robots=("r1", "r2"))
+    actions = act.Ros2Actions(svc, "/smana/r1")
+    try:
+        types = svc.node.types
+
+        def goal(frame, x=1.0):
+            pose = convert.pose_stamped(types, (x, 0.0), 0.0, 12.0, frame)
+            return actions.nav.msg("Goal")(pose=pose, behavior_tree="")
+
+        for frame in ("map", "odom", "base_link", "r2/map"):  # the plain names are r2's too
+            ok, why = actions.navigate(bytes([1]) * 16, goal(frame), lambda body: None)
+            assert not ok and "frame" in why, (frame, why)
+        assert actions.navigate(bytes([2]) * 16, goal("r1/map"), lambda b: None) == (True, "")
+        svc._last_pose = Pose.from_xyz_yaw(2.0, 3.0, 0.0, math.pi / 2)
+        assert actions.navigate(bytes([3]) * 16, goal("r1/base_link"), lambda b: None)[0]
+        assert (asked[-1]["x"], asked[-1]["y"]) == pytest.approx((2.0, 4.0))
+        fb = {"id": bytes([3] * 16).hex(), "state": "active", "pose": [2.0, 3.0, 0.0]}
+        fb |= {"distance_remaining_m": 1.0, "navigation_time_s": 0.5, "recoveries": 0}
+        actions.on_explorer_feedback(msgpack.packb(fb))
+        sent = svc.node.publishers["/smana/r1/navigate_to_pose/_action/feedback"].sent
+        assert sent[-1].feedback.current_pose.header.frame_id == "r1/map"
+    finally:
+        actions.close()

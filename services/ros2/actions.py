@@ -351,8 +351,9 @@ class Ros2Actions:
         self.svc = svc
         rc, node = svc.config.ros2, svc.node
         self.types = node.types
-        self.world_frames = tuple(rc.world_frames)
-        self.base_frame = rc.base_frame
+        # the names the service stamps and reads (a simulated fleet's `r1/map`, ...)
+        names = svc.frames
+        self.world_frames, self.base_frame, self.map_frame = names.world, names.base, names.map
         self.frames = (*self.world_frames, self.base_frame)
         self.no_path_s = float(rc.navigate_no_path_s)
         self.through_unknown = bool(rc.plan_through_unknown)
@@ -472,7 +473,7 @@ class Ros2Actions:
         if endpoints is self.nav:
             return endpoints.msg("Result")(error_code=code, error_msg=why)
         return endpoints.msg("Result")(
-            path=convert.path(self.types, np.zeros((0, 3)), self.svc._stamp()),
+            path=convert.path(self.types, np.zeros((0, 3)), self.svc._stamp(), self.map_frame),
             planning_time=duration(self.types, 0.0),
             error_code=code,
             error_msg=why,
@@ -709,7 +710,9 @@ class Ros2Actions:
             xy, yaw = p.pose[:2], p.pose[2]
         remaining = max(0.0, p.remaining - p.travelled)
         fb_msg = self.nav.msg("Feedback")(
-            current_pose=convert.pose_stamped(self.types, xy, yaw, self.svc._stamp()),
+            current_pose=convert.pose_stamped(
+                self.types, xy, yaw, self.svc._stamp(), self.map_frame
+            ),
             navigation_time=duration(self.types, p.nav_time + (now - p.at)),
             estimated_time_remaining=duration(self.types, remaining / self.speed_mps),
             number_of_recoveries=max(-(2**15), min(p.recoveries, 2**15 - 1)),
@@ -815,7 +818,7 @@ class Ros2Actions:
         Nav2's planners leave it."""
         path = np.zeros((0, 3)) if path is None else path
         result = self.plan.msg("Result")(
-            path=convert.path(self.types, path, time.time(), final_yaw=yaw),
+            path=convert.path(self.types, path, time.time(), self.map_frame, final_yaw=yaw),
             planning_time=duration(self.types, time.monotonic() - t0),
             error_code=code,
             error_msg=why,
