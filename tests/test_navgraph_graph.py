@@ -301,8 +301,10 @@ class DoubtingReference:
     the voxel's distribution (alt label, p_label, p_alt) steps), and an evidence count moved once
     per integration that changed the node's column."""
 
-    def __init__(self, n, confirm=0, miss=2, step_m=0.25, classes=CLASSES):
+    def __init__(self, n, confirm=0, miss=2, step_m=0.25, classes=CLASSES, certain=True):
+        """`certain`: labels of probability 1 are certain (the map sends no distribution)."""
         self.n, self.confirm, self.miss, self.step_m = n, confirm, miss, step_m
+        self.certain = certain
         self.cap = max(2 * confirm, 8)
         self.ob = classes.obstacle_lut
         self.columns: dict[tuple[int, int], dict] = {}
@@ -349,7 +351,7 @@ class DoubtingReference:
         at = {k: v for k, v in col.items() if k[0] == level}
         obs = {k: v for k, v in at.items() if self.ob[v[0]]}
         others = {k: v for k, v in at.items() if not self.ob[v[0]]}
-        certain = all(v[1] == 255 for v in at.values())
+        certain = self.certain and all(v[1] == 255 for v in at.values())
         vote = bool(obs) and (certain or 2 * len(obs) >= len(at))
         return vote, certain, obs, others
 
@@ -373,7 +375,8 @@ class DoubtingReference:
                 f |= FLAG_OBSTACLE
             elif self.ob[top[0]]:
                 ev = self.evidence[node]
-                blocks = top[1] == 255 or (self.confirm > 0 and ev >= self.confirm)
+                certain = self.certain and top[1] == 255
+                blocks = certain or (self.confirm > 0 and ev >= self.confirm)
                 f |= FLAG_OBSTACLE if blocks else FLAG_DOUBTFUL
             out[node] = f
         return out
@@ -399,14 +402,18 @@ class DoubtingReference:
     ),
     confirm=st.sampled_from([0, 1, 3, 5]),
     miss=st.sampled_from([1, 2]),
+    with_distribution=st.booleans(),
 )
-def test_uncertain_obstacle_labels_doubt_until_the_evidence_confirms_them(deltas, confirm, miss):
+def test_uncertain_obstacle_labels_doubt_until_the_evidence_confirms_them(
+    deltas, confirm, miss, with_distribution
+):
     """Obstacle, doubtful and free nodes against the slow rule, over certain and uncertain
     labels: a column rising over the step blocks; the top level votes for an obstacle class (all
     certain and one has it, or half of them have one), the vote moves the evidence (+1, or -miss),
     the node shows the vote's side when certain, the evidence positive or nothing else is there;
     an obstacle class blocks when certain or, with `semantic_confirm` > 0, once its evidence
-    reaches it."""
+    reaches it. Certain means a label without a distribution: with one, not even a probability of
+    1 is (`with_distribution`)."""
     g = graph(
         (0, 0),
         (0.8, 0.8),
@@ -415,15 +422,19 @@ def test_uncertain_obstacle_labels_doubt_until_the_evidence_confirms_them(deltas
         semantic_confirm=confirm,
         semantic_miss_weight=miss,
     )
-    ref = DoubtingReference(4, confirm, miss)
+    ref = DoubtingReference(4, confirm, miss, certain=not with_distribution)
     mask = FLAG_KNOWN | FLAG_OBSTACLE | FLAG_DOUBTFUL
     for delta in deltas:
         vox = np.array([voxel(x, y, z) for x, y, z, *_ in delta], np.float32)
         labels = np.array([d[3] for d in delta], np.uint16)
         confs = np.array([d[4] for d in delta], np.float32)
         occ = np.array([d[5] for d in delta], np.uint8)
-        g.integrate(vox, labels, occ, map_resolution_m=MAP_RES, confidences=confs)
-        steps = [(0, math.floor(min(max(c, 0.0), 1.0) * 255 + 0.5), 0) for c in confs.tolist()]
+        if with_distribution:
+            g.integrate(vox, labels, occ, map_resolution_m=MAP_RES, confidences=confs)
+            steps = [(0, math.floor(min(max(c, 0.0), 1.0) * 255 + 0.5), 0) for c in confs.tolist()]
+        else:  # a map without distributions: every label is certain
+            g.integrate(vox, labels, occ, map_resolution_m=MAP_RES)
+            steps = [(0, 255, 0)] * len(confs)
         ref.apply(vox.astype(np.float64), labels, steps, occ.astype(bool))
         np.testing.assert_array_equal(graph_state(g)[2] & mask, ref.flags())
         for node in ref.columns:
@@ -509,3 +520,23 @@ def test_a_voxel_hit_once_makes_no_geometric_obstacle():
     tsdf = graph((0, 0), (4, 4), robot_radius_m=0.4)
     tsdf.integrate_delta(delta([0.01, -0.02], "signed_distance"))
     assert tsdf.node(1.05, 1.05)["obstacle"]
+
+
+def test_a_probability_of_one_from_a_map_is_no_certainty():
+    """A hedge label on the lawn at probability 1 (Bayesian fusion saturates after two views
+    that agree; noise-free labels come at 1) is doubtful when the map sends a distribution, and
+    makes no safety zone; the same label from a map that sends none (a version-1 delta) is
+    certain and blocks at once."""
+    for with_distribution, blocks in ((True, False), (False, True)):
+        g = graph((0, 0), (4, 4), robot_radius_m=0.4)
+        conf = {"confidences": np.ones(1, np.float32)} if with_distribution else {}
+        g.integrate(
+            np.array([voxel(10, 10, 0)], np.float32),
+            np.array([HEDGE], np.uint16),
+            np.ones(1, np.uint8),
+            map_resolution_m=MAP_RES,
+            **conf,
+        )
+        n = g.node(1.05, 1.05)
+        assert n["obstacle"] is blocks and n["doubtful"] is not blocks, n
+        assert g.node(1.25, 1.05)["safety_zone"] is blocks

@@ -23,13 +23,14 @@ class NavgraphConfig(Section, section="navgraph"):
     # A map that doubts before it blocks (docs/architecture.md, "Obstacles"): a node is an
     # obstacle when its column stands more than `obstacle_step_m` over its lowest voxel (the robot
     # cannot drive over it, whatever its label), or when it shows an obstacle class whose label
-    # is certain (p = 1). An uncertain obstacle class without that height is doubtful: passable
-    # at the planner's `doubtful_cost`, no safety zone round it. Each node keeps evidence: +1 for
-    # each update whose top level votes for an obstacle class, -`semantic_miss_weight` for each
-    # that does not, kept within +/- max(2 x semantic_confirm, 8); a node whose evidence is not
-    # positive shows its top level's other class. semantic_confirm > 0: a doubtful node whose
-    # evidence reaches it blocks too (0: never by an uncertain label alone); obstacle_step_m =
-    # inf: no geometric obstacles.
+    # is certain (from a map that sends no label distribution; a probability of 1 from a map
+    # that sends one is not certainty). An uncertain obstacle class without that height is
+    # doubtful: passable at the planner's `doubtful_cost`, no safety zone round it. Each node
+    # keeps evidence: +1 for each update whose top level votes for an obstacle class,
+    # -`semantic_miss_weight` for each that does not, kept within +/- max(2 x semantic_confirm,
+    # 8); a node whose evidence is not positive shows its top level's other class.
+    # semantic_confirm > 0: a doubtful node whose evidence reaches it blocks too (0: never by an
+    # uncertain label alone); obstacle_step_m = inf: no geometric obstacles.
     obstacle_step_m: float = param(0.25, gt=0)
     # An occupancy map's voxel makes a geometric obstacle only once its log-odds reach this
     # (OctoMap's hit adds 0.85, a miss takes 0.41: three hits, net of a miss): a wall smeared

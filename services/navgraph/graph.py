@@ -8,8 +8,10 @@ of a node whose label is a forbidden class: water).
 A node doubts before it blocks (STYLE: a single observation sets a cost, not a wall). It is an
 obstacle when geometry says so: its highest solid voxel (`solid_log_odds` for an occupancy map)
 rises more than `obstacle_step_m` over its lowest voxel, whatever the label; or when it shows an
-obstacle class of the class table whose label is certain (p = 1, as labels without a
-distribution are), or, with `semantic_confirm` > 0, confirmed by the node's evidence. What it
+obstacle class of the class table whose label is certain (a map that sends no distribution: a
+map's own probability of 1 is not certainty, since Bayesian fusion reaches it after two views
+that agree and pose noise smears noise-free labels), or, with `semantic_confirm` > 0, confirmed
+by the node's evidence. What it
 shows is weighed over updates: the top level votes, the vote moves the evidence (the
 `obstacle_evidence` layer: +1, or -`semantic_miss_weight`), and an obstacle voxel is shown only
 while the evidence is positive. An uncertain obstacle class short of blocking is FLAG_DOUBTFUL:
@@ -293,7 +295,9 @@ class NavGraph:
         A voxel with `occupied` set is added to (or relabels) its column, one without is removed
         from it. Rows with non-finite centres are dropped and counted. `confidences` is the
         probability of each voxel's label, `alt_labels` / `alt_confidences` its second class;
-        left out, the voxels are certain (octree-max sends no second class). `solid`: where a
+        left out, the voxels are certain (a version-1 delta: an obstacle class blocks at once);
+        given, no label is, not even at probability 1 (Bayesian fusion reaches 1 after two views
+        that agree; noise-free labels come at 1 and noisy poses smear them). `solid`: where a
         surface voxel may make a geometric obstacle (left out: everywhere).
         """
         t0 = time.perf_counter()
@@ -367,9 +371,9 @@ class NavGraph:
         changes = NodeChanges.empty(m)
         flips = Flips(np.empty(m, np.int64), np.empty(m, np.int32))
         geometry, layers = self._kernel_state()  # after allocating: the pool may have grown
-        counts = _integrate_kernel(
-            vox, geometry, layers, self.columns, self._rule, epoch, changes, flips
-        )
+        # a label is certain only when the map sends no distribution (see NodeRule.certain)
+        rule = self._rule._replace(certain=confidences is None)
+        counts = _integrate_kernel(vox, geometry, layers, self.columns, rule, epoch, changes, flips)
         n_touched, n_flips, n_oob, n_below, n_lost = (int(c) for c in counts)
         changes = changes.head(n_touched)
         flips = flips.head(n_flips)

@@ -138,6 +138,9 @@ class NodeRule(NamedTuple):
     confirm: int  # evidence at which an uncertain obstacle label blocks (0: never alone)
     miss_weight: int
     cap: int  # evidence is kept within [-cap, cap]
+    # labels of probability 1 are certain (they vote at once, and an obstacle class blocks):
+    # only when the map sends no distribution. A map's own probability of 1 is not certainty.
+    certain: bool = True
 
 
 class ClassLuts(NamedTuple):
@@ -538,7 +541,8 @@ def _node_head_recompute(cols, nodes, rule, n):
     Returns whether the node is a centre of the safety zone now. Its height is the highest
     solid voxel's (the top's while none is solid).
 
-    The top level votes for an obstacle class when every label there is certain and one has it
+    The top level votes for an obstacle class when every label there is certain (probability 1
+    from a map that sends no distribution: `rule.certain`) and one has it
     (the paper's conservative rule), or when at least half of its voxels have one (one wrong
     label among four lawn voxels is no vote). The vote moves the evidence (+1, or
     -`rule.miss_weight` against; a certain vote sets it to the cap). The node shows an obstacle
@@ -570,7 +574,7 @@ def _node_head_recompute(cols, nodes, rule, n):
         while cur >= 0:
             if cols.level[cur] == cols.level[e]:
                 n_top += 1
-                certain = certain and cols.p_label[cur] == 255
+                certain = certain and rule.certain and cols.p_label[cur] == 255
                 if (kind_lut[cols.label[cur]] & LUT_OBSTACLE) != 0:
                     n_ob += 1
                     if best_ob < 0 or cols.sub[cur] > cols.sub[best_ob]:
@@ -609,13 +613,14 @@ def _blocks(rule, label, p_label, evidence, rise_m):
     """FLAG_OBSTACLE, FLAG_DOUBTFUL or 0 for a known node showing `label` (its probability x
     255 `p_label`) whose highest solid voxel rises `rise_m` over its lowest. Geometry blocks
     whatever the label (a step the robot cannot climb); an obstacle class blocks when its label is
-    certain, or when `rule.confirm` > 0 and the node's evidence reached it; it is doubtful
-    otherwise (with `rule.confirm` 0, the default, an uncertain label never blocks alone)."""
+    certain (`rule.certain`: no distribution came with it), or when `rule.confirm` > 0 and the
+    node's evidence reached it; it is doubtful otherwise (with `rule.confirm` 0, the default, an
+    uncertain label never blocks alone)."""
     if rise_m > rule.step_m:
         return np.uint8(FLAG_OBSTACLE)
     if (rule.kind[label] & LUT_OBSTACLE) == 0:
         return np.uint8(0)
-    if p_label == 255 or (rule.confirm > 0 and evidence >= rule.confirm):
+    if (rule.certain and p_label == 255) or (rule.confirm > 0 and evidence >= rule.confirm):
         return np.uint8(FLAG_OBSTACLE)
     return np.uint8(FLAG_DOUBTFUL)
 
