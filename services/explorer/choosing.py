@@ -59,10 +59,9 @@ class Choosing:
         space beyond that hop: an unseen obstacle may stand beside the robot, out of view. A hop
         must not cross an obstacle node: a robot caught in a safety zone that just appeared
         around it backs out on the open side, not through the obstacle to a nearer node."""
-        from scipy import ndimage  # here, not at import: off the explorer's start
-
         g = self.grid
-        comp, _ = ndimage.label(free, structure=fr.EIGHT_CONNECTED)
+        # joined as the planner joins nodes: across height steps up to its max_step_m
+        comp = fr.step_components(free, g.heights, self.max_step_m)
         cell = np.array(g.cell_of(xy))
         r = int(math.ceil(self.config.start_search_radius_m / g.resolution_m))
         lo = np.maximum(cell - r, 0)

@@ -64,6 +64,7 @@ class GridBox:
     resolution_m: float
     labels: np.ndarray
     flags: np.ndarray
+    heights: np.ndarray | None = None  # the nodes' heights (NaN unknown); None: not given
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -141,6 +142,8 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
         self.cost_per_m_flat = float(cost_per_m_flat)
         self.traversable_lut = np.asarray(traversable_lut, bool)
         self.grid: GridBox | None = None
+        # the planner's step rule (planner.max_step_m): nodes it joins are reachable together
+        self.max_step_m = math.inf
         self._fov: fr.FovModel | None = None
         self.follower = PurePursuit(config.follower)
         self.goal: Goal | None = None

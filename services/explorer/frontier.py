@@ -86,6 +86,26 @@ def reachable_mask(free: np.ndarray, start: tuple[int, int]) -> np.ndarray:
     return comp == comp[ix, iy]
 
 
+def step_components(free: np.ndarray, heights: np.ndarray | None, max_step_m: float) -> np.ndarray:
+    """Components of `free` (int32 labels, 0 off it) as the planner joins nodes: 8-connected,
+    and only across a height step of at most `max_step_m` (the planner's `max_step_m`; a NaN
+    height joins any neighbour). A doubtful hedge top 1 m up is then apart from the lawn beside
+    it, as no path climbs to it. No heights, or an infinite step: scipy's 8-connected labels."""
+    free = np.ascontiguousarray(free, dtype=np.bool_)
+    if heights is None or not math.isfinite(max_step_m):
+        from scipy import ndimage  # here, not at import: off the explorer's start
+
+        return ndimage.label(free, structure=EIGHT_CONNECTED)[0].astype(np.int32)
+    heights = np.ascontiguousarray(heights, dtype=np.float32)
+    if heights.shape != free.shape:
+        raise ValueError(f"heights {heights.shape} and free {free.shape} differ")
+    from smana.services.explorer.kernels import _step_components_kernel
+
+    labels = np.zeros(free.shape, np.int32)
+    _step_components_kernel(free, heights, np.float64(max_step_m), labels)
+    return labels
+
+
 def unknown_mask(flags: np.ndarray) -> np.ndarray:
     return (np.asarray(flags) & KNOWN) == 0
 

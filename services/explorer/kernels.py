@@ -81,3 +81,43 @@ def _travel_distance_kernel(
                     dist[p, q] = nd
                     heapq.heappush(heap, (nd, np.int64(p * ny + q)))
     return dist
+
+
+@numba.njit(cache=True, nogil=True)
+def _step_components_kernel(free, heights, max_step, labels):
+    """Label the components of `free` (8-connected) whose neighbours differ in height by at most
+    `max_step` (a NaN height joins any neighbour): 1, 2, ... in order of first node (row-major),
+    0 off `free`. Returns the number of components."""
+    nx, ny = free.shape
+    stack = np.empty(nx * ny, np.int64)
+    n = 0
+    for i0 in range(nx):
+        for j0 in range(ny):
+            if not free[i0, j0] or labels[i0, j0] != 0:
+                continue
+            n += 1
+            labels[i0, j0] = n
+            top = 0
+            stack[top] = i0 * ny + j0
+            top += 1
+            while top > 0:
+                top -= 1
+                k = stack[top]
+                i = k // ny
+                j = k - i * ny
+                h = heights[i, j]
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        a = i + di
+                        b = j + dj
+                        if (di == 0 and dj == 0) or a < 0 or b < 0 or a >= nx or b >= ny:
+                            continue
+                        if not free[a, b] or labels[a, b] != 0:
+                            continue
+                        # the planner's test (float32 step, float64 limit); False with a NaN
+                        if abs(heights[a, b] - h) > max_step:
+                            continue
+                        labels[a, b] = n
+                        stack[top] = a * ny + b
+                        top += 1
+    return n

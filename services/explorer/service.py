@@ -88,6 +88,7 @@ class ExplorerService(Service):
         self.core = Explorer(
             self.cfg, self.table.traversable_lut, self.table.size, bound, flat, team=self.team
         )
+        self.core.max_step_m = float(config.planner.max_step_m)  # what the planner climbs
         # the pose it steers by: the localisation's, filtered with the twist it commands
         self.pose_filter = PoseFilter(self.cfg.pose_filter)
         self.claims_asked = 0  # asked of the coordinator (its books count them as received)
@@ -182,6 +183,7 @@ class ExplorerService(Service):
         fov = fr.FovModel.build(self.grid.resolution_m, tiny)
         fr.view_gains(unknown, ~unknown, np.array([[4, 4]]), fov)
         fr.travel_distance_m(unknown, np.array([[4, 4]]), np.zeros(1), self.grid.resolution_m)
+        fr.step_components(unknown, np.zeros((8, 8), np.float32), 0.3)
         self.log.info("kernels ready in %.1f s", time.perf_counter() - t0)
 
     def setup(self) -> None:
@@ -498,9 +500,9 @@ class ExplorerService(Service):
         ix0, iy0, ix1, iy1 = box
         ix0, iy0 = max(0, ix0 - pad), max(0, iy0 - pad)
         ix1, iy1 = min(self.grid.shape[0], ix1 + pad), min(self.grid.shape[1], iy1 + pad)
-        labels, flags = self.grid.box(ix0, iy0, ix1, iy1, layers=("labels", "flags"))
+        labels, heights, flags = self.grid.box(ix0, iy0, ix1, iy1)
         origin = self.grid.origin_xy + np.array([ix0, iy0]) * self.grid.resolution_m
-        self.core.update_grid(GridBox(origin, self.grid.resolution_m, labels, flags))
+        self.core.update_grid(GridBox(origin, self.grid.resolution_m, labels, flags, heights))
         self._box = (ix0, iy0, ix1, iy1)
         self._grid_dirty = False
 
