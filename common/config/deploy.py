@@ -18,8 +18,8 @@ RestartPolicy = Literal["never", "on-failure", "always"]
 class ServiceDeployConfig(Section):
     """How the supervisor runs one service (dora's vocabulary)."""
 
-    enabled: bool = True
-    restart: RestartPolicy = "on-failure"
+    enabled: bool = True  # `smana up` starts it
+    restart: RestartPolicy = "on-failure"  # when an exited service is started again
     # The first restart waits restart_delay_s, each further one in restart_window_s twice as
     # long, up to restart_max_delay_s. Past max_restarts in the window the service is in a crash
     # loop: it is still restarted (every restart_max_delay_s) and the run is reported failed.
@@ -55,7 +55,7 @@ class _DeployBase(Section, section="deploy"):
     # (a test, a quick experiment) never pays for spares, and the spares' imports never compete
     # with the stack's own start-up on a 2-core machine.
     standby_delay_s: float = param(20.0, ge=0)
-    stop_timeout_s: float = param(5.0, gt=0)
+    stop_timeout_s: float = param(5.0, gt=0)  # after SIGINT, a service still running is killed
     finish_with: str = "explorer"  # the run ends when this service exits with status 0
 
     def validate(self) -> None:

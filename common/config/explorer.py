@@ -26,7 +26,7 @@ class ViewConfig(Section, section="explorer.view"):
     max_range_m: float = param(4.0, gt=0)  # how far a view is assumed to map the ground
     # a camera a few decimetres above the ground does not see the ground right under its lens
     min_range_m: float = param(0.3, ge=0)
-    n_yaw: int = param(16, gt=0)
+    n_yaw: int = param(16, gt=0)  # headings tried at each candidate
     occlusion: bool = True  # obstacle nodes hide what is behind them
 
     def validate(self) -> None:
@@ -41,15 +41,15 @@ class ViewConfig(Section, section="explorer.view"):
 class FollowerConfig(Section, section="explorer.follower"):
     """Pure pursuit with turn-in-place (services/explorer/follower.py)."""
 
-    lookahead_m: float = param(0.4, gt=0)
-    max_linear_mps: float = param(0.4, gt=0)
-    max_angular_radps: float = param(1.0, gt=0)
-    goal_tolerance_m: float = param(0.2, gt=0)
+    lookahead_m: float = param(0.4, gt=0)  # the point of the path steered at
+    max_linear_mps: float = param(0.4, gt=0)  # forward speed commanded at most
+    max_angular_radps: float = param(1.0, gt=0)  # turn rate commanded at most
+    goal_tolerance_m: float = param(0.2, gt=0)  # a goal this close is reached
     # heading error above which the robot stops and turns in place
     turn_in_place_rad: float = param(math.radians(30), gt=0)
     # heading error at which the forward speed has fallen to zero (linear taper up to there)
     slow_down_rad: float = param(math.radians(45), gt=0)
-    final_yaw_tolerance_rad: float = param(math.radians(10), ge=0)
+    final_yaw_tolerance_rad: float = param(math.radians(10), ge=0)  # heading error at a goal
 
 
 @dataclass
@@ -59,7 +59,7 @@ class PoseFilterConfig(Section, section="explorer.pose_filter"):
     (services/explorer/pose_filter.py); the yaw passes as it comes. Noise-free poses pass
     through it as they are."""
 
-    enabled: bool = True
+    enabled: bool = True  # false: the raw poses
     # how far the robot's motion strays from the commanded speed, per second (acceleration
     # limits, wheel slip, an obstacle holding it)
     motion_sd_mps: float = param(0.2, gt=0)
@@ -74,7 +74,7 @@ class ExplorerConfig(Section, section="explorer"):
     # The budget starts with the first pose once a map and a planner are there; past the budget
     # plus this, with neither, the explorer gives up (ends `no_graph` or `no_planner`).
     startup_grace_s: float = param(120.0, ge=0)
-    control_rate_hz: float = param(10.0, gt=0)
+    control_rate_hz: float = param(10.0, gt=0)  # velocity commands and the loop's checks
     # "nbv": the paper's next-best view (score below); "nearest_frontier": Yamauchi 1997, the
     # nearest frontier by travel distance, a baseline for the lab
     strategy: Literal["nbv", "nearest_frontier"] = "nbv"
@@ -87,8 +87,9 @@ class ExplorerConfig(Section, section="explorer"):
     # view is worth half a view range (2 m) of terrain, or ~0.6 m of grass at cost 4. The
     # ablation in docs/experiments.md (w 0 / 0.5 / 2, grass x4, 3 seeds, cluttered garden) gives
     # the same coverage at every weight; its first run had about half the distance at 2, its
-    # rerun (issue 26) tells the weights apart on neither distance nor terrain share (0.05 on
-    # the old m^2-per-cost scale was worth ~32 m of terrain: the gain alone chose the goal).
+    # rerun under the fixed verdict rules tells the weights apart on neither distance nor
+    # terrain share (0.05 on the old m^2-per-cost scale was worth ~32 m of terrain: the gain
+    # alone chose the goal).
     path_cost_weight: float = param(2.0, ge=0)
     max_queries: int = param(10, gt=0)  # path queries per plan (branch and bound cap)
     # when to choose again
@@ -101,7 +102,7 @@ class ExplorerConfig(Section, section="explorer"):
     stuck_timeout_s: float = param(8.0, gt=0)  # no progress along the path: give that goal up
     # a given-up goal is left out of the candidates within this radius, for this long
     blacklist_radius_m: float = param(0.5, ge=0)
-    blacklist_s: float = param(30.0, ge=0)
+    blacklist_s: float = param(30.0, ge=0)  # see blacklist_radius_m
     # paths start from the nearest free node within this radius of the robot
     start_search_radius_m: float = param(1.0, ge=0)
     # speed cap while the robot stands on a safety-zone or obstacle node (it got there because
@@ -117,14 +118,14 @@ class ExplorerConfig(Section, section="explorer"):
     # seen (services/explorer/recovery.py), at most this many times while no view is found, each
     # from a place this far from the earlier ones
     recoveries: int = param(3, ge=0)
-    recovery_spacing_m: float = param(1.0, gt=0)
+    recovery_spacing_m: float = param(1.0, gt=0)  # see recoveries
     # seen but unreachable free ground of at least this, and more than the reachable: the robot's
     # own map closed it in (the run ends `closed_in`, a failure)
     closed_in_min_m2: float = param(2.0, gt=0)
     empty_retry_s: float = param(1.0, gt=0)  # wait between plans that found no view
     # traversability cost overrides sent with every path request, "grass=4" or "1=4"
     class_costs: list[str] = param([])
-    planner_timeout_s: float = param(2.0, gt=0)
+    planner_timeout_s: float = param(2.0, gt=0)  # a path query unanswered this long fails
     pose_timeout_s: float = param(1.0, gt=0)  # no pose for this long: stop the robot
     # "explore": explore until done (and drive to the goals it is sent, pausing exploration);
     # "navigate": only drive to the goals it is sent (`explorer/goal`), never explore, never end

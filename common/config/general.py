@@ -10,11 +10,11 @@ from smana.common.config._schema import ConfigError, Section, param
 
 @dataclass
 class GeneralConfig(Section, section="general"):
-    robot: str = "r1"
+    robot: str = "r1"  # the <robot> segment of every key (smana/<robot>/...)
     class_table: str = "garden3drms"  # bundled name or path to a TOML class table
     run_dir: str = ""  # empty: runs/<timestamp> for `smana up`; no files for a lone service
-    status_period_s: float = param(1.0, gt=0)
-    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    status_period_s: float = param(1.0, gt=0)  # how often each service publishes its status
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"  # of every service's log
     # Plausibility of inputs (common/plausibility.py): a stamp more than stamp_window_s behind
     # its stream's clock, or ahead of where that clock can be (max_time_rate seconds of stream
     # time per wall second: a simulator's real-time factor, a lockstep replay), is refused; so is
@@ -37,15 +37,15 @@ class GeneralConfig(Section, section="general"):
 class ZenohConfig(Section, section="zenoh"):
     # The embedded default: every process is a client of the supervisor's router on loopback.
     mode: Literal["peer", "client", "router"] = "client"
-    connect: list[str] = param(["tcp/127.0.0.1:7447"])
-    listen: list[str] = param([])
-    multicast_scouting: bool = False
-    gossip: bool = False
+    connect: list[str] = param(["tcp/127.0.0.1:7447"])  # endpoints this session connects to
+    listen: list[str] = param([])  # endpoints this session listens on
+    multicast_scouting: bool = False  # find peers by multicast (off: only `connect`)
+    gossip: bool = False  # learn peers from other peers
     config_file: str = ""  # a zenoh JSON5 config applied first; the keys above override it
     # Security, all from zenoh's own features (`smana deploy init-certs` makes the files):
     tls_ca: str = ""  # CA certificate that every tls/ link is checked against
     tls_cert: str = ""  # this host's certificate and key, for listening and connecting (mTLS)
-    tls_key: str = ""
+    tls_key: str = ""  # the private key of tls_cert
     mtls: bool = True  # a listener also demands a certificate signed by the CA
     user: str = ""  # user/password authentication: this session's user name...
     credentials_file: str = ""  # ...whose password is its `user:password` line in this file

@@ -52,7 +52,7 @@ class MapperConfig(Section, section="mapper"):
     # What `mapper/save` queries may leave beside save_path: .npz files, and their megabytes
     # (the autosave itself is never refused). A save past either is refused, counted `quota`.
     save_max_files: int = param(16, ge=1)
-    save_max_mb: float = param(2048.0, gt=0)
+    save_max_mb: float = param(2048.0, gt=0)  # megabytes those files may take together
     # What the map is made of: "clouds", the robot's own clouds (`inputs`); "fleet", the map
     # deltas of every `fleet.robots` member, merged into one map (services/mapper/fleet.py;
     # run under the fleet's name, `--robot fleet`)

@@ -13,9 +13,10 @@ MAX_TILES = 1 << 24  # the grid's tile table: 64 MB of int32
 
 @dataclass
 class NavgraphConfig(Section, section="navgraph"):
-    resolution_m: float = param(0.2, gt=0, le=100.0)
+    resolution_m: float = param(0.2, gt=0, le=100.0)  # side of a node's cell
+    # the graph's fixed bounds, x and y in metres: nodes are allocated only where data arrives
     bounds_min_xy: list[float] = param([-50.0, -50.0])
-    bounds_max_xy: list[float] = param([50.0, 50.0])
+    bounds_max_xy: list[float] = param([50.0, 50.0])  # see bounds_min_xy
     robot_radius_m: float = param(0.4, ge=0, lt=math.inf)  # sizes the safety-zone stencil
     # The safety zone surrounds a node labelled with a forbidden class (water) as it surrounds an
     # obstacle: a path keeps the robot's radius from it. False: only the node itself is closed.

@@ -42,7 +42,8 @@ class PlannerConfig(Section, section="planner"):
     # "expected": sum of p * T over the node's classes; "cvar": mean T of its worst risk_alpha
     # probability mass; "chance": closed when P(forbidden class) > max_risk, else "expected";
     # "label" (the default until the risk experiment chooses a mode): the label's T alone, the
-    # distribution ignored (the planner before issue 29, so the paper's results are unchanged).
+    # distribution ignored (the planner before risk-aware planning, so the paper's results are
+    # unchanged).
     # A node whose distribution is certain (or a graph without risk layers) costs t_f * T(l) in
     # every mode, as before.
     risk: Risk = "label"

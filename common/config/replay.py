@@ -24,7 +24,7 @@ class ReplayConfig(Section, section="replay"):
     start: int = param(0, ge=0)  # first scan replayed
     count: int = param(0, ge=0)  # scans replayed; 0 = to the end
     wait_for: list[str] = param(["mapper"])  # alive before the 1st scan
-    wait_timeout_s: float = param(60.0, gt=0)
+    wait_timeout_s: float = param(60.0, gt=0)  # for the services of wait_for
     ack_timeout_s: float = param(30.0, gt=0)  # lockstep: resend a scan after this long
     label_field: str = "label"  # bags / PLY: the integer label field
     cloud_topic: str = ""  # bags: the PointCloud2 topic ("" = the only one)

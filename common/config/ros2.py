@@ -64,7 +64,7 @@ class Ros2Config(Section, section="ros2"):
     # Clouds in a sensor frame: the sensor's pose on the robot (x, y, z, roll, pitch, yaw) when
     # the robot's static transforms do not give it; [] = from them only.
     sensor_extrinsic: list[float] = param([])
-    base_frame: str = "base_link"
+    base_frame: str = "base_link"  # the robot's own frame (REP-105)
     # Put in front of every frame name smana publishes or expects (`frames`), so that robots on
     # one /tf keep disjoint trees (r1/map -> r1/odom -> r1/base_link). "auto": "<robot>/" when
     # smana simulates the robot (robot_input off) and the config names two robots or more
@@ -81,7 +81,7 @@ class Ros2Config(Section, section="ros2"):
     # The map message's voxel budget (20 bytes each): past it, voxels are merged into cells of
     # 2, 4, 8 ... times the map's resolution until they fit, so one message stays under 4 MB.
     map_max_points: int = param(200_000, ge=1000)
-    costmap_period_s: float = param(1.0, gt=0)
+    costmap_period_s: float = param(1.0, gt=0)  # /smana/<robot>/costmap at most this often
     min_range_m: float = param(0.3, ge=0)  # cloud points nearer the sensor are dropped
     max_range_m: float = param(20.0, gt=0)  # and farther ones
 

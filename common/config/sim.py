@@ -33,17 +33,17 @@ class CameraConfig(Section, section="sim.camera"):
     """The semantic RGB-D camera (services/sim/camera.py). The default follows the paper: 640 x
     640 pixels, 57 degree field of view."""
 
-    enabled: bool = True
-    width: int = param(640, ge=8, le=4096)
-    height: int = param(640, ge=8, le=4096)
+    enabled: bool = True  # camera clouds on robot/cloud
+    width: int = param(640, ge=8, le=4096)  # image width, pixels
+    height: int = param(640, ge=8, le=4096)  # image height, pixels
     fov_deg: float = param(57.0, ge=1, lt=170)  # vertical (horizontal too when square)
-    near_m: float = param(0.05, gt=0)
-    max_range_m: float = param(8.0, gt=0)
+    near_m: float = param(0.05, gt=0)  # nearer depths are not rendered
+    max_range_m: float = param(8.0, gt=0)  # farther pixels give no point
     rate_hz: float = param(2.0, gt=0)  # simulated time
     stride: int = param(1, gt=0)  # keep every n-th pixel row and column in the cloud
     # mount on the robot's base frame: position and downward pitch
     mount_xyz: list[float] = param([0.25, 0.0, 0.20])
-    mount_pitch_deg: float = 15.0
+    mount_pitch_deg: float = 15.0  # downward pitch of the camera
     publish_images: bool = False  # robot/image/{rgb,depth,semantic} with each camera frame
     # where frames are degraded and encoded while the next renders: "thread", "process" or "off"
     # (in line); measured in services/sim/finishing.py. Lockstep always finishes in line.
@@ -73,13 +73,13 @@ class LidarConfig(Section, section="sim.lidar"):
     """A spinning LiDAR (services/sim/lidar.py); the default is an Ouster OS1-64: 64 x 2048 rays,
     33.2 deg vertical."""
 
-    enabled: bool = False
-    rate_hz: float = param(10.0, gt=0)
-    channels: int = param(64, gt=0)
-    columns: int = param(2048, gt=0)
-    vfov_deg: float = param(33.2, gt=0, lt=180)
-    max_range_m: float = param(20.0, gt=0)
-    min_range_m: float = param(0.3, ge=0)
+    enabled: bool = False  # LiDAR scans on robot/scan
+    rate_hz: float = param(10.0, gt=0)  # scans per simulated second
+    channels: int = param(64, gt=0)  # beams (rows of the scan)
+    columns: int = param(2048, gt=0)  # azimuth steps of a turn
+    vfov_deg: float = param(33.2, gt=0, lt=180)  # vertical field of view
+    max_range_m: float = param(20.0, gt=0)  # farther rays give no return
+    min_range_m: float = param(0.3, ge=0)  # nearer returns are dropped
     mount_xyz: list[float] = param([0.0, 0.0, 0.30])  # on the base frame, level
 
     def validate(self) -> None:
@@ -114,19 +114,19 @@ class LidarConfig(Section, section="sim.lidar"):
 class RobotConfig(Section, section="sim.robot"):
     """The simulated differential-drive base (services/sim/robot.py)."""
 
-    chassis_half_extents: list[float] = param([0.28, 0.17, 0.07], gt=0)
-    chassis_mass_kg: float = param(12.0, gt=0)
-    wheel_radius_m: float = param(0.11, gt=0)
-    wheel_width_m: float = param(0.05, gt=0)
+    chassis_half_extents: list[float] = param([0.28, 0.17, 0.07], gt=0)  # x, y, z, metres
+    chassis_mass_kg: float = param(12.0, gt=0)  # the body without its wheels
+    wheel_radius_m: float = param(0.11, gt=0)  # the two driven wheels
+    wheel_width_m: float = param(0.05, gt=0)  # of each driven wheel
     track_m: float = param(0.40, gt=0)  # between the wheels' mid-planes
-    wheel_mass_kg: float = param(1.0, gt=0)
-    caster_radius_m: float = param(0.04, gt=0)
+    wheel_mass_kg: float = param(1.0, gt=0)  # of each driven wheel
+    caster_radius_m: float = param(0.04, gt=0)  # the passive ball casters
     caster_offset_m: float = param(0.22, ge=0)  # ahead and behind the axle
-    max_wheel_torque_nm: float = param(20.0, gt=0)
-    max_linear_mps: float = param(1.0, gt=0)
-    max_angular_radps: float = param(2.0, gt=0)
-    max_linear_accel_mps2: float = param(1.5, gt=0)
-    max_angular_accel_radps2: float = param(4.0, gt=0)
+    max_wheel_torque_nm: float = param(20.0, gt=0)  # the motors' limit
+    max_linear_mps: float = param(1.0, gt=0)  # forward speed limit
+    max_angular_radps: float = param(2.0, gt=0)  # turn rate limit
+    max_linear_accel_mps2: float = param(1.5, gt=0)  # forward acceleration limit
+    max_angular_accel_radps2: float = param(4.0, gt=0)  # turn acceleration limit
     cmd_timeout_s: float = param(0.5, gt=0)  # the base stops when commands stop this long
     colour: list[float] = param([0.95, 0.75, 0.1, 1.0], ge=0, le=1)  # RGBA
 
@@ -181,17 +181,17 @@ class SimConfig(Section, section="sim"):
     # "realistic" = [sim.perception]: a published network's confusions, persistent errors and
     # boundary bleed
     noise: Literal["off", "none", "low", "medium", "high", "realistic"] = "none"
-    slic_region_px: int = param(20, ge=2)
-    slic_iterations: int = param(3, gt=0)
+    slic_region_px: int = param(20, ge=2)  # side of a SLIC superpixel (label noise)
+    slic_iterations: int = param(3, gt=0)  # SLIC's iterations per frame
     pose_noise_xy_m: float = param(0.0, ge=0)  # std dev of the published x and of y
     pose_noise_yaw_rad: float = param(0.0, ge=0)  # std dev of the published yaw
     # pose drift: a random walk added to the published pose, its std dev after t seconds is
     # this times sqrt(t) (in x and in y; in yaw)
     pose_drift_xy_m_per_sqrt_s: float = param(0.0, ge=0)
-    pose_drift_yaw_rad_per_sqrt_s: float = param(0.0, ge=0)
-    pose_rate_hz: float = param(20.0, gt=0)
-    clock_rate_hz: float = param(10.0, gt=0)
-    physics_hz: float = param(240.0, ge=50)
+    pose_drift_yaw_rad_per_sqrt_s: float = param(0.0, ge=0)  # see pose_drift_xy_m_per_sqrt_s
+    pose_rate_hz: float = param(20.0, gt=0)  # robot/pose and robot/pose_truth (sim time)
+    clock_rate_hz: float = param(10.0, gt=0)  # robot/clock: simulated time, real-time factor
+    physics_hz: float = param(240.0, ge=50)  # PyBullet's steps per simulated second
     real_time_factor: float = param(1.0, gt=0)  # also the upper bound in lockstep
     # lockstep: after each camera cloud, wait for the mapper's MapDelta with that cloud_seq
     # (at most lockstep_timeout_s of wall time) before simulating on

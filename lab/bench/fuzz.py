@@ -1,4 +1,4 @@
-"""`smana bench fuzz`: the multi-process fuzz campaign of issue 11 ("Trust").
+"""`smana bench fuzz`: the multi-process fuzz campaign (no input may end a service unseen).
 
 The real services (mapper, navgraph, planner, explorer, the coordinator and, unless left out, the
 simulator) run as their own processes against a zenoh router in this process, on a free loopback

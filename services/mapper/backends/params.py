@@ -17,10 +17,10 @@ class OctreeConfig(Section, section="mapper.octree"):
     """OctoMap's sensor model (its own defaults) and Semantic Octomap's label fusion constants,
     for `octree-max` and `octree-bayes`."""
 
-    prob_hit: float = param(0.7, gt=0, lt=1)
-    prob_miss: float = param(0.4, gt=0, lt=1)
-    clamp_min: float = param(0.1192, gt=0, lt=1)
-    clamp_max: float = param(0.971, gt=0, lt=1)
+    prob_hit: float = param(0.7, gt=0, lt=1)  # occupancy probability of a hit
+    prob_miss: float = param(0.4, gt=0, lt=1)  # occupancy probability of a pass-through
+    clamp_min: float = param(0.1192, gt=0, lt=1)  # occupancy never falls below this
+    clamp_max: float = param(0.971, gt=0, lt=1)  # nor rises above this
     # octree-max, same label: "average" is Semantic Octomap's `SemanticsMax::semanticFusion`
     # (c = (c + c_obs) / 2); "gain" is smana's earlier rule, kept as a variant:
     # c += max_same_gain * c_obs * (1 - c), agreement always raising c
@@ -43,11 +43,11 @@ class OctreeConfig(Section, section="mapper.octree"):
 class TsdfConfig(Section, section="mapper.tsdf"):
     """voxblox's fast TSDF integrator and Kimera's semantic label probabilities, for `tsdf`."""
 
-    truncation_voxels: float = param(2.0, gt=0)
-    max_weight: float = param(10000.0, gt=0)
+    truncation_voxels: float = param(2.0, gt=0)  # band each side of a point, in voxels
+    max_weight: float = param(10000.0, gt=0)  # a voxel's weight is capped here
     min_range_m: float = param(0.1, ge=0)  # closer points are skipped
     start_voxel_subsampling: float = param(2.0, ge=0)  # voxblox default; 0 disables it
-    use_weight_dropoff: bool = True
+    use_weight_dropoff: bool = True  # weights fall behind the surface (voxblox)
     label_probability: float = param(0.9, gt=0, lt=1)  # Kimera: p of the measured label
     # Surface extraction: voxels (and their sign-change neighbours) need at least this weight
     # (about the number of rays that reached them, less the drop-off behind the surface).

@@ -23,14 +23,14 @@ class GardenConfig(Section, section="sim.garden"):
 
     # "classic": straight gravel strips across noise patches, objects scattered with gaps (~78 %
     # free from above); "3drms": the paper's statistics (section 4.3), gravel paths between plazas,
-    # lawns and densely planted beds (services/sim/worlds/garden_3drms.py); the default since
-    # issue 14, for `smana up` and the experiments alike; "wheel": 3drms's statistics, gravel
+    # lawns and densely planted beds (services/sim/worlds/garden_3drms.py); the default, for
+    # `smana up` and the experiments alike; "wheel": 3drms's statistics, gravel
     # spokes from a central lawn, grass between them: a way through (garden_wheel.py)
     layout: Literal["3drms", "classic", "wheel"] = "3drms"
     size_m: float = param(12.0, ge=2, le=1000)  # side of the square garden
     ground_resolution_m: float = param(0.1, ge=0.01)  # height field / ground class raster cell
     terrain_fraction: float = param(0.5, ge=0, le=0.9)  # of the ground, terrain rather than grass
-    height_amplitude_m: float = param(0.25, ge=0)
+    height_amplitude_m: float = param(0.25, ge=0)  # of the ground's smooth relief
     max_slope: float = param(0.15, ge=0)  # rise over run
     # share of the area inside the walls to cover with objects, seen from above; the gap between
     # objects caps what random placement reaches at about 0.2 (the default world is ~80 % free,
@@ -38,21 +38,20 @@ class GardenConfig(Section, section="sim.garden"):
     clutter: float = param(0.35, ge=0, le=0.9)
     min_gap_m: float = param(0.7, ge=0)  # between objects, so the free space stays connected
     spawn_clearance_m: float = param(1.2, ge=0)  # free disk kept around the centre (the start)
-    wall_height_m: float = 1.0
-    wall_thickness_m: float = 0.2
-    # relative frequencies of the object kinds
-    hedges: float = param(0.25, ge=0)
-    topiaries: float = param(0.2, ge=0)
-    roses: float = param(0.2, ge=0)
-    obstacles: float = param(0.2, ge=0)
-    trees: float = param(0.15, ge=0)
+    wall_height_m: float = 1.0  # the boundary walls
+    wall_thickness_m: float = 0.2  # the boundary walls
+    hedges: float = param(0.25, ge=0)  # relative frequency of hedges among the objects
+    topiaries: float = param(0.2, ge=0)  # relative frequency of topiaries
+    roses: float = param(0.2, ge=0)  # relative frequency of roses
+    obstacles: float = param(0.2, ge=0)  # relative frequency of rocks and boxes
+    trees: float = param(0.15, ge=0)  # relative frequency of trees
     # layout "3drms" only: targets measured from above over the whole raster, walls included
     free_share: float = param(0.48, gt=0, lt=1)  # top class traversable (paper: 48 %)
     terrain_share: float = param(0.55, ge=0, le=1)  # terrain / traversable (paper: 55 %)
     path_width_m: list[float] = param([1.4, 2.0], gt=0)  # [min, max]; >= 1.2 to be followable
     plaza_clearance_m: float = param(2.6, ge=0)  # object-free disk around the spawn (the centre)
-    # the wet garden (issue 29, the risk experiment): share of the whole raster, seen from above,
-    # turned from lawn into water (class 9, kind "forbidden": flat, traversable by geometry,
+    # the wet garden (the risk experiment, docs/risk.md): share of the whole raster, seen from
+    # above, turned from lawn into water (class 9, kind "forbidden": flat, traversable by geometry,
     # never to be entered), in ponds beside the paths and across the lawns. Needs a class table
     # with water (general.class_table = "garden3drms_wet"). 0, the default, is the paper's world.
     water_share: float = param(0.0, ge=0, le=0.3)
@@ -82,8 +81,8 @@ class PlyConfig(Section, section="sim.ply"):
     ground_resolution_m: float = param(0.1, gt=0)  # height field / ground class raster cell
     label_field: str = ""  # the PLY vertex property holding labels; "" finds a usual name
     walls: bool = True  # add walls around the cloud's extent
-    wall_height_m: float = 1.0
-    wall_thickness_m: float = 0.2
+    wall_height_m: float = 1.0  # of those walls
+    wall_thickness_m: float = 0.2  # of those walls
 
 
 BUILT_IN = {"garden": GardenConfig, "ply": PlyConfig}
