@@ -348,3 +348,27 @@ def test_a_goal_s_own_no_path_timeout_replaces_the_config_s():
     ex.accept_goal(parse({"x": 6.0, "y": 6.0, "no_path_timeout_s": 0.0, "id": "at-once"}))
     run(ex, straight(reachable=lambda g: False), 10.0, until=lambda e: e.nav.t_ended)
     assert ex.nav.error == "no_path" and ex.nav_changes[-1]["navigation_time_s"] < 0.2
+
+
+def test_a_restarted_explorer_tells_the_sender_its_goal_ended_and_does_not_drive_to_it():
+    """A goal the last process was driving to is not resumed: the restarted explorer's first
+    feedback ends it "aborted" (error "stopped", the reason says why), and it drives nowhere."""
+    ex = explorer(mode="navigate")
+    ex.accept_goal(GoalSpec(6.0, 1.0, 0.5, 0.2, "g-before"))
+    run(ex, straight(), 2.0)
+    assert ex.nav_active and ex.goal is not None
+    state = ex.state_dict()
+    again = Explorer(ExplorerConfig(mode="navigate"), TRAV, 5)
+    again.resume(state, np.array(ex.trajectory))
+    (fb,) = again.nav_changes
+    assert (fb["id"], fb["state"], fb["error"]) == ("g-before", "aborted", "stopped")
+    assert "restarted" in fb["reason"] and fb["goal"] == [6.0, 1.0, 0.5]
+    again.update_grid(grid())
+    again.update_pose(*ex.pose, ex.t_now + 0.1)
+    assert again.goal is None and not again.nav_active
+    assert set(run(again, straight(), 2.0)) == {(0.0, 0.0)}
+    # a checkpoint whose goal id is not one: nobody to tell, nothing breaks
+    state["goal"]["navigate"] = 3
+    other = Explorer(ExplorerConfig(mode="navigate"), TRAV, 5)
+    other.resume(state, np.array(ex.trajectory))
+    assert other.nav_changes == [] and other.goal is None

@@ -43,7 +43,13 @@ from smana.services.explorer import frontier as fr
 from smana.services.explorer.choosing import Choosing
 from smana.services.explorer.driving import BACK_OFF_S, Driving
 from smana.services.explorer.follower import PurePursuit
-from smana.services.explorer.navigation import NavGoal, Navigating
+from smana.services.explorer.navigation import (
+    GoalRefused,
+    GoalSpec,
+    NavGoal,
+    Navigating,
+    check_goal_id,
+)
 from smana.services.explorer.recovery import Recovering
 from smana.services.explorer.team import Team
 
@@ -248,7 +254,10 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
         the same view); the robot has moved on meanwhile, so the path is followed from the point
         nearest the robot's first pose. A checkpoint without a goal's node (older) keeps none."""
         g, path = state.get("goal"), state.get("path")
-        if state.get("done") or not g or not path or "cell" not in g or g.get("navigate"):
+        if g and g.get("navigate"):
+            self._end_goal_of_the_last_process(g)
+            return
+        if state.get("done") or not g or not path or "cell" not in g:
             return
         xy = np.asarray(g["xy"], float)
         choice = fr.ViewChoice(
@@ -270,6 +279,21 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
             self._t_last_plan = float(state["t_last_plan_s"])
         self._progress_mark = None  # set again at the first pose: no stall from the pause
         self._resumed_goal = True
+
+    def _end_goal_of_the_last_process(self, g: dict) -> None:
+        """A goal the last process was sent and was driving to is not resumed (its sender may
+        have moved on): it ends "aborted" at once, and the first feedback says so, so that its
+        sender (a NavigateToPose client, `smana goto`) hears it now, not after a silence."""
+        try:
+            gid = check_goal_id(g["navigate"])
+            x, y = (float(v) for v in g["xy"][:2])
+            yaw = g.get("yaw")
+            yaw = None if yaw is None else float(yaw)
+        except (GoalRefused, KeyError, TypeError, ValueError):
+            return  # a checkpoint this process cannot read: nobody to tell
+        spec = GoalSpec(x, y, yaw, self.config.follower.goal_tolerance_m, gid)
+        self.nav = NavGoal(spec, None)
+        self._end_nav("aborted", "the explorer restarted: a goal is not resumed", "stopped")
 
     # -- decisions ------------------------------------------------------------------------------
 
