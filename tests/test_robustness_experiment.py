@@ -243,3 +243,22 @@ def test_robustness_quick_counts_a_robot_that_did_not_move_as_a_failure(tmp_path
     # a rerun keeps the finished run: nothing runs again
     assert exp.cli(argv) == 0
     assert json.loads((tmp_path / "robustness_results.json").read_text())["runs"] == runs
+
+
+def test_a_run_that_runs_again_starts_in_an_empty_folder(tmp_path):
+    """An interrupted run's folder (its map autosave, journal and explorer state) is moved aside
+    before the run runs again: the new run's services would resume from it otherwise (the
+    robot back at its spawn inside the last run's map)."""
+    from smana.lab.experiments.exploration import set_aside
+
+    run = tmp_path / "seed53_max_clean"
+    (run / "explorer").mkdir(parents=True)
+    (run / "explorer" / "state.json").write_text("{}")
+    (run / "map.npz").write_bytes(b"x")
+    set_aside(run)
+    assert not run.exists()
+    assert (tmp_path / "seed53_max_clean.interrupted-1" / "explorer" / "state.json").exists()
+    run.mkdir()
+    set_aside(run)
+    assert (tmp_path / "seed53_max_clean.interrupted-2").is_dir()
+    set_aside(tmp_path / "never_ran")  # nothing there: nothing to do

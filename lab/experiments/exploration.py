@@ -190,6 +190,19 @@ def run_name(seed: int, arm: Arm) -> str:
     return f"seed{seed}_{arm.name}"
 
 
+def set_aside(run_dir: Path) -> None:
+    """A run runs in an empty folder: what an interrupted run left there (a map autosave, a
+    journal, the explorer's state) would be resumed by the new one's services (`mapper.load =
+    auto`, the explorer's restart), a robot teleported back to its spawn inside a map of the
+    last run. It is moved to `<name>.interrupted-N`, kept for a look, never read."""
+    if not run_dir.exists():
+        return
+    n = 1
+    while run_dir.with_name(f"{run_dir.name}.interrupted-{n}").exists():
+        n += 1
+    run_dir.rename(run_dir.with_name(f"{run_dir.name}.interrupted-{n}"))
+
+
 def exploration_run(out: Path, seed: int, arm: Arm, s: ExplorationExperimentConfig, spawn=None):
     """One `smana up` run; returns (exit code, metrics, explorer state, cpu seconds, wall s)."""
     from smana.common.classes import ClassTable
@@ -217,7 +230,8 @@ def exploration_run(out: Path, seed: int, arm: Arm, s: ExplorationExperimentConf
     argv += ["--set", f'deploy.router_listen=["tcp/127.0.0.1:{port}"]']
     for item in sets:
         argv += ["--set", item]
-    run_dir.mkdir(parents=True, exist_ok=True)
+    set_aside(run_dir)
+    run_dir.mkdir(parents=True)
     t0 = time.perf_counter()
     with open(run_dir / "up.log", "w") as f:
         # its own process group, so a timeout ends the whole stack; Ctrl-C no longer reaches it

@@ -140,7 +140,8 @@ def fleet_argv(run_dir: Path, seed: int, world: World, n: int, s, spawn=None, po
 def fleet_run(out: Path, seed: int, world: World, n: int, s: FleetExperimentConfig, spawn=None):
     """One `smana up --robots N`; returns (exit code, metrics, cpu seconds, wall seconds)."""
     run_dir = (out / run_name(seed, world.name, n)).resolve()
-    run_dir.mkdir(parents=True, exist_ok=True)
+    ex.set_aside(run_dir)  # an interrupted run's leftovers would be resumed
+    run_dir.mkdir(parents=True)
     argv = fleet_argv(run_dir, seed, world, n, s, spawn)
     t0 = time.perf_counter()
     with open(run_dir / "up.log", "w") as f:
