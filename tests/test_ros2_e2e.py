@@ -203,7 +203,16 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
 
     def ready():
         with lock:
-            return all(got[k] for k in ("map", "costmap", "costmap_raw", "odom", "cmd_vel", "path"))
+            if not all(
+                got[k] for k in ("map", "costmap", "costmap_raw", "odom", "cmd_vel", "path")
+            ):
+                return False
+            # the wall blocks once its voxels are solid (navgraph.solid_log_odds: three hits net
+            # of a miss), not at its first sight: a label of probability 1 is no certainty
+            c = got["costmap"][-1]
+            grid = np.asarray(c.data, np.int8).reshape(c.info.height, c.info.width)
+            ox, oy = c.info.origin.position.x, c.info.origin.position.y
+            return grid[int((0.0 - oy) / 0.2), int((2.55 - ox) / 0.2)] == 100
 
     deadline = time.monotonic() + 120
     i = 0
