@@ -5,20 +5,27 @@ verdict on a paper claim decided by the intervals, never by one run.
     verdict_near(ci, 0.60, tolerance=0.10)             # "reproduced" / "not reproduced" / ...
     verdict_less(ci_tsdf, ci_octree)                   # a's interval entirely below b's
     decide_near(paired_ci, 0.28, tolerance=0.10)       # "about +28 points", with its p-values
+    decide_sooner_censored(a, ac, b, bc)               # time to an event, censored runs kept
+    decide_first_paired(order, "2 robots", "...")      # the same paired per seed (sign test)
     holm_table([d1, d2, ...])                          # the verdict table corrected together
 
 The interval is Student's t on the mean (runs are few: 5 to 10), two-sided at `confidence`.
 With fewer than two finite values there is no interval: lo and hi are NaN and every verdict is
-"inconclusive".
+"inconclusive". Every decision says which one-sided alternative its p tests (`Decision.tests`)
+and how many seeds its rule would need to decide at 80 % power (`Decision.need`, lab/power.py);
+the censored estimators are lab/survival.py's.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 from scipy import stats as _st
+
+from . import power as _pw
+from . import survival as _sv
 
 REPRODUCED = "reproduced"
 NOT_REPRODUCED = "not reproduced"
@@ -170,13 +177,18 @@ NOT_REPRODUCIBLE_HERE = "not reproducible in this world"
 class Decision:
     """A verdict with the p-values of its two one-sided conclusions: `p_yes` that the claim
     holds (reproduced / met), `p_no` that it does not. `alpha` is the one-sided level each is
-    held to: (1 - confidence) / 2, 0.025 for 95 % intervals."""
+    held to: (1 - confidence) / 2, 0.025 for 95 % intervals. `yes` and `no` say in words what
+    each test's alternative is ("NBV sooner", "outside the band"), so that a printed p carries
+    the direction it tests; `need` is the seeds the rule would need (lab/power.py)."""
 
     verdict: str
     p_yes: float
     p_no: float
     alpha: float = 0.025
     evidence: str = ""
+    yes: str = "the claim holds"
+    no: str = "the claim fails"
+    need: _pw.Need | None = None
 
     @property
     def p(self) -> float:
@@ -186,6 +198,32 @@ class Decision:
         if self.verdict == NOT_REPRODUCED:
             return self.p_no
         return min(self.p_yes, self.p_no)
+
+    @property
+    def tests(self) -> str:
+        """The alternative `p` tests, one-sided: `yes` or `no`, whichever p it is."""
+        if self.verdict == REPRODUCED or (
+            self.verdict != NOT_REPRODUCED and self.p_yes <= self.p_no
+        ):
+            return self.yes
+        return self.no
+
+    def fields(self) -> dict:
+        """What a claim row of a report carries from its decision, beside its own texts: the
+        verdict, p and what it tests, and the seeds needed (a dict, for the JSON outputs)."""
+        return {
+            "verdict": self.verdict,
+            "p": self.p,
+            "p_tests": self.tests,
+            "need": None if self.need is None else asdict(self.need),
+        }
+
+
+def format_p(p: float | None, tests: str | None) -> str:
+    """ "0.15 (one-sided: nearest frontier sooner)"; "-" for a claim that is not a test."""
+    if p is None:
+        return "-"
+    return f"{p:.2g} (one-sided: {tests})" if tests else f"{p:.2g} (one-sided)"
 
 
 def _t_sf(ci: Interval, c: float) -> float:
@@ -206,20 +244,37 @@ def _t_cdf(ci: Interval, c: float) -> float:
     return float(_st.t.cdf((ci.mean - c) / sem, ci.n - 1))
 
 
-def _decide(p_yes: float, p_no: float, alpha: float, evidence: str = "") -> Decision:
+def _decide(p_yes: float, p_no: float, alpha: float, evidence: str = "", **labels) -> Decision:
     if p_yes < alpha:
         v = REPRODUCED
     elif p_no < alpha:
         v = NOT_REPRODUCED
     else:
         v = INCONCLUSIVE
-    return Decision(v, p_yes, p_no, alpha, evidence)
+    return Decision(v, p_yes, p_no, alpha, evidence, **labels)
 
 
-def _undefined(ci: Interval) -> Decision | None:
+def _undefined(ci: Interval, **labels) -> Decision | None:
     if ci.defined:
         return None
-    return Decision(INCONCLUSIVE, 1.0, 1.0, (1 - ci.confidence) / 2)
+    return Decision(INCONCLUSIVE, 1.0, 1.0, (1 - ci.confidence) / 2, **labels)
+
+
+def spread(ci: Interval) -> float:
+    """The standard deviation of the values behind a t interval (its half-width over t, times
+    sqrt(n)); NaN without an interval."""
+    if not ci.defined:
+        return math.nan
+    return ci.half_width / float(_st.t.ppf(0.5 + ci.confidence / 2, ci.n - 1)) * math.sqrt(ci.n)
+
+
+def _need_t(ci: Interval, edge: float, alpha: float) -> _pw.Need | None:
+    """Seeds for a one-sided t test of the interval's mean against `edge`, were the mean and
+    spread those measured (whichever side the mean lies: the verdict it points to)."""
+    if not ci.defined:
+        return None
+    sd, delta = spread(ci), abs(ci.mean - edge)
+    return _pw.Need(_pw.seeds_t(delta, sd, alpha), "paired t (noncentral t)", delta, sd, n=ci.n)
 
 
 def decide_near(ci: Interval, target: float, tolerance: float) -> Decision:
@@ -227,32 +282,70 @@ def decide_near(ci: Interval, target: float, tolerance: float) -> Decision:
     two edges reject: TOST), not reproduced when it lies wholly outside the band. The same rule
     decides a paired difference "about +D" (give it the per-seed differences' interval): the
     effect's size is tested, not only its sign."""
-    return _undefined(ci) or _decide(
-        max(_t_sf(ci, target - tolerance), _t_cdf(ci, target + tolerance)),
-        min(_t_cdf(ci, target - tolerance), _t_sf(ci, target + tolerance)),
-        (1 - ci.confidence) / 2,
+    labels = {"yes": "inside the band", "no": "outside the band"}
+    alpha = (1 - ci.confidence) / 2
+    lo, hi = target - tolerance, target + tolerance
+    need = None
+    if ci.defined:
+        sd = spread(ci)
+        if lo < ci.mean < hi:
+            d_lo, d_hi = ci.mean - lo, hi - ci.mean
+            seeds = _pw.seeds_tost(d_lo, d_hi, sd, alpha)
+            how = "TOST (noncentral t, Bonferroni)"
+            need = _pw.Need(seeds, how, min(d_lo, d_hi), sd, n=ci.n)
+        else:
+            need = _need_t(ci, lo if ci.mean <= lo else hi, alpha)
+    return _undefined(ci, **labels) or _decide(
+        max(_t_sf(ci, lo), _t_cdf(ci, hi)),
+        min(_t_cdf(ci, lo), _t_sf(ci, hi)),
+        alpha,
+        need=need,
+        **labels,
     )
 
 
-def decide_above(ci: Interval, c: float = 0.0) -> Decision:
+def decide_above(
+    ci: Interval, c: float = 0.0, yes: str | None = None, no: str | None = None
+) -> Decision:
     """A direction the paper gives without a size ("A loses less than B"), tested on the paired
     per-seed difference: reproduced when its interval lies above `c`, not reproduced when below
-    (`verdict_positive` with its p-values)."""
-    return _undefined(ci) or _decide(_t_sf(ci, c), _t_cdf(ci, c), (1 - ci.confidence) / 2)
+    (`verdict_positive` with its p-values). `yes` and `no` name the two sides in the claim's
+    words (default "above c", "below c")."""
+    labels = {"yes": yes or f"above {c:g}", "no": no or f"below {c:g}"}
+    alpha = (1 - ci.confidence) / 2
+    return _undefined(ci, **labels) or _decide(
+        _t_sf(ci, c), _t_cdf(ci, c), alpha, need=_need_t(ci, c, alpha), **labels
+    )
 
 
-def decide_not_worse(ci: Interval, margin: float, higher_is_better: bool = False) -> Decision:
+def decide_not_worse(
+    ci: Interval,
+    margin: float,
+    higher_is_better: bool = False,
+    yes: str | None = None,
+    no: str | None = None,
+) -> Decision:
     """Non-inferiority of B against A from the per-seed differences B - A, with a margin
     declared before the runs: met when the interval lies on the good side of the margin (below
     +margin where lower is better, above -margin where higher is better), not met when it lies
-    wholly on the bad side; a difference whose interval holds 0 is not enough."""
+    wholly on the bad side; a difference whose interval holds 0 is not enough. `yes` and `no`
+    name the two sides in the claim's words."""
     if not margin >= 0:
         raise ValueError(f"margin must be >= 0, got {margin}")
+    labels = {
+        "yes": yes or "not worse by the margin",
+        "no": no or "worse by more than the margin",
+    }
+    alpha = (1 - ci.confidence) / 2
+    edge = -margin if higher_is_better else margin
+    need = _need_t(ci, edge, alpha)
     if higher_is_better:
-        return _undefined(ci) or _decide(
-            _t_sf(ci, -margin), _t_cdf(ci, -margin), (1 - ci.confidence) / 2
+        return _undefined(ci, **labels) or _decide(
+            _t_sf(ci, edge), _t_cdf(ci, edge), alpha, need=need, **labels
         )
-    return _undefined(ci) or _decide(_t_cdf(ci, margin), _t_sf(ci, margin), (1 - ci.confidence) / 2)
+    return _undefined(ci, **labels) or _decide(
+        _t_cdf(ci, edge), _t_sf(ci, edge), alpha, need=need, **labels
+    )
 
 
 def decide_in_world(
@@ -263,12 +356,78 @@ def decide_in_world(
     the verdict is "not reproducible in this world", with that interval as the evidence;
     otherwise `decide_near`."""
     lo, hi = target - tolerance, target + tolerance
+    d = decide_near(ci, target, tolerance)
     if world.defined and (world.lo > hi or world.hi < lo):
-        d = decide_near(ci, target, tolerance)
         w = f"{world.mean:.4g} [{world.lo:.4g}, {world.hi:.4g}]"
         ev = f"{what}: {w}, wholly outside [{lo:.4g}, {hi:.4g}]"
-        return Decision(NOT_REPRODUCIBLE_HERE, d.p_yes, d.p_no, d.alpha, ev)
-    return decide_near(ci, target, tolerance)
+        return replace(d, verdict=NOT_REPRODUCIBLE_HERE, evidence=ev)
+    return d
+
+
+def decide_sooner_censored(
+    a_values,
+    a_censored,
+    b_values,
+    b_censored,
+    alpha: float = 0.025,
+    names: tuple[str, str] = ("A", "B"),
+) -> Decision:
+    """ "A reaches it sooner (less time, less distance) than B", censored runs kept: the log-rank
+    test (lab/survival.py) on the same seed set (the caller passes both arms' runs of the seeds
+    where both ran), each side one-sided at `alpha` (the two-sided p is twice the smaller).
+    The evidence gives both Kaplan-Meier medians and the test with the side the data lean to;
+    the seeds needed are Schoenfeld's, from Peto's hazard ratio and the share that reached."""
+    a, b = names
+    lr = _sv.logrank(a_values, a_censored, b_values, b_censored)
+    ma = _sv.kaplan_meier(a_values, a_censored).median()
+    mb = _sv.kaplan_meier(b_values, b_censored).median()
+
+    def f(m):
+        return "not reached by half" if m is None else f"{m:.3g}"
+
+    ev = f"Kaplan-Meier medians {f(ma)} vs {f(mb)}; {lr.describe(a, b)}"
+    runs = len(np.atleast_1d(a_values)) + len(np.atleast_1d(b_values))
+    reached = (lr.observed_a + lr.observed_b) / runs if runs else 0.0
+    log_hr = math.log(lr.hazard_ratio) if lr.variance > 0 else 0.0
+    need = _pw.Need(
+        _pw.seeds_logrank(log_hr, reached, alpha),
+        "log-rank (Schoenfeld)",
+        log_hr,
+        detail=f"hazard ratio {lr.hazard_ratio:.2g}, {100 * reached:.0f} % of runs reached it",
+        n=min(len(np.atleast_1d(a_values)), len(np.atleast_1d(b_values))),
+    )
+    return _decide(
+        float(_st.norm.sf(lr.z)),
+        float(_st.norm.cdf(lr.z)),
+        alpha,
+        ev,
+        yes=f"{a} sooner",
+        no=f"{b} sooner",
+        need=need,
+    )
+
+
+def decide_first_paired(
+    order: _sv.PairedOrder, yes: str, no: str, alpha: float = 0.025, evidence: str = ""
+) -> Decision:
+    """ "A comes first" over paired runs (the same seed), censored runs kept: the exact sign
+    test over the pairs whose order is known (lab/survival.py `paired_order`: for pairs, the
+    log-rank test stratified by seed); ties and pairs whose order censoring hides are left out
+    of the test and counted in the evidence. Reproduced when A first significantly often, not
+    reproduced when B; the seeds needed are the sign test's at the measured shares."""
+    m = order.ordered
+    q = max(order.a_first, order.b_first) / m if m else 0.5
+    pairs = m + order.tied + order.unknown
+    known = m / pairs if pairs else 0.0
+    need = _pw.Need(
+        _pw.seeds_sign(q, known, alpha),
+        "exact sign test",
+        q,
+        detail=f"{max(order.a_first, order.b_first)} of {m} ordered pairs one way, "
+        f"{m} of {pairs} pairs ordered",
+        n=pairs,
+    )
+    return _decide(order.p_a_first, order.p_b_first, alpha, evidence, yes=yes, no=no, need=need)
 
 
 def holm(pvalues, alpha: float = 0.025) -> tuple[np.ndarray, np.ndarray]:
@@ -296,74 +455,5 @@ def holm_table(decisions: list[Decision]) -> list[Decision]:
     for i, a, k in zip(tested, adj, keep, strict=True):
         d = decisions[i]
         verdict = d.verdict if k or d.verdict == INCONCLUSIVE else INCONCLUSIVE
-        out[i] = Decision(verdict, d.p_yes, d.p_no, d.alpha, f"Holm-adjusted p = {a:.3g}")
+        out[i] = replace(d, verdict=verdict, evidence=f"Holm-adjusted p = {a:.3g}")
     return out
-
-
-# -- censored runs -------------------------------------------------------------------------------
-
-
-def kaplan_meier(values, censored) -> tuple[np.ndarray, np.ndarray]:
-    """Kaplan-Meier survival of "not yet reached" (e.g. 95 % coverage): (event times, S after
-    each). A censored run (never reached it) counts with its bound (the budget, or the distance
-    it drove) as "not reached by then"; at equal values an event comes before a censoring."""
-    v = np.asarray(values, float)
-    c = np.asarray(censored, bool)
-    if v.shape != c.shape or not np.isfinite(v).all():
-        raise ValueError("values and censored must be finite and the same length")
-    times = np.unique(v[~c])
-    surv = np.empty(len(times))
-    s = 1.0
-    for k, t in enumerate(times):
-        at_risk = np.count_nonzero(v >= t)
-        events = np.count_nonzero((v == t) & ~c)
-        s *= 1.0 - events / at_risk
-        surv[k] = s
-    return times, surv
-
-
-def km_median(values, censored) -> float | None:
-    """The Kaplan-Meier median: the first event time at which S falls to 0.5 or below; None when
-    it never does (more than half the runs censored before reaching it)."""
-    times, surv = kaplan_meier(values, censored)
-    hit = np.flatnonzero(surv <= 0.5)
-    return float(times[hit[0]]) if len(hit) else None
-
-
-def logrank(a_values, a_censored, b_values, b_censored) -> tuple[float, float]:
-    """Log-rank test of two arms with censored runs: (z, two-sided p). z < 0 when arm A reaches
-    the event sooner than B would under the same hazard (fewer observed than expected for B)."""
-    va, ca = np.asarray(a_values, float), np.asarray(a_censored, bool)
-    vb, cb = np.asarray(b_values, float), np.asarray(b_censored, bool)
-    v = np.concatenate([va, vb])
-    ev_ = ~np.concatenate([ca, cb])
-    in_a = np.arange(len(v)) < len(va)
-    o_minus_e, var = 0.0, 0.0
-    for t in np.unique(v[ev_]):
-        risk = v >= t
-        n, na = np.count_nonzero(risk), np.count_nonzero(risk & in_a)
-        d = np.count_nonzero((v == t) & ev_)
-        da = np.count_nonzero((v == t) & ev_ & in_a)
-        o_minus_e += da - d * na / n
-        if n > 1:
-            var += d * (na / n) * (1 - na / n) * (n - d) / (n - 1)
-    if var == 0:
-        return 0.0, 1.0
-    z = -o_minus_e / math.sqrt(var)
-    return z, float(2 * _st.norm.sf(abs(z)))
-
-
-def decide_sooner_censored(
-    a_values, a_censored, b_values, b_censored, alpha: float = 0.025
-) -> Decision:
-    """ "A reaches it sooner (less time, less distance) than B", censored runs kept: decided by
-    the log-rank test on the same seed set (the caller passes both arms' runs of the seeds
-    where both ran), one-sided at `alpha`; the evidence gives both Kaplan-Meier medians."""
-    z, _ = logrank(a_values, a_censored, b_values, b_censored)
-    ma, mb = km_median(a_values, a_censored), km_median(b_values, b_censored)
-
-    def f(m):
-        return "not reached" if m is None else f"{m:.4g}"
-
-    ev = f"Kaplan-Meier medians {f(ma)} vs {f(mb)}, log-rank z = {z:.2f}"
-    return _decide(float(_st.norm.cdf(z)), float(_st.norm.sf(z)), alpha, ev)

@@ -4,6 +4,7 @@ experiment's tables and plot (its runs of the whole stack are in test_e2e_*)."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -289,18 +290,26 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
     assert _verdict(ex.verdicts(worse), "NBV reaches") == stats.NOT_REPRODUCED
     far = [{**r, "terrain_share": 0.2 + 0.01 * r["seed"]} for r in rows]
     assert _verdict(ex.verdicts(far), "terrain share at grass x4") == stats.NOT_REPRODUCED
-    # baseline runs that never reached 95 % are kept as censored at the distance they drove
-    # (61 to 65 m, beyond every NBV run's 33 to 35 m): still decided, not dropped
+    # baseline runs that never reached 95 % are kept: not reached within the budget, censored
+    # beyond every distance: still decided, not dropped
     few = [
         {**r, "distance_to_95_m": None}
         if r["strategy"] == "nearest_frontier" and r["seed"] > 3
         else r
         for r in rows
     ]
-    assert _verdict(ex.verdicts(few), "NBV reaches") == stats.REPRODUCED
-    # censored early (they stopped after 5 m): they say nothing, inconclusive
+    v = next(v for v in ex.verdicts(few) if v["claim"].startswith("NBV reaches"))
+    assert v["verdict"] == stats.REPRODUCED and v["p_tests"] == "NBV sooner"
+    assert "log-rank p = " in v["smana"] and "two-sided; the data lean to NBV sooner" in v["smana"]
+    assert "NBV first in 3 of 3 seeds whose order is known" in v["smana"]
+    # runs that stopped early (after 5 m) without reaching it never count as reaching it later:
+    # censored beyond every distance, not at the 5 m they drove
     early = [{**r, "distance_m": 5.0} if r["distance_to_95_m"] is None else r for r in few]
-    assert _verdict(ex.verdicts(early), "NBV reaches") == stats.INCONCLUSIVE
+    assert _verdict(ex.verdicts(early), "NBV reaches") == stats.REPRODUCED
+    # a robot that did not move counts as not reached even if its camera saw 95 % from its start
+    still = [{**r, "moved": False} if r["strategy"] == "nbv" else r for r in rows]
+    assert ex.time_to_event(still[0], "distance_to_95_m", math.inf) == (math.inf, True)
+    assert _verdict(ex.verdicts(still), "NBV reaches") == stats.NOT_REPRODUCED
     # the rise is tested for its size: +28 points with a 10-point tolerance, not only > 0
     small = [
         {**r, "terrain_share": r["terrain_share"] - 0.25}
@@ -326,13 +335,19 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
     assert x1["arm"] == "nbv_x1" and x1["terrain_share"]["mean"] == pytest.approx(0.60)
     assert x1["reached_95"] == 3
     assert x1["km_median_distance_to_95_m"] == pytest.approx(34.0)  # of 33, 34, 35 m
-    # two of three never reach 95 %: kept as censored at the 40 m they drove; no median
+    assert "distance_to_95_m" not in x1  # no mean over the runs that reached it
+    assert x1["km_time_to_95_s"]["rmst"]["horizon"] == s.budget_s
+    # two of three never reach 95 %: kept as not reached within the budget; no median
     arm = ex.nbv(2.0)
     runs = [_run(3, arm, dist=20.0)] + [_run(s, arm, reach_at=False) for s in (4, 5)]
     (d,) = ex.summarise_exploration(runs)
     assert d["reached_95"] == 1 and d["km_median_distance_to_95_m"] is None
     (d,) = ex.summarise_exploration(runs[:2] + [_run(5, arm, dist=30.0)])
-    assert d["km_median_distance_to_95_m"] == pytest.approx(30.0)  # 20, 30 reached; 40 censored
+    assert d["km_median_distance_to_95_m"] == pytest.approx(30.0)  # 20, 30 reached; 1 not
+    assert ex.format_km(d["km_distance_to_95_m"]).startswith("30.0 [")
+    assert ex.format_km(ex.summarise_exploration(runs)[0]["km_distance_to_95_m"]) == (
+        "not reached by half (n = 3)"
+    )
     for name in ("terrain_share", "coverage_distance", "coverage_time"):
         assert (tmp_path / f"exploration_{name}.png").stat().st_size > 1000
 

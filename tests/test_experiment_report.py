@@ -59,7 +59,7 @@ def test_report_rewrites_only_the_generated_sections_from_the_data(tmp_path, cap
     want = stats.mean_ci([0.6 + 0.01 * s for s in (3, 4, 5)])
     assert f"| x1 | {want.format(100, unit=' %')} |" in text
     # the exploration's claims with their rules and Holm; the missing experiments say so
-    assert "| rule | p | verdict (Holm) |" in text
+    assert "| rule | p (one-sided: the alternative it tests) | verdict (Holm-adjusted p, " in text
     assert "exploration: terrain share at grass x1, about the paper's" in text
     assert "Holm-adjusted p" in text
     assert "No raw results of `noise`, `fleet` are committed yet" in text
@@ -151,7 +151,7 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
         {"seed": s, "grass_cost_factor": 1.0, "terrain_share": 0.95} for s in (3, 4, 5)
     ])  # fmt: skip
     fleet = []
-    for seed in (3, 4, 5):
+    for seed in (3, 4, 5, 6, 7, 8):
         for n, t in ((1, 300.0), (2, 150.0 + seed)):
             fleet.append(
                 {"seed": seed, "world": "garden22", "n_robots": n, "ok": True,
@@ -159,7 +159,8 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
                  "robot_contacts": 0, "size_m": 22.0, "distance_to_95_m": 50.0, "coverage": 0.99,
                  "overlap": 0.4 if n > 1 else None}
             )  # fmt: skip
-    report.write_data(tmp_path, "fleet", fleet)
+    meta = {"worlds": [{"name": "garden22", "size_m": 22.0, "budget_s": 700.0}]}
+    report.write_data(tmp_path, "fleet", fleet, meta)
     data = report.load_data(tmp_path / "data")
     assert sorted(data) == ["exploration_garden20", "fleet", "routes"]
     table = report.verdict_claims(data)
@@ -168,15 +169,39 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
     assert big and all(c["verdict"] != stats.NOT_REPRODUCIBLE_HERE for c in big)
     fl = [c for c in table if c["experiment"] == "fleet"]
     ratio = next(c for c in fl if "time to 95 %" in c["claim"])
-    assert ratio["verdict"] == "met" and ratio["p"] < 0.025 and ratio["rule"] == "at most T"
+    assert ratio["verdict"] == "met" and ratio["p"] == 1 / 64
+    assert ratio["rule"] == "at most T, sign test" and ratio["need"]["seeds"] == 6
     contacts = next(c for c in fl if "contacts" in c["claim"])
     assert contacts["p"] is None and contacts["holm"] == "a count, not a test"
     text = report.exploration_section(data)
     assert "docs/experiments/data/exploration_garden20.json: garden ? m" not in text
     assert "| NBV, grass x1 | " in text and "| NBV, grass x4 | " in text
-    assert "| garden22 | 2 | 3 of 3 | 154 [152, 156] (n = 3) |" in report.fleet_section(data)
+    section = report.fleet_section(data)
+    assert (
+        "| garden22 | 2 | 6 (0; 0) | 6 of 6 |" in section and "budget 700 s in garden22" in section
+    )
+    # Kaplan-Meier median of 153.0 to 158.0 s (the first at or below half: the 3rd), the
+    # restricted mean their plain mean: every run reached it
+    assert "| 155 [153, 158] (n = 6) | 156 [" in section
+    assert "p = 0.00051, two-sided; the data lean to 2 robots sooner" in section
     n_tested = sum(c["p"] is not None for c in table)
-    assert f"Holm over the {n_tested} tested" in report.verdicts_section(data)
+    verdicts = report.verdicts_section(data)
+    assert f"Holm over the {n_tested} tested" in verdicts
+    # every p printed says the side it tests
+    assert "| 0.016 (one-sided: at most 0.6 x one robot's) | met (Holm-adjusted p = " in verdicts
+    tested = [
+        ln for ln in verdicts.splitlines() if ln.startswith("| exploration") or "fleet: g" in ln
+    ]
+    assert tested and all("(one-sided: " in ln for ln in tested)
+    # the seeds each claim needs at 80 % power, with what they were computed from
+    power = report.power_section(data)
+    assert power.startswith(f"Generated from docs/experiments/data/ ({n_tested} tested claims;")
+    row = next(ln for ln in power.splitlines() if "time to 95 %" in ln)
+    assert row.endswith(
+        "| 6 | 6 of 6 ordered pairs one way, 6 of 6 pairs ordered | exact sign test | 6 |"
+    )
+    share = next(ln for ln in power.splitlines() if "terrain share at grass x1" in ln)
+    assert " points from the rule's edge, SD " in share and "(d = " in share
     bad = tmp_path / "data" / "fleet_x.json"
     bad.write_text('{"experiment": "noise", "rows": []}')
     try:

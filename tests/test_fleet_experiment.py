@@ -50,42 +50,67 @@ def _verdict(table, start):
     return next(v for v in table if v["claim"].startswith(start))
 
 
-def test_time_ratio_verdicts_are_paired_per_seed():
-    rows = _rows({1: [100, 200, 300], 2: [50, 100, 150], 3: [60, 120, 180]})
+def test_time_verdicts_are_the_sign_test_paired_per_seed():
+    # six seeds: the fleet of 2 at half the lone robot's time in each (under 0.6: met, p = 1/64),
+    # the fleet of 3 at 0.6 of it (over 0.45: not met)
+    rows = _rows({1: [100] * 6, 2: [50] * 6, 3: [60] * 6})
     table = fx.verdicts(rows)
     two = _verdict(table, "garden22: time to 95 % coverage with 2")
     three = _verdict(table, "garden22: time to 95 % coverage with 3")
-    # every seed's ratio is 0.5 (2 robots) and 0.6 (3): no spread, intervals of width 0
-    assert two["verdict"] == fx.MET and two["smana"].startswith("0.50 [0.50, 0.50] (n = 3)")
-    assert three["verdict"] == fx.NOT_MET
-    # spread across the target: inconclusive
-    rows = _rows({1: [100, 100, 100], 2: [40, 60, 80]})
+    assert two["verdict"] == fx.MET and two["p"] == pytest.approx(1 / 64)
+    assert two["p_tests"] == "at most 0.6 x one robot's" and two["rule"] == "at most T, sign test"
+    assert two["smana"].startswith("under 0.6 x one robot's time in 6 of 6 seeds, over in 0")
+    assert (
+        "restricted mean time to 95 % within 100 s: 50 s vs 100 s alone (ratio 0.50)"
+        in (two["smana"])
+    )
+    assert three["verdict"] == fx.NOT_MET and three["p_tests"] == "more than 0.45 x one robot's"
+    assert two["need"]["how"] == "exact sign test" and two["need"]["seeds"] == 6
+    # three seeds of the same: never decided (1/8 > 0.025), whatever the spread
+    rows = _rows({1: [100, 100, 100], 2: [50, 50, 50]})
     assert _verdict(fx.verdicts(rows), "garden22: time to 95 % coverage with 2")["verdict"] == (
         stats.INCONCLUSIVE
     )
 
 
-def test_a_run_that_never_reached_95_is_censored_and_said_so():
-    rows = _rows({1: [100, None, 300], 2: [50, 100, None]})
-    ratios, censored = fx.time_ratios(rows, W22.name, 2)
-    assert ratios == {3: 0.5} and censored == [4, 5]
-    v = _verdict(fx.verdicts(rows), "garden22: time to 95 % coverage with 2")
-    # kept as bounds (every run ends at 100 s): seed 4 below 100 / 100, seed 5 above 100 / 300
-    assert fx.bounded_ratios(rows, W22.name, 2) == {
-        3: (0.5, ""),
-        4: (1.0, "below"),
-        5: (pytest.approx(1 / 3), "above"),
-    }
-    assert v["verdict"] == stats.INCONCLUSIVE
-    assert v["smana"].startswith("0.61 [") and "(n = 3)" in v["smana"]
-    assert (
-        "censored (never reached 95 %), kept as bounds: seed 4: < 1.00, seed 5: > 0.33"
-        in (v["smana"])
+def test_a_run_that_never_reached_95_is_censored_at_the_budget_and_its_order_kept():
+    # budget 700 s: seed 4's lone robot never reached 95 % (T > 700: 0.6 T > 420, the fleet's
+    # 100 s is under it: known); seed 5's fleet never did (over 0.6 x 300: known); seed 6
+    # neither (unknown: left out of the test, named)
+    rows = _rows({1: [100, None, 300, None], 2: [50, 100, None, None]})
+    seeds, (a, ac), (b, bc) = fx.time_pairs(rows, W22.name, 2, 0.6, {W22.name: 700.0})
+    assert seeds == [3, 4, 5, 6]
+    assert (a, ac) == ([50.0, 100.0, 700.0, 700.0], [False, False, True, True])
+    assert b == pytest.approx([60.0, 420.0, 180.0, 420.0]) and bc == [False, True, False, True]
+    d, text = fx.decide_time(rows, W22.name, 2, 0.6, {W22.name: 700.0})
+    assert text.startswith(
+        "under 0.6 x one robot's time in 2 of 4 seeds, over in 1, order unknown in 1 (seed 6) "
+        "(2 known through a run that did not reach 95 % within the 700 s budget)"
     )
-    # a failed run is neither a ratio nor censored
-    rows = _rows({1: [100, 200, 300], 2: [50, 100, 150]})
-    rows[-1]["ok"] = False
-    assert fx.time_ratios(rows, W22.name, 2) == ({3: 0.5, 4: 0.5}, [])
+    assert d.verdict == stats.INCONCLUSIVE
+    # the restricted mean counts a run that did not reach it as the budget, never its bound
+    assert "within 700 s: 388 s vs 450 s alone" in text
+    # without a budget (older data, none given): censored at the latest time any of the world's
+    # runs was followed to (its end, or here the lone robot's 300 s)
+    assert fx.time_pairs(rows, W22.name, 2, 0.6)[1][0][2] == 300.0
+
+
+def test_a_failed_run_counts_as_not_reached_and_is_never_dropped():
+    # seed 5's fleet reached 95 % in 40 s but one of its members never moved: smana up said
+    # FAILED (exit 1, figures left): counted as not reached, its map scored as it is
+    rows = _rows({1: [100, 100, 100], 2: [50, 50, 40]})
+    rows[-1].update(ok=False, exit_code=1)
+    assert fx.failed(rows[-1]) and fx.measured(rows[-1])
+    d, text = fx.decide_time(rows, W22.name, 2, 0.6)
+    assert "over in 1" in text and "FAILED runs counted as not reached: seed 5 (2 robots)" in text
+    assert fx.paired_difference(rows, W22.name, 2, "map_error_m").n == 3
+    # a newer row says so itself; a run that left no figures is missing, and named
+    rows[-1].update(run_failed=False, ok=True)
+    assert not fx.failed(rows[-1])
+    gone = dict(rows[-1], ok=False, exit_code=-9, coverage=None, run_failed=False)
+    assert not fx.measured(gone)
+    s = {d["n_robots"]: d for d in fx.summarise_fleet([*rows[:-1], gone])}
+    assert (s[2]["runs"], s[2]["failed"], s[2]["run_failed"]) == (3, 1, 0)
 
 
 def test_merged_map_not_worse_and_contacts():
@@ -108,7 +133,8 @@ def test_merged_map_not_worse_and_contacts():
         for r in rows
     ]
     table = fx.verdicts(worse)
-    assert _verdict(table, "garden12: merged map's reconstruction")["verdict"] == fx.NOT_MET
+    v = _verdict(table, "garden12: merged map's reconstruction")
+    assert v["verdict"] == fx.NOT_MET and v["p_tests"] == "worse by more than the margin"
     assert _verdict(table, "robot-robot contacts")["verdict"] == fx.MET
     rows[-1]["robot_contacts"] = 2
     v = _verdict(fx.verdicts(rows), "robot-robot contacts")
@@ -117,29 +143,8 @@ def test_merged_map_not_worse_and_contacts():
     assert _verdict(fx.verdicts(rows), "robot-robot contacts")["verdict"] == stats.INCONCLUSIVE
 
 
-def test_a_censored_ratio_blocks_only_the_verdict_it_could_overturn():
-    # a fleet that never reached 95 % (its run ended at 100 s): its ratio is above 1.0, so "not
-    # met" stands when even the bound puts the interval over the target, and "met" cannot
-    slow = _rows({1: [100, 100, 100], 2: [90, 95, None]})
-    assert fx.target_below_censored(fx.bounded_ratios(slow, W22.name, 2), 0.6) == fx.NOT_MET
-    fast = _rows({1: [100, 100, 100], 2: [30, 35, None]})
-    bounded = fx.bounded_ratios(fast, W22.name, 2)
-    assert fx.target_below(stats.mean_ci([v for v, _ in bounded.values()]), 2.0) == fx.MET
-    assert fx.target_below_censored(bounded, 2.0) == stats.INCONCLUSIVE  # > 1.0 is not <= 2
-    # the lone robot never reached 95 %: the ratio is below its bound, so "not met" is blocked
-    lone = _rows({1: [100, 100, None], 2: [90, 95, 90]})
-    bounded = fx.bounded_ratios(lone, W22.name, 2)
-    assert bounded[5] == (0.9, "below")
-    assert fx.target_below(stats.mean_ci([v for v, _ in bounded.values()]), 0.6) == fx.NOT_MET
-    assert fx.target_below_censored(bounded, 0.6) == stats.INCONCLUSIVE
-
-
-def test_not_worse_and_target_below_by_hand():
+def test_not_worse_by_hand():
     iv = stats.Interval
-    assert fx.target_below(iv(0.5, 0.4, 0.59, 3), 0.6) == fx.MET
-    assert fx.target_below(iv(0.7, 0.61, 0.8, 3), 0.6) == fx.NOT_MET
-    assert fx.target_below(iv(0.6, 0.5, 0.7, 3), 0.6) == stats.INCONCLUSIVE
-    assert fx.target_below(iv(0.5, float("nan"), float("nan"), 1), 0.6) == stats.INCONCLUSIVE
     # non-inferiority: the interval must clear the margin; holding 0 is not enough
     assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.005) == stats.INCONCLUSIVE
     assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.02) == fx.MET
@@ -151,14 +156,21 @@ def test_not_worse_and_target_below_by_hand():
 
 def test_summary_per_world_and_fleet_size():
     rows = _rows({1: [100, 200, None], 2: [50, 100, 150]})
-    rows.append(_row(W22, 2, 6, 10, ok=False))
-    s = {(d["world"], d["n_robots"]): d for d in fx.summarise_fleet(rows)}
+    rows.append(_row(W22, 2, 6, 10, ok=False))  # exit 1 with its figures: FAILED, kept
+    s = {(d["world"], d["n_robots"]): d for d in fx.summarise_fleet(rows, {W22.name: 700.0})}
     one, two = s[("garden22", 1)], s[("garden22", 2)]
     assert (one["runs"], one["failed"], one["reached_95"]) == (3, 0, 2)
-    assert one["time_to_95_s"]["mean"] == 150 and one["time_to_95_s"]["n"] == 2
-    assert (two["runs"], two["failed"], two["reached_95"]) == (4, 1, 3)
-    assert two["time_to_95_s"]["mean"] == 100  # the failed run's 10 s is left out
+    # Kaplan-Meier: 100, 200 and one censored at the 700 s budget; median 200, restricted mean
+    # (100 + 200 + 700) / 3
+    km = one["km_time_to_95_s"]
+    assert km["median"] == 200 and km["rmst"]["mean"] == pytest.approx(1000 / 3)
+    assert (two["runs"], two["failed"], two["run_failed"], two["reached_95"]) == (4, 0, 1, 3)
+    assert two["km_time_to_95_s"]["rmst"]["mean"] == pytest.approx((50 + 100 + 150 + 700) / 4)
+    assert "two-sided; the data lean to 2 robots sooner" in two["logrank_text"]
     assert two["overlap"]["mean"] == pytest.approx(0.3) and one["overlap"]["n"] == 0
+    table = fx.summary_table(list(s.values()))
+    assert table[0] == fx.SUMMARY_HEAD and len(table[1].split("|")) == len(table[0].split("|"))
+    assert "| garden22 | 2 | 4 (1; 0) | 3 of 4 |" in table[3]
 
 
 def test_rows_from_a_fleet_run_and_a_single_robot_run():
@@ -184,13 +196,21 @@ def test_rows_from_a_fleet_run_and_a_single_robot_run():
 
 def test_a_run_whose_only_warning_is_a_contact_is_data_and_its_contacts_count():
     """`smana up` exits 1 for a robot-robot contact; the experiment keeps that run (dropping it
-    would leave the contact count to the runs that had none), but not one that failed otherwise."""
+    would leave the contact count to the runs that had none), and one whose member did not do
+    its job (a FAILED run, counted as such), but not one that failed otherwise."""
     fleet = {"coverage": 0.97, "sim": {"robot_contacts_total": 1}, "curve": {}}
     contact = {"fleet": fleet, "warnings": ["1 robot-robot contact(s) (r1-r2 x1)"]}
     r = fx.make_row(7, W22, 3, 1, contact, 10.0, 20.0)
     assert r["ok"] and r["robot_contacts"] == 1 and r["warnings"] == contact["warnings"]
-    crashed = dict(contact, warnings=[*contact["warnings"], "r2: the robot did not move (0 m)"])
-    assert not fx.make_row(7, W22, 3, 1, crashed, 10.0, 20.0)["ok"]
+    assert not r["run_failed"]
+    # a member that did not move: an outcome too, the run is data and counts as FAILED
+    still = dict(contact, warnings=[*contact["warnings"], "r2: the robot did not move (0 m)"])
+    r2 = fx.make_row(7, W22, 3, 1, still, 10.0, 20.0, budget_s=700.0)
+    assert r2["ok"] and r2["run_failed"] and fx.failed(r2) and r2["budget_s"] == 700.0
+    lost = dict(
+        contact, warnings=["the simulator left no sim.json: robot-robot contacts are unknown"]
+    )
+    assert not fx.make_row(7, W22, 3, 1, lost, 10.0, 20.0)["ok"]  # not an outcome
     assert not fx.make_row(7, W22, 3, -9, contact, 10.0, 20.0)["ok"]  # killed: not a finished run
     assert not fx.make_row(7, W22, 3, 1, {"fleet": fleet}, 10.0, 20.0)["ok"]  # 1, but no reason
     rows = [_row(W12, n, s, 50) for n in (1, 2) for s in (3, 4, 5)] + [r]
@@ -209,7 +229,8 @@ def test_outputs_say_quick_on_top_and_draw_one_curve_per_fleet_size(tmp_path):
     assert len(table) == len(rows) and table[0]["warnings"] == "" and table[-1]["warnings"]
     text = (tmp_path / "fleet.md").read_text()
     assert text.splitlines()[2].startswith("**Quick run**")
-    assert "**WARNING: 1 of 5 runs failed**" in text and "garden12_n2_seed5 (exit 1)" in text
+    assert "**WARNING: 1 of 5 runs FAILED on what their robots did**" in text
+    assert "counted as not reached in the times to 95 %" in text and "garden12_n2_seed5" in text
     data = json.loads((tmp_path / "fleet.json").read_text())
     assert {"settings", "runs", "summary", "verdicts"} <= set(data)
     compact = json.loads((tmp_path / "data" / "fleet.json").read_text())["rows"]
@@ -284,14 +305,17 @@ def test_a_rerun_into_the_same_out_keeps_finished_runs_and_runs_the_rest(tmp_pat
 
 
 def test_the_committed_data_decides_as_the_run_did_censored_seeds_included(tmp_path):
-    """The data file has no curves; the censored bounds need each run's end time, so it keeps
-    `end_time_s`: the verdicts `smana experiment report` computes from it are the run's own."""
+    """The data file has no curves but keeps `end_time_s` and its meta the budgets: the verdicts
+    `smana experiment report` computes from it are the run's own."""
     rows = _rows({1: [300, None, 250, 280], 2: [150, 140, None, 150], 3: [100, 90, 80, None]})
     s = fx.FleetExperimentConfig(seeds=(3, 4, 5, 6), worlds=(W22,))
     fx.write_fleet_outputs(rows, s, tmp_path)
     ran = json.loads((tmp_path / "fleet.json").read_text())["verdicts"]
     compact = json.loads((tmp_path / "data" / "fleet.json").read_text())["rows"]
     assert all("curve" not in r and r["end_time_s"] == 100.0 for r in compact)
-    again = fx.verdicts(compact)
+    meta = json.loads((tmp_path / "data" / "fleet.json").read_text())["meta"]
+    again = fx.verdicts(compact, budgets=fx.budgets_of(meta))
     assert [v["smana"] for v in again] == [v["smana"] for v in ran]
-    assert "kept as bounds: seed 4: < " in again[0]["smana"]  # the lone robot's censored seed
+    assert (
+        "known through a run that did not reach 95 % within the 700 s budget" in again[0]["smana"]
+    )  # the lone robot's censored seed

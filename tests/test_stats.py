@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from smana.lab import stats
+from smana.lab import power, stats, survival
 
 # two-sided 95 % Student t quantiles, from tables
 T975 = {1: 12.706, 2: 4.303, 4: 2.776, 9: 2.262}
@@ -172,87 +172,71 @@ def test_holm_table_turns_a_weak_verdict_inconclusive_and_keeps_world_facts():
     assert out[2].evidence == "routes" and "Holm-adjusted p = 0.003" in out[0].evidence
 
 
-def _km_reference(values, censored):
-    """Efron's redistribute-to-the-right: each run holds mass 1/n; in order (an event before a
-    censoring at the same value), a censored run hands its mass on equally to every run after
-    it. S(t) = 1 - the mass of events at or before t; the same curve as Kaplan-Meier."""
-    order = sorted(range(len(values)), key=lambda i: (values[i], censored[i]))
-    mass = [1.0 / len(values)] * len(values)
-    for k, i in enumerate(order):
-        if censored[i] and k + 1 < len(order):
-            share = mass[k] / (len(order) - k - 1)
-            for j in range(k + 1, len(order)):
-                mass[j] += share
-            mass[k] = 0.0
-    curve, done = {}, 0.0
-    for k, i in enumerate(order):
-        if not censored[i]:
-            done += mass[k]
-            curve[values[i]] = 1.0 - done
-    return curve
-
-
-def test_kaplan_meier_matches_redistribute_to_the_right_and_scipy():
-    from scipy.stats import CensoredData, ecdf
-
-    rng = np.random.default_rng(4)
-    for _ in range(200):
-        n = int(rng.integers(2, 9))
-        v = [float(x) for x in rng.integers(1, 12, n)]  # ties on purpose
-        c = [bool(x) for x in rng.random(n) < 0.35]
-        if all(c):
-            c[0] = False
-        times, surv = stats.kaplan_meier(v, c)
-        ref = _km_reference(v, c)
-        assert times.tolist() == sorted(ref)
-        assert surv.tolist() == pytest.approx([ref[t] for t in sorted(ref)])
-        sc = ecdf(CensoredData(uncensored=[x for x, k in zip(v, c) if not k],
-                               right=[x for x, k in zip(v, c) if k])).sf  # fmt: skip
-        assert sc.evaluate(times).tolist() == pytest.approx(surv.tolist())
-        med = stats.km_median(v, c)
-        below = [t for t in sorted(ref) if ref[t] <= 0.5 + 1e-12]
-        assert med == (below[0] if below else None)
-
-
-def test_km_median_of_a_garden_with_censored_runs():
-    # 20 m garden, NBV: 2 of 3 reached 95 % (at 36 and 65 m), seed 4 stopped at 92.4 % after
-    # 80 m: the median is the second event, not the mean of the two that reached
-    assert stats.km_median([36.0, 80.0, 65.0], [False, True, False]) == 65.0
-    assert stats.km_median([36.0, 80.0, 85.0], [False, True, True]) is None
-
-
-def test_logrank_matches_scipy_and_decides_which_arm_is_sooner():
-    from scipy.stats import CensoredData
-    from scipy.stats import logrank as scipy_logrank
-
-    rng = np.random.default_rng(5)
-    for _ in range(100):
-        a = [float(x) for x in rng.integers(1, 15, int(rng.integers(2, 7)))]
-        b = [float(x) for x in rng.integers(3, 20, int(rng.integers(2, 7)))]
-        ca = [bool(x) for x in rng.random(len(a)) < 0.3]
-        cb = [bool(x) for x in rng.random(len(b)) < 0.3]
-        if all(ca) and all(cb):
-            continue
-
-        def cd(v, c):
-            return CensoredData(
-                uncensored=[x for x, k in zip(v, c, strict=True) if not k],
-                right=[x for x, k in zip(v, c, strict=True) if k],
-            )
-
-        z, p = stats.logrank(a, ca, b, cb)
-        with np.errstate(invalid="ignore"):
-            ref = scipy_logrank(cd(a, ca), cd(b, cb))
-        if not np.isfinite(ref.pvalue):  # no variance (one event, or one arm): no evidence
-            assert p == 1.0
-            continue
-        assert p == pytest.approx(ref.pvalue, rel=1e-6, abs=1e-12)
+def test_sooner_censored_is_the_log_rank_one_sided_with_its_sides_named():
     fast, slow = [3.0, 4, 5, 6, 7, 8], [20.0, 22, 25, 26, 30, 30]
     no = [False] * 6
-    d = stats.decide_sooner_censored(fast, no, slow, [False] * 4 + [True] * 2)
-    assert d.verdict == stats.REPRODUCED and "not reached" not in d.evidence
-    assert stats.decide_sooner_censored(slow, no, fast, no).verdict == stats.NOT_REPRODUCED
-    assert stats.decide_sooner_censored(fast, no, fast, no).verdict == stats.INCONCLUSIVE
+    d = stats.decide_sooner_censored(
+        fast, no, slow, [False] * 4 + [True] * 2, names=("NBV", "frontier")
+    )
+    lr = survival.logrank(fast, no, slow, [False] * 4 + [True] * 2)
+    assert d.verdict == stats.REPRODUCED and d.p == pytest.approx(lr.p / 2)
+    assert d.tests == "NBV sooner" and "two-sided; the data lean to NBV sooner" in d.evidence
+    assert d.need.how == "log-rank (Schoenfeld)" and d.need.seeds is not None
+    back = stats.decide_sooner_censored(slow, no, fast, no, names=("NBV", "frontier"))
+    assert back.verdict == stats.NOT_REPRODUCED and back.tests == "frontier sooner"
+    same = stats.decide_sooner_censored(fast, no, fast, no)
+    assert same.verdict == stats.INCONCLUSIVE and same.need.seeds is None
+
+
+def test_every_decision_says_which_side_its_p_tests():
+    near = stats.decide_near(stats.Interval(0.714, 0.514, 0.914, 5), 0.6, 0.1)
+    assert near.verdict == stats.INCONCLUSIVE and near.p == near.p_no
+    assert near.tests == "outside the band"
+    assert stats.format_p(near.p, near.tests) == f"{near.p:.2g} (one-sided: outside the band)"
+    inside = stats.decide_near(stats.Interval(0.6, 0.58, 0.62, 5), 0.6, 0.1)
+    assert inside.verdict == stats.REPRODUCED and inside.tests == "inside the band"
+    above = stats.decide_above(stats.Interval(-0.2, -0.3, -0.1, 5), yes="TSDF slower", no="faster")
+    assert above.verdict == stats.NOT_REPRODUCED and above.tests == "faster"
+    worse = stats.decide_not_worse(stats.Interval(0.0, -0.01, 0.01, 3), 0.005)
+    assert worse.tests in ("not worse by the margin", "worse by more than the margin")
+    f = worse.fields()
+    assert (
+        f["p"] == worse.p
+        and f["p_tests"] == worse.tests
+        and f["need"]["how"].startswith("paired t")
+    )
+    assert stats.format_p(None, None) == "-"
+    # Holm keeps the sides and the seeds needed
+    (h,) = stats.holm_table([near])
+    assert h.tests == near.tests and h.need == near.need
+
+
+def test_seeds_needed_follow_the_rule_and_the_measured_spread():
+    # terrain share at x1: 71.4 % [51.4, 91.4] against 60 +/- 10: the mean lies 1.4 points past
+    # the band's edge with an SD of 16 points: about a thousand seeds
+    d = stats.decide_near(stats.Interval(0.714, 0.514, 0.914, 5), 0.6, 0.1)
+    sd = stats.spread(stats.Interval(0.714, 0.514, 0.914, 5))
+    assert sd == pytest.approx(0.2 / 2.776445 * math.sqrt(5))
+    assert d.need.effect == pytest.approx(0.014) and d.need.sd == pytest.approx(sd)
+    assert d.need.seeds == power.seeds_t(0.014, sd) and 900 < d.need.seeds < 1200
+    # inside the band: both edges, TOST
+    d = stats.decide_near(stats.Interval(0.6, 0.55, 0.65, 5), 0.6, 0.1)
+    assert d.need.how.startswith("TOST") and d.need.seeds <= 5
+    assert stats.decide_near(stats.Interval(0.6, math.nan, math.nan, 1), 0.6, 0.1).need is None
+
+
+def test_first_paired_is_the_exact_sign_test_over_the_known_pairs():
+    order = survival.paired_order([1, 2, 3, 4, 5, 9], [0] * 5 + [1], [2, 3, 4, 5, 6, 9],
+                                  [0] * 5 + [1])  # fmt: skip
+    assert (order.a_first, order.unknown) == (5, 1)
+    d = stats.decide_first_paired(order, "fleet sooner", "fleet later")
+    assert d.p_yes == pytest.approx(1 / 32) and d.verdict == stats.INCONCLUSIVE
+    assert d.tests == "fleet sooner" and d.need.how == "exact sign test"
+    assert d.need.detail == "5 of 5 ordered pairs one way, 5 of 6 pairs ordered"
+    six = survival.paired_order(range(6), [0] * 6, range(1, 7), [0] * 6)
+    assert stats.decide_first_paired(six, "y", "n").verdict == stats.REPRODUCED
+    late = survival.paired_order(range(1, 7), [0] * 6, range(6), [0] * 6)
+    assert stats.decide_first_paired(late, "y", "n").verdict == stats.NOT_REPRODUCED
 
 
 def test_ratio_ci_is_fiellers_the_ratios_the_paired_t_test_keeps():

@@ -46,7 +46,7 @@ import numpy as np
 
 from smana.common import progress
 from smana.common.zenoh_config import free_loopback_port
-from smana.lab import plots, stats
+from smana.lab import plots, stats, survival
 
 PAPER_TERRAIN_SHARE = {1.0: 0.60, 2.0: 0.70, 4.0: 0.88}  # grass cost factor -> terrain share
 TERRAIN_SHARE_TOLERANCE = 0.10  # "within 10 points of the paper"
@@ -318,6 +318,39 @@ def counted(r: dict, key: str):
     return r.get(key)
 
 
+# Time and distance to 95 % as times to an event (lab/survival.py). A run that did not reach 95 %
+# by its end, because its budget ran out, its explorer stopped early or its robot did not move,
+# did not reach it within the budget: censored there. Robot time has the budget as its end;
+# distance has no budget, so such a run is censored beyond every distance (infinity): it is at
+# risk through every event of the others and is never counted as having reached it. A robot
+# that did not move counts as not reached even if its camera saw 95 % from where it stood.
+NOT_REACHED_DISTANCE = math.inf
+
+
+def time_to_event(r: dict, key: str, horizon: float, failed: bool = False) -> tuple[float, bool]:
+    """(value, censored) of `key` ("time_to_95_s" or "distance_to_95_m") for a measured run:
+    its value when it reached 95 %; censored at `horizon` (the budget for time,
+    NOT_REACHED_DISTANCE for distance) when it did not, or when it counts as a failure
+    (`failed`, or its robot stood still)."""
+    v = r.get(key)
+    if v is None or failed or stood_still(r):
+        return float(horizon), True
+    return float(v), False
+
+
+def horizon_of(key: str, budget_s: float | None, rows: list[dict], end: str) -> float:
+    """Where a run that did not reach 95 % is censored: at the budget for robot time (or, when
+    no budget is known, the latest end among the runs, `end` their robot time at the end); for
+    distance, beyond every distance."""
+    if key.startswith("distance"):
+        return NOT_REACHED_DISTANCE
+    if budget_s:
+        return float(budget_s)
+    ends = [float(r[end]) for r in rows if r.get(end) is not None]
+    ends += [float(r[key]) for r in rows if r.get(key) is not None]
+    return max(ends) if ends else math.inf
+
+
 def make_row(seed: int, arm: Arm, code: int, m: dict, state: dict, cpu_s: float, wall_s: float):
     from smana.deploy.report.measures import KNOWN_CURVE, MOVED_M
 
@@ -462,18 +495,63 @@ def _ci(rows, key) -> stats.Interval:
     return stats.mean_ci([counted(r, key) for r in rows if r["ok"]])
 
 
-def _km(rows: list[dict], key: str, bound: str) -> float | None:
-    values, censored = _censored(rows, key, bound)
-    return stats.km_median(values, censored) if values else None
+def to_event(rows: list[dict], key: str, horizon: float, failed=None):
+    """(values, censored) of `key` over the measured runs (`time_to_event`); `failed(r)` says
+    which runs count as failures beside those whose robot stood still."""
+    pairs = [time_to_event(r, key, horizon, bool(failed and failed(r))) for r in rows]
+    return [v for v, _ in pairs], [c for _, c in pairs]
 
 
-def summarise_exploration(rows: list[dict]) -> list[dict]:
-    """Per arm: intervals of terrain share, coverage, distance, and of the distance and time to
-    95 % coverage over the runs that reached it (with how many did)."""
+def km_summary(rows: list[dict], key: str, horizon: float, failed=None) -> dict:
+    """Kaplan-Meier median of `key` with its 95 % interval (None: not reached by half, or an
+    end the band never reaches), and for robot time the restricted mean up to the budget."""
+    values, censored = to_event(rows, key, horizon, failed)
+    out = {"median": None, "lo": None, "hi": None, "n": len(values), "rmst": None}
+    if not values:
+        return out
+    km = survival.kaplan_meier(values, censored)
+    out["median"] = km.median()
+    out["lo"], out["hi"] = km.median_ci()
+    if math.isfinite(horizon):
+        r = km.rmst(horizon)
+        lo, hi = r.ci()
+        out["rmst"] = {"mean": r.mean, "se": r.se, "lo": lo, "hi": hi, "horizon": horizon}
+    return out
+
+
+def format_km(d: dict, fmt: str = ".1f") -> str:
+    """ "62.3 [38.2, 71.8] (n = 10)": a Kaplan-Meier median and its interval; "not reached" for
+    a median or an end the curve does not reach."""
+    if not d["n"]:
+        return "- (n = 0)"
+
+    def f(v):
+        return "not reached" if v is None else format(v, fmt)
+
+    if d["median"] is None:
+        return f"not reached by half (n = {d['n']})"
+    return f"{f(d['median'])} [{f(d['lo'])}, {f(d['hi'])}] (n = {d['n']})"
+
+
+def format_rmst(d: dict, fmt: str = ".0f") -> str:
+    r = d.get("rmst")
+    if not r:
+        return "-"
+    return f"{r['mean']:{fmt}} [{r['lo']:{fmt}}, {r['hi']:{fmt}}] (n = {d['n']})"
+
+
+def summarise_exploration(rows: list[dict], budget_s: float | None = None) -> list[dict]:
+    """Per arm: intervals of terrain share, coverage and distance over the measured runs; and
+    the distance and time to 95 % as times to an event (`time_to_event`: a run that did not
+    reach it is censored, never dropped nor averaged): how many reached it, the Kaplan-Meier
+    medians with their intervals, and the restricted mean time up to the budget."""
     out = []
     for arm in dict.fromkeys(r["arm"] for r in rows):
         sel = [r for r in rows if r["arm"] == arm]
         ok = [r for r in sel if r["ok"]]
+        t_end = horizon_of("time_to_95_s", budget_s, ok, "robot_time_s")
+        dist = km_summary(ok, "distance_to_95_m", NOT_REACHED_DISTANCE)
+        time_ = km_summary(ok, "time_to_95_s", t_end)
         out.append(
             {
                 "arm": arm,
@@ -482,26 +560,42 @@ def summarise_exploration(rows: list[dict]) -> list[dict]:
                 "path_cost_weight": sel[0].get("path_cost_weight"),
                 "runs": len(sel),
                 "failed": len(sel) - len(ok),
-                "reached_95": sum(r["distance_to_95_m"] is not None for r in ok),
-                # every run that ran, those that never reached 95 % censored at what they spent
-                "km_median_distance_to_95_m": _km(ok, "distance_to_95_m", "distance_m"),
-                "km_median_time_to_95_s": _km(ok, "time_to_95_s", "robot_time_s"),
-                **{
-                    k: _ci(sel, k).as_dict()
-                    for k in (
-                        "terrain_share",
-                        "coverage",
-                        "distance_m",
-                        "distance_to_95_m",
-                        "time_to_95_s",
-                    )
-                },
+                "reached_95": sum(not time_to_event(r, "time_to_95_s", t_end)[1] for r in ok),
+                "km_median_distance_to_95_m": dist["median"],
+                "km_median_time_to_95_s": time_["median"],
+                "km_distance_to_95_m": dist,
+                "km_time_to_95_s": time_,
+                **{k: _ci(sel, k).as_dict() for k in ("terrain_share", "coverage", "distance_m")},
                 "paper_terrain_share": PAPER_TERRAIN_SHARE.get(sel[0]["grass_cost_factor"])
                 if sel[0]["strategy"] == "nbv"
                 else None,
             }
         )
     return out
+
+
+TO_95_HEAD = (
+    "reached 95 % | distance to 95 % (m), Kaplan-Meier median [95 % CI] | time to 95 % (s), "
+    "Kaplan-Meier median [95 % CI] | restricted mean time to 95 % within the budget (s) [95 % CI]"
+)
+TO_95_NOTE = (
+    "A run that did not reach 95 % by its end (its budget ran out, its explorer stopped, or its "
+    "robot did not move) did not reach it within the budget: censored at the budget for time, "
+    "beyond every distance for distance (lab/survival.py); never dropped, never averaged as a "
+    "number. Kaplan-Meier medians with the times whose 95 % log-log band holds 0.5 "
+    "(Brookmeyer-Crowley; 'not reached' where the curve never gets there); the restricted mean "
+    "time is the area under the curve up to the budget (the mean of min(time, budget)), with "
+    "its Greenwood-type standard error."
+)
+
+
+def to_95_cells(d: dict) -> str:
+    """The TO_95_HEAD cells of one summary row (`summarise_exploration`, `summarise_fleet`)."""
+    return (
+        f"{d['reached_95']} of {d['runs'] - d['failed']} | "
+        f"{format_km(d['km_distance_to_95_m'])} | {format_km(d['km_time_to_95_s'], '.0f')} | "
+        f"{format_rmst(d['km_time_to_95_s'])}"
+    )
 
 
 def _interval(d: dict) -> stats.Interval:
@@ -523,40 +617,29 @@ def _paired(a_rows: list[dict], b_rows: list[dict], key: str) -> stats.Interval:
     return stats.mean_ci([b[k] - a[k] for k in sorted(a.keys() & b.keys())])
 
 
-def _censored(rows: list[dict], key: str, bound: str) -> tuple[list[float], list[bool]]:
-    """(values, censored) of `key` over the runs: a run that never reached 95 % is kept, with
-    what it had spent by its end (`bound`: its total distance or robot time) as a lower bound."""
-    values, censored = [], []
-    for r in rows:
-        if r[key] is not None:
-            values.append(float(r[key]))
-            censored.append(False)
-        elif r.get(bound) is not None:
-            values.append(float(r[bound]))
-            censored.append(True)
-    return values, censored
-
-
 def verdicts(rows: list[dict], routes: dict[float, stats.Interval] | None = None) -> list[dict]:
     """The claims, each decided by a rule of lab/stats.py fixed before the runs: (claim, paper,
-    smana, verdict, p, rule) rows. The terrain share "about X" (`decide_near`, or "not
-    reproducible in this world" when `routes`, the layout's own shares per factor, rule X out);
-    its rise "about +D" paired per seed (the size of the paper's effect, not only its sign);
-    NBV sooner than nearest frontier by the log-rank test, censored runs kept. The p-values are
-    uncorrected; docs/experiments.md corrects its whole table together (Holm)."""
+    smana, verdict, p, p_tests, rule, need) rows. The terrain share "about X" (`decide_near`,
+    or "not reproducible in this world" when `routes`, the layout's own shares per factor, rule
+    X out); its rise "about +D" paired per seed (the size of the paper's effect, not only its
+    sign); NBV sooner than nearest frontier in distance to 95 % by the log-rank test, runs that
+    did not reach it kept as censored (`time_to_event`), with the paired count per seed beside
+    it. The p-values are uncorrected; docs/experiments.md corrects its whole table together
+    (Holm)."""
     nbv_rows = [r for r in rows if r["strategy"] == "nbv" and r.get("path_cost_weight") is None]
     out = []
 
-    def add(claim, paper, smana, d: stats.Decision, rule):
+    def add(claim, paper, smana, d: stats.Decision, rule, scale=1.0, unit=""):
         out.append(
             {
                 "claim": claim,
                 "paper": paper,
                 "smana": smana,
-                "verdict": d.verdict,
-                "p": d.p,
+                **d.fields(),
                 "rule": rule,
                 "evidence": d.evidence,
+                "scale": scale,
+                "unit": unit,
             }
         )
 
@@ -579,6 +662,8 @@ def verdicts(rows: list[dict], routes: dict[float, stats.Interval] | None = None
             ci.format(100, unit=" %"),
             d,
             "about X",
+            100,
+            " points",
         )
     known = [f for f in factors if f in PAPER_TERRAIN_SHARE]
     if len(known) >= 2:
@@ -596,6 +681,8 @@ def verdicts(rows: list[dict], routes: dict[float, stats.Interval] | None = None
             d.format(100, unit=" points"),
             stats.decide_near(d, effect, tol),
             "about +D",
+            100,
+            " points",
         )
     base = [r for r in rows if r["strategy"] == "nearest_frontier" and r["ok"]]
     if base:
@@ -604,23 +691,36 @@ def verdicts(rows: list[dict], routes: dict[float, stats.Interval] | None = None
         seeds = {r["seed"] for r in nb} & {r["seed"] for r in base}
         nb = [r for r in nb if r["seed"] in seeds]  # the same seed set for both arms
         bs = [r for r in base if r["seed"] in seeds]
-        a, ac = _censored(nb, "distance_to_95_m", "distance_m")
-        b, bc = _censored(bs, "distance_to_95_m", "distance_m")
+        key, far = "distance_to_95_m", NOT_REACHED_DISTANCE
+        # one run per seed and arm, in seed order: the pairs of `paired_order`
+        nb = list({r["seed"]: r for r in sorted(nb, key=_seed)}.values())
+        bs = list({r["seed"]: r for r in sorted(bs, key=_seed)}.values())
+        a, ac = to_event(nb, key, far)
+        b, bc = to_event(bs, key, far)
         d = (
-            stats.decide_sooner_censored(a, ac, b, bc)
+            stats.decide_sooner_censored(a, ac, b, bc, names=("NBV", "nearest frontier"))
             if a and b
             else stats.Decision(stats.INCONCLUSIVE, 1.0, 1.0)
+        )
+        order = survival.paired_order(a, ac, b, bc)
+        pairs = f"; NBV first in {order.a_first} of {order.ordered} seeds whose order is known" + (
+            f" ({order.unknown} unknown: neither reached 95 %)" if order.unknown else ""
         )
         add(
             f"NBV reaches {100 * COVERAGE_TARGET:.0f} % coverage in less distance than nearest "
             f"frontier (x{f:g}), censored runs kept",
             "(NBV's motivation)",
             f"reached in {len(ac) - sum(ac)} of {len(ac)} vs {len(bc) - sum(bc)} of {len(bc)}; "
-            + (d.evidence or "no runs"),
+            + (d.evidence or "no runs")
+            + (pairs if a and b else ""),
             d,
             "sooner, censored",
         )
     return out
+
+
+def _seed(r: dict) -> int:
+    return r["seed"]
 
 
 def mean_curve(runs: list[dict], axis: str, n_points: int = 60):
@@ -668,7 +768,7 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
     from .report import write_data
 
     write_data(out, "exploration", rows, asdict(s), data_variant(s))
-    summary = summarise_exploration(rows)
+    summary = summarise_exploration(rows, s.budget_s)
     table = verdicts(rows)
     (out / "exploration_results.json").write_text(
         json.dumps(
@@ -704,29 +804,21 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
         f"Seeds {list(s.seeds)}, garden {s.size_m} m, budget {s.budget_s:.0f} s per run, "
         f"{s.jobs} runs at once. World: {' '.join(run_world_sets(s.extra))}.",
         "",
-        "| arm | runs (failed) | terrain share | coverage | distance (m) | reached 95 % | "
-        "distance to 95 % (m) | time to 95 % (s) | Kaplan-Meier median to 95 % (m, s) |",
+        f"| arm | runs (failed) | terrain share | coverage | distance (m) | {TO_95_HEAD} |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for d in summary:
         iv = {k: _interval(d[k]) for k in ("terrain_share", "coverage", "distance_m")}
-        d95, t95 = _interval(d["distance_to_95_m"]), _interval(d["time_to_95_s"])
         lines.append(
             f"| {d['arm']} | {d['runs']} ({d['failed']}) | "
             f"{iv['terrain_share'].format(100, unit=' %')} | "
             f"{iv['coverage'].format(100, unit=' %')} | {iv['distance_m'].format()} | "
-            f"{d['reached_95']} of {d['runs'] - d['failed']} | {d95.format()} | "
-            f"{t95.format(1.0, '.0f')} | {_num(d['km_median_distance_to_95_m'])}, "
-            f"{_num(d['km_median_time_to_95_s'], '.0f')} |"
+            f"{to_95_cells(d)} |"
         )
     lines += [
         "",
-        "Distance and time to 95 % are over the runs that reached it; the others are counted "
-        "as not reached (censored), never as a number. The Kaplan-Meier median keeps them, "
-        "censored at the distance (time) they had spent; '-' when over half never reached "
-        "it. Coverage curves: the explorer's "
-        "explored area rescaled to the ground-truth coverage at the end of each run "
-        "(lab/experiments/exploration.py explains).",
+        TO_95_NOTE + " Coverage curves: the explorer's explored area rescaled to the "
+        "ground-truth coverage at the end of each run (lab/experiments/exploration.py explains).",
         "",
         "| run | exit | terrain share | coverage | distance (m) | to 95 % (m) | wall (s) | "
         "CPU (s) | real-time factor |",

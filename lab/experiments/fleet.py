@@ -6,23 +6,33 @@ the exploration experiment's cluttered layout. A seed fixes the world and the sp
 (`exploration.pick_spawn`, the same for every N: the first member starts there, the simulator
 places the others `fleet.spawn_spacing_m` apart).
 
-Reported per world and N, each as a mean with its 95 % Student-t interval over seeds
-(lab/stats.py): robot time and total distance (all members) to 95 % coverage, coverage at the
+Reported per world and N (lab/stats.py, lab/survival.py): time and total distance (all members)
+to 95 % coverage as times to an event (how many runs reached it, Kaplan-Meier medians, the
+restricted mean time up to the budget, and the log-rank test against one robot), coverage at the
 end, the overlap of the members' maps, the merged map's reconstruction error and classification
-ratio, robot-robot contacts. The numbers are the run report's (`metrics.json` "fleet",
-deploy/report/fleet.py): its coverage curve is the members' explored area (the largest any
-member had reported) rescaled to the ground-truth coverage at the end, as the exploration
-experiment's.
+ratio (each a mean with its 95 % Student-t interval over seeds), robot-robot contacts. The
+numbers are the run report's (`metrics.json` "fleet", deploy/report/fleet.py): its coverage
+curve is the members' explored area (the largest any member had reported) rescaled to the
+ground-truth coverage at the end, as the exploration experiment's.
+
+A run that did not reach 95 % by its end did not reach it within the budget: censored at the
+budget (exploration.py `time_to_event`). A run that `smana up` ended FAILED on what its robots
+did (a member that did not move or found no path: `run_failed`) is a result, not a gap: it
+counts as not reached, censored at the budget, and its map is scored as it is. Only a run that
+left no figures is missing (and named).
 
 Verdicts, never from one run:
 - in the larger world, time to 95 % with 2 robots at most 0.6 times one robot's, with 3 at most
-  0.45 times: the ratio per seed (paired: same world, same spawn), its mean and interval; met
-  when the interval's upper end is under the target, not met when its lower end is above,
-  inconclusive otherwise. A seed where either run never reached 95 % is censored (left out, and
-  said so), never given a number;
+  0.45 times, paired per seed (same world, same spawn): per seed, is the fleet's time under T
+  times the lone robot's? Known when both reached 95 %, and often when one did not (a fleet at
+  150 s is under 0.6 times a lone robot that had not reached it by 700 s). The exact sign test
+  over the seeds whose order is known (for pairs, the log-rank test stratified by seed): met
+  when the fleet is under significantly often, not met when over; the seeds whose order
+  censoring hides are counted and left out of the test. The restricted mean times are given
+  beside it;
 - the merged map as accurate as a single robot's: per seed, the fleet's error minus the 1-robot
-  run's (met when the interval reaches 0 or lies below), the classification ratio likewise
-  (reaches 0 or lies above);
+  run's, not worse by more than a margin declared before the runs, the classification ratio
+  likewise;
 - zero robot-robot contacts over all runs.
 """
 
@@ -30,6 +40,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import re
 import signal
@@ -43,7 +54,7 @@ from pathlib import Path
 
 from smana.common import progress
 from smana.common.zenoh_config import free_loopback_port
-from smana.lab import plots, stats
+from smana.lab import plots, stats, survival
 
 from . import exploration as ex
 
@@ -164,20 +175,67 @@ def fleet_run(out: Path, seed: int, world: World, n: int, s: FleetExperimentConf
 
 # A warning that is one of the experiment's outcomes, not a failure of the run: a run whose only
 # warnings are robot-robot contacts exits 1 but is data (its contacts are counted, its coverage
-# and map scored). Dropping it would leave the contact count to runs that had none.
+# and map scored). Dropping it would leave the contact count to runs that had none. A member
+# that did not do its job ("r3: the robot did not move", "the fleet knows only ...") is an
+# outcome too: the run is data and counts as a failed one (`run_failed`).
 OUTCOME_WARNING = re.compile(r"^\d+ robot-robot contact\(s\)")
+MEMBER = re.compile(r"^[A-Za-z0-9_-]+: ")
+
+
+def _failure_warning(w: str) -> bool:
+    """A warning on what a member (or the fleet) did: exploration.OUTCOME_WARNINGS's, after the
+    member's name, or the fleet's own "knows only"."""
+    from smana.deploy.report.checks import OUTCOME_WARNINGS
+
+    text = MEMBER.sub("", str(w), count=1).replace("the fleet knows", "the robot knows")
+    return text.startswith(OUTCOME_WARNINGS)
+
+
+def run_failed(code: int, m: dict) -> bool:
+    """`smana up` exited 1 on outcomes only, a member's failure among them."""
+    warnings = [str(w) for w in (m.get("warnings") or [])] if m else []
+    outcomes = all(OUTCOME_WARNING.match(w) or _failure_warning(w) for w in warnings)
+    return code == 1 and outcomes and any(_failure_warning(w) for w in warnings)
 
 
 def run_ok(code: int, m: dict) -> bool:
-    """A run is data when it left its figures and exited 0, or exited 1 for outcomes only."""
-    warnings = m.get("warnings") or [] if m else []
-    outcomes_only = bool(warnings) and all(OUTCOME_WARNING.match(str(w)) for w in warnings)
+    """A run is data when it left its figures and exited 0, or exited 1 for outcomes only
+    (contacts, or a member that failed: `run_failed`)."""
+    warnings = [str(w) for w in (m.get("warnings") or [])] if m else []
+    outcomes_only = bool(warnings) and all(
+        OUTCOME_WARNING.match(w) or _failure_warning(w) for w in warnings
+    )
     return bool(m) and (code == 0 or (code == 1 and outcomes_only))
 
 
-def make_row(seed: int, world: World, n: int, code: int, m: dict, cpu_s: float, wall_s: float):
+def failed(r: dict) -> bool:
+    """The row counts as a failed run (not reached, its map scored as it is): `run_failed`; in
+    data written before that field, a run that exited 1 and left its figures (`smana up`
+    said FAILED on what its robots did: the runs of docs/experiments.md, a member that never
+    moved)."""
+    if "run_failed" in r:
+        return bool(r["run_failed"])
+    return not r.get("ok") and r.get("exit_code") == 1 and r.get("coverage") is not None
+
+
+def measured(r: dict) -> bool:
+    """The row is data: a run that ran (`ok`) or one that failed on what its robots did."""
+    return bool(r.get("ok")) or failed(r)
+
+
+def make_row(
+    seed: int,
+    world: World,
+    n: int,
+    code: int,
+    m: dict,
+    cpu_s: float,
+    wall_s: float,
+    budget_s: float | None = None,
+):
     """One run's figures from its metrics.json: the "fleet" section, or for a run of one robot
-    without it, the single robot's exploration and map (the same curve, exploration.py's)."""
+    without it, the single robot's exploration and map (the same curve, exploration.py's);
+    `budget_s`, its robot time budget, is where a run that did not reach 95 % is censored."""
     f = m.get("fleet") or {}
     mp = m.get("map") if isinstance(m.get("map"), dict) else {}
     if f:
@@ -217,6 +275,8 @@ def make_row(seed: int, world: World, n: int, code: int, m: dict, cpu_s: float, 
         "n_robots": n,
         "exit_code": code,
         "ok": run_ok(code, m),
+        "run_failed": run_failed(code, m),
+        "budget_s": budget_s,
         # it ran to its end and left its figures (failed or not): a rerun keeps it, so that a
         # failure is not traded for another try (delete its directory to run it again)
         "finished": bool(m) and code >= 0,
@@ -290,9 +350,9 @@ def run_fleet(s: FleetExperimentConfig, out: Path, log=progress.say) -> list[dic
         for fut in as_completed(futs):
             seed, w, n = futs[fut]
             try:
-                row = make_row(seed, w, n, *fut.result())
+                row = make_row(seed, w, n, *fut.result(), budget_s=s.budget(w))
             except Exception as exc:  # a run that could not even start is a failed run
-                row = make_row(seed, w, n, -1, {}, 0.0, 0.0)
+                row = make_row(seed, w, n, -1, {}, 0.0, 0.0, s.budget(w))
                 log(f"{run_name(seed, w.name, n)}: {exc}")
             if row["finished"]:
                 _keep_row(out, row)
@@ -324,8 +384,6 @@ def run_fleet(s: FleetExperimentConfig, out: Path, log=progress.say) -> list[dic
 # -- aggregation ---------------------------------------------------------------------------------
 
 SUMMARY_KEYS = (
-    "time_to_95_s",
-    "distance_to_95_m",
     "coverage",
     "overlap",
     "map_error_m",
@@ -334,48 +392,79 @@ SUMMARY_KEYS = (
 )
 
 
-def summarise_fleet(rows: list[dict]) -> list[dict]:
-    """Per world and N: the intervals of SUMMARY_KEYS over the runs that ran (time and distance
-    to 95 % over those that reached it, with how many did)."""
+def budgets_of(meta: dict) -> dict[str, float]:
+    """{world: its robot time budget} from a data file's meta (the settings of the run)."""
+    out = {}
+    for w in meta.get("worlds") or []:
+        b = meta.get("budget_s") or w.get("budget_s")
+        if b:
+            out[w["name"]] = float(b)
+    return out
+
+
+def _budget(rows: list[dict], world: str, budgets: dict[str, float] | None) -> float:
+    """Where a run of `world` that did not reach 95 % is censored: its budget (the rows' own,
+    or the data file's), else the latest end among its runs."""
+    own = [r["budget_s"] for r in rows if r["world"] == world and r.get("budget_s")]
+    b = own[0] if own else (budgets or {}).get(world)
+    sel = [dict(r, end_time_s=_end_time(r)) for r in rows if r["world"] == world]
+    return ex.horizon_of("time_to_95_s", b, sel, "end_time_s")
+
+
+def _runs(rows: list[dict], world: str, n: int) -> dict[int, dict]:
+    """seed -> the measured run of (world, n) (`measured`: failed runs included)."""
+    return {
+        r["seed"]: r for r in rows if measured(r) and r["world"] == world and r["n_robots"] == n
+    }
+
+
+def _to_event(runs: list[dict], key: str, horizon: float) -> tuple[list[float], list[bool]]:
+    return ex.to_event(runs, key, horizon, failed)
+
+
+def _km(runs: list[dict], key: str, horizon: float) -> dict:
+    return ex.km_summary(runs, key, horizon, failed)
+
+
+def summarise_fleet(rows: list[dict], budgets: dict[str, float] | None = None) -> list[dict]:
+    """Per world and N: the time and distance to 95 % as times to an event over the measured
+    runs (failed ones counted as not reached: `failed`), the log-rank test of N robots against
+    one, and the intervals of SUMMARY_KEYS over the measured runs."""
     out = []
     for world, n in dict.fromkeys((r["world"], r["n_robots"]) for r in rows):
         sel = [r for r in rows if r["world"] == world and r["n_robots"] == n]
-        ok = [r for r in sel if r["ok"]]
+        runs = [r for r in sel if measured(r)]
+        horizon = _budget(rows, world, budgets)
+        lr = None
+        one = list(_runs(rows, world, 1).values())
+        if n != 1 and one and runs:
+            t = _to_event(runs, "time_to_95_s", horizon)
+            t1 = _to_event(one, "time_to_95_s", horizon)
+            lr = survival.logrank(*t, *t1)
         out.append(
             {
                 "world": world,
                 "size_m": sel[0]["size_m"],
                 "n_robots": n,
                 "runs": len(sel),
-                "failed": len(sel) - len(ok),
-                "reached_95": sum(r["time_to_95_s"] is not None for r in ok),
-                **{k: ex._ci(sel, k).as_dict() for k in SUMMARY_KEYS},
+                "failed": len(sel) - len(runs),  # missing: no figures
+                "run_failed": sum(failed(r) for r in runs),
+                "reached_95": sum(not c for c in _to_event(runs, "time_to_95_s", horizon)[1]),
+                "budget_s": horizon,
+                "km_time_to_95_s": _km(runs, "time_to_95_s", horizon),
+                "km_distance_to_95_m": _km(runs, "distance_to_95_m", ex.NOT_REACHED_DISTANCE),
+                "logrank_vs_one": None if lr is None else asdict(lr) | {"z": lr.z, "p": lr.p},
+                "logrank_text": ""
+                if lr is None
+                else lr.describe(f"{n} robots", "one").replace("log-rank ", ""),
+                **{k: stats.mean_ci([r.get(k) for r in runs]).as_dict() for k in SUMMARY_KEYS},
             }
         )
     return out
 
 
-def _by_seed(rows, world: str, n: int, key: str) -> dict[int, float | None]:
-    return {
-        r["seed"]: r[key] for r in rows if r["ok"] and r["world"] == world and r["n_robots"] == n
-    }
-
-
 def _met(d: stats.Decision) -> str:
     return {stats.REPRODUCED: MET, stats.NOT_REPRODUCED: NOT_MET}.get(d.verdict, d.verdict)
-
-
-def decide_below(ci: stats.Interval, target: float) -> stats.Decision:
-    """ "At most `target`" as a one-sided test: met when the interval's upper end is under it
-    (p_yes: the test "mean >= target"), not met when its lower end is above. A time ratio's
-    target is positive: the rule is non-inferiority with the target as its margin."""
-    return stats.decide_not_worse(ci, target)
-
-
-def target_below(ci: stats.Interval, target: float) -> str:
-    """ "At most `target`": met when the interval's upper end is under it, not met when its lower
-    end is above, inconclusive otherwise (or without an interval)."""
-    return _met(decide_below(ci, target))
 
 
 def not_worse(ci: stats.Interval, lower_is_better: bool, margin: float) -> str:
@@ -384,20 +473,6 @@ def not_worse(ci: stats.Interval, lower_is_better: bool, margin: float) -> str:
     of the margin, not met when wholly on the bad side (`stats.decide_not_worse`). An interval
     that merely holds 0 is not enough: it must be narrow enough to rule the margin out."""
     return _met(stats.decide_not_worse(ci, margin, higher_is_better=not lower_is_better))
-
-
-def time_ratios(rows: list[dict], world: str, n: int) -> tuple[dict[int, float], list[int]]:
-    """(seed -> time to 95 % with n robots over one robot's, the censored seeds: one of the two
-    runs never reached 95 %). Seeds where either run failed are in neither."""
-    one, many = _by_seed(rows, world, 1, "time_to_95_s"), _by_seed(rows, world, n, "time_to_95_s")
-    ratios, censored = {}, []
-    for seed in sorted(one.keys() & many.keys()):
-        a, b = one[seed], many[seed]
-        if a is None or b is None:
-            censored.append(seed)
-        elif a > 0:
-            ratios[seed] = b / a
-    return ratios, censored
 
 
 def _end_time(row: dict) -> float | None:
@@ -409,62 +484,93 @@ def _end_time(row: dict) -> float | None:
     return float(t[-1]) if t else None
 
 
-def bounded_ratios(rows: list[dict], world: str, n: int) -> dict[int, tuple[float, str]]:
-    """seed -> (time to 95 % with n robots over one robot's, how it is known): "" exact;
-    "above" when the fleet never reached 95 % (the ratio is above its robot time at the end over
-    one robot's time); "below" when the lone robot never did (below the fleet's time over the
-    lone robot's time at the end). Censored seeds are kept as these bounds, not dropped; a seed
-    where neither reached 95 %, or a run failed, says nothing and is left out."""
-    by = {
-        (r["seed"], r["n_robots"]): r
-        for r in rows
-        if r["ok"] and r["world"] == world and r["n_robots"] in (1, n)
-    }
-    out: dict[int, tuple[float, str]] = {}
-    for seed in sorted({s for s, m in by if (s, 1) in by and (s, n) in by}):
-        one, many = by[(seed, 1)], by[(seed, n)]
-        a, b = one["time_to_95_s"], many["time_to_95_s"]
-        if a is not None and b is not None and a > 0:
-            out[seed] = (b / a, "")
-        elif a is not None and a > 0 and b is None and _end_time(many):
-            out[seed] = (_end_time(many) / a, "above")
-        elif a is None and b is not None and _end_time(one):
-            out[seed] = (b / _end_time(one), "below")
-    return out
+def time_pairs(
+    rows: list[dict], world: str, n: int, target: float, budgets: dict[str, float] | None = None
+):
+    """(seeds, the fleet's (time, censored), `target` x the lone robot's (time, censored)) over
+    the seeds where both ran (failed runs counted as not reached, censored at the budget)."""
+    one, many = _runs(rows, world, 1), _runs(rows, world, n)
+    seeds = sorted(one.keys() & many.keys())
+    horizon = _budget(rows, world, budgets)
+    fleet = _to_event([many[k] for k in seeds], "time_to_95_s", horizon)
+    lone = _to_event([one[k] for k in seeds], "time_to_95_s", horizon)
+    return seeds, fleet, ([target * v for v in lone[0]], lone[1])
 
 
-def decide_below_censored(bounded: dict[int, tuple[float, str]], target: float) -> stats.Decision:
-    """ "At most `target`" over per-seed ratios some of which are bounds (`bounded_ratios`):
-    the interval of the values and bounds decides as `decide_below` does, except that a ratio
-    known only to lie above its bound forbids "met" (its true value could be anything larger),
-    and one known only to lie below forbids "not met"."""
-    d = decide_below(stats.mean_ci([v for v, _ in bounded.values()]), target)
-    kinds = {kind for _, kind in bounded.values()}
-    if (d.verdict == stats.REPRODUCED and "above" in kinds) or (
-        d.verdict == stats.NOT_REPRODUCED and "below" in kinds
-    ):
-        return stats.Decision(stats.INCONCLUSIVE, d.p_yes, d.p_no, d.alpha, "a censored bound")
-    return d
-
-
-def target_below_censored(bounded: dict[int, tuple[float, str]], target: float) -> str:
-    return _met(decide_below_censored(bounded, target))
+def decide_time(
+    rows: list[dict], world: str, n: int, target: float, budgets: dict[str, float] | None = None
+) -> tuple[stats.Decision, str]:
+    """ "Time to 95 % with n robots at most `target` times one robot's", paired per seed: the
+    exact sign test over the seeds whose order is known (`survival.paired_order`, the fleet's
+    time against `target` times the lone robot's); (its decision, the text the table shows)."""
+    seeds, (a, ac), (b, bc) = time_pairs(rows, world, n, target, budgets)
+    order = survival.paired_order(a, ac, b, bc)
+    unknown = [
+        k
+        for k, x, xc, y, yc in zip(seeds, a, ac, b, bc, strict=True)
+        if survival.pair_order(x, xc, y, yc) == "unknown"
+    ]
+    horizon = _budget(rows, world, budgets)
+    text = (
+        f"under {target:g} x one robot's time in {order.a_first} of {len(seeds)} seeds, over in "
+        f"{order.b_first}"
+        + (f", tied in {order.tied}" if order.tied else "")
+        + (
+            f", order unknown in {order.unknown} (seed {', '.join(map(str, unknown))})"
+            if unknown
+            else ""
+        )
+        + (
+            f" ({order.through_censoring} known through a run that did not reach 95 % within "
+            f"the {horizon:.0f} s budget)"
+            if order.through_censoring
+            else ""
+        )
+    )
+    many, one = _runs(rows, world, n), _runs(rows, world, 1)
+    fails = [f"seed {k} ({m} robot{'s' * (m > 1)})" for m, runs in ((n, many), (1, one))
+             for k in seeds if failed(runs[k])]  # fmt: skip
+    if fails:
+        text += f"; FAILED runs counted as not reached: {', '.join(fails)}"
+    if seeds and math.isfinite(horizon):
+        rm = [
+            survival.kaplan_meier(v, c).rmst(horizon).mean
+            for v, c in (
+                _to_event([many[k] for k in seeds], "time_to_95_s", horizon),
+                _to_event([one[k] for k in seeds], "time_to_95_s", horizon),
+            )
+        ]
+        text += (
+            f"; restricted mean time to 95 % within {horizon:.0f} s: {rm[0]:.0f} s vs "
+            f"{rm[1]:.0f} s alone (ratio {rm[0] / rm[1]:.2f})"
+        )
+    d = stats.decide_first_paired(
+        order, f"at most {target:g} x one robot's", f"more than {target:g} x one robot's"
+    )
+    return d, text
 
 
 def paired_difference(rows: list[dict], world: str, n: int, key: str) -> stats.Interval:
-    """Interval of (n robots minus one robot) of `key` over the seeds both ran with a value."""
-    one, many = _by_seed(rows, world, 1, key), _by_seed(rows, world, n, key)
+    """Interval of (n robots minus one robot) of `key` over the seeds both ran with a value
+    (failed runs included, their maps scored as they are)."""
+    one, many = _runs(rows, world, 1), _runs(rows, world, n)
     return stats.mean_ci(
         [
-            many[k] - one[k]
+            many[k][key] - one[k][key]
             for k in sorted(one.keys() & many.keys())
-            if one[k] is not None and many[k] is not None
+            if one[k].get(key) is not None and many[k].get(key) is not None
         ]
     )
 
 
-def verdicts(rows: list[dict], large_world: str = LARGE_GARDEN.name) -> list[dict]:
-    """The targets, each decided by intervals over seeds: (claim, target, smana, verdict) rows."""
+def verdicts(
+    rows: list[dict],
+    large_world: str = LARGE_GARDEN.name,
+    budgets: dict[str, float] | None = None,
+) -> list[dict]:
+    """The targets, each decided over seeds: (claim, target, smana, verdict, p, p_tests, rule,
+    need) rows. `budgets`: {world: robot time budget} where the rows do not say (data written
+    before they did)."""
     out = []
     worlds = list(dict.fromkeys(r["world"] for r in rows))
     sizes = sorted({r["n_robots"] for r in rows})
@@ -472,24 +578,18 @@ def verdicts(rows: list[dict], large_world: str = LARGE_GARDEN.name) -> list[dic
         for n, target in TIME_TARGETS.items():
             if n not in sizes:
                 continue
-            bounded = bounded_ratios(rows, large_world, n)
-            ci = stats.mean_ci([v for v, _ in bounded.values()])
-            kept = [
-                f"seed {k}: {'>' if kind == 'above' else '<'} {v:.2f}"
-                for k, (v, kind) in bounded.items()
-                if kind
-            ]
-            note = f"; censored (never reached 95 %), kept as bounds: {', '.join(kept)}"
-            d = decide_below_censored(bounded, target)
+            d, text = decide_time(rows, large_world, n, target, budgets)
             out.append(
                 {
                     "claim": f"{large_world}: time to {100 * COVERAGE_TARGET:.0f} % coverage with "
-                    f"{n} robots over one robot's, paired per seed",
+                    f"{n} robots over one robot's, paired per seed, runs that did not reach it "
+                    "kept",
                     "target": f"<= {target:g}",
-                    "smana": ci.format(fmt=".2f") + (note if kept else ""),
+                    "smana": text,
+                    **d.fields(),
                     "verdict": _met(d),
-                    "p": d.p,
-                    "rule": "at most T",
+                    "rule": "at most T, sign test",
+                    "evidence": "",
                 }
             )
     for world in worlds:
@@ -510,18 +610,20 @@ def verdicts(rows: list[dict], large_world: str = LARGE_GARDEN.name) -> list[dic
                         "target": (f"below +{margin:g}" if lower else f"above -{margin:g}")
                         + " (margin)",
                         "smana": ci.format(fmt=".4f" if lower else ".3f"),
+                        **d.fields(),
                         "verdict": _met(d),
-                        "p": d.p,
                         "rule": "not worse",
+                        "evidence": "",
+                        "unit": " m" if lower else "",
                     }
                 )
-    ok = [r for r in rows if r["ok"]]
-    counts = [r.get("robot_contacts") for r in ok]
+    runs = [r for r in rows if measured(r)]
+    counts = [r.get("robot_contacts") for r in runs]
     known = [c for c in counts if c is not None]
     total = int(sum(known))
     if total:
         verdict = NOT_MET
-    elif ok and len(known) == len(counts):
+    elif runs and len(known) == len(counts):
         verdict = MET
     else:
         verdict = stats.INCONCLUSIVE
@@ -552,7 +654,8 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
     """fleet.md (verdicts on top), fleet.json (settings, runs, summary, verdicts), fleet.csv and a
     coverage-vs-time figure per world; returns the figures."""
     out.mkdir(parents=True, exist_ok=True)
-    # the end time beside the curve: the censored bounds need it, and the data file has no curves
+    # the end time beside the curve: the data file has no curves, and a run without a budget
+    # is censored at the latest end
     rows = [dict(r, end_time_s=_end_time(r)) for r in rows]
     flat = [{k: v for k, v in r.items() if k != "curve"} for r in rows]
     if flat:
@@ -562,11 +665,12 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
             w = csv.DictWriter(f, fieldnames=fields, restval="")
             w.writeheader()
             w.writerows(flat)
-    summary = summarise_fleet(rows)
+    budgets = {w.name: s.budget(w) for w in s.worlds}
+    summary = summarise_fleet(rows, budgets)
     from .report import write_data
 
     write_data(out, "fleet", rows, asdict(s))
-    table = verdicts(rows)
+    table = verdicts(rows, budgets=budgets)
     (out / "fleet.json").write_text(
         json.dumps(
             {"settings": asdict(s), "runs": rows, "summary": summary, "verdicts": table}, indent=2
@@ -581,45 +685,45 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
             "experiment works; its verdicts say nothing (the full run: `smana experiment fleet`).",
             "",
         ]
-    failed = [r for r in rows if not r["ok"]]
-    if failed:
+    missing = [r for r in rows if not measured(r)]
+    if missing:
         names = ", ".join(
             f"{run_name(r['seed'], r['world'], r['n_robots'])} (exit {r['exit_code']})"
-            for r in failed
+            for r in missing
         )
         lines += [
-            f"**WARNING: {len(failed)} of {len(rows)} runs failed** (no metrics or non-zero "
-            f"exit), left out of every number below: {names}.",
+            f"**WARNING: {len(missing)} of {len(rows)} runs failed to run** (no metrics, or a "
+            f"non-zero exit for another reason than what the robots did), left out of every "
+            f"number below: {names}.",
+            "",
+        ]
+    flagged = [r for r in rows if failed(r)]
+    if flagged:
+        names = ", ".join(run_name(r["seed"], r["world"], r["n_robots"]) for r in flagged)
+        lines += [
+            f"**WARNING: {len(flagged)} of {len(rows)} runs FAILED on what their robots did** "
+            f"(a member that did not move or found no path): counted as not reached in the "
+            f"times to 95 %, their maps scored as they are: {names}.",
             "",
         ]
     lines += [
-        "| claim | target | smana mean [95 % CI] (n) | verdict |",
-        "|---|---|---|---|",
-        *(f"| {v['claim']} | {v['target']} | {v['smana']} | {v['verdict']} |" for v in table),
+        "| claim | target | smana | p | verdict |",
+        "|---|---|---|---|---|",
+        *(
+            f"| {v['claim']} | {v['target']} | {v['smana']} | "
+            f"{stats.format_p(v['p'], v.get('p_tests'))} | {v['verdict']} |"
+            for v in table
+        ),
         "",
         f"Seeds {list(s.seeds)}, worlds "
         + ", ".join(f"{w.name} ({w.size_m:g} m, budget {s.budget(w):.0f} s)" for w in s.worlds)
         + f", {s.jobs} run(s) at once. World: {' '.join(ex.WORLD_SETS)}.",
         "",
-        "| world | robots | runs (failed) | reached 95 % | time to 95 % (s) | total distance to "
-        "95 % (m) | coverage | overlap | map error (m) | classification ratio | contacts |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for d in summary:
-        iv = {k: ex._interval(d[k]) for k in SUMMARY_KEYS}
-        lines.append(
-            f"| {d['world']} | {d['n_robots']} | {d['runs']} ({d['failed']}) | "
-            f"{d['reached_95']} of {d['runs'] - d['failed']} | "
-            f"{iv['time_to_95_s'].format(fmt='.0f')} | {iv['distance_to_95_m'].format()} | "
-            f"{iv['coverage'].format(100, unit=' %')} | {iv['overlap'].format(100, unit=' %')} | "
-            f"{iv['map_error_m'].format(fmt='.3f')} | "
-            f"{iv['classification_ratio'].format(fmt='.3f')} | "
-            f"{iv['robot_contacts'].format(fmt='.1f')} |"
-        )
-    lines += [
+        *summary_table(summary),
         "",
-        "Time and distance to 95 % are over the runs that reached it; the others are counted "
-        "as not reached (censored), never as a number. The distance is every member's, added.",
+        ex.TO_95_NOTE + " A run that smana up ended FAILED on what its robots did counts as "
+        "not reached; the distance is every member's, added; the log-rank test is two-sided, "
+        "with the side the data lean to.",
         "",
         "| run | exit | coverage | time to 95 % (s) | distance to 95 % (m) | overlap | "
         "contacts | min separation (m) | wall (s) | CPU (s) |",
@@ -637,6 +741,30 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
     lines += [""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
     (out / "fleet.md").write_text("\n".join(lines))
     return figures
+
+
+SUMMARY_HEAD = (
+    "| world | robots | runs (FAILED; missing) | "
+    + ex.TO_95_HEAD
+    + " | against one robot, time to 95 % | coverage | overlap | map error (m) | "
+    "classification ratio |"
+)
+
+
+def summary_table(summary: list[dict]) -> list[str]:
+    """The table per world and N (fleet.md's and docs/experiments.md's): times to 95 % as times
+    to an event, the log-rank test against one robot, and intervals over the measured runs."""
+    lines = [SUMMARY_HEAD, "|" + "---|" * SUMMARY_HEAD.count(" | ") + "---|"]
+    for d in summary:
+        iv = {k: ex._interval(d[k]) for k in SUMMARY_KEYS}
+        lines.append(
+            f"| {d['world']} | {d['n_robots']} | {d['runs']} ({d['run_failed']}; "
+            f"{d['failed']}) | {ex.to_95_cells(d)} | {d['logrank_text'] or '-'} | "
+            f"{iv['coverage'].format(100, unit=' %')} | {iv['overlap'].format(100, unit=' %')} | "
+            f"{iv['map_error_m'].format(fmt='.3f')} | "
+            f"{iv['classification_ratio'].format(fmt='.3f')} |"
+        )
+    return lines
 
 
 def _int(v) -> str:
@@ -769,9 +897,9 @@ def check_args(args, parser=None) -> None:
 def main(args, parser, out: Path) -> int:
     s = FleetExperimentConfig.quick() if args.quick else FleetExperimentConfig()
     rows = run_fleet(apply_args(s, args), out)
-    failed = sum(not r["ok"] for r in rows)
+    bad = sum(not r["ok"] or failed(r) for r in rows)
     print(f"results in {out} (fleet.md)")
-    if failed:
-        print(f"warning: {failed} of {len(rows)} runs failed (see fleet.md)")
+    if bad:
+        print(f"warning: {bad} of {len(rows)} runs failed (see fleet.md)")
         return 1
     return 0

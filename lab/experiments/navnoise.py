@@ -217,9 +217,10 @@ def verdicts(rows: list[dict]) -> list[dict]:
                 "claim": claim,
                 "paper": target,
                 "smana": ci.format(100, unit=" points"),
-                "verdict": d.verdict,
-                "p": d.p,
+                **d.fields(),
                 "rule": rule,
+                "scale": 100,
+                "unit": " points",
                 "evidence": "; ".join(e for e in (d.evidence, evidence) if e),
             }
         )

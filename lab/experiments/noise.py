@@ -587,8 +587,7 @@ def claims(rows) -> list[dict]:
             "smana": ci,
             "scale": scale,
             "unit": "",
-            "verdict": d.verdict,
-            "p": d.p,
+            **d.fields(),
             "rule": rule,
         }
         if other is not None:

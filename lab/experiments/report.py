@@ -29,7 +29,7 @@ import sys
 import time
 from pathlib import Path
 
-from smana.lab import stats
+from smana.lab import power, stats
 
 ROOT = Path(__file__).resolve().parents[2]
 DATA_DIR = ROOT / "docs" / "experiments" / "data"
@@ -188,9 +188,10 @@ def _arm_name(arm: str) -> str:
 
 def exploration_section(all_data: dict[str, dict]) -> str:
     """Per exploration data file (the default garden first, then each variant): per arm the
-    intervals over seeds, how many runs reached 95 % and the Kaplan-Meier median distance to it
-    (runs that never reached it kept as censored)."""
-    from .exploration import _interval, summarise_exploration
+    intervals over seeds, and the distance and time to 95 % as times to an event: how many
+    runs reached it, the Kaplan-Meier medians and the restricted mean time up to the budget
+    (runs that did not reach it censored, never dropped: exploration.py `time_to_event`)."""
+    from .exploration import TO_95_HEAD, TO_95_NOTE, _interval, summarise_exploration, to_95_cells
 
     keys = [k for k, d in all_data.items() if d["experiment"] == "exploration"]
     if not keys:
@@ -211,30 +212,28 @@ def exploration_section(all_data: dict[str, dict]) -> str:
             + (f"; overrides: {', '.join(meta['extra'])}" if meta.get("extra") else "")
             + ".",
             "",
-            "| arm | terrain share | coverage at the end | distance (m) | reached 95 % | "
-            "distance to 95 % (m), Kaplan-Meier median | time to 95 % (s), Kaplan-Meier median |",
-            "|---|---|---|---|---|---|---|",
+            f"| arm | terrain share | coverage at the end | distance (m) | {TO_95_HEAD} |",
+            "|---|---|---|---|---|---|---|---|",
         ]
-        for d in summarise_exploration(rows):
+        for d in summarise_exploration(rows, meta.get("budget_s")):
             iv = {k: _interval(d[k]) for k in ("terrain_share", "coverage", "distance_m")}
-            km_d, km_t = d["km_median_distance_to_95_m"], d["km_median_time_to_95_s"]
             lines.append(
                 f"| {_arm_name(d['arm'])} | {iv['terrain_share'].format(100, unit=' %')} | "
                 f"{iv['coverage'].format(100, unit=' %')} | {iv['distance_m'].format()} | "
-                f"{d['reached_95']} of {d['runs'] - d['failed']} | "
-                f"{'not reached by half' if km_d is None else f'{km_d:.1f}'} | "
-                f"{'not reached by half' if km_t is None else f'{km_t:.0f}'} |"
+                f"{to_95_cells(d)} |"
             )
         lines.append("")
+    lines += [TO_95_NOTE, ""]
     return "\n".join(lines)
 
 
 def fleet_section(all_data: dict[str, dict]) -> str:
-    """Per fleet data file, world and fleet size: intervals over seeds of time and distance to
-    95 % (over the runs that reached it, with how many did), coverage, overlap and the merged
-    map's scores."""
-    from .exploration import _interval
-    from .fleet import summarise_fleet
+    """Per fleet data file, world and fleet size: time and distance to 95 % as times to an event
+    (runs that did not reach it censored at the budget, FAILED runs counted as not reached),
+    the log-rank test against one robot, and intervals over seeds of coverage, overlap and the
+    merged map's scores."""
+    from .exploration import TO_95_NOTE
+    from .fleet import budgets_of, measured, summarise_fleet, summary_table
 
     keys = [k for k, d in all_data.items() if d["experiment"] == "fleet"]
     if not keys:
@@ -242,25 +241,23 @@ def fleet_section(all_data: dict[str, dict]) -> str:
     lines = []
     for key in keys:
         rows = [{**r, "ok": bool(r.get("ok"))} for r in all_data[key]["rows"]]
+        budgets = budgets_of(all_data[key].get("meta") or {})
         seeds = sorted({r["seed"] for r in rows})
         lines += [
             f"Generated from docs/experiments/data/{key}.json (seeds {seeds[0]} to {seeds[-1]}, "
-            f"{len(rows)} runs, {sum(not r['ok'] for r in rows)} failed):",
+            f"{len(rows)} runs, {sum(not measured(r) for r in rows)} missing; budget "
+            + ", ".join(f"{b:.0f} s in {w}" for w, b in budgets.items())
+            + "):",
             "",
-            "| world | robots | reached 95 % | time to 95 % (s) | distance to 95 % (m) | "
-            "coverage | overlap | map error (m) | classification ratio |",
-            "|---|---|---|---|---|---|---|---|---|",
+            *summary_table(summarise_fleet(rows, budgets)),
+            "",
         ]
-        for d in summarise_fleet(rows):
-            iv = {k: _interval(d[k]) for k in d if isinstance(d[k], dict)}
-            lines.append(
-                f"| {d['world']} | {d['n_robots']} | {d['reached_95']} of "
-                f"{d['runs'] - d['failed']} | {iv['time_to_95_s'].format(fmt='.0f')} | "
-                f"{iv['distance_to_95_m'].format()} | {iv['coverage'].format(100, unit=' %')} | "
-                f"{iv['overlap'].format(100, unit=' %')} | {iv['map_error_m'].format(fmt='.3f')} | "
-                f"{iv['classification_ratio'].format(fmt='.3f')} |"
-            )
-        lines.append("")
+    lines += [
+        TO_95_NOTE + " A run that `smana up` ended FAILED on what its robots did (a member that "
+        "did not move) counts as not reached; the distance is every member's, added; the "
+        "log-rank test of N robots against one is two-sided, with the side the data lean to.",
+        "",
+    ]
     return "\n".join(lines)
 
 
@@ -297,10 +294,11 @@ def _exploration_claims(key: str, data: dict, all_data: dict[str, dict]) -> list
 
 
 def _fleet_claims(key: str, data: dict) -> list[dict]:
-    from .fleet import verdicts
+    from .fleet import budgets_of, verdicts
 
     rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
-    return [{**v, "experiment": _where(key, data)} for v in verdicts(rows)]
+    budgets = budgets_of(data.get("meta") or {})
+    return [{**v, "experiment": _where(key, data)} for v in verdicts(rows, budgets=budgets)]
 
 
 def _navnoise_claims(key: str, data: dict) -> list[dict]:
@@ -327,6 +325,8 @@ def _risk_claims(key: str, data: dict) -> list[dict]:
             "smana": c["interval"].format(fmt=".3f"),
             "verdict": c["verdict"],
             "p": c["p"],
+            "p_tests": c.get("p_tests"),
+            "need": c.get("need"),
             "rule": f"at p = {TARGET_P}",
             "evidence": "",
             "experiment": _where(key, data),
@@ -365,7 +365,9 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
             ]
     tested = [c for c in table if c.get("p") is not None]
     # each claim's p is that of the conclusion it reached (Decision.p): the one Holm corrects
-    decisions = [stats.Decision(c["verdict"], c["p"], c["p"]) for c in tested]
+    decisions = [
+        stats.Decision(c["verdict"], c["p"], c["p"], yes=c.get("p_tests") or "") for c in tested
+    ]
     for c, d in zip(tested, stats.holm_table(decisions), strict=True):
         c["holm_verdict"] = d.verdict
         c["holm"] = d.evidence
@@ -385,7 +387,8 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
             f"Generated from docs/experiments/data/ ({len(table)} claims, Holm over the "
             f"{sum(c.get('p') is not None for c in table)} tested):",
             "",
-            "| claim | paper | smana, mean [95 % CI] (n) | rule | p | verdict (Holm) |",
+            "| claim | paper | smana, mean [95 % CI] (n) | rule | p (one-sided: the alternative "
+            "it tests) | verdict (Holm-adjusted p, the same side) |",
             "|---|---|---|---|---|---|",
         ]
         for c in table:
@@ -393,7 +396,7 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
             ev = f"; {e}" if e and e not in c["smana"] else ""
             lines.append(
                 f"| {c['experiment']}: {c['claim']} | {c['paper']} | {c['smana']}{ev} | "
-                f"{c['rule']} | {'-' if c.get('p') is None else format(c['p'], '.2g')} | "
+                f"{c['rule']} | {stats.format_p(c.get('p'), c.get('p_tests'))} | "
                 f"{c['holm_verdict']} ({c['holm']}) |"
             )
         lines.append("")
@@ -420,6 +423,54 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
             + (", and the Holm correction above covers only the claims generated" if table else "")
             + ". The table below is transcribed from the runs of those experiments, not yet "
             "regenerated, relabelled by hand with the rules above._"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def _measured(need: dict, c: dict) -> str:
+    """What a claim's seeds needed were computed from, in the claim's units."""
+    scale, unit = c.get("scale") or 1.0, c.get("unit") or ""
+    if need["sd"] is not None:
+        d, sd = need["effect"], need["sd"]
+        if sd == 0 and d == 0:
+            return "every seed on the rule's edge (no spread, no difference)"
+        ratio = f"{d / sd:.2f}" if sd > 0 else "inf"
+        return (
+            f"{d * scale:.3g}{unit} from the rule's edge, SD {sd * scale:.3g}{unit} (d = {ratio})"
+        )
+    return need["detail"]
+
+
+def _seeds(need: dict) -> str:
+    if need["seeds"] is not None:
+        return str(need["seeds"])
+    if need["effect"] == 0 or (need["how"].startswith("exact sign") and need["effect"] <= 0.5):
+        return "none: no difference measured"
+    return f"more than {power.MAX_SEEDS:,}"
+
+
+def power_section(all_data: dict[str, dict]) -> str:
+    """Per tested claim of the verdict table: the seeds its rule needs to reach a verdict with
+    80 % power, were the true effect and spread those measured (lab/power.py), beside the seeds
+    it has."""
+    table = [c for c in verdict_claims(all_data) if c.get("p") is not None]
+    if not table:
+        return "_No tested claim in the committed data: nothing to compute._\n"
+    lines = [
+        f"Generated from docs/experiments/data/ ({len(table)} tested claims; 80 % power, each "
+        f"test one-sided at {power.ALPHA}, before Holm's correction):",
+        "",
+        "| claim | rule | verdict (Holm) | seeds now | measured | test | seeds for 80 % power |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for c in table:
+        need = c.get("need")
+        if need is None:
+            cells = "- | - | - | no interval: nothing to compute"
+        else:
+            cells = f"{need['n']} | {_measured(need, c)} | {need['how']} | {_seeds(need)}"
+        lines.append(
+            f"| {c['experiment']}: {c['claim']} | {c['rule']} | {c['holm_verdict']} | {cells} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -473,6 +524,7 @@ def sections(all_data: dict[str, dict]) -> dict[str, str]:
     made = {
         "routes_wheel": routes_section(all_data.get("routes_wheel"), "routes_wheel"),
         "verdicts": verdicts_section(all_data),
+        "power": power_section(all_data),
         "noise": noise_section(all_data.get("noise")),
         "routes": routes_section(all_data.get("routes")),
         "exploration": exploration_section(all_data),

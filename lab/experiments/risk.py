@@ -347,7 +347,7 @@ def claims(rows) -> list[dict]:
             out.append({"claim": claim, "interval": ci})
             decisions.append(d)
     for c, d in zip(out, stats.holm_table(decisions), strict=True):
-        c["verdict"], c["p"] = d.verdict, d.p
+        c.update(d.fields())
     return out
 
 

@@ -277,15 +277,16 @@ def verdicts(rows: list[dict]) -> list[dict]:
     caller corrects its table together)."""
     out = []
 
-    def add(claim, target, smana, d: stats.Decision, rule, evidence=""):
+    def add(claim, target, smana, d: stats.Decision, rule, evidence="", scale=1.0, unit=""):
         out.append(
             {
                 "claim": claim,
                 "paper": target,
                 "smana": smana,
-                "verdict": d.verdict,
-                "p": d.p,
+                **d.fields(),
                 "rule": rule,
+                "scale": scale,
+                "unit": unit,
                 "evidence": "; ".join(e for e in (d.evidence, evidence) if e),
             }
         )
@@ -302,7 +303,9 @@ def verdicts(rows: list[dict]) -> list[dict]:
             "(p = 0.7 and pose noise, true path; ratio of sums, Fieller interval)",
             f"(issue 29) ratio < {FEWER:g}",
             shown,
-            stats.decide_not_worse(diff, 0.0),
+            stats.decide_not_worse(
+                diff, 0.0, yes=f"under {FEWER:g} x expected's", no=f"over {FEWER:g} x expected's"
+            ),
             "below, paired",
             f"arm - {FEWER:g} x expected per seed: {diff.format(fmt='.2f')}",
         )
@@ -315,6 +318,8 @@ def verdicts(rows: list[dict]) -> list[dict]:
             stats.decide_not_worse(longer, LONGER_MARGIN),
             "not worse",
             f"{dropped} seed(s) left out: expected's robot did not move" if dropped else "",
+            100,
+            " %",
         )
         cov = paired(rows, arm, "coverage")
         add(
@@ -323,6 +328,8 @@ def verdicts(rows: list[dict]) -> list[dict]:
             cov.format(100, unit=" points"),
             stats.decide_not_worse(cov, COVERAGE_MARGIN, higher_is_better=True),
             "not worse",
+            scale=100,
+            unit=" points",
         )
     return out
 
@@ -435,7 +442,9 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
         w.writerows(flat)
     write_data(out, "risk", rows, asdict(s) | {"form": "closed loop"})
     table = verdicts(rows)
-    decided = stats.holm_table([stats.Decision(v["verdict"], v["p"], v["p"]) for v in table])
+    decided = stats.holm_table(
+        [stats.Decision(v["verdict"], v["p"], v["p"], yes=v["p_tests"]) for v in table]
+    )
     for v, d in zip(table, decided, strict=True):
         v["holm_verdict"], v["holm"] = d.verdict, d.evidence
     (out / "risk_results.json").write_text(
@@ -464,7 +473,7 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
         *(
             f"| {v['claim']} | {v['paper']} | {v['smana']}"
             f"{'; ' + v['evidence'] if v['evidence'] else ''} | {v['rule']} | "
-            f"{v['holm_verdict']} ({v['holm']}) |"
+            f"{v['holm_verdict']} ({v['holm']}, one-sided: {v['p_tests']}) |"
             for v in table
         ),
     ]
