@@ -262,3 +262,55 @@ def test_a_run_that_runs_again_starts_in_an_empty_folder(tmp_path):
     set_aside(run)
     assert (tmp_path / "seed53_max_clean.interrupted-2").is_dir()
     set_aside(tmp_path / "never_ran")  # nothing there: nothing to do
+
+
+def test_python_runs_the_stack_with_another_checkout_and_this_code_reports(tmp_path, monkeypatch):
+    """`--python PATH`: each `smana up` runs with that interpreter (a baseline of older code),
+    and the run's report is written again by this code's `smana.deploy.report`; a path that is
+    no executable is refused in one line."""
+    import resource
+    import subprocess
+    import sys
+    import types
+
+    from smana.common.cli import UsageError
+    from smana.lab.experiments import exploration as ex
+    from smana.lab.experiments import robustness as rb
+
+    started, reported = [], []
+
+    class FakeProc:
+        pid = 4242
+
+        def __init__(self, argv, **kw):
+            started.append(argv)
+            run_dir = Path(argv[argv.index("--run-dir") + 1])
+            (run_dir / "metrics.json").write_text("{}")
+
+    def fake_run(argv, **kw):
+        reported.append(argv)
+        return types.SimpleNamespace(returncode=0)
+
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    monkeypatch.setattr(subprocess, "Popen", FakeProc)
+    monkeypatch.setattr(subprocess, "run", fake_run)
+    monkeypatch.setattr(ex.os, "wait4", lambda pid, opt: (pid, 0, usage))
+    s = rb.experiment_config()
+    s.python = "/opt/baseline/.venv/bin/python"
+    arm = s.arms[0]
+    ex.exploration_run(tmp_path, 61, arm, s)
+    assert started[0][0] == "/opt/baseline/.venv/bin/python"
+    assert reported == [
+        [
+            sys.executable,
+            "-m",
+            "smana.deploy.report",
+            str((tmp_path / ex.run_name(61, arm)).resolve()),
+        ]
+    ]
+    s.python = ""
+    ex.exploration_run(tmp_path, 62, arm, s)
+    assert started[1][0] == sys.executable and len(reported) == 1
+    args = types.SimpleNamespace(extra=[], arms=None, python=str(tmp_path / "nope"))
+    with pytest.raises(UsageError, match="not an executable"):
+        rb.check_args(args)

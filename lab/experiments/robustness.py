@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -104,13 +105,19 @@ class Condition:
 
     def sets(self) -> tuple[str, ...]:
         xy, yaw, dxy, dyaw = self.pose_noise
+        drift = (
+            # only when there is one (the default is none): a checkout from before the drift
+            # existed runs the noise-free arm too (--python, a baseline)
+            (f"sim.pose_drift_xy_m_per_sqrt_s={dxy}", f"sim.pose_drift_yaw_rad_per_sqrt_s={dyaw}")
+            if dxy or dyaw
+            else ()
+        )
         return (
             f'mapper.backend="{self.backend}"',
             f'sim.noise="{self.label_noise}"',
             f"sim.pose_noise_xy_m={xy}",
             f"sim.pose_noise_yaw_rad={yaw}",
-            f"sim.pose_drift_xy_m_per_sqrt_s={dxy}",
-            f"sim.pose_drift_yaw_rad_per_sqrt_s={dyaw}",
+            *drift,
         )
 
     def arm(self) -> ex.Arm:
@@ -615,6 +622,13 @@ def add_parser(sub) -> None:
         help=f"the first seed (default {SEEDS[0]}, the rules' seeds; a pilot or a trial of a "
         "change takes others, so that the rules' seeds stay unseen until the runs)",
     )
+    e.add_argument(
+        "--python",
+        metavar="PATH",
+        help="run each `smana up` with this Python (another checkout's virtual environment: "
+        "a baseline of older code); each run's report is then written again by this code, so "
+        "that every run is measured the same way",
+    )
     # the shared flags' defaults are the exploration experiment's: say this one's
     own = {
         "seeds": f"number of seeds, from {SEEDS[0]} up (default {len(SEEDS)}; quick 1)",
@@ -653,6 +667,11 @@ def check_args(args, parser=None) -> None:
     for c in conditions():
         SmanaConfig.load(overrides=[*ex.WORLD_SETS, *c.sets(), *args.extra])
     _arms(args)
+    python = getattr(args, "python", None)
+    if python and not (os.path.isfile(python) and os.access(python, os.X_OK)):
+        from smana.common.cli import UsageError
+
+        raise UsageError(f"--python {python}: not an executable file")
 
 
 def main(args, parser, out: Path) -> int:
@@ -672,6 +691,8 @@ def main(args, parser, out: Path) -> int:
         s.jobs = args.jobs
     if arms:
         s.arms = arms
+    if getattr(args, "python", None):
+        s.python = str(args.python)
     s.extra = (*s.extra, *args.extra)
     # runs a data file in --out already holds are kept (their rows, as row.json beside each)
     for r in rows_from_data(out / "data" / "robustness.json"):
