@@ -168,8 +168,8 @@ class Chain:
             assert wait_for(acked, 60, 0.01)
 
     def reference(self) -> dict:
-        """{cell: (label, height, flags)} of a graph built here from the mapper's snapshot (NaN
-        heights as None: they never compare equal)."""
+        """{cell: (label, height, flags)} of a graph built here from the mapper's snapshot, as
+        the graph query carries it (NaN heights as None: they never compare equal)."""
         snap = request(self.stack.session, keys.query(self.stack.robot, "mapper", "snapshot"))
         graph = NavGraph(self.classes, self.config.navgraph)
         graph.integrate_delta(snap)
@@ -177,7 +177,12 @@ class Chain:
         labels, heights, flags = (np.asarray(a) for a in g.box(0, 0, *g.shape))
         cells = np.argwhere(flags != 0)  # known, or in a safety zone: what the graph query gives
         return {
-            (int(i), int(j)): (int(labels[i, j]), _height(heights[i, j]), int(flags[i, j]))
+            # a node in a safety zone but not seen travels with height 0 (navgraph's to_patch)
+            (int(i), int(j)): (
+                int(labels[i, j]),
+                _height(heights[i, j]) if flags[i, j] & 1 else 0.0,
+                int(flags[i, j]),
+            )
             for i, j in cells
         }
 
@@ -210,7 +215,9 @@ class Chain:
 
         if not wait_for(same, 30, 0.2):
             want, got = last
-            diff = sorted(set(want.items()) ^ set(got.items()))[:6]
+            only_want = sorted(set(want.items()) - set(got.items()), key=repr)[:4]
+            only_got = sorted(set(got.items()) - set(want.items()), key=repr)[:4]
+            diff = f"wanted only {only_want}, got only {only_got}"
             raise AssertionError(f"{moment}: {len(want)} nodes wanted, {len(got)} got; {diff}")
 
 
