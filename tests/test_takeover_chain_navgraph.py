@@ -13,12 +13,7 @@ a take-over it follows the mapper again: the next clouds reach its graph."""
 
 from __future__ import annotations
 
-import contextlib
-import os
-import select
 import signal
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -28,10 +23,10 @@ from smana.common.classes import ClassTable
 from smana.common.config import SmanaConfig
 from smana.common.messages import encode
 from smana.common.navgrid import FLAG_OBSTACLE
-from smana.common.query import QueryError, request
-from smana.deploy.supervisor import die_with_parent
+from smana.common.query import request
 from smana.services.navgraph.graph import NavGraph
 from tests.conftest import wait_for
+from tests.support.hot_spare import HotSpare
 from tests.test_mapper_service import DeltaInbox
 from tests.test_takeover import make_cloud
 
@@ -52,60 +47,9 @@ MOMENTS = [
 ]
 
 
-class Spare:
+def Spare(stack) -> HotSpare:  # noqa: N802 - it stands for the class it makes
     """A navgraph process standing by (prepared) until `go()`."""
-
-    n = 0
-
-    def __init__(self, stack):
-        Spare.n += 1
-        self.name = f"navgraph{Spare.n}"
-        r, w = os.pipe()
-        args = [a for s in SETS for a in ("--set", s)]
-        log = open(stack.tmp / f"{self.name}.log", "ab")  # noqa: SIM115 - the child owns it
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "smana.services.navgraph", *stack.zenoh_args()]
-            + ["--robot", stack.robot, *args],
-            stdin=subprocess.PIPE,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-            env=dict(os.environ, PYTHONUNBUFFERED="1", SMANA_STANDBY_FD=str(w)),
-            cwd=stack.tmp,
-            pass_fds=(w,),
-            preexec_fn=die_with_parent,
-        )
-        os.close(w)
-        log.close()
-        self.proc.log_name = self.name
-        self.ready_fd = r
-        self.stack = stack
-        stack.procs.append((self.name, self.proc))
-
-    def wait_prepared(self, timeout_s: float = 180.0) -> None:
-        ready, _, _ = select.select([self.ready_fd], [], [], timeout_s)
-        assert ready and os.read(self.ready_fd, 16).startswith(b"ready"), self.log()
-        os.close(self.ready_fd)
-
-    def go(self) -> None:
-        self.proc.stdin.write(b"go\n")
-        self.proc.stdin.flush()
-
-    def running(self) -> bool:
-        assert self.proc.poll() is None, self.log()
-        try:
-            st = request(self.stack.session, keys.status(self.stack.robot, "navgraph"), timeout_s=1)
-        except QueryError:
-            return False
-        return st.pid == self.proc.pid and st.state == "running"
-
-    def kill(self, sig=signal.SIGKILL) -> int:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(self.proc.pid, sig)
-        return self.proc.wait(30)
-
-    def log(self) -> str:
-        return self.stack.log(self.name)
+    return HotSpare(stack, "navgraph", [a for s in SETS for a in ("--set", s)])
 
 
 def _height(h) -> float | None:
