@@ -25,7 +25,7 @@ from smana.common.messages import encode
 from smana.common.query import request
 from smana.services.mapper.semantic_map import SemanticMap
 from tests.conftest import wait_for
-from tests.support.hot_spare import HotSpare
+from tests.support.hot_spare import HotSpare, SpareChain
 from tests.test_mapper_journal import assert_same_voxels
 from tests.test_mapper_service import DeltaInbox
 from tests.test_takeover import make_cloud
@@ -54,7 +54,7 @@ def Spare(stack, map_file) -> HotSpare:  # noqa: N802 - it stands for the class 
     )
 
 
-class Chain:
+class Chain(SpareChain):
     def __init__(self, stack, tmp):
         self.stack, self.map_file = stack, tmp / "map.npz"
         cfg = SmanaConfig.load(overrides=SETS[:1])
@@ -64,24 +64,10 @@ class Chain:
         self.seq = 0
         self.acked = 0  # clouds acknowledged (their delta came), in the reference
         self.in_flight_lost = 0
-        self.spares: list[Spare] = []
-        self.active: Spare | None = None
-
-    def spare(self) -> Spare:
-        s = Spare(self.stack, self.map_file)
-        self.spares.append(s)
-        return s
-
-    def take_over(self, prepared: bool = True) -> Spare:
-        s = self.spares.pop(0) if self.spares else self.spare()
-        if prepared:
-            s.wait_prepared()
-        s.go()
-        self.active = s
-        return s
+        super().__init__(lambda: Spare(stack, self.map_file))
 
     def wait_running(self) -> None:
-        assert wait_for(self.active.running, 120, 0.05), self.active.log()
+        super().wait_running()
         if self.inbox is None:
             self.inbox = DeltaInbox(self.stack, keys.map_delta(self.stack.robot))
 

@@ -26,7 +26,7 @@ from smana.common.navgrid import FLAG_OBSTACLE
 from smana.common.query import request
 from smana.services.navgraph.graph import NavGraph
 from tests.conftest import wait_for
-from tests.support.hot_spare import HotSpare
+from tests.support.hot_spare import HotSpare, SpareChain
 from tests.test_mapper_service import DeltaInbox
 from tests.test_takeover import make_cloud
 
@@ -56,7 +56,7 @@ def _height(h) -> float | None:
     return None if np.isnan(h) else float(h)
 
 
-class Chain:
+class Chain(SpareChain):
     def __init__(self, stack):
         self.stack = stack
         self.config = SmanaConfig.load(overrides=SETS)
@@ -64,24 +64,7 @@ class Chain:
         self.pub = stack.session.declare_publisher(keys.cloud(stack.robot))
         self.inbox = DeltaInbox(stack, keys.map_delta(stack.robot))
         self.seq = 0
-        self.spares: list[Spare] = []
-        self.active: Spare | None = None
-
-    def spare(self) -> Spare:
-        s = Spare(self.stack)
-        self.spares.append(s)
-        return s
-
-    def take_over(self, prepared: bool = True) -> Spare:
-        s = self.spares.pop(0) if self.spares else self.spare()
-        if prepared:
-            s.wait_prepared()
-        s.go()
-        self.active = s
-        return s
-
-    def wait_running(self) -> None:
-        assert wait_for(self.active.running, 120, 0.05), self.active.log()
+        super().__init__(lambda: Spare(stack))
 
     def mapper_clouds(self) -> int:
         return request(self.stack.session, keys.query(self.stack.robot, "mapper", "stats"))[

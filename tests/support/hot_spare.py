@@ -73,3 +73,32 @@ class HotSpare:
 
     def log(self) -> str:
         return self.stack.log(self.name)
+
+
+class SpareChain:
+    """One service's spares and the one that runs: `make()` starts a spare; `take_over` tells
+    the first spare waiting (or a new one) to take over."""
+
+    def __init__(self, make):
+        self.make = make
+        self.spares: list[HotSpare] = []
+        self.active: HotSpare | None = None
+
+    def spare(self) -> HotSpare:
+        s = self.make()
+        self.spares.append(s)
+        return s
+
+    def take_over(self, prepared: bool = True) -> HotSpare:
+        """`prepared`: wait until it has prepared first (else it is told at once)."""
+        s = self.spares.pop(0) if self.spares else self.spare()
+        if prepared:
+            s.wait_prepared()
+        s.go()
+        self.active = s
+        return s
+
+    def wait_running(self) -> None:
+        from tests.conftest import wait_for
+
+        assert wait_for(self.active.running, 120, 0.05), self.active.log()
