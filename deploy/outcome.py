@@ -110,7 +110,7 @@ class Outcome:
         print(f"[{elapsed_s:6.0f} s] " + " | ".join(parts), flush=True)
 
 
-def _last_line(m: Managed) -> str:
+def last_line(m: Managed) -> str:
     """The last line a service wrote to its log (a refusal is one line: its reason)."""
     try:
         lines = m.log_path.read_text(errors="replace").strip().splitlines()

@@ -51,7 +51,7 @@ from smana.common.config import ConfigError, ServiceDeployConfig, SmanaConfig
 from smana.common.messages import MessageError, ServiceStatus, decode
 from smana.common.service import die_with_parent, on_stop_signals
 from smana.deploy.fleet import add_fleet
-from smana.deploy.outcome import CONFIG_ERROR, Outcome, _last_line
+from smana.deploy.outcome import CONFIG_ERROR, Outcome, last_line
 from smana.deploy.processes import Managed, ProcessControl
 
 __all__ = ["CONFIG_ERROR", "Managed", "Supervisor", "cli", "die_with_parent", "main"]
@@ -187,7 +187,7 @@ class Supervisor(ProcessControl, Outcome):
                 failed = code != 0
                 if code == CONFIG_ERROR:
                     m.finished = True
-                    self.config_error = f"{m.name} refused its configuration: {_last_line(m)}"
+                    self.config_error = f"{m.name} refused its configuration: {last_line(m)}"
                     log.error("%s; stopping the stack", self.config_error)
                     self._stop.set()
                 elif m.policy.restart == "always" or (m.policy.restart == "on-failure" and failed):

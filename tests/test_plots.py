@@ -146,7 +146,7 @@ def test_progress_has_two_panels_in_robot_time():
 
 def test_the_reports_pngs_all_go_through_the_module(tmp_path, saved):
     from smana.common.config import SmanaConfig
-    from smana.deploy.report.figures import _plots
+    from smana.deploy.report.figures import run_plots
     from smana.deploy.report.ground_truth import world_from_config
 
     cfg = SmanaConfig.load(None, ["sim.garden.size_m=5.0", "sim.seed=3"])
@@ -166,7 +166,7 @@ def test_the_reports_pngs_all_go_through_the_module(tmp_path, saved):
     replay = {"per_scan": [[i, i, f"s{i}", 0.1 * i, 100, 5.0 + i] for i in range(4)]}
     exploration = {"usable_area_m2": 4.5}
     classes = ClassTable.load("garden3drms")
-    files = _plots(tmp_path, classes, world, graph, traj, state, replay, exploration)
+    files = run_plots(tmp_path, classes, world, graph, traj, state, replay, exploration)
     assert set(files) == {"map", "graph", "progress", "replay_latency"}
     written = sorted(p.relative_to(tmp_path) for p in (tmp_path / "plots").glob("*.png"))
     assert written == sorted(p.relative_to(tmp_path) for p, _ in saved)

@@ -9,8 +9,8 @@ from smana.deploy.report.measures import (
     MOVED_M,
     SIM_SUMMARY,
     USABLE_FLOOR,
-    _f,
-    _pct,
+    as_percent,
+    as_text,
 )
 
 # How the warnings about what the robot did (not about a service) begin: the experiments
@@ -49,7 +49,7 @@ def run_warnings(metrics: dict, explored: bool) -> list[str]:
         ex = metrics.get("exploration") or {}
         dist = ex.get("distance_m", (ee or {}).get("distance_m"))
         if dist is None or dist < MOVED_M:
-            out.append(f"the robot did not move ({_f(dist, '.2f', ' m')} travelled)")
+            out.append(f"the robot did not move ({as_text(dist, '.2f', ' m')} travelled)")
         out += usable_warnings(ex)
     return out + replay_warnings(metrics.get("replay") or {})
 
@@ -61,10 +61,11 @@ def usable_warnings(ex: dict) -> list[str]:
     if share is None or share >= USABLE_FLOOR:
         return []
     return [
-        f"the robot knows only {_pct(share)} of the reachable area as usable (under "
-        f"{100 * USABLE_FLOOR:.0f} %: {_f(ex.get('usable_area_m2'), '.1f', ' m2')} of "
-        f"{_f(ex.get('reachable_area_m2'), '.1f', ' m2')}; "
-        f"{_pct(ex.get('false_obstacle_share'))} of it is an obstacle or a safety zone in its map)"
+        f"the robot knows only {as_percent(share)} of the reachable area as usable (under "
+        f"{100 * USABLE_FLOOR:.0f} %: {as_text(ex.get('usable_area_m2'), '.1f', ' m2')} of "
+        f"{as_text(ex.get('reachable_area_m2'), '.1f', ' m2')}; "
+        f"{as_percent(ex.get('false_obstacle_share'))} of it is an obstacle or a safety zone "
+        "in its map)"
     ]
 
 

@@ -12,7 +12,7 @@ from smana.common import figures as plots
 from smana.common.classes import ClassTable
 
 
-def _plots(
+def run_plots(
     run_dir: Path,
     classes: ClassTable,
     world,
@@ -100,7 +100,7 @@ PLOT_FILES = {
 }
 
 
-def _fleet_plots(
+def fleet_plots(
     run_dir: Path, classes, world, fleet_traj: dict, graph, fleet: dict
 ) -> dict[str, str]:
     """The ground truth and the shared graph with every member's trajectory in its own colour,

@@ -18,10 +18,10 @@ from smana.deploy.report.measures import (
     COVERAGE_TARGET,
     KNOWN_CURVE,
     SIM_SUMMARY,
-    _load_json,
-    _trajectory,
     drivable_nodes,
     exploration_metrics,
+    load_json,
+    load_trajectory,
     member_dir,
     reachable_area,
 )
@@ -127,14 +127,14 @@ def fleet_metrics(run_dir: Path, config, world, gt=None, names=None) -> dict:
     run_dir = Path(run_dir)
     robots = list(config.fleet.robots)
     radius = config.navgraph.robot_radius_m
-    sim = _load_json(run_dir / SIM_SUMMARY)
+    sim = load_json(run_dir / SIM_SUMMARY)
     graph = fleet_graph(run_dir, robots)
     obstacle = ev.collision_raster(world, ev.robot_height_m()) if world is not None else None
     members, trajectories, histories = {}, {}, {}
     for r in robots:
         d = member_dir(run_dir, r)
-        state = _load_json(d / "explorer" / "state.json")
-        traj, source = _trajectory(d)
+        state = load_json(d / "explorer" / "state.json")
+        traj, source = load_trajectory(d)
         trajectories[r] = traj
         m: dict = {"state": state is not None, "trajectory_source": source}
         if world is not None and len(traj) >= 2:

@@ -19,7 +19,7 @@ log = logging.getLogger("smana.report")
 CLOSE_CALL_M = 0.30  # clearance under which the base (half-width 0.31 m with wheels) may touch
 
 
-def _load_json(path: Path) -> dict | None:
+def load_json(path: Path) -> dict | None:
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError):
@@ -60,19 +60,21 @@ NO_SIMULATOR = (
 )
 
 
-def _f(v, fmt=".2f", unit=""):
+def as_text(v, fmt=".2f", unit=""):
+    """A measure as the report writes it: `v` in `fmt` with its unit, "-" when not measured."""
     return "-" if v is None else f"{format(v, fmt)}{unit}"
 
 
-def _pct(share) -> str:
-    return _f(None if share is None else 100 * share, ".1f", " %")
+def as_percent(share) -> str:
+    """A share in [0, 1] as a percentage with one decimal, "-" when not measured."""
+    return as_text(None if share is None else 100 * share, ".1f", " %")
 
 
 def member_dir(run_dir: Path, robot: str) -> Path:
     return Path(run_dir) / FLEET_DIR / robot
 
 
-def _trajectory(run_dir: Path) -> tuple[np.ndarray, str]:
+def load_trajectory(run_dir: Path) -> tuple[np.ndarray, str]:
     """(t, x, y, yaw) rows of the robot's trajectory and where they come from: every pose a
     replay published (it knows them all, whoever heard them), else the true poses the recorder
     saved when it ran (simulation), else the poses the explorer drove by, else the poses the
@@ -93,7 +95,7 @@ def _trajectory(run_dir: Path) -> tuple[np.ndarray, str]:
     return np.zeros((0, 4)), "none"
 
 
-def _graph(run_dir: Path) -> dict | None:
+def load_graph(run_dir: Path) -> dict | None:
     for path in (run_dir / "explorer" / "graph.npz", run_dir / "graph.npz"):
         if path.is_file():
             with np.load(path) as g:
@@ -101,7 +103,7 @@ def _graph(run_dir: Path) -> dict | None:
     return None
 
 
-def _final_map(
+def final_map(
     run_dir: Path, classes: ClassTable, fleet: bool = False, backend: str | None = None
 ) -> Path | None:
     """The run's map as PLY (exported from a saved .npz map when only that exists). A fleet's
@@ -231,7 +233,7 @@ def recorded_poses(run_dir: Path) -> int | None:
 
 def replay_metrics(summary: dict, traj: np.ndarray, traj_source: str = "") -> dict:
     """The replay's own summary (without the per-scan rows) and the distance its poses cover,
-    measured on `traj` (from `_trajectory`: the replay's own poses when it wrote them)."""
+    measured on `traj` (from `load_trajectory`: the replay's own poses when it wrote them)."""
     out = {k: v for k, v in summary.items() if k != "per_scan"}
     if len(traj) >= 2:
         out["distance_m"] = float(np.hypot(*np.diff(traj[:, 1:3], axis=0).T).sum())

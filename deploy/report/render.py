@@ -9,8 +9,8 @@ from smana.deploy.report.measures import (
     CLOSE_CALL_M,
     COVERAGE_TARGET,
     NO_SIMULATOR,
-    _f,
-    _pct,
+    as_percent,
+    as_text,
 )
 
 # Why the two explored areas differ (the explorer's is in its progress plot, the report's here).
@@ -32,8 +32,9 @@ EXPLORED_AREAS = (
 def _area(ex: dict, name: str) -> str:
     """`A m2 = S % of the reachable R m2` for one of exploration_coverage's areas."""
     return (
-        f"{_f(ex.get(f'{name}_area_m2'), '.1f', ' m2')} = {_pct(ex.get(f'{name}_share'))} of "
-        f"the reachable {_f(ex.get('reachable_area_m2'), '.1f', ' m2')}"
+        f"{as_text(ex.get(f'{name}_area_m2'), '.1f', ' m2')} = "
+        f"{as_percent(ex.get(f'{name}_share'))} of "
+        f"the reachable {as_text(ex.get('reachable_area_m2'), '.1f', ' m2')}"
     )
 
 
@@ -56,10 +57,10 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
         rows.append(("false free (obstacle, free in the map)", _area(ex, "false_free")))
     if ee:
         rows.append(
-            ("explored area (explorer's own count)", _f(ee.get("explored_m2"), ".1f", " m2"))
+            ("explored area (explorer's own count)", as_text(ee.get("explored_m2"), ".1f", " m2"))
         )
     distance = ex.get("distance_m", rp.get("distance_m", ee.get("distance_m")))
-    rows.append(("distance travelled", _f(distance, ".1f", " m")))
+    rows.append(("distance travelled", as_text(distance, ".1f", " m")))
     if ex:
         rows.append(
             (
@@ -86,7 +87,10 @@ def summary_rows(metrics: dict) -> list[tuple[str, str]]:
     wall_s = run.get("wall_time_s")  # the supervisor's, start to stop; else the explorer's
     wall_s = ee.get("wall_time_s") if wall_s is None else wall_s
     rows.append(
-        ("duration", f"{_f(robot_s, '.0f', ' s')} robot time, {_f(wall_s, '.0f', ' s')} wall time")
+        (
+            "duration",
+            f"{as_text(robot_s, '.0f', ' s')} robot time, {as_text(wall_s, '.0f', ' s')} wall time",
+        )
     )
     mc = metrics.get("map_content")
     voxels = mc.get("n_points") if isinstance(mc, dict) else None
@@ -122,16 +126,16 @@ def fleet_summary_rows(fleet: dict) -> list[tuple[str, str]]:
             f"to {100 * COVERAGE_TARGET:.0f} % known (any label)",
             "not reached"
             if t95 is None
-            else f"{t95:.0f} s robot time, {_f(d95, '.1f', ' m')} total distance",
+            else f"{t95:.0f} s robot time, {as_text(d95, '.1f', ' m')} total distance",
         )
     )
-    rows.append(("overlap of the members' maps", _pct(fleet.get("overlap"))))
+    rows.append(("overlap of the members' maps", as_percent(fleet.get("overlap"))))
     contacts = sim.get("robot_contacts_total")
     rows.append(
         (
             "robot-robot contacts",
             f"{'-' if contacts is None else contacts} (minimum separation "
-            f"{_f(sim.get('min_separation_overall_m'), '.2f', ' m')})",
+            f"{as_text(sim.get('min_separation_overall_m'), '.2f', ' m')})",
         )
     )
     mp = fleet.get("map") or {}
@@ -142,9 +146,9 @@ def fleet_summary_rows(fleet: dict) -> list[tuple[str, str]]:
         rows.append(
             (
                 f"{r}",
-                f"{_f(m.get('distance_m', m.get('explorer_distance_m')), '.1f', ' m')}, "
+                f"{as_text(m.get('distance_m', m.get('explorer_distance_m')), '.1f', ' m')}, "
                 f"{m.get('n_goals', '-')} goals, {m.get('collisions', '-')} collisions, "
-                f"{_f(m.get('robot_time_s'), '.0f', ' s')} robot time"
+                f"{as_text(m.get('robot_time_s'), '.0f', ' s')} robot time"
                 + (f"; own map {_map_scores(own)}" if isinstance(own, dict) else ""),
             )
         )
@@ -153,8 +157,8 @@ def fleet_summary_rows(fleet: dict) -> list[tuple[str, str]]:
 
 def _map_scores(s: dict) -> str:
     return (
-        f"error {_f(s.get('reconstruction_error_mean_m'), '.3f', ' m')}, "
-        f"classification {_f(s.get('classification_ratio'), '.3f')}"
+        f"error {as_text(s.get('reconstruction_error_mean_m'), '.3f', ' m')}, "
+        f"classification {as_text(s.get('classification_ratio'), '.3f')}"
     )
 
 
@@ -206,9 +210,9 @@ def render_markdown(m: dict) -> str:
             ("ended because", ee.get("done_reason") or "-"),
             (
                 "wall time, the explorer's (the run's is in the summary)",
-                _f(ee.get("wall_time_s"), ".0f", " s"),
+                as_text(ee.get("wall_time_s"), ".0f", " s"),
             ),
-            ("robot time", _f(ex.get("duration_robot_s"), ".0f", " s")),
+            ("robot time", as_text(ex.get("duration_robot_s"), ".0f", " s")),
             (
                 "usable coverage: reachable traversable area (ground truth) under a node the "
                 "final graph knows as traversable",
@@ -236,23 +240,23 @@ def render_markdown(m: dict) -> str:
             (
                 "explored area, the explorer's own count (known nodes its graph calls "
                 "traversable, at its last plan)",
-                _f(ee.get("explored_m2"), ".1f", " m2"),
+                as_text(ee.get("explored_m2"), ".1f", " m2"),
             ),
             (
                 "known graph area (every known node of the final graph, obstacles included)",
-                _f(ex.get("known_area_m2"), ".1f", " m2"),
+                as_text(ex.get("known_area_m2"), ".1f", " m2"),
             ),
-            ("distance travelled", _f(ex.get("distance_m"), ".1f", " m")),
+            ("distance travelled", as_text(ex.get("distance_m"), ".1f", " m")),
             ("goals", str(ee.get("n_goals", "-"))),
             (
                 "travelled nodes on terrain (vs grass, ground truth)",
-                _f(
+                as_text(
                     100 * ex["terrain_share"] if ex.get("terrain_share") is not None else None,
                     ".0f",
                     " %",
                 ),
             ),
-            ("minimum clearance from obstacles", _f(ex.get("min_clearance_m"), ".2f", " m")),
+            ("minimum clearance from obstacles", as_text(ex.get("min_clearance_m"), ".2f", " m")),
             (f"close calls (clearance < {CLOSE_CALL_M} m)", str(ex.get("close_calls", "-"))),
             ("collisions (footprint over an obstacle)", str(ex.get("collisions", "-"))),
             ("trajectory measured from", ex.get("trajectory_source", "-")),
@@ -270,17 +274,17 @@ def render_markdown(m: dict) -> str:
             "## Map against ground truth",
             "",
             f"{mp['n_points']} map points (`{mp.get('file')}`): reconstruction error "
-            f"{_f(mp['reconstruction_error_mean_m'], '.3f')} m mean, "
-            f"{_f(mp['reconstruction_error_std_m'], '.3f')} m std; classification ratio "
-            f"{_f(mp['classification_ratio'], '.3f')}.",
+            f"{as_text(mp['reconstruction_error_mean_m'], '.3f')} m mean, "
+            f"{as_text(mp['reconstruction_error_std_m'], '.3f')} m std; classification ratio "
+            f"{as_text(mp['classification_ratio'], '.3f')}.",
             "",
             "| class (map label) | points | error mean (m) | classification ratio |",
             "|---|---|---|---|",
         ]
         for name, s in mp["per_class"].items():
             lines.append(
-                f"| {name} | {s['n_points']} | {_f(s['error_mean_m'], '.3f')} | "
-                f"{_f(s['classification_ratio'], '.3f')} |"
+                f"| {name} | {s['n_points']} | {as_text(s['error_mean_m'], '.3f')} | "
+                f"{as_text(s['classification_ratio'], '.3f')} |"
             )
         lines.append("")
     elif mp:
@@ -339,7 +343,7 @@ def _replay_lines(rp: dict) -> list[str]:
     recorded = rp.get("poses_recorded")
     rows = [
         ("mode", mode),
-        ("recorded rate", _f(rate, ".1f", " Hz")),
+        ("recorded rate", as_text(rate, ".1f", " Hz")),
         ("scans in the dataset (readable)", str(rp.get("scans", "-"))),
         ("skipped by the reader", str(len(rp.get("skipped_by_reader") or []))),
         ("published / integrated", f"{rp.get('published', '-')} / {rp.get('acknowledged', '-')}"),
@@ -354,28 +358,28 @@ def _replay_lines(rp: dict) -> list[str]:
         ),
         (
             "integration latency mean / p95 / max",
-            f"{_f(lat.get('mean_ms'), '.0f')} / {_f(lat.get('p95_ms'), '.0f')} / "
-            f"{_f(lat.get('max_ms'), '.0f')} ms",
+            f"{as_text(lat.get('mean_ms'), '.0f')} / {as_text(lat.get('p95_ms'), '.0f')} / "
+            f"{as_text(lat.get('max_ms'), '.0f')} ms",
         ),
-        ("latency per point (mean scan)", _f(rp.get("latency_per_point_us"), ".2f", " us")),
+        ("latency per point (mean scan)", as_text(rp.get("latency_per_point_us"), ".2f", " us")),
         (
             "points kept",
             f"{rp.get('points_published', '-')} of {rp.get('points_in', '-')} "
-            f"({_f(kept, '.0f', ' %')})",
+            f"({as_text(kept, '.0f', ' %')})",
         ),
         (
             "dropped: out of range / ignored class / non-finite",
             f"{rp.get('points_out_of_range', '-')} / {rp.get('points_ignored_class', '-')} / "
             f"{rp.get('points_nonfinite', '-')}",
         ),
-        ("throughput", _f(rp.get("scans_per_s"), ".1f", " scans/s")),
+        ("throughput", as_text(rp.get("scans_per_s"), ".1f", " scans/s")),
         (
             "poses published / recorded by the recorder",
             f"{rp.get('poses_published', '-')} / {'no recorder' if recorded is None else recorded}",
         ),
         (
             "distance covered by the poses",
-            _f(rp.get("distance_m"), ".2f", " m")
+            as_text(rp.get("distance_m"), ".2f", " m")
             + (f" (measured on {rp['distance_source']})" if rp.get("distance_source") else ""),
         ),
     ]
@@ -418,15 +422,16 @@ def _fleet_lines(fleet: dict) -> list[str]:
         "|---|---|",
         (
             "| merged coverage of the reachable traversable area | "
-            f"{_pct(fleet.get('coverage'))} of {_f(fleet.get('reachable_area_m2'), '.1f', ' m2')} |"
+            f"{as_percent(fleet.get('coverage'))} of "
+            f"{as_text(fleet.get('reachable_area_m2'), '.1f', ' m2')} |"
         ),
-        f"| overlap | {_pct(fleet.get('overlap'))} |",
-        f"| time to 95 % (robot time) | {_f(fleet.get('time_to_95_s'), '.0f', ' s')} |",
-        f"| total distance to 95 % | {_f(fleet.get('distance_to_95_m'), '.1f', ' m')} |",
-        f"| total distance | {_f(fleet.get('total_distance_m'), '.1f', ' m')} |",
+        f"| overlap | {as_percent(fleet.get('overlap'))} |",
+        f"| time to 95 % (robot time) | {as_text(fleet.get('time_to_95_s'), '.0f', ' s')} |",
+        f"| total distance to 95 % | {as_text(fleet.get('distance_to_95_m'), '.1f', ' m')} |",
+        f"| total distance | {as_text(fleet.get('total_distance_m'), '.1f', ' m')} |",
         f"| robot-robot contacts | {sim.get('robot_contacts_total', '-')} |",
-        f"| minimum separation | {_f(sim.get('min_separation_overall_m'), '.2f', ' m')} |",
-        f"| simulated time | {_f(sim.get('sim_time_s'), '.0f', ' s')} |",
+        f"| minimum separation | {as_text(sim.get('min_separation_overall_m'), '.2f', ' m')} |",
+        f"| simulated time | {as_text(sim.get('sim_time_s'), '.0f', ' s')} |",
         "",
         "| member | distance (m) | goals | robot time (s) | wall time (s) | collisions | "
         "observed share | map error (m) | classification ratio | ended because |",
@@ -438,11 +443,12 @@ def _fleet_lines(fleet: dict) -> list[str]:
         s = mp.get(who) if isinstance(mp.get(who), dict) else {}
         lines.append(
             f"| {'merged map' if who == 'merged' else who} | "
-            f"{_f(m.get('distance_m', m.get('explorer_distance_m')), '.1f')} | "
-            f"{m.get('n_goals', '-')} | {_f(m.get('robot_time_s'), '.0f')} | "
-            f"{_f(m.get('wall_time_s'), '.0f')} | {m.get('collisions', '-')} | "
-            f"{_pct(seen.get(who))} | {_f(s.get('reconstruction_error_mean_m'), '.3f')} | "
-            f"{_f(s.get('classification_ratio'), '.3f')} | {m.get('done_reason') or '-'} |"
+            f"{as_text(m.get('distance_m', m.get('explorer_distance_m')), '.1f')} | "
+            f"{m.get('n_goals', '-')} | {as_text(m.get('robot_time_s'), '.0f')} | "
+            f"{as_text(m.get('wall_time_s'), '.0f')} | {m.get('collisions', '-')} | "
+            f"{as_percent(seen.get(who))} | "
+            f"{as_text(s.get('reconstruction_error_mean_m'), '.3f')} | "
+            f"{as_text(s.get('classification_ratio'), '.3f')} | {m.get('done_reason') or '-'} |"
         )
     pairs = sim.get("min_separation_m") or {}
     if pairs:

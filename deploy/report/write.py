@@ -16,15 +16,15 @@ from smana.common.messages import json_default
 from smana.common.version import smana_version
 from smana.deploy.report import ground_truth as ev
 from smana.deploy.report.checks import fleet_warnings, run_warnings
-from smana.deploy.report.figures import _fleet_plots, _plots
+from smana.deploy.report.figures import fleet_plots, run_plots
 from smana.deploy.report.fleet import fleet_exploration, fleet_graph, fleet_metrics
 from smana.deploy.report.measures import (
     NO_SIMULATOR,
-    _final_map,
-    _graph,
-    _load_json,
-    _trajectory,
     exploration_metrics,
+    final_map,
+    load_graph,
+    load_json,
+    load_trajectory,
     map_content,
     member_dir,
     recorded_poses,
@@ -55,13 +55,13 @@ def write_report(
     supervisor's; re-writing a report keeps those of the metrics.json it replaces."""
     run_dir = Path(run_dir)
     t0 = time.perf_counter()
-    previous = (_load_json(run_dir / "metrics.json") or {}).get("run") or {}
+    previous = (load_json(run_dir / "metrics.json") or {}).get("run") or {}
     classes = ClassTable.load(config.general.class_table)
     names = {i: c.name for i, c in classes.classes.items()}
     is_fleet = config.fleet.enabled and replay is None
-    state = _load_json(run_dir / "explorer" / "state.json")
-    traj, traj_source = _trajectory(run_dir)
-    graph = _graph(run_dir)
+    state = load_json(run_dir / "explorer" / "state.json")
+    traj, traj_source = load_trajectory(run_dir)
+    graph = load_graph(run_dir)
     if graph is not None and not (run_dir / "graph.npz").exists():
         shutil.copy(run_dir / "explorer" / "graph.npz", run_dir / "graph.npz")
     if is_fleet:
@@ -140,7 +140,7 @@ def write_report(
     elif world is not None:
         metrics["exploration"] = exploration_metrics(world, graph, traj, config)
         metrics["exploration"]["trajectory_source"] = traj_source
-    map_path = _final_map(run_dir, classes, fleet=is_fleet, backend=config.mapper.backend)
+    map_path = final_map(run_dir, classes, fleet=is_fleet, backend=config.mapper.backend)
     if map_path is not None:
         try:
             metrics["map_content"] = map_content(map_path, names)
@@ -168,13 +168,13 @@ def write_report(
         "logs": sorted(str(p.relative_to(run_dir)) for p in (run_dir / "logs").glob("*.log")),
     }
     if is_fleet:
-        fleet_traj = {r: _trajectory(member_dir(run_dir, r))[0] for r in config.fleet.robots}
-        metrics["files"]["plots"] = _fleet_plots(
+        fleet_traj = {r: load_trajectory(member_dir(run_dir, r))[0] for r in config.fleet.robots}
+        metrics["files"]["plots"] = fleet_plots(
             run_dir, classes, world, fleet_traj, graph, metrics["fleet"]
         )
         metrics["warnings"] = list(warnings) + fleet_warnings(metrics["fleet"])
     else:
-        metrics["files"]["plots"] = _plots(
+        metrics["files"]["plots"] = run_plots(
             run_dir, classes, world, graph, traj, state, replay, metrics.get("exploration")
         )
         metrics["warnings"] = list(warnings) + run_warnings(metrics, explored)
