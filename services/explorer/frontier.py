@@ -18,7 +18,7 @@ Three steps, each usable alone:
    only a few paths are requested (branch and bound).
 
 The nearest-frontier baseline (Yamauchi 1997) needs `travel_distance_m`: metres over free nodes
-from the robot, 8-connected (a numba Dijkstra, `kernels._travel_distance_kernel`).
+from the robot, 8-connected (a numba Dijkstra, `kernels.travel_distance_kernel`).
 
 The numba kernels live in kernels.py, imported on first use: the explorer service imports this
 module before it is live, and numba's import alone is a quarter of a second of CPU.
@@ -99,10 +99,10 @@ def step_components(free: np.ndarray, heights: np.ndarray | None, max_step_m: fl
     heights = np.ascontiguousarray(heights, dtype=np.float32)
     if heights.shape != free.shape:
         raise ValueError(f"heights {heights.shape} and free {free.shape} differ")
-    from smana.services.explorer.kernels import _step_components_kernel
+    from smana.services.explorer.kernels import step_components_kernel
 
     labels = np.zeros(free.shape, np.int32)
-    _step_components_kernel(free, heights, np.float64(max_step_m), labels)
+    step_components_kernel(free, heights, np.float64(max_step_m), labels)
     return labels
 
 
@@ -226,9 +226,9 @@ def view_gains(
         raise ValueError(f"samples_per_cell must be >= 1, got {samples_per_cell}")
     if len(cand) == 0:
         return np.zeros((0, len(fov.yaws))), np.zeros(0)
-    from .kernels import _visible_unknown_kernel  # numba: imported on first use (kernels.py)
+    from .kernels import visible_unknown_kernel  # numba: imported on first use (kernels.py)
 
-    vis = _visible_unknown_kernel(
+    vis = visible_unknown_kernel(
         unknown, opaque_arr, cand, fov.offsets, occlusion, int(samples_per_cell)
     )
     counts = vis.astype(np.float32) @ fov.in_sector.T.astype(np.float32)
@@ -391,6 +391,6 @@ def travel_distance_m(
         raise ValueError("start nodes must be free")
     if not (np.isfinite(src_d).all() and (src_d >= 0).all()):
         raise ValueError("start distances must be finite and >= 0")
-    from .kernels import _travel_distance_kernel
+    from .kernels import travel_distance_kernel
 
-    return _travel_distance_kernel(free, src, src_d, float(resolution_m))
+    return travel_distance_kernel(free, src, src_d, float(resolution_m))

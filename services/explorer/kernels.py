@@ -12,7 +12,7 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def _visible_unknown_kernel(
+def visible_unknown_kernel(
     unknown: np.ndarray,
     opaque: np.ndarray,
     cand: np.ndarray,
@@ -50,7 +50,7 @@ def _visible_unknown_kernel(
 
 
 @numba.njit(cache=True, nogil=True)
-def _travel_distance_kernel(
+def travel_distance_kernel(
     free: np.ndarray, src: np.ndarray, src_d: np.ndarray, resolution_m: float
 ) -> np.ndarray:
     """Multi-source Dijkstra over `free` nodes, 8-connected, steps res and res * sqrt 2."""
@@ -84,7 +84,7 @@ def _travel_distance_kernel(
 
 
 @numba.njit(cache=True, nogil=True)
-def _step_components_kernel(free, heights, max_step, labels):
+def step_components_kernel(free, heights, max_step, labels):
     """Label the components of `free` (8-connected) whose neighbours differ in height by at most
     `max_step` (a NaN height joins any neighbour): 1, 2, ... in order of first node (row-major),
     0 off `free`. Returns the number of components."""

@@ -46,7 +46,8 @@ RISK_LAYERS: the second class and both probabilities x 255), as the map delta ca
 without one (version 1) gives certain voxels. A node changes, and is published, when its
 distribution moves by at least one step of 1/255.
 
-The numba kernels, and the named tuples of arrays they take as state, are in `kernels.py`.
+The numba kernels are in `kernels.py`, the named tuples of arrays they take as state in
+`state.py`.
 """
 
 from __future__ import annotations
@@ -68,7 +69,8 @@ from smana.common.navgrid import (
     NavGrid,
 )
 
-from .kernels import (
+from .kernels import integrate_kernel, prepare_voxels, safety_zone_kernel
+from .state import (
     LUT_OBSTACLE,
     LUT_ZONE,
     NO_FLOOR,
@@ -82,9 +84,6 @@ from .kernels import (
     NodeLayers,
     NodeRule,
     Voxels,
-    _integrate_kernel,
-    _prepare,
-    _safety_zone_kernel,
 )
 
 # The least bound of a node's evidence (+/-): enough memory that a lawn mislabelled for a few
@@ -355,7 +354,7 @@ class NavGraph:
             _NO_F4 if alt_confidences is None else _readonly(alt_confidences, np.float32),
         )
         missing = np.empty(m, np.int64)
-        n_missing, n_nonfinite, n_unknown, n_surface = _prepare(
+        n_missing, n_nonfinite, n_unknown, n_surface = prepare_voxels(
             labels, occupied, self._luts, self._kernel_state()[0], vox, missing, dist
         )
         missing = missing[:n_missing]
@@ -373,7 +372,7 @@ class NavGraph:
         geometry, layers = self._kernel_state()  # after allocating: the pool may have grown
         # a label is certain only when the map sends no distribution (see NodeRule.certain)
         rule = self._rule._replace(certain=confidences is None)
-        counts = _integrate_kernel(vox, geometry, layers, self.columns, rule, epoch, changes, flips)
+        counts = integrate_kernel(vox, geometry, layers, self.columns, rule, epoch, changes, flips)
         n_touched, n_flips, n_oob, n_below, n_lost = (int(c) for c in counts)
         changes = changes.head(n_touched)
         flips = flips.head(n_flips)
@@ -383,9 +382,7 @@ class NavGraph:
             n_new += self._allocate_discs(flips.node[flips.sign > 0])
             zone_changes = NodeChanges.empty(n_flips * len(self._stencil.dx))
             geometry, layers = self._kernel_state()
-            n_zone = _safety_zone_kernel(
-                flips, self._stencil, geometry, layers, epoch, zone_changes
-            )
+            n_zone = safety_zone_kernel(flips, self._stencil, geometry, layers, epoch, zone_changes)
             changes = NodeChanges(
                 *(np.concatenate([a, b]) for a, b in zip(changes, zone_changes.head(n_zone)))
             )

@@ -131,9 +131,9 @@ def label_pixels(
     out = LabelledImages(
         np.empty((h, w), np.float32), np.empty((h, w), np.int32), np.empty((h, w, 3), np.uint8)
     )
-    from .camera_kernel import _label_pixels  # numba: imported on the first frame
+    from .camera_kernel import label_pixels_kernel  # numba: imported on the first frame
 
-    _label_pixels(
+    label_pixels_kernel(
         RenderedImages(zbuf, seg, rgba),
         Pinhole(float(near), float(far), float(focal_px), float(max_range_m)),
         np.ascontiguousarray(m),

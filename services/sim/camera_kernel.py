@@ -9,7 +9,7 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def _label_pixels(images, pinhole, world_from_sensor, lut, ground, colour_lut, out):
+def label_pixels_kernel(images, pinhole, world_from_sensor, lut, ground, colour_lut, out):
     """`label_pixels` on checked arrays; every field is read into a local before the loops."""
     zbuf, seg, rgba = images
     near, far, focal, max_range = pinhole
