@@ -12,7 +12,7 @@ from scipy import ndimage
 
 from smana.services.sim.worlds import BOX, GroundModel, Primitive, World
 from smana.services.sim.worlds.garden import GardenConfig, generate
-from smana.services.sim.worlds.garden_3drms import FILL_MIN_RADIUS_M, _fill_beds, _Placer
+from smana.services.sim.worlds.garden_3drms import FILL_MIN_RADIUS_M, Placer, fill_beds
 from smana.services.sim.worlds.objects import GRASS, OBSTACLE, TERRAIN, WorldObject
 
 ROBOT_RADIUS_M = 0.4  # navgraph.robot_radius_m: the safety zone the navigation graph keeps
@@ -169,8 +169,8 @@ def test_bed_filling_leaves_no_hole_bigger_than_its_limit():
     gx, gy = np.meshgrid(xs, xs, indexing="ij")
     ground = GroundModel((-3.0, -3.0), res, np.zeros((n, n)), np.full((n, n), TERRAIN, np.uint16))
     bed = (np.abs(gx) < 2.5) & (np.abs(gy) < 2.5) & ~((np.abs(gx) < 0.8) & (gy > 0))
-    placer = _Placer(ground, gx, gy)
-    plants = _fill_beds(placer, bed, np.random.default_rng(0))
+    placer = Placer(ground, gx, gy)
+    plants = fill_beds(placer, bed, np.random.default_rng(0))
     assert len(plants) > 5
     left = ndimage.distance_transform_edt(bed & ~placer.covered) * res
     assert left.max() < FILL_MIN_RADIUS_M

@@ -68,10 +68,10 @@ def layout_3drms(
     classes = np.where(lawn | ~inner, GRASS, TERRAIN).astype(np.uint16)
     ground = GroundModel((-half, -half), res, heights, classes)
 
-    placer = _Placer(ground, gx, gy)
+    placer = Placer(ground, gx, gy)
     objects = _lawn_objects(placer, lawn & ~spawn, rng)
-    objects += _edge_hedges(placer, bed, terrain | lawn | ~inner, rng)  # walls too
-    objects += _fill_beds(placer, bed, rng)
+    objects += edge_hedges(placer, bed, terrain | lawn | ~inner, rng)  # walls too
+    objects += fill_beds(placer, bed, rng)
     return ground, objects
 
 
@@ -192,7 +192,7 @@ def _lawns(gx, gy, free, reachable, target_cells, res, rng) -> np.ndarray:
 # -- objects ------------------------------------------------------------------------------------
 
 
-class _Placer:
+class Placer:
     """Footprints of objects on the ground raster, and the objects standing on the ground."""
 
     def __init__(self, ground: GroundModel, gx: np.ndarray, gy: np.ndarray):
@@ -256,7 +256,7 @@ def _plant(radius_m: float, rng: np.random.Generator) -> tuple[str, int, list[Pr
     return "obstacle", OBSTACLE, [Primitive(ELLIPSOID, (0, 0, 0.3 * c), (r, b, c), u(0, math.pi))]
 
 
-def _lawn_objects(placer: _Placer, lawn: np.ndarray, rng) -> list[WorldObject]:
+def _lawn_objects(placer: Placer, lawn: np.ndarray, rng) -> list[WorldObject]:
     """A few objects on the lawns, each with LAWN_GAP_M of lawn all round."""
     res = placer.ground.resolution_m
     out = []
@@ -276,7 +276,7 @@ def _lawn_objects(placer: _Placer, lawn: np.ndarray, rng) -> list[WorldObject]:
     return out
 
 
-def _edge_hedges(placer: _Placer, bed: np.ndarray, open_: np.ndarray, rng) -> list[WorldObject]:
+def edge_hedges(placer: Placer, bed: np.ndarray, open_: np.ndarray, rng) -> list[WorldObject]:
     """Hedges lining the beds where they border `open_` ground (paths, lawns): boxes laid along
     the border, as long as fits. Round plants cannot cover a straight border strip; boxes can."""
     res = placer.ground.resolution_m
@@ -306,7 +306,7 @@ def _edge_hedges(placer: _Placer, bed: np.ndarray, open_: np.ndarray, rng) -> li
     return out
 
 
-def _fill_beds(placer: _Placer, bed: np.ndarray, rng) -> list[WorldObject]:
+def fill_beds(placer: Placer, bed: np.ndarray, rng) -> list[WorldObject]:
     """The biggest hole in the beds gets a plant of its size, until only small holes are left."""
     res = placer.ground.resolution_m
     to_edge_m = ndimage.distance_transform_edt(bed) * res  # a plant may overlap plants, not paths

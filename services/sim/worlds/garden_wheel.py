@@ -29,7 +29,7 @@ import numpy as np
 
 from smana.services.sim.worlds.garden import GardenConfig
 
-from .garden_3drms import BED_GAPS, _edge_hedges, _fill_beds, _Placer, raster
+from .garden_3drms import BED_GAPS, Placer, edge_hedges, fill_beds, raster
 from .ground import GroundModel
 from .objects import GRASS, TERRAIN, WorldObject
 
@@ -61,9 +61,9 @@ def layout_wheel(
     classes = np.where(grass | ~inner, GRASS, TERRAIN).astype(np.uint16)
     ground = GroundModel((-half, -half), res, heights, classes)
 
-    placer = _Placer(ground, gx, gy)
-    objects = _edge_hedges(placer, bed, terrain | grass | ~inner, rng)
-    objects += _fill_beds(placer, bed, rng)
+    placer = Placer(ground, gx, gy)
+    objects = edge_hedges(placer, bed, terrain | grass | ~inner, rng)
+    objects += fill_beds(placer, bed, rng)
     return ground, objects
 
 
