@@ -44,8 +44,8 @@ MARK_ANY = np.uint8(14)
 
 # Block coordinates are packed in 21 bits per axis; OctoMap's key range (+-32768 voxels) is the
 # map's extent anyway, so the packing never overflows.
-_PACK_OFF = 1 << 20
-_PACK_MASK = (1 << 21) - 1
+PACK_OFF = 1 << 20
+PACK_MASK = (1 << 21) - 1
 # voxel indices must lie in [-KEY_LIMIT, KEY_LIMIT), as OctoMap's 16-bit keys (declared with the
 # map's other limits in the config section, common/config/mapper.py)
 KEY_LIMIT = _KEY_LIMIT
@@ -66,15 +66,15 @@ class Grid(NamedTuple):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def pack_block(bx, by, bz):
-    return ((bx + _PACK_OFF) << 42) | ((by + _PACK_OFF) << 21) | (bz + _PACK_OFF)
+    return ((bx + PACK_OFF) << 42) | ((by + PACK_OFF) << 21) | (bz + PACK_OFF)
 
 
 @njit(cache=True, error_model="numpy")
 def unpack_block(key):
     return (
-        ((key >> 42) & _PACK_MASK) - _PACK_OFF,
-        ((key >> 21) & _PACK_MASK) - _PACK_OFF,
-        (key & _PACK_MASK) - _PACK_OFF,
+        ((key >> 42) & PACK_MASK) - PACK_OFF,
+        ((key >> 21) & PACK_MASK) - PACK_OFF,
+        (key & PACK_MASK) - PACK_OFF,
     )
 
 

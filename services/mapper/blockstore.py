@@ -30,13 +30,13 @@ from pathlib import Path
 import numpy as np
 
 from smana.services.mapper import mapfile
-from smana.services.mapper._grid import _PACK_MASK, _PACK_OFF
+from smana.services.mapper._grid import PACK_MASK, PACK_OFF
 
 
 def _block_xy(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Block (bx, by) of packed block keys (`_grid.pack_block`)."""
     keys = np.asarray(keys, np.int64)
-    return ((keys >> 42) & _PACK_MASK) - _PACK_OFF, ((keys >> 21) & _PACK_MASK) - _PACK_OFF
+    return ((keys >> 42) & PACK_MASK) - PACK_OFF, ((keys >> 21) & PACK_MASK) - PACK_OFF
 
 
 class BlockStore:

@@ -40,7 +40,7 @@ from numpy.lib import format as npy
 
 from smana.common.config._schema import build
 from smana.common.config.mapper import RESOLUTION_RANGE_M, max_range_for
-from smana.services.mapper._grid import KEY_LIMIT
+from smana.services.mapper._grid import KEY_LIMIT, PACK_MASK, PACK_OFF
 
 MAX_MAP_BYTES = 4 << 30  # a map file (and its arrays together) at most this big: 4 GiB
 MAX_META_BYTES = 1 << 20
@@ -53,8 +53,6 @@ FORMAT_VERSION = 2
 FORMATS = (1, FORMAT_VERSION)
 FRAMES = ("world", "start_pose")
 BLOCK_BITS = (2, 3, 4)
-_PACK_OFF = 1 << 20  # _grid's block key packing: 21 bits an axis, offset by 2**20
-_PACK_MASK = (1 << 21) - 1
 # What reading a broken zip or npy member can raise besides ValueError: all mean "broken file"
 _BROKEN = (OSError, EOFError, zipfile.BadZipFile, zlib.error, struct.error, NotImplementedError)
 # What numpy's header parser (a Python literal, tokenized then evaluated) raises on bad text
@@ -473,7 +471,7 @@ def check_block_keys(keys: np.ndarray, bits: int, path, name: str = "block_keys"
         raise _fail(path, f"{name}: negative packed keys")
     limit = KEY_LIMIT >> bits
     for shift in (42, 21, 0):
-        b = ((keys >> shift) & _PACK_MASK) - _PACK_OFF
+        b = ((keys >> shift) & PACK_MASK) - PACK_OFF
         if b.min() < -limit or b.max() >= limit:
             raise _fail(path, f"{name}: blocks outside the key range +-{limit}")
     if np.unique(keys).shape[0] != keys.shape[0]:
