@@ -188,7 +188,7 @@ def test_octree_matches_slow_reference(fusion, ray_m):
 
 def test_ray_keys_match_reference_on_grazing_rays():
     """Rays along voxel faces and through corners, where float rounding decides."""
-    from smana.services.mapper._grid import octomap_ray_keys
+    from smana.services.mapper.block_grid import octomap_ray_keys
 
     res = 0.1
     buf = np.empty((512, 3), np.int64)
@@ -391,7 +391,7 @@ def test_ray_walk_from_a_shared_origin_matches_reference_on_real_and_random_rays
     """The per-scan set-up (`octomap_ray_origin` once, `octomap_ray_from` per ray, as the
     carving kernel walks a scan) visits exactly the keys of the slow transcription of OctoMap's
     computeRayKeys, on a real KITTI scan's rays and on random ones from an off-grid origin."""
-    from smana.services.mapper._grid import octomap_ray_keys
+    from smana.services.mapper.block_grid import octomap_ray_keys
 
     pts = _kitti_scan()[::97]  # ~1300 rays over the whole scan, every range
     rng = np.random.default_rng(7)
@@ -436,7 +436,7 @@ def _carved_by_the_walk(points, origin, res, max_range, ray_m):
     built ray by ray from `octomap_ray_keys` (the walk of `octomap_ray_next`, which the kernel
     transcribes inline) and OctoMap's end-point rule: key -> hit or not, and how many rays
     stopped on their length (every next crossing beyond the end) before the end's key."""
-    from smana.services.mapper._grid import octomap_ray_keys
+    from smana.services.mapper.block_grid import octomap_ray_keys
 
     o = np.asarray(origin, F32)
     inv_res = 1.0 / res

@@ -10,7 +10,7 @@ import pytest
 from smana.common.config import ConfigError, SmanaConfig
 from smana.common.config.mapper import RESOLUTION_RANGE_M, MapperConfig, max_range_for
 from smana.services.mapper import mapfile
-from smana.services.mapper._grid import KEY_LIMIT
+from smana.services.mapper.block_grid import KEY_LIMIT
 from smana.services.mapper.semantic_map import SemanticMap
 
 

@@ -24,7 +24,7 @@ from smana.common.config._schema import (
 
 # The map's limits, declared once: the config checks them and the core (services/mapper) and its
 # map files use these. Voxel keys lie in [-KEY_LIMIT, KEY_LIMIT) an axis (OctoMap's 16-bit keys;
-# the block grid, services/mapper/_grid.py); resolutions 0.01 .. 10 m (a MapDelta could carry
+# the block grid, services/mapper/block_grid.py); resolutions 0.01 .. 10 m (a MapDelta could carry
 # 0.001 .. 100 m, common/messages.py).
 KEY_LIMIT = 32768
 RESOLUTION_RANGE_M = (0.01, 10.0)

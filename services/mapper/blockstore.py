@@ -10,7 +10,7 @@ within `load_radius_m` of it: the mapper's rays end within `max_range_m` of the 
 and the map (resident and stored blocks together) is the map an unbounded run makes, voxel for
 voxel. Nothing is dropped: the bound is on memory, not on the map.
 
-What was chosen and why: voxblox and nvblox both keep a block hash (as `_grid.BlockGrid` does)
+What was chosen and why: voxblox and nvblox both keep a block hash (as `block_grid.BlockGrid` does)
 and bound memory by deleting blocks (nvblox's `clearOutsideRadius`, voxblox's block removal by
 distance), which loses the far map. Keeping whole regions on disk instead costs one file write
 per region left behind and one read per region come back to, and keeps the map exact. Regions
@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from smana.services.mapper import mapfile
-from smana.services.mapper._grid import PACK_MASK, PACK_OFF
+from smana.services.mapper.block_grid import PACK_MASK, PACK_OFF
 
 
 def _block_xy(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Block (bx, by) of packed block keys (`_grid.pack_block`)."""
+    """Block (bx, by) of packed block keys (`block_grid.pack_block`)."""
     keys = np.asarray(keys, np.int64)
     return ((keys >> 42) & PACK_MASK) - PACK_OFF, ((keys >> 21) & PACK_MASK) - PACK_OFF
 

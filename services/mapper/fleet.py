@@ -44,9 +44,9 @@ from smana.common.config import ConfigError
 from smana.common.config.fleet import FleetConfig
 from smana.common.config.mapper import MapperConfig
 from smana.services.mapper import mapfile
-from smana.services.mapper._grid import KEY_LIMIT, OBSERVED, BlockGrid
 from smana.services.mapper.backends import backend_class
 from smana.services.mapper.backends.occupancy import sensor_model
+from smana.services.mapper.block_grid import KEY_LIMIT, OBSERVED, BlockGrid
 from smana.services.mapper.delta import Delta
 from smana.services.mapper.semantic_map import QueryResult, SemanticMap
 

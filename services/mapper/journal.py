@@ -40,7 +40,7 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
-from smana.services.mapper._grid import KEY_LIMIT
+from smana.services.mapper.block_grid import KEY_LIMIT
 from smana.services.mapper.mapfile import check_values
 
 MAGIC = b"SMJ1"

@@ -40,7 +40,7 @@ from numpy.lib import format as npy
 
 from smana.common.config._schema import build
 from smana.common.config.mapper import RESOLUTION_RANGE_M, max_range_for
-from smana.services.mapper._grid import KEY_LIMIT, PACK_MASK, PACK_OFF
+from smana.services.mapper.block_grid import KEY_LIMIT, PACK_MASK, PACK_OFF
 
 MAX_MAP_BYTES = 4 << 30  # a map file (and its arrays together) at most this big: 4 GiB
 MAX_META_BYTES = 1 << 20

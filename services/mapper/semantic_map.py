@@ -28,8 +28,8 @@ import numpy as np
 from smana.common.classes import ClassTable
 from smana.common.config.mapper import MapperConfig
 from smana.services.mapper import mapfile, ply
-from smana.services.mapper._grid import KEY_LIMIT
 from smana.services.mapper.backends import backend_class
+from smana.services.mapper.block_grid import KEY_LIMIT
 from smana.services.mapper.delta import Delta
 from smana.services.mapper.mapfile import FORMAT_VERSION, LAYER
 

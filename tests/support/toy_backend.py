@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from smana.services.mapper._grid import OBSERVED
 from smana.services.mapper.backends import MapBackend
+from smana.services.mapper.block_grid import OBSERVED
 from smana.services.mapper.delta import Delta
 
 

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from smana.common.config import Section, param
-from smana.services.mapper._grid import OBSERVED
 from smana.services.mapper.backends import MapBackend
+from smana.services.mapper.block_grid import OBSERVED
 from smana.services.mapper.delta import Delta
 
 

@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from smana.services.mapper._grid import OBSERVED, BlockGrid
+from smana.services.mapper.block_grid import OBSERVED, BlockGrid
 from smana.services.mapper.delta import Delta
 
 

@@ -1,5 +1,5 @@
 """What `octree-max` and `octree-bayes` share: OctoMap's occupancy with Semantic Octomap's label
-fusion, stored in a hashed block grid (see `_grid.py`) instead of a pointer octree. The two
+fusion, stored in a hashed block grid (see `block_grid.py`) instead of a pointer octree. The two
 back-ends (`octree_max.py`, `octree_bayes.py`) differ only in their fusion rule.
 
 Occupancy follows OctoMap's `insertPointCloud` exactly: for one cloud every ray's voxels are
@@ -36,7 +36,9 @@ from typing import ClassVar, NamedTuple
 import numpy as np
 from numba import njit
 
-from smana.services.mapper._grid import (
+from smana.services.mapper.backends.base import MapBackend
+from smana.services.mapper.backends.params import OctreeConfig
+from smana.services.mapper.block_grid import (
     DONE,
     GROW_TOUCHED,
     MARK_ANY,
@@ -53,8 +55,6 @@ from smana.services.mapper._grid import (
     put_key_centre,
     voxel_slot,
 )
-from smana.services.mapper.backends.base import MapBackend
-from smana.services.mapper.backends.params import OctreeConfig
 from smana.services.mapper.delta import Delta
 
 FUSION_MAX = 0
