@@ -167,7 +167,7 @@ def test_a_three_point_warm_up_loads_every_parallel_kernel():
     every parallel kernel, or the first real scan would load (or compile) the rest."""
     from numba.core.registry import CPUDispatcher
 
-    from smana.services.mapper.backends import _tsdf_parallel as par
+    from smana.services.mapper.backends import tsdf_parallel as par
 
     m = SemanticMap("tsdf", 0.2, 20.0, 0.0, config=TsdfConfig(threads=2))
     pts = np.array([[1.0, 0.1, 0.1], [0.1, 1.0, 0.2], [20.0, 0.1, 0.1]], np.float32)
@@ -209,7 +209,7 @@ def _named_before_the_loop(cols):
 
 
 def test_numba_parallel_loops_and_arrays_taken_from_a_tuple():
-    """What the parallel passes' arguments rest on (_tsdf_parallel.py's docstring), on the numba
+    """What the parallel passes' arguments rest on (tsdf_parallel.py's docstring), on the numba
     installed: in a parallel loop, writes through an array taken from a tuple inside the loop,
     or unpacked from it before, are lost (numba issues 7135, 10338); through one named from it
     before the loop (`a = cols.a`), they land. Should numba keep the first writes one day, the

@@ -37,36 +37,36 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from smana.services.mapper._grid import (
+from smana.services.mapper.backends.base import MapBackend
+from smana.services.mapper.backends.params import TsdfConfig
+from smana.services.mapper.backends.tsdf_fusion import (
+    STEPS_MIN,
+    FusedRay,
+    RowTables,
+    TsdfConsts,
+    fuse_ray,
+    ray_band,
+    row_labels,
+    set_slot,
+    start_key,
+)
+from smana.services.mapper.backends.tsdf_surface import SURFACE, extract_kernel, surface_kernel
+from smana.services.mapper.block_grid import (
     DONE,
     GROW_TOUCHED,
     MARK_ANY,
     MARK_FREE,
     MARK_HIT,
-    OBSERVED,
     Grid,
-    hash_slot,
-    pack_block,
     put_key_centre,
-    table_find,
     voxblox_ray_keys,
-    voxel_index,
-    voxel_key,
     voxel_slot,
 )
-from smana.services.mapper.backends.base import MapBackend
-from smana.services.mapper.backends.params import TsdfConfig
 from smana.services.mapper.delta import Delta
 
 _RENORM_AT = 30.0  # shift a log-probability vector once its top entry exceeds this (nats)
-_STEPS_MIN = -32767  # saturation of the int16 step counts
 _CHUNK_RAYS = 1 << 15  # rays per pass of the parallel integration (bounds its buffers)
 _PARALLEL_ROWS = 4096  # fewer Delta rows are built on one thread (waking the others costs more)
-# A flag bit of this back-end: the voxel was a surface voxel after the last cloud. Only the
-# incremental surface count reads it; the surface itself is always recomputed from distances.
-SURFACE = np.uint8(16)
-_SEEN = np.uint8(32)  # scratch mark of the extraction, cleared before it returns
-_FACES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.int64)
 
 
 class TsdfState(NamedTuple):
@@ -81,138 +81,6 @@ class TsdfState(NamedTuple):
     keybuf: np.ndarray  # i8 [n, 3]: one ray's voxel keys
     gbuf: np.ndarray  # i8 [n]: their global indices
     counts: np.ndarray  # i8 [1]: newly observed voxels
-
-
-class TsdfConsts(NamedTuple):
-    """Per-map constants of the kernels."""
-
-    res: float
-    inv_res: float
-    max_range: float
-    trunc: float  # metres
-    max_weight: float
-    min_range: float
-    sub_inv: float  # 1 / start-voxel subsampling cell, 0: off
-    dropoff: bool
-    renorm_steps: int  # shift the vector once its top entry reaches this many steps
-    sem_idx: np.ndarray  # i2 [65536]: label -> class column, -1 for none
-
-
-class FusedRay(NamedTuple):
-    """A ray as `_fuse` takes it: the sensor's position, the point's offset from it and that
-    offset's length, and the class column of the point's label (-1: none, a clearing ray)."""
-
-    ox: float
-    oy: float
-    oz: float
-    dx: float
-    dy: float
-    dz: float
-    dist: float
-    label_idx: int
-
-
-class RowTables(NamedTuple):
-    """Per-map constants of the Delta rows (`_tsdf_rows`)."""
-
-    res: float
-    exp_steps: np.ndarray  # f8: exp(-d log(p / q)) for d steps behind the top class
-    class_ids: np.ndarray  # u2: the class id of each column of `logp`
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _set_slot(keys, key):
-    """Slot of `key` in an open-addressing set, or the free slot where it would go: one probe
-    sequence serves the membership test and the insertion (`keys[slot] = key`), valid until
-    the next insertion."""
-    mask = keys.shape[0] - 1
-    s = hash_slot(key, 40) & mask  # the block table's Fibonacci hash
-    while True:
-        k = keys[s]
-        if k == key or k == -1:
-            return s
-        s = (s + 1) & mask
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _ray(points, i, ox, oy, oz, k):
-    """Ray i's geometry: (dist, dx, dy, dz, clearing, ex, ey, ez, sx, sy, sz), the point's
-    offset from the origin and its length, and the band from e (behind the surface) to s."""
-    dx = np.float64(points[i, 0]) - ox
-    dy = np.float64(points[i, 1]) - oy
-    dz = np.float64(points[i, 2]) - oz
-    dist = np.sqrt(dx * dx + dy * dy + dz * dz)
-    ux = dx / dist
-    uy = dy / dist
-    uz = dz / dist
-    trunc = k.trunc
-    clearing = dist > k.max_range
-    if clearing:
-        ex = ox + ux * k.max_range
-        ey = oy + uy * k.max_range
-        ez = oz + uz * k.max_range
-        sx = ex - ux * trunc
-        sy = ey - uy * trunc
-        sz = ez - uz * trunc
-    else:
-        px = np.float64(points[i, 0])
-        py = np.float64(points[i, 1])
-        pz = np.float64(points[i, 2])
-        ex = px + ux * trunc
-        ey = py + uy * trunc
-        ez = pz + uz * trunc
-        sx = px - ux * trunc
-        sy = py - uy * trunc
-        sz = pz - uz * trunc
-    return dist, dx, dy, dz, clearing, ex, ey, ez, sx, sy, sz
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _fuse(flags, distance, weight, logp, k, g, key, ray):
-    """Fuse a `FusedRay` into voxel g (key: its (kx, ky, kz)), already marked MARK_FREE by that
-    ray: the projective distance with its weight, and the label step. Returns 1 when the voxel is
-    newly observed. A voxel takes at most one ray per cloud, so voxels are independent here. The
-    columns come one by one: inside a numba parallel loop, writes through an array taken from a
-    tuple there are lost (numba 0.68.1, numba issues 7135 and 10338; tests/test_tsdf_parallel.py
-    checks this still holds), and this function is inlined into one (`_fuse_claimed`)."""
-    res = k.res
-    trunc = k.trunc
-    ox, oy, oz, dx, dy, dz, dist, label_idx = ray
-    cx = (np.float64(key[0]) + 0.5) * res
-    cy = (np.float64(key[1]) + 0.5) * res
-    cz = (np.float64(key[2]) + 0.5) * res
-    sdf = dist - ((cx - ox) * dx + (cy - oy) * dy + (cz - oz) * dz) / dist
-    w = 1.0
-    if k.dropoff and sdf < -res:
-        w = max((trunc + sdf) / (trunc - res), 0.0)
-    w_old = np.float64(weight[g])
-    w_new = w_old + w
-    if w_new < 1e-6:
-        return 0
-    d_new = (sdf * w + np.float64(distance[g]) * w_old) / w_new
-    f = flags[g]
-    distance[g] = min(trunc, d_new) if d_new > 0 else max(-trunc, d_new)
-    weight[g] = min(k.max_weight, w_new)
-    flags[g] = f | MARK_FREE | MARK_HIT | OBSERVED
-    if label_idx >= 0:
-        v = np.int64(logp[g, label_idx]) + 1
-        if v >= k.renorm_steps:
-            for c in range(logp.shape[1]):
-                logp[g, c] = max(np.int64(logp[g, c]) - v, _STEPS_MIN)
-            logp[g, label_idx] = 0
-        else:
-            logp[g, label_idx] = v
-    return 1 if f & OBSERVED == 0 else 0
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _start_key(points, i, sub_inv):
-    """Key of point i's start-voxel subsampling cell."""
-    return pack_block(
-        np.int64(np.floor(np.float64(points[i, 0]) * sub_inv)),
-        np.int64(np.floor(np.float64(points[i, 1]) * sub_inv)),
-        np.int64(np.floor(np.float64(points[i, 2]) * sub_inv)),
-    )
 
 
 @njit(cache=True, error_model="numpy")
@@ -234,14 +102,14 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
     last_key = np.int64(-1)
     last_b = np.int64(-1)
     for i in range(i0, points.shape[0]):
-        dist, dx, dy, dz, clearing, ex, ey, ez, sx, sy, sz = _ray(points, i, ox, oy, oz, k)
+        dist, dx, dy, dz, clearing, ex, ey, ez, sx, sy, sz = ray_band(points, i, ox, oy, oz, k)
         if dist < min_range or dist == 0.0:
             continue
         skey = np.int64(-1)
         sslot = np.int64(-1)
         if sub_inv > 0:
-            skey = _start_key(points, i, sub_inv)
-            sslot = _set_slot(startset, skey)
+            skey = start_key(points, i, sub_inv)
+            sslot = set_slot(startset, skey)
             if startset[sslot] == skey:
                 continue
         # cast from behind the surface towards the sensor, as voxblox does
@@ -267,103 +135,8 @@ def _tsdf_integrate(points, labels, origin, st, k, startset, i0, n_touched):
             touched[n_touched] = g
             n_touched += 1
             key = (keybuf[j, 0], keybuf[j, 1], keybuf[j, 2])
-            counts[0] += _fuse(flags, st.distance, st.weight, st.logp, k, g, key, ray)
+            counts[0] += fuse_ray(flags, st.distance, st.weight, st.logp, k, g, key, ray)
     return DONE, points.shape[0], n_touched
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _near_voxel(grid, g, own_key, ix, iy, iz):
-    """Global index of voxel (ix, iy, iz), -1 when its block was never allocated; `own_key` is
-    the block key of voxel g, a neighbour: most neighbours share its block, with no hash probe."""
-    bkey, local = voxel_index(ix, iy, iz, grid.bits)
-    vb = 3 * grid.bits
-    if bkey == own_key:
-        return ((g >> vb) << vb) | local
-    b = table_find(grid, bkey)
-    return np.int64(-1) if b < 0 else (b << vb) | local
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz):
-    """Voxel g at (ix, iy, iz) is a surface voxel (module docstring)."""
-    if not weight[g] >= min_weight:
-        return False
-    d = distance[g]
-    neg = d < 0
-    ad = abs(d)
-    own_key, _ = voxel_index(ix, iy, iz, grid.bits)
-    for f in range(6):
-        n = _near_voxel(grid, g, own_key, ix + _FACES[f, 0], iy + _FACES[f, 1], iz + _FACES[f, 2])
-        if n < 0 or not weight[n] >= min_weight:
-            continue
-        dn = distance[n]
-        if (dn < 0) == neg:
-            continue
-        adn = abs(dn)
-        # the voxel nearer the crossing; on a tie the one in front (d >= 0), so exactly one
-        if ad < adn or (ad == adn and not neg):
-            return True
-    return False
-
-
-@njit(cache=True, error_model="numpy")
-def _surface_kernel(g, grid, distance, weight, min_weight, out):
-    for i in range(g.shape[0]):
-        ix, iy, iz = voxel_key(grid, g[i])
-        out[i] = _is_surface(grid, distance, weight, min_weight, g[i], ix, iy, iz)
-
-
-@njit(cache=True, error_model="numpy")
-def _extract_kernel(changed, st, min_weight, seen, out_g, out_surf):
-    """Surface status after a cloud: of every updated voxel (listed whatever its status does) and
-    of their observed face neighbours (listed only when their status flipped: an unchanged
-    neighbour tells a consumer nothing). Sets the SURFACE bits; returns (listed, change in the
-    surface count). `seen` (7 per updated voxel) holds the voxels examined, marked _SEEN meanwhile
-    so that a voxel shared by several updated ones is looked at once."""
-    grid = st.grid
-    flags = st.flags
-    distance = st.distance
-    weight = st.weight
-    n_seen = 0
-    n_out = 0
-    dcount = 0
-    for i in range(changed.shape[0]):
-        g = changed[i]
-        flags[g] |= _SEEN
-        seen[n_seen] = g
-        n_seen += 1
-    for i in range(changed.shape[0]):
-        g = changed[i]
-        ix, iy, iz = voxel_key(grid, g)
-        own_key, _ = voxel_index(ix, iy, iz, grid.bits)
-        s = _is_surface(grid, distance, weight, min_weight, g, ix, iy, iz)
-        was = (flags[g] & SURFACE) != 0
-        dcount += np.int64(s) - np.int64(was)
-        flags[g] = (flags[g] | SURFACE) if s else (flags[g] & ~SURFACE)
-        out_g[n_out] = g
-        out_surf[n_out] = s
-        n_out += 1
-        for f in range(6):
-            jx = ix + _FACES[f, 0]
-            jy = iy + _FACES[f, 1]
-            jz = iz + _FACES[f, 2]
-            nb = _near_voxel(grid, g, own_key, jx, jy, jz)
-            if nb < 0 or flags[nb] & _SEEN or not flags[nb] & OBSERVED:
-                continue
-            flags[nb] |= _SEEN
-            seen[n_seen] = nb
-            n_seen += 1
-            s = _is_surface(grid, distance, weight, min_weight, nb, jx, jy, jz)
-            was = (flags[nb] & SURFACE) != 0
-            if s != was:
-                dcount += 1 if s else -1
-                flags[nb] = (flags[nb] | SURFACE) if s else (flags[nb] & ~SURFACE)
-                out_g[n_out] = nb
-                out_surf[n_out] = s
-                n_out += 1
-    for i in range(n_seen):
-        flags[seen[i]] &= ~_SEEN
-    return n_out, dcount
 
 
 @njit(cache=True, error_model="numpy")
@@ -380,48 +153,17 @@ def _tsdf_finish(touched, n_touched, flags, changed):
     return nc
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def _row_labels(logp, g, exp_steps, class_ids):
-    """Voxel g's label columns: (label, probability, second class, probability). The label is
-    the first most probable class (0 for a uniform vector), its probability 1 / sum over the
-    classes of exp(-(steps behind the top) * log(p / q)) (`RowTables.exp_steps`, 0 past its end);
-    the second class is the first most probable of the others (0 when the vector is uniform or
-    its probability is 0)."""
-    n_exp = exp_steps.shape[0]
-    top = 0
-    alt = -1
-    uniform = True
-    for c in range(1, logp.shape[1]):
-        if logp[g, c] > logp[g, top]:
-            alt = top
-            top = c
-        elif alt < 0 or logp[g, c] > logp[g, alt]:
-            alt = c
-        if logp[g, c] != logp[g, 0]:
-            uniform = False
-    z = 0.0
-    for c in range(logp.shape[1]):
-        d = np.int64(logp[g, top]) - np.int64(logp[g, c])
-        if d < n_exp:
-            z += exp_steps[d]
-    label = 0 if uniform else class_ids[top]
-    d_alt = np.int64(logp[g, top]) - np.int64(logp[g, alt]) if alt >= 0 else n_exp
-    if uniform or d_alt >= n_exp:
-        return label, 1.0 / z, 0, 0.0
-    return label, 1.0 / z, class_ids[alt], exp_steps[d_alt] / z
-
-
 @njit(cache=True, error_model="numpy")
 def _tsdf_rows(grid, distance, logp, tables, g, out):
     """The Delta columns `out` (`DeltaColumns`, but `occupied`) of voxels g in one pass:
-    coordinates, distance and `_row_labels`."""
+    coordinates, distance and `row_labels`."""
     keys, centres, labels, probs, _, values, alt_labels, alt_probs = out
     res, exp_steps, class_ids = tables
     for i in range(g.shape[0]):
         gi = g[i]
         put_key_centre(grid, gi, res, keys, centres, i)
         values[i] = distance[gi]
-        row = _row_labels(logp, gi, exp_steps, class_ids)
+        row = row_labels(logp, gi, exp_steps, class_ids)
         labels[i], probs[i], alt_labels[i], alt_probs[i] = row
 
 
@@ -517,7 +259,7 @@ class Tsdf(MapBackend):
         # a voxel's status depends on its neighbours: re-extract around every updated voxel
         out_g = np.empty(7 * nc, np.int64)
         out_surf = np.empty(7 * nc, np.bool_)
-        n, dcount = _extract_kernel(
+        n, dcount = extract_kernel(
             changed[:nc],
             self._state(counts),
             self.min_weight,
@@ -548,19 +290,19 @@ class Tsdf(MapBackend):
             self._grow(status, n_touched)
 
     def _integrate_parallel(self, points, labels, origin, startset, counts, threads) -> int:
-        """The same map on `threads` threads (_tsdf_parallel.py), chunk by chunk of rays."""
+        """The same map on `threads` threads (tsdf_parallel.py), chunk by chunk of rays."""
         # OpenMP threads that spin between the short parallel passes burn a core the other
         # services need (CPU per scan doubled on a loaded 2-core machine): sleep instead, unless
         # the user chose. Read when numba first loads its OpenMP layer, so set before that.
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
         import numba
 
-        from smana.services.mapper.backends import _tsdf_parallel as par
+        from smana.services.mapper.backends import tsdf_parallel as par
 
         numba.set_num_threads(threads)
         k = self._consts
         sel = np.empty(points.shape[0], np.int64)
-        n_sel = par._select(points, origin, k, startset, sel)
+        n_sel = par.select_rays(points, origin, k, startset, sel)
         chunk = min(n_sel, _CHUNK_RAYS)
         n_buf = self._keybuf.shape[0]
         walks = par.Walks(
@@ -573,15 +315,19 @@ class Tsdf(MapBackend):
         n_touched = 0
         for r0 in range(0, n_sel, chunk):
             rays = par.RayChunk(points, labels, origin, sel, r0, min(r0 + chunk, n_sel))
-            par._cast(rays, k, self.grid.state(), keybufs, walks.gbuf, walks.nks, walks.missing)
+            par.cast_walks(
+                rays, k, self.grid.state(), keybufs, walks.gbuf, walks.nks, walks.missing
+            )
             r = r0
             while True:
-                status, r, n_touched = par._claim(rays, k, self._state(counts), walks, r, n_touched)
+                status, r, n_touched = par.claim_voxels(
+                    rays, k, self._state(counts), walks, r, n_touched
+                )
                 if status == DONE:
                     break
                 self._grow(status, n_touched)
             c = self.grid.cols
-            counts[0] += par._fuse_claimed(
+            counts[0] += par.fuse_claimed(
                 rays, k, self.grid.state(), walks, c["flags"], c["distance"], c["weight"], c["logp"]
             )
         return n_touched
@@ -602,13 +348,13 @@ class Tsdf(MapBackend):
         g = self._check_index(g)
         out = np.empty(g.shape[0], np.bool_)
         c = self.grid.cols
-        _surface_kernel(g, self.grid.state(), c["distance"], c["weight"], self.min_weight, out)
+        surface_kernel(g, self.grid.state(), c["distance"], c["weight"], self.min_weight, out)
         return out
 
     def _logp_from_nats(self, saved: np.ndarray) -> np.ndarray:
         """A map saved before the step counts holds float32 log-probabilities: whole steps."""
         if saved.dtype.kind == "f":
-            saved = np.maximum(np.rint(saved / self.log_ratio), _STEPS_MIN)
+            saved = np.maximum(np.rint(saved / self.log_ratio), STEPS_MIN)
         return saved.astype(np.int16)
 
     def _store_surface(self, g: np.ndarray, surface: np.ndarray) -> int:
@@ -655,7 +401,7 @@ class Tsdf(MapBackend):
             self._parallel_loaded = True
             import numba
 
-            from smana.services.mapper.backends._tsdf_parallel import _rows_parallel as rows
+            from smana.services.mapper.backends.tsdf_parallel import rows_parallel as rows
 
             numba.set_num_threads(self.threads)
         rows(self.grid.state(), c["distance"], c["logp"], self._row_tables, g, d.columns())
