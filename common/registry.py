@@ -29,7 +29,7 @@ is not. The CLIs print that line and exit 2. A family with an error of its own p
 A variant may declare its own typed parameters beside its code: class attributes `config_key`
 (its sub-section's name) and `config_class` (a config `Section`). `sections()` collects them over
 the table, so that the config loader attaches each under `[<section>.<config_key>]`
-(common/config/_schema.py, `variants=`); an out-of-tree variant registered at run time, or named
+(common/config/section.py, `variants=`); an out-of-tree variant registered at run time, or named
 by its module:Class spec, is configured the same way.
 """
 
@@ -39,7 +39,7 @@ import importlib
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from smana.common.config._schema import ConfigError
+from smana.common.config.section import ConfigError
 
 __all__ = ["Registry", "RegistryError", "load_spec"]
 

@@ -230,9 +230,9 @@ def _doc(cls) -> str:
 def section_keys(cls, where: str, base=None) -> list[tuple[str, type, list[Key]]]:
     """[(dotted section, class, its keys)] for `cls` and, after it, its nested tables and its
     variants' sections (in the order a config file lists them)."""
-    from smana.common.config._schema import VARIANTS, _hints
+    from smana.common.config.section import VARIANTS, type_hints
 
-    hints = _hints(cls)
+    hints = type_hints(cls)
     meaning = _comments(cls)
     for klass in cls.__mro__[1:]:  # fields a base section declares (deploy's _DeployBase)
         if dataclasses.is_dataclass(klass) and klass.__dict__.get("__annotations__"):

@@ -221,7 +221,7 @@ def test_ros2_enabled_turns_gossip_on_in_the_router(tmp_path, monkeypatch):
 def test_set_reaches_nested_tables_and_config_toml_holds_every_key(tmp_path):
     """The README's `--set explorer.follower.lookahead_m=0.3`; the tutorial's "every key of every
     section, with its value, is in the run directory's config.toml"."""
-    from smana.common.config._schema import items
+    from smana.common.config.section import items
 
     cfg = SmanaConfig.load(None, ["explorer.follower.lookahead_m=0.3"])
     assert cfg.explorer.follower.lookahead_m == 0.3

@@ -9,7 +9,7 @@ import argparse
 import dataclasses
 
 from smana.common.config import SmanaConfig
-from smana.common.config._schema import items
+from smana.common.config.section import items
 from smana.lab import docs_reference
 from tests.conftest import REPO
 

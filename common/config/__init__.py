@@ -9,12 +9,12 @@
     [mapper.<key>] [sim.<key>]  a back-end's or a world's own parameters, declared beside it
                 ([mapper.octree], [mapper.tsdf], [sim.garden], [sim.ply], a plugin's)
 
-Each section is defined once, in its module, as a `Section` dataclass (`_schema.py`): its fields
+Each section is defined once, in its module, as a `Section` dataclass (`section.py`): its fields
 carry their limits and the one generic validator checks them, on load and when a core is given a
 section made in Python. A core receives its section as it is (`Explorer(config.explorer)`); parts
 of a core are nested tables (`[explorer.follower]`). A variant's parameters (a mapping back-end's,
 a world's) are a `Section` beside the variant's code, attached by its registry's name
-(`with_variants`, _schema.py), for smana's variants and plugins alike.
+(`with_variants`, section.py), for smana's variants and plugins alike.
 
 An unknown key, a value of the wrong type or out of range, or a number that is not finite (`1e400`
 reads as inf) is a `ConfigError` that names it (`mapper.resolution_m: expected a number > 0, got
@@ -30,7 +30,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from smana.common.config._schema import ConfigError, Section, build, param, table, to_toml
 from smana.common.config.deploy import DeployConfig, ServiceDeployConfig
 from smana.common.config.explorer import ExplorerConfig
 from smana.common.config.fleet import FleetConfig
@@ -41,6 +40,7 @@ from smana.common.config.navgraph import NavgraphConfig
 from smana.common.config.planner import PlannerConfig
 from smana.common.config.replay import ReplayConfig
 from smana.common.config.ros2 import Ros2Config
+from smana.common.config.section import ConfigError, Section, build, param, table, to_toml
 from smana.common.config.sim import SimConfig
 from smana.common.version import smana_version
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from smana.common import services
-from smana.common.config._schema import ConfigError, Section, param
+from smana.common.config.section import ConfigError, Section, param
 
 RestartPolicy = Literal["never", "on-failure", "always"]
 

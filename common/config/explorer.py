@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-from smana.common.config._schema import ConfigError, Section, param, table
+from smana.common.config.section import ConfigError, Section, param, table
 
 
 @dataclass

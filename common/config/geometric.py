@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from smana.common.config._schema import ConfigError, Section, param
+from smana.common.config.section import ConfigError, Section, param
 
 MAX_GRID_SIDE = 4000  # cells along a side of the labeller's grid at most (64 MB of indices)
 

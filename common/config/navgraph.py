@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from smana.common.config._schema import ConfigError, Section, param
+from smana.common.config.section import ConfigError, Section, param
 
 MAX_TILES = 1 << 24  # the grid's tile table: 64 MB of int32
 

@@ -11,7 +11,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-from smana.common.config._schema import Section, param
+from smana.common.config.section import Section, param
 
 # the A* heuristics (services/planner/astar.py implements each)
 Heuristic = Literal["octile", "euclidean"]

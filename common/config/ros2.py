@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-from smana.common.config._schema import ConfigError, Section, param
+from smana.common.config.section import ConfigError, Section, param
 
 # A tf frame prefix: what robot_state_publisher's `frame_prefix` prepends (tf2 refuses a frame id
 # that starts with '/'; a robot name of smana's is letters, digits, '_' and '-').

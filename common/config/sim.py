@@ -13,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 
-from smana.common.config._schema import (
+from smana.common.config.section import (
     ConfigError,
     Section,
     param,

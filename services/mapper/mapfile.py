@@ -38,8 +38,8 @@ from pathlib import Path
 import numpy as np
 from numpy.lib import format as npy
 
-from smana.common.config._schema import build
 from smana.common.config.mapper import RESOLUTION_RANGE_M, max_range_for
+from smana.common.config.section import build
 from smana.services.mapper.block_grid import KEY_LIMIT, PACK_MASK, PACK_OFF
 
 MAX_MAP_BYTES = 4 << 30  # a map file (and its arrays together) at most this big: 4 GiB

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from smana.common.config._schema import ConfigError, Section, param
+from smana.common.config.section import ConfigError, Section, param
 
 
 @dataclass
