@@ -389,7 +389,7 @@ class FleetMap:
                 raise mapfile.MapFileError(f"{path}: blocks of {meta['block_bits']} bits")
             # the merged map is derived again from the layers; its columns are checked all the
             # same (as the file describes them), so that the file also loads as a plain map
-            grid = SemanticMap._from_meta(meta, class_table, f.path)._core.grid
+            grid = SemanticMap.from_meta(meta, class_table, f.path)._core.grid
             expected = {"meta", "block_keys", *(f"col_{k}" for k in grid.fields)}
             mapfile.check_members(f, expected | mapfile.layer_names(len(saved["members"])))
             mapfile.read_grid(f, "block_keys", "col_", grid.fields, grid.bits, set(grid.loaders))

@@ -395,7 +395,7 @@ class SemanticMap:
         """The checked metadata of an open file and the empty map it describes; the file holds
         exactly the arrays that map needs (and a fleet map's layers)."""
         meta = mapfile.check_meta(f.meta(), f.path, backend)
-        m = cls._from_meta(meta, class_table, f.path)
+        m = cls.from_meta(meta, class_table, f.path)
         expected = {"meta", "block_keys", *(f"col_{k}" for k in m._core.grid.fields)}
         if "fleet" in meta:
             expected |= mapfile.layer_names(len(meta["fleet"]["members"]))
@@ -403,7 +403,7 @@ class SemanticMap:
         return meta, m
 
     @classmethod
-    def _from_meta(cls, meta: dict, class_table, path) -> SemanticMap:
+    def from_meta(cls, meta: dict, class_table, path) -> SemanticMap:
         """The empty map a checked `meta` describes."""
         backend = backend_class(meta["backend"])
         saved = meta["config"]
