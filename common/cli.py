@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import logging
 import math
 import os
@@ -149,6 +150,47 @@ def config_from_args(args: argparse.Namespace, layers=()) -> SmanaConfig:
         return dataclasses.replace(cfg, general=general, zenoh=apply_zenoh_args(cfg.zenoh, args))
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
+
+
+class ServiceCommand:
+    """A service's command line (`smana <name>`, `python -m smana.services.<name>`), the one
+    sequence every `services/<name>/__main__.py` runs: the shared parser (`make_parser`), the
+    config its flags choose (`config_from_args`, with the service's own flags turned into
+    `--set` overrides), logging, then the service's `main(config, ...)`, imported only then (so
+    that `--help` and a bad flag stay quick). An error of a `refused` kind from `main` (a file
+    that cannot be read, a config that cannot work) is one line on stderr,
+    `smana <name>: <error>`, and status 2. `cli` is the whole sequence for a service with no
+    flag of its own; the others call `parser`, `config` and `run` around their own steps."""
+
+    def __init__(
+        self, name: str, description: str, main: str, refused: tuple[type, ...] = ()
+    ) -> None:
+        self.name = name
+        self.description = description
+        self.main = main  # "package.module:function"
+        self.refused = refused
+
+    def parser(self) -> argparse.ArgumentParser:
+        return make_parser(f"smana {self.name}", self.description)
+
+    def config(self, args: argparse.Namespace, overrides=()) -> SmanaConfig:
+        """The config of the parsed `args`, `overrides` (`SECTION.KEY=VALUE`) after the user's."""
+        args.overrides.extend(overrides)
+        return config_from_args(args)
+
+    def run(self, config: SmanaConfig, *extra) -> int:
+        """Logging, then `main(config, *extra)`: its exit status."""
+        setup_logging(config.general.log_level, self.name)
+        module, function = self.main.split(":")
+        main = getattr(importlib.import_module(module), function)
+        try:
+            return main(config, *extra)
+        except self.refused as exc:
+            print(f"smana {self.name}: {exc}", file=sys.stderr)
+            return 2
+
+    def cli(self, argv: list[str] | None = None) -> int:
+        return self.run(self.config(self.parser().parse_args(argv)))
 
 
 def setup_logging(level: str, name: str) -> None:

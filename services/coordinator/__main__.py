@@ -8,17 +8,15 @@ from __future__ import annotations
 
 import sys
 
-from smana.common.cli import config_from_args, doc_summary, make_parser, run_command, setup_logging
+from smana.common.cli import ServiceCommand, doc_summary, run_command
+
+COMMAND = ServiceCommand(
+    "coordinator", doc_summary(__doc__), "smana.services.coordinator.service:main"
+)
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana coordinator", doc_summary(__doc__))
-    args = p.parse_args(argv)
-    cfg = config_from_args(args)
-    setup_logging(cfg.general.log_level, "coordinator")
-    from smana.services.coordinator.service import main
-
-    return main(cfg)
+    return COMMAND.cli(argv)
 
 
 if __name__ == "__main__":

@@ -11,27 +11,22 @@ pauses meanwhile and resumes after (`explorer.resume_after_goal`). With
 from __future__ import annotations
 
 from smana.common.cli import (
-    config_from_args,
+    ServiceCommand,
     doc_summary,
     exit_process,
-    make_parser,
     positive_float,
     run_command,
-    setup_logging,
 )
+
+COMMAND = ServiceCommand("explorer", doc_summary(__doc__), "smana.services.explorer.service:main")
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana explorer", doc_summary(__doc__))
+    p = COMMAND.parser()
     p.add_argument("--budget", type=positive_float, metavar="S", help="time budget, seconds")
     args = p.parse_args(argv)
-    if args.budget is not None:
-        args.overrides.append(f"explorer.time_budget_s={args.budget}")
-    cfg = config_from_args(args)
-    setup_logging(cfg.general.log_level, "explorer")
-    from smana.services.explorer.service import main
-
-    return main(cfg)
+    budget = [] if args.budget is None else [f"explorer.time_budget_s={args.budget}"]
+    return COMMAND.run(COMMAND.config(args, budget))
 
 
 if __name__ == "__main__":

@@ -8,19 +8,21 @@ from __future__ import annotations
 
 import sys
 
-from smana.common.cli import config_from_args, doc_summary, make_parser, run_command, setup_logging
+from smana.common.cli import ServiceCommand, doc_summary, run_command
+
+# e.g. an unreadable --load file: said in one line, no traceback
+COMMAND = ServiceCommand(
+    "mapper", doc_summary(__doc__), "smana.services.mapper.service:main", (OSError, ValueError)
+)
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana mapper", doc_summary(__doc__))
+    p = COMMAND.parser()
     p.add_argument("--load", metavar="FILE", help='resume from a saved map ("auto": save_path)')
     p.add_argument("--save", metavar="FILE", help="where to autosave the map (mapper.save_path)")
     args = p.parse_args(argv)
-    if args.load:
-        args.overrides.append(f"mapper.load={args.load}")
-    if args.save:
-        args.overrides.append(f"mapper.save_path={args.save}")
-    cfg = config_from_args(args)
+    flags = {"mapper.load": args.load, "mapper.save_path": args.save}
+    cfg = COMMAND.config(args, [f"{key}={value}" for key, value in flags.items() if value])
     from smana.services.mapper.backends import check_backend
 
     check_backend(cfg.mapper.backend)  # an unknown back-end stops here, in one line
@@ -40,14 +42,7 @@ def cli(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"smana mapper: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
-    setup_logging(cfg.general.log_level, "mapper")
-    from smana.services.mapper.service import main
-
-    try:
-        return main(cfg)
-    except (OSError, ValueError) as exc:  # e.g. an unreadable --load file: say so, no traceback
-        print(f"smana mapper: {exc}", file=sys.stderr)
-        return 2
+    return COMMAND.run(cfg)
 
 
 if __name__ == "__main__":

@@ -9,21 +9,16 @@ from __future__ import annotations
 
 import sys
 
-from smana.common.cli import config_from_args, doc_summary, make_parser, run_command, setup_logging
+from smana.common.cli import ServiceCommand, doc_summary, run_command
+
+# a class table or a config that cannot be read: one line, no traceback
+COMMAND = ServiceCommand(
+    "navgraph", doc_summary(__doc__), "smana.services.navgraph.service:main", (OSError, ValueError)
+)
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana navgraph", doc_summary(__doc__))
-    args = p.parse_args(argv)
-    cfg = config_from_args(args)
-    setup_logging(cfg.general.log_level, "navgraph")
-    from smana.services.navgraph.service import main
-
-    try:
-        return main(cfg)
-    except (OSError, ValueError) as exc:  # e.g. a class table that cannot be read: no traceback
-        print(f"smana navgraph: {exc}", file=sys.stderr)
-        return 2
+    return COMMAND.cli(argv)
 
 
 if __name__ == "__main__":

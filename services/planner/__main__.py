@@ -8,21 +8,16 @@ from __future__ import annotations
 
 import sys
 
-from smana.common.cli import config_from_args, doc_summary, make_parser, run_command, setup_logging
+from smana.common.cli import ServiceCommand, doc_summary, run_command
+
+# a class table or a config that cannot be read: one line, no traceback
+COMMAND = ServiceCommand(
+    "planner", doc_summary(__doc__), "smana.services.planner.service:main", (OSError, ValueError)
+)
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana planner", doc_summary(__doc__))
-    args = p.parse_args(argv)
-    cfg = config_from_args(args)
-    setup_logging(cfg.general.log_level, "planner")
-    from smana.services.planner.service import main
-
-    try:
-        return main(cfg)
-    except (OSError, ValueError) as exc:
-        print(f"smana planner: {exc}", file=sys.stderr)
-        return 2
+    return COMMAND.cli(argv)
 
 
 if __name__ == "__main__":

@@ -16,9 +16,8 @@ import time
 from pathlib import Path
 
 from smana.common.cli import (
-    config_from_args,
+    ServiceCommand,
     doc_summary,
-    make_parser,
     non_negative_int,
     positive_float,
     run_command,
@@ -27,12 +26,13 @@ from smana.common.cli import (
 from smana.common.config import SmanaConfig
 
 STACK = ("mapper", "navgraph", "planner")
+COMMAND = ServiceCommand("replay", doc_summary(__doc__), "smana.services.replay.service:main")
 
 
 def cli(argv: list[str] | None = None) -> int:
     from smana.services.replay.readers import READERS
 
-    p = make_parser("smana replay", doc_summary(__doc__))
+    p = COMMAND.parser()
     p.epilog = (
         "Duration measured once on a 2-core machine: --info takes seconds. --run spends about 10 "
         "s starting "
@@ -86,7 +86,7 @@ def cli(argv: list[str] | None = None) -> int:
         help="bags without odometry: the sensor's fixed pose",
     )
     args = p.parse_args(argv)
-    cfg = config_from_args(args)
+    cfg = COMMAND.config(args)
     rc = cfg.replay
     given = {
         "dataset": args.dataset,
@@ -106,7 +106,7 @@ def cli(argv: list[str] | None = None) -> int:
     if rc.dataset:  # services may run elsewhere (the supervisor's cwd is the run dir)
         rc = dataclasses.replace(rc, dataset=str(Path(rc.dataset).resolve()))
     cfg = dataclasses.replace(cfg, replay=rc)
-    setup_logging(cfg.general.log_level, "replay")
+    setup_logging(cfg.general.log_level, "replay")  # the reader may warn as it opens
 
     from smana.services.replay.readers import DatasetError
     from smana.services.replay.service import open_reader, table_name
@@ -126,9 +126,7 @@ def cli(argv: list[str] | None = None) -> int:
         return _info(reader, rc)
     if args.run:
         return run_stack(cfg, reader)
-    from smana.services.replay.service import main
-
-    return main(cfg, reader)
+    return COMMAND.run(cfg, reader)
 
 
 def _info(reader, rc) -> int:

@@ -13,26 +13,22 @@ from __future__ import annotations
 
 import sys
 
-from smana.common.cli import config_from_args, doc_summary, make_parser, run_command, setup_logging
+from smana.common.cli import ServiceCommand, doc_summary, run_command
+
+# a config that cannot work: one line, no traceback
+COMMAND = ServiceCommand(
+    "ros2", doc_summary(__doc__), "smana.services.ros2.service:main", (OSError, ValueError)
+)
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana ros2", doc_summary(__doc__))
-    args = p.parse_args(argv)
-    cfg = config_from_args(args)
-    setup_logging(cfg.general.log_level, "ros2")
+    cfg = COMMAND.config(COMMAND.parser().parse_args(argv))
     try:
         import rosbags  # noqa: F401 - message types, CDR and type hashes
     except ImportError:
         print("smana ros2: needs the 'rosbags' package: pip install 'smana[ros2]'", file=sys.stderr)
         return 2
-    from smana.services.ros2.service import main
-
-    try:
-        return main(cfg)
-    except (OSError, ValueError) as exc:  # a config that cannot work: one line, no traceback
-        print(f"smana ros2: {exc}", file=sys.stderr)
-        return 2
+    return COMMAND.run(cfg)
 
 
 if __name__ == "__main__":

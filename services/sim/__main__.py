@@ -16,13 +16,11 @@ import json
 import sys
 from pathlib import Path
 
-from smana.common.cli import (
-    UsageError,
-    config_from_args,
-    doc_summary,
-    make_parser,
-    run_command,
-    setup_logging,
+from smana.common.cli import ServiceCommand, UsageError, doc_summary, run_command
+
+# a world that cannot be built (a WorldError) or a value the simulator refuses: one line
+COMMAND = ServiceCommand(
+    "sim", doc_summary(__doc__), "smana.services.sim.service:main", (ValueError,)
 )
 
 
@@ -57,7 +55,7 @@ def _toml(v) -> str:
 
 
 def cli(argv: list[str] | None = None) -> int:
-    p = make_parser("smana sim", doc_summary(__doc__))
+    p = COMMAND.parser()
     g = p.add_argument_group("simulation")
     g.add_argument(
         "--world", help="'garden' (procedural), ply:PATH (a labelled cloud) or module:Class"
@@ -119,20 +117,12 @@ def cli(argv: list[str] | None = None) -> int:
             raise UsageError(f"--robots wants a count >= 1, not {args.robots}")
         names = [f"r{i}" for i in range(1, args.robots + 1)]
         args.overrides.append(f"fleet.robots={json.dumps(names)}")
-    cfg = config_from_args(args)
+    cfg = COMMAND.config(args)
     if args.robots is not None and not args.robot:  # the fleet's sim speaks for no one member
         cfg = dataclasses.replace(
             cfg, general=dataclasses.replace(cfg.general, robot=cfg.fleet.name)
         )
-    setup_logging(cfg.general.log_level, "sim")
-    from smana.services.sim.service import main
-    from smana.services.sim.worlds import WorldError
-
-    try:
-        return main(cfg)
-    except (WorldError, ValueError) as exc:
-        print(f"smana sim: {exc}", file=sys.stderr)
-        return 2
+    return COMMAND.run(cfg)
 
 
 if __name__ == "__main__":
