@@ -14,7 +14,7 @@ from smana.common.classes import ClassTable
 from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 from smana.common.risk import risk_class_costs
-from smana.services.planner.reference import risk_enter_costs
+from tests.support.enter_cost_reference import risk_enter_costs
 
 WET = ClassTable.load("garden3drms_wet")
 GRASS, TERRAIN, HEDGE, WATER = 1, 2, 4, 9

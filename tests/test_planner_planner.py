@@ -11,7 +11,8 @@ from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, NavGrid
 from smana.services.navgraph.graph import NavGraph
 from smana.services.planner.planner import Planner
-from smana.services.planner.reference import add_clearance, dijkstra_cost
+from smana.services.planner.reference import dijkstra_cost
+from tests.support.enter_cost_reference import add_clearance
 
 CLASSES = ClassTable.load("garden3drms")
 GRASS, TERRAIN, HEDGE = 1, 2, 4

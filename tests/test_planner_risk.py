@@ -13,7 +13,8 @@ from smana.common.classes import ClassTable
 from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
 from smana.services.planner.planner import RISK_MODES, Planner
-from smana.services.planner.reference import cvar, dijkstra_cost, risk_enter_costs
+from smana.services.planner.reference import dijkstra_cost
+from tests.support.enter_cost_reference import cvar, risk_enter_costs
 
 # The garden's classes plus a flat class that must not be entered (infinite cost, not an obstacle)
 WATER = 9

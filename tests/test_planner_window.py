@@ -7,13 +7,8 @@ import numpy as np
 import pytest
 
 from smana.common.navgrid import FLAG_KNOWN, FLAG_OBSTACLE, FLAG_SAFETY_ZONE, NavGrid
-from smana.services.planner.planner import (
-    EnterCosts,
-    TilePools,
-    Window,
-    _enter_costs,
-    _gather_window,
-)
+from smana.services.planner.enter_costs import EnterCosts, enter_costs
+from smana.services.planner.window import TilePools, Window, gather_window
 
 
 def _grid(rng, nx, ny, tile):
@@ -37,7 +32,7 @@ def test_gather_window_equals_navgrid_box(seed):
     labels = rng.integers(0, 9, shape).astype(np.uint16)
     flags = rng.integers(0, 9, shape).astype(np.uint8)
     known_h = rng.normal(size=shape).astype(np.float32)
-    _gather_window(TilePools.of(grid), x0, y0, Window(labels, flags, known_h))
+    gather_window(TilePools.of(grid), x0, y0, Window(labels, flags, known_h))
     want_l, want_h, want_f = grid.box(x0, y0, x1, y1)
     np.testing.assert_array_equal(labels, want_l)
     np.testing.assert_array_equal(flags, want_f)
@@ -53,7 +48,7 @@ def test_enter_costs_and_their_minimum(allow_unknown):
     flags = flags.astype(np.uint8)
     lut = np.array([np.inf, 1.6, 0.8, 2.4, np.inf, np.inf, 0.4, np.inf, np.inf, 3.0])
     enter = np.full(labels.shape, -1.0)
-    lowest = _enter_costs(labels, flags, EnterCosts(lut, allow_unknown, 2.0, 10.0), enter)
+    lowest = enter_costs(labels, flags, EnterCosts(lut, allow_unknown, 2.0, 10.0), enter)
     blocked = (flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) != 0
     known = (flags & FLAG_KNOWN) != 0
     want = np.where(labels < len(lut), lut[np.minimum(labels, len(lut) - 1)], np.inf)
@@ -65,7 +60,7 @@ def test_enter_costs_and_their_minimum(allow_unknown):
     assert lowest == want[np.isfinite(want)].min()
     blocked_all = np.full_like(flags, FLAG_OBSTACLE)
     costs = EnterCosts(lut, allow_unknown, 2.0, 10.0)
-    none = _enter_costs(labels, blocked_all, costs, np.empty(labels.shape))
+    none = enter_costs(labels, blocked_all, costs, np.empty(labels.shape))
     assert none == 0.0
 
 
@@ -153,9 +148,9 @@ def _no_builds(monkeypatch):
     def built(*args):
         raise AssertionError("the query built its window or enter costs")
 
-    for name in ("_gather_window", "_gather_cells", "_enter_costs", "_enter_cells"):
+    for name in ("gather_window", "gather_cells", "enter_costs", "enter_cells"):
         monkeypatch.setattr(mod, name, built)
-    for name in ("_enter_costs_risk", "_enter_cells_risk"):
+    for name in ("enter_costs_risk", "enter_cells_risk"):
         monkeypatch.setattr(mod, name, built)
 
 
@@ -229,7 +224,8 @@ def test_a_prepared_planner_builds_nothing_on_its_first_query_in_every_risk_mode
     from smana.common.classes import ClassTable
     from smana.common.config.planner import PlannerConfig
     from smana.services.planner.planner import RISK_MODES, Planner
-    from smana.services.planner.reference import dijkstra_cost, risk_enter_costs
+    from smana.services.planner.reference import dijkstra_cost
+    from tests.support.enter_cost_reference import risk_enter_costs
 
     assert mode in RISK_MODES
     classes = ClassTable.load("garden3drms")
@@ -307,7 +303,7 @@ def test_prepare_keeps_the_last_querys_window_and_refreshes_a_patch_in_place(mon
     pc = cells[rng.choice(k, 100, replace=False)]
     grid.apply_patch(pc, *grid.read_cells(pc))
     with monkeypatch.context() as m:
-        for name in ("_gather_window", "_enter_costs"):  # whole builds: not allowed
+        for name in ("gather_window", "enter_costs"):  # whole builds: not allowed
             m.setattr(mod, name, lambda *a: (_ for _ in ()).throw(AssertionError("rebuilt")))
         planner.prepare()
     with monkeypatch.context() as m:
@@ -318,9 +314,9 @@ def test_prepare_keeps_the_last_querys_window_and_refreshes_a_patch_in_place(mon
 
 @pytest.mark.parametrize("seed", range(4))
 def test_the_whole_window_clearance_pass_equals_the_per_node_one(seed):
-    """`_add_clearance_all` (from the blocked areas' edges) gives the per-node pass's costs to
+    """`add_clearance_all` (from the blocked areas' edges) gives the per-node pass's costs to
     the bit, on windows whose blocked nodes are closed, as the enter costs always have them."""
-    from smana.services.planner.planner import _add_clearance, _add_clearance_all
+    from smana.services.planner.enter_costs import add_clearance, add_clearance_all
 
     rng = np.random.default_rng(seed)
     n = 60
@@ -333,8 +329,8 @@ def test_the_whole_window_clearance_pass_equals_the_per_node_one(seed):
     for ring in (1, 2, 3):
         per_node = out.copy()
         cells = np.argwhere(np.isfinite(out)).astype(np.int32)
-        _add_clearance(flags, per_node, cells, ring, 0.8)
+        add_clearance(flags, per_node, cells, ring, 0.8)
         whole = out.copy()
-        _add_clearance_all(flags, whole, ring, 0.8)
+        add_clearance_all(flags, whole, ring, 0.8)
         assert np.array_equal(per_node, whole)
         assert (whole >= out).all() and (whole > out).any()

@@ -21,25 +21,34 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-import typing
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import numba
 import numpy as np
 
 from smana.common.classes import ClassTable
-from smana.common.config.planner import PlannerConfig, Risk
+from smana.common.config.planner import PlannerConfig
 from smana.common.navgrid import (
-    FLAG_DOUBTFUL,
     FLAG_KNOWN,
     FLAG_OBSTACLE,
     FLAG_SAFETY_ZONE,
-    P_SCALE,
-    RISK_LAYER_NAMES,
     NavGrid,
 )
+from smana.common.risk import RISK_MODES, risk_model, risk_prices
 from smana.services.planner.astar import HEURISTICS, path_costs, reserve, search
+from smana.services.planner.enter_costs import (
+    RiskPools,
+    add_clearance,
+    add_clearance_all,
+    clearance_of,
+    enter_cells,
+    enter_cells_risk,
+    enter_costs,
+    enter_costs_of,
+    enter_costs_risk,
+    with_ring,
+)
+from smana.services.planner.window import TilePools, Window, gather_cells, gather_window
 
 # Error codes of PathReply.error
 OUT_OF_BOUNDS = "out_of_bounds"
@@ -48,8 +57,6 @@ GOAL_BLOCKED = "goal_blocked"
 UNREACHABLE = "unreachable"
 NO_GRAPH = "no_graph"
 MALFORMED = "malformed"
-
-RISK_MODES = typing.get_args(Risk)
 # A start on a node not seen yet leaves from the nearest known free node this near (without
 # allow_unknown; with it, the unknown node is entered like any other)
 SNAP_START_M = 1.0
@@ -414,30 +421,30 @@ class Planner:
                 # Only the patched nodes: their enter costs, and a minimum that can only fall
                 # (a minimum that is too low keeps the heuristic a lower bound: still exact).
                 out, lowest = self._enter_cache
-                costs = _enter_costs_of(scaled, allow_unknown, p)
+                costs = enter_costs_of(scaled, allow_unknown, p)
                 # a changed node changes the clearance cost of the nodes round it too
-                cells = _with_ring(cells, ring, labels.shape)
+                cells = with_ring(cells, ring, labels.shape)
                 if pools is None:
-                    low = _enter_cells(labels, flags, costs, cells, out)
+                    low = enter_cells(labels, flags, costs, cells, out)
                 else:
                     gcells = cells + np.array(box[:2], np.int32)
-                    low = _enter_cells_risk(window, pools, gcells, cells, costs, prices, out)
+                    low = enter_cells_risk(window, pools, gcells, cells, costs, prices, out)
                 if clearance > 0:
-                    _add_clearance(flags, out, cells, ring, clearance)
+                    add_clearance(flags, out, cells, ring, clearance)
                 self._enter_cache = (out, min(lowest, low))
                 self._enter_key = key
                 return self._enter_cache
             old = self._enter_cache
             out = old[0] if old is not None and old[0].shape == labels.shape else None
             out = np.empty(labels.shape) if out is None else out  # refilled: no page faults
-            costs = _enter_costs_of(scaled, allow_unknown, p)
+            costs = enter_costs_of(scaled, allow_unknown, p)
             if pools is None:
-                lowest = _enter_costs(labels, flags, costs, out)
+                lowest = enter_costs(labels, flags, costs, out)
             else:
-                lowest = _enter_costs_risk(window, pools, box[0], box[1], costs, prices, out)
+                lowest = enter_costs_risk(window, pools, box[0], box[1], costs, prices, out)
             if clearance > 0:
                 # the clearance cost only adds: the minimum stays a lower bound (exact A*)
-                _add_clearance_all(flags, out, ring, clearance)
+                add_clearance_all(flags, out, ring, clearance)
             self._enter_cache = (out, lowest)
             self._enter_key = key
         return self._enter_cache
@@ -471,7 +478,7 @@ class Planner:
             cells = self._changed_in(box, self._cache_key, key)
             if cells is not None:  # a patch since: refresh its nodes only
                 gcells = cells + np.array([x0, y0], np.int32)
-                _gather_cells(TilePools.of(g), gcells, cells, self._cache)
+                gather_cells(TilePools.of(g), gcells, cells, self._cache)
                 self._cache_key = key
                 return self._cache
             shape = (x1 - x0, y1 - y0)
@@ -481,7 +488,7 @@ class Planner:
                     np.empty(shape, np.uint8),
                     np.empty(shape, np.float32),  # the grid's own heights: half the bytes
                 )
-            _gather_window(TilePools.of(g), x0, y0, self._cache)
+            gather_window(TilePools.of(g), x0, y0, self._cache)
             self._cache_key = key
         return self._cache
 
@@ -521,420 +528,6 @@ def _fill_heights(z: np.ndarray) -> np.ndarray:
     first = int(np.argmax(known))
     idx[:first] = first
     return z[idx]
-
-
-class TilePools(NamedTuple):
-    """The NavGrid's node layers as the gather kernels read them: pools of (slot, T, T)."""
-
-    tile_map: np.ndarray  # (ntx, nty) int32: slot of each tile, < 0 where not allocated
-    labels: np.ndarray
-    heights: np.ndarray
-    flags: np.ndarray
-    tile_size: int
-
-    @classmethod
-    def of(cls, g: NavGrid) -> TilePools:
-        return cls(g.tile_map, g.layer("labels"), g.layer("heights"), g.layer("flags"), g.tile_size)
-
-
-class Window(NamedTuple):
-    """The planner's dense copy of a window of the grid."""
-
-    labels: np.ndarray  # u2 (w, h)
-    flags: np.ndarray  # u1 (w, h)
-    known_h: np.ndarray  # f4 (w, h): heights, NaN where not known
-
-
-@numba.njit(cache=True)
-def _gather_window(pools, ix0, iy0, window):
-    """Fill `window` (dense labels, flags and known heights, NaN where not known) with the w x h
-    nodes from (ix0, iy0), (w, h) its shape, from the tile pools; unallocated tiles read as
-    unknown. Walks tile by tile along y so that no division happens per node."""
-    tile_map, labels_pool, heights_pool, flags_pool, t = pools
-    labels, flags, known_h = window
-    w, h = labels.shape
-    for i in range(w):
-        gx = ix0 + i
-        tx = gx // t
-        lx = gx - tx * t
-        j = 0
-        while j < h:
-            gy = iy0 + j
-            ty = gy // t
-            ly0 = gy - ty * t
-            run = min(t - ly0, h - j)
-            slot = tile_map[tx, ty]
-            if slot >= 0:
-                for k in range(run):
-                    f = flags_pool[slot, lx, ly0 + k]
-                    flags[i, j + k] = f
-                    labels[i, j + k] = labels_pool[slot, lx, ly0 + k]
-                    known_h[i, j + k] = (
-                        heights_pool[slot, lx, ly0 + k] if f & FLAG_KNOWN else np.nan
-                    )
-            else:
-                for k in range(run):
-                    flags[i, j + k] = 0
-                    labels[i, j + k] = 0
-                    known_h[i, j + k] = np.nan
-            j += run
-
-
-@numba.njit(cache=True)
-def _gather_cells(pools, grid_cells, cells, window):
-    """`_gather_window` for a list of nodes: `grid_cells` in the grid, `cells` in the window."""
-    tile_map, labels_pool, heights_pool, flags_pool, t = pools
-    labels, flags, known_h = window
-    for k in range(len(cells)):
-        gx, gy = grid_cells[k, 0], grid_cells[k, 1]
-        i, j = cells[k, 0], cells[k, 1]
-        slot = tile_map[gx // t, gy // t]
-        if slot >= 0:
-            lx, ly = gx % t, gy % t
-            f = flags_pool[slot, lx, ly]
-            flags[i, j] = f
-            labels[i, j] = labels_pool[slot, lx, ly]
-            known_h[i, j] = heights_pool[slot, lx, ly] if f & FLAG_KNOWN else np.nan
-        else:
-            flags[i, j] = 0
-            labels[i, j] = 0
-            known_h[i, j] = np.nan
-
-
-class EnterCosts(NamedTuple):
-    """What the enter-cost kernels turn a node's flags and label into its cost with."""
-
-    lut: np.ndarray  # f8 per label id: t_f * T(l), +inf where not traversable
-    allow_unknown: bool  # unknown nodes (and known ones of the "unknown" class) may be entered
-    unknown_cost: float  # t_f * their cost
-    doubtful_cost: float  # t_f * the cost of a doubtful node (an unconfirmed obstacle class)
-
-
-def _enter_costs_of(scaled_lut, allow_unknown, p: PlannerConfig) -> EnterCosts:
-    return EnterCosts(
-        scaled_lut,
-        bool(allow_unknown),
-        float(p.unknown_cost * p.t_f),
-        float(p.doubtful_cost * p.t_f),
-    )
-
-
-def clearance_of(p: PlannerConfig, resolution_m: float) -> tuple[int, float]:
-    """(ring, cost): how many nodes beyond a blocked node the clearance cost reaches
-    (`clearance_m` in nodes, rounded) and its t_f-scaled value beside it (0: none)."""
-    ring = int(round(p.clearance_m / resolution_m))
-    cost = p.clearance_cost * p.t_f if ring > 0 else 0.0
-    return ring, (cost if np.isfinite(cost) else 0.0)
-
-
-def _with_ring(cells: np.ndarray, ring: int, shape) -> np.ndarray:
-    """`cells` (K, 2) and every window cell within `ring` nodes of one, each once."""
-    if ring <= 0 or len(cells) == 0:
-        return cells
-    r = np.arange(-ring, ring + 1, dtype=np.int32)
-    off = np.stack(np.meshgrid(r, r, indexing="ij"), axis=-1).reshape(-1, 2)
-    out = (cells[:, None, :] + off[None]).reshape(-1, 2)
-    inside = (out >= 0).all(axis=1) & (out[:, 0] < shape[0]) & (out[:, 1] < shape[1])
-    return np.ascontiguousarray(np.unique(out[inside], axis=0).astype(np.int32))
-
-
-@numba.njit(cache=True)
-def _add_clearance(flags, out, cells, ring, cost):
-    """Add the clearance cost to the finite enter costs at `cells`: `cost` for a node beside a
-    blocked one (obstacle or safety zone), falling linearly with the distance d (in nodes, to
-    the nearest blocked node within `ring`) to 0 at d = ring + 1: cost * (ring + 1 - d) / ring."""
-    nx, ny = flags.shape
-    for k in range(len(cells)):
-        i, j = cells[k, 0], cells[k, 1]
-        if not out[i, j] < np.inf:
-            continue
-        best = np.inf
-        for a in range(max(0, i - ring), min(nx, i + ring + 1)):
-            for b in range(max(0, j - ring), min(ny, j + ring + 1)):
-                if flags[a, b] & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
-                    d = np.sqrt((a - i) ** 2 + (b - j) ** 2)
-                    if d < best:
-                        best = d
-        if best < ring + 1:
-            out[i, j] += cost * (ring + 1 - best) / ring
-
-
-@numba.njit(cache=True)
-def _add_clearance_all(flags, out, ring, cost):
-    """`_add_clearance` over the whole window, the other way round: each blocked node on the
-    edge of a blocked area (one with an open 8-neighbour; an inner one is never the nearest)
-    lowers the distance of the nodes within `ring` of it, then every finite cost gets its
-    share. The same distances and sums as `_add_clearance`, without a list of every node."""
-    nx, ny = flags.shape
-    blocked = FLAG_OBSTACLE | FLAG_SAFETY_ZONE
-    near = np.full((nx, ny), np.inf)
-    for i in range(nx):
-        for j in range(ny):
-            if not flags[i, j] & blocked:
-                continue
-            edge = False
-            for a in range(max(0, i - 1), min(nx, i + 2)):
-                for b in range(max(0, j - 1), min(ny, j + 2)):
-                    if not flags[a, b] & blocked:
-                        edge = True
-            if not edge:
-                continue
-            for a in range(max(0, i - ring), min(nx, i + ring + 1)):
-                for b in range(max(0, j - ring), min(ny, j + ring + 1)):
-                    d = np.sqrt((a - i) ** 2 + (b - j) ** 2)
-                    if d < near[a, b]:
-                        near[a, b] = d
-    for i in range(nx):
-        for j in range(ny):
-            if out[i, j] < np.inf and near[i, j] < ring + 1:
-                out[i, j] += cost * (ring + 1 - near[i, j]) / ring
-
-
-@numba.njit(cache=True)
-def _enter_cost(f, lab, lut, n_lut, allow_unknown, unknown_cost, doubtful_cost):
-    if f & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE):
-        return np.inf
-    if f & FLAG_DOUBTFUL:
-        return doubtful_cost  # dear but passable: the graph has not confirmed the obstacle
-    if f & FLAG_KNOWN:
-        c = lut[lab] if lab < n_lut else np.inf
-        if c == np.inf and lab == 0 and allow_unknown:
-            c = unknown_cost  # a known node of the "unknown" class
-        return c
-    return unknown_cost if allow_unknown else np.inf
-
-
-class RiskModel(NamedTuple):
-    """How the risk kernels turn a node's class distribution into its enter cost: the
-    [planner] risk fields, costs already scaled by t_f."""
-
-    mode: int  # index in RISK_MODES: 0 expected, 1 cvar, 2 chance
-    alpha: float  # CVaR level
-    max_risk: float  # chance: largest P(forbidden) of an open node
-    forbidden_cost: float  # t_f * T of a forbidden class's mass (expected, cvar)
-    other_cost: float  # t_f * T of the unnamed mass (expected, cvar): unknown_cost
-    other_forbidden: float  # share of the unnamed mass counted as forbidden (chance)
-
-
-def risk_model(p: PlannerConfig) -> RiskModel:
-    """The kernels' view of a (checked) PlannerConfig."""
-    return RiskModel(
-        RISK_MODES.index(p.risk),
-        float(p.risk_alpha),
-        float(p.max_risk),
-        float(p.risk_forbidden_cost * p.t_f),
-        float(p.unknown_cost * p.t_f),
-        float(p.risk_other_forbidden),
-    )
-
-
-class RiskPools(NamedTuple):
-    """The grid's risk layers as the risk kernels read them: pools of (slot, T, T). The kernels
-    read them in place: no dense copy of the window is kept (unallocated tiles: certain)."""
-
-    tile_map: np.ndarray
-    alt: np.ndarray  # u2: second most likely class, 0 = none
-    p_label: np.ndarray  # u1: P(label) x 255
-    p_alt: np.ndarray  # u1: P(alt) x 255
-    tile_size: int
-
-    @classmethod
-    def of(cls, g: NavGrid) -> RiskPools | None:
-        """The pools, or None when the grid has no risk layers (every label certain)."""
-        if not g.has_risk():
-            return None
-        return cls(g.tile_map, *(g.layer(name) for name in RISK_LAYER_NAMES), g.tile_size)
-
-
-class RiskPrices(NamedTuple):
-    """What the risk kernels price a distribution with: the model and, per class id, what its
-    mass as the second class costs, so that no node looks its second class up twice."""
-
-    model: RiskModel
-    alt_cost: np.ndarray  # f8 per class id: t_f * T, a forbidden class's at forbidden_cost; id 0: 0
-    alt_forbidden: np.ndarray  # f8 per class id: 1 where the class is forbidden, else 0
-
-
-def risk_prices(model: RiskModel, lut: np.ndarray) -> RiskPrices:
-    """The tables of `RiskPrices` for the scaled costs `lut` (+inf where forbidden). Id 0 (and an
-    id outside the table, which the kernels read as 0) names no class: its mass is unnamed."""
-    forbidden = ~np.isfinite(lut)
-    cost = np.where(forbidden, model.forbidden_cost, lut)
-    cost[0] = 0.0
-    forbidden[0] = False
-    return RiskPrices(model, np.ascontiguousarray(cost, np.float64), forbidden.astype(np.float64))
-
-
-# P(k) = k / 255 for every stored probability k: the division the kernels did per node, done
-# once (the same float64 division, so the same bits).
-_PROB = np.arange(P_SCALE + 1) / P_SCALE
-
-
-@numba.njit(cache=True)
-def _cvar3(c0, p0, c1, p1, c2, p2, alpha):
-    """CVaR at level alpha of three cost atoms (cost, probability; the probabilities sum to 1):
-    the mean cost of the worst alpha of the probability mass."""
-    # sort the atoms by cost, dearest first (three compare-and-swaps)
-    if c1 > c0:
-        c0, p0, c1, p1 = c1, p1, c0, p0
-    if c2 > c1:
-        c1, p1, c2, p2 = c2, p2, c1, p1
-    if c1 > c0:
-        c0, p0, c1, p1 = c1, p1, c0, p0
-    take0 = min(p0, alpha)
-    take1 = min(p1, alpha - take0)
-    take2 = max(0.0, alpha - take0 - take1)  # what rounding left is the cheapest atom's
-    return (take0 * c0 + take1 * c1 + take2 * c2) / alpha
-
-
-@numba.njit(cache=True, inline="always")
-def _risk_cost(c_label, c_alt, alt_forbidden, pl, pa, model):
-    """Enter cost of a known node whose label costs `c_label` (finite, t_f scaled) and is
-    doubtful (pl < 255), given its distribution: P(label) = pl / 255, P(alt) = pa / 255 (0 when
-    no class is named; pa + pl <= 255), the rest unnamed; the second class costs `c_alt` and is
-    forbidden when `alt_forbidden` is 1. See docs/risk.md. Numbers only: a helper called per node
-    that takes an array (or a tuple holding one) pays numba's reference counting per call, which
-    was most of the pass (14 ms at 1000 x 1000, half the nodes doubtful)."""
-    p1 = _PROB[pl]
-    p2 = _PROB[pa]
-    r = _PROB[P_SCALE - pl - pa]
-    if model.mode == 2:
-        pf = p2 * alt_forbidden + r * model.other_forbidden
-        if pf > model.max_risk:
-            return np.inf
-    if model.mode == 1:
-        return _cvar3(c_label, p1, c_alt, p2, model.other_cost, r, model.alpha)
-    return p1 * c_label + p2 * c_alt + r * model.other_cost
-
-
-@numba.njit(cache=True)
-def _enter_cells_risk(window, pools, grid_cells, cells, costs, prices, out):
-    """`_enter_cells` with the nodes' class distributions, read from the grid's risk `pools` at
-    `grid_cells` (`cells` in the window)."""
-    labels, flags, _ = window
-    tile_map, alt_pool, pl_pool, pa_pool, t = pools
-    lut, allow_unknown, unknown_cost, doubtful_cost = costs
-    model, alt_cost, alt_forbidden = prices
-    n_lut = len(lut)
-    lowest = np.inf
-    for k in range(len(cells)):
-        i, j = cells[k, 0], cells[k, 1]
-        f = flags[i, j]
-        c = _enter_cost(f, labels[i, j], lut, n_lut, allow_unknown, unknown_cost, doubtful_cost)
-        gx, gy = grid_cells[k, 0], grid_cells[k, 1]
-        slot = tile_map[gx // t, gy // t]
-        # Obstacles, safety zones, unknown and doubtful nodes, a label that cannot be entered and
-        # a certain label: as without risk.
-        if slot >= 0 and c < np.inf and (f & (FLAG_KNOWN | FLAG_DOUBTFUL)) == FLAG_KNOWN:
-            lx, ly = gx % t, gy % t
-            pl = pl_pool[slot, lx, ly]
-            if pl < P_SCALE:
-                a = alt_pool[slot, lx, ly]
-                a = a if a < n_lut else 0  # outside the table: no class named
-                pa = min(pa_pool[slot, lx, ly], P_SCALE - pl) if a > 0 else 0
-                c = _risk_cost(c, alt_cost[a], alt_forbidden[a], pl, pa, model)
-        out[i, j] = c
-        if c < lowest:
-            lowest = c
-    return lowest
-
-
-@numba.njit(cache=True)
-def _enter_costs_risk(window, pools, ix0, iy0, costs, prices, out):
-    """`_enter_costs` with the nodes' class distributions, read from the grid's risk `pools`
-    (the window's node (0, 0) is the grid's (ix0, iy0)): the costs without risk (a loop LLVM
-    vectorises), then tile run by tile run the doubtful nodes, listed first without a branch
-    (half the nodes doubtful at random defeats the branch predictor), then the minimum."""
-    labels, flags, _ = window
-    tile_map, alt_pool, pl_pool, pa_pool, t = pools
-    model, alt_cost, alt_forbidden = prices
-    n_lut = len(alt_cost)
-    _enter_costs(labels, flags, costs, out)
-    w, h = labels.shape
-    doubtful = np.empty(t, np.int64)
-    run_alt = np.empty(t, alt_pool.dtype)
-    run_pl = np.empty(t, pl_pool.dtype)
-    run_pa = np.empty(t, pa_pool.dtype)
-    for i in range(w):
-        gx = ix0 + i
-        tx = gx // t
-        lx = gx - tx * t
-        j = 0
-        while j < h:
-            gy = iy0 + j
-            ty = gy // t
-            ly0 = gy - ty * t
-            run = min(t - ly0, h - j)
-            slot = tile_map[tx, ty]
-            if slot >= 0:  # an unallocated tile reads as certain
-                # The run's three layers copied whole first: loads that depend on nothing, so
-                # their cache misses overlap (read only at the doubtful nodes, each missed on
-                # its own: 5.5 against 3.2 ms with 5 % of the nodes doubtful).
-                for k in range(run):
-                    run_pl[k] = pl_pool[slot, lx, ly0 + k]
-                    run_alt[k] = alt_pool[slot, lx, ly0 + k]
-                    run_pa[k] = pa_pool[slot, lx, ly0 + k]
-                m = 0
-                for k in range(run):
-                    doubtful[m] = k
-                    m += run_pl[k] < P_SCALE
-                for q in range(m):
-                    k = doubtful[q]
-                    c = out[i, j + k]
-                    # obstacles, safety zones, unknown and doubtful nodes and closed labels: as
-                    # without risk
-                    if (
-                        c < np.inf
-                        and (flags[i, j + k] & (FLAG_KNOWN | FLAG_DOUBTFUL)) == FLAG_KNOWN
-                    ):
-                        pl = run_pl[k]
-                        a = run_alt[k]
-                        a = a if a < n_lut else 0  # outside the table: no class named
-                        pa = min(run_pa[k], P_SCALE - pl) if a > 0 else 0
-                        out[i, j + k] = _risk_cost(c, alt_cost[a], alt_forbidden[a], pl, pa, model)
-            j += run
-    lowest = np.inf
-    for i in range(w):
-        for j in range(h):
-            lowest = min(lowest, out[i, j])
-    return lowest if lowest < np.inf else 0.0
-
-
-@numba.njit(cache=True)
-def _enter_cells(labels, flags, costs, cells, out):
-    """`_enter_costs` for a list of window cells; returns their smallest finite cost (+inf
-    when none is finite, so that it leaves the cached minimum as it was)."""
-    lut, allow_unknown, unknown_cost, doubtful_cost = costs
-    lowest = np.inf
-    n_lut = len(lut)
-    for k in range(len(cells)):
-        i, j = cells[k, 0], cells[k, 1]
-        c = _enter_cost(
-            flags[i, j], labels[i, j], lut, n_lut, allow_unknown, unknown_cost, doubtful_cost
-        )
-        out[i, j] = c
-        if c < lowest:
-            lowest = c
-    return lowest
-
-
-@numba.njit(cache=True)
-def _enter_costs(labels, flags, costs, out):
-    """Fill `out` with t_f * T(l) per node (`EnterCosts`); +inf for obstacles, safety zones,
-    non-traversable classes, and unknown nodes unless allowed. Returns the smallest finite cost
-    (0 when none is finite)."""
-    lut, allow_unknown, unknown_cost, doubtful_cost = costs
-    nx, ny = labels.shape
-    lowest = np.inf
-    n_lut = len(lut)
-    for i in range(nx):
-        for j in range(ny):
-            out[i, j] = _enter_cost(
-                flags[i, j], labels[i, j], lut, n_lut, allow_unknown, unknown_cost, doubtful_cost
-            )
-            if out[i, j] < lowest:
-                lowest = out[i, j]
-    return lowest if lowest < np.inf else 0.0
 
 
 @numba.njit(cache=True)

@@ -20,7 +20,6 @@ from smana.common.navgrid import (
     FLAG_SAFETY_ZONE,
     RISK_LAYER_NAMES,
 )
-from smana.common.risk import risk_class_costs
 
 from . import costmap_types as nav2
 
@@ -173,6 +172,8 @@ def node_costs(grid, box, cost_lut, planner=None):
     if planner is None or planner.risk == "label":
         labels, flags = grid.box(ix0, iy0, ix1, iy1, layers=("labels", "flags"))
         return labels, flags, None
+    from smana.common.risk import risk_class_costs  # numba: only under a risk mode
+
     layers = ("labels", "flags", *RISK_LAYER_NAMES)
     labels, flags, *risk = grid.box(ix0, iy0, ix1, iy1, layers=layers)
     return labels, flags, risk_class_costs(labels, *risk, cost_lut, planner)
