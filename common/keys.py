@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import re
 
-from smana.common import services
+from smana.common import service_table
 
 PREFIX = "smana"
 NAME_PATTERN = "[A-Za-z0-9_-]{1,32}"
@@ -158,8 +158,8 @@ def status_any(robot: str = "*") -> str:
 
 
 def __getattr__(name: str):
-    # SERVICES: every service's name, from the table of services (common/services.py): smana's
+    # SERVICES: every service's name, from the table of services (common/service_table.py): smana's
     # own, then plug-ins' (entry-point group `smana.services`), read when first asked for.
     if name == "SERVICES":
-        return services.names()
+        return service_table.names()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

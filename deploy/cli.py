@@ -2,7 +2,7 @@
 
 Subcommands are imported lazily, so `smana --help` is instant and a tool's optional dependencies
 are only needed when that tool runs. Each target is `module:function` taking the remaining argv.
-The services' commands come from the table of services (common/services.py); the research
+The services' commands come from the table of services (common/service_table.py); the research
 harness's (`bench`, `eval`, `experiment`) and any plug-in's from the entry-point group
 `smana.commands` (pyproject.toml), each a `(module:function, one-line help)` pair, so this file
 names no module of `lab/`.
@@ -17,7 +17,7 @@ from __future__ import annotations
 import functools
 import sys
 
-from smana.common import services
+from smana.common import service_table
 
 COMMAND_GROUP = "smana.commands"
 
@@ -47,7 +47,7 @@ def commands() -> dict[str, tuple[str, str]]:
     machine: only `--help` and a name smana does not know pay it)."""
     from importlib.metadata import entry_points
 
-    out = _table(services.rows())
+    out = _table(service_table.rows())
     for ep in sorted(entry_points(group=COMMAND_GROUP), key=lambda e: e.name):
         if ep.name in out:
             continue  # smana's own command wins over a plug-in's of the same name
@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         print(smana_version())
         return 0
     name = argv[0]
-    known = _table(services.TABLE)  # smana's own: no need to read the installed entry points
+    known = _table(service_table.TABLE)  # smana's own: no need to read the installed entry points
     if name not in known:
         known = commands()
     if name not in known:

@@ -1,21 +1,21 @@
 """A fleet under `smana up` (`fleet.robots`, `smana up --robots N`): the fleet's shared services
 run under `fleet.name` on the base (`deploy.fleet_base`), each member's own under its name, on its
 host (`deploy.robots`, default every member). One simulator simulates every member. Which service
-is which is the table of services' `fleet` column (common/services.py).
+is which is the table of services' `fleet` column (common/service_table.py).
 """
 
 from __future__ import annotations
 
 import json
 
-from smana.common import services
+from smana.common import service_table
 from smana.common.config import ConfigError
 
 
 def add_fleet(sup, names: list[str]) -> None:
     """Add the fleet's services among `names` (those enabled) to `sup`: the shared ones
-    (`services.fleet("shared")`) under the fleet's name, each member's own
-    (`services.fleet("member")`) under its name. Members' files go to
+    (`service_table.fleet("shared")`) under the fleet's name, each member's own
+    (`service_table.fleet("member")`) under its name. Members' files go to
     `<run_dir>/robots/<member>/` (their own map, the explorer's state), the fleet's to the
     run directory itself (the merged map, the simulator's record)."""
     fc, dc = sup.config.fleet, sup.config.deploy
@@ -31,14 +31,14 @@ def add_fleet(sup, names: list[str]) -> None:
     sup.robots = members or [sup.fleet]
     enabled = names
     if dc.fleet_base:
-        for n in services.fleet("shared"):
+        for n in service_table.fleet("shared"):
             if n in enabled:
                 extra = ["--set", 'mapper.source="fleet"'] if n == "mapper" else []
                 sup._add_service(f"{n}@{sup.fleet}", n, sup.fleet, extra)
     for robot in members:
         run_dir = sup.run_dir / "robots" / robot
         run_dir.mkdir(parents=True, exist_ok=True)
-        for n in services.fleet("member"):
+        for n in service_table.fleet("member"):
             if n in enabled:
                 extra = ["--set", f"general.run_dir={json.dumps(str(run_dir))}"]
                 sup._add_service(f"{n}@{robot}", n, robot, extra)

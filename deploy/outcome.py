@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import signal
 
-from smana.common import services
+from smana.common import service_table
 from smana.deploy.processes import Managed
 
 # A service that exits with this status refused its configuration (`run_command`'s user errors):
@@ -46,10 +46,10 @@ class Outcome:
                 )
         # What the service that ends the run (the explorer) needs to do its job (the table's
         # `needs`), here or on another host of the deployment.
-        finish_with = services.row(self.config.deploy.finish_with)
+        finish_with = service_table.row(self.config.deploy.finish_with)
         for m in [m for m in self.procs.values() if finish_with and m.service == finish_with.name]:
             for need in finish_with.needs:
-                row = services.row(need)  # None: a plug-in's need no row names
+                row = service_table.row(need)  # None: a plug-in's need no row names
                 where = m.robot
                 if self.fleet is not None and row is not None and row.shared_only:
                     where = self.fleet  # the fleet's shared graph and coordinator

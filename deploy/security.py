@@ -35,26 +35,26 @@ import secrets
 import shutil
 from pathlib import Path
 
-from smana.common import services
+from smana.common import service_table
 from smana.common.cli import ArgumentParser, UsageError
 from smana.common.keys import check_robot
 from smana.common.zenoh_config import read_credentials
 from smana.deploy.certs import issue_host_cert, new_ca, write_cert, write_key, write_secret
 
-# Who may do what, from the table of services (common/services.py: each row's `acl` and `reads`).
-# Roles become zenoh user names `<robot>.<role>`; `router` is a router's login when it links to
-# another (robot -> base); `operator` a human with a joystick on the base, `tool` any external
-# zenoh tool (a robot has its own, `<robot>.tool`); `driver` a real robot's driver, not a service
-# of smana, which publishes the robot's sensors as the sim and the replay do.
-SENSOR_ROLES = (*services.with_acl("sensor"), "driver")
-OWNERS = (*SENSOR_ROLES, *(r for r in services.with_acl("robot") if r not in SENSOR_ROLES))
+# Who may do what, from the table of services (common/service_table.py: each row's `acl` and
+# `reads`). Roles become zenoh user names `<robot>.<role>`; `router` is a router's login when it
+# links to another (robot -> base); `operator` a human with a joystick on the base, `tool` any
+# external zenoh tool (a robot has its own, `<robot>.tool`); `driver` a real robot's driver, not a
+# service of smana, which publishes the robot's sensors as the sim and the replay do.
+SENSOR_ROLES = (*service_table.with_acl("sensor"), "driver")
+OWNERS = (*SENSOR_ROLES, *(r for r in service_table.with_acl("robot") if r not in SENSOR_ROLES))
 # `ros2peer`: the robot's own ROS 2 nodes over rmw_zenoh (its drivers, RViz2, a Nav2 client).
 ROBOT_ROLES = (*OWNERS, "tool", "router", "ros2peer")  # every robot's identities
-DRIVERS = services.with_acl("drive")  # they publish cmd_vel, claim goals, send explorer goals
+DRIVERS = service_table.with_acl("drive")  # they publish cmd_vel, claim goals, send explorer goals
 # the ros2 service sends the explorer the goals of the Nav2 actions it serves (NavigateToPose)
 GOAL_SENDERS = (*DRIVERS, "ros2")
-BASE_RUNS = services.with_acl("base")  # a robot's, that a base may run
-FLEET_ROLES = services.with_acl("fleet")  # the fleet's, on the base
+BASE_RUNS = service_table.with_acl("base")  # a robot's, that a base may run
+FLEET_ROLES = service_table.with_acl("fleet")  # the fleet's, on the base
 BASE_ROLES = ("operator", "tool", "router")
 SENSOR_TOPICS = ("cloud", "scan", "pose", "pose_truth", "clock", "image/**")
 # The queries that only read, on every namespace: `smana/*/<service>/<query>`. An allow rule
@@ -62,7 +62,7 @@ SENSOR_TOPICS = ("cloud", "scan", "pose", "pose_truth", "clock", "image/**")
 # tested in tests/test_acl_table.py), so `smana/r1/mapper/*` or `smana/**` match none of these,
 # and a query that writes (`mapper/save`, `coordinator/claim/<member>`) is granted by its exact
 # key only. A deny rule would not do: it too applies only to selectors its key includes.
-READ_QUERIES = (*(f"{r.name}/{q}" for r in services.rows() for q in r.reads), "*/status")
+READ_QUERIES = (*(f"{r.name}/{q}" for r in service_table.rows() for q in r.reads), "*/status")
 
 READ = ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"]
 OWN = ["put", "delete", "declare_queryable", "reply"]

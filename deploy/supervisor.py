@@ -44,8 +44,7 @@ import threading
 import time
 from pathlib import Path
 
-from smana.common import keys
-from smana.common import services as service_table
+from smana.common import keys, service_table
 from smana.common.cli import config_from_args, make_parser, setup_logging
 from smana.common.config import ConfigError, ServiceDeployConfig, SmanaConfig
 from smana.common.messages import MessageError, ServiceStatus, decode
@@ -60,7 +59,7 @@ log = logging.getLogger("smana.up")
 
 # Start order follows the data flow, producers first so consumers find their inputs, and the
 # fleet's layout (FLEET_SHARED on the base, FLEET_MEMBER per member): both from the table of
-# services (common/services.py), as everything else that lists services.
+# services (common/service_table.py), as everything else that lists services.
 SERVICE_ORDER = service_table.start_order()
 FLEET_SHARED = service_table.fleet("shared")
 FLEET_MEMBER = service_table.fleet("member")

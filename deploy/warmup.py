@@ -21,15 +21,15 @@ from __future__ import annotations
 import sys
 import time
 
-from smana.common import services
+from smana.common import service_table
 from smana.common.cli import config_file_from_args, run_command
 from smana.common.registry import load_spec
 
-# service -> its Service class, from the table of services (common/services.py, `warm_up`):
+# service -> its Service class, from the table of services (common/service_table.py, `warm_up`):
 # `prepare()` compiles its kernels on a throwaway input (no session, no file of the run). The sim
 # is not among them: its `prepare()` builds a world, and its one kernel (camera labels) compiles in
 # its camera worker on the first frame.
-WARMUPS: dict[str, str] = {r.name: r.service_class for r in services.rows() if r.warm_up}
+WARMUPS: dict[str, str] = {r.name: r.service_class for r in service_table.rows() if r.warm_up}
 
 
 class CompileTimes:

@@ -295,14 +295,14 @@ def _imports_of(tree: ast.AST) -> set[str]:
 def readers(sections: list[str]) -> dict[str, list[str]]:
     """{section: the services that read it}, found in their code (module docstring): each
     service's package, and `smana up` for deploy/ (the supervisor and its report)."""
-    from smana.common import services
+    from smana.common import service_table
 
     wanted = set(sections)
     common = _package_dir("smana.common")
     shared: dict[str, set[str]] = {}  # module of common/ -> sections it reads
     for path in sorted(common.glob("*.py")):
         shared[f"smana.common.{path.stem}"] = _reads(ast.parse(path.read_text()), wanted)
-    places = {r.name: _package_dir(r.module) for r in services.TABLE}
+    places = {r.name: _package_dir(r.module) for r in service_table.TABLE}
     places["`smana up`"] = _package_dir("smana.deploy")
     found: dict[str, set[str]] = {s: set() for s in sections}
     for who, folder in places.items():
@@ -322,7 +322,7 @@ def _cell(text: str) -> str:
 
 
 def config_reference() -> str:
-    from smana.common import services
+    from smana.common import service_table
     from smana.common.config import SmanaConfig
     from smana.common.config.deploy import ServiceDeployConfig
 
@@ -366,7 +366,7 @@ def config_reference() -> str:
             out.append(_cell(doc) + "\n")
         out.append(f"Declared in `{module}` (`{cls.__name__}`). Read by: {_who(who[root])}.\n")
         if where == "deploy.<service>":
-            out.append(_deploy_defaults(services.supervised()))
+            out.append(_deploy_defaults(service_table.supervised()))
         if not keys:
             out.append("(no keys of its own: only the tables below)\n")
             continue
@@ -397,7 +397,7 @@ def _deploy_defaults(rows) -> str:
     plain = ServiceDeployConfig()
     lines = [
         "One table per service `smana up` can start (the table of services, "
-        "`common/services.py`): `[deploy.sim]`, `[deploy.mapper]`, ... Their defaults differ "
+        "`common/service_table.py`): `[deploy.sim]`, `[deploy.mapper]`, ... Their defaults differ "
         "by service:\n",
         "| service | defaults that differ from the table below |",
         "|---|---|",

@@ -1,4 +1,4 @@
-"""The table of services (common/services.py): every list of services derives from it, and a
+"""The table of services (common/service_table.py): every list of services derives from it, and a
 service is a folder plus one row. The toy is tests/support/echo_service.py, declared by a row in a
 plug-in made here (a module and an entry point of group `smana.services`, on PYTHONPATH): with no
 edit to any file of smana, `smana up` starts it and it answers its status query over zenoh, it
@@ -15,14 +15,14 @@ from pathlib import Path
 
 import pytest
 
-from smana.common import keys, services
+from smana.common import keys, service_table
 from smana.common.config import SmanaConfig
 from smana.common.registry import load_spec
 from smana.deploy import security, supervisor, warmup
 from tests.conftest import REPO, free_port, stop_group, wait_for
 
 ROW = """
-from smana.common.services import ServiceRow
+from smana.common.service_table import ServiceRow
 
 ROW = ServiceRow(
     "echo",
@@ -97,7 +97,7 @@ def test_the_lists_that_name_services_are_the_table_s():
         *("explorer/state", "coordinator/claims", "coordinator/stats", "*/status"),
     )
     d = SmanaConfig.load().deploy
-    supervised = [r.name for r in services.supervised()]
+    supervised = [r.name for r in service_table.supervised()]
     assert sorted(supervised) == sorted([*supervisor.SERVICE_ORDER, "recorder"])
     standby = ["sim", "mapper", "navgraph", "planner", "explorer"]
     assert [n for n in supervised if getattr(d, n).standby] == standby
@@ -108,9 +108,9 @@ def test_the_lists_that_name_services_are_the_table_s():
 
 def test_a_row_with_a_value_outside_its_column_is_refused():
     with pytest.raises(ValueError, match="bad name, up, fleet or acl"):
-        services.ServiceRow("echo", "x", fleet=("everywhere",))
+        service_table.ServiceRow("echo", "x", fleet=("everywhere",))
     with pytest.raises(ValueError, match="bad name, up, fleet or acl"):
-        services.ServiceRow("no/slash", "x")
+        service_table.ServiceRow("no/slash", "x")
 
 
 def test_a_plugin_row_is_in_the_acl_the_help_and_the_config(tmp_path):

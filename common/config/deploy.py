@@ -1,5 +1,5 @@
 """[deploy] config section: how `smana up` runs the stack, and one `[deploy.<service>]` table per
-service it can start, made from the table of services (common/services.py: each row's `deploy`
+service it can start, made from the table of services (common/service_table.py: each row's `deploy`
 defaults), so a plug-in's service gets its table with no edit here."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Literal
 
-from smana.common import services
+from smana.common import service_table
 from smana.common.config.section import ConfigError, Section, param
 
 RestartPolicy = Literal["never", "on-failure", "always"]
@@ -75,7 +75,7 @@ def _policy(defaults: dict):
 # [deploy] with a ServiceDeployConfig field per service `smana up` can start, in table order.
 DeployConfig = dataclasses.make_dataclass(
     "DeployConfig",
-    [(r.name, ServiceDeployConfig, _policy(r.deploy)) for r in services.supervised()],
+    [(r.name, ServiceDeployConfig, _policy(r.deploy)) for r in service_table.supervised()],
     bases=(_DeployBase,),
     namespace={
         "__doc__": "[deploy]: the supervisor's settings and each service's policy.",
