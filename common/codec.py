@@ -1,6 +1,6 @@
 """The validating codec of every message: msgpack on the wire, JSON for queries typed by hand.
 
-Decoding checks every field against its schema (`schema.py`) and raises one error type,
+Decoding checks every field against its schema (`message_schema.py`) and raises one error type,
 `MessageError`, whose `kind` names what was wrong; nothing a remote peer sends can crash it.
 Code imports it from `smana.common.messages`.
 """
@@ -17,7 +17,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from smana.common.schema import (
+from smana.common.message_schema import (
     INT_LIMIT,
     MAX_PAYLOAD_BYTES,
     REGISTRY,

@@ -9,8 +9,8 @@ Decoded arrays are read-only views of the payload (no copy); copy before modifyi
 Decoding validates everything and raises one error type, `MessageError`, whose `kind` names what was
 wrong (services count errors by kind). Nothing a remote peer sends can crash a decoder.
 
-This module holds the schemas; the base class, field kinds and bounds are in `schema.py`, the codec
-in `codec.py`. Import all of it from here.
+This module holds the schemas; the base class, field kinds and bounds are in `message_schema.py`,
+the codec in `codec.py`. Import all of it from here.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from typing import ClassVar
 import numpy as np
 
 from smana.common.codec import decode, encode, from_dict, from_json, json_default, to_json
-from smana.common.schema import (
+from smana.common.message_schema import (
     COORD_LIMIT_M,
     ERROR_KINDS,
     INT_LIMIT,
@@ -38,7 +38,7 @@ from smana.common.schema import (
     scalar,
 )
 
-# The message API, whichever module holds each part: the base and bounds (schema.py), the
+# The message API, whichever module holds each part: the base and bounds (message_schema.py), the
 # schemas (here), the codec (codec.py).
 __all__ = [
     "COORD_LIMIT_M",
