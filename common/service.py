@@ -45,7 +45,7 @@ state in `warm_up()`, declares its inputs and outputs in `setup()` and does its 
   else would end it.
 
 The class is put together by job: this module holds the lifecycle (run, the main loop, standby,
-kernels, stop and its watchdog); `service_books.py` the inputs, outputs and books (`Inbox`);
+kernels, stop and its watchdog); `service_io.py` the inputs, outputs and books (`Inbox`);
 `service_queries.py` queries and their replies (`Answers`); `service_liveliness.py` the status
 and its heartbeat (`Liveliness`). Services import all of it from here.
 
@@ -72,7 +72,7 @@ from typing import Any
 from smana.common import keys
 from smana.common.config import SmanaConfig
 from smana.common.messages import MAX_PAYLOAD_BYTES
-from smana.common.service_books import Books, Inbox, LatestSlot
+from smana.common.service_io import Books, Inbox, LatestSlot
 from smana.common.service_liveliness import Liveliness, kernels_loaded
 from smana.common.service_queries import (
     Answers,
