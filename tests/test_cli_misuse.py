@@ -398,7 +398,7 @@ def test_eval_of_a_run_without_a_simulator_needs_gt(tmp_path):
     import numpy as np
 
     from smana.common.config import SmanaConfig
-    from smana.services.mapper.ply import write_ply
+    from smana.services.mapper.voxel_ply import write_ply
 
     run = tmp_path / "run"
     SmanaConfig.load(None, ["deploy.sim.enabled=false"]).write(run / "config.toml")

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from smana.lab import evaluation as ev
-from smana.services.mapper.ply import write_ply
-from smana.services.sim.ply import write_labelled_ply
+from smana.services.mapper.voxel_ply import write_ply
+from smana.services.sim.labelled_ply import write_labelled_ply
 
 NAMES = {1: "grass", 2: "terrain", 4: "hedge"}
 

@@ -10,7 +10,7 @@ import pytest
 from smana.common.config import SmanaConfig
 from smana.deploy import report
 from smana.lab.evaluation import world_from_config
-from smana.services.mapper.ply import write_ply
+from smana.services.mapper.voxel_ply import write_ply
 
 
 @pytest.fixture

@@ -8,8 +8,8 @@ import pytest
 
 from smana.common.classes import ClassTable
 from smana.services.mapper.backends import BACKENDS
-from smana.services.mapper.ply import read_ply
 from smana.services.mapper.semantic_map import SemanticMap
+from smana.services.mapper.voxel_ply import read_ply
 
 
 def cloud(seed, n=800):

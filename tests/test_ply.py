@@ -1,4 +1,5 @@
-"""common/ply.py: the one PLY writer and reader behind the map, ground-truth and scan files."""
+"""common/ply_files.py: the one PLY writer and reader behind the map, ground-truth and scan
+files."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from smana.common.ply import PlyError, PlyHeader, read_ply, write_ply
+from smana.common.ply_files import PlyError, PlyHeader, read_ply, write_ply
 
 # the property types Open3D 0.18-0.20 keeps (`open3d.t.io.read_point_cloud` skips short, ushort and
 # uint with a warning; checked by hand with open3d 0.20.0, see docs/architecture.md)

@@ -85,9 +85,9 @@ def test_ply_and_npz_without_labels(tmp_path):
     ply_dir, npz_dir = tmp_path / "ply", tmp_path / "npz"
     ply_dir.mkdir()
     npz_dir.mkdir()
-    from smana.common import ply
+    from smana.common import ply_files
 
-    ply.write_ply(ply_dir / "0.ply", {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]})
+    ply_files.write_ply(ply_dir / "0.ply", {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2]})
     (ply_dir / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
     np.savez(npz_dir / "0.npz", points=pts, pose=np.eye(4))
     for folder in (ply_dir, npz_dir):

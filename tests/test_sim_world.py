@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from smana.services.sim.ply import PlyError, read_labelled_ply, write_labelled_ply
+from smana.services.sim.labelled_ply import PlyError, read_labelled_ply, write_labelled_ply
 from smana.services.sim.world_cli import cli as world_cli
 from smana.services.sim.worlds import BOX, SPHERE, GroundModel, Primitive, World, WorldError
 from smana.services.sim.worlds.cloud import from_cloud, from_ply

@@ -15,7 +15,7 @@ from smana.common import keys
 from smana.common.config.sim import CameraConfig, SimConfig
 from smana.common.messages import SemanticCloud, decode
 from smana.services.sim import worlds
-from smana.services.sim.ply import write_labelled_ply
+from smana.services.sim.labelled_ply import write_labelled_ply
 from smana.services.sim.simulation import Simulation
 from smana.services.sim.world_cli import cli as world_cli
 from smana.services.sim.worlds import BOX, Primitive, WorldError, build_world, world_source

@@ -465,7 +465,7 @@ def load_labelled_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
         m = SemanticMap.load(path)
         d = m.occupied_voxels()
         return np.asarray(d.centres, np.float64), np.asarray(d.labels)
-    from smana.services.sim.ply import read_labelled_ply
+    from smana.services.sim.labelled_ply import read_labelled_ply
 
     return read_labelled_ply(path)
 

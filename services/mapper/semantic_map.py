@@ -27,7 +27,7 @@ import numpy as np
 
 from smana.common.classes import ClassTable
 from smana.common.config.mapper import MapperConfig
-from smana.services.mapper import mapfile, ply
+from smana.services.mapper import mapfile, voxel_ply
 from smana.services.mapper.backends import backend_class
 from smana.services.mapper.block_grid import KEY_LIMIT
 from smana.services.mapper.delta import Delta
@@ -436,5 +436,5 @@ class SemanticMap:
         colours = np.full((len(rows), 3), 255, np.uint8)
         inside = labels < lut.shape[0]
         colours[inside] = lut[labels[inside]]
-        ply.write_ply(path, rows.centres, colours, rows.labels, rows.confidences)
+        voxel_ply.write_ply(path, rows.centres, colours, rows.labels, rows.confidences)
         return len(rows)

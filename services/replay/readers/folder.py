@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from smana.common import ply
+from smana.common import ply_files
 from smana.common.messages import quat_to_matrix
 
 from .base import (
@@ -38,7 +38,7 @@ def write_ply(path: Path, points, labels, confidences=None, binary: bool = True)
     columns = {"x": points[:, 0], "y": points[:, 1], "z": points[:, 2], "label": np.asarray(labels)}
     if confidences is not None:
         columns["confidence"] = np.asarray(confidences, np.float32)
-    ply.write_ply(path, columns, binary=binary)
+    ply_files.write_ply(path, columns, binary=binary)
 
 
 def _npz_shapes(path: Path) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
@@ -140,8 +140,8 @@ class FolderReader(DatasetReader):
     def _problem(self, f: Path, has_pose: bool) -> str | None:
         if f.suffix == ".ply":
             try:
-                why = ply.PlyHeader(f).problem(self.label_field)
-            except ply.PlyError as exc:
+                why = ply_files.PlyHeader(f).problem(self.label_field)
+            except ply_files.PlyError as exc:
                 return exc.problem
             if why and self.label_field is not None and repr(self.label_field) in why:
                 why = f"{why}; {NO_LABELS_HINT}"
@@ -187,8 +187,8 @@ class FolderReader(DatasetReader):
         conf = None
         if f.suffix == ".ply":
             try:
-                v = ply.PlyHeader(f).read()
-            except ply.PlyError as exc:
+                v = ply_files.PlyHeader(f).read()
+            except ply_files.PlyError as exc:
                 raise DatasetError(f, exc.problem) from None
             points = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
             labels = None if self.label_field is None else v[self.label_field].astype(np.int64)

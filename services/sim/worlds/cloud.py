@@ -18,7 +18,7 @@ from scipy import ndimage
 from smana.common.classes import ClassTable
 from smana.common.config import ConfigError, SimConfig
 
-from ..ply import read_labelled_ply
+from ..labelled_ply import read_labelled_ply
 from .base import WorldError, WorldSource
 from .ground import GroundModel
 from .objects import WorldObject, walls

@@ -26,7 +26,7 @@ import numpy as np
 
 from smana.common.classes import ClassTable
 
-from ..ply import write_labelled_ply
+from ..labelled_ply import write_labelled_ply
 from .base import WorldError
 from .ground import GroundModel, Raster
 from .objects import TERRAIN, WorldObject
