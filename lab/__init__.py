@@ -2,7 +2,7 @@
 
     evaluation.py    `smana eval map` (its measures are deploy/report/ground_truth.py's)
     experiments.py   the paper's experiments (`smana experiment noise|exploration`)
-    plots.py         the paper's figures, beside the product's (common/figures.py, re-exported)
+    paper_figures.py the paper's figures, beside the product's (common/plotting.py, re-exported)
     fuzz.py          the message fuzzer (`smana bench fuzz`, tests/test_fuzz_*.py)
     bench/           `smana bench <name>`: one module per benchmark, each beside its peer
     commands.py      its `smana` commands (bench, eval, experiment), declared to deploy/cli.py
@@ -11,5 +11,5 @@
 
 It imports the product (services/*, common/, deploy/); the product never imports it: a run's
 report is the product's (deploy/report/), and so are the figures a run or `smana world preview`
-draws (common/figures.py).
+draws (common/plotting.py).
 """

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from smana.common.classes import ClassTable
-from smana.lab import plots
+from smana.lab import paper_figures
 
 TABLE = ClassTable.from_dict(
     {
@@ -28,20 +28,20 @@ TABLE = ClassTable.from_dict(
 
 @pytest.fixture
 def saved(monkeypatch):
-    """Every figure handed to `plots.save` (the lab's or the product's, common/figures.py):
-    (path, figure), in order."""
-    from smana.common import figures
+    """Every figure handed to `paper_figures.save` (the lab's or the product's,
+    common/plotting.py): (path, figure), in order."""
+    from smana.common import plotting
 
     record: list[tuple[Path, object]] = []
-    real = plots.save
+    real = paper_figures.save
 
     def recording(fig, path, *args, **kwargs):
         out = real(fig, path, *args, **kwargs)  # refuses first, records only what was written
         record.append((Path(out), fig))
         return out
 
-    monkeypatch.setattr(plots, "save", recording)
-    monkeypatch.setattr(figures, "save", recording)
+    monkeypatch.setattr(paper_figures, "save", recording)
+    monkeypatch.setattr(plotting, "save", recording)
     return record
 
 
@@ -50,24 +50,27 @@ def _legend_texts(fig) -> list[str]:
 
 
 def test_save_refuses_a_figure_without_a_legend(tmp_path):
-    fig = plots._figure()
+    fig = paper_figures.new_figure()
     ax = fig.add_subplot()
     ax.plot([0, 1], [0, 1], label="a line")
     ax.set_title("no key")
-    with pytest.raises(plots.PlotError, match="no legend"):
-        plots.save(fig, tmp_path / "x.png")
+    with pytest.raises(paper_figures.PlotError, match="no legend"):
+        paper_figures.save(fig, tmp_path / "x.png")
     assert not (tmp_path / "x.png").exists()
     ax.legend()
-    assert plots.save(fig, tmp_path / "x.png").stat().st_size > 1000
-    with pytest.raises(plots.PlotError, match="not an image type"):
-        plots.save(fig, tmp_path / "x.nope")
+    assert paper_figures.save(fig, tmp_path / "x.png").stat().st_size > 1000
+    with pytest.raises(paper_figures.PlotError, match="not an image type"):
+        paper_figures.save(fig, tmp_path / "x.nope")
 
 
 def test_importing_the_module_does_not_load_matplotlib():
     import subprocess
     import sys
 
-    code = "import sys, smana.lab.plots, smana.deploy.report; print('matplotlib' in sys.modules)"
+    code = (
+        "import sys, smana.lab.paper_figures, smana.deploy.report; "
+        "print('matplotlib' in sys.modules)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
@@ -77,7 +80,9 @@ def test_world_map_uses_the_class_tables_colours_and_names(tmp_path):
     ids[:, :] = 1
     ids[5:15, 5:15] = 3  # a boulder in the south-west
     traj = np.array([[0.5, 0.5], [2.0, 1.0], [3.0, 2.5]])
-    fig = plots.world_map(TABLE, ids, (0.05, 0.05), 0.1, "toy", trajectory=traj, goals=traj[1:])
+    fig = paper_figures.world_map(
+        TABLE, ids, (0.05, 0.05), 0.1, "toy", trajectory=traj, goals=traj[1:]
+    )
     texts = _legend_texts(fig)
     assert {"moss", "boulder", "trajectory", "start", "goals (n = 2)"} <= set(texts)
     assert "unknown" not in texts  # only the classes the map shows
@@ -90,7 +95,7 @@ def test_world_map_uses_the_class_tables_colours_and_names(tmp_path):
     assert ax.get_aspect() == 1.0
     assert ax.get_xlim() == pytest.approx((0.0, 4.0)) and ax.get_ylim() == pytest.approx((0.0, 3.0))
     # the pixels are the table's colours too (BGR as OpenCV reads them)
-    img = cv2.imread(str(plots.save(fig, tmp_path / "m.png")))
+    img = cv2.imread(str(paper_figures.save(fig, tmp_path / "m.png")))
     for rgb in ((10, 20, 200), (250, 240, 5)):
         assert np.any(np.all(img == rgb[::-1], axis=2)), rgb
 
@@ -102,7 +107,7 @@ def test_graph_map_labels_unknown_obstacle_safety_zone_and_frontier():
     flags[4, 4] = 1 | 2
     flags[3:6, 3:6] |= 4
     flags[4, 4] = 1 | 2
-    fig = plots.graph_map(TABLE, labels, flags, (0.0, 0.0), 0.2, "graph")
+    fig = paper_figures.graph_map(TABLE, labels, flags, (0.0, 0.0), 0.2, "graph")
     texts = _legend_texts(fig)
     assert {"moss", "unknown", "obstacle", "safety zone", "frontier"} <= set(texts)
     assert "doubtful" not in texts  # none in this graph
@@ -112,20 +117,20 @@ def test_graph_map_shows_doubtful_nodes_in_their_own_colour():
     labels = np.ones((20, 20), np.uint16)
     flags = np.ones((20, 20), np.uint8)  # all known: no frontier
     flags[8, 8] = 1 | 8  # a doubtful node in the middle of the lawn
-    fig = plots.graph_map(TABLE, labels, flags, (0.0, 0.0), 0.2, "graph")
+    fig = paper_figures.graph_map(TABLE, labels, flags, (0.0, 0.0), 0.2, "graph")
     assert "doubtful" in _legend_texts(fig)
     img = fig.axes[0].get_images()[0].get_array()
-    want = plots.OVERLAY["doubtful"]
+    want = paper_figures.OVERLAY["doubtful"]
     np.testing.assert_allclose(np.asarray(img[8, 8])[:3], want, atol=0.02)
     assert not np.allclose(np.asarray(img[2, 2])[:3], want, atol=0.02)
 
 
 def test_equal_series_stay_visible():
     same = [0.1, 0.2, 0.3]
-    fig = plots.line_plot(
+    fig = paper_figures.line_plot(
         [
-            plots.Series("octree-bayes", [0, 1, 2], same),
-            plots.Series("octree-max", [0, 1, 2], same),
+            paper_figures.Series("octree-bayes", [0, 1, 2], same),
+            paper_figures.Series("octree-max", [0, 1, 2], same),
         ],
         "t",
         "level",
@@ -137,7 +142,9 @@ def test_equal_series_stay_visible():
 
 
 def test_progress_has_two_panels_in_robot_time():
-    fig = plots.progress_plot(np.array([0.0, 5, 9]), np.array([1.0, 9, 18]), np.array([0, 2, 4.0]))
+    fig = paper_figures.progress_plot(
+        np.array([0.0, 5, 9]), np.array([1.0, 9, 18]), np.array([0, 2, 4.0])
+    )
     top, bottom = fig.axes
     assert top.get_ylabel() == "explored area (m²)" and bottom.get_ylabel() == "distance (m)"
     assert "robot time (s)" in bottom.get_xlabel()
@@ -146,8 +153,8 @@ def test_progress_has_two_panels_in_robot_time():
 
 def test_the_reports_pngs_all_go_through_the_module(tmp_path, saved):
     from smana.common.config import SmanaConfig
-    from smana.deploy.report.figures import run_plots
     from smana.deploy.report.ground_truth import world_from_config
+    from smana.deploy.report.run_plots import run_plots
 
     cfg = SmanaConfig.load(None, ["sim.garden.size_m=5.0", "sim.seed=3"])
     world = world_from_config(cfg)
@@ -290,8 +297,8 @@ def test_replay_bench_figures_and_world_preview(tmp_path, saved):
         r.rss_map_mb, r.rss_graph_mb = 300.0, 50.0
         runs.append(r)
     rows = aggregate(runs)
-    plots.figure_11(rows, tmp_path / "f11.png")
-    plots.figure_12(rows, tmp_path / "f12.png")
+    paper_figures.figure_11(rows, tmp_path / "f11.png")
+    paper_figures.figure_12(rows, tmp_path / "f12.png")
     assert (
         world_cli(["preview", "--seed", "2", "--size", "5", "--out", str(tmp_path / "w.png")]) == 0
     )
@@ -313,12 +320,12 @@ def test_a_shares_band_is_cut_to_0_1_and_the_legend_says_so():
     x = np.arange(3.0)
     mean = np.array([0.5, 0.9, 0.98])
     lo, hi = mean - 0.2, mean + 0.2  # 1.18 at the end: no share is above 1
-    fig = plots.band_plot(
+    fig = paper_figures.band_plot(
         [("1 robot (n = 3)", x, mean, lo, hi)], "t", "x", "y", "mean", clip=(0, 1)
     )
     ax = fig.axes[0]
     band = ax.collections[0].get_paths()[0].vertices
     assert band[:, 1].max() <= 1.0 and band[:, 1].min() >= 0.0
     assert ax.get_legend().get_title().get_text() == "mean, cut to [0, 1]"
-    unclipped = plots.band_plot([("a", x, mean, lo, hi)], "t", "x", "y", "mean").axes[0]
+    unclipped = paper_figures.band_plot([("a", x, mean, lo, hi)], "t", "x", "y", "mean").axes[0]
     assert unclipped.collections[0].get_paths()[0].vertices[:, 1].max() > 1.1

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from smana.lab.bench.replay import RunResult, aggregate, match_patches, table_markdown
-from smana.lab.plots import figure_11, figure_12
+from smana.lab.paper_figures import figure_11, figure_12
 
 
 def test_patches_are_matched_by_stamp():

@@ -14,7 +14,7 @@ from smana.common.navgrid import FLAG_OBSTACLE, FLAG_SAFETY_ZONE
 from smana.common.risk import forbidden_probability, risk_class_costs
 from smana.lab.experiments import cli
 from smana.lab.experiments import risk as rk
-from smana.lab.plots import risk_map_figure
+from smana.lab.paper_figures import risk_map_figure
 
 N, PAIRS = 60, 6  # the quick form's map and pairs: a test-sized world
 

@@ -26,8 +26,8 @@ Also a command: `python -m smana.deploy.report RUN_DIR` re-writes the report of 
 
 The package is the product's (no import of `smana.lab`): `measures` (one robot's figures),
 `ground_truth` (the paper's measures against the simulated world), `fleet`, `checks` (the
-warnings), `render` (report.md and the terminal summary), `figures` (plots/, through
-common/figures.py), `write` (`write_report`) and `finish` (the end of `smana up` and
+warnings), `render` (report.md and the terminal summary), `run_plots` (plots/, through
+common/plotting.py), `write` (`write_report`) and `finish` (the end of `smana up` and
 `smana replay --run`: the report, the summary, the exit status).
 """
 
@@ -46,7 +46,7 @@ _WHERE = {
     "MOVED_M": "measures",
     "NO_SIMULATOR": "measures",
     "OUTCOME_WARNINGS": "checks",
-    "PLOT_FILES": "figures",
+    "PLOT_FILES": "run_plots",
     "RECORDED_POSES": "measures",
     "REPLAY_TRAJECTORY": "measures",
     "SIM_SUMMARY": "measures",

@@ -16,7 +16,6 @@ from smana.common.messages import json_default
 from smana.common.version import smana_version
 from smana.deploy.report import ground_truth as ev
 from smana.deploy.report.checks import fleet_warnings, run_warnings
-from smana.deploy.report.figures import fleet_plots, run_plots
 from smana.deploy.report.fleet import fleet_exploration, fleet_graph, fleet_metrics
 from smana.deploy.report.measures import (
     NO_SIMULATOR,
@@ -31,6 +30,7 @@ from smana.deploy.report.measures import (
     replay_metrics,
 )
 from smana.deploy.report.render import render_markdown
+from smana.deploy.report.run_plots import fleet_plots, run_plots
 
 log = logging.getLogger("smana.report")
 

@@ -602,7 +602,7 @@ def main(args: argparse.Namespace) -> int:
             default=float,
         )
     )
-    from smana.lab.plots import figure_11, figure_12
+    from smana.lab.paper_figures import figure_11, figure_12
 
     figure_11(rows, out / "fig11_cpu_ram.png")
     figure_12(rows, out / "fig12_time_per_point.png")

@@ -12,7 +12,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from smana.lab import plots
+from smana.lab import paper_figures
 
 from . import exploration as ex
 
@@ -131,10 +131,10 @@ def write_ablation_outputs(
         if all(c.defined for c in cis):
             err = ([scale * (c.mean - c.lo) for c in cis], [scale * (c.hi - c.mean) for c in cis])
         ys = [None if c.n == 0 else scale * c.mean for c in cis]
-        series.append(plots.Series(label, list(range(len(weights))), ys, err))
+        series.append(paper_figures.Series(label, list(range(len(weights))), ys, err))
     ns = sorted({ex._interval(d["terrain_share"]).n for d in summary})
-    path = plots.save(
-        plots.line_plot(
+    path = paper_figures.save(
+        paper_figures.line_plot(
             series,
             f"NBV path-cost weight ablation (grass x{summary[0]['grass_cost_factor']:g})",
             f"{ex.WEIGHT_KEY}",

@@ -46,7 +46,7 @@ import numpy as np
 
 from smana.common import progress
 from smana.common.zenoh_config import free_loopback_port
-from smana.lab import plots, stats, survival
+from smana.lab import paper_figures, stats, survival
 
 PAPER_TERRAIN_SHARE = {1.0: 0.60, 2.0: 0.70, 4.0: 0.88}  # grass cost factor -> terrain share
 TERRAIN_SHARE_TOLERANCE = 0.10  # "within 10 points of the paper"
@@ -874,17 +874,19 @@ def _figures(rows: list[dict], out: Path) -> list[Path]:
         if all(c.defined for c in cis):
             err = ([c.mean - c.lo for c in cis], [c.hi - c.mean for c in cis])
         label = f"smana NBV, mean and 95 % CI ({n_text})" if err else f"smana NBV ({n_text})"
-        series = [plots.Series(label, factors, [c.mean for c in cis], err)]
+        series = [paper_figures.Series(label, factors, [c.mean for c in cis], err)]
         paper = [(f, v) for f, v in PAPER_TERRAIN_SHARE.items() if f in factors]
         if paper:
             series.append(
-                plots.Series("paper", [f for f, _ in paper], [v for _, v in paper], dashed=True)
+                paper_figures.Series(
+                    "paper", [f for f, _ in paper], [v for _, v in paper], dashed=True
+                )
             )
         base = [r for r in rows if r["strategy"] == "nearest_frontier" and r["ok"]]
         if base:
             ci = _ci(base, "terrain_share")
             series.append(
-                plots.Series(
+                paper_figures.Series(
                     f"nearest frontier (n = {ci.n})",
                     [base[0]["grass_cost_factor"]],
                     [ci.mean],
@@ -892,8 +894,8 @@ def _figures(rows: list[dict], out: Path) -> list[Path]:
                 )
             )
         saved.append(
-            plots.save(
-                plots.line_plot(
+            paper_figures.save(
+                paper_figures.line_plot(
                     series,
                     f"Travelled nodes on terrain vs grass cost ({n_text})",
                     "grass cost factor (x terrain's cost)",
@@ -925,8 +927,8 @@ def _figures(rows: list[dict], out: Path) -> list[Path]:
                 curves.append((f"{label} (n = {n})", *c))
         if curves:
             saved.append(
-                plots.save(
-                    plots.band_plot(
+                paper_figures.save(
+                    paper_figures.band_plot(
                         curves,
                         f"Coverage of the reachable traversable area vs {xlabel.split(' (')[0]}",
                         xlabel,

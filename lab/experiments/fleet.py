@@ -54,7 +54,7 @@ from pathlib import Path
 
 from smana.common import progress
 from smana.common.zenoh_config import free_loopback_port
-from smana.lab import plots, stats, survival
+from smana.lab import paper_figures, stats, survival
 
 from . import exploration as ex
 
@@ -785,8 +785,8 @@ def _figures(rows: list[dict], out: Path) -> list[Path]:
         if curves:
             size = next(r["size_m"] for r in rows if r["world"] == world)
             saved.append(
-                plots.save(
-                    plots.band_plot(
+                paper_figures.save(
+                    paper_figures.band_plot(
                         curves,
                         f"Coverage vs robot time, {size:g} m garden",
                         "robot time (s)",

@@ -53,7 +53,7 @@ import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from smana.lab import plots, stats
+from smana.lab import paper_figures, stats
 
 from . import exploration as ex
 from .noise import POSE_NOISE
@@ -384,7 +384,7 @@ def _figure(rows: list[dict], out: Path) -> Path | None:
         ys = [None if c.n == 0 else c.mean for c in cis]
         err = [c.share_error_bars() for c in cis]
         series.append(
-            plots.Series(
+            paper_figures.Series(
                 f"{b} (n = {'-'.join(sorted({str(c.n) for c in cis}))})",
                 xs,
                 ys,
@@ -393,8 +393,8 @@ def _figure(rows: list[dict], out: Path) -> Path | None:
         )
     if not series:
         return None
-    return plots.save(
-        plots.line_plot(
+    return paper_figures.save(
+        paper_figures.line_plot(
             series,
             f"True terrain share of the path, NBV at grass x{GRASS_COST_FACTOR:g}",
             "perception",

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 
 from smana.common import progress
 from smana.lab import evaluation as ev
-from smana.lab import plots, stats
+from smana.lab import paper_figures, stats
 from smana.services.mapper.backends import BACKENDS as _REGISTRY
 
 BACKENDS = tuple(_REGISTRY)  # the mapper's registry: every back-end it knows
@@ -711,7 +711,7 @@ def _noise_figures(rows, agg, out: Path) -> None:
             err = None
             if all(v is not None for v in lo + hi):
                 err = ([m - v for m, v in zip(y, lo)], [v - m for m, v in zip(y, hi)])
-            out_s.append(plots.Series(b, [LEVELS.index(a["level"]) for a in sel], y, err))
+            out_s.append(paper_figures.Series(b, [LEVELS.index(a["level"]) for a in sel], y, err))
         return out_s
 
     def ticks(sweep):
@@ -729,8 +729,8 @@ def _noise_figures(rows, agg, out: Path) -> None:
     for sweep, key, name, what, xlabel, ylabel in figures:
         fig_no = "Fig. 6" if sweep == "pose" else "Fig. 7"
         kind = "localisation" if sweep == "pose" else "label"
-        plots.save(
-            plots.line_plot(
+        paper_figures.save(
+            paper_figures.line_plot(
                 series(sweep, key),
                 f"{what} vs {kind} noise ({fig_no})",
                 xlabel,

@@ -273,7 +273,7 @@ def figure_case(seed: int, n: int, n_pairs: int) -> dict:
 
 def figure_main(args) -> int:
     """`--figure PATH`: the figure of the first seed, written to PATH; no experiment, no --out."""
-    from smana.lab.plots import risk_map_figure, save_palette
+    from smana.lab.paper_figures import risk_map_figure, save_palette
 
     seed = FIRST_SEED
     n = args.nodes or 150

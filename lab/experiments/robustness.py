@@ -52,7 +52,7 @@ import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from smana.lab import plots, stats
+from smana.lab import paper_figures, stats
 
 from . import exploration as ex
 
@@ -487,7 +487,7 @@ def figure(rows: list[dict], path: Path) -> Path | None:
         err = [c.share_error_bars() for c in cis]
         ns = "-".join(sorted({str(c.n) for c in cis}))
         series.append(
-            plots.Series(
+            paper_figures.Series(
                 f"{backend} (n = {ns} seed{'s' * (ns != '1')})",
                 [float(order.index(d["perception"])) for d in arms],
                 [None if c.n == 0 else c.mean for c in cis],
@@ -500,7 +500,7 @@ def figure(rows: list[dict], path: Path) -> Path | None:
         levels = [lv for lv in TARGETS if any(d["perception"] == lv for d in summary)]
         if levels:
             series.append(
-                plots.Series(
+                paper_figures.Series(
                     "target: 90 % (high), 80 % (realistic) of noise-free",
                     [float(order.index(lv)) for lv in levels],
                     [TARGETS[lv] * m for lv in levels],
@@ -509,8 +509,8 @@ def figure(rows: list[dict], path: Path) -> Path | None:
             )
     if not series:
         return None
-    return plots.save(
-        plots.line_plot(
+    return paper_figures.save(
+        paper_figures.line_plot(
             series,
             "Usable coverage under perception noise",
             "perception",

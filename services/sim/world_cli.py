@@ -96,10 +96,10 @@ def world_from_args(args: argparse.Namespace) -> World:
 
 
 def write_preview(world: World, out: Path, pixels: int, seed: int | None = None) -> Path:
-    """The world from above in metres, hill-shaded, its classes in a legend (common/figures.py
+    """The world from above in metres, hill-shaded, its classes in a legend (common/plotting.py
     draws the product's figures; imported here, lazily, so the other subcommands never load
     matplotlib)."""
-    from smana.common import figures as plots
+    from smana.common import plotting
 
     from .worlds.preview import shaded_classes
 
@@ -111,11 +111,11 @@ def write_preview(world: World, out: Path, pixels: int, seed: int | None = None)
     title = f"world preview (hill-shaded): {hi[0] - lo[0]:.1f} x {hi[1] - lo[1]:.1f} m" + (
         f", seed {seed}" if seed is not None else ""
     )
-    fig = plots.world_map(
+    fig = plotting.world_map(
         world.classes, top.data, top.origin_xy, top.resolution_m, title, shaded_classes(world)
     )
     width_in = fig.get_size_inches()[0]
-    return plots.save(fig, out, dpi=max(20, round(pixels / width_in)))
+    return plotting.save(fig, out, dpi=max(20, round(pixels / width_in)))
 
 
 def cli(argv: list[str] | None = None) -> int:

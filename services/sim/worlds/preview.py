@@ -1,5 +1,5 @@
 """A top-down picture of a world: the class seen from above, hill-shaded so objects read as
-raised (`smana world preview` draws it, with axes and a legend, through common/figures.py)."""
+raised (`smana world preview` draws it, with axes and a legend, through common/plotting.py)."""
 
 from __future__ import annotations
 
