@@ -3,7 +3,7 @@
     evaluation.py    `smana eval map` (its measures are deploy/report/ground_truth.py's)
     experiments.py   the paper's experiments (`smana experiment noise|exploration`)
     paper_figures.py the paper's figures, beside the product's (common/plotting.py, re-exported)
-    fuzz.py          the message fuzzer (`smana bench fuzz`, tests/test_fuzz_*.py)
+    fuzz_messages.py the message fuzzer (`smana bench fuzz`, tests/test_fuzz_*.py)
     bench/           `smana bench <name>`: one module per benchmark, each beside its peer
     commands.py      its `smana` commands (bench, eval, experiment), declared to deploy/cli.py
                      through the entry-point group `smana.commands` (pyproject.toml)

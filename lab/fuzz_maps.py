@@ -1,9 +1,9 @@
 """Structured fuzzing inputs for map files (`.npz`, issue 25): valid maps of every back-end and
 format, and corrupt ones, for `SemanticMap.load` and `FleetMap.load`.
 
-Like `lab/fuzz.py` the generators take a `Draw` (a seeded `RandomDraw` in `smana bench fuzz`, a
-hypothesis `data` object in the suite). A mutant starts from a valid base file (`bases()`: the
-three back-ends, a fleet map, a format-1 file and a TSDF file with float log-probabilities) and
+Like `lab/fuzz_messages.py` the generators take a `Draw` (a seeded `RandomDraw` in `smana bench
+fuzz`, a hypothesis `data` object in the suite). A mutant starts from a valid base file (`bases()`:
+the three back-ends, a fleet map, a format-1 file and a TSDF file with float log-probabilities) and
 does one thing to it (`MAP_MUTATIONS`):
 
 - `valid`: nothing (it must load, bit for bit);
@@ -16,8 +16,9 @@ does one thing to it (`MAP_MUTATIONS`):
   a structured or object dtype, a header longer than its member, an unknown `.npy` version;
 - `keys`: block keys duplicated, negative, out of the key range, or floats;
 - `values`: NaN, inf or out-of-range numbers in a column (probabilities, confidences, weights);
-- `meta`: one metadata key missing, unknown, or set to a wild value (`lab.fuzz.WILD_SCALARS`,
-  1e308, 10**400, module:Class back-ends, paths as class tables, ...);
+- `meta`: one metadata key missing, unknown, or set to a wild value
+  (`lab.fuzz_messages.WILD_SCALARS`, 1e308, 10**400, module:Class back-ends, paths as class
+  tables, ...);
 - `meta_json`: the metadata's JSON broken: invalid UTF-8, NaN tokens, deep nesting, not an
   object, cut short, 1e400, another dtype or shape;
 - `members`: an array missing, one unknown, a name twice in the zip, a non-`.npy` member, a
@@ -45,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from smana.lab.fuzz import WILD_SCALARS, Draw
+from smana.lab.fuzz_messages import WILD_SCALARS, Draw
 
 MAP_MUTATIONS = (
     "valid",

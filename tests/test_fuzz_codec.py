@@ -1,7 +1,8 @@
-"""In-process fuzz of the codec (issue 11): hypothesis drives the generators of `lab/fuzz.py`
-over every message type, in msgpack and JSON. Whatever the payload, `decode` and `from_json` raise
-nothing but `MessageError`; a naive second statement of the schemas (`support/schema_oracle.py`)
-says which error kinds a payload deserves, and checks every message the codec lets through."""
+"""In-process fuzz of the codec (issue 11): hypothesis drives the generators of
+`lab/fuzz_messages.py` over every message type, in msgpack and JSON. Whatever the payload, `decode`
+and `from_json` raise nothing but `MessageError`; a naive second statement of the schemas
+(`support/schema_oracle.py`) says which error kinds a payload deserves, and checks every message the
+codec lets through."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from hypothesis import strategies as st
 
 from smana.common import messages as m
 from smana.common.messages import MessageError, decode, encode, from_json
-from smana.lab import fuzz
+from smana.lab import fuzz_messages as fuzz
 from tests.support import schema_oracle as oracle
 
 # Small "large" clouds: the suite runs many examples; the bench sends the big ones.

@@ -1,6 +1,6 @@
-"""The coordinator's handlers under the fuzz generators of `lab/fuzz.py` (issue 25), in process
-(no zenoh: its handlers are plain methods): claims and members' states, sane and wild, never raise
-anything but a refusal, a state is refused exactly when `fuzz.predict_explorer_state` says so
+"""The coordinator's handlers under the fuzz generators of `lab/fuzz_messages.py` (issue 25), in
+process (no zenoh: its handlers are plain methods): claims and members' states, sane and wild, never
+raise anything but a refusal, a state is refused exactly when `fuzz.predict_explorer_state` says so
 (what `smana bench fuzz` books against), and every claims snapshot still encodes."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from smana.common import keys
 from smana.common.config import SmanaConfig
 from smana.common.messages import MessageError
 from smana.common.service import Reject
-from smana.lab import fuzz
+from smana.lab import fuzz_messages as fuzz
 from smana.services.coordinator.service import CoordinatorService
 
 SETTINGS = settings(

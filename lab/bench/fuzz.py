@@ -3,7 +3,8 @@
 The real services (mapper, navgraph, planner, explorer, the coordinator and, unless left out, the
 simulator) run as their own processes against a zenoh router in this process, on a free loopback
 port with multicast scouting and gossip off. The coordinator runs on a fleet name of its own
-(`FLEET`, members `fuzz.FLEET_MEMBERS`), so nothing but the campaign talks to it. The campaign:
+(`FLEET`, members `fuzz_messages.FLEET_MEMBERS`), so nothing but the campaign talks to it. The
+campaign:
 
 0. **map files** (issue 25; `--map-files`, in this process, before the stack starts): valid and
    corrupt map files from `lab/fuzz_maps.py`, each loaded as the mapper (or the fleet mapper)
@@ -67,7 +68,7 @@ from smana.common import messages as m
 from smana.common.cli import doc_summary
 from smana.common.config import SmanaConfig
 from smana.common.zenoh_config import free_loopback_port
-from smana.lab import fuzz
+from smana.lab import fuzz_messages
 from smana.lab.bench import fuzz_campaign, procs
 
 SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim", "coordinator")
@@ -171,7 +172,7 @@ TARGETS: tuple[Target, ...] = (
     Target("coordinator", "coordinator/status", "query", weight=1),
     *(
         Target("coordinator", "explorer/state", "fifo", None, ("coordinator",), 3, robot=r)
-        for r in fuzz.FLEET_MEMBERS
+        for r in fuzz_messages.FLEET_MEMBERS
     ),
 )
 # Oversize payloads (64 MiB + a little each), in this order, as many as asked.
@@ -192,7 +193,7 @@ WALL_X, WALL_Y = 0.0, (-3.0, 1.0)
 FIXED_QUERY = ((-2.0, -2.0), (2.0, -2.0))
 RECOVERY_AREA = (4.0, -3.0, 6.0, -1.0)  # genuine clouds after the fuzz land here
 GROUND, GRASS, HEDGE = 2, 1, 4
-FLEET = "fuzzfleet"  # the coordinator's robot name (its members: fuzz.FLEET_MEMBERS)
+FLEET = "fuzzfleet"  # the coordinator's robot name (its members: fuzz_messages.FLEET_MEMBERS)
 COORDINATOR_CONFIG = """\
 [general]
 status_period_s = 1.0
@@ -481,7 +482,7 @@ class Campaign:
         self.progress = progress
         self.startup_timeout_s, self.settle_timeout_s = startup_timeout_s, settle_timeout_s
         self.robot, self.sim_robot = robot, sim_robot
-        self.draw = fuzz.RandomDraw(random.Random(seed))
+        self.draw = fuzz_messages.RandomDraw(random.Random(seed))
         self.result = Result(seed, inputs, list(self.services))
         self.mine: Counter = Counter()  # per service: messages and queries we sent it
         self.pubs: dict[str, object] = {}
@@ -629,7 +630,7 @@ class Campaign:
         self.save_dir.mkdir(exist_ok=True)
         config_path = self.config_path = self.out / "fuzz.toml"
         config_path.write_text(CONFIG.format(save_path=self.save_dir / "map.npz"))
-        members = json.dumps(list(fuzz.FLEET_MEMBERS))
+        members = json.dumps(list(fuzz_messages.FLEET_MEMBERS))
         (self.out / "fuzz-coordinator.toml").write_text(COORDINATOR_CONFIG.format(members=members))
         self.config = SmanaConfig.load(config_path)
         self.files_before = _files(self.out, exclude=self.save_dir)
@@ -822,7 +823,7 @@ class Campaign:
         self.applied0 = self.applied()
         snap = self.request("mapper", "snapshot")
         graph = self.request("navgraph", "graph")
-        self.ctx = fuzz.Context(
+        self.ctx = fuzz_messages.Context(
             stamp_s=self.stamp_s,
             seq=self.cloud_seq,
             producers={"mapper": snap.producer, "navgraph": graph.producer},
@@ -960,9 +961,9 @@ class Campaign:
         d, ctx = self.draw, self.ctx
         certain = t.expect in (m.SemanticCloud, m.GraphPatch) or t.name == "navgraph:mapper/delta"
         if certain and d.boolean(0.3):
-            msg = fuzz.plausible(t.expect, d, ctx)
+            msg = fuzz_messages.plausible(t.expect, d, ctx)
             while not _rows(msg):  # an empty one would change nothing even if it got through
-                msg = fuzz.plausible(t.expect, d, ctx)
+                msg = fuzz_messages.plausible(t.expect, d, ctx)
             if t.expect is m.SemanticCloud:
                 msg.frame_id = d.choice(("odom", "", "World", "world ", "map", "\x00"))
                 return m.encode(msg), True
@@ -976,41 +977,46 @@ class Campaign:
                     msg.resolution_m = d.choice((0.1, 0.2 + 1e-6, 0.25))
                 return m.encode(msg), True
         for _ in range(50):
-            mut = fuzz.message_payload(t.expect, d, ctx, mode=d.choice(("wire", "wire", "bytes")))
-            if fuzz.predict(mut.payload, t.expect, drop_nonfinite=t.drop_nonfinite):
+            mut = fuzz_messages.message_payload(
+                t.expect, d, ctx, mode=d.choice(("wire", "wire", "bytes"))
+            )
+            if fuzz_messages.predict(mut.payload, t.expect, drop_nonfinite=t.drop_nonfinite):
                 return mut.payload, False
         return b"\xc1", False
 
     def send(self, t: Target, phase: str | None, oversize: bool = False) -> None:
         kf = self.result.keys.setdefault(t.name, KeyFigures())
         if t.expect is None:  # a member's explorer state, for the coordinator
-            payload, _ = fuzz.explorer_state(self.draw, self.ctx)
+            payload, _ = fuzz_messages.explorer_state(self.draw, self.ctx)
             if phase == "refused":  # one it must refuse
                 for _ in range(50):
-                    if fuzz.predict_explorer_state(payload):
+                    if fuzz_messages.predict_explorer_state(payload):
                         break
-                    payload, _ = fuzz.explorer_state(self.draw, self.ctx)
+                    payload, _ = fuzz_messages.explorer_state(self.draw, self.ctx)
                 else:
                     payload = b"\xc1"
             decodable = None
         elif oversize:
-            payload, decodable = fuzz.oversize_payload(t.expect, self.draw.integer(1, 4096)), False
+            payload, decodable = (
+                fuzz_messages.oversize_payload(t.expect, self.draw.integer(1, 4096)),
+                False,
+            )
         elif phase == "refused":
             payload, decodable = self.refused_input(t)
         elif t.expect is m.Pose and self.draw.boolean(0.15):  # a track the gates lock onto
-            for pose in fuzz.pose_track(self.draw, self.ctx):
+            for pose in fuzz_messages.pose_track(self.draw, self.ctx):
                 self._put(t, kf, m.encode(pose), None)
             return
         else:
-            payload = fuzz.message_payload(t.expect, self.draw, self.ctx).payload
+            payload = fuzz_messages.message_payload(t.expect, self.draw, self.ctx).payload
             decodable = None
         self._put(t, kf, payload, decodable)
 
     def _put(self, t: Target, kf: KeyFigures, payload: bytes, decodable: bool | None) -> None:
         if t.expect is None:
-            kind = fuzz.predict_explorer_state(payload)
+            kind = fuzz_messages.predict_explorer_state(payload)
         else:
-            kind = fuzz.predict(payload, t.expect, drop_nonfinite=t.drop_nonfinite)
+            kind = fuzz_messages.predict(payload, t.expect, drop_nonfinite=t.drop_nonfinite)
         kf.inputs += 1
         kf.codec[kind or "accepted"] += 1
         if decodable:
@@ -1031,9 +1037,9 @@ class Campaign:
     def send_query(self, t: Target, oversize: bool = False) -> None:
         kf = self.result.keys.setdefault(t.name, KeyFigures())
         service, name = t.topic.split("/", 1)
-        case = fuzz.query_case(service, name, self.draw, self.ctx)
+        case = fuzz_messages.query_case(service, name, self.draw, self.ctx)
         if oversize:
-            case = fuzz.QueryCase("", bytes(m.MAX_PAYLOAD_BYTES + 1), None, "oversize")
+            case = fuzz_messages.QueryCase("", bytes(m.MAX_PAYLOAD_BYTES + 1), None, "oversize")
         replies = self.ask(service, name, case.payload, case.encoding, case.params)
         if replies is None:
             kf.not_sent += 1
@@ -1079,13 +1085,13 @@ class Campaign:
         if "navgraph" in self.services:
             before = self.request("navgraph", "stats")["resyncs"]
             t = next(t for t in self.targets if t.name == "navgraph:mapper/delta")
-            delta = fuzz.plausible(m.MapDelta, self.draw, self.ctx)
+            delta = fuzz_messages.plausible(m.MapDelta, self.draw, self.ctx)
             delta.producer, delta.stamp_s, delta.seq = FOREIGN, self.stamp_s, 1
             self._wait_counter(t, m.encode(delta), "navgraph", "resyncs", before)
         if "planner" in self.services:
             before = self.request("planner", "stats")["syncs"]
             t = next(t for t in self.targets if t.name == "planner:navgraph/patch")
-            patch = fuzz.plausible(m.GraphPatch, self.draw, self.ctx)
+            patch = fuzz_messages.plausible(m.GraphPatch, self.draw, self.ctx)
             patch.producer, patch.seq = FOREIGN, 1
             self._wait_counter(t, m.encode(patch), "planner", "syncs", before)
 
@@ -1316,7 +1322,7 @@ def _asks_json(encoding: str | None, params: str) -> bool:
     return enc.startswith(("application/json", "text/")) or pairs.get("format") == "json"
 
 
-def _path_rejection(case: fuzz.QueryCase, as_json: bool) -> str | None:
+def _path_rejection(case: fuzz_messages.QueryCase, as_json: bool) -> str | None:
     """The kind the planner counts a path query under (it answers refused requests with an
     ordinary PathReply, so the reply does not say): as `PlannerService.on_path` decides."""
     from smana.services.planner.service import request_from_params

@@ -7,8 +7,8 @@ be made again and a campaign can stop and go on (`--resume`):
 - `keys`: zenoh key expressions and selectors (wild chunks, `*`, `**`, `$*`, empty chunks,
   parameters, unicode, 10 kB), parsed as zenoh and a service do (`KeyExpr`, `Selector`, its
   parameters); a name smana accepts (`keys.check_name`) must make keys zenoh accepts;
-- `messages`: smana's own messages (`lab/fuzz.py`: valid, hostile, mutated msgpack and JSON) into
-  the codec, as every service decodes them;
+- `messages`: smana's own messages (`lab/fuzz_messages.py`: valid, hostile, mutated msgpack and
+  JSON) into the codec, as every service decodes them;
 - `map_files`: valid and corrupt map files (`lab/fuzz_maps.py`) loaded as the mapper loads one; a
   file known to be corrupt must be refused, a loaded one must equal the file as saved;
 - `journals`: the mapper's crash journal cut, bit-flipped or with a crafted record whose checksum
@@ -70,7 +70,7 @@ class Rejected(Exception):
 
 
 def draw_for(seed: int, family: str, i: int):
-    from smana.lab.fuzz import RandomDraw
+    from smana.lab.fuzz_messages import RandomDraw
 
     return RandomDraw(random.Random(f"{seed}:{family}:{i}"))
 
@@ -136,9 +136,9 @@ class Keys:
 class Messages:
     def __init__(self, seed, tmp):
         from smana.common import messages as m
-        from smana.lab import fuzz
+        from smana.lab import fuzz_messages
 
-        self.m, self.fuzz = m, fuzz
+        self.m, self.fuzz = m, fuzz_messages
         self.classes = [c for c in vars(m).values() if _is_message(c, m)]
 
     def run(self, i, d) -> None:
@@ -417,10 +417,10 @@ class BridgeSmana:
 
     def __init__(self, seed, tmp):
         from smana.common import messages as m
-        from smana.lab import fuzz
+        from smana.lab import fuzz_messages
 
-        self.m, self.fuzz, self.svc = m, fuzz, _bridge()
-        self.ctx = fuzz.Context()
+        self.m, self.fuzz, self.svc = m, fuzz_messages, _bridge()
+        self.ctx = fuzz_messages.Context()
         self.handlers = {
             "cmd_vel": (self.svc.on_cmd_vel, m.VelocityCommand),
             "pose": (self.svc.on_pose, m.Pose),
