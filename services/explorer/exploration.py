@@ -96,6 +96,22 @@ class GridBox:
             & (cells[:, 1] < self.shape[1])
         )
 
+    @classmethod
+    def around_known(cls, grid, pad_m: float) -> GridBox | None:
+        """The dense box of `grid` (a NavGrid) the explorer works on: its allocated tiles,
+        padded by `pad_m` and two nodes (unknown space beyond the tiles is unknown space, and
+        frontiers face it); None while the grid is empty."""
+        box = grid.known_box()
+        if box is None:
+            return None
+        pad = int(math.ceil(pad_m / grid.resolution_m)) + 2
+        ix0, iy0, ix1, iy1 = box
+        ix0, iy0 = max(0, ix0 - pad), max(0, iy0 - pad)
+        ix1, iy1 = min(grid.shape[0], ix1 + pad), min(grid.shape[1], iy1 + pad)
+        labels, heights, flags = grid.box(ix0, iy0, ix1, iy1)
+        origin = grid.origin_xy + np.array([ix0, iy0]) * grid.resolution_m
+        return cls(origin, grid.resolution_m, labels, flags, heights)
+
 
 @dataclass
 class Goal:
@@ -501,6 +517,18 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
             "n_team_stops": 0 if self.team is None else self.team.n_stops,
             "pose": None if self.pose is None else list(self.pose),
         }
+
+    def progress(self) -> str:
+        """One line of where exploration is, for the service's status."""
+        progress = (
+            f"{self.mode} explored {self.explored_m2:.1f} m2, {self.distance_m:.1f} m, "
+            f"frontier {self.frontier_size}"
+        )
+        if self.goal is not None:
+            progress += f", goal ({self.goal.choice.xy[0]:.1f}, {self.goal.choice.xy[1]:.1f})"
+        if self.nav is not None:
+            progress += f", sent goal {self.nav.id} {self.nav.state}"
+        return progress
 
     @property
     def mode(self) -> str:

@@ -18,17 +18,18 @@ by a wildcard selector drives nothing (refused `selector`).
 When exploration is done (no view worth it, or the time budget spent), it stops the robot, saves
 its final state into `<run_dir>/explorer/` (state.json, trajectory.csv, graph.npz) and exits with
 status 0, which tells `smana up` that the run is over.
+
+The wiring only: exploration itself is `exploration.Explorer`'s, its goal queries and feedback
+`goal_queries.py`'s, its robot time and time budget `clocks.py`'s, what the run keeps of it (the
+plan log, the path queries' books, the checkpoint it resumes from) `run_record.py`'s.
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import json
 import math
 import time
 import uuid
-from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -44,25 +45,21 @@ from smana.common.messages import (
     PathRequest,
     Pose,
     VelocityCommand,
-    json_default,
 )
 from smana.common.navgrid import NavGrid
 from smana.common.plausibility import PoseGate, StampGate
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, Request, Service, kernels_loaded
 from smana.services.explorer import frontier as fr
+from smana.services.explorer.clocks import Budget, RobotClock
 from smana.services.explorer.exploration import Explorer, GridBox
-from smana.services.explorer.navigation import (
-    GoalRefused,
-    check_goal_id,
-    parse_cancel,
-    parse_goal,
-)
+from smana.services.explorer.goal_queries import GoalQueries
+from smana.services.explorer.navigation import GoalRefused
 from smana.services.explorer.pose_filter import PoseFilter
+from smana.services.explorer.run_record import RunRecord, plan_entry, state_message
 from smana.services.explorer.team import Team
 
 STATE_PERIOD_S = 0.5
-CHECKPOINT_PERIOD_S = 10.0  # state and trajectory saved for a restarted explorer to carry on
 
 
 class ExplorerService(Service):
@@ -93,22 +90,16 @@ class ExplorerService(Service):
         self.pose_filter = PoseFilter(self.cfg.pose_filter)
         self.claims_asked = 0  # asked of the coordinator (its books count them as received)
         self.claim_errors: dict[str, int] = {}
-        self.run_dir = Path(config.general.run_dir) if config.general.run_dir else None
+        self.goals = GoalQueries(self.core, self.cfg, nav)
         self._grid_dirty = False
-        self._grid_version_used = -1
         self._last_pose_wall = -math.inf
-        # wall time already spent on the budget (a resumed run), and when this process started
-        # spending it: at the first tick with a map and a pose, not at start-up
-        self._wall_spent0 = 0.0
-        self._t_wall0: float | None = None
-        self._t_created = time.monotonic()
+        # the budget starts at the first tick with a map and a pose, not at start-up
+        self.budget = Budget(self.cfg, time.monotonic())
+        self.record = RunRecord(config.general.run_dir or None, time.monotonic())
         self._planner_alive = 0  # planners whose liveliness token is up
         self._planner_kernels = True  # no planner status said its kernels are compiling
         self._seq = 0
         self._next_state = 0.0
-        self._next_checkpoint = time.monotonic() + CHECKPOINT_PERIOD_S
-        self._goal_saved = None  # the goal the last checkpoint holds
-        self._plan_log: list[dict] = []
         self._need_sync = True
         self._next_sync = 0.0
         self._sync_failures = 0
@@ -116,17 +107,10 @@ class ExplorerService(Service):
         g = config.general
         self.stamps = StampGate(g.stamp_window_s, g.max_time_rate, accept_while_acquiring=False)
         self.places = PoseGate(g.max_speed_mps, g.pose_slack_m)
-        # robot time = pose stamp + offset: the offset keeps it running on when the stamps'
-        # clock restarts (a restarted simulator), from the time saved by an earlier process
-        self._t_offset = 0.0
-        self._t_floor: float | None = None
+        self.clock = RobotClock(g.stamp_window_s)  # runs on across a restarted simulator
         self.n_patches = 0
-        self.n_path_queries = 0
         self.graph_queries = 0  # asked of navgraph (its books count them as received)
-        self.path_ok = 0
-        self.path_errors: dict[str, int] = {}
         self.plan_time_ms = 0.0
-        self._saved = False
 
     def _class_costs(self) -> dict[int, float]:
         try:
@@ -140,25 +124,19 @@ class ExplorerService(Service):
     def _resume(self) -> None:
         """A restart in the same run directory continues the run's exploration (and a run that
         had finished stays finished: the supervisor may restart us after we exited)."""
-        if self.run_dir is None or not (self.run_dir / "explorer" / "state.json").is_file():
-            return
-        folder = self.run_dir / "explorer"
         try:
-            state = json.loads((folder / "state.json").read_text())
-            traj = np.zeros((0, 4))
-            if (folder / "trajectory.csv").is_file():
-                traj = np.loadtxt(folder / "trajectory.csv", delimiter=",", skiprows=1, ndmin=2)
+            saved = self.record.read()
+            if saved is None:
+                return
+            state, traj = saved
             self.core.resume(state, traj)
         except (OSError, ValueError, TypeError, KeyError) as exc:
-            self.log.warning("could not resume from %s: %s", folder, exc)
+            self.log.warning("could not resume from %s: %s", self.record.folder, exc)
             return
-        self._plan_log = list(state.get("plans") or [])
-        self._wall_spent0 = float(state.get("wall_time_s") or 0.0)
-        self._t_floor = float(state.get("t_s") or 0.0)
-        self.n_path_queries = int(state.get("path_queries") or 0)
-        self.path_ok = int(state.get("path_ok") or 0)
-        self.path_errors = {str(k): int(v) for k, v in (state.get("path_errors") or {}).items()}
-        self._goal_saved = self.core.goal
+        self.record.resume(state)
+        self.budget.spent_before = float(state.get("wall_time_s") or 0.0)
+        self.clock.floor = float(state.get("t_s") or 0.0)
+        self.record.goal_saved = self.core.goal
         goal = self.core.goal
         self.log.info(
             "resumed the run's exploration: %.1f m travelled, %d goals%s",
@@ -203,7 +181,6 @@ class ExplorerService(Service):
         self.feedback_pub = self.publisher(keys.explorer_goal_feedback(r))
         self.queryable(keys.explorer_goal(r), self.on_goal)
         self.queryable(keys.explorer_goal_cancel(r), self.on_goal_cancel)
-        self._next_feedback = 0.0
         self._declared.append(
             self.session.liveliness().declare_subscriber(
                 keys.alive(r, "planner"), self._on_planner_token, history=True
@@ -296,32 +273,10 @@ class ExplorerService(Service):
             body = req.body()
         except MessageError as exc:
             body = exc
-        gid = body.get("id") if isinstance(body, dict) else None
-        try:  # a refusal echoes the goal's id only when it is a valid one
-            gid = check_goal_id(gid)
-        except GoalRefused:
-            gid = None
         try:
-            self._exact(req, keys.explorer_goal(self.robot))
-            if isinstance(body, MessageError):
-                raise GoalRefused("malformed", str(body))
-            if self.core.done:
-                raise GoalRefused(
-                    "finished", f"the explorer is finishing ({self.core.done_reason})"
-                )
-            nav = self.config.navgraph
-            spec = parse_goal(
-                body,
-                nav.bounds_min_xy,
-                nav.bounds_max_xy,
-                self.cfg.follower.goal_tolerance_m,
-                self.cfg.goal_max_tolerance_m,
-            )
-            self.core.accept_goal(spec)
+            s, reply = self.goals.goal(body, req.key, keys.explorer_goal(self.robot))
         except GoalRefused as exc:
-            reply = {"accepted": False, "id": gid or "", "reason": str(exc), "kind": exc.kind}
-            raise Reject(exc.kind, f"goal refused: {exc}", reply=reply) from None
-        s = spec
+            raise Reject(exc.kind, f"goal refused: {exc}", reply=exc.reply) from None
         self.log.info(
             "goal %s accepted: (%.2f, %.2f)%s within %.2f m%s",
             s.id,
@@ -333,44 +288,28 @@ class ExplorerService(Service):
         )
         self._send(*self.core.control())
         self._send_feedback()
-        return {"accepted": True, "id": s.id, "reason": ""}
+        return reply
 
     def on_goal_cancel(self, req: Request) -> dict:
         """A cancel of the running goal: the robot stops at once."""
-        gid = None
         try:
-            self._exact(req, keys.explorer_goal_cancel(self.robot))
-            try:
-                gid = parse_cancel(req.body())
-            except MessageError as exc:
-                raise GoalRefused("malformed", str(exc)) from None
-            nav = self.core.cancel_goal(gid)
+            body = req.body()
+        except MessageError as exc:
+            body = exc
+        try:
+            nav, reply = self.goals.cancel(body, req.key, keys.explorer_goal_cancel(self.robot))
         except GoalRefused as exc:
-            reply = {"canceled": False, "id": gid, "reason": str(exc)}
-            raise Reject(exc.kind, f"cancel refused: {exc}", reply=reply) from None
+            raise Reject(exc.kind, f"cancel refused: {exc}", reply=exc.reply) from None
         self._send(0.0, 0.0)
         self.log.info("goal %s canceled", nav.id)
         self._send_feedback()
-        return {"canceled": True, "id": nav.id, "reason": ""}
-
-    @staticmethod
-    def _exact(req: Request, key: str) -> None:
-        # a wildcard selector (`smana/r1/**`, a tool listing everything) reaches this queryable
-        # too: only a query on the exact key drives the robot, whatever the router lets through
-        if req.key != key:
-            raise GoalRefused("selector", f"{req.key} is not {key}")
+        return reply
 
     def _send_feedback(self, now: float | None = None) -> None:
-        """Every change of a goal's state, then (while one runs) its progress once a period."""
-        for fb in self.core.nav_changes:
+        for fb in self.goals.feedback(time.monotonic() if now is None else now):
             self.feedback_pub.put(fb)
             if fb["state"] != "active":
                 self.log.info("goal %s %s %s", fb["id"], fb["state"], fb["reason"])
-        self.core.nav_changes.clear()
-        now = time.monotonic() if now is None else now
-        if self.core.nav_active and now >= self._next_feedback:
-            self._next_feedback = now + self.cfg.goal_feedback_period_s
-            self.feedback_pub.put(self.core.nav_feedback())
 
     def on_pose(self, pose: Pose) -> None:
         stamp = float(pose.stamp_s)
@@ -380,12 +319,9 @@ class ExplorerService(Service):
         where = self.places.check(stamp, pose.position)
         if not where.ok:
             raise Reject(where.kind, f"pose {pose.seq}: {where.reason}")
-        t = stamp + self._t_offset
-        last = self.core.t_now if self.core.pose is not None else self._t_floor
-        if last is not None and (when.reset or t < last - self.config.general.stamp_window_s):
-            # the stamps' clock restarted (a new simulator): robot time runs on from here
-            self._t_offset += last - t
-            t = last
+        last = self.core.t_now if self.core.pose is not None else None
+        t, restarted = self.clock.robot_time(stamp, last, when.reset)
+        if restarted:  # a new simulator: robot time runs on from here
             self.note(
                 "clock_reset",
                 f"pose stamps restarted at {stamp:.3f} s; robot time runs on from {last:.3f} s",
@@ -412,18 +348,16 @@ class ExplorerService(Service):
             self._send(0.0, 0.0)  # no pose, no driving
             self._send_feedback(now)  # a goal's sender still hears from it (its pose is stale)
             return
-        if self._t_wall0 is None and self.core.grid is not None:
-            self._t_wall0 = now
+        if self.core.grid is not None:
+            self.budget.start(now)
         # the budget and the start-up's patience are exploration's: a navigator waits for goals
         exploring = self.core.exploring and not self.core.nav_active
-        if exploring and self._wall_spent(now) > self.cfg.time_budget_s:
+        if exploring and self.budget.exhausted(now):
             self.core.finish("time_budget")
             return
-        waited = now - self._t_created
-        patience = self.cfg.time_budget_s + self.cfg.startup_grace_s
-        if self._t_wall0 is None and waited > patience and self.core.exploring:
+        if self.budget.out_of_patience(now) and self.core.exploring:
             missing = "planner" if self._planner_alive == 0 else "navigation graph"
-            self.log.error("no %s after %.0f s: giving up", missing, waited)
+            self.log.error("no %s after %.0f s: giving up", missing, self.budget.waited(now))
             self.core.finish("no_planner" if self._planner_alive == 0 else "no_graph")
             return
         if self._need_sync and now >= self._next_sync:
@@ -439,25 +373,10 @@ class ExplorerService(Service):
             claim = self._claim if self.team is not None else None
             outcome = self.core.plan(self._path_cost, reason, claim)
             self.plan_time_ms = (time.perf_counter() - t0) * 1e3
-            goal = self.core.goal
-            mine = outcome.chosen is not None and goal is not None and goal.choice is outcome.chosen
-            if mine and not self.core.nav_active:
-                # a goal was set by this plan (one log entry per goal: the report counts them)
+            entry = plan_entry(self.core, outcome, reason)  # a goal this plan set, or None
+            self.record.log_plan(entry)
+            if entry is not None:
                 c = outcome.chosen
-                self._plan_log.append(
-                    {
-                        "t_s": self.core.t_now,
-                        "strategy": self.cfg.strategy,
-                        "reason": reason,
-                        "goal": c.xy.tolist(),
-                        "yaw": c.yaw,
-                        "gain_m2": c.gain_m2,
-                        "path_cost": c.path_cost,
-                        "score": c.score,
-                        "queries": c.n_queries,
-                        "frontier": outcome.n_frontier,
-                    }
-                )
                 self.log.info(
                     "goal (%.2f, %.2f) yaw %.0f deg: gain %.2f m2, cost %.2f (%s, %d queries, "
                     "%.0f ms)",
@@ -476,38 +395,21 @@ class ExplorerService(Service):
         if now >= self._next_state:
             self._next_state = now + STATE_PERIOD_S
             self.state_pub.put(self._state())
-        # a checkpoint every period, and whenever the goal changes: a spare that takes over
-        # drives on to the same view, not to one of a checkpoint ago
-        if now >= self._next_checkpoint or self.core.goal is not self._goal_saved:
-            self._next_checkpoint = now + CHECKPOINT_PERIOD_S
-            self._goal_saved = self.core.goal
+        if self.record.checkpoint_due(now, self.core.goal):
             self.save(final=False)
         if self.core.done:
             self._finish()
 
-    def _wall_spent(self, now: float) -> float:
-        """Wall time spent on the budget: by earlier processes of this run, and by this one since
-        it had a map."""
-        return self._wall_spent0 + (0.0 if self._t_wall0 is None else now - self._t_wall0)
-
     def _refresh_grid(self) -> None:
-        """Hand the core a dense box of the grid: the allocated tiles, padded by the view range
-        (unknown space beyond the tiles is unknown space, and frontiers face it)."""
-        box = self.grid.known_box()
+        """Hand the core the grid's dense box around what is known (`GridBox.around_known`)."""
+        box = GridBox.around_known(self.grid, self.cfg.view.max_range_m)
         if box is None:
             return
-        pad = int(math.ceil(self.cfg.view.max_range_m / self.grid.resolution_m)) + 2
-        ix0, iy0, ix1, iy1 = box
-        ix0, iy0 = max(0, ix0 - pad), max(0, iy0 - pad)
-        ix1, iy1 = min(self.grid.shape[0], ix1 + pad), min(self.grid.shape[1], iy1 + pad)
-        labels, heights, flags = self.grid.box(ix0, iy0, ix1, iy1)
-        origin = self.grid.origin_xy + np.array([ix0, iy0]) * self.grid.resolution_m
-        self.core.update_grid(GridBox(origin, self.grid.resolution_m, labels, flags, heights))
-        self._box = (ix0, iy0, ix1, iy1)
+        self.core.update_grid(box)
         self._grid_dirty = False
 
     def _path_cost(self, start_xy: np.ndarray, goal_xy: np.ndarray, allow_unknown: bool = False):
-        self.n_path_queries += 1
+        self.record.paths.queries += 1
         req = PathRequest(
             request_id=uuid.uuid4().hex[:12],
             start=np.asarray(start_xy, np.float64)[:2],
@@ -534,14 +436,14 @@ class ExplorerService(Service):
         if not reply.ok or len(reply.path) == 0:
             self._path_error(reply.error or "empty")
             return None
-        self.path_ok += 1
+        self.record.paths.ok += 1
         return float(reply.cost_total), np.asarray(reply.path, np.float64)
 
     def _path_error(self, kind: str) -> None:
-        # an unreachable candidate is ordinary; only a missing planner is worth a warning
-        self.path_errors[kind] = self.path_errors.get(kind, 0) + 1
-        if kind == "no_reply" and self.path_errors[kind] in (1, 10, 100):
-            self.log.warning("the planner does not answer (%d times)", self.path_errors[kind])
+        if self.record.paths.failed(kind):
+            self.log.warning(
+                "the planner does not answer (%d times)", self.record.paths.errors[kind]
+            )
 
     def _send(self, v: float, w: float) -> None:
         self.pose_filter.set_speed(v)
@@ -549,20 +451,11 @@ class ExplorerService(Service):
         self.cmd_pub.put(VelocityCommand(time.time(), self._seq, float(v), float(w), "explorer"))
 
     def _state(self) -> dict:
-        st = self.core.state_dict()
-        out = self.core.last_outcome
-        if out is not None and len(out.candidates_xy):
-            st["candidates"] = np.round(out.candidates_xy, 3).tolist()
-            st["candidate_gains_m2"] = np.round(out.gains_m2, 3).tolist()
-        else:
-            st["candidates"], st["candidate_gains_m2"] = [], []
-        st["label_names"] = {str(i): c.name for i, c in self.table.classes.items()}
-        # the localisation's noise as the pose filter estimates it (standard deviations)
-        st["pose_noise_sd_m"] = round(self.pose_filter.noise_sd_m, 4)
-        return st
+        names = {str(i): c.name for i, c in self.table.classes.items()}
+        return state_message(self.core, names, self.pose_filter.noise_sd_m)
 
     def _finish(self) -> None:
-        if self._saved:
+        if self.record.final:
             return
         self._send(0.0, 0.0)
         self.log.info(
@@ -590,68 +483,28 @@ class ExplorerService(Service):
         self.save()
 
     def save(self, final: bool = True) -> None:
-        """State, trajectory and (when final) the grid into <run_dir>/explorer/: for the report,
-        and for a restarted explorer to carry on (a checkpoint every CHECKPOINT_PERIOD_S)."""
-        if self._saved or self.run_dir is None:
-            self._saved = self._saved or final
-            return
-        self._saved = final
-        out = self.run_dir / "explorer"
-        out.mkdir(parents=True, exist_ok=True)
-        state = self._state()
-        state["plans"] = self._plan_log
-        state["history"] = self.core.history
-        state["path_queries"] = self.n_path_queries
-        state["path_ok"] = self.path_ok
-        state["path_errors"] = self.path_errors
-        state["wall_time_s"] = self._wall_spent(time.monotonic())
-        # trajectory first, state last, each replaced whole: a kill between them leaves a state
-        # that describes a trajectory at least as long as the one on disk
-        tmp = out / "trajectory.csv.tmp"
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["t_s", "x_m", "y_m", "yaw_rad"])
-            w.writerows(self.core.trajectory)
-        tmp.replace(out / "trajectory.csv")
-        tmp = out / "state.json.tmp"
-        tmp.write_text(json.dumps(state, indent=1, default=json_default))
-        tmp.replace(out / "state.json")
-        box = self.grid.known_box()
-        if final and box is not None:
-            labels, heights, flags = self.grid.box(*box)
-            origin = self.grid.origin_xy + np.array(box[:2]) * self.grid.resolution_m
-            np.savez_compressed(
-                out / "graph.npz",
-                origin_xy=origin,
-                resolution_m=self.grid.resolution_m,
-                labels=labels,
-                heights=heights,
-                flags=flags,
-            )
+        """State, trajectory and (when final) the grid into <run_dir>/explorer/ (run_record.py)."""
+        if self.record.writes(final):
+            wall_s = self.budget.spent(time.monotonic())
+            c = self.core
+            self.record.write(self._state(), c.history, c.trajectory, wall_s, self.grid, final)
 
     def status_details(self) -> dict:
         c = self.core
-        progress = (
-            f"{c.mode} explored {c.explored_m2:.1f} m2, {c.distance_m:.1f} m, "
-            f"frontier {c.frontier_size}"
-        )
-        if c.goal is not None:
-            progress += f", goal ({c.goal.choice.xy[0]:.1f}, {c.goal.choice.xy[1]:.1f})"
-        if c.nav is not None:
-            progress += f", sent goal {c.nav.id} {c.nav.state}"
+        paths = self.record.paths
         return {
             "nav_goal": c.nav_state(),
-            "progress": progress,
+            "progress": c.progress(),
             "mode": c.mode,
             "explored_m2": c.explored_m2,
             "distance_m": c.distance_m,
             "frontier_size": c.frontier_size,
             "n_goals": c.n_goals,
             "n_patches": self.n_patches,
-            "path_queries": self.n_path_queries,
+            "path_queries": paths.queries,
             "graph_queries": self.graph_queries,
-            "path_ok": self.path_ok,
-            "path_errors": dict(self.path_errors),
+            "path_ok": paths.ok,
+            "path_errors": dict(paths.errors),
             "plan_time_ms": self.plan_time_ms,
         } | (
             {}
