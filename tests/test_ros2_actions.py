@@ -13,7 +13,7 @@ import pytest
 pytest.importorskip("rosbags")
 
 from smana.services.ros2 import nav2_types, rmw  # noqa: E402
-from smana.services.ros2.actions import (  # noqa: E402
+from smana.services.ros2.action_goals import (  # noqa: E402
     GOAL_OUTSIDE_MAP,
     START_OUTSIDE_MAP,
     GoalBook,

@@ -511,7 +511,7 @@ class Ros2Actions:
         elif what == "get_result":
             msg = T("GetResult_Request")(goal_id=uuid)
         else:
-            info = self.act.goal_info(self.types, bytes(uuid.uuid), d.integer(0, 2**40))
+            info = self.convert.goal_info(self.types, bytes(uuid.uuid), d.integer(0, 2**40))
             msg = self.types.msg("action_msgs/srv/CancelGoal_Request")(goal_info=info)
         return self.types.serialize(msg, endpoints.names[what] + "_Request")
 

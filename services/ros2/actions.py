@@ -23,26 +23,26 @@ SimpleActionServer ends it (`accept_pending_goal`: `current_handle_->abort(...)`
 What Nav2's navigator and planner server do with a goal, smana does too: a goal in any frame of
 the tree smana publishes (the world frames, and the robot's base frame through the robot's
 latest pose) is accepted, also one outside the navigation graph or on an obstacle; the ones that
-cannot be reached are then aborted with an error code (ERROR CODES below) and an `error_msg`.
+cannot be reached are then aborted with an error code (action_goals.py's ERROR CODES) and an
+`error_msg`.
 Refused (and counted) is only what Nav2 could not even read: a pose that is not finite, an empty
 or unknown frame, a behaviour tree name over MAX_BEHAVIOR_TREE_CHARS. ComputePathToPose plans
 through unknown ground (`ros2.plan_through_unknown`, Nav2's `allow_unknown`). NavigateToPose's
 feedback goes out at FEEDBACK_HZ from the robot's latest pose and the explorer's last word on the
 path (which comes at the explorer's own, slower, feedback period).
 
-`GoalBook` holds the goals and is tested without zenoh; `Ros2Actions` is the wiring. Queries are
+`GoalBook` holds the goals and is tested without zenoh, with the rest of what a goal means (its
+pose, its error codes, the explorer's word on it, its progress: `action_goals.py`);
+`Ros2Actions` is the wiring. Queries are
 handled on worker threads (the explorer's and the planner's answers are waited for there, never
 on a zenoh callback nor on the service's loop).
 """
 
 from __future__ import annotations
 
-import math
 import os
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -52,295 +52,48 @@ from smana.common.query import QueryError, request
 from smana.common.service import Reject
 
 from . import convert
+from .action_endpoints import ActionEndpoints
+from .action_goals import (
+    FEEDBACK_HZ,
+    FEEDBACK_TIMEOUT_S,
+    MAX_WAITING_RESULTS,
+    NAV_TF_ERROR,
+    PLAN_INVALID_PLANNER,
+    PLAN_TF_ERROR,
+    PLAN_UNKNOWN,
+    ExplorerFeedback,
+    Goal,
+    NoTransform,
+    Progress,
+    announced,
+    compute_path_goal_checked,
+    explorer_goal,
+    explorer_refusal,
+    goal_pose_checked,
+    navigate_goal_checked,
+    plan_error_code,
+    planner_failure_code,
+    planner_refusal,
+    to_world,
+)
+from .convert import duration, goal_info
 from .jobs import Jobs
 from .nav2_types import (
-    CANCEL_GOAL_TERMINATED,
-    CANCEL_NONE,
-    CANCEL_UNKNOWN_GOAL_ID,
     STATUS_ABORTED,
-    STATUS_ACCEPTED,
     STATUS_CANCELED,
     STATUS_CANCELING,
     STATUS_EXECUTING,
     STATUS_SUCCEEDED,
-    STATUS_UNKNOWN,
     TERMINAL,
-    action_names,
 )
-from .rmw import LATCHED_QOS, SERVICE, SUBSCRIPTION, QoS
+from .rmw import SUBSCRIPTION, QoS
 
 NAVIGATE = "nav2_msgs/action/NavigateToPose"
 COMPUTE_PATH = "nav2_msgs/action/ComputePathToPose"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
-RESULT_TIMEOUT_S = 10.0  # rcl_action's default result_timeout
-MAX_GOALS = 64  # goals held (running, or finished and not expired); one more is refused
-MAX_BEHAVIOR_TREE_CHARS = 4096  # NavigateToPose's behavior_tree: a path (PATH_MAX), not a tree
-MAX_WAITING_RESULTS = 16  # get_result requests held for one goal
-FEEDBACK_TIMEOUT_S = 5.0  # a navigation goal without explorer feedback this long is aborted
 QUERY_TIMEOUT_S = 5.0  # the explorer's and the planner's answers
 PLANNER_RETRY_S = 0.2  # a planner not answering at all (starting) is asked again this often
 ACTION_THREADS, ACTION_WAITING = 2, 32
-FEEDBACK_HZ = 10.0  # Nav2's navigator sends one per behaviour-tree tick (100 Hz): 10 is enough
-# ERROR CODES. smana serves Jazzy's definitions. ComputePathToPose's are Jazzy's own. Jazzy's
-# NavigateToPose result defines only NONE: its navigator fills error_code with the failing
-# planner's code (ComputePathToPose's 2xx: GOAL_OUTSIDE_MAP, GOAL_OCCUPIED, NO_VALID_PATH), and
-# smana does the same. Where Jazzy has no code (no transform, out of time, the explorer
-# stopped), Kilted's NavigateToPose codes: the same fields, so the same wire type and hash.
-NAV_UNKNOWN, NAV_TF_ERROR, NAV_TIMEOUT = 9000, 9002, 9003
-PLAN_ERRORS = {
-    "start_blocked": 205,  # START_OCCUPIED
-    "goal_blocked": 206,  # GOAL_OCCUPIED
-    "unreachable": 208,  # NO_VALID_PATH
-    "no_graph": 208,
-}
-PLAN_UNKNOWN, PLAN_INVALID_PLANNER, PLAN_TF_ERROR, PLAN_TIMEOUT = 200, 201, 202, 207
-START_OUTSIDE_MAP, GOAL_OUTSIDE_MAP = 203, 204
-PLANNER_IDS = ("", "smana")
-# The explorer's reasons for aborting a goal (services/explorer/navigation.py ERRORS) as codes
-NAV_ERRORS = {
-    "out_of_bounds": GOAL_OUTSIDE_MAP,
-    "goal_blocked": PLAN_ERRORS["goal_blocked"],
-    "no_path": PLAN_ERRORS["unreachable"],
-    "time_budget": NAV_TIMEOUT,
-    "stopped": NAV_UNKNOWN,
-}
-
-
-def plan_error_code(error: str, message: str) -> int:
-    """A planner's PathReply error as ComputePathToPose's error code."""
-    if error == "out_of_bounds":
-        return START_OUTSIDE_MAP if message.startswith("start") else GOAL_OUTSIDE_MAP
-    return PLAN_ERRORS.get(error, PLAN_UNKNOWN)
-
-
-@dataclass
-class Goal:
-    uuid: bytes
-    stamp_ns: int  # when it was accepted (GoalInfo.stamp)
-    status: int
-    request: object  # the action's `_Goal` message
-    result: object = None
-    finished_at: float | None = None
-    seen_at: float = 0.0  # monotonic: accepted, or its last feedback
-    waiting: list = field(default_factory=list)  # held get_result responders
-
-
-class GoalBook:
-    """One action server's goals, as rcl_action keeps them: their statuses, their results (kept
-    `result_timeout_s` after the end), the get_result requests held until a result exists.
-    Thread-safe; no zenoh: a responder is any callable taking (status, result)."""
-
-    def __init__(
-        self,
-        result_timeout_s: float = RESULT_TIMEOUT_S,
-        max_goals: int = MAX_GOALS,
-        clock: Callable[[], float] = time.monotonic,
-    ):
-        self.result_timeout_s, self.max_goals, self.clock = result_timeout_s, max_goals, clock
-        self.lock = threading.RLock()
-        self.goals: dict[bytes, Goal] = {}
-
-    def add(self, uuid: bytes, request, stamp_ns: int) -> Goal | None:
-        """A new goal, ACCEPTED; None when its id is taken or the book is full of goals that have
-        not ended."""
-        with self.lock:
-            self.expire()
-            if uuid in self.goals:
-                return None
-            if len(self.goals) >= self.max_goals:
-                # the oldest ended goal makes room: its result was kept for a late get_result,
-                # never at the cost of a new goal (a flood ended 64 goals, and refused valid
-                # ones for the next 10 s)
-                ended = [u for u, g in self.goals.items() if g.finished_at is not None]
-                if not ended:
-                    return None
-                del self.goals[min(ended, key=lambda u: self.goals[u].finished_at)]
-            goal = Goal(uuid, stamp_ns, STATUS_ACCEPTED, request, seen_at=self.clock())
-            self.goals[uuid] = goal
-            return goal
-
-    def discard(self, uuid: bytes) -> None:
-        """Forget a goal that was never announced (its acceptance fell through)."""
-        with self.lock:
-            self.goals.pop(uuid, None)
-
-    def get(self, uuid: bytes) -> Goal | None:
-        with self.lock:
-            return self.goals.get(uuid)
-
-    def running(self) -> list[Goal]:
-        with self.lock:
-            return [g for g in self.goals.values() if g.status not in TERMINAL]
-
-    def set_status(self, uuid: bytes, status: int) -> bool:
-        """Move a running goal to EXECUTING or CANCELING; False if it is not running."""
-        with self.lock:
-            g = self.goals.get(uuid)
-            if g is None or g.status in TERMINAL or g.status == status:
-                return False
-            g.status = status
-            return True
-
-    def finish(self, uuid: bytes, status: int, result) -> bool:
-        """End a running goal with its result and answer the get_result requests held for it;
-        False (and nothing changes) if it is unknown or already over."""
-        with self.lock:
-            g = self.goals.get(uuid)
-            if g is None or g.status in TERMINAL:
-                return False
-            g.status, g.result, g.finished_at = status, result, self.clock()
-            waiting, g.waiting = g.waiting, []
-        for respond in waiting:
-            respond(status, result)
-        return True
-
-    def result(self, uuid: bytes, respond: Callable) -> str:
-        """A get_result request: answered now ("answered": finished, or "unknown" with
-        STATUS_UNKNOWN), or held until the goal ends ("held"); "full" when too many wait."""
-        with self.lock:
-            self.expire()
-            g = self.goals.get(uuid)
-            if g is not None and g.status not in TERMINAL:
-                if len(g.waiting) >= MAX_WAITING_RESULTS:
-                    return "full"
-                g.waiting.append(respond)
-                return "held"
-        if g is None:
-            respond(STATUS_UNKNOWN, None)
-            return "unknown"
-        respond(g.status, g.result)
-        return "answered"
-
-    def cancel(self, uuid: bytes, stamp_ns: int) -> tuple[int, list[Goal]]:
-        """rcl_action's cancel policy -> (return code, the goals now CANCELING)."""
-        with self.lock:
-            zero_id = not any(uuid)
-            if not zero_id and stamp_ns == 0:
-                g = self.goals.get(uuid)
-                if g is None:
-                    return CANCEL_UNKNOWN_GOAL_ID, []
-                if g.status not in (STATUS_ACCEPTED, STATUS_EXECUTING):
-                    return CANCEL_GOAL_TERMINATED, []
-                targets = [g]
-            else:
-                until = math.inf if zero_id and stamp_ns == 0 else stamp_ns
-                targets = [
-                    g
-                    for g in self.goals.values()
-                    if g.status in (STATUS_ACCEPTED, STATUS_EXECUTING)
-                    and (g.stamp_ns <= until or g.uuid == uuid)
-                ]
-            for g in targets:
-                g.status = STATUS_CANCELING
-            return CANCEL_NONE, targets
-
-    def expire(self) -> int:
-        """Forget finished goals older than the result timeout."""
-        with self.lock:
-            now = self.clock()
-            old = [
-                u
-                for u, g in self.goals.items()
-                if g.finished_at is not None and now - g.finished_at > self.result_timeout_s
-            ]
-            for u in old:
-                del self.goals[u]
-            return len(old)
-
-    def statuses(self) -> list[tuple[bytes, int, int]]:
-        """(uuid, accepted stamp ns, status) of every goal held, oldest first."""
-        with self.lock:
-            return [(g.uuid, g.stamp_ns, g.status) for g in self.goals.values()]
-
-
-def goal_pose_checked(pose_stamped, frames) -> tuple[str, float, float, float]:
-    """(frame, x, y, yaw) of a goal's PoseStamped; ValueError for a pose that is not finite, a
-    degenerate quaternion, a place beyond 1000 km, or a frame not in `frames`."""
-    frame = pose_stamped.header.frame_id.lstrip("/")
-    if not frame:  # Nav2 cannot transform a pose of no frame either
-        raise ValueError(f"goal has no frame_id: smana's frames are {list(frames)}")
-    if frame not in frames:
-        raise ValueError(f"goal in frame {frame!r}: smana's frames are {list(frames)}")
-    pos, q = convert.pose_of(pose_stamped.pose)
-    if np.abs(pos).max() > 1e6:
-        raise ValueError("goal further than 1000 km")
-    yaw = math.atan2(2.0 * (q[3] * q[2] + q[0] * q[1]), 1.0 - 2.0 * (q[1] ** 2 + q[2] ** 2))
-    return frame, float(pos[0]), float(pos[1]), yaw
-
-
-def to_world(x: float, y: float, yaw: float, base) -> tuple[float, float, float]:
-    """A pose in the robot's base frame, in the world frame, the robot being at `base` = (x, y,
-    yaw) there (a planar robot: tf's odom -> base_link)."""
-    bx, by, byaw = base
-    c, s = math.cos(byaw), math.sin(byaw)
-    return bx + c * x - s * y, by + s * x + c * y, math.remainder(byaw + yaw, math.tau)
-
-
-class NoTransform(ValueError):
-    """A goal in the robot's base frame before any pose of the robot: tf has no transform yet."""
-
-
-def duration(types, seconds: float):
-    s = max(0.0, float(seconds)) if math.isfinite(seconds) else 0.0
-    sec = math.floor(s)
-    return types.msg("builtin_interfaces/msg/Duration")(
-        sec=int(sec), nanosec=min(int(round((s - sec) * 1e9)), 999_999_999)
-    )
-
-
-class ActionEndpoints:
-    """One action's rmw_zenoh endpoints on a `RosNode`: its three services (complete
-    queryables) and its feedback and status publishers."""
-
-    def __init__(self, node, name: str, action: str):
-        self.action, self.types = action, node.types
-        self.names = action_names(action)
-        self.keys: dict[str, str] = {}
-        for what in ("send_goal", "get_result", "cancel_goal"):
-            self.keys[what], _ = node.endpoint(SERVICE, f"{name}/_action/{what}", self.names[what])
-        self.feedback = node.publisher(f"{name}/_action/feedback", self.names["feedback"], QoS())
-        self.status = node.publisher(f"{name}/_action/status", self.names["status"], LATCHED_QOS)
-        self.book = GoalBook()
-        self.lock = threading.Lock()  # the publishers' sequence numbers
-
-    def msg(self, suffix: str):
-        return self.types.msg(f"{self.action}_{suffix}")
-
-    def decode(self, what: str, payload: bytes):
-        typename = self.names[what] + "_Request"
-        try:
-            return self.types.deserialize(payload, typename)
-        except Exception as exc:  # noqa: BLE001 - any CDR that is not this type
-            raise Reject("malformed", f"not a {typename}: {type(exc).__name__}") from None
-
-    def encode(self, what: str, msg) -> bytes:
-        return self.types.serialize(msg, self.names[what] + "_Response")
-
-    def publish_status(self) -> None:
-        T = self.types.msg
-        statuses = [
-            T("action_msgs/msg/GoalStatus")(
-                goal_info=goal_info(self.types, uuid, stamp_ns), status=status
-            )
-            for uuid, stamp_ns, status in self.book.statuses()
-        ]
-        with self.lock:
-            self.status.put(T("action_msgs/msg/GoalStatusArray")(status_list=statuses))
-
-    def publish_feedback(self, uuid: bytes, feedback) -> None:
-        msg = self.msg("FeedbackMessage")(goal_id=uuid_msg(self.types, uuid), feedback=feedback)
-        with self.lock:
-            self.feedback.put(msg)
-
-
-def uuid_msg(types, uuid: bytes):
-    return types.msg("unique_identifier_msgs/msg/UUID")(uuid=np.frombuffer(uuid, np.uint8).copy())
-
-
-def goal_info(types, uuid: bytes, stamp_ns: int):
-    return types.msg("action_msgs/msg/GoalInfo")(
-        goal_id=uuid_msg(types, uuid), stamp=convert.ros_time(types, stamp_ns * 1e-9)
-    )
 
 
 class Ros2Actions:
@@ -368,7 +121,7 @@ class Ros2Actions:
         self._explorer_ids: dict[str, bytes] = {}  # explorer goal id -> uuid
         # the running goal's progress as the explorer last told it (its feedback period), from
         # which `tick` sends NavigateToPose feedback at FEEDBACK_HZ
-        self._progress: _Progress | None = None
+        self._progress: Progress | None = None
         self._next_feedback = 0.0
         self._nav_lock = threading.Lock()
         self._count_lock = threading.Lock()
@@ -554,12 +307,7 @@ class Ros2Actions:
     def navigate(self, uuid: bytes, goal, reply) -> tuple[bool, str]:
         """Hand a NavigateToPose goal to the explorer; (accepted, why not)."""
         try:
-            frame, x, y, yaw = goal_pose_checked(goal.pose, self.frames)
-            if len(goal.behavior_tree) > MAX_BEHAVIOR_TREE_CHARS:
-                raise ValueError(
-                    f"behavior_tree of {len(goal.behavior_tree)} characters: a file name of at "
-                    f"most {MAX_BEHAVIOR_TREE_CHARS} (smana runs none: it is ignored)"
-                )
+            frame, x, y, yaw = navigate_goal_checked(goal, self.frames)
         except ValueError as exc:
             return False, f"value: {exc}"
         # One goal at a time, in the order the explorer takes them: the last one it accepted is
@@ -585,26 +333,14 @@ class Ros2Actions:
             )
             return True, ""
         self._explorer_ids[uuid.hex()] = uuid
-        body = {
-            "x": x,
-            "y": y,
-            "yaw": yaw,
-            "tolerance_m": None,
-            "id": uuid.hex(),
-            # as Nav2: accepted, and aborted with a code when it cannot be reached
-            "accept_unreachable": True,
-            "no_path_timeout_s": self.no_path_s,
-        }
+        body = explorer_goal(uuid.hex(), x, y, yaw, self.no_path_s)
         try:
             answer = request(
                 self.svc.session, keys.explorer_goal(self.svc.robot), body, QUERY_TIMEOUT_S
             )
-            why = ""
+            why = explorer_refusal(answer)
         except QueryError as exc:
-            answer, why = None, f"no_explorer: {exc}"
-        if not why and not (isinstance(answer, dict) and answer.get("accepted")):
-            why = answer.get("reason", "") if isinstance(answer, dict) else repr(answer)
-            why = f"refused: explorer: {why}"
+            why = f"no_explorer: {exc}"
         if why:
             book.discard(uuid)
             self._explorer_ids.pop(uuid.hex(), None)
@@ -643,57 +379,31 @@ class Ros2Actions:
 
     def on_explorer_feedback(self, payload: bytes) -> None:
         """The explorer's goal feedback (main loop): NavigateToPose feedback and its end."""
-        import msgpack
-
-        try:
-            fb = msgpack.unpackb(payload, strict_map_key=False)
-            gid, state = str(fb["id"]), str(fb["state"])
-            raw_pose = fb.get("pose")
-            pose = None if raw_pose is None else [float(v) for v in raw_pose][:3]
-            remaining = fb.get("distance_remaining_m")
-            remaining = math.nan if remaining is None else float(remaining)
-            nav_time = float(fb.get("navigation_time_s") or 0.0)
-            recoveries = int(fb.get("recoveries") or 0)
-            reason = str(fb.get("reason") or "")
-            error = str(fb.get("error") or "")
-        except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as exc:
-            raise MessageError("malformed", f"explorer goal feedback: {exc}") from None
-        if pose is not None and (len(pose) != 3 or not all(math.isfinite(v) for v in pose)):
-            raise MessageError("value", "explorer goal feedback: pose must be 3 finite numbers")
-        if pose is not None and not math.isfinite(remaining):
-            raise MessageError("value", "explorer goal feedback: a pose without a finite distance")
-        uuid = self._explorer_ids.get(gid)
+        fb = ExplorerFeedback.parse(payload)
+        uuid = self._explorer_ids.get(fb.id)
         g = self.nav.book.get(uuid) if uuid is not None else None
         if g is None or g.status in TERMINAL:
             return  # another goal's, or one already ended here (pre-empted, canceled)
         now = self.nav.book.clock()
         g.seen_at = now
-        if pose is None:
+        if fb.pose is None:
             # the explorer has no pose yet: Nav2's navigator skips its feedback when it cannot
             # read the robot's pose, rather than send a made-up pose or a NaN distance
             self._count("feedback_without_pose")
-        end = {
-            "succeeded": (STATUS_SUCCEEDED, 0),
-            "aborted": (STATUS_ABORTED, NAV_ERRORS.get(error, NAV_UNKNOWN)),
-            "preempted": (STATUS_ABORTED, 0),
-            "canceled": (STATUS_CANCELED, 0),
-        }.get(state)
-        if pose is not None:
-            self._progress = _Progress(uuid, pose, remaining, nav_time, recoveries, now)
+        end = fb.end()
+        if fb.pose is not None:
+            self._progress = Progress(uuid, fb.pose, fb.remaining, fb.nav_time, fb.recoveries, now)
             self._send_feedback(now)  # at once (the last word too): the ticks go on from it
         if end is not None:
             if self._progress is not None and self._progress.uuid == uuid:
                 self._progress = None
-            self._end(self.nav, uuid, end[0], self._empty_result(self.nav, end[1], reason))
+            self._end(self.nav, uuid, end[0], self._empty_result(self.nav, end[1], fb.reason))
 
     def on_pose(self, x: float, y: float) -> None:
         """The robot's pose (the service's loop): how far it has gone since the explorer's
         last feedback."""
-        p = self._progress
-        if p is not None:
-            if p.last_xy is not None:
-                p.travelled += math.hypot(x - p.last_xy[0], y - p.last_xy[1])
-            p.last_xy = (x, y)
+        if self._progress is not None:
+            self._progress.drove_to(x, y)
 
     def _send_feedback(self, now: float) -> None:
         """NavigateToPose feedback for the running goal: the robot's latest pose, and the
@@ -708,14 +418,14 @@ class Ros2Actions:
             xy, yaw = pose.position[:2], pose.yaw
         else:
             xy, yaw = p.pose[:2], p.pose[2]
-        remaining = max(0.0, p.remaining - p.travelled)
+        remaining = p.remaining_m()
         fb_msg = self.nav.msg("Feedback")(
             current_pose=convert.pose_stamped(
                 self.types, xy, yaw, self.svc._stamp(), self.map_frame
             ),
-            navigation_time=duration(self.types, p.nav_time + (now - p.at)),
+            navigation_time=duration(self.types, p.navigation_time_s(now)),
             estimated_time_remaining=duration(self.types, remaining / self.speed_mps),
-            number_of_recoveries=max(-(2**15), min(p.recoveries, 2**15 - 1)),
+            number_of_recoveries=p.recoveries_int16(),
             distance_remaining=remaining,
         )
         self.nav.publish_feedback(p.uuid, fb_msg)
@@ -744,9 +454,7 @@ class Ros2Actions:
     def compute_path(self, uuid: bytes, goal, reply) -> tuple[bool, str]:
         """Accept a ComputePathToPose goal and plan it on this worker; (accepted, why not)."""
         try:
-            ends = [goal_pose_checked(goal.goal, self.frames)]
-            if goal.use_start:
-                ends.append(goal_pose_checked(goal.start, self.frames))
+            ends = compute_path_goal_checked(goal, self.frames)
         except ValueError as exc:
             return False, f"value: {exc}"
         book = self.plan.book
@@ -758,8 +466,7 @@ class Ros2Actions:
         book.set_status(uuid, STATUS_EXECUTING)
         self.plan.publish_status()
         t0 = time.monotonic()
-        if goal.planner_id not in PLANNER_IDS:
-            why = f"planner_id {goal.planner_id!r}: smana's planner is '' or 'smana'"
+        if why := planner_refusal(goal.planner_id):
             self._plan_end(uuid, None, PLAN_INVALID_PLANNER, why, t0)
             return True, ""
         try:
@@ -785,10 +492,7 @@ class Ros2Actions:
         try:
             answer = self._ask_planner(ask, t0)
         except QueryError as exc:
-            # Nothing answered (no planner) or the deadline passed (zenoh's timeout reply):
-            # TIMEOUT; an error reply of the planner's own: UNKNOWN.
-            late = time.monotonic() - t0 >= QUERY_TIMEOUT_S - 0.1
-            code = PLAN_TIMEOUT if exc.kind == "no_reply" or late else PLAN_UNKNOWN
+            code = planner_failure_code(exc.kind, time.monotonic() - t0, QUERY_TIMEOUT_S)
             self._plan_end(uuid, None, code, str(exc), t0)
             return True, ""
         if not isinstance(answer, PathReply):
@@ -830,29 +534,9 @@ class Ros2Actions:
             counts = dict(self.counts)
         return {
             **counts,
-            "navigate_running": _announced(self.nav.book),
-            "compute_path_running": _announced(self.plan.book),
+            "navigate_running": announced(self.nav.book),
+            "compute_path_running": announced(self.plan.book),
         }
-
-
-@dataclass
-class _Progress:
-    """A NavigateToPose goal's progress as the explorer last reported it (`at`, monotonic), and
-    the way the robot has driven since."""
-
-    uuid: bytes
-    pose: list  # x, y, yaw
-    remaining: float
-    nav_time: float
-    recoveries: int
-    at: float
-    travelled: float = 0.0
-    last_xy: tuple | None = None
-
-
-def _announced(book: GoalBook) -> int:
-    """Goals running that a client was told of (not one still waiting for the explorer)."""
-    return sum(g.status in (STATUS_EXECUTING, STATUS_CANCELING) for g in book.running())
 
 
 def raise_refused(why: str) -> None:

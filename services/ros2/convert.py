@@ -36,6 +36,25 @@ def ros_time(types, t_s: float):
     )
 
 
+def duration(types, seconds: float):
+    """A builtin_interfaces Duration of `seconds` (0 for a negative or non-finite one)."""
+    s = max(0.0, float(seconds)) if math.isfinite(seconds) else 0.0
+    sec = math.floor(s)
+    return types.msg("builtin_interfaces/msg/Duration")(
+        sec=int(sec), nanosec=min(int(round((s - sec) * 1e9)), 999_999_999)
+    )
+
+
+def uuid_msg(types, uuid: bytes):
+    return types.msg("unique_identifier_msgs/msg/UUID")(uuid=np.frombuffer(uuid, np.uint8).copy())
+
+
+def goal_info(types, uuid: bytes, stamp_ns: int):
+    return types.msg("action_msgs/msg/GoalInfo")(
+        goal_id=uuid_msg(types, uuid), stamp=ros_time(types, stamp_ns * 1e-9)
+    )
+
+
 def stamp_s(header) -> float:
     return float(header.stamp.sec) + 1e-9 * float(header.stamp.nanosec)
 
