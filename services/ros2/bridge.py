@@ -1,6 +1,8 @@
 """What the ros2 service keeps between messages, without zenoh: a copy of the map from the
-mapper's deltas, recent odometry, the static transforms, and the conversion of a ROS 2 robot's
-Odometry into a smana `Pose` and its PointCloud2 into a `SemanticCloud` in the world frame.
+mapper's deltas, the resync of the map and graph streams from their snapshots (`StreamSync`),
+the explorer's path and goal as last shown (`ExplorerView`), the robot's last pose (its twist),
+recent odometry, the static transforms, and the conversion of a ROS 2 robot's Odometry into a
+smana `Pose` and its PointCloud2 into a `SemanticCloud` in the world frame.
 
 A ROS 2 robot's input passes the checks smana's own messages pass (`common/messages.py`'s codec:
 coordinates within 1000 km, stamps up to the year 2286, a unit quaternion; and
@@ -12,8 +14,10 @@ transforms, keyed by frame name) has a cap; what would go past it is refused and
 from __future__ import annotations
 
 import collections
+import math
 from collections.abc import Callable
 
+import msgpack
 import numpy as np
 
 from smana.common.messages import (
@@ -264,3 +268,81 @@ class CloudInput:
             frame_id="world",
             source="lidar",
         )
+
+
+def twist_between(last: Pose | None, pose: Pose) -> tuple[float, float]:
+    """(forward speed m/s, turn rate rad/s) from the robot's last pose to `pose`, for the
+    Odometry's twist; (0, 0) without a last pose less than a second older."""
+    if last is None or not 0.0 < pose.stamp_s - last.stamp_s < 1.0:
+        return 0.0, 0.0
+    dt = pose.stamp_s - last.stamp_s
+    d = pose.position[:2] - last.position[:2]
+    dyaw = math.remainder(pose.yaw - last.yaw, math.tau)
+    return float(d @ [math.cos(pose.yaw), math.sin(pose.yaw)]) / dt, dyaw / dt
+
+
+class ExplorerView:
+    """The explorer's state (`explorer/state`) as the ROS 2 side shows it: its path and goal,
+    read and checked, once per change."""
+
+    def __init__(self):
+        self.last: tuple | None = None
+
+    def update(self, payload: bytes) -> tuple[np.ndarray, list | None, float, float] | None:
+        """(path (K, 2|3), goal xy or None, goal yaw, stamp s) when they changed, else None.
+        MessageError for a state that is not one."""
+        try:
+            state = msgpack.unpackb(payload)
+            goal = state.get("goal")
+            path = np.asarray(state.get("path") or np.zeros((0, 2)), np.float64)
+            t = float(state.get("t_s") or 0.0)
+            xy = None if goal is None else [float(v) for v in goal["xy"]]
+            yaw = 0.0 if goal is None else float(goal.get("yaw") or 0.0)
+        except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as exc:
+            raise MessageError("malformed", f"explorer state: {exc}") from None
+        if path.ndim != 2 or path.shape[-1] not in (2, 3) or not np.isfinite(path).all():
+            raise MessageError("value", "explorer state: path must be finite (x, y) points")
+        if xy is not None and (len(xy) not in (2, 3) or not np.isfinite([*xy, yaw]).all()):
+            # a goal of one number reached convert.pose_stamped and failed there (the campaign)
+            raise MessageError("value", "explorer state: a goal must be finite x, y and yaw")
+        key = (None if xy is None else tuple(xy), yaw, path.tobytes())
+        if key == self.last:
+            return None
+        self.last = key
+        return path, xy, yaw, t
+
+
+class StreamSync:
+    """A stream kept from its producer's updates (the map's deltas, the graph's patches) and
+    resynchronised from its snapshot: whether one is wanted, the one on its way, and the updates
+    that came meanwhile (applied after it, MAX_HELD at most: past that the stream has a gap and
+    another resync follows)."""
+
+    def __init__(self, period_s: float, max_held: int):
+        self.period_s, self.max_held = period_s, max_held
+        self.wanted = True  # at start, and after a failed sync or a producer's restart
+        self.syncing = False
+        self.next_try = 0.0
+        self.held: list = []
+
+    def due(self, now: float, want_resync: bool) -> bool:
+        """Whether to fetch a snapshot now (one a period at most); it is then on its way."""
+        if self.syncing or not (self.wanted or want_resync) or now < self.next_try:
+            return False
+        self.next_try = now + self.period_s
+        self.syncing = True
+        return True
+
+    def hold(self, msg):
+        """Keep an update that came while the snapshot is on its way (None), or drop it."""
+        if len(self.held) >= self.max_held:
+            return ("dropped", "sync_backlog")
+        self.held.append(msg)
+        return None
+
+    def done(self, ok: bool) -> list:
+        """The snapshot came (and was adopted when `ok`) or did not: the updates held."""
+        self.wanted = not ok
+        self.syncing = False
+        held, self.held = self.held, []
+        return held

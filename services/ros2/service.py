@@ -39,12 +39,10 @@ So odometry and velocity commands are forwarded while a planner or mapper does n
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 import time
 
-import msgpack
 import numpy as np
 
 from smana.common import keys
@@ -68,7 +66,15 @@ from smana.common.service import Reject, Reply, Request, Service, run_service
 
 from . import bridge, convert, costmap_types
 from .actions import Ros2Actions
-from .bridge import CloudInput, MapCopy, OdometryInput, checked
+from .bridge import (
+    CloudInput,
+    ExplorerView,
+    MapCopy,
+    OdometryInput,
+    StreamSync,
+    checked,
+    twist_between,
+)
 from .jobs import Jobs
 from .rmw import LATCHED_QOS, SENSOR_QOS, SERVICE, SUBSCRIPTION, QoS, RosNode, RosTypes
 
@@ -144,12 +150,12 @@ class Ros2Service(Service):
         self.cloud_input: CloudInput | None = None
         self.types: RosTypes | None = None
         self.node: RosNode | None = None
-        self._next_sync = {"map": 0.0, "graph": 0.0}
-        self._want_sync = {"map": True, "graph": True}
+        # the map and the graph, each resynchronised from its producer's snapshot
+        self.syncs = {w: StreamSync(RESYNC_PERIOD_S, MAX_HELD) for w in ("map", "graph")}
         self._next_pub = {"map": 0.0, "costmap": 0.0, "costmap_raw": 0.0}
         self._published = {"map": -1, "costmap": -1, "costmap_raw": -1}
         self._costmap_load_t: float | None = None  # nav2 Costmap's map_load_time
-        self._last_state: tuple | None = None
+        self.explorer_view = ExplorerView()
         self._last_pose: Pose | None = None
         self.sent = dict.fromkeys(
             ("map", "costmap", "costmap_raw", "path", "goal", "odom", "tf", "cmd_vel"), 0
@@ -160,8 +166,6 @@ class Ros2Service(Service):
         self.sync_jobs: Jobs | None = None
         self._plan_lock = threading.Lock()  # plan workers share `received["plans"]`
         self._fetched: queue.SimpleQueue = queue.SimpleQueue()  # (what, snapshot or QueryError)
-        self._syncing: set[str] = set()
-        self._held: dict[str, list] = {"map": [], "graph": []}
         self.actions: Ros2Actions | None = None
 
     def prepare(self) -> None:
@@ -273,7 +277,7 @@ class Ros2Service(Service):
         if sample.kind == zenoh.SampleKind.PUT:
             service = str(sample.key_expr).rsplit("/", 1)[-1]
             if service in ("mapper", "navgraph"):  # a (re)started producer: new stream
-                self._want_sync["map" if service == "mapper" else "graph"] = True
+                self.syncs["map" if service == "mapper" else "graph"].wanted = True
 
     def on_stop(self) -> None:
         for jobs in (self.plan_jobs, self.sync_jobs):
@@ -292,16 +296,9 @@ class Ros2Service(Service):
             self.sent[what] += 1
             self.msgs_out += 1
 
-    def _hold(self, what: str, msg):
-        """Keep a delta (patch) that came while its snapshot is on its way: applied after it."""
-        if len(self._held[what]) >= MAX_HELD:
-            return ("dropped", "sync_backlog")  # the stream has a gap now: a resync follows
-        self._held[what].append(msg)
-        return None
-
     def on_delta(self, delta: MapDelta):
-        if "map" in self._syncing:
-            return self._hold("map", delta)
+        if self.syncs["map"].syncing:  # applied after the snapshot
+            return self.syncs["map"].hold(delta)
         action, why = self.deltas_in.check(delta.producer, delta.seq)
         if action == COVERED:
             return ("dropped", "covered")
@@ -313,43 +310,23 @@ class Ros2Service(Service):
             self.note("delta_gap", f"map deltas: {why}")
 
     def on_patch(self, patch: GraphPatch):
-        if "graph" in self._syncing:
-            return self._hold("graph", patch)
+        if self.syncs["graph"].syncing:
+            return self.syncs["graph"].hold(patch)
         if self.graph.receive(patch) is None:
             return ("dropped", "covered")
 
     def on_explorer_state(self, payload: bytes) -> None:
-        try:
-            state = msgpack.unpackb(payload)
-            goal = state.get("goal")
-            path = np.asarray(state.get("path") or np.zeros((0, 2)), np.float64)
-            t = float(state.get("t_s") or 0.0)
-            xy = None if goal is None else [float(v) for v in goal["xy"]]
-            yaw = 0.0 if goal is None else float(goal.get("yaw") or 0.0)
-        except (ValueError, TypeError, KeyError, AttributeError, msgpack.UnpackException) as exc:
-            raise MessageError("malformed", f"explorer state: {exc}") from None
-        if path.ndim != 2 or path.shape[-1] not in (2, 3) or not np.isfinite(path).all():
-            raise MessageError("value", "explorer state: path must be finite (x, y) points")
-        if xy is not None and (len(xy) not in (2, 3) or not np.isfinite([*xy, yaw]).all()):
-            # a goal of one number reached convert.pose_stamped and failed there (the campaign)
-            raise MessageError("value", "explorer state: a goal must be finite x, y and yaw")
-        key = (None if xy is None else tuple(xy), yaw, path.tobytes())
-        if key == self._last_state:
+        changed = self.explorer_view.update(payload)
+        if changed is None:
             return
-        self._last_state = key
+        path, xy, yaw, t = changed
         frame = self.frames.map
         self._send("path", convert.path(self.types, path, t, frame))
         if xy is not None:
             self._send("goal", convert.pose_stamped(self.types, xy, yaw, t, frame))
 
     def on_pose(self, pose: Pose) -> None:
-        twist = (0.0, 0.0)
-        last = self._last_pose
-        if last is not None and 0.0 < pose.stamp_s - last.stamp_s < 1.0:
-            dt = pose.stamp_s - last.stamp_s
-            d = pose.position[:2] - last.position[:2]
-            dyaw = math.remainder(pose.yaw - last.yaw, math.tau)
-            twist = (float(d @ [math.cos(pose.yaw), math.sin(pose.yaw)]) / dt, dyaw / dt)
+        twist = twist_between(self._last_pose, pose)
         self._last_pose = pose
         if self.actions is not None:
             self.actions.on_pose(float(pose.position[0]), float(pose.position[1]))
@@ -361,15 +338,11 @@ class Ros2Service(Service):
     def tick(self) -> None:
         now = time.monotonic()
         self._take_snapshots()
-        for what in ("map", "graph"):
+        for what, sync in self.syncs.items():
             stream = self.deltas_in if what == "map" else self.graph
-            if what in self._syncing:
-                continue
-            if (self._want_sync[what] or stream.want_resync) and now >= self._next_sync[what]:
-                self._next_sync[what] = now + RESYNC_PERIOD_S
-                self._syncing.add(what)
+            if sync.due(now, bool(stream.want_resync)):
                 if not self.sync_jobs.submit(lambda w=what: self._fetch(w)):
-                    self._syncing.discard(what)
+                    sync.syncing = False
         self._publish_latched("map", self.map.version, self._map_message, now)
         self._publish_latched("costmap", self.grid.version, self._costmap_message, now)
         self._publish_latched("costmap_raw", self.grid.version, self._costmap_raw_message, now)
@@ -448,9 +421,7 @@ class Ros2Service(Service):
                 ok = False
             else:
                 ok = self._sync(what, reply)
-            self._want_sync[what] = not ok
-            self._syncing.discard(what)
-            held, self._held[what] = self._held[what], []
+            held = self.syncs[what].done(ok)
             apply = self.on_delta if what == "map" else self.on_patch
             for msg in held:
                 try:
