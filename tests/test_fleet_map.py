@@ -286,7 +286,7 @@ def test_an_auto_load_that_is_no_fleet_map_starts_empty(tmp_path):
     import dataclasses
 
     from smana.common.config import SmanaConfig
-    from smana.services.mapper.service import build_map
+    from smana.services.mapper.takeover import build_map
 
     robot_map = SemanticMap.from_config(config("octree-max"))
     robot_map.integrate(*cloud(0, 0.0))

@@ -9,7 +9,8 @@ import pytest
 
 from smana.common.config import SmanaConfig
 from smana.common.service import ReplyError, Request
-from smana.services.mapper.service import MapperService, build_map
+from smana.services.mapper.service import MapperService
+from smana.services.mapper.takeover import build_map
 
 
 @pytest.fixture

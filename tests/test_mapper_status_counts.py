@@ -8,7 +8,8 @@ import numpy as np
 
 from smana.common.config import SmanaConfig
 from smana.common.messages import SemanticCloud, ServiceStatus, decode, encode
-from smana.services.mapper.service import MAX_SEQ_GAP, MapperService, build_map
+from smana.services.mapper.service import MAX_SEQ_GAP, MapperService
+from smana.services.mapper.takeover import build_map
 
 
 class Sink:

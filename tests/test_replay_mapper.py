@@ -15,7 +15,7 @@ from smana.lab.data import synthetic as syn
 from smana.services.replay.prepare import prepare_scan
 from smana.services.replay.readers import open_dataset
 
-mapper_service = pytest.importorskip("smana.services.mapper.service")
+mapper_takeover = pytest.importorskip("smana.services.mapper.takeover")
 from smana.services.mapper.semantic_map import SemanticMap  # noqa: E402
 
 N_SCANS = 5
@@ -56,7 +56,7 @@ def test_lockstep_replay_builds_the_in_process_map(fake_stack, dataset, backend)
     cfg = SmanaConfig.load(None, settings)
     cfg = dataclasses.replace(cfg, general=dataclasses.replace(cfg.general, run_dir=""))
     table = ClassTable.load("rellis3d")
-    local = mapper_service.build_map(cfg, table)
+    local = mapper_takeover.build_map(cfg, table)
     with open_dataset(dataset) as reader:
         for scan in reader:
             pc = prepare_scan(scan, table, cfg.replay.max_range_m, cfg.replay.min_range_m)

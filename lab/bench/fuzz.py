@@ -1195,7 +1195,7 @@ class Campaign:
 
     def final_checks(self) -> None:
         from smana.common.classes import ClassTable
-        from smana.services.mapper.service import build_map
+        from smana.services.mapper.takeover import build_map
 
         r = self.result
         table = ClassTable.load(self.config.general.class_table)
