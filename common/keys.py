@@ -116,7 +116,7 @@ def explorer_goal_feedback(robot: str) -> str:
 def claim(fleet: str, member: str) -> str:
     """The coordinator's query for one member's claims: the goal it wants in, granted or not out.
     One key per member, so that an access-control policy lets each member's identity ask its own
-    only (`deploy/security.py`)."""
+    only (`deploy/acl.py`)."""
     return key(fleet, "coordinator", f"claim/{check_robot(member)}")
 
 

@@ -7,7 +7,7 @@ producers first), where it runs in a fleet, its default `[deploy.<name>]` policy
 that only read. Derived from it: the `smana` command's service commands (deploy/cli.py), the
 `[deploy.<name>]` sections (common/config/deploy.py), `smana warmup`'s list (deploy/warmup.py),
 the supervisor's start order, fleet layout and checks (deploy/supervisor.py, deploy/fleet.py,
-deploy/outcome.py), the ACL's roles (deploy/security.py) and `keys.SERVICES`.
+deploy/outcome.py), the ACL's roles (deploy/acl.py) and `keys.SERVICES`.
 
 A service outside smana is one row too, with no edit here: a distribution declares it under the
 entry-point group `smana.services` (`echo = "my_package:ROW"`, ROW a `ServiceRow`); `rows()`
@@ -47,7 +47,7 @@ class ServiceRow:
     fleet_only: bool = False  # runs only in a fleet (the coordinator)
     deploy: dict[str, Any] = field(default_factory=dict)  # [deploy.<name>] defaults
     warm_up: bool = False  # `smana warmup` compiles its kernels (its class's prepare())
-    # The ACL (deploy/security.py): "robot", an identity `<robot>.<name>` that owns
+    # The ACL (deploy/acl.py): "robot", an identity `<robot>.<name>` that owns
     # `smana/<robot>/<name>/**`; "sensor", it also publishes the robot's sensor streams; "drive",
     # it also publishes the robot's velocity commands and, in a fleet, asks the coordinator for
     # the robot's claims; "base", a base may run it for a robot; "fleet", an identity

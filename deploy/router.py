@@ -13,7 +13,7 @@ import threading
 from smana.common.config import ConfigError, ZenohConfig
 from smana.common.service import on_stop_signals
 from smana.common.zenoh_config import make_zenoh_config, open_session, read_credentials
-from smana.deploy.security import router_user, uplink_policy
+from smana.deploy.acl import router_user, uplink_policy
 
 log = logging.getLogger("smana.router")
 

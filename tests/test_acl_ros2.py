@@ -347,7 +347,7 @@ def test_the_policy_lets_no_identity_put_on_the_shared_tf():
     of two robots and a fleet (each robot's own is a part of it)."""
     import zenoh
 
-    from smana.deploy.security import acl_policy
+    from smana.deploy.acl import acl_policy
 
     shared = [zenoh.KeyExpr(f"{d}/tf/{TF}") for d in ("0", "42")]
     policy = acl_policy(["r1", "r2"], "fleet", "base")
@@ -400,7 +400,7 @@ def _history(session, key: str, out: list) -> bool:
 
 
 def test_the_policy_names_the_ros2_roles():
-    from smana.deploy.security import ROBOT_ROLES, acl_policy, ros2_tokens
+    from smana.deploy.acl import ROBOT_ROLES, acl_policy, ros2_tokens
 
     assert "ros2peer" in ROBOT_ROLES
     policy = acl_policy(["r1"], "fleet", "base")

@@ -37,7 +37,8 @@ import pytest
 
 from smana.common.config import ZenohConfig
 from smana.common.zenoh_config import make_zenoh_config
-from smana.deploy.security import OWNERS, init_certs
+from smana.deploy.acl import OWNERS
+from smana.deploy.security import init_certs
 from smana.deploy.supervisor import die_with_parent
 from tests.conftest import free_port, saved_maps, wait_for, wait_port
 

@@ -174,7 +174,7 @@ def test_a_policy_in_the_zenoh_config_file_is_refused_in_one_line(tmp_path):
     # it was applied to every process, clients too: each denied its own traffic, never ready
     from smana.common.config import ConfigError, ZenohConfig
     from smana.common.zenoh_config import make_zenoh_config
-    from smana.deploy.security import acl_policy
+    from smana.deploy.acl import acl_policy
 
     f = tmp_path / "zenoh.json5"
     f.write_text('{"access_control": ' + __import__("json").dumps(acl_policy()) + "}")

@@ -20,15 +20,9 @@ from smana.common.cli import UsageError
 from smana.common.config import ConfigError, ZenohConfig
 from smana.common.query import QueryError, request
 from smana.common.zenoh_config import make_zenoh_config, read_credentials
+from smana.deploy.acl import OWNERS, acl_policy, uplink_policy
 from smana.deploy.router import router_config
-from smana.deploy.security import (
-    OWNERS,
-    acl_policy,
-    add_robot,
-    init_certs,
-    revoke_robot,
-    uplink_policy,
-)
+from smana.deploy.security import add_robot, init_certs, revoke_robot
 from tests.conftest import REPO, saved_maps
 
 ROBOTS = ["r1", "r2"]

@@ -18,7 +18,7 @@ import pytest
 from smana.common import keys, service_table
 from smana.common.config import SmanaConfig
 from smana.common.registry import load_spec
-from smana.deploy import security, supervisor, warmup
+from smana.deploy import acl, supervisor, warmup
 from tests.conftest import REPO, free_port, stop_group, wait_for
 
 ROW = """
@@ -82,16 +82,16 @@ def test_the_lists_that_name_services_are_the_table_s():
         *("replay", "recorder", "ros2", "coordinator"),
     }
     # the ros2 service publishes a ROS 2 robot's sensor streams as a driver does (issue 28)
-    assert security.OWNERS == (
+    assert acl.OWNERS == (
         *("sim", "replay", "ros2", "driver", "mapper", "navgraph"),
         *("planner", "explorer", "recorder"),
     )
-    assert security.BASE_RUNS == ("navgraph", "planner", "explorer", "recorder")
-    assert security.FLEET_ROLES == ("mapper", "navgraph", "planner", "coordinator", "recorder")
-    assert security.SENSOR_ROLES == ("sim", "replay", "ros2", "driver")
-    assert security.GOAL_SENDERS == ("explorer", "ros2")
-    assert security.DRIVERS == ("explorer",)
-    assert security.READ_QUERIES == (
+    assert acl.BASE_RUNS == ("navgraph", "planner", "explorer", "recorder")
+    assert acl.FLEET_ROLES == ("mapper", "navgraph", "planner", "coordinator", "recorder")
+    assert acl.SENSOR_ROLES == ("sim", "replay", "ros2", "driver")
+    assert acl.GOAL_SENDERS == ("explorer", "ros2")
+    assert acl.DRIVERS == ("explorer",)
+    assert acl.READ_QUERIES == (
         *("mapper/stats", "mapper/snapshot", "mapper/point"),
         *("navgraph/graph", "navgraph/node", "navgraph/stats", "planner/path", "planner/stats"),
         *("explorer/state", "coordinator/claims", "coordinator/stats", "*/status"),

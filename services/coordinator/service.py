@@ -15,7 +15,7 @@
 Who asks matters, and a query does not say who sent it (zenoh's source info and attachment are
 whatever the sender writes). So each member claims on a key of its own, and on a secured
 deployment the access-control policy lets only that member's identities (`<member>.explorer`,
-and its router) send a query there, by that exact key (`deploy/security.py`); the checks above
+and its router) send a query there, by that exact key (`deploy/acl.py`); the checks above
 hold on an unsecured one too.
 """
 

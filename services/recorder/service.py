@@ -31,7 +31,7 @@ class RecorderService(Service):
     pose included), and a gate tuned for a ground robot (`general.max_speed_mps`) would refuse a
     replayed car's poses. The figures that matter come from trusted sources instead: a replay's
     distance from the poses the replay itself published (`replay_trajectory.csv`), and a secured
-    deployment lets only the sensor roles publish poses (`deploy/security.py`)."""
+    deployment lets only the sensor roles publish poses (`deploy/acl.py`)."""
 
     name = "recorder"
     tick_period_s = 1.0
