@@ -62,11 +62,11 @@ def request(
         raise QueryError("no_reply", f"no service answered {key} (is it running?)")
     r = replies[0]
     if r.ok is None:
-        data = _parse(r.err.payload.to_bytes())
+        data = parse_reply(r.err.payload.to_bytes())
         kind = data.get("error", "error") if isinstance(data, dict) else "error"
         msg = data.get("message", str(data)) if isinstance(data, dict) else str(data)
         raise QueryError(kind, f"{key}: {msg}", data if isinstance(data, dict) else None)
-    return _parse(r.ok.payload.to_bytes())
+    return parse_reply(r.ok.payload.to_bytes())
 
 
 def _gather(handler, while_waiting: Callable[[], None]) -> list:
@@ -87,7 +87,7 @@ def _gather(handler, while_waiting: Callable[[], None]) -> list:
         time.sleep(0.02)
 
 
-def _parse(payload: bytes):
+def parse_reply(payload: bytes):
     """A reply in either encoding: a typed message when it carries `_type`, else a plain map.
     JSON starts with `{` or `[`, which no msgpack map does (0x7b is a msgpack integer)."""
     is_json = payload[:1] in (b"{", b"[")

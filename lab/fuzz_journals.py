@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from smana.services.mapper.journal import _FRAME, MAGIC, JournalWriter, _array, frame
+from smana.services.mapper.journal import MAGIC, RECORD_FRAME, JournalWriter, frame, packed_array
 
 
 @dataclass
@@ -85,7 +85,7 @@ def with_record(j: Journal, i: int, payload) -> bytes:
     """Voxel record `i` (0-based) replaced by `payload`, framed with a valid checksum."""
     s, e = j.spans[i + 1]
     if isinstance(payload, bytes):  # a body that is not msgpack of a record at all
-        body = _FRAME.pack(MAGIC, len(payload), zlib.crc32(payload)) + payload
+        body = RECORD_FRAME.pack(MAGIC, len(payload), zlib.crc32(payload)) + payload
     else:
         body = frame(payload)
     return j.data[:s] + body + j.data[e:]
@@ -94,8 +94,8 @@ def with_record(j: Journal, i: int, payload) -> bytes:
 def _good(rec: dict) -> dict:
     return {
         "kind": "voxels",
-        "keys": _array(rec["keys"]),
-        "cols": {k: _array(v) for k, v in rec["cols"].items()},
+        "keys": packed_array(rec["keys"]),
+        "cols": {k: packed_array(v) for k, v in rec["cols"].items()},
         "service": {"clouds": 1},
     }
 
@@ -114,7 +114,7 @@ def _set_float(rec, value):
     k = _float_col(rec)
     a = rec["cols"][k].copy()
     a.flat[0] = value
-    return _col(rec, k, lambda d, _a, a=a: _array(a))
+    return _col(rec, k, lambda d, _a, a=a: packed_array(a))
 
 
 # Crafted records whose checksum holds: each must be refused whole, nothing of it applied.
@@ -126,21 +126,26 @@ CRAFTED = {
     "no_cols": lambda rec: {k: v for k, v in _good(rec).items() if k != "cols"},
     "no_service": lambda rec: {k: v for k, v in _good(rec).items() if k != "service"},
     "extra_field": lambda rec: {**_good(rec), "more": 1},
-    "keys_float": lambda rec: {**_good(rec), "keys": _array(rec["keys"].astype(np.float32))},
-    "keys_2d": lambda rec: {**_good(rec), "keys": _array(rec["keys"][:, :2])},
-    "keys_out_of_range": lambda rec: {**_good(rec), "keys": _array(rec["keys"] + (1 << 20))},
+    "keys_float": lambda rec: {**_good(rec), "keys": packed_array(rec["keys"].astype(np.float32))},
+    "keys_2d": lambda rec: {**_good(rec), "keys": packed_array(rec["keys"][:, :2])},
+    "keys_out_of_range": lambda rec: {**_good(rec), "keys": packed_array(rec["keys"] + (1 << 20))},
     "keys_shape_lies": lambda rec: {
         **_good(rec),
-        "keys": {**_array(rec["keys"]), "shape": [len(rec["keys"]) + 1, 3]},
+        "keys": {**packed_array(rec["keys"]), "shape": [len(rec["keys"]) + 1, 3]},
     },
-    "keys_object_dtype": lambda rec: {**_good(rec), "keys": {**_array(rec["keys"]), "dtype": "|O"}},
+    "keys_object_dtype": lambda rec: {
+        **_good(rec),
+        "keys": {**packed_array(rec["keys"]), "dtype": "|O"},
+    },
     "col_missing": lambda rec: {
         **_good(rec),
         "cols": dict(list(_good(rec)["cols"].items())[1:]),
     },
     "col_unknown": lambda rec: {**_good(rec), "cols": {**_good(rec)["cols"], "evil": b""}},
-    "col_dtype": lambda rec: _col(rec, _float_col(rec), lambda d, a: _array(a.astype(np.float64))),
-    "col_short": lambda rec: _col(rec, _float_col(rec), lambda d, a: _array(a[:-1])),
+    "col_dtype": lambda rec: _col(
+        rec, _float_col(rec), lambda d, a: packed_array(a.astype(np.float64))
+    ),
+    "col_short": lambda rec: _col(rec, _float_col(rec), lambda d, a: packed_array(a[:-1])),
     "col_nan": lambda rec: _set_float(rec, np.nan),
     "col_inf": lambda rec: _set_float(rec, np.inf),
     "counters_text": lambda rec: {**_good(rec), "service": {"clouds": "many"}},

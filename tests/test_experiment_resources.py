@@ -157,14 +157,14 @@ def test_a_failed_configuration_is_named_and_exits_1(tmp_path, monkeypatch, caps
     """--help: "Exit status 1 when a configuration failed"."""
     from smana.lab.bench import mapper as bench
 
-    real = bench._run
+    real = bench.run_config
 
     def tsdf_fails(cfg, path, in_process):
         if cfg["backend"] == "tsdf":
             return {**cfg, "error": ["MemoryError"]}
         return real(cfg, path, in_process)
 
-    monkeypatch.setattr(bench, "_run", tsdf_fails)
+    monkeypatch.setattr(bench, "run_config", tsdf_fails)
     assert exp.cli(["resources", "--quick", "--out", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert "resources: tsdf 0.3 m failed: ['MemoryError']" in err

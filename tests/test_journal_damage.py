@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from smana.lab import fuzz_journals as fj
-from smana.services.mapper.journal import _FRAME, JournalReader, JournalWriter
+from smana.services.mapper.journal import RECORD_FRAME, JournalReader, JournalWriter
 
 
 def replay(tmp_path, data: bytes, backend: str = "octree-bayes"):
@@ -45,10 +45,10 @@ def test_the_journal_cut_at_every_offset_keeps_every_whole_record(tmp_path):
 def _flip_positions(jrn, rng):
     """Every bit of every frame field (magic, length, checksum) and 200 sampled body bits."""
     for s, _ in jrn.spans:
-        for at in range(s, s + _FRAME.size):
+        for at in range(s, s + RECORD_FRAME.size):
             for bit in range(8):
                 yield at, bit
-    starts = {s + i for s, _ in jrn.spans for i in range(_FRAME.size)}
+    starts = {s + i for s, _ in jrn.spans for i in range(RECORD_FRAME.size)}
     body = [i for i in range(len(jrn.data)) if i not in starts]
     for at in rng.choice(body, 200, replace=False):
         yield int(at), int(rng.integers(8))

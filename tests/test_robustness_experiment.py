@@ -157,7 +157,7 @@ def test_a_run_without_a_report_exits_1_and_a_rerun_keeps_the_measured_one(tmp_p
         calls.append(arm.name)
         if arm.name == "max_high":  # its robot stood still: FAILED, measured
             _fake_run(out / ex.run_name(seed, arm), 0.02, ["the robot did not move (0.02 m)"])
-            return 1, ex._load(out / ex.run_name(seed, arm) / "metrics.json"), {}, 1.0, 30.0
+            return 1, ex.load_json(out / ex.run_name(seed, arm) / "metrics.json"), {}, 1.0, 30.0
         return -9, {}, {}, 1.0, 30.0  # killed before its report
 
     monkeypatch.setattr(ex, "exploration_run", fake_run)

@@ -49,14 +49,14 @@ def test_an_unknown_workload_is_one_line_and_exit_2(capsys):
 
 def test_a_failed_run_is_named_and_exits_1(capsys, monkeypatch):
     pytest.importorskip("open3d", reason="an optional peer (smana[bench])")
-    real = bench.mb._run
+    real = bench.mb.run_config
 
     def run(cfg, path, in_process):
         if cfg["kind"] == "ours" and cfg["threads"] == 2:
             return {**cfg, "error": ["RuntimeError: provoked"]}
         return real(cfg, path, True)
 
-    monkeypatch.setattr(bench.mb, "_run", run)
+    monkeypatch.setattr(bench.mb, "run_config", run)
     assert bench.cli(["--quick"]) == 1
     captured = capsys.readouterr()
     assert "ERROR ours os1-16 20m 0.3 2t: ['RuntimeError: provoked']" in captured.err
@@ -72,8 +72,8 @@ def test_a_missed_goal_is_reported_not_an_error(capsys, monkeypatch):
         ms = 10.0 if cfg["kind"] == "ours" else 1.0
         return {**cfg, "median_ms": ms, "cpu_median_ms": ms, "load": [1.0, 1.0]}
 
-    monkeypatch.setattr(bench.mb, "_have", lambda name: True)
-    monkeypatch.setattr(bench.mb, "_run", run)
+    monkeypatch.setattr(bench.mb, "have_module", lambda name: True)
+    monkeypatch.setattr(bench.mb, "run_config", run)
     assert bench.cli(["--quick"]) == 0
     out = capsys.readouterr().out
     for col, goal in bench.GOALS.items():

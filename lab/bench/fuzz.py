@@ -1307,10 +1307,10 @@ class Campaign:
 
 
 def _parse(data: bytes):
-    from smana.common.query import QueryError, _parse
+    from smana.common.query import QueryError, parse_reply
 
     try:
-        return _parse(data)
+        return parse_reply(data)
     except QueryError as exc:
         raise CampaignError(str(exc)) from None
 

@@ -109,7 +109,8 @@ def _make_scans(n_scans: int, n_beams: int, n_cols: int, scene: str, path: Path)
     }
 
 
-def _load() -> float:
+def load_average() -> float:
+    """The machine's 1-minute load average (a measurement under load says so)."""
     return os.getloadavg()[0]
 
 
@@ -163,7 +164,7 @@ def run_ours(cfg: dict, scans) -> dict:
     p, lab, conf, org = scans[0]
     warm.integrate(p[:2000], lab[:2000], conf[:2000], org)
     del warm
-    rss0, load0 = _rss_mb(), _load()
+    rss0, load0 = _rss_mb(), load_average()
     run_medians, cpu_medians, times, updates, deltas = [], [], [], [], []
     for _ in range(cfg.get("repeats", 1)):  # a fresh map each run, the same scans
         m = new_map()
@@ -188,7 +189,7 @@ def run_ours(cfg: dict, scans) -> dict:
         "bytes_reserved_per_allocated_voxel": st["bytes_reserved_per_allocated_voxel"],
         "bytes_per_observed_voxel": st["bytes_per_observed_voxel"],
         "voxels_observed": st["voxels_observed"],
-        "load": [load0, _load()],
+        "load": [load0, load_average()],
     }
 
 
@@ -206,7 +207,7 @@ def run_octomap(cfg: dict, scans) -> dict:
         over.append(time.perf_counter() - t0)
         over_cpu.append(time.process_time() - c0)
     del probe
-    rss0, load0 = _rss_mb(), _load()
+    rss0, load0 = _rss_mb(), load_average()
     run_medians, cpu_medians, times = [], [], []
     for _ in range(cfg.get("repeats", 1)):
         tree = pyoctomap.OcTree(cfg["res"])
@@ -238,7 +239,7 @@ def run_octomap(cfg: dict, scans) -> dict:
         "map_mb": tree.memoryUsage() / 2**20,
         "bytes_per_allocated_voxel": tree.memoryUsage() / max(leaves, 1),
         "voxels_observed": leaves,
-        "load": [load0, _load()],
+        "load": [load0, load_average()],
     }
 
 
@@ -309,7 +310,7 @@ def run_open3d(cfg: dict, scans) -> dict:
             vbg.integrate(blocks, depth, intr, ext, 1.0, max_range, trunc_voxel_multiplier=trunc)
 
     integrate(grid(), frames[0])  # warm-up (first-call costs) outside the timed loop
-    rss0, load0 = _rss_mb(), _load()
+    rss0, load0 = _rss_mb(), load_average()
     run_medians, cpu_medians, times = [], [], []
     for _ in range(cfg.get("repeats", 1)):
         vbg = grid()
@@ -328,7 +329,7 @@ def run_open3d(cfg: dict, scans) -> dict:
         "map_mb": n_blocks * 512 * 8 / 2**20,
         "bytes_per_allocated_voxel": 8.0,  # two float32 attributes (hash map not counted)
         "voxels_observed": n_blocks * 512,  # allocated: Open3D does not tell observed ones
-        "load": [load0, _load()],
+        "load": [load0, load_average()],
     }
 
 
@@ -431,7 +432,7 @@ def run_sequence(cfg: dict, scans) -> dict:
         "map_mb": m.stats()["bytes_used"] / 2**20,
         "graph_mb": g.nbytes / 2**20,
         "voxels_observed": m.stats()["voxels_observed"],
-        "load": _load(),
+        "load": load_average(),
     }
 
 
@@ -445,7 +446,8 @@ RUNNERS = {
 PEERS = {"octomap": "pyoctomap", "open3d": "open3d"}  # kind -> module to import
 
 
-def _run(cfg: dict, scans_path: Path, in_process: bool) -> dict:
+def run_config(cfg: dict, scans_path: Path, in_process: bool) -> dict:
+    """One measurement of `cfg` on the scans file, in this process or in a child of its own."""
     if in_process:
         scans = _load_scans(scans_path)[: cfg.get("n_scans")]
         return RUNNERS[cfg["kind"]](cfg, scans)
@@ -659,7 +661,8 @@ def _summary(results: list[dict], pairs: list[dict]) -> tuple[list[str], dict]:
     return lines, checks
 
 
-def _have(module: str) -> bool:
+def have_module(module: str) -> bool:
+    """Whether an optional package is installed (a one-line hint on stderr when not)."""
     try:
         __import__(module)
     except ImportError:
@@ -729,7 +732,8 @@ def cli(argv: list[str] | None = None) -> int:
         args.resolutions, args.in_process, args.agreement_scans = [0.3], True, 2
         args.repeats = 1
     peers = {
-        kind: not getattr(args, f"no_{kind}") and _have(module) for kind, module in PEERS.items()
+        kind: not getattr(args, f"no_{kind}") and have_module(module)
+        for kind, module in PEERS.items()
     }
     configs = []
     for scene in args.scenes:
@@ -768,7 +772,7 @@ def cli(argv: list[str] | None = None) -> int:
                         f"{_ray(cfg)} ...",
                         file=sys.stderr,
                     )
-                results.append(_run(cfg, paths[cfg["scene"]], args.in_process))
+                results.append(run_config(cfg, paths[cfg["scene"]], args.in_process))
                 bar.update()
     pairs = _pairs(results)
     lines, checks = _summary(results, pairs)
@@ -778,7 +782,7 @@ def cli(argv: list[str] | None = None) -> int:
         "points_per_scan": beams * cols,
         "scenes": scenes,
         "max_range_m": MAX_RANGE_M,
-        "machine": {"cpus": os.cpu_count(), "load_avg_1m": _load()},
+        "machine": {"cpus": os.cpu_count(), "load_avg_1m": load_average()},
         "wall_s": time.perf_counter() - t_start,
         "results": results,
         "pairs": pairs,
@@ -794,7 +798,7 @@ def cli(argv: list[str] | None = None) -> int:
     else:
         print(
             f"{n} scans of {beams} x {cols} beams, max range {MAX_RANGE_M:g} m, "
-            f"load average {_load():.2f} on {os.cpu_count()} cpus"
+            f"load average {load_average():.2f} on {os.cpu_count()} cpus"
         )
         for scene, st in scenes.items():
             print(

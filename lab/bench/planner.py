@@ -148,7 +148,7 @@ def map_doubt(seed: int, length_m: float = 44.0, image_px: int = 640) -> dict:
     import types
 
     from smana.common.config import SmanaConfig
-    from smana.lab.experiments.noise import POSE_NOISE, _cloud, fixed_trajectory, render_frames
+    from smana.lab.experiments.noise import POSE_NOISE, fixed_trajectory, frame_cloud, render_frames
     from smana.services.mapper.semantic_map import SemanticMap
     from smana.services.navgraph.graph import NavGraph
     from smana.services.sim.degrade import WET_CONFUSABLE, WET_IDS, LabelDegrader, PoseNoise
@@ -166,7 +166,7 @@ def map_doubt(seed: int, length_m: float = 44.0, image_px: int = 640) -> dict:
     graph = NavGraph(classes, config.navgraph)
     for base, capture, mount in frames:
         labels = degrade.degrade(capture.labels).labels
-        pts, lab, origin = _cloud((base, capture, mount), labels, pose_noise.apply(base), 2)
+        pts, lab, origin = frame_cloud((base, capture, mount), labels, pose_noise.apply(base), 2)
         d = semantic_map.integrate(pts, lab, degrade.confidences(len(pts)), origin)
         # what the mapper publishes (services/mapper/service.py, `_message`)
         graph.integrate_delta(

@@ -140,7 +140,7 @@ def cli(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.out:
         output_file(args.out)
-    if not mb._have("open3d"):
+    if not mb.have_module("open3d"):
         return 1
     workloads = {k: WORKLOADS[k] for k in args.workloads or WORKLOADS}
     n, cols = args.scans, 2048
@@ -173,7 +173,7 @@ def cli(argv: list[str] | None = None) -> int:
                     progress.say(
                         f"running {kind} {name} on {threads} thread(s) ...", file=sys.stderr
                     )
-                    r = mb._run(cfg, path, args.in_process)
+                    r = mb.run_config(cfg, path, args.in_process)
                     bar.update()
                     if "error" in r:
                         failed = True
@@ -190,7 +190,7 @@ def cli(argv: list[str] | None = None) -> int:
     report = {
         "scans": n,
         "repeats": args.repeats,
-        "machine": {"cpus": os.cpu_count(), "load_avg_1m": mb._load()},
+        "machine": {"cpus": os.cpu_count(), "load_avg_1m": mb.load_average()},
         "wall_s": time.perf_counter() - t_start,
         "rows": rows,
         "spread": spread,
@@ -219,7 +219,7 @@ def cli(argv: list[str] | None = None) -> int:
             f"ratio {col:<8} median {s['median']:.3f}, range {s['min']:.3f}-{s['max']:.3f} "
             f"over {s['n']} workloads{verdict}"
         )
-    print(f"load average {mb._load():.2f} at the end; wall time {report['wall_s']:.0f} s")
+    print(f"load average {mb.load_average():.2f} at the end; wall time {report['wall_s']:.0f} s")
     return 1 if failed else 0
 
 

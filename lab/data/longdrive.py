@@ -32,9 +32,9 @@ from smana.lab.data.synthetic import (
     GRASS,
     SENSOR_HEIGHT_M,
     TREE,
-    _ray_cylinder,
-    _ray_ground,
     beam_directions,
+    ray_cylinder,
+    ray_ground,
     terrain_height,
 )
 
@@ -181,7 +181,7 @@ def _cast_one(origin, dx, dy, dz, max_range, w, obs):
     t_cell = 0.0
     while t_cell < best:
         if _cell_obstacle(i, j, w, obs):
-            t = _ray_cylinder(ox, oy, oz, dx, dy, dz, obs)
+            t = ray_cylinder(ox, oy, oz, dx, dy, dz, obs)
             if t < best:
                 best, lab = t, int(obs[5])
                 break
@@ -189,7 +189,7 @@ def _cast_one(origin, dx, dy, dz, max_range, w, obs):
             t_cell, t_i, i = t_i, t_i + t_di, i + step_i
         else:
             t_cell, t_j, j = t_j, t_j + t_dj, j + step_j
-    tg = _ray_ground(ox, oy, oz, dx, dy, dz, best)
+    tg = ray_ground(ox, oy, oz, dx, dy, dz, best)
     if tg < best:
         best, lab = tg, _ground_label(ox + dx * tg, oy + dy * tg, w)
     return best, lab

@@ -242,7 +242,9 @@ def beam_directions(beams: int = 64, columns: int = 2048) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def _ray_cylinder(ox, oy, oz, dx, dy, dz, c):
+def ray_cylinder(ox, oy, oz, dx, dy, dz, c):
+    """The first t > 0 where the ray o + t d meets the upright cylinder c = (cx, cy, r, z0, z1),
+    its side or its top; inf when it misses."""
     cx, cy, r, z0, z1 = c[0], c[1], c[2], c[3], c[4]
     best = np.inf
     a = dx * dx + dy * dy
@@ -305,7 +307,7 @@ def _ray_box(ox, oy, oz, dx, dy, dz, bx):
 
 
 @numba.njit(cache=True)
-def _ray_ground(ox, oy, oz, dx, dy, dz, t_end):
+def ray_ground(ox, oy, oz, dx, dy, dz, t_end):
     """First t where the ray goes below the terrain, or inf.
 
     Marches with steps that cannot skip the surface (the terrain's slope is at most
@@ -414,14 +416,14 @@ def _cast_rays(origin, dirs, columns, max_range, objects, ground_raster):
                 k = cand[m]
                 kind, j = kinds[k, 0], kinds[k, 1]
                 if kind == 0:
-                    t = _ray_cylinder(origin[0], origin[1], origin[2], dx, dy, dz, cyl[j])
+                    t = ray_cylinder(origin[0], origin[1], origin[2], dx, dy, dz, cyl[j])
                 elif kind == 1:
                     t = _ray_sphere(origin[0], origin[1], origin[2], dx, dy, dz, sph[j])
                 else:
                     t = _ray_box(origin[0], origin[1], origin[2], dx, dy, dz, box[j])
                 if t < best:
                     best, lab = t, labels_of[k]
-            tg = _ray_ground(origin[0], origin[1], origin[2], dx, dy, dz, best)
+            tg = ray_ground(origin[0], origin[1], origin[2], dx, dy, dz, best)
             if tg < best:
                 best = tg
                 gx = int(math.floor((origin[0] + dx * tg - g_origin[0]) / g_res))

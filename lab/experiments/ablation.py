@@ -51,7 +51,7 @@ def table(rows: list[dict]) -> list[str]:
         "|---|---|---|---|---|---|---|",
     ]
     for d in ex.summarise_exploration(rows):
-        iv = {k: ex._interval(d[k]) for k in ("terrain_share", "distance_m", "coverage")}
+        iv = {k: ex.interval_of(d[k]) for k in ("terrain_share", "distance_m", "coverage")}
         lines.append(
             f"| {d['path_cost_weight']:g} | x{d['grass_cost_factor']:g} | {d['runs']} "
             f"({d['failed']}) | {iv['terrain_share'].format(100, unit=' %')} | "
@@ -126,13 +126,13 @@ def write_ablation_outputs(
         ("coverage", "coverage", 1.0),
         ("distance_m", "distance / 100 m", 0.01),
     ):
-        cis = [ex._interval(d[key]) for d in summary]
+        cis = [ex.interval_of(d[key]) for d in summary]
         err = None
         if all(c.defined for c in cis):
             err = ([scale * (c.mean - c.lo) for c in cis], [scale * (c.hi - c.mean) for c in cis])
         ys = [None if c.n == 0 else scale * c.mean for c in cis]
         series.append(paper_figures.Series(label, list(range(len(weights))), ys, err))
-    ns = sorted({ex._interval(d["terrain_share"]).n for d in summary})
+    ns = sorted({ex.interval_of(d["terrain_share"]).n for d in summary})
     path = paper_figures.save(
         paper_figures.line_plot(
             series,

@@ -238,9 +238,9 @@ def exploration_run(out: Path, seed: int, arm: Arm, s: ExplorationExperimentConf
     t0 = time.perf_counter()
     with open(run_dir / "up.log", "w") as f:
         # its own process group, so a timeout ends the whole stack; Ctrl-C no longer reaches it
-        # by itself, run_exploration forwards it (_LIVE)
+        # by itself, run_exploration forwards it (LIVE_GROUPS)
         p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
-        _LIVE.add(p.pid)
+        LIVE_GROUPS.add(p.pid)
         # a hung run must not hang the experiment: its process group is ended after a timeout
         timer = threading.Timer(s.budget_s * 3 + 180, os.killpg, (p.pid, signal.SIGKILL))
         timer.start()
@@ -249,7 +249,7 @@ def exploration_run(out: Path, seed: int, arm: Arm, s: ExplorationExperimentConf
             _, status, usage = os.wait4(p.pid, 0)
         finally:
             timer.cancel()
-            _LIVE.discard(p.pid)
+            LIVE_GROUPS.discard(p.pid)
         p.returncode = code = os.waitstatus_to_exitcode(status)
     wall = time.perf_counter() - t0
     if s.python and (run_dir / "metrics.json").exists():
@@ -259,15 +259,16 @@ def exploration_run(out: Path, seed: int, arm: Arm, s: ExplorationExperimentConf
             stdout=subprocess.DEVNULL,
             check=False,
         )
-    metrics = _load(run_dir / "metrics.json")
-    state = _load(run_dir / "explorer" / "state.json")
+    metrics = load_json(run_dir / "metrics.json")
+    state = load_json(run_dir / "explorer" / "state.json")
     return code, metrics, state, usage.ru_utime + usage.ru_stime, wall
 
 
-_LIVE: set[int] = set()  # process groups of the runs under way
+LIVE_GROUPS: set[int] = set()  # process groups of the runs under way
 
 
-def _load(path: Path) -> dict:
+def load_json(path: Path) -> dict:
+    """A run's JSON file ({} when it is missing or does not read)."""
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError):
@@ -408,21 +409,23 @@ def _achieved_rtf(ee: dict) -> float | None:
     return round(t / wall, 3) if t and wall else None
 
 
-def _terminate(signum, frame):
+def terminate(signum, frame):
+    """A signal handler: SIGTERM ends an experiment as Ctrl-C does (its runs are stopped)."""
     raise KeyboardInterrupt(f"signal {signum}")
 
 
 ROW_FILE = "row.json"  # a finished run's row, beside its outputs (a rerun keeps it)
 
 
-def _keep_row(out: Path, row: dict, arm: Arm) -> None:
+def keep_row(out: Path, row: dict, arm: Arm) -> None:
+    """Write a finished run's row beside its outputs (ROW_FILE), whole or not at all."""
     path = out / run_name(row["seed"], arm) / ROW_FILE
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(row))
     tmp.replace(path)
 
 
-def _kept_row(out: Path, seed: int, arm: Arm) -> dict | None:
+def kept_row(out: Path, seed: int, arm: Arm) -> dict | None:
     """The row a finished run of (seed, arm) left in `out`, or None (not run, not kept, or a file
     that does not read as that run's row: it runs again)."""
     try:
@@ -446,7 +449,7 @@ def run_exploration(
     rows = []
     if keep is not None:
         for seed, arm in list(todo):
-            kept = _kept_row(out, seed, arm)
+            kept = kept_row(out, seed, arm)
             if kept is not None:
                 rows.append(kept)
                 todo.remove((seed, arm))
@@ -456,7 +459,7 @@ def run_exploration(
     # group and would otherwise live on without the experiment
     previous = None
     if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, _terminate)
+        previous = signal.signal(signal.SIGTERM, terminate)
     runs = progress.bar(len(todo), "exploration", unit="run")
     pool = ThreadPoolExecutor(max_workers=s.jobs)
     try:
@@ -472,7 +475,7 @@ def run_exploration(
                 row = make_row(seed, arm, -1, {}, {}, 0.0, 0.0)
                 log(f"{run_name(seed, arm)}: {exc}")
             if keep is not None and keep(row, out / run_name(seed, arm)):
-                _keep_row(out, row, arm)
+                keep_row(out, row, arm)
             rows.append(row)
             runs.update()
             log(
@@ -482,7 +485,7 @@ def run_exploration(
     except BaseException:
         # Ctrl-C: stop the queued runs and ask the running stacks to stop as `smana up` would
         pool.shutdown(wait=False, cancel_futures=True)
-        for pid in list(_LIVE):
+        for pid in list(LIVE_GROUPS):
             try:
                 os.killpg(pid, signal.SIGINT)
             except ProcessLookupError:
@@ -608,7 +611,8 @@ def to_95_cells(d: dict) -> str:
     )
 
 
-def _interval(d: dict) -> stats.Interval:
+def interval_of(d: dict) -> stats.Interval:
+    """The mean and its confidence interval of a summary row's entry."""
     nan = math.nan
     lo, hi = d["ci_lo"], d["ci_hi"]
     return stats.Interval(
@@ -818,7 +822,7 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for d in summary:
-        iv = {k: _interval(d[k]) for k in ("terrain_share", "coverage", "distance_m")}
+        iv = {k: interval_of(d[k]) for k in ("terrain_share", "coverage", "distance_m")}
         lines.append(
             f"| {d['arm']} | {d['runs']} ({d['failed']}) | "
             f"{iv['terrain_share'].format(100, unit=' %')} | "
@@ -837,10 +841,11 @@ def write_exploration_outputs(rows: list[dict], s: ExplorationExperimentConfig, 
     for r in rows:
         d95 = "not reached" if r["distance_to_95_m"] is None else f"{r['distance_to_95_m']:.1f}"
         lines.append(
-            f"| {run_name(r['seed'], _arm_of(r))} | {r['exit_code']} | {_pct(r['terrain_share'])}"
-            f" | {_pct(r['coverage'])} | {_num(r['distance_m'])} | {d95} | "
-            f"{_num(r['wall_time_s'], '.0f')} | {_num(r['cpu_s'], '.0f')} | "
-            f"{_num(r['real_time_factor'], '.2f')} |"
+            f"| {run_name(r['seed'], _arm_of(r))} | {r['exit_code']} | "
+            f"{fmt_pct(r['terrain_share'])} | {fmt_pct(r['coverage'])} | "
+            f"{fmt_num(r['distance_m'])} | {d95} | "
+            f"{fmt_num(r['wall_time_s'], '.0f')} | {fmt_num(r['cpu_s'], '.0f')} | "
+            f"{fmt_num(r['real_time_factor'], '.2f')} |"
         )
     lines += [""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
     (out / "exploration_summary.md").write_text("\n".join(lines))
@@ -850,11 +855,13 @@ def _arm_of(r: dict) -> Arm:
     return Arm(r["arm"], r["grass_cost_factor"])
 
 
-def _pct(v):
+def fmt_pct(v):
+    """A share as a percentage with one decimal, "-" when there is none."""
     return "-" if v is None else f"{100 * v:.1f} %"
 
 
-def _num(v, fmt=".1f"):
+def fmt_num(v, fmt=".1f"):
+    """A number in `fmt`, "-" when there is none."""
     return "-" if v is None else format(v, fmt)
 
 

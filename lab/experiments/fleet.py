@@ -157,7 +157,7 @@ def fleet_run(out: Path, seed: int, world: World, n: int, s: FleetExperimentConf
     t0 = time.perf_counter()
     with open(run_dir / "up.log", "w") as f:
         p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
-        ex._LIVE.add(p.pid)  # the exploration runner's: Ctrl-C stops these runs too
+        ex.LIVE_GROUPS.add(p.pid)  # the exploration runner's: Ctrl-C stops these runs too
         # N stacks share the cores: robot time runs slower than for one robot
         timer = threading.Timer(
             s.budget(world) * (2 + 2 * n) + 240, os.killpg, (p.pid, signal.SIGKILL)
@@ -167,10 +167,10 @@ def fleet_run(out: Path, seed: int, world: World, n: int, s: FleetExperimentConf
             _, status, usage = os.wait4(p.pid, 0)
         finally:
             timer.cancel()
-            ex._LIVE.discard(p.pid)
+            ex.LIVE_GROUPS.discard(p.pid)
         code = os.waitstatus_to_exitcode(status)
     wall = time.perf_counter() - t0
-    return code, ex._load(run_dir / "metrics.json"), usage.ru_utime + usage.ru_stime, wall
+    return code, ex.load_json(run_dir / "metrics.json"), usage.ru_utime + usage.ru_stime, wall
 
 
 # A warning that is one of the experiment's outcomes, not a failure of the run: a run whose only
@@ -322,7 +322,7 @@ def _history(m: dict) -> list:
     """A single robot's explorer history, read back from its run directory."""
     if not m.get("run_dir"):
         return []
-    return ex._load(Path(m["run_dir"]) / "explorer" / "state.json").get("history") or []
+    return ex.load_json(Path(m["run_dir"]) / "explorer" / "state.json").get("history") or []
 
 
 def run_fleet(s: FleetExperimentConfig, out: Path, log=progress.say) -> list[dict]:
@@ -339,7 +339,7 @@ def run_fleet(s: FleetExperimentConfig, out: Path, log=progress.say) -> list[dic
         log(f"{len(rows)} finished run(s) kept from {out}; {len(todo)} to run")
     previous = None
     if threading.current_thread() is threading.main_thread():
-        previous = signal.signal(signal.SIGTERM, ex._terminate)
+        previous = signal.signal(signal.SIGTERM, ex.terminate)
     bar = progress.bar(len(todo), "fleet", unit="run")
     pool = ThreadPoolExecutor(max_workers=s.jobs)
     try:
@@ -364,7 +364,7 @@ def run_fleet(s: FleetExperimentConfig, out: Path, log=progress.say) -> list[dic
             )
     except BaseException:
         pool.shutdown(wait=False, cancel_futures=True)
-        for pid in list(ex._LIVE):
+        for pid in list(ex.LIVE_GROUPS):
             try:
                 os.killpg(pid, signal.SIGINT)
             except ProcessLookupError:
@@ -733,10 +733,10 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
         t95 = "not reached" if r["time_to_95_s"] is None else f"{r['time_to_95_s']:.0f}"
         lines.append(
             f"| {run_name(r['seed'], r['world'], r['n_robots'])} | {r['exit_code']} | "
-            f"{ex._pct(r['coverage'])} | {t95} | {ex._num(r['distance_to_95_m'])} | "
-            f"{ex._pct(r['overlap'])} | {_int(r['robot_contacts'])} | "
-            f"{ex._num(r['min_separation_m'], '.2f')} | {ex._num(r['wall_time_s'], '.0f')} | "
-            f"{ex._num(r['cpu_s'], '.0f')} |"
+            f"{ex.fmt_pct(r['coverage'])} | {t95} | {ex.fmt_num(r['distance_to_95_m'])} | "
+            f"{ex.fmt_pct(r['overlap'])} | {_int(r['robot_contacts'])} | "
+            f"{ex.fmt_num(r['min_separation_m'], '.2f')} | {ex.fmt_num(r['wall_time_s'], '.0f')} | "
+            f"{ex.fmt_num(r['cpu_s'], '.0f')} |"
         )
     lines += [""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
     (out / "fleet.md").write_text("\n".join(lines))
@@ -756,7 +756,7 @@ def summary_table(summary: list[dict]) -> list[str]:
     to an event, the log-rank test against one robot, and intervals over the measured runs."""
     lines = [SUMMARY_HEAD, "|" + "---|" * SUMMARY_HEAD.count(" | ") + "---|"]
     for d in summary:
-        iv = {k: ex._interval(d[k]) for k in SUMMARY_KEYS}
+        iv = {k: ex.interval_of(d[k]) for k in SUMMARY_KEYS}
         lines.append(
             f"| {d['world']} | {d['n_robots']} | {d['runs']} ({d['run_failed']}; "
             f"{d['failed']}) | {ex.to_95_cells(d)} | {d['logrank_text'] or '-'} | "

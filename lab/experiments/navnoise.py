@@ -164,7 +164,7 @@ def with_conditions(rows: list[dict], out: Path) -> list[dict]:
     for r in rows:
         c = _BY_NAME[r["arm"]]
         run_dir = out / ex.run_name(r["seed"], c.arm())
-        m = ex._load(run_dir / "metrics.json")
+        m = ex.load_json(run_dir / "metrics.json")
         warnings = m.get("warnings") or []
         # a run that FAILED on what its robot did alone is a measurement (module docstring)
         outcome = bool(m) and ex.outcome_failure(r["exit_code"], m)
@@ -473,10 +473,10 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
     for r in rows:
         lines.append(
             f"| {ex.run_name(r['seed'], _BY_NAME[r['arm']].arm())} | {r['exit_code']} | "
-            f"{r['trajectory_source'] or '-'} | {ex._pct(r['terrain_share_true'])} | "
-            f"{ex._pct(r['terrain_share_map'])} | {ex._pct(r['coverage'])} | "
-            f"{ex._num(r['distance_m'])} | {'-' if r['collisions'] is None else r['collisions']}"
-            f" | {ex._num(r['wall_time_s'], '.0f')} | {r['run_warnings'] or '-'} |"
+            f"{r['trajectory_source'] or '-'} | {ex.fmt_pct(r['terrain_share_true'])} | "
+            f"{ex.fmt_pct(r['terrain_share_map'])} | {ex.fmt_pct(r['coverage'])} | "
+            f"{ex.fmt_num(r['distance_m'])} | {'-' if r['collisions'] is None else r['collisions']}"
+            f" | {ex.fmt_num(r['wall_time_s'], '.0f')} | {r['run_warnings'] or '-'} |"
         )
     if figure is not None:
         lines += ["", f"![{figure.stem}]({figure.name})"]

@@ -247,7 +247,7 @@ def render_frames(world, poses: np.ndarray, image_px: int, bar=None):
     return frames
 
 
-def _cloud(frame, labels_img, base_used, stride):
+def frame_cloud(frame, labels_img, base_used, stride):
     """World points of a frame's valid pixels, placed with the (possibly noisy) base pose."""
     from smana.services.sim.scene import transform_points
 
@@ -322,7 +322,7 @@ def noise_seed_run(settings: NoiseExperimentConfig, seed: int, first: bool, tell
             degraded = deg.degrade(cap.labels, superpixels=segments[k])
             segments[k] = degraded.superpixels
             lab = degraded.labels
-            pts, lab_v, origin = _cloud(frame, lab, pn.apply(base), settings.pixel_stride)
+            pts, lab_v, origin = frame_cloud(frame, lab, pn.apply(base), settings.pixel_stride)
             clouds.append((pts, lab_v, deg.confidences(len(pts)), origin))
         return clouds
 

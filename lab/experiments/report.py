@@ -191,7 +191,13 @@ def exploration_section(all_data: dict[str, dict]) -> str:
     intervals over seeds, and the distance and time to 95 % as times to an event: how many
     runs reached it, the Kaplan-Meier medians and the restricted mean time up to the budget
     (runs that did not reach it censored, never dropped: exploration.py `time_to_event`)."""
-    from .exploration import TO_95_HEAD, TO_95_NOTE, _interval, summarise_exploration, to_95_cells
+    from .exploration import (
+        TO_95_HEAD,
+        TO_95_NOTE,
+        interval_of,
+        summarise_exploration,
+        to_95_cells,
+    )
 
     keys = [k for k, d in all_data.items() if d["experiment"] == "exploration"]
     if not keys:
@@ -216,7 +222,7 @@ def exploration_section(all_data: dict[str, dict]) -> str:
             "|---|---|---|---|---|---|---|---|",
         ]
         for d in summarise_exploration(rows, meta.get("budget_s")):
-            iv = {k: _interval(d[k]) for k in ("terrain_share", "coverage", "distance_m")}
+            iv = {k: interval_of(d[k]) for k in ("terrain_share", "coverage", "distance_m")}
             lines.append(
                 f"| {_arm_name(d['arm'])} | {iv['terrain_share'].format(100, unit=' %')} | "
                 f"{iv['coverage'].format(100, unit=' %')} | {iv['distance_m'].format()} | "

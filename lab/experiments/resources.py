@@ -137,7 +137,7 @@ def run(backends, resolutions, repeats: int, n_scans: int, every: int, in_proces
         write_scans(paths[WIDE_CLASSES], n_scans, every, WIDE_LABELS)
         with progress.bar(len(configs), "resources", unit="config") as bar:
             for cfg in configs:
-                results.append(bench._run(cfg, paths[cfg["classes"]], in_process))
+                results.append(bench.run_config(cfg, paths[cfg["classes"]], in_process))
                 bar.update()
     return results
 

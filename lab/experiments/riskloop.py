@@ -200,7 +200,7 @@ def nav_outcome_only(row: dict, m: dict) -> bool:
 
 def finished(row: dict, run_dir: Path) -> bool:
     """A run whose row is a result (kept on a rerun): it ran, or only its navigation failed."""
-    return bool(row["ok"]) or nav_outcome_only(row, ex._load(run_dir / "metrics.json"))
+    return bool(row["ok"]) or nav_outcome_only(row, ex.load_json(run_dir / "metrics.json"))
 
 
 def with_truth(rows: list[dict], out: Path) -> list[dict]:
@@ -211,7 +211,7 @@ def with_truth(rows: list[dict], out: Path) -> list[dict]:
     for r in rows:
         c = _BY_NAME[r["arm"]]
         run_dir = out / ex.run_name(r["seed"], c.arm())
-        m = ex._load(run_dir / "metrics.json")
+        m = ex.load_json(run_dir / "metrics.json")
         e = m.get("exploration") or {}
         truth = run_truth(run_dir, worlds) if m else {}
         ok = bool(truth) and bool(r["ok"] or nav_outcome_only(r, m))
@@ -492,9 +492,10 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
         lines.append(
             f"| {ex.run_name(r['seed'], _BY_NAME[r['arm']].arm())} | {r['exit_code']} | "
             f"{'-' if r['forbidden_entries'] is None else r['forbidden_entries']} | "
-            f"{ex._num(r['forbidden_time_s'])} | {ex._num(r['length_m'])} | "
-            f"{ex._pct(r['coverage'])} | {'-' if r['collisions'] is None else r['collisions']} | "
-            f"{ex._num(r['wall_time_s'], '.0f')} | {r['run_warnings'] or '-'} |"
+            f"{ex.fmt_num(r['forbidden_time_s'])} | {ex.fmt_num(r['length_m'])} | "
+            f"{ex.fmt_pct(r['coverage'])} | "
+            f"{'-' if r['collisions'] is None else r['collisions']} | "
+            f"{ex.fmt_num(r['wall_time_s'], '.0f')} | {r['run_warnings'] or '-'} |"
         )
     (out / "risk_summary.md").write_text("\n".join(lines) + "\n")
     print("\n".join(verdict_lines))

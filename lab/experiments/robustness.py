@@ -210,8 +210,8 @@ def run_fields(row: dict, run_dir: Path) -> dict:
     from smana.deploy.report.measures import MOVED_M
 
     c = _by_name().get(row["arm"]) or Condition("?", "?")
-    m = ex._load(run_dir / "metrics.json")
-    state = ex._load(run_dir / "explorer" / "state.json")
+    m = ex.load_json(run_dir / "metrics.json")
+    state = ex.load_json(run_dir / "explorer" / "state.json")
     e = m.get("exploration") or {}
     ee = m.get("explorer") or {}
     warnings = m.get("warnings") or []
@@ -581,11 +581,11 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
     for r in rows:
         lines.append(
             f"| seed{r['seed']}_{r['arm']} | {r['exit_code']} | {r.get('done_reason') or '-'} | "
-            f"{ex._pct(r.get('usable_share'))} | {ex._pct(r.get('false_obstacle_share'))} | "
-            f"{_pct2(r.get('false_free_share'))} | {ex._num(r.get('distance_m'))} | "
-            f"{ex._num(r.get('time_to_90_s'), '.0f')} | "
+            f"{ex.fmt_pct(r.get('usable_share'))} | {ex.fmt_pct(r.get('false_obstacle_share'))} | "
+            f"{_pct2(r.get('false_free_share'))} | {ex.fmt_num(r.get('distance_m'))} | "
+            f"{ex.fmt_num(r.get('time_to_90_s'), '.0f')} | "
             f"{'-' if r.get('collisions') is None else r['collisions']} | "
-            f"{ex._num(r.get('wall_time_s'), '.0f')} | {r.get('run_warnings') or '-'} |"
+            f"{ex.fmt_num(r.get('wall_time_s'), '.0f')} | {r.get('run_warnings') or '-'} |"
         )
     if fig is not None:
         lines += ["", f"![{fig.stem}]({fig.name})"]
@@ -698,8 +698,8 @@ def main(args, parser, out: Path) -> int:
     for r in rows_from_data(out / "data" / "robustness.json"):
         arm = ex.Arm(r["arm"], GRASS_COST_FACTOR)
         if r["seed"] in s.seeds and r["arm"] in {a.name for a in s.arms}:
-            if ex._kept_row(out, r["seed"], arm) is None:
+            if ex.kept_row(out, r["seed"], arm) is None:
                 (out / ex.run_name(r["seed"], arm)).mkdir(parents=True, exist_ok=True)
-                ex._keep_row(out, r, arm)
+                ex.keep_row(out, r, arm)
     rows = ex.run_exploration(s, out, write=write_outputs, keep=finished)
     return ex.finish([{**r, "ok": r.get("measured")} for r in rows], out, "robustness")

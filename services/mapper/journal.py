@@ -44,7 +44,7 @@ from smana.services.mapper.block_grid import KEY_LIMIT
 from smana.services.mapper.mapfile import check_values
 
 MAGIC = b"SMJ1"
-_FRAME = struct.Struct("<4sII")
+RECORD_FRAME = struct.Struct("<4sII")  # a record: magic, body length, CRC-32 of the body
 MAX_RECORD_BYTES = 1 << 31  # a length beyond this is garbage, not a record
 
 
@@ -53,14 +53,15 @@ def journal_path(save_path: Path) -> Path:
     return save_path.with_suffix(".journal")
 
 
-def _array(a: np.ndarray) -> dict:
+def packed_array(a: np.ndarray) -> dict:
+    """An array as a record holds it: its dtype, shape and raw bytes."""
     a = np.ascontiguousarray(a)
     return {"dtype": a.dtype.str, "shape": list(a.shape), "data": a.tobytes()}
 
 
 def frame(payload: dict) -> bytes:
     body = msgpack.packb(payload, use_bin_type=True)
-    return _FRAME.pack(MAGIC, len(body), zlib.crc32(body)) + body
+    return RECORD_FRAME.pack(MAGIC, len(body), zlib.crc32(body)) + body
 
 
 def _header(m, service: dict, generation: int) -> dict:
@@ -106,8 +107,8 @@ class JournalWriter:
         rec = frame(
             {
                 "kind": "voxels",
-                "keys": _array(np.asarray(keys, np.int32)),
-                "cols": {k: _array(v) for k, v in cols.items()},
+                "keys": packed_array(np.asarray(keys, np.int32)),
+                "cols": {k: packed_array(v) for k, v in cols.items()},
                 "service": service,
             }
         )
@@ -259,13 +260,13 @@ class JournalReader:
             chunks.append(chunk)
         buf = b"".join(chunks)
         view, at = memoryview(buf), 0  # records are read in place, the rest kept once
-        while len(buf) - at >= (_FRAME.size if not final else 1):
-            if len(buf) - at >= _FRAME.size:
-                magic, length, crc = _FRAME.unpack_from(buf, at)
-                end = at + _FRAME.size + length
+        while len(buf) - at >= (RECORD_FRAME.size if not final else 1):
+            if len(buf) - at >= RECORD_FRAME.size:
+                magic, length, crc = RECORD_FRAME.unpack_from(buf, at)
+                end = at + RECORD_FRAME.size + length
                 if magic == MAGIC and length <= MAX_RECORD_BYTES:
-                    if end <= len(buf) and zlib.crc32(view[at + _FRAME.size : end]) == crc:
-                        self._take(view[at + _FRAME.size : end])
+                    if end <= len(buf) and zlib.crc32(view[at + RECORD_FRAME.size : end]) == crc:
+                        self._take(view[at + RECORD_FRAME.size : end])
                         self.offset += end - at
                         at = end
                         continue
@@ -411,9 +412,9 @@ def has_records(path: Path) -> bool:
         with open(path, "rb", opener=lambda p, f: os.open(p, f | os.O_NONBLOCK)) as fh:
             if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
                 return False
-            head, size = fh.read(_FRAME.size), os.fstat(fh.fileno()).st_size
+            head, size = fh.read(RECORD_FRAME.size), os.fstat(fh.fileno()).st_size
     except OSError:
         return False
-    if len(head) < _FRAME.size:
+    if len(head) < RECORD_FRAME.size:
         return False
-    return size > _FRAME.size + _FRAME.unpack(head)[1]
+    return size > RECORD_FRAME.size + RECORD_FRAME.unpack(head)[1]
