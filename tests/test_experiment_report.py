@@ -7,7 +7,7 @@ import json
 
 from smana.lab import experiments as exp
 from smana.lab import stats
-from smana.lab.experiments import report
+from smana.lab.experiments import claims, report
 
 
 def test_the_committed_doc_is_what_the_committed_data_generates(capsys):
@@ -118,16 +118,16 @@ def test_noise_data_of_one_sweep_generates_its_claims_and_names_the_missing(tmp_
                      "classification_ratio": ratio, "error_mean_m": 0.02, "f_score": 0.8}
                 )  # fmt: skip
     report.write_data(tmp_path, "noise", rows, {"sweeps": ["label"]})
-    table = report.verdict_claims(report.load_data(tmp_path / "data"))
+    table = claims.verdict_claims(report.load_data(tmp_path / "data"))
     assert [c["claim"][:3] for c in table] == ["(a)", "(a)", "(b)"]
     assert all(c["holm_verdict"] == stats.REPRODUCED for c in table)
-    text = report.verdicts_section(report.load_data(tmp_path / "data"))
+    text = claims.verdicts_section(report.load_data(tmp_path / "data"))
     assert "no rows for claim (c), (c') (a run of some sweeps only: sweeps label)" in text
     # claims refuted by the data stay refuted after the correction (tsdf losing 40 points)
     far = [{**r, "classification_ratio": r["classification_ratio"] - 0.3}
            if r["backend"] == "tsdf" and r["level"] == "high" else r for r in rows]  # fmt: skip
     report.write_data(tmp_path, "noise", far, {"sweeps": ["label"]})
-    table = report.verdict_claims(report.load_data(tmp_path / "data"))
+    table = claims.verdict_claims(report.load_data(tmp_path / "data"))
     assert [c["holm_verdict"] for c in table] == [
         stats.NOT_REPRODUCED,
         stats.REPRODUCED,
@@ -163,7 +163,7 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
     report.write_data(tmp_path, "fleet", fleet, meta)
     data = report.load_data(tmp_path / "data")
     assert sorted(data) == ["exploration_garden20", "fleet", "routes"]
-    table = report.verdict_claims(data)
+    table = claims.verdict_claims(data)
     big = [c for c in table if c["experiment"] == "exploration (garden20)"]
     # the default garden's routes (95 % at x1) would make x1 "not reproducible in this world"
     assert big and all(c["verdict"] != stats.NOT_REPRODUCIBLE_HERE for c in big)
@@ -185,7 +185,7 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
     assert "| 155 [153, 158] (n = 6) | 156 [" in section
     assert "p = 0.00051, two-sided; the data lean to 2 robots sooner" in section
     n_tested = sum(c["p"] is not None for c in table)
-    verdicts = report.verdicts_section(data)
+    verdicts = claims.verdicts_section(data)
     assert f"Holm over the {n_tested} tested" in verdicts
     # every p printed says the side it tests
     assert "| 0.016 (one-sided: at most 0.6 x one robot's) | met (Holm-adjusted p = " in verdicts
@@ -194,7 +194,7 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
     ]
     assert tested and all("(one-sided: " in ln for ln in tested)
     # the seeds each claim needs at 80 % power, with what they were computed from
-    power = report.power_section(data)
+    power = claims.power_section(data)
     assert power.startswith(f"Generated from docs/experiments/data/ ({n_tested} tested claims;")
     row = next(ln for ln in power.splitlines() if "time to 95 %" in ln)
     assert row.endswith(
@@ -317,8 +317,8 @@ def test_noise_data_files_each_fill_their_section_and_a_hand_edit_is_caught(tmp_
     assert "noise_heldout (run `smana experiment report`)" in capsys.readouterr().out
     # the paper's claims come from noise.json alone: a variant (here seeds 8 and 9 of both
     # sweeps) is an ablation, it adds no claim to the table and no test to Holm's correction
-    alone = report.verdict_claims({"noise": report.load_data(data)["noise"]})
-    assert len(report.verdict_claims(report.load_data(data))) == len(alone) == 5
+    alone = claims.verdict_claims({"noise": report.load_data(data)["noise"]})
+    assert len(claims.verdict_claims(report.load_data(data))) == len(alone) == 5
     # a noise data file with no section in the doc: its table would be nowhere
     report.write_data(tmp_path, "noise", _noise_rows(), {}, "spacing2")
     assert exp.cli(["report", "--check", *args]) == 2

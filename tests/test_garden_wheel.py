@@ -13,8 +13,8 @@ import pytest
 
 from smana.lab import experiments as exp
 from smana.lab import stats
+from smana.lab.experiments import claims, report, routes
 from smana.lab.experiments import exploration as ex
-from smana.lab.experiments import report, routes
 from smana.services.sim.world_cli import cli as world_cli
 from smana.services.sim.worlds.garden import generate
 
@@ -125,14 +125,14 @@ def test_committed_wheel_routes_lie_inside_the_papers_bands():
     `smana experiment routes --seeds 10 --layout wheel`, seeds 3 to 12)."""
     data = report.load_data(report.DATA_DIR)["routes_wheel"]
     assert sorted({r["seed"] for r in data["rows"]}) == list(range(3, 13))
-    intervals = report._routes_intervals(data)
+    intervals = claims.routes_intervals(data)
     assert sorted(intervals) == sorted(PAPER)
     for f, ci in intervals.items():
         assert PAPER[f] - 0.10 <= ci.lo and ci.hi <= PAPER[f] + 0.10, (f, ci)
     # the seeds not looked at while the layout was chosen (7 to 12), as the doc quotes them
     held_out = {**data, "rows": [r for r in data["rows"] if r["seed"] >= 7]}
     text = report.DOC.read_text()
-    for f, ci in report._routes_intervals(held_out).items():
+    for f, ci in claims.routes_intervals(held_out).items():
         assert PAPER[f] - 0.10 <= ci.lo and ci.hi <= PAPER[f] + 0.10, (f, ci)
         assert f"{100 * ci.mean:.1f} % [{100 * ci.lo:.1f}, {100 * ci.hi:.1f}]" in text
 
@@ -166,7 +166,7 @@ def test_exploration_verdicts_read_the_routes_of_the_layout_it_ran_in():
             "routes": {"experiment": "routes", "rows": routes_rows(0.60)},
             "routes_wheel": {"experiment": "routes", "rows": routes_rows(0.95)},
         }
-        [x1] = [c for c in report.verdict_claims(data) if "grass x1, about" in c["claim"]]
+        [x1] = [c for c in claims.verdict_claims(data) if "grass x1, about" in c["claim"]]
         return x1["verdict"]
 
     assert x1_verdict(["sim.camera.width=320"]) != stats.NOT_REPRODUCIBLE_HERE

@@ -15,6 +15,7 @@ from smana.lab import stats
 from smana.lab.experiments import cli, report
 from smana.lab.experiments import exploration as ex
 from smana.lab.experiments import riskloop as rl
+from smana.lab.experiments.claims import verdict_claims
 
 
 def test_the_arms_differ_only_in_noise_and_risk_and_their_config_loads():
@@ -200,7 +201,7 @@ def test_report_generates_the_risk_section_and_its_six_claims(tmp_path):
     report.write_data(tmp_path, "risk", rows, {"size_m": 10.0, "budget_s": 75.0})
     all_data = report.load_data(data_dir)
     assert list(all_data) == ["risk"]
-    claims = [c for c in report.verdict_claims(all_data) if c["experiment"] == "risk"]
+    claims = [c for c in verdict_claims(all_data) if c["experiment"] == "risk"]
     assert len(claims) == 6 and all(c["holm"].startswith("Holm-adjusted") for c in claims)
     text, _ = report.regenerate(doc, all_data)
     assert "| chance | p = 0.7, pose noise | 5 (0) |" in text

@@ -14,6 +14,7 @@ from smana.lab import stats
 from smana.lab.experiments import exploration as ex
 from smana.lab.experiments import report
 from smana.lab.experiments import robustness as rb
+from smana.lab.experiments.claims import verdict_claims
 
 
 def _rows(high=0.95, realistic=0.85, seeds=rb.SEEDS, **over):
@@ -198,7 +199,7 @@ def test_report_generates_the_section_and_its_claims(tmp_path):
         text
     )
     assert "| tsdf | realistic labels + pose noise | 10 (0) |" in text
-    claims = [c for c in report.verdict_claims(all_data) if c["experiment"] == "robustness"]
+    claims = [c for c in verdict_claims(all_data) if c["experiment"] == "robustness"]
     assert len(claims) == 3 and all(c["holm"] == "a count, not a test" for c in claims)
     assert "_No raw results of `smana experiment robustness`" in rb.section(None)
 

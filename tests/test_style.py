@@ -97,7 +97,6 @@ STILL_LONG = {
     "lab/experiments/exploration.py",
     "lab/experiments/fleet.py",
     "lab/experiments/noise.py",
-    "lab/experiments/report.py",
     "lab/experiments/robustness.py",
     "lab/fuzz_maps.py",
     "lab/fuzz_messages.py",
