@@ -10,16 +10,15 @@ limits from the dataclass, its unit from its name's suffix (`_m`, `_s`, `_hz`, .
 meaning from the source comments above and beside the field (`tokenize`: the sections carry no
 doc attribute). Which services read a section is found in their code: a service reads
 `[planner]` when a module of its package (or a module of `common/` it imports) reads
-`<config>.planner`. The CLI page calls each command's entry with argparse's parsing replaced by a
-catch, so it gets the parser the command builds without running anything, and walks its options
-and subcommands. tests/test_docs_reference.py fails when a committed page differs from these.
+`<config>.planner`. The CLI page (docs_cli_reference.py) calls each command's entry with argparse's
+parsing replaced by a catch, so it gets the parser the command builds without running anything,
+and walks its options and subcommands. tests/test_docs_reference.py fails when a committed page
+differs from these.
 """
 
 from __future__ import annotations
 
-import argparse
 import ast
-import contextlib
 import dataclasses
 import importlib
 import importlib.util
@@ -136,7 +135,8 @@ def _range(meta: dict, choices: list, is_list: bool) -> str:
     return f"each {text}" if is_list else text
 
 
-def _flat(text: str) -> str:
+def flat(text: str) -> str:
+    """`text` on one line, its runs of white space one space."""
     return " ".join(text.split())
 
 
@@ -190,7 +190,7 @@ def _comments(cls) -> dict[str, str]:
                 block = []
         above[name] = block
         prev = stmt
-    own = {n: _join(_flat(" ".join(above[n])), _flat(" ".join(beside[n]))) for n in above}
+    own = {n: _join(flat(" ".join(above[n])), flat(" ".join(beside[n]))) for n in above}
     sentences = [c for n in own for c in SENTENCE_END.split(own[n]) if c]
     out = {}
     for name, meaning in own.items():
@@ -224,7 +224,7 @@ def _doc(cls) -> str:
     doc = cls.__doc__ or ""
     if doc.startswith(f"{cls.__name__}("):  # dataclass's own: no docstring was written
         return ""
-    return _flat(doc)
+    return flat(doc)
 
 
 def section_keys(cls, where: str, base=None) -> list[tuple[str, type, list[Key]]]:
@@ -317,7 +317,8 @@ def readers(sections: list[str]) -> dict[str, list[str]]:
     return {s: sorted(found[s], key=order.index) for s in sections}
 
 
-def _cell(text: str) -> str:
+def cell(text: str) -> str:
+    """`text` as a markdown table cell holds it."""
     return text.replace("|", "\\|").replace("<", "&lt;")
 
 
@@ -356,14 +357,14 @@ def config_reference() -> str:
         "`[general]` and `[zenoh]` through the service lifecycle (`common/service.py`).\n",
     ]
     sections = [w for w, _, _ in tables]
-    out.append("Sections: " + ", ".join(f"[`[{w}]`](#{_anchor(w)})" for w in sections) + ".\n")
+    out.append("Sections: " + ", ".join(f"[`[{w}]`](#{anchor(w)})" for w in sections) + ".\n")
     for where, cls, keys in tables:
         root = where.split(".")[0]
         out.append(f"## [{where.replace('<', '&lt;').replace('>', '&gt;')}]\n")
         module = cls.__module__.removeprefix("smana.").replace(".", "/") + ".py"
         doc = _doc(cls)
         if doc:
-            out.append(_cell(doc) + "\n")
+            out.append(cell(doc) + "\n")
         out.append(f"Declared in `{module}` (`{cls.__name__}`). Read by: {_who(who[root])}.\n")
         if where == "deploy.<service>":
             out.append(_deploy_defaults(service_table.supervised()))
@@ -373,7 +374,7 @@ def config_reference() -> str:
         out.append("| key | type | default | range | unit | meaning |")
         out.append("|---|---|---|---|---|---|")
         for k in keys:
-            cells = [f"`{k.name}`", k.type, f"`{k.default}`", k.range, k.unit, _cell(k.meaning)]
+            cells = [f"`{k.name}`", k.type, f"`{k.default}`", k.range, k.unit, cell(k.meaning)]
             out.append("| " + " | ".join(cells) + " |")
         out.append("")
     return "\n".join(out).rstrip() + "\n"
@@ -385,7 +386,7 @@ def _who(names: list[str]) -> str:
     return ", ".join(n if n.startswith("`") else f"`{n}`" for n in names)
 
 
-def _anchor(title: str) -> str:
+def anchor(title: str) -> str:
     """The id MkDocs (and GitHub) give a heading `[title]`."""
     return re.sub(r"[^\w\- ]", "", f"{title}".lower()).replace(" ", "-")
 
@@ -413,196 +414,14 @@ def _deploy_defaults(rows) -> str:
     return "\n".join(lines) + "\n"
 
 
-# -- command line -----------------------------------------------------------------------------
-
-
-class _Parsed(Exception):
-    """Raised instead of parsing: carries the parser a command built."""
-
-    def __init__(self, parser: argparse.ArgumentParser):
-        super().__init__(parser.prog)
-        self.parser = parser
-
-
-@contextlib.contextmanager
-def _catching_parsers():
-    real = argparse.ArgumentParser.parse_known_args
-
-    def catch(self, args=None, namespace=None):
-        raise _Parsed(self)
-
-    argparse.ArgumentParser.parse_known_args = catch
-    try:
-        yield
-    finally:
-        argparse.ArgumentParser.parse_known_args = real
-
-
-def parser_of(target: str) -> argparse.ArgumentParser | None:
-    """The parser the command `target` ("module:function") builds, caught before it parses."""
-    from smana.common.registry import load_spec
-
-    func = load_spec(target, "command", kind="command")
-    with _catching_parsers():
-        try:
-            func([])
-        except _Parsed as caught:
-            return caught.parser
-    return None
-
-
-def commands() -> dict[str, tuple[str, str]]:
-    """`smana --help`'s commands: smana's own and its research harness's (plug-ins installed
-    beside it are left out: the page is the same on every machine)."""
-    from smana.deploy import cli
-
-    return {n: (t, h) for n, (t, h) in cli.commands().items() if t.startswith("smana.")}
-
-
-def _shared() -> dict[tuple[str, ...], str]:
-    """The options every service command takes (common/cli.py `make_parser`): option strings ->
-    help."""
-    from smana.common.cli import make_parser
-
-    p = make_parser("smana", "")
-    return {
-        tuple(a.option_strings): a.help
-        for a in p._actions
-        if a.option_strings and not isinstance(a, argparse._HelpAction)
-    }
-
-
-def _help(action: argparse.Action, prog: str) -> str:
-    """argparse's own expansion of `%(default)s` and the like in a help text."""
-    text = action.help or ""
-    if "%" not in text:
-        return text
-    params = dict(vars(action), prog=prog)
-    params = {k: v for k, v in params.items() if v is not argparse.SUPPRESS}
-    params = {k: getattr(v, "__name__", v) for k, v in params.items()}
-    if params.get("choices") is not None:
-        params["choices"] = ", ".join(str(c) for c in params["choices"])
-    return text % params
-
-
-def _value_of(action: argparse.Action) -> str:
-    if action.nargs == 0:
-        return ""
-    if action.choices is not None and not isinstance(action, argparse._SubParsersAction):
-        return "{" + ",".join(str(c) for c in action.choices) + "}"
-    metavar = action.metavar
-    if isinstance(metavar, tuple):
-        metavar = " ".join(metavar)
-    text = metavar or (action.dest.upper() if action.option_strings else action.dest)
-    if action.nargs in ("*", "+"):
-        text += " ..."
-    elif action.nargs == "?":
-        text = f"[{text}]"
-    return text
-
-
-def _default_of(action: argparse.Action) -> str:
-    d = action.default
-    empty = isinstance(d, str | list | tuple) and not d
-    if d is None or d is argparse.SUPPRESS or d is False or empty or action.nargs == 0:
-        return ""
-    return f"`{_here(str(d))}`"
-
-
-def _here(text: str) -> str:
-    """A text with this checkout's path made relative (a default under the repository)."""
-    return text.replace(f"{ROOT}/", "").replace(str(ROOT), ".")
-
-
-def _parser_section(parser, prog: str, level: int, shared: dict) -> list[str]:
-    out = [f"{'#' * level} `{prog}`\n"]
-    if parser.description:  # its first paragraph: the command's --help has the rest
-        out.append(_cell(_flat(parser.description.strip().split("\n\n")[0])) + "\n")
-    rows, taken, subs = [], [], None
-    for action in parser._actions:
-        if isinstance(action, argparse._HelpAction):
-            continue
-        if isinstance(action, argparse._SubParsersAction):
-            subs = action
-            continue
-        key = tuple(action.option_strings)
-        if key and shared.get(key, object()) == action.help:
-            taken.append(key[0])
-            continue
-        name = ", ".join(f"`{o}`" for o in action.option_strings) or f"`{_value_of(action)}`"
-        value = _value_of(action) if action.option_strings else ""
-        rows.append(
-            f"| {name} | {_cell(f'`{value}`' if value else '')} | {_cell(_default_of(action))} "
-            f"| {_cell(_flat(_here(_help(action, prog))))} |"
-        )
-    if rows:
-        out += ["| argument | value | default | meaning |", "|---|---|---|---|", *rows, ""]
-    if taken:
-        if len(taken) == len(shared):
-            out.append("And the [options every service command takes](#shared-options).\n")
-        else:
-            names = ", ".join(f"`{t}`" for t in taken)
-            out.append(f"And the [shared options](#shared-options) {names}.\n")
-    if subs is not None:
-        helps = {a.dest: a.help for a in subs._choices_actions}
-        out.append("| subcommand | what it does |")
-        out.append("|---|---|")
-        for name in subs.choices:
-            out.append(f"| `{prog} {name}` | {_cell(_flat(helps.get(name) or ''))} |")
-        out.append("")
-        for name, sub in subs.choices.items():
-            out += _parser_section(sub, f"{prog} {name}", min(level + 1, 4), shared)
-    return out
-
-
-def cli_reference() -> str:
-    from smana.lab import bench
-
-    shared = _shared()
-    known = commands()
-    width = "| command | what it does |\n|---|---|"
-    out = [
-        HEADER.format(command=COMMAND, source="the argparse parsers of every `smana` command"),
-        "# Command-line reference\n",
-        "Every `smana` command and its options, as `smana <command> --help` gives them. "
-        "Exit status of every command: 0 done, 1 the command ran and failed, 2 misuse (one "
-        "line on stderr naming the mistake). `smana --version` prints the version.\n",
-        width,
-    ]
-    out += [
-        f"| [`smana {n}`](#{_anchor(f'smana {n}')}) | {_cell(h)} |" for n, (_, h) in known.items()
-    ]
-    out += [
-        "",
-        "## Shared options\n",
-        "Every service command (and `smana up`) takes these; `--config` and `--set` choose the "
-        "config ([configuration reference](config.md)).\n",
-        "| argument | meaning |",
-        "|---|---|",
-    ]
-    out += [f"| {', '.join(f'`{o}`' for o in k)} | {_cell(h or '')} |" for k, h in shared.items()]
-    out.append("")
-    for name, (target, text) in known.items():
-        if name == "bench":  # a dispatcher without a parser of its own: one per benchmark
-            out += ["## `smana bench`\n", _cell(text) + "\n", "| benchmark | |", "|---|---|"]
-            out += [f"| `smana bench {b}` | see below |" for b in bench.BENCHES]
-            out.append("")
-            for b, spec in bench.BENCHES.items():
-                out += _parser_section(parser_of(spec), f"smana bench {b}", 3, shared)
-            continue
-        parser = parser_of(target)
-        if parser is None:
-            out += [f"## `smana {name}`\n", _cell(text) + "\n"]
-            continue
-        out += _parser_section(parser, f"smana {name}", 2, shared)
-    return "\n".join(out).rstrip() + "\n"
-
-
 # -- the command --------------------------------------------------------------------------------
 
 
 def pages() -> dict[Path, str]:
     """{path under the repository: its text}, made in memory."""
+    # (imported here: that module uses this one's page helpers)
+    from smana.lab.docs_cli_reference import cli_reference
+
     return {CONFIG_PAGE: config_reference(), CLI_PAGE: cli_reference()}
 
 

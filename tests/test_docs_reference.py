@@ -10,7 +10,7 @@ import dataclasses
 
 from smana.common.config import SmanaConfig
 from smana.common.config.section import items
-from smana.lab import docs_reference
+from smana.lab import docs_cli_reference, docs_reference
 from tests.conftest import REPO
 
 
@@ -89,10 +89,10 @@ class _Toy:
 
 
 def test_the_cli_reference_has_every_command_and_option():
-    page = docs_reference.cli_reference()
-    for name, (target, _) in docs_reference.commands().items():
+    page = docs_cli_reference.cli_reference()
+    for name, (target, _) in docs_cli_reference.commands().items():
         assert f"## `smana {name}`" in page, name
-        parser = docs_reference.parser_of(target) if name != "bench" else None
+        parser = docs_cli_reference.parser_of(target) if name != "bench" else None
         for action in getattr(parser, "_actions", []):
             if isinstance(action, argparse._HelpAction) or not action.option_strings:
                 continue

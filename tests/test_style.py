@@ -93,7 +93,6 @@ STILL_LONG = {
     "lab/bench/mapper.py",
     "lab/bench/planner.py",
     "lab/bench/replay.py",
-    "lab/docs_reference.py",
     "lab/experiments/exploration.py",
     "lab/experiments/fleet.py",
     "lab/experiments/noise.py",
