@@ -34,9 +34,7 @@ it equals its base), `refused` (a one-line `MapFileError`), or `crash` (anything
 
 from __future__ import annotations
 
-import io
 import json
-import struct
 import warnings
 import zipfile
 import zlib
@@ -47,6 +45,17 @@ from pathlib import Path
 import numpy as np
 
 from smana.lab.fuzz_messages import WILD_SCALARS, Draw
+from smana.lab.npz_bytes import (
+    BOMB_BYTES,
+    bomb_stream,
+    file_bytes,
+    meta_bytes,
+    npy_bytes,
+    npy_header,
+    raw_zip,
+    read_npz,
+    zip_bytes,
+)
 
 MAP_MUTATIONS = (
     "valid",
@@ -64,7 +73,6 @@ MAP_MUTATIONS = (
     "bomb",
 )
 FUZZ_MAX_BYTES = 64 << 20  # the loaders' limit in the fuzz: a bomb over it stays cheap to make
-BOMB_BYTES = 256 << 20  # what a bomb member decompresses to
 CLASS_TABLE = "garden3drms"
 
 
@@ -99,15 +107,6 @@ def _cloud(seed: int, n: int = 1500):
     return pts, labels, rng.uniform(0.3, 1.0, n).astype(np.float32)
 
 
-def _read(data: bytes) -> dict[str, np.ndarray]:
-    with np.load(io.BytesIO(data), allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
-
-
-def _meta_bytes(meta: dict) -> np.ndarray:
-    return np.frombuffer(json.dumps(meta).encode(), np.uint8)
-
-
 @cache
 def bases() -> tuple[Base, ...]:
     """The valid files every mutant starts from (built once per process, a few seconds)."""
@@ -126,7 +125,7 @@ def bases() -> tuple[Base, ...]:
                 m.integrate(*_cloud(10 * i + s), origin=(0.0, 0.0, 0.4))
             if backend == "tsdf":
                 log_ratio = float(m._core.log_ratio)
-            arrays = _read(m.save(Path(tmp) / f"{backend}.npz").read_bytes())
+            arrays = read_npz(m.save(Path(tmp) / f"{backend}.npz").read_bytes())
             meta = json.loads(arrays["meta"].tobytes())
             expect = {k: v for k, v in arrays.items() if k != "meta"}
             out.append(Base(backend, backend, False, arrays, meta, expect))
@@ -137,7 +136,7 @@ def bases() -> tuple[Base, ...]:
             m = SemanticMap.from_config(mc)
             d = m.integrate(*_cloud(40 + j), origin=(0.0, 0.0, 0.4))
             fm.apply(name, d.centres, d.labels, d.confidences, d.values)
-        arrays = _read(fm.save(Path(tmp) / "fleet.npz").read_bytes())
+        arrays = read_npz(fm.save(Path(tmp) / "fleet.npz").read_bytes())
         meta = json.loads(arrays["meta"].tobytes())
         expect = {k: v for k, v in arrays.items() if k.startswith("layer")}
         out.append(Base("fleet", "octree-max", True, arrays, meta, expect))
@@ -151,7 +150,7 @@ def bases() -> tuple[Base, ...]:
     meta["fusion"] = {k: cfg[k] for k in fusion}
     meta["tsdf"] = dict(out[2].meta["config"])
     meta["format"] = 1
-    arrays = {**octree.arrays, "meta": _meta_bytes(meta)}
+    arrays = {**octree.arrays, "meta": meta_bytes(meta)}
     out.append(Base("format1", "octree-max", False, arrays, meta, octree.expect))
     # a TSDF map from before the int16 step counts: float32 log-probabilities in nats
     tsdf = out[2]
@@ -159,127 +158,12 @@ def bases() -> tuple[Base, ...]:
     arrays["col_logp"] = (tsdf.arrays["col_logp"] * log_ratio).astype(np.float32)
     meta = dict(tsdf.meta)
     meta.pop("smana_version", None)
-    arrays["meta"] = _meta_bytes(meta)
+    arrays["meta"] = meta_bytes(meta)
     out.append(Base("tsdf-float-logp", "tsdf", False, arrays, meta, tsdf.expect))
     return tuple(out)
 
 
 # -- writing files --------------------------------------------------------------------------------
-
-
-def npy_bytes(a: np.ndarray, allow_pickle: bool = False) -> bytes:
-    buf = io.BytesIO()
-    np.lib.format.write_array(buf, a, allow_pickle=allow_pickle)
-    return buf.getvalue()
-
-
-def npy_header(descr: str, shape, fortran=False, version: int = 1, raw: str | None = None) -> bytes:
-    """An .npy header as written (padded to 64 bytes), with any content: `raw` replaces the
-    dict's text."""
-    text = (
-        raw if raw is not None else repr({"descr": descr, "fortran_order": fortran, "shape": shape})
-    )
-    body = text.encode("latin1", "replace")
-    fmt = "<H" if version == 1 else "<I"
-    pre = len(b"\x93NUMPY") + 2 + struct.calcsize(fmt)
-    pad = (-(pre + len(body) + 1)) % 64
-    body += b" " * pad + b"\n"
-    return b"\x93NUMPY" + bytes([version, 0]) + struct.pack(fmt, len(body)) + body
-
-
-def zip_bytes(members: list[tuple[str, bytes]], compress: bool = False) -> bytes:
-    """A zip of these (name, content) members in order; a name may come twice."""
-    buf = io.BytesIO()
-    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # "Duplicate name": that is the point
-        with zipfile.ZipFile(buf, "w", method) as z:
-            for name, content in members:
-                z.writestr(name, content)
-    return buf.getvalue()
-
-
-def raw_zip(entries: list[tuple[str, bytes, int, int, int]]) -> bytes:
-    """A zip written by hand: (name, data as stored, method, declared size, crc) per member, so
-    that a member may declare any size and hold pre-compressed data."""
-    out, central = io.BytesIO(), io.BytesIO()
-    for name, data, method, size, crc in entries:
-        fname = name.encode()
-        offset = out.tell()
-        out.write(
-            struct.pack(
-                "<4s5H3L2H",
-                b"PK\x03\x04",
-                20,
-                0,
-                method,
-                0,
-                0,
-                crc,
-                len(data),
-                size & 0xFFFFFFFF,
-                len(fname),
-                0,
-            )
-        )
-        out.write(fname)
-        out.write(data)
-        central.write(
-            struct.pack(
-                "<4s6H3L5H2L",
-                b"PK\x01\x02",
-                20,
-                20,
-                0,
-                method,
-                0,
-                0,
-                crc,
-                len(data),
-                size & 0xFFFFFFFF,
-                len(fname),
-                0,
-                0,
-                0,
-                0,
-                0,
-                offset,
-            )
-        )
-        central.write(fname)
-    cd = central.getvalue()
-    start = out.tell()
-    out.write(cd)
-    n = len(entries)
-    out.write(struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, n, n, len(cd), start, 0))
-    return out.getvalue()
-
-
-def file_bytes(arrays: dict[str, np.ndarray | bytes], compress: bool = False) -> bytes:
-    """A map file of these members (an array, or the bytes of an .npy member as they are)."""
-    members = [
-        (f"{k}.npy", v if isinstance(v, bytes) else npy_bytes(np.asarray(v)))
-        for k, v in arrays.items()
-    ]
-    return zip_bytes(members, compress)
-
-
-@cache
-def _bomb_stream() -> tuple[bytes, int]:
-    """An .npy array of zeros, BOMB_BYTES in all, raw-deflated (about 1/1000 of it), and its
-    crc: a zip bomb's member (made once)."""
-    head = npy_header("<f4", ((BOMB_BYTES - 128) // 4,))
-    c = zlib.compressobj(9, zlib.DEFLATED, -15)
-    parts, crc = [c.compress(head)], zlib.crc32(head)
-    left = BOMB_BYTES - len(head)
-    chunk = bytes(1 << 20)
-    while left:
-        part = chunk[: min(left, len(chunk))]
-        parts.append(c.compress(part))
-        crc = zlib.crc32(part, crc)
-        left -= len(part)
-    parts.append(c.flush())
-    return b"".join(parts), crc
 
 
 # -- mutations ------------------------------------------------------------------------------------
@@ -619,7 +503,7 @@ def _bomb(base, d):
     name = entries[i][0]
     k = d.integer(0, 2)
     if k == 0:  # a real bomb: zeros that decompress to BOMB_BYTES
-        stream, crc = _bomb_stream()
+        stream, crc = bomb_stream()
         entries[i] = (name, stream, zipfile.ZIP_DEFLATED, BOMB_BYTES, crc)
         what = f"{name} deflated to {len(stream)} bytes, {BOMB_BYTES} declared"
     elif k == 1:  # a stored member declaring more than it holds

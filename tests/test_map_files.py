@@ -84,7 +84,7 @@ def test_every_saved_map_names_the_smana_version_and_files_without_it_load(tmp_p
     assert "smana_version" in base("fleet").meta
     old = {
         **b.arrays,
-        "meta": fm._meta_bytes({k: v for k, v in b.meta.items() if k != "smana_version"}),
+        "meta": fm.meta_bytes({k: v for k, v in b.meta.items() if k != "smana_version"}),
     }
     path = tmp_path / "old.npz"
     path.write_bytes(fm.file_bytes(old))
@@ -127,11 +127,11 @@ def probe_cases() -> dict[str, tuple[dict, str]]:
         "float block keys": ({**a, "block_keys": a["block_keys"].astype(np.float64)}, "dtype <f8"),
         "a complex column": ({**a, "col_prob": a["col_prob"].astype(np.complex64)}, "dtype <c8"),
         "integrations as text": (
-            {**a, "meta": fm._meta_bytes({**meta, "integrations": "x"})},
+            {**a, "meta": fm.meta_bytes({**meta, "integrations": "x"})},
             "meta.integrations",
         ),
         "max_range_m 1e308": (
-            {**a, "meta": fm._meta_bytes({**meta, "max_range_m": 1e308})},
+            {**a, "meta": fm.meta_bytes({**meta, "max_range_m": 1e308})},
             "meta.max_range_m",
         ),
         "no meta": ({k: v for k, v in a.items() if k != "meta"}, "no array 'meta'"),
@@ -140,11 +140,11 @@ def probe_cases() -> dict[str, tuple[dict, str]]:
             "not a plain number type",
         ),
         "a module:Class back-end": (
-            {**a, "meta": fm._meta_bytes({**meta, "backend": "antigravity:Fly"})},
+            {**a, "meta": fm.meta_bytes({**meta, "backend": "antigravity:Fly"})},
             "none of the known back-ends",
         ),
         "a path as class table": (
-            {**a, "meta": fm._meta_bytes({**meta, "class_table": "/etc/passwd"})},
+            {**a, "meta": fm.meta_bytes({**meta, "class_table": "/etc/passwd"})},
             "not a bundled table",
         ),
     }
@@ -160,9 +160,7 @@ def test_a_file_never_makes_the_loader_import_the_module_it_names(tmp_path, monk
     b = base("octree-max")
     path = tmp_path / "spy.npz"
     path.write_bytes(
-        fm.file_bytes(
-            {**b.arrays, "meta": fm._meta_bytes({**b.meta, "backend": "spy_backend:Spy"})}
-        )
+        fm.file_bytes({**b.arrays, "meta": fm.meta_bytes({**b.meta, "backend": "spy_backend:Spy"})})
     )
     with pytest.raises(MapFileError, match="none of the known back-ends"):
         SemanticMap.load(path)
@@ -223,7 +221,7 @@ def test_a_zip_bomb_is_refused_without_inflating_it(tmp_path):
     b = base("octree-max")
     members = [(f"{n}.npy", fm.npy_bytes(a)) for n, a in b.arrays.items()]
     entries = [(n, x, zipfile.ZIP_STORED, len(x), zlib.crc32(x)) for n, x in members]
-    stream, crc = fm._bomb_stream()
+    stream, crc = fm.bomb_stream()
     bomb = [e if e[0] != "col_prob.npy" else (e[0], stream, 8, fm.BOMB_BYTES, crc) for e in entries]
     path = tmp_path / "bomb.npz"
     path.write_bytes(fm.raw_zip(bomb))
