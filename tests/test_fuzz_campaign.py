@@ -9,6 +9,7 @@ import json
 import msgpack
 
 from smana.lab.bench import fuzz_campaign as fc
+from smana.lab.bench import fuzz_families as ff
 from smana.lab.bench.fuzz import cli
 
 QUICK = fc.QUICK_INPUTS
@@ -69,7 +70,7 @@ def test_planted_crash_dead_worker_and_hang_are_counted_and_fail_the_run(tmp_pat
 
 def test_a_goal_of_one_number_in_an_explorer_state_is_refused_by_the_bridge():
     # found by the campaign: it reached convert.pose_stamped and failed there (internal)
-    svc = fc._bridge()
+    svc = ff._bridge()
     state = msgpack.packb({"goal": {"xy": [1.0]}, "path": [[0.0, 0.0]], "t_s": 1.0})
     for body in (state, msgpack.packb({"goal": {"xy": [1.0, float("nan")]}, "t_s": 1.0})):
         with svc.books.lock:
