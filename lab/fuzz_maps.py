@@ -17,7 +17,7 @@ does one thing to it (`MAP_MUTATIONS`):
 - `keys`: block keys duplicated, negative, out of the key range, or floats;
 - `values`: NaN, inf or out-of-range numbers in a column (probabilities, confidences, weights);
 - `meta`: one metadata key missing, unknown, or set to a wild value
-  (`lab.fuzz_messages.WILD_SCALARS`, 1e308, 10**400, module:Class back-ends, paths as class
+  (`lab.fuzz_values.WILD_SCALARS`, 1e308, 10**400, module:Class back-ends, paths as class
   tables, ...);
 - `meta_json`: the metadata's JSON broken: invalid UTF-8, NaN tokens, deep nesting, not an
   object, cut short, 1e400, another dtype or shape;
@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from smana.lab.fuzz_messages import WILD_SCALARS, Draw
+from smana.lab.fuzz_values import WILD_SCALARS, Draw
 from smana.lab.npz_bytes import (
     BOMB_BYTES,
     bomb_stream,

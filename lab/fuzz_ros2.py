@@ -73,7 +73,7 @@ class Ros2Case:
 
 
 class Ros2Inputs:
-    """Genuine and hostile cases from a `lab.fuzz_messages.Draw`, on a track starting at `t0_s`."""
+    """Genuine and hostile cases from a `lab.fuzz_values.Draw`, on a track starting at `t0_s`."""
 
     def __init__(self, types, draw, t0_s: float):
         from smana.services.ros2 import rmw

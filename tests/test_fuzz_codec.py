@@ -18,6 +18,7 @@ from hypothesis import strategies as st
 from smana.common import messages as m
 from smana.common.messages import MessageError, decode, encode, from_json
 from smana.lab import fuzz_messages as fuzz
+from smana.lab.fuzz_values import RandomDraw
 from tests.support import schema_oracle as oracle
 
 # Small "large" clouds: the suite runs many examples; the bench sends the big ones.
@@ -186,7 +187,7 @@ def test_wrapping_and_negative_shapes(shape):
 
 def test_query_cases_are_sendable():
     """Every query case the bench sends is well-formed enough to leave this process."""
-    d = fuzz.RandomDraw(3)
+    d = RandomDraw(3)
     for service, name in [
         ("mapper", "snapshot"),
         ("mapper", "save"),

@@ -13,8 +13,8 @@ pytest.importorskip("rosbags")
 from smana.common.config import SmanaConfig  # noqa: E402
 from smana.lab.bench.fuzz import cli  # noqa: E402
 from smana.lab.bench.fuzz_ros2 import CONFIG, Ros2Family, table  # noqa: E402
-from smana.lab.fuzz_messages import RandomDraw  # noqa: E402
 from smana.lab.fuzz_ros2 import KINDS, TOPICS, Ros2Inputs, Ros2Reference  # noqa: E402
+from smana.lab.fuzz_values import RandomDraw  # noqa: E402
 from smana.services.ros2.rmw import RosTypes  # noqa: E402
 
 TYPES = RosTypes()

@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from smana.lab import fuzz_maps as fm
-from smana.lab.fuzz_messages import Draw
+from smana.lab.fuzz_values import Draw
 from smana.services.mapper.mapfile import MAX_MAP_BYTES, MapFileError
 from smana.services.mapper.semantic_map import SemanticMap
 

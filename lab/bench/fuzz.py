@@ -70,6 +70,7 @@ from smana.common.config import SmanaConfig
 from smana.common.zenoh_config import free_loopback_port
 from smana.lab import fuzz_messages
 from smana.lab.bench import fuzz_campaign, procs
+from smana.lab.fuzz_values import RandomDraw
 
 SERVICES = ("mapper", "navgraph", "planner", "explorer", "sim", "coordinator")
 # Rejection kinds only the codec produces: the books must match the prediction exactly. Others
@@ -482,7 +483,7 @@ class Campaign:
         self.progress = progress
         self.startup_timeout_s, self.settle_timeout_s = startup_timeout_s, settle_timeout_s
         self.robot, self.sim_robot = robot, sim_robot
-        self.draw = fuzz_messages.RandomDraw(random.Random(seed))
+        self.draw = RandomDraw(random.Random(seed))
         self.result = Result(seed, inputs, list(self.services))
         self.mine: Counter = Counter()  # per service: messages and queries we sent it
         self.pubs: dict[str, object] = {}

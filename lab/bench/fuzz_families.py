@@ -25,7 +25,7 @@ class Rejected(Exception):
 
 
 def draw_for(seed: int, family: str, i: int):
-    from smana.lab.fuzz_messages import RandomDraw
+    from smana.lab.fuzz_values import RandomDraw
 
     return RandomDraw(random.Random(f"{seed}:{family}:{i}"))
 

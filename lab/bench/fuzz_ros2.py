@@ -109,7 +109,7 @@ class Ros2Family:
         settle_timeout_s: float = 60.0,
         progress: bool = False,
     ):
-        from smana.lab.fuzz_messages import RandomDraw
+        from smana.lab.fuzz_values import RandomDraw
 
         self.out, self.n, self.seed, self.robot = Path(out), inputs, seed, robot
         self.startup_timeout_s, self.settle_timeout_s = startup_timeout_s, settle_timeout_s
