@@ -45,6 +45,18 @@ def pytest_configure(config):
     sys.stderr.write(f"exit {done.returncode}: {tail[0] if tail else ''}\n")
 
 
+@pytest.fixture(autouse=True)
+def _signal_dispositions():
+    """Each test leaves SIGINT and SIGTERM as it found them: a test that ran a command in
+    process once left SIGINT ignored in its worker, and every child the worker started after it
+    (`smana goto` under a Ctrl-C test) inherited the ignore."""
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    for sig, handler in saved.items():
+        if handler is not None and signal.getsignal(sig) is not handler:
+            signal.signal(sig, handler)
+
+
 def stop_group(proc: subprocess.Popen, sig=signal.SIGINT, timeout_s: float = 5.0) -> int:
     """Signal a process group; SIGKILL it if it has not exited within `timeout_s`."""
     if proc.poll() is None:

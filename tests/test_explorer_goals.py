@@ -68,7 +68,13 @@ def start_explorer(stack, *args) -> subprocess.Popen:
     return proc
 
 
+def _ignore_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def goto(stack, *args) -> subprocess.Popen:
+    """`smana goto`, started with SIGINT ignored, as a parent that ignores it would start it:
+    Ctrl-C must cancel its goal all the same."""
     return subprocess.Popen(
         [sys.executable, "-m", "smana.services.explorer.goto_cli", *stack.zenoh_args()]
         + ["--robot", stack.robot, *args],
@@ -76,6 +82,7 @@ def goto(stack, *args) -> subprocess.Popen:
         stderr=subprocess.STDOUT,
         text=True,
         start_new_session=True,
+        preexec_fn=_ignore_sigint,
     )
 
 

@@ -124,8 +124,11 @@ def cli(argv: list[str] | None = None) -> int:
             gid = reply["id"]
             print(f"goal {gid} accepted: ({args.x:g}, {args.y:g})", flush=True)
             # SIGTERM (kill, a closing terminal's SIGHUP) cancels as Ctrl-C does: a goto that
-            # ends must not leave its robot driving
-            old = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGHUP)}
+            # ends must not leave its robot driving. SIGINT too, explicitly: a process started
+            # with SIGINT ignored (by a parent that ignores it) would keep it ignored, and Ctrl-C
+            # would not cancel
+            stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+            old = {sig: signal.signal(sig, _interrupt) for sig in stops}
             try:
                 return follow(feedback, gid, args.feedback_timeout)
             except KeyboardInterrupt:
