@@ -338,3 +338,12 @@ def test_write_data_records_the_command_that_made_it(tmp_path):
     assert data["noise"]["meta"]["command"] == "given"  # an experiment's own is kept
     report.write_data(tmp_path, "routes", [{"seed": 3}])  # outside `smana experiment`
     assert report.load_data(tmp_path / "data")["routes"]["meta"] == {}
+
+
+def test_a_data_file_records_no_path_of_this_machine():
+    """The command a data file records keeps --out and --python as placeholders."""
+    from smana.lab.experiments import recorded
+
+    words = ["robustness", "--jobs", "2", "--out", "/work/x", "--python=/v/bin/python"]
+    assert recorded(words) == ["robustness", "--jobs", "2", "--out", "<out>", "--python=<python>"]
+    assert recorded(["fleet", "--out"]) == ["fleet", "--out"]

@@ -79,6 +79,27 @@ EXPERIMENTS = {
 }
 
 
+# flags whose values are paths of this machine: the data file records them as placeholders
+PATH_FLAGS = ("--out", "--python")
+
+
+def recorded(words: list[str]) -> list[str]:
+    """A command's words as a data file records them: a path given to --out or --python (a
+    folder of this machine) becomes <out> or <python>."""
+    out, it = [], iter(words)
+    for w in it:
+        flag, eq, _ = w.partition("=")
+        if flag in PATH_FLAGS and eq:
+            out.append(f"{flag}=<{flag[2:]}>")
+        elif w in PATH_FLAGS:
+            out.append(w)
+            if next(it, None) is not None:
+                out.append(f"<{w[2:]}>")
+        else:
+            out.append(w)
+    return out
+
+
 def cli(argv: list[str] | None = None) -> int:
     import importlib
     import shlex
@@ -106,7 +127,7 @@ def cli(argv: list[str] | None = None) -> int:
     out = args.out or Path("runs") / f"experiment-{args.which}-{stamp}"
     output_dir(out, "output directory", "--out")
     # the data file records the command that made it (report.write_data)
-    token = COMMAND.set(shlex.join(["smana", "experiment", *words]))
+    token = COMMAND.set(shlex.join(["smana", "experiment", *recorded(words)]))
     try:
         return mod.main(args, parser, out)
     finally:
