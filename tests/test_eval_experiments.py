@@ -96,7 +96,7 @@ def test_noise_quick(tmp_path):
     assert "Classification loss" in text and "CPU time per seed" in text
     # the data file records the command that made it, how long it took and when
     meta = json.loads((tmp_path / "data" / "noise.json").read_text())["meta"]
-    assert meta["command"] == f"smana experiment noise --quick --out {tmp_path}"
+    assert meta["command"] == "smana experiment noise --quick --out <out>"  # no path of a machine
     assert meta["jobs"] >= 1 and meta["wall_s"] > 0 and len(meta["date"]) == 10
     # the compact raw rows docs/experiments/data/ would hold, one per seed, back-end and level
     compact = json.loads((tmp_path / "data" / "noise.json").read_text())["rows"]

@@ -344,6 +344,6 @@ def test_a_data_file_records_no_path_of_this_machine():
     """The command a data file records keeps --out and --python as placeholders."""
     from smana.lab.experiments import recorded
 
-    words = ["robustness", "--jobs", "2", "--out", "/work/x", "--python=/v/bin/python"]
-    assert recorded(words) == ["robustness", "--jobs", "2", "--out", "<out>", "--python=<python>"]
-    assert recorded(["fleet", "--out"]) == ["fleet", "--out"]
+    words = ["robustness", "--jobs", "2", "--out", "/work/x", "--python=/v/bin/python", "a b"]
+    assert recorded(words) == "robustness --jobs 2 --out <out> --python=<python> 'a b'"
+    assert recorded(["fleet", "--out"]) == "fleet --out"

@@ -83,9 +83,11 @@ EXPERIMENTS = {
 PATH_FLAGS = ("--out", "--python")
 
 
-def recorded(words: list[str]) -> list[str]:
-    """A command's words as a data file records them: a path given to --out or --python (a
-    folder of this machine) becomes <out> or <python>."""
+def recorded(words: list[str]) -> str:
+    """A command as a data file records it, quoted for a shell: a path given to --out or
+    --python (a folder of this machine) becomes <out> or <python>, left unquoted."""
+    import shlex
+
     out, it = [], iter(words)
     for w in it:
         flag, eq, _ = w.partition("=")
@@ -96,13 +98,12 @@ def recorded(words: list[str]) -> list[str]:
             if next(it, None) is not None:
                 out.append(f"<{w[2:]}>")
         else:
-            out.append(w)
-    return out
+            out.append(shlex.quote(w))
+    return " ".join(out)
 
 
 def cli(argv: list[str] | None = None) -> int:
     import importlib
-    import shlex
 
     from smana.common.cli import ArgumentParser, doc_summary, output_dir
 
@@ -127,7 +128,7 @@ def cli(argv: list[str] | None = None) -> int:
     out = args.out or Path("runs") / f"experiment-{args.which}-{stamp}"
     output_dir(out, "output directory", "--out")
     # the data file records the command that made it (report.write_data)
-    token = COMMAND.set(shlex.join(["smana", "experiment", *recorded(words)]))
+    token = COMMAND.set(recorded(["smana", "experiment", *words]))
     try:
         return mod.main(args, parser, out)
     finally:
