@@ -51,6 +51,11 @@ def scan(robot: str) -> str:
     return key(robot, "robot", "scan")
 
 
+def safety_scan(robot: str) -> str:
+    """SemanticCloud from the safety scanner, the robot's base frame ("base_link")."""
+    return key(robot, "robot", "safety_scan")
+
+
 def pose(robot: str) -> str:
     """Pose as localisation gives it (noisy in simulation when pose noise is set)."""
     return key(robot, "robot", "pose")

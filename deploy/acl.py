@@ -28,7 +28,7 @@ GOAL_SENDERS = (*DRIVERS, "ros2")
 BASE_RUNS = service_table.with_acl("base")  # a robot's, that a base may run
 FLEET_ROLES = service_table.with_acl("fleet")  # the fleet's, on the base
 BASE_ROLES = ("operator", "tool", "router")
-SENSOR_TOPICS = ("cloud", "scan", "pose", "pose_truth", "clock", "image/**")
+SENSOR_TOPICS = ("cloud", "scan", "safety_scan", "pose", "pose_truth", "clock", "image/**")
 # The queries that only read, on every namespace: `smana/*/<service>/<query>`. An allow rule
 # grants a query only when its key expression includes the query's whole selector (zenoh 1.x,
 # tested in tests/test_acl_table.py), so `smana/r1/mapper/*` or `smana/**` match none of these,

@@ -313,3 +313,29 @@ def test_frames_finished_on_a_worker_match_sequential_frames(kind):
         assert f.images == g.images and set(g.images) == {"rgb", "depth", "semantic"}
         cloud = decode(g.cloud, SemanticCloud)
         assert len(cloud.points) > 100 and cloud.confidences.min() < 1.0  # noise was applied
+
+
+def test_safety_scan_is_in_the_base_frame_untouched_by_pose_noise(gt):
+    """robot/safety_scan: placed with the robot's true pose, its points land on the world; the
+    published pose's noise never reaches them; none is on the robot itself."""
+    tree, _ = gt
+    cfg = SimConfig(
+        garden=GardenConfig(size_m=7.0),
+        seed=4,
+        noise="off",
+        camera=CameraConfig(width=32, height=32),
+        pose_noise_xy_m=0.3,
+        pose_noise_yaw_rad=0.1,
+    )
+    with Simulation(cfg) as s:
+        for _ in _poses(s, n=2):
+            c = s.safety_scan()
+            assert c.frame_id == "base_link" and c.source == "safety_scan"
+            assert len(c.points) > 0.3 * cfg.safety_scan.n_rays
+            world = (s.true_pose() @ np.c_[c.points, np.ones(len(c.points))].T).T[:, :3]
+            d, _ = tree.query(world)
+            assert np.percentile(d, 99) < 0.03
+            r = np.hypot(c.points[:, 0], c.points[:, 1])
+            assert r.max() <= cfg.safety_scan.max_range_m + 1e-3
+            low = c.points[:, 2] < cfg.safety_scan.mount_xyz[2] - 1e-3  # from beams pointing down
+            assert r[low].min() >= cfg.safety_scan.body_radius_m - 1e-3

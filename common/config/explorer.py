@@ -4,6 +4,7 @@
     [explorer.view]      the camera footprint a candidate view is scored with (`FovModel`)
     [explorer.follower]  pure pursuit toward the chosen view (`PurePursuit`)
     [explorer.pose_filter]  the pose it steers by: the localisation's, filtered (`PoseFilter`)
+    [explorer.guard]     the last check of every command against the safety scan (`Guard`)
 
 The service-only keys (control rate, timeouts, class cost overrides) live in [explorer] too.
 """
@@ -66,6 +67,47 @@ class PoseFilterConfig(Section, section="explorer.pose_filter"):
     window_s: float = param(5.0, gt=0)  # the innovations averaged for the noise estimate
     reset_m: float = param(1.0, gt=0)  # a pose this far from the prediction resets the filter
     max_gap_s: float = param(1.0, gt=0)  # so does a pose after a longer gap
+
+
+@dataclass
+class GuardConfig(Section, section="explorer.guard"):
+    """The last check of every velocity command (services/explorer/guard.py): the robot's
+    footprint, moved along the command for `horizon_s`, must keep `margin_m` from the points of
+    the robot's safety scan (robot/safety_scan, base frame) or not come closer to them than it
+    is; else the command is slowed, and stopped when no slower one passes. It needs no map and
+    no pose: a drifted pose moves the map's obstacles, not what the scan sees."""
+
+    enabled: bool = True  # false: commands go out as the explorer computes them
+    # the robot's footprint: rectangles [centre x, centre y, half x, half y] in its base frame
+    # (the simulated robot's chassis and its two wheels)
+    footprint: list[list[float]] = param(
+        [[0.0, 0.0, 0.28, 0.17], [0.0, 0.2, 0.11, 0.11], [0.0, -0.2, 0.11, 0.11]]
+    )
+    margin_m: float = param(0.06, ge=0)  # clearance kept from what the scan shows
+    horizon_s: float = param(1.0, gt=0, le=5.0)  # the command is followed this far ahead
+    # a scan's points are kept this long (robot time), placed by the pose the explorer steers
+    # by: they cover the robot's sides, where the scanner's low beams do not reach
+    memory_s: float = param(1.5, ge=0)
+    range_m: float = param(1.5, gt=0)  # points farther from the robot are ignored
+    # points between these heights in the base frame count (the ground and what the robot
+    # passes under do not); the simulated robot's base frame is 0.15 m above the ground
+    z_min_m: float = param(-0.06)
+    z_max_m: float = param(0.15)
+    # a scan older than this (robot time) is not trusted: the robot drives without the guard
+    # and says so (a robot with no safety scanner never had one)
+    stale_s: float = param(0.5, gt=0)
+
+    def validate(self) -> None:
+        for r in self.footprint:
+            if len(r) != 4 or r[2] <= 0 or r[3] <= 0:
+                raise ConfigError(
+                    f"explorer.guard.footprint: each rectangle is [x, y, half x, half y] with "
+                    f"positive halves, got {r!r}"
+                )
+        if not self.footprint:
+            raise ConfigError("explorer.guard.footprint: at least one rectangle")
+        if self.z_min_m >= self.z_max_m:
+            raise ConfigError("explorer.guard.z_min_m: must be below explorer.guard.z_max_m")
 
 
 @dataclass
@@ -144,3 +186,4 @@ class ExplorerConfig(Section, section="explorer"):
     view: ViewConfig = table(ViewConfig)
     follower: FollowerConfig = table(FollowerConfig)
     pose_filter: PoseFilterConfig = table(PoseFilterConfig)
+    guard: GuardConfig = table(GuardConfig)

@@ -83,11 +83,12 @@ class LidarConfig(Section, section="sim.lidar"):
     mount_xyz: list[float] = param([0.0, 0.0, 0.30])  # on the base frame, level
 
     def validate(self) -> None:
-        _check_xyz("sim.lidar.mount_xyz", self.mount_xyz)
+        k = self.section
+        _check_xyz(f"{k}.mount_xyz", self.mount_xyz)
         if self.min_range_m >= self.max_range_m:
-            raise ConfigError("sim.lidar.min_range_m: must be below sim.lidar.max_range_m")
+            raise ConfigError(f"{k}.min_range_m: must be below {k}.max_range_m")
         if self.channels * self.columns > 4_000_000:
-            raise ConfigError("sim.lidar: channels x columns must be at most 4M rays")
+            raise ConfigError(f"{k}: channels x columns must be at most 4M rays")
 
     @property
     def n_rays(self) -> int:
@@ -104,10 +105,60 @@ class LidarConfig(Section, section="sim.lidar"):
             -1, 3
         )
 
+    def starts(self) -> np.ndarray:
+        """Where each ray starts, m along it (its first possible return)."""
+        return np.full(self.n_rays, float(self.min_range_m))
+
     def mount_matrix(self) -> np.ndarray:
         m = np.eye(4)
         m[:3, 3] = self.mount_xyz
         return m
+
+
+@dataclass
+class SafetyScanConfig(LidarConfig, section="sim.safety_scan"):
+    """A safety scanner: a fan of LiDAR beams from the horizon down, all round, short range, just
+    above the chassis, as a field robot carries beside its mapping sensors. Its points go out in
+    the robot's base frame on robot/safety_scan, unlabelled and untouched by pose noise: the
+    explorer's guard (services/explorer/guard.py) stops a motion that would put the robot on
+    what they show, where a drifted pose has moved the map's obstacles. A beam below the horizon
+    starts where it leaves a cylinder of `body_radius_m` (it would hit the robot's own top);
+    one on the horizon starts at `min_range_m`, as nothing of the robot is that high."""
+
+    enabled: bool = True  # scans on robot/safety_scan (the explorer's guard uses them)
+    rate_hz: float = param(10.0, gt=0)  # scans per simulated second
+    channels: int = param(6, gt=0)  # beams (rows of the scan), from the horizon down
+    columns: int = param(360, gt=0)  # azimuth steps of a turn
+    vfov_deg: float = param(18.0, gt=0, lt=90)  # the lowest beam points this far down
+    max_range_m: float = param(3.0, gt=0)  # farther rays give no return
+    min_range_m: float = param(0.0, ge=0)  # nearer returns are dropped
+    mount_xyz: list[float] = param([0.0, 0.0, 0.10])  # on the base frame, above the chassis
+    body_radius_m: float = param(0.45, ge=0)  # beams below the horizon start outside this
+
+    def directions(self) -> np.ndarray:
+        """Unit ray directions, channel-major: the horizon first, then down to -vfov_deg."""
+        el = -np.linspace(0.0, math.radians(self.vfov_deg), self.channels)
+        az = -math.pi + np.arange(self.columns) * (2 * math.pi / self.columns)
+        e, a = np.meshgrid(el, az, indexing="ij")
+        return np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(
+            -1, 3
+        )
+
+    def starts(self) -> np.ndarray:
+        """Where each ray starts, m along it: outside the body's cylinder when it points down."""
+        d = self.directions()
+        horizontal = np.hypot(d[:, 0], d[:, 1])
+        down = d[:, 2] < -1e-9
+        start = np.maximum(self.min_range_m, self.body_radius_m / np.maximum(horizontal, 1e-9))
+        return np.where(down, start, self.min_range_m)
+
+    def validate(self) -> None:
+        super().validate()
+        if self.starts().max() >= self.max_range_m:
+            raise ConfigError(
+                f"{self.section}.max_range_m: the lowest beam starts at "
+                f"{self.starts().max():.2f} m (body_radius_m), beyond max_range_m"
+            )
 
 
 @dataclass
@@ -200,6 +251,7 @@ class SimConfig(Section, section="sim"):
     spawn: list[float] = param([])  # [x, y, yaw]; empty: free spot near centre
     camera: CameraConfig = table(CameraConfig)
     lidar: LidarConfig = table(LidarConfig)
+    safety_scan: SafetyScanConfig = table(SafetyScanConfig)
     robot: RobotConfig = table(RobotConfig)
     perception: PerceptionConfig = table(PerceptionConfig)
     # [sim.garden], [sim.ply], a plugin's: each world's own section

@@ -29,6 +29,15 @@ EXPLORED_AREAS = (
 )
 
 
+def _guard(g: dict | None) -> str:
+    """The guard's figures (services/explorer/guard.py) in a cell: '-' when there were none."""
+    if not g:
+        return "-"
+    if not g.get("scans"):
+        return "no safety scan: not guarded"
+    return f"{g['slowed']} / {g['stopped']} ({g['scans']} scans)"
+
+
 def _area(ex: dict, name: str) -> str:
     """`A m2 = S % of the reachable R m2` for one of exploration_coverage's areas."""
     return (
@@ -259,6 +268,7 @@ def render_markdown(m: dict) -> str:
             ("minimum clearance from obstacles", as_text(ex.get("min_clearance_m"), ".2f", " m")),
             (f"close calls (clearance < {CLOSE_CALL_M} m)", str(ex.get("close_calls", "-"))),
             ("collisions (footprint over an obstacle)", str(ex.get("collisions", "-"))),
+            ("the guard (safety scan): commands slowed / stopped", _guard(ee.get("guard"))),
             ("trajectory measured from", ex.get("trajectory_source", "-")),
         ]
         if m.get("fleet"):

@@ -103,6 +103,8 @@ def write_report(
                 "n_plans",
                 "n_blocked",
                 "n_stuck",
+                "n_turns_avoided",
+                "guard",
                 "path_queries",
                 "path_ok",
                 "path_errors",

@@ -160,6 +160,7 @@ TARGETS: tuple[Target, ...] = (
     Target("planner", "planner/stats", "query", weight=1),
     Target("planner", "planner/status", "query", weight=1),
     Target("explorer", "robot/pose", "fifo", m.Pose, ("explorer",), 10),
+    Target("explorer", "robot/safety_scan", "fifo", m.SemanticCloud, ("explorer",), 4),
     Target("explorer", "explorer/state", "query", weight=2),
     Target("explorer", "explorer/status", "query", weight=1),
     Target("sim", "robot/cmd_vel", "fifo", m.VelocityCommand, ("sim",), 6),

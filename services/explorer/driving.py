@@ -35,7 +35,13 @@ class Driving:
     (`config`, `grid`, `pose`, `goal`, `follower`, `team`, `_spin`, `_progress_mark`, ...)."""
 
     def control(self) -> tuple[float, float]:
-        """Velocity command (v m/s, w rad/s) for the current tick."""
+        """Velocity command (v m/s, w rad/s) for the current tick, as the guard lets it go out
+        (guard.py: slowed or stopped before the body meets what the safety scan shows)."""
+        v, w = self._command()
+        return self.guard.check(v, w, self.pose, self.t_now)
+
+    def _command(self) -> tuple[float, float]:
+        """The command before the guard's check."""
         if self.done or self.pose is None:
             return 0.0, 0.0
         x, y, yaw = self.pose

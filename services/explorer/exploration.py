@@ -43,6 +43,7 @@ from smana.services.explorer import frontier as fr
 from smana.services.explorer.choosing import Choosing
 from smana.services.explorer.driving import BACK_OFF_S, Driving
 from smana.services.explorer.follower import PurePursuit
+from smana.services.explorer.guard import Guard
 from smana.services.explorer.navigation import (
     GoalRefused,
     GoalSpec,
@@ -197,6 +198,7 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
         self.n_replans_blocked = 0
         self.n_stuck = 0
         self.n_turns_avoided = 0  # control ticks that crept instead of turning into an obstacle
+        self.guard = Guard(config.guard)  # every command's last check, against the safety scan
         self.last_outcome: PlanOutcome | None = None
         self.explored_m2 = 0.0
         self.frontier_size = 0
@@ -510,6 +512,7 @@ class Explorer(Choosing, Driving, Navigating, Recovering):
             "n_blocked": self.n_replans_blocked,
             "n_stuck": self.n_stuck,
             "n_turns_avoided": self.n_turns_avoided,
+            "guard": self.guard.summary(),
             "n_recoveries": self.n_recoveries,
             "n_looks": len(self._looked_at),
             "n_claims_refused": self.n_claims_refused,

@@ -44,6 +44,7 @@ from smana.common.messages import (
     PathReply,
     PathRequest,
     Pose,
+    SemanticCloud,
     VelocityCommand,
 )
 from smana.common.navgrid import NavGrid
@@ -107,6 +108,7 @@ class ExplorerService(Service):
         g = config.general
         self.stamps = StampGate(g.stamp_window_s, g.max_time_rate, accept_while_acquiring=False)
         self.places = PoseGate(g.max_speed_mps, g.pose_slack_m)
+        self._last_pose_stamp: float | None = None
         self.clock = RobotClock(g.stamp_window_s)  # runs on across a restarted simulator
         self.n_patches = 0
         self.graph_queries = 0  # asked of navgraph (its books count them as received)
@@ -170,6 +172,7 @@ class ExplorerService(Service):
         self.state_pub = self.publisher(keys.explorer_state(r))
         self.subscribe(keys.graph_patch(self.graph_ns), self.on_patch, GraphPatch)
         self.subscribe(keys.pose(r), self.on_pose, Pose)
+        self.subscribe(keys.safety_scan(r), self.on_safety_scan, SemanticCloud)
         if self.team is not None:
             for m in self.fleet.robots:
                 if m != r:
@@ -336,6 +339,22 @@ class ExplorerService(Service):
             self.pose_filter.forget()  # the robot reappeared elsewhere
         self.core.update_pose(*self.pose_filter.update(x, y, yaw, t), t)
         self._last_pose_wall = time.monotonic()
+        self._last_pose_stamp = stamp
+
+    def on_safety_scan(self, scan: SemanticCloud) -> None:
+        """The safety scanner's points (base frame) for the guard, placed by the pose the robot
+        steers by now: a scan taken further from that pose's stamp than the guard trusts is
+        refused."""
+        if scan.frame_id != "base_link":
+            raise Reject("frame", f"safety scan {scan.seq} is in {scan.frame_id!r}, not base_link")
+        if self.core.pose is None or self._last_pose_stamp is None:
+            raise Reject("settling", f"safety scan {scan.seq} before the first pose")
+        lag = abs(float(scan.stamp_s) - self._last_pose_stamp)
+        if lag > self.cfg.guard.stale_s:
+            raise Reject(
+                "stamp", f"safety scan {scan.seq}: {lag:.2f} s from the latest pose's stamp"
+            )
+        self.core.guard.add(scan.points, self.core.pose, self.core.t_now)
 
     # -- the control loop -------------------------------------------------------------------------
 

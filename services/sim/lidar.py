@@ -2,8 +2,9 @@
 
 Parameters: `[sim.lidar]` (`LidarConfig`). Rays go out on `channels` elevations spread evenly
 over `vfov_deg` (centred on the horizon) and `columns` azimuths over a full turn; each hit takes
-its body's class (the ground's from the raster at the hit). Rays start at `min_range_m` (a real
-sensor's blind zone) and end at `max_range_m`; rays that hit nothing give no point.
+its body's class (the ground's from the raster at the hit). Rays start at the config's `starts()`
+(`min_range_m`: a real sensor's blind zone; the safety scanner's low beams start clear of the
+robot's body) and end at `max_range_m`; rays that hit nothing give no point.
 
 The rays are defined once in the robot's base frame and cast with `parentObjectUniqueId`, so
 each scan hands PyBullet the same prebuilt Python lists: converting 131,072 rays from numpy to
@@ -19,6 +20,7 @@ import numpy as np
 import pybullet as p
 
 from smana.common.config.sim import LidarConfig
+from smana.common.messages import SemanticCloud
 
 from .scene import BulletScene, transform_points
 
@@ -51,7 +53,8 @@ class Lidar:
         self.parent = parent_body
         self.dirs = self.config.directions()
         mount = np.array(self.config.mount_xyz)
-        self._from = mount + self.dirs * self.config.min_range_m  # parent frame
+        self.starts = self.config.starts()  # m along each ray
+        self._from = mount + self.dirs * self.starts[:, None]  # parent frame
         self._to = mount + self.dirs * self.config.max_range_m
         self._chunks = None
         if parent_body >= 0:
@@ -98,7 +101,8 @@ class Lidar:
         frac = np.fromiter((h[2] for h in out), np.float64, n)
         hit = np.flatnonzero(bodies >= 0)
         cfg = self.config
-        dist = cfg.min_range_m + frac[hit] * (cfg.max_range_m - cfg.min_range_m)
+        start = self.starts[hit]
+        dist = start + frac[hit] * (cfg.max_range_m - start)
         pts_sensor = self.dirs[hit] * dist[:, None]
         world_from_sensor = world_from_base @ cfg.mount_matrix()
         world = transform_points(pts_sensor, world_from_sensor)
@@ -117,3 +121,24 @@ class Lidar:
             world_from_sensor,
             member_hits,
         )
+
+
+def safety_cloud(
+    scanner: Lidar, world_from_base: np.ndarray, stamp_s: float, seq: int
+) -> SemanticCloud:
+    """A safety scanner's scan as robot/safety_scan carries it: its hits in the robot's base
+    frame (`frame_id` "base_link"), where no pose noise reaches them; unlabelled (class 0,
+    confidence 0). Hits on the robot itself and on other members are dropped."""
+    hits = scanner.scan(world_from_base)
+    base = transform_points(hits.points_sensor, scanner.config.mount_matrix()).astype(np.float32)
+    n = len(base)
+    return SemanticCloud(
+        stamp_s=stamp_s,
+        seq=seq,
+        points=base,
+        labels=np.zeros(n, np.uint16),
+        confidences=np.zeros(n, np.float32),
+        sensor_position=np.asarray(scanner.config.mount_xyz, np.float64),
+        frame_id="base_link",
+        source="safety_scan",
+    )

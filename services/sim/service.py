@@ -5,6 +5,8 @@ Publishes, at rates counted in simulated time:
 - `robot/cloud`: one camera `SemanticCloud` per frame at `camera.rate_hz` (and, with
   `camera.publish_images`, `robot/image/{rgb,depth,semantic}`);
 - `robot/scan`: LiDAR `SemanticCloud`s at `lidar.rate_hz` when `lidar.enabled`;
+- `robot/safety_scan`: the safety scanner's points in the base frame at `safety_scan.rate_hz`
+  when `safety_scan.enabled` (the default);
 - `robot/clock`: `{"sim_time_s", "real_time_factor"}` (the factor actually achieved).
 Subscribes to `robot/cmd_vel`; the base stops `robot.cmd_timeout_s` after the last command.
 
@@ -61,7 +63,7 @@ class MemberStreams:
         self.cmd_stamps = gate  # commands carry their sender's wall clock, checked as any stream
         self.pose_seq = 0
         self.commands = 0
-        self.next_camera = self.next_lidar = 0.0
+        self.next_camera = self.next_lidar = self.next_safety = 0.0
         self.awaiting: int | None = None  # lockstep: the cloud seq we wait for
 
 
@@ -78,6 +80,7 @@ class SimService(Service):
         self.period_pose = 1.0 / sc.pose_rate_hz
         self.period_camera = 1.0 / sc.camera.rate_hz
         self.period_lidar = 1.0 / sc.lidar.rate_hz
+        self.period_safety = 1.0 / sc.safety_scan.rate_hz
         self.period_clock = 1.0 / sc.clock_rate_hz
         self._wall0: float | None = None
         self._awaiting_since = 0.0
@@ -86,6 +89,7 @@ class SimService(Service):
         self.commands = 0
         self.camera_ms: list[float] = []
         self.lidar_ms: list[float] = []
+        self.safety_ms: list[float] = []
         self.achieved_rtf = 0.0
         self._worker = self._finish = None
         self._in_flight: collections.deque[tuple[Future, float, MemberStreams]] = (
@@ -118,6 +122,7 @@ class SimService(Service):
             # members take turns over the period: not every camera renders in the same tick
             st.next_camera = t + i * self.period_camera / n
             st.next_lidar = t + i * self.period_lidar / n
+            st.next_safety = t + i * self.period_safety / n
         self._sim0 = t
         self._rtf_mark = (time.monotonic(), t)
         # Degrading and encoding a frame runs on a worker (`camera.worker`, see finishing.py)
@@ -140,6 +145,7 @@ class SimService(Service):
             r = st.key_name
             st.cloud_pub = self.publisher(keys.cloud(r), reliable_block=block)
             st.scan_pub = self.publisher(keys.scan(r), reliable_block=block)
+            st.safety_pub = self.publisher(keys.safety_scan(r))
             st.pose_pub = self.publisher(keys.pose(r))
             st.truth_pub = self.publisher(keys.pose_truth(r))
             st.clock_pub = self.publisher(keys.clock(r))
@@ -152,8 +158,8 @@ class SimService(Service):
                 self.subscribe(keys.map_delta(r), functools.partial(self.on_delta, st=st), MapDelta)
         w = self.sim.world
         self.log.info(
-            "world %s, %.0f x %.0f m, %d objects; camera %dx%d at %.1f Hz, lidar %s; noise %s, "
-            "pose noise %.3g m / %.3g rad; rtf %.2f%s%s",
+            "world %s, %.0f x %.0f m, %d objects; camera %dx%d at %.1f Hz, lidar %s, "
+            "safety scan %s; noise %s, pose noise %.3g m / %.3g rad; rtf %.2f%s%s",
             w.name,
             *w.size_m,
             len(w.objects),
@@ -161,6 +167,7 @@ class SimService(Service):
             sc.camera.height,
             sc.camera.rate_hz,
             f"{sc.lidar.rate_hz:.1f} Hz" if sc.lidar.enabled else "off",
+            f"{sc.safety_scan.rate_hz:.1f} Hz" if sc.safety_scan.enabled else "off",
             sc.noise,
             sc.pose_noise_xy_m,
             sc.pose_noise_yaw_rad,
@@ -267,6 +274,8 @@ class SimService(Service):
                 t.append(st.next_camera)
             if self.sc.lidar.enabled:
                 t.append(st.next_lidar)
+            if self.sc.safety_scan.enabled:
+                t.append(st.next_safety)
         return min(t)
 
     def _emit(self) -> bool:
@@ -306,6 +315,11 @@ class SimService(Service):
                 self.lidar_ms.append(1000 * (time.perf_counter() - t0))
                 self._sent(st, scan.seq)
                 sent_cloud = True
+            if sc.safety_scan.enabled and t >= st.next_safety:
+                st.next_safety = _next(st.next_safety, self.period_safety, sim.time_s)
+                t0 = time.perf_counter()
+                st.safety_pub.put(sim.safety_scan(member=st.member.index))
+                self.safety_ms.append(1000 * (time.perf_counter() - t0))
         return sent_cloud
 
     def _note_contacts(self) -> None:
@@ -389,6 +403,7 @@ class SimService(Service):
             "camera_latency_ms_mean": _mean(self.camera_ms[-50:]),
             "lidar_scans": sim.lidar_scans,
             "lidar_ms_mean": _mean(self.lidar_ms[-20:]),
+            "safety_scan_ms_mean": _mean(self.safety_ms[-20:]),
             "commands": first.commands,
             "stopped_no_command": sim.robot.timed_out,
             "lag_resets": self.lag_resets,

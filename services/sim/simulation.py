@@ -51,7 +51,7 @@ from .degrade import (
     LabelDegrader,
     PoseNoise,
 )
-from .lidar import Lidar
+from .lidar import Lidar, safety_cloud
 from .perception import LabelNoise, perception_matrix, split_matrix
 from .robot import DiffDriveRobot
 from .scene import DROP, MEMBER, BulletScene, transform_points
@@ -262,6 +262,8 @@ class Member:
         self.finisher = finisher
         self.pose_noise = pose_noise
         self.lidar: Lidar | None = None  # built when first asked for (one per body)
+        self.safety: Lidar | None = None  # the safety scanner, likewise
+        self.safety_seq = 0
         # one sequence for camera and LiDAR clouds, so that a MapDelta's cloud_seq names one
         self.cloud_seq = 0
         self.camera_frames = 0
@@ -574,6 +576,14 @@ class Simulation:
             true_world_from_sensor=hits.world_from_sensor,
             member_hits=hits.member_hits,
         )
+
+    def safety_scan(self, member: int | str = 0) -> SemanticCloud:
+        """One scan of the member's safety scanner (`[sim.safety_scan]`, lidar.safety_cloud)."""
+        m = self.member(member)
+        if m.safety is None:
+            m.safety = Lidar(self.scene, self.config.safety_scan, parent_body=m.robot.body)
+        m.safety_seq += 1
+        return safety_cloud(m.safety, m.robot.matrix(), self.time_s, m.safety_seq)
 
     # -- lifetime -----------------------------------------------------------------------------
 
