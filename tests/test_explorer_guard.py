@@ -134,3 +134,27 @@ def test_a_guard_config_that_cannot_be_is_refused(bad):
 
     with pytest.raises(ConfigError, match="explorer.guard"):
         GuardConfig(**bad)
+
+
+def test_the_report_counts_what_the_guard_did():
+    """The Exploration table's row: commands slowed and stopped, or that there was no scan."""
+    from smana.deploy.report.render import render_markdown
+
+    config = {
+        "backend": "octree-max",
+        "map_resolution_m": 0.1,
+        "graph_resolution_m": 0.2,
+        "world": "garden",
+        "seed": 3,
+        "label_noise": "off",
+        "pose_noise_xy_m": 0.0,
+        "pose_noise_yaw_rad": 0.0,
+        "class_costs": [],
+        "time_budget_s": 60.0,
+    }
+    guard = {"scans": 120, "slowed": 7, "stopped": 3, "unguarded": 0, "min_clearance_m": 0.05}
+    m = {"run_dir": "runs/x", "config": config, "explorer": {"guard": guard}}
+    row = "| the guard (safety scan): commands slowed / stopped | 7 / 3 (120 scans) |"
+    assert row in render_markdown(m).splitlines()
+    m["explorer"]["guard"] = dict(guard, scans=0, slowed=0, stopped=0, unguarded=50)
+    assert "no safety scan: not guarded" in render_markdown(m)

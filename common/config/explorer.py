@@ -91,7 +91,7 @@ class GuardConfig(Section, section="explorer.guard"):
     range_m: float = param(1.5, gt=0)  # points farther from the robot are ignored
     # points between these heights in the base frame count (the ground and what the robot
     # passes under do not); the simulated robot's base frame is 0.15 m above the ground
-    z_min_m: float = param(-0.06)
+    z_min_m: float = param(-0.05)
     z_max_m: float = param(0.15)
     # a scan older than this (robot time) is not trusted: the robot drives without the guard
     # and says so (a robot with no safety scanner never had one)
