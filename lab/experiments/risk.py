@@ -1,4 +1,4 @@
-"""`smana experiment risk` (issue 29, item 4): does planning on the map's label distribution keep
+"""`smana experiment risk`: does planning on the map's label distribution keep
 the robot out of a class that only semantics can see? This module holds the command line and
 the first form, `--synthetic`; the default form, the closed loop (`smana up` in the wet garden
 under the paper's label and pose noise), is lab/experiments/riskloop.py.
@@ -27,7 +27,7 @@ Measured against the truth, never the map, per path: the nodes entered whose tru
 forbidden, the path length, its true cost (eq. 1 with true classes, a forbidden node priced at
 `risk_forbidden_cost`), success (a path found that enters no forbidden node). Rules, fixed before
 the runs (lab/stats.py, paired per seed), at p = 0.7 for `cvar` and for `chance` against
-`expected` (the issue's target):
+`expected` (the target fixed before the runs):
 1. ">= 50 % fewer forbidden entries": 0.5 x expected's minus the arm's mean entries per path lies
    above 0 (`decide_above`);
 2. "<= 10 % longer paths": the arm's mean length over expected's, minus 1, on the pairs both
@@ -362,13 +362,13 @@ def add_parser(sub) -> None:
 
     r = sub.add_parser(
         "risk",
-        help="risk-aware navigation (issue 29): closed-loop exploration of the wet garden under "
+        help="risk-aware navigation: closed-loop exploration of the wet garden under "
         "label and pose noise, planner.risk expected vs cvar vs chance (measured once: 2 seeds "
         "in 6.5 min, so 10 seeds about 33 min at that load; --quick 1.5 min)",
         description="Closed loop (the default): one `smana up` per arm (noise-free reference; "
         "expected, cvar, chance under label noise p = 0.7 and pose noise) and seed in the wet "
         "garden, measured against ground truth: forbidden-class entries and time, true path "
-        "cost, length, contacts, coverage; verdicts on issue 29's target "
+        "cost, length, contacts, coverage; verdicts on the targets fixed before the runs "
         "(lab/experiments/riskloop.py). --synthetic: the first form, in-process on synthetic "
         "maps (lab/experiments/risk.py).",
         epilog="Duration on a 2-core machine shared with other work, measured once: the full "

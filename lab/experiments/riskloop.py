@@ -1,4 +1,4 @@
-"""`smana experiment risk` in closed loop (issue 29, item 4): does planning on the map's label
+"""`smana experiment risk` in closed loop: does planning on the map's label
 distribution keep a robot that maps as it drives out of the water that only semantics can see?
 
 The whole stack (`smana up`, run by the exploration experiment's runner: the same starts, budget
@@ -28,7 +28,7 @@ Measured against ground truth, never the map, from each run's true trajectory (t
   and the ground-truth coverage at the end (the run report's).
 
 Rules, fixed before the runs (lab/stats.py; per seed, the same seeds in every arm), for `cvar`
-and for `chance` against `expected` (the issue's target at p = 0.7):
+and for `chance` against `expected` (the target fixed before the runs, at p = 0.7):
 1. ">= 50 % fewer forbidden entries": the ratio of the arm's entries to expected's (sum over sum,
    its interval Fieller's, `stats.ratio_ci`) is below 0.5, decided by the per-seed differences
    arm - 0.5 x expected, whose interval must lie below 0 (`decide_not_worse`, margin 0; not
@@ -301,7 +301,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
         add(
             f"{arm}: >= {100 * (1 - FEWER):.0f} % fewer forbidden-class entries than expected "
             "(p = 0.7 and pose noise, true path; ratio of sums, Fieller interval)",
-            f"(issue 29) ratio < {FEWER:g}",
+            f"target: ratio < {FEWER:g}",
             shown,
             stats.decide_not_worse(
                 diff, 0.0, yes=f"under {FEWER:g} x expected's", no=f"over {FEWER:g} x expected's"
@@ -313,7 +313,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
         add(
             f"{arm}: paths at most {100 * LONGER_MARGIN:.0f} % longer than expected's (true "
             "distance driven, ratio per seed)",
-            f"(issue 29) < +{100 * LONGER_MARGIN:.0f} %",
+            f"target: < +{100 * LONGER_MARGIN:.0f} %",
             longer.format(100, unit=" %"),
             stats.decide_not_worse(longer, LONGER_MARGIN),
             "not worse",
@@ -324,7 +324,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
         cov = paired(rows, arm, "coverage")
         add(
             f"{arm}: no loss of success against expected (ground-truth coverage, paired per seed)",
-            f"(issue 29) > -{100 * COVERAGE_MARGIN:.0f} points",
+            f"target: > -{100 * COVERAGE_MARGIN:.0f} points",
             cov.format(100, unit=" points"),
             stats.decide_not_worse(cov, COVERAGE_MARGIN, higher_is_better=True),
             "not worse",
@@ -450,7 +450,7 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
     (out / "risk_results.json").write_text(
         json.dumps({"settings": asdict(s), "runs": rows, "verdicts": table}, indent=2)
     )
-    lines = ["# Risk-aware navigation in closed loop (issue 29)", ""]
+    lines = ["# Risk-aware navigation in closed loop", ""]
     failed = [r for r in rows if not r["ok"]]
     if failed:
         names = ", ".join(ex.run_name(r["seed"], _BY_NAME[r["arm"]].arm()) for r in failed)
