@@ -1,8 +1,8 @@
 """The user-facing pages (README.md, CHANGELOG.md, docs/**/*.md) read on their own: no issue
-numbers of the project's tracker ("issue 29", "(issue 12)", "#36": a reader has no tracker to look them up in) and
-no path of a developer's machine (`/work/...`, `/home/...`, `../shared`). A reference to another
-project's tracker names it (`numba/numba#2350`) and links it. Generated pages and sections are
-checked as they are: what writes them says none either."""
+numbers of the project's tracker ("issue 29", "(issue 12)", "#36": a reader has no tracker to
+look them up in) and no path of a developer's machine (`/work/...`, `/home/...`, `../shared`). A
+reference to another project's tracker names it (`numba/numba#2350`) and links it. Generated
+pages and sections are checked as they are: what writes them says none either."""
 
 from __future__ import annotations
 
