@@ -239,6 +239,9 @@ def run_fields(row: dict, run_dir: Path) -> dict:
         "reachable_area_m2": e.get("reachable_area_m2"),
         "collisions": e.get("collisions"),
         "close_calls": e.get("close_calls"),
+        # what the explorer's guard did (none from code before it)
+        "guard_slowed": (ee.get("guard") or {}).get("slowed"),
+        "guard_stopped": (ee.get("guard") or {}).get("stopped"),
         "trajectory_source": e.get("trajectory_source"),
         "time_to_90_s": t90,
         "distance_to_90_m": true_distance_by(run_dir, at),
