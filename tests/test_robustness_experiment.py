@@ -14,6 +14,7 @@ from smana.lab import stats
 from smana.lab.experiments import exploration as ex
 from smana.lab.experiments import report
 from smana.lab.experiments import robustness as rb
+from smana.lab.experiments import robustness_report as rr
 from smana.lab.experiments.claims import verdict_claims
 
 
@@ -75,36 +76,36 @@ def test_the_arms_seeds_and_noise_are_the_declared_ones():
 
 
 def test_the_rules_count_seeds_and_every_run():
-    met = {v["claim"].split(" at ")[1].split(" ")[0]: v for v in rb.verdicts(_rows())[:2]}
+    met = {v["claim"].split(" at ")[1].split(" ")[0]: v for v in rr.verdicts(_rows())[:2]}
     assert met["high"]["verdict"] == met["realistic"]["verdict"] == "met"
-    assert all(v["p"] is None and v["rule"] == "a count" for v in rb.verdicts(_rows()))
+    assert all(v["p"] is None and v["rule"] == "a count" for v in rr.verdicts(_rows()))
     # under the target in every seed: not met
-    assert rb.verdicts(_rows(high=0.85))[0]["verdict"] == "not met"
-    assert rb.verdicts(_rows(realistic=0.75))[1]["verdict"] == "not met"
+    assert rr.verdicts(_rows(high=0.85))[0]["verdict"] == "not met"
+    assert rr.verdicts(_rows(realistic=0.75))[1]["verdict"] == "not met"
     # one seed short is allowed (9 of 10), two are not
     rows = _rows()
     _row(rows, 51, "max_high")["collisions"] = 1
-    assert rb.verdicts(rows)[0]["verdict"] == "met"
-    assert "9 of 10 seeds (short: seeds 51)" in rb.verdicts(rows)[0]["smana"]
+    assert rr.verdicts(rows)[0]["verdict"] == "met"
+    assert "9 of 10 seeds (short: seeds 51)" in rr.verdicts(rows)[0]["smana"]
     _row(rows, 52, "max_high")["moved"] = False  # did not move: a failure, whatever
-    assert rb.verdicts(rows)[0]["verdict"] == "not met"
+    assert rr.verdicts(rows)[0]["verdict"] == "not met"
     # a seed without its reference counts against; too few seeds to decide: inconclusive
     rows = [r for r in _rows() if not (r["seed"] in (51, 52) and r["perception"] == rb.CLEAN)]
-    assert rb.verdicts(rows)[0]["verdict"] == "not met"
-    assert rb.verdicts(_rows(seeds=(51,)))[0]["verdict"] == stats.INCONCLUSIVE
+    assert rr.verdicts(rows)[0]["verdict"] == "not met"
+    assert rr.verdicts(_rows(seeds=(51,)))[0]["verdict"] == stats.INCONCLUSIVE
     # false free: every run of every arm under 1 %
     rows = _rows()
-    assert rb.verdicts(rows)[2]["verdict"] == "met"
+    assert rr.verdicts(rows)[2]["verdict"] == "met"
     _row(rows, 55, "tsdf_realistic")["false_free_share"] = 0.012
-    assert rb.verdicts(rows)[2]["verdict"] == "not met"
-    assert "largest 1.20 %" in rb.verdicts(rows)[2]["smana"]
+    assert rr.verdicts(rows)[2]["verdict"] == "not met"
+    assert "largest 1.20 %" in rr.verdicts(rows)[2]["smana"]
     # a run without the measure cannot show it was under: inconclusive, never met
     rows = _rows()
     _row(rows, 55, "tsdf_realistic")["false_free_share"] = None
-    assert rb.verdicts(rows)[2]["verdict"] == stats.INCONCLUSIVE
-    assert "; 1 without the measure" in rb.verdicts(rows)[2]["smana"]
+    assert rr.verdicts(rows)[2]["verdict"] == stats.INCONCLUSIVE
+    assert "; 1 without the measure" in rr.verdicts(rows)[2]["smana"]
     # and no figure without a usable coverage to draw
-    assert rb.figure([{**r, "usable_share": None} for r in rows], Path("unused.png")) is None
+    assert rr.figure([{**r, "usable_share": None} for r in rows], Path("unused.png")) is None
 
 
 def _fake_run(run_dir, distance_m, exit_code_warnings):
@@ -139,12 +140,12 @@ def test_a_robot_that_did_not_move_is_a_measured_failure(tmp_path):
     # 90 % of the final usable count (40 m2) first at the third plan: 20 s after the first;
     # the distance is the true one by then, not the noisy odometer's
     assert row["time_to_90_s"] == 20.0 and row["distance_to_90_m"] == pytest.approx(0.04)
-    d = next(d for d in rb.summarise([row]) if d["arm"] == arm.name)
+    d = next(d for d in rr.summarise([row]) if d["arm"] == arm.name)
     assert (d["runs"], d["not_measured"], d["run_failed"], d["did_not_move"]) == (1, 0, 1, 1)
     assert d["closed_in"] == 1 and d["usable_share"].mean == 0.31
     # and it fails its seed under the rules
     ref = {**row, "perception": rb.CLEAN, "run_failed": False, "moved": True, "usable_share": 0.4}
-    assert not rb.seed_passes(row, ref, 0.5)
+    assert not rr.seed_passes(row, ref, 0.5)
     # a run that left no report is not measured: not kept, and listed
     lost = {"seed": 22, "arm": arm.name, "exit_code": -9, "ok": False}
     assert not rb.finished(lost, tmp_path / "nothing")
@@ -178,7 +179,7 @@ def test_outputs_data_file_and_resume_from_it(tmp_path):
     rows = _rows(seeds=(51, 52))
     s = rb.experiment_config()
     s.seeds = (51, 52)
-    rb.write_outputs([dict(r, wall_time_s=300.0) for r in rows], s, tmp_path)
+    rr.write_outputs([dict(r, wall_time_s=300.0) for r in rows], s, tmp_path)
     data = json.loads((tmp_path / "data" / "robustness.json").read_text())
     assert data["experiment"] == "robustness" and len(data["rows"]) == len(rows)
     text = (tmp_path / "robustness_summary.md").read_text()
@@ -201,7 +202,7 @@ def test_report_generates_the_section_and_its_claims(tmp_path):
     assert "| tsdf | realistic labels + pose noise | 10 (0) |" in text
     claims = [c for c in verdict_claims(all_data) if c["experiment"] == "robustness"]
     assert len(claims) == 3 and all(c["holm"] == "a count, not a test" for c in claims)
-    assert "_No raw results of `smana experiment robustness`" in rb.section(None)
+    assert "_No raw results of `smana experiment robustness`" in rr.section(None)
 
 
 def test_bad_arms_or_set_is_one_line_and_exit_2(tmp_path, capsys):

@@ -95,7 +95,6 @@ STILL_LONG = {
     "lab/experiments/exploration.py",
     "lab/experiments/fleet.py",
     "lab/experiments/noise.py",
-    "lab/experiments/robustness.py",
     "lab/fuzz_messages.py",
 }
 # The API of a named tuple, whose names start with an underscore so as not to clash with fields.

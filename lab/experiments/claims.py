@@ -122,7 +122,7 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
         elif data["experiment"] == "risk":
             table += _risk_claims(key, data)
         elif data["experiment"] == "robustness":
-            from .robustness import verdicts as robustness_verdicts
+            from .robustness_report import verdicts as robustness_verdicts
 
             table += [
                 {**v, "experiment": _where(key, data)} for v in robustness_verdicts(data["rows"])

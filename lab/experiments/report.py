@@ -277,7 +277,7 @@ def risk_section(data: dict | None) -> str:
 
 
 def robustness_section(data: dict | None) -> str:
-    from .robustness import section
+    from .robustness_report import section
 
     return section(data)
 
