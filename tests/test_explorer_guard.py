@@ -15,7 +15,8 @@ RECTS = np.array(GuardConfig().footprint, float)
 
 
 def slow_clearance(points, pose, rects) -> float:
-    """The distance from the footprint to the nearest point, one point and rectangle at a time."""
+    """The distance from the footprint to the nearest point, one point and rectangle at a time;
+    a point inside a rectangle counts as minus its distance to that rectangle's nearest side."""
     x, y, yaw = pose
     best = math.inf
     for px, py in points:
@@ -24,9 +25,12 @@ def slow_clearance(points, pose, rects) -> float:
         lx = math.cos(yaw) * dx + math.sin(yaw) * dy
         ly = -math.sin(yaw) * dx + math.cos(yaw) * dy
         for cx, cy, hx, hy in rects:
-            ex = max(abs(lx - cx) - hx, 0.0)
-            ey = max(abs(ly - cy) - hy, 0.0)
-            best = min(best, math.hypot(ex, ey))
+            if abs(lx - cx) <= hx and abs(ly - cy) <= hy:
+                best = min(best, -min(hx - abs(lx - cx), hy - abs(ly - cy)))
+            else:
+                ex = max(abs(lx - cx) - hx, 0.0)
+                ey = max(abs(ly - cy) - hy, 0.0)
+                best = min(best, math.hypot(ex, ey))
     return best
 
 
@@ -98,6 +102,13 @@ def test_a_turn_that_sweeps_a_corner_into_a_post_is_stopped_one_away_is_not():
     assert v == 0.0 and w > 0.0
     assert g.check(-0.15, 0.0, (0.0, 0.0, 0.0), t=0.0) == (-0.15, 0.0)  # backs off
     assert g.stopped == 1
+
+
+def test_a_point_inside_the_footprint_lets_the_robot_out_not_deeper():
+    g = Guard()
+    g.add(np.array([[0.25, 0.0, 0.0]]), (0.0, 0.0, 0.0), t=0.0)  # 3 cm inside the front
+    assert g.check(0.3, 0.0, (0.0, 0.0, 0.0), t=0.0) == (0.0, 0.0)
+    assert g.check(-0.15, 0.0, (0.0, 0.0, 0.0), t=0.0) == (-0.15, 0.0)
 
 
 def test_driving_along_a_wall_close_by_goes_on():

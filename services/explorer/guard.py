@@ -10,11 +10,12 @@ reads one; services/sim gives the simulated robot one, `[sim.safety_scan]`).
 
 `Guard.check` follows a command (v, w) for `horizon_s` as a unicycle, in steps, and measures the
 clearance between the footprint (rectangles in the base frame) and the scan's points at each
-step. The command passes when that clearance stays at least `margin_m` or never falls below the
-clearance the robot has now (it drives away, or along, what is close). Otherwise the same arc is
-tried at 1/2, 1/4 and 1/10 of the speed: the robot slows as it nears an obstacle and stops at
-the margin (Nav2's "approach" model). When none passes it stops; the explorer's own checks then
-see no progress and back out or give the goal up.
+step (signed: a point inside the footprint counts by its depth). The command passes when that
+clearance stays at least `margin_m` or never falls below the clearance the robot has now (it
+drives away, or along, what is close). Otherwise the same arc is tried at 1/2, 1/4 and 1/10 of
+the speed: the robot slows as it nears an obstacle and stops at the margin (Nav2's "approach"
+model). When none passes it stops; the explorer's own checks then see no progress and back out
+or give the goal up.
 
 The scanner's low beams start outside the robot's body, so a scan alone is blind to a low
 object beside the robot: each scan's points are kept for `memory_s`, placed in the frame of the
@@ -38,9 +39,10 @@ CELL_M = 0.03  # a scan's points are thinned to one per cell of this side
 
 
 def clearance(points: np.ndarray, poses: np.ndarray, rects: np.ndarray) -> np.ndarray:
-    """Per pose (K, 3: x, y, yaw), the distance from the footprint (rectangles R x 4: centre x,
-    centre y, half x, half y in the base frame) to the nearest of `points` (N, 2); 0 where a
-    point is inside. inf when there are no points."""
+    """Per pose (K, 3: x, y, yaw), the signed distance from the footprint (rectangles R x 4:
+    centre x, centre y, half x, half y in the base frame) to the nearest of `points` (N, 2):
+    negative for a point inside, by its depth (so that going deeper reads as coming closer).
+    inf when there are no points."""
     poses = np.asarray(poses, float).reshape(-1, 3)
     if len(points) == 0:
         return np.full(len(poses), np.inf)
@@ -48,9 +50,11 @@ def clearance(points: np.ndarray, poses: np.ndarray, rects: np.ndarray) -> np.nd
     c, s = np.cos(poses[:, 2])[:, None], np.sin(poses[:, 2])[:, None]
     lx = c * d[..., 0] + s * d[..., 1]
     ly = -s * d[..., 0] + c * d[..., 1]
-    ex = np.maximum(np.abs(lx[..., None] - rects[:, 0]) - rects[:, 2], 0.0)  # K, N, R
-    ey = np.maximum(np.abs(ly[..., None] - rects[:, 1]) - rects[:, 3], 0.0)
-    return np.hypot(ex, ey).min(axis=(1, 2))
+    qx = np.abs(lx[..., None] - rects[:, 0]) - rects[:, 2]  # K, N, R: > 0 outside in x
+    qy = np.abs(ly[..., None] - rects[:, 1]) - rects[:, 3]
+    outside = np.hypot(np.maximum(qx, 0.0), np.maximum(qy, 0.0))
+    inside = np.minimum(np.maximum(qx, qy), 0.0)  # minus the depth, 0 outside
+    return (outside + inside).min(axis=(1, 2))
 
 
 def rollout(x: float, y: float, yaw: float, v: float, w: float, horizon_s: float) -> np.ndarray:
