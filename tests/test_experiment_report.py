@@ -347,3 +347,61 @@ def test_a_data_file_records_no_path_of_this_machine():
     words = ["robustness", "--jobs", "2", "--out", "/work/x", "--python=/v/bin/python", "a b"]
     assert recorded(words) == "robustness --jobs 2 --out <out> --python=<python> 'a b'"
     assert recorded(["fleet", "--out"]) == "fleet --out"
+
+
+def test_the_page_counts_its_verdicts_at_the_top():
+    from smana.lab.experiments.claims import verdict_counts
+
+    table = [{"holm_verdict": v} for v in ("inconclusive", "reproduced", "not met (2 of 10)")]
+    table += [{"holm_verdict": "inconclusive"}, {"holm_verdict": "odd"}]
+    assert verdict_counts(table) == "1 reproduced, 2 inconclusive, 1 not met, 1 odd"
+    doc = report.DOC.read_text().splitlines()
+    top = next(ln for ln in doc if ln.startswith("Generated from docs"))
+    assert " reproduced, " in top and top.endswith(".")
+
+
+def test_data_records_its_rules_file_and_the_report_refuses_it_once_they_change(tmp_path, capsys):
+    """`smana experiment` records the SHA-256 of docs/experiments/rules/<name>.toml in the data it
+    writes; the report refuses data whose rules file changed since, and takes data with none."""
+    from smana.lab.experiments import rules
+
+    rules_dir = tmp_path / "rules"
+    rules_dir.mkdir()
+    (rules_dir / "routes.toml").write_text('experiment = "routes"\n')
+    token = report.COMMAND.set("smana experiment routes")
+    try:
+        old = rules.RULES_DIR
+        rules.RULES_DIR = rules_dir
+        report.write_data(tmp_path / "out", "routes", [{"seed": 3}])
+    finally:
+        rules.RULES_DIR = old
+        report.COMMAND.reset(token)
+    data = report.load_data(tmp_path / "out" / "data")
+    fixed = data["routes"]["meta"]["rules"]
+    assert fixed["file"] == "docs/experiments/rules/routes.toml" and len(fixed["sha256"]) == 64
+    assert rules.problems(data, rules_dir) == []
+    assert "decided under `docs/experiments/rules/routes.toml`" in rules.line(data["routes"])
+    # the committed robustness rules are a TOML file the report can hash
+    assert rules.stamp("robustness")["sha256"] == rules.digest(rules.rules_file("robustness"))
+
+    # the report refuses it: a committed data file given the stamp, its rules then changed
+    committed = json.loads((report.DATA_DIR / "routes.json").read_text())
+    committed["meta"]["rules"] = fixed
+    data_dir = tmp_path / "data"
+    data_dir.mkdir()
+    (data_dir / "routes.json").write_text(json.dumps(committed))
+    doc = tmp_path / "doc.md"
+    doc.write_text("# x\n")
+    args = ["report", "--data", str(data_dir), "--doc", str(doc), "--rules", str(rules_dir)]
+    assert exp.cli(args) == 0
+    (rules_dir / "routes.toml").write_text('experiment = "routes"\nmargin = 2\n')  # changed
+    assert exp.cli(args) == 2
+    err = capsys.readouterr().err
+    assert "routes.json was decided under docs/experiments/rules/routes.toml" in err
+    assert "its rules changed after the runs" in err
+    (rules_dir / "routes.toml").unlink()  # gone
+    assert exp.cli(args) == 2
+    assert "which is gone" in capsys.readouterr().err
+    # data made before rules files records none, and passes
+    assert rules.problems({"noise": {"meta": {}}}, rules_dir) == []
+    assert "records no rules file" in rules.line({"meta": {}})

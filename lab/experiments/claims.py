@@ -141,6 +141,20 @@ def verdict_claims(all_data: dict[str, dict]) -> list[dict]:
     return table
 
 
+ORDER = ("reproduced", "not reproduced", "inconclusive", "untestable", "met", "not met")
+
+
+def verdict_counts(table: list[dict]) -> str:
+    """ "7 reproduced, 5 not reproduced, ...": how many claims got each verdict (the words
+    before the parenthesis of the table's last column), in ORDER, others after."""
+    counts: dict[str, int] = {}
+    for c in table:
+        word = c["holm_verdict"].split(" (")[0]
+        counts[word] = counts.get(word, 0) + 1
+    words = [w for w in ORDER if w in counts] + [w for w in counts if w not in ORDER]
+    return ", ".join(f"{counts[w]} {w}" for w in words)
+
+
 def verdicts_section(all_data: dict[str, dict]) -> str:
     table = verdict_claims(all_data)
     have = {d["experiment"] for d in all_data.values()}
@@ -149,7 +163,7 @@ def verdicts_section(all_data: dict[str, dict]) -> str:
     if table:
         lines += [
             f"Generated from docs/experiments/data/ ({len(table)} claims, Holm over the "
-            f"{sum(c.get('p') is not None for c in table)} tested):",
+            f"{sum(c.get('p') is not None for c in table)} tested): {verdict_counts(table)}.",
             "",
             "| claim | paper | smana, mean [95 % CI] (n) | rule | p (one-sided: the alternative "
             "it tests) | verdict (Holm-adjusted p, the same side) |",

@@ -14,7 +14,8 @@ lab/stats.py, Holm-corrected together), `routes`, `noise` and one `noise_<varian
 data file (its tables per sweep: lab/experiments/noise.py `section`), `ablation`, ... An
 experiment with no committed data says so in its section instead of a number. `--check` changes
 nothing and exits 1 when the doc differs from what the data generates
-(tests/test_experiment_report.py runs it on the committed doc).
+(tests/test_experiment_report.py runs it on the committed doc). Data whose rules file
+(docs/experiments/rules/, lab/experiments/rules.py) changed after its runs is refused.
 
     smana experiment report [--data DIR] [--doc FILE] [--check]
 """
@@ -29,6 +30,7 @@ import sys
 import time
 from pathlib import Path
 
+from . import rules
 from .claims import power_section, routes_intervals, verdicts_section
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -93,6 +95,9 @@ def write_data(
     if COMMAND.get() is not None:
         meta.setdefault("command", COMMAND.get())
         meta.setdefault("date", time.strftime("%Y-%m-%d", time.gmtime()))
+        fixed = rules.stamp(name)  # the rules file the runs were decided under (rules.py)
+        if fixed is not None:
+            meta.setdefault("rules", fixed)
     body = ",\n".join("  " + json.dumps(r, sort_keys=True) for r in compact_rows(rows))
     head = json.dumps({"experiment": name, "meta": meta}, sort_keys=True, default=str)
     path.write_text(head[:-1] + ', "rows": [\n' + body + "\n]}\n")
@@ -356,19 +361,33 @@ def add_parser(sub) -> None:
         description="Rewrite the generated sections of the experiments page from the committed "
         "raw results; --check only compares.",
         epilog="Duration: under a second. Exit status: 0 done (or, with --check, the doc "
-        "matches its data), 1 with --check when a section differs, 2 for a bad doc or data.",
+        "matches its data), 1 with --check when a section differs, 2 for a bad doc or data, "
+        "or data whose rules file changed after its runs (its recorded SHA-256 differs).",
     )
     r.add_argument("--data", type=Path, default=DATA_DIR, help="raw results (default: the repo's)")
     r.add_argument("--doc", type=Path, default=DOC, help="the page (default: the repo's)")
     r.add_argument("--check", action="store_true", help="compare only; exit 1 when it differs")
+    r.add_argument(
+        "--rules",
+        type=Path,
+        default=rules.RULES_DIR,
+        help="the rules files the data's recorded hashes are checked against (default: the "
+        "repo's docs/experiments/rules/)",
+    )
 
 
 def main(args, parser, out: Path | None) -> int:
     try:
         text = args.doc.read_text()
-        new, changed = regenerate(text, load_data(args.data))
+        all_data = load_data(args.data)
+        new, changed = regenerate(text, all_data)
     except (OSError, ValueError) as exc:
         print(f"smana experiment report: {exc}", file=sys.stderr)
+        return 2
+    refused = rules.problems(all_data, args.rules)
+    for why in refused:
+        print(f"smana experiment report: {args.data}/{why}", file=sys.stderr)
+    if refused:
         return 2
     if args.check:
         if changed:

@@ -13,6 +13,7 @@ from pathlib import Path
 from smana.lab import paper_figures, stats
 
 from . import exploration as ex
+from . import rules
 from .robustness import (
     CLEAN,
     FALSE_FREE_MAX,
@@ -230,6 +231,8 @@ def section(data: dict | None) -> str:
         "rules' verdicts are in the table above):",
         "",
         *arm_table(rows),
+        "",
+        rules.line(data),
     ]
     return "\n".join(lines) + "\n"
 
