@@ -103,6 +103,19 @@ def ros_stack(tmp_path, monkeypatch):
         stack.close()
 
 
+LASER_SCAN_MSG = """std_msgs/Header header
+float32 angle_min
+float32 angle_max
+float32 angle_increment
+float32 time_increment
+float32 scan_time
+float32 range_min
+float32 range_max
+float32[] ranges
+float32[] intensities
+"""
+
+
 @pytest.mark.parametrize("labelled", [True, False], ids=["labelled", "unlabelled"])
 def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
     """With labels the garden table's; without, the geometric labeller's (ground, obstacle)."""
@@ -121,6 +134,8 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
         sets += ["--set", "ros2.label_field=none", "--set", "general.class_table=geometric"]
     ground_id, wall_id = (TERRAIN, HEDGE) if labelled else (GROUND, OBSTACLE)
     sets += ["--set", 'mapper.inputs=["scan"]']
+    # the robot's safety scanner, on the lidar's frame (0.5 m up): the guard counts that high
+    sets += ["--set", 'ros2.safety_scan_topic="/scan"', "--set", "explorer.guard.z_max_m=0.6"]
     for name in ("mapper", "navgraph", "planner", "explorer", "ros2"):
         s.service(name, *sets)
     for name in ("mapper", "navgraph", "planner", "explorer", "ros2"):
@@ -138,6 +153,7 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
         "/points": "sensor_msgs/msg/PointCloud2",
         "/odom": "nav_msgs/msg/Odometry",
         "/cmd_vel": "geometry_msgs/msg/Twist",
+        "/scan": "sensor_msgs/msg/LaserScan",
     }
     topics: dict = {}
     assert wait_for(
@@ -181,6 +197,13 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
     )
     odom_pub = ROS2Publisher("/odom", "nav_msgs/msg/Odometry", router_port=port)
     cloud_pub = ROS2Publisher("/points", "sensor_msgs/msg/PointCloud2", router_port=port)
+    # the SDK's registry has no LaserScan: its definition (ROS 2's sensor_msgs), given here
+    scan_pub = ROS2Publisher(
+        "/scan",
+        "sensor_msgs/msg/LaserScan",
+        msg_definition=LASER_SCAN_MSG,
+        router_port=port,
+    )
     msg = get_message_class
     sensor_z = 0.5
     tf = msg("geometry_msgs/msg/TransformStamped")(
@@ -230,6 +253,19 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
         )
         if i % 4 == 2:
             cloud_pub.publish(**cloud_kwargs(msg, pts, labels, t - 0.02, "lidar", labelled))
+        if i % 2 == 1:  # the wall 2.55 m ahead, in the laser's three beams
+            scan_pub.publish(
+                header=header(msg, t - 0.01, "lidar"),
+                angle_min=-0.1,
+                angle_max=0.1,
+                angle_increment=0.1,
+                time_increment=0.0,
+                scan_time=0.1,
+                range_min=0.05,
+                range_max=10.0,
+                ranges=np.array([2.56, 2.55, 2.56], np.float32),
+                intensities=np.zeros(0, np.float32),
+            )
         i += 1
         time.sleep(0.05)
     with lock:
@@ -313,7 +349,12 @@ def test_ros2_robot_maps_plans_and_is_driven(ros_stack, labelled):
 
     for sub in subs:
         sub.close()
-    for p in (tf_pub, odom_pub, cloud_pub):
+    # the LaserScans reached the explorer's guard through robot/safety_scan
+    from smana.common.query import request
+
+    guard = request(s.session, "smana/test/explorer/state", None, 3.0)["guard"]
+    assert guard["scans"] > 0, (guard, s.log("ros2"))
+    for p in (tf_pub, odom_pub, cloud_pub, scan_pub):
         p.close()
     client.close()
     # Every message in is in exactly one counter, and the service stopped cleanly.

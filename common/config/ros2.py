@@ -36,6 +36,9 @@ class Ros2Config(Section, section="ros2"):
     node_name: str = "smana"  # the ROS 2 node (its namespace is /smana/<robot>)
     cloud_topic: str = "/points"  # sensor_msgs/msg/PointCloud2 in
     odom_topic: str = "/odom"  # nav_msgs/msg/Odometry in
+    # sensor_msgs/msg/LaserScan in: the robot's safety scanner, for the explorer's guard
+    # (robot/safety_scan); "" = none (the guard then lets every command out, and counts them)
+    safety_scan_topic: str = ""
     cmd_vel_topic: str = "/cmd_vel"  # geometry_msgs/msg/Twist out
     # geometry_msgs/msg/PoseStamped in (RViz2's "2D Goal Pose"): a NavigateToPose goal
     goal_pose_topic: str = "/goal_pose"
@@ -94,9 +97,11 @@ class Ros2Config(Section, section="ros2"):
             if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]{0,63}", getattr(self, name)):
                 raise ConfigError(f"ros2.{name}: one ROS 2 name token, got {getattr(self, name)!r}")
         topics = ("cloud_topic", "odom_topic", "cmd_vel_topic", "goal_pose_topic", "tf_topic")
-        for name in (*topics, "tf_static_topic"):
+        for name in (*topics, "tf_static_topic", "safety_scan_topic"):
             topic = getattr(self, name)
-            if name == "tf_topic" and topic == "auto":
+            if (name == "tf_topic" and topic == "auto") or (
+                name == "safety_scan_topic" and not topic
+            ):
                 continue
             if not topic.startswith("/") or "//" in topic or topic.endswith("/"):
                 raise ConfigError(f"ros2.{name}: a ROS 2 topic like /points, got {topic!r}")

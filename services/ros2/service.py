@@ -64,7 +64,7 @@ from smana.common.plausibility import APPLY, COVERED, SequenceFollower
 from smana.common.query import QueryError, request
 from smana.common.service import Reject, Reply, Request, Service, run_service
 
-from . import bridge, convert, costmap_types
+from . import bridge, convert, costmap_types, safety_input
 from .actions import Ros2Actions
 from .bridge import (
     CloudInput,
@@ -239,6 +239,8 @@ class Ros2Service(Service):
                 )
             self.pose_pub = self.publisher(keys.pose(r))
             self.subscribe(keys.cmd_vel(r), self.on_cmd_vel, VelocityCommand)
+            if rc.safety_scan_topic:  # the robot's safety scanner, for the explorer's guard
+                safety_input.wire(self, node, r, SENSOR_QOS, self._ros)
         self._declared.append(
             self.session.liveliness().declare_subscriber(keys.alive(r, "*"), self._on_alive)
         )
