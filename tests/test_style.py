@@ -91,7 +91,6 @@ STILL_LONG = {
     "lab/bench/fuzz.py",
     "lab/bench/mapper.py",
     "lab/bench/planner.py",
-    "lab/bench/replay.py",
     "lab/experiments/exploration.py",
     "lab/experiments/fleet.py",
     "lab/experiments/noise.py",
