@@ -93,7 +93,7 @@ def test_the_risk_rows_per_doubt_share(capsys):
     the risk column, their ratios to the rows without risk), each share of the graph's free nodes
     doubtful as asked."""
     from smana.common.navgrid import FLAG_OBSTACLE, FLAG_SAFETY_ZONE
-    from smana.lab.bench.planner import make_graph, make_risk
+    from smana.lab.bench.planner_workloads import make_graph, make_risk
 
     labels, _, flags = make_graph(200, seed=3)
     free = (flags & (FLAG_OBSTACLE | FLAG_SAFETY_ZONE)) == 0
@@ -127,7 +127,7 @@ def test_the_doubtful_share_of_a_real_map(capsys):
     """`--map-doubt`: the wet garden mapped in-process by the TSDF under label noise p = 0.7 has
     doubtful known free nodes (p_label < 255), and the share printed is their count over the
     known free nodes."""
-    from smana.lab.bench.planner import map_doubt
+    from smana.lab.bench.planner_workloads import map_doubt
 
     r = map_doubt(3, 6.0, 160)
     assert r["frames"] > 0 and r["free"] > 0 and 0 < len(r["p_label"]) < r["free"]
