@@ -7,6 +7,7 @@ import json
 import re
 
 from smana.lab.bench import mapper as bench
+from smana.lab.bench import mapper_report as mr
 
 
 def importable(module: str) -> bool:
@@ -52,8 +53,8 @@ def test_quick_bench_reports_all_backends(capsys, tmp_path):
     if importable("pyoctomap"):
         # full-ray octree-max walks the same voxels as the full-ray OctoMap
         for scene in ("garden", "short"):
-            full = bench._find(report["results"], "ours", "octree-max", ray=None, scene=scene)
-            om = bench._find(report["results"], "octomap", scene=scene)
+            full = mr.find(report["results"], "ours", "octree-max", ray=None, scene=scene)
+            om = mr.find(report["results"], "octomap", scene=scene)
             assert om["voxels_observed"] == full["voxels_observed"]
         assert report["checks"]["octomap_agreement"] == 1.0
     for p in report["pairs"]:

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -39,26 +38,28 @@ import numpy as np
 
 from smana.common import progress
 from smana.common.cli import doc_summary
+from smana.lab.bench.mapper_peers import (
+    MAX_RANGE_M,
+    load_average,
+    rss_mb,
+    run_octomap,
+    run_open3d,
+    timings,
+)
+from smana.lab.bench.mapper_report import (
+    TARGETS,
+    carves,
+    pair_table,
+    paired_results,
+    ray_label,
+    results_table,
+    spread,
+    spread_lines,
+    summary,
+)
 
-MAX_RANGE_M = 10.0
 SCENES = ("garden", "short")  # the default ones
 NEAR_M = 5.0  # the `near` scene keeps the returns within this range
-TARGETS = {
-    "octree_max_1m_0.1_ms": 25.0,  # CPU per 131,072-point scan (issue 15)
-    "full_ray_vs_octomap_ratio": 0.20,  # short scene, 0.1 m
-    "tsdf_0.1_ms": 100.0,
-    "tsdf_vs_open3d_cpu_ratio": 0.8,  # short scene, 0.1 m, with labels
-    "tsdf_vs_open3d_wall_ratio": 1.0,
-    "octree_bytes_per_voxel": 32.0,
-    "tsdf_bytes_per_voxel": 32.0,
-    "octomap_agreement": 0.99,
-}
-# pinhole cameras for Open3D: 4 x 90 degrees around the sensor
-O3D_W, O3D_H, O3D_F = 512, 224, 256.0
-
-
-def _rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _load_scans(path: Path):
@@ -109,31 +110,7 @@ def _make_scans(n_scans: int, n_beams: int, n_cols: int, scene: str, path: Path)
     }
 
 
-def load_average() -> float:
-    """The machine's 1-minute load average (a measurement under load says so)."""
-    return os.getloadavg()[0]
-
-
 # -- one measurement each (run in a child process) ---------------------------------------------
-
-
-def _timings(cfg: dict, scans, run_medians, cpu_medians, times, rss0: float) -> dict:
-    """The figures every row shares: medians (of the runs' medians: robust to a busy run), p95,
-    time per point, memory growth."""
-    med = float(np.median(run_medians))
-    n_pts = float(np.mean([s[0].shape[0] for s in scans]))
-    return {
-        **cfg,
-        "scans": len(scans),
-        "points_per_scan": n_pts,
-        "median_ms": med * 1e3,
-        "cpu_median_ms": float(np.median(cpu_medians) * 1e3),
-        "run_medians_ms": [float(x * 1e3) for x in run_medians],
-        "p95_ms": float(np.percentile(times, 95) * 1e3),
-        "us_per_point": med * 1e6 / n_pts,
-        "peak_rss_mb": _rss_mb(),
-        "rss_growth_mb": _rss_mb() - rss0,
-    }
 
 
 def run_ours(cfg: dict, scans) -> dict:
@@ -164,7 +141,7 @@ def run_ours(cfg: dict, scans) -> dict:
     p, lab, conf, org = scans[0]
     warm.integrate(p[:2000], lab[:2000], conf[:2000], org)
     del warm
-    rss0, load0 = _rss_mb(), load_average()
+    rss0, load0 = rss_mb(), load_average()
     run_medians, cpu_medians, times, updates, deltas = [], [], [], [], []
     for _ in range(cfg.get("repeats", 1)):  # a fresh map each run, the same scans
         m = new_map()
@@ -181,7 +158,7 @@ def run_ours(cfg: dict, scans) -> dict:
         times += run
     st = m.stats()
     return {
-        **_timings(cfg, scans, run_medians, cpu_medians, times, rss0),
+        **timings(cfg, scans, run_medians, cpu_medians, times, rss0),
         "voxel_updates_per_s": float(np.sum(updates) / np.sum(times)),
         "delta_median": float(np.median(deltas)),
         "map_mb": st["bytes_used"] / 2**20,
@@ -189,146 +166,6 @@ def run_ours(cfg: dict, scans) -> dict:
         "bytes_reserved_per_allocated_voxel": st["bytes_reserved_per_allocated_voxel"],
         "bytes_per_observed_voxel": st["bytes_per_observed_voxel"],
         "voxels_observed": st["voxels_observed"],
-        "load": [load0, load_average()],
-    }
-
-
-def run_octomap(cfg: dict, scans) -> dict:
-    import pyoctomap
-
-    clouds = [(p.astype(np.float64), o.astype(np.float64)) for p, _, _, o in scans]
-    # pyoctomap copies the numpy cloud into an octomap::Pointcloud point by point in Cython;
-    # timing a max range of ~0 (every ray empty) measures that wrapper cost, subtracted below.
-    probe = pyoctomap.OcTree(cfg["res"])
-    over, over_cpu = [], []
-    for p, o in clouds:
-        t0, c0 = time.perf_counter(), time.process_time()
-        probe.insertPointCloud(p, o, 1e-6, True)
-        over.append(time.perf_counter() - t0)
-        over_cpu.append(time.process_time() - c0)
-    del probe
-    rss0, load0 = _rss_mb(), load_average()
-    run_medians, cpu_medians, times = [], [], []
-    for _ in range(cfg.get("repeats", 1)):
-        tree = pyoctomap.OcTree(cfg["res"])
-        run, cpu = [], []
-        for p, o in clouds:
-            t0, c0 = time.perf_counter(), time.process_time()
-            tree.insertPointCloud(p, o, MAX_RANGE_M, True)  # lazy_eval: OctoMap's fastest path
-            run.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-        run_medians.append(np.median(run))
-        cpu_medians.append(np.median(cpu))
-        times += run
-    t, ov = np.array(times), np.array(over)
-    med = float(np.median(run_medians))
-    leaves = tree.getNumLeafNodes()
-    return {
-        **cfg,
-        "scans": len(scans),
-        "median_ms": med * 1e3,
-        "run_medians_ms": [float(x * 1e3) for x in run_medians],
-        "p95_ms": float(np.percentile(t, 95) * 1e3),
-        "wrapper_ms": float(np.median(ov) * 1e3),
-        "cpp_median_ms": (med - float(np.median(ov))) * 1e3,
-        "cpu_median_ms": float(np.median(cpu_medians) * 1e3),
-        "cpp_cpu_median_ms": float((np.median(cpu_medians) - np.median(over_cpu)) * 1e3),
-        "us_per_point": med * 1e6 / clouds[0][0].shape[0],
-        "peak_rss_mb": _rss_mb(),
-        "rss_growth_mb": _rss_mb() - rss0,
-        "map_mb": tree.memoryUsage() / 2**20,
-        "bytes_per_allocated_voxel": tree.memoryUsage() / max(leaves, 1),
-        "voxels_observed": leaves,
-        "load": [load0, load_average()],
-    }
-
-
-def depth_images(points: np.ndarray, origin: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(depth image, world-to-camera extrinsic) of 4 pinhole cameras at the sensor, looking
-    along +x, +y, -x, -y; each pixel keeps its nearest point (depth along the optical axis)."""
-    rel = points.astype(np.float64) - origin
-    out = []
-    for k in range(4):
-        a = k * np.pi / 2
-        fwd = np.array([np.cos(a), np.sin(a), 0.0])
-        right = np.array([np.sin(a), -np.cos(a), 0.0])
-        down = np.array([0.0, 0.0, -1.0])
-        rot = np.stack([right, down, fwd])  # world -> camera rows
-        cam = rel @ rot.T
-        z = cam[:, 2]
-        front = z > 1e-3
-        u = np.floor(O3D_F * cam[front, 0] / z[front] + O3D_W / 2).astype(np.int64)
-        v = np.floor(O3D_F * cam[front, 1] / z[front] + O3D_H / 2).astype(np.int64)
-        inside = (u >= 0) & (u < O3D_W) & (v >= 0) & (v < O3D_H)
-        depth = np.full(O3D_H * O3D_W, np.inf)
-        np.minimum.at(depth, v[inside] * O3D_W + u[inside], z[front][inside])
-        depth[np.isinf(depth)] = 0.0  # Open3D: 0 is no return
-        ext = np.eye(4)
-        ext[:3, :3] = rot
-        ext[:3, 3] = -rot @ origin
-        out.append((depth.reshape(O3D_H, O3D_W).astype(np.float32), ext))
-    return out
-
-
-def run_open3d(cfg: dict, scans) -> dict:
-    """Open3D's VoxelBlockGrid TSDF (tsdf and weight, no labels) on the scans' depth images."""
-    import open3d as o3d
-    import open3d.core as o3c
-
-    from smana.services.mapper.backends.tsdf import TsdfConfig
-
-    trunc = TsdfConfig().truncation_voxels
-    max_range = cfg.get("max_range_m", MAX_RANGE_M)
-    cpu = o3c.Device("CPU:0")
-    intr = o3c.Tensor(
-        np.array([[O3D_F, 0, O3D_W / 2], [0, O3D_F, O3D_H / 2], [0, 0, 1]]), o3c.float64
-    )
-    frames = [
-        [
-            (o3d.t.geometry.Image(o3c.Tensor(d)), o3c.Tensor(e, o3c.float64))
-            for d, e in depth_images(p, o)
-        ]
-        for p, _, _, o in scans
-    ]
-
-    def grid():
-        return o3d.t.geometry.VoxelBlockGrid(
-            attr_names=("tsdf", "weight"),
-            attr_dtypes=(o3c.float32, o3c.float32),
-            attr_channels=((1), (1)),
-            voxel_size=cfg["res"],
-            block_resolution=8,
-            block_count=20000,
-            device=cpu,
-        )
-
-    def integrate(vbg, frame):
-        for depth, ext in frame:
-            blocks = vbg.compute_unique_block_coordinates(
-                depth, intr, ext, 1.0, max_range, trunc_voxel_multiplier=trunc
-            )
-            vbg.integrate(blocks, depth, intr, ext, 1.0, max_range, trunc_voxel_multiplier=trunc)
-
-    integrate(grid(), frames[0])  # warm-up (first-call costs) outside the timed loop
-    rss0, load0 = _rss_mb(), load_average()
-    run_medians, cpu_medians, times = [], [], []
-    for _ in range(cfg.get("repeats", 1)):
-        vbg = grid()
-        run, cpu_t = [], []
-        for frame in frames:
-            t0, c0 = time.perf_counter(), time.process_time()
-            integrate(vbg, frame)
-            run.append(time.perf_counter() - t0)
-            cpu_t.append(time.process_time() - c0)
-        run_medians.append(np.median(run))
-        cpu_medians.append(np.median(cpu_t))
-        times += run
-    n_blocks = int(vbg.hashmap().size())
-    return {
-        **_timings(cfg, scans, run_medians, cpu_medians, times, rss0),
-        "map_mb": n_blocks * 512 * 8 / 2**20,
-        "bytes_per_allocated_voxel": 8.0,  # two float32 attributes (hash map not counted)
-        "voxels_observed": n_blocks * 512,  # allocated: Open3D does not tell observed ones
         "load": [load0, load_average()],
     }
 
@@ -405,7 +242,7 @@ def run_sequence(cfg: dict, scans) -> dict:
     d = m.integrate(p[:2000], lab[:2000], conf[:2000], org)
     g.integrate(d.centres, d.labels, d.occupied, map_resolution_m=res)
     del m, g
-    rss0 = _rss_mb()
+    rss0 = rss_mb()
     n, reps = len(scans), cfg.get("repeats", 1)
     t = np.zeros((4, reps, n))  # map wall, map CPU, graph wall, graph CPU (s)
     for r in range(reps):
@@ -427,8 +264,8 @@ def run_sequence(cfg: dict, scans) -> dict:
         "graph_cpu_ms": med[3].tolist(),
         # a repeat's mean CPU time a scan, map + graph: the spread the machine adds
         "repeat_scan_cpu_ms": ((t[1] + t[3]).mean(axis=1) * 1e3).tolist(),
-        "peak_rss_mb": _rss_mb(),
-        "rss_growth_mb": _rss_mb() - rss0,
+        "peak_rss_mb": rss_mb(),
+        "rss_growth_mb": rss_mb() - rss0,
         "map_mb": m.stats()["bytes_used"] / 2**20,
         "graph_mb": g.nbytes / 2**20,
         "voxels_observed": m.stats()["voxels_observed"],
@@ -467,198 +304,6 @@ def run_config(cfg: dict, scans_path: Path, in_process: bool) -> dict:
     if out.returncode != 0:
         return {**cfg, "error": out.stderr.strip().splitlines()[-1:] or ["failed"]}
     return json.loads(out.stdout.strip().splitlines()[-1])
-
-
-# -- report ----------------------------------------------------------------------------------
-
-
-def _carves(backend: str) -> bool:
-    """Whether `ray_length_m` matters to a back-end (the octrees carve free space before a hit)."""
-    from smana.services.mapper.backends import backend_class
-
-    return backend_class(backend).uses_ray_length
-
-
-def _ray(r: dict) -> str:
-    if r["kind"] == "open3d" or (r["kind"] == "ours" and not _carves(r["backend"])):
-        return "band"
-    return "full" if r.get("ray_m") is None else f"{r['ray_m']:g} m"
-
-
-NAMES = {"octomap": "OctoMap C++", "open3d": "Open3D VBG"}
-
-
-def _table(results: list[dict]) -> str:
-    head = (
-        f"{'back-end':<14}{'scene':>7}{'res':>5}{'ray':>6}{'median ms':>11}{'cpu ms':>8}"
-        f"{'p95 ms':>9}{'us/pt':>8}{'Mupd/s':>8}{'RSS MB':>8}{'map MB':>8}{'B/alloc':>9}"
-        f"{'B/obs':>8}{'voxels':>10}{'load':>11}"
-    )
-    lines = [head, "-" * len(head)]
-    for r in results:
-        if r["kind"] == "agreement" or "error" in r:
-            continue
-        name = NAMES.get(r["kind"], r["backend"])
-        upd = r.get("voxel_updates_per_s", float("nan")) / 1e6
-        load = "{:.1f}-{:.1f}".format(*r["load"])
-        lines.append(
-            f"{name:<14}{r['scene']:>7}{r['res']:>5g}{_ray(r):>6}{r['median_ms']:>11.1f}"
-            f"{r['cpu_median_ms']:>8.1f}{r['p95_ms']:>9.1f}"
-            f"{r['us_per_point']:>8.3f}{upd:>8.1f}{r['peak_rss_mb']:>8.0f}{r['map_mb']:>8.1f}"
-            f"{r['bytes_per_allocated_voxel']:>9.1f}{r.get('bytes_per_observed_voxel', 0):>8.1f}"
-            f"{r['voxels_observed']:>10}{load:>11}"
-        )
-    return "\n".join(lines)
-
-
-def _find(results, kind, backend=None, res=None, ray="any", scene=None):
-    for r in results:
-        if r["kind"] != kind or "error" in r or (res is not None and r["res"] != res):
-            continue
-        if backend is not None and r.get("backend") != backend:
-            continue
-        if ray != "any" and r.get("ray_m") != ray:
-            continue
-        if scene is not None and r.get("scene") != scene:
-            continue
-        return r
-    return None
-
-
-def _pairs(results: list[dict]) -> list[dict]:
-    """smana beside its peer: both sides' wall and CPU medians, the ratios, the loads."""
-    out = []
-    keys = sorted({(r["scene"], r["res"]) for r in results}, key=lambda k: (k[1], k[0]))
-    for scene, res in keys:
-        for backend, ray, kind, cpp in (
-            ("octree-max", None, "octomap", True),
-            ("tsdf", None, "open3d", False),
-        ):
-            ours = _find(results, "ours", backend, res, ray, scene)
-            peer = _find(results, kind, res=res, scene=scene)
-            if not (ours and peer):
-                continue
-            # OctoMap's side without pyoctomap's copy of the cloud into C++ (run_octomap)
-            p_wall = peer["cpp_median_ms"] if cpp else peer["median_ms"]
-            p_cpu = peer["cpp_cpu_median_ms"] if cpp else peer["cpu_median_ms"]
-            out.append(
-                {
-                    "pair": f"{backend} {_ray(ours)} / {NAMES[kind]}",
-                    "scene": scene,
-                    "res": res,
-                    "ours_ms": ours["median_ms"],
-                    "ours_cpu_ms": ours["cpu_median_ms"],
-                    "peer_ms": p_wall,
-                    "peer_cpu_ms": p_cpu,
-                    "ratio": ours["median_ms"] / p_wall,
-                    "ratio_cpu": ours["cpu_median_ms"] / p_cpu,
-                    "load": [*ours["load"], *peer["load"]],
-                }
-            )
-    return out
-
-
-def _pair_table(pairs: list[dict]) -> str:
-    head = (
-        f"{'smana / peer':<32}{'scene':>7}{'res':>5}{'smana ms':>10}{'cpu':>7}{'peer ms':>9}"
-        f"{'cpu':>7}{'wall x':>8}{'cpu x':>7}{'load':>11}"
-    )
-    lines = [head, "-" * len(head)]
-    for p in pairs:
-        load = f"{min(p['load']):.1f}-{max(p['load']):.1f}"
-        lines.append(
-            f"{p['pair']:<32}{p['scene']:>7}{p['res']:>5g}{p['ours_ms']:>10.1f}"
-            f"{p['ours_cpu_ms']:>7.1f}{p['peer_ms']:>9.1f}{p['peer_cpu_ms']:>7.1f}"
-            f"{p['ratio']:>8.3f}{p['ratio_cpu']:>7.3f}{load:>11}"
-        )
-    return "\n".join(lines)
-
-
-def spread(pairs: list[dict]) -> list[dict]:
-    """Per comparison (`pair`): the smana / peer ratio's median and range, wall and CPU, over
-    its workload variants (scenes: ray lengths; resolutions: voxels per ray), and the load."""
-    groups: dict[str, list[dict]] = {}
-    for p in pairs:
-        groups.setdefault(p["pair"], []).append(p)
-    out = []
-    for name, ps in groups.items():
-        wall = [p["ratio"] for p in ps]
-        cpu = [p["ratio_cpu"] for p in ps]
-        loads = [x for p in ps for x in p["load"]]
-        out.append(
-            {
-                "pair": name,
-                "variants": [f"{p['scene']} {p['res']:g} m" for p in ps],
-                "wall": [float(np.median(wall)), min(wall), max(wall)],
-                "cpu": [float(np.median(cpu)), min(cpu), max(cpu)],
-                "load": [min(loads), max(loads)],
-            }
-        )
-    return out
-
-
-def _spread_lines(groups: list[dict]) -> list[str]:
-    lines = ["spread over the variants: smana / peer, median [min, max]"]
-    for g in groups:
-        w, c, ld = g["wall"], g["cpu"], g["load"]
-        lines.append(
-            f"  {g['pair']:<32} {len(g['variants'])} variants ({', '.join(g['variants'])}): "
-            f"wall {w[0]:.3f} [{w[1]:.3f}, {w[2]:.3f}], CPU {c[0]:.3f} [{c[1]:.3f}, {c[2]:.3f}], "
-            f"load {ld[0]:.1f}-{ld[1]:.1f}"
-        )
-    return lines
-
-
-def _summary(results: list[dict], pairs: list[dict]) -> tuple[list[str], dict]:
-    lines, checks = [], {}
-    for r in results:
-        if "error" in r:
-            lines.append(f"ERROR {r['kind']} {r.get('backend', '')} {r['res']}: {r['error']}")
-    for p in pairs:
-        if p["res"] != 0.1 or p["scene"] != "short":
-            continue
-        if p["pair"].startswith("octree-max"):
-            checks["full_ray_vs_octomap_ratio"] = p["ratio"]
-            checks["full_ray_vs_octomap_ratio_cpu"] = p["ratio_cpu"]
-        else:
-            checks["tsdf_vs_open3d_wall_ratio"] = p["ratio"]
-            checks["tsdf_vs_open3d_cpu_ratio"] = p["ratio_cpu"]
-    for ag in results:
-        if ag["kind"] != "agreement" or "error" in ag:
-            continue
-        lines.append(
-            f"agreement {ag['scene']} {ag['res']:g} m ({ag['scans']} scans, full rays): "
-            f"{ag['agreement']:.4%} of {ag['voxels_union']} voxels; only ours {ag['only_ours']}, "
-            f"only OctoMap {ag['only_octomap']}, occupied/free differs {ag['state_differs']}, "
-            f"identical log-odds {ag['logodds_equal']}"
-        )
-        checks["octomap_agreement"] = min(checks.get("octomap_agreement", 1.0), ag["agreement"])
-    r = _find(results, "ours", "octree-max", 0.1, 1.0, "garden")
-    if r:
-        checks["octree_max_1m_0.1_ms"] = r["median_ms"]
-        checks["octree_max_1m_0.1_ms_cpu"] = r["cpu_median_ms"]
-    r = _find(results, "ours", "tsdf", 0.1, scene="garden")
-    if r:
-        checks["tsdf_0.1_ms"] = r["median_ms"]
-        checks["tsdf_0.1_ms_cpu"] = r["cpu_median_ms"]
-    ours = [r for r in results if r["kind"] == "ours" and "error" not in r]
-    octs = [r["bytes_per_allocated_voxel"] for r in ours if _carves(r["backend"])]
-    if octs:
-        checks["octree_bytes_per_voxel"] = max(octs)
-    tsdfs = [r["bytes_per_allocated_voxel"] for r in ours if r["backend"] == "tsdf"]
-    if tsdfs:
-        checks["tsdf_bytes_per_voxel"] = max(tsdfs)
-    for name, got in checks.items():
-        want = TARGETS[name.removesuffix("_cpu")]
-        ok = got >= want if name == "octomap_agreement" else got <= want
-        cmp = ">=" if name == "octomap_agreement" else "<="
-        lines.append(f"target {name}: {got:.4g} ({cmp} {want:g}) {'PASS' if ok else 'MISS'}")
-    lines.append(
-        "Disagreement with OctoMap can only come from float rounding where a ray grazes a voxel "
-        "corner or face (both walk the same DDA in the same float/double mix), or from points "
-        "outside OctoMap's +-32768-voxel key range, which both skip."
-    )
-    return lines, checks
 
 
 def have_module(module: str) -> bool:
@@ -741,7 +386,7 @@ def cli(argv: list[str] | None = None) -> int:
             common = {"scene": scene, "res": res, "repeats": args.repeats}
             for backend in args.backends:
                 # a back-end without ray carving (the TSDF's band) runs once
-                for ray in [1.0, None] if _carves(backend) else [None]:
+                for ray in [1.0, None] if carves(backend) else [None]:
                     configs.append({"kind": "ours", "backend": backend, "ray_m": ray, **common})
             if peers["octomap"] and "octree-max" in args.backends:
                 configs.append({"kind": "octomap", "backend": "octomap", "ray_m": None, **common})
@@ -769,13 +414,13 @@ def cli(argv: list[str] | None = None) -> int:
                 if not args.json:
                     progress.say(
                         f"running {cfg['kind']} {cfg['backend']} {cfg['scene']} {cfg['res']:g} m "
-                        f"{_ray(cfg)} ...",
+                        f"{ray_label(cfg)} ...",
                         file=sys.stderr,
                     )
                 results.append(run_config(cfg, paths[cfg["scene"]], args.in_process))
                 bar.update()
-    pairs = _pairs(results)
-    lines, checks = _summary(results, pairs)
+    pairs = paired_results(results)
+    lines, checks = summary(results, pairs)
     failed = any("error" in r for r in results) or checks.get("octomap_agreement", 1.0) < 0.99
     report = {
         "scans": n,
@@ -805,11 +450,11 @@ def cli(argv: list[str] | None = None) -> int:
                 f"scene {scene}: {st['points_per_scan']:.0f} points per scan, mean range "
                 f"{st['mean_range_m']:.1f} m, {st['beyond_range']:.0%} beyond {MAX_RANGE_M:g} m"
             )
-        print(_table(results))
+        print(results_table(results))
         print()
-        print(_pair_table(pairs))
+        print(pair_table(pairs))
         print("(wall x, cpu x: smana / peer; load: 1-minute load average around both runs)")
-        print("\n".join(_spread_lines(report["spread"])))
+        print("\n".join(spread_lines(report["spread"])))
         print("\n".join(lines))
         print(f"wall time {report['wall_s']:.0f} s")
     if failed:
