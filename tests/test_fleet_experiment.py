@@ -11,6 +11,7 @@ import pytest
 
 from smana.lab import stats
 from smana.lab.experiments import fleet as fx
+from smana.lab.experiments import fleet_report as fr
 
 W12, W22 = fx.DEFAULT_GARDEN, fx.LARGE_GARDEN
 
@@ -54,7 +55,7 @@ def test_time_verdicts_are_the_sign_test_paired_per_seed():
     # six seeds: the fleet of 2 at half the lone robot's time in each (under 0.6: met, p = 1/64),
     # the fleet of 3 at 0.6 of it (over 0.45: not met)
     rows = _rows({1: [100] * 6, 2: [50] * 6, 3: [60] * 6})
-    table = fx.verdicts(rows)
+    table = fr.verdicts(rows)
     two = _verdict(table, "garden22: time to 95 % coverage with 2")
     three = _verdict(table, "garden22: time to 95 % coverage with 3")
     assert two["verdict"] == fx.MET and two["p"] == pytest.approx(1 / 64)
@@ -68,7 +69,7 @@ def test_time_verdicts_are_the_sign_test_paired_per_seed():
     assert two["need"]["how"] == "exact sign test" and two["need"]["seeds"] == 6
     # three seeds of the same: never decided (1/8 > 0.025), whatever the spread
     rows = _rows({1: [100, 100, 100], 2: [50, 50, 50]})
-    assert _verdict(fx.verdicts(rows), "garden22: time to 95 % coverage with 2")["verdict"] == (
+    assert _verdict(fr.verdicts(rows), "garden22: time to 95 % coverage with 2")["verdict"] == (
         stats.INCONCLUSIVE
     )
 
@@ -78,11 +79,11 @@ def test_a_run_that_never_reached_95_is_censored_at_the_budget_and_its_order_kep
     # 100 s is under it: known); seed 5's fleet never did (over 0.6 x 300: known); seed 6
     # neither (unknown: left out of the test, named)
     rows = _rows({1: [100, None, 300, None], 2: [50, 100, None, None]})
-    seeds, (a, ac), (b, bc) = fx.time_pairs(rows, W22.name, 2, 0.6, {W22.name: 700.0})
+    seeds, (a, ac), (b, bc) = fr.time_pairs(rows, W22.name, 2, 0.6, {W22.name: 700.0})
     assert seeds == [3, 4, 5, 6]
     assert (a, ac) == ([50.0, 100.0, 700.0, 700.0], [False, False, True, True])
     assert b == pytest.approx([60.0, 420.0, 180.0, 420.0]) and bc == [False, True, False, True]
-    d, text = fx.decide_time(rows, W22.name, 2, 0.6, {W22.name: 700.0})
+    d, text = fr.decide_time(rows, W22.name, 2, 0.6, {W22.name: 700.0})
     assert text.startswith(
         "under 0.6 x one robot's time in 2 of 4 seeds, over in 1, order unknown in 1 (seed 6) "
         "(2 known through a run that did not reach 95 % within the 700 s budget)"
@@ -92,7 +93,7 @@ def test_a_run_that_never_reached_95_is_censored_at_the_budget_and_its_order_kep
     assert "within 700 s: 388 s vs 450 s alone" in text
     # without a budget (older data, none given): censored at the latest time any of the world's
     # runs was followed to (its end, or here the lone robot's 300 s)
-    assert fx.time_pairs(rows, W22.name, 2, 0.6)[1][0][2] == 300.0
+    assert fr.time_pairs(rows, W22.name, 2, 0.6)[1][0][2] == 300.0
 
 
 def test_a_failed_run_counts_as_not_reached_and_is_never_dropped():
@@ -101,15 +102,15 @@ def test_a_failed_run_counts_as_not_reached_and_is_never_dropped():
     rows = _rows({1: [100, 100, 100], 2: [50, 50, 40]})
     rows[-1].update(ok=False, exit_code=1)
     assert fx.failed(rows[-1]) and fx.measured(rows[-1])
-    d, text = fx.decide_time(rows, W22.name, 2, 0.6)
+    d, text = fr.decide_time(rows, W22.name, 2, 0.6)
     assert "over in 1" in text and "FAILED runs counted as not reached: seed 5 (2 robots)" in text
-    assert fx.paired_difference(rows, W22.name, 2, "map_error_m").n == 3
+    assert fr.paired_difference(rows, W22.name, 2, "map_error_m").n == 3
     # a newer row says so itself; a run that left no figures is missing, and named
     rows[-1].update(run_failed=False, ok=True)
     assert not fx.failed(rows[-1])
     gone = dict(rows[-1], ok=False, exit_code=-9, coverage=None, run_failed=False)
     assert not fx.measured(gone)
-    s = {d["n_robots"]: d for d in fx.summarise_fleet([*rows[:-1], gone])}
+    s = {d["n_robots"]: d for d in fr.summarise_fleet([*rows[:-1], gone])}
     assert (s[2]["runs"], s[2]["failed"], s[2]["run_failed"]) == (3, 1, 0)
 
 
@@ -119,7 +120,7 @@ def test_merged_map_not_worse_and_contacts():
         _row(W12, 2, s, 30, err=0.030 + 0.001 * s + d, ratio=0.9)
         for s, d in ((3, 0.001), (4, -0.001), (5, 0.0))
     ]
-    table = fx.verdicts(rows)
+    table = fr.verdicts(rows)
     assert _verdict(table, "garden12: merged map's reconstruction")["verdict"] == fx.MET
     # the same ratio in every seed: a difference of exactly 0
     assert _verdict(table, "garden12: merged map's classification")["verdict"] == fx.MET
@@ -132,32 +133,32 @@ def test_merged_map_not_worse_and_contacts():
         )
         for r in rows
     ]
-    table = fx.verdicts(worse)
+    table = fr.verdicts(worse)
     v = _verdict(table, "garden12: merged map's reconstruction")
     assert v["verdict"] == fx.NOT_MET and v["p_tests"] == "worse by more than the margin"
     assert _verdict(table, "robot-robot contacts")["verdict"] == fx.MET
     rows[-1]["robot_contacts"] = 2
-    v = _verdict(fx.verdicts(rows), "robot-robot contacts")
+    v = _verdict(fr.verdicts(rows), "robot-robot contacts")
     assert v["verdict"] == fx.NOT_MET and v["smana"].startswith("2 in 6 runs")
     rows[-1]["robot_contacts"] = None
-    assert _verdict(fx.verdicts(rows), "robot-robot contacts")["verdict"] == stats.INCONCLUSIVE
+    assert _verdict(fr.verdicts(rows), "robot-robot contacts")["verdict"] == stats.INCONCLUSIVE
 
 
 def test_not_worse_by_hand():
     iv = stats.Interval
     # non-inferiority: the interval must clear the margin; holding 0 is not enough
-    assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.005) == stats.INCONCLUSIVE
-    assert fx.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.02) == fx.MET
-    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), True, 0.0) == fx.MET
-    assert fx.not_worse(iv(0.02, 0.01, 0.03, 3), True, 0.005) == fx.NOT_MET
-    assert fx.not_worse(iv(-0.02, -0.03, -0.01, 3), False, 0.005) == fx.NOT_MET
-    assert fx.not_worse(iv(-0.002, -0.004, 0.0, 3), False, 0.005) == fx.MET
+    assert fr.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.005) == stats.INCONCLUSIVE
+    assert fr.not_worse(iv(0.0, -0.01, 0.01, 3), True, 0.02) == fx.MET
+    assert fr.not_worse(iv(-0.02, -0.03, -0.01, 3), True, 0.0) == fx.MET
+    assert fr.not_worse(iv(0.02, 0.01, 0.03, 3), True, 0.005) == fx.NOT_MET
+    assert fr.not_worse(iv(-0.02, -0.03, -0.01, 3), False, 0.005) == fx.NOT_MET
+    assert fr.not_worse(iv(-0.002, -0.004, 0.0, 3), False, 0.005) == fx.MET
 
 
 def test_summary_per_world_and_fleet_size():
     rows = _rows({1: [100, 200, None], 2: [50, 100, 150]})
     rows.append(_row(W22, 2, 6, 10, ok=False))  # exit 1 with its figures: FAILED, kept
-    s = {(d["world"], d["n_robots"]): d for d in fx.summarise_fleet(rows, {W22.name: 700.0})}
+    s = {(d["world"], d["n_robots"]): d for d in fr.summarise_fleet(rows, {W22.name: 700.0})}
     one, two = s[("garden22", 1)], s[("garden22", 2)]
     assert (one["runs"], one["failed"], one["reached_95"]) == (3, 0, 2)
     # Kaplan-Meier: 100, 200 and one censored at the 700 s budget; median 200, restricted mean
@@ -168,8 +169,8 @@ def test_summary_per_world_and_fleet_size():
     assert two["km_time_to_95_s"]["rmst"]["mean"] == pytest.approx((50 + 100 + 150 + 700) / 4)
     assert "two-sided; the data lean to 2 robots sooner" in two["logrank_text"]
     assert two["overlap"]["mean"] == pytest.approx(0.3) and one["overlap"]["n"] == 0
-    table = fx.summary_table(list(s.values()))
-    assert table[0] == fx.SUMMARY_HEAD and len(table[1].split("|")) == len(table[0].split("|"))
+    table = fr.summary_table(list(s.values()))
+    assert table[0] == fr.SUMMARY_HEAD and len(table[1].split("|")) == len(table[0].split("|"))
     assert "| garden22 | 2 | 4 (1; 0) | 3 of 4 |" in table[3]
 
 
@@ -214,7 +215,7 @@ def test_a_run_whose_only_warning_is_a_contact_is_data_and_its_contacts_count():
     assert not fx.make_row(7, W22, 3, -9, contact, 10.0, 20.0)["ok"]  # killed: not a finished run
     assert not fx.make_row(7, W22, 3, 1, {"fleet": fleet}, 10.0, 20.0)["ok"]  # 1, but no reason
     rows = [_row(W12, n, s, 50) for n in (1, 2) for s in (3, 4, 5)] + [r]
-    v = _verdict(fx.verdicts(rows), "robot-robot contacts")
+    v = _verdict(fr.verdicts(rows), "robot-robot contacts")
     assert v["verdict"] == fx.NOT_MET and v["smana"].startswith("1 in 7 runs"), v
 
 
@@ -223,7 +224,7 @@ def test_outputs_say_quick_on_top_and_draw_one_curve_per_fleet_size(tmp_path):
     rows = [_row(W12, n, 3 + k, 50 / n) for n in (1, 2) for k in range(2)]
     rows.append(_row(W12, 2, 5, None, ok=False))
     rows[-1]["warnings"] = ["r2: the robot did not move (0.00 m travelled)"]  # a newer row's field
-    figures = fx.write_fleet_outputs(rows, s, tmp_path)
+    figures = fr.write_fleet_outputs(rows, s, tmp_path)
     with open(tmp_path / "fleet.csv", newline="") as f:
         table = list(csv.DictReader(f))
     assert len(table) == len(rows) and table[0]["warnings"] == "" and table[-1]["warnings"]
@@ -279,7 +280,7 @@ def test_a_rerun_into_the_same_out_keeps_finished_runs_and_runs_the_rest(tmp_pat
         return 0 if (seed, n) != (4, 2) else 1, {"fleet": {"coverage": 0.9}}, 1.0, 2.0
 
     monkeypatch.setattr(fx, "fleet_run", fake_run)
-    monkeypatch.setattr(fx, "write_fleet_outputs", lambda rows, s_, out: [])
+    monkeypatch.setattr(fr, "write_fleet_outputs", lambda rows, s_, out: [])
     for seed, n in [(3, 1), (3, 2), (4, 1), (4, 2)]:
         (tmp_path / fx.run_name(seed, "garden12", n)).mkdir(parents=True)
     first = fx.run_fleet(s, tmp_path, log=lambda *a: None)
@@ -309,12 +310,12 @@ def test_the_committed_data_decides_as_the_run_did_censored_seeds_included(tmp_p
     `smana experiment report` computes from it are the run's own."""
     rows = _rows({1: [300, None, 250, 280], 2: [150, 140, None, 150], 3: [100, 90, 80, None]})
     s = fx.FleetExperimentConfig(seeds=(3, 4, 5, 6), worlds=(W22,))
-    fx.write_fleet_outputs(rows, s, tmp_path)
+    fr.write_fleet_outputs(rows, s, tmp_path)
     ran = json.loads((tmp_path / "fleet.json").read_text())["verdicts"]
     compact = json.loads((tmp_path / "data" / "fleet.json").read_text())["rows"]
     assert all("curve" not in r and r["end_time_s"] == 100.0 for r in compact)
     meta = json.loads((tmp_path / "data" / "fleet.json").read_text())["meta"]
-    again = fx.verdicts(compact, budgets=fx.budgets_of(meta))
+    again = fr.verdicts(compact, budgets=fr.budgets_of(meta))
     assert [v["smana"] for v in again] == [v["smana"] for v in ran]
     assert (
         "known through a run that did not reach 95 % within the 700 s budget" in again[0]["smana"]

@@ -90,7 +90,6 @@ MAX_LINES = 600
 STILL_LONG = {
     "lab/bench/fuzz.py",
     "lab/experiments/exploration.py",
-    "lab/experiments/fleet.py",
     "lab/experiments/noise.py",
     "lab/fuzz_messages.py",
 }

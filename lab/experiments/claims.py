@@ -58,7 +58,7 @@ def _exploration_claims(key: str, data: dict, all_data: dict[str, dict]) -> list
 
 
 def _fleet_claims(key: str, data: dict) -> list[dict]:
-    from .fleet import budgets_of, verdicts
+    from .fleet_report import budgets_of, verdicts
 
     rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
     budgets = budgets_of(data.get("meta") or {})

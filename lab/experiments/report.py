@@ -227,7 +227,8 @@ def fleet_section(all_data: dict[str, dict]) -> str:
     the log-rank test against one robot, and intervals over seeds of coverage, overlap and the
     merged map's scores."""
     from .exploration import TO_95_NOTE
-    from .fleet import budgets_of, measured, summarise_fleet, summary_table
+    from .fleet import measured
+    from .fleet_report import budgets_of, summarise_fleet, summary_table
 
     keys = [k for k, d in all_data.items() if d["experiment"] == "fleet"]
     if not keys:
