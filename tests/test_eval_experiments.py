@@ -12,6 +12,7 @@ import pytest
 from smana.lab import evaluation as ev
 from smana.lab import experiments as exp
 from smana.lab import stats
+from smana.lab.experiments import exploration_report as exr
 
 
 def test_fixed_trajectory_is_long_smooth_and_clear_of_obstacles():
@@ -254,7 +255,7 @@ def test_mean_curve_holds_the_last_value_and_gives_a_band():
     from smana.lab.experiments import exploration as ex
 
     rows = [_run(s, ex.nbv(2.0), dist=d) for s, d in ((3, 20.0), (4, 40.0))]
-    grid, mean, lo, hi = ex.mean_curve(rows, "distance_m", n_points=5)
+    grid, mean, lo, hi = exr.mean_curve(rows, "distance_m", n_points=5)
     assert grid.tolist() == [0.0, 10.0, 20.0, 30.0, 40.0]
     ref = [
         np.mean([np.interp(x, r["curve"]["distance_m"], r["curve"]["coverage"]) for r in rows])
@@ -279,7 +280,7 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
         for f, share in ((1.0, 0.60), (2.0, 0.70), (4.0, 0.88)):
             rows.append(_run(seed, ex.nbv(f), share + 0.01 * (seed - 4), dist=30.0 + seed))
         rows.append(_run(seed, ex.BASELINE, 0.65, dist=60.0 + seed))
-    table = ex.verdicts(rows)
+    table = exr.verdicts(rows)
     assert _verdict(table, "terrain share at grass x1") == stats.REPRODUCED
     assert _verdict(table, "terrain share rises") == stats.REPRODUCED
     assert _verdict(table, "NBV reaches") == stats.REPRODUCED
@@ -287,9 +288,9 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
     worse = [
         {**r, "distance_to_95_m": 200.0 + r["seed"]} if r["strategy"] == "nbv" else r for r in rows
     ]
-    assert _verdict(ex.verdicts(worse), "NBV reaches") == stats.NOT_REPRODUCED
+    assert _verdict(exr.verdicts(worse), "NBV reaches") == stats.NOT_REPRODUCED
     far = [{**r, "terrain_share": 0.2 + 0.01 * r["seed"]} for r in rows]
-    assert _verdict(ex.verdicts(far), "terrain share at grass x4") == stats.NOT_REPRODUCED
+    assert _verdict(exr.verdicts(far), "terrain share at grass x4") == stats.NOT_REPRODUCED
     # baseline runs that never reached 95 % are kept: not reached within the budget, censored
     # beyond every distance: still decided, not dropped
     few = [
@@ -298,18 +299,18 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
         else r
         for r in rows
     ]
-    v = next(v for v in ex.verdicts(few) if v["claim"].startswith("NBV reaches"))
+    v = next(v for v in exr.verdicts(few) if v["claim"].startswith("NBV reaches"))
     assert v["verdict"] == stats.REPRODUCED and v["p_tests"] == "NBV sooner"
     assert "log-rank p = " in v["smana"] and "two-sided; the data lean to NBV sooner" in v["smana"]
     assert "NBV first in 3 of 3 seeds whose order is known" in v["smana"]
     # runs that stopped early (after 5 m) without reaching it never count as reaching it later:
     # censored beyond every distance, not at the 5 m they drove
     early = [{**r, "distance_m": 5.0} if r["distance_to_95_m"] is None else r for r in few]
-    assert _verdict(ex.verdicts(early), "NBV reaches") == stats.REPRODUCED
+    assert _verdict(exr.verdicts(early), "NBV reaches") == stats.REPRODUCED
     # a robot that did not move counts as not reached even if its camera saw 95 % from its start
     still = [{**r, "moved": False} if r["strategy"] == "nbv" else r for r in rows]
     assert ex.time_to_event(still[0], "distance_to_95_m", math.inf) == (math.inf, True)
-    assert _verdict(ex.verdicts(still), "NBV reaches") == stats.NOT_REPRODUCED
+    assert _verdict(exr.verdicts(still), "NBV reaches") == stats.NOT_REPRODUCED
     # the rise is tested for its size: +28 points with a 10-point tolerance, not only > 0
     small = [
         {**r, "terrain_share": r["terrain_share"] - 0.25}
@@ -317,14 +318,14 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
         else r
         for r in rows
     ]
-    assert _verdict(ex.verdicts(small), "terrain share rises") == stats.NOT_REPRODUCED
+    assert _verdict(exr.verdicts(small), "terrain share rises") == stats.NOT_REPRODUCED
     # the world's own routes rule the paper's x1 share out: said so, with the evidence
     routes = {1.0: stats.Interval(0.85, 0.82, 0.88, 3)}
-    (x1,) = [v for v in ex.verdicts(rows, routes) if "x1," in v["claim"]]
+    (x1,) = [v for v in exr.verdicts(rows, routes) if "x1," in v["claim"]]
     assert x1["verdict"] == stats.NOT_REPRODUCIBLE_HERE and x1["evidence"].startswith("routes")
 
     s = ex.ExplorationExperimentConfig(seeds=(3, 4, 5))
-    ex.write_exploration_outputs(rows, s, tmp_path)
+    exr.write_exploration_outputs(rows, s, tmp_path)
     text = (tmp_path / "exploration_summary.md").read_text()
     assert text.splitlines()[2].startswith("| claim | paper | smana mean [95 % CI] (n) |")
     assert "WARNING" not in text
@@ -340,12 +341,12 @@ def test_exploration_verdicts_from_synthetic_rows(tmp_path):
     # two of three never reach 95 %: kept as not reached within the budget; no median
     arm = ex.nbv(2.0)
     runs = [_run(3, arm, dist=20.0)] + [_run(s, arm, reach_at=False) for s in (4, 5)]
-    (d,) = ex.summarise_exploration(runs)
+    (d,) = exr.summarise_exploration(runs)
     assert d["reached_95"] == 1 and d["km_median_distance_to_95_m"] is None
-    (d,) = ex.summarise_exploration(runs[:2] + [_run(5, arm, dist=30.0)])
+    (d,) = exr.summarise_exploration(runs[:2] + [_run(5, arm, dist=30.0)])
     assert d["km_median_distance_to_95_m"] == pytest.approx(30.0)  # 20, 30 reached; 1 not
-    assert ex.format_km(d["km_distance_to_95_m"]).startswith("30.0 [")
-    assert ex.format_km(ex.summarise_exploration(runs)[0]["km_distance_to_95_m"]) == (
+    assert exr.format_km(d["km_distance_to_95_m"]).startswith("30.0 [")
+    assert exr.format_km(exr.summarise_exploration(runs)[0]["km_distance_to_95_m"]) == (
         "not reached by half (n = 3)"
     )
     for name in ("terrain_share", "coverage_distance", "coverage_time"):

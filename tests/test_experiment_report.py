@@ -8,6 +8,7 @@ import json
 from smana.lab import experiments as exp
 from smana.lab import stats
 from smana.lab.experiments import claims, report
+from smana.lab.experiments import exploration_report as exr
 
 
 def test_the_committed_doc_is_what_the_committed_data_generates(capsys):
@@ -141,11 +142,11 @@ def test_variants_and_the_fleet_are_claims_of_their_own(tmp_path):
     carry their p into the Holm correction, its contact count stays out of it."""
     from smana.lab.experiments import exploration as ex
 
-    assert ex.data_variant(ex.ExplorationExperimentConfig()) is None
-    assert ex.data_variant(ex.ExplorationExperimentConfig(size_m=20.0)) == "garden20"
-    assert ex.data_variant(ex.ExplorationExperimentConfig.quick()) == "quick"
+    assert exr.data_variant(ex.ExplorationExperimentConfig()) is None
+    assert exr.data_variant(ex.ExplorationExperimentConfig(size_m=20.0)) == "garden20"
+    assert exr.data_variant(ex.ExplorationExperimentConfig.quick()) == "quick"
     laid = ex.ExplorationExperimentConfig(extra=('sim.garden.layout="paths"',))
-    assert ex.data_variant(laid) == "garden12paths"
+    assert exr.data_variant(laid) == "garden12paths"
     report.write_data(tmp_path, "exploration", _exploration_rows(), {"size_m": 20.0}, "garden20")
     report.write_data(tmp_path, "routes", [
         {"seed": s, "grass_cost_factor": 1.0, "terrain_share": 0.95} for s in (3, 4, 5)

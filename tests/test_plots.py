@@ -13,6 +13,7 @@ import pytest
 
 from smana.common.classes import ClassTable
 from smana.lab import paper_figures
+from smana.lab.experiments import exploration_report as exr
 
 TABLE = ClassTable.from_dict(
     {
@@ -260,7 +261,7 @@ def test_the_experiments_figures_say_n_and_draw_spread_only_with_several_runs(tm
                 }
                 runs.append(ex.make_row(seed, ex.nbv(f), 0, m, {"history": hist}, 1.0, 1.0))
         out = tmp_path / f"exploration{len(seeds)}"
-        ex.write_exploration_outputs(runs, ex.ExplorationExperimentConfig(seeds=seeds), out)
+        exr.write_exploration_outputs(runs, ex.ExplorationExperimentConfig(seeds=seeds), out)
         by_name = {p.name: fig for p, fig in saved}
         assert set(by_name) == {
             "exploration_terrain_share.png",

@@ -30,9 +30,8 @@ from .exploration import (
     ExplorationExperimentConfig,
     exploration_run,
     run_exploration,
-    summarise_exploration,
-    write_exploration_outputs,
 )
+from .exploration_report import summarise_exploration, write_exploration_outputs
 from .noise import (
     BACKENDS,
     LEVELS,

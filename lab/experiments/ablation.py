@@ -15,6 +15,7 @@ from pathlib import Path
 from smana.lab import paper_figures
 
 from . import exploration as ex
+from . import exploration_report as exr
 
 DEFAULT_WEIGHTS = (0.0, 0.5, 2.0)  # docs/experiments.md; 2 is the default weight
 
@@ -50,8 +51,8 @@ def table(rows: list[dict]) -> list[str]:
         "reached 95 % |",
         "|---|---|---|---|---|---|---|",
     ]
-    for d in ex.summarise_exploration(rows):
-        iv = {k: ex.interval_of(d[k]) for k in ("terrain_share", "distance_m", "coverage")}
+    for d in exr.summarise_exploration(rows):
+        iv = {k: exr.interval_of(d[k]) for k in ("terrain_share", "distance_m", "coverage")}
         lines.append(
             f"| {d['path_cost_weight']:g} | x{d['grass_cost_factor']:g} | {d['runs']} "
             f"({d['failed']}) | {iv['terrain_share'].format(100, unit=' %')} | "
@@ -95,7 +96,7 @@ def write_ablation_outputs(
     from .report import write_data
 
     out.mkdir(parents=True, exist_ok=True)
-    summary = ex.summarise_exploration(rows)
+    summary = exr.summarise_exploration(rows)
     (out / "ablation_results.json").write_text(
         json.dumps({"settings": asdict(s), "runs": rows, "summary": summary}, indent=2)
     )
@@ -126,13 +127,13 @@ def write_ablation_outputs(
         ("coverage", "coverage", 1.0),
         ("distance_m", "distance / 100 m", 0.01),
     ):
-        cis = [ex.interval_of(d[key]) for d in summary]
+        cis = [exr.interval_of(d[key]) for d in summary]
         err = None
         if all(c.defined for c in cis):
             err = ([scale * (c.mean - c.lo) for c in cis], [scale * (c.hi - c.mean) for c in cis])
         ys = [None if c.n == 0 else scale * c.mean for c in cis]
         series.append(paper_figures.Series(label, list(range(len(weights))), ys, err))
-    ns = sorted({ex.interval_of(d["terrain_share"]).n for d in summary})
+    ns = sorted({exr.interval_of(d["terrain_share"]).n for d in summary})
     path = paper_figures.save(
         paper_figures.line_plot(
             series,

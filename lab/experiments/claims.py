@@ -46,7 +46,8 @@ def _where(key: str, data: dict) -> str:
 
 
 def _exploration_claims(key: str, data: dict, all_data: dict[str, dict]) -> list[dict]:
-    from .exploration import ExplorationExperimentConfig, verdicts
+    from .exploration import ExplorationExperimentConfig
+    from .exploration_report import verdicts
 
     rows = [{**r, "ok": bool(r.get("ok"))} for r in data["rows"]]
     # the routes are computed in the experiments' 12 m garden, of the layout the run chose: they

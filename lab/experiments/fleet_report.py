@@ -13,6 +13,7 @@ from pathlib import Path
 from smana.lab import paper_figures, stats, survival
 
 from . import exploration as ex
+from . import exploration_report as exr
 from .fleet import (
     COVERAGE_TARGET,
     LARGE_GARDEN,
@@ -64,11 +65,11 @@ def _runs(rows: list[dict], world: str, n: int) -> dict[int, dict]:
 
 
 def _to_event(runs: list[dict], key: str, horizon: float) -> tuple[list[float], list[bool]]:
-    return ex.to_event(runs, key, horizon, failed)
+    return exr.to_event(runs, key, horizon, failed)
 
 
 def _km(runs: list[dict], key: str, horizon: float) -> dict:
-    return ex.km_summary(runs, key, horizon, failed)
+    return exr.km_summary(runs, key, horizon, failed)
 
 
 def summarise_fleet(rows: list[dict], budgets: dict[str, float] | None = None) -> list[dict]:
@@ -366,7 +367,7 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
         "",
         *summary_table(summary),
         "",
-        ex.TO_95_NOTE + " A run that smana up ended FAILED on what its robots did counts as "
+        exr.TO_95_NOTE + " A run that smana up ended FAILED on what its robots did counts as "
         "not reached; the distance is every member's, added; the log-rank test is two-sided, "
         "with the side the data lean to.",
         "",
@@ -378,10 +379,11 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
         t95 = "not reached" if r["time_to_95_s"] is None else f"{r['time_to_95_s']:.0f}"
         lines.append(
             f"| {run_name(r['seed'], r['world'], r['n_robots'])} | {r['exit_code']} | "
-            f"{ex.fmt_pct(r['coverage'])} | {t95} | {ex.fmt_num(r['distance_to_95_m'])} | "
-            f"{ex.fmt_pct(r['overlap'])} | {_int(r['robot_contacts'])} | "
-            f"{ex.fmt_num(r['min_separation_m'], '.2f')} | {ex.fmt_num(r['wall_time_s'], '.0f')} | "
-            f"{ex.fmt_num(r['cpu_s'], '.0f')} |"
+            f"{exr.fmt_pct(r['coverage'])} | {t95} | {exr.fmt_num(r['distance_to_95_m'])} | "
+            f"{exr.fmt_pct(r['overlap'])} | {_int(r['robot_contacts'])} | "
+            f"{exr.fmt_num(r['min_separation_m'], '.2f')} | "
+            f"{exr.fmt_num(r['wall_time_s'], '.0f')} | "
+            f"{exr.fmt_num(r['cpu_s'], '.0f')} |"
         )
     lines += [""] + [f"![{p.stem}]({p.name})" for p in figures] + [""]
     (out / "fleet.md").write_text("\n".join(lines))
@@ -390,7 +392,7 @@ def write_fleet_outputs(rows: list[dict], s: FleetExperimentConfig, out: Path) -
 
 SUMMARY_HEAD = (
     "| world | robots | runs (FAILED; missing) | "
-    + ex.TO_95_HEAD
+    + exr.TO_95_HEAD
     + " | against one robot, time to 95 % | coverage | overlap | map error (m) | "
     "classification ratio |"
 )
@@ -401,10 +403,10 @@ def summary_table(summary: list[dict]) -> list[str]:
     to an event, the log-rank test against one robot, and intervals over the measured runs."""
     lines = [SUMMARY_HEAD, "|" + "---|" * SUMMARY_HEAD.count(" | ") + "---|"]
     for d in summary:
-        iv = {k: ex.interval_of(d[k]) for k in SUMMARY_KEYS}
+        iv = {k: exr.interval_of(d[k]) for k in SUMMARY_KEYS}
         lines.append(
             f"| {d['world']} | {d['n_robots']} | {d['runs']} ({d['run_failed']}; "
-            f"{d['failed']}) | {ex.to_95_cells(d)} | {d['logrank_text'] or '-'} | "
+            f"{d['failed']}) | {exr.to_95_cells(d)} | {d['logrank_text'] or '-'} | "
             f"{iv['coverage'].format(100, unit=' %')} | {iv['overlap'].format(100, unit=' %')} | "
             f"{iv['map_error_m'].format(fmt='.3f')} | "
             f"{iv['classification_ratio'].format(fmt='.3f')} |"
@@ -423,7 +425,7 @@ def _figures(rows: list[dict], out: Path) -> list[Path]:
         curves = []
         for n in sorted({r["n_robots"] for r in rows if r["world"] == world}):
             sel = [r for r in rows if r["world"] == world and r["n_robots"] == n]
-            c = ex.mean_curve(sel, "t_s")
+            c = exr.mean_curve(sel, "t_s")
             if c is not None:
                 k = sum(1 for r in sel if r["ok"] and len(r["curve"]["t_s"]) >= 2)
                 curves.append((f"{n} robot{'s' * (n > 1)} (n = {k})", *c))

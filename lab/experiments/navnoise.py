@@ -56,6 +56,7 @@ from pathlib import Path
 from smana.lab import paper_figures, stats
 
 from . import exploration as ex
+from . import exploration_report as exr
 from .noise import POSE_NOISE
 
 GRASS_COST_FACTOR = 4.0
@@ -473,10 +474,11 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
     for r in rows:
         lines.append(
             f"| {ex.run_name(r['seed'], _BY_NAME[r['arm']].arm())} | {r['exit_code']} | "
-            f"{r['trajectory_source'] or '-'} | {ex.fmt_pct(r['terrain_share_true'])} | "
-            f"{ex.fmt_pct(r['terrain_share_map'])} | {ex.fmt_pct(r['coverage'])} | "
-            f"{ex.fmt_num(r['distance_m'])} | {'-' if r['collisions'] is None else r['collisions']}"
-            f" | {ex.fmt_num(r['wall_time_s'], '.0f')} | {r['run_warnings'] or '-'} |"
+            f"{r['trajectory_source'] or '-'} | {exr.fmt_pct(r['terrain_share_true'])} | "
+            f"{exr.fmt_pct(r['terrain_share_map'])} | {exr.fmt_pct(r['coverage'])} | "
+            f"{exr.fmt_num(r['distance_m'])} | "
+            f"{'-' if r['collisions'] is None else r['collisions']}"
+            f" | {exr.fmt_num(r['wall_time_s'], '.0f')} | {r['run_warnings'] or '-'} |"
         )
     if figure is not None:
         lines += ["", f"![{figure.stem}]({figure.name})"]

@@ -179,7 +179,7 @@ def exploration_section(all_data: dict[str, dict]) -> str:
     intervals over seeds, and the distance and time to 95 % as times to an event: how many
     runs reached it, the Kaplan-Meier medians and the restricted mean time up to the budget
     (runs that did not reach it censored, never dropped: exploration.py `time_to_event`)."""
-    from .exploration import (
+    from .exploration_report import (
         TO_95_HEAD,
         TO_95_NOTE,
         interval_of,
@@ -226,7 +226,7 @@ def fleet_section(all_data: dict[str, dict]) -> str:
     (runs that did not reach it censored at the budget, FAILED runs counted as not reached),
     the log-rank test against one robot, and intervals over seeds of coverage, overlap and the
     merged map's scores."""
-    from .exploration import TO_95_NOTE
+    from .exploration_report import TO_95_NOTE
     from .fleet import measured
     from .fleet_report import budgets_of, summarise_fleet, summary_table
 

@@ -61,6 +61,7 @@ import numpy as np
 from smana.lab import stats
 
 from . import exploration as ex
+from . import exploration_report as exr
 from .noise import POSE_NOISE
 
 WATER_SHARE = 0.1  # of the garden seen from above (services/sim/worlds/water.py)
@@ -492,10 +493,10 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
         lines.append(
             f"| {ex.run_name(r['seed'], _BY_NAME[r['arm']].arm())} | {r['exit_code']} | "
             f"{'-' if r['forbidden_entries'] is None else r['forbidden_entries']} | "
-            f"{ex.fmt_num(r['forbidden_time_s'])} | {ex.fmt_num(r['length_m'])} | "
-            f"{ex.fmt_pct(r['coverage'])} | "
+            f"{exr.fmt_num(r['forbidden_time_s'])} | {exr.fmt_num(r['length_m'])} | "
+            f"{exr.fmt_pct(r['coverage'])} | "
             f"{'-' if r['collisions'] is None else r['collisions']} | "
-            f"{ex.fmt_num(r['wall_time_s'], '.0f')} | {r['run_warnings'] or '-'} |"
+            f"{exr.fmt_num(r['wall_time_s'], '.0f')} | {r['run_warnings'] or '-'} |"
         )
     (out / "risk_summary.md").write_text("\n".join(lines) + "\n")
     print("\n".join(verdict_lines))

@@ -13,6 +13,7 @@ from pathlib import Path
 from smana.lab import paper_figures, stats
 
 from . import exploration as ex
+from . import exploration_report as exr
 from . import rules
 from .robustness import (
     CLEAN,
@@ -349,11 +350,12 @@ def write_outputs(rows: list[dict], s: ex.ExplorationExperimentConfig, out: Path
     for r in rows:
         lines.append(
             f"| seed{r['seed']}_{r['arm']} | {r['exit_code']} | {r.get('done_reason') or '-'} | "
-            f"{ex.fmt_pct(r.get('usable_share'))} | {ex.fmt_pct(r.get('false_obstacle_share'))} | "
-            f"{_pct2(r.get('false_free_share'))} | {ex.fmt_num(r.get('distance_m'))} | "
-            f"{ex.fmt_num(r.get('time_to_90_s'), '.0f')} | "
+            f"{exr.fmt_pct(r.get('usable_share'))} | "
+            f"{exr.fmt_pct(r.get('false_obstacle_share'))} | "
+            f"{_pct2(r.get('false_free_share'))} | {exr.fmt_num(r.get('distance_m'))} | "
+            f"{exr.fmt_num(r.get('time_to_90_s'), '.0f')} | "
             f"{'-' if r.get('collisions') is None else r['collisions']} | "
-            f"{ex.fmt_num(r.get('wall_time_s'), '.0f')} | {r.get('run_warnings') or '-'} |"
+            f"{exr.fmt_num(r.get('wall_time_s'), '.0f')} | {r.get('run_warnings') or '-'} |"
         )
     if fig is not None:
         lines += ["", f"![{fig.stem}]({fig.name})"]
