@@ -123,7 +123,7 @@ def _noise_rows(losses, added):
 
 
 def test_noise_claims_are_decided_by_intervals_over_seeds():
-    from smana.lab.experiments import noise
+    from smana.lab.experiments import noise_report as noise
 
     losses = [(0.10, 0.31), (0.12, 0.29), (0.11, 0.30), (0.105, 0.305)]
     added = [(0.002, 0.010), (0.003, 0.012), (0.001, 0.011), (0.002, 0.013)]
@@ -450,7 +450,7 @@ def test_noise_backend_variants_and_sweeps():
         ("pose", "high", "none", "high"),
     ]
     assert [c[1] for c in noise._configs(noise.LEVELS, ("label",))] == list(noise.LEVELS)
-    order = sorted(["tsdf@min_weight=2", "octree-max", "tsdf"], key=noise._order)
+    order = sorted(["tsdf@min_weight=2", "octree-max", "tsdf"], key=noise.backend_order)
     assert order == ["octree-max", "tsdf", "tsdf@min_weight=2"]
 
 

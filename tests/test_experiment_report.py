@@ -236,7 +236,7 @@ def _noise_rows(seeds=(3, 4, 5), backends=("octree-max", "tsdf@min_weight=0.0001
 
 
 def test_noise_section_is_the_data_per_sweep_back_end_and_level():
-    from smana.lab.experiments import noise
+    from smana.lab.experiments import noise_report as noise
 
     rows = _noise_rows()
     meta = {"command": "smana experiment noise --sweeps label,pose", "wall_s": 491.0,

@@ -39,10 +39,9 @@ from .noise import (
     POSE_NOISE,
     NoiseExperimentConfig,
     fixed_trajectory,
-    label_losses,
     run_noise,
-    write_noise_outputs,
 )
+from .noise_report import label_losses, write_noise_outputs
 
 __all__ = [
     "BACKENDS",

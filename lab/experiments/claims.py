@@ -26,7 +26,7 @@ def layout_routes(all_data: dict[str, dict], exploration: dict) -> dict | None:
 
 
 def _noise_claims(data: dict) -> list[dict]:
-    from .noise import claims
+    from .noise_report import claims
 
     out = []
     for c in claims(data["rows"]):

@@ -289,7 +289,7 @@ def robustness_section(data: dict | None) -> str:
 
 
 def noise_section(data: dict | None, key: str = "noise") -> str:
-    from .noise import section
+    from .noise_report import section
 
     return section(data, key)
 
