@@ -341,9 +341,13 @@ def _hostile_values(msg: m.Message, d: Draw, ctx: Context, rng: np.random.Genera
             msg.position = _far(rng, 3)
         elif k < 5:
             q = rng.normal(size=4)
-            msg.orientation_xyzw = q / np.linalg.norm(q) * d.choice((0.9, 1.1, 0.9000001))
-        else:
-            msg.position = msg.position + rng.normal(0, d.choice((0.5, 5.0, 50.0)), 3)
+            # at the codec's bounds (0.9 .. 1.1), a hair inside: a norm of exactly 0.9 comes out
+            # of the division a rounding error under it about one time in three
+            edge = d.choice((0.9 + 1e-9, 1.1 - 1e-9, 0.9000001))
+            msg.orientation_xyzw = q / np.linalg.norm(q) * edge
+        else:  # within the limit still: a pose moved to its edge before may be moved again
+            moved = msg.position + rng.normal(0, d.choice((0.5, 5.0, 50.0)), 3)
+            msg.position = np.clip(moved, -COORD_LIMIT_M, COORD_LIMIT_M)
     elif isinstance(msg, m.SemanticCloud):
         n = len(msg.points)
         if k == 0:

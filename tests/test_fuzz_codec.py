@@ -219,3 +219,15 @@ def test_class_costs_must_be_finite_numbers_by_class_id(costs):
     raw = fuzz.wire(m.PathRequest(start=np.zeros(2), goal=np.ones(2)))
     raw["class_costs"] = costs
     assert fuzz.predict(fuzz.pack(raw), m.PathRequest) in ("value", "nonfinite")
+
+
+def test_a_hostile_pose_stays_within_the_coordinate_limit():
+    """A hostile pose may be moved twice (to the limit's edge, then by noise), and its
+    quaternion is scaled to the codec's bounds: it stays a pose the codec accepts, as every
+    hostile message must be (3000 seeded draws; each once failed in some of them)."""
+    from smana.lab.fuzz_values import RandomDraw
+
+    for seed in range(3000):
+        msg = fuzz.hostile(m.Pose, RandomDraw(seed), CTX)
+        assert np.abs(msg.position).max() <= m.COORD_LIMIT_M, seed
+        decode(encode(msg), m.Pose)
