@@ -174,10 +174,44 @@ def open_session(source, listen_hint: str = LISTEN_HINT):
     import zenoh
 
     conf = make_zenoh_config(source) if isinstance(source, ZenohConfig) else source
+    taken = taken_listen_endpoint(conf)
+    if taken is not None:
+        # said before zenoh starts: a session that fails to open on a taken port can abort
+        # the process from its runtime's threads ("terminate called ...", status -6)
+        raise SessionError(
+            explain_open_error(f"{_address(taken)} already in use", conf, listen_hint)
+        )
     try:
         return zenoh.open(conf)
     except zenoh.ZError as exc:
         raise SessionError(explain_open_error(str(exc), conf, listen_hint)) from exc
+
+
+def taken_listen_endpoint(conf) -> str | None:
+    """The first TCP listen endpoint of `conf` whose port another socket holds on this machine
+    (a bind on it fails with "address in use"), None when every one is free. Other errors of a
+    bind (no such address, no permission) are left to zenoh, which names them."""
+    import errno
+    import socket
+
+    for ep in _get(conf, "listen/endpoints") or []:
+        if not ep.startswith("tcp/"):
+            continue
+        host, sep, port = _address(ep).rpartition(":")
+        if not (sep and port.isdigit()) or int(port) == 0:
+            continue
+        host = host.strip("[]")
+        family = socket.AF_INET6 if ":" in host else socket.AF_INET
+        with socket.socket(family, socket.SOCK_STREAM) as sock:
+            # as a listener binds (zenoh's does): a port a closed socket left in TIME_WAIT is
+            # free, one another socket listens on is not
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                sock.bind((host, int(port)))
+            except OSError as exc:
+                if exc.errno == errno.EADDRINUSE:
+                    return ep
+    return None
 
 
 def explain_open_error(text: str, conf, listen_hint: str = LISTEN_HINT) -> str:

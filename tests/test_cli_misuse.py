@@ -480,3 +480,26 @@ def test_explain_open_error_for_messages_not_easily_provoked():
         "127.0.0.1:7448. Invalid TLS private key file: No such file or directory "
         "(os error 2)"
     )
+
+
+def test_a_taken_listen_port_is_found_before_zenoh_opens(taken_port):
+    """The taken port is found by a bind of our own, before zenoh starts a runtime whose threads
+    can abort the process; a free port and other protocols pass to zenoh."""
+    import json
+
+    import zenoh
+
+    from smana.common.zenoh_config import taken_listen_endpoint
+
+    def conf(*endpoints):
+        c = zenoh.Config()
+        c.insert_json5("listen/endpoints", json.dumps(list(endpoints)))
+        return c
+
+    taken = f"tcp/127.0.0.1:{taken_port}"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        free = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    assert taken_listen_endpoint(conf(free, taken)) == taken
+    assert taken_listen_endpoint(conf(free)) is None
+    assert taken_listen_endpoint(conf(f"udp/127.0.0.1:{taken_port}", "tcp/127.0.0.1:0")) is None
