@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from smana.lab import experiments as exp
 from smana.lab import stats
 from smana.lab.experiments import claims, report
@@ -406,3 +408,29 @@ def test_data_records_its_rules_file_and_the_report_refuses_it_once_they_change(
     # data made before rules files records none, and passes
     assert rules.problems({"noise": {"meta": {}}}, rules_dir) == []
     assert "records no rules file" in rules.line({"meta": {}})
+
+
+def test_a_confirmation_of_the_robustness_rules_is_a_data_file_with_its_own_section(tmp_path):
+    """`robustness_<variant>.json` (a run on other seeds) gets its own generated section and its
+    own rows of verdicts; the doc must have a place for it."""
+    data = tmp_path / "data"
+    data.mkdir()
+    committed = (report.DATA_DIR / "robustness.json").read_text()
+    (data / "robustness.json").write_text(committed)
+    (data / "robustness_confirm.json").write_text(committed)
+    all_data = report.load_data(data)
+    doc = "".join(
+        f"<!-- generated: {k} -->\nold\n<!-- end generated: {k} -->\n"
+        for k in ("verdicts", "robustness", "robustness_confirm")
+    )
+    text, changed = report.regenerate(doc, all_data)
+    assert "Generated from docs/experiments/data/robustness_confirm.json" in text
+    assert "| robustness (confirm): octree-max at high label noise" in text
+    assert set(changed) == {"verdicts", "robustness", "robustness_confirm"}
+    with pytest.raises(ValueError, match="robustness_confirm.json"):
+        report.regenerate(doc.split("<!-- generated: robustness_confirm")[0], all_data)
+    # a place for a confirmation not committed yet says so
+    text, _ = report.regenerate(
+        "<!-- generated: robustness_later -->\n<!-- end generated: robustness_later -->\n", {}
+    )
+    assert "docs/experiments/data/robustness_later.json" in text

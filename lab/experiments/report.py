@@ -51,6 +51,7 @@ EXPERIMENTS = (
 # the noise experiment's tables are one section per data file, each where its prose is: `noise`
 # for noise.json, `noise_<variant>` for noise_<variant>.json
 NOISE_SECTION = re.compile(r"noise(_[a-z0-9]+)?")
+ROBUSTNESS_SECTION = re.compile(r"robustness_[a-z0-9]+")  # robustness.json's is `robustness`
 SECTION = re.compile(
     r"(<!-- generated: (?P<name>[a-z0-9_]+) -->\n)(?P<body>.*?)(<!-- end generated: (?P=name) -->)",
     re.S,
@@ -282,10 +283,10 @@ def risk_section(data: dict | None) -> str:
     return section(data)
 
 
-def robustness_section(data: dict | None) -> str:
+def robustness_section(data: dict | None, key: str = "robustness") -> str:
     from .robustness_report import section
 
-    return section(data)
+    return section(data, key)
 
 
 def noise_section(data: dict | None, key: str = "noise") -> str:
@@ -319,6 +320,8 @@ def sections(all_data: dict[str, dict]) -> dict[str, str]:
     for key, data in all_data.items():
         if data["experiment"] == "noise":
             made[key] = noise_section(data, key)
+        elif data["experiment"] == "robustness" and key != "robustness":
+            made[key] = robustness_section(data, key)  # a confirmation on other seeds, ...
     return made
 
 
@@ -335,6 +338,8 @@ def regenerate(doc_text: str, all_data: dict[str, dict]) -> tuple[str, list[str]
         name = m.group("name")
         if name not in made and NOISE_SECTION.fullmatch(name):
             made[name] = noise_section(None, name)
+        if name not in made and ROBUSTNESS_SECTION.fullmatch(name):
+            made[name] = robustness_section(None, name)
         if name not in made:
             raise ValueError(f"unknown generated section {name!r}; known: {', '.join(made)}")
         seen.add(name)
@@ -343,7 +348,8 @@ def regenerate(doc_text: str, all_data: dict[str, dict]) -> tuple[str, list[str]
         return m.group(1) + made[name] + m.group(4)
 
     text = SECTION.sub(sub, doc_text)
-    lost = [k for k, d in all_data.items() if d["experiment"] == "noise" and k not in seen]
+    own = ("noise", "robustness")  # a variant's data file has its own section
+    lost = [k for k, d in all_data.items() if d["experiment"] in own and k not in seen]
     if lost:
         raise ValueError(
             f"no generated section for {', '.join(f'{k}.json' for k in lost)} in the doc "

@@ -211,13 +211,14 @@ def setting(meta: dict) -> str:
     )
 
 
-def section(data: dict | None) -> str:
-    """docs/experiments.md's generated `robustness` section from the committed data (or a line
-    saying there is none)."""
+def section(data: dict | None, key: str = "robustness") -> str:
+    """docs/experiments.md's generated section `key` from the committed data file `<key>.json`
+    (`robustness`, or a variant such as a confirmation on other seeds), or a line saying there
+    is none."""
     if data is None:
         return (
             "_No raw results of `smana experiment robustness` are committed yet "
-            "(docs/experiments/data/robustness.json): the experiment has not been run, and "
+            f"(docs/experiments/data/{key}.json): the experiment has not been run, and "
             "nothing is reported here._\n"
         )
     rows = data["rows"]
@@ -225,7 +226,7 @@ def section(data: dict | None) -> str:
     if (data.get("meta") or {}).get("is_quick"):
         lines += ["**A quick run's data** (`--quick`): it tests the tooling, not the question.", ""]
     lines += [
-        "Generated from docs/experiments/data/robustness.json ("
+        f"Generated from docs/experiments/data/{key}.json ("
         + setting(data.get("meta") or {})
         + "; mean [95 % CI] (n) over the measured runs, a robot that did not move with its "
         "measured values; shares of the reachable area; collisions added over the runs; the "
