@@ -17,8 +17,12 @@ def test_the_committed_doc_is_what_the_committed_data_generates(capsys):
     assert exp.cli(["report", "--check"]) == 0, capsys.readouterr().out
     text = report.DOC.read_text()
     names = [m.group("name") for m in report.SECTION.finditer(text)]
-    # every section is in the doc, once: the fixed ones and one per noise data file
-    assert sorted(names) == sorted(report.sections(report.load_data(report.DATA_DIR)))
+    # every section is in the doc, once: the fixed ones and one per noise or robustness data
+    # file; besides them only the place of a variant whose data is still to come
+    made = report.sections(report.load_data(report.DATA_DIR))
+    assert len(names) == len(set(names)) and set(made) <= set(names)
+    waiting = set(names) - set(made)
+    assert all(report.ROBUSTNESS_SECTION.fullmatch(n) for n in waiting), waiting
 
 
 def _doc(tmp_path):

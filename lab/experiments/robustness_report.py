@@ -218,8 +218,7 @@ def section(data: dict | None, key: str = "robustness") -> str:
     if data is None:
         return (
             "_No raw results of `smana experiment robustness` are committed yet "
-            f"(docs/experiments/data/{key}.json): the experiment has not been run, and "
-            "nothing is reported here._\n"
+            f"(docs/experiments/data/{key}.json): nothing is reported here until they are._\n"
         )
     rows = data["rows"]
     lines = []
