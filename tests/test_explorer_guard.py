@@ -169,3 +169,21 @@ def test_the_report_counts_what_the_guard_did():
     assert row in render_markdown(m).splitlines()
     m["explorer"]["guard"] = dict(guard, scans=0, slowed=0, stopped=0, unguarded=50)
     assert "no safety scan: not guarded" in render_markdown(m)
+
+
+def test_cells_match_a_unique_of_rows_and_scans_kept_together_count_once():
+    from smana.services.explorer.guard import CELL_M, cells
+
+    rng = np.random.default_rng(3)
+    for scale in (1e-3, 1.0, 1e3, 1e6):
+        xy = rng.uniform(-1, 1, (400, 2)) * scale
+        want = np.unique(np.round(xy / CELL_M), axis=0) * CELL_M
+        got = cells(xy)
+        order = np.lexsort((got[:, 1], got[:, 0]))
+        np.testing.assert_allclose(got[order], want, atol=1e-9)
+    g = Guard()
+    for k in range(10):  # the same wall in ten scans
+        g.add(wall_scan(1.0), (0.0, 0.0, 0.0), t=0.1 * k)
+    assert len(g.points_near(0.0, 0.0)) == len(cells(wall_scan(1.0)[:, :2]))
+    # only what the footprint can reach within the horizon is asked for
+    assert len(g.points_near(0.0, 0.0, 0.5)) == 0

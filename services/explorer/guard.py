@@ -57,6 +57,18 @@ def clearance(points: np.ndarray, poses: np.ndarray, rects: np.ndarray) -> np.nd
     return (outside + inside).min(axis=(1, 2))
 
 
+def cells(xy: np.ndarray) -> np.ndarray:
+    """One point (K, 2) per occupied cell of CELL_M, at the cell's centre: the points' cells as
+    one integer key each, made unique (a lexicographic unique of rows costs ten times more).
+    Cells within 2**30 of the origin an axis (32,000 km at 3 cm)."""
+    if len(xy) == 0:
+        return np.zeros((0, 2))
+    ij = np.round(np.asarray(xy, float) / CELL_M).astype(np.int64) + 2**30
+    keys = np.unique((ij[:, 0] << 31) | ij[:, 1])
+    i, j = (keys >> 31) - 2**30, (keys & (2**31 - 1)) - 2**30
+    return np.column_stack([i, j]).astype(float) * CELL_M
+
+
 def rollout(x: float, y: float, yaw: float, v: float, w: float, horizon_s: float) -> np.ndarray:
     """Poses (STEPS + 1, 3) of a unicycle following (v, w) from (x, y, yaw), now included."""
     t = np.linspace(0.0, horizon_s, STEPS + 1)
@@ -83,6 +95,8 @@ class Guard:
         self.stopped = 0  # commands that became a stop
         self.unguarded = 0  # commands that went out with no fresh scan to check them against
         self.min_clearance_m = math.inf  # the least clearance the robot had while moving
+        # no point farther than this from the base frame's origin touches the footprint
+        self._reach_m = float(np.max(np.hypot(*(np.abs(self.rects[:, :2]) + self.rects[:, 2:]).T)))
 
     # -- the scan ------------------------------------------------------------------------------
 
@@ -94,9 +108,7 @@ class Guard:
         p = np.asarray(points_base, float).reshape(-1, 3)
         keep = (p[:, 2] >= cfg.z_min_m) & (p[:, 2] <= cfg.z_max_m)
         keep &= np.hypot(p[:, 0], p[:, 1]) <= cfg.range_m + cfg.horizon_s * 1.0
-        xy = p[keep, :2]
-        if len(xy):
-            xy = np.unique(np.round(xy / CELL_M), axis=0) * CELL_M
+        xy = cells(p[keep, :2])
         x, y, yaw = pose
         c, s = math.cos(yaw), math.sin(yaw)
         world = np.column_stack([x + c * xy[:, 0] - s * xy[:, 1], y + s * xy[:, 0] + c * xy[:, 1]])
@@ -106,12 +118,14 @@ class Guard:
         while self._scans and self._scans[0][0] < self.t_scan - cfg.memory_s:
             self._scans.popleft()
 
-    def points_near(self, x: float, y: float) -> np.ndarray:
-        """The kept points (K, 2) within `range_m` of (x, y)."""
+    def points_near(self, x: float, y: float, radius_m: float | None = None) -> np.ndarray:
+        """The kept points (K, 2) within `radius_m` (default `range_m`) of (x, y), one per cell
+        of CELL_M: a wall seen by fifteen scans is one wall."""
         if not self._scans:
             return np.zeros((0, 2))
-        pts = np.concatenate([w for _, w in self._scans])
-        return pts[np.hypot(pts[:, 0] - x, pts[:, 1] - y) <= self.config.range_m]
+        r = self.config.range_m if radius_m is None else min(radius_m, self.config.range_m)
+        near = [w[np.hypot(w[:, 0] - x, w[:, 1] - y) <= r] for _, w in self._scans]
+        return cells(np.concatenate(near))
 
     def fresh(self, t: float) -> bool:
         return t - self.t_scan <= self.config.stale_s
@@ -131,7 +145,10 @@ class Guard:
             self.unguarded += 1
             return v, w
         x, y, yaw = pose
-        pts = self.points_near(x, y)
+        # only points the footprint can come within the margin of in the horizon count: with
+        # none, the command passes whatever is farther
+        reach = self._reach_m + abs(v) * cfg.horizon_s + cfg.margin_m + CELL_M
+        pts = self.points_near(x, y, reach)
         if len(pts) == 0:
             return v, w
         now = float(clearance(pts, np.array([[x, y, yaw]]), self.rects)[0])
