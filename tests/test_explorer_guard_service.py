@@ -21,10 +21,7 @@ class ScannedRobot(StubRobot):
     """The stub robot with a safety scanner: the wall x = WALL_X, in its base frame, with every
     pose."""
 
-    def run(self):
-        self.scan_seq = 0
-        self.max_x = self.x
-        super().run()
+    scan_seq = 0
 
     def publish_scan(self):
         ys = np.arange(-3.0, 3.0, 0.03)

@@ -107,6 +107,8 @@ class Guard:
         cfg = self.config
         p = np.asarray(points_base, float).reshape(-1, 3)
         keep = (p[:, 2] >= cfg.z_min_m) & (p[:, 2] <= cfg.z_max_m)
+        # past range_m by what a robot at 1 m/s closes in the horizon: a point kept now may be
+        # within range of a later check
         keep &= np.hypot(p[:, 0], p[:, 1]) <= cfg.range_m + cfg.horizon_s * 1.0
         xy = cells(p[keep, :2])
         x, y, yaw = pose

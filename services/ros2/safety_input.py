@@ -21,6 +21,7 @@ from smana.common.plausibility import StampGate
 from smana.common.service import Reject
 
 from . import convert
+from .bridge import plausible_stamp
 
 LASER = "sensor_msgs/msg/LaserScan"
 MAX_BEAMS = 100_000  # more beams in one scan than any scanner sends: refused
@@ -55,9 +56,7 @@ class SafetyScanInput:
 
     def convert(self, msg) -> SemanticCloud:
         t = convert.stamp_s(msg.header)
-        when = self.stamps.check(t)
-        if not when.ok:
-            raise Reject(when.kind, f"LaserScan at {t:.3f} s: {when.reason}")
+        plausible_stamp(self.stamps, t, f"LaserScan at {t:.3f} s")
         frame = msg.header.frame_id.lstrip("/")
         on_robot = self.cloud_input.sensor_on_robot(frame)
         if on_robot is None:

@@ -87,9 +87,10 @@ class SimService(Service):
         self.lag_resets = 0
         self.lockstep_timeouts = 0
         self.commands = 0
-        self.camera_ms: list[float] = []
-        self.lidar_ms: list[float] = []
-        self.safety_ms: list[float] = []
+        # the latest timings only, for the status: a run of hours keeps no history of them
+        self.camera_ms: collections.deque[float] = collections.deque(maxlen=50)
+        self.lidar_ms: collections.deque[float] = collections.deque(maxlen=20)
+        self.safety_ms: collections.deque[float] = collections.deque(maxlen=20)
         self.achieved_rtf = 0.0
         self._worker = self._finish = None
         self._in_flight: collections.deque[tuple[Future, float, MemberStreams]] = (
@@ -400,10 +401,10 @@ class SimService(Service):
             "real_time_factor": round(self.achieved_rtf, 3),
             "real_time_factor_target": self.sc.real_time_factor,
             "camera_frames": sim.camera_frames,
-            "camera_latency_ms_mean": _mean(self.camera_ms[-50:]),
+            "camera_latency_ms_mean": _mean(self.camera_ms),
             "lidar_scans": sim.lidar_scans,
-            "lidar_ms_mean": _mean(self.lidar_ms[-20:]),
-            "safety_scan_ms_mean": _mean(self.safety_ms[-20:]),
+            "lidar_ms_mean": _mean(self.lidar_ms),
+            "safety_scan_ms_mean": _mean(self.safety_ms),
             "commands": first.commands,
             "stopped_no_command": sim.robot.timed_out,
             "lag_resets": self.lag_resets,
@@ -428,7 +429,7 @@ def _next(scheduled: float, period: float, now: float) -> float:
     return nxt if nxt > now else now + period
 
 
-def _mean(xs: list[float]) -> float | None:
+def _mean(xs: collections.deque[float]) -> float | None:
     return round(sum(xs) / len(xs), 1) if xs else None
 
 
